@@ -1,0 +1,118 @@
+#include "tests/test_support.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cstdlib>
+#include <filesystem>
+#include <mutex>
+#include <opencv2/imgcodecs.hpp>
+#include <random>
+
+namespace fs = std::filesystem;
+
+namespace placedb::testing {
+
+std::string SharedDir() {
+  if (const char* env = std::getenv("PLACEDB_SHARED_DIR")) return env;
+  return PLACEDB_SHARED_DIR;
+}
+
+bool HaveSharedData() {
+  return fs::is_directory(SharedDir() + "/data");
+}
+
+namespace {
+std::vector<std::string>& TempDirs() {
+  static std::vector<std::string> dirs;
+  return dirs;
+}
+void RemoveTempDirs() {
+  for (const auto& dir : TempDirs()) {
+    std::error_code ec;
+    fs::remove_all(dir, ec);
+  }
+}
+}  // namespace
+
+std::string MakeTempDir(const std::string& prefix) {
+  static std::once_flag once;
+  std::call_once(once, [] { std::atexit(RemoveTempDirs); });
+  std::string pattern = (fs::temp_directory_path() / (prefix + "-XXXXXX")).string();
+  std::vector<char> buffer(pattern.begin(), pattern.end());
+  buffer.push_back('\0');
+  char* made = mkdtemp(buffer.data());
+  EXPECT_NE(made, nullptr) << "mkdtemp " << pattern;
+  std::string dir = made ? made : pattern;
+  TempDirs().push_back(dir);
+  return dir;
+}
+
+cv::Mat ReadGray(const std::string& path) {
+  cv::Mat image = cv::imread(path, cv::IMREAD_GRAYSCALE);
+  EXPECT_FALSE(image.empty()) << "cannot read " << path;
+  return image;
+}
+
+std::vector<CamVidFrame> CamVidFrames() {
+  std::vector<CamVidFrame> frames;
+  const std::string root = SharedDir() + "/data/camvid";
+  if (!fs::is_directory(root + "/images")) return frames;
+  for (const auto& entry : fs::directory_iterator(root + "/images")) {
+    const std::string stem = entry.path().stem().string();  // SEQ_FRAME
+    const auto underscore = stem.rfind('_');
+    if (entry.path().extension() != ".jpg" || underscore == std::string::npos) continue;
+    CamVidFrame frame;
+    frame.sequence = stem.substr(0, underscore);
+    frame.frame = std::stoi(stem.substr(underscore + 1));
+    frame.image_path = entry.path().string();
+    frame.label_path = root + "/labels/" + stem + ".png";
+    frames.push_back(frame);
+  }
+  std::sort(frames.begin(), frames.end(), [](const CamVidFrame& a, const CamVidFrame& b) {
+    return std::tie(a.sequence, a.frame) < std::tie(b.sequence, b.frame);
+  });
+  return frames;
+}
+
+cv::Mat CamVidDynamicMask(const CamVidFrame& frame) {
+  cv::Mat labels = cv::imread(frame.label_path, cv::IMREAD_GRAYSCALE);
+  EXPECT_FALSE(labels.empty()) << "cannot read " << frame.label_path;
+  cv::Mat mask = (labels == 8) | (labels == 9) | (labels == 10);
+  return mask;
+}
+
+std::string RtabmapFramePath(int frame) {
+  return SharedDir() + "/data/rtabmap-loop/" + std::to_string(frame) + ".jpg";
+}
+
+cv::Mat RtabmapGroundTruth() {
+  cv::Mat truth =
+      cv::imread(SharedDir() + "/data/rtabmap-loop/ground_truth.bmp", cv::IMREAD_GRAYSCALE);
+  EXPECT_EQ(truth.rows, 84);
+  EXPECT_EQ(truth.cols, 84);
+  return truth;
+}
+
+std::vector<std::string> DebianSampleImages() {
+  std::vector<std::string> paths;
+  for (const char* dir : {"/usr/share/doc/opencv-doc/examples/data", "/usr/share/darknet/data"}) {
+    if (!fs::is_directory(dir)) continue;
+    for (const auto& entry : fs::directory_iterator(dir)) {
+      const auto ext = entry.path().extension().string();
+      if (ext == ".jpg" || ext == ".png") paths.push_back(entry.path().string());
+    }
+  }
+  std::sort(paths.begin(), paths.end());
+  return paths;
+}
+
+FeatureSet ExtractFile(const std::string& path, int max_features) {
+  OrbConfig config;
+  config.max_features = max_features;
+  auto features = ExtractOrb(ReadGray(path), config);
+  EXPECT_TRUE(features.ok()) << features.status().ToString();
+  return features.ok() ? *features : FeatureSet{};
+}
+
+}  // namespace placedb::testing

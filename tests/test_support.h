@@ -1,0 +1,46 @@
+// Shared helpers for tests: where the real data lives, the default vocabulary, dataset readers.
+#pragma once
+
+#include <memory>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "core/features.h"
+#include "core/vocabulary.h"  // DefaultVocabulary() lives in test_vocabulary.cc
+
+namespace placedb::testing {
+
+std::string SharedDir();  // ../shared (PLACEDB_SHARED_DIR), may not exist
+bool HaveSharedData();    // ../shared/data present
+std::string DefaultVocabularyPath();
+// Loads the default vocabulary once per process (fails the test if it is missing).
+std::shared_ptr<const Vocabulary> DefaultVocabulary();
+
+// A fresh empty directory under the system temp dir, removed at process exit.
+std::string MakeTempDir(const std::string& prefix);
+
+cv::Mat ReadGray(const std::string& path);  // fails the test if unreadable
+
+// CamVid (../shared/data/camvid).
+struct CamVidFrame {
+  std::string sequence;  // "0001TP", ...
+  int frame = 0;         // video frame number (30 fps)
+  std::string image_path;
+  std::string label_path;
+};
+std::vector<CamVidFrame> CamVidFrames();  // sorted by sequence, then frame
+// CamVid class ids that are dynamic objects: Car 8, Pedestrian 9, Bicyclist 10.
+cv::Mat CamVidDynamicMask(const CamVidFrame& frame);  // CV_8U 255 = dynamic
+
+// RTAB-Map loop (../shared/data/rtabmap-loop): frames 1..84 and the 84x84 ground truth.
+std::string RtabmapFramePath(int frame);  // 1-based
+cv::Mat RtabmapGroundTruth();             // CV_8U, (i, j) = 255 when frame i+1 and j+1 match
+
+// Debian sample images (opencv-doc, darknet), as used for the default vocabulary.
+std::vector<std::string> DebianSampleImages();
+
+// ORB features of an image file with the given feature budget.
+FeatureSet ExtractFile(const std::string& path, int max_features = 1000);
+
+}  // namespace placedb::testing
