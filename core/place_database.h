@@ -86,16 +86,51 @@ struct ProcessedFrame {
   StageTimings timings;
 };
 
-// What the database keeps per place: immutable once stored, shared with in-flight queries.
+// What the database keeps in memory per place: small, immutable once stored.
 struct PlaceRecord {
   PlaceId id = 0;
   PlaceMetadata metadata;
   FrameCounts counts;
   std::vector<DynamicBox> boxes_used;
-  FeatureSet features;  // SC keypoints + descriptors, for verification
-  BowVector bow;
-  DirectIndex direct;
 };
+
+// The bulky part of a place: what verification and removal need. Kept by a PayloadStore, so a
+// persistent map can leave it on disk and read it only for the candidates it verifies.
+struct PlacePayload {
+  FeatureSet features;  // SC keypoints + descriptors
+  DirectIndex direct;   // at the database's verification.levels_up
+  BowVector bow;        // normalised for the database's scoring
+};
+
+// Where PlaceDatabase keeps payloads. Implementations must allow concurrent Get() calls with
+// one Put()/Erase() at a time.
+class PayloadStore {
+ public:
+  virtual ~PayloadStore() = default;
+  // Called when a place is inserted. A persistent store that already wrote the payload (in the
+  // same atomic batch as the place) may just cache or ignore it.
+  virtual Status Put(PlaceId id, std::shared_ptr<const PlacePayload> payload) = 0;
+  // NOT_FOUND when the place is unknown (e.g. removed meanwhile).
+  virtual Result<std::shared_ptr<const PlacePayload>> Get(PlaceId id) const = 0;
+  virtual Status Erase(PlaceId id) = 0;
+  virtual size_t MemoryBytes() const = 0;
+};
+
+// The default: payloads in memory.
+class InMemoryPayloadStore final : public PayloadStore {
+ public:
+  Status Put(PlaceId id, std::shared_ptr<const PlacePayload> payload) override;
+  Result<std::shared_ptr<const PlacePayload>> Get(PlaceId id) const override;
+  Status Erase(PlaceId id) override;
+  size_t MemoryBytes() const override;
+
+ private:
+  mutable std::shared_mutex mutex_;
+  std::unordered_map<PlaceId, std::shared_ptr<const PlacePayload>> payloads_;
+  size_t bytes_ = 0;
+};
+
+size_t PayloadBytes(const PlacePayload& payload);
 
 struct AddResult {
   bool stored = false;
@@ -136,14 +171,17 @@ struct DatabaseStats {
   uint64_t descriptors_dropped = 0;  // DC descriptors of stored places
   uint64_t invalid_rejected = 0;     // frames refused by Add() as invalid
   size_t index_bytes = 0;            // inverted index (postings + tables)
-  size_t record_bytes = 0;           // place records (features, BoW, direct index, metadata)
+  size_t record_bytes = 0;           // in-memory place records (metadata, counts, boxes)
+  size_t payload_bytes = 0;          // payloads the PayloadStore holds in memory
 };
 
 class PlaceDatabase {
  public:
-  // INVALID_ARGUMENT for a bad config; the vocabulary is shared, never copied.
-  static Result<std::unique_ptr<PlaceDatabase>> Create(std::shared_ptr<const Vocabulary> vocabulary,
-                                                       DatabaseConfig config);
+  // INVALID_ARGUMENT for a bad config; the vocabulary is shared, never copied. Without a
+  // payload store, payloads stay in memory.
+  static Result<std::unique_ptr<PlaceDatabase>> Create(
+      std::shared_ptr<const Vocabulary> vocabulary, DatabaseConfig config,
+      std::shared_ptr<PayloadStore> payloads = nullptr);
 
   const DatabaseConfig& config() const { return config_; }
   const std::shared_ptr<const Vocabulary>& vocabulary() const { return vocabulary_; }
@@ -157,7 +195,13 @@ class PlaceDatabase {
   // used: ALREADY_EXISTS if taken. Returns the id.
   Result<PlaceId> Insert(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                          std::optional<PlaceId> id = std::nullopt);
+  // The same from parts, as a persistent map reloads them.
+  Status Restore(PlaceRecord record, std::shared_ptr<const PlacePayload> payload);
+  // Reserves the id the next Insert() without an explicit id would take.
+  PlaceId ReserveId();
   Status Remove(PlaceId id);  // NOT_FOUND if absent
+  // Counts a frame refused as invalid (Add() does this itself).
+  void CountInvalid(uint64_t frames = 1);
 
   Result<QueryResult> Query(const Observation& observation, const QueryOptions& options) const;
   // Searches with an already processed frame (used by ingest-with-matches).
@@ -169,11 +213,16 @@ class PlaceDatabase {
   PlaceId next_id() const;
 
  private:
-  PlaceDatabase(std::shared_ptr<const Vocabulary> vocabulary, DatabaseConfig config);
+  PlaceDatabase(std::shared_ptr<const Vocabulary> vocabulary, DatabaseConfig config,
+                std::shared_ptr<PayloadStore> payloads);
+  // Adds the record and its postings; caller holds the writer lock.
+  Status InsertLocked(std::shared_ptr<const PlaceRecord> record, const PlacePayload& payload);
+  void UndoInsertLocked(PlaceId id, const BowVector& bow);
   std::vector<DynamicBox> SelectBoxes(const std::vector<DynamicBox>& boxes) const;
 
   const std::shared_ptr<const Vocabulary> vocabulary_;
   const DatabaseConfig config_;
+  const std::shared_ptr<PayloadStore> payloads_;
 
   mutable std::shared_mutex mutex_;
   InvertedIndex index_;

@@ -1,0 +1,348 @@
+// The frame pipeline and in-memory place database, on real images with the default vocabulary.
+#include "core/place_database.h"
+
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <thread>
+
+#include "tests/test_support.h"
+
+namespace placedb {
+namespace {
+
+using testing::DefaultVocabulary;
+using testing::ReadGray;
+using testing::RtabmapFramePath;
+
+class PlaceDatabaseTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+    vocabulary_ = DefaultVocabulary();
+    ASSERT_TRUE(vocabulary_);
+  }
+
+  std::unique_ptr<PlaceDatabase> MakeDatabase(DatabaseConfig config = {}) {
+    auto db = PlaceDatabase::Create(vocabulary_, std::move(config));
+    EXPECT_TRUE(db.ok()) << db.status().ToString();
+    return db.ok() ? std::move(db).value() : nullptr;
+  }
+
+  static Observation Frame(int index, const std::string& agent = "robot-1") {
+    Observation observation;
+    observation.image = ReadGray(RtabmapFramePath(index));
+    observation.metadata.agent_id = agent;
+    observation.metadata.sequence = uint64_t(index);
+    observation.metadata.timestamp_ns = int64_t(index) * 1'000'000'000;
+    return observation;
+  }
+
+  std::shared_ptr<const Vocabulary> vocabulary_;
+};
+
+TEST_F(PlaceDatabaseTest, CreateRejectsBadConfig) {
+  DatabaseConfig bad_orb;
+  bad_orb.orb.max_features = 0;
+  auto result = PlaceDatabase::Create(vocabulary_, bad_orb);
+  ASSERT_FALSE(result.ok());
+  EXPECT_EQ(result.status().code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(result.status().message().find("max_features"), std::string::npos);
+
+  DatabaseConfig bad_threshold;
+  bad_threshold.filter.place_threshold = -1;
+  EXPECT_FALSE(PlaceDatabase::Create(vocabulary_, bad_threshold).ok());
+
+  EXPECT_EQ(PlaceDatabase::Create(nullptr, {}).status().code(), StatusCode::kInvalidArgument);
+}
+
+TEST_F(PlaceDatabaseTest, AddStoresStaticFeaturesAndReportsCounts) {
+  auto db = MakeDatabase();
+  auto added = db->Add(Frame(1));
+  ASSERT_TRUE(added.ok()) << added.status().ToString();
+  EXPECT_TRUE(added->stored);
+  EXPECT_EQ(added->id, 1u);
+  EXPECT_GT(added->counts.total, 100u);
+  EXPECT_EQ(added->counts.dynamic, 0u);
+  EXPECT_EQ(added->counts.static_, added->counts.total);
+  EXPECT_GT(added->timings.extract_ms, 0);
+  EXPECT_GT(added->timings.transform_ms, 0);
+
+  auto record = db->Get(added->id);
+  ASSERT_TRUE(record);
+  EXPECT_EQ(record->metadata.agent_id, "robot-1");
+  EXPECT_EQ(record->counts.static_, added->counts.static_);
+
+  DatabaseStats stats = db->Stats();
+  EXPECT_EQ(stats.places, 1u);
+  EXPECT_EQ(stats.descriptors_kept, added->counts.static_);
+  EXPECT_GT(stats.index_bytes, 0u);
+}
+
+TEST_F(PlaceDatabaseTest, DynamicDescriptorsAreDroppedNotStored) {
+  auto db = MakeDatabase();
+  Observation frame = Frame(5);
+  // A person box over the left half of the image.
+  frame.dynamic.boxes.push_back(
+      {0, 0.9f, cv::Rect2f(0, 0, frame.image.cols / 2.0f, float(frame.image.rows))});
+  auto added = db->Add(frame);
+  ASSERT_TRUE(added.ok()) << added.status().ToString();
+  ASSERT_TRUE(added->stored);
+  EXPECT_GT(added->counts.dynamic, 0u);
+  EXPECT_EQ(added->counts.dynamic + added->counts.static_, added->counts.total);
+  EXPECT_NEAR(added->counts.dynamic_coverage, 0.5, 0.01);
+  ASSERT_EQ(added->boxes_used.size(), 1u);
+  // The database keeps exactly the SC features: check them through a payload store we hold.
+  auto payloads = std::make_shared<InMemoryPayloadStore>();
+  auto observed = PlaceDatabase::Create(vocabulary_, {}, payloads);
+  ASSERT_TRUE(observed.ok());
+  auto again = (*observed)->Add(frame);
+  ASSERT_TRUE(again.ok() && again->stored);
+  auto payload = payloads->Get(again->id);
+  ASSERT_TRUE(payload.ok());
+  EXPECT_EQ((*payload)->features.size(), added->counts.static_);
+  EXPECT_GT(db->Stats().payload_bytes, 0u);
+  for (const Keypoint& kp : (*payload)->features.keypoints) {
+    EXPECT_GE(kp.x, frame.image.cols / 2.0f) << "a keypoint inside the box was kept";
+  }
+  EXPECT_EQ(db->Stats().descriptors_dropped, added->counts.dynamic);
+}
+
+TEST_F(PlaceDatabaseTest, BoxesOfOtherClassesOrLowConfidenceAreIgnored) {
+  DatabaseConfig config;
+  config.dynamic_classes = {0};  // people only
+  config.min_box_confidence = 0.5f;
+  auto db = MakeDatabase(config);
+  Observation frame = Frame(7);
+  const cv::Rect2f everything(0, 0, float(frame.image.cols), float(frame.image.rows));
+  frame.dynamic.boxes = {{2, 0.9f, everything},   // a car: not dynamic for this map
+                         {0, 0.3f, everything}};  // a person below the confidence threshold
+  auto added = db->Add(frame);
+  ASSERT_TRUE(added.ok());
+  EXPECT_TRUE(added->stored);
+  EXPECT_EQ(added->counts.dynamic, 0u);
+  EXPECT_TRUE(added->boxes_used.empty());
+}
+
+TEST_F(PlaceDatabaseTest, InvalidFrameIsNeitherStoredNorMatched) {
+  auto db = MakeDatabase();
+  ASSERT_TRUE(db->Add(Frame(1)).ok());
+  Observation covered = Frame(1);
+  covered.dynamic.boxes.push_back(
+      {0, 1.0f, cv::Rect2f(0, 0, float(covered.image.cols), float(covered.image.rows))});
+  auto added = db->Add(covered);
+  ASSERT_TRUE(added.ok());
+  EXPECT_FALSE(added->stored);
+  EXPECT_EQ(added->counts.static_, 0u);
+  EXPECT_NE(added->rejection.find("placeThreshold"), std::string::npos) << added->rejection;
+  EXPECT_EQ(db->Stats().places, 1u);
+  EXPECT_EQ(db->Stats().invalid_rejected, 1u);
+
+  auto queried = db->Query(covered, {});
+  ASSERT_TRUE(queried.ok());
+  EXPECT_FALSE(queried->valid);
+  EXPECT_TRUE(queried->matches.empty());
+  EXPECT_EQ(queried->timings.search_ms, 0);
+}
+
+TEST_F(PlaceDatabaseTest, PlaceThresholdIsStrict) {
+  auto db = MakeDatabase();
+  auto processed = db->Process(Frame(3));
+  ASSERT_TRUE(processed.ok());
+  const int sc = int(processed->counts.static_);
+  DatabaseConfig at_limit;
+  at_limit.filter.place_threshold = sc;  // |SC| > threshold fails when equal
+  auto strict = MakeDatabase(at_limit);
+  EXPECT_FALSE(strict->Process(Frame(3))->valid);
+  at_limit.filter.place_threshold = sc - 1;
+  EXPECT_TRUE(MakeDatabase(at_limit)->Process(Frame(3))->valid);
+}
+
+TEST_F(PlaceDatabaseTest, QueryRanksTheSameViewFirst) {
+  auto db = MakeDatabase();
+  for (int i = 1; i <= 20; ++i) ASSERT_TRUE(db->Add(Frame(i)).ok());
+  auto result = db->Query(Frame(12), {});
+  ASSERT_TRUE(result.ok());
+  ASSERT_TRUE(result->valid);
+  ASSERT_EQ(result->matches.size(), 10u);
+  EXPECT_EQ(result->matches[0].place, 12u);
+  EXPECT_NEAR(result->matches[0].score, 1.0, 1e-4);
+  EXPECT_EQ(result->matches[0].metadata.sequence, 12u);
+  for (size_t i = 1; i < result->matches.size(); ++i) {
+    EXPECT_GE(result->matches[i - 1].score, result->matches[i].score);
+  }
+  EXPECT_GT(result->timings.search_ms, 0);
+  EXPECT_GE(result->timings.total_ms, result->timings.search_ms);
+}
+
+TEST_F(PlaceDatabaseTest, PrecomputedFeaturesGiveTheSameResultAsTheImage) {
+  auto db = MakeDatabase();
+  for (int i = 1; i <= 10; ++i) ASSERT_TRUE(db->Add(Frame(i)).ok());
+  Observation from_image = Frame(4);
+  Observation precomputed;
+  auto features = ExtractOrb(from_image.image, db->config().orb);
+  ASSERT_TRUE(features.ok());
+  precomputed.features = *features;
+  auto a = db->Query(from_image, {});
+  auto b = db->Query(precomputed, {});
+  ASSERT_TRUE(a.ok() && b.ok());
+  ASSERT_EQ(a->matches.size(), b->matches.size());
+  for (size_t i = 0; i < a->matches.size(); ++i) {
+    EXPECT_EQ(a->matches[i].place, b->matches[i].place);
+    EXPECT_DOUBLE_EQ(a->matches[i].score, b->matches[i].score);
+  }
+  EXPECT_EQ(b->timings.extract_ms < a->timings.extract_ms, true);
+}
+
+TEST_F(PlaceDatabaseTest, BadPrecomputedInputIsRejectedAndChangesNothing) {
+  auto db = MakeDatabase();
+  ASSERT_TRUE(db->Add(Frame(1)).ok());
+  const DatabaseStats before = db->Stats();
+
+  Observation bad;
+  bad.features = testing::ExtractFile(RtabmapFramePath(2));
+  bad.features->keypoints[3].x = float(bad.features->image_width + 10);
+  auto added = db->Add(bad);
+  ASSERT_FALSE(added.ok());
+  EXPECT_EQ(added.status().code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(added.status().message().find("keypoints[3]"), std::string::npos);
+
+  Observation mismatched;
+  mismatched.features = testing::ExtractFile(RtabmapFramePath(2));
+  mismatched.features->descriptors.pop_back();
+  EXPECT_EQ(db->Add(mismatched).status().code(), StatusCode::kInvalidArgument);
+
+  Observation wrong_mask = Frame(2);
+  wrong_mask.dynamic.mask = cv::Mat::zeros(10, 10, CV_8U);
+  EXPECT_EQ(db->Add(wrong_mask).status().code(), StatusCode::kInvalidArgument);
+
+  Observation empty;
+  EXPECT_EQ(db->Add(empty).status().code(), StatusCode::kInvalidArgument);
+
+  const DatabaseStats after = db->Stats();
+  EXPECT_EQ(after.places, before.places);
+  EXPECT_EQ(after.descriptors_kept, before.descriptors_kept);
+  EXPECT_EQ(after.index_bytes, before.index_bytes);
+}
+
+TEST_F(PlaceDatabaseTest, RemoveTakesThePlaceOutOfResults) {
+  auto db = MakeDatabase();
+  for (int i = 1; i <= 10; ++i) ASSERT_TRUE(db->Add(Frame(i)).ok());
+  ASSERT_TRUE(db->Remove(6).ok());
+  EXPECT_EQ(db->Remove(6).code(), StatusCode::kNotFound);
+  EXPECT_EQ(db->Get(6), nullptr);
+  auto result = db->Query(Frame(6), {});
+  ASSERT_TRUE(result.ok());
+  for (const Match& match : result->matches) EXPECT_NE(match.place, 6u);
+  EXPECT_EQ(db->Stats().places, 9u);
+  EXPECT_EQ(db->ListPlaces().size(), 9u);
+  // Ids are never reused.
+  auto again = db->Add(Frame(6));
+  ASSERT_TRUE(again.ok());
+  EXPECT_EQ(again->id, 11u);
+}
+
+TEST_F(PlaceDatabaseTest, InsertWithExplicitIdRestoresAndRefusesDuplicates) {
+  auto db = MakeDatabase();
+  auto frame = db->Process(Frame(2));
+  ASSERT_TRUE(frame.ok());
+  auto id = db->Insert(*frame, {}, PlaceId{42});
+  ASSERT_TRUE(id.ok());
+  EXPECT_EQ(*id, 42u);
+  EXPECT_EQ(db->next_id(), 43u);
+  EXPECT_EQ(db->Insert(*frame, {}, PlaceId{42}).status().code(), StatusCode::kAlreadyExists);
+  EXPECT_EQ(db->Insert(*frame, {}, PlaceId{0}).status().code(), StatusCode::kInvalidArgument);
+}
+
+TEST_F(PlaceDatabaseTest, AcceptFilterExcludesCandidates) {
+  auto db = MakeDatabase();
+  for (int i = 1; i <= 10; ++i) ASSERT_TRUE(db->Add(Frame(i, i % 2 ? "odd" : "even")).ok());
+  QueryOptions options;
+  options.accept = [](const PlaceRecord& record) { return record.metadata.agent_id == "odd"; };
+  auto result = db->Query(Frame(4), options);
+  ASSERT_TRUE(result.ok());
+  ASSERT_FALSE(result->matches.empty());
+  for (const Match& match : result->matches) EXPECT_EQ(match.metadata.agent_id, "odd");
+}
+
+TEST_F(PlaceDatabaseTest, ExhaustiveVerificationConfirmsARealRevisit) {
+  DatabaseConfig config;
+  config.verification.mode = VerificationMode::kExhaustive;
+  auto db = MakeDatabase(config);
+  for (int i = 1; i <= 10; ++i) ASSERT_TRUE(db->Add(Frame(i)).ok());
+  auto result = db->Query(Frame(3), {});
+  ASSERT_TRUE(result.ok());
+  ASSERT_FALSE(result->matches.empty());
+  EXPECT_EQ(result->matches[0].place, 3u);
+  EXPECT_TRUE(result->matches[0].verified);
+  EXPECT_GE(result->matches[0].inliers, config.verification.min_inliers);
+  EXPECT_GT(result->timings.verify_ms, 0);
+
+  QueryOptions verified_only;
+  verified_only.verified_only = true;
+  auto strict = db->Query(Frame(3), verified_only);
+  ASSERT_TRUE(strict.ok());
+  for (const Match& match : strict->matches) EXPECT_TRUE(match.verified);
+}
+
+TEST_F(PlaceDatabaseTest, DirectIndexVerificationUsesTheConfiguredLevel) {
+  DatabaseConfig config;
+  config.verification.mode = VerificationMode::kDirectIndex;
+  config.verification.levels_up = 3;
+  auto db = MakeDatabase(config);
+  for (int i = 1; i <= 5; ++i) ASSERT_TRUE(db->Add(Frame(i)).ok());
+  EXPECT_EQ(db->Process(Frame(1))->direct.levels_up, 3);
+  auto result = db->Query(Frame(2), {});
+  ASSERT_TRUE(result.ok());
+  ASSERT_FALSE(result->matches.empty());
+  EXPECT_EQ(result->matches[0].place, 2u);
+  EXPECT_TRUE(result->matches[0].verified) << result->matches[0].inliers << " inliers";
+}
+
+// Readers query while a writer adds and removes; run under ThreadSanitizer by tools/test.sh.
+TEST_F(PlaceDatabaseTest, ConcurrentQueriesDuringAddAndRemove) {
+  auto db = MakeDatabase();
+  std::vector<ProcessedFrame> frames;
+  for (int i = 1; i <= 24; ++i) {
+    auto frame = db->Process(Frame(i));
+    ASSERT_TRUE(frame.ok());
+    frames.push_back(*frame);
+  }
+  for (int i = 0; i < 8; ++i) ASSERT_TRUE(db->Insert(frames[size_t(i)], {}).ok());
+
+  std::atomic<bool> done{false};
+  std::atomic<int> queries{0};
+  std::atomic<int> failures{0};
+  std::vector<std::thread> readers;
+  for (int r = 0; r < 3; ++r) {
+    readers.emplace_back([&, r] {
+      size_t i = size_t(r);
+      while (!done.load()) {
+        QueryResult result = db->Search(frames[i % frames.size()], {});
+        if (!result.valid) failures.fetch_add(1);
+        for (const Match& match : result.matches) {
+          if (match.place == 0) failures.fetch_add(1);
+        }
+        (void)db->Stats();
+        queries.fetch_add(1);
+        ++i;
+      }
+    });
+  }
+  std::thread writer([&] {
+    for (size_t i = 8; i < frames.size(); ++i) {
+      auto id = db->Insert(frames[i], {});
+      if (!id.ok()) failures.fetch_add(1);
+      if (i % 3 == 0 && !db->Remove(PlaceId(i - 6)).ok()) failures.fetch_add(1);
+    }
+    done.store(true);
+  });
+  writer.join();
+  for (auto& reader : readers) reader.join();
+  EXPECT_EQ(failures.load(), 0);
+  EXPECT_GT(queries.load(), 0);
+  EXPECT_EQ(db->Stats().places, 24u - 5u);
+}
+
+}  // namespace
+}  // namespace placedb

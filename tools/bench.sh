@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Runs the benchmarks (Release build in build/, as tools/setup.sh makes it) and prints their
+# `name value unit` lines. Pass --places to change the core size sweep (default 1k,10k,100k).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+BUILD_DIR=${PLACEDB_BUILD_DIR:-build}
+cmake --build "$BUILD_DIR" --target placedb-bench-core
+"$BUILD_DIR/bench/placedb-bench-core" --vocabulary var/vocabulary/default.pdbv "$@"

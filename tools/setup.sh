@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# Sets up placedb on a fresh Debian 12 machine: installs the Debian packages it needs, builds it
+# in Release and prepares the defaults (the default vocabulary, trained on Debian's own sample
+# images). Idempotent: re-running skips what is already done.
+#
+#   tools/setup.sh            install + build + defaults
+#   tools/setup.sh --run      ... then run placedb on its embedded defaults
+#   tools/setup.sh --deps     install packages only
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PACKAGES=(
+  build-essential cmake ninja-build pkg-config git ca-certificates
+  libopencv-dev libeigen3-dev libtbb-dev
+  libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
+  librocksdb-dev prometheus-cpp-dev
+  libgtest-dev libgmock-dev libbenchmark-dev
+  libspdlog-dev libfmt-dev libcli11-dev libyaml-cpp-dev nlohmann-json3-dev
+  clang-format
+  # Debian's sample images: the default vocabulary is trained on these (never on eval data).
+  opencv-doc darknet
+)
+
+run=0
+deps_only=0
+for arg in "$@"; do
+  case "$arg" in
+    --run) run=1 ;;
+    --deps) deps_only=1 ;;
+    -h|--help) sed -n '2,9p' "$0"; exit 0 ;;
+    *) echo "setup.sh: unknown option $arg (see --help)" >&2; exit 2 ;;
+  esac
+done
+
+missing=()
+for pkg in "${PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if ((${#missing[@]})); then
+  SUDO=""
+  if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+  echo "setup: installing ${#missing[@]} Debian packages: ${missing[*]}"
+  $SUDO apt-get update -q
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q --no-install-recommends "${PACKAGES[@]}"
+else
+  echo "setup: all Debian packages present"
+fi
+((deps_only)) && exit 0
+
+BUILD_DIR=${PLACEDB_BUILD_DIR:-build}
+jobs=$(nproc)
+cmake -S . -B "$BUILD_DIR" -G Ninja -DCMAKE_BUILD_TYPE=Release
+cmake --build "$BUILD_DIR" -j "$jobs"
+
+tools/build_default_vocabulary.sh "$BUILD_DIR/tools/placedb-vocab" var/vocabulary/default.pdbv
+
+echo "setup: done. Binaries in $BUILD_DIR/, default vocabulary var/vocabulary/default.pdbv"
+if ((run)); then
+  exec tools/run.sh
+fi

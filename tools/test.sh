@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# Runs the whole placedb test suite, exactly as CI does (.ci/run calls this):
+#   1. packages (idempotent, as tools/setup.sh --deps),
+#   2. a -Werror Release build and every test through ctest (unit, recognition on real images),
+#   3. the unit tests again under AddressSanitizer + UndefinedBehaviorSanitizer,
+#   4. the concurrency tests under ThreadSanitizer.
+# Benchmarks are not tests: run them with tools/bench.sh.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+tools/setup.sh --deps
+jobs=$(nproc)
+vocabulary="$PWD/var/vocabulary/default.pdbv"
+
+step() { printf '\n==== %s ====\n' "$*"; }
+
+step "Release build (-Werror)"
+cmake -S . -B build-test -G Ninja -DCMAKE_BUILD_TYPE=Release -DPLACEDB_WERROR=ON \
+  -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
+cmake --build build-test -j "$jobs"
+
+step "All tests (ctest)"
+ctest --test-dir build-test --output-on-failure -j "$jobs" --timeout 1500
+
+step "Unit tests under AddressSanitizer + UBSan"
+cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPLACEDB_WERROR=ON \
+  -DPLACEDB_SANITIZE=ON -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
+cmake --build build-asan -j "$jobs"
+ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
+  ctest --test-dir build-asan --output-on-failure -j "$jobs" -L unit --timeout 1500
+
+step "Concurrency tests under ThreadSanitizer"
+cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPLACEDB_WERROR=ON \
+  -DPLACEDB_TSAN=ON -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
+cmake --build build-tsan -j "$jobs" --target place_database_test place_index_test placedb-vocab
+TSAN_OPTIONS=halt_on_error=1:second_deadlock_stack=1 \
+  ctest --test-dir build-tsan --output-on-failure -R 'Concurren' --timeout 1500
+
+step "All test stages passed"
