@@ -29,11 +29,10 @@ TEST(Status, WithContextKeepsCode) {
 }
 
 TEST(Status, EveryCodeHasAName) {
-  for (StatusCode code :
-       {StatusCode::kOk, StatusCode::kInvalidArgument, StatusCode::kNotFound,
-        StatusCode::kAlreadyExists, StatusCode::kFailedPrecondition,
-        StatusCode::kResourceExhausted, StatusCode::kCorruption, StatusCode::kIoError,
-        StatusCode::kInternal, StatusCode::kCancelled}) {
+  for (StatusCode code : {StatusCode::kOk, StatusCode::kInvalidArgument, StatusCode::kNotFound,
+                          StatusCode::kAlreadyExists, StatusCode::kFailedPrecondition,
+                          StatusCode::kResourceExhausted, StatusCode::kCorruption,
+                          StatusCode::kIoError, StatusCode::kInternal, StatusCode::kCancelled}) {
     EXPECT_STRNE(StatusCodeName(code), "UNKNOWN");
   }
 }

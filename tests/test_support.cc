@@ -64,7 +64,11 @@ std::vector<CamVidFrame> CamVidFrames() {
     if (entry.path().extension() != ".jpg" || underscore == std::string::npos) continue;
     CamVidFrame frame;
     frame.sequence = stem.substr(0, underscore);
-    frame.frame = std::stoi(stem.substr(underscore + 1));
+    // Frame numbers: "0001TP_006690", but "0006R0_f00930" in one sequence.
+    const std::string number = stem.substr(underscore + 1);
+    const size_t digits = number.find_first_of("0123456789");
+    if (digits == std::string::npos) continue;
+    frame.frame = std::stoi(number.substr(digits));
     frame.image_path = entry.path().string();
     frame.label_path = root + "/labels/" + stem + ".png";
     frames.push_back(frame);
