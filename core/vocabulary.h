@@ -91,7 +91,43 @@ class Vocabulary {
 
  private:
   Vocabulary() = default;
-  friend struct VocabularyAccess;  // vocabulary.cc / vocabulary_io.cc internals
+
+  // Byte offsets of the arrays inside the block; a pure function of the counts, so the binary
+  // loader can check a file's size before reading it.
+  struct BlockLayout {
+    size_t meta = 0;
+    size_t node_descriptor = 0;
+    size_t first_child = 0;
+    size_t child_count = 0;
+    size_t node_word = 0;
+    size_t word_weight = 0;
+    size_t word_node = 0;
+    size_t total = 0;
+  };
+  static BlockLayout LayoutFor(uint64_t node_count, uint64_t word_count);
+
+  // A vocabulary owning a block sized for the counts (zeroed unless a file is about to fill it),
+  // every array pointer bound, the parameters stored both in the members and in the block's
+  // leading meta record (so the checksum covers them). Fails only on allocation.
+  static Result<std::unique_ptr<Vocabulary>> Allocate(int branching, int depth, ScoringType scoring,
+                                                      WeightingType weighting, uint32_t node_count,
+                                                      uint32_t word_count, bool zero_fill = true);
+  // Checks a block that came from outside (a file): meta record agrees with the members, child
+  // ranges in bounds and breadth-first (which makes it a tree), depth <= L, word <-> node maps.
+  // CORRUPTION naming the problem. Parents and levels are implied by the breadth-first layout,
+  // so the block does not store them (less to read and to check).
+  Status ValidateBlock() const;
+  template <typename T>
+  T* MutableArray(const T* array) const {
+    return const_cast<T*>(array);
+  }
+
+  std::vector<uint32_t> Parents() const;  // parent of every node (the root's is 0)
+
+  // Lockstep greedy descent of `count` descriptors: leaf node of each, and (when `group` is
+  // given) the node at `group_level` on its path, or the leaf when that is shallower.
+  void Descend(const Descriptor256* descriptors, size_t count, uint32_t* leaf, uint32_t* group,
+               int group_level) const;
 
   int branching_ = 0;
   int depth_ = 0;
@@ -101,15 +137,14 @@ class Vocabulary {
   uint32_t word_count_ = 0;
   uint64_t checksum_ = 0;
 
-  // One aligned allocation holding every array below, in this order.
+  // One aligned allocation holding every array below, in this order, after a 64-byte meta record.
   std::byte* block_ = nullptr;
   size_t block_bytes_ = 0;
+  size_t block_alignment_ = 64;
   const Descriptor256* node_descriptor_ = nullptr;  // [node_count]
   const uint32_t* first_child_ = nullptr;           // [node_count]; children are contiguous
   const uint32_t* child_count_ = nullptr;           // [node_count]; 0 for leaves
   const uint32_t* node_word_ = nullptr;             // [node_count]; kNoWord for inner nodes
-  const uint32_t* node_parent_ = nullptr;           // [node_count]; root's parent is 0
-  const uint8_t* node_level_ = nullptr;             // [node_count]; root is level 0
   const float* word_weight_ = nullptr;              // [word_count]
   const uint32_t* word_node_ = nullptr;             // [word_count]
 };

@@ -37,7 +37,11 @@ void RemoveTempDirs() {
 
 std::string MakeTempDir(const std::string& prefix) {
   static std::once_flag once;
-  std::call_once(once, [] { std::atexit(RemoveTempDirs); });
+  // Construct the list before registering the handler, so it is destroyed after the handler ran.
+  std::call_once(once, [] {
+    TempDirs();
+    std::atexit(RemoveTempDirs);
+  });
   std::string pattern = (fs::temp_directory_path() / (prefix + "-XXXXXX")).string();
   std::vector<char> buffer(pattern.begin(), pattern.end());
   buffer.push_back('\0');
