@@ -1,0 +1,380 @@
+#include "core/geometric_verifier.h"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <numeric>
+#include <opencv2/imgproc.hpp>
+
+#include "tests/test_support.h"
+
+namespace placedb {
+namespace {
+
+using testing::ExtractFile;
+using testing::ReadGray;
+
+const std::string kOpencvData = "/usr/share/doc/opencv-doc/examples/data/";
+const std::string kDarknetData = "/usr/share/darknet/data/";
+
+bool Exists(const std::string& path) {
+  return std::filesystem::exists(path);
+}
+
+#define REQUIRE_FILES(...)                                                 \
+  do {                                                                     \
+    for (const std::string& path : {__VA_ARGS__}) {                        \
+      if (!Exists(path)) GTEST_SKIP() << path << " is not installed here"; \
+    }                                                                      \
+  } while (false)
+
+VerificationConfig Exhaustive() {
+  VerificationConfig config;
+  config.mode = VerificationMode::kExhaustive;
+  return config;
+}
+
+// Every feature under one node: direct-index matching then compares everything.
+DirectIndex SingleNode(size_t feature_count, int levels_up, NodeId node = 0) {
+  DirectIndex direct;
+  direct.levels_up = levels_up;
+  direct.node_ids = {node};
+  direct.offsets = {0, uint32_t(feature_count)};
+  direct.feature_ids.resize(feature_count);
+  std::iota(direct.feature_ids.begin(), direct.feature_ids.end(), 0u);
+  return direct;
+}
+
+// Features split over two nodes by one descriptor bit, like a (very coarse) vocabulary would.
+DirectIndex SplitByBit(const FeatureSet& features, int levels_up) {
+  DirectIndex direct;
+  direct.levels_up = levels_up;
+  std::vector<uint32_t> nodes[2];
+  for (uint32_t i = 0; i < features.size(); ++i) {
+    nodes[features.descriptors[i].words[0] & 1].push_back(i);
+  }
+  direct.offsets = {0};
+  for (NodeId node = 0; node < 2; ++node) {
+    if (nodes[node].empty()) continue;
+    direct.node_ids.push_back(node + 10);
+    direct.feature_ids.insert(direct.feature_ids.end(), nodes[node].begin(), nodes[node].end());
+    direct.offsets.push_back(uint32_t(direct.feature_ids.size()));
+  }
+  return direct;
+}
+
+// A perspective warp of `image` and its features.
+FeatureSet WarpedFeatures(const cv::Mat& image) {
+  const std::vector<cv::Point2f> from = {{0, 0},
+                                         {float(image.cols), 0},
+                                         {float(image.cols), float(image.rows)},
+                                         {0, float(image.rows)}};
+  const std::vector<cv::Point2f> to = {{30, 20},
+                                       {float(image.cols) - 10, 0},
+                                       {float(image.cols) - 40, float(image.rows) - 15},
+                                       {15, float(image.rows) - 5}};
+  cv::Mat warped;
+  cv::warpPerspective(image, warped, cv::getPerspectiveTransform(from, to), image.size());
+  auto features = ExtractOrb(warped, OrbConfig{});
+  EXPECT_TRUE(features.ok()) << features.status().ToString();
+  return features.ok() ? *features : FeatureSet{};
+}
+
+VerificationResult Verify(const FeatureSet& query, const FeatureSet& candidate,
+                          const VerificationConfig& config) {
+  auto result = VerifyGeometry(query, {}, candidate, {}, config);
+  EXPECT_TRUE(result.ok()) << result.status().ToString();
+  return result.ok() ? *result : VerificationResult{};
+}
+
+TEST(GeometricVerifierTest, TwoViewsOfTheSameObjectVerify) {
+  REQUIRE_FILES(kOpencvData + "box.png", kOpencvData + "box_in_scene.png");
+  const FeatureSet box = ExtractFile(kOpencvData + "box.png");
+  const FeatureSet scene = ExtractFile(kOpencvData + "box_in_scene.png");
+  const VerificationResult result = Verify(box, scene, Exhaustive());
+  std::printf("[ box vs box_in_scene ] %zu x %zu features: %d putative, %d inliers\n", box.size(),
+              scene.size(), result.putative_matches, result.inliers);
+  EXPECT_TRUE(result.verified);
+  EXPECT_GE(result.inliers, 20);
+  EXPECT_LE(result.inliers, result.putative_matches);
+}
+
+TEST(GeometricVerifierTest, ConsecutiveFramesVerify) {
+  REQUIRE_FILES(testing::RtabmapFramePath(1), testing::RtabmapFramePath(2));
+  const FeatureSet first = ExtractFile(testing::RtabmapFramePath(1));
+  const FeatureSet second = ExtractFile(testing::RtabmapFramePath(2));
+  const VerificationResult result = Verify(first, second, Exhaustive());
+  std::printf("[ rtabmap 1 vs 2 ] %d putative, %d inliers\n", result.putative_matches,
+              result.inliers);
+  EXPECT_TRUE(result.verified);
+  EXPECT_GE(result.inliers, 50);
+}
+
+TEST(GeometricVerifierTest, WarpedCopyVerifies) {
+  REQUIRE_FILES(testing::RtabmapFramePath(1));
+  const cv::Mat image = ReadGray(testing::RtabmapFramePath(1));
+  const FeatureSet original = ExtractFile(testing::RtabmapFramePath(1));
+  const FeatureSet warped = WarpedFeatures(image);
+  const VerificationResult result = Verify(original, warped, Exhaustive());
+  std::printf("[ frame vs warped copy ] %d putative, %d inliers\n", result.putative_matches,
+              result.inliers);
+  EXPECT_TRUE(result.verified);
+  EXPECT_GE(result.inliers, 100);
+}
+
+TEST(GeometricVerifierTest, UnrelatedImagesDoNotVerify) {
+  REQUIRE_FILES(kDarknetData + "dog.jpg", testing::RtabmapFramePath(1), kOpencvData + "box.png");
+  const FeatureSet dog = ExtractFile(kDarknetData + "dog.jpg");
+  for (const std::string& other : {testing::RtabmapFramePath(1), kOpencvData + "box.png"}) {
+    const FeatureSet features = ExtractFile(other);
+    const VerificationResult result = Verify(dog, features, Exhaustive());
+    std::printf("[ dog vs %s ] %d putative, %d inliers\n",
+                std::filesystem::path(other).filename().c_str(), result.putative_matches,
+                result.inliers);
+    EXPECT_FALSE(result.verified) << other;
+  }
+}
+
+TEST(GeometricVerifierTest, DirectIndexWithOneNodeEqualsExhaustive) {
+  REQUIRE_FILES(kOpencvData + "box.png", kOpencvData + "box_in_scene.png");
+  const FeatureSet box = ExtractFile(kOpencvData + "box.png");
+  const FeatureSet scene = ExtractFile(kOpencvData + "box_in_scene.png");
+  VerificationConfig direct = Exhaustive();
+  direct.mode = VerificationMode::kDirectIndex;
+  direct.levels_up = 3;
+  auto by_node =
+      VerifyGeometry(box, SingleNode(box.size(), 3), scene, SingleNode(scene.size(), 3), direct);
+  ASSERT_TRUE(by_node.ok()) << by_node.status().ToString();
+  const VerificationResult exhaustive = Verify(box, scene, Exhaustive());
+  EXPECT_EQ(by_node->putative_matches, exhaustive.putative_matches);
+  EXPECT_EQ(by_node->inliers, exhaustive.inliers);
+  EXPECT_EQ(by_node->verified, exhaustive.verified);
+}
+
+TEST(GeometricVerifierTest, DirectIndexComparesOnlyWithinSharedNodes) {
+  REQUIRE_FILES(testing::RtabmapFramePath(1), testing::RtabmapFramePath(2));
+  const FeatureSet first = ExtractFile(testing::RtabmapFramePath(1));
+  const FeatureSet second = ExtractFile(testing::RtabmapFramePath(2));
+  VerificationConfig config = Exhaustive();
+  config.mode = VerificationMode::kDirectIndex;
+  config.levels_up = 1;
+
+  // Disjoint nodes: nothing to compare.
+  auto disjoint = VerifyGeometry(first, SingleNode(first.size(), 1, 4), second,
+                                 SingleNode(second.size(), 1, 5), config);
+  ASSERT_TRUE(disjoint.ok()) << disjoint.status().ToString();
+  EXPECT_EQ(disjoint->putative_matches, 0);
+  EXPECT_EQ(disjoint->inliers, 0);
+  EXPECT_FALSE(disjoint->verified);
+
+  // Split by a descriptor bit: a true match agrees on that bit, so the frames still verify,
+  // and every putative match lies within one node.
+  auto split = VerifyGeometry(first, SplitByBit(first, 1), second, SplitByBit(second, 1), config);
+  ASSERT_TRUE(split.ok()) << split.status().ToString();
+  std::printf("[ rtabmap 1 vs 2, two nodes ] %d putative, %d inliers\n", split->putative_matches,
+              split->inliers);
+  EXPECT_GT(split->putative_matches, 0);
+  EXPECT_TRUE(split->verified);
+
+  // A node present in only one frame is skipped while walking the lists.
+  DirectIndex partial = SplitByBit(second, 1);
+  partial.node_ids.back() = 99;
+  auto one_shared = VerifyGeometry(first, SplitByBit(first, 1), second, partial, config);
+  ASSERT_TRUE(one_shared.ok()) << one_shared.status().ToString();
+  EXPECT_LT(one_shared->putative_matches, split->putative_matches);
+}
+
+TEST(GeometricVerifierTest, DirectIndexFromTheVocabularyVerifies) {
+  REQUIRE_FILES(testing::RtabmapFramePath(1), testing::RtabmapFramePath(2));
+  const auto vocabulary = testing::DefaultVocabulary();
+  ASSERT_TRUE(vocabulary);
+  const FeatureSet first = ExtractFile(testing::RtabmapFramePath(1));
+  const FeatureSet second = ExtractFile(testing::RtabmapFramePath(2));
+  VerificationConfig config;
+  config.mode = VerificationMode::kDirectIndex;
+  config.levels_up = 2;
+  BowVector bow;
+  DirectIndex first_direct;
+  DirectIndex second_direct;
+  vocabulary->Transform(first.descriptors, &bow, &first_direct, config.levels_up);
+  vocabulary->Transform(second.descriptors, &bow, &second_direct, config.levels_up);
+  auto result = VerifyGeometry(first, first_direct, second, second_direct, config);
+  ASSERT_TRUE(result.ok()) << result.status().ToString();
+  std::printf("[ rtabmap 1 vs 2, vocabulary nodes %d levels up ] %d putative, %d inliers\n",
+              config.levels_up, result->putative_matches, result->inliers);
+  EXPECT_TRUE(result->verified);
+  EXPECT_GT(result->putative_matches, 0);
+}
+
+TEST(GeometricVerifierTest, LevelsMismatchIsInvalid) {
+  FeatureSet features;
+  VerificationConfig config;
+  config.mode = VerificationMode::kDirectIndex;
+  config.levels_up = 2;
+  DirectIndex at_two;
+  at_two.levels_up = 2;
+  DirectIndex at_one;
+  at_one.levels_up = 1;
+  for (const auto& [query, candidate] : {std::pair{at_one, at_two}, std::pair{at_two, at_one}}) {
+    auto result = VerifyGeometry(features, query, features, candidate, config);
+    ASSERT_FALSE(result.ok());
+    EXPECT_EQ(result.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_NE(result.status().message().find("levels_up"), std::string::npos)
+        << result.status().message();
+  }
+  // Exhaustive mode ignores the direct indices entirely.
+  config.mode = VerificationMode::kExhaustive;
+  EXPECT_TRUE(VerifyGeometry(features, at_one, features, at_two, config).ok());
+}
+
+TEST(GeometricVerifierTest, MalformedDirectIndexIsInvalid) {
+  REQUIRE_FILES(kOpencvData + "box.png");
+  const FeatureSet features = ExtractFile(kOpencvData + "box.png", 50);
+  VerificationConfig config;
+  config.mode = VerificationMode::kDirectIndex;
+  config.levels_up = 0;
+  DirectIndex good = SingleNode(features.size(), 0);
+
+  DirectIndex out_of_range = good;
+  out_of_range.feature_ids.back() = uint32_t(features.size());
+  DirectIndex bad_offsets = good;
+  bad_offsets.offsets = {0};
+  DirectIndex unsorted = good;
+  unsorted.node_ids = {5, 3};
+  unsorted.offsets = {0, 1, uint32_t(features.size())};
+  for (const DirectIndex& bad : {out_of_range, bad_offsets, unsorted}) {
+    auto result = VerifyGeometry(features, good, features, bad, config);
+    ASSERT_FALSE(result.ok());
+    EXPECT_EQ(result.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_NE(result.status().message().find("candidate direct index"), std::string::npos)
+        << result.status().message();
+  }
+}
+
+TEST(GeometricVerifierTest, DegenerateInputsGiveNoInliers) {
+  REQUIRE_FILES(kOpencvData + "box.png");
+  const FeatureSet features = ExtractFile(kOpencvData + "box.png");
+  ASSERT_GT(features.size(), 20u);
+  const FeatureSet five = SelectFeatures(features, {0, 1, 2, 3, 4});
+  const FeatureSet none;
+  for (const VerificationMode mode :
+       {VerificationMode::kExhaustive, VerificationMode::kDirectIndex}) {
+    VerificationConfig config;
+    config.mode = mode;
+    config.levels_up = 0;
+    for (const FeatureSet* a : {&none, &five, &features}) {
+      for (const FeatureSet* b : {&none, &five}) {
+        auto result =
+            VerifyGeometry(*a, SingleNode(a->size(), 0), *b, SingleNode(b->size(), 0), config);
+        ASSERT_TRUE(result.ok()) << result.status().ToString();
+        EXPECT_EQ(result->inliers, 0);
+        EXPECT_FALSE(result->verified);
+        EXPECT_LE(result->putative_matches, 5);
+      }
+    }
+  }
+  // Plenty of matches, but every candidate point at the same pixel: no crash, no verification.
+  FeatureSet collapsed = features;
+  for (Keypoint& kp : collapsed.keypoints) kp.x = kp.y = 10;
+  const VerificationResult result = Verify(features, collapsed, Exhaustive());
+  EXPECT_GE(result.putative_matches, 8);
+  EXPECT_FALSE(result.verified) << result.inliers << " inliers";
+  // Keypoints and descriptors that disagree are refused rather than read out of bounds.
+  FeatureSet torn = features;
+  torn.descriptors.pop_back();
+  EXPECT_EQ(VerifyGeometry(torn, {}, features, {}, Exhaustive()).status().code(),
+            StatusCode::kInvalidArgument);
+}
+
+TEST(GeometricVerifierTest, DisabledDoesNothing) {
+  REQUIRE_FILES(kOpencvData + "box.png");
+  const FeatureSet features = ExtractFile(kOpencvData + "box.png");
+  VerificationConfig config;  // kDisabled by default
+  auto result = VerifyGeometry(features, {}, features, {}, config);
+  ASSERT_TRUE(result.ok());
+  EXPECT_EQ(result->putative_matches, 0);
+  EXPECT_EQ(result->inliers, 0);
+  EXPECT_FALSE(result->verified);
+}
+
+TEST(GeometricVerifierTest, RatioAndDistanceThresholdsFilterMatches) {
+  REQUIRE_FILES(kOpencvData + "box.png", kOpencvData + "box_in_scene.png");
+  const FeatureSet box = ExtractFile(kOpencvData + "box.png");
+  const FeatureSet scene = ExtractFile(kOpencvData + "box_in_scene.png");
+  VerificationConfig loose = Exhaustive();
+  loose.ratio = 1.0f;
+  loose.max_hamming = 256;
+  VerificationConfig strict = Exhaustive();
+  strict.ratio = 0.6f;
+  strict.max_hamming = 40;
+  const VerificationResult loose_result = Verify(box, scene, loose);
+  const VerificationResult strict_result = Verify(box, scene, strict);
+  EXPECT_GT(loose_result.putative_matches, strict_result.putative_matches);
+  // One-to-one: never more matches than either frame has features.
+  EXPECT_LE(size_t(loose_result.putative_matches), std::min(box.size(), scene.size()));
+  VerificationConfig exact = Exhaustive();
+  exact.max_hamming = 0;
+  // A frame matches itself feature for feature (bar the rare duplicate descriptor).
+  EXPECT_GE(Verify(box, box, exact).putative_matches, int(box.size() * 95 / 100));
+}
+
+TEST(GeometricVerifierTest, ValidatesConfig) {
+  auto expect_invalid = [](VerificationConfig config, const std::string& field) {
+    const Status status = ValidateVerificationConfig(config);
+    EXPECT_EQ(status.code(), StatusCode::kInvalidArgument) << field;
+    EXPECT_NE(status.message().find(field), std::string::npos) << status.message();
+    auto result = VerifyGeometry({}, {}, {}, {}, config);
+    EXPECT_FALSE(result.ok()) << field;
+  };
+  EXPECT_TRUE(ValidateVerificationConfig(VerificationConfig{}).ok());
+  VerificationConfig c;
+  c.min_inliers = 7;
+  expect_invalid(c, "min_inliers");
+  c = {};
+  c.ratio = 0;
+  expect_invalid(c, "ratio");
+  c.ratio = 1.01f;
+  expect_invalid(c, "ratio");
+  c = {};
+  c.max_hamming = -1;
+  expect_invalid(c, "max_hamming");
+  c.max_hamming = 257;
+  expect_invalid(c, "max_hamming");
+  c = {};
+  c.ransac_threshold_px = 0;
+  expect_invalid(c, "ransac_threshold_px");
+  c = {};
+  c.ransac_confidence = 1.0;
+  expect_invalid(c, "ransac_confidence");
+  c = {};
+  c.ransac_max_iterations = 0;
+  expect_invalid(c, "ransac_max_iterations");
+  c = {};
+  c.levels_up = -1;
+  expect_invalid(c, "levels_up");
+  c = {};
+  c.candidates = -1;
+  expect_invalid(c, "candidates");
+  c = {};
+  c.max_hamming = 256;
+  c.ratio = 1.0f;
+  c.min_inliers = 8;
+  EXPECT_TRUE(ValidateVerificationConfig(c).ok());
+}
+
+TEST(GeometricVerifierTest, ModeNamesRoundTrip) {
+  for (const VerificationMode mode : {VerificationMode::kDisabled, VerificationMode::kDirectIndex,
+                                      VerificationMode::kExhaustive}) {
+    auto parsed = ParseVerificationMode(VerificationModeName(mode));
+    ASSERT_TRUE(parsed.ok());
+    EXPECT_EQ(*parsed, mode);
+  }
+  EXPECT_STREQ(VerificationModeName(VerificationMode::kDirectIndex), "direct");
+  auto bad = ParseVerificationMode("ransac");
+  ASSERT_FALSE(bad.ok());
+  EXPECT_EQ(bad.status().code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(bad.status().message().find("'ransac'"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace placedb
