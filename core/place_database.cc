@@ -180,6 +180,11 @@ Result<AddResult> PlaceDatabase::Add(const Observation& observation) {
 Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                                       std::optional<PlaceId> id) {
   if (!frame.valid) return Status::InvalidArgument("cannot insert an invalid frame");
+  if (frame.direct.levels_up != config_.verification.levels_up) {
+    return Status::InvalidArgument("frame's direct index is at level " +
+                                   std::to_string(frame.direct.levels_up) + ", the database uses " +
+                                   std::to_string(config_.verification.levels_up));
+  }
   // Build the immutable record and payload before taking the lock.
   auto record = std::make_shared<PlaceRecord>();
   record->metadata = metadata;
@@ -193,7 +198,7 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
   std::unique_lock lock(mutex_);
   record->id = id.value_or(next_id_);
   const PlaceId place = record->id;
-  PLACEDB_RETURN_IF_ERROR(InsertLocked(std::move(record), *payload));
+  PLACEDB_RETURN_IF_ERROR(InsertLocked(std::move(record), payload->bow));
   if (Status stored = payloads_->Put(place, payload); !stored.ok()) {
     UndoInsertLocked(place, payload->bow);
     return stored;
@@ -201,35 +206,19 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
   return place;
 }
 
-Status PlaceDatabase::Restore(PlaceRecord record, std::shared_ptr<const PlacePayload> payload) {
-  if (!payload) {
-    return Status::InvalidArgument("place " + std::to_string(record.id) + " has no payload");
-  }
-  const PlaceId place = record.id;
+Status PlaceDatabase::Restore(PlaceRecord record, const BowVector& bow) {
   std::unique_lock lock(mutex_);
-  PLACEDB_RETURN_IF_ERROR(
-      InsertLocked(std::make_shared<const PlaceRecord>(std::move(record)), *payload));
-  if (Status stored = payloads_->Put(place, payload); !stored.ok()) {
-    UndoInsertLocked(place, payload->bow);
-    return stored;
-  }
-  return Status::Ok();
+  return InsertLocked(std::make_shared<const PlaceRecord>(std::move(record)), bow);
 }
 
 Status PlaceDatabase::InsertLocked(std::shared_ptr<const PlaceRecord> record,
-                                   const PlacePayload& payload) {
+                                   const BowVector& bow) {
   const PlaceId place = record->id;
   if (place == 0) return Status::InvalidArgument("place id 0 is reserved");
   if (records_.count(place)) {
     return Status::AlreadyExists("place " + std::to_string(place) + " already exists");
   }
-  if (payload.direct.levels_up != config_.verification.levels_up) {
-    return Status::InvalidArgument(
-        "place " + std::to_string(place) + ": direct index is at level " +
-        std::to_string(payload.direct.levels_up) + ", the database uses " +
-        std::to_string(config_.verification.levels_up));
-  }
-  PLACEDB_RETURN_IF_ERROR(index_.Add(place, payload.bow));
+  PLACEDB_RETURN_IF_ERROR(index_.Add(place, bow));
   descriptors_kept_ += record->counts.static_;
   descriptors_dropped_ += record->counts.dynamic;
   record_bytes_ += RecordBytes(*record);
@@ -252,6 +241,11 @@ void PlaceDatabase::UndoInsertLocked(PlaceId id, const BowVector& bow) {
 PlaceId PlaceDatabase::ReserveId() {
   std::unique_lock lock(mutex_);
   return next_id_++;
+}
+
+void PlaceDatabase::ReserveIdsBelow(PlaceId next) {
+  std::unique_lock lock(mutex_);
+  next_id_ = std::max(next_id_, next);
 }
 
 void PlaceDatabase::CountInvalid(uint64_t frames) {

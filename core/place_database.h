@@ -195,10 +195,13 @@ class PlaceDatabase {
   // used: ALREADY_EXISTS if taken. Returns the id.
   Result<PlaceId> Insert(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                          std::optional<PlaceId> id = std::nullopt);
-  // The same from parts, as a persistent map reloads them.
-  Status Restore(PlaceRecord record, std::shared_ptr<const PlacePayload> payload);
+  // Re-indexes a stored place as a persistent map reloads it: the payload stays in the
+  // PayloadStore, only the record and BoW vector are needed.
+  Status Restore(PlaceRecord record, const BowVector& bow);
   // Reserves the id the next Insert() without an explicit id would take.
   PlaceId ReserveId();
+  // Makes sure future ids are >= `next` (a reopened map never reuses a deleted place's id).
+  void ReserveIdsBelow(PlaceId next);
   Status Remove(PlaceId id);  // NOT_FOUND if absent
   // Counts a frame refused as invalid (Add() does this itself).
   void CountInvalid(uint64_t frames = 1);
@@ -216,7 +219,7 @@ class PlaceDatabase {
   PlaceDatabase(std::shared_ptr<const Vocabulary> vocabulary, DatabaseConfig config,
                 std::shared_ptr<PayloadStore> payloads);
   // Adds the record and its postings; caller holds the writer lock.
-  Status InsertLocked(std::shared_ptr<const PlaceRecord> record, const PlacePayload& payload);
+  Status InsertLocked(std::shared_ptr<const PlaceRecord> record, const BowVector& bow);
   void UndoInsertLocked(PlaceId id, const BowVector& bow);
   std::vector<DynamicBox> SelectBoxes(const std::vector<DynamicBox>& boxes) const;
 

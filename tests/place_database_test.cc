@@ -303,10 +303,10 @@ TEST_F(PlaceDatabaseTest, DirectIndexVerificationUsesTheConfiguredLevel) {
 TEST_F(PlaceDatabaseTest, ConcurrentQueriesDuringAddAndRemove) {
   auto db = MakeDatabase();
   std::vector<ProcessedFrame> frames;
-  for (int i = 1; i <= 24; ++i) {
+  for (int i = 1; frames.size() < 24; ++i) {
     auto frame = db->Process(Frame(i));
     ASSERT_TRUE(frame.ok());
-    frames.push_back(*frame);
+    if (frame->valid) frames.push_back(*frame);  // a few corridor frames are too bare
   }
   for (int i = 0; i < 8; ++i) ASSERT_TRUE(db->Insert(frames[size_t(i)], {}).ok());
 

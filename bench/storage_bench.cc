@@ -1,0 +1,258 @@
+// placedb storage benchmark: prints `name value unit` lines.
+//
+//  1. The paper's Fig. 6 on real data: all 701 CamVid frames (ORB 1000) ingested into one map
+//     without filtering (BoBW) and one with it (BoBW+DO: boxes = bounding boxes of the label
+//     maps' Car/Pedestrian/Bicyclist components, the paper's keypoint-in-box rule), then bytes
+//     on disk after a flush, the reduction, bytes per place, and ingest rates.
+//  2. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
+//     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
+//     places), committed with group commit, then the map is closed and reopened.
+//
+// Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <random>
+#include <sstream>
+#include <thread>
+
+#include "core/map_store.h"
+
+namespace fs = std::filesystem;
+using namespace placedb;
+
+namespace {
+
+double NowMs() {
+  return std::chrono::duration<double, std::milli>(
+             std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
+void Print(const std::string& name, double value, const char* unit) {
+  std::printf("%s %.4g %s\n", name.c_str(), value, unit);
+  std::fflush(stdout);
+}
+
+struct Frame {
+  FeatureSet features;
+  std::vector<DynamicBox> boxes;
+};
+
+std::vector<DynamicBox> BoxesFromLabels(const cv::Mat& labels) {
+  std::vector<DynamicBox> boxes;
+  const std::pair<int, int> classes[] = {{8, 2}, {9, 0}, {10, 1}};  // Car, Pedestrian, Bicyclist
+  for (const auto& [label, coco] : classes) {
+    cv::Mat mask = labels == label;
+    cv::Mat components, stats, centroids;
+    const int n = cv::connectedComponentsWithStats(mask, components, stats, centroids, 8);
+    for (int c = 1; c < n; ++c) {
+      if (stats.at<int>(c, cv::CC_STAT_AREA) < 50) continue;
+      boxes.push_back({coco, 1.0f,
+                       cv::Rect2f(float(stats.at<int>(c, cv::CC_STAT_LEFT)),
+                                  float(stats.at<int>(c, cv::CC_STAT_TOP)),
+                                  float(stats.at<int>(c, cv::CC_STAT_WIDTH)),
+                                  float(stats.at<int>(c, cv::CC_STAT_HEIGHT)))});
+    }
+  }
+  return boxes;
+}
+
+std::vector<Frame> LoadCamVid(const std::string& shared) {
+  std::vector<std::string> images;
+  for (const auto& entry : fs::directory_iterator(shared + "/data/camvid/images")) {
+    images.push_back(entry.path().string());
+  }
+  std::sort(images.begin(), images.end());
+  std::vector<Frame> frames(images.size());
+  OrbConfig orb;
+  orb.max_features = 1000;
+  std::vector<std::thread> workers;
+  for (unsigned t = 0; t < 2; ++t) {
+    workers.emplace_back([&, t] {
+      for (size_t i = t; i < images.size(); i += 2) {
+        const std::string stem = fs::path(images[i]).stem().string();
+        cv::Mat labels =
+            cv::imread(shared + "/data/camvid/labels/" + stem + ".png", cv::IMREAD_GRAYSCALE);
+        auto features = ExtractOrb(cv::imread(images[i], cv::IMREAD_GRAYSCALE), orb);
+        if (!features.ok() || labels.empty()) continue;
+        frames[i].features = std::move(features).value();
+        frames[i].boxes = BoxesFromLabels(labels);
+      }
+    });
+  }
+  for (auto& worker : workers) worker.join();
+  return frames;
+}
+
+struct IngestFigures {
+  double places_per_s = 0;
+  uint64_t bytes = 0;
+  size_t places = 0;
+  uint64_t kept = 0, dropped = 0;
+};
+
+IngestFigures Ingest(DataDirectory& dir, const std::string& name, const MapOptions& options,
+                     const std::vector<Frame>& frames,
+                     std::shared_ptr<const Vocabulary> vocabulary) {
+  IngestFigures figures;
+  {
+    auto map = dir.CreateMap(name, options, vocabulary);
+    if (!map.ok()) {
+      std::fprintf(stderr, "%s\n", map.status().ToString().c_str());
+      std::exit(1);
+    }
+    const double start = NowMs();
+    for (const Frame& frame : frames) {
+      Observation observation;
+      observation.features = frame.features;
+      observation.dynamic.boxes = frame.boxes;
+      auto added = (*map)->Add(observation);
+      if (!added.ok()) std::exit(1);
+    }
+    figures.places_per_s = double(frames.size()) / ((NowMs() - start) / 1000.0);
+    const MapStats stats = (*map)->Stats();
+    figures.places = stats.database.places;
+    figures.kept = stats.database.descriptors_kept;
+    figures.dropped = stats.database.descriptors_dropped;
+    dir.CloseMap(name);
+  }
+  // Closed (memtables flushed): every byte is in the map's files.
+  uint64_t bytes = 0;
+  for (const auto& entry : fs::recursive_directory_iterator(dir.path() + "/maps/" + name)) {
+    if (entry.is_regular_file()) bytes += entry.file_size();
+  }
+  figures.bytes = bytes;
+  return figures;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string vocabulary_path, work_dir, shared = PLACEDB_SHARED_DIR;
+  std::vector<size_t> reopen_sizes = {10000, 100000};
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    if (i + 1 >= argc) {
+      std::fprintf(stderr,
+                   "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
+                   "[--reopen 10000,100000] [--shared DIR]\n");
+      return 2;
+    }
+    const std::string value = argv[++i];
+    if (arg == "--vocabulary") {
+      vocabulary_path = value;
+    } else if (arg == "--dir") {
+      work_dir = value;
+    } else if (arg == "--shared") {
+      shared = value;
+    } else if (arg == "--reopen") {
+      reopen_sizes.clear();
+      std::stringstream list(value);
+      for (std::string item; std::getline(list, item, ',');)
+        reopen_sizes.push_back(std::stoul(item));
+    } else {
+      std::fprintf(stderr, "unknown option %s\n", arg.c_str());
+      return 2;
+    }
+  }
+  auto vocabulary = Vocabulary::Load(vocabulary_path);
+  if (!vocabulary.ok()) {
+    std::fprintf(stderr, "%s\n", vocabulary.status().ToString().c_str());
+    return 1;
+  }
+  if (work_dir.empty()) work_dir = (fs::temp_directory_path() / "placedb-bench-storage").string();
+  fs::remove_all(work_dir);
+  const std::vector<Frame> frames = LoadCamVid(shared);
+  std::printf(
+      "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",
+      frames.size(), (*vocabulary)->word_count());
+
+  // 1. With and without filtering, every write synced.
+  {
+    auto dir = DataDirectory::Open(work_dir + "/fig6");
+    if (!dir.ok()) return 1;
+    MapOptions plain;
+    plain.database.filter.method = FilterMethod::kNone;
+    MapOptions filtered;
+    filtered.database.filter.method = FilterMethod::kKeypointInBox;
+    const IngestFigures bobw = Ingest(**dir, "bobw", plain, frames, *vocabulary);
+    const IngestFigures bobw_do = Ingest(**dir, "bobw-do", filtered, frames, *vocabulary);
+    Print("db_bytes_bobw", double(bobw.bytes), "bytes");
+    Print("db_bytes_bobw_do", double(bobw_do.bytes), "bytes");
+    Print("db_size_reduction", 100.0 * (1.0 - double(bobw_do.bytes) / double(bobw.bytes)),
+          "percent");
+    Print("descriptors_dropped_bobw_do",
+          100.0 * double(bobw_do.dropped) / double(bobw_do.dropped + bobw_do.kept), "percent");
+    Print("bytes_per_place_bobw", double(bobw.bytes) / double(bobw.places), "bytes");
+    Print("bytes_per_place_bobw_do", double(bobw_do.bytes) / double(bobw_do.places), "bytes");
+    Print("ingest_sync_every_write_bobw", bobw.places_per_s, "places/s");
+    Print("ingest_sync_every_write_bobw_do", bobw_do.places_per_s, "places/s");
+  }
+  // Group commit, 2 writer threads (the default-off setting for batch loads).
+  std::printf("# reopen workload: CamVid feature sets x (90 %% subsample, 4 bit flips)\n");
+  std::sort(reopen_sizes.begin(), reopen_sizes.end());
+  StorageOptions group;
+  group.sync = SyncMode::kGroupCommit;
+  group.group_commit_delay_ms = 5;
+  auto dir = DataDirectory::Open(work_dir + "/reopen", group);
+  if (!dir.ok()) return 1;
+  MapOptions options;
+  options.database.filter.method = FilterMethod::kKeypointInBox;
+  auto map = (*dir)->CreateMap("sweep", options, *vocabulary);
+  if (!map.ok()) return 1;
+  size_t places = 0;
+  for (size_t target : reopen_sizes) {
+    const double start = NowMs();
+    const size_t first = places;
+    std::vector<std::thread> writers;
+    for (unsigned t = 0; t < 2; ++t) {
+      writers.emplace_back([&, t] {
+        std::mt19937_64 rng(first + t);
+        std::uniform_int_distribution<int> bit(0, 255);
+        std::uniform_real_distribution<double> keep(0, 1);
+        for (size_t p = first + t; p < target; p += 2) {
+          const Frame& frame = frames[p % frames.size()];
+          Observation observation;
+          FeatureSet noisy;
+          noisy.image_width = frame.features.image_width;
+          noisy.image_height = frame.features.image_height;
+          for (size_t i = 0; i < frame.features.size(); ++i) {
+            if (keep(rng) > 0.9) continue;
+            Descriptor256 d = frame.features.descriptors[i];
+            for (int f = 0; f < 4; ++f) {
+              const int b = bit(rng);
+              d.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
+            }
+            noisy.keypoints.push_back(frame.features.keypoints[i]);
+            noisy.descriptors.push_back(d);
+          }
+          observation.features = std::move(noisy);
+          observation.dynamic.boxes = frame.boxes;
+          if (!(*map)->Add(observation).ok()) std::exit(1);
+        }
+      });
+    }
+    for (auto& writer : writers) writer.join();
+    places = target;
+    const std::string n = std::to_string(target);
+    Print("ingest_group_commit_2_writers_to_" + n,
+          double(target - first) / ((NowMs() - start) / 1000.0), "places/s");
+    const MapStats stats = (*map)->Stats();
+    map->reset();
+    (*dir)->CloseMap("sweep");
+    const double reopen_start = NowMs();
+    map = (*dir)->OpenMap("sweep", *vocabulary);
+    if (!map.ok()) return 1;
+    Print("reopen_at_" + n + "_places", (NowMs() - reopen_start) / 1000.0, "s");
+    Print("bytes_on_disk_at_" + n + "_places", double((*map)->Stats().bytes_on_disk), "bytes");
+    Print("bytes_in_memory_at_" + n + "_places", double(stats.bytes_in_memory), "bytes");
+  }
+  map->reset();
+  dir->reset();
+  fs::remove_all(work_dir);
+  return 0;
+}
