@@ -53,6 +53,9 @@ cmake -S . -B "$BUILD_DIR" -G Ninja -DCMAKE_BUILD_TYPE=Release
 cmake --build "$BUILD_DIR" -j "$jobs"
 
 tools/build_default_vocabulary.sh "$BUILD_DIR/tools/placedb-vocab" var/vocabulary/default.pdbv
+# The detector model: from ../shared/models when present, else the official download, else
+# server-side detection stays off (the service says so; maps that need it are refused).
+PLACEDB_BUILD_DIR="$BUILD_DIR" tools/install_models.sh var/models
 
 echo "setup: done. Binaries in $BUILD_DIR/, default vocabulary var/vocabulary/default.pdbv"
 if ((run)); then

@@ -18,6 +18,7 @@ step "Release build (-Werror)"
 cmake -S . -B build-test -G Ninja -DCMAKE_BUILD_TYPE=Release -DPLACEDB_WERROR=ON \
   -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
 cmake --build build-test -j "$jobs"
+PLACEDB_BUILD_DIR=build-test tools/install_models.sh var/models
 
 step "All tests (ctest)"
 ctest --test-dir build-test --output-on-failure -j "$jobs" --timeout 1500
@@ -25,14 +26,16 @@ ctest --test-dir build-test --output-on-failure -j "$jobs" --timeout 1500
 step "Unit tests under AddressSanitizer + UBSan"
 cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPLACEDB_WERROR=ON \
   -DPLACEDB_SANITIZE=ON -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
-cmake --build build-asan -j "$jobs"
+# Only what the unit tests need: the service and tools are covered by the Release stage.
+unit_targets=$(sed -n '/^set(PLACEDB_UNIT_TESTS/,/^)/p' tests/CMakeLists.txt | sed '1d;$d' | tr -d ' ')
+cmake --build build-asan -j "$jobs" --target placedb-vocab $unit_targets
 ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
   ctest --test-dir build-asan --output-on-failure -j "$jobs" -L unit --timeout 1500
 
 step "Concurrency tests under ThreadSanitizer"
 cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPLACEDB_WERROR=ON \
   -DPLACEDB_TSAN=ON -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
-cmake --build build-tsan -j "$jobs" --target place_database_test place_index_test placedb-vocab
+cmake --build build-tsan -j "$jobs" --target place_database_test place_index_test storage_test placedb-vocab
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tools/tsan.supp" \
   ctest --test-dir build-tsan --output-on-failure -R 'Concurren' --timeout 1500
 

@@ -1,0 +1,187 @@
+// placedb detector benchmark: prints one `name value unit` line per figure.
+//
+// Workload (stated on stdout too): CamVid frames (480x360), --frames of them spread evenly over
+// the whole set (darknet's sample images when CamVid is missing), the default dynamic classes,
+// confidence 0.2, letterbox. Every figure is a whole Detect() call: preprocessing, inference,
+// decoding, NMS.
+//  - latency: one stream, one call at a time, OpenCV threads = 1 and = 2; each frame's fastest of
+//    --rounds passes, then the median (and p90) over the frames.
+//  - throughput: 2 worker threads sharing one detector (two Nets in its pool), each call with
+//    OpenCV threads = 1; frames/s over all frames, median (and best) of --rounds rounds.
+// For YOLOX-Nano at 416 and Yolo-Fastest 1.1 XL at 416 and 320.
+//
+// Usage: placedb-bench-detector [--models DIR] [--frames N] [--rounds N]
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <opencv2/core/utility.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/detector.h"
+
+namespace fs = std::filesystem;
+using namespace placedb;
+
+namespace {
+
+double NowMs() {
+  return std::chrono::duration<double, std::milli>(
+             std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
+double Percentile(std::vector<double> values, double fraction) {
+  if (values.empty()) return 0;
+  std::sort(values.begin(), values.end());
+  return values[std::min(values.size() - 1, size_t(fraction * double(values.size())))];
+}
+
+void Print(const std::string& name, double value, const char* unit) {
+  std::printf("%s %.4g %s\n", name.c_str(), value, unit);
+  std::fflush(stdout);
+}
+
+std::vector<std::string> ListImages(const std::string& dir) {
+  std::vector<std::string> paths;
+  if (!fs::is_directory(dir)) return paths;
+  for (const auto& entry : fs::directory_iterator(dir)) {
+    const auto ext = entry.path().extension().string();
+    if (ext == ".jpg" || ext == ".png") paths.push_back(entry.path().string());
+  }
+  std::sort(paths.begin(), paths.end());
+  return paths;
+}
+
+std::vector<cv::Mat> LoadFrames(const std::string& shared, size_t count, std::string* source) {
+  std::vector<std::string> paths = ListImages(shared + "/data/camvid/images");
+  *source = "CamVid " + shared + "/data/camvid/images";
+  if (paths.empty()) {
+    paths = ListImages("/usr/share/darknet/data");
+    *source = "darknet samples /usr/share/darknet/data";
+  }
+  std::vector<cv::Mat> frames;
+  for (size_t i = 0; i < count && !paths.empty(); ++i) {
+    cv::Mat image = cv::imread(paths[i * paths.size() / count % paths.size()], cv::IMREAD_COLOR);
+    if (!image.empty()) frames.push_back(image);
+  }
+  return frames;
+}
+
+std::unique_ptr<Detector> Create(DetectorConfig config, int opencv_threads, int concurrent) {
+  config.opencv_threads = opencv_threads;
+  config.max_concurrent_calls = concurrent;
+  auto created = CreateDetector(config);
+  if (!created.ok()) {
+    std::fprintf(stderr, "cannot create the detector: %s\n", created.status().ToString().c_str());
+    std::exit(1);
+  }
+  return std::move(*created);
+}
+
+void Detect(const Detector& detector, const cv::Mat& frame) {
+  auto boxes = detector.Detect(frame);
+  if (!boxes.ok()) {
+    std::fprintf(stderr, "Detect failed: %s\n", boxes.status().ToString().c_str());
+    std::exit(1);
+  }
+}
+
+// Single stream: each frame timed in `rounds` passes and its fastest pass kept (the machine may
+// be shared: the fastest pass is the least disturbed one), then the median and p90 over frames.
+void BenchLatency(const std::string& prefix, const DetectorConfig& config,
+                  const std::vector<cv::Mat>& frames, int opencv_threads, int rounds) {
+  auto detector = Create(config, opencv_threads, 1);
+  for (size_t i = 0; i < std::min<size_t>(3, frames.size()); ++i) Detect(*detector, frames[i]);
+  std::vector<double> best(frames.size(), 1e30);
+  for (int round = 0; round < rounds; ++round) {
+    for (size_t i = 0; i < frames.size(); ++i) {
+      const double start = NowMs();
+      Detect(*detector, frames[i]);
+      best[i] = std::min(best[i], NowMs() - start);
+    }
+  }
+  const std::string name = prefix + ".threads" + std::to_string(opencv_threads);
+  Print(name + ".latency_median", Percentile(best, 0.5), "ms");
+  Print(name + ".latency_p90", Percentile(best, 0.9), "ms");
+}
+
+// `workers` threads pulling frames from a shared counter; frames/s, median over rounds.
+void BenchThroughput(const std::string& prefix, const DetectorConfig& config,
+                     const std::vector<cv::Mat>& frames, int workers, int rounds) {
+  auto detector = Create(config, 1, workers);
+  std::vector<double> fps;
+  for (int round = -1; round < rounds; ++round) {  // round -1 warms up every Net in the pool
+    std::atomic<size_t> next{0};
+    const double start = NowMs();
+    std::vector<std::thread> threads;
+    for (int w = 0; w < workers; ++w) {
+      threads.emplace_back([&] {
+        for (size_t i = next++; i < frames.size(); i = next++) Detect(*detector, frames[i]);
+      });
+    }
+    for (auto& thread : threads) thread.join();
+    if (round >= 0) fps.push_back(double(frames.size()) * 1000.0 / (NowMs() - start));
+  }
+  const std::string name = prefix + ".workers" + std::to_string(workers) + "_threads1";
+  Print(name + ".throughput_median", Percentile(fps, 0.5), "frames/s");
+  Print(name + ".throughput_best", *std::max_element(fps.begin(), fps.end()), "frames/s");
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string shared = PLACEDB_SHARED_DIR;
+  if (const char* env = std::getenv("PLACEDB_SHARED_DIR")) shared = env;
+  std::string models = PLACEDB_MODELS_DIR;
+  if (!fs::exists(models + "/yolox_nano.onnx")) models = shared + "/models";
+  size_t frame_count = 40;
+  int rounds = 3;
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    if ((arg == "--models" || arg == "--frames" || arg == "--rounds") && i + 1 < argc) {
+      const std::string value = argv[++i];
+      if (arg == "--models") models = value;
+      if (arg == "--frames") frame_count = size_t(std::max(1, std::atoi(value.c_str())));
+      if (arg == "--rounds") rounds = std::max(1, std::atoi(value.c_str()));
+    } else {
+      std::fprintf(stderr, "usage: %s [--models DIR] [--frames N] [--rounds N]\n", argv[0]);
+      return 2;
+    }
+  }
+
+  std::string source;
+  const std::vector<cv::Mat> frames = LoadFrames(shared, frame_count, &source);
+  if (frames.empty()) {
+    std::fprintf(stderr, "no frames: need %s/data/camvid or Debian's darknet package\n",
+                 shared.c_str());
+    return 1;
+  }
+  std::printf("# frames: %zu from %s (%dx%d)\n", frames.size(), source.c_str(), frames[0].cols,
+              frames[0].rows);
+  std::printf("# models: %s; hardware threads: %u; confidence 0.2, letterbox\n", models.c_str(),
+              std::thread::hardware_concurrency());
+
+  struct Case {
+    const char* name;
+    DetectorConfig config;
+  };
+  std::vector<Case> cases;
+  cases.push_back({"detector.yolox_nano.416", YoloxNanoConfig(models)});
+  cases.push_back({"detector.yolo_fastest_xl.416", YoloFastestConfig(models)});
+  cases.push_back({"detector.yolo_fastest_xl.320", YoloFastestConfig(models)});
+  cases.back().config.input_size = 320;
+
+  for (const Case& c : cases) {
+    std::printf("# %s\n", Create(c.config, 0, 1)->Describe().c_str());
+    BenchLatency(c.name, c.config, frames, 1, rounds);
+    BenchLatency(c.name, c.config, frames, 2, rounds);
+    BenchThroughput(c.name, c.config, frames, 2, rounds);
+  }
+  return 0;
+}
