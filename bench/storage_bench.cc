@@ -4,9 +4,10 @@
 //     without filtering (BoBW) and one with it (BoBW+DO: boxes = bounding boxes of the label
 //     maps' Car/Pedestrian/Bicyclist components, the paper's keypoint-in-box rule), then bytes
 //     on disk after a flush, the reduction, bytes per place, and ingest rates.
-//  2. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
+//  2. Persist rate (durable commit + index) by sync policy with 2 and 8 concurrent writers.
+//  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
-//     places), committed with group commit, then the map is closed and reopened.
+//     places), committed by 2 writers, then the map is closed and reopened.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
 #include <algorithm>
@@ -192,13 +193,45 @@ int main(int argc, char** argv) {
     Print("ingest_sync_every_write_bobw", bobw.places_per_s, "places/s");
     Print("ingest_sync_every_write_bobw_do", bobw_do.places_per_s, "places/s");
   }
-  // Group commit, 2 writer threads (the default-off setting for batch loads).
+  // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads.
+  for (SyncMode mode : {SyncMode::kEveryWrite, SyncMode::kGroupCommit}) {
+    for (int writers : {2, 8}) {
+      StorageOptions storage;
+      storage.sync = mode;
+      const std::string label =
+          std::string(mode == SyncMode::kEveryWrite ? "sync_every_write" : "group_commit_5ms") +
+          "_" + std::to_string(writers) + "_writers";
+      auto dir = DataDirectory::Open(work_dir + "/" + label, storage);
+      if (!dir.ok()) return 1;
+      MapOptions options;
+      auto map = (*dir)->CreateMap("m", options, *vocabulary);
+      if (!map.ok()) return 1;
+      std::vector<ProcessedFrame> processed;
+      for (const Frame& frame : frames) {
+        Observation observation;
+        observation.features = frame.features;
+        auto p = (*map)->Process(observation);
+        if (p.ok() && p->valid) processed.push_back(*p);
+      }
+      const double start = NowMs();
+      std::vector<std::thread> threads;
+      for (int t = 0; t < writers; ++t) {
+        threads.emplace_back([&, t] {
+          for (size_t i = size_t(t); i < processed.size(); i += size_t(writers)) {
+            if (!(*map)->Commit(processed[i], {}).ok()) std::exit(1);
+          }
+        });
+      }
+      for (auto& thread : threads) thread.join();
+      Print("persist_" + label, double(processed.size()) / ((NowMs() - start) / 1000.0),
+            "places/s");
+    }
+  }
+
+  // 3. Reopen time as the map grows.
   std::printf("# reopen workload: CamVid feature sets x (90 %% subsample, 4 bit flips)\n");
   std::sort(reopen_sizes.begin(), reopen_sizes.end());
-  StorageOptions group;
-  group.sync = SyncMode::kGroupCommit;
-  group.group_commit_delay_ms = 5;
-  auto dir = DataDirectory::Open(work_dir + "/reopen", group);
+  auto dir = DataDirectory::Open(work_dir + "/reopen");
   if (!dir.ok()) return 1;
   MapOptions options;
   options.database.filter.method = FilterMethod::kKeypointInBox;
@@ -239,8 +272,8 @@ int main(int argc, char** argv) {
     for (auto& writer : writers) writer.join();
     places = target;
     const std::string n = std::to_string(target);
-    Print("ingest_group_commit_2_writers_to_" + n,
-          double(target - first) / ((NowMs() - start) / 1000.0), "places/s");
+    Print("ingest_2_writers_to_" + n, double(target - first) / ((NowMs() - start) / 1000.0),
+          "places/s");
     const MapStats stats = (*map)->Stats();
     map->reset();
     (*dir)->CloseMap("sweep");
