@@ -61,13 +61,22 @@ Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config) {
   cv::Ptr<cv::ORB> orb = cv::ORB::create(config.max_features, config.scale_factor, config.levels,
                                          config.edge_threshold, 0, 2, cv::ORB::HARRIS_SCORE,
                                          config.patch_size, config.fast_threshold);
-  std::vector<cv::KeyPoint> cv_keypoints;
-  cv::Mat cv_descriptors;
-  orb->detectAndCompute(gray, cv::noArray(), cv_keypoints, cv_descriptors);
-
   FeatureSet features;
   features.image_width = gray.cols;
   features.image_height = gray.rows;
+  // ORB's pyramid cannot shrink an image with a side under 2 pixels (OpenCV throws); such an
+  // image has no features to find anyway.
+  if (gray.cols < 2 || gray.rows < 2) return features;
+  std::vector<cv::KeyPoint> cv_keypoints;
+  cv::Mat cv_descriptors;
+  try {
+    orb->detectAndCompute(gray, cv::noArray(), cv_keypoints, cv_descriptors);
+  } catch (const cv::Exception& e) {
+    return Status::InvalidArgument(std::string("ORB extraction failed on a ") +
+                                   std::to_string(gray.cols) + "x" + std::to_string(gray.rows) +
+                                   " image: " + e.what());
+  }
+
   features.keypoints.reserve(cv_keypoints.size());
   features.descriptors.reserve(cv_keypoints.size());
   for (size_t i = 0; i < cv_keypoints.size(); ++i) {

@@ -469,3 +469,19 @@ TEST(OpenCvInterop, HammingDistanceAgreesWithOpenCvOnRealDescriptors) {
 
 }  // namespace
 }  // namespace placedb
+
+namespace placedb {
+namespace {
+
+TEST(ExtractOrbEdgeCases, TinyImagesGiveNoFeaturesNotACrash) {
+  for (const cv::Size size :
+       {cv::Size(1, 1), cv::Size(1, 480), cv::Size(640, 1), cv::Size(2, 2), cv::Size(5, 7)}) {
+    auto features = ExtractOrb(cv::Mat(size, CV_8U, cv::Scalar(128)), OrbConfig{});
+    ASSERT_TRUE(features.ok()) << size << ": " << features.status().ToString();
+    EXPECT_TRUE(features->empty());
+    EXPECT_EQ(features->image_width, size.width);
+  }
+}
+
+}  // namespace
+}  // namespace placedb

@@ -1,23 +1,13 @@
 #!/usr/bin/env bash
-# Runs placedb on its embedded defaults: the default vocabulary and the RTAB-Map loop frames
-# from ../shared when present (database = first pass, queries = the revisit), otherwise
-# opencv-doc's stereo pairs (database = left views, queries = right views).
+# Runs placedb on its embedded defaults: the gRPC service on 0.0.0.0:50051 (metrics on :9464),
+# data in var/data, the default vocabulary, and server-side detection with YOLOX-Nano when
+# tools/install_models.sh found the model (otherwise detection is off and the server says so).
+# Extra arguments go to placedb-server (see --help); stop it with Ctrl-C or SIGTERM.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BUILD_DIR=${PLACEDB_BUILD_DIR:-build}
-vocabulary=var/vocabulary/default.pdbv
-work=$(mktemp -d)
-trap 'rm -rf "$work"' EXIT
-loop=../shared/data/rtabmap-loop
-if [ -d "$loop" ]; then
-  for i in $(seq 1 40); do echo "$loop/$i.jpg"; done > "$work/database.txt"
-  for i in $(seq 41 84); do echo "$loop/$i.jpg"; done > "$work/queries.txt"
-  echo "placedb: RTAB-Map loop, database = frames 1-40, queries = frames 41-84"
-else
-  samples=/usr/share/doc/opencv-doc/examples/data
-  ls "$samples"/left0*.jpg > "$work/database.txt"
-  ls "$samples"/right0*.jpg > "$work/queries.txt"
-  echo "placedb: ../shared not found; opencv-doc stereo pairs, database = left, queries = right"
+args=()
+if [ -f var/models/yolox_nano.onnx ]; then
+  args+=(--detector-model var/models/yolox_nano.onnx)
 fi
-"$BUILD_DIR/tools/placedb-recognize" --vocabulary "$vocabulary" \
-  --database "$work/database.txt" --queries "$work/queries.txt" --verify exhaustive "$@"
+exec "$BUILD_DIR/server/placedb-server" "${args[@]}" "$@"

@@ -1,0 +1,68 @@
+// A connection to a placedb server: the channel (plaintext, or TLS with --tls), the PlaceDb stub,
+// and call contexts carrying the deadline and the bearer token.
+//
+//   ConnectionOptions options{.address = "localhost:50051"};
+//   auto connection = Connection::Open(options);       // nullopt + error: unreadable CA file
+//   auto context = connection->NewContext();            // deadline = now + timeout_s
+//   connection->stub()->GetServerInfo(context.get(), {}, &info);
+#pragma once
+
+#include <grpcpp/grpcpp.h>
+
+#include <chrono>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "proto/placedb.grpc.pb.h"
+
+namespace placedb::client {
+
+namespace v1 = ::placedb::v1;
+using Clock = std::chrono::steady_clock;
+
+// Process exit codes of every command.
+enum ExitCode : int {
+  kExitOk = 0,
+  kExitRpcError = 1,  // an RPC failed (message printed with the gRPC code name)
+  kExitUsage = 2,     // bad command line or unreadable local input
+};
+
+struct ConnectionOptions {
+  std::string address = "localhost:50051";  // gRPC target (host:port, [v6]:port, dns:///..., unix:)
+  double timeout_s = 30;                    // deadline of each unary RPC; 0 = none
+  bool tls = false;                         // grpc::SslCredentials instead of plaintext
+  std::string ca_cert;                      // PEM roots for TLS; empty = the system's
+  std::string token;                        // sent as "authorization: Bearer <token>"
+};
+
+class Connection {
+ public:
+  // Reads the CA file when TLS is on; on failure returns nullopt and sets *error.
+  static std::optional<Connection> Open(const ConnectionOptions& options, std::string* error);
+
+  // A context for one call: the bearer token, and the deadline for unary calls (streams get none:
+  // an Ingest stream lasts as long as its frames).
+  std::unique_ptr<grpc::ClientContext> NewContext(bool unary = true) const;
+
+  v1::PlaceDb::Stub* stub() const { return stub_.get(); }
+  const std::shared_ptr<grpc::Channel>& channel() const { return channel_; }
+  const ConnectionOptions& options() const { return options_; }
+
+ private:
+  ConnectionOptions options_;
+  std::shared_ptr<grpc::Channel> channel_;
+  std::shared_ptr<v1::PlaceDb::Stub> stub_;
+};
+
+// "NOT_FOUND" for grpc::StatusCode::NOT_FOUND; "CODE_<n>" for values outside the enum.
+std::string CodeName(int code);
+// "NOT_FOUND: map 'x' not found".
+std::string Describe(const grpc::Status& status);
+
+// grpc.health.v1.Health/Check. Returns the RPC status; on OK, *serving_status is the
+// HealthCheckResponse.ServingStatus name ("SERVING", "NOT_SERVING", "UNKNOWN", "SERVICE_UNKNOWN").
+grpc::Status CheckHealth(const Connection& connection, const std::string& service,
+                         std::string* serving_status);
+
+}  // namespace placedb::client

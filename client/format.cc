@@ -1,0 +1,252 @@
+#include "client/format.h"
+
+#include <google/protobuf/util/json_util.h>
+
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <cstdio>
+#include <ctime>
+#include <numeric>
+
+namespace placedb::client {
+
+LatencySummary Summarize(std::vector<double> samples) {
+  LatencySummary summary;
+  summary.count = samples.size();
+  if (samples.empty()) return summary;
+  std::sort(samples.begin(), samples.end());
+  auto rank = [&](double p) {
+    // Nearest rank: the smallest sample with at least p of the samples at or below it.
+    size_t index = size_t(std::ceil(p * double(samples.size())));
+    return samples[std::clamp<size_t>(index, 1, samples.size()) - 1];
+  };
+  summary.mean = std::accumulate(samples.begin(), samples.end(), 0.0) / double(samples.size());
+  summary.p50 = rank(0.50);
+  summary.p90 = rank(0.90);
+  summary.p99 = rank(0.99);
+  summary.max = samples.back();
+  return summary;
+}
+
+nlohmann::json ToJson(const LatencySummary& summary) {
+  auto round3 = [](double v) { return std::round(v * 1000.0) / 1000.0; };
+  return {{"count", summary.count},     {"mean", round3(summary.mean)},
+          {"p50", round3(summary.p50)}, {"p90", round3(summary.p90)},
+          {"p99", round3(summary.p99)}, {"max", round3(summary.max)}};
+}
+
+const std::vector<StageField>& StageFields() {
+  static const std::vector<StageField> fields = {
+      {"queue", &v1::StageTimings::queue_ms},   {"decode", &v1::StageTimings::decode_ms},
+      {"detect", &v1::StageTimings::detect_ms}, {"extract", &v1::StageTimings::extract_ms},
+      {"filter", &v1::StageTimings::filter_ms}, {"transform", &v1::StageTimings::transform_ms},
+      {"search", &v1::StageTimings::search_ms}, {"verify", &v1::StageTimings::verify_ms},
+      {"store", &v1::StageTimings::store_ms},   {"total", &v1::StageTimings::total_ms}};
+  return fields;
+}
+
+std::string FormatTimings(const v1::StageTimings& timings) {
+  std::string text;
+  for (const StageField& field : StageFields()) {
+    const double ms = (timings.*field.get)();
+    if (ms <= 0 && std::string(field.name) != "total") continue;
+    if (!text.empty()) text += "  ";
+    text += std::string(field.name) + " " + FormatDouble(ms, 2);
+  }
+  return text;
+}
+
+std::string FormatDouble(double value, int decimals) {
+  char buffer[64];
+  std::snprintf(buffer, sizeof buffer, "%.*f", decimals, value);
+  return buffer;
+}
+
+std::string FormatBytes(uint64_t bytes) {
+  static const char* const kUnits[] = {"B", "KiB", "MiB", "GiB", "TiB"};
+  double value = double(bytes);
+  size_t unit = 0;
+  while (value >= 1024 && unit + 1 < std::size(kUnits)) {
+    value /= 1024;
+    ++unit;
+  }
+  return unit == 0 ? std::to_string(bytes) + " B" : FormatDouble(value, 1) + " " + kUnits[unit];
+}
+
+std::string FormatDuration(double seconds) {
+  if (!std::isfinite(seconds) || seconds < 0) return "?";
+  if (seconds < 60) return FormatDouble(seconds, 1) + "s";
+  const int64_t whole = int64_t(seconds + 0.5);
+  char buffer[64];
+  if (whole < 3600) {
+    std::snprintf(buffer, sizeof buffer, "%lldm%02llds", (long long)(whole / 60),
+                  (long long)(whole % 60));
+  } else {
+    std::snprintf(buffer, sizeof buffer, "%lldh%02lldm", (long long)(whole / 3600),
+                  (long long)(whole % 3600 / 60));
+  }
+  return buffer;
+}
+
+std::string FormatUnixNs(int64_t unix_ns) {
+  if (unix_ns == 0) return "-";
+  const std::time_t seconds = std::time_t(unix_ns / 1'000'000'000);
+  const int millis = int((unix_ns % 1'000'000'000) / 1'000'000);
+  std::tm utc{};
+  gmtime_r(&seconds, &utc);
+  char buffer[64];
+  std::snprintf(buffer, sizeof buffer, "%04d-%02d-%02dT%02d:%02d:%02d.%03dZ", utc.tm_year + 1900,
+                utc.tm_mon + 1, utc.tm_mday, utc.tm_hour, utc.tm_min, utc.tm_sec, std::abs(millis));
+  return buffer;
+}
+
+std::string FormatUnixMs(int64_t unix_ms) {
+  return FormatUnixNs(unix_ms * 1'000'000);
+}
+
+std::string FilterName(v1::FilterMethod method) {
+  switch (method) {
+    case v1::FILTER_METHOD_NONE:
+      return "none";
+    case v1::FILTER_METHOD_UNSPECIFIED:
+    case v1::FILTER_METHOD_KEYPOINT_IN_BOX:
+      return "keypoint_in_box";
+    case v1::FILTER_METHOD_CORNER_DISTANCE:
+      return "corner_distance";
+    case v1::FILTER_METHOD_EXACT_COVERAGE:
+      return "exact_coverage";
+    default:
+      return "filter_" + std::to_string(int(method));
+  }
+}
+
+std::string ScoringName(v1::Scoring scoring) {
+  switch (scoring) {
+    case v1::SCORING_UNSPECIFIED:
+    case v1::SCORING_L1:
+      return "l1";
+    case v1::SCORING_L2:
+      return "l2";
+    case v1::SCORING_CHI_SQUARE:
+      return "chi_square";
+    case v1::SCORING_KL:
+      return "kl";
+    case v1::SCORING_BHATTACHARYYA:
+      return "bhattacharyya";
+    case v1::SCORING_DOT_PRODUCT:
+      return "dot_product";
+    default:
+      return "scoring_" + std::to_string(int(scoring));
+  }
+}
+
+std::string VerificationName(v1::VerificationMode mode) {
+  switch (mode) {
+    case v1::VERIFICATION_MODE_UNSPECIFIED:
+    case v1::VERIFICATION_MODE_DISABLED:
+      return "disabled";
+    case v1::VERIFICATION_MODE_DIRECT_INDEX:
+      return "direct";
+    case v1::VERIFICATION_MODE_EXHAUSTIVE:
+      return "exhaustive";
+    default:
+      return "verification_" + std::to_string(int(mode));
+  }
+}
+
+std::string BoxSourceName(v1::BoxSource source) {
+  switch (source) {
+    case v1::BOX_SOURCE_UNSPECIFIED:
+    case v1::BOX_SOURCE_AGENT:
+      return "agent";
+    case v1::BOX_SOURCE_SERVER:
+      return "server";
+    case v1::BOX_SOURCE_BOTH:
+      return "both";
+    default:
+      return "box_source_" + std::to_string(int(source));
+  }
+}
+
+Table::Table(std::vector<std::string> headers) {
+  for (std::string& header : headers) {
+    const bool right = !header.empty() && header[0] == '>';
+    right_.push_back(right);
+    headers_.push_back(right ? header.substr(1) : header);
+  }
+}
+
+void Table::Add(std::vector<std::string> row) {
+  row.resize(headers_.size());
+  rows_.push_back(std::move(row));
+}
+
+void Table::Print(std::ostream& out, const std::string& indent, bool header) const {
+  std::vector<size_t> width(headers_.size());
+  for (size_t c = 0; c < headers_.size(); ++c) width[c] = headers_[c].size();
+  for (const auto& row : rows_) {
+    for (size_t c = 0; c < row.size(); ++c) width[c] = std::max(width[c], row[c].size());
+  }
+  auto line = [&](const std::vector<std::string>& cells) {
+    std::string text = indent;
+    for (size_t c = 0; c < cells.size(); ++c) {
+      const std::string pad(width[c] - cells[c].size(), ' ');
+      if (c > 0) text += "  ";
+      text += right_[c] ? pad + cells[c] : cells[c] + pad;
+    }
+    while (!text.empty() && text.back() == ' ') text.pop_back();
+    out << text << '\n';
+  };
+  if (header) line(headers_);
+  for (const auto& row : rows_) line(row);
+}
+
+void PrintKeyValues(std::ostream& out, const std::string& title,
+                    const std::vector<std::pair<std::string, std::string>>& rows) {
+  out << title << '\n';
+  Table table({"", ""});
+  for (const auto& [key, value] : rows) table.Add({key, value});
+  table.Print(out, "  ", /*header=*/false);
+}
+
+std::string ProtoJson(const google::protobuf::Message& message) {
+  google::protobuf::util::JsonPrintOptions options;
+  options.add_whitespace = true;
+  options.always_print_primitive_fields = true;
+  options.preserve_proto_field_names = true;
+  std::string json;
+  (void)google::protobuf::util::MessageToJsonString(message, &json, options);
+  while (!json.empty() && json.back() == '\n') json.pop_back();
+  return json;
+}
+
+bool NaturalLess(const std::string& a, const std::string& b) {
+  size_t i = 0, j = 0;
+  while (i < a.size() && j < b.size()) {
+    const bool da = std::isdigit(static_cast<unsigned char>(a[i]));
+    const bool db = std::isdigit(static_cast<unsigned char>(b[j]));
+    if (da && db) {
+      size_t ei = i, ej = j;
+      while (ei < a.size() && std::isdigit(static_cast<unsigned char>(a[ei]))) ++ei;
+      while (ej < b.size() && std::isdigit(static_cast<unsigned char>(b[ej]))) ++ej;
+      // Compare the runs as numbers: strip leading zeros, then longer is larger.
+      size_t si = i, sj = j;
+      while (si + 1 < ei && a[si] == '0') ++si;
+      while (sj + 1 < ej && b[sj] == '0') ++sj;
+      if (ei - si != ej - sj) return ei - si < ej - sj;
+      const int cmp = a.compare(si, ei - si, b, sj, ej - sj);
+      if (cmp != 0) return cmp < 0;
+      if (ei - i != ej - j) return ei - i < ej - j;  // "01" after "1": deterministic
+      i = ei;
+      j = ej;
+    } else {
+      if (a[i] != b[j]) return a[i] < b[j];
+      ++i;
+      ++j;
+    }
+  }
+  return a.size() - i < b.size() - j;
+}
+
+}  // namespace placedb::client

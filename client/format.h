@@ -1,0 +1,75 @@
+// Output helpers shared by the commands: latency statistics, human units, aligned tables, enum
+// names, and the proto3 JSON of a response.
+#pragma once
+
+#include <google/protobuf/message.h>
+
+#include <cstdint>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <ostream>
+#include <string>
+#include <vector>
+
+#include "proto/placedb.pb.h"
+
+namespace placedb::client {
+
+namespace v1 = ::placedb::v1;
+
+// Percentiles by nearest rank over every sample (no sampling, no interpolation).
+struct LatencySummary {
+  size_t count = 0;
+  double mean = 0, p50 = 0, p90 = 0, p99 = 0, max = 0;
+};
+LatencySummary Summarize(std::vector<double> samples);
+nlohmann::json ToJson(const LatencySummary& summary);
+
+// The StageTimings fields, in pipeline order, with accessors.
+struct StageField {
+  const char* name;  // "queue", "decode", ..., "total"
+  double (v1::StageTimings::*get)() const;
+};
+const std::vector<StageField>& StageFields();
+// "queue 0.02  decode 3.10  ...  total 17.52" (ms); stages that took no time are left out.
+std::string FormatTimings(const v1::StageTimings& timings);
+
+std::string FormatDouble(double value, int decimals);
+std::string FormatBytes(uint64_t bytes);     // "1.5 MiB"
+std::string FormatDuration(double seconds);  // "1m05s", "3.2s"
+std::string FormatUnixNs(int64_t unix_ns);   // "2025-11-22T00:40:12.123Z", "-" for 0
+std::string FormatUnixMs(int64_t unix_ms);
+
+// Lower-case short names of the API enums ("keypoint_in_box", "l1", "direct", "agent").
+std::string FilterName(v1::FilterMethod method);
+std::string ScoringName(v1::Scoring scoring);
+std::string VerificationName(v1::VerificationMode mode);
+std::string BoxSourceName(v1::BoxSource source);
+
+// A left/right aligned text table.
+class Table {
+ public:
+  // A header starting with '>' is right-aligned (numbers); the '>' is not printed.
+  explicit Table(std::vector<std::string> headers);
+  void Add(std::vector<std::string> row);
+  void Print(std::ostream& out, const std::string& indent = "", bool header = true) const;
+  bool empty() const { return rows_.empty(); }
+
+ private:
+  std::vector<std::string> headers_;
+  std::vector<bool> right_;
+  std::vector<std::vector<std::string>> rows_;
+};
+
+// "title" then "  key  value" lines with the values aligned.
+void PrintKeyValues(std::ostream& out, const std::string& title,
+                    const std::vector<std::pair<std::string, std::string>>& rows);
+
+// The message in proto3 JSON, field names as in the proto, defaults included, indented. (64-bit
+// integers are strings, per the proto3 JSON mapping.)
+std::string ProtoJson(const google::protobuf::Message& message);
+
+// Natural order of file names: "2.jpg" < "10.jpg", digit runs compared as numbers.
+bool NaturalLess(const std::string& a, const std::string& b);
+
+}  // namespace placedb::client

@@ -1,0 +1,219 @@
+#include "client/frame_source.h"
+
+#include <fnmatch.h>
+
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/videoio.hpp>
+#include <sstream>
+
+#include "client/format.h"
+
+namespace fs = std::filesystem;
+
+namespace placedb::client {
+
+namespace {
+
+std::string LowerExtension(const fs::path& path) {
+  std::string ext = path.extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(),
+                 [](unsigned char c) { return char(std::tolower(c)); });
+  return ext;
+}
+
+bool IsImageExtension(const std::string& ext) {
+  static const char* const kImages[] = {".jpg", ".jpeg", ".png", ".bmp",  ".pgm",
+                                        ".ppm", ".pnm",  ".tif", ".tiff", ".webp"};
+  return std::find(std::begin(kImages), std::end(kImages), ext) != std::end(kImages);
+}
+
+bool IsListExtension(const std::string& ext) {
+  return ext == ".txt" || ext == ".lst" || ext == ".list";
+}
+
+std::string Trim(const std::string& text) {
+  const auto begin = text.find_first_not_of(" \t\r\n");
+  if (begin == std::string::npos) return "";
+  const auto end = text.find_last_not_of(" \t\r\n");
+  return text.substr(begin, end - begin + 1);
+}
+
+}  // namespace
+
+bool IsJpegOrPng(const std::string& bytes) {
+  return (bytes.size() >= 3 && uint8_t(bytes[0]) == 0xFF && uint8_t(bytes[1]) == 0xD8 &&
+          uint8_t(bytes[2]) == 0xFF) ||
+         (bytes.size() >= 8 && bytes.compare(0, 8, "\x89PNG\r\n\x1a\n") == 0);
+}
+
+bool ReadImageBytes(const std::string& path, std::string* bytes, std::string* error) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    *error = "cannot read " + path;
+    return false;
+  }
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  *bytes = buffer.str();
+  if (IsJpegOrPng(*bytes)) return true;
+  cv::Mat image = cv::imread(path, cv::IMREAD_UNCHANGED);
+  if (image.empty()) {
+    *error = path + " is not an image OpenCV can decode";
+    return false;
+  }
+  if (image.depth() != CV_8U)
+    image.convertTo(image, CV_8U, image.depth() == CV_16U ? 1 / 257.0 : 1);
+  std::vector<uint8_t> png;
+  if (!cv::imencode(".png", image, png)) {
+    *error = "cannot re-encode " + path + " as PNG";
+    return false;
+  }
+  bytes->assign(png.begin(), png.end());
+  return true;
+}
+
+FrameSource::~FrameSource() = default;
+
+std::unique_ptr<FrameSource> FrameSource::Open(const std::vector<std::string>& sources,
+                                               int video_every, const std::string& glob,
+                                               std::string* error) {
+  std::unique_ptr<FrameSource> source(new FrameSource());
+  source->video_every_ = std::max(1, video_every);
+  size_t total = 0;
+  bool exact = true;
+  auto add_image = [&](const std::string& path) {
+    source->items_.push_back({path, false});
+    ++total;
+  };
+  for (const std::string& arg : sources) {
+    std::error_code ec;
+    const fs::path path(arg);
+    if (fs::is_directory(path, ec)) {
+      std::vector<std::string> names;
+      for (const auto& entry : fs::directory_iterator(path, ec)) {
+        const std::string name = entry.path().filename().string();
+        if (entry.is_regular_file(ec) && IsImageExtension(LowerExtension(entry.path())) &&
+            (glob.empty() || fnmatch(glob.c_str(), name.c_str(), 0) == 0)) {
+          names.push_back(name);
+        }
+      }
+      if (ec) {
+        *error = "cannot list " + arg + ": " + ec.message();
+        return nullptr;
+      }
+      if (names.empty()) {
+        *error = arg + " holds no image files" + (glob.empty() ? "" : " matching " + glob);
+        return nullptr;
+      }
+      std::sort(names.begin(), names.end(), NaturalLess);
+      for (const std::string& name : names) add_image((path / name).string());
+      continue;
+    }
+    if (!fs::is_regular_file(path, ec)) {
+      *error = arg + ": no such file or directory";
+      return nullptr;
+    }
+    const std::string ext = LowerExtension(path);
+    if (IsListExtension(ext)) {
+      std::ifstream in(arg);
+      if (!in) {
+        *error = "cannot read " + arg;
+        return nullptr;
+      }
+      const fs::path base = path.parent_path();
+      std::string line;
+      int line_number = 0;
+      while (std::getline(in, line)) {
+        ++line_number;
+        line = Trim(line);
+        if (line.empty() || line[0] == '#') continue;
+        fs::path entry(line);
+        if (entry.is_relative()) entry = (base / entry).lexically_normal();
+        if (!fs::is_regular_file(entry, ec)) {
+          *error =
+              arg + ":" + std::to_string(line_number) + ": " + entry.string() + ": no such file";
+          return nullptr;
+        }
+        add_image(entry.string());
+      }
+      continue;
+    }
+    if (IsImageExtension(ext)) {
+      add_image(arg);
+      continue;
+    }
+    cv::VideoCapture probe(arg);
+    if (!probe.isOpened()) {
+      *error = arg + " is neither a folder, an image list, an image nor a video OpenCV can open";
+      return nullptr;
+    }
+    const double declared = probe.get(cv::CAP_PROP_FRAME_COUNT);
+    if (declared > 0) {
+      total += size_t(std::ceil(declared / source->video_every_));
+    } else {
+      exact = false;
+    }
+    source->items_.push_back({arg, true});
+  }
+  if (source->items_.empty()) {
+    *error = "no frames: give a folder, a list, an image or a video";
+    return nullptr;
+  }
+  if (exact || total > 0) source->total_ = total;
+  return source;
+}
+
+bool FrameSource::Next(Frame* frame, std::string* error) {
+  error->clear();
+  while (next_item_ < items_.size() || video_) {
+    if (video_) {
+      cv::Mat image;
+      // Skip to the next K-th frame: grab() without decoding the ones in between.
+      while (video_frame_ % video_every_ != 0) {
+        if (!video_->grab()) break;
+        ++video_frame_;
+      }
+      if (video_frame_ % video_every_ != 0 || !video_->read(image) || image.empty()) {
+        video_.reset();
+        continue;
+      }
+      const long number = video_frame_++;
+      frame->index = next_index_++;
+      frame->name = video_path_ + "#" + std::to_string(number);
+      std::vector<uint8_t> jpeg;
+      if (!cv::imencode(".jpg", image, jpeg, {cv::IMWRITE_JPEG_QUALITY, 90})) {
+        *error = "cannot encode " + frame->name + " as JPEG";
+        frame->bytes.clear();
+        return true;
+      }
+      frame->bytes.assign(jpeg.begin(), jpeg.end());
+      return true;
+    }
+    const Item& item = items_[next_item_++];
+    if (item.video) {
+      video_ = std::make_unique<cv::VideoCapture>(item.path);
+      video_path_ = item.path;
+      video_frame_ = 0;
+      if (!video_->isOpened()) {
+        video_.reset();
+        *error = "cannot open video " + item.path;
+        frame->name = item.path;
+        frame->bytes.clear();
+        return true;
+      }
+      continue;
+    }
+    frame->index = next_index_++;
+    frame->name = item.path;
+    if (!ReadImageBytes(item.path, &frame->bytes, error)) frame->bytes.clear();
+    return true;
+  }
+  return false;
+}
+
+}  // namespace placedb::client

@@ -1,0 +1,46 @@
+// Progress on stderr: a redrawn bar with rate and ETA on a terminal, a line every few seconds
+// otherwise (logs, CI).
+#pragma once
+
+#include <atomic>
+#include <condition_variable>
+#include <mutex>
+#include <optional>
+#include <ostream>
+#include <string>
+#include <thread>
+
+#include "client/connection.h"
+
+namespace placedb::client {
+
+class Progress {
+ public:
+  // `total` (frames) enables the percentage and the ETA.
+  Progress(std::ostream& err, bool tty, std::optional<size_t> total, double line_interval_s = 2.0);
+  ~Progress();
+
+  void Add(size_t n = 1) { done_.fetch_add(n, std::memory_order_relaxed); }
+  // Prints a line (a warning) without garbling the bar.
+  void Message(const std::string& line);
+  // Final update; idempotent.
+  void Stop();
+
+ private:
+  void Loop();
+  std::string Render(bool final) const;
+
+  std::ostream& err_;
+  const bool tty_;
+  const std::optional<size_t> total_;
+  const double line_interval_s_;
+  const Clock::time_point start_ = Clock::now();
+  std::atomic<size_t> done_{0};
+  std::mutex mutex_;  // err_, stopped_
+  std::condition_variable wake_;
+  bool stopped_ = false;
+  size_t drawn_width_ = 0;
+  std::thread thread_;
+};
+
+}  // namespace placedb::client

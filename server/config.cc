@@ -1,0 +1,403 @@
+#include "server/config.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <CLI/CLI.hpp>
+#include <cmath>
+#include <fstream>
+#include <iostream>
+#include <set>
+#include <sstream>
+#include <thread>
+
+namespace placedb::server {
+
+int ServerConfig::worker_threads() const {
+  if (threads > 0) return threads;
+  return std::max(1, int(std::thread::hardware_concurrency()));
+}
+
+namespace {
+
+Status Bad(const std::string& key, const std::string& what) {
+  return Status::InvalidArgument(key + ": " + what);
+}
+
+bool ValidListenAddress(const std::string& address) {
+  // host:port, [v6]:port, or unix:path. The port may be 0 (pick one).
+  if (address.rfind("unix:", 0) == 0) return address.size() > 5;
+  const auto colon = address.rfind(':');
+  if (colon == std::string::npos || colon == 0 || colon + 1 >= address.size()) return false;
+  const std::string port = address.substr(colon + 1);
+  if (port.find_first_not_of("0123456789") != std::string::npos || port.size() > 5) return false;
+  return std::stoi(port) <= 65535;
+}
+
+}  // namespace
+
+Status ValidateServerConfig(const ServerConfig& c) {
+  if (!ValidListenAddress(c.listen)) return Bad("listen", "'" + c.listen + "' is not host:port");
+  if (!c.metrics_listen.empty()) {
+    if (!ValidListenAddress(c.metrics_listen) || c.metrics_listen.rfind("unix:", 0) == 0) {
+      return Bad("metrics_listen", "'" + c.metrics_listen + "' is not host:port");
+    }
+    if (c.metrics_path.empty() || c.metrics_path[0] != '/') {
+      return Bad("metrics_path", "must start with '/'");
+    }
+  }
+  if (c.data_dir.empty()) return Bad("data_dir", "must not be empty");
+  if (c.threads < 0 || c.threads > 1024) return Bad("threads", "must be in [0, 1024]");
+  if (c.opencv_threads < -1 || c.opencv_threads > 1024) {
+    return Bad("opencv_threads", "must be in [-1, 1024]");
+  }
+  if (!c.vocabularies.count("default")) {
+    return Bad("vocabularies", "a vocabulary named 'default' is required");
+  }
+  for (const auto& [name, path] : c.vocabularies) {
+    if (name.empty()) return Bad("vocabularies", "a vocabulary name is empty");
+    if (path.empty()) return Bad("vocabularies." + name, "path is empty");
+  }
+  if (c.storage.group_commit_delay_ms < 0 || c.storage.group_commit_delay_ms > 1000) {
+    return Bad("storage.group_commit_delay_ms", "must be in [0, 1000]");
+  }
+  const Limits& l = c.limits;
+  if (l.max_message_bytes < 1024 || l.max_message_bytes > (uint64_t(1) << 30)) {
+    return Bad("limits.max_message_bytes", "must be in [1 KiB, 1 GiB]");
+  }
+  if (l.max_image_pixels < 1) return Bad("limits.max_image_pixels", "must be >= 1");
+  if (l.max_descriptors_per_frame < 1 || l.max_descriptors_per_frame > 100000) {
+    return Bad("limits.max_descriptors_per_frame", "must be in [1, 100000]");
+  }
+  if (l.max_concurrent_streams < 1) return Bad("limits.max_concurrent_streams", "must be >= 1");
+  if (l.max_queued_frames < 1) return Bad("limits.max_queued_frames", "must be >= 1");
+  if (l.max_inflight_per_stream < 1) return Bad("limits.max_inflight_per_stream", "must be >= 1");
+  if (l.max_concurrent_unary < 1) return Bad("limits.max_concurrent_unary", "must be >= 1");
+  if (l.memory_quota_bytes < (uint64_t(16) << 20)) {
+    return Bad("limits.memory_quota_bytes", "must be >= 16 MiB");
+  }
+  if (!(c.shutdown_deadline_s >= 0 && c.shutdown_deadline_s <= 3600)) {
+    return Bad("shutdown_deadline_s", "must be in [0, 3600]");
+  }
+  static const std::set<std::string> kLevels = {"trace", "debug",    "info", "warn",
+                                                "error", "critical", "off"};
+  if (!kLevels.count(c.log_level)) return Bad("log_level", "unknown level '" + c.log_level + "'");
+  if (c.detector_enabled()) {
+    const DetectorSettings& d = c.detector;
+    if (d.backend != "yolox_onnx" && d.backend != "darknet") {
+      return Bad("detector.backend", "must be yolox_onnx or darknet");
+    }
+    if (d.backend == "darknet" && d.config.empty()) {
+      return Bad("detector.config", "the darknet backend needs its .cfg file");
+    }
+    if (!(d.merge_iou > 0 && d.merge_iou <= 1))
+      return Bad("detector.merge_iou", "must be in (0, 1]");
+    if (d.max_concurrent_calls < 0) return Bad("detector.max_concurrent_calls", "must be >= 0");
+  }
+  return Status::Ok();
+}
+
+// ---- YAML ---------------------------------------------------------------------------------------
+
+namespace {
+
+// Reads a YAML node into typed fields, naming the key path in every error.
+class YamlReader {
+ public:
+  Status Check(const YAML::Node& node, const std::string& path,
+               const std::set<std::string>& known) {
+    if (!node.IsMap()) return Bad(path.empty() ? "config" : path, "must be a mapping");
+    for (const auto& item : node) {
+      const std::string key = item.first.as<std::string>();
+      if (!known.count(key)) {
+        return Bad(Join(path, key), "unknown key (see server/placedb.yaml for the valid ones)");
+      }
+    }
+    return Status::Ok();
+  }
+
+  template <typename T>
+  Status Read(const YAML::Node& node, const std::string& path, const char* key, T* out) {
+    const YAML::Node value = node[key];
+    if (!value) return Status::Ok();
+    try {
+      *out = value.as<T>();
+    } catch (const YAML::Exception&) {
+      return Bad(Join(path, key), "cannot read '" + YAML::Dump(value) + "' as the expected type");
+    }
+    return Status::Ok();
+  }
+
+  static std::string Join(const std::string& path, const std::string& key) {
+    return path.empty() ? key : path + "." + key;
+  }
+};
+
+Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
+  if (!root || root.IsNull()) return Status::Ok();  // an empty file changes nothing
+  YamlReader r;
+  PLACEDB_RETURN_IF_ERROR(r.Check(
+      root, "",
+      {"listen", "metrics_listen", "metrics_path", "data_dir", "threads", "opencv_threads",
+       "vocabularies", "storage", "limits", "shutdown_deadline_s", "detector", "log_level"}));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "listen", &c->listen));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_listen", &c->metrics_listen));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_path", &c->metrics_path));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "data_dir", &c->data_dir));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "threads", &c->threads));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "opencv_threads", &c->opencv_threads));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "shutdown_deadline_s", &c->shutdown_deadline_s));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "log_level", &c->log_level));
+  if (const YAML::Node v = root["vocabularies"]; v) {
+    if (!v.IsMap()) return Bad("vocabularies", "must be a mapping of name: path");
+    // The file's list replaces the embedded one, so a config can rename or drop entries.
+    std::map<std::string, std::string> vocabularies;
+    for (const auto& item : v) {
+      const std::string name = item.first.as<std::string>();
+      std::string path;
+      PLACEDB_RETURN_IF_ERROR(r.Read(v, "vocabularies", name.c_str(), &path));
+      vocabularies[name] = path;
+    }
+    c->vocabularies = std::move(vocabularies);
+  }
+  if (const YAML::Node s = root["storage"]; s) {
+    PLACEDB_RETURN_IF_ERROR(
+        r.Check(s, "storage", {"sync", "group_commit_delay_ms", "block_cache_bytes"}));
+    std::string sync;
+    PLACEDB_RETURN_IF_ERROR(r.Read(s, "storage", "sync", &sync));
+    if (sync == "every_write") {
+      c->storage.sync = SyncMode::kEveryWrite;
+    } else if (sync == "group_commit") {
+      c->storage.sync = SyncMode::kGroupCommit;
+    } else if (!sync.empty()) {
+      return Bad("storage.sync", "must be every_write or group_commit, got '" + sync + "'");
+    }
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(s, "storage", "group_commit_delay_ms", &c->storage.group_commit_delay_ms));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(s, "storage", "block_cache_bytes", &c->storage.block_cache_bytes));
+  }
+  if (const YAML::Node l = root["limits"]; l) {
+    PLACEDB_RETURN_IF_ERROR(
+        r.Check(l, "limits",
+                {"max_message_bytes", "max_image_pixels", "max_descriptors_per_frame",
+                 "max_boxes_per_frame", "max_concurrent_streams", "max_queued_frames",
+                 "max_inflight_per_stream", "max_concurrent_unary", "unary_queue_wait_ms",
+                 "memory_quota_bytes"}));
+    Limits& x = c->limits;
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_message_bytes", &x.max_message_bytes));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_image_pixels", &x.max_image_pixels));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(l, "limits", "max_descriptors_per_frame", &x.max_descriptors_per_frame));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_boxes_per_frame", &x.max_boxes_per_frame));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(l, "limits", "max_concurrent_streams", &x.max_concurrent_streams));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_queued_frames", &x.max_queued_frames));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(l, "limits", "max_inflight_per_stream", &x.max_inflight_per_stream));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_concurrent_unary", &x.max_concurrent_unary));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "unary_queue_wait_ms", &x.unary_queue_wait_ms));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "memory_quota_bytes", &x.memory_quota_bytes));
+  }
+  if (const YAML::Node d = root["detector"]; d) {
+    PLACEDB_RETURN_IF_ERROR(
+        r.Check(d, "detector",
+                {"backend", "model", "config", "input_size", "preprocessing", "confidence",
+                 "nms_iou", "classes", "max_concurrent_calls", "merge_iou", "required"}));
+    DetectorSettings& x = c->detector;
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "backend", &x.backend));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "model", &x.model));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "config", &x.config));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "input_size", &x.input_size));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "preprocessing", &x.preprocessing));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "confidence", &x.confidence));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "nms_iou", &x.nms_iou));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "classes", &x.classes));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "max_concurrent_calls", &x.max_concurrent_calls));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "merge_iou", &x.merge_iou));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "required", &x.required));
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
+Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config) {
+  try {
+    return ApplyYamlNode(YAML::Load(yaml_text), config);
+  } catch (const YAML::Exception& e) {
+    return Status::InvalidArgument(std::string("config is not valid YAML: ") + e.what());
+  }
+}
+
+Status ApplyConfigFile(const std::string& path, ServerConfig* config) {
+  std::ifstream in(path);
+  if (!in) return Status::NotFound("config file " + path + " cannot be read");
+  std::stringstream text;
+  text << in.rdbuf();
+  return ApplyConfigYaml(text.str(), config).WithContext("config file " + path);
+}
+
+// ---- Environment --------------------------------------------------------------------------------
+
+Status ApplyEnvironment(ServerConfig* c, const std::function<const char*(const char*)>& getenv) {
+  auto get = [&](const char* name) -> std::optional<std::string> {
+    const char* v = getenv(name);
+    if (!v || !*v) return std::nullopt;
+    return std::string(v);
+  };
+  if (auto v = get("PLACEDB_LISTEN")) c->listen = *v;
+  if (auto v = get("PLACEDB_DATA_DIR")) c->data_dir = *v;
+  if (auto v = get("PLACEDB_METRICS_LISTEN")) c->metrics_listen = (*v == "off") ? "" : *v;
+  if (auto v = get("PLACEDB_METRICS_PORT")) {
+    // Keeps the configured host, replaces the port.
+    if (v->find_first_not_of("0123456789") != std::string::npos || v->size() > 5) {
+      return Bad("PLACEDB_METRICS_PORT", "'" + *v + "' is not a port number");
+    }
+    std::string host = "0.0.0.0";
+    if (const auto colon = c->metrics_listen.rfind(':'); colon != std::string::npos) {
+      host = c->metrics_listen.substr(0, colon);
+    }
+    c->metrics_listen = host + ":" + *v;
+  }
+  if (auto v = get("PLACEDB_THREADS")) {
+    if (v->find_first_not_of("0123456789") != std::string::npos || v->size() > 4) {
+      return Bad("PLACEDB_THREADS", "'" + *v + "' is not a thread count");
+    }
+    c->threads = std::stoi(*v);
+  }
+  if (auto v = get("PLACEDB_LOG_LEVEL")) c->log_level = *v;
+  if (auto v = get("PLACEDB_DETECTOR_MODEL")) c->detector.model = (*v == "off") ? "" : *v;
+  return Status::Ok();
+}
+
+// ---- Command line -------------------------------------------------------------------------------
+
+Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
+                                     const std::function<const char*(const char*)>& getenv) {
+  CLI::App app{"placedb-server: the placedb gRPC service (docs/service.md)", "placedb-server"};
+  app.set_version_flag("--version", std::string("placedb-server ") + PLACEDB_VERSION);
+  std::string config_path, listen, data_dir, metrics_listen, log_level, detector_model;
+  int threads = 0;
+  double shutdown_deadline = 0;
+  std::vector<std::string> vocabularies;
+  uint64_t max_message_bytes = 0, max_image_pixels = 0;
+  uint32_t max_descriptors = 0, max_boxes = 0, max_streams = 0, max_queued = 0;
+  bool print_config = false;
+  auto* o_config = app.add_option("-c,--config", config_path,
+                                  "YAML configuration file (default: $PLACEDB_CONFIG)");
+  auto* o_listen = app.add_option("--listen", listen, "gRPC address host:port (0.0.0.0:50051)");
+  auto* o_data = app.add_option("--data-dir", data_dir, "data directory (./var/data)");
+  auto* o_metrics = app.add_option("--metrics-listen", metrics_listen,
+                                   "Prometheus endpoint host:port (0.0.0.0:9464), 'off' = none");
+  auto* o_threads = app.add_option("--threads", threads, "worker threads (0 = every core)");
+  auto* o_vocab = app.add_option("--vocabulary", vocabularies,
+                                 "NAME=PATH, repeatable; adds or replaces a named vocabulary");
+  auto* o_deadline =
+      app.add_option("--shutdown-deadline", shutdown_deadline, "seconds in-flight calls get (30)");
+  auto* o_log = app.add_option("--log-level", log_level, "trace|debug|info|warn|error|off");
+  auto* o_detector = app.add_option("--detector-model", detector_model,
+                                    "detector model file (.onnx or .weights); 'off' = none");
+  auto* o_msg = app.add_option("--max-message-bytes", max_message_bytes, "limit");
+  auto* o_pixels = app.add_option("--max-image-pixels", max_image_pixels, "limit");
+  auto* o_desc = app.add_option("--max-descriptors", max_descriptors, "limit per frame");
+  auto* o_boxes = app.add_option("--max-boxes", max_boxes, "limit per frame");
+  auto* o_streams = app.add_option("--max-streams", max_streams, "concurrent Ingest streams");
+  auto* o_queued = app.add_option("--max-queued-frames", max_queued, "frames waiting for a worker");
+  app.add_flag("--print-config", print_config, "print the effective configuration and exit");
+
+  CommandLine out;
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    out.exit_code = app.exit(e);
+    return out;
+  }
+  ServerConfig& c = out.config;
+  if (o_config->count() == 0) {
+    if (const char* env = getenv("PLACEDB_CONFIG"); env && *env) config_path = env;
+  }
+  if (!config_path.empty()) PLACEDB_RETURN_IF_ERROR(ApplyConfigFile(config_path, &c));
+  PLACEDB_RETURN_IF_ERROR(ApplyEnvironment(&c, getenv));
+  if (o_listen->count()) c.listen = listen;
+  if (o_data->count()) c.data_dir = data_dir;
+  if (o_metrics->count()) c.metrics_listen = metrics_listen == "off" ? "" : metrics_listen;
+  if (o_threads->count()) c.threads = threads;
+  if (o_deadline->count()) c.shutdown_deadline_s = shutdown_deadline;
+  if (o_log->count()) c.log_level = log_level;
+  if (o_detector->count()) c.detector.model = detector_model == "off" ? "" : detector_model;
+  for (const std::string& entry : vocabularies) {
+    const auto eq = entry.find('=');
+    if (eq == std::string::npos || eq == 0 || eq + 1 == entry.size()) {
+      return Bad("--vocabulary", "'" + entry + "' is not NAME=PATH");
+    }
+    c.vocabularies[entry.substr(0, eq)] = entry.substr(eq + 1);
+  }
+  (void)o_vocab;
+  if (o_msg->count()) c.limits.max_message_bytes = max_message_bytes;
+  if (o_pixels->count()) c.limits.max_image_pixels = max_image_pixels;
+  if (o_desc->count()) c.limits.max_descriptors_per_frame = max_descriptors;
+  if (o_boxes->count()) c.limits.max_boxes_per_frame = max_boxes;
+  if (o_streams->count()) c.limits.max_concurrent_streams = max_streams;
+  if (o_queued->count()) c.limits.max_queued_frames = max_queued;
+  PLACEDB_RETURN_IF_ERROR(ValidateServerConfig(c));
+  if (print_config) {
+    std::cout << ConfigToYaml(c);
+    out.exit_code = 0;
+  }
+  return out;
+}
+
+std::string ConfigToYaml(const ServerConfig& c) {
+  YAML::Emitter e;
+  e.SetFloatPrecision(6);
+  e.SetDoublePrecision(6);
+  e << YAML::BeginMap;
+  e << YAML::Key << "listen" << YAML::Value << c.listen;
+  e << YAML::Key << "metrics_listen" << YAML::Value << c.metrics_listen;
+  e << YAML::Key << "metrics_path" << YAML::Value << c.metrics_path;
+  e << YAML::Key << "data_dir" << YAML::Value << c.data_dir;
+  e << YAML::Key << "threads" << YAML::Value << c.threads;
+  e << YAML::Key << "opencv_threads" << YAML::Value << c.opencv_threads;
+  e << YAML::Key << "vocabularies" << YAML::Value << YAML::BeginMap;
+  for (const auto& [name, path] : c.vocabularies) e << YAML::Key << name << YAML::Value << path;
+  e << YAML::EndMap;
+  e << YAML::Key << "storage" << YAML::Value << YAML::BeginMap;
+  e << YAML::Key << "sync" << YAML::Value
+    << (c.storage.sync == SyncMode::kGroupCommit ? "group_commit" : "every_write");
+  e << YAML::Key << "group_commit_delay_ms" << YAML::Value << c.storage.group_commit_delay_ms;
+  e << YAML::Key << "block_cache_bytes" << YAML::Value << c.storage.block_cache_bytes;
+  e << YAML::EndMap;
+  const Limits& l = c.limits;
+  e << YAML::Key << "limits" << YAML::Value << YAML::BeginMap;
+  e << YAML::Key << "max_message_bytes" << YAML::Value << l.max_message_bytes;
+  e << YAML::Key << "max_image_pixels" << YAML::Value << l.max_image_pixels;
+  e << YAML::Key << "max_descriptors_per_frame" << YAML::Value << l.max_descriptors_per_frame;
+  e << YAML::Key << "max_boxes_per_frame" << YAML::Value << l.max_boxes_per_frame;
+  e << YAML::Key << "max_concurrent_streams" << YAML::Value << l.max_concurrent_streams;
+  e << YAML::Key << "max_queued_frames" << YAML::Value << l.max_queued_frames;
+  e << YAML::Key << "max_inflight_per_stream" << YAML::Value << l.max_inflight_per_stream;
+  e << YAML::Key << "max_concurrent_unary" << YAML::Value << l.max_concurrent_unary;
+  e << YAML::Key << "unary_queue_wait_ms" << YAML::Value << l.unary_queue_wait_ms;
+  e << YAML::Key << "memory_quota_bytes" << YAML::Value << l.memory_quota_bytes;
+  e << YAML::EndMap;
+  e << YAML::Key << "shutdown_deadline_s" << YAML::Value << c.shutdown_deadline_s;
+  const DetectorSettings& d = c.detector;
+  e << YAML::Key << "detector" << YAML::Value << YAML::BeginMap;
+  e << YAML::Key << "backend" << YAML::Value << d.backend;
+  e << YAML::Key << "model" << YAML::Value << d.model;
+  e << YAML::Key << "config" << YAML::Value << d.config;
+  e << YAML::Key << "input_size" << YAML::Value << d.input_size;
+  e << YAML::Key << "preprocessing" << YAML::Value << d.preprocessing;
+  e << YAML::Key << "confidence" << YAML::Value << d.confidence;
+  e << YAML::Key << "nms_iou" << YAML::Value << d.nms_iou;
+  e << YAML::Key << "classes" << YAML::Value << YAML::Flow << d.classes;
+  e << YAML::Key << "max_concurrent_calls" << YAML::Value << d.max_concurrent_calls;
+  e << YAML::Key << "merge_iou" << YAML::Value << d.merge_iou;
+  e << YAML::Key << "required" << YAML::Value << d.required;
+  e << YAML::EndMap;
+  e << YAML::Key << "log_level" << YAML::Value << c.log_level;
+  e << YAML::EndMap;
+  return std::string(e.c_str()) + "\n";
+}
+
+}  // namespace placedb::server

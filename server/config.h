@@ -1,0 +1,93 @@
+// The server's configuration: embedded defaults, overridden by a YAML file, then by PLACEDB_*
+// environment variables, then by command-line flags (docs/service.md lists them all;
+// server/placedb.yaml is a commented example).
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/map_store.h"
+#include "core/status.h"
+
+namespace placedb::server {
+
+// Exceeding any of these is RESOURCE_EXHAUSTED, with a message naming the limit.
+struct Limits {
+  uint64_t max_message_bytes = uint64_t(16) << 20;  // one gRPC message (an observation)
+  uint64_t max_image_pixels = 4096 * 4096;          // width * height of any image, mask, depth
+  uint32_t max_descriptors_per_frame = 10000;       // keypoints sent, or a map's ORB budget
+  uint32_t max_boxes_per_frame = 256;               // agent boxes of one observation
+  uint32_t max_concurrent_streams = 32;             // open Ingest streams
+  uint32_t max_queued_frames = 32;                  // frames waiting for a worker (all calls)
+  uint32_t max_inflight_per_stream = 8;             // frames read but not yet answered, per stream
+  uint32_t max_concurrent_unary = 64;               // unary calls being served at once
+  uint32_t unary_queue_wait_ms = 2000;              // a unary call waits this long for room
+  uint64_t memory_quota_bytes = uint64_t(1) << 30;  // gRPC's ResourceQuota (transport buffers)
+};
+
+// Server-side detection (core/detector.h). Absent model = detection off.
+struct DetectorSettings {
+  std::string backend = "yolox_onnx";  // or "darknet"
+  std::string model;                   // .onnx (YOLOX) or .weights (darknet)
+  std::string config;                  // darknet .cfg
+  int input_size = 416;
+  std::string preprocessing = "letterbox";  // letterbox | centre_crop | stretch
+  float confidence = 0.2f;
+  float nms_iou = 0.45f;
+  std::vector<std::string> classes;  // COCO names reported; empty = the paper's six
+  int max_concurrent_calls = 0;      // 0 = worker threads
+  float merge_iou = 0.5f;            // box_source BOTH: server box duplicates an agent box above
+  // A model that fails to load: false = log it and run with detection off (maps that need it
+  // refuse frames with FAILED_PRECONDITION), true = refuse to start.
+  bool required = false;
+};
+
+struct ServerConfig {
+  std::string listen = "0.0.0.0:50051";
+  std::string metrics_listen = "0.0.0.0:9464";  // empty = no metrics endpoint
+  std::string metrics_path = "/metrics";
+  std::string data_dir = "./var/data";
+  int threads = 0;         // worker threads; 0 = hardware concurrency
+  int opencv_threads = 1;  // cv::setNumThreads; frames are parallel already. -1 = leave alone
+  // name -> vocabulary file; "default" is required (CreateMap with no vocabulary uses it).
+  std::map<std::string, std::string> vocabularies = {{"default", "var/vocabulary/default.pdbv"}};
+  StorageOptions storage;
+  Limits limits;
+  double shutdown_deadline_s = 30;  // in-flight calls get this long on SIGTERM/SIGINT
+  DetectorSettings detector;        // used when detector.model is set
+  std::string log_level = "info";   // trace | debug | info | warn | error | off
+
+  bool detector_enabled() const { return !detector.model.empty(); }
+  int worker_threads() const;  // threads, or the hardware concurrency
+};
+
+// Checks values (not files): INVALID_ARGUMENT naming the first bad key.
+Status ValidateServerConfig(const ServerConfig& config);
+
+// Applies a YAML file's keys over `config`. Unknown keys are errors (typos do not pass silently).
+Status ApplyConfigFile(const std::string& path, ServerConfig* config);
+Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config);  // for tests
+
+// Applies PLACEDB_LISTEN, PLACEDB_DATA_DIR, PLACEDB_METRICS_LISTEN, PLACEDB_METRICS_PORT,
+// PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL. `getenv` is injectable for tests.
+Status ApplyEnvironment(ServerConfig* config,
+                        const std::function<const char*(const char*)>& getenv);
+
+// The whole chain for main(): defaults < --config file (or PLACEDB_CONFIG) < environment <
+// flags. `exit_code` is set when the process should exit right away (--help, --version,
+// --print-config, or a usage error already reported on stderr).
+struct CommandLine {
+  ServerConfig config;
+  std::optional<int> exit_code;
+};
+Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
+                                     const std::function<const char*(const char*)>& getenv);
+
+// The effective configuration as YAML (--print-config; loadable with --config).
+std::string ConfigToYaml(const ServerConfig& config);
+
+}  // namespace placedb::server

@@ -1,0 +1,87 @@
+// Translation between the placedb.v1 wire types and the core's types. Everything that arrives
+// is validated here before the core sees it; INVALID_ARGUMENT messages name the offending field
+// as a path into the request ("observation.features.keypoints[3].x: 700 lies outside the
+// 640x480 image"), RESOURCE_EXHAUSTED messages name the limit ("limits.max_boxes_per_frame").
+#pragma once
+
+#include <grpcpp/support/status.h>
+
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "core/detector.h"
+#include "core/map_store.h"
+#include "core/place_database.h"
+#include "core/status.h"
+#include "proto/placedb.pb.h"
+#include "server/config.h"
+
+namespace placedb::server {
+
+namespace v1 = ::placedb::v1;
+
+// ---- Status -------------------------------------------------------------------------------------
+
+// 1:1: INVALID_ARGUMENT, NOT_FOUND, ALREADY_EXISTS, FAILED_PRECONDITION, RESOURCE_EXHAUSTED,
+// CORRUPTION -> DATA_LOSS, IO_ERROR -> UNAVAILABLE, INTERNAL, CANCELLED.
+grpc::StatusCode ToGrpcCode(StatusCode code);
+grpc::Status ToGrpc(const Status& status);
+grpc::Status ToGrpc(const Status& status, const std::string& context);  // "context: message"
+const char* GrpcCodeName(grpc::StatusCode code);                        // "INVALID_ARGUMENT"
+std::string GrpcCodeLabel(grpc::StatusCode code);  // "invalid_argument" (metric labels)
+
+// ---- Maps ---------------------------------------------------------------------------------------
+
+// What the service keeps per map besides the core's MapOptions (in a sidecar file: see
+// map_registry.h).
+struct ServiceMapSettings {
+  BoxSource box_source = BoxSource::kAgent;
+  bool detection_enabled = true;
+  bool operator==(const ServiceMapSettings&) const = default;
+};
+
+// Defaults for unset fields; INVALID_ARGUMENT "config.<field>: ..." for bad values, and
+// RESOURCE_EXHAUSTED when config.orb.max_features exceeds limits.max_descriptors_per_frame.
+Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& config, const Limits& limits,
+                                       ServiceMapSettings* settings);
+void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& settings,
+                      const std::string& vocabulary_name, v1::MapConfig* out);
+void MapStatsToProto(const MapStats& stats, v1::MapStats* out);
+
+// ---- Observations -------------------------------------------------------------------------------
+
+struct DecodedObservation {
+  Observation observation;  // pixels (gray or BGR) or features, agent boxes, mask, metadata
+  std::vector<DynamicBox> agent_boxes;
+  bool has_pixels = false;
+  cv::Mat depth_m;  // CV_32F metres (NaN = no depth): validated, not used yet
+};
+
+// Validates and decodes `observation`; `field` is its path in the request ("observation").
+// `color` asks for BGR pixels (server-side detection) instead of grayscale.
+Result<DecodedObservation> DecodeObservation(const v1::Observation& observation,
+                                             const Limits& limits, bool color,
+                                             const std::string& field);
+
+// Width and height from a PNG or JPEG header without decoding; INVALID_ARGUMENT otherwise.
+struct ImageHeader {
+  enum class Format { kPng, kJpeg } format;
+  int width = 0;
+  int height = 0;
+};
+Result<ImageHeader> ReadImageHeader(const std::string& bytes);
+
+// ---- Results ------------------------------------------------------------------------------------
+
+void CountsToProto(const FrameCounts& counts, v1::FrameCounts* out);
+void BoxesToProto(const std::vector<DynamicBox>& boxes,
+                  google::protobuf::RepeatedPtrField<v1::UsedBox>* out);
+void MetadataToProto(const PlaceMetadata& metadata, v1::PlaceMetadata* out);
+void MatchesToProto(const std::vector<Match>& matches,
+                    google::protobuf::RepeatedPtrField<v1::Match>* out);
+void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimings* out);
+void FeaturesToProto(const FeatureSet& features, v1::Features* out);
+QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id);
+
+}  // namespace placedb::server

@@ -1,0 +1,254 @@
+#include "server/map_registry.h"
+
+#include <fcntl.h>
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+namespace fs = std::filesystem;
+
+namespace placedb::server {
+
+namespace {
+
+std::string Hex(uint64_t v) {
+  char buffer[17];
+  std::snprintf(buffer, sizeof buffer, "%016llx", static_cast<unsigned long long>(v));
+  return buffer;
+}
+
+}  // namespace
+
+MapRegistry::MapRegistry(std::unique_ptr<DataDirectory> directory,
+                         std::vector<VocabularyEntry> vocabularies)
+    : directory_(std::move(directory)), vocabularies_(std::move(vocabularies)) {}
+
+MapRegistry::~MapRegistry() {
+  CloseAll();
+}
+
+Result<std::unique_ptr<MapRegistry>> MapRegistry::Open(const std::string& data_dir,
+                                                       const StorageOptions& storage,
+                                                       std::vector<VocabularyEntry> vocabularies) {
+  auto directory = DataDirectory::Open(data_dir, storage);
+  if (!directory.ok()) return directory.status().WithContext("data directory " + data_dir);
+  std::error_code ec;
+  fs::create_directories(fs::path(data_dir) / "service", ec);
+  if (ec) return Status::IoError("creating " + data_dir + "/service: " + ec.message());
+  std::unique_ptr<MapRegistry> registry(
+      new MapRegistry(std::move(directory).value(), std::move(vocabularies)));
+  for (const std::string& name : registry->directory_->ListMaps()) {
+    auto entry = registry->Load(name);
+    if (entry->map) {
+      spdlog::info("map '{}' opened: vocabulary '{}', {} places", name, entry->vocabulary_name,
+                   entry->map->database().Stats().places);
+    } else {
+      spdlog::warn("map '{}' unavailable: {}", name, entry->unavailable_reason);
+    }
+    registry->maps_[name] = std::move(entry);
+  }
+  return registry;
+}
+
+const VocabularyEntry* MapRegistry::FindVocabulary(const std::string& name) const {
+  for (const VocabularyEntry& entry : vocabularies_) {
+    if (entry.name == name) return &entry;
+  }
+  return nullptr;
+}
+
+std::string MapRegistry::VocabularyNameOf(uint64_t checksum) const {
+  for (const VocabularyEntry& entry : vocabularies_) {
+    if (entry.vocabulary->checksum() == checksum) return entry.name;
+  }
+  return "";
+}
+
+std::shared_ptr<const MapEntry> MapRegistry::Load(const std::string& name) {
+  auto entry = std::make_shared<MapEntry>();
+  entry->name = name;
+  auto info = directory_->ReadMapInfo(name);
+  if (!info.ok()) {
+    entry->unavailable_reason = "cannot read its info: " + info.status().ToString();
+    return entry;
+  }
+  const VocabularyEntry* vocabulary = nullptr;
+  for (const VocabularyEntry& candidate : vocabularies_) {
+    if (candidate.vocabulary->checksum() == info->vocabulary_checksum) vocabulary = &candidate;
+  }
+  if (!vocabulary) {
+    std::string configured;
+    for (const VocabularyEntry& candidate : vocabularies_) {
+      configured += (configured.empty() ? "" : ", ") + candidate.name + "=" +
+                    candidate.vocabulary->checksum_hex();
+    }
+    entry->unavailable_reason = "built with vocabulary " + Hex(info->vocabulary_checksum) +
+                                ", which is not configured (configured: " + configured +
+                                "); add it under `vocabularies` in the server config";
+    return entry;
+  }
+  auto map = directory_->OpenMap(name, vocabulary->vocabulary);
+  if (!map.ok()) {
+    entry->unavailable_reason = "cannot be opened: " + map.status().ToString();
+    return entry;
+  }
+  entry->map = std::move(map).value();
+  entry->vocabulary_name = vocabulary->name;
+  entry->settings = ReadSettings(name);
+  return entry;
+}
+
+Result<std::shared_ptr<const MapEntry>> MapRegistry::Get(const std::string& name,
+                                                         const std::string& field) const {
+  if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
+    return Status::InvalidArgument(field + ": " + valid.message());
+  }
+  std::lock_guard lock(mutex_);
+  auto it = maps_.find(name);
+  if (it == maps_.end()) return Status::NotFound("map '" + name + "' not found");
+  if (!it->second->map) {
+    return Status::FailedPrecondition("map '" + name +
+                                      "' is unavailable: " + it->second->unavailable_reason);
+  }
+  return it->second;
+}
+
+Result<std::shared_ptr<const MapEntry>> MapRegistry::Create(const std::string& name,
+                                                            const MapOptions& options,
+                                                            const std::string& vocabulary_name,
+                                                            const ServiceMapSettings& settings) {
+  if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
+    return Status::InvalidArgument("name: " + valid.message());
+  }
+  const std::string vocab_name = vocabulary_name.empty() ? "default" : vocabulary_name;
+  const VocabularyEntry* vocabulary = FindVocabulary(vocab_name);
+  if (!vocabulary) {
+    std::string configured;
+    for (const VocabularyEntry& entry : vocabularies_) {
+      configured += (configured.empty() ? "" : ", ") + entry.name;
+    }
+    return Status::InvalidArgument("config.vocabulary: '" + vocab_name +
+                                   "' is not configured (configured: " + configured + ")");
+  }
+  std::lock_guard create_lock(create_mutex_);
+  if (!directory_) return Status::IoError("the data directory is closed (shutting down)");
+  {
+    std::lock_guard lock(mutex_);
+    if (maps_.count(name)) return Status::AlreadyExists("map '" + name + "' already exists");
+  }
+  auto map = directory_->CreateMap(name, options, vocabulary->vocabulary);
+  if (!map.ok()) return map.status();
+  if (Status written = WriteSettings(name, settings); !written.ok()) {
+    map->reset();
+    (void)directory_->DeleteMap(name);
+    return written;
+  }
+  auto entry = std::make_shared<MapEntry>();
+  entry->name = name;
+  entry->map = std::move(map).value();
+  entry->vocabulary_name = vocab_name;
+  entry->settings = settings;
+  std::lock_guard lock(mutex_);
+  maps_[name] = entry;
+  return std::shared_ptr<const MapEntry>(entry);
+}
+
+Status MapRegistry::Delete(const std::string& name) {
+  if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
+    return Status::InvalidArgument("name: " + valid.message());
+  }
+  std::lock_guard create_lock(create_mutex_);
+  if (!directory_) return Status::IoError("the data directory is closed (shutting down)");
+  {
+    std::lock_guard lock(mutex_);
+    if (!maps_.count(name)) return Status::NotFound("map '" + name + "' not found");
+  }
+  // The directory refuses further writes to the map; in-flight holders keep it until done.
+  PLACEDB_RETURN_IF_ERROR(directory_->DeleteMap(name));
+  {
+    std::lock_guard lock(mutex_);
+    maps_.erase(name);
+  }
+  std::error_code ec;
+  fs::remove(SidecarPath(name), ec);
+  return Status::Ok();
+}
+
+std::vector<std::shared_ptr<const MapEntry>> MapRegistry::List() const {
+  std::lock_guard lock(mutex_);
+  std::vector<std::shared_ptr<const MapEntry>> out;
+  out.reserve(maps_.size());
+  for (const auto& [name, entry] : maps_) out.push_back(entry);
+  return out;
+}
+
+void MapRegistry::CloseAll() {
+  std::lock_guard create_lock(create_mutex_);
+  std::map<std::string, std::shared_ptr<const MapEntry>> maps;
+  {
+    std::lock_guard lock(mutex_);
+    maps.swap(maps_);
+  }
+  maps.clear();  // the last holder of each map flushes and closes its RocksDB
+  directory_.reset();
+}
+
+std::string MapRegistry::SidecarPath(const std::string& name) const {
+  return (fs::path(directory_->path()) / "service" / (name + ".json")).string();
+}
+
+ServiceMapSettings MapRegistry::ReadSettings(const std::string& name) const {
+  ServiceMapSettings settings;
+  std::ifstream in(SidecarPath(name));
+  if (!in) return settings;
+  std::stringstream text;
+  text << in.rdbuf();
+  const nlohmann::json j = nlohmann::json::parse(text.str(), nullptr, false);
+  if (j.is_discarded() || !j.is_object()) {
+    spdlog::warn("map '{}': {} is damaged; using default service settings", name,
+                 SidecarPath(name));
+    return settings;
+  }
+  if (j.contains("box_source") && j["box_source"].is_string()) {
+    auto source = ParseBoxSource(j["box_source"].get<std::string>());
+    if (source.ok()) settings.box_source = *source;
+  }
+  if (j.contains("detection_enabled") && j["detection_enabled"].is_boolean()) {
+    settings.detection_enabled = j["detection_enabled"].get<bool>();
+  }
+  return settings;
+}
+
+Status MapRegistry::WriteSettings(const std::string& name,
+                                  const ServiceMapSettings& settings) const {
+  nlohmann::json j;
+  j["format"] = 1;
+  j["box_source"] = BoxSourceName(settings.box_source);
+  j["detection_enabled"] = settings.detection_enabled;
+  const std::string path = SidecarPath(name);
+  const std::string temp = path + ".tmp";
+  const std::string text = j.dump() + "\n";
+  // temp file + fsync + rename (+ fsync of the directory): the settings survive a crash whole.
+  const int fd = ::open(temp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) return Status::IoError("creating " + temp + ": " + std::strerror(errno));
+  const bool written =
+      ::write(fd, text.data(), text.size()) == ssize_t(text.size()) && ::fsync(fd) == 0;
+  ::close(fd);
+  if (!written) return Status::IoError("writing " + temp + ": " + std::strerror(errno));
+  std::error_code ec;
+  fs::rename(temp, path, ec);
+  if (ec) return Status::IoError("renaming " + temp + ": " + ec.message());
+  const int dir = ::open(fs::path(path).parent_path().c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (dir >= 0) {
+    (void)::fsync(dir);
+    ::close(dir);
+  }
+  return Status::Ok();
+}
+
+}  // namespace placedb::server

@@ -1,0 +1,81 @@
+// The maps a server serves: a DataDirectory, the configured vocabularies, and for every map its
+// vocabulary name and service settings (or why it is unavailable).
+//
+// On startup every map of the data directory is opened with the configured vocabulary whose
+// checksum the map recorded (DataDirectory::ReadMapInfo). A map whose vocabulary is not
+// configured, or that fails to open, is listed as unavailable with the reason; it is not fatal.
+//
+// Service settings the core's MapInfo has no field for (box source, detection on/off) are kept
+// in a sidecar JSON file per map, <data dir>/service/<map>.json, written atomically after the map
+// is created and removed with it. A missing sidecar means the defaults.
+//
+// Thread safety: all methods may be called concurrently; create/delete are serialised.
+#pragma once
+
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "core/map_store.h"
+#include "core/vocabulary.h"
+#include "server/convert.h"
+
+namespace placedb::server {
+
+struct VocabularyEntry {
+  std::string name;
+  std::string path;
+  std::shared_ptr<const Vocabulary> vocabulary;
+};
+
+struct MapEntry {
+  std::string name;
+  std::shared_ptr<PlaceMap> map;  // null when unavailable
+  std::string vocabulary_name;
+  ServiceMapSettings settings;
+  std::string unavailable_reason;
+};
+
+class MapRegistry {
+ public:
+  // Opens (or creates) the data directory and every map in it.
+  static Result<std::unique_ptr<MapRegistry>> Open(const std::string& data_dir,
+                                                   const StorageOptions& storage,
+                                                   std::vector<VocabularyEntry> vocabularies);
+  ~MapRegistry();
+
+  // NOT_FOUND when the map does not exist; FAILED_PRECONDITION (with the reason) when it exists
+  // but is unavailable. `field` names the request field holding the name.
+  Result<std::shared_ptr<const MapEntry>> Get(const std::string& name,
+                                              const std::string& field) const;
+  // INVALID_ARGUMENT for a bad name (`field` prefix) or unknown vocabulary; ALREADY_EXISTS.
+  Result<std::shared_ptr<const MapEntry>> Create(const std::string& name, const MapOptions& options,
+                                                 const std::string& vocabulary_name,
+                                                 const ServiceMapSettings& settings);
+  Status Delete(const std::string& name);
+  std::vector<std::shared_ptr<const MapEntry>> List() const;  // sorted by name
+
+  const std::vector<VocabularyEntry>& vocabularies() const { return vocabularies_; }
+  const VocabularyEntry* FindVocabulary(const std::string& name) const;
+  std::string VocabularyNameOf(uint64_t checksum) const;  // "" when not configured
+
+  // Releases every map (RocksDB flushes and closes once the last in-flight holder lets go).
+  void CloseAll();
+
+ private:
+  MapRegistry(std::unique_ptr<DataDirectory> directory, std::vector<VocabularyEntry> vocabularies);
+  std::shared_ptr<const MapEntry> Load(const std::string& name);
+  std::string SidecarPath(const std::string& name) const;
+  ServiceMapSettings ReadSettings(const std::string& name) const;
+  Status WriteSettings(const std::string& name, const ServiceMapSettings& settings) const;
+
+  std::unique_ptr<DataDirectory> directory_;
+  const std::vector<VocabularyEntry> vocabularies_;
+  std::mutex create_mutex_;  // serialises Create/Delete
+  mutable std::mutex mutex_;
+  std::map<std::string, std::shared_ptr<const MapEntry>> maps_;
+};
+
+}  // namespace placedb::server

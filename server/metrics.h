@@ -1,0 +1,71 @@
+// Prometheus metrics of the service (prometheus-cpp; docs/service.md lists them).
+//
+// Per-map gauges (places, bytes on disk) are refreshed when the endpoint is scraped, through a
+// callback, so they are never stale and cost nothing between scrapes.
+#pragma once
+
+#include <prometheus/counter.h>
+#include <prometheus/family.h>
+#include <prometheus/gauge.h>
+#include <prometheus/histogram.h>
+#include <prometheus/registry.h>
+
+#include <functional>
+#include <memory>
+#include <string>
+
+#include "core/status.h"
+
+namespace prometheus {
+class Exposer;
+}
+
+namespace placedb::server {
+
+class Metrics {
+ public:
+  Metrics();
+  ~Metrics();
+
+  // Serves `path` on `listen` (host:port; port 0 picks one). `before_scrape` runs before each
+  // collection (to refresh the per-map gauges). IO_ERROR when the address cannot be bound.
+  Status Serve(const std::string& listen, const std::string& path,
+               std::function<void()> before_scrape);
+  int port() const { return port_; }  // 0 when not serving
+  void StopServing();
+
+  const std::shared_ptr<prometheus::Registry>& registry() const { return registry_; }
+
+  // `code` is the canonical upper-case gRPC code name ("OK", "INVALID_ARGUMENT", ...).
+  void CountRequest(const std::string& method, const std::string& code);
+  // Stage: decode, detect, extract, filter, transform, search, verify, store, total.
+  void ObserveStage(const std::string& stage, double seconds);
+  void ObserveDetector(double seconds);
+  void FrameIngested(const std::string& map);
+  void FrameRejected(const std::string& map, const std::string& reason);
+  void CountDescriptors(const std::string& map, uint64_t dynamic, uint64_t static_count);
+  void SetMapGauges(const std::string& map, double places, double bytes_on_disk);
+  void ForgetMap(const std::string& map);  // a deleted map's series go away
+  void StreamOpened();
+  void StreamClosed();
+  void SetQueueDepth(size_t depth);
+
+ private:
+  std::shared_ptr<prometheus::Registry> registry_;
+  prometheus::Family<prometheus::Counter>& requests_;
+  prometheus::Family<prometheus::Histogram>& stages_;
+  prometheus::Family<prometheus::Histogram>& detector_;
+  prometheus::Family<prometheus::Counter>& ingested_;
+  prometheus::Family<prometheus::Counter>& rejected_;
+  prometheus::Family<prometheus::Counter>& descriptors_;
+  prometheus::Family<prometheus::Gauge>& places_;
+  prometheus::Family<prometheus::Gauge>& disk_bytes_;
+  prometheus::Gauge& streams_;
+  prometheus::Gauge& queue_depth_;
+  prometheus::Histogram& detector_seconds_;
+  std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
+  std::unique_ptr<prometheus::Exposer> exposer_;
+  int port_ = 0;
+};
+
+}  // namespace placedb::server

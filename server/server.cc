@@ -1,0 +1,219 @@
+#include "server/server.h"
+
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <spdlog/spdlog.h>
+
+#include <chrono>
+#include <opencv2/core.hpp>
+
+#include "server/map_registry.h"
+#include "server/metrics.h"
+#include "server/service.h"
+#include "server/worker_pool.h"
+
+namespace placedb::server {
+
+namespace {
+
+constexpr char kServiceName[] = "placedb.v1.PlaceDb";
+
+Result<std::vector<VocabularyEntry>> LoadVocabularies(
+    const ServerConfig& config,
+    const std::map<std::string, std::shared_ptr<const Vocabulary>>& preloaded) {
+  std::vector<VocabularyEntry> out;
+  for (const auto& [name, path] : config.vocabularies) {
+    VocabularyEntry entry;
+    entry.name = name;
+    entry.path = path;
+    if (auto it = preloaded.find(name); it != preloaded.end() && it->second) {
+      entry.vocabulary = it->second;
+    } else {
+      auto loaded = Vocabulary::Load(path);
+      if (!loaded.ok()) {
+        return loaded.status().WithContext("vocabulary '" + name + "' (" + path + ")");
+      }
+      entry.vocabulary = std::move(loaded).value();
+    }
+    for (const VocabularyEntry& other : out) {
+      if (other.vocabulary->checksum() == entry.vocabulary->checksum()) {
+        // Maps pick their vocabulary by checksum: two names for one vocabulary are ambiguous.
+        return Status::InvalidArgument("vocabularies: '" + name + "' and '" + other.name +
+                                       "' are the same vocabulary (checksum " +
+                                       entry.vocabulary->checksum_hex() + ")");
+      }
+    }
+    spdlog::info("vocabulary '{}': {} ({} words, k={}, L={}, checksum {})", name, path,
+                 entry.vocabulary->word_count(), entry.vocabulary->branching(),
+                 entry.vocabulary->depth(), entry.vocabulary->checksum_hex());
+    out.push_back(std::move(entry));
+  }
+  return out;
+}
+
+}  // namespace
+
+Result<std::shared_ptr<const Detector>> CreateConfiguredDetector(const ServerConfig& config) {
+  if (!config.detector_enabled()) return std::shared_ptr<const Detector>();
+  const DetectorSettings& s = config.detector;
+  DetectorConfig d;
+  auto backend = ParseDetectorBackend(s.backend);
+  if (!backend.ok()) return backend.status().WithContext("detector.backend");
+  d.backend = *backend;
+  d.model_path = s.model;
+  d.config_path = s.config;
+  d.input_size = s.input_size;
+  auto preprocessing = ParsePreprocessing(s.preprocessing);
+  if (!preprocessing.ok()) return preprocessing.status().WithContext("detector.preprocessing");
+  d.preprocessing = *preprocessing;
+  d.confidence_threshold = s.confidence;
+  d.nms_iou_threshold = s.nms_iou;
+  if (!s.classes.empty()) d.dynamic_classes = s.classes;
+  d.opencv_threads = 0;  // the server sets OpenCV's threads itself (opencv_threads)
+  d.max_concurrent_calls =
+      s.max_concurrent_calls > 0 ? s.max_concurrent_calls : config.worker_threads();
+  auto detector = CreateDetector(d);
+  if (!detector.ok()) return detector.status().WithContext("detector");
+  return std::shared_ptr<const Detector>(std::move(detector).value());
+}
+
+Server::Server(ServerConfig config) : config_(std::move(config)) {}
+
+Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, ServerDeps deps) {
+  PLACEDB_RETURN_IF_ERROR(ValidateServerConfig(config));
+  std::unique_ptr<Server> server(new Server(config));
+  const ServerConfig& c = server->config_;
+  if (c.opencv_threads >= 0) cv::setNumThreads(c.opencv_threads);
+
+  auto vocabularies = LoadVocabularies(c, deps.vocabularies);
+  if (!vocabularies.ok()) return vocabularies.status();
+  auto maps = MapRegistry::Open(c.data_dir, c.storage, std::move(vocabularies).value());
+  if (!maps.ok()) return maps.status();
+  server->maps_ = std::move(maps).value();
+
+  std::string detector_status = "off";
+  if (deps.detector) {
+    server->detector_ = deps.detector;
+  } else {
+    auto detector = CreateConfiguredDetector(c);
+    if (detector.ok()) {
+      server->detector_ = std::move(detector).value();
+    } else if (c.detector.required) {
+      return detector.status();
+    } else {
+      // Degraded, not fatal (docs/detector.md): agents' boxes still work.
+      detector_status = "off: " + detector.status().ToString();
+      spdlog::error("server-side detection is OFF: {} (set detector.required to refuse to start)",
+                    detector.status().ToString());
+    }
+  }
+  spdlog::info("detector: {}", server->detector_ ? server->detector_->Describe() : detector_status);
+
+  server->metrics_ = std::make_unique<Metrics>();
+  Metrics* metrics = server->metrics_.get();
+  server->pool_ =
+      std::make_unique<WorkerPool>(c.worker_threads(), c.limits.max_queued_frames,
+                                   [metrics](size_t depth) { metrics->SetQueueDepth(depth); });
+  server->service_ =
+      std::make_unique<PlaceDbService>(server->config_, server->maps_.get(), server->pool_.get(),
+                                       metrics, server->detector_.get(), detector_status);
+
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  grpc::ServerBuilder builder;
+  builder.AddListeningPort(c.listen, grpc::InsecureServerCredentials(), &server->port_);
+  builder.RegisterService(server->service_.get());
+  builder.SetMaxReceiveMessageSize(int(c.limits.max_message_bytes));
+  // Transport memory and handler threads are bounded: a flood of calls gets RESOURCE_EXHAUSTED
+  // instead of exhausting the machine. Each open stream holds a handler thread.
+  grpc::ResourceQuota quota("placedb");
+  quota.Resize(size_t(c.limits.memory_quota_bytes));
+  quota.SetMaxThreads(int(c.limits.max_concurrent_streams + c.limits.max_concurrent_unary + 8));
+  builder.SetResourceQuota(quota);
+  builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS,
+                             int(c.limits.max_concurrent_streams + c.limits.max_concurrent_unary));
+  // Robots drop off networks: find dead connections (and their streams) within ~80 s.
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIME_MS, 60000);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, 20000);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 10000);
+  server->server_ = builder.BuildAndStart();
+  if (!server->server_ || server->port_ == 0) {
+    server->server_.reset();
+    return Status::IoError("cannot listen on " + c.listen +
+                           " (address in use, or not a local address?)");
+  }
+  if (auto* health = server->server_->GetHealthCheckService()) {
+    health->SetServingStatus(true);
+    health->SetServingStatus(kServiceName, true);
+  }
+
+  if (!c.metrics_listen.empty()) {
+    PlaceDbService* service = server->service_.get();
+    Status serving = metrics->Serve(c.metrics_listen, c.metrics_path,
+                                    [service] { service->RefreshMapGauges(); });
+    if (!serving.ok()) {
+      server->Shutdown();
+      return serving;
+    }
+    server->metrics_port_ = metrics->port();
+  }
+  spdlog::info("placedb-server {} listening on {} (port {}), metrics {}, data {}, {} workers",
+               PLACEDB_VERSION, c.listen, server->port_,
+               c.metrics_listen.empty() ? std::string("off")
+                                        : c.metrics_listen + c.metrics_path + " (port " +
+                                              std::to_string(server->metrics_port_) + ")",
+               c.data_dir, server->pool_->threads());
+  return server;
+}
+
+Server::~Server() {
+  Shutdown();
+}
+
+void Server::Shutdown() {
+  {
+    std::unique_lock lock(shutdown_mutex_);
+    if (shutdown_started_) {
+      shutdown_done_.wait(lock, [&] { return shutdown_finished_; });
+      return;
+    }
+    shutdown_started_ = true;
+  }
+  const auto started = std::chrono::steady_clock::now();
+  if (server_) {
+    spdlog::info("shutting down: refusing new calls, finishing in-flight work (at most {} s)",
+                 config_.shutdown_deadline_s);
+    if (auto* health = server_->GetHealthCheckService()) {
+      health->SetServingStatus(false);
+    }
+    service_->BeginDrain();
+    // Our calls finish first (bounded by the deadline); then gRPC shuts down at once: it cancels
+    // whatever is left and closes connections instead of waiting for idle clients to notice
+    // its GOAWAY (an idle synchronous client may take seconds to).
+    const auto deadline =
+        started + std::chrono::milliseconds(int64_t(config_.shutdown_deadline_s * 1000.0));
+    if (!service_->WaitIdle(deadline)) {
+      spdlog::warn("shutdown deadline ({} s) passed with calls in flight: cancelling them",
+                   config_.shutdown_deadline_s);
+    }
+    server_->Shutdown(std::chrono::system_clock::now());  // returns once every handler returned
+    server_->Wait();
+  }
+  if (pool_) pool_->Stop();
+  if (metrics_) metrics_->StopServing();
+  if (maps_) maps_->CloseAll();  // flushes and closes RocksDB
+  spdlog::info("shutdown complete in {:.3f} s",
+               std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());
+  std::lock_guard lock(shutdown_mutex_);
+  shutdown_finished_ = true;
+  shutdown_done_.notify_all();
+}
+
+void Server::Wait() {
+  std::unique_lock lock(shutdown_mutex_);
+  shutdown_done_.wait(lock, [&] { return shutdown_finished_; });
+}
+
+}  // namespace placedb::server

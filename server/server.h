@@ -1,0 +1,78 @@
+// The placedb server: vocabularies, maps, worker pool, metrics endpoint, detector and the gRPC
+// server (placedb.v1.PlaceDb + standard health service + reflection), with graceful shutdown.
+//
+//   auto server = Server::Start(config);   // listening once this returns
+//   ...
+//   server->Shutdown();  // NOT_SERVING, stop accepting, finish in-flight work (bounded by
+//                        // shutdown_deadline_s), close maps (flush)
+#pragma once
+
+#include <condition_variable>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+
+#include "core/detector.h"
+#include "core/status.h"
+#include "core/vocabulary.h"
+#include "server/config.h"
+
+namespace grpc {
+class Server;
+}
+
+namespace placedb::server {
+
+class MapRegistry;
+class Metrics;
+class PlaceDbService;
+class WorkerPool;
+
+// Things a caller (a test) may hand in ready-made instead of having them loaded from the config.
+struct ServerDeps {
+  // Preloaded vocabularies by name; they replace the config's path for that name.
+  std::map<std::string, std::shared_ptr<const Vocabulary>> vocabularies;
+  // A ready detector; when null one is created from config.detector (if a model is set).
+  std::shared_ptr<const Detector> detector;
+};
+
+class Server {
+ public:
+  // Loads, opens and starts listening. Errors: INVALID_ARGUMENT (config), NOT_FOUND / IO_ERROR /
+  // CORRUPTION (vocabulary, data directory, detector model), IO_ERROR (cannot listen).
+  static Result<std::unique_ptr<Server>> Start(const ServerConfig& config, ServerDeps deps = {});
+  ~Server();  // Shutdown()
+
+  int port() const { return port_; }                  // the bound gRPC port
+  int metrics_port() const { return metrics_port_; }  // 0 when metrics are off
+  const ServerConfig& config() const { return config_; }
+
+  // Graceful shutdown; idempotent and thread-safe (other callers wait for the first).
+  void Shutdown();
+  // Blocks until Shutdown() has completed.
+  void Wait();
+
+ private:
+  explicit Server(ServerConfig config);
+
+  const ServerConfig config_;
+  std::unique_ptr<Metrics> metrics_;
+  std::unique_ptr<MapRegistry> maps_;
+  std::shared_ptr<const Detector> detector_;
+  std::unique_ptr<WorkerPool> pool_;
+  std::unique_ptr<PlaceDbService> service_;
+  std::unique_ptr<grpc::Server> server_;
+  int port_ = 0;
+  int metrics_port_ = 0;
+
+  std::mutex shutdown_mutex_;
+  std::condition_variable shutdown_done_;
+  bool shutdown_started_ = false;
+  bool shutdown_finished_ = false;
+};
+
+// Loads a detector as config.detector describes (null when no model is configured).
+Result<std::shared_ptr<const Detector>> CreateConfiguredDetector(const ServerConfig& config);
+
+}  // namespace placedb::server

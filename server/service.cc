@@ -1,0 +1,743 @@
+#include "server/service.h"
+
+#include <spdlog/spdlog.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <deque>
+#include <future>
+#include <thread>
+
+#include "core/timing.h"
+
+namespace placedb::server {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double MsSince(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+// Whether the call is over: cancelled by the client (or by us), or past its deadline. gRPC's own
+// deadline timer fires asynchronously, so the deadline is also checked here directly: work never
+// starts a stage after the deadline.
+bool Expired(const grpc::ServerContext* context) {
+  return context->IsCancelled() || context->deadline() <= std::chrono::system_clock::now();
+}
+
+// CANCELLED, or DEADLINE_EXCEEDED when the call's deadline has passed.
+grpc::Status Cancelled(const grpc::ServerContext* context, const char* where) {
+  // The client cancels at its deadline, which can reach us a moment before our own clock says
+  // the deadline passed: within 100 ms counts as the deadline.
+  if (context->deadline() <= std::chrono::system_clock::now() + std::chrono::milliseconds(100)) {
+    return grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED,
+                        std::string("deadline exceeded; work dropped ") + where);
+  }
+  return grpc::Status(grpc::StatusCode::CANCELLED,
+                      std::string("call cancelled; work dropped ") + where);
+}
+
+// How long a unary call may wait for room in the queue: the configured wait, cut short by the
+// call's deadline.
+Clock::time_point QueueWaitUntil(const grpc::ServerContext* context, uint32_t wait_ms) {
+  auto wait = std::chrono::duration_cast<Clock::duration>(std::chrono::milliseconds(wait_ms));
+  const auto deadline = context->deadline();
+  const auto now = std::chrono::system_clock::now();
+  if (deadline <= now) return Clock::now();
+  if (deadline - now < wait) {
+    wait = std::chrono::duration_cast<Clock::duration>(deadline - now);
+  }
+  return Clock::now() + wait;
+}
+
+grpc::Status Invalid(const std::string& message) {
+  return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, message);
+}
+
+std::string Peer(const grpc::ServerContext* context) {
+  return context->peer();
+}
+
+// Runs `body`, turning an exception (OpenCV throws cv::Exception; allocation can fail) into
+// INTERNAL, so that a worker never dies and every frame still gets its answer.
+template <typename Body>
+grpc::Status Guarded(const char* what, Body&& body) {
+  try {
+    return body();
+  } catch (const std::exception& e) {
+    spdlog::error("{}: unexpected exception: {}", what, e.what());
+    return grpc::Status(grpc::StatusCode::INTERNAL, std::string(what) + ": " + e.what());
+  } catch (...) {
+    spdlog::error("{}: unexpected exception", what);
+    return grpc::Status(grpc::StatusCode::INTERNAL, std::string(what) + ": unexpected exception");
+  }
+}
+
+}  // namespace
+
+// One frame through the pipeline.
+struct PlaceDbService::Work {
+  StageTimings timings;
+  ProcessedFrame frame;
+  PlaceMetadata metadata;
+};
+
+// One observation of a stream, from its arrival to its response.
+struct PlaceDbService::Slot {
+  uint64_t index = 0;
+  uint64_t sequence = 0;
+  Clock::time_point arrived;
+  double queue_ms = 0;
+  std::unique_ptr<v1::IngestRequest> request;  // freed once decoded
+  bool ready = false;                          // first half done (or failed)
+  grpc::Status status;                         // first half's outcome
+  std::optional<v1::MatchOptions> matches;
+  Work work;
+};
+
+// One open Ingest call. The handler thread reads, workers process, the writer thread writes.
+struct PlaceDbService::Stream {
+  grpc::ServerContext* context = nullptr;
+  grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* io = nullptr;
+  std::shared_ptr<const MapEntry> map;
+  std::optional<v1::MatchOptions> header_matches;
+
+  std::mutex mutex;
+  std::condition_variable changed;
+  std::deque<std::shared_ptr<Slot>> pipeline;  // read, not yet completed, in order
+  bool completing = false;                     // a thread is in ReadyAndAdvance()'s loop
+  std::deque<v1::IngestResponse> outbox;       // completed, not yet written, in order
+  size_t unanswered = 0;                       // read, not yet written
+  bool reading_done = false;
+  bool write_failed = false;
+  bool draining = false;
+
+  // For the close log line.
+  uint64_t frames = 0, stored = 0, rejected = 0, errors = 0;
+  std::vector<std::string> agents;  // first few distinct agent ids
+};
+
+PlaceDbService::PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool,
+                               Metrics* metrics, const Detector* detector,
+                               std::string detector_status)
+    : config_(config),
+      maps_(maps),
+      pool_(pool),
+      metrics_(metrics),
+      detector_(detector),
+      detector_status_(std::move(detector_status)) {}
+
+PlaceDbService::~PlaceDbService() = default;
+
+class PlaceDbService::CallScope {
+ public:
+  explicit CallScope(PlaceDbService* service) : service_(service) {
+    std::lock_guard lock(service_->calls_mutex_);
+    ++service_->calls_in_flight_;
+  }
+  ~CallScope() {
+    std::lock_guard lock(service_->calls_mutex_);
+    if (--service_->calls_in_flight_ == 0) service_->calls_idle_.notify_all();
+  }
+  CallScope(const CallScope&) = delete;
+  CallScope& operator=(const CallScope&) = delete;
+
+ private:
+  PlaceDbService* service_;
+};
+
+bool PlaceDbService::WaitIdle(std::chrono::steady_clock::time_point deadline) {
+  std::unique_lock lock(calls_mutex_);
+  return calls_idle_.wait_until(lock, deadline, [&] { return calls_in_flight_ == 0; });
+}
+
+grpc::Status PlaceDbService::Finish(const char* method, grpc::ServerContext* context,
+                                    grpc::Status status) {
+  metrics_->CountRequest(method, GrpcCodeName(status.error_code()));
+  if (!status.ok()) {
+    spdlog::warn("rpc error method={} code={} peer={} message=\"{}\"", method,
+                 GrpcCodeName(status.error_code()), Peer(context), status.error_message());
+  }
+  return status;
+}
+
+grpc::Status PlaceDbService::Unavailable() const {
+  return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the server is shutting down");
+}
+
+void PlaceDbService::ObserveStages(const StageTimings& t) {
+  auto observe = [&](const char* stage, double ms) { metrics_->ObserveStage(stage, ms / 1000.0); };
+  if (t.decode_ms > 0) observe("decode", t.decode_ms);
+  if (t.detect_ms > 0) observe("detect", t.detect_ms);
+  observe("extract", t.extract_ms);
+  observe("filter", t.filter_ms);
+  if (t.transform_ms > 0) observe("transform", t.transform_ms);
+  if (t.search_ms > 0) observe("search", t.search_ms);
+  if (t.verify_ms > 0) observe("verify", t.verify_ms);
+  if (t.store_ms > 0) observe("store", t.store_ms);
+  observe("total", t.total_ms);
+}
+
+// ---- Maps ---------------------------------------------------------------------------------------
+
+namespace {
+
+void Describe(const MapEntry& entry, v1::MapDescription* out) {
+  const MapInfo& info = entry.map->info();
+  out->set_name(entry.name);
+  MapConfigToProto(info.options, entry.settings, entry.vocabulary_name, out->mutable_config());
+  MapStatsToProto(entry.map->Stats(), out->mutable_stats());
+  out->set_vocabulary_checksum(entry.map->database().vocabulary()->checksum_hex());
+  out->set_created_unix_ms(info.created_unix_ms);
+}
+
+}  // namespace
+
+grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
+                                       const v1::CreateMapRequest* request,
+                                       v1::MapDescription* response) {
+  CallScope scope(this);
+  if (draining_flag_) return Finish("CreateMap", context, Unavailable());
+  ServiceMapSettings settings;
+  auto options = MapOptionsFromProto(request->config(), config_.limits, &settings);
+  if (!options.ok()) return Finish("CreateMap", context, ToGrpc(options.status()));
+  // Unspecified box source: the server's detector when it has one, else the agent's boxes. The
+  // choice is stored with the map, so it does not change if the server's detector does.
+  if (request->config().detection().box_source() == v1::BOX_SOURCE_UNSPECIFIED && detector_ &&
+      settings.detection_enabled) {
+    settings.box_source = BoxSource::kServer;
+  }
+  if (settings.detection_enabled && settings.box_source != BoxSource::kAgent && !detector_) {
+    return Finish("CreateMap", context,
+                  grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                               "config.detection.box_source: " +
+                                   std::string(BoxSourceName(settings.box_source)) +
+                                   " needs server-side detection, which is off on this server "
+                                   "(configure detector.model)"));
+  }
+  auto entry = maps_->Create(request->name(), *options, request->config().vocabulary(), settings);
+  if (!entry.ok()) return Finish("CreateMap", context, ToGrpc(entry.status()));
+  Describe(**entry, response);
+  spdlog::info("map '{}' created: vocabulary '{}', box source {}, peer={}", request->name(),
+               (*entry)->vocabulary_name, BoxSourceName(settings.box_source), Peer(context));
+  return Finish("CreateMap", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::GetMap(grpc::ServerContext* context, const v1::GetMapRequest* request,
+                                    v1::MapDescription* response) {
+  CallScope scope(this);
+  auto entry = maps_->Get(request->name(), "name");
+  if (!entry.ok()) return Finish("GetMap", context, ToGrpc(entry.status()));
+  Describe(**entry, response);
+  return Finish("GetMap", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::ListMaps(grpc::ServerContext* context, const v1::ListMapsRequest*,
+                                      v1::ListMapsResponse* response) {
+  CallScope scope(this);
+  for (const auto& entry : maps_->List()) {
+    v1::MapSummary* summary = response->add_maps();
+    summary->set_name(entry->name);
+    summary->set_available(entry->map != nullptr);
+    summary->set_unavailable_reason(entry->unavailable_reason);
+    summary->set_vocabulary(entry->vocabulary_name);
+    if (entry->map) summary->set_places(entry->map->database().Stats().places);
+  }
+  return Finish("ListMaps", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::DeleteMap(grpc::ServerContext* context,
+                                       const v1::DeleteMapRequest* request,
+                                       v1::DeleteMapResponse*) {
+  CallScope scope(this);
+  if (draining_flag_) return Finish("DeleteMap", context, Unavailable());
+  if (Status deleted = maps_->Delete(request->name()); !deleted.ok()) {
+    return Finish("DeleteMap", context, ToGrpc(deleted));
+  }
+  metrics_->ForgetMap(request->name());
+  spdlog::info("map '{}' deleted, peer={}", request->name(), Peer(context));
+  return Finish("DeleteMap", context, grpc::Status::OK);
+}
+
+// ---- Places -------------------------------------------------------------------------------------
+
+grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
+                                      const v1::GetPlaceRequest* request, v1::Place* response) {
+  CallScope scope(this);
+  auto entry = maps_->Get(request->map(), "map");
+  if (!entry.ok()) return Finish("GetPlace", context, ToGrpc(entry.status()));
+  if (request->place_id() == 0) {
+    return Finish("GetPlace", context, Invalid("place_id: is required (ids start at 1)"));
+  }
+  auto place = (*entry)->map->GetPlace(request->place_id());
+  if (!place.ok()) return Finish("GetPlace", context, ToGrpc(place.status()));
+  response->set_place_id(place->record.id);
+  MetadataToProto(place->record.metadata, response->mutable_metadata());
+  CountsToProto(place->record.counts, response->mutable_counts());
+  BoxesToProto(place->record.boxes_used, response->mutable_boxes_used());
+  if (request->include_features()) {
+    FeaturesToProto(place->payload.features, response->mutable_features());
+  }
+  return Finish("GetPlace", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
+                                         const v1::DeletePlaceRequest* request,
+                                         v1::DeletePlaceResponse*) {
+  CallScope scope(this);
+  if (draining_flag_) return Finish("DeletePlace", context, Unavailable());
+  auto entry = maps_->Get(request->map(), "map");
+  if (!entry.ok()) return Finish("DeletePlace", context, ToGrpc(entry.status()));
+  if (request->place_id() == 0) {
+    return Finish("DeletePlace", context, Invalid("place_id: is required (ids start at 1)"));
+  }
+  return Finish("DeletePlace", context, ToGrpc((*entry)->map->RemovePlace(request->place_id())));
+}
+
+// ---- Server info --------------------------------------------------------------------------------
+
+grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
+                                           const v1::GetServerInfoRequest*,
+                                           v1::ServerInfo* response) {
+  CallScope scope(this);
+  response->set_version(PLACEDB_VERSION);
+  for (const VocabularyEntry& entry : maps_->vocabularies()) {
+    v1::VocabularyInfo* info = response->add_vocabularies();
+    info->set_name(entry.name);
+    info->set_path(entry.path);
+    info->set_checksum(entry.vocabulary->checksum_hex());
+    info->set_words(entry.vocabulary->word_count());
+    info->set_nodes(entry.vocabulary->node_count());
+    info->set_branching(entry.vocabulary->branching());
+    info->set_depth(entry.vocabulary->depth());
+    info->set_memory_bytes(entry.vocabulary->memory_bytes());
+  }
+  response->set_detector(detector_ ? detector_->Describe() : detector_status_);
+  const Limits& l = config_.limits;
+  v1::Limits* limits = response->mutable_limits();
+  limits->set_max_message_bytes(l.max_message_bytes);
+  limits->set_max_image_pixels(l.max_image_pixels);
+  limits->set_max_descriptors_per_frame(l.max_descriptors_per_frame);
+  limits->set_max_boxes_per_frame(l.max_boxes_per_frame);
+  limits->set_max_concurrent_streams(l.max_concurrent_streams);
+  limits->set_max_queued_frames(l.max_queued_frames);
+  limits->set_max_inflight_per_stream(l.max_inflight_per_stream);
+  limits->set_worker_threads(uint32_t(pool_->threads()));
+  return Finish("GetServerInfo", context, grpc::Status::OK);
+}
+
+// ---- The frame pipeline -------------------------------------------------------------------------
+
+grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntry& map,
+                                     const v1::Observation& observation, const std::string& field,
+                                     Work* work) {
+  if (Expired(context)) return Cancelled(context, "before decoding");
+  const ServiceMapSettings& settings = map.settings;
+  const bool server_boxes = settings.detection_enabled && settings.box_source != BoxSource::kAgent;
+  if (server_boxes && !detector_) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        "map '" + map.name + "' takes boxes from the server's detector (" +
+                            BoxSourceName(settings.box_source) +
+                            "), which is off on this server (configure detector.model)");
+  }
+  Stopwatch stage;
+  auto decoded = DecodeObservation(observation, config_.limits, /*color=*/server_boxes, field);
+  if (!decoded.ok()) return ToGrpc(decoded.status());
+  work->timings.decode_ms = stage.Lap();
+  Observation& frame = decoded->observation;
+
+  if (server_boxes) {
+    if (!decoded->has_pixels) {
+      if (settings.box_source == BoxSource::kServer) {
+        return Invalid(field + ".features: map '" + map.name +
+                       "' detects dynamic objects on the server (box_source server), which needs "
+                       "pixels: send encoded_image or raw_image");
+      }
+      // kBoth without pixels: the agent's boxes alone.
+    } else {
+      if (Expired(context)) return Cancelled(context, "before detection");
+      auto boxes = detector_->Detect(frame.image);
+      if (!boxes.ok()) return ToGrpc(boxes.status(), "server-side detection");
+      work->timings.detect_ms = stage.Lap();
+      metrics_->ObserveDetector(work->timings.detect_ms / 1000.0);
+      frame.dynamic.boxes =
+          settings.box_source == BoxSource::kServer
+              ? std::move(boxes).value()
+              : MergeBoxes(decoded->agent_boxes, *boxes, config_.detector.merge_iou);
+    }
+  }
+
+  if (Expired(context)) return Cancelled(context, "before feature extraction");
+  auto processed = map.map->Process(frame);
+  if (!processed.ok()) return ToGrpc(processed.status(), field);
+  work->frame = std::move(processed).value();
+  work->timings.extract_ms = work->frame.timings.extract_ms;
+  work->timings.filter_ms = work->frame.timings.filter_ms;
+  work->timings.transform_ms = work->frame.timings.transform_ms;
+  work->metadata = std::move(frame.metadata);
+  return grpc::Status::OK;
+}
+
+// ---- Query --------------------------------------------------------------------------------------
+
+grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::QueryRequest* request,
+                                   v1::QueryResponse* response) {
+  CallScope scope(this);
+  const Clock::time_point arrived = Clock::now();
+  if (draining_flag_) return Finish("Query", context, Unavailable());
+  auto entry = maps_->Get(request->map(), "map");
+  if (!entry.ok()) return Finish("Query", context, ToGrpc(entry.status()));
+  if (!request->has_observation()) {
+    return Finish("Query", context, Invalid("observation: is required"));
+  }
+  const MapEntry& map = **entry;
+  std::promise<grpc::Status> promise;
+  std::future<grpc::Status> done = promise.get_future();
+  double queue_ms = 0;
+  auto task = [&] {
+    queue_ms = MsSince(arrived);
+    Work work;
+    grpc::Status status = Guarded("processing the observation", [&] {
+      return Prepare(context, map, request->observation(), "observation", &work);
+    });
+    if (status.ok() && Expired(context)) status = Cancelled(context, "before searching");
+    if (status.ok())
+      status = Guarded("searching", [&] {
+        const QueryOptions options =
+            QueryOptionsFromProto(request->options(), request->observation().agent_id());
+        QueryResult result = map.map->Search(work.frame, options);
+        work.timings.search_ms = result.timings.search_ms;
+        work.timings.verify_ms = result.timings.verify_ms;
+        response->set_valid(result.valid);
+        response->set_rejection(result.rejection);
+        CountsToProto(result.counts, response->mutable_counts());
+        BoxesToProto(result.boxes_used, response->mutable_boxes_used());
+        MatchesToProto(result.matches, response->mutable_matches());
+        work.timings.total_ms = MsSince(arrived);
+        TimingsToProto(work.timings, queue_ms, response->mutable_timings());
+        ObserveStages(work.timings);
+        return grpc::Status::OK;
+      });
+    promise.set_value(status);
+  };
+  switch (pool_->Submit(task, QueueWaitUntil(context, config_.limits.unary_queue_wait_ms),
+                        [context] { return Expired(context); })) {
+    case WorkerPool::SubmitResult::kQueued:
+      break;
+    case WorkerPool::SubmitResult::kFull:
+      if (context->deadline() <= std::chrono::system_clock::now()) {
+        return Finish("Query", context, Cancelled(context, "while waiting for a worker"));
+      }
+      return Finish(
+          "Query", context,
+          grpc::Status(
+              grpc::StatusCode::RESOURCE_EXHAUSTED,
+              "limits.max_queued_frames = " + std::to_string(config_.limits.max_queued_frames) +
+                  ": every worker is busy and the queue stayed full for " +
+                  std::to_string(config_.limits.unary_queue_wait_ms) + " ms; retry with backoff"));
+    case WorkerPool::SubmitResult::kGaveUp:
+      return Finish("Query", context, Cancelled(context, "while waiting for a worker"));
+    case WorkerPool::SubmitResult::kStopped:
+      return Finish("Query", context, Unavailable());
+  }
+  return Finish("Query", context, done.get());
+}
+
+// ---- Ingest -------------------------------------------------------------------------------------
+
+// Marks `slot` ready and, unless another thread is already completing this stream's slots,
+// completes every ready slot at the front of the pipeline in order. Marking and checking happen
+// under one lock hold: once a thread returns from here it never touches the stream again (the
+// handler may destroy it as soon as the last response is written).
+void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
+  std::unique_lock lock(stream->mutex);
+  slot->ready = true;
+  if (stream->completing) return;
+  stream->completing = true;
+  while (!stream->pipeline.empty() && stream->pipeline.front()->ready) {
+    std::shared_ptr<Slot> front = std::move(stream->pipeline.front());
+    stream->pipeline.pop_front();
+    lock.unlock();
+    v1::IngestResponse response;
+    response.set_sequence(front->sequence);
+    response.set_index(front->index);
+    if (front->status.ok() && Expired(stream->context)) {
+      front->status = Cancelled(stream->context, "before storing");
+    }
+    if (!front->status.ok()) {
+      response.mutable_error()->set_code(int(front->status.error_code()));
+      response.mutable_error()->set_message(front->status.error_message());
+      metrics_->FrameRejected(stream->map->name, GrpcCodeLabel(front->status.error_code()));
+      if (front->status.error_code() != grpc::StatusCode::CANCELLED &&
+          front->status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
+        spdlog::warn("ingest frame error map={} index={} sequence={} code={} message=\"{}\"",
+                     stream->map->name, front->index, front->sequence,
+                     GrpcCodeName(front->status.error_code()), front->status.error_message());
+      }
+    } else {
+      Work& work = front->work;
+      const MapEntry& map = *stream->map;
+      const ProcessedFrame& frame = work.frame;
+      CountsToProto(frame.counts, response.mutable_counts());
+      BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
+      Result<AddResult> added = Status::Internal("not stored");
+      const grpc::Status second_half = Guarded("searching and storing", [&] {
+        if (front->matches && frame.valid) {
+          const QueryOptions options =
+              QueryOptionsFromProto(*front->matches, work.metadata.agent_id);
+          QueryResult result = map.map->Search(frame, options);
+          work.timings.search_ms = result.timings.search_ms;
+          work.timings.verify_ms = result.timings.verify_ms;
+          MatchesToProto(result.matches, response.mutable_matches());
+        }
+        added = map.map->Commit(frame, work.metadata);
+        return added.ok() ? grpc::Status::OK : ToGrpc(added.status(), "storing");
+      });
+      if (!second_half.ok()) {
+        front->status = second_half;
+        response.clear_counts();
+        response.clear_boxes_used();
+        response.clear_matches();
+        response.mutable_error()->set_code(int(front->status.error_code()));
+        response.mutable_error()->set_message(front->status.error_message());
+        metrics_->FrameRejected(map.name, GrpcCodeLabel(front->status.error_code()));
+        spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map.name,
+                     front->index, GrpcCodeName(front->status.error_code()),
+                     front->status.error_message());
+      } else {
+        work.timings.store_ms = added->timings.store_ms;
+        metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.static_);
+        response.set_stored(added->stored);
+        if (added->stored) {
+          response.set_place_id(added->id);
+          metrics_->FrameIngested(map.name);
+        } else {
+          response.set_rejection(added->rejection);
+          metrics_->FrameRejected(map.name, "invalid_place");
+        }
+        work.timings.total_ms = MsSince(front->arrived);
+        TimingsToProto(work.timings, front->queue_ms, response.mutable_timings());
+        ObserveStages(work.timings);
+      }
+    }
+    lock.lock();
+    if (!front->status.ok()) {
+      ++stream->errors;
+    } else if (response.stored()) {
+      ++stream->stored;
+    } else {
+      ++stream->rejected;
+    }
+    stream->outbox.push_back(std::move(response));
+    stream->changed.notify_all();
+  }
+  stream->completing = false;
+}
+
+grpc::Status PlaceDbService::Ingest(
+    grpc::ServerContext* context,
+    grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* io) {
+  CallScope scope(this);
+  const Clock::time_point opened = Clock::now();
+  const Limits& limits = config_.limits;
+
+  // The header names the map.
+  {
+    std::lock_guard lock(streams_mutex_);
+    if (draining_) return Finish("Ingest", context, Unavailable());
+    awaiting_header_.insert(context);
+  }
+  v1::IngestRequest first;
+  const bool read_header = io->Read(&first);
+  {
+    std::lock_guard lock(streams_mutex_);
+    awaiting_header_.erase(context);
+  }
+  if (!read_header) {
+    return Finish("Ingest", context,
+                  Expired(context) ? Cancelled(context, "before the header")
+                                   : Invalid("the stream ended before its IngestHeader"));
+  }
+  if (!first.has_header()) {
+    return Finish("Ingest", context,
+                  Invalid("header: the first message of an Ingest stream must be an IngestHeader"));
+  }
+  auto entry = maps_->Get(first.header().map(), "header.map");
+  if (!entry.ok()) return Finish("Ingest", context, ToGrpc(entry.status()));
+
+  Stream stream;
+  stream.context = context;
+  stream.io = io;
+  stream.map = *entry;
+  if (first.header().has_matches()) stream.header_matches = first.header().matches();
+  {
+    std::lock_guard lock(streams_mutex_);
+    if (draining_) return Finish("Ingest", context, Unavailable());
+    if (streams_.size() >= limits.max_concurrent_streams) {
+      return Finish("Ingest", context,
+                    grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                                 "limits.max_concurrent_streams = " +
+                                     std::to_string(limits.max_concurrent_streams) +
+                                     " Ingest streams are open; retry later"));
+    }
+    streams_.insert(&stream);
+  }
+  metrics_->StreamOpened();
+  spdlog::info("ingest stream opened peer={} map={}", Peer(context), stream.map->name);
+
+  // The writer: responses in order, as they complete.
+  std::thread writer([this, &stream] {
+    std::unique_lock lock(stream.mutex);
+    while (true) {
+      stream.changed.wait(lock, [&] {
+        return !stream.outbox.empty() || (stream.reading_done && stream.unanswered == 0);
+      });
+      if (stream.outbox.empty()) return;
+      v1::IngestResponse response = std::move(stream.outbox.front());
+      stream.outbox.pop_front();
+      const bool skip = stream.write_failed;
+      lock.unlock();
+      const bool written = !skip && stream.io->Write(response);
+      lock.lock();
+      if (!written) stream.write_failed = true;
+      --stream.unanswered;
+      stream.changed.notify_all();
+      if (stream.draining && stream.unanswered == 0 && !stream.reading_done) {
+        stream.context->TryCancel();  // unblocks the reader; nothing is left to answer
+      }
+    }
+  });
+
+  grpc::Status status = grpc::Status::OK;
+  uint64_t index = 0;
+  while (true) {
+    // Backpressure, per stream: no more than max_inflight_per_stream unanswered frames.
+    {
+      std::unique_lock lock(stream.mutex);
+      while (stream.unanswered >= limits.max_inflight_per_stream && !stream.draining &&
+             !stream.write_failed && !Expired(context)) {
+        stream.changed.wait_for(lock, std::chrono::milliseconds(50));
+      }
+      if (stream.draining) {
+        status = Unavailable();
+        break;
+      }
+      if (stream.write_failed || Expired(context)) {
+        status = Cancelled(context, "(stream closed)");
+        break;
+      }
+    }
+    auto request = std::make_unique<v1::IngestRequest>();
+    if (!io->Read(request.get())) {
+      if (Expired(context)) {
+        std::lock_guard lock(stream.mutex);
+        status = stream.draining ? Unavailable() : Cancelled(context, "(stream cancelled)");
+      }
+      break;
+    }
+    if (!request->has_observation()) {
+      status = Invalid("message " + std::to_string(index + 1) +
+                       ": after the header, every message must be an observation");
+      break;
+    }
+    auto slot = std::make_shared<Slot>();
+    slot->index = index++;
+    slot->arrived = Clock::now();
+    slot->sequence = request->observation().sequence();
+    if (request->observation().has_matches()) {
+      slot->matches = request->observation().matches();
+    } else {
+      slot->matches = stream.header_matches;
+    }
+    slot->request = std::move(request);
+    {
+      std::lock_guard lock(stream.mutex);
+      if (stream.draining) {  // refused unread: the client sees it was never answered
+        status = Unavailable();
+        break;
+      }
+      ++stream.frames;
+      const std::string& agent = slot->request->observation().agent_id();
+      if (stream.agents.size() < 4 &&
+          std::find(stream.agents.begin(), stream.agents.end(), agent) == stream.agents.end()) {
+        stream.agents.push_back(agent);
+      }
+      stream.pipeline.push_back(slot);
+      ++stream.unanswered;
+    }
+    auto task = [this, &stream, slot] {
+      slot->queue_ms = MsSince(slot->arrived);
+      slot->status = Guarded("processing the observation", [&] {
+        return Prepare(stream.context, *stream.map, slot->request->observation(), "observation",
+                       &slot->work);
+      });
+      slot->request.reset();  // the decoded frame is all that is needed now
+      ReadyAndAdvance(&stream, slot.get());
+    };
+    // Backpressure, global: wait for room in the pool's queue before reading on.
+    const auto submitted =
+        pool_->Submit(task, Clock::time_point::max(), [context] { return Expired(context); });
+    if (submitted != WorkerPool::SubmitResult::kQueued) {
+      slot->status = submitted == WorkerPool::SubmitResult::kStopped
+                         ? Unavailable()
+                         : Cancelled(context, "while waiting for a worker");
+      slot->request.reset();
+      status = slot->status;
+      // Only this (failed) slot can be ready and not yet completed here: nothing heavy runs on
+      // the handler thread.
+      ReadyAndAdvance(&stream, slot.get());
+      break;
+    }
+  }
+
+  // Every frame read is completed and answered (or dropped if the client is gone) before the
+  // call returns: the workers reference this stream.
+  {
+    std::lock_guard lock(stream.mutex);
+    stream.reading_done = true;
+    stream.changed.notify_all();
+  }
+  writer.join();
+  {
+    std::lock_guard lock(streams_mutex_);
+    streams_.erase(&stream);
+  }
+  metrics_->StreamClosed();
+  std::string agents;
+  for (const std::string& agent : stream.agents) agents += (agents.empty() ? "" : ",") + agent;
+  spdlog::info(
+      "ingest stream closed peer={} map={} agent={} frames={} stored={} rejected={} errors={} "
+      "duration={:.3f}s status={}",
+      Peer(context), stream.map->name, agents, stream.frames, stream.stored, stream.rejected,
+      stream.errors, MsSince(opened) / 1000.0, GrpcCodeName(status.error_code()));
+  return Finish("Ingest", context, status);
+}
+
+// ---- Shutdown and gauges ------------------------------------------------------------------------
+
+void PlaceDbService::BeginDrain() {
+  std::lock_guard lock(streams_mutex_);
+  draining_ = true;
+  draining_flag_ = true;
+  for (grpc::ServerContext* context : awaiting_header_) context->TryCancel();
+  for (Stream* stream : streams_) {
+    std::lock_guard stream_lock(stream->mutex);
+    stream->draining = true;
+    stream->changed.notify_all();
+    // An idle stream's handler is blocked in Read(): cancel it now. A busy one is cancelled by
+    // its writer once its last frame is answered.
+    if (stream->unanswered == 0) stream->context->TryCancel();
+  }
+}
+
+void PlaceDbService::RefreshMapGauges() {
+  for (const auto& entry : maps_->List()) {
+    if (!entry->map) continue;
+    const MapStats stats = entry->map->Stats();
+    metrics_->SetMapGauges(entry->name, double(stats.database.places), double(stats.bytes_on_disk));
+  }
+}
+
+}  // namespace placedb::server

@@ -1,0 +1,107 @@
+// placedb.v1.PlaceDb on the synchronous gRPC API, with the frame pipeline on a bounded pool.
+//
+// Ingest: the call's handler thread reads; each observation becomes a slot in the stream's
+// ordered pipeline and a task on the WorkerPool (decode, detect, extract, filter, transform).
+// Search + store run in stream order (a per-stream strand: whichever worker finishes the front
+// slot's first half runs the second half of every ready slot in order), so a frame's matches
+// are the map before that frame, and its place id is stored before the next frame's search.
+// A per-stream writer thread sends responses in order. The handler reads its next message only
+// when the stream has fewer than max_inflight_per_stream frames unanswered and the pool's queue
+// has room: backpressure reaches the client through HTTP/2 flow control.
+//
+// Cancellation and deadlines are checked between stages; a cancelled frame is never stored.
+#pragma once
+
+#include <grpcpp/grpcpp.h>
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+
+#include "core/detector.h"
+#include "proto/placedb.grpc.pb.h"
+#include "server/config.h"
+#include "server/map_registry.h"
+#include "server/metrics.h"
+#include "server/worker_pool.h"
+
+namespace placedb::server {
+
+class PlaceDbService final : public v1::PlaceDb::Service {
+ public:
+  // `detector` null = server-side detection off; `detector_status` then says why ("off", or
+  // "off: <error>" when a configured model failed to load).
+  PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool, Metrics* metrics,
+                 const Detector* detector, std::string detector_status);
+  ~PlaceDbService() override;
+
+  grpc::Status CreateMap(grpc::ServerContext* context, const v1::CreateMapRequest* request,
+                         v1::MapDescription* response) override;
+  grpc::Status GetMap(grpc::ServerContext* context, const v1::GetMapRequest* request,
+                      v1::MapDescription* response) override;
+  grpc::Status ListMaps(grpc::ServerContext* context, const v1::ListMapsRequest* request,
+                        v1::ListMapsResponse* response) override;
+  grpc::Status DeleteMap(grpc::ServerContext* context, const v1::DeleteMapRequest* request,
+                         v1::DeleteMapResponse* response) override;
+  grpc::Status Ingest(
+      grpc::ServerContext* context,
+      grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* stream) override;
+  grpc::Status Query(grpc::ServerContext* context, const v1::QueryRequest* request,
+                     v1::QueryResponse* response) override;
+  grpc::Status GetPlace(grpc::ServerContext* context, const v1::GetPlaceRequest* request,
+                        v1::Place* response) override;
+  grpc::Status DeletePlace(grpc::ServerContext* context, const v1::DeletePlaceRequest* request,
+                           v1::DeletePlaceResponse* response) override;
+  grpc::Status GetServerInfo(grpc::ServerContext* context, const v1::GetServerInfoRequest* request,
+                             v1::ServerInfo* response) override;
+
+  // Shutdown, first step: new streams and calls are refused with UNAVAILABLE, streams stop
+  // reading; every frame already read is still processed, stored and answered, then its stream
+  // ends (an idle stream is cancelled right away, since its handler is blocked reading).
+  void BeginDrain();
+  // Waits until no call is being served (after BeginDrain), or until `deadline`. True if idle.
+  bool WaitIdle(std::chrono::steady_clock::time_point deadline);
+  // Sets the per-map gauges (places, bytes on disk); run before each metrics scrape.
+  void RefreshMapGauges();
+
+  struct Stream;  // one open Ingest call (service.cc)
+  struct Slot;    // one observation of a stream (service.cc)
+  struct Work;    // one frame's processing state (service.cc)
+
+ private:
+  // Decode, detect, extract, filter, transform: the first half of a frame, on a worker.
+  grpc::Status Prepare(grpc::ServerContext* context, const MapEntry& map,
+                       const v1::Observation& observation, const std::string& field, Work* work);
+  // Marks a slot's first half done, then runs the second half (search when asked, then store)
+  // of every ready slot at the front of the stream's pipeline, in order, unless another thread
+  // already is.
+  void ReadyAndAdvance(Stream* stream, Slot* slot);
+  grpc::Status Finish(const char* method, grpc::ServerContext* context, grpc::Status status);
+  grpc::Status Unavailable() const;
+  void ObserveStages(const StageTimings& timings);
+
+  const ServerConfig& config_;
+  MapRegistry* const maps_;
+  WorkerPool* const pool_;
+  Metrics* const metrics_;
+  const Detector* const detector_;  // null: server-side detection off
+  const std::string detector_status_;
+
+  // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
+  class CallScope;
+  std::mutex calls_mutex_;
+  std::condition_variable calls_idle_;
+  size_t calls_in_flight_ = 0;
+
+  std::mutex streams_mutex_;
+  std::set<Stream*> streams_;
+  std::set<grpc::ServerContext*> awaiting_header_;  // Ingest calls not yet past their header
+  bool draining_ = false;
+  std::atomic<bool> draining_flag_{false};
+};
+
+}  // namespace placedb::server

@@ -1,0 +1,65 @@
+// A fixed set of worker threads behind a bounded queue: the server's frame pipeline runs here
+// (decode, detect, extract, filter, transform, search, verify, store), so CPU use is bounded by
+// the thread count whatever the number of open calls, and memory by the queue capacity.
+//
+// Submit() blocks while the queue is full: that is the backpressure of Ingest streams (the
+// stream's handler does not read its next message until its current one is queued). Callers that
+// must not wait forever pass a deadline and a give-up predicate (e.g. "call cancelled").
+#pragma once
+
+#include <chrono>
+#include <condition_variable>
+#include <cstddef>
+#include <deque>
+#include <functional>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+namespace placedb::server {
+
+class WorkerPool {
+ public:
+  using Clock = std::chrono::steady_clock;
+  using Task = std::function<void()>;
+
+  enum class SubmitResult { kQueued, kFull, kGaveUp, kStopped };
+
+  // `threads` >= 1 workers, at most `capacity` >= 1 tasks waiting (running ones not counted).
+  // `on_depth` (optional) is told the number of waiting tasks whenever it changes, in order; it
+  // runs under the pool's lock, so it must be cheap and must not call back into the pool.
+  WorkerPool(int threads, size_t capacity, std::function<void(size_t)> on_depth = {});
+  ~WorkerPool();  // Stop()
+  WorkerPool(const WorkerPool&) = delete;
+  WorkerPool& operator=(const WorkerPool&) = delete;
+
+  // Queues `task`, waiting for room until `until`; `give_up` is polled every few milliseconds
+  // while waiting. kFull when `until` passed first, kGaveUp when `give_up` said so, kStopped
+  // after Stop(). The task is dropped unless kQueued.
+  SubmitResult Submit(Task task, Clock::time_point until = Clock::time_point::max(),
+                      const std::function<bool()>& give_up = {});
+  SubmitResult TrySubmit(Task task) { return Submit(std::move(task), Clock::time_point::min()); }
+
+  // Refuses new tasks, runs every queued one, joins the workers. Idempotent.
+  void Stop();
+
+  size_t queue_depth() const;
+  size_t capacity() const { return capacity_; }
+  int threads() const { return threads_; }
+
+ private:
+  void Run();
+
+  const int threads_;
+  const size_t capacity_;
+  const std::function<void(size_t)> on_depth_;
+  mutable std::mutex mutex_;
+  std::condition_variable has_task_;
+  std::condition_variable has_room_;
+  std::deque<Task> queue_;
+  bool stopping_ = false;
+  std::mutex join_mutex_;  // one Stop() joins, concurrent ones wait for it
+  std::vector<std::thread> workers_;
+};
+
+}  // namespace placedb::server
