@@ -138,6 +138,7 @@ std::string EncodeInfo(const MapInfo& info) {
   j["name"] = info.name;
   j["database"] = nlohmann::json::parse(EncodeDatabaseConfig(info.options.database));
   j["store_invalid"] = info.options.store_invalid;
+  j["service"] = info.options.service_json;
   j["vocabulary_checksum"] = info.vocabulary_checksum;
   j["created_unix_ms"] = info.created_unix_ms;
   return j.dump();
@@ -153,6 +154,7 @@ Result<MapInfo> DecodeInfo(const std::string& text) {
     if (!config.ok()) return config.status();
     info.options.database = *config;
     info.options.store_invalid = j.at("store_invalid").get<bool>();
+    info.options.service_json = j.value("service", std::string());
     info.vocabulary_checksum = j.at("vocabulary_checksum").get<uint64_t>();
     info.created_unix_ms = j.at("created_unix_ms").get<int64_t>();
   } catch (const nlohmann::json::exception& e) {

@@ -48,6 +48,9 @@ struct MapOptions {
   // Keep invalid observations as metadata only (no descriptors), to see where the robot saw
   // nothing usable. Off by default: invalid observations are counted, not stored.
   bool store_invalid = false;
+  // Settings of the layer above (the service's detection policy), stored with the map's info so
+  // they are written atomically with it and travel with checkpoints. Opaque to storage.
+  std::string service_json;
 };
 
 struct MapStats {

@@ -33,8 +33,8 @@ std::string GrpcCodeLabel(grpc::StatusCode code);  // "invalid_argument" (metric
 
 // ---- Maps ---------------------------------------------------------------------------------------
 
-// What the service keeps per map besides the core's MapOptions (in a sidecar file: see
-// map_registry.h).
+// What the service keeps per map besides the core's database config (in the map's own info,
+// MapOptions::service_json: see map_registry.h).
 struct ServiceMapSettings {
   BoxSource box_source = BoxSource::kAgent;
   bool detection_enabled = true;

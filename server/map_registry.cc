@@ -1,16 +1,8 @@
 #include "server/map_registry.h"
 
-#include <fcntl.h>
 #include <spdlog/spdlog.h>
-#include <unistd.h>
 
-#include <cstring>
-#include <filesystem>
-#include <fstream>
 #include <nlohmann/json.hpp>
-#include <sstream>
-
-namespace fs = std::filesystem;
 
 namespace placedb::server {
 
@@ -37,9 +29,6 @@ Result<std::unique_ptr<MapRegistry>> MapRegistry::Open(const std::string& data_d
                                                        std::vector<VocabularyEntry> vocabularies) {
   auto directory = DataDirectory::Open(data_dir, storage);
   if (!directory.ok()) return directory.status().WithContext("data directory " + data_dir);
-  std::error_code ec;
-  fs::create_directories(fs::path(data_dir) / "service", ec);
-  if (ec) return Status::IoError("creating " + data_dir + "/service: " + ec.message());
   std::unique_ptr<MapRegistry> registry(
       new MapRegistry(std::move(directory).value(), std::move(vocabularies)));
   for (const std::string& name : registry->directory_->ListMaps()) {
@@ -99,7 +88,7 @@ std::shared_ptr<const MapEntry> MapRegistry::Load(const std::string& name) {
   }
   entry->map = std::move(map).value();
   entry->vocabulary_name = vocabulary->name;
-  entry->settings = ReadSettings(name);
+  entry->settings = DecodeSettings(name, entry->map->info().options.service_json);
   return entry;
 }
 
@@ -141,13 +130,10 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Create(const std::string& n
     std::lock_guard lock(mutex_);
     if (maps_.count(name)) return Status::AlreadyExists("map '" + name + "' already exists");
   }
-  auto map = directory_->CreateMap(name, options, vocabulary->vocabulary);
+  MapOptions stored = options;
+  stored.service_json = EncodeSettings(settings);
+  auto map = directory_->CreateMap(name, stored, vocabulary->vocabulary);
   if (!map.ok()) return map.status();
-  if (Status written = WriteSettings(name, settings); !written.ok()) {
-    map->reset();
-    (void)directory_->DeleteMap(name);
-    return written;
-  }
   auto entry = std::make_shared<MapEntry>();
   entry->name = name;
   entry->map = std::move(map).value();
@@ -174,8 +160,6 @@ Status MapRegistry::Delete(const std::string& name) {
     std::lock_guard lock(mutex_);
     maps_.erase(name);
   }
-  std::error_code ec;
-  fs::remove(SidecarPath(name), ec);
   return Status::Ok();
 }
 
@@ -198,20 +182,12 @@ void MapRegistry::CloseAll() {
   directory_.reset();
 }
 
-std::string MapRegistry::SidecarPath(const std::string& name) const {
-  return (fs::path(directory_->path()) / "service" / (name + ".json")).string();
-}
-
-ServiceMapSettings MapRegistry::ReadSettings(const std::string& name) const {
+ServiceMapSettings MapRegistry::DecodeSettings(const std::string& name, const std::string& text) {
   ServiceMapSettings settings;
-  std::ifstream in(SidecarPath(name));
-  if (!in) return settings;
-  std::stringstream text;
-  text << in.rdbuf();
-  const nlohmann::json j = nlohmann::json::parse(text.str(), nullptr, false);
+  if (text.empty()) return settings;
+  const nlohmann::json j = nlohmann::json::parse(text, nullptr, false);
   if (j.is_discarded() || !j.is_object()) {
-    spdlog::warn("map '{}': {} is damaged; using default service settings", name,
-                 SidecarPath(name));
+    spdlog::warn("map '{}': its service settings are damaged; using defaults", name);
     return settings;
   }
   if (j.contains("box_source") && j["box_source"].is_string()) {
@@ -224,31 +200,12 @@ ServiceMapSettings MapRegistry::ReadSettings(const std::string& name) const {
   return settings;
 }
 
-Status MapRegistry::WriteSettings(const std::string& name,
-                                  const ServiceMapSettings& settings) const {
+std::string MapRegistry::EncodeSettings(const ServiceMapSettings& settings) {
   nlohmann::json j;
   j["format"] = 1;
   j["box_source"] = BoxSourceName(settings.box_source);
   j["detection_enabled"] = settings.detection_enabled;
-  const std::string path = SidecarPath(name);
-  const std::string temp = path + ".tmp";
-  const std::string text = j.dump() + "\n";
-  // temp file + fsync + rename (+ fsync of the directory): the settings survive a crash whole.
-  const int fd = ::open(temp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) return Status::IoError("creating " + temp + ": " + std::strerror(errno));
-  const bool written =
-      ::write(fd, text.data(), text.size()) == ssize_t(text.size()) && ::fsync(fd) == 0;
-  ::close(fd);
-  if (!written) return Status::IoError("writing " + temp + ": " + std::strerror(errno));
-  std::error_code ec;
-  fs::rename(temp, path, ec);
-  if (ec) return Status::IoError("renaming " + temp + ": " + ec.message());
-  const int dir = ::open(fs::path(path).parent_path().c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (dir >= 0) {
-    (void)::fsync(dir);
-    ::close(dir);
-  }
-  return Status::Ok();
+  return j.dump();
 }
 
 }  // namespace placedb::server

@@ -5,9 +5,9 @@
 // checksum the map recorded (DataDirectory::ReadMapInfo). A map whose vocabulary is not
 // configured, or that fails to open, is listed as unavailable with the reason; it is not fatal.
 //
-// Service settings the core's MapInfo has no field for (box source, detection on/off) are kept
-// in a sidecar JSON file per map, <data dir>/service/<map>.json, written atomically after the map
-// is created and removed with it. A missing sidecar means the defaults.
+// Service settings the core's database config has no field for (box source, detection on/off)
+// are stored as JSON in the map's own info (MapOptions::service_json): written atomically with
+// the map, carried by checkpoints, deleted with it. Missing means the defaults.
 //
 // Thread safety: all methods may be called concurrently; create/delete are serialised.
 #pragma once
@@ -67,9 +67,9 @@ class MapRegistry {
  private:
   MapRegistry(std::unique_ptr<DataDirectory> directory, std::vector<VocabularyEntry> vocabularies);
   std::shared_ptr<const MapEntry> Load(const std::string& name);
-  std::string SidecarPath(const std::string& name) const;
-  ServiceMapSettings ReadSettings(const std::string& name) const;
-  Status WriteSettings(const std::string& name, const ServiceMapSettings& settings) const;
+  // The service's per-map settings, kept in the map's own info (MapOptions::service_json).
+  static ServiceMapSettings DecodeSettings(const std::string& name, const std::string& text);
+  static std::string EncodeSettings(const ServiceMapSettings& settings);
 
   std::unique_ptr<DataDirectory> directory_;
   const std::vector<VocabularyEntry> vocabularies_;

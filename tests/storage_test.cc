@@ -230,6 +230,14 @@ TEST_F(StorageTest, ManyMapsCreateListDelete) {
   auto info = dir->ReadMapInfo("beta-2");
   ASSERT_TRUE(info.ok()) << info.status().ToString();
   EXPECT_EQ(info->vocabulary_checksum, vocabulary_->checksum());
+  // The layer above stores its own settings with the map, opaque to storage.
+  MapOptions with_service;
+  with_service.service_json = R"({"box_source":"server"})";
+  ASSERT_TRUE(dir->CreateMap("gamma", with_service, vocabulary_).ok());
+  dir->CloseMap("gamma");
+  auto gamma = dir->ReadMapInfo("gamma");
+  ASSERT_TRUE(gamma.ok()) << gamma.status().ToString();
+  EXPECT_EQ(gamma->options.service_json, with_service.service_json);
 }
 
 TEST_F(StorageTest, AnotherVocabularyIsRefused) {
