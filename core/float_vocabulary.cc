@@ -10,6 +10,7 @@
 #include <numeric>
 #include <thread>
 
+#include "core/bow_builder.h"
 #include "core/vocabulary.h"  // Checksum64
 
 namespace placedb {
@@ -425,51 +426,11 @@ void FloatVocabulary::Transform(std::span<const float> descriptors, BowVector* b
     leaf[i] = Descend(descriptors.data() + i * size_t(dimensions_), group_level,
                       direct != nullptr ? &group[i] : nullptr);
   }
-  std::vector<uint64_t> keyed(n);
   if (bow != nullptr) {
-    for (size_t i = 0; i < n; ++i) keyed[i] = node_word_[leaf[i]];
-    std::sort(keyed.begin(), keyed.end());
-    bow->reserve(n);
-    const double inverse_n = 1.0 / double(n);
-    for (size_t i = 0; i < n;) {
-      const auto word = uint32_t(keyed[i]);
-      size_t j = i + 1;
-      while (j < n && keyed[j] == word) ++j;
-      const double occurrences = double(j - i);
-      double weight = 0;
-      switch (weighting_) {
-        case WeightingType::kTfIdf:
-          weight = occurrences * word_weight_[word] * inverse_n;
-          break;
-        case WeightingType::kTf:
-          weight = occurrences * inverse_n;
-          break;
-        case WeightingType::kIdf:
-          weight = word_weight_[word];
-          break;
-        case WeightingType::kBinary:
-          weight = 1.0;
-          break;
-      }
-      // Words seen in every training image (idf 0) carry nothing, as in vocabulary.h.
-      if (weight > 0) bow->push_back(BowEntry{word, float(weight)});
-      i = j;
-    }
+    for (uint32_t& node : leaf) node = node_word_[node];  // leaves -> their words
+    BuildBowVector(leaf, word_weight_.data(), weighting_, bow);
   }
-  if (direct != nullptr) {
-    for (size_t i = 0; i < n; ++i) keyed[i] = (uint64_t(group[i]) << 32) | i;
-    std::sort(keyed.begin(), keyed.end());
-    direct->feature_ids.resize(n);
-    for (size_t i = 0; i < n; ++i) {
-      const auto node = uint32_t(keyed[i] >> 32);
-      if (i == 0 || node != direct->node_ids.back()) {
-        direct->node_ids.push_back(node);
-        direct->offsets.push_back(uint32_t(i));
-      }
-      direct->feature_ids[i] = uint32_t(keyed[i]);
-    }
-    direct->offsets.push_back(uint32_t(n));
-  }
+  if (direct != nullptr) BuildDirectIndex(group, direct);
 }
 
 std::string FloatVocabulary::checksum_hex() const {

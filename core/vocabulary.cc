@@ -9,6 +9,8 @@
 #include <new>
 #include <string>
 
+#include "core/bow_builder.h"
+
 namespace placedb {
 
 namespace {
@@ -417,63 +419,17 @@ void Vocabulary::Transform(std::span<const Descriptor256> descriptors, BowVector
   }
   if (n == 0) return;
 
-  // (key << 32 | feature) pairs: one sort gives both grouping and ascending feature ids.
   thread_local std::vector<uint32_t> leaf;
   thread_local std::vector<uint32_t> group;
-  thread_local std::vector<uint64_t> keyed;
   leaf.resize(n);
   if (direct != nullptr) group.resize(n);
   Descend(descriptors.data(), n, leaf.data(), direct != nullptr ? group.data() : nullptr,
           std::max(0, depth_ - levels_up));
-
   if (bow != nullptr) {
-    keyed.resize(n);
-    for (size_t i = 0; i < n; ++i) keyed[i] = node_word_[leaf[i]];
-    std::sort(keyed.begin(), keyed.end());
-    bow->reserve(n);
-    const double inverse_n = 1.0 / double(n);
-    for (size_t i = 0; i < n;) {
-      const auto word = uint32_t(keyed[i]);
-      size_t j = i + 1;
-      while (j < n && keyed[j] == word) ++j;
-      const double occurrences = double(j - i);
-      double weight = 0;
-      switch (weighting_) {
-        case WeightingType::kTfIdf:
-          weight = occurrences * word_weight_[word] * inverse_n;
-          break;
-        case WeightingType::kTf:
-          weight = occurrences * inverse_n;
-          break;
-        case WeightingType::kIdf:
-          weight = word_weight_[word];
-          break;
-        case WeightingType::kBinary:
-          weight = 1.0;
-          break;
-      }
-      // As DBoW2: words without positive weight (e.g. idf 0, seen in every training image)
-      // carry no information and are left out.
-      if (weight > 0) bow->push_back(BowEntry{word, float(weight)});
-      i = j;
-    }
+    for (uint32_t& node : leaf) node = node_word_[node];  // leaves -> their words
+    BuildBowVector(leaf, word_weight_, weighting_, bow);
   }
-
-  if (direct != nullptr) {
-    keyed.resize(n);
-    for (size_t i = 0; i < n; ++i) keyed[i] = (uint64_t(group[i]) << 32) | i;
-    std::sort(keyed.begin(), keyed.end());
-    direct->feature_ids.resize(n);
-    for (size_t i = 0; i < n; ++i) {
-      const auto node = uint32_t(keyed[i] >> 32);
-      if (i == 0 || node != direct->node_ids.back()) {
-        direct->node_ids.push_back(node);
-        direct->offsets.push_back(uint32_t(i));
-      }
-      direct->feature_ids[i] = uint32_t(keyed[i]);
-    }
-    direct->offsets.push_back(uint32_t(n));
-  }
+  if (direct != nullptr) BuildDirectIndex(group, direct);
 }
 
 }  // namespace placedb
