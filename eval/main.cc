@@ -1,0 +1,314 @@
+// placedb-eval: the paper's section V (Munoz & Dexter, Table III and Figs. 5-7) as a harness.
+//
+//   placedb-eval prepare camvid|camvid-stops|rtabmap|folder|revisits ... --out DIR
+//   placedb-eval run --dataset DIR --out RESULTS_DIR [--features 300,500,...] [--geom none,0,1,2,6]
+//       [--boxes oracle|detector|none] [--masks oracle|none] [--confidence 0.2]
+//       [--filter keypoint_in_box|exact_coverage --sensitivity 0.25] [--server ADDRESS]
+//
+// See docs/evaluation.md for the dataset format, the metrics and the figures.
+#include <unistd.h>
+
+#include <CLI/CLI.hpp>
+#include <cstdio>
+#include <filesystem>
+#include <iostream>
+#include <opencv2/core.hpp>
+
+#include "core/detector.h"
+#include "core/vocabulary.h"
+#include "eval/adapters.h"
+#include "eval/dataset.h"
+#include "eval/remote.h"
+#include "eval/report.h"
+#include "eval/revisits.h"
+#include "eval/runner.h"
+
+namespace fs = std::filesystem;
+using namespace placedb;
+using namespace placedb::eval;
+
+namespace {
+
+std::string SharedDir() {
+  if (const char* env = std::getenv("PLACEDB_SHARED_DIR")) return env;
+  return PLACEDB_SHARED_DIR;
+}
+
+std::string DefaultModel() {
+  const std::string installed = std::string(PLACEDB_MODELS_DIR) + "/yolox_nano.onnx";
+  if (fs::exists(installed)) return installed;
+  return SharedDir() + "/models/yolox_nano.onnx";
+}
+
+void Log(const std::string& line) {
+  std::fprintf(stderr, "[placedb-eval] %s\n", line.c_str());
+}
+
+int Fail(const Status& status) {
+  std::fprintf(stderr, "placedb-eval: %s\n", status.ToString().c_str());
+  return 1;
+}
+
+int Save(Dataset dataset, const std::string& out, bool csv) {
+  dataset.directory = out;
+  const Status saved = csv ? SaveDatasetCsv(dataset) : SaveDataset(dataset);
+  if (!saved.ok()) return Fail(saved);
+  size_t truth = 0;
+  for (const Entry& q : dataset.queries) truth += !q.ground_truth.empty();
+  std::printf("%s: %zu database entries, %zu queries (%zu with ground truth) -> %s/%s\n",
+              dataset.name.c_str(), dataset.database.size(), dataset.queries.size(), truth,
+              out.c_str(), csv ? "*.csv" : "dataset.json");
+  return 0;
+}
+
+// "0.1:0.4" or "0.25".
+bool ParseRange(const std::string& text, double* lo, double* hi) {
+  try {
+    const size_t colon = text.find(':');
+    *lo = std::stod(text.substr(0, colon));
+    *hi = colon == std::string::npos ? *lo : std::stod(text.substr(colon + 1));
+    return true;
+  } catch (const std::exception&) {
+    return false;
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"placedb-eval: reproduce Munoz & Dexter section V (Table III, Figs. 5-7)"};
+  app.require_subcommand(1);
+
+  // ---- prepare ------------------------------------------------------------------------------
+  CLI::App* prepare = app.add_subcommand("prepare", "write a dataset in the harness format");
+  prepare->require_subcommand(1);
+  std::string out;
+  bool csv = false;
+  auto add_out = [&](CLI::App* command) {
+    command->add_option("--out", out, "dataset directory to write")->required();
+    command->add_flag("--csv", csv, "write database.csv/queries.csv/... instead of dataset.json");
+  };
+
+  CamVidAdjacencyOptions adjacency;
+  adjacency.camvid_dir = SharedDir() + "/data/camvid";
+  CLI::App* camvid = prepare->add_subcommand("camvid", "CamVid adjacent frames (1 s windows)");
+  camvid->add_option("--camvid", adjacency.camvid_dir, "CamVid directory")->capture_default_str();
+  camvid->add_option("--sequences", adjacency.sequences, "only these sequences")->delimiter(',');
+  camvid->add_option("--max-frames-per-sequence", adjacency.max_frames_per_sequence,
+                     "only the first N frames of each sequence (0 = all)");
+  camvid->add_option("--window", adjacency.window_frames, "correct within this many video frames")
+      ->capture_default_str();
+  add_out(camvid);
+
+  CamVidStopsOptions stops;
+  stops.camvid_dir = SharedDir() + "/data/camvid";
+  bool no_distractors = false;
+  CLI::App* camvid_stops =
+      prepare->add_subcommand("camvid-stops", "CamVid vehicle-stop revisits (README ranges)");
+  camvid_stops->add_option("--camvid", stops.camvid_dir, "CamVid directory")->capture_default_str();
+  camvid_stops
+      ->add_option("--guard", stops.guard_frames,
+                   "frames near a stop in neither visit are left out")
+      ->capture_default_str();
+  camvid_stops->add_flag("--no-distractors", no_distractors,
+                         "database = the first visits only (no other CamVid frames)");
+  add_out(camvid_stops);
+
+  RtabmapOptions rtabmap;
+  rtabmap.directory = SharedDir() + "/data/rtabmap-loop";
+  CLI::App* rtab = prepare->add_subcommand("rtabmap", "RTAB-Map loop with ground_truth.bmp");
+  rtab->add_option("--rtabmap", rtabmap.directory, "RTAB-Map loop directory")
+      ->capture_default_str();
+  rtab->add_option("--database-last", rtabmap.database_last, "database = frames 1..N")
+      ->capture_default_str();
+  add_out(rtab);
+
+  FolderOptions folder;
+  CLI::App* folders = prepare->add_subcommand("folder", "database/ and queries/ folders + CSV");
+  folders->add_option("--database", folder.database_dir, "database images")->required();
+  folders->add_option("--queries", folder.queries_dir, "query images")->required();
+  folders->add_option("--ground-truth", folder.ground_truth_csv, "CSV query,database")->required();
+  folders->add_option("--database-masks", folder.database_masks_dir, "<stem>.png masks");
+  folders->add_option("--query-masks", folder.queries_masks_dir, "<stem>.png masks");
+  folders->add_option("--boxes", folder.boxes_csv, "CSV image,class,confidence,x,y,width,height");
+  add_out(folders);
+
+  RevisitOptions revisit;
+  revisit.camvid_dir = SharedDir() + "/data/camvid";
+  std::string coverage = "0.1:0.4";
+  CLI::App* revisits =
+      prepare->add_subcommand("revisits", "synthetic revisits with different dynamic objects");
+  revisits->add_option("--camvid", revisit.camvid_dir, "CamVid directory")->capture_default_str();
+  revisits->add_option("--places", revisit.places, "places")->capture_default_str();
+  revisits->add_option("--visits", revisit.visits, "visits per place (visit 0 = database)")
+      ->capture_default_str();
+  revisits->add_option("--coverage", coverage, "dynamic coverage per visit, MIN:MAX or VALUE")
+      ->capture_default_str();
+  revisits->add_option("--seed", revisit.seed, "random seed")->capture_default_str();
+  revisits->add_option("--viewpoint", revisit.viewpoint, "homography strength (0 = none)")
+      ->capture_default_str();
+  revisits->add_option("--photometric", revisit.photometric, "photometric strength (0 = none)")
+      ->capture_default_str();
+  revisits
+      ->add_option("--max-background-coverage", revisit.max_background_coverage,
+                   "backgrounds' own dynamic coverage at most")
+      ->capture_default_str();
+  revisits
+      ->add_option("--min-separation", revisit.min_separation_frames,
+                   "backgrounds of a sequence at least this many video frames apart")
+      ->capture_default_str();
+  revisits->add_option("--out", out, "dataset directory to write")->required();
+  revisits->add_flag("--csv", csv, "write the CSV form instead of dataset.json");
+
+  // ---- run ----------------------------------------------------------------------------------
+  CLI::App* run = app.add_subcommand("run", "BoBW vs BoBW+DO over a configuration grid");
+  std::string dataset_dir, results_dir, vocabulary_path = PLACEDB_DEFAULT_VOCABULARY;
+  std::vector<std::string> geoms = {"none", "0", "1", "2", "6"};
+  std::string boxes = "oracle", masks = "none", filter = "keypoint_in_box", server, title;
+  std::string model = DefaultModel(), detector_config, detector_backend = "yolox_onnx";
+  std::string preprocessing = "letterbox", detections_cache;
+  RunOptions options;
+  run->add_option("--dataset", dataset_dir, "dataset directory (prepare's --out)")->required();
+  run->add_option("--out", results_dir, "results directory")->required();
+  run->add_option("--features", options.features, "ORB budgets")
+      ->delimiter(',')
+      ->capture_default_str();
+  run->add_option("--geom", geoms, "none, a direct-index level (Geo-l), or exhaustive")
+      ->delimiter(',')
+      ->capture_default_str();
+  run->add_option("--boxes", boxes, "oracle | detector | none")->capture_default_str();
+  run->add_option("--masks", masks, "oracle | none")->capture_default_str();
+  run->add_option("--confidence", options.confidences, "detector confidence threshold(s)")
+      ->delimiter(',')
+      ->capture_default_str();
+  run->add_option("--filter", filter, "keypoint_in_box | corner_distance | exact_coverage")
+      ->capture_default_str();
+  run->add_option("--sensitivity", options.sensitivity, "exact_coverage threshold")
+      ->capture_default_str();
+  run->add_option("--place-threshold", options.place_threshold, "valid iff |SC| > this")
+      ->capture_default_str();
+  run->add_option("--min-inliers", options.min_inliers, "verified iff inliers >= this")
+      ->capture_default_str();
+  run->add_option("--top-k", options.top_k, "matches per query (recall@k)")->capture_default_str();
+  run->add_option("--vocabulary", vocabulary_path, "vocabulary (never trained on eval images)")
+      ->capture_default_str();
+  run->add_option("--model", model, "detector model (.onnx, or darknet .weights)")
+      ->capture_default_str();
+  run->add_option("--detector-backend", detector_backend, "yolox_onnx | darknet")
+      ->capture_default_str();
+  run->add_option("--detector-config", detector_config, "darknet .cfg");
+  run->add_option("--preprocessing", preprocessing, "letterbox | centre_crop | stretch")
+      ->capture_default_str();
+  run->add_option("--detections-cache", detections_cache,
+                  "detections JSON reused across runs (default: in the dataset directory)");
+  run->add_option("--threads", options.threads, "worker threads")->capture_default_str();
+  run->add_option("--server", server, "run against a live placedb-server at ADDRESS");
+  run->add_option("--title", title, "report title");
+
+  CLI11_PARSE(app, argc, argv);
+
+  if (prepare->parsed()) {
+    if (camvid->parsed()) {
+      auto dataset = PrepareCamVidAdjacency(adjacency);
+      return dataset.ok() ? Save(*dataset, out, csv) : Fail(dataset.status());
+    }
+    if (camvid_stops->parsed()) {
+      stops.distractors = !no_distractors;
+      auto dataset = PrepareCamVidStops(stops);
+      return dataset.ok() ? Save(*dataset, out, csv) : Fail(dataset.status());
+    }
+    if (rtab->parsed()) {
+      auto dataset = PrepareRtabmap(rtabmap);
+      return dataset.ok() ? Save(*dataset, out, csv) : Fail(dataset.status());
+    }
+    if (folders->parsed()) {
+      auto dataset = PrepareFolder(folder);
+      return dataset.ok() ? Save(*dataset, out, csv) : Fail(dataset.status());
+    }
+    if (revisits->parsed()) {
+      if (!ParseRange(coverage, &revisit.min_coverage, &revisit.max_coverage)) {
+        return Fail(Status::InvalidArgument("--coverage: MIN:MAX or VALUE, got " + coverage));
+      }
+      revisit.out_dir = out;
+      auto built = BuildRevisits(revisit);
+      if (!built.ok()) return Fail(built.status());
+      double worst = 0;
+      for (const VisitInfo& v : built->visits) {
+        worst = std::max(worst, std::abs(v.measured_coverage - v.requested_coverage));
+      }
+      std::printf("revisits: largest |measured - requested| coverage %.4f\n", worst);
+      return Save(built->dataset, out, csv);
+    }
+    return 2;
+  }
+
+  // run
+  auto dataset = LoadDataset(dataset_dir);
+  if (!dataset.ok()) return Fail(dataset.status());
+  options.geoms.clear();
+  for (const std::string& g : geoms) {
+    auto geom = ParseGeom(g);
+    if (!geom.ok()) return Fail(geom.status());
+    if (std::find(options.geoms.begin(), options.geoms.end(), *geom) == options.geoms.end()) {
+      options.geoms.push_back(*geom);
+    }
+  }
+  auto box_input = ParseBoxInput(boxes);
+  if (!box_input.ok()) return Fail(box_input.status());
+  options.boxes = *box_input;
+  auto mask_input = ParseMaskInput(masks);
+  if (!mask_input.ok()) return Fail(mask_input.status());
+  options.masks = *mask_input;
+  auto method = ParseFilterMethod(filter);
+  if (!method.ok()) return Fail(method.status());
+  options.filter = *method;
+  if (options.boxes == BoxInput::kDetector) {
+    auto backend = ParseDetectorBackend(detector_backend);
+    if (!backend.ok()) return Fail(backend.status());
+    auto pre = ParsePreprocessing(preprocessing);
+    if (!pre.ok()) return Fail(pre.status());
+    options.detector.backend = *backend;
+    options.detector.model_path = model;
+    options.detector.config_path = detector_config;
+    options.detector.preprocessing = *pre;
+    options.detector.opencv_threads = 0;  // set below for the whole process
+    if (detections_cache.empty()) {
+      const std::string name =
+          "detections_" + fs::path(model).stem().string() + "_" + preprocessing + ".json";
+      detections_cache = access(dataset->directory.c_str(), W_OK) == 0
+                             ? dataset->directory + "/" + name
+                             : results_dir + "/" + name;
+    }
+    options.detections_cache = detections_cache;
+    std::error_code ec;
+    fs::create_directories(fs::path(detections_cache).parent_path(), ec);
+  }
+  options.log = Log;
+  // Frames are processed in parallel by the harness: one OpenCV thread per worker.
+  cv::setNumThreads(1);
+
+  auto vocabulary = Vocabulary::Load(vocabulary_path);
+  if (!vocabulary.ok()) return Fail(vocabulary.status().WithContext(vocabulary_path));
+  std::unique_ptr<Backend> backend;
+  if (server.empty()) {
+    backend = MakeInProcessBackend(*vocabulary, options.threads);
+  } else {
+    auto remote = MakeServerBackend(server, *vocabulary, Log);
+    if (!remote.ok()) return Fail(remote.status());
+    backend = std::move(remote).value();
+  }
+  Log("dataset " + dataset->name + ": " + std::to_string(dataset->database.size()) +
+      " database entries, " + std::to_string(dataset->queries.size()) + " queries; backend " +
+      backend->Name());
+  auto results = RunEvaluation(*dataset, options, *backend);
+  if (!results.ok()) return Fail(results.status());
+  if (title.empty())
+    title = "placedb-eval: " + dataset->name + " (" + results->dynamic_source + ")";
+  const Status written = WriteReport(*results, *dataset, results_dir, title);
+  if (!written.ok()) return Fail(written);
+  std::cout << MarkdownReport(*results, title);
+  Log("wrote " + results_dir +
+      "/{results.csv,queries.csv,table3.md,run.json,fig5_accuracy_vs_coverage.png,"
+      "fig6_database_size.png,fig7_latency.png}");
+  return 0;
+}

@@ -1,0 +1,303 @@
+#include "eval/remote.h"
+
+#include <grpcpp/grpcpp.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <fstream>
+#include <opencv2/imgcodecs.hpp>
+#include <sstream>
+#include <thread>
+
+#include "core/timing.h"
+#include "proto/placedb.grpc.pb.h"
+
+namespace placedb::eval {
+
+namespace {
+
+namespace v1 = ::placedb::v1;
+
+Status FromGrpc(const grpc::Status& status, const std::string& what) {
+  if (status.ok()) return Status::Ok();
+  return Status(
+      StatusCode::kFailedPrecondition,
+      what + ": " + std::to_string(int(status.error_code())) + " " + status.error_message());
+}
+
+Result<std::string> ReadBytes(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return Status::IoError("cannot read " + path);
+  std::ostringstream bytes;
+  bytes << in.rdbuf();
+  return bytes.str();
+}
+
+v1::FilterMethod ToProto(FilterMethod method) {
+  switch (method) {
+    case FilterMethod::kNone:
+      return v1::FILTER_METHOD_NONE;
+    case FilterMethod::kKeypointInBox:
+      return v1::FILTER_METHOD_KEYPOINT_IN_BOX;
+    case FilterMethod::kCornerDistance:
+      return v1::FILTER_METHOD_CORNER_DISTANCE;
+    case FilterMethod::kExactCoverage:
+      return v1::FILTER_METHOD_EXACT_COVERAGE;
+  }
+  return v1::FILTER_METHOD_UNSPECIFIED;
+}
+
+v1::VerificationMode ToProto(VerificationMode mode) {
+  switch (mode) {
+    case VerificationMode::kDisabled:
+      return v1::VERIFICATION_MODE_DISABLED;
+    case VerificationMode::kDirectIndex:
+      return v1::VERIFICATION_MODE_DIRECT_INDEX;
+    case VerificationMode::kExhaustive:
+      return v1::VERIFICATION_MODE_EXHAUSTIVE;
+  }
+  return v1::VERIFICATION_MODE_UNSPECIFIED;
+}
+
+v1::MapConfig ToProto(const DatabaseConfig& config, bool filtering) {
+  v1::MapConfig map;
+  map.mutable_orb()->set_max_features(config.orb.max_features);
+  map.mutable_detection()->set_enabled(filtering);
+  map.mutable_detection()->set_min_confidence(config.min_box_confidence);
+  map.mutable_detection()->set_box_source(v1::BOX_SOURCE_AGENT);
+  map.mutable_filter()->set_method(ToProto(config.filter.method));
+  map.mutable_filter()->set_sensitivity_threshold(config.filter.sensitivity_threshold);
+  map.mutable_filter()->set_place_threshold(config.filter.place_threshold);
+  map.set_scoring(v1::SCORING_L1);
+  map.mutable_verification()->set_mode(ToProto(config.verification.mode));
+  map.mutable_verification()->set_levels_up(config.verification.levels_up);
+  map.mutable_verification()->set_min_inliers(config.verification.min_inliers);
+  map.mutable_verification()->set_candidates(config.verification.candidates);
+  return map;
+}
+
+class ServerBackend final : public Backend {
+ public:
+  ServerBackend(std::string address, std::shared_ptr<grpc::Channel> channel)
+      : address_(std::move(address)),
+        channel_(std::move(channel)),
+        stub_(v1::PlaceDb::NewStub(channel_)) {}
+
+  std::string Name() const override { return "server " + address_; }
+
+  Status Prepare(const EvalInputs& inputs, int /*features*/) override {
+    if (prepared_) return Status::Ok();
+    const Dataset& dataset = *inputs.dataset;
+    for (int list = 0; list < 2; ++list) {
+      const std::vector<Entry>& entries = list == 0 ? dataset.database : dataset.queries;
+      const std::vector<DynamicObjects>& dynamic =
+          list == 0 ? inputs.database_dynamic : inputs.query_dynamic;
+      auto& images = list == 0 ? database_images_ : query_images_;
+      auto& masks = list == 0 ? database_masks_ : query_masks_;
+      for (size_t i = 0; i < entries.size(); ++i) {
+        auto bytes = ReadBytes(dataset.Resolve(entries[i].image));
+        if (!bytes.ok()) return bytes.status();
+        images.push_back(std::move(bytes).value());
+        std::string png;
+        if (!dynamic[i].mask.empty()) {
+          std::vector<uchar> encoded;
+          if (!cv::imencode(".png", dynamic[i].mask, encoded)) {
+            return Status::Internal("cannot encode the mask of " + entries[i].id);
+          }
+          png.assign(encoded.begin(), encoded.end());
+        }
+        masks.push_back(std::move(png));
+      }
+    }
+    prepared_ = true;
+    return Status::Ok();
+  }
+
+  Result<MethodRun> Run(const EvalInputs& inputs, const DatabaseConfig& config, bool filtering,
+                        size_t top_k) override {
+    const Dataset& dataset = *inputs.dataset;
+    const std::string map =
+        "placedb-eval-" + std::to_string(::getpid()) + "-" + std::to_string(counter_++);
+    {
+      grpc::ClientContext context;
+      v1::CreateMapRequest request;
+      request.set_name(map);
+      *request.mutable_config() = ToProto(config, filtering);
+      v1::MapDescription description;
+      PLACEDB_RETURN_IF_ERROR(
+          FromGrpc(stub_->CreateMap(&context, request, &description), "CreateMap " + map));
+    }
+    Status result = Fill(inputs, map, filtering);
+    MethodRun run;
+    if (result.ok()) {
+      grpc::ClientContext context;
+      v1::GetMapRequest request;
+      request.set_name(map);
+      v1::MapDescription description;
+      result = FromGrpc(stub_->GetMap(&context, request, &description), "GetMap " + map);
+      const v1::MapStats& stats = description.stats();
+      run.database.places = stats.places();
+      run.database.invalid = stats.invalid_rejected();
+      run.database.descriptors_kept = stats.descriptors_kept();
+      run.database.descriptors_dropped = stats.descriptors_dropped();
+      run.database.disk_bytes = stats.bytes_on_disk();
+      run.database.memory_bytes = stats.bytes_in_memory();
+      run.database.build_seconds = build_seconds_;
+    }
+    const bool verification = config.verification.mode != VerificationMode::kDisabled;
+    for (size_t q = 0; result.ok() && q < dataset.queries.size(); ++q) {
+      grpc::ClientContext context;
+      v1::QueryRequest request;
+      request.set_map(map);
+      *request.mutable_observation() = Observe(inputs, q, true, filtering);
+      request.mutable_options()->set_top_k(uint32_t(top_k));
+      v1::QueryResponse response;
+      Stopwatch watch;
+      result =
+          FromGrpc(stub_->Query(&context, request, &response), "Query " + dataset.queries[q].id);
+      const double ms = watch.ElapsedMs();
+      if (!result.ok()) break;
+      std::vector<RankedMatch> ranked;
+      for (const v1::Match& match : response.matches()) {
+        ranked.push_back(
+            {int(match.metadata().sequence()), match.score(), match.verified(), match.inliers()});
+      }
+      QueryOutcome outcome = ScoreQuery(ranked, inputs.truth[q], verification);
+      outcome.valid = response.valid();
+      outcome.latency_ms = ms;
+      outcome.match_ms = response.timings().search_ms() + response.timings().verify_ms();
+      outcome.kept = response.counts().kept();
+      outcome.dropped = response.counts().dynamic();
+      run.queries.push_back(outcome);
+    }
+    {
+      grpc::ClientContext context;
+      v1::DeleteMapRequest request;
+      request.set_name(map);
+      v1::DeleteMapResponse response;
+      const Status deleted =
+          FromGrpc(stub_->DeleteMap(&context, request, &response), "DeleteMap " + map);
+      if (result.ok()) result = deleted;
+    }
+    if (!result.ok()) return result;
+    return run;
+  }
+
+ private:
+  v1::Observation Observe(const EvalInputs& inputs, size_t i, bool query, bool filtering) const {
+    const Entry& entry = query ? inputs.dataset->queries[i] : inputs.dataset->database[i];
+    v1::Observation o;
+    o.set_agent_id(entry.agent);
+    o.set_sequence(uint64_t(i));  // the database index: how matches map back
+    o.set_timestamp_ns(entry.timestamp_ns);
+    o.mutable_encoded_image()->set_data(query ? query_images_[i] : database_images_[i]);
+    if (filtering) {
+      const DynamicObjects& dynamic = query ? inputs.query_dynamic[i] : inputs.database_dynamic[i];
+      for (const DynamicBox& box : dynamic.boxes) {
+        v1::Box* b = o.add_boxes();
+        b->set_class_id(box.class_id);
+        b->set_confidence(box.confidence);
+        b->mutable_rect()->set_x(box.rect.x);
+        b->mutable_rect()->set_y(box.rect.y);
+        b->mutable_rect()->set_width(box.rect.width);
+        b->mutable_rect()->set_height(box.rect.height);
+      }
+      const std::string& mask = query ? query_masks_[i] : database_masks_[i];
+      if (!mask.empty()) o.set_dynamic_mask_png(mask);
+    }
+    return o;
+  }
+
+  // One Ingest stream with every database entry; a writer thread keeps the server fed while
+  // this thread reads the answers (the server applies backpressure).
+  Status Fill(const EvalInputs& inputs, const std::string& map, bool filtering) {
+    const Dataset& dataset = *inputs.dataset;
+    Stopwatch watch;
+    grpc::ClientContext context;
+    auto stream = stub_->Ingest(&context);
+    std::atomic<bool> write_failed{false};
+    std::thread writer([&] {
+      v1::IngestRequest header;
+      header.mutable_header()->set_map(map);
+      if (!stream->Write(header)) {
+        write_failed = true;
+        return;
+      }
+      for (size_t i = 0; i < dataset.database.size(); ++i) {
+        v1::IngestRequest request;
+        *request.mutable_observation() = Observe(inputs, i, false, filtering);
+        if (!stream->Write(request)) {
+          write_failed = true;
+          break;
+        }
+      }
+      stream->WritesDone();
+    });
+    v1::IngestResponse response;
+    Status first_error;
+    size_t answered = 0;
+    while (stream->Read(&response)) {
+      ++answered;
+      if (response.has_error() && first_error.ok()) {
+        first_error = Status(StatusCode::kInvalidArgument,
+                             "ingesting " + dataset.database[response.index()].id + ": " +
+                                 response.error().message());
+      }
+    }
+    writer.join();
+    const grpc::Status finished = stream->Finish();
+    build_seconds_ = watch.ElapsedMs() / 1000.0;
+    PLACEDB_RETURN_IF_ERROR(FromGrpc(finished, "Ingest into " + map));
+    PLACEDB_RETURN_IF_ERROR(first_error);
+    if (write_failed || answered != dataset.database.size()) {
+      return Status::Internal("Ingest into " + map + ": " + std::to_string(answered) + " of " +
+                              std::to_string(dataset.database.size()) + " answered");
+    }
+    return Status::Ok();
+  }
+
+  const std::string address_;
+  std::shared_ptr<grpc::Channel> channel_;
+  std::unique_ptr<v1::PlaceDb::Stub> stub_;
+  bool prepared_ = false;
+  std::vector<std::string> database_images_, query_images_;
+  std::vector<std::string> database_masks_, query_masks_;
+  int counter_ = 0;
+  double build_seconds_ = 0;
+};
+
+}  // namespace
+
+Result<std::unique_ptr<Backend>> MakeServerBackend(
+    const std::string& address, std::shared_ptr<const Vocabulary> local_vocabulary,
+    const std::function<void(const std::string&)>& log) {
+  grpc::ChannelArguments arguments;
+  arguments.SetMaxReceiveMessageSize(64 << 20);
+  arguments.SetMaxSendMessageSize(64 << 20);
+  auto channel = grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), arguments);
+  auto stub = v1::PlaceDb::NewStub(channel);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  context.set_wait_for_ready(true);
+  v1::GetServerInfoRequest request;
+  v1::ServerInfo info;
+  const grpc::Status status = stub->GetServerInfo(&context, request, &info);
+  if (!status.ok()) {
+    return Status::FailedPrecondition("placedb-server at " + address +
+                                      " does not answer: " + status.error_message());
+  }
+  if (local_vocabulary && log) {
+    for (const v1::VocabularyInfo& vocabulary : info.vocabularies()) {
+      if (vocabulary.name() == "default" &&
+          vocabulary.checksum() != local_vocabulary->checksum_hex()) {
+        log("warning: the server's default vocabulary (" + vocabulary.checksum() +
+            ") is not the local one (" + local_vocabulary->checksum_hex() +
+            "): figures will not compare with in-process runs");
+      }
+    }
+  }
+  return std::unique_ptr<Backend>(new ServerBackend(address, std::move(channel)));
+}
+
+}  // namespace placedb::eval

@@ -1,0 +1,645 @@
+#include "eval/runner.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cctype>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <mutex>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <optional>
+#include <thread>
+
+#include "core/codec.h"
+#include "core/features.h"
+#include "core/timing.h"
+
+namespace fs = std::filesystem;
+using json = nlohmann::json;
+
+namespace placedb::eval {
+
+namespace {
+
+// Runs f(i) for i in [0, n) on `threads` threads (the caller's included).
+template <typename F>
+void ParallelFor(size_t n, int threads, F&& f) {
+  std::atomic<size_t> next{0};
+  auto worker = [&] {
+    for (size_t i; (i = next.fetch_add(1)) < n;) f(i);
+  };
+  std::vector<std::thread> pool;
+  for (int t = 1; t < std::max(1, threads) && size_t(t) < n; ++t) pool.emplace_back(worker);
+  worker();
+  for (std::thread& thread : pool) thread.join();
+}
+
+std::string Lower(std::string text) {
+  std::transform(text.begin(), text.end(), text.begin(),
+                 [](unsigned char c) { return char(std::tolower(c)); });
+  return text;
+}
+
+void Log(const RunOptions& options, const std::string& line) {
+  if (options.log) options.log(line);
+}
+
+// Oracle boxes of an entry that has a mask but no boxes: the mask's connected components
+// (class "person": any dynamic class would do, the filter only asks whether it is dynamic).
+std::vector<DynamicBox> BoxesFromMask(const cv::Mat& mask) {
+  std::vector<DynamicBox> boxes;
+  cv::Mat components, stats, centroids;
+  const int count = cv::connectedComponentsWithStats(mask, components, stats, centroids, 8);
+  for (int c = 1; c < count; ++c) {
+    if (stats.at<int>(c, cv::CC_STAT_AREA) < 20) continue;
+    DynamicBox box;
+    box.class_id = 0;
+    box.rect = cv::Rect2f(
+        float(stats.at<int>(c, cv::CC_STAT_LEFT)), float(stats.at<int>(c, cv::CC_STAT_TOP)),
+        float(stats.at<int>(c, cv::CC_STAT_WIDTH)), float(stats.at<int>(c, cv::CC_STAT_HEIGHT)));
+    boxes.push_back(box);
+  }
+  return boxes;
+}
+
+// ---- Detection cache ----------------------------------------------------------------------
+
+struct Detection {
+  std::vector<DynamicBox> boxes;
+  double ms = 0;
+};
+
+std::string DetectorKey(const DetectorConfig& config) {
+  return std::string(DetectorBackendName(config.backend)) + "|" +
+         fs::path(config.model_path).filename().string() + "|" + std::to_string(config.input_size) +
+         "|" + PreprocessingName(config.preprocessing) + "|" +
+         std::to_string(config.nms_iou_threshold);
+}
+
+// The cached detections, when they were made by the same detector at a threshold at or below
+// `config.confidence_threshold`; that threshold is then lowered to the cache's so new detections
+// join it consistently.
+std::map<std::string, Detection> ReadDetectionCache(const std::string& path,
+                                                    DetectorConfig* config) {
+  std::map<std::string, Detection> cache;
+  std::ifstream in(path);
+  if (!in) return cache;
+  try {
+    json j = json::parse(in);
+    if (j.value("detector", std::string()) != DetectorKey(*config)) return cache;
+    const float cached = j.value("min_confidence", 1.0f);
+    if (cached > config->confidence_threshold + 1e-6f) return cache;
+    config->confidence_threshold = cached;
+    for (const auto& [image, value] : j["images"].items()) {
+      Detection detection;
+      detection.ms = value.value("ms", 0.0);
+      for (const json& b : value["boxes"]) {
+        DynamicBox box;
+        box.class_id = b[0].get<int>();
+        box.confidence = b[1].get<float>();
+        box.rect =
+            cv::Rect2f(b[2].get<float>(), b[3].get<float>(), b[4].get<float>(), b[5].get<float>());
+        detection.boxes.push_back(box);
+      }
+      cache[image] = std::move(detection);
+    }
+  } catch (const json::exception&) {
+    cache.clear();  // a damaged cache is rebuilt
+  }
+  return cache;
+}
+
+Status WriteDetectionCache(const std::string& path, const DetectorConfig& config,
+                           const std::map<std::string, Detection>& cache) {
+  json j;
+  j["detector"] = DetectorKey(config);
+  j["min_confidence"] = config.confidence_threshold;
+  j["images"] = json::object();
+  for (const auto& [image, detection] : cache) {
+    json boxes = json::array();
+    for (const DynamicBox& b : detection.boxes) {
+      boxes.push_back({b.class_id, b.confidence, b.rect.x, b.rect.y, b.rect.width, b.rect.height});
+    }
+    j["images"][image] = {{"ms", detection.ms}, {"boxes", boxes}};
+  }
+  const std::string temp = path + ".tmp";
+  {
+    std::ofstream out(temp, std::ios::trunc);
+    if (!out) return Status::IoError("cannot write " + temp);
+    out << j.dump() << "\n";
+    if (!out.flush()) return Status::IoError("cannot write " + temp);
+  }
+  std::error_code ec;
+  fs::rename(temp, path, ec);
+  if (ec) return Status::IoError("cannot rename " + temp + ": " + ec.message());
+  return Status::Ok();
+}
+
+// Detections of every entry (database then queries), at the lowest requested confidence.
+Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inputs) {
+  DetectorConfig config = options.detector;
+  config.confidence_threshold =
+      *std::min_element(options.confidences.begin(), options.confidences.end());
+  if (config.max_concurrent_calls == 0) config.max_concurrent_calls = std::max(1, options.threads);
+  std::map<std::string, Detection> cache;
+  if (!options.detections_cache.empty()) {
+    cache = ReadDetectionCache(options.detections_cache, &config);
+  }
+
+  std::vector<const Entry*> entries;
+  for (const Entry& e : dataset.database) entries.push_back(&e);
+  for (const Entry& e : dataset.queries) entries.push_back(&e);
+  std::vector<std::string> missing;
+  for (const Entry* e : entries) {
+    const std::string image = dataset.Resolve(e->image);
+    if (!cache.count(image)) missing.push_back(image);
+  }
+  std::sort(missing.begin(), missing.end());
+  missing.erase(std::unique(missing.begin(), missing.end()), missing.end());
+  if (!missing.empty()) {
+    auto detector = CreateDetector(config);
+    if (!detector.ok()) return detector.status().WithContext("creating the detector");
+    Log(options, "detecting dynamic objects in " + std::to_string(missing.size()) +
+                     " images with " + (*detector)->Describe());
+    std::vector<Detection> found(missing.size());
+    std::vector<Status> errors(missing.size());
+    ParallelFor(missing.size(), options.threads, [&](size_t i) {
+      cv::Mat bgr = cv::imread(missing[i], cv::IMREAD_COLOR);
+      if (bgr.empty()) {
+        errors[i] = Status::IoError("cannot read " + missing[i]);
+        return;
+      }
+      Stopwatch watch;
+      auto boxes = (*detector)->Detect(bgr);
+      found[i].ms = watch.ElapsedMs();
+      if (!boxes.ok()) {
+        errors[i] = boxes.status().WithContext(missing[i]);
+        return;
+      }
+      found[i].boxes = std::move(boxes).value();
+    });
+    for (size_t i = 0; i < missing.size(); ++i) {
+      PLACEDB_RETURN_IF_ERROR(errors[i]);
+      cache[missing[i]] = std::move(found[i]);
+    }
+    if (!options.detections_cache.empty()) {
+      PLACEDB_RETURN_IF_ERROR(WriteDetectionCache(options.detections_cache, config, cache));
+    }
+  }
+  double total_ms = 0;
+  for (size_t i = 0; i < entries.size(); ++i) {
+    const Detection& detection = cache.at(dataset.Resolve(entries[i]->image));
+    total_ms += detection.ms;
+    DynamicObjects& out = i < dataset.database.size()
+                              ? inputs->database_dynamic[i]
+                              : inputs->query_dynamic[i - dataset.database.size()];
+    out.boxes = detection.boxes;
+  }
+  inputs->detect_mean_ms = entries.empty() ? 0 : total_ms / double(entries.size());
+  return Status::Ok();
+}
+
+// ---- In-process backend -------------------------------------------------------------------
+
+class InProcessBackend final : public Backend {
+ public:
+  InProcessBackend(std::shared_ptr<const Vocabulary> vocabulary, int threads)
+      : vocabulary_(std::move(vocabulary)), threads_(std::max(1, threads)) {}
+
+  std::string Name() const override { return "in-process"; }
+  double ExtractMeanMs() const override { return extract_mean_ms_; }
+
+  Status Prepare(const EvalInputs& inputs, int features) override {
+    const Dataset& dataset = *inputs.dataset;
+    OrbConfig orb;
+    orb.max_features = features;
+    const size_t n = dataset.database.size() + dataset.queries.size();
+    std::vector<FeatureSet> extracted(n);
+    std::vector<Status> errors(n);
+    std::vector<double> ms(n, 0.0);
+    ParallelFor(n, threads_, [&](size_t i) {
+      const Entry& entry = i < dataset.database.size()
+                               ? dataset.database[i]
+                               : dataset.queries[i - dataset.database.size()];
+      const std::string path = dataset.Resolve(entry.image);
+      // Grayscale, decoded as the server decodes a frame that needs no detection.
+      cv::Mat gray = cv::imread(path, cv::IMREAD_GRAYSCALE);
+      if (gray.empty()) {
+        errors[i] = Status::IoError("cannot read " + path);
+        return;
+      }
+      Stopwatch watch;
+      auto result = ExtractOrb(gray, orb);
+      ms[i] = watch.ElapsedMs();
+      if (!result.ok()) {
+        errors[i] = result.status().WithContext(path);
+        return;
+      }
+      extracted[i] = std::move(result).value();
+    });
+    for (const Status& error : errors) PLACEDB_RETURN_IF_ERROR(error);
+    database_features_.assign(
+        std::make_move_iterator(extracted.begin()),
+        std::make_move_iterator(extracted.begin() + std::ptrdiff_t(dataset.database.size())));
+    query_features_.assign(
+        std::make_move_iterator(extracted.begin() + std::ptrdiff_t(dataset.database.size())),
+        std::make_move_iterator(extracted.end()));
+    double total = 0;
+    for (double value : ms) total += value;
+    extract_mean_ms_ = n ? total / double(n) : 0;
+    return Status::Ok();
+  }
+
+  Result<MethodRun> Run(const EvalInputs& inputs, const DatabaseConfig& config, bool filtering,
+                        size_t top_k) override {
+    const Dataset& dataset = *inputs.dataset;
+    auto created = PlaceDatabase::Create(vocabulary_, config);
+    if (!created.ok()) return created.status();
+    PlaceDatabase& db = **created;
+    MethodRun run;
+    Stopwatch build;
+
+    const size_t n = dataset.database.size();
+    std::vector<std::optional<ProcessedFrame>> processed(n);
+    std::vector<Status> errors(n);
+    ParallelFor(n, threads_, [&](size_t i) {
+      auto frame = db.Process(Observe(inputs, i, false, filtering));
+      if (!frame.ok()) {
+        errors[i] = frame.status().WithContext("database entry " + dataset.database[i].id);
+        return;
+      }
+      processed[i] = std::move(frame).value();
+    });
+    for (size_t i = 0; i < n; ++i) {
+      PLACEDB_RETURN_IF_ERROR(errors[i]);
+      const ProcessedFrame& frame = *processed[i];
+      if (!frame.valid) {
+        db.CountInvalid();
+        continue;
+      }
+      PlaceMetadata metadata = Metadata(dataset.database[i], i);
+      auto id = db.Insert(frame, metadata);
+      if (!id.ok()) return id.status();
+      // What a durable map writes for this place (map_store: three values under 4-byte keys).
+      PlaceRecord record;
+      record.id = *id;
+      record.metadata = metadata;
+      record.counts = frame.counts;
+      record.boxes_used = frame.boxes_used;
+      run.database.encoded_bytes += EncodePlaceRecord(record).size() + EncodeBow(frame.bow).size() +
+                                    EncodeFeatures(frame.static_features, frame.direct).size() +
+                                    3 * PlaceKey(*id).size();
+      processed[i].reset();
+    }
+    run.database.build_seconds = build.ElapsedMs() / 1000.0;
+    const DatabaseStats stats = db.Stats();
+    run.database.places = stats.places;
+    run.database.invalid = stats.invalid_rejected;
+    run.database.descriptors_kept = stats.descriptors_kept;
+    run.database.descriptors_dropped = stats.descriptors_dropped;
+    run.database.memory_bytes = stats.index_bytes + stats.record_bytes + stats.payload_bytes;
+
+    QueryOptions query_options;
+    query_options.top_k = top_k;
+    const bool verification = config.verification.mode != VerificationMode::kDisabled;
+    for (size_t q = 0; q < dataset.queries.size(); ++q) {
+      auto result = db.Query(Observe(inputs, q, true, filtering), query_options);
+      if (!result.ok()) return result.status().WithContext("query " + dataset.queries[q].id);
+      std::vector<RankedMatch> ranked;
+      for (const Match& match : result->matches) {
+        ranked.push_back(
+            {int(match.metadata.sequence), match.score, match.verified, match.inliers});
+      }
+      QueryOutcome outcome = ScoreQuery(ranked, inputs.truth[q], verification);
+      outcome.valid = result->valid;
+      outcome.latency_ms = result->timings.total_ms;
+      outcome.match_ms = result->timings.search_ms + result->timings.verify_ms;
+      outcome.kept = result->counts.static_;
+      outcome.dropped = result->counts.dynamic;
+      run.queries.push_back(outcome);
+    }
+    return run;
+  }
+
+ private:
+  static PlaceMetadata Metadata(const Entry& entry, size_t index) {
+    PlaceMetadata metadata;
+    metadata.agent_id = entry.agent;
+    metadata.sequence = uint64_t(index);  // the database index: how matches map back
+    metadata.timestamp_ns = entry.timestamp_ns;
+    return metadata;
+  }
+
+  Observation Observe(const EvalInputs& inputs, size_t i, bool query, bool filtering) const {
+    Observation observation;
+    observation.features = query ? query_features_[i] : database_features_[i];
+    if (filtering) {
+      observation.dynamic = query ? inputs.query_dynamic[i] : inputs.database_dynamic[i];
+    }
+    const Entry& entry = query ? inputs.dataset->queries[i] : inputs.dataset->database[i];
+    observation.metadata = Metadata(entry, i);
+    return observation;
+  }
+
+  std::shared_ptr<const Vocabulary> vocabulary_;
+  int threads_;
+  std::vector<FeatureSet> database_features_;
+  std::vector<FeatureSet> query_features_;
+  double extract_mean_ms_ = 0;
+};
+
+double Percentile(std::vector<double> values, double p) {
+  if (values.empty()) return 0;
+  std::sort(values.begin(), values.end());
+  // Nearest rank.
+  const size_t rank = size_t(std::ceil(p / 100.0 * double(values.size())));
+  return values[std::min(values.size() - 1, rank == 0 ? 0 : rank - 1)];
+}
+
+std::string DynamicSourceName(const RunOptions& options) {
+  std::string boxes;
+  switch (options.boxes) {
+    case BoxInput::kNone:
+      break;
+    case BoxInput::kOracle:
+      boxes = "oracle boxes";
+      break;
+    case BoxInput::kDetector:
+      boxes = "detector boxes (" + fs::path(options.detector.model_path).filename().string() +
+              ", " + PreprocessingName(options.detector.preprocessing) + ")";
+      break;
+  }
+  std::string source = boxes;
+  if (options.masks == MaskInput::kOracle)
+    source += std::string(source.empty() ? "" : " + ") + "oracle masks";
+  if (source.empty()) source = "no dynamic input";
+  source += std::string(", filter ") + FilterMethodName(options.filter);
+  if (options.filter == FilterMethod::kExactCoverage) {
+    char threshold[32];
+    std::snprintf(threshold, sizeof(threshold), " %g%%", options.sensitivity * 100.0);
+    source += threshold;
+  }
+  return source;
+}
+
+}  // namespace
+
+std::string GeomName(int geom) {
+  return geom < 0 ? "NoGeom" : "Geo-" + std::to_string(geom);
+}
+
+Result<int> ParseGeom(const std::string& text) {
+  std::string t = Lower(text);
+  if (t == "none" || t == "nogeom" || t == "disabled" || t == "off") return kNoGeom;
+  if (t == "exhaustive") return 6;
+  if (t.rfind("geo-", 0) == 0) t = t.substr(4);
+  if (!t.empty() && t.size() <= 2 && std::all_of(t.begin(), t.end(), ::isdigit)) {
+    return std::stoi(t);
+  }
+  return Status::InvalidArgument("geometric setting \"" + text +
+                                 "\": use none, a level 0-99 (Geo-l) or exhaustive");
+}
+
+Result<BoxInput> ParseBoxInput(const std::string& text) {
+  const std::string t = Lower(text);
+  if (t == "none") return BoxInput::kNone;
+  if (t == "oracle") return BoxInput::kOracle;
+  if (t == "detector") return BoxInput::kDetector;
+  return Status::InvalidArgument("boxes \"" + text + "\": use oracle, detector or none");
+}
+
+Result<MaskInput> ParseMaskInput(const std::string& text) {
+  const std::string t = Lower(text);
+  if (t == "none") return MaskInput::kNone;
+  if (t == "oracle") return MaskInput::kOracle;
+  return Status::InvalidArgument("masks \"" + text + "\": use oracle or none");
+}
+
+Status ValidateRunOptions(const RunOptions& options) {
+  if (options.features.empty()) return Status::InvalidArgument("features: at least one budget");
+  for (int f : options.features) {
+    if (f < 1 || f > 100000) {
+      return Status::InvalidArgument("features: " + std::to_string(f) + " is not in [1, 100000]");
+    }
+  }
+  if (options.geoms.empty()) return Status::InvalidArgument("geom: at least one setting");
+  for (int g : options.geoms) {
+    if (g < kNoGeom || g > 99) {
+      return Status::InvalidArgument("geom: " + std::to_string(g) + " is not a setting");
+    }
+  }
+  if (options.confidences.empty()) return Status::InvalidArgument("confidence: at least one");
+  for (float c : options.confidences) {
+    if (!(c > 0 && c <= 1)) {
+      return Status::InvalidArgument("confidence: " + std::to_string(c) + " is not in (0, 1]");
+    }
+  }
+  if (!(options.sensitivity >= 0 && options.sensitivity < 1)) {
+    return Status::InvalidArgument("sensitivity must be in [0, 1)");
+  }
+  if (options.top_k < 1) return Status::InvalidArgument("top_k must be at least 1");
+  if (options.boxes == BoxInput::kDetector && options.detector.model_path.empty()) {
+    return Status::InvalidArgument("detector boxes need a model (--model)");
+  }
+  return Status::Ok();
+}
+
+Result<EvalInputs> PrepareInputs(const Dataset& dataset, const RunOptions& options) {
+  EvalInputs inputs;
+  inputs.dataset = &dataset;
+  inputs.truth = GroundTruthIndices(dataset);
+  inputs.database_dynamic.resize(dataset.database.size());
+  inputs.query_dynamic.resize(dataset.queries.size());
+  const bool need_masks = options.masks == MaskInput::kOracle;
+  for (int list = 0; list < 2; ++list) {
+    const std::vector<Entry>& entries = list == 0 ? dataset.database : dataset.queries;
+    std::vector<DynamicObjects>& out = list == 0 ? inputs.database_dynamic : inputs.query_dynamic;
+    for (size_t i = 0; i < entries.size(); ++i) {
+      const Entry& entry = entries[i];
+      cv::Mat mask;
+      if (need_masks || (options.boxes == BoxInput::kOracle && !entry.boxes)) {
+        auto loaded = LoadEntryMask(dataset, entry);
+        if (!loaded.ok()) return loaded.status();
+        mask = std::move(loaded).value();
+      }
+      if (need_masks) out[i].mask = mask;
+      if (options.boxes == BoxInput::kOracle) {
+        if (entry.boxes) {
+          out[i].boxes = *entry.boxes;
+        } else if (!mask.empty()) {
+          out[i].boxes = BoxesFromMask(mask);
+        }
+      }
+      if (list == 1) {
+        cv::Size size;
+        if (!entry.coverage && entry.mask.empty() && entry.boxes && !entry.boxes->empty()) {
+          cv::Mat image = cv::imread(dataset.Resolve(entry.image), cv::IMREAD_GRAYSCALE);
+          size = image.size();
+        }
+        inputs.query_coverage.push_back(EntryCoverage(dataset, entry, size));
+      }
+    }
+  }
+  if (options.boxes == BoxInput::kDetector) {
+    PLACEDB_RETURN_IF_ERROR(Detect(dataset, options, &inputs));
+  }
+  return inputs;
+}
+
+DatabaseConfig MakeDatabaseConfig(const RunOptions& options, int features, int geom,
+                                  float confidence, bool filtering) {
+  DatabaseConfig config;
+  config.orb.max_features = features;
+  config.filter.method = filtering ? options.filter : FilterMethod::kNone;
+  config.filter.sensitivity_threshold = options.sensitivity;
+  config.filter.place_threshold = options.place_threshold;
+  config.min_box_confidence = filtering && options.boxes == BoxInput::kDetector ? confidence : 0.0f;
+  if (geom == kNoGeom) {
+    config.verification.mode = VerificationMode::kDisabled;
+  } else {
+    config.verification.mode = VerificationMode::kDirectIndex;
+    config.verification.levels_up = geom;
+  }
+  config.verification.min_inliers = options.min_inliers;
+  config.verification.candidates = 1;  // DBoW2's loop detector verifies its best candidate
+  return config;
+}
+
+QueryOutcome ScoreQuery(const std::vector<RankedMatch>& matches, const std::vector<int>& truth,
+                        bool verification) {
+  QueryOutcome outcome;
+  outcome.valid = true;
+  if (matches.empty()) return outcome;
+  outcome.top1 = matches[0].database_index;
+  outcome.score = matches[0].score;
+  outcome.verified = matches[0].verified;
+  outcome.inliers = matches[0].inliers;
+  for (size_t r = 0; r < matches.size(); ++r) {
+    if (std::binary_search(truth.begin(), truth.end(), matches[r].database_index)) {
+      outcome.truth_rank = int(r) + 1;
+      break;
+    }
+  }
+  outcome.correct = outcome.truth_rank == 1 && (!verification || outcome.verified);
+  return outcome;
+}
+
+std::unique_ptr<Backend> MakeInProcessBackend(std::shared_ptr<const Vocabulary> vocabulary,
+                                              int threads) {
+  return std::make_unique<InProcessBackend>(std::move(vocabulary), threads);
+}
+
+Result<RunResults> RunEvaluation(const Dataset& dataset, const RunOptions& options,
+                                 Backend& backend) {
+  PLACEDB_RETURN_IF_ERROR(ValidateRunOptions(options));
+  auto inputs = PrepareInputs(dataset, options);
+  if (!inputs.ok()) return inputs.status();
+  RunResults results;
+  results.dataset_name = dataset.name;
+  results.backend = backend.Name();
+  results.dynamic_source = DynamicSourceName(options);
+  results.options = options;
+  results.options.log = nullptr;
+  results.database_size = dataset.database.size();
+  results.query_coverage = inputs->query_coverage;
+  for (const auto& truth : inputs->truth) results.query_has_truth.push_back(!truth.empty());
+  results.detect_mean_ms = inputs->detect_mean_ms;
+
+  // Detector confidences only matter for detector boxes.
+  std::vector<float> confidences = options.confidences;
+  if (options.boxes != BoxInput::kDetector) confidences = {0.0f};
+  for (int features : options.features) {
+    Stopwatch prepare;
+    PLACEDB_RETURN_IF_ERROR(backend.Prepare(*inputs, features));
+    results.extract_mean_ms[features] = backend.ExtractMeanMs();
+    Log(options, "ORB " + std::to_string(features) + ": inputs ready in " +
+                     std::to_string(int(prepare.ElapsedMs())) + " ms");
+    for (int geom : options.geoms) {
+      for (int pass = 0; pass <= int(confidences.size()); ++pass) {
+        const bool filtering = pass > 0;
+        const float confidence = filtering ? confidences[size_t(pass - 1)] : 0.0f;
+        const DatabaseConfig config =
+            MakeDatabaseConfig(options, features, geom, confidence, filtering);
+        auto run = backend.Run(*inputs, config, filtering, options.top_k);
+        if (!run.ok()) {
+          return run.status().WithContext("ORB " + std::to_string(features) + " " + GeomName(geom) +
+                                          (filtering ? " BoBW+DO" : " BoBW"));
+        }
+        run->features = features;
+        run->geom = geom;
+        run->confidence = confidence;
+        run->method = filtering ? kBoBWDO : kBoBW;
+        results.runs.push_back(std::move(run).value());
+        const Summary all = Summarize(results, results.runs.back(), {"All", -1});
+        char line[256];
+        std::snprintf(line, sizeof(line),
+                      "ORB %d %-6s %-7s%s: top-1 %5.1f %% (%d/%d), places %zu, %.2f MB, "
+                      "latency p50 %.2f ms",
+                      features, GeomName(geom).c_str(), filtering ? kBoBWDO : kBoBW,
+                      filtering && options.boxes == BoxInput::kDetector
+                          ? (" @" + std::to_string(confidence).substr(0, 4)).c_str()
+                          : "",
+                      all.accuracy, all.correct, all.queries, results.runs.back().database.places,
+                      double(std::max(results.runs.back().database.encoded_bytes,
+                                      results.runs.back().database.disk_bytes)) /
+                          1e6,
+                      all.latency_p50_ms);
+        Log(options, line);
+      }
+    }
+  }
+  return results;
+}
+
+std::vector<CoverageBin> PaperBins() {
+  return {{"All", -1}, {">10%", 0.10}, {">20%", 0.20}, {">30%", 0.30}};
+}
+
+Summary Summarize(const RunResults& results, const MethodRun& run, const CoverageBin& bin) {
+  Summary summary;
+  std::vector<double> latencies;
+  double match_total = 0;
+  int recall1 = 0, recall5 = 0, recall10 = 0;
+  for (size_t q = 0; q < run.queries.size(); ++q) {
+    const double coverage = q < results.query_coverage.size() ? results.query_coverage[q] : 0;
+    if (bin.above >= 0 && !(coverage > bin.above)) continue;
+    const QueryOutcome& outcome = run.queries[q];
+    latencies.push_back(outcome.latency_ms);
+    match_total += outcome.match_ms;
+    if (!outcome.valid) ++summary.invalid;
+    const bool has_truth = q < results.query_has_truth.size() && results.query_has_truth[q];
+    if (!has_truth) {
+      ++summary.no_truth;
+      const bool verification = run.geom != kNoGeom;
+      if (outcome.top1 >= 0 && (!verification || outcome.verified)) ++summary.no_truth_accepted;
+      continue;
+    }
+    ++summary.queries;
+    summary.correct += outcome.correct;
+    recall1 += outcome.truth_rank == 1;
+    recall5 += outcome.truth_rank >= 1 && outcome.truth_rank <= 5;
+    recall10 += outcome.truth_rank >= 1 && outcome.truth_rank <= 10;
+  }
+  if (summary.queries > 0) {
+    const double n = summary.queries;
+    summary.accuracy = 100.0 * summary.correct / n;
+    summary.recall_at_1 = 100.0 * recall1 / n;
+    summary.recall_at_5 = 100.0 * recall5 / n;
+    summary.recall_at_10 = 100.0 * recall10 / n;
+  }
+  if (!latencies.empty()) {
+    double total = 0;
+    for (double l : latencies) total += l;
+    summary.latency_mean_ms = total / double(latencies.size());
+    summary.match_mean_ms = match_total / double(latencies.size());
+    summary.latency_p50_ms = Percentile(latencies, 50);
+    summary.latency_p90_ms = Percentile(latencies, 90);
+  }
+  return summary;
+}
+
+}  // namespace placedb::eval

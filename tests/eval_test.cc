@@ -1,0 +1,528 @@
+// The evaluation harness (eval/) on small subsets with known outcomes: the dataset format round
+// trip, the adapters' ground truth, the revisit builder's reproducibility and coverage, the
+// reports' shape, queries without ground truth, and the live-server backend agreeing with the
+// in-process one.
+#include <gtest/gtest.h>
+#include <spdlog/spdlog.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <opencv2/imgcodecs.hpp>
+#include <set>
+#include <sstream>
+
+#include "eval/adapters.h"
+#include "eval/dataset.h"
+#include "eval/remote.h"
+#include "eval/report.h"
+#include "eval/revisits.h"
+#include "eval/runner.h"
+#include "server/server.h"
+#include "tests/test_support.h"
+
+namespace fs = std::filesystem;
+
+namespace placedb::eval {
+namespace {
+
+std::string CamVidDir() {
+  return testing::SharedDir() + "/data/camvid";
+}
+std::string RtabmapDir() {
+  return testing::SharedDir() + "/data/rtabmap-loop";
+}
+
+std::string ReadFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::ostringstream bytes;
+  bytes << in.rdbuf();
+  return bytes.str();
+}
+
+std::vector<std::string> Lines(const std::string& text) {
+  std::vector<std::string> lines;
+  std::istringstream in(text);
+  for (std::string line; std::getline(in, line);) lines.push_back(line);
+  return lines;
+}
+
+RunOptions SmallRun(std::vector<int> features, std::vector<int> geoms) {
+  RunOptions options;
+  options.features = std::move(features);
+  options.geoms = std::move(geoms);
+  options.threads = 2;
+  return options;
+}
+
+RunResults Evaluate(const Dataset& dataset, const RunOptions& options) {
+  auto backend = MakeInProcessBackend(testing::DefaultVocabulary(), options.threads);
+  auto results = RunEvaluation(dataset, options, *backend);
+  EXPECT_TRUE(results.ok()) << results.status().ToString();
+  return results.ok() ? std::move(results).value() : RunResults{};
+}
+
+const MethodRun* Find(const RunResults& results, int features, int geom,
+                      const std::string& method) {
+  for (const MethodRun& run : results.runs) {
+    if (run.features == features && run.geom == geom && run.method == method) return &run;
+  }
+  return nullptr;
+}
+
+class EvalTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+    ASSERT_TRUE(testing::DefaultVocabulary());
+  }
+};
+
+// ---- Dataset format -------------------------------------------------------------------------
+
+TEST_F(EvalTest, DatasetRoundTripsThroughJsonAndCsv) {
+  Dataset dataset;
+  dataset.name = "tiny";
+  dataset.description = "two database frames, two queries";
+  dataset.directory = testing::MakeTempDir("placedb-eval-json");
+  for (int frame : {1, 2}) {
+    Entry entry;
+    entry.id = "db," + std::to_string(frame);  // a comma: CSV quoting
+    entry.image = RtabmapDir() + "/" + std::to_string(frame) + ".jpg";
+    entry.agent = "robot";
+    entry.sequence = frame;
+    entry.timestamp_ns = frame * 1000;
+    entry.boxes = std::vector<DynamicBox>{{0, 0.5f, cv::Rect2f(1, 2, 30, 40)}};
+    dataset.database.push_back(entry);
+  }
+  Entry query;
+  query.id = "q1";
+  query.image = RtabmapDir() + "/41.jpg";
+  query.coverage = 0.25;
+  query.ground_truth = {"db,1"};
+  dataset.queries.push_back(query);
+  query.id = "q2";  // no ground truth, no boxes known
+  query.coverage.reset();
+  query.ground_truth.clear();
+  dataset.queries.push_back(query);
+
+  ASSERT_TRUE(SaveDataset(dataset).ok());
+  auto loaded = LoadDataset(dataset.directory);
+  ASSERT_TRUE(loaded.ok()) << loaded.status().ToString();
+  Dataset csv = dataset;
+  csv.directory = testing::MakeTempDir("placedb-eval-csv");
+  ASSERT_TRUE(SaveDatasetCsv(csv).ok());
+  auto loaded_csv = LoadDataset(csv.directory);
+  ASSERT_TRUE(loaded_csv.ok()) << loaded_csv.status().ToString();
+  for (const Dataset* d : {&*loaded, &*loaded_csv}) {
+    ASSERT_EQ(d->database.size(), 2u);
+    ASSERT_EQ(d->queries.size(), 2u);
+    EXPECT_EQ(d->database[1].id, "db,2");
+    EXPECT_EQ(d->database[1].sequence, 2);
+    EXPECT_EQ(d->database[1].timestamp_ns, 2000);
+    ASSERT_TRUE(d->database[0].boxes.has_value());
+    ASSERT_EQ(d->database[0].boxes->size(), 1u);
+    EXPECT_EQ((*d->database[0].boxes)[0].rect, cv::Rect2f(1, 2, 30, 40));
+    EXPECT_FLOAT_EQ((*d->database[0].boxes)[0].confidence, 0.5f);
+    EXPECT_EQ(d->queries[0].ground_truth, std::vector<std::string>{"db,1"});
+    EXPECT_TRUE(d->queries[1].ground_truth.empty());
+    ASSERT_TRUE(d->queries[0].coverage.has_value());
+    EXPECT_DOUBLE_EQ(*d->queries[0].coverage, 0.25);
+    EXPECT_FALSE(d->queries[1].coverage.has_value());
+  }
+  EXPECT_EQ(GroundTruthIndices(*loaded), (std::vector<std::vector<int>>{{0}, {}}));
+
+  // Bad datasets are refused with the offending entry named.
+  Dataset bad = dataset;
+  bad.queries[0].ground_truth = {"nope"};
+  Status status = ValidateDataset(bad, false);
+  EXPECT_EQ(status.code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(status.message().find("nope"), std::string::npos) << status.message();
+  bad = dataset;
+  bad.database[0].image = "/no/such/image.jpg";
+  EXPECT_EQ(ValidateDataset(bad, true).code(), StatusCode::kNotFound);
+  bad = dataset;
+  bad.database[1].id = bad.database[0].id;
+  EXPECT_EQ(ValidateDataset(bad, false).code(), StatusCode::kInvalidArgument);
+}
+
+TEST_F(EvalTest, FolderLayoutBecomesADataset) {
+  const std::string root = testing::MakeTempDir("placedb-eval-folder");
+  fs::create_directories(root + "/database");
+  fs::create_directories(root + "/queries");
+  for (int frame : {1, 2, 10}) {
+    fs::copy_file(RtabmapDir() + "/" + std::to_string(frame) + ".jpg",
+                  root + "/database/frame" + std::to_string(frame) + ".jpg");
+  }
+  fs::copy_file(RtabmapDir() + "/41.jpg", root + "/queries/q41.jpg");
+  fs::copy_file(RtabmapDir() + "/60.jpg", root + "/queries/q60.jpg");
+  std::ofstream(root + "/truth.csv") << "query,database\nq41.jpg,frame1.jpg\nq41,frame2\n";
+  std::ofstream(root + "/boxes.csv") << "image,class,confidence,x,y,width,height\n"
+                                     << "queries/q41.jpg,person,0.9,10,20,30,40\n";
+  FolderOptions options;
+  options.database_dir = root + "/database";
+  options.queries_dir = root + "/queries";
+  options.ground_truth_csv = root + "/truth.csv";
+  options.boxes_csv = root + "/boxes.csv";
+  auto dataset = PrepareFolder(options);
+  ASSERT_TRUE(dataset.ok()) << dataset.status().ToString();
+  ASSERT_EQ(dataset->database.size(), 3u);
+  EXPECT_EQ(dataset->database[2].id, "frame10.jpg");  // natural order
+  ASSERT_EQ(dataset->queries.size(), 2u);
+  EXPECT_EQ(dataset->queries[0].ground_truth,
+            (std::vector<std::string>{"frame1.jpg", "frame2.jpg"}));
+  EXPECT_TRUE(dataset->queries[1].ground_truth.empty());
+  ASSERT_EQ(dataset->queries[0].boxes->size(), 1u);
+  EXPECT_EQ((*dataset->queries[0].boxes)[0].class_id, 0);
+  EXPECT_TRUE(ValidateDataset(*dataset, true).ok());
+}
+
+// ---- Adapters + runs with known outcomes ----------------------------------------------------
+
+TEST_F(EvalTest, RtabmapLoopMatchesTheRecognitionTest) {
+  RtabmapOptions options;
+  options.directory = RtabmapDir();
+  auto dataset = PrepareRtabmap(options);
+  ASSERT_TRUE(dataset.ok()) << dataset.status().ToString();
+  ASSERT_EQ(dataset->database.size(), 40u);
+  ASSERT_EQ(dataset->queries.size(), 44u);
+  cv::Mat truth = testing::RtabmapGroundTruth();
+  for (size_t q = 0; q < dataset->queries.size(); ++q) {
+    int expected = 0;
+    for (int d = 0; d < 40; ++d) expected += truth.at<uint8_t>(int(q) + 40, d) > 0;
+    EXPECT_EQ(int(dataset->queries[q].ground_truth.size()), expected) << "query " << q + 41;
+  }
+
+  RunOptions run = SmallRun({500}, {kNoGeom, 6});
+  run.boxes = BoxInput::kNone;  // nothing annotated: BoBW+DO sees no dynamic objects
+  const RunResults results = Evaluate(*dataset, run);
+  const MethodRun* plain = Find(results, 500, kNoGeom, kBoBW);
+  const MethodRun* verified = Find(results, 500, 6, kBoBW);
+  ASSERT_TRUE(plain && verified);
+  const Summary a = Summarize(results, *plain, PaperBins()[0]);
+  const Summary b = Summarize(results, *verified, PaperBins()[0]);
+  std::printf("[eval] rtabmap ORB 500: NoGeom %.1f %% (%d/%d), Geo-6 %.1f %%, no-truth %d\n",
+              a.accuracy, a.correct, a.queries, b.accuracy, a.no_truth);
+  EXPECT_GE(a.accuracy, 80.0);
+  EXPECT_GE(b.accuracy, 70.0);
+  EXPECT_LE(b.accuracy, a.accuracy);  // verification can only refuse a top-1
+  EXPECT_GE(a.recall_at_5, a.recall_at_1);
+  // With nothing dynamic, BoBW+DO is BoBW.
+  const MethodRun* with_do = Find(results, 500, kNoGeom, kBoBWDO);
+  ASSERT_TRUE(with_do);
+  for (size_t q = 0; q < plain->queries.size(); ++q) {
+    EXPECT_EQ(plain->queries[q].top1, with_do->queries[q].top1);
+  }
+  EXPECT_EQ(plain->database.encoded_bytes, with_do->database.encoded_bytes);
+}
+
+Dataset CamVidSubset(int frames_per_sequence) {
+  CamVidAdjacencyOptions options;
+  options.camvid_dir = CamVidDir();
+  options.max_frames_per_sequence = frames_per_sequence;
+  auto dataset = PrepareCamVidAdjacency(options);
+  EXPECT_TRUE(dataset.ok()) << dataset.status().ToString();
+  return dataset.ok() ? std::move(dataset).value() : Dataset{};
+}
+
+TEST_F(EvalTest, CamVidAdjacencySubset) {
+  const Dataset dataset = CamVidSubset(16);  // 4 sequences x 16 frames
+  ASSERT_EQ(dataset.database.size(), 32u);
+  ASSERT_EQ(dataset.queries.size(), 32u);
+  int with_boxes = 0;
+  for (const Entry& query : dataset.queries) {
+    ASSERT_FALSE(query.ground_truth.empty()) << query.id;
+    for (const std::string& id : query.ground_truth) {
+      const auto it = std::find_if(dataset.database.begin(), dataset.database.end(),
+                                   [&](const Entry& e) { return e.id == id; });
+      ASSERT_NE(it, dataset.database.end());
+      EXPECT_EQ(it->agent, query.agent);
+      EXPECT_LE(std::llabs(it->sequence - query.sequence), 30);
+    }
+    // Coverage = the label map's dynamic pixels, as the recognition test computes it.
+    auto mask = LoadEntryMask(dataset, query);
+    ASSERT_TRUE(mask.ok());
+    EXPECT_NEAR(*query.coverage, cv::countNonZero(*mask) / double(mask->total()), 1e-12);
+    with_boxes += !query.boxes->empty();
+  }
+  EXPECT_GT(with_boxes, 10);
+  // 0006R0's file names carry an "f": frame numbers still parse.
+  EXPECT_TRUE(std::any_of(dataset.database.begin(), dataset.database.end(),
+                          [](const Entry& e) { return e.agent == "0006R0" && e.sequence > 0; }));
+
+  RunOptions run = SmallRun({500}, {kNoGeom, 6});
+  run.boxes = BoxInput::kNone;
+  run.masks = MaskInput::kOracle;
+  run.filter = FilterMethod::kExactCoverage;
+  const RunResults results = Evaluate(dataset, run);
+  for (const char* method : {kBoBW, kBoBWDO}) {
+    const MethodRun* r = Find(results, 500, kNoGeom, method);
+    ASSERT_TRUE(r);
+    const Summary s = Summarize(results, *r, PaperBins()[0]);
+    std::printf("[eval] camvid subset ORB 500 NoGeom %s: %.1f %%\n", method, s.accuracy);
+    EXPECT_GE(s.accuracy, 75.0) << method;
+  }
+  const MethodRun* bobw = Find(results, 500, kNoGeom, kBoBW);
+  const MethodRun* with_do = Find(results, 500, kNoGeom, kBoBWDO);
+  EXPECT_EQ(bobw->database.descriptors_dropped, 0u);
+  EXPECT_GT(with_do->database.descriptors_dropped, 0u);
+  EXPECT_LT(with_do->database.descriptors_kept, bobw->database.descriptors_kept);
+  EXPECT_LT(with_do->database.encoded_bytes, bobw->database.encoded_bytes);
+  // Verification (Geo-6 = exhaustive) only ever refuses a top-1 the ranking chose.
+  const MethodRun* geo6 = Find(results, 500, 6, kBoBW);
+  ASSERT_TRUE(geo6);
+  for (size_t q = 0; q < bobw->queries.size(); ++q) {
+    EXPECT_EQ(geo6->queries[q].top1, bobw->queries[q].top1);
+    if (geo6->queries[q].correct) {
+      EXPECT_TRUE(bobw->queries[q].correct);
+    }
+  }
+}
+
+TEST_F(EvalTest, CamVidStopsGroundTruthIsTheFirstVisit) {
+  CamVidStopsOptions options;
+  options.camvid_dir = CamVidDir();
+  auto dataset = PrepareCamVidStops(options);
+  ASSERT_TRUE(dataset.ok()) << dataset.status().ToString();
+  // Seq05VD 02520-02850 (12 frames, 30 apart) and 0016E5 05430-05700 (10 frames).
+  ASSERT_EQ(dataset->queries.size(), 22u);
+  std::set<std::string> database_ids;
+  for (const Entry& e : dataset->database) database_ids.insert(e.id);
+  for (const Entry& query : dataset->queries) {
+    const bool seq05 = query.agent == "Seq05VD";
+    EXPECT_EQ(query.ground_truth.size(), seq05 ? 12u : 9u) << query.id;
+    for (const std::string& id : query.ground_truth) {
+      EXPECT_TRUE(database_ids.count(id));
+      EXPECT_EQ(id.substr(0, 6), query.id.substr(0, 6));
+    }
+  }
+  // Frames between and around the visits are neither database nor queries.
+  EXPECT_FALSE(database_ids.count("Seq05VD_f02400"));
+  EXPECT_FALSE(database_ids.count("Seq05VD_f02880"));
+  EXPECT_FALSE(database_ids.count("0016E5_05250"));
+  EXPECT_TRUE(database_ids.count("Seq05VD_f00000"));  // a distractor far from the stop
+  EXPECT_TRUE(database_ids.count("0001TP_006690"));
+}
+
+// ---- Revisit builder ------------------------------------------------------------------------
+
+TEST_F(EvalTest, RevisitBuilderIsReproducibleAndHitsTheRequestedCoverage) {
+  RevisitOptions options;
+  options.camvid_dir = CamVidDir();
+  options.places = 5;
+  options.visits = 2;
+  options.min_coverage = 0.15;
+  options.max_coverage = 0.35;
+  options.seed = 7;
+  options.out_dir = testing::MakeTempDir("placedb-eval-revisits-a");
+  auto first = BuildRevisits(options);
+  ASSERT_TRUE(first.ok()) << first.status().ToString();
+  options.out_dir = testing::MakeTempDir("placedb-eval-revisits-b");
+  auto second = BuildRevisits(options);
+  ASSERT_TRUE(second.ok()) << second.status().ToString();
+
+  ASSERT_EQ(first->dataset.database.size(), 5u);
+  ASSERT_EQ(first->dataset.queries.size(), 5u);
+  ASSERT_EQ(first->visits.size(), 10u);
+  std::set<std::string> backgrounds;
+  for (size_t i = 0; i < first->visits.size(); ++i) {
+    const VisitInfo& visit = first->visits[i];
+    backgrounds.insert(visit.background);
+    EXPECT_NEAR(visit.measured_coverage, visit.requested_coverage, 0.02) << visit.id;
+    EXPECT_GE(visit.requested_coverage, 0.15);
+    EXPECT_LE(visit.requested_coverage, 0.35);
+    EXPECT_GT(visit.objects, 0);
+  }
+  EXPECT_EQ(backgrounds.size(), 5u);
+  const Dataset& a = first->dataset;
+  const Dataset& b = second->dataset;
+  for (int list = 0; list < 2; ++list) {
+    const auto& entries_a = list ? a.queries : a.database;
+    const auto& entries_b = list ? b.queries : b.database;
+    for (size_t i = 0; i < entries_a.size(); ++i) {
+      const Entry& ea = entries_a[i];
+      // Same seed: byte-identical image and mask files.
+      EXPECT_EQ(ReadFile(a.Resolve(ea.image)), ReadFile(b.Resolve(entries_b[i].image))) << ea.id;
+      EXPECT_EQ(ReadFile(a.Resolve(ea.mask)), ReadFile(b.Resolve(entries_b[i].mask))) << ea.id;
+      // The written mask is the stated coverage.
+      cv::Mat mask = cv::imread(a.Resolve(ea.mask), cv::IMREAD_GRAYSCALE);
+      ASSERT_FALSE(mask.empty());
+      EXPECT_NEAR(cv::countNonZero(mask) / double(mask.total()), *ea.coverage, 1e-12);
+      EXPECT_FALSE(ea.boxes->empty());
+      if (list == 1) {
+        EXPECT_EQ(ea.ground_truth, std::vector<std::string>{a.database[i].id});
+      }
+    }
+  }
+  // The two visits of a place differ (viewpoint, light, objects) but show the same place.
+  const std::string v0 = ReadFile(a.Resolve(a.database[0].image));
+  const std::string v1 = ReadFile(a.Resolve(a.queries[0].image));
+  EXPECT_NE(v0, v1);
+  ASSERT_TRUE(SaveDataset(a).ok());
+  EXPECT_TRUE(LoadDataset(a.directory).ok());
+
+  // The harness runs on it; with oracle masks BoBW+DO keeps fewer descriptors.
+  RunOptions run = SmallRun({500}, {kNoGeom});
+  run.boxes = BoxInput::kNone;
+  run.masks = MaskInput::kOracle;
+  run.filter = FilterMethod::kExactCoverage;
+  const RunResults results = Evaluate(a, run);
+  const MethodRun* bobw = Find(results, 500, kNoGeom, kBoBW);
+  const MethodRun* with_do = Find(results, 500, kNoGeom, kBoBWDO);
+  ASSERT_TRUE(bobw && with_do);
+  EXPECT_LT(with_do->database.descriptors_kept, bobw->database.descriptors_kept);
+}
+
+// ---- Scoring, empty ground truth, reports ---------------------------------------------------
+
+TEST(EvalScoring, TopOneMustBeTrueAndVerifiedWhenVerificationIsOn) {
+  const std::vector<int> truth = {3, 7};
+  QueryOutcome o = ScoreQuery({{3, 0.5, false, 9}, {7, 0.4, true, 30}}, truth, false);
+  EXPECT_TRUE(o.correct);
+  EXPECT_EQ(o.truth_rank, 1);
+  o = ScoreQuery({{3, 0.5, false, 9}, {7, 0.4, true, 30}}, truth, true);
+  EXPECT_FALSE(o.correct);  // the best candidate failed verification
+  o = ScoreQuery({{1, 0.5, true, 40}, {7, 0.4, false, 0}}, truth, true);
+  EXPECT_FALSE(o.correct);
+  EXPECT_EQ(o.truth_rank, 2);
+  o = ScoreQuery({}, truth, false);
+  EXPECT_FALSE(o.correct);
+  EXPECT_EQ(o.top1, -1);
+  o = ScoreQuery({{3, 0.5, true, 40}}, {}, true);  // no ground truth: never "correct"
+  EXPECT_FALSE(o.correct);
+  EXPECT_EQ(o.truth_rank, 0);
+}
+
+TEST(EvalScoring, PairedComparisonCountsDiscordantQueries) {
+  RunResults results;
+  results.query_coverage = {0.05, 0.15, 0.25, 0.35, 0.45, 0.0};
+  results.query_has_truth = {true, true, true, true, true, false};
+  MethodRun bobw, with_do;
+  for (bool correct : {true, false, false, false, true, false}) {
+    bobw.queries.push_back({});
+    bobw.queries.back().correct = correct;
+  }
+  for (bool correct : {true, true, true, true, false, true}) {
+    with_do.queries.push_back({});
+    with_do.queries.back().correct = correct;
+  }
+  const PairedComparison all = ComparePaired(results, bobw, with_do, PaperBins()[0]);
+  EXPECT_EQ(all.do_only, 3);  // the query without ground truth does not count
+  EXPECT_EQ(all.bobw_only, 1);
+  EXPECT_NEAR(all.p_value, 2 * (1 + 4) / 16.0, 1e-12);  // 2 P(X <= 1), X ~ B(4, 1/2)
+  const PairedComparison above30 = ComparePaired(results, bobw, with_do, PaperBins()[3]);
+  EXPECT_EQ(above30.do_only, 1);
+  EXPECT_EQ(above30.bobw_only, 1);
+  EXPECT_DOUBLE_EQ(above30.p_value, 1.0);
+  EXPECT_DOUBLE_EQ(ComparePaired(results, bobw, bobw, PaperBins()[0]).p_value, 1.0);
+  EXPECT_NEAR(RelativeChange(42.9, 47.78), 11.38, 0.01);  // the paper's first row
+  EXPECT_TRUE(std::isnan(RelativeChange(0, 5)));
+}
+
+TEST_F(EvalTest, QueriesWithoutGroundTruthAndReportShapes) {
+  // RTAB-Map loop, queries 41-50 + one query with its ground truth removed.
+  RtabmapOptions options;
+  options.directory = RtabmapDir();
+  auto dataset = PrepareRtabmap(options);
+  ASSERT_TRUE(dataset.ok());
+  dataset->queries.resize(10);
+  dataset->queries[0].ground_truth.clear();
+  dataset->queries[1].coverage = 0.35;  // lands in every coverage bin
+  RunOptions run = SmallRun({300, 500}, {kNoGeom, 2});
+  run.boxes = BoxInput::kNone;
+  const RunResults results = Evaluate(*dataset, run);
+  ASSERT_EQ(results.runs.size(), 8u);  // 2 features x 2 geoms x {BoBW, BoBW+DO}
+  const Summary all = Summarize(results, results.runs[0], PaperBins()[0]);
+  int with_truth = 0;
+  for (const Entry& q : dataset->queries) with_truth += !q.ground_truth.empty();
+  EXPECT_EQ(all.queries, with_truth);
+  EXPECT_EQ(all.no_truth, 10 - with_truth);
+  EXPECT_GE(all.no_truth_accepted, 1);  // no verification: any top-1 is a false positive
+  const Summary above30 = Summarize(results, results.runs[0], PaperBins()[3]);
+  EXPECT_EQ(above30.queries, 1);
+
+  const std::string dir = testing::MakeTempDir("placedb-eval-report");
+  ASSERT_TRUE(WriteReport(results, *dataset, dir, "test").ok());
+  const std::vector<std::string> csv = Lines(ReadFile(dir + "/results.csv"));
+  ASSERT_EQ(csv.size(), 1 + 8 * 4u);  // header + runs x bins
+  const size_t columns = SplitCsvLine(csv[0]).size();
+  for (const std::string& line : csv) EXPECT_EQ(SplitCsvLine(line).size(), columns) << line;
+  EXPECT_NE(csv[1].find(",NoGeom,"), std::string::npos);
+  EXPECT_NE(csv[1].find(",BoBW,All,"), std::string::npos);
+  EXPECT_EQ(Lines(ReadFile(dir + "/queries.csv")).size(), 1 + 8 * 10u);
+
+  const std::vector<std::string> md = Lines(ReadFile(dir + "/table3.md"));
+  auto header = std::find_if(md.begin(), md.end(), [](const std::string& line) {
+    return line.rfind("| keys | Geom | All BoBW | All BoBW+DO | +- |", 0) == 0;
+  });
+  ASSERT_NE(header, md.end());
+  const auto cells = [](const std::string& line) {
+    return std::count(line.begin(), line.end(), '|') - 1;
+  };
+  EXPECT_EQ(cells(*header), 2 + 4 * 3);
+  EXPECT_EQ(cells(*(header + 1)), 2 + 4 * 3);
+  for (int row = 0; row < 4; ++row) {  // 300/500 x NoGeom/Geo-2
+    const std::string& line = *(header + 2 + row);
+    EXPECT_EQ(cells(line), 2 + 4 * 3) << line;
+    EXPECT_EQ(line.rfind(row < 2 ? "| 300 |" : "| 500 |", 0), 0u) << line;
+  }
+  for (const char* png :
+       {"fig5_accuracy_vs_coverage.png", "fig6_database_size.png", "fig7_latency.png"}) {
+    cv::Mat image = cv::imread(dir + "/" + png);
+    ASSERT_FALSE(image.empty()) << png;
+    EXPECT_GE(image.cols, 600);
+    EXPECT_GE(image.rows, 300);
+  }
+}
+
+// ---- Live server ----------------------------------------------------------------------------
+
+TEST_F(EvalTest, ServerBackendAgreesWithInProcess) {
+  spdlog::set_level(spdlog::level::warn);
+  server::ServerConfig config;
+  config.listen = "127.0.0.1:0";
+  config.metrics_listen = "";
+  config.data_dir = testing::MakeTempDir("placedb-eval-server") + "/data";
+  config.threads = 2;
+  config.log_level = "warn";
+  config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};
+  server::ServerDeps deps;
+  deps.vocabularies.emplace("default", testing::DefaultVocabulary());
+  auto started = server::Server::Start(config, deps);
+  ASSERT_TRUE(started.ok()) << started.status().ToString();
+  const std::string address = "127.0.0.1:" + std::to_string((*started)->port());
+
+  const Dataset dataset = CamVidSubset(10);  // 20 database frames, 20 queries
+  RunOptions run = SmallRun({500}, {kNoGeom, 2});
+  run.boxes = BoxInput::kOracle;
+  run.masks = MaskInput::kOracle;
+  run.filter = FilterMethod::kExactCoverage;
+  const RunResults local = Evaluate(dataset, run);
+  std::vector<std::string> logged;
+  auto remote_backend = MakeServerBackend(address, testing::DefaultVocabulary(),
+                                          [&](const std::string& line) { logged.push_back(line); });
+  ASSERT_TRUE(remote_backend.ok()) << remote_backend.status().ToString();
+  auto remote = RunEvaluation(dataset, run, **remote_backend);
+  ASSERT_TRUE(remote.ok()) << remote.status().ToString();
+  EXPECT_TRUE(logged.empty());  // same vocabulary
+  ASSERT_EQ(remote->runs.size(), local.runs.size());
+  for (size_t r = 0; r < local.runs.size(); ++r) {
+    const MethodRun& l = local.runs[r];
+    const MethodRun& s = remote->runs[r];
+    EXPECT_EQ(l.database.places, s.database.places);
+    EXPECT_EQ(l.database.descriptors_kept, s.database.descriptors_kept);
+    EXPECT_EQ(l.database.descriptors_dropped, s.database.descriptors_dropped);
+    EXPECT_GT(s.database.disk_bytes, 0u);
+    ASSERT_EQ(l.queries.size(), s.queries.size());
+    for (size_t q = 0; q < l.queries.size(); ++q) {
+      EXPECT_EQ(l.queries[q].top1, s.queries[q].top1) << l.method << " query " << q;
+      EXPECT_EQ(l.queries[q].correct, s.queries[q].correct) << l.method << " query " << q;
+      EXPECT_EQ(l.queries[q].inliers, s.queries[q].inliers) << l.method << " query " << q;
+    }
+  }
+  (*started)->Shutdown();
+}
+
+}  // namespace
+}  // namespace placedb::eval
