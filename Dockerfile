@@ -1,0 +1,123 @@
+# placedb: the place-recognition database service (docs/service.md, deploy/README.md).
+#
+#   docker build -t placedb .                          # detector model from var/models if there
+#   docker build --build-arg MODELS= -t placedb .      # no detector model: detection off
+#   docker build --build-arg MODELS=models -t placedb .    # models from ./models in the context
+#   docker run -p 50051:50051 -p 9464:9464 -v placedb-data:/var/lib/placedb placedb
+#
+# Stage 1 ("build") installs the Debian packages tools/setup.sh lists, builds Release, trains the
+# default vocabulary on Debian's sample images (opencv-doc, darknet) and lists the runtime
+# libraries the binaries need. Stage 2 is bookworm-slim with those libraries, the binaries, the
+# vocabulary, the optional detector model and a non-root user.
+#
+# Build arguments:
+#   BASE_IMAGE  base of both stages (debian:bookworm-slim; deploy/test-image.sh substitutes a
+#               locally debootstrapped copy)
+#   JOBS        parallel compile jobs (2)
+#   MODELS      a directory of the build context holding yolox_nano.onnx and/or
+#               yolo-fastest-1.1-xl.{cfg,weights} (tools/install_models.sh puts them in var/models);
+#               empty or missing: the image has no model and server-side detection is off
+#   REQUIRE_CLI 1 (default): fail when the `placedb` CLI target is missing (the HEALTHCHECK uses
+#               it); 0: build without it (the HEALTHCHECK then reports unhealthy)
+ARG BASE_IMAGE=debian:bookworm-slim
+
+# ---------------------------------------------------------------------------------------------
+FROM ${BASE_IMAGE} AS build
+ARG DEBIAN_FRONTEND=noninteractive
+
+# bookworm-slim drops /usr/share/doc/* at install time (dpkg path-exclude); the default
+# vocabulary is trained on opencv-doc's sample images, which live there. Re-include them (the
+# last matching dpkg filter wins; files in dpkg.cfg.d are read in name order).
+RUN printf 'path-include=/usr/share/doc/opencv-doc/*\n' > /etc/dpkg/dpkg.cfg.d/zz-placedb-build
+
+# The packages first (tools/setup.sh --deps is the single list), so that source edits reuse this
+# layer.
+COPY tools/setup.sh /src/tools/setup.sh
+RUN /src/tools/setup.sh --deps && rm -rf /var/lib/apt/lists/*
+
+# Declared after the packages so that changing them does not invalidate that layer.
+ARG JOBS=2
+ARG MODELS=var/models
+ARG REQUIRE_CLI=1
+COPY . /src
+WORKDIR /src
+RUN cmake -S . -B /build -G Ninja -DCMAKE_BUILD_TYPE=Release \
+      -DPLACEDB_BUILD_TESTS=OFF -DPLACEDB_BUILD_BENCH=OFF \
+ && targets="placedb-server placedb-vocab" \
+ && if ninja -C /build -t targets all | grep -q '^placedb: '; then \
+      targets="$targets placedb"; \
+    elif [ "$REQUIRE_CLI" = 1 ]; then \
+      echo "Dockerfile: the placedb CLI target is missing (client/); the HEALTHCHECK needs it." \
+           "Build with --build-arg REQUIRE_CLI=0 to go on without it." >&2; exit 1; \
+    else \
+      echo "Dockerfile: WARNING: no placedb CLI target: the image's HEALTHCHECK will fail" >&2; \
+    fi \
+ && cmake --build /build -j "$JOBS" --target $targets \
+ && mkdir -p /out/usr/local/bin \
+ && for t in $targets; do \
+      bin=$(find /build -type f -name "$t" -perm -u+x | head -n 1); \
+      [ -n "$bin" ] || { echo "Dockerfile: built $t but cannot find it" >&2; exit 1; }; \
+      install -s -m 755 "$bin" /out/usr/local/bin/"$t"; \
+    done
+
+# The default vocabulary (Debian sample images only; a fixed seed, so reproducible).
+RUN tools/build_default_vocabulary.sh /out/usr/local/bin/placedb-vocab \
+      /out/usr/share/placedb/vocabulary/default.pdbv
+
+# The detector model, when the context has one; the image's config points at it.
+RUN mkdir -p /out/usr/share/placedb/models /out/etc/placedb \
+ && if [ -n "$MODELS" ] && [ -d "/src/$MODELS" ]; then \
+      for f in yolox_nano.onnx yolo-fastest-1.1-xl.cfg yolo-fastest-1.1-xl.weights; do \
+        if [ -f "/src/$MODELS/$f" ]; then \
+          install -m 644 "/src/$MODELS/$f" /out/usr/share/placedb/models/; \
+          echo "Dockerfile: detector model $f included"; \
+        fi; \
+      done; \
+    fi \
+ && cp deploy/placedb.yaml /out/etc/placedb/placedb.yaml \
+ && if [ -f /out/usr/share/placedb/models/yolox_nano.onnx ]; then \
+      sed -i 's|^  model: ""|  model: /usr/share/placedb/models/yolox_nano.onnx|' \
+        /out/etc/placedb/placedb.yaml; \
+      grep -q '^  model: /usr/share/placedb/models/yolox_nano.onnx' /out/etc/placedb/placedb.yaml; \
+    else \
+      echo "Dockerfile: no detector model in '$MODELS': server-side detection will be off"; \
+    fi
+
+# The runtime packages: the owners of the libraries the binaries link directly.
+RUN deploy/docker/runtime-packages.sh /out/usr/local/bin/* > /out/runtime-packages.txt \
+ && echo "Dockerfile: runtime packages:" $(cat /out/runtime-packages.txt)
+
+# ---------------------------------------------------------------------------------------------
+FROM ${BASE_IMAGE} AS runtime
+ARG DEBIAN_FRONTEND=noninteractive
+COPY --from=build /out/runtime-packages.txt /tmp/runtime-packages.txt
+RUN apt-get update -q \
+ && xargs -a /tmp/runtime-packages.txt apt-get install -y -q --no-install-recommends \
+ && rm -rf /var/lib/apt/lists/* /tmp/runtime-packages.txt
+
+COPY --from=build /out/usr /usr
+COPY --from=build /out/etc/placedb /etc/placedb
+# Every binary resolves every library (a missing runtime package fails the build, not a pod).
+RUN for b in /usr/local/bin/placedb*; do \
+      if ldd "$b" | grep 'not found'; then echo "Dockerfile: $b misses libraries" >&2; exit 1; fi; \
+    done \
+ && groupadd --system --gid 10001 placedb \
+ && useradd --system --uid 10001 --gid placedb --home-dir /var/lib/placedb --no-create-home \
+      --shell /usr/sbin/nologin placedb \
+ && install -d -o placedb -g placedb -m 750 /var/lib/placedb
+
+# Configuration: the file (PLACEDB_CONFIG; mount your own over it), then PLACEDB_* environment,
+# then flags (arguments after the image name). docs/service.md lists every key.
+ENV PLACEDB_CONFIG=/etc/placedb/placedb.yaml
+USER placedb:placedb
+WORKDIR /var/lib/placedb
+VOLUME ["/var/lib/placedb"]
+EXPOSE 50051 9464
+# The standard gRPC health service (`placedb health`: 0 SERVING, 1 NOT_SERVING, 2 unreachable;
+# Docker reserves 2, hence `|| exit 1`). The port follows PLACEDB_LISTEN (default 50051): a
+# server moved to another port by the config file or --listen needs PLACEDB_LISTEN to match.
+HEALTHCHECK --interval=15s --timeout=5s --start-period=60s --retries=3 \
+  CMD ["/bin/sh", "-c", "p=\"${PLACEDB_LISTEN:-:50051}\"; /usr/local/bin/placedb --timeout 3 health --address \"127.0.0.1:${p##*:}\" || exit 1"]
+STOPSIGNAL SIGTERM
+ENTRYPOINT ["/usr/local/bin/placedb-server"]
+CMD []
