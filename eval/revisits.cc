@@ -243,7 +243,8 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
   RevisitResult result;
   Dataset& dataset = result.dataset;
   dataset.directory = options.out_dir;
-  dataset.name = "revisits";
+  dataset.name =
+      "revisits-" + std::to_string(options.places) + "x" + std::to_string(options.visits);
   char description[512];
   std::snprintf(description, sizeof(description),
                 "Synthetic revisits of %d real CamVid places (seed %llu): %d visits each with a "

@@ -476,6 +476,58 @@ TEST_F(EvalTest, QueriesWithoutGroundTruthAndReportShapes) {
   }
 }
 
+// ---- Detector boxes -------------------------------------------------------------------------
+
+TEST_F(EvalTest, DetectorBoxesAreCachedAndFilteredByConfidence) {
+  std::string model = std::string(PLACEDB_MODELS_DIR) + "/yolox_nano.onnx";
+  if (!fs::exists(model)) model = testing::SharedDir() + "/models/yolox_nano.onnx";
+  ASSERT_TRUE(fs::exists(model)) << "no YOLOX-Nano model (tools/install_models.sh)";
+  const Dataset dataset = CamVidSubset(4);  // 8 database frames, 8 queries
+  RunOptions run = SmallRun({300}, {kNoGeom});
+  run.boxes = BoxInput::kDetector;
+  run.confidences = {0.2f, 0.4f};
+  run.detector = YoloxNanoConfig(fs::path(model).parent_path().string());
+  run.detections_cache = testing::MakeTempDir("placedb-eval-detections") + "/cache.json";
+  auto inputs = PrepareInputs(dataset, run);
+  ASSERT_TRUE(inputs.ok()) << inputs.status().ToString();
+  ASSERT_TRUE(fs::exists(run.detections_cache));
+  int boxes = 0;
+  for (const DynamicObjects& d : inputs->database_dynamic) {
+    for (const DynamicBox& box : d.boxes) {
+      EXPECT_GE(box.confidence, 0.2f);  // detected at the lowest confidence asked
+      ++boxes;
+    }
+  }
+  EXPECT_GT(boxes, 5);  // CamVid streets: cars and people
+  EXPECT_GT(inputs->detect_mean_ms, 0);
+
+  // A second run reads the cache: no model needed.
+  RunOptions cached = run;
+  cached.detector.model_path = "/no/such/dir/yolox_nano.onnx";  // same model name
+  auto again = PrepareInputs(dataset, cached);
+  ASSERT_TRUE(again.ok()) << again.status().ToString();
+  for (size_t i = 0; i < dataset.database.size(); ++i) {
+    ASSERT_EQ(again->database_dynamic[i].boxes.size(), inputs->database_dynamic[i].boxes.size());
+  }
+  // A higher threshold than cached is served from the cache; a lower one needs the detector.
+  cached.confidences = {0.3f};
+  EXPECT_TRUE(PrepareInputs(dataset, cached).ok());
+  cached.confidences = {0.1f};
+  EXPECT_FALSE(PrepareInputs(dataset, cached).ok());
+
+  // One BoBW+DO run per confidence; the stricter one keeps at least as many descriptors.
+  const RunResults results = Evaluate(dataset, run);
+  ASSERT_EQ(results.runs.size(), 3u);  // BoBW, DO @0.2, DO @0.4
+  EXPECT_EQ(results.runs[1].confidence, 0.2f);
+  EXPECT_EQ(results.runs[2].confidence, 0.4f);
+  EXPECT_GT(results.runs[1].database.descriptors_dropped, 0u);
+  EXPECT_LE(results.runs[2].database.descriptors_dropped,
+            results.runs[1].database.descriptors_dropped);
+  const std::string md = MarkdownReport(results, "detector");
+  EXPECT_NE(md.find("BoBW+DO @0.20"), std::string::npos);
+  EXPECT_NE(md.find("BoBW+DO @0.40"), std::string::npos);
+}
+
 // ---- Live server ----------------------------------------------------------------------------
 
 TEST_F(EvalTest, ServerBackendAgreesWithInProcess) {
