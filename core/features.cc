@@ -41,8 +41,7 @@ Status ValidateOrbConfig(const OrbConfig& config) {
   return Status::Ok();
 }
 
-Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config) {
-  PLACEDB_RETURN_IF_ERROR(ValidateOrbConfig(config));
+Result<cv::Mat> ToGray8(const cv::Mat& image) {
   if (image.empty()) return Status::InvalidArgument("image is empty");
   if (image.depth() != CV_8U) return Status::InvalidArgument("image must be 8-bit");
   cv::Mat gray;
@@ -56,6 +55,14 @@ Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config) {
     return Status::InvalidArgument("image must have 1, 3 or 4 channels, got " +
                                    std::to_string(image.channels()));
   }
+  return gray;
+}
+
+Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config) {
+  PLACEDB_RETURN_IF_ERROR(ValidateOrbConfig(config));
+  auto gray_result = ToGray8(image);
+  if (!gray_result.ok()) return gray_result.status();
+  const cv::Mat& gray = *gray_result;
   // A fresh detector per call: cv::ORB keeps per-call buffers, so sharing one across threads
   // would need a lock; construction is cheap next to detection.
   cv::Ptr<cv::ORB> orb = cv::ORB::create(config.max_features, config.scale_factor, config.levels,

@@ -48,6 +48,10 @@ struct OrbConfig {
 // patch_size in [2, 255], edge_threshold >= 0.
 Status ValidateOrbConfig(const OrbConfig& config);
 
+// An 8-bit grayscale view of `image` (8-bit gray returned as is; BGR and BGRA converted). Empty,
+// non-8-bit or 2-channel images are INVALID_ARGUMENT. Shared by every feature extractor.
+Result<cv::Mat> ToGray8(const cv::Mat& image);
+
 // Runs ORB on `image` (8-bit grayscale or BGR; BGR is converted). An image with no texture
 // yields an empty set, not an error. An empty or non-8-bit image is INVALID_ARGUMENT.
 Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config);

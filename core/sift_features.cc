@@ -67,19 +67,9 @@ Status ValidateSiftConfig(const SiftConfig& config) {
 Result<FloatFeatureSet> ExtractSift(const cv::Mat& image, const SiftConfig& config,
                                     const cv::Mat& mask) {
   PLACEDB_RETURN_IF_ERROR(ValidateSiftConfig(config));
-  if (image.empty()) return Status::InvalidArgument("image is empty");
-  if (image.depth() != CV_8U) return Status::InvalidArgument("image must be 8-bit");
-  cv::Mat gray;
-  if (image.channels() == 1) {
-    gray = image;
-  } else if (image.channels() == 3) {
-    cv::cvtColor(image, gray, cv::COLOR_BGR2GRAY);
-  } else if (image.channels() == 4) {
-    cv::cvtColor(image, gray, cv::COLOR_BGRA2GRAY);
-  } else {
-    return Status::InvalidArgument("image must have 1, 3 or 4 channels, got " +
-                                   std::to_string(image.channels()));
-  }
+  auto gray_result = ToGray8(image);
+  if (!gray_result.ok()) return gray_result.status();
+  const cv::Mat& gray = *gray_result;
   if (!mask.empty() && (mask.type() != CV_8UC1 || mask.size() != gray.size())) {
     return Status::InvalidArgument("mask must be CV_8U and " + std::to_string(gray.cols) + "x" +
                                    std::to_string(gray.rows) + " like the image");
