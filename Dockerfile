@@ -43,7 +43,7 @@ COPY . /src
 WORKDIR /src
 RUN cmake -S . -B /build -G Ninja -DCMAKE_BUILD_TYPE=Release \
       -DPLACEDB_BUILD_TESTS=OFF -DPLACEDB_BUILD_BENCH=OFF \
- && targets="placedb-server placedb-vocab" \
+ && targets="placedb-server placedb-vocab placedb-sift-vocab" \
  && if ninja -C /build -t targets all | grep -q '^placedb: '; then \
       targets="$targets placedb"; \
     elif [ "$REQUIRE_CLI" = 1 ]; then \
@@ -62,7 +62,9 @@ RUN cmake -S . -B /build -G Ninja -DCMAKE_BUILD_TYPE=Release \
 
 # The default vocabulary (Debian sample images only; a fixed seed, so reproducible).
 RUN tools/build_default_vocabulary.sh /out/usr/local/bin/placedb-vocab \
-      /out/usr/share/placedb/vocabulary/default.pdbv
+      /out/usr/share/placedb/vocabulary/default.pdbv \
+ && /out/usr/local/bin/placedb-sift-vocab --out /out/usr/share/placedb/vocabulary/sift.pdbfv \
+ && rm /out/usr/local/bin/placedb-sift-vocab
 
 # The detector model, when the context has one; the image's config points at it.
 RUN mkdir -p /out/usr/share/placedb/models /out/etc/placedb \

@@ -5,6 +5,7 @@
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -58,6 +59,18 @@ const std::map<std::string, v1::VerificationMode>& VerifyNames() {
       {"exhaustive", v1::VERIFICATION_MODE_EXHAUSTIVE}};
   return names;
 }
+const std::map<std::string, v1::FeatureType>& FeatureTypeNames() {
+  static const std::map<std::string, v1::FeatureType> names = {{"orb", v1::FEATURE_TYPE_ORB},
+                                                               {"sift", v1::FEATURE_TYPE_SIFT}};
+  return names;
+}
+const std::map<std::string, v1::BandPolicy>& BandPolicyNames() {
+  static const std::map<std::string, v1::BandPolicy> names = {
+      {"fixed", v1::BAND_POLICY_FIXED},
+      {"nearest_layer", v1::BAND_POLICY_NEAREST_LAYER},
+      {"appeared_layer", v1::BAND_POLICY_APPEARED_LAYER}};
+  return names;
+}
 const std::map<std::string, v1::BoxSource>& BoxSourceNames() {
   static const std::map<std::string, v1::BoxSource> names = {{"agent", v1::BOX_SOURCE_AGENT},
                                                              {"server", v1::BOX_SOURCE_SERVER},
@@ -95,8 +108,49 @@ std::string FormatBox(const v1::UsedBox& box) {
 
 std::string FormatCounts(const v1::FrameCounts& counts) {
   return std::to_string(counts.total()) + " descriptors: " + std::to_string(counts.kept()) +
-         " static kept, " + std::to_string(counts.dynamic()) + " dynamic dropped (" +
-         FormatDouble(counts.dynamic_coverage() * 100, 1) + "% of the image dynamic)";
+         " static kept, " + std::to_string(counts.dynamic()) + " dynamic dropped" +
+         (counts.depth_removed() > 0
+              ? ", " + std::to_string(counts.depth_removed()) + " removed by depth"
+              : std::string()) +
+         " (" + FormatDouble(counts.dynamic_coverage() * 100, 1) + "% of the image dynamic)";
+}
+
+std::string Metres(double metres) {
+  return FormatDouble(metres, 2) + " m";
+}
+
+// A little-endian float32 from 4 bytes (SiftFeatures.descriptors).
+float LittleEndianFloat(const char* bytes) {
+  uint32_t bits = 0;
+  for (int b = 3; b >= 0; --b) bits = (bits << 8) | uint8_t(bytes[b]);
+  float value = 0;
+  std::memcpy(&value, &bits, sizeof value);
+  return value;
+}
+
+// Depth options shared by `query`: --depth FILE, --depth-scale, --intrinsics.
+struct DepthFlags {
+  std::string file;
+  float scale = 0;
+  std::string intrinsics;
+};
+
+bool AddDepth(const DepthFlags& flags, v1::Observation* observation, std::string* error) {
+  if (flags.file.empty()) {
+    if (flags.scale != 0 || !flags.intrinsics.empty()) {
+      *error = "--depth-scale and --intrinsics describe a depth image: they need --depth FILE";
+      return false;
+    }
+    return true;
+  }
+  v1::DepthImage* depth = observation->mutable_depth();
+  if (!ReadDepthImage(flags.file, depth, error)) return false;
+  depth->set_scale(flags.scale);
+  if (!flags.intrinsics.empty() &&
+      !ParseIntrinsics(flags.intrinsics, depth->mutable_intrinsics(), error)) {
+    return false;
+  }
+  return true;
 }
 
 // Boxes for `query --boxes FILE.json`: a list (or {"boxes": [...]}) of
@@ -189,8 +243,32 @@ struct CreateFlags {
   int min_inliers = 0;
   int candidates = 0;
   bool store_invalid = false;
+  // Feature type (SIFT maps need a float vocabulary) and SIFT.
+  std::string feature_type;
+  int sift_features = 0;
+  // Depth (docs/rgbd.md).
+  bool no_refine_boxes = false;
+  bool no_depth_filter = false;
+  float depth_scale = 0;
+  float depth_threshold = 0;
+  std::string band_policy;
+  bool paper_literal = false;  // mean over all pixels + fixed bands
+  // Loop closure (ingest streams with --loop-closure).
+  double loop_threshold = 0;
+  double rehearsal_threshold = 0;
+  int stm = 0;
+  uint32_t max_wm = 0;
+  double wm_time_budget_ms = 0;
   // Which were given (unset fields take the server's defaults).
   CLI::Option* features_option = nullptr;
+  CLI::Option* sift_features_option = nullptr;
+  CLI::Option* depth_scale_option = nullptr;
+  CLI::Option* depth_threshold_option = nullptr;
+  CLI::Option* loop_threshold_option = nullptr;
+  CLI::Option* rehearsal_threshold_option = nullptr;
+  CLI::Option* stm_option = nullptr;
+  CLI::Option* max_wm_option = nullptr;
+  CLI::Option* wm_time_budget_option = nullptr;
   CLI::Option* confidence_option = nullptr;
   CLI::Option* sensitivity_option = nullptr;
   CLI::Option* place_threshold_option = nullptr;
@@ -206,13 +284,30 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
   config.push_back({"created", FormatUnixMs(map.created_unix_ms())});
   config.push_back({"vocabulary", (c.vocabulary().empty() ? "default" : c.vocabulary()) +
                                       " (checksum " + map.vocabulary_checksum() + ")"});
-  const v1::OrbSettings& orb = c.orb();
-  config.push_back({"orb", "max_features " + std::to_string(orb.max_features()) +
-                               ", scale_factor " + FormatDouble(orb.scale_factor(), 2) +
-                               ", levels " + std::to_string(orb.levels()) + ", edge_threshold " +
-                               std::to_string(orb.edge_threshold()) + ", patch_size " +
-                               std::to_string(orb.patch_size()) + ", fast_threshold " +
-                               std::to_string(orb.fast_threshold())});
+  config.push_back({"features", c.feature_type() == v1::FEATURE_TYPE_UNSPECIFIED
+                                    ? std::string("(the vocabulary's)")
+                                    : FeatureTypeName(c.feature_type())});
+  if (c.feature_type() != v1::FEATURE_TYPE_SIFT) {
+    const v1::OrbSettings& orb = c.orb();
+    config.push_back({"orb", "max_features " + std::to_string(orb.max_features()) +
+                                 ", scale_factor " + FormatDouble(orb.scale_factor(), 2) +
+                                 ", levels " + std::to_string(orb.levels()) + ", edge_threshold " +
+                                 std::to_string(orb.edge_threshold()) + ", patch_size " +
+                                 std::to_string(orb.patch_size()) + ", fast_threshold " +
+                                 std::to_string(orb.fast_threshold())});
+  }
+  if (c.feature_type() == v1::FEATURE_TYPE_SIFT) {
+    const v1::SiftSettings& sift = c.sift();
+    config.push_back({"sift", "max_features " +
+                                  (sift.max_features() == 0 && sift.has_max_features()
+                                       ? std::string("all")
+                                       : std::to_string(sift.max_features())) +
+                                  ", octave_layers " + std::to_string(sift.octave_layers()) +
+                                  ", contrast_threshold " +
+                                  FormatDouble(sift.contrast_threshold(), 3) + ", edge_threshold " +
+                                  FormatDouble(sift.edge_threshold(), 1) + ", sigma " +
+                                  FormatDouble(sift.sigma(), 2)});
+  }
   const v1::DetectionSettings& d = c.detection();
   std::vector<std::string> classes(d.classes().begin(), d.classes().end());
   config.push_back({"detection", std::string(d.enabled() ? "on" : "off") + ", box_source " +
@@ -231,6 +326,41 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
            std::to_string(v.min_inliers()) + ", candidates " +
            (v.candidates() == 0 ? std::string("all") : std::to_string(v.candidates()))});
   config.push_back({"store_invalid", c.store_invalid() ? "yes" : "no"});
+  const v1::DepthSettings& depth = c.depth();
+  auto on_off = [](bool has, bool value) { return has ? (value ? "on" : "off") : "-"; };
+  config.push_back({"depth", std::string("refine_boxes ") +
+                                 on_off(depth.has_refine_boxes(), depth.refine_boxes()) +
+                                 ", scale " + FormatDouble(depth.scale(), 4) + " m/unit, range " +
+                                 FormatDouble(depth.min_depth_m(), 2) + "-" +
+                                 FormatDouble(depth.max_depth_m(), 2) + " m, use_range " +
+                                 on_off(depth.has_use_range(), depth.use_range()) +
+                                 ", features without depth " +
+                                 (depth.remove_features_without_depth() ? "removed" : "kept")});
+  config.push_back(
+      {"depth filter",
+       std::string(on_off(depth.has_stream_filter(), depth.stream_filter())) + ", mean over " +
+           (depth.mean_all_pixels() ? "all pixels" : "valid pixels") + ", threshold " +
+           Metres(depth.threshold_m()) + ", persistence " + std::to_string(depth.persistence()) +
+           ", static_window " + std::to_string(depth.static_window()) + ", band " +
+           BandPolicyName(depth.band_policy()) + " (rise " +
+           FormatDouble(depth.rise_band().near_m(), 2) + "-" +
+           FormatDouble(depth.rise_band().far_m(), 2) + " m, fall " +
+           FormatDouble(depth.fall_band().near_m(), 2) + "-" +
+           FormatDouble(depth.fall_band().far_m(), 2) + " m), rebaseline " +
+           (depth.rebaseline_after() == 0 ? std::string("never")
+                                          : "after " + std::to_string(depth.rebaseline_after()))});
+  const v1::LoopClosureSettings& loop = c.loop_closure();
+  config.push_back(
+      {"loop closure",
+       "loop_threshold " + FormatDouble(loop.loop_threshold(), 3) + ", rehearsal_threshold " +
+           FormatDouble(loop.rehearsal_threshold(), 3) + ", stm " +
+           std::to_string(loop.short_term_memory()) + ", max_wm " +
+           (loop.max_working_memory() == 0 ? std::string("unbounded")
+                                           : std::to_string(loop.max_working_memory())) +
+           ", time_budget " +
+           (loop.time_budget_ms() == 0 ? std::string("none")
+                                       : FormatDouble(loop.time_budget_ms(), 1) + " ms") +
+           ", min_candidates " + std::to_string(loop.min_candidates())});
   PrintKeyValues(io.out, "map " + map.name(), config);
   std::vector<std::pair<std::string, std::string>> stats;
   stats.push_back({"places", std::to_string(s.places())});
@@ -240,6 +370,10 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
   stats.push_back({"invalid stored", std::to_string(s.invalid_stored())});
   stats.push_back({"bytes on disk", FormatBytes(s.bytes_on_disk())});
   stats.push_back({"bytes in memory", FormatBytes(s.bytes_in_memory())});
+  stats.push_back({"streams", std::to_string(s.streams())});
+  stats.push_back({"loop working memory", std::to_string(s.loop_working_memory())});
+  stats.push_back({"loop long-term", std::to_string(s.loop_long_term())});
+  stats.push_back({"loops accepted", std::to_string(s.loops_accepted())});
   PrintKeyValues(io.out, "statistics", stats);
 }
 
@@ -248,7 +382,31 @@ int MapsCreate(const Connection& connection, const CreateFlags& flags, bool json
   request.set_name(flags.name);
   v1::MapConfig* config = request.mutable_config();
   config->set_vocabulary(flags.vocabulary);
+  if (!flags.feature_type.empty()) {
+    config->set_feature_type(FeatureTypeNames().at(flags.feature_type));
+  }
   if (flags.features_option->count()) config->mutable_orb()->set_max_features(flags.features);
+  if (flags.sift_features_option->count()) {
+    config->mutable_sift()->set_max_features(flags.sift_features);
+  }
+  v1::DepthSettings* depth = config->mutable_depth();
+  if (flags.no_refine_boxes) depth->set_refine_boxes(false);
+  if (flags.no_depth_filter) depth->set_stream_filter(false);
+  if (flags.depth_scale_option->count()) depth->set_scale(flags.depth_scale);
+  if (flags.depth_threshold_option->count()) depth->set_threshold_m(flags.depth_threshold);
+  if (!flags.band_policy.empty()) depth->set_band_policy(BandPolicyNames().at(flags.band_policy));
+  if (flags.paper_literal) {  // Algorithm 1 as written: the mean over all pixels, fixed bands
+    depth->set_mean_all_pixels(true);
+    depth->set_band_policy(v1::BAND_POLICY_FIXED);
+  }
+  v1::LoopClosureSettings* loop = config->mutable_loop_closure();
+  if (flags.loop_threshold_option->count()) loop->set_loop_threshold(flags.loop_threshold);
+  if (flags.rehearsal_threshold_option->count()) {
+    loop->set_rehearsal_threshold(flags.rehearsal_threshold);
+  }
+  if (flags.stm_option->count()) loop->set_short_term_memory(flags.stm);
+  if (flags.max_wm_option->count()) loop->set_max_working_memory(flags.max_wm);
+  if (flags.wm_time_budget_option->count()) loop->set_time_budget_ms(flags.wm_time_budget_ms);
   v1::DetectionSettings* detection = config->mutable_detection();
   if (!flags.detection.empty()) detection->set_enabled(flags.detection == "on");
   size_t start = 0;
@@ -362,6 +520,7 @@ struct QueryFlags {
   bool verified_only = false;
   std::string agent_id = "cli";
   bool exclude_same_agent = false;
+  DepthFlags depth;
 };
 
 int Query(const Connection& connection, const QueryFlags& flags, bool json, CliIo& io) {
@@ -376,6 +535,7 @@ int Query(const Connection& connection, const QueryFlags& flags, bool json, CliI
   if (!flags.boxes.empty() && !ReadBoxes(flags.boxes, observation, &error)) {
     return UsageError(io, error);
   }
+  if (!AddDepth(flags.depth, observation, &error)) return UsageError(io, error);
   request.mutable_options()->set_top_k(uint32_t(flags.top_k));
   request.mutable_options()->set_verified_only(flags.verified_only);
   request.mutable_options()->set_exclude_same_agent(flags.exclude_same_agent);
@@ -393,6 +553,12 @@ int Query(const Connection& connection, const QueryFlags& flags, bool json, CliI
   }
   io.out << "query " << flags.image << " in map '" << flags.map
          << "': " << FormatCounts(response.counts()) << '\n';
+  if (response.has_depth()) {
+    io.out << "depth: " << FormatDepthState(response.depth());
+    const std::string removal = FormatDepthRemoval(response.counts(), response.depth());
+    if (!removal.empty()) io.out << "; " << removal;
+    io.out << '\n';
+  }
   if (!response.valid()) {
     io.out << "not a valid place: " << response.rejection() << '\n';
   } else if (response.matches_size() == 0) {
@@ -439,7 +605,40 @@ int PlaceGet(const Connection& connection, const std::string& map, uint32_t id, 
   table.push_back({"pose", FormatPose(place.metadata())});
   table.push_back({"descriptors", FormatCounts(place.counts())});
   for (const v1::UsedBox& box : place.boxes_used()) table.push_back({"box used", FormatBox(box)});
-  if (features) {
+  if (features && place.has_sift_features()) {
+    // SIFT maps: the count, then the first keypoints with the start of their descriptors.
+    const v1::SiftFeatures& sift = place.sift_features();
+    table.push_back({"features", std::to_string(sift.keypoints_size()) +
+                                     " static SIFT keypoints, " +
+                                     std::to_string(sift.descriptors().size()) +
+                                     " descriptor bytes (128 float32 each), image " +
+                                     std::to_string(sift.image_width()) + "x" +
+                                     std::to_string(sift.image_height())});
+    constexpr int kShown = 5, kValues = 8;
+    const size_t per_keypoint = 128 * 4;
+    for (int i = 0; i < std::min(kShown, sift.keypoints_size()); ++i) {
+      const v1::Keypoint& k = sift.keypoints(i);
+      std::string text = "(" + FormatDouble(k.x(), 1) + ", " + FormatDouble(k.y(), 1) + ") size " +
+                         FormatDouble(k.size(), 1) + " angle " + FormatDouble(k.angle(), 1) +
+                         " response " + FormatDouble(k.response(), 4) + " octave " +
+                         std::to_string(k.octave());
+      if (sift.descriptors().size() >= (size_t(i) + 1) * per_keypoint) {
+        text += "; [";
+        for (int v = 0; v < kValues; ++v) {
+          const float value = LittleEndianFloat(sift.descriptors().data() +
+                                                size_t(i) * per_keypoint + size_t(v) * 4);
+          // OpenCV's SIFT values are whole numbers in [0, 255]; others keep 3 decimals.
+          text += (v ? " " : "") + FormatDouble(value, value == std::round(value) ? 0 : 3);
+        }
+        text += " ...]";
+      }
+      table.push_back({"keypoint " + std::to_string(i), text});
+    }
+    if (sift.keypoints_size() > kShown) {
+      table.push_back(
+          {"", "... " + std::to_string(sift.keypoints_size() - kShown) + " more (--json for all)"});
+    }
+  } else if (features) {
     table.push_back({"features", std::to_string(place.features().keypoints_size()) +
                                      " static keypoints, " +
                                      std::to_string(place.features().descriptors().size()) +
@@ -480,11 +679,15 @@ int Info(const Connection& connection, bool json, CliIo& io) {
   }
   io.out << "placedb server " << info.version() << " at " << connection.options().address
          << "\n  detector  " << info.detector() << "\n\n";
-  Table vocabularies({"VOCABULARY", ">WORDS", ">NODES", ">K", ">L", ">MEMORY", "CHECKSUM", "PATH"});
+  Table vocabularies(
+      {"VOCABULARY", "FEATURES", ">WORDS", ">NODES", ">K", ">L", ">MEMORY", "CHECKSUM", "PATH"});
   for (const v1::VocabularyInfo& v : info.vocabularies()) {
-    vocabularies.Add({v.name(), std::to_string(v.words()), std::to_string(v.nodes()),
-                      std::to_string(v.branching()), std::to_string(v.depth()),
-                      FormatBytes(v.memory_bytes()), v.checksum(), v.path()});
+    vocabularies.Add(
+        {v.name(),
+         v.feature_type() == v1::FEATURE_TYPE_UNSPECIFIED ? std::string("-")
+                                                          : FeatureTypeName(v.feature_type()),
+         std::to_string(v.words()), std::to_string(v.nodes()), std::to_string(v.branching()),
+         std::to_string(v.depth()), FormatBytes(v.memory_bytes()), v.checksum(), v.path()});
   }
   vocabularies.Print(io.out);
   const v1::Limits& l = info.limits();
@@ -604,6 +807,63 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
                                                       "candidates to verify (default 0 = all)");
   create->add_flag("--store-invalid", create_flags.store_invalid,
                    "keep invalid observations as metadata");
+  create
+      ->add_option("--feature-type", create_flags.feature_type,
+                   "orb or sift; must agree with the vocabulary (default: the vocabulary's kind)")
+      ->check(CLI::IsMember(Keys(FeatureTypeNames())));
+  create_flags.sift_features_option =
+      create
+          ->add_option("--sift-features", create_flags.sift_features,
+                       "SIFT features per frame (default 1000, 0 = all)")
+          ->check(CLI::NonNegativeNumber);
+  create->add_flag("--no-refine-boxes", create_flags.no_refine_boxes,
+                   "with depth, a box stays dynamic as a whole (default: only the object's own "
+                   "depth layer)");
+  create->add_flag("--no-depth-filter", create_flags.no_depth_filter,
+                   "no Algorithm 1 on ingest streams with depth");
+  create_flags.depth_scale_option = create
+                                        ->add_option("--depth-scale", create_flags.depth_scale,
+                                                     "metres per png16 depth unit (default 0.001)")
+                                        ->check(CLI::PositiveNumber);
+  create_flags.depth_threshold_option =
+      create
+          ->add_option("--depth-threshold", create_flags.depth_threshold,
+                       "Algorithm 1: |V_current - V_static| that deviates, metres (default 0.15)")
+          ->check(CLI::PositiveNumber);
+  CLI::Option* band_policy =
+      create
+          ->add_option("--band-policy", create_flags.band_policy,
+                       "depth band removed while deviating (default appeared_layer)")
+          ->check(CLI::IsMember(Keys(BandPolicyNames())));
+  create
+      ->add_flag("--paper-literal", create_flags.paper_literal,
+                 "Algorithm 1 as written: mean over all pixels, fixed bands")
+      ->excludes(band_policy);
+  create_flags.loop_threshold_option =
+      create
+          ->add_option("--loop-threshold", create_flags.loop_threshold,
+                       "loop closure: posterior to accept a loop, T_loop (default 0.12)")
+          ->check(CLI::Range(0.0, 1.0));
+  create_flags.rehearsal_threshold_option =
+      create
+          ->add_option(
+              "--rehearsal-threshold", create_flags.rehearsal_threshold,
+              "loop closure: similarity merging a frame into the previous place (default 0.20; > 1 "
+              "disables rehearsal)")
+          ->check(CLI::NonNegativeNumber);
+  create_flags.stm_option = create
+                                ->add_option("--stm", create_flags.stm,
+                                             "loop closure: short-term memory, places (default "
+                                             "30)")
+                                ->check(CLI::NonNegativeNumber);
+  create_flags.max_wm_option =
+      create->add_option("--max-wm", create_flags.max_wm,
+                         "loop closure: working-memory bound, places (default 0 = unbounded)");
+  create_flags.wm_time_budget_option =
+      create
+          ->add_option("--wm-time-budget-ms", create_flags.wm_time_budget_ms,
+                       "loop closure: time budget per update, ms (default 0 = none)")
+          ->check(CLI::NonNegativeNumber);
   CLI::App* list = maps->add_subcommand("list", "list the maps");
   std::string show_name;
   CLI::App* show = maps->add_subcommand("show", "a map's configuration and statistics");
@@ -651,6 +911,17 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   ingest->add_option("--window", ingest_options.window, "unanswered frames per stream")
       ->check(CLI::Range(1, 1024))
       ->capture_default_str();
+  ingest->add_option("--depth", ingest_options.depth_dir,
+                     "depth images, paired with the frames by file stem (12.jpg -> DIR/12.png, "
+                     ".pgm, .tif): 16-bit (millimetres by default) or float32 metres");
+  ingest
+      ->add_option("--depth-scale", ingest_options.depth_scale,
+                   "metres per depth unit (default: the map's, 0.001 for 16-bit)")
+      ->check(CLI::PositiveNumber);
+  ingest->add_option("--intrinsics", ingest_options.intrinsics,
+                     "colour camera intrinsics fx,fy,cx,cy in pixels (sent with the depth)");
+  ingest->add_flag("--loop-closure", ingest_options.loop_closure,
+                   "Bayesian loop closure per agent: prints each frame's loop or merge");
 
   // query
   QueryFlags query_flags;
@@ -669,6 +940,14 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
       ->capture_default_str();
   query->add_flag("--exclude-same-agent", query_flags.exclude_same_agent,
                   "skip places stored by --agent-id");
+  query->add_option("--depth", query_flags.depth.file,
+                    "depth image registered to IMAGE (16-bit PNG/PGM/TIFF or float32 TIFF)");
+  query
+      ->add_option("--depth-scale", query_flags.depth.scale,
+                   "metres per depth unit (default: the map's, 0.001 for 16-bit)")
+      ->check(CLI::PositiveNumber);
+  query->add_option("--intrinsics", query_flags.depth.intrinsics,
+                    "colour camera intrinsics fx,fy,cx,cy in pixels (sent with the depth)");
 
   // place
   CLI::App* place = app.add_subcommand("place", "get or delete one stored place");

@@ -38,11 +38,18 @@ nlohmann::json ToJson(const LatencySummary& summary) {
 
 const std::vector<StageField>& StageFields() {
   static const std::vector<StageField> fields = {
-      {"queue", &v1::StageTimings::queue_ms},   {"decode", &v1::StageTimings::decode_ms},
-      {"detect", &v1::StageTimings::detect_ms}, {"extract", &v1::StageTimings::extract_ms},
-      {"filter", &v1::StageTimings::filter_ms}, {"transform", &v1::StageTimings::transform_ms},
-      {"search", &v1::StageTimings::search_ms}, {"verify", &v1::StageTimings::verify_ms},
-      {"store", &v1::StageTimings::store_ms},   {"total", &v1::StageTimings::total_ms}};
+      {"queue", &v1::StageTimings::queue_ms},
+      {"decode", &v1::StageTimings::decode_ms},
+      {"detect", &v1::StageTimings::detect_ms},
+      {"extract", &v1::StageTimings::extract_ms},
+      {"filter", &v1::StageTimings::filter_ms},
+      {"depth", &v1::StageTimings::depth_ms},
+      {"transform", &v1::StageTimings::transform_ms},
+      {"search", &v1::StageTimings::search_ms},
+      {"verify", &v1::StageTimings::verify_ms},
+      {"store", &v1::StageTimings::store_ms},
+      {"loop_closure", &v1::StageTimings::loop_closure_ms},
+      {"total", &v1::StageTimings::total_ms}};
   return fields;
 }
 
@@ -167,6 +174,111 @@ std::string BoxSourceName(v1::BoxSource source) {
     default:
       return "box_source_" + std::to_string(int(source));
   }
+}
+
+std::string FeatureTypeName(v1::FeatureType type) {
+  switch (type) {
+    case v1::FEATURE_TYPE_UNSPECIFIED:
+      return "unspecified";
+    case v1::FEATURE_TYPE_ORB:
+      return "orb";
+    case v1::FEATURE_TYPE_SIFT:
+      return "sift";
+    default:
+      return "feature_type_" + std::to_string(int(type));
+  }
+}
+
+std::string BandPolicyName(v1::BandPolicy policy) {
+  switch (policy) {
+    case v1::BAND_POLICY_FIXED:
+      return "fixed";
+    case v1::BAND_POLICY_NEAREST_LAYER:
+      return "nearest_layer";
+    case v1::BAND_POLICY_UNSPECIFIED:
+    case v1::BAND_POLICY_APPEARED_LAYER:
+      return "appeared_layer";
+    default:
+      return "band_policy_" + std::to_string(int(policy));
+  }
+}
+
+namespace {
+
+std::string SignedMetres(double metres) {
+  return (metres >= 0 ? "+" : "") + FormatDouble(metres, 2) + " m";
+}
+
+std::string Band(const v1::DepthState& depth) {
+  std::string text =
+      FormatDouble(depth.band_near_m(), 2) + "-" + FormatDouble(depth.band_far_m(), 2) + " m";
+  return depth.band_source().empty() ? text : depth.band_source() + " " + text;
+}
+
+}  // namespace
+
+std::string FormatDepthState(const v1::DepthState& depth) {
+  std::string text = "frame " + std::to_string(depth.frame()) + ": mean " +
+                     FormatDouble(depth.mean_depth_m(), 2) + " m";
+  if (depth.warming_up()) {
+    text += ", warming up";
+  } else {
+    text += ", static " + FormatDouble(depth.static_level_m(), 2) + " m (" +
+            SignedMetres(depth.difference_m()) + ")";
+  }
+  text += ", count " + std::to_string(depth.count());
+  if (depth.removing()) {
+    text += ", removing " + Band(depth);
+  } else if (depth.deviating()) {
+    text += ", deviating";
+  }
+  text += ", " + FormatDouble(depth.valid_fraction() * 100, 0) + "% valid";
+  return text;
+}
+
+std::string FormatDepthRemoval(const v1::FrameCounts& counts, const v1::DepthState& depth) {
+  if (counts.depth_removed() == 0) return "";
+  return "depth -" + std::to_string(counts.depth_removed()) + " (" + Band(depth) + ")";
+}
+
+std::string FormatLoopClosure(const v1::LoopClosure& loop) {
+  if (loop.merged()) return "merged into " + std::to_string(loop.place_id());
+  if (loop.loop_found()) {
+    return "loop: place " + std::to_string(loop.loop_place_id()) + " (posterior " +
+           FormatDouble(loop.loop_posterior(), 3) + ")";
+  }
+  if (loop.best_place_id() == 0) return "no loop";
+  return "no loop (best place " + std::to_string(loop.best_place_id()) + ", posterior " +
+         FormatDouble(loop.best_posterior(), 3) + ")";
+}
+
+nlohmann::json DepthStateJson(const v1::DepthState& depth) {
+  return {{"frame", depth.frame()},
+          {"mean_depth_m", depth.mean_depth_m()},
+          {"static_level_m", depth.static_level_m()},
+          {"difference_m", depth.difference_m()},
+          {"count", depth.count()},
+          {"warming_up", depth.warming_up()},
+          {"deviating", depth.deviating()},
+          {"removing", depth.removing()},
+          // float32 on the wire: rounded, so 1.2 prints as 1.2 and not 1.2000000476837158
+          {"band_near_m", std::round(double(depth.band_near_m()) * 1e4) / 1e4},
+          {"band_far_m", std::round(double(depth.band_far_m()) * 1e4) / 1e4},
+          {"band_source", depth.band_source()},
+          {"valid_fraction", depth.valid_fraction()}};
+}
+
+nlohmann::json LoopClosureJson(const v1::LoopClosure& loop) {
+  return {{"merged", loop.merged()},
+          {"place_id", loop.place_id()},
+          {"loop_found", loop.loop_found()},
+          {"loop_place_id", loop.loop_place_id()},
+          {"loop_posterior", loop.loop_posterior()},
+          {"best_place_id", loop.best_place_id()},
+          {"best_posterior", loop.best_posterior()},
+          {"candidates", loop.candidates()},
+          {"retrieved", loop.retrieved()},
+          {"transferred", loop.transferred()}};
 }
 
 Table::Table(std::vector<std::string> headers) {

@@ -45,6 +45,21 @@ std::string FilterName(v1::FilterMethod method);
 std::string ScoringName(v1::Scoring scoring);
 std::string VerificationName(v1::VerificationMode mode);
 std::string BoxSourceName(v1::BoxSource source);
+std::string FeatureTypeName(v1::FeatureType type);  // "orb", "sift", "unspecified"
+std::string BandPolicyName(v1::BandPolicy policy);  // "fixed", "nearest_layer", "appeared_layer"
+
+// The depth state of a frame (Algorithm 1, docs/rgbd.md):
+//   "frame 12: mean 2.31 m, static 2.45 m (-0.14 m), count 3, removing 1.20-1.60 m
+//    (appeared_layer), 97% valid"
+std::string FormatDepthState(const v1::DepthState& depth);
+// The short form for per-frame lines, "" when nothing was removed: "depth -37 (appeared_layer
+// 1.20-1.60 m)".
+std::string FormatDepthRemoval(const v1::FrameCounts& counts, const v1::DepthState& depth);
+// "loop: place 3 (posterior 0.412)", "merged into 11", "no loop (best place 3, posterior 0.051)".
+std::string FormatLoopClosure(const v1::LoopClosure& loop);
+// The same, as JSON objects with numbers as numbers (ingest's --json output).
+nlohmann::json DepthStateJson(const v1::DepthState& depth);
+nlohmann::json LoopClosureJson(const v1::LoopClosure& loop);
 
 // A left/right aligned text table.
 class Table {

@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
+#include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
@@ -77,7 +79,121 @@ bool ReadImageBytes(const std::string& path, std::string* bytes, std::string* er
   return true;
 }
 
+std::string FindDepthImage(const std::string& depth_dir, const std::string& colour_path,
+                           std::string* error) {
+  const std::string stem = fs::path(colour_path).stem().string();
+  std::string tried;
+  for (const char* ext : {".png", ".pgm", ".tif", ".tiff"}) {
+    const fs::path candidate = fs::path(depth_dir) / (stem + ext);
+    std::error_code ec;
+    if (fs::is_regular_file(candidate, ec)) return candidate.string();
+    tried += (tried.empty() ? "" : ", ") + candidate.string();
+  }
+  *error = "no depth image for frame " + colour_path + ": looked for " + tried;
+  return "";
+}
+
+bool ReadDepthImage(const std::string& path, v1::DepthImage* depth, std::string* error) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    *error = "cannot read depth image " + path;
+    return false;
+  }
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  std::string bytes = buffer.str();
+  // A PNG's IHDR: bit depth at byte 24, colour type at 25 (0 = greyscale).
+  const bool png = bytes.size() >= 26 && bytes.compare(0, 8, "\x89PNG\r\n\x1a\n") == 0;
+  if (png && uint8_t(bytes[24]) == 16 && uint8_t(bytes[25]) == 0) {
+    depth->set_png16(std::move(bytes));
+    return true;
+  }
+  const cv::Mat image =
+      cv::imdecode(cv::Mat(1, int(bytes.size()), CV_8U, bytes.data()), cv::IMREAD_UNCHANGED);
+  if (image.empty()) {
+    *error = "depth image " + path + " is not an image OpenCV can decode";
+    return false;
+  }
+  if (image.channels() != 1 || (image.depth() != CV_16U && image.depth() != CV_32F)) {
+    *error = "depth image " + path + " must be single-channel 16-bit or float32 (it has " +
+             std::to_string(image.channels()) + " channel(s) of " +
+             (image.depth() == CV_8U ? "8-bit" : "type " + std::to_string(image.depth())) + ")";
+    return false;
+  }
+  if (image.depth() == CV_16U) {
+    std::vector<uint8_t> encoded;
+    if (!cv::imencode(".png", image, encoded)) {
+      *error = "cannot re-encode depth image " + path + " as 16-bit PNG";
+      return false;
+    }
+    depth->set_png16(std::string(encoded.begin(), encoded.end()));
+    return true;
+  }
+  v1::RawDepth* raw = depth->mutable_raw_float32();
+  raw->set_width(uint32_t(image.cols));
+  raw->set_height(uint32_t(image.rows));
+  std::string data(size_t(image.total()) * 4, '\0');
+  size_t offset = 0;
+  for (int row = 0; row < image.rows; ++row) {
+    const float* values = image.ptr<float>(row);
+    for (int col = 0; col < image.cols; ++col) {
+      uint32_t bits = 0;
+      std::memcpy(&bits, &values[col], 4);
+      for (int b = 0; b < 4; ++b) data[offset++] = char((bits >> (8 * b)) & 0xFF);  // LE
+    }
+  }
+  raw->set_data(std::move(data));
+  return true;
+}
+
+bool ParseIntrinsics(const std::string& text, v1::Intrinsics* intrinsics, std::string* error) {
+  std::vector<double> values;
+  size_t start = 0;
+  while (start <= text.size()) {
+    size_t comma = text.find(',', start);
+    if (comma == std::string::npos) comma = text.size();
+    const std::string item = Trim(text.substr(start, comma - start));
+    char* end = nullptr;
+    const double value = item.empty() ? NAN : std::strtod(item.c_str(), &end);
+    if (item.empty() || end != item.c_str() + item.size() || !std::isfinite(value)) {
+      *error = "--intrinsics: expected fx,fy,cx,cy (4 numbers, pixels), got '" + text + "'";
+      return false;
+    }
+    values.push_back(value);
+    start = comma + 1;
+  }
+  if (values.size() != 4) {
+    *error = "--intrinsics: expected fx,fy,cx,cy (4 numbers, pixels), got '" + text + "'";
+    return false;
+  }
+  if (values[0] <= 0 || values[1] <= 0 || values[2] < 0 || values[3] < 0) {
+    *error = "--intrinsics: fx and fy must be > 0, cx and cy >= 0 (got '" + text + "')";
+    return false;
+  }
+  intrinsics->set_fx(values[0]);
+  intrinsics->set_fy(values[1]);
+  intrinsics->set_cx(values[2]);
+  intrinsics->set_cy(values[3]);
+  return true;
+}
+
 FrameSource::~FrameSource() = default;
+
+std::vector<std::string> FrameSource::image_paths() const {
+  std::vector<std::string> paths;
+  for (const Item& item : items_) {
+    if (!item.video) paths.push_back(item.path);
+  }
+  return paths;
+}
+
+std::vector<std::string> FrameSource::video_paths() const {
+  std::vector<std::string> paths;
+  for (const Item& item : items_) {
+    if (item.video) paths.push_back(item.path);
+  }
+  return paths;
+}
 
 std::unique_ptr<FrameSource> FrameSource::Open(const std::vector<std::string>& sources,
                                                int video_every, const std::string& glob,
@@ -185,6 +301,7 @@ bool FrameSource::Next(Frame* frame, std::string* error) {
       const long number = video_frame_++;
       frame->index = next_index_++;
       frame->name = video_path_ + "#" + std::to_string(number);
+      frame->path.clear();
       std::vector<uint8_t> jpeg;
       if (!cv::imencode(".jpg", image, jpeg, {cv::IMWRITE_JPEG_QUALITY, 90})) {
         *error = "cannot encode " + frame->name + " as JPEG";
@@ -203,6 +320,7 @@ bool FrameSource::Next(Frame* frame, std::string* error) {
         video_.reset();
         *error = "cannot open video " + item.path;
         frame->name = item.path;
+        frame->path.clear();
         frame->bytes.clear();
         return true;
       }
@@ -210,6 +328,7 @@ bool FrameSource::Next(Frame* frame, std::string* error) {
     }
     frame->index = next_index_++;
     frame->name = item.path;
+    frame->path = item.path;
     if (!ReadImageBytes(item.path, &frame->bytes, error)) frame->bytes.clear();
     return true;
   }

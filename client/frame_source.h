@@ -7,6 +7,11 @@
 //   - a single image file.
 // JPEG and PNG files are sent as their bytes; other image formats are decoded and re-encoded as
 // PNG (the API takes JPEG or PNG).
+//
+// Depth images (ingest --depth DIR, query --depth FILE) are paired with colour frames by file
+// stem: for "DIR_C/12.jpg" the depth is "DIR/12.png" (else .pgm, .tif, .tiff). A 16-bit
+// single-channel PNG is sent as it is (DepthImage.png16); other 16-bit images (PGM, TIFF) are
+// re-encoded as 16-bit PNG, float32 TIFFs sent as raw float32.
 #pragma once
 
 #include <cstddef>
@@ -15,16 +20,21 @@
 #include <string>
 #include <vector>
 
+#include "proto/placedb.pb.h"
+
 namespace cv {
 class VideoCapture;
 }
 
 namespace placedb::client {
 
+namespace v1 = ::placedb::v1;
+
 struct Frame {
   size_t index = 0;   // 0-based position in the whole input
   std::string name;   // "DIR/12.jpg", or "video.mp4#120" for video frames
   std::string bytes;  // JPEG or PNG
+  std::string path;   // the image file; "" for video frames
 };
 
 class FrameSource {
@@ -42,6 +52,10 @@ class FrameSource {
   // The next frame; false at the end. A frame that cannot be read is reported by *error (and
   // `frame->name` says which); call again to go on with the next one.
   bool Next(Frame* frame, std::string* error);
+
+  // The image files, in input order (video items left out), and the videos.
+  std::vector<std::string> image_paths() const;
+  std::vector<std::string> video_paths() const;
 
  private:
   struct Item {
@@ -65,5 +79,18 @@ bool ReadImageBytes(const std::string& path, std::string* bytes, std::string* er
 
 // Whether the bytes start like a JPEG or PNG file.
 bool IsJpegOrPng(const std::string& bytes);
+
+// The depth image of a colour frame: DEPTH_DIR/<stem of colour_path> + .png, .pgm, .tif or .tiff
+// (the first that exists). "" + *error ("no depth image for frame ...: looked for ...") when none.
+std::string FindDepthImage(const std::string& depth_dir, const std::string& colour_path,
+                           std::string* error);
+
+// Reads a depth image into `depth` (png16 or raw_float32; scale and intrinsics untouched).
+// Accepted: 16-bit single-channel PNG (sent as it is), 16-bit PGM / TIFF / ... (re-encoded as
+// 16-bit PNG), single-channel float32 (TIFF; raw float32). False + *error otherwise.
+bool ReadDepthImage(const std::string& path, v1::DepthImage* depth, std::string* error);
+
+// "fx,fy,cx,cy" in pixels: fx, fy > 0, cx, cy >= 0. False + *error otherwise.
+bool ParseIntrinsics(const std::string& text, v1::Intrinsics* intrinsics, std::string* error);
 
 }  // namespace placedb::client

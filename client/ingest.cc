@@ -1,6 +1,7 @@
 #include "client/ingest.h"
 
 #include <chrono>
+#include <filesystem>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -60,6 +61,35 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
     io.err << "error: " << error << '\n';
     return kExitUsage;
   }
+  auto usage = [&](const std::string& message) {
+    io.err << "error: " << message << '\n';
+    return kExitUsage;
+  };
+  // Depth: every image frame needs its depth image (paired by file stem) before anything is sent.
+  const bool with_depth = !options.depth_dir.empty();
+  std::vector<std::string> depth_paths;  // by frame index (no videos with --depth)
+  v1::Intrinsics intrinsics;
+  if (!with_depth && (options.depth_scale != 0 || !options.intrinsics.empty())) {
+    return usage("--depth-scale and --intrinsics describe depth images: they need --depth DIR");
+  }
+  if (with_depth) {
+    std::error_code ec;
+    if (!std::filesystem::is_directory(options.depth_dir, ec)) {
+      return usage("--depth: " + options.depth_dir + " is not a folder");
+    }
+    const std::vector<std::string> videos = source->video_paths();
+    if (!videos.empty()) {
+      return usage("--depth pairs depth images with image files by name; " + videos.front() +
+                   " is a video");
+    }
+    for (const std::string& path : source->image_paths()) {
+      depth_paths.push_back(FindDepthImage(options.depth_dir, path, &error));
+      if (depth_paths.back().empty()) return usage(error);
+    }
+    if (!options.intrinsics.empty() && !ParseIntrinsics(options.intrinsics, &intrinsics, &error)) {
+      return usage(error);
+    }
+  }
   {
     // An unknown map fails here, once, rather than once per stream.
     auto context = connection.NewContext();
@@ -84,6 +114,8 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
   records.reserve(source->total().value_or(0));
   std::vector<double> latencies;
   size_t stored = 0, rejected = 0, frame_errors = 0;
+  size_t merged = 0, loops_found = 0;                   // --loop-closure
+  size_t depth_frames_removing = 0, depth_removed = 0;  // --depth
   std::map<std::string, size_t> rejected_by_reason, errors_by_code;
   std::vector<std::pair<std::string, grpc::Status>> stream_errors;
 
@@ -97,6 +129,7 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
   v1::IngestHeader header;
   header.set_map(options.map);
   if (options.matches) header.mutable_matches()->set_top_k(uint32_t(std::max(1, options.top_k)));
+  header.set_loop_closure(options.loop_closure);
 
   std::vector<std::thread> threads;
   for (size_t i = 0; i < agents; ++i) {
@@ -127,34 +160,58 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
         record.response.clear_boxes_used();
         latencies.push_back(answer.latency_ms);
         const v1::IngestResponse& response = answer.response;
+        // A frame rehearsal merged into an existing place is neither stored nor rejected.
+        const bool was_merged = response.has_loop_closure() && response.loop_closure().merged();
         if (response.has_error()) {
           ++frame_errors;
           ++errors_by_code[CodeName(response.error().code())];
           progress.Message("frame " + record.name + ": " + CodeName(response.error().code()) +
                            ": " + response.error().message());
+        } else if (was_merged) {
+          ++merged;
         } else if (response.stored()) {
           ++stored;
         } else {
           ++rejected;
           ++rejected_by_reason[ReasonKey(response.rejection())];
         }
-        if (options.matches && !json) {
+        if (!response.has_error() && response.has_loop_closure() &&
+            response.loop_closure().loop_found()) {
+          ++loops_found;
+        }
+        if (response.counts().depth_removed() > 0) {
+          ++depth_frames_removing;
+          depth_removed += response.counts().depth_removed();
+        }
+        const std::string removal = FormatDepthRemoval(response.counts(), response.depth());
+        if (!json && (options.matches || options.loop_closure || !removal.empty())) {
           io.out << record.name << " -> ";
           if (response.has_error()) {
-            io.out << "error";
+            io.out << "error: " << CodeName(response.error().code());
+          } else if (was_merged) {
+            io.out << FormatLoopClosure(response.loop_closure());
           } else if (response.stored()) {
             io.out << "place " << response.place_id();
           } else {
             io.out << "not stored";
+            if (!response.rejection().empty()) {
+              io.out << " (" << ReasonKey(response.rejection()) << ")";
+            }
           }
-          if (response.matches_size() > 0) {
-            const v1::Match& best = response.matches(0);
-            io.out << "; best match place " << best.place_id() << " score "
-                   << FormatDouble(best.score(), 4) << " (" << best.metadata().agent_id() << " #"
-                   << best.metadata().sequence() << ")" << (best.verified() ? " verified" : "");
-          } else {
-            io.out << "; no match";
+          if (options.matches && !response.has_error()) {
+            if (response.matches_size() > 0) {
+              const v1::Match& best = response.matches(0);
+              io.out << "; best match place " << best.place_id() << " score "
+                     << FormatDouble(best.score(), 4) << " (" << best.metadata().agent_id() << " #"
+                     << best.metadata().sequence() << ")" << (best.verified() ? " verified" : "");
+            } else {
+              io.out << "; no match";
+            }
           }
+          if (response.has_loop_closure() && !was_merged) {
+            io.out << "; " << FormatLoopClosure(response.loop_closure());
+          }
+          if (!removal.empty()) io.out << "; " << removal;
           io.out << '\n';
         }
         progress.Add();
@@ -186,8 +243,23 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
         records.push_back(std::move(record));
         continue;
       }
-      const size_t agent = dealt++ % agents;
       Outgoing outgoing;
+      if (with_depth) {
+        v1::DepthImage* depth = outgoing.observation.mutable_depth();
+        if (frame.index >= depth_paths.size() ||
+            !ReadDepthImage(depth_paths[frame.index], depth, &error)) {
+          if (frame.index >= depth_paths.size()) error = "no depth image for frame " + frame.name;
+          record.local_error = error;
+          ++local_errors;
+          progress.Message("warning: " + error + " (skipped)");
+          std::lock_guard lock(mutex);
+          records.push_back(std::move(record));
+          continue;
+        }
+        depth->set_scale(options.depth_scale);
+        if (!options.intrinsics.empty()) *depth->mutable_intrinsics() = intrinsics;
+      }
+      const size_t agent = dealt++ % agents;
       outgoing.observation.set_agent_id(agent_ids[agent]);
       outgoing.observation.set_sequence(options.sequence_start + frame.index);
       outgoing.observation.mutable_encoded_image()->set_data(std::move(frame.bytes));
@@ -232,6 +304,13 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
     out["sent"] = sent;
     out["answered"] = answered;
     out["stored"] = stored;
+    out["loop_closure"] = options.loop_closure;
+    out["merged"] = merged;
+    out["loops_found"] = loops_found;
+    if (with_depth) {
+      out["depth"] = {{"frames_removing", depth_frames_removing},
+                      {"descriptors_removed", depth_removed}};
+    }
     out["rejected"] = {{"total", rejected}, {"by_reason", rejected_by_reason}};
     out["errors"] = {{"frames", frame_errors}, {"by_code", errors_by_code}};
     out["local_errors"] = local_errors;
@@ -255,6 +334,11 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
                           {"stored", response.stored()},
                           {"latency_ms", record.latency_ms}};
       if (response.stored()) r["place_id"] = response.place_id();
+      if (response.has_loop_closure()) {
+        r["loop_closure"] = LoopClosureJson(response.loop_closure());
+        if (response.loop_closure().merged()) r["merged_into"] = response.loop_closure().place_id();
+      }
+      if (response.has_depth()) r["depth"] = DepthStateJson(response.depth());
       if (!response.rejection().empty()) r["rejection"] = response.rejection();
       if (response.has_error()) {
         r["error"] = {{"code", CodeName(response.error().code())},
@@ -265,6 +349,7 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
       if (record.answered && !response.has_error()) {
         r["counts"] = {{"total", response.counts().total()},
                        {"dynamic", response.counts().dynamic()},
+                       {"depth_removed", response.counts().depth_removed()},
                        {"kept", response.counts().kept()}};
       }
       if (options.matches) {
@@ -283,6 +368,7 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
          << "' with " << agents << (agents == 1 ? " agent" : " agents") << " in "
          << FormatDuration(elapsed) << " (" << FormatDouble(rate, 1) << " frames/s)\n";
   io.out << "  stored     " << stored << '\n';
+  if (options.loop_closure) io.out << "  merged     " << merged << "  (rehearsal)\n";
   io.out << "  rejected   " << rejected;
   if (!rejected_by_reason.empty()) {
     std::string list;
@@ -304,10 +390,18 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
   io.out << '\n';
   if (local_errors > 0) io.out << "  unreadable " << local_errors << '\n';
   if (unanswered > 0) io.out << "  unanswered " << unanswered << '\n';
+  if (with_depth) {
+    io.out << "  depth      " << depth_removed << " descriptors removed by Algorithm 1 in "
+           << depth_frames_removing << (depth_frames_removing == 1 ? " frame" : " frames") << '\n';
+  }
   if (latency.count > 0) {
     io.out << "  latency    p50 " << FormatDouble(latency.p50, 1) << " ms, p99 "
            << FormatDouble(latency.p99, 1) << " ms, max " << FormatDouble(latency.max, 1)
            << " ms (write to response)\n";
+  }
+  if (options.loop_closure) {
+    io.out << "loop closure: " << records.size() << " frames, " << stored << " stored, " << merged
+           << " merged, " << loops_found << (loops_found == 1 ? " loop" : " loops") << " found\n";
   }
   return failed ? kExitRpcError : kExitOk;
 }

@@ -1,5 +1,6 @@
 // `placedb ingest MAP SOURCE...`: frames from folders, lists or videos streamed into a map by one
-// or several agents (round-robin), with progress and a summary.
+// or several agents (round-robin), with progress and a summary; optionally with depth images
+// (--depth DIR, paired by file stem) and per-agent loop closure (--loop-closure).
 #pragma once
 
 #include <string>
@@ -22,6 +23,11 @@ struct IngestOptions {
   double rate = 0;               // frames per second per agent; 0 = as fast as accepted
   uint64_t sequence_start = 0;   // Observation.sequence of the first frame
   size_t window = 8;             // unanswered frames per stream
+  // RGB-D (docs/rgbd.md): depth images paired with the frames by file stem ("" = none).
+  std::string depth_dir;
+  float depth_scale = 0;      // DepthImage.scale, metres per unit (0 = the map's)
+  std::string intrinsics;     // "fx,fy,cx,cy" ("" = none)
+  bool loop_closure = false;  // IngestHeader.loop_closure: per-agent Bayesian loop closure
 };
 
 int RunIngest(const Connection& connection, const IngestOptions& options, bool json, CliIo& io);

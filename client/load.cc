@@ -183,6 +183,13 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
     }
   };
 
+  if (options.mode == "features" && description.config().feature_type() == v1::FEATURE_TYPE_SIFT) {
+    io.err << "error: --mode features extracts ORB here, and map '" << map_name
+           << "' is a SIFT map: use --mode encoded\n";
+    delete_temporary();
+    return kExitUsage;
+  }
+
   // Observation templates: the frame, or its features with the map's ORB settings.
   std::vector<v1::Observation> templates(encoded.size());
   for (size_t i = 0; i < encoded.size(); ++i) {

@@ -505,6 +505,20 @@ DepthFrameState DepthStreamFilter::Observe(const cv::Mat& metres) {
   return state;
 }
 
+Status CheckDepthRegistration(int depth_width, int depth_height, int image_width,
+                              int image_height) {
+  if (image_width <= 0 || image_height <= 0) {
+    return Status::InvalidArgument("image size must be positive");
+  }
+  if (!SameAspect(depth_width, depth_height, image_width, image_height)) {
+    return Status::InvalidArgument("depth image " + std::to_string(depth_width) + "x" +
+                                   std::to_string(depth_height) + " is not registered to the " +
+                                   std::to_string(image_width) + "x" +
+                                   std::to_string(image_height) + " image (aspect ratios differ)");
+  }
+  return Status::Ok();
+}
+
 Result<DepthFilterResult> DepthStreamFilter::Process(
     const cv::Mat& depth, int image_width, int image_height, const std::vector<Keypoint>& keypoints,
     const std::optional<CameraIntrinsics>& intrinsics) {
@@ -513,12 +527,8 @@ Result<DepthFilterResult> DepthStreamFilter::Process(
   }
   auto metres = DepthToMetres(depth, config_.format);
   if (!metres.ok()) return metres.status();
-  if (!SameAspect(metres->cols, metres->rows, image_width, image_height)) {
-    return Status::InvalidArgument("depth image " + std::to_string(metres->cols) + "x" +
-                                   std::to_string(metres->rows) + " is not registered to the " +
-                                   std::to_string(image_width) + "x" +
-                                   std::to_string(image_height) + " image (aspect ratios differ)");
-  }
+  PLACEDB_RETURN_IF_ERROR(
+      CheckDepthRegistration(metres->cols, metres->rows, image_width, image_height));
   if (intrinsics) {
     PLACEDB_RETURN_IF_ERROR(ValidateIntrinsics(*intrinsics, image_width, image_height));
   } else if (config_.use_range) {

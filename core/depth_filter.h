@@ -60,6 +60,10 @@ Status ValidateIntrinsics(const CameraIntrinsics& intrinsics, int width, int hei
 // CV_16U or CV_32F (single channel, non-empty) -> CV_32F metres, 0 = invalid.
 Result<cv::Mat> DepthToMetres(const cv::Mat& raw, const DepthFormat& format);
 
+// INVALID_ARGUMENT unless a depth image of `depth_width` x `depth_height` can be registered to an
+// `image_width` x `image_height` colour image (the same aspect ratio within 1 %).
+Status CheckDepthRegistration(int depth_width, int depth_height, int image_width, int image_height);
+
 // ---- Feature depths and bands ----------------------------------------------------------------
 
 struct DepthBand {

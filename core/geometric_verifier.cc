@@ -25,13 +25,15 @@ constexpr ModeEntry kModes[] = {
     {VerificationMode::kExhaustive, "exhaustive"},
 };
 
-// Best and second-best Hamming distance from one query feature to the candidate features seen.
+// Best and second-best distance (Hamming, or L2 for float descriptors) from one query feature to
+// the candidate features seen.
+template <typename Distance>
 struct NearestTwo {
-  int best = std::numeric_limits<int>::max();
-  int second = std::numeric_limits<int>::max();
+  Distance best = std::numeric_limits<Distance>::max();
+  Distance second = std::numeric_limits<Distance>::max();
   uint32_t best_candidate = 0;
 
-  void Offer(int distance, uint32_t candidate) {
+  void Offer(Distance distance, uint32_t candidate) {
     if (distance < best) {
       second = best;
       best = distance;
@@ -45,7 +47,6 @@ struct NearestTwo {
 struct Match {
   uint32_t query;
   uint32_t candidate;
-  int distance;
 };
 
 Status ValidateDirectIndex(const DirectIndex& direct, size_t feature_count, const char* which) {
@@ -86,16 +87,18 @@ Status ValidateDirectIndex(const DirectIndex& direct, size_t feature_count, cons
   return Status::Ok();
 }
 
-// Keeps the unambiguous nearest neighbours, then only the closest query per candidate feature.
-std::vector<Match> SelectMatches(const std::vector<NearestTwo>& nearest,
-                                 const VerificationConfig& config, size_t candidate_count) {
+// Keeps the unambiguous nearest neighbours within `max_distance`, then only the closest query per
+// candidate feature.
+template <typename Distance>
+std::vector<Match> SelectMatches(const std::vector<NearestTwo<Distance>>& nearest, float ratio,
+                                 Distance max_distance, size_t candidate_count) {
   constexpr uint32_t kNone = std::numeric_limits<uint32_t>::max();
+  constexpr Distance kUnseen = std::numeric_limits<Distance>::max();
   std::vector<uint32_t> owner(candidate_count, kNone);  // candidate feature -> query feature
   for (uint32_t q = 0; q < nearest.size(); ++q) {
-    const NearestTwo& n = nearest[q];
-    if (n.best > config.max_hamming) continue;  // also skips features that saw no candidate
-    if (n.second != std::numeric_limits<int>::max() &&
-        !(double(n.best) < double(config.ratio) * double(n.second))) {
+    const NearestTwo<Distance>& n = nearest[q];
+    if (n.best == kUnseen || n.best > max_distance) continue;
+    if (n.second != kUnseen && !(double(n.best) < double(ratio) * double(n.second))) {
       continue;  // ambiguous: the runner-up is nearly as close
     }
     uint32_t& current = owner[n.best_candidate];
@@ -104,12 +107,13 @@ std::vector<Match> SelectMatches(const std::vector<NearestTwo>& nearest,
   }
   std::vector<Match> matches;
   for (uint32_t c = 0; c < candidate_count; ++c) {
-    if (owner[c] != kNone) matches.push_back({owner[c], c, nearest[owner[c]].best});
+    if (owner[c] != kNone) matches.push_back({owner[c], c});
   }
   return matches;
 }
 
-int CountFundamentalInliers(const FeatureSet& query, const FeatureSet& candidate,
+int CountFundamentalInliers(const std::vector<Keypoint>& query,
+                            const std::vector<Keypoint>& candidate,
                             const std::vector<Match>& matches, const VerificationConfig& config) {
   if (int(matches.size()) < kMinPointsForFundamental) return 0;
   std::vector<cv::Point2f> query_points;
@@ -117,9 +121,8 @@ int CountFundamentalInliers(const FeatureSet& query, const FeatureSet& candidate
   query_points.reserve(matches.size());
   candidate_points.reserve(matches.size());
   for (const Match& m : matches) {
-    query_points.emplace_back(query.keypoints[m.query].x, query.keypoints[m.query].y);
-    candidate_points.emplace_back(candidate.keypoints[m.candidate].x,
-                                  candidate.keypoints[m.candidate].y);
+    query_points.emplace_back(query[m.query].x, query[m.query].y);
+    candidate_points.emplace_back(candidate[m.candidate].x, candidate[m.candidate].y);
   }
   try {
     cv::Mat mask;
@@ -131,6 +134,58 @@ int CountFundamentalInliers(const FeatureSet& query, const FeatureSet& candidate
   } catch (const cv::Exception&) {
     return 0;  // degenerate configuration (e.g. all points coincide): nothing verified
   }
+}
+
+// The verification shared by both descriptor kinds: putative matches by `distance(q, c)` (all
+// pairs, or pairs sharing a direct-index node), ratio test, RANSAC fundamental matrix.
+template <typename Distance, typename DistanceFn>
+Result<VerificationResult> Verify(const std::vector<Keypoint>& query,
+                                  const DirectIndex& query_direct,
+                                  const std::vector<Keypoint>& candidate,
+                                  const DirectIndex& candidate_direct,
+                                  const VerificationConfig& config, Distance max_distance,
+                                  const DistanceFn& distance) {
+  std::vector<NearestTwo<Distance>> nearest(query.size());
+  if (config.mode == VerificationMode::kExhaustive) {
+    for (uint32_t q = 0; q < query.size(); ++q) {
+      for (uint32_t c = 0; c < candidate.size(); ++c) nearest[q].Offer(distance(q, c), c);
+    }
+  } else {
+    if (query_direct.levels_up != config.levels_up ||
+        candidate_direct.levels_up != config.levels_up) {
+      return Status::InvalidArgument(
+          "direct index levels_up (query " + std::to_string(query_direct.levels_up) +
+          ", candidate " + std::to_string(candidate_direct.levels_up) +
+          ") must equal verification.levels_up = " + std::to_string(config.levels_up));
+    }
+    PLACEDB_RETURN_IF_ERROR(ValidateDirectIndex(query_direct, query.size(), "query"));
+    PLACEDB_RETURN_IF_ERROR(ValidateDirectIndex(candidate_direct, candidate.size(), "candidate"));
+    // Both node lists ascend: walk them together and compare features only within shared nodes.
+    size_t i = 0;
+    size_t j = 0;
+    while (i < query_direct.node_count() && j < candidate_direct.node_count()) {
+      if (query_direct.node_ids[i] < candidate_direct.node_ids[j]) {
+        ++i;
+      } else if (candidate_direct.node_ids[j] < query_direct.node_ids[i]) {
+        ++j;
+      } else {
+        for (const uint32_t q : query_direct.features_of(i)) {
+          for (const uint32_t c : candidate_direct.features_of(j)) {
+            nearest[q].Offer(distance(q, c), c);
+          }
+        }
+        ++i;
+        ++j;
+      }
+    }
+  }
+  const std::vector<Match> matches =
+      SelectMatches(nearest, config.ratio, max_distance, candidate.size());
+  VerificationResult result;
+  result.putative_matches = int(matches.size());
+  result.inliers = CountFundamentalInliers(query, candidate, matches, config);
+  result.verified = result.inliers >= config.min_inliers;
+  return result;
 }
 
 }  // namespace
@@ -209,49 +264,40 @@ Result<VerificationResult> VerifyGeometry(const FeatureSet& query, const DirectI
         " descriptors for " + std::to_string(candidate.keypoints.size()) + " keypoints");
   }
 
-  std::vector<NearestTwo> nearest(query.size());
-  if (config.mode == VerificationMode::kExhaustive) {
-    for (uint32_t q = 0; q < query.size(); ++q) {
-      for (uint32_t c = 0; c < candidate.size(); ++c) {
-        nearest[q].Offer(HammingDistance(query.descriptors[q], candidate.descriptors[c]), c);
-      }
-    }
-  } else {
-    if (query_direct.levels_up != config.levels_up ||
-        candidate_direct.levels_up != config.levels_up) {
-      return Status::InvalidArgument(
-          "direct index levels_up (query " + std::to_string(query_direct.levels_up) +
-          ", candidate " + std::to_string(candidate_direct.levels_up) +
-          ") must equal verification.levels_up = " + std::to_string(config.levels_up));
-    }
-    PLACEDB_RETURN_IF_ERROR(ValidateDirectIndex(query_direct, query.size(), "query"));
-    PLACEDB_RETURN_IF_ERROR(ValidateDirectIndex(candidate_direct, candidate.size(), "candidate"));
-    // Both node lists ascend: walk them together and compare features only within shared nodes.
-    size_t i = 0;
-    size_t j = 0;
-    while (i < query_direct.node_count() && j < candidate_direct.node_count()) {
-      if (query_direct.node_ids[i] < candidate_direct.node_ids[j]) {
-        ++i;
-      } else if (candidate_direct.node_ids[j] < query_direct.node_ids[i]) {
-        ++j;
-      } else {
-        for (const uint32_t q : query_direct.features_of(i)) {
-          for (const uint32_t c : candidate_direct.features_of(j)) {
-            nearest[q].Offer(HammingDistance(query.descriptors[q], candidate.descriptors[c]), c);
-          }
-        }
-        ++i;
-        ++j;
-      }
-    }
-  }
+  return Verify<int>(query.keypoints, query_direct, candidate.keypoints, candidate_direct, config,
+                     config.max_hamming, [&](uint32_t q, uint32_t c) {
+                       return HammingDistance(query.descriptors[q], candidate.descriptors[c]);
+                     });
+}
 
-  const std::vector<Match> matches = SelectMatches(nearest, config, candidate.size());
-  VerificationResult result;
-  result.putative_matches = int(matches.size());
-  result.inliers = CountFundamentalInliers(query, candidate, matches, config);
-  result.verified = result.inliers >= config.min_inliers;
-  return result;
+Result<VerificationResult> VerifyGeometry(const FloatFeatureSet& query,
+                                          const DirectIndex& query_direct,
+                                          const FloatFeatureSet& candidate,
+                                          const DirectIndex& candidate_direct,
+                                          const VerificationConfig& config) {
+  PLACEDB_RETURN_IF_ERROR(ValidateVerificationConfig(config));
+  if (config.mode == VerificationMode::kDisabled) return VerificationResult{};
+  const auto check = [](const FloatFeatureSet& set, const char* which) {
+    if (set.descriptors.size() != set.keypoints.size() * size_t(kSiftDimensions)) {
+      return Status::InvalidArgument(
+          std::string(which) + " features: " + std::to_string(set.descriptors.size()) +
+          " floats for " + std::to_string(set.keypoints.size()) + " keypoints");
+    }
+    return Status::Ok();
+  };
+  PLACEDB_RETURN_IF_ERROR(check(query, "query"));
+  PLACEDB_RETURN_IF_ERROR(check(candidate, "candidate"));
+  // L2 distance, Lowe's ratio test on it; no absolute cap (SIFT distances depend on the scale
+  // of the descriptors, the ratio does not).
+  return Verify<float>(query.keypoints, query_direct, candidate.keypoints, candidate_direct, config,
+                       std::numeric_limits<float>::infinity(), [&](uint32_t q, uint32_t c) {
+                         const float* a = query.descriptor(q).data();
+                         const float* b = candidate.descriptor(c).data();
+                         float sum = 0;
+                         for (int k = 0; k < kSiftDimensions; ++k)
+                           sum += (a[k] - b[k]) * (a[k] - b[k]);
+                         return std::sqrt(sum);
+                       });
 }
 
 }  // namespace placedb

@@ -1,6 +1,7 @@
 // Geometric verification of a candidate match (the paper's Table II "Geom" settings).
 //
-// Putative correspondences are found by Hamming distance with a ratio test, either only between
+// Putative correspondences are found by Hamming distance (ORB) or L2 distance (SIFT) with a ratio
+// test, either only between
 // features that share a direct-index node (kDirectIndex: DBoW2's "level" check, `levels_up`
 // counted from the words, so 0 = same word) or between all features (kExhaustive). A fundamental
 // matrix is then fitted by RANSAC (OpenCV) and the candidate is verified when its inlier count
@@ -11,6 +12,7 @@
 
 #include "core/bow.h"
 #include "core/features.h"
+#include "core/sift_features.h"
 #include "core/status.h"
 
 namespace placedb {
@@ -48,6 +50,14 @@ struct VerificationResult {
 // putative matches means 0 inliers (a fundamental matrix needs 8 points).
 Result<VerificationResult> VerifyGeometry(const FeatureSet& query, const DirectIndex& query_direct,
                                           const FeatureSet& candidate,
+                                          const DirectIndex& candidate_direct,
+                                          const VerificationConfig& config);
+
+// The same for SIFT: putative matches by L2 distance with the ratio test (max_hamming does not
+// apply), then the same RANSAC.
+Result<VerificationResult> VerifyGeometry(const FloatFeatureSet& query,
+                                          const DirectIndex& query_direct,
+                                          const FloatFeatureSet& candidate,
                                           const DirectIndex& candidate_direct,
                                           const VerificationConfig& config);
 

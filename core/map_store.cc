@@ -163,6 +163,11 @@ Result<MapInfo> DecodeInfo(const std::string& text) {
   return info;
 }
 
+// "binary (ORB)" or "float (SIFT)", as AnyVocabulary::kind() says it.
+const char* VocabularyKind(FeatureType type) {
+  return type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)";
+}
+
 std::string Hex(uint64_t v) {
   char buffer[17];
   std::snprintf(buffer, sizeof buffer, "%016llx", static_cast<unsigned long long>(v));
@@ -268,10 +273,18 @@ using detail::MapStorage;
 
 namespace {
 
-// Payloads live in RocksDB: read on demand for verification, deleted durably on removal.
+// A place's features value, decoded by the map's feature type.
+Status DecodePayloadFeatures(FeatureType type, std::string_view bytes, PlacePayload* payload) {
+  return type == FeatureType::kSift
+             ? DecodeFloatFeatures(bytes, &payload->float_features, &payload->direct)
+             : DecodeFeatures(bytes, &payload->features, &payload->direct);
+}
+
+// Payloads live in RocksDB: read on demand for verification and for loop closure's long-term
+// memory, deleted durably on removal.
 class RocksPayloadStore final : public PayloadStore {
  public:
-  explicit RocksPayloadStore(MapStorage* storage) : storage_(storage) {}
+  RocksPayloadStore(MapStorage* storage, FeatureType type) : storage_(storage), type_(type) {}
 
   // The map wrote the payload in the place's batch before indexing it.
   Status Put(PlaceId, std::shared_ptr<const PlacePayload>) override { return Status::Ok(); }
@@ -290,7 +303,7 @@ class RocksPayloadStore final : public PayloadStore {
     auto bow = DecodeBow(bow_bytes);
     if (!bow.ok()) return bow.status().WithContext("place " + std::to_string(id));
     payload->bow = std::move(bow).value();
-    PLACEDB_RETURN_IF_ERROR(DecodeFeatures(feature_bytes, &payload->features, &payload->direct)
+    PLACEDB_RETURN_IF_ERROR(DecodePayloadFeatures(type_, feature_bytes, payload.get())
                                 .WithContext("place " + std::to_string(id)));
     return std::shared_ptr<const PlacePayload>(std::move(payload));
   }
@@ -317,12 +330,13 @@ class RocksPayloadStore final : public PayloadStore {
 
  private:
   MapStorage* storage_;
+  const FeatureType type_;
 };
 
 }  // namespace
 
 PlaceMap::PlaceMap(MapInfo info, std::string path, std::unique_ptr<MapStorage> storage,
-                   std::shared_ptr<const Vocabulary> vocabulary)
+                   AnyVocabulary vocabulary)
     : info_(std::move(info)),
       path_(std::move(path)),
       storage_(std::move(storage)),
@@ -357,16 +371,22 @@ QueryResult PlaceMap::Search(const ProcessedFrame& frame, const QueryOptions& op
   return database_->Search(frame, options);
 }
 
-Status PlaceMap::CheckVocabulary(const Vocabulary& vocabulary) const {
-  if (vocabulary.checksum() == info_.vocabulary_checksum) return Status::Ok();
-  return Status::FailedPrecondition("map '" + info_.name + "' was built with vocabulary " +
-                                    Hex(info_.vocabulary_checksum) + ", not " +
-                                    vocabulary.checksum_hex());
+Status PlaceMap::CheckVocabulary(const AnyVocabulary& vocabulary) const {
+  if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
+  const FeatureType type = info_.options.database.feature_type;
+  if (vocabulary.feature_type() == type && vocabulary.checksum() == info_.vocabulary_checksum) {
+    return Status::Ok();
+  }
+  return Status::FailedPrecondition("map '" + info_.name + "' was built with " +
+                                    VocabularyKind(type) + " vocabulary " +
+                                    Hex(info_.vocabulary_checksum) + ", not " + vocabulary.kind() +
+                                    " vocabulary " + vocabulary.checksum_hex());
 }
 
 Status PlaceMap::Load() {
-  auto db = PlaceDatabase::Create(vocabulary_, info_.options.database,
-                                  std::make_shared<RocksPayloadStore>(storage_.get()));
+  auto db = PlaceDatabase::Create(
+      vocabulary_, info_.options.database,
+      std::make_shared<RocksPayloadStore>(storage_.get(), info_.options.database.feature_type));
   if (!db.ok()) return db.status();
   database_ = std::move(db).value();
   rocksdb::ReadOptions options;
@@ -422,14 +442,65 @@ Status PlaceMap::Load() {
 }
 
 Result<AddResult> PlaceMap::Add(const Observation& observation) {
-  auto frame = database_->Process(observation);
+  // Extraction runs outside the lifecycle lock (it touches no storage), so deleting the map
+  // does not wait for it.
+  auto frame = database_->Process(observation, FrameRole::kStream);
   if (!frame.ok()) return frame.status();
-  return Commit(*frame, observation.metadata);
+  std::shared_lock alive(storage_->lifecycle);
+  if (storage_->closed) return Deleted();
+  PLACEDB_RETURN_IF_ERROR(database_->AdvanceStream(&*frame, observation.metadata.agent_id));
+  return CommitLocked(*frame, observation.metadata);
+}
+
+Status PlaceMap::AdvanceStream(ProcessedFrame* frame, const std::string& agent_id) {
+  std::shared_lock alive(storage_->lifecycle);
+  if (storage_->closed) return Deleted();
+  return database_->AdvanceStream(frame, agent_id);
+}
+
+Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
+                                               const PlaceMetadata& metadata, AddResult* added) {
+  AddResult local;
+  AddResult& result = added ? *added : local;
+  result = AddResult();
+  // One shared hold for the whole call: the store callback commits with CommitLocked() and the
+  // long-term memory reads payloads from RocksDB, both under this hold. Taking the shared lock
+  // again inside could deadlock behind a waiting DeleteMap (std::shared_mutex is not
+  // reentrant and may block new readers while a writer waits).
+  std::shared_lock alive(storage_->lifecycle);
+  if (storage_->closed) return Deleted();
+  bool committed = false;
+  auto store = [&]() -> Result<PlaceId> {
+    auto stored = CommitLocked(frame, metadata);
+    if (!stored.ok()) return stored.status();
+    committed = true;
+    result = *stored;
+    if (!stored->stored) {
+      return Status::Internal("loop closure: the frame was not stored" +
+                              (stored->rejection.empty() ? "" : ": " + stored->rejection));
+    }
+    return stored->id;
+  };
+  auto outcome = database_->CloseLoop(frame, metadata, store);
+  if (!outcome.ok()) return outcome.status();
+  if (!committed) {
+    // Merged into the previous place by rehearsal: nothing written.
+    result.stored = false;
+    result.id = 0;
+    result.counts = frame.counts;
+    result.boxes_used = frame.boxes_used;
+    result.timings = frame.timings;
+    result.depth_state = frame.depth_state;
+  }
+  result.timings.loop_closure_ms = outcome->update_ms;
+  result.timings.total_ms += outcome->update_ms;
+  return outcome;
 }
 
 Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,
                                          const PlaceMetadata& metadata) {
   AddResult result;
+  result.depth_state = frame.depth_state;
   result.counts = frame.counts;
   result.boxes_used = frame.boxes_used;
   result.timings = frame.timings;
@@ -462,7 +533,28 @@ Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,
 Result<AddResult> PlaceMap::Commit(const ProcessedFrame& frame, const PlaceMetadata& metadata) {
   std::shared_lock alive(storage_->lifecycle);
   if (storage_->closed) return Deleted();
+  return CommitLocked(frame, metadata);
+}
+
+Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
+                                         const PlaceMetadata& metadata) {
+  if (frame.stream_pending) {
+    return Status::FailedPrecondition(
+        "the frame's stream stage is pending: call AdvanceStream before committing it");
+  }
   if (!frame.valid) return StoreInvalid(frame, metadata);
+  // Checked before writing: a batch the index then refused would leave an unindexed place.
+  const DatabaseConfig& config = info_.options.database;
+  if (frame.feature_type != config.feature_type) {
+    return Status::InvalidArgument(std::string("frame's features are ") +
+                                   FeatureTypeName(frame.feature_type) + ", the map's are " +
+                                   FeatureTypeName(config.feature_type));
+  }
+  if (frame.direct.levels_up != config.verification.levels_up) {
+    return Status::InvalidArgument("frame's direct index is at level " +
+                                   std::to_string(frame.direct.levels_up) + ", the map uses " +
+                                   std::to_string(config.verification.levels_up));
+  }
   Stopwatch store;
   PlaceRecord record;
   record.id = database_->ReserveId();
@@ -473,7 +565,10 @@ Result<AddResult> PlaceMap::Commit(const ProcessedFrame& frame, const PlaceMetad
   rocksdb::WriteBatch batch;
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
-  batch.Put(storage_->cf(kFeatures), key, EncodeFeatures(frame.static_features, frame.direct));
+  batch.Put(storage_->cf(kFeatures), key,
+            frame.feature_type == FeatureType::kSift
+                ? EncodeFloatFeatures(frame.static_float_features, frame.direct)
+                : EncodeFeatures(frame.static_features, frame.direct));
   PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch).WithContext("storing a place"));
   // Durable: now make it searchable.
   auto id = database_->Insert(frame, metadata, record.id);
@@ -484,6 +579,7 @@ Result<AddResult> PlaceMap::Commit(const ProcessedFrame& frame, const PlaceMetad
   result.counts = frame.counts;
   result.boxes_used = frame.boxes_used;
   result.timings = frame.timings;
+  result.depth_state = frame.depth_state;
   result.timings.store_ms = store.ElapsedMs();
   result.timings.total_ms += result.timings.store_ms;
   return result;
@@ -496,7 +592,7 @@ Result<StoredPlace> PlaceMap::GetPlace(PlaceId id) const {
   if (!record)
     return Status::NotFound("place " + std::to_string(id) + " not found in map '" + info_.name +
                             "'");
-  RocksPayloadStore payloads(storage_.get());
+  RocksPayloadStore payloads(storage_.get(), info_.options.database.feature_type);
   auto payload = payloads.Get(id);
   if (!payload.ok()) return payload.status();
   return StoredPlace{*record, **payload};
@@ -571,10 +667,14 @@ Status PlaceMap::VerifyIntegrity() const {
     if (!record.ok()) return record.status();
     auto bow = DecodeBow(its[1]->value().ToStringView());
     if (!bow.ok()) return bow.status();
-    FeatureSet features;
-    DirectIndex direct;
-    PLACEDB_RETURN_IF_ERROR(DecodeFeatures(its[2]->value().ToStringView(), &features, &direct));
-    if (features.size() != record->counts.static_) {
+    PlacePayload payload;
+    PLACEDB_RETURN_IF_ERROR(DecodePayloadFeatures(info_.options.database.feature_type,
+                                                  its[2]->value().ToStringView(), &payload)
+                                .WithContext("place " + std::to_string(record->id)));
+    const size_t stored = info_.options.database.feature_type == FeatureType::kSift
+                              ? payload.float_features.size()
+                              : payload.features.size();
+    if (stored != record->counts.static_) {
       return Status::Corruption("place " + std::to_string(record->id) +
                                 ": stored features disagree with its counts");
     }
@@ -705,12 +805,18 @@ Result<MapInfo> ReadInfo(MapStorage& storage, const std::string& path) {
 
 }  // namespace
 
-Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(
-    const std::string& name, const MapOptions& options,
-    std::shared_ptr<const Vocabulary> vocabulary) {
+Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& name,
+                                                           const MapOptions& options,
+                                                           AnyVocabulary vocabulary) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
   PLACEDB_RETURN_IF_ERROR(ValidateDatabaseConfig(options.database));
+  const FeatureType type = options.database.feature_type;
+  if (vocabulary.feature_type() != type) {
+    return Status::InvalidArgument("map '" + name + "': feature_type " + FeatureTypeName(type) +
+                                   " needs a " + VocabularyKind(type) +
+                                   " vocabulary; this one is " + vocabulary.kind());
+  }
   std::lock_guard lock(mutex_);
   const std::string path = MapPath(name);
   if (fs::exists(path)) return Status::AlreadyExists("map '" + name + "' already exists");
@@ -719,7 +825,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(
   MapInfo info;
   info.name = name;
   info.options = options;
-  info.vocabulary_checksum = vocabulary->checksum();
+  info.vocabulary_checksum = vocabulary.checksum();
   info.created_unix_ms = NowUnixMs();
   rocksdb::WriteBatch batch;
   batch.Put((*storage)->cf(kMeta), kFormatKey, kMapFormat);
@@ -762,13 +868,13 @@ Result<MapInfo> DataDirectory::ReadMapInfo(const std::string& name) const {
   return ReadInfo(storage, path);
 }
 
-Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(
-    const std::string& name, std::shared_ptr<const Vocabulary> vocabulary) {
+Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(const std::string& name,
+                                                         AnyVocabulary vocabulary) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
   std::lock_guard lock(mutex_);
   if (auto it = open_.find(name); it != open_.end()) {
-    PLACEDB_RETURN_IF_ERROR(it->second->CheckVocabulary(*vocabulary));
+    PLACEDB_RETURN_IF_ERROR(it->second->CheckVocabulary(vocabulary));
     return it->second;
   }
   const std::string path = MapPath(name);
@@ -782,7 +888,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(
   if (!info.ok()) return info.status();
   std::shared_ptr<PlaceMap> map(
       new PlaceMap(std::move(info).value(), path, std::move(storage).value(), vocabulary));
-  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(*vocabulary));
+  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(vocabulary));
   PLACEDB_RETURN_IF_ERROR(map->Load());
   open_[name] = map;
   return map;

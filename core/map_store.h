@@ -20,6 +20,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "core/any_vocabulary.h"
 #include "core/codec.h"
 #include "core/place_database.h"
 #include "core/status.h"
@@ -62,8 +63,8 @@ struct MapStats {
 
 struct MapInfo {
   std::string name;
-  MapOptions options;
-  uint64_t vocabulary_checksum = 0;
+  MapOptions options;                // options.database.feature_type: the vocabulary's kind
+  uint64_t vocabulary_checksum = 0;  // AnyVocabulary::checksum(), binary or float
   int64_t created_unix_ms = 0;
 };
 
@@ -82,17 +83,27 @@ class PlaceMap {
   const MapInfo& info() const { return info_; }
   const PlaceDatabase& database() const { return *database_; }
 
-  // FAILED_PRECONDITION naming both checksums when `vocabulary` is not the map's.
-  Status CheckVocabulary(const Vocabulary& vocabulary) const;
+  // FAILED_PRECONDITION naming both checksums (and kinds) when `vocabulary` is not the map's.
+  Status CheckVocabulary(const AnyVocabulary& vocabulary) const;
 
-  // Process + (when valid) durable write + index. An invalid frame is counted, and stored as
-  // metadata when the map's store_invalid is set. Returns once durable.
+  // Process (as the agent's next stream frame) + AdvanceStream + (when valid) durable write +
+  // index. An invalid frame is counted, and stored as metadata when the map's store_invalid is
+  // set. Returns once durable.
   Result<AddResult> Add(const Observation& observation);
   // Stores an already processed frame (ingest-with-matches searches first, then commits).
   Result<AddResult> Commit(const ProcessedFrame& frame, const PlaceMetadata& metadata);
-  Result<ProcessedFrame> Process(const Observation& observation) const {
-    return database_->Process(observation);
+  Result<ProcessedFrame> Process(const Observation& observation,
+                                 FrameRole role = FrameRole::kQuery) const {
+    return database_->Process(observation, role);
   }
+  // See PlaceDatabase::AdvanceStream: the agent's frames in order.
+  Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);
+  // Loop closure for an ingest stream (PlaceDatabase::CloseLoop) with Commit() as the store: a
+  // frame that rehearsal does not merge is written durably; `added` then receives the commit's
+  // result (stored = false when merged). The long-term memory of the agent's detector is this
+  // map's RocksDB payloads.
+  Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                       AddResult* added);
   Result<QueryResult> Query(const Observation& observation, const QueryOptions& options) const;
   // An invalid result with the reason when the map was deleted meanwhile.
   QueryResult Search(const ProcessedFrame& frame, const QueryOptions& options) const;
@@ -112,15 +123,18 @@ class PlaceMap {
  private:
   friend class DataDirectory;
   PlaceMap(MapInfo info, std::string path, std::unique_ptr<detail::MapStorage> storage,
-           std::shared_ptr<const Vocabulary> vocabulary);
+           AnyVocabulary vocabulary);
   Status Load();  // rebuilds the serving index from disk
+  // Commit() for a caller that already holds storage_->lifecycle shared and checked `closed`
+  // (CloseLoop's store callback: the shared lock must not be taken twice).
+  Result<AddResult> CommitLocked(const ProcessedFrame& frame, const PlaceMetadata& metadata);
   Result<AddResult> StoreInvalid(const ProcessedFrame& frame, const PlaceMetadata& metadata);
   Status Deleted() const;
 
   MapInfo info_;
   std::string path_;
   std::unique_ptr<detail::MapStorage> storage_;
-  std::shared_ptr<const Vocabulary> vocabulary_;
+  AnyVocabulary vocabulary_;
   std::unique_ptr<PlaceDatabase> database_;
 };
 
@@ -139,13 +153,12 @@ class DataDirectory {
   static Status ValidateMapName(const std::string& name);
 
   Result<std::shared_ptr<PlaceMap>> CreateMap(const std::string& name, const MapOptions& options,
-                                              std::shared_ptr<const Vocabulary> vocabulary);
+                                              AnyVocabulary vocabulary);
   // Reads a map's stored info without opening it for writing (e.g. to pick its vocabulary).
   Result<MapInfo> ReadMapInfo(const std::string& name) const;
   // Opens (or returns the already open) map; FAILED_PRECONDITION if `vocabulary` is not the
   // one the map was built with.
-  Result<std::shared_ptr<PlaceMap>> OpenMap(const std::string& name,
-                                            std::shared_ptr<const Vocabulary> vocabulary);
+  Result<std::shared_ptr<PlaceMap>> OpenMap(const std::string& name, AnyVocabulary vocabulary);
   std::vector<std::string> ListMaps() const;  // sorted
   Status DeleteMap(const std::string& name);
   // Copies a checkpoint made by PlaceMap::Checkpoint in as map `name` (which must not exist).

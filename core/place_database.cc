@@ -3,10 +3,26 @@
 #include <algorithm>
 #include <mutex>
 
+#include "core/agent_streams.h"
+
 namespace placedb {
 
+Status ValidateDepthConfig(const DepthConfig& config) {
+  PLACEDB_RETURN_IF_ERROR(ValidateRefineConfig(config.refine).WithContext("depth.refine"));
+  PLACEDB_RETURN_IF_ERROR(ValidateDepthFilterConfig(config.filter).WithContext("depth.filter"));
+  return Status::Ok();
+}
+
 Status ValidateDatabaseConfig(const DatabaseConfig& config) {
+  if (config.feature_type != FeatureType::kOrb && config.feature_type != FeatureType::kSift) {
+    return Status::InvalidArgument("feature_type " + std::to_string(int(config.feature_type)) +
+                                   " is not a feature type");
+  }
   PLACEDB_RETURN_IF_ERROR(ValidateOrbConfig(config.orb));
+  PLACEDB_RETURN_IF_ERROR(ValidateSiftConfig(config.sift));
+  PLACEDB_RETURN_IF_ERROR(ValidateDepthConfig(config.depth));
+  PLACEDB_RETURN_IF_ERROR(
+      ValidateLoopClosureConfig(config.loop_closure).WithContext("loop_closure"));
   PLACEDB_RETURN_IF_ERROR(ValidateFilterConfig(config.filter));
   PLACEDB_RETURN_IF_ERROR(ValidateVerificationConfig(config.verification));
   if (!(config.min_box_confidence >= 0.0f && config.min_box_confidence <= 1.0f)) {
@@ -29,10 +45,14 @@ size_t RecordBytes(const PlaceRecord& record) {
 }
 
 std::string InvalidReason(const FrameCounts& counts, int place_threshold) {
+  std::string depth;
+  if (counts.depth_removed > 0) {
+    depth = ", " + std::to_string(counts.depth_removed) + " removed by the depth filter";
+  }
   return "invalid place representation: " + std::to_string(counts.static_) +
          " static descriptors (" + std::to_string(counts.dynamic) + " of " +
-         std::to_string(counts.total) + " dropped as dynamic) is not more than placeThreshold " +
-         std::to_string(place_threshold);
+         std::to_string(counts.total) + " dropped as dynamic" + depth +
+         ") is not more than placeThreshold " + std::to_string(place_threshold);
 }
 
 }  // namespace
@@ -40,6 +60,8 @@ std::string InvalidReason(const FrameCounts& counts, int place_threshold) {
 size_t PayloadBytes(const PlacePayload& payload) {
   return sizeof(PlacePayload) + payload.features.keypoints.capacity() * sizeof(Keypoint) +
          payload.features.descriptors.capacity() * sizeof(Descriptor256) +
+         payload.float_features.keypoints.capacity() * sizeof(Keypoint) +
+         payload.float_features.descriptors.capacity() * sizeof(float) +
          payload.bow.capacity() * sizeof(BowEntry) +
          (payload.direct.node_ids.capacity() + payload.direct.offsets.capacity() +
           payload.direct.feature_ids.capacity()) *
@@ -78,18 +100,26 @@ size_t InMemoryPayloadStore::MemoryBytes() const {
   return bytes_ + payloads_.size() * (sizeof(PlaceId) + sizeof(void*) * 4);
 }
 
-PlaceDatabase::PlaceDatabase(std::shared_ptr<const Vocabulary> vocabulary, DatabaseConfig config,
+PlaceDatabase::PlaceDatabase(AnyVocabulary vocabulary, DatabaseConfig config,
                              std::shared_ptr<PayloadStore> payloads)
     : vocabulary_(std::move(vocabulary)),
       config_(std::move(config)),
       payloads_(payloads ? std::move(payloads) : std::make_shared<InMemoryPayloadStore>()),
-      index_(vocabulary_->word_count(), config_.scoring) {}
+      streams_(std::make_unique<AgentStreams>()),
+      index_(vocabulary_.word_count(), config_.scoring) {}
+
+PlaceDatabase::~PlaceDatabase() = default;
 
 Result<std::unique_ptr<PlaceDatabase>> PlaceDatabase::Create(
-    std::shared_ptr<const Vocabulary> vocabulary, DatabaseConfig config,
-    std::shared_ptr<PayloadStore> payloads) {
+    AnyVocabulary vocabulary, DatabaseConfig config, std::shared_ptr<PayloadStore> payloads) {
   if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
   PLACEDB_RETURN_IF_ERROR(ValidateDatabaseConfig(config));
+  if (vocabulary.feature_type() != config.feature_type) {
+    return Status::InvalidArgument(
+        std::string("feature_type ") + FeatureTypeName(config.feature_type) + " needs a " +
+        (config.feature_type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)") +
+        " vocabulary; this one is " + vocabulary.kind());
+  }
   return std::unique_ptr<PlaceDatabase>(
       new PlaceDatabase(std::move(vocabulary), std::move(config), std::move(payloads)));
 }
@@ -105,14 +135,38 @@ std::vector<DynamicBox> PlaceDatabase::SelectBoxes(const std::vector<DynamicBox>
   return selected;
 }
 
-Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation) const {
+Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
+                                              FrameRole role) const {
   ProcessedFrame frame;
+  frame.feature_type = config_.feature_type;
   Stopwatch total;
   Stopwatch stage;
+  const bool sift = config_.feature_type == FeatureType::kSift;
 
+  // ---- Extract (or validate the caller's features) into the map's feature type.
   FeatureSet extracted;
+  FloatFeatureSet extracted_float;
   const FeatureSet* features = nullptr;
-  if (observation.features.has_value()) {
+  const FloatFeatureSet* float_features = nullptr;
+  if (sift && observation.features.has_value()) {
+    return Status::InvalidArgument(
+        "this map's features are SIFT: it takes SIFT features or an image, not ORB features");
+  }
+  if (!sift && observation.float_features.has_value()) {
+    return Status::InvalidArgument(
+        "this map's features are ORB: it takes ORB features or an image, not SIFT features");
+  }
+  if (sift) {
+    if (observation.float_features.has_value()) {
+      PLACEDB_RETURN_IF_ERROR(ValidateFloatFeatures(*observation.float_features));
+      float_features = &*observation.float_features;
+    } else {
+      auto result = ExtractSift(observation.image, config_.sift);
+      if (!result.ok()) return result.status();
+      extracted_float = std::move(result).value();
+      float_features = &extracted_float;
+    }
+  } else if (observation.features.has_value()) {
     PLACEDB_RETURN_IF_ERROR(ValidateFeatures(*observation.features));
     features = &*observation.features;
   } else {
@@ -121,44 +175,230 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation) co
     extracted = std::move(result).value();
     features = &extracted;
   }
+  const int width = sift ? float_features->image_width : features->image_width;
+  const int height = sift ? float_features->image_height : features->image_height;
+  const std::vector<Keypoint>& keypoints = sift ? float_features->keypoints : features->keypoints;
   frame.timings.extract_ms = stage.Lap();
 
   DynamicObjects dynamic;
   dynamic.boxes = SelectBoxes(observation.dynamic.boxes);
   dynamic.mask = observation.dynamic.mask;
-  auto filtered = ClassifyDescriptors(*features, dynamic, config_.filter);
+  frame.boxes_used = dynamic.boxes;
+
+  // ---- Depth: decode, and narrow every dynamic box to its object's depth layer.
+  std::optional<CameraIntrinsics> intrinsics;
+  if (observation.depth.has_value()) {
+    const DepthObservation& depth = *observation.depth;
+    DepthFormat format = config_.depth.filter.format;
+    if (depth.metres_per_unit.has_value()) {
+      format.metres_per_unit = *depth.metres_per_unit;
+      format.float_metres_per_unit = *depth.metres_per_unit;
+      PLACEDB_RETURN_IF_ERROR(ValidateDepthFormat(format).WithContext("depth"));
+    }
+    auto metres = DepthToMetres(depth.raw, format);
+    if (!metres.ok()) return metres.status().WithContext("depth");
+    PLACEDB_RETURN_IF_ERROR(
+        CheckDepthRegistration(metres->cols, metres->rows, width, height).WithContext("depth"));
+    if (depth.intrinsics.has_value()) {
+      PLACEDB_RETURN_IF_ERROR(
+          ValidateIntrinsics(*depth.intrinsics, width, height).WithContext("depth.intrinsics"));
+      intrinsics = depth.intrinsics;
+    }
+    frame.depth_m = std::move(metres).value();
+    if (config_.depth.refine_boxes && !dynamic.boxes.empty()) {
+      auto refined =
+          RefineDynamicObjects(dynamic, frame.depth_m, width, height, config_.depth.refine);
+      if (!refined.ok()) return refined.status().WithContext("depth refinement");
+      for (const RefinedBox& box : refined->boxes) frame.boxes_refined += box.refined ? 1 : 0;
+      dynamic = std::move(refined->objects);
+    }
+    frame.timings.depth_ms += stage.Lap();
+  }
+
+  // ---- DC/SC.
+  auto filtered = sift ? ClassifyFloatDescriptors(*float_features, dynamic, config_.filter)
+                       : ClassifyDescriptors(*features, dynamic, config_.filter);
   if (!filtered.ok()) return filtered.status();
   frame.counts.total = uint32_t(filtered->total());
   frame.counts.dynamic = uint32_t(filtered->dynamic_indices.size());
   frame.counts.static_ = uint32_t(filtered->static_indices.size());
   frame.counts.dynamic_coverage = filtered->frame_dynamic_coverage;
-  frame.valid = filtered->valid;
-  frame.boxes_used = std::move(dynamic.boxes);
-  frame.timings.filter_ms = stage.Lap();
-
-  if (!frame.valid) {
-    // The paper's efficiency gain: an invalid representation is neither transformed, stored
-    // nor matched.
-    frame.rejection = InvalidReason(frame.counts, config_.filter.place_threshold);
-    frame.timings.total_ms = total.ElapsedMs();
-    return frame;
+  if (sift) {
+    frame.static_float_features =
+        filtered->dynamic_indices.empty()
+            ? *float_features
+            : SelectFloatFeatures(*float_features, filtered->static_indices);
+  } else {
+    frame.static_features = filtered->dynamic_indices.empty()
+                                ? *features
+                                : SelectFeatures(*features, filtered->static_indices);
   }
-  frame.static_features = filtered->dynamic_indices.empty()
-                              ? *features
-                              : SelectFeatures(*features, filtered->static_indices);
-  vocabulary_->Transform(frame.static_features.descriptors, &frame.bow, &frame.direct,
-                         config_.verification.levels_up);
-  NormalizeForScoring(&frame.bow, config_.scoring);
-  frame.timings.transform_ms = stage.Lap();
+  frame.timings.filter_ms = stage.Lap();
+  (void)keypoints;
+
+  // ---- Algorithm 1 needs the feature depths; the decision itself is per agent stream.
+  if (!frame.depth_m.empty() && config_.depth.stream_filter) {
+    const DepthFilterConfig& filter = config_.depth.filter;
+    if (filter.use_range && !intrinsics) {
+      return Status::InvalidArgument(
+          "depth.intrinsics: the map measures range (use_range) and "
+          "needs the camera intrinsics with every depth image");
+    }
+    const std::vector<Keypoint>& kept =
+        sift ? frame.static_float_features.keypoints : frame.static_features.keypoints;
+    frame.static_depth_m =
+        SampleFeatureDepths(frame.depth_m, width, height, kept, filter.feature_window_radius,
+                            filter.use_range ? &*intrinsics : nullptr);
+    if (role == FrameRole::kStream) {
+      frame.stream_pending = true;
+      frame.timings.depth_ms += stage.Lap();
+      frame.timings.total_ms = total.ElapsedMs();
+      return frame;
+    }
+    // A query applies the agent's current decision without advancing its stream.
+    if (auto stream = streams_->Find(observation.metadata.agent_id)) {
+      std::lock_guard lock(stream->mutex);
+      if (stream->last_depth && stream->last_depth->removing) {
+        ApplyDepthBand(&frame, *stream->last_depth, filter.remove_features_without_depth);
+      }
+    }
+    frame.timings.depth_ms += stage.Lap();
+  }
+  Finish(&frame, &stage);
   frame.timings.total_ms = total.ElapsedMs();
   return frame;
 }
 
+void PlaceDatabase::ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState& state,
+                                   bool remove_without_depth) {
+  frame->depth_state = state;
+  if (!state.removing) return;
+  std::vector<uint32_t> kept;
+  std::vector<uint32_t> removed;
+  SplitByBand(frame->static_depth_m, state.band, remove_without_depth, &kept, &removed);
+  if (removed.empty()) return;
+  if (frame->feature_type == FeatureType::kSift) {
+    frame->static_float_features = SelectFloatFeatures(frame->static_float_features, kept);
+  } else {
+    frame->static_features = SelectFeatures(frame->static_features, kept);
+  }
+  std::vector<float> depths;
+  depths.reserve(kept.size());
+  for (uint32_t i : kept) depths.push_back(frame->static_depth_m[i]);
+  frame->static_depth_m = std::move(depths);
+  frame->counts.depth_removed += uint32_t(removed.size());
+  frame->counts.static_ -= uint32_t(removed.size());
+}
+
+void PlaceDatabase::Finish(ProcessedFrame* frame, Stopwatch* stage) const {
+  frame->stream_pending = false;
+  frame->static_depth_m.clear();
+  frame->valid = int(frame->counts.static_) > config_.filter.place_threshold;
+  if (!frame->valid) {
+    // The paper's efficiency gain: an invalid representation is neither transformed, stored
+    // nor matched.
+    frame->rejection = InvalidReason(frame->counts, config_.filter.place_threshold);
+    return;
+  }
+  if (frame->feature_type == FeatureType::kSift) {
+    vocabulary_.floating()->Transform(frame->static_float_features.descriptors, &frame->bow,
+                                      &frame->direct, config_.verification.levels_up);
+  } else {
+    vocabulary_.binary()->Transform(frame->static_features.descriptors, &frame->bow, &frame->direct,
+                                    config_.verification.levels_up);
+  }
+  NormalizeForScoring(&frame->bow, config_.scoring);
+  frame->timings.transform_ms += stage->Lap();
+}
+
+Status PlaceDatabase::AdvanceStream(ProcessedFrame* frame, const std::string& agent_id) {
+  if (!frame->stream_pending) return Status::Ok();
+  Stopwatch stage;
+  const double before = frame->timings.depth_ms + frame->timings.transform_ms;
+  {
+    auto stream = streams_->Get(agent_id);
+    std::lock_guard lock(stream->mutex);
+    if (!stream->depth) {
+      auto filter = DepthStreamFilter::Create(config_.depth.filter);
+      if (!filter.ok()) return filter.status();
+      stream->depth.emplace(std::move(filter).value());
+    }
+    const DepthFrameState state = stream->depth->Observe(frame->depth_m);
+    stream->last_depth = state;
+    ApplyDepthBand(frame, state, config_.depth.filter.remove_features_without_depth);
+  }
+  frame->timings.depth_ms += stage.Lap();
+  Finish(frame, &stage);
+  frame->timings.total_ms += frame->timings.depth_ms + frame->timings.transform_ms - before;
+  return Status::Ok();
+}
+
+Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
+                                                    const PlaceMetadata& metadata,
+                                                    const std::function<Result<PlaceId>()>& store) {
+  if (frame.stream_pending) {
+    return Status::FailedPrecondition("CloseLoop needs a finished frame: call AdvanceStream first");
+  }
+  if (!frame.valid) return Status::InvalidArgument("loop closure needs a valid frame");
+  auto stream = streams_->Get(metadata.agent_id);
+  std::lock_guard lock(stream->mutex);
+  if (!stream->loop) {
+    LoopClosureConfig config = config_.loop_closure;
+    config.scoring = config_.scoring;  // the long-term memory hands back the payloads' vectors
+    stream->ltm = std::make_shared<PayloadLongTermMemory>(payloads_);
+    auto detector = LoopClosureDetector::Create(vocabulary_.word_count(), config, stream->ltm);
+    if (!detector.ok()) return detector.status();
+    stream->loop = std::move(detector).value();
+  }
+  auto update = stream->loop->Update(frame.bow, metadata.sequence);
+  if (!update.ok()) return update.status();
+  LoopClosureOutcome outcome;
+  outcome.merged = update->merged;
+  outcome.candidates = update->candidates;
+  outcome.retrieved = update->retrieved.size();
+  outcome.transferred = update->transferred.size();
+  outcome.update_ms = update->total_ms;
+  if (update->loop) {
+    outcome.loop = stream->ltm->Bound(*update->loop);
+    outcome.loop_posterior = update->best_posterior;
+    if (*outcome.loop == 0) outcome.loop.reset();  // a place whose store had failed
+  }
+  outcome.best = stream->ltm->Bound(update->best);
+  outcome.best_posterior = update->best_posterior;
+  if (update->merged) {
+    outcome.place = stream->ltm->Bound(update->place);
+    return outcome;
+  }
+  Result<PlaceId> stored = store ? store() : Insert(frame, metadata);
+  if (!stored.ok()) return stored.status();
+  stream->ltm->Bind(update->place, *stored);
+  outcome.place = *stored;
+  return outcome;
+}
+
+Status PlaceDatabase::ResetStream(const std::string& agent_id) {
+  if (!streams_->Erase(agent_id)) {
+    return Status::NotFound("agent '" + agent_id + "' has no stream state");
+  }
+  return Status::Ok();
+}
+
+Result<LoopClosureStats> PlaceDatabase::LoopStats(const std::string& agent_id) const {
+  auto stream = streams_->Find(agent_id);
+  if (stream) {
+    std::lock_guard lock(stream->mutex);
+    if (stream->loop) return stream->loop->Stats();
+  }
+  return Status::NotFound("agent '" + agent_id + "' has no loop-closure state");
+}
+
 Result<AddResult> PlaceDatabase::Add(const Observation& observation) {
-  auto processed = Process(observation);
+  auto processed = Process(observation, FrameRole::kStream);
   if (!processed.ok()) return processed.status();
   ProcessedFrame& frame = *processed;
+  PLACEDB_RETURN_IF_ERROR(AdvanceStream(&frame, observation.metadata.agent_id));
   AddResult result;
+  result.depth_state = frame.depth_state;
   result.counts = frame.counts;
   result.boxes_used = frame.boxes_used;
   result.timings = frame.timings;
@@ -191,7 +431,11 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
   record->counts = frame.counts;
   record->boxes_used = frame.boxes_used;
   auto payload = std::make_shared<PlacePayload>();
+  if (frame.feature_type != config_.feature_type) {
+    return Status::InvalidArgument("frame's features are not the database's type");
+  }
   payload->features = frame.static_features;
+  payload->float_features = frame.static_float_features;
   payload->direct = frame.direct;
   payload->bow = frame.bow;
 
@@ -272,7 +516,7 @@ Status PlaceDatabase::Remove(PlaceId id) {
 
 Result<QueryResult> PlaceDatabase::Query(const Observation& observation,
                                          const QueryOptions& options) const {
-  auto processed = Process(observation);
+  auto processed = Process(observation, FrameRole::kQuery);
   if (!processed.ok()) return processed.status();
   return Search(*processed, options);
 }
@@ -284,6 +528,7 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
   result.counts = frame.counts;
   result.boxes_used = frame.boxes_used;
   result.timings = frame.timings;
+  result.depth_state = frame.depth_state;
   if (!frame.valid || options.top_k == 0) return result;
 
   Stopwatch stage;
@@ -320,8 +565,12 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
     if (i < to_verify) {
       auto payload = payloads_->Get(scored.place);
       if (!payload.ok()) continue;  // removed while we searched
-      auto verified = VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                                     (*payload)->direct, verification);
+      auto verified =
+          frame.feature_type == FeatureType::kSift
+              ? VerifyGeometry(frame.static_float_features, frame.direct,
+                               (*payload)->float_features, (*payload)->direct, verification)
+              : VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
+                               (*payload)->direct, verification);
       if (verified.ok()) {
         match.inliers = verified->inliers;
         match.verified = verified->verified;
@@ -362,6 +611,16 @@ DatabaseStats PlaceDatabase::Stats() const {
   stats.index_bytes = index_.MemoryBytes();
   stats.record_bytes = record_bytes_;
   stats.payload_bytes = payloads_->MemoryBytes();
+  lock.unlock();
+  for (const auto& stream : streams_->All()) {
+    ++stats.streams;
+    std::lock_guard stream_lock(stream->mutex);
+    if (!stream->loop) continue;
+    const LoopClosureStats loop = stream->loop->Stats();
+    stats.loop_working_memory += loop.short_term + loop.working;
+    stats.loop_long_term += loop.long_term;
+    stats.loops_accepted += loop.loops;
+  }
   return stats;
 }
 

@@ -1,13 +1,21 @@
 // PlaceDatabase: one in-memory place database (a "map") and the frame pipeline in front of it.
 //
-// A frame goes: extract (ORB, or the caller's precomputed features) -> filter (DC/SC by the
-// dynamic objects) -> validity (|SC| > placeThreshold) -> transform (SC-only BoW vector and
-// direct index) -> store or search -> verify. An invalid frame is neither stored nor matched;
-// the result says why. DC descriptors are counted and dropped, never kept.
+// A frame goes: extract (ORB or SIFT, by the map's feature type, or the caller's precomputed
+// features) -> [depth: refine the dynamic boxes to the objects' depth layers] -> filter (DC/SC by
+// the dynamic objects) -> [depth, stream frames: Algorithm 1 of Deng et al. for the agent's
+// stream, AdvanceStream()] -> validity (|SC| > placeThreshold) -> transform (SC-only BoW vector
+// and direct index) -> store or search -> verify -> [loop closure for the agent's stream,
+// CloseLoop()]. An invalid frame is neither stored nor matched; the result says why. DC
+// descriptors, and those Algorithm 1 removes, are counted and dropped, never kept.
+//
+// Per-agent state (core/agent_streams.h): Algorithm 1 and the Bayesian loop-closure detector
+// need the agent's frames in order, so they run in AdvanceStream() / CloseLoop(), which the
+// caller invokes in each agent's sequence order; everything else is stateless and parallel.
 //
 // Thread safety: any number of concurrent Query() calls together with Add()/Remove(). The
 // expensive stages run outside any lock; only index mutation takes the writer lock and
-// searching takes the reader lock. Verification reads immutable, shared place records.
+// searching takes the reader lock. Verification reads immutable, shared place records. Calls
+// for one agent stream serialise on that stream's own mutex.
 #pragma once
 
 #include <array>
@@ -21,26 +29,48 @@
 #include <unordered_map>
 #include <vector>
 
+#include "core/any_vocabulary.h"
 #include "core/bow.h"
+#include "core/depth_filter.h"
 #include "core/dynamic_filter.h"
 #include "core/features.h"
 #include "core/geometric_verifier.h"
+#include "core/loop_closure.h"
 #include "core/place_index.h"
 #include "core/scoring.h"
+#include "core/sift_features.h"
 #include "core/status.h"
 #include "core/timing.h"
 #include "core/vocabulary.h"
 
 namespace placedb {
 
+// What a map does with depth (docs/rgbd.md). Only frames that carry depth are affected.
+struct DepthConfig {
+  // Inside a dynamic box only the object's own depth layer is dynamic (beyond the paper).
+  bool refine_boxes = true;
+  RefineConfig refine;
+  // Algorithm 1 on each agent's stream of frames with depth (AdvanceStream()).
+  bool stream_filter = true;
+  DepthFilterConfig filter;  // filter.format: default scale and valid range of depth images
+};
+
+Status ValidateDepthConfig(const DepthConfig& config);
+
 struct DatabaseConfig {
+  // The map's feature type; must be the vocabulary's (binary -> ORB, float -> SIFT).
+  FeatureType feature_type = FeatureType::kOrb;
   OrbConfig orb;
+  SiftConfig sift;
   FilterConfig filter;
   // Boxes of these COCO classes at or above this confidence count as dynamic objects.
   std::vector<int> dynamic_classes = {0, 1, 2, 3, 5, 7};
   float min_box_confidence = 0.2f;
   ScoringType scoring = ScoringType::kL1;
   VerificationConfig verification;
+  DepthConfig depth;
+  // The Bayesian loop closure of CloseLoop(); its scoring is always the database's.
+  LoopClosureConfig loop_closure;
 };
 
 Status ValidateDatabaseConfig(const DatabaseConfig& config);
@@ -59,10 +89,21 @@ struct PlaceMetadata {
   bool operator==(const PlaceMetadata&) const = default;
 };
 
-// One frame as the engine sees it: an image, or precomputed features, plus dynamic objects.
+// A depth image registered to the colour image (same aspect ratio; it may be smaller).
+struct DepthObservation {
+  cv::Mat raw;  // CV_16U (units of metres_per_unit) or CV_32F
+  // Overrides the map's depth format for this frame (metres per unit of `raw`).
+  std::optional<double> metres_per_unit;
+  std::optional<CameraIntrinsics> intrinsics;  // of the colour image
+};
+
+// One frame as the engine sees it: an image, or precomputed features, plus dynamic objects and
+// optionally depth.
 struct Observation {
-  cv::Mat image;                       // 8-bit gray or BGR; used when `features` is empty
-  std::optional<FeatureSet> features;  // precomputed keypoints + descriptors (validated)
+  cv::Mat image;  // 8-bit gray or BGR; used when no precomputed features are given
+  std::optional<FeatureSet> features;             // ORB maps: precomputed ORB (validated)
+  std::optional<FloatFeatureSet> float_features;  // SIFT maps: precomputed SIFT (validated)
+  std::optional<DepthObservation> depth;
   DynamicObjects dynamic;
   PlaceMetadata metadata;
 };
@@ -72,18 +113,41 @@ struct FrameCounts {
   uint32_t dynamic = 0;         // DC: dropped
   uint32_t static_ = 0;         // SC: kept
   double dynamic_coverage = 0;  // fraction of the image's pixels on dynamic objects
+  // Of the non-DC descriptors, removed by Algorithm 1 (an approaching object seen in depth);
+  // total = dynamic + depth_removed + static_.
+  uint32_t depth_removed = 0;
+};
+
+// Which per-agent state a frame may use.
+enum class FrameRole {
+  kQuery,   // stateless; Algorithm 1's current decision for the agent applies, unchanged
+  kStream,  // the agent's next frame: AdvanceStream() must follow, in the agent's order
 };
 
 // The outcome of extract + filter + transform for one frame.
 struct ProcessedFrame {
   FrameCounts counts;
   bool valid = false;
-  std::string rejection;       // why the frame is invalid; empty when valid
-  FeatureSet static_features;  // SC only
-  BowVector bow;               // SC only, normalised for the database's scoring
-  DirectIndex direct;          // SC only, at verification.levels_up
+  std::string rejection;  // why the frame is invalid; empty when valid
+  FeatureType feature_type = FeatureType::kOrb;
+  FeatureSet static_features;             // SC only (ORB maps)
+  FloatFeatureSet static_float_features;  // SC only (SIFT maps)
+  BowVector bow;                          // SC only, normalised for the database's scoring
+  DirectIndex direct;                     // SC only, at verification.levels_up
   std::vector<DynamicBox> boxes_used;
   StageTimings timings;
+
+  // RGB-D. `depth_m` is the frame's depth in metres (CV_32F, 0 = invalid), empty without depth.
+  cv::Mat depth_m;
+  size_t boxes_refined = 0;           // boxes narrowed to their object's depth layer
+  std::vector<float> static_depth_m;  // per SC feature while Algorithm 1 is pending
+  bool stream_pending = false;        // Process(kStream) left Algorithm 1 to AdvanceStream()
+  std::optional<DepthFrameState> depth_state;  // Algorithm 1's decision for this frame
+
+  size_t static_count() const {
+    return feature_type == FeatureType::kSift ? static_float_features.size()
+                                              : static_features.size();
+  }
 };
 
 // What the database keeps in memory per place: small, immutable once stored.
@@ -97,9 +161,10 @@ struct PlaceRecord {
 // The bulky part of a place: what verification and removal need. Kept by a PayloadStore, so a
 // persistent map can leave it on disk and read it only for the candidates it verifies.
 struct PlacePayload {
-  FeatureSet features;  // SC keypoints + descriptors
-  DirectIndex direct;   // at the database's verification.levels_up
-  BowVector bow;        // normalised for the database's scoring
+  FeatureSet features;             // SC keypoints + descriptors (ORB maps)
+  FloatFeatureSet float_features;  // SC keypoints + descriptors (SIFT maps)
+  DirectIndex direct;              // at the database's verification.levels_up
+  BowVector bow;                   // normalised for the database's scoring
 };
 
 // Where PlaceDatabase keeps payloads. Implementations must allow concurrent Get() calls with
@@ -139,6 +204,7 @@ struct AddResult {
   FrameCounts counts;
   std::vector<DynamicBox> boxes_used;
   StageTimings timings;
+  std::optional<DepthFrameState> depth_state;
 };
 
 struct QueryOptions {
@@ -163,6 +229,21 @@ struct QueryResult {
   std::vector<DynamicBox> boxes_used;
   std::vector<Match> matches;  // best first
   StageTimings timings;
+  std::optional<DepthFrameState> depth_state;
+};
+
+// The loop-closure answer for one stream frame (CloseLoop()), in database place ids.
+struct LoopClosureOutcome {
+  bool merged = false;          // rehearsal: the frame was merged into `place`, not stored
+  PlaceId place = 0;            // the place the frame became (stored) or was merged into
+  std::optional<PlaceId> loop;  // accepted loop closure: the revisited place
+  double loop_posterior = 0;    // posterior of the accepted loop (0 without one)
+  PlaceId best = 0;             // best hypothesis, accepted or not (0: none, or unbound)
+  double best_posterior = 0;
+  size_t candidates = 0;   // places in the agent's working memory that were searched
+  size_t retrieved = 0;    // long-term -> working memory in this update
+  size_t transferred = 0;  // working -> long-term memory in this update
+  double update_ms = 0;    // the detector's update alone
 };
 
 struct DatabaseStats {
@@ -173,23 +254,50 @@ struct DatabaseStats {
   size_t index_bytes = 0;            // inverted index (postings + tables)
   size_t record_bytes = 0;           // in-memory place records (metadata, counts, boxes)
   size_t payload_bytes = 0;          // payloads the PayloadStore holds in memory
+  // Agent streams with per-agent state, and their loop-closure memory (summed over agents).
+  size_t streams = 0;
+  size_t loop_working_memory = 0;  // places searched by loop closure (STM + WM)
+  size_t loop_long_term = 0;       // places in long-term memory (in the payload store, unsearched)
+  uint64_t loops_accepted = 0;
 };
+
+class AgentStreams;
 
 class PlaceDatabase {
  public:
-  // INVALID_ARGUMENT for a bad config; the vocabulary is shared, never copied. Without a
-  // payload store, payloads stay in memory.
+  // INVALID_ARGUMENT for a bad config or a vocabulary of the wrong kind for
+  // config.feature_type; the vocabulary is shared, never copied. Without a payload store,
+  // payloads stay in memory.
   static Result<std::unique_ptr<PlaceDatabase>> Create(
-      std::shared_ptr<const Vocabulary> vocabulary, DatabaseConfig config,
+      AnyVocabulary vocabulary, DatabaseConfig config,
       std::shared_ptr<PayloadStore> payloads = nullptr);
+  ~PlaceDatabase();
 
   const DatabaseConfig& config() const { return config_; }
-  const std::shared_ptr<const Vocabulary>& vocabulary() const { return vocabulary_; }
+  const AnyVocabulary& vocabulary() const { return vocabulary_; }
 
-  // Extract, filter, validate and transform without touching the database.
-  Result<ProcessedFrame> Process(const Observation& observation) const;
+  // Extract, filter, validate and transform without touching the database. With kStream and
+  // depth (and config.depth.stream_filter), Algorithm 1, validity and transform are left to
+  // AdvanceStream() (`stream_pending`).
+  Result<ProcessedFrame> Process(const Observation& observation,
+                                 FrameRole role = FrameRole::kQuery) const;
+  // Finishes a kStream frame: Algorithm 1 with the agent's stream state (frames of one agent
+  // must arrive here in order), then validity and transform. No-op unless `stream_pending`.
+  Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);
 
-  // Processes and, when valid, stores the frame under a new id.
+  // Loop closure for an agent's stream (frames in order): updates the agent's detector with a
+  // valid frame, then, unless rehearsal merged the frame into the previous place, calls `store`
+  // (which persists the frame and returns its place id) and binds the detector's place to it.
+  // With `store` null, Insert() is used. The agent's places in long-term memory are read back
+  // from the payload store when retrieved.
+  Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                       const std::function<Result<PlaceId>()>& store = nullptr);
+  // Forgets an agent's stream state (Algorithm 1 and loop closure); NOT_FOUND if none.
+  Status ResetStream(const std::string& agent_id);
+  // The agent's loop-closure statistics; NOT_FOUND when it has no detector yet.
+  Result<LoopClosureStats> LoopStats(const std::string& agent_id) const;
+
+  // Processes (as the agent's next stream frame) and, when valid, stores the frame.
   Result<AddResult> Add(const Observation& observation);
   // Stores an already processed valid frame. With `id` given (restoring from storage) that id is
   // used: ALREADY_EXISTS if taken. Returns the id.
@@ -216,16 +324,22 @@ class PlaceDatabase {
   PlaceId next_id() const;
 
  private:
-  PlaceDatabase(std::shared_ptr<const Vocabulary> vocabulary, DatabaseConfig config,
+  PlaceDatabase(AnyVocabulary vocabulary, DatabaseConfig config,
                 std::shared_ptr<PayloadStore> payloads);
+  // Validity, then the BoW vector and direct index of the SC features.
+  void Finish(ProcessedFrame* frame, Stopwatch* stage) const;
+  // Removes the SC features whose depth lies in Algorithm 1's band (when it is removing).
+  static void ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState& state,
+                             bool remove_without_depth);
   // Adds the record and its postings; caller holds the writer lock.
   Status InsertLocked(std::shared_ptr<const PlaceRecord> record, const BowVector& bow);
   void UndoInsertLocked(PlaceId id, const BowVector& bow);
   std::vector<DynamicBox> SelectBoxes(const std::vector<DynamicBox>& boxes) const;
 
-  const std::shared_ptr<const Vocabulary> vocabulary_;
+  const AnyVocabulary vocabulary_;
   const DatabaseConfig config_;
   const std::shared_ptr<PayloadStore> payloads_;
+  const std::unique_ptr<AgentStreams> streams_;
 
   mutable std::shared_mutex mutex_;
   InvertedIndex index_;

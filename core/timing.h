@@ -6,14 +6,16 @@
 namespace placedb {
 
 struct StageTimings {
-  double decode_ms = 0;     // filled by the service (image decoding)
-  double detect_ms = 0;     // filled by the service (object detection)
-  double extract_ms = 0;    // feature extraction (0 for precomputed features)
-  double filter_ms = 0;     // DC/SC classification
-  double transform_ms = 0;  // BoW vector + direct index
-  double search_ms = 0;     // inverted-index query
-  double verify_ms = 0;     // geometric verification
-  double store_ms = 0;      // inserting into the index (and, with storage, persisting)
+  double decode_ms = 0;        // filled by the service (image decoding)
+  double detect_ms = 0;        // filled by the service (object detection)
+  double extract_ms = 0;       // feature extraction (0 for precomputed features)
+  double depth_ms = 0;         // RGB-D: depth decoding, box refinement, Algorithm 1
+  double filter_ms = 0;        // DC/SC classification
+  double transform_ms = 0;     // BoW vector + direct index
+  double search_ms = 0;        // inverted-index query
+  double verify_ms = 0;        // geometric verification
+  double store_ms = 0;         // inserting into the index (and, with storage, persisting)
+  double loop_closure_ms = 0;  // the agent's Bayesian loop-closure update
   double total_ms = 0;
 };
 

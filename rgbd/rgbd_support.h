@@ -63,4 +63,24 @@ std::string SiftVocabularyPath();
 Result<std::shared_ptr<const FloatVocabulary>> LoadOrTrainSiftVocabulary(
     const std::string& path, const SiftVocabularyOptions& options = {});
 
+// ---- A person walking up to the camera, for Algorithm 1 -----------------------------------
+
+// The front-facing person of rgbd-people test2 (second frame): colour, depth (metres), mask of
+// the largest connected region nearer than 2 m, and its median depth. Empty without the data.
+struct PersonSprite {
+  cv::Mat bgr, metres, mask;
+  float depth = 0;
+};
+PersonSprite LoadPersonSprite();
+
+struct Composite {
+  cv::Mat bgr, metres, person;  // person: pixels where the person is visible (255)
+};
+// The room (colour + depth in metres, with ~0.5 % depth jitter and a little image noise from
+// `rng`) with the person at distance z (metres; z <= 0: no person), scaled about the principal
+// point (z0 / z, depths shifted by z - z0) and composited by z-buffer.
+Composite ComposePerson(const PersonSprite& sprite, const cv::Mat& room_bgr,
+                        const cv::Mat& room_metres, const CameraIntrinsics& k, double z,
+                        cv::RNG* rng);
+
 }  // namespace placedb::rgbd

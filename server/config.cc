@@ -12,6 +12,10 @@
 
 namespace placedb::server {
 
+std::map<std::string, std::string> EmbeddedVocabularies() {
+  return {{"default", "var/vocabulary/default.pdbv"}, {"sift", "var/vocabulary/sift-debian.pdbfv"}};
+}
+
 int ServerConfig::worker_threads() const {
   if (threads > 0) return threads;
   return std::max(1, int(std::thread::hardware_concurrency()));
@@ -158,6 +162,18 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
       vocabularies[name] = path;
     }
     c->vocabularies = std::move(vocabularies);
+    // Entries that repeat an embedded default (as --print-config and server/placedb.yaml do)
+    // stay optional like the default itself; any other entry is required.
+    const std::map<std::string, std::string> embedded = EmbeddedVocabularies();
+    std::set<std::string> optional;
+    for (const auto& [name, path] : c->vocabularies) {
+      auto it = embedded.find(name);
+      if (name != "default" && it != embedded.end() && it->second == path &&
+          c->optional_vocabularies.count(name)) {
+        optional.insert(name);
+      }
+    }
+    c->optional_vocabularies = std::move(optional);
   }
   if (const YAML::Node s = root["storage"]; s) {
     PLACEDB_RETURN_IF_ERROR(
@@ -331,6 +347,7 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
       return Bad("--vocabulary", "'" + entry + "' is not NAME=PATH");
     }
     c.vocabularies[entry.substr(0, eq)] = entry.substr(eq + 1);
+    c.optional_vocabularies.erase(entry.substr(0, eq));  // named on the command line: required
   }
   (void)o_vocab;
   if (o_msg->count()) c.limits.max_message_bytes = max_message_bytes;

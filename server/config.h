@@ -7,6 +7,7 @@
 #include <functional>
 #include <map>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -19,7 +20,7 @@ namespace placedb::server {
 struct Limits {
   uint64_t max_message_bytes = uint64_t(16) << 20;  // one gRPC message (an observation)
   uint64_t max_image_pixels = 4096 * 4096;          // width * height of any image, mask, depth
-  uint32_t max_descriptors_per_frame = 10000;       // keypoints sent, or a map's ORB budget
+  uint32_t max_descriptors_per_frame = 10000;       // keypoints sent, or a map's ORB/SIFT budget
   uint32_t max_boxes_per_frame = 256;               // agent boxes of one observation
   uint32_t max_concurrent_streams = 32;             // open Ingest streams
   uint32_t max_queued_frames = 32;                  // frames waiting for a worker (all calls)
@@ -46,6 +47,10 @@ struct DetectorSettings {
   bool required = false;
 };
 
+// The embedded vocabularies: default (ORB, var/vocabulary/default.pdbv) and sift (SIFT,
+// var/vocabulary/sift-debian.pdbfv); tools/setup.sh builds both.
+std::map<std::string, std::string> EmbeddedVocabularies();
+
 struct ServerConfig {
   std::string listen = "0.0.0.0:50051";
   std::string metrics_listen = "0.0.0.0:9464";  // empty = no metrics endpoint
@@ -53,8 +58,13 @@ struct ServerConfig {
   std::string data_dir = "./var/data";
   int threads = 0;         // worker threads; 0 = hardware concurrency
   int opencv_threads = 1;  // cv::setNumThreads; frames are parallel already. -1 = leave alone
-  // name -> vocabulary file; "default" is required (CreateMap with no vocabulary uses it).
-  std::map<std::string, std::string> vocabularies = {{"default", "var/vocabulary/default.pdbv"}};
+  // name -> vocabulary file: binary .pdbv / DBoW2 text (ORB maps) or float .pdbfv (SIFT maps).
+  // "default" is required (CreateMap with no vocabulary uses it).
+  std::map<std::string, std::string> vocabularies = EmbeddedVocabularies();
+  // Of those, the ones the server runs without when their file is missing (a warning; maps that
+  // need one are unavailable, with the reason): the embedded defaults other than "default", as
+  // long as they keep their embedded path. A vocabulary named by a flag is always required.
+  std::set<std::string> optional_vocabularies = {"sift"};
   StorageOptions storage;
   Limits limits;
   double shutdown_deadline_s = 30;  // in-flight calls get this long on SIGTERM/SIGINT

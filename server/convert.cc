@@ -232,10 +232,219 @@ v1::BoxSource BoxSourceToProto(BoxSource source) {
 
 }  // namespace
 
+namespace {
+
+const char* KindOf(FeatureType type) {
+  return type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)";
+}
+
+const char* FeatureTypeProtoName(FeatureType type) {
+  return type == FeatureType::kSift ? "FEATURE_TYPE_SIFT" : "FEATURE_TYPE_ORB";
+}
+
+Result<FeatureType> FeatureTypeFromProto(v1::FeatureType type, const MapVocabulary& vocabulary) {
+  FeatureType wanted = vocabulary.feature_type;
+  switch (type) {
+    case v1::FEATURE_TYPE_UNSPECIFIED:
+      return vocabulary.feature_type;
+    case v1::FEATURE_TYPE_ORB:
+      wanted = FeatureType::kOrb;
+      break;
+    case v1::FEATURE_TYPE_SIFT:
+      wanted = FeatureType::kSift;
+      break;
+    default:
+      return Invalid("config.feature_type", "unknown value " + std::to_string(int(type)));
+  }
+  if (wanted != vocabulary.feature_type) {
+    return Invalid("config.feature_type",
+                   std::string(FeatureTypeProtoName(wanted)) + " needs a " + KindOf(wanted) +
+                       " vocabulary, but vocabulary '" + vocabulary.name + "' is " +
+                       KindOf(vocabulary.feature_type) + ": name one of the server's " +
+                       KindOf(wanted) +
+                       " vocabularies in config.vocabulary (GetServerInfo lists them)");
+  }
+  return wanted;
+}
+
+Result<BandPolicy> BandPolicyFromProto(v1::BandPolicy policy) {
+  switch (policy) {
+    case v1::BAND_POLICY_UNSPECIFIED:
+    case v1::BAND_POLICY_APPEARED_LAYER:
+      return BandPolicy::kAppearedLayer;
+    case v1::BAND_POLICY_FIXED:
+      return BandPolicy::kFixed;
+    case v1::BAND_POLICY_NEAREST_LAYER:
+      return BandPolicy::kNearestLayer;
+    default:
+      return Invalid("config.depth.band_policy", "unknown value " + std::to_string(int(policy)));
+  }
+}
+
+v1::BandPolicy BandPolicyToProto(BandPolicy policy) {
+  switch (policy) {
+    case BandPolicy::kFixed:
+      return v1::BAND_POLICY_FIXED;
+    case BandPolicy::kNearestLayer:
+      return v1::BAND_POLICY_NEAREST_LAYER;
+    case BandPolicy::kAppearedLayer:
+      return v1::BAND_POLICY_APPEARED_LAYER;
+  }
+  return v1::BAND_POLICY_UNSPECIFIED;
+}
+
+Status BandFromProto(const v1::DepthBand& band, const std::string& field, DepthBand* out) {
+  if (!std::isfinite(band.near_m()) || !std::isfinite(band.far_m()) || band.near_m() < 0 ||
+      band.far_m() < band.near_m()) {
+    return Invalid(field, "must satisfy 0 <= near_m <= far_m, got [" + Num(band.near_m()) + ", " +
+                              Num(band.far_m()) + "]");
+  }
+  *out = DepthBand{band.near_m(), band.far_m()};
+  return Status::Ok();
+}
+
+// The map's depth handling (docs/rgbd.md); messages name the proto fields.
+Status DepthSettingsFromProto(const v1::DepthSettings& s, DepthConfig* depth) {
+  const std::string at = "config.depth.";
+  if (s.has_refine_boxes()) depth->refine_boxes = s.refine_boxes();
+  if (s.has_stream_filter()) depth->stream_filter = s.stream_filter();
+  DepthFilterConfig& f = depth->filter;
+  if (s.has_scale()) {
+    if (!std::isfinite(s.scale()) || !(s.scale() > 0)) {
+      return Invalid(at + "scale",
+                     "must be positive (metres per png16 unit), got " + Num(s.scale()));
+    }
+    f.format.metres_per_unit = s.scale();
+  }
+  if (s.has_min_depth_m()) {
+    if (!std::isfinite(s.min_depth_m()) || s.min_depth_m() < 0) {
+      return Invalid(at + "min_depth_m", "must be >= 0, got " + Num(s.min_depth_m()));
+    }
+    f.format.min_depth_m = s.min_depth_m();
+  }
+  if (s.has_max_depth_m()) {
+    if (!std::isfinite(s.max_depth_m()) || !(s.max_depth_m() > 0)) {
+      return Invalid(at + "max_depth_m", "must be positive, got " + Num(s.max_depth_m()));
+    }
+    f.format.max_depth_m = s.max_depth_m();
+  }
+  if (!(f.format.max_depth_m > f.format.min_depth_m)) {
+    return Invalid(at + (s.has_max_depth_m() ? "max_depth_m" : "min_depth_m"),
+                   "the valid range must satisfy min_depth_m < max_depth_m, got [" +
+                       Num(f.format.min_depth_m) + ", " + Num(f.format.max_depth_m) + "]");
+  }
+  if (s.has_mean_all_pixels()) {
+    f.mean_mode = s.mean_all_pixels() ? MeanDepthMode::kAllPixels : MeanDepthMode::kValidPixels;
+  }
+  if (s.has_threshold_m()) {
+    if (!std::isfinite(s.threshold_m()) || !(s.threshold_m() > 0)) {
+      return Invalid(at + "threshold_m", "must be positive, got " + Num(s.threshold_m()));
+    }
+    f.threshold_m = s.threshold_m();
+  }
+  if (s.has_persistence()) {
+    if (s.persistence() < 0 || s.persistence() > 10000) {
+      return Invalid(at + "persistence",
+                     "must be in [0, 10000], got " + std::to_string(s.persistence()));
+    }
+    f.persistence = s.persistence();
+  }
+  if (s.has_static_window()) {
+    if (s.static_window() < 1 || s.static_window() > 10000) {
+      return Invalid(at + "static_window",
+                     "must be in [1, 10000], got " + std::to_string(s.static_window()));
+    }
+    f.static_window = s.static_window();
+    // The warm-up (not exposed) builds the window: it cannot be longer than the window.
+    f.warmup_frames = std::min(f.warmup_frames, f.static_window);
+  }
+  auto policy = BandPolicyFromProto(s.band_policy());
+  if (!policy.ok()) return policy.status();
+  f.band_policy = *policy;
+  if (s.has_rise_band()) {
+    PLACEDB_RETURN_IF_ERROR(BandFromProto(s.rise_band(), at + "rise_band", &f.rise_band));
+  }
+  if (s.has_fall_band()) {
+    PLACEDB_RETURN_IF_ERROR(BandFromProto(s.fall_band(), at + "fall_band", &f.fall_band));
+  }
+  if (s.has_remove_features_without_depth()) {
+    f.remove_features_without_depth = s.remove_features_without_depth();
+  }
+  if (s.has_use_range()) f.use_range = s.use_range();
+  if (s.has_rebaseline_after()) {
+    if (s.rebaseline_after() < 0) {
+      return Invalid(at + "rebaseline_after",
+                     "must be >= 0 (0 = never), got " + std::to_string(s.rebaseline_after()));
+    }
+    f.rebaseline_after = s.rebaseline_after();
+  }
+  return Status::Ok();
+}
+
+Status LoopClosureSettingsFromProto(const v1::LoopClosureSettings& s, LoopClosureConfig* c) {
+  const std::string at = "config.loop_closure.";
+  if (s.has_loop_threshold()) {
+    if (!(s.loop_threshold() >= 0 && s.loop_threshold() <= 1)) {
+      return Invalid(at + "loop_threshold", "must be in [0, 1], got " + Num(s.loop_threshold()));
+    }
+    c->loop_threshold = s.loop_threshold();
+  }
+  if (s.has_rehearsal_threshold()) {
+    if (!std::isfinite(s.rehearsal_threshold()) || !(s.rehearsal_threshold() >= 0)) {
+      return Invalid(at + "rehearsal_threshold", "must be >= 0 (above 1 disables rehearsal), got " +
+                                                     Num(s.rehearsal_threshold()));
+    }
+    c->rehearsal_threshold = s.rehearsal_threshold();
+  }
+  if (s.has_short_term_memory()) {
+    if (s.short_term_memory() < 0 || s.short_term_memory() > 100000) {
+      return Invalid(at + "short_term_memory",
+                     "must be in [0, 100000], got " + std::to_string(s.short_term_memory()));
+    }
+    c->short_term_memory = s.short_term_memory();
+  }
+  if (s.has_max_working_memory()) c->max_working_memory = s.max_working_memory();
+  if (s.has_time_budget_ms()) {
+    if (!std::isfinite(s.time_budget_ms()) || !(s.time_budget_ms() >= 0)) {
+      return Invalid(at + "time_budget_ms",
+                     "must be >= 0 (0 = no budget), got " + Num(s.time_budget_ms()));
+    }
+    c->time_budget_ms = s.time_budget_ms();
+  }
+  if (s.has_min_candidates()) {
+    if (s.min_candidates() < 1 || s.min_candidates() > 100000) {
+      return Invalid(at + "min_candidates",
+                     "must be in [1, 100000], got " + std::to_string(s.min_candidates()));
+    }
+    c->min_candidates = s.min_candidates();
+  }
+  return Status::Ok();
+}
+
+Status CheckBudget(const char* field, int max_features, const Limits& limits) {
+  if (uint64_t(max_features) > limits.max_descriptors_per_frame) {
+    return Status::ResourceExhausted(std::string(field) + " = " + std::to_string(max_features) +
+                                     " exceeds limits.max_descriptors_per_frame = " +
+                                     std::to_string(limits.max_descriptors_per_frame));
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
+v1::FeatureType FeatureTypeToProto(FeatureType type) {
+  return type == FeatureType::kSift ? v1::FEATURE_TYPE_SIFT : v1::FEATURE_TYPE_ORB;
+}
+
 Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, const Limits& limits,
+                                       const MapVocabulary& vocabulary,
                                        ServiceMapSettings* settings) {
   MapOptions options;
   DatabaseConfig& d = options.database;
+  auto feature_type = FeatureTypeFromProto(c.feature_type(), vocabulary);
+  if (!feature_type.ok()) return feature_type.status();
+  d.feature_type = *feature_type;
+
   const v1::OrbSettings& orb = c.orb();
   if (orb.has_max_features()) d.orb.max_features = orb.max_features();
   if (orb.has_scale_factor()) d.orb.scale_factor = orb.scale_factor();
@@ -243,6 +452,16 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, const Limits& lim
   if (orb.has_edge_threshold()) d.orb.edge_threshold = orb.edge_threshold();
   if (orb.has_patch_size()) d.orb.patch_size = orb.patch_size();
   if (orb.has_fast_threshold()) d.orb.fast_threshold = orb.fast_threshold();
+
+  const v1::SiftSettings& sift = c.sift();
+  if (sift.has_max_features()) d.sift.max_features = sift.max_features();
+  if (sift.has_octave_layers()) d.sift.octave_layers = sift.octave_layers();
+  if (sift.has_contrast_threshold()) d.sift.contrast_threshold = sift.contrast_threshold();
+  if (sift.has_edge_threshold()) d.sift.edge_threshold = sift.edge_threshold();
+  if (sift.has_sigma()) d.sift.sigma = sift.sigma();
+
+  PLACEDB_RETURN_IF_ERROR(DepthSettingsFromProto(c.depth(), &d.depth));
+  PLACEDB_RETURN_IF_ERROR(LoopClosureSettingsFromProto(c.loop_closure(), &d.loop_closure));
 
   const v1::DetectionSettings& det = c.detection();
   settings->detection_enabled = !det.has_enabled() || det.enabled();
@@ -298,11 +517,13 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, const Limits& lim
   if (Status valid = ValidateDatabaseConfig(d); !valid.ok()) {
     return Status::InvalidArgument("config." + valid.message());
   }
-  if (uint64_t(d.orb.max_features) > limits.max_descriptors_per_frame) {
-    return Status::ResourceExhausted(
-        "config.orb.max_features = " + std::to_string(d.orb.max_features) +
-        " exceeds limits.max_descriptors_per_frame = " +
-        std::to_string(limits.max_descriptors_per_frame));
+  // The map's feature budget: only its own feature type extracts.
+  if (d.feature_type == FeatureType::kSift) {
+    // 0 ("all") is capped by the server's limit, so a frame never exceeds it.
+    if (d.sift.max_features == 0) d.sift.max_features = int(limits.max_descriptors_per_frame);
+    PLACEDB_RETURN_IF_ERROR(CheckBudget("config.sift.max_features", d.sift.max_features, limits));
+  } else {
+    PLACEDB_RETURN_IF_ERROR(CheckBudget("config.orb.max_features", d.orb.max_features, limits));
   }
   return options;
 }
@@ -311,6 +532,7 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
                       const std::string& vocabulary_name, v1::MapConfig* out) {
   const DatabaseConfig& d = options.database;
   out->set_vocabulary(vocabulary_name);
+  out->set_feature_type(FeatureTypeToProto(d.feature_type));
   v1::OrbSettings* orb = out->mutable_orb();
   orb->set_max_features(d.orb.max_features);
   orb->set_scale_factor(d.orb.scale_factor);
@@ -318,6 +540,39 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
   orb->set_edge_threshold(d.orb.edge_threshold);
   orb->set_patch_size(d.orb.patch_size);
   orb->set_fast_threshold(d.orb.fast_threshold);
+  v1::SiftSettings* sift = out->mutable_sift();
+  sift->set_max_features(d.sift.max_features);
+  sift->set_octave_layers(d.sift.octave_layers);
+  sift->set_contrast_threshold(d.sift.contrast_threshold);
+  sift->set_edge_threshold(d.sift.edge_threshold);
+  sift->set_sigma(d.sift.sigma);
+  const DepthFilterConfig& df = d.depth.filter;
+  v1::DepthSettings* depth = out->mutable_depth();
+  depth->set_refine_boxes(d.depth.refine_boxes);
+  depth->set_stream_filter(d.depth.stream_filter);
+  depth->set_scale(float(df.format.metres_per_unit));
+  depth->set_min_depth_m(df.format.min_depth_m);
+  depth->set_max_depth_m(df.format.max_depth_m);
+  depth->set_mean_all_pixels(df.mean_mode == MeanDepthMode::kAllPixels);
+  depth->set_threshold_m(df.threshold_m);
+  depth->set_persistence(df.persistence);
+  depth->set_static_window(df.static_window);
+  depth->set_band_policy(BandPolicyToProto(df.band_policy));
+  depth->mutable_rise_band()->set_near_m(df.rise_band.near_m);
+  depth->mutable_rise_band()->set_far_m(df.rise_band.far_m);
+  depth->mutable_fall_band()->set_near_m(df.fall_band.near_m);
+  depth->mutable_fall_band()->set_far_m(df.fall_band.far_m);
+  depth->set_remove_features_without_depth(df.remove_features_without_depth);
+  depth->set_use_range(df.use_range);
+  depth->set_rebaseline_after(df.rebaseline_after);
+  const LoopClosureConfig& lc = d.loop_closure;
+  v1::LoopClosureSettings* loop = out->mutable_loop_closure();
+  loop->set_loop_threshold(lc.loop_threshold);
+  loop->set_rehearsal_threshold(lc.rehearsal_threshold);
+  loop->set_short_term_memory(lc.short_term_memory);
+  loop->set_max_working_memory(uint32_t(lc.max_working_memory));
+  loop->set_time_budget_ms(lc.time_budget_ms);
+  loop->set_min_candidates(lc.min_candidates);
   v1::DetectionSettings* det = out->mutable_detection();
   det->set_enabled(settings.detection_enabled);
   for (int id : d.dynamic_classes) det->add_classes(CocoClassName(id));
@@ -344,6 +599,10 @@ void MapStatsToProto(const MapStats& stats, v1::MapStats* out) {
   out->set_invalid_stored(stats.invalid_stored);
   out->set_bytes_on_disk(stats.bytes_on_disk);
   out->set_bytes_in_memory(stats.bytes_in_memory);
+  out->set_streams(stats.database.streams);
+  out->set_loop_working_memory(stats.database.loop_working_memory);
+  out->set_loop_long_term(stats.database.loop_long_term);
+  out->set_loops_accepted(stats.database.loops_accepted);
 }
 
 // ---- Observations -------------------------------------------------------------------------------
@@ -452,42 +711,33 @@ Result<cv::Mat> DecodeImageBytes(const std::string& bytes, int flags, const Limi
   return image;
 }
 
-Result<FeatureSet> FeaturesFromProto(const v1::Features& f, const Limits& limits,
-                                     const std::string& field) {
-  if (f.image_width() == 0 || f.image_height() == 0 || f.image_width() > 100000 ||
-      f.image_height() > 100000) {
-    return Invalid(
-        field + ".image_width/image_height",
-        "must be in [1, 100000], got " + Dims(int(f.image_width()), int(f.image_height())));
+// The frame's size as a features message states it.
+Status FeatureImageSize(uint32_t width, uint32_t height, const Limits& limits,
+                        const std::string& field) {
+  if (width == 0 || height == 0 || width > 100000 || height > 100000) {
+    return Invalid(field + ".image_width/image_height",
+                   "must be in [1, 100000], got " + Dims(int(width), int(height)));
   }
-  PLACEDB_RETURN_IF_ERROR(
-      CheckPixels(f.image_width(), f.image_height(), limits, field + ".image_width/image_height"));
-  const size_t count = size_t(f.keypoints_size());
+  return CheckPixels(width, height, limits, field + ".image_width/image_height");
+}
+
+Status CheckKeypointCount(size_t count, const Limits& limits, const std::string& field) {
   if (count > limits.max_descriptors_per_frame) {
     return Status::ResourceExhausted(field + ".keypoints: " + std::to_string(count) +
                                      " keypoints exceed limits.max_descriptors_per_frame = " +
                                      std::to_string(limits.max_descriptors_per_frame));
   }
-  const std::string& bytes = f.descriptors();
-  if (bytes.size() % size_t(Descriptor256::kBytes) != 0) {
-    return Invalid(field + ".descriptors", std::to_string(bytes.size()) +
-                                               " bytes is not a multiple of 32 (one 256-bit "
-                                               "descriptor per keypoint)");
-  }
-  if (bytes.size() / size_t(Descriptor256::kBytes) != count) {
-    return Invalid(field + ".descriptors",
-                   std::to_string(bytes.size() / size_t(Descriptor256::kBytes)) +
-                       " descriptors for " + std::to_string(count) + " keypoints");
-  }
-  const int width = int(f.image_width());
-  const int height = int(f.image_height());
-  FeatureSet features;
-  features.image_width = width;
-  features.image_height = height;
-  features.keypoints.reserve(count);
-  features.descriptors.reserve(count);
-  for (size_t i = 0; i < count; ++i) {
-    const v1::Keypoint& k = f.keypoints(int(i));
+  return Status::Ok();
+}
+
+// Keypoints of a features message, each checked with its path in the message.
+Result<std::vector<Keypoint>> KeypointsFromProto(
+    const google::protobuf::RepeatedPtrField<v1::Keypoint>& keypoints, int width, int height,
+    const std::string& field) {
+  std::vector<Keypoint> out;
+  out.reserve(size_t(keypoints.size()));
+  for (int i = 0; i < keypoints.size(); ++i) {
+    const v1::Keypoint& k = keypoints.Get(i);
     const std::string at = field + ".keypoints[" + std::to_string(i) + "]";
     for (auto [name, value] :
          {std::pair{".x", k.x()}, std::pair{".y", k.y()}, std::pair{".size", k.size()},
@@ -507,8 +757,37 @@ Result<FeatureSet> FeaturesFromProto(const v1::Features& f, const Limits& limits
     if (k.octave() < 0 || k.octave() > 31) {
       return Invalid(at + ".octave", "must be in [0, 31], got " + std::to_string(k.octave()));
     }
-    features.keypoints.push_back(
-        Keypoint{k.x(), k.y(), k.size(), k.angle(), k.response(), k.octave()});
+    out.push_back(Keypoint{k.x(), k.y(), k.size(), k.angle(), k.response(), k.octave()});
+  }
+  return out;
+}
+
+Result<FeatureSet> FeaturesFromProto(const v1::Features& f, const Limits& limits,
+                                     const std::string& field) {
+  PLACEDB_RETURN_IF_ERROR(FeatureImageSize(f.image_width(), f.image_height(), limits, field));
+  const size_t count = size_t(f.keypoints_size());
+  PLACEDB_RETURN_IF_ERROR(CheckKeypointCount(count, limits, field));
+  const std::string& bytes = f.descriptors();
+  if (bytes.size() % size_t(Descriptor256::kBytes) != 0) {
+    return Invalid(field + ".descriptors", std::to_string(bytes.size()) +
+                                               " bytes is not a multiple of 32 (one 256-bit "
+                                               "descriptor per keypoint)");
+  }
+  if (bytes.size() / size_t(Descriptor256::kBytes) != count) {
+    return Invalid(field + ".descriptors",
+                   std::to_string(bytes.size() / size_t(Descriptor256::kBytes)) +
+                       " descriptors for " + std::to_string(count) + " keypoints");
+  }
+  const int width = int(f.image_width());
+  const int height = int(f.image_height());
+  auto keypoints = KeypointsFromProto(f.keypoints(), width, height, field);
+  if (!keypoints.ok()) return keypoints.status();
+  FeatureSet features;
+  features.image_width = width;
+  features.image_height = height;
+  features.keypoints = std::move(keypoints).value();
+  features.descriptors.reserve(count);
+  for (size_t i = 0; i < count; ++i) {
     features.descriptors.push_back(Descriptor256::FromBytes(
         reinterpret_cast<const uint8_t*>(bytes.data()) + i * size_t(Descriptor256::kBytes)));
   }
@@ -519,12 +798,67 @@ Result<FeatureSet> FeaturesFromProto(const v1::Features& f, const Limits& limits
   return features;
 }
 
-Result<cv::Mat> DepthFromProto(const v1::DepthImage& depth, const Limits& limits, int width,
-                               int height, const std::string& field) {
-  if (!std::isfinite(depth.scale()) || depth.scale() < 0) {
-    return Invalid(field + ".scale", "must be >= 0 (0 = the encoding's default)");
+Result<FloatFeatureSet> SiftFeaturesFromProto(const v1::SiftFeatures& f, const Limits& limits,
+                                              const std::string& field) {
+  PLACEDB_RETURN_IF_ERROR(FeatureImageSize(f.image_width(), f.image_height(), limits, field));
+  const size_t count = size_t(f.keypoints_size());
+  PLACEDB_RETURN_IF_ERROR(CheckKeypointCount(count, limits, field));
+  constexpr size_t kRowBytes = size_t(kSiftDimensions) * sizeof(float);
+  const std::string& bytes = f.descriptors();
+  if (bytes.size() % kRowBytes != 0) {
+    return Invalid(field + ".descriptors",
+                   std::to_string(bytes.size()) +
+                       " bytes is not a multiple of 512 (one descriptor of 128 little-endian "
+                       "float32 per keypoint)");
   }
-  cv::Mat metres;
+  if (bytes.size() / kRowBytes != count) {
+    return Invalid(field + ".descriptors", std::to_string(bytes.size() / kRowBytes) +
+                                               " descriptors for " + std::to_string(count) +
+                                               " keypoints");
+  }
+  const int width = int(f.image_width());
+  const int height = int(f.image_height());
+  auto keypoints = KeypointsFromProto(f.keypoints(), width, height, field);
+  if (!keypoints.ok()) return keypoints.status();
+  // Decodes the descriptors and runs the core's checks (finite values; it names the index).
+  auto features = MakeFloatFeatureSet(
+      width, height, std::move(keypoints).value(),
+      std::span<const uint8_t>(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size()));
+  if (!features.ok()) return Invalid(field, features.status().message());
+  return features;
+}
+
+Status IntrinsicsFromProto(const v1::Intrinsics& k, int width, int height, const std::string& field,
+                           CameraIntrinsics* out) {
+  for (auto [name, value] : {std::pair{".fx", k.fx()}, std::pair{".fy", k.fy()}}) {
+    if (!std::isfinite(value) || !(value > 0)) {
+      return Invalid(field + name, "focal length must be positive and finite, got " + Num(value));
+    }
+  }
+  if (!std::isfinite(k.cx()) || k.cx() < 0 || k.cx() > width) {
+    return Invalid(field + ".cx", Num(k.cx()) + " lies outside the " + Dims(width, height) +
+                                      " image (the colour image's principal point)");
+  }
+  if (!std::isfinite(k.cy()) || k.cy() < 0 || k.cy() > height) {
+    return Invalid(field + ".cy", Num(k.cy()) + " lies outside the " + Dims(width, height) +
+                                      " image (the colour image's principal point)");
+  }
+  *out = CameraIntrinsics{k.fx(), k.fy(), k.cx(), k.cy()};
+  // The core's own check too.
+  if (Status valid = ValidateIntrinsics(*out, width, height); !valid.ok()) {
+    return Invalid(field, valid.message());
+  }
+  return Status::Ok();
+}
+
+// A depth image as the core takes it: the raw values (CV_16U for png16, CV_32F for
+// raw_float32), the frame's scale and intrinsics. `width` x `height` is the colour frame's size.
+Result<DepthObservation> DepthFromProto(const v1::DepthImage& depth, const Limits& limits,
+                                        int width, int height, const std::string& field) {
+  if (!std::isfinite(depth.scale()) || depth.scale() < 0) {
+    return Invalid(field + ".scale", "must be >= 0 (0 = the map's depth scale)");
+  }
+  DepthObservation out;
   switch (depth.data_case()) {
     case v1::DepthImage::kPng16: {
       auto image = DecodeImageBytes(depth.png16(), cv::IMREAD_UNCHANGED | cv::IMREAD_ANYDEPTH,
@@ -533,13 +867,14 @@ Result<cv::Mat> DepthFromProto(const v1::DepthImage& depth, const Limits& limits
       if (image->type() != CV_16UC1) {
         return Invalid(field + ".png16", "must be a 16-bit single-channel PNG");
       }
-      image->convertTo(metres, CV_32F, depth.scale() > 0 ? depth.scale() : 0.001);
+      out.raw = std::move(image).value();
       break;
     }
     case v1::DepthImage::kRawFloat32: {
       const v1::RawDepth& raw = depth.raw_float32();
-      if (raw.width() == 0 || raw.height() == 0) {
-        return Invalid(field + ".raw_float32", "width and height must be positive");
+      if (raw.width() == 0 || raw.height() == 0 || raw.width() > 100000 || raw.height() > 100000) {
+        return Invalid(field + ".raw_float32", "width and height must be in [1, 100000], got " +
+                                                   Dims(int(raw.width()), int(raw.height())));
       }
       PLACEDB_RETURN_IF_ERROR(
           CheckPixels(raw.width(), raw.height(), limits, field + ".raw_float32"));
@@ -562,17 +897,24 @@ Result<cv::Mat> DepthFromProto(const v1::DepthImage& depth, const Limits& limits
           }
         }
       }
-      metres = depth.scale() > 0 ? cv::Mat(values * depth.scale()) : values;
+      out.raw = std::move(values);
       break;
     }
     default:
       return Invalid(field, "png16 or raw_float32 is required");
   }
-  if (metres.cols != width || metres.rows != height) {
-    return Invalid(field, Dims(metres.cols, metres.rows) + " does not match the " +
-                              Dims(width, height) + " image");
+  if (Status registered = CheckDepthRegistration(out.raw.cols, out.raw.rows, width, height);
+      !registered.ok()) {
+    return Invalid(field, registered.message());
   }
-  return metres;
+  if (depth.scale() > 0) out.metres_per_unit = double(depth.scale());
+  if (depth.has_intrinsics()) {
+    CameraIntrinsics intrinsics;
+    PLACEDB_RETURN_IF_ERROR(
+        IntrinsicsFromProto(depth.intrinsics(), width, height, field + ".intrinsics", &intrinsics));
+    out.intrinsics = intrinsics;
+  }
+  return out;
 }
 
 }  // namespace
@@ -710,8 +1052,17 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Lim
       height = obs.features->image_height;
       break;
     }
+    case v1::Observation::kSiftFeatures: {
+      auto features = SiftFeaturesFromProto(o.sift_features(), limits, field + ".sift_features");
+      if (!features.ok()) return features.status();
+      obs.float_features = std::move(features).value();
+      width = obs.float_features->image_width;
+      height = obs.float_features->image_height;
+      break;
+    }
     default:
-      return Invalid(field, "one of encoded_image, raw_image or features is required");
+      return Invalid(field,
+                     "one of encoded_image, raw_image, features or sift_features is required");
   }
   if (out.has_pixels) {
     width = obs.image.cols;
@@ -739,7 +1090,7 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Lim
   if (o.has_depth()) {
     auto depth = DepthFromProto(o.depth(), limits, width, height, field + ".depth");
     if (!depth.ok()) return depth.status();
-    out.depth_m = std::move(depth).value();
+    obs.depth = std::move(depth).value();
   }
   obs.dynamic.boxes = out.agent_boxes;
   return out;
@@ -752,6 +1103,7 @@ void CountsToProto(const FrameCounts& counts, v1::FrameCounts* out) {
   out->set_dynamic(counts.dynamic);
   out->set_kept(counts.static_);
   out->set_dynamic_coverage(counts.dynamic_coverage);
+  out->set_depth_removed(counts.depth_removed);
 }
 
 void BoxesToProto(const std::vector<DynamicBox>& boxes,
@@ -804,10 +1156,12 @@ void TimingsToProto(const StageTimings& t, double queue_ms, v1::StageTimings* ou
   out->set_detect_ms(t.detect_ms);
   out->set_extract_ms(t.extract_ms);
   out->set_filter_ms(t.filter_ms);
+  out->set_depth_ms(t.depth_ms);
   out->set_transform_ms(t.transform_ms);
   out->set_search_ms(t.search_ms);
   out->set_verify_ms(t.verify_ms);
   out->set_store_ms(t.store_ms);
+  out->set_loop_closure_ms(t.loop_closure_ms);
   out->set_total_ms(t.total_ms);
 }
 
@@ -830,6 +1184,75 @@ void FeaturesToProto(const FeatureSet& features, v1::Features* out) {
     features.descriptors[i].ToBytes(reinterpret_cast<uint8_t*>(bytes->data()) +
                                     i * size_t(Descriptor256::kBytes));
   }
+}
+
+namespace {
+
+template <typename Out>
+void KeypointsToProto(const std::vector<Keypoint>& keypoints, Out* out) {
+  out->mutable_keypoints()->Reserve(int(keypoints.size()));
+  for (const Keypoint& k : keypoints) {
+    v1::Keypoint* kp = out->add_keypoints();
+    kp->set_x(k.x);
+    kp->set_y(k.y);
+    kp->set_size(k.size);
+    kp->set_angle(k.angle);
+    kp->set_response(k.response);
+    kp->set_octave(k.octave);
+  }
+}
+
+}  // namespace
+
+void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out) {
+  out->set_image_width(uint32_t(features.image_width));
+  out->set_image_height(uint32_t(features.image_height));
+  KeypointsToProto(features.keypoints, out);
+  // 128 little-endian float32 per keypoint.
+  std::string* bytes = out->mutable_descriptors();
+  bytes->resize(features.descriptors.size() * sizeof(float));
+  auto* p = reinterpret_cast<uint8_t*>(bytes->data());
+  for (float v : features.descriptors) {
+    uint32_t u = 0;
+    std::memcpy(&u, &v, sizeof u);
+    p[0] = uint8_t(u);
+    p[1] = uint8_t(u >> 8);
+    p[2] = uint8_t(u >> 16);
+    p[3] = uint8_t(u >> 24);
+    p += 4;
+  }
+}
+
+void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out) {
+  out->set_frame(state.frame);
+  out->set_mean_depth_m(state.mean_depth_m);
+  out->set_static_level_m(state.static_level_m);
+  out->set_difference_m(state.difference_m);
+  out->set_count(state.count);
+  out->set_warming_up(state.warming_up);
+  out->set_deviating(state.deviating);
+  out->set_removing(state.removing);
+  if (state.removing) {
+    out->set_band_near_m(state.band.near_m);
+    out->set_band_far_m(state.band.far_m);
+  }
+  out->set_band_source(state.band_source);
+  out->set_valid_fraction(state.valid_fraction);
+}
+
+void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out) {
+  out->set_merged(outcome.merged);
+  out->set_place_id(outcome.place);
+  out->set_loop_found(outcome.loop.has_value());
+  if (outcome.loop) {
+    out->set_loop_place_id(*outcome.loop);
+    out->set_loop_posterior(outcome.loop_posterior);
+  }
+  out->set_best_place_id(outcome.best);
+  out->set_best_posterior(outcome.best_posterior);
+  out->set_candidates(uint32_t(outcome.candidates));
+  out->set_retrieved(uint32_t(outcome.retrieved));
+  out->set_transferred(uint32_t(outcome.transferred));
 }
 
 QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id) {

@@ -41,25 +41,40 @@ struct ServiceMapSettings {
   bool operator==(const ServiceMapSettings&) const = default;
 };
 
-// Defaults for unset fields; INVALID_ARGUMENT "config.<field>: ..." for bad values, and
-// RESOURCE_EXHAUSTED when config.orb.max_features exceeds limits.max_descriptors_per_frame.
+// The vocabulary a new map will use: its kind fixes the map's feature type.
+struct MapVocabulary {
+  std::string name;  // for messages
+  FeatureType feature_type = FeatureType::kOrb;
+};
+
+// Defaults for unset fields; INVALID_ARGUMENT "config.<field>: ..." for bad values (a
+// feature_type the vocabulary cannot quantise: "config.feature_type: ..."), and
+// RESOURCE_EXHAUSTED when the map's feature budget (config.orb.max_features for ORB maps,
+// config.sift.max_features for SIFT maps) exceeds limits.max_descriptors_per_frame. A SIFT
+// max_features of 0 ("all") is taken as limits.max_descriptors_per_frame.
 Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& config, const Limits& limits,
+                                       const MapVocabulary& vocabulary,
                                        ServiceMapSettings* settings);
+// Every effective value filled in (feature type, ORB, SIFT, depth, loop closure, ...).
 void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& settings,
                       const std::string& vocabulary_name, v1::MapConfig* out);
 void MapStatsToProto(const MapStats& stats, v1::MapStats* out);
+v1::FeatureType FeatureTypeToProto(FeatureType type);
 
 // ---- Observations -------------------------------------------------------------------------------
 
 struct DecodedObservation {
-  Observation observation;  // pixels (gray or BGR) or features, agent boxes, mask, metadata
+  // Pixels (gray or BGR) or features (ORB or SIFT), agent boxes, mask, depth (raw CV_16U for
+  // png16, CV_32F for raw_float32, with the frame's scale and intrinsics), metadata.
+  Observation observation;
   std::vector<DynamicBox> agent_boxes;
   bool has_pixels = false;
-  cv::Mat depth_m;  // CV_32F metres (NaN = no depth): validated, not used yet
 };
 
 // Validates and decodes `observation`; `field` is its path in the request ("observation").
-// `color` asks for BGR pixels (server-side detection) instead of grayscale.
+// `color` asks for BGR pixels (server-side detection) instead of grayscale. Depth must be
+// decodable, within the limits, finite and non-negative (NaN = no depth), and registrable to the
+// frame (the same aspect ratio: it may be smaller); its intrinsics are checked against the frame.
 Result<DecodedObservation> DecodeObservation(const v1::Observation& observation,
                                              const Limits& limits, bool color,
                                              const std::string& field);
@@ -82,6 +97,9 @@ void MatchesToProto(const std::vector<Match>& matches,
                     google::protobuf::RepeatedPtrField<v1::Match>* out);
 void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimings* out);
 void FeaturesToProto(const FeatureSet& features, v1::Features* out);
+void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out);
+void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out);
+void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out);
 QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id);
 
 }  // namespace placedb::server

@@ -17,8 +17,11 @@ std::string Hex(uint64_t v) {
 }  // namespace
 
 MapRegistry::MapRegistry(std::unique_ptr<DataDirectory> directory,
-                         std::vector<VocabularyEntry> vocabularies)
-    : directory_(std::move(directory)), vocabularies_(std::move(vocabularies)) {}
+                         std::vector<VocabularyEntry> vocabularies,
+                         std::vector<MissingVocabulary> missing)
+    : directory_(std::move(directory)),
+      vocabularies_(std::move(vocabularies)),
+      missing_(std::move(missing)) {}
 
 MapRegistry::~MapRegistry() {
   CloseAll();
@@ -26,15 +29,18 @@ MapRegistry::~MapRegistry() {
 
 Result<std::unique_ptr<MapRegistry>> MapRegistry::Open(const std::string& data_dir,
                                                        const StorageOptions& storage,
-                                                       std::vector<VocabularyEntry> vocabularies) {
+                                                       std::vector<VocabularyEntry> vocabularies,
+                                                       std::vector<MissingVocabulary> missing) {
   auto directory = DataDirectory::Open(data_dir, storage);
   if (!directory.ok()) return directory.status().WithContext("data directory " + data_dir);
   std::unique_ptr<MapRegistry> registry(
-      new MapRegistry(std::move(directory).value(), std::move(vocabularies)));
+      new MapRegistry(std::move(directory).value(), std::move(vocabularies), std::move(missing)));
   for (const std::string& name : registry->directory_->ListMaps()) {
     auto entry = registry->Load(name);
     if (entry->map) {
-      spdlog::info("map '{}' opened: vocabulary '{}', {} places", name, entry->vocabulary_name,
+      spdlog::info("map '{}' opened: vocabulary '{}', features {}, {} places", name,
+                   entry->vocabulary_name,
+                   FeatureTypeName(entry->map->database().config().feature_type),
                    entry->map->database().Stats().places);
     } else {
       spdlog::warn("map '{}' unavailable: {}", name, entry->unavailable_reason);
@@ -53,9 +59,36 @@ const VocabularyEntry* MapRegistry::FindVocabulary(const std::string& name) cons
 
 std::string MapRegistry::VocabularyNameOf(uint64_t checksum) const {
   for (const VocabularyEntry& entry : vocabularies_) {
-    if (entry.vocabulary->checksum() == checksum) return entry.name;
+    if (entry.vocabulary.checksum() == checksum) return entry.name;
   }
   return "";
+}
+
+std::string MapRegistry::MissingNote() const {
+  std::string note;
+  for (const MissingVocabulary& missing : missing_) {
+    note += (note.empty() ? "; not loaded: " : ", ") + missing.name + " (" + missing.path + ": " +
+            missing.reason + ")";
+  }
+  return note;
+}
+
+Result<const VocabularyEntry*> MapRegistry::ResolveVocabulary(const std::string& name) const {
+  const std::string vocab_name = name.empty() ? "default" : name;
+  if (const VocabularyEntry* vocabulary = FindVocabulary(vocab_name)) return vocabulary;
+  for (const MissingVocabulary& missing : missing_) {
+    if (missing.name == vocab_name) {
+      return Status::FailedPrecondition("config.vocabulary: '" + vocab_name +
+                                        "' is configured but not loaded: " + missing.path + ": " +
+                                        missing.reason + " (tools/setup.sh builds it)");
+    }
+  }
+  std::string configured;
+  for (const VocabularyEntry& entry : vocabularies_) {
+    configured += (configured.empty() ? "" : ", ") + entry.name;
+  }
+  return Status::InvalidArgument("config.vocabulary: '" + vocab_name +
+                                 "' is not configured (configured: " + configured + ")");
 }
 
 std::shared_ptr<const MapEntry> MapRegistry::Load(const std::string& name) {
@@ -68,16 +101,17 @@ std::shared_ptr<const MapEntry> MapRegistry::Load(const std::string& name) {
   }
   const VocabularyEntry* vocabulary = nullptr;
   for (const VocabularyEntry& candidate : vocabularies_) {
-    if (candidate.vocabulary->checksum() == info->vocabulary_checksum) vocabulary = &candidate;
+    if (candidate.vocabulary.checksum() == info->vocabulary_checksum) vocabulary = &candidate;
   }
   if (!vocabulary) {
     std::string configured;
     for (const VocabularyEntry& candidate : vocabularies_) {
       configured += (configured.empty() ? "" : ", ") + candidate.name + "=" +
-                    candidate.vocabulary->checksum_hex();
+                    candidate.vocabulary.checksum_hex();
     }
     entry->unavailable_reason = "built with vocabulary " + Hex(info->vocabulary_checksum) +
                                 ", which is not configured (configured: " + configured +
+                                MissingNote() +
                                 "); add it under `vocabularies` in the server config";
     return entry;
   }
@@ -114,16 +148,10 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Create(const std::string& n
   if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
     return Status::InvalidArgument("name: " + valid.message());
   }
-  const std::string vocab_name = vocabulary_name.empty() ? "default" : vocabulary_name;
-  const VocabularyEntry* vocabulary = FindVocabulary(vocab_name);
-  if (!vocabulary) {
-    std::string configured;
-    for (const VocabularyEntry& entry : vocabularies_) {
-      configured += (configured.empty() ? "" : ", ") + entry.name;
-    }
-    return Status::InvalidArgument("config.vocabulary: '" + vocab_name +
-                                   "' is not configured (configured: " + configured + ")");
-  }
+  auto resolved = ResolveVocabulary(vocabulary_name);
+  if (!resolved.ok()) return resolved.status();
+  const VocabularyEntry* vocabulary = *resolved;
+  const std::string& vocab_name = vocabulary->name;
   std::lock_guard create_lock(create_mutex_);
   if (!directory_) return Status::IoError("the data directory is closed (shutting down)");
   {

@@ -2,8 +2,10 @@
 // vocabulary name and service settings (or why it is unavailable).
 //
 // On startup every map of the data directory is opened with the configured vocabulary whose
-// checksum the map recorded (DataDirectory::ReadMapInfo). A map whose vocabulary is not
-// configured, or that fails to open, is listed as unavailable with the reason; it is not fatal.
+// checksum the map recorded (DataDirectory::ReadMapInfo). A vocabulary is binary (ORB maps) or
+// float (SIFT maps): AnyVocabulary. A map whose vocabulary is not configured (or is an embedded
+// default whose file is missing), or that fails to open, is listed as unavailable with the
+// reason; it is not fatal.
 //
 // Service settings the core's database config has no field for (box source, detection on/off)
 // are stored as JSON in the map's own info (MapOptions::service_json): written atomically with
@@ -18,8 +20,8 @@
 #include <string>
 #include <vector>
 
+#include "core/any_vocabulary.h"
 #include "core/map_store.h"
-#include "core/vocabulary.h"
 #include "server/convert.h"
 
 namespace placedb::server {
@@ -27,7 +29,14 @@ namespace placedb::server {
 struct VocabularyEntry {
   std::string name;
   std::string path;
-  std::shared_ptr<const Vocabulary> vocabulary;
+  AnyVocabulary vocabulary;  // binary (ORB) or float (SIFT)
+};
+
+// A vocabulary of the embedded defaults the server runs without (its file is missing).
+struct MissingVocabulary {
+  std::string name;
+  std::string path;
+  std::string reason;
 };
 
 struct MapEntry {
@@ -41,9 +50,12 @@ struct MapEntry {
 class MapRegistry {
  public:
   // Opens (or creates) the data directory and every map in it.
+  // `missing`: configured vocabularies that could not be loaded but are not fatal (named in the
+  // messages of maps and CreateMap calls that need them).
   static Result<std::unique_ptr<MapRegistry>> Open(const std::string& data_dir,
                                                    const StorageOptions& storage,
-                                                   std::vector<VocabularyEntry> vocabularies);
+                                                   std::vector<VocabularyEntry> vocabularies,
+                                                   std::vector<MissingVocabulary> missing = {});
   ~MapRegistry();
 
   // NOT_FOUND when the map does not exist; FAILED_PRECONDITION (with the reason) when it exists
@@ -59,13 +71,18 @@ class MapRegistry {
 
   const std::vector<VocabularyEntry>& vocabularies() const { return vocabularies_; }
   const VocabularyEntry* FindVocabulary(const std::string& name) const;
+  // The vocabulary a CreateMap names ("" = "default"); INVALID_ARGUMENT "config.vocabulary: ..."
+  // when it is not configured, FAILED_PRECONDITION when it is configured but its file is missing.
+  Result<const VocabularyEntry*> ResolveVocabulary(const std::string& name) const;
   std::string VocabularyNameOf(uint64_t checksum) const;  // "" when not configured
 
   // Releases every map (RocksDB flushes and closes once the last in-flight holder lets go).
   void CloseAll();
 
  private:
-  MapRegistry(std::unique_ptr<DataDirectory> directory, std::vector<VocabularyEntry> vocabularies);
+  MapRegistry(std::unique_ptr<DataDirectory> directory, std::vector<VocabularyEntry> vocabularies,
+              std::vector<MissingVocabulary> missing);
+  std::string MissingNote() const;  // "; not loaded: sift (path: reason)" or ""
   std::shared_ptr<const MapEntry> Load(const std::string& name);
   // The service's per-map settings, kept in the map's own info (MapOptions::service_json).
   static ServiceMapSettings DecodeSettings(const std::string& name, const std::string& text);
@@ -73,6 +90,7 @@ class MapRegistry {
 
   std::unique_ptr<DataDirectory> directory_;
   const std::vector<VocabularyEntry> vocabularies_;
+  const std::vector<MissingVocabulary> missing_;
   std::mutex create_mutex_;  // serialises Create/Delete
   mutable std::mutex mutex_;
   std::map<std::string, std::shared_ptr<const MapEntry>> maps_;

@@ -46,8 +46,8 @@ Metrics::Metrics()
                     .Register(*registry_)),
       stages_(BuildHistogram()
                   .Name("placedb_stage_seconds")
-                  .Help("Time per pipeline stage of one frame (decode, detect, extract, filter, "
-                        "transform, search, verify, store, total)")
+                  .Help("Time per pipeline stage of one frame (decode, detect, extract, depth, "
+                        "filter, transform, search, verify, store, loop_closure, total)")
                   .Register(*registry_)),
       detector_(BuildHistogram()
                     .Name("placedb_detector_seconds")
@@ -65,8 +65,17 @@ Metrics::Metrics()
       descriptors_(BuildCounter()
                        .Name("placedb_descriptors_total")
                        .Help("Descriptors of processed ingested frames, by class (dynamic: "
-                             "dropped, static: kept)")
+                             "dropped, depth_removed: dropped by the depth filter, static: kept)")
                        .Register(*registry_)),
+      merged_(BuildCounter()
+                  .Name("placedb_frames_merged_total")
+                  .Help("Ingested frames merged into the previous place by loop-closure "
+                        "rehearsal (not stored)")
+                  .Register(*registry_)),
+      loops_(BuildCounter()
+                 .Name("placedb_loop_closures_total")
+                 .Help("Loop closures accepted on ingest streams in loop-closure mode")
+                 .Register(*registry_)),
       places_(
           BuildGauge().Name("placedb_places").Help("Places stored in a map").Register(*registry_)),
       disk_bytes_(BuildGauge()
@@ -128,9 +137,19 @@ void Metrics::FrameRejected(const std::string& map, const std::string& reason) {
   rejected_.Add({{"map", map}, {"reason", reason}}).Increment();
 }
 
-void Metrics::CountDescriptors(const std::string& map, uint64_t dynamic, uint64_t static_count) {
+void Metrics::CountDescriptors(const std::string& map, uint64_t dynamic, uint64_t depth_removed,
+                               uint64_t static_count) {
   descriptors_.Add({{"map", map}, {"class", "dynamic"}}).Increment(double(dynamic));
+  descriptors_.Add({{"map", map}, {"class", "depth_removed"}}).Increment(double(depth_removed));
   descriptors_.Add({{"map", map}, {"class", "static"}}).Increment(double(static_count));
+}
+
+void Metrics::FrameMerged(const std::string& map) {
+  merged_.Add({{"map", map}}).Increment();
+}
+
+void Metrics::LoopClosed(const std::string& map) {
+  loops_.Add({{"map", map}}).Increment();
 }
 
 void Metrics::SetMapGauges(const std::string& map, double places, double bytes_on_disk) {
@@ -144,7 +163,9 @@ void Metrics::ForgetMap(const std::string& map) {
   places_.Remove(&places_.Add({{"map", map}}));
   disk_bytes_.Remove(&disk_bytes_.Add({{"map", map}}));
   ingested_.Remove(&ingested_.Add({{"map", map}}));
-  for (const char* cls : {"dynamic", "static"}) {
+  merged_.Remove(&merged_.Add({{"map", map}}));
+  loops_.Remove(&loops_.Add({{"map", map}}));
+  for (const char* cls : {"dynamic", "depth_removed", "static"}) {
     descriptors_.Remove(&descriptors_.Add({{"map", map}, {"class", cls}}));
   }
   for (const char* reason :

@@ -38,12 +38,20 @@ class Metrics {
 
   // `code` is the canonical upper-case gRPC code name ("OK", "INVALID_ARGUMENT", ...).
   void CountRequest(const std::string& method, const std::string& code);
-  // Stage: decode, detect, extract, filter, transform, search, verify, store, total.
+  // Stage: decode, detect, extract, depth, filter, transform, search, verify, store,
+  // loop_closure, total.
   void ObserveStage(const std::string& stage, double seconds);
   void ObserveDetector(double seconds);
   void FrameIngested(const std::string& map);
   void FrameRejected(const std::string& map, const std::string& reason);
-  void CountDescriptors(const std::string& map, uint64_t dynamic, uint64_t static_count);
+  // A processed ingested frame's descriptors: dynamic (DC, dropped), depth_removed (Algorithm 1)
+  // and static (kept).
+  void CountDescriptors(const std::string& map, uint64_t dynamic, uint64_t depth_removed,
+                        uint64_t static_count);
+  // Loop-closure mode: a frame merged into the previous place by rehearsal (not stored), and
+  // an accepted loop closure.
+  void FrameMerged(const std::string& map);
+  void LoopClosed(const std::string& map);
   void SetMapGauges(const std::string& map, double places, double bytes_on_disk);
   void ForgetMap(const std::string& map);  // a deleted map's series go away
   void StreamOpened();
@@ -58,6 +66,8 @@ class Metrics {
   prometheus::Family<prometheus::Counter>& ingested_;
   prometheus::Family<prometheus::Counter>& rejected_;
   prometheus::Family<prometheus::Counter>& descriptors_;
+  prometheus::Family<prometheus::Counter>& merged_;
+  prometheus::Family<prometheus::Counter>& loops_;
   prometheus::Family<prometheus::Gauge>& places_;
   prometheus::Family<prometheus::Gauge>& disk_bytes_;
   prometheus::Gauge& streams_;

@@ -6,6 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include <chrono>
+#include <filesystem>
 #include <opencv2/core.hpp>
 
 #include "server/map_registry.h"
@@ -19,10 +20,14 @@ namespace {
 
 constexpr char kServiceName[] = "placedb.v1.PlaceDb";
 
-Result<std::vector<VocabularyEntry>> LoadVocabularies(
-    const ServerConfig& config,
-    const std::map<std::string, std::shared_ptr<const Vocabulary>>& preloaded) {
-  std::vector<VocabularyEntry> out;
+struct LoadedVocabularies {
+  std::vector<VocabularyEntry> loaded;
+  std::vector<MissingVocabulary> missing;  // optional ones whose file is missing
+};
+
+Result<LoadedVocabularies> LoadVocabularies(const ServerConfig& config,
+                                            const std::map<std::string, AnyVocabulary>& preloaded) {
+  LoadedVocabularies out;
   for (const auto& [name, path] : config.vocabularies) {
     VocabularyEntry entry;
     entry.name = name;
@@ -30,24 +35,35 @@ Result<std::vector<VocabularyEntry>> LoadVocabularies(
     if (auto it = preloaded.find(name); it != preloaded.end() && it->second) {
       entry.vocabulary = it->second;
     } else {
-      auto loaded = Vocabulary::Load(path);
+      std::error_code error;
+      if (config.optional_vocabularies.count(name) && !std::filesystem::exists(path, error)) {
+        // An embedded default the machine has not built (tools/setup.sh does): run without it.
+        spdlog::warn(
+            "vocabulary '{}': {} is missing; running without it (maps that need it are "
+            "unavailable; tools/setup.sh builds it)",
+            name, path);
+        out.missing.push_back({name, path, "file missing"});
+        continue;
+      }
+      auto loaded = AnyVocabulary::Load(path);
       if (!loaded.ok()) {
         return loaded.status().WithContext("vocabulary '" + name + "' (" + path + ")");
       }
       entry.vocabulary = std::move(loaded).value();
     }
-    for (const VocabularyEntry& other : out) {
-      if (other.vocabulary->checksum() == entry.vocabulary->checksum()) {
+    for (const VocabularyEntry& other : out.loaded) {
+      if (other.vocabulary.checksum() == entry.vocabulary.checksum()) {
         // Maps pick their vocabulary by checksum: two names for one vocabulary are ambiguous.
         return Status::InvalidArgument("vocabularies: '" + name + "' and '" + other.name +
                                        "' are the same vocabulary (checksum " +
-                                       entry.vocabulary->checksum_hex() + ")");
+                                       entry.vocabulary.checksum_hex() + ")");
       }
     }
-    spdlog::info("vocabulary '{}': {} ({} words, k={}, L={}, checksum {})", name, path,
-                 entry.vocabulary->word_count(), entry.vocabulary->branching(),
-                 entry.vocabulary->depth(), entry.vocabulary->checksum_hex());
-    out.push_back(std::move(entry));
+    spdlog::info("vocabulary '{}': {} ({}, {} words, k={}, L={}, checksum {})", name, path,
+                 entry.vocabulary.kind(), entry.vocabulary.word_count(),
+                 entry.vocabulary.branching(), entry.vocabulary.depth(),
+                 entry.vocabulary.checksum_hex());
+    out.loaded.push_back(std::move(entry));
   }
   return out;
 }
@@ -88,7 +104,8 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
 
   auto vocabularies = LoadVocabularies(c, deps.vocabularies);
   if (!vocabularies.ok()) return vocabularies.status();
-  auto maps = MapRegistry::Open(c.data_dir, c.storage, std::move(vocabularies).value());
+  auto maps = MapRegistry::Open(c.data_dir, c.storage, std::move(vocabularies->loaded),
+                                std::move(vocabularies->missing));
   if (!maps.ok()) return maps.status();
   server->maps_ = std::move(maps).value();
 

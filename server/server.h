@@ -13,9 +13,9 @@
 #include <mutex>
 #include <string>
 
+#include "core/any_vocabulary.h"
 #include "core/detector.h"
 #include "core/status.h"
-#include "core/vocabulary.h"
 #include "server/config.h"
 
 namespace grpc {
@@ -31,8 +31,9 @@ class WorkerPool;
 
 // Things a caller (a test) may hand in ready-made instead of having them loaded from the config.
 struct ServerDeps {
-  // Preloaded vocabularies by name; they replace the config's path for that name.
-  std::map<std::string, std::shared_ptr<const Vocabulary>> vocabularies;
+  // Preloaded vocabularies (binary or float) by name; they replace the config's path for that
+  // name.
+  std::map<std::string, AnyVocabulary> vocabularies;
   // A ready detector; when null one is created from config.detector (if a model is set).
   std::shared_ptr<const Detector> detector;
 };
@@ -40,7 +41,8 @@ struct ServerDeps {
 class Server {
  public:
   // Loads, opens and starts listening. Errors: INVALID_ARGUMENT (config), NOT_FOUND / IO_ERROR /
-  // CORRUPTION (vocabulary, data directory, detector model), IO_ERROR (cannot listen).
+  // CORRUPTION (vocabulary, data directory, detector model), IO_ERROR (cannot listen). An
+  // optional vocabulary (config.optional_vocabularies) whose file is missing is a warning.
   static Result<std::unique_ptr<Server>> Start(const ServerConfig& config, ServerDeps deps = {});
   ~Server();  // Shutdown()
 

@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <chrono>
 #include <condition_variable>
 #include <deque>
@@ -103,6 +104,7 @@ struct PlaceDbService::Stream {
   grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* io = nullptr;
   std::shared_ptr<const MapEntry> map;
   std::optional<v1::MatchOptions> header_matches;
+  bool loop_closure = false;  // IngestHeader.loop_closure
 
   std::mutex mutex;
   std::condition_variable changed;
@@ -115,7 +117,7 @@ struct PlaceDbService::Stream {
   bool draining = false;
 
   // For the close log line.
-  uint64_t frames = 0, stored = 0, rejected = 0, errors = 0;
+  uint64_t frames = 0, stored = 0, merged = 0, rejected = 0, errors = 0;
   std::vector<std::string> agents;  // first few distinct agent ids
 };
 
@@ -172,11 +174,13 @@ void PlaceDbService::ObserveStages(const StageTimings& t) {
   if (t.decode_ms > 0) observe("decode", t.decode_ms);
   if (t.detect_ms > 0) observe("detect", t.detect_ms);
   observe("extract", t.extract_ms);
+  if (t.depth_ms > 0) observe("depth", t.depth_ms);
   observe("filter", t.filter_ms);
   if (t.transform_ms > 0) observe("transform", t.transform_ms);
   if (t.search_ms > 0) observe("search", t.search_ms);
   if (t.verify_ms > 0) observe("verify", t.verify_ms);
   if (t.store_ms > 0) observe("store", t.store_ms);
+  if (t.loop_closure_ms > 0) observe("loop_closure", t.loop_closure_ms);
   observe("total", t.total_ms);
 }
 
@@ -189,7 +193,7 @@ void Describe(const MapEntry& entry, v1::MapDescription* out) {
   out->set_name(entry.name);
   MapConfigToProto(info.options, entry.settings, entry.vocabulary_name, out->mutable_config());
   MapStatsToProto(entry.map->Stats(), out->mutable_stats());
-  out->set_vocabulary_checksum(entry.map->database().vocabulary()->checksum_hex());
+  out->set_vocabulary_checksum(entry.map->database().vocabulary().checksum_hex());
   out->set_created_unix_ms(info.created_unix_ms);
 }
 
@@ -200,8 +204,13 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
                                        v1::MapDescription* response) {
   CallScope scope(this);
   if (draining_flag_) return Finish("CreateMap", context, Unavailable());
+  // The vocabulary first: its kind is the map's feature type.
+  auto vocabulary = maps_->ResolveVocabulary(request->config().vocabulary());
+  if (!vocabulary.ok()) return Finish("CreateMap", context, ToGrpc(vocabulary.status()));
   ServiceMapSettings settings;
-  auto options = MapOptionsFromProto(request->config(), config_.limits, &settings);
+  auto options = MapOptionsFromProto(
+      request->config(), config_.limits,
+      MapVocabulary{(*vocabulary)->name, (*vocabulary)->vocabulary.feature_type()}, &settings);
   if (!options.ok()) return Finish("CreateMap", context, ToGrpc(options.status()));
   // Unspecified box source: the server's detector when it has one, else the agent's boxes. The
   // choice is stored with the map, so it does not change if the server's detector does.
@@ -220,8 +229,10 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
   auto entry = maps_->Create(request->name(), *options, request->config().vocabulary(), settings);
   if (!entry.ok()) return Finish("CreateMap", context, ToGrpc(entry.status()));
   Describe(**entry, response);
-  spdlog::info("map '{}' created: vocabulary '{}', box source {}, peer={}", request->name(),
-               (*entry)->vocabulary_name, BoxSourceName(settings.box_source), Peer(context));
+  spdlog::info("map '{}' created: vocabulary '{}', features {}, box source {}, peer={}",
+               request->name(), (*entry)->vocabulary_name,
+               FeatureTypeName(options->database.feature_type), BoxSourceName(settings.box_source),
+               Peer(context));
   return Finish("CreateMap", context, grpc::Status::OK);
 }
 
@@ -278,7 +289,11 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   CountsToProto(place->record.counts, response->mutable_counts());
   BoxesToProto(place->record.boxes_used, response->mutable_boxes_used());
   if (request->include_features()) {
-    FeaturesToProto(place->payload.features, response->mutable_features());
+    if ((*entry)->map->database().config().feature_type == FeatureType::kSift) {
+      SiftFeaturesToProto(place->payload.float_features, response->mutable_sift_features());
+    } else {
+      FeaturesToProto(place->payload.features, response->mutable_features());
+    }
   }
   return Finish("GetPlace", context, grpc::Status::OK);
 }
@@ -307,12 +322,13 @@ grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
     v1::VocabularyInfo* info = response->add_vocabularies();
     info->set_name(entry.name);
     info->set_path(entry.path);
-    info->set_checksum(entry.vocabulary->checksum_hex());
-    info->set_words(entry.vocabulary->word_count());
-    info->set_nodes(entry.vocabulary->node_count());
-    info->set_branching(entry.vocabulary->branching());
-    info->set_depth(entry.vocabulary->depth());
-    info->set_memory_bytes(entry.vocabulary->memory_bytes());
+    info->set_checksum(entry.vocabulary.checksum_hex());
+    info->set_words(entry.vocabulary.word_count());
+    info->set_nodes(entry.vocabulary.node_count());
+    info->set_branching(entry.vocabulary.branching());
+    info->set_depth(entry.vocabulary.depth());
+    info->set_memory_bytes(entry.vocabulary.memory_bytes());
+    info->set_feature_type(FeatureTypeToProto(entry.vocabulary.feature_type()));
   }
   response->set_detector(detector_ ? detector_->Describe() : detector_status_);
   const Limits& l = config_.limits;
@@ -332,9 +348,23 @@ grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
 
 grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntry& map,
                                      const v1::Observation& observation, const std::string& field,
-                                     Work* work) {
+                                     FrameRole role, Work* work) {
   if (Expired(context)) return Cancelled(context, "before decoding");
   const ServiceMapSettings& settings = map.settings;
+  // A map is typed by its feature: precomputed features of the other type cannot be quantised.
+  const FeatureType feature_type = map.map->database().config().feature_type;
+  if (feature_type == FeatureType::kSift &&
+      observation.frame_case() == v1::Observation::kFeatures) {
+    return Invalid(field + ".features: map '" + map.name +
+                   "' is a SIFT map (feature_type SIFT): send sift_features or pixels "
+                   "(encoded_image, raw_image), not ORB features");
+  }
+  if (feature_type == FeatureType::kOrb &&
+      observation.frame_case() == v1::Observation::kSiftFeatures) {
+    return Invalid(field + ".sift_features: map '" + map.name +
+                   "' is an ORB map (feature_type ORB): send features or pixels "
+                   "(encoded_image, raw_image), not SIFT features");
+  }
   const bool server_boxes = settings.detection_enabled && settings.box_source != BoxSource::kAgent;
   if (server_boxes && !detector_) {
     return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
@@ -351,7 +381,11 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
   if (server_boxes) {
     if (!decoded->has_pixels) {
       if (settings.box_source == BoxSource::kServer) {
-        return Invalid(field + ".features: map '" + map.name +
+        return Invalid(field +
+                       (observation.frame_case() == v1::Observation::kSiftFeatures
+                            ? ".sift_features"
+                            : ".features") +
+                       ": map '" + map.name +
                        "' detects dynamic objects on the server (box_source server), which needs "
                        "pixels: send encoded_image or raw_image");
       }
@@ -370,10 +404,11 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
   }
 
   if (Expired(context)) return Cancelled(context, "before feature extraction");
-  auto processed = map.map->Process(frame);
+  auto processed = map.map->Process(frame, role);
   if (!processed.ok()) return ToGrpc(processed.status(), field);
   work->frame = std::move(processed).value();
   work->timings.extract_ms = work->frame.timings.extract_ms;
+  work->timings.depth_ms = work->frame.timings.depth_ms;
   work->timings.filter_ms = work->frame.timings.filter_ms;
   work->timings.transform_ms = work->frame.timings.transform_ms;
   work->metadata = std::move(frame.metadata);
@@ -400,7 +435,7 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
     queue_ms = MsSince(arrived);
     Work work;
     grpc::Status status = Guarded("processing the observation", [&] {
-      return Prepare(context, map, request->observation(), "observation", &work);
+      return Prepare(context, map, request->observation(), "observation", FrameRole::kQuery, &work);
     });
     if (status.ok() && Expired(context)) status = Cancelled(context, "before searching");
     if (status.ok())
@@ -415,6 +450,10 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
         CountsToProto(result.counts, response->mutable_counts());
         BoxesToProto(result.boxes_used, response->mutable_boxes_used());
         MatchesToProto(result.matches, response->mutable_matches());
+        // The agent's current Algorithm 1 decision, when it applied to this frame.
+        if (work.frame.depth_state) {
+          DepthStateToProto(*work.frame.depth_state, response->mutable_depth());
+        }
         work.timings.total_ms = MsSince(arrived);
         TimingsToProto(work.timings, queue_ms, response->mutable_timings());
         ObserveStages(work.timings);
@@ -479,11 +518,18 @@ void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
     } else {
       Work& work = front->work;
       const MapEntry& map = *stream->map;
-      const ProcessedFrame& frame = work.frame;
-      CountsToProto(frame.counts, response.mutable_counts());
-      BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
+      ProcessedFrame& frame = work.frame;
       Result<AddResult> added = Status::Internal("not stored");
+      std::optional<LoopClosureOutcome> loop;
       const grpc::Status second_half = Guarded("searching and storing", [&] {
+        // The agent's stream state, in its order: Algorithm 1 on depth, then validity and the
+        // BoW vector (a no-op for frames without depth).
+        if (Status advanced = map.map->AdvanceStream(&frame, work.metadata.agent_id);
+            !advanced.ok()) {
+          return ToGrpc(advanced, "observation");
+        }
+        work.timings.depth_ms = frame.timings.depth_ms;
+        work.timings.transform_ms = frame.timings.transform_ms;
         if (front->matches && frame.valid) {
           const QueryOptions options =
               QueryOptionsFromProto(*front->matches, work.metadata.agent_id);
@@ -492,13 +538,26 @@ void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
           work.timings.verify_ms = result.timings.verify_ms;
           MatchesToProto(result.matches, response.mutable_matches());
         }
+        if (stream->loop_closure && frame.valid) {
+          // The agent's loop-closure detector, then (unless rehearsal merges the frame into the
+          // previous place) the durable write.
+          Stopwatch closing;
+          AddResult committed;
+          auto outcome = map.map->CloseLoop(frame, work.metadata, &committed);
+          if (!outcome.ok()) return ToGrpc(outcome.status(), "loop closure");
+          work.timings.loop_closure_ms = outcome->update_ms;
+          if (!outcome->merged && committed.timings.store_ms <= 0) {
+            committed.timings.store_ms = std::max(0.0, closing.ElapsedMs() - outcome->update_ms);
+          }
+          loop = std::move(outcome).value();
+          added = std::move(committed);
+          return grpc::Status::OK;
+        }
         added = map.map->Commit(frame, work.metadata);
         return added.ok() ? grpc::Status::OK : ToGrpc(added.status(), "storing");
       });
       if (!second_half.ok()) {
         front->status = second_half;
-        response.clear_counts();
-        response.clear_boxes_used();
         response.clear_matches();
         response.mutable_error()->set_code(int(front->status.error_code()));
         response.mutable_error()->set_message(front->status.error_message());
@@ -507,15 +566,30 @@ void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
                      front->index, GrpcCodeName(front->status.error_code()),
                      front->status.error_message());
       } else {
+        CountsToProto(frame.counts, response.mutable_counts());
+        BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
+        if (frame.depth_state) DepthStateToProto(*frame.depth_state, response.mutable_depth());
         work.timings.store_ms = added->timings.store_ms;
-        metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.static_);
-        response.set_stored(added->stored);
-        if (added->stored) {
-          response.set_place_id(added->id);
-          metrics_->FrameIngested(map.name);
+        metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.depth_removed,
+                                   frame.counts.static_);
+        if (loop) {
+          LoopClosureToProto(*loop, response.mutable_loop_closure());
+          if (loop->loop) metrics_->LoopClosed(map.name);
+        }
+        if (loop && loop->merged) {
+          // Rehearsal: the frame is the place it was merged into; nothing new is stored.
+          response.set_stored(false);
+          response.set_place_id(loop->place);
+          metrics_->FrameMerged(map.name);
         } else {
-          response.set_rejection(added->rejection);
-          metrics_->FrameRejected(map.name, "invalid_place");
+          response.set_stored(added->stored);
+          if (added->stored) {
+            response.set_place_id(added->id);
+            metrics_->FrameIngested(map.name);
+          } else {
+            response.set_rejection(added->rejection);
+            metrics_->FrameRejected(map.name, "invalid_place");
+          }
         }
         work.timings.total_ms = MsSince(front->arrived);
         TimingsToProto(work.timings, front->queue_ms, response.mutable_timings());
@@ -527,6 +601,8 @@ void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
       ++stream->errors;
     } else if (response.stored()) {
       ++stream->stored;
+    } else if (response.loop_closure().merged()) {
+      ++stream->merged;
     } else {
       ++stream->rejected;
     }
@@ -572,6 +648,7 @@ grpc::Status PlaceDbService::Ingest(
   stream.io = io;
   stream.map = *entry;
   if (first.header().has_matches()) stream.header_matches = first.header().matches();
+  stream.loop_closure = first.header().loop_closure();
   {
     std::lock_guard lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
@@ -585,7 +662,8 @@ grpc::Status PlaceDbService::Ingest(
     streams_.insert(&stream);
   }
   metrics_->StreamOpened();
-  spdlog::info("ingest stream opened peer={} map={}", Peer(context), stream.map->name);
+  spdlog::info("ingest stream opened peer={} map={} loop_closure={}", Peer(context),
+               stream.map->name, stream.loop_closure);
 
   // The writer: responses in order, as they complete.
   std::thread writer([this, &stream] {
@@ -671,7 +749,7 @@ grpc::Status PlaceDbService::Ingest(
       slot->queue_ms = MsSince(slot->arrived);
       slot->status = Guarded("processing the observation", [&] {
         return Prepare(stream.context, *stream.map, slot->request->observation(), "observation",
-                       &slot->work);
+                       FrameRole::kStream, &slot->work);
       });
       slot->request.reset();  // the decoded frame is all that is needed now
       ReadyAndAdvance(&stream, slot.get());
@@ -708,10 +786,10 @@ grpc::Status PlaceDbService::Ingest(
   std::string agents;
   for (const std::string& agent : stream.agents) agents += (agents.empty() ? "" : ",") + agent;
   spdlog::info(
-      "ingest stream closed peer={} map={} agent={} frames={} stored={} rejected={} errors={} "
-      "duration={:.3f}s status={}",
-      Peer(context), stream.map->name, agents, stream.frames, stream.stored, stream.rejected,
-      stream.errors, MsSince(opened) / 1000.0, GrpcCodeName(status.error_code()));
+      "ingest stream closed peer={} map={} agent={} frames={} stored={} merged={} rejected={} "
+      "errors={} duration={:.3f}s status={}",
+      Peer(context), stream.map->name, agents, stream.frames, stream.stored, stream.merged,
+      stream.rejected, stream.errors, MsSince(opened) / 1000.0, GrpcCodeName(status.error_code()));
   return Finish("Ingest", context, status);
 }
 

@@ -1,7 +1,8 @@
 // The `placedb` CLI and load tester against a real server: an in-process placedb_server on a
-// loopback port with a real RocksDB in a temp directory, the default vocabulary, real frames
-// (RTAB-Map loop). Every command runs through RunCli() (the binary's entry function) with string
-// streams, checking outputs and exit codes.
+// loopback port with a real RocksDB in a temp directory, the default vocabulary (plus the Debian
+// SIFT vocabulary for SiftClientTest), real frames (RTAB-Map loop, rgbd-people, slambook2-rgbd).
+// Every command runs through RunCli() (the binary's entry function) with string streams, checking
+// outputs and exit codes.
 #include <arpa/inet.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
@@ -9,9 +10,13 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
+#include <map>
 #include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
 #include <sstream>
@@ -20,6 +25,7 @@
 #include "client/format.h"
 #include "client/frame_source.h"
 #include "client/loopback.h"
+#include "rgbd/rgbd_support.h"
 #include "server/config.h"
 #include "server/server.h"
 #include "tests/test_support.h"
@@ -87,6 +93,7 @@ class ClientTest : public ::testing::Test {
     config.threads = 2;
     config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};
     config.shutdown_deadline_s = 10;
+    Configure(&config);
     server::ServerDeps deps;
     deps.vocabularies.emplace("default", vocabulary);
     auto started = server::Server::Start(config, deps);
@@ -96,6 +103,9 @@ class ClientTest : public ::testing::Test {
   }
 
   void TearDown() override { server_.reset(); }
+
+  // For derived fixtures: more vocabularies, other settings.
+  virtual void Configure(server::ServerConfig* /*config*/) {}
 
   // `placedb --address <this server> ARGS...`
   CliRun Cli(std::vector<std::string> args, const std::string& stdin_text = "",
@@ -520,6 +530,519 @@ TEST_F(ClientTest, LoadTesterRefusesTargetsThatAreNotLoopback) {
   }
   EXPECT_FALSE(client::IsLoopbackTarget("no-such-host.invalid:1", &why));
   EXPECT_NE(why.find("cannot resolve"), std::string::npos) << why;
+}
+
+// ---- RGB-D: depth, loop closure, SIFT maps (docs/rgbd.md)
+// ----------------------------------------
+
+std::string RgbdPeopleDir() {
+  return testing::SharedDir() + "/data/rgbd-people";
+}
+std::string SlambookDir() {
+  return testing::SharedDir() + "/data/slambook2-rgbd";
+}
+
+// A 16-bit depth image with a gradient (millimetres), distinct per `seed`.
+cv::Mat DepthMillimetres(int seed) {
+  cv::Mat depth(48, 64, CV_16UC1);
+  for (int y = 0; y < depth.rows; ++y) {
+    for (int x = 0; x < depth.cols; ++x)
+      depth.at<uint16_t>(y, x) = uint16_t(500 + seed + 40 * x + y);
+  }
+  return depth;
+}
+
+cv::Mat DecodeDepth(const std::string& png16) {
+  return cv::imdecode(cv::Mat(1, int(png16.size()), CV_8U, const_cast<char*>(png16.data())),
+                      cv::IMREAD_UNCHANGED);
+}
+
+bool SameImage(const cv::Mat& a, const cv::Mat& b) {
+  return a.type() == b.type() && a.size() == b.size() && cv::countNonZero(a != b) == 0;
+}
+
+// Pairing by file stem and the encodings sent: a 16-bit PNG as it is, a 16-bit PGM re-encoded as
+// 16-bit PNG (values kept), a float32 TIFF as raw float32; a missing depth names its frame.
+TEST(ClientDepthTest, PairsDepthImagesByStemAndEncodesThem) {
+  const std::string root = testing::MakeTempDir("placedb-client-depth");
+  fs::create_directories(root + "/colour");
+  fs::create_directories(root + "/depth");
+  const cv::Mat colour(48, 64, CV_8UC3, cv::Scalar(40, 80, 120));
+  for (const char* name : {"1.jpg", "2.png", "frame_3.jpg", "4.jpg"}) {
+    ASSERT_TRUE(cv::imwrite(root + "/colour/" + name, colour));
+  }
+  ASSERT_TRUE(cv::imwrite(root + "/depth/1.png", DepthMillimetres(1)));
+  ASSERT_TRUE(cv::imwrite(root + "/depth/2.pgm", DepthMillimetres(2)));
+  cv::Mat metres;
+  DepthMillimetres(3).convertTo(metres, CV_32F, 0.001);
+  ASSERT_TRUE(cv::imwrite(root + "/depth/frame_3.tif", metres));
+  ASSERT_TRUE(cv::imwrite(root + "/depth/8bit.png", cv::Mat(48, 64, CV_8UC1, cv::Scalar(7))));
+
+  std::string error;
+  auto source = client::FrameSource::Open({root + "/colour"}, 1, "", &error);
+  ASSERT_TRUE(source) << error;
+  const std::vector<std::string> paths = source->image_paths();
+  // Natural order: "4.jpg" before "frame_3.jpg".
+  ASSERT_EQ(paths,
+            (std::vector<std::string>{root + "/colour/1.jpg", root + "/colour/2.png",
+                                      root + "/colour/4.jpg", root + "/colour/frame_3.jpg"}));
+  EXPECT_TRUE(source->video_paths().empty());
+  EXPECT_EQ(client::FindDepthImage(root + "/depth", paths[0], &error), root + "/depth/1.png");
+  EXPECT_EQ(client::FindDepthImage(root + "/depth", paths[1], &error), root + "/depth/2.pgm");
+  EXPECT_EQ(client::FindDepthImage(root + "/depth", paths[3], &error), root + "/depth/frame_3.tif");
+  EXPECT_EQ(client::FindDepthImage(root + "/depth", paths[2], &error), "");
+  EXPECT_NE(error.find("no depth image for frame " + root + "/colour/4.jpg"), std::string::npos)
+      << error;
+  EXPECT_NE(error.find(root + "/depth/4.png"), std::string::npos) << error;
+
+  // 16-bit PNG: the file's own bytes.
+  v1::DepthImage png;
+  ASSERT_TRUE(client::ReadDepthImage(root + "/depth/1.png", &png, &error)) << error;
+  ASSERT_EQ(png.data_case(), v1::DepthImage::kPng16);
+  std::ifstream file(root + "/depth/1.png", std::ios::binary);
+  const std::string file_bytes((std::istreambuf_iterator<char>(file)), {});
+  EXPECT_EQ(png.png16(), file_bytes);
+  // 16-bit PGM: re-encoded as a 16-bit PNG with the same values.
+  v1::DepthImage pgm;
+  ASSERT_TRUE(client::ReadDepthImage(root + "/depth/2.pgm", &pgm, &error)) << error;
+  ASSERT_EQ(pgm.data_case(), v1::DepthImage::kPng16);
+  ASSERT_EQ(pgm.png16().compare(0, 8, "\x89PNG\r\n\x1a\n"), 0);
+  EXPECT_EQ(uint8_t(pgm.png16()[24]), 16);  // IHDR bit depth
+  EXPECT_TRUE(SameImage(DecodeDepth(pgm.png16()), DepthMillimetres(2)));
+  // The real 16-bit PGMs of slambook2-rgbd too.
+  v1::DepthImage room;
+  ASSERT_TRUE(client::ReadDepthImage(SlambookDir() + "/depth/1.pgm", &room, &error)) << error;
+  EXPECT_TRUE(SameImage(DecodeDepth(room.png16()),
+                        cv::imread(SlambookDir() + "/depth/1.pgm", cv::IMREAD_UNCHANGED)));
+  // float32 TIFF: raw little-endian float32.
+  v1::DepthImage raw;
+  ASSERT_TRUE(client::ReadDepthImage(root + "/depth/frame_3.tif", &raw, &error)) << error;
+  ASSERT_EQ(raw.data_case(), v1::DepthImage::kRawFloat32);
+  EXPECT_EQ(raw.raw_float32().width(), 64u);
+  EXPECT_EQ(raw.raw_float32().height(), 48u);
+  ASSERT_EQ(raw.raw_float32().data().size(), 64u * 48u * 4u);
+  float first = 0;
+  std::memcpy(&first, raw.raw_float32().data().data(), 4);  // x86: little-endian
+  EXPECT_FLOAT_EQ(first, metres.at<float>(0, 0));
+  // An 8-bit image is no depth image.
+  v1::DepthImage eight;
+  EXPECT_FALSE(client::ReadDepthImage(root + "/depth/8bit.png", &eight, &error));
+  EXPECT_NE(error.find("16-bit or float32"), std::string::npos) << error;
+
+  v1::Intrinsics k;
+  ASSERT_TRUE(client::ParseIntrinsics("518, 519,325.5,253.5", &k, &error)) << error;
+  EXPECT_EQ(k.fx(), 518);
+  EXPECT_EQ(k.fy(), 519);
+  EXPECT_EQ(k.cx(), 325.5);
+  EXPECT_EQ(k.cy(), 253.5);
+  for (const char* bad : {"", "1,2,3", "1,2,3,4,5", "0,1,2,3", "a,b,c,d", "1,1,-1,2", "1,,2,3"}) {
+    EXPECT_FALSE(client::ParseIntrinsics(bad, &k, &error)) << bad;
+  }
+}
+
+// Local depth problems are usage errors found before anything is sent.
+TEST_F(ClientTest, IngestDepthProblemsAreUsageErrors) {
+  ASSERT_EQ(Cli({"maps", "create", "m"}).code, 0);
+  const std::string colour = root_ + "/colour";
+  const std::string depth = root_ + "/depth";
+  fs::create_directories(colour);
+  fs::create_directories(depth);
+  for (int frame : {1, 2, 3}) {
+    fs::create_symlink(testing::RtabmapFramePath(frame),
+                       colour + "/" + std::to_string(frame) + ".jpg");
+  }
+  const cv::Size size = cv::imread(testing::RtabmapFramePath(1)).size();
+  for (int frame : {1, 3}) {
+    ASSERT_TRUE(cv::imwrite(depth + "/" + std::to_string(frame) + ".png",
+                            cv::Mat(size, CV_16UC1, cv::Scalar(1500))));
+  }
+  CliRun missing = Cli({"ingest", "m", colour, "--depth", depth});
+  EXPECT_EQ(missing.code, 2);
+  EXPECT_NE(missing.err.find("no depth image for frame " + colour + "/2.jpg"), std::string::npos)
+      << missing.err;
+  EXPECT_EQ(ParseJson(Cli({"maps", "show", "m", "--json"}))["stats"]["places"], "0");
+
+  EXPECT_EQ(Cli({"ingest", "m", colour, "--depth-scale", "0.001"}).code, 2);
+  EXPECT_EQ(Cli({"ingest", "m", colour, "--intrinsics", "500,500,320,240"}).code, 2);
+  EXPECT_EQ(Cli({"ingest", "m", colour, "--depth", root_ + "/nowhere"}).code, 2);
+  fs::remove(colour + "/2.jpg");
+  EXPECT_EQ(Cli({"ingest", "m", colour, "--depth", depth, "--intrinsics", "1,2"}).code, 2);
+  EXPECT_EQ(Cli({"query", "m", testing::RtabmapFramePath(1), "--depth-scale", "0.001"}).code, 2);
+  EXPECT_EQ(Cli({"query", "m", testing::RtabmapFramePath(1), "--depth", root_ + "/none.png"}).code,
+            2);
+
+  // The pairs that exist go through (the server checks the depth against the frame).
+  const json summary = ParseJson(Cli({"ingest", "m", colour, "--depth", depth, "--json"}));
+  EXPECT_EQ(summary["frames"], 2);
+  EXPECT_EQ(summary["answered"], 2);
+  EXPECT_EQ(summary["local_errors"], 0);
+  EXPECT_EQ(summary["errors"]["frames"], 0) << summary.dump(2);
+}
+
+// The RGB-D create flags end up in the map's configuration; show and info print them.
+TEST_F(ClientTest, CreateRgbdFlagsSetTheMapConfig) {
+  CliRun created = Cli({"maps",
+                        "create",
+                        "rgbd",
+                        "--feature-type",
+                        "orb",
+                        "--no-refine-boxes",
+                        "--depth-scale",
+                        "0.0002",
+                        "--depth-threshold",
+                        "0.2",
+                        "--band-policy",
+                        "nearest_layer",
+                        "--loop-threshold",
+                        "0.2",
+                        "--rehearsal-threshold",
+                        "0.3",
+                        "--stm",
+                        "10",
+                        "--max-wm",
+                        "100",
+                        "--wm-time-budget-ms",
+                        "5"});
+  ASSERT_EQ(created.code, 0) << created.err;
+  json map = ParseJson(Cli({"maps", "show", "rgbd", "--json"}));
+  json config = map["config"];
+  EXPECT_EQ(config["feature_type"], "FEATURE_TYPE_ORB");
+  EXPECT_EQ(config["depth"]["refine_boxes"], false);
+  EXPECT_EQ(config["depth"]["stream_filter"], true);  // the server's default
+  EXPECT_NEAR(config["depth"]["scale"].get<double>(), 0.0002, 1e-9);
+  EXPECT_NEAR(config["depth"]["threshold_m"].get<double>(), 0.2, 1e-6);
+  EXPECT_EQ(config["depth"]["band_policy"], "BAND_POLICY_NEAREST_LAYER");
+  EXPECT_EQ(config["depth"]["mean_all_pixels"], false);
+  EXPECT_NEAR(config["loop_closure"]["loop_threshold"].get<double>(), 0.2, 1e-9);
+  EXPECT_NEAR(config["loop_closure"]["rehearsal_threshold"].get<double>(), 0.3, 1e-9);
+  EXPECT_EQ(config["loop_closure"]["short_term_memory"], 10);
+  EXPECT_EQ(config["loop_closure"]["max_working_memory"], 100);
+  EXPECT_NEAR(config["loop_closure"]["time_budget_ms"].get<double>(), 5, 1e-9);
+  for (const char* stat : {"streams", "loop_working_memory", "loop_long_term", "loops_accepted"}) {
+    EXPECT_EQ(map["stats"][stat], "0") << stat;
+  }
+
+  CliRun shown = Cli({"maps", "show", "rgbd"});
+  ASSERT_EQ(shown.code, 0) << shown.err;
+  for (const char* text :
+       {"features  ", "orb", "refine_boxes off", "scale 0.0002", "depth filter", "threshold 0.20 m",
+        "band nearest_layer", "loop closure", "loop_threshold 0.200", "rehearsal_threshold 0.300",
+        "stm 10", "max_wm 100", "time_budget 5.0 ms", "streams", "loop working memory",
+        "loop long-term", "loops accepted"}) {
+    EXPECT_NE(shown.out.find(text), std::string::npos) << text << " missing from\n" << shown.out;
+  }
+
+  // --paper-literal: the mean over all pixels and the fixed bands; the stream filter off.
+  ASSERT_EQ(Cli({"maps", "create", "paper", "--paper-literal", "--no-depth-filter"}).code, 0);
+  config = ParseJson(Cli({"maps", "show", "paper", "--json"}))["config"];
+  EXPECT_EQ(config["depth"]["mean_all_pixels"], true);
+  EXPECT_EQ(config["depth"]["band_policy"], "BAND_POLICY_FIXED");
+  EXPECT_EQ(config["depth"]["stream_filter"], false);
+  EXPECT_EQ(config["depth"]["refine_boxes"], true);
+  // Default-created maps: the vocabulary's kind.
+  EXPECT_EQ(config["feature_type"], "FEATURE_TYPE_ORB");
+
+  EXPECT_EQ(Cli({"maps", "create", "x", "--paper-literal", "--band-policy", "fixed"}).code, 2);
+  EXPECT_EQ(Cli({"maps", "create", "x", "--band-policy", "widest"}).code, 2);
+  EXPECT_EQ(Cli({"maps", "create", "x", "--feature-type", "surf"}).code, 2);
+  EXPECT_EQ(Cli({"maps", "create", "x", "--loop-threshold", "2"}).code, 2);
+  // The default vocabulary is binary: a SIFT map on it is refused by the server.
+  CliRun mismatch = Cli({"maps", "create", "x", "--feature-type", "sift"});
+  EXPECT_EQ(mismatch.code, 1);
+  EXPECT_NE(mismatch.err.find("INVALID_ARGUMENT"), std::string::npos) << mismatch.err;
+
+  CliRun info = Cli({"info"});
+  ASSERT_EQ(info.code, 0) << info.err;
+  EXPECT_NE(info.out.find("FEATURES"), std::string::npos) << info.out;
+  const json server = ParseJson(Cli({"info", "--json"}));
+  EXPECT_EQ(server["vocabularies"][0]["feature_type"], "FEATURE_TYPE_ORB");
+}
+
+// One agent through the RTAB-Map loop with loop closure: every valid frame reports its
+// loop-closure outcome; the summary adds up; accepted loops are (mostly) ground-truth revisits.
+TEST_F(ClientTest, IngestLoopClosureOnTheRtabmapLoop) {
+  ASSERT_EQ(Cli({"maps", "create", "loop"}).code, 0);
+  const std::string folder = testing::SharedDir() + "/data/rtabmap-loop";
+  CliRun run = Cli({"ingest", "loop", folder, "--glob", "*.jpg", "--loop-closure", "--json"});
+  ASSERT_EQ(run.code, 0) << run.err;
+  const json summary = ParseJson(run);
+  EXPECT_EQ(summary["loop_closure"], true);
+  EXPECT_EQ(summary["frames"], 84);
+  EXPECT_EQ(summary["answered"], 84);
+  const int stored = summary["stored"].get<int>();
+  const int merged = summary["merged"].get<int>();
+  const int rejected = summary["rejected"]["total"].get<int>();
+  const int errors = summary["errors"]["frames"].get<int>() + summary["local_errors"].get<int>();
+  EXPECT_EQ(stored + merged + rejected + errors, 84) << summary.dump(2);
+  EXPECT_EQ(errors, 0);
+  EXPECT_GT(stored, 20);
+
+  const cv::Mat truth = testing::RtabmapGroundTruth();
+  std::map<int, int> frame_of_place;  // place id -> 1-based frame that created it
+  int counted_merged = 0, loops = 0, true_loops = 0, with_loop_closure = 0;
+  ASSERT_EQ(summary["results"].size(), 84u);
+  for (const json& r : summary["results"]) {
+    const int frame = r["sequence"].get<int>() + 1;
+    EXPECT_EQ(r["name"], folder + "/" + std::to_string(frame) + ".jpg");
+    if (r.contains("error")) continue;
+    if (!r.contains("loop_closure")) {
+      // Only frames that are not valid places skip the loop-closure update.
+      EXPECT_FALSE(r["stored"].get<bool>()) << r.dump();
+      EXPECT_TRUE(r.contains("rejection")) << r.dump();
+      continue;
+    }
+    ++with_loop_closure;
+    const json& lc = r["loop_closure"];
+    for (const char* key :
+         {"merged", "place_id", "loop_found", "loop_place_id", "loop_posterior", "best_place_id",
+          "best_posterior", "candidates", "retrieved", "transferred"}) {
+      EXPECT_TRUE(lc.contains(key)) << key;
+    }
+    if (lc["merged"].get<bool>()) {
+      ++counted_merged;
+      EXPECT_EQ(r["merged_into"], lc["place_id"]);
+      EXPECT_FALSE(r["stored"].get<bool>()) << r.dump();
+    } else {
+      EXPECT_TRUE(r["stored"].get<bool>()) << r.dump();
+      EXPECT_EQ(r["place_id"], lc["place_id"]);
+      frame_of_place[lc["place_id"].get<int>()] = frame;
+    }
+    if (lc["loop_found"].get<bool>()) {
+      ++loops;
+      EXPECT_GE(lc["loop_posterior"].get<double>(), 0.12 - 1e-9) << r.dump();  // T_loop default
+      const auto place = frame_of_place.find(lc["loop_place_id"].get<int>());
+      ASSERT_NE(place, frame_of_place.end()) << "loop to an unknown place: " << r.dump();
+      true_loops += truth.at<uint8_t>(frame - 1, place->second - 1) != 0;
+    }
+  }
+  EXPECT_EQ(with_loop_closure, stored + merged);
+  EXPECT_EQ(counted_merged, merged);
+  EXPECT_EQ(summary["loops_found"], loops);
+  // docs/rgbd.md: ORB closes 34 loops on this sequence, none false (standalone detector).
+  EXPECT_GE(loops, 10);
+  EXPECT_GE(true_loops * 10, loops * 8) << true_loops << " of " << loops << " loops are revisits";
+
+  const json map = ParseJson(Cli({"maps", "show", "loop", "--json"}));
+  EXPECT_EQ(map["stats"]["places"], std::to_string(stored));
+  EXPECT_EQ(map["stats"]["loops_accepted"], std::to_string(loops));
+  EXPECT_EQ(map["stats"]["streams"], "1");
+  EXPECT_GT(std::stoll(map["stats"]["loop_working_memory"].get<std::string>()), 0);
+
+  // Text mode: a line per frame, then the loop-closure summary line.
+  ASSERT_EQ(Cli({"maps", "create", "text"}).code, 0);
+  CliRun text = Cli({"ingest", "text", FramesDir(1, 6), "--loop-closure"});
+  ASSERT_EQ(text.code, 0) << text.err;
+  EXPECT_NE(text.out.find("1.jpg -> place 1; no loop"), std::string::npos) << text.out;
+  EXPECT_NE(text.out.find("merged     "), std::string::npos) << text.out;
+  EXPECT_NE(text.out.find("loop closure: 6 frames, "), std::string::npos) << text.out;
+  EXPECT_NE(text.out.find(" loops found\n"), std::string::npos) << text.out;
+}
+
+// rgbd-people (people walking in front of the camera) and the slambook2 room (16-bit PGM depth,
+// intrinsics): every frame comes back with its Algorithm 1 state; a query shows its agent's.
+TEST_F(ClientTest, IngestAndQueryWithDepth) {
+  ASSERT_EQ(Cli({"maps", "create", "rgbd"}).code, 0);
+  CliRun run = Cli({"ingest", "rgbd", RgbdPeopleDir() + "/image/test1", "--depth",
+                    RgbdPeopleDir() + "/depth/test1", "--agent-id", "walker", "--json"});
+  ASSERT_EQ(run.code, 0) << run.err;
+  json summary = ParseJson(run);
+  EXPECT_EQ(summary["frames"], 2);
+  EXPECT_EQ(summary["errors"]["frames"], 0);
+  ASSERT_TRUE(summary.contains("depth"));
+  ASSERT_EQ(summary["results"].size(), 2u);
+  for (size_t k = 0; k < 2; ++k) {
+    const json& r = summary["results"][k];
+    ASSERT_TRUE(r.contains("depth")) << r.dump();
+    const json& d = r["depth"];
+    EXPECT_EQ(d["frame"], k);
+    EXPECT_GT(d["mean_depth_m"].get<double>(), 0.5);
+    EXPECT_LT(d["mean_depth_m"].get<double>(), 12);
+    EXPECT_GT(d["valid_fraction"].get<double>(), 0.3);
+    EXPECT_EQ(d["warming_up"], true);  // 2 frames: Algorithm 1 warms up over the first 3
+    EXPECT_EQ(r["counts"]["depth_removed"], 0);
+  }
+
+  // The slambook2 room: 16-bit PGM depth converted, intrinsics sent, human output.
+  CliRun room =
+      Cli({"ingest", "rgbd", SlambookDir() + "/color", "--depth", SlambookDir() + "/depth",
+           "--intrinsics", "518,519,325.5,253.5", "--agent-id", "room"});
+  ASSERT_EQ(room.code, 0) << room.err;
+  EXPECT_NE(room.out.find("ingested 5 of 5 frames"), std::string::npos) << room.out;
+  EXPECT_NE(room.out.find("depth      0 descriptors removed by Algorithm 1 in 0 frames"),
+            std::string::npos)
+      << room.out;
+  summary = ParseJson(Cli({"ingest", "rgbd", SlambookDir() + "/color", "--depth",
+                           SlambookDir() + "/depth", "--agent-id", "room-2", "--json"}));
+  ASSERT_EQ(summary["results"].size(), 5u);
+  for (size_t k = 0; k < 5; ++k) {
+    const json& r = summary["results"][k];
+    ASSERT_TRUE(r.contains("depth")) << r.dump();
+    EXPECT_EQ(r["depth"]["frame"], k);
+    if (k >= 3) {
+      EXPECT_EQ(r["depth"]["warming_up"], false) << r.dump();
+      EXPECT_GT(r["depth"]["static_level_m"].get<double>(), 0) << r.dump();
+    }
+  }
+  const json map = ParseJson(Cli({"maps", "show", "rgbd", "--json"}));
+  EXPECT_EQ(map["stats"]["streams"], "3");  // walker, room, room-2
+
+  // A query with depth: the depth is sent (a depth image of another aspect ratio is refused);
+  // the agent's Algorithm 1 decision is applied without advancing its stream, and reported when
+  // it applies (the server leaves QueryResponse.depth unset while the agent is not removing).
+  const std::string image = RgbdPeopleDir() + "/image/test2/1534837743.228972.png";
+  const std::string depth = RgbdPeopleDir() + "/depth/test2/1534837743.228972.png";
+  CliRun queried_run =
+      Cli({"query", "rgbd", image, "--depth", depth, "--agent-id", "walker", "--json"});
+  ASSERT_EQ(queried_run.code, 0) << queried_run.err;
+  const json queried = ParseJson(queried_run);
+  EXPECT_EQ(queried["valid"], true);
+  EXPECT_EQ(queried["counts"]["depth_removed"], 0);
+  if (queried.contains("depth")) {
+    EXPECT_GT(queried["depth"]["mean_depth_m"].get<double>(), 0.5);
+    CliRun text = Cli({"query", "rgbd", image, "--depth", depth, "--agent-id", "walker"});
+    ASSERT_EQ(text.code, 0) << text.err;
+    EXPECT_NE(text.out.find("depth: frame "), std::string::npos) << text.out;
+  }
+  EXPECT_EQ(ParseJson(Cli({"maps", "show", "rgbd", "--json"}))["stats"]["streams"], "3");
+  const std::string square = root_ + "/square.png";
+  ASSERT_TRUE(cv::imwrite(square, cv::Mat(100, 100, CV_16UC1, cv::Scalar(1500))));
+  CliRun refused = Cli({"query", "rgbd", image, "--depth", square});
+  EXPECT_EQ(refused.code, 1);
+  EXPECT_NE(refused.err.find("INVALID_ARGUMENT"), std::string::npos) << refused.err;
+}
+
+// A person walks up to the camera in the slambook2 room (rgbd::ComposePerson, the generated
+// sequence of depth_filter_test: frames 0-14 empty, 15-59 the person from 5.0 m to 0.6 m, 60-74
+// gone), written as colour PNGs and 16-bit millimetre depth PNGs: Algorithm 1 on the ingest
+// stream switches removal on, and ingest shows and counts it.
+TEST_F(ClientTest, IngestWithDepthShowsAlgorithmOneRemoval) {
+  const rgbd::PersonSprite sprite = rgbd::LoadPersonSprite();
+  ASSERT_FALSE(sprite.bgr.empty()) << "cannot load the person sprite";
+  const auto rooms = rgbd::SlambookFrames();
+  ASSERT_FALSE(rooms.empty());
+  const cv::Mat room_bgr = cv::imread(rooms[0].image_path, cv::IMREAD_COLOR);
+  auto room_metres = rgbd::ReadDepthMetres(rooms[0].depth_path);
+  ASSERT_TRUE(room_metres.ok()) << room_metres.status().ToString();
+  const std::string colour = root_ + "/walk/colour";
+  const std::string depth = root_ + "/walk/depth";
+  fs::create_directories(colour);
+  fs::create_directories(depth);
+  cv::RNG rng(7);
+  constexpr int kFrames = 75, kEnter = 15, kLeave = 60;
+  for (int t = 0; t < kFrames; ++t) {
+    const double z = t >= kEnter && t < kLeave ? 5.0 - 0.1 * (t - kEnter) : 0;
+    const rgbd::Composite frame =
+        rgbd::ComposePerson(sprite, room_bgr, *room_metres, rgbd::SlambookIntrinsics(), z, &rng);
+    cv::Mat millimetres;
+    frame.metres.convertTo(millimetres, CV_16U, 1000.0);
+    ASSERT_TRUE(cv::imwrite(colour + "/" + std::to_string(t) + ".png", frame.bgr));
+    ASSERT_TRUE(cv::imwrite(depth + "/" + std::to_string(t) + ".png", millimetres));
+  }
+  ASSERT_EQ(Cli({"maps", "create", "walk"}).code, 0);
+
+  const json summary =
+      ParseJson(Cli({"ingest", "walk", colour, "--depth", depth, "--agent-id", "a", "--json"}));
+  ASSERT_EQ(summary["results"].size(), size_t(kFrames));
+  EXPECT_EQ(summary["errors"]["frames"], 0);
+  int first_removing = -1, last_removing = -1;
+  int64_t removed = 0, frames_removing = 0;
+  for (const json& r : summary["results"]) {
+    ASSERT_TRUE(r.contains("depth")) << r.dump();
+    const int t = r["sequence"].get<int>();
+    EXPECT_EQ(r["depth"]["frame"], t);
+    if (r["depth"]["removing"].get<bool>()) {
+      if (first_removing < 0) first_removing = t;
+      last_removing = t;
+      EXPECT_LT(r["depth"]["band_near_m"].get<double>(), r["depth"]["band_far_m"].get<double>());
+    }
+    const int64_t n = r["counts"]["depth_removed"].get<int64_t>();
+    removed += n;
+    frames_removing += n > 0;
+  }
+  // docs/rgbd.md: removal from frame 53 (the person at 1.2 m) until they leave at 60.
+  EXPECT_GE(first_removing, kEnter + 7);
+  EXPECT_LE(first_removing, kLeave - 1);
+  EXPECT_LE(last_removing, kLeave);
+  EXPECT_GT(removed, 0);
+  EXPECT_EQ(summary["depth"]["descriptors_removed"], removed);
+  EXPECT_EQ(summary["depth"]["frames_removing"], frames_removing);
+
+  // Text: a line for each frame with removal, and the summary line.
+  CliRun text = Cli({"ingest", "walk", colour, "--depth", depth, "--agent-id", "b"});
+  ASSERT_EQ(text.code, 0) << text.err;
+  EXPECT_NE(text.out.find(".png -> place "), std::string::npos) << text.out;
+  EXPECT_NE(text.out.find("; depth -"), std::string::npos) << text.out;
+  EXPECT_NE(text.out.find(" m)\n"), std::string::npos) << text.out;
+  EXPECT_NE(text.out.find("  depth      " + std::to_string(removed) +
+                          " descriptors removed by Algorithm 1 in " +
+                          std::to_string(frames_removing) + " frames"),
+            std::string::npos)
+      << text.out;
+}
+
+// A server with the Debian SIFT vocabulary as "sift" beside the default ORB one.
+class SiftClientTest : public ClientTest {
+ protected:
+  void Configure(server::ServerConfig* config) override {
+    const std::string path = rgbd::SiftVocabularyPath();
+    auto vocabulary = rgbd::LoadOrTrainSiftVocabulary(path);  // trained once if missing (~30 s)
+    ASSERT_TRUE(vocabulary.ok()) << vocabulary.status().ToString();
+    config->vocabularies["sift"] = path;
+  }
+};
+
+TEST_F(SiftClientTest, SiftMapCreateIngestAndFeatures) {
+  const json server = ParseJson(Cli({"info", "--json"}));
+  std::map<std::string, std::string> kinds;
+  for (const json& v : server["vocabularies"]) {
+    kinds[v["name"].get<std::string>()] = v["feature_type"].get<std::string>();
+  }
+  EXPECT_EQ(kinds["default"], "FEATURE_TYPE_ORB");
+  EXPECT_EQ(kinds["sift"], "FEATURE_TYPE_SIFT");
+  CliRun info = Cli({"info"});
+  EXPECT_NE(info.out.find("sift"), std::string::npos) << info.out;
+
+  CliRun created = Cli({"maps", "create", "s", "--vocabulary", "sift", "--feature-type", "sift",
+                        "--sift-features", "500"});
+  ASSERT_EQ(created.code, 0) << created.err;
+  EXPECT_NE(created.out.find("max_features 500, octave_layers"), std::string::npos) << created.out;
+  const json config = ParseJson(Cli({"maps", "show", "s", "--json"}))["config"];
+  EXPECT_EQ(config["vocabulary"], "sift");
+  EXPECT_EQ(config["feature_type"], "FEATURE_TYPE_SIFT");
+  EXPECT_EQ(config["sift"]["max_features"], 500);
+  // The kind follows the vocabulary when not given; a mismatch is refused.
+  ASSERT_EQ(Cli({"maps", "create", "s2", "--vocabulary", "sift"}).code, 0);
+  EXPECT_EQ(ParseJson(Cli({"maps", "show", "s2", "--json"}))["config"]["feature_type"],
+            "FEATURE_TYPE_SIFT");
+  CliRun mismatch = Cli({"maps", "create", "s3", "--vocabulary", "sift", "--feature-type", "orb"});
+  EXPECT_EQ(mismatch.code, 1);
+  EXPECT_NE(mismatch.err.find("INVALID_ARGUMENT"), std::string::npos) << mismatch.err;
+
+  // Images in, SIFT extracted by the server; a stored place's SIFT features out.
+  const json summary = ParseJson(Cli({"ingest", "s", SlambookDir() + "/color", "--json"}));
+  EXPECT_EQ(summary["errors"]["frames"], 0);
+  ASSERT_GT(summary["stored"].get<int>(), 0) << summary.dump(2);
+  int id = 0;
+  for (const json& r : summary["results"]) {
+    if (r["stored"].get<bool>() && id == 0) id = r["place_id"].get<int>();
+  }
+  CliRun got = Cli({"place", "get", "s", std::to_string(id), "--features"});
+  ASSERT_EQ(got.code, 0) << got.err;
+  EXPECT_NE(got.out.find("static SIFT keypoints"), std::string::npos) << got.out;
+  EXPECT_NE(got.out.find("keypoint 0"), std::string::npos) << got.out;
+  const json place =
+      ParseJson(Cli({"place", "get", "s", std::to_string(id), "--features", "--json"}));
+  const json& sift = place["sift_features"];
+  ASSERT_FALSE(sift["keypoints"].empty()) << place.dump().substr(0, 2000);
+  EXPECT_LE(sift["keypoints"].size(), 500u);
+  EXPECT_EQ(sift["image_width"], 640);
+  const json queried = ParseJson(Cli({"query", "s", SlambookDir() + "/color/3.png", "--json"}));
+  ASSERT_FALSE(queried["matches"].empty());
+
+  // The load tester's features mode extracts ORB: refused for a SIFT map.
+  CliRun load = Cli({"load", SlambookDir() + "/color", "--map", "s", "--mode", "features"});
+  EXPECT_EQ(load.code, 2);
+  EXPECT_NE(load.err.find("SIFT map"), std::string::npos) << load.err;
 }
 
 // ---- helpers ------------------------------------------------------------------------------------

@@ -692,95 +692,7 @@ TEST(RgbdPeople, RefinedMasksKeepBackgroundInsideBoxes) {
 }
 
 // ---- Generated sequence: a person walks up to the camera in the slambook2 room -------------
-
-struct Sprite {
-  cv::Mat bgr, metres, mask;
-  float depth = 0;  // median depth of the person
-};
-
-// The front-facing person of rgbd-people test2 (second frame): the largest connected region
-// nearer than 2 m (the floor behind starts at 2.1 m in that frame).
-Sprite LoadSprite() {
-  Sprite s;
-  for (const auto& frame : rgbd::RgbdPeopleFrames()) {
-    if (frame.name != "test2/1534837744.426981") continue;
-    s.bgr = cv::imread(frame.image_path, cv::IMREAD_COLOR);
-    auto metres = rgbd::ReadDepthMetres(frame.depth_path);
-    if (!metres.ok() || s.bgr.empty()) return {};
-    s.metres = *metres;
-  }
-  if (s.bgr.empty()) return s;
-  cv::Mat near = (s.metres > 0) & (s.metres < 2.0f);
-  cv::Mat labels, stats, centroids;
-  const int n = cv::connectedComponentsWithStats(near, labels, stats, centroids);
-  int best = 0;
-  for (int i = 1; i < n; ++i) {
-    if (best == 0 || stats.at<int>(i, cv::CC_STAT_AREA) > stats.at<int>(best, cv::CC_STAT_AREA)) {
-      best = i;
-    }
-  }
-  s.mask = labels == best;
-  std::vector<float> depths;
-  for (int r = 0; r < s.mask.rows; ++r) {
-    for (int c = 0; c < s.mask.cols; ++c) {
-      if (s.mask.at<uint8_t>(r, c)) depths.push_back(s.metres.at<float>(r, c));
-    }
-  }
-  std::nth_element(depths.begin(), depths.begin() + std::ptrdiff_t(depths.size() / 2),
-                   depths.end());
-  s.depth = depths[depths.size() / 2];
-  return s;
-}
-
-struct Composite {
-  cv::Mat bgr, metres, person;  // person: pixels where the person is visible
-};
-
-// The person at distance z (metres) in front of the room, by pinhole scaling about the principal
-// point (scale z0 / z, depths shifted by z - z0) and a z-buffer against the room's depth.
-Composite ComposeFrame(const Sprite& sprite, const cv::Mat& room_bgr, const cv::Mat& room_metres,
-                       const CameraIntrinsics& k, double z, cv::RNG* rng) {
-  Composite c;
-  c.bgr = room_bgr.clone();
-  c.metres = room_metres.clone();
-  // Sensor noise: ~0.5 % depth jitter, a little image noise.
-  cv::Mat jitter(c.metres.size(), CV_32F);
-  rng->fill(jitter, cv::RNG::NORMAL, 0.0, 0.005);
-  cv::Mat valid = c.metres > 0;
-  c.metres = c.metres.mul(1.0f + jitter);
-  c.metres.setTo(0, ~valid);
-  cv::Mat noise(c.bgr.size(), CV_16SC3);
-  rng->fill(noise, cv::RNG::NORMAL, 0, 2);
-  cv::Mat noisy;
-  c.bgr.convertTo(noisy, CV_16SC3);
-  noisy += noise;
-  noisy.convertTo(c.bgr, CV_8UC3);
-  c.person = cv::Mat::zeros(c.bgr.size(), CV_8U);
-  if (z <= 0) return c;
-  const double s = sprite.depth / z;
-  const double sprite_cx = sprite.bgr.cols / 2.0, sprite_cy = sprite.bgr.rows / 2.0;
-  cv::Mat affine =
-      (cv::Mat_<double>(2, 3) << s, 0, k.cx - sprite_cx * s, 0, s, k.cy - sprite_cy * s);
-  cv::Mat bgr, metres, mask;
-  cv::warpAffine(sprite.bgr, bgr, affine, c.bgr.size(), cv::INTER_LINEAR);
-  cv::warpAffine(sprite.metres, metres, affine, c.bgr.size(), cv::INTER_NEAREST);
-  cv::warpAffine(sprite.mask, mask, affine, c.bgr.size(), cv::INTER_NEAREST);
-  const float shift = float(z) - sprite.depth;
-  for (int r = 0; r < c.bgr.rows; ++r) {
-    for (int col = 0; col < c.bgr.cols; ++col) {
-      if (!mask.at<uint8_t>(r, col)) continue;
-      const float d = metres.at<float>(r, col);
-      if (d <= 0) continue;
-      const float person_depth = d + shift;
-      const float room = c.metres.at<float>(r, col);
-      if (room > 0 && room <= person_depth) continue;  // the room is in front
-      c.metres.at<float>(r, col) = person_depth;
-      c.bgr.at<cv::Vec3b>(r, col) = bgr.at<cv::Vec3b>(r, col);
-      c.person.at<uint8_t>(r, col) = 255;
-    }
-  }
-  return c;
-}
+// (rgbd::ComposePerson)
 
 struct SequenceResult {
   int first_removing = -1;
@@ -800,7 +712,7 @@ double PersonDistance(int t) {
 
 SequenceResult RunSequence(const DepthFilterConfig& config, const std::string& label, bool print) {
   SequenceResult result;
-  static const Sprite sprite = LoadSprite();
+  static const rgbd::PersonSprite sprite = rgbd::LoadPersonSprite();
   EXPECT_FALSE(sprite.bgr.empty()) << "cannot load the person sprite";
   const auto rooms = rgbd::SlambookFrames();
   EXPECT_EQ(rooms.size(), 5u);
@@ -821,8 +733,8 @@ SequenceResult RunSequence(const DepthFilterConfig& config, const std::string& l
   }
   for (int t = 0; t < kFrames; ++t) {
     const double z = PersonDistance(t);
-    Composite frame =
-        ComposeFrame(sprite, room_bgr, *room_metres, rgbd::SlambookIntrinsics(), z, &rng);
+    rgbd::Composite frame =
+        rgbd::ComposePerson(sprite, room_bgr, *room_metres, rgbd::SlambookIntrinsics(), z, &rng);
     // Features only where they are counted (the state machine needs depth alone).
     const bool extract = t >= kEnter + 25 && t <= kLeave + 1;
     FloatFeatureSet features;

@@ -6,6 +6,7 @@
 #include <numeric>
 #include <opencv2/imgproc.hpp>
 
+#include "core/sift_features.h"
 #include "tests/test_support.h"
 
 namespace placedb {
@@ -323,7 +324,7 @@ TEST(GeometricVerifierTest, ValidatesConfig) {
     const Status status = ValidateVerificationConfig(config);
     EXPECT_EQ(status.code(), StatusCode::kInvalidArgument) << field;
     EXPECT_NE(status.message().find(field), std::string::npos) << status.message();
-    auto result = VerifyGeometry({}, {}, {}, {}, config);
+    auto result = VerifyGeometry(FeatureSet{}, {}, FeatureSet{}, {}, config);
     EXPECT_FALSE(result.ok()) << field;
   };
   EXPECT_TRUE(ValidateVerificationConfig(VerificationConfig{}).ok());
@@ -360,6 +361,36 @@ TEST(GeometricVerifierTest, ValidatesConfig) {
   c.ratio = 1.0f;
   c.min_inliers = 8;
   EXPECT_TRUE(ValidateVerificationConfig(c).ok());
+}
+
+// SIFT candidates: L2 nearest neighbours with the ratio test, then the same RANSAC.
+TEST(GeometricVerifierTest, SiftVerifiesAWarpedViewAndRejectsAnotherScene) {
+  ASSERT_TRUE(testing::HaveSharedData());
+  const cv::Mat image = testing::ReadGray(testing::RtabmapFramePath(10));
+  cv::Mat warped;
+  const cv::Mat rotation =
+      cv::getRotationMatrix2D(cv::Point2f(image.cols / 2.0f, image.rows / 2.0f), 6.0, 0.95);
+  cv::warpAffine(image, warped, rotation, image.size());
+  const cv::Mat other = testing::ReadGray(testing::RtabmapFramePath(60));
+  auto a = ExtractSift(image, SiftConfig{});
+  auto b = ExtractSift(warped, SiftConfig{});
+  auto c = ExtractSift(other, SiftConfig{});
+  ASSERT_TRUE(a.ok() && b.ok() && c.ok());
+  ASSERT_GT(a->size(), 50u);
+  VerificationConfig exhaustive;
+  exhaustive.mode = VerificationMode::kExhaustive;
+  auto same = VerifyGeometry(*a, {}, *b, {}, exhaustive);
+  ASSERT_TRUE(same.ok()) << same.status().ToString();
+  EXPECT_TRUE(same->verified) << same->inliers << " inliers";
+  EXPECT_GE(same->inliers, 30);
+  auto different = VerifyGeometry(*a, {}, *c, {}, exhaustive);
+  ASSERT_TRUE(different.ok());
+  EXPECT_FALSE(different->verified) << different->inliers << " inliers";
+  EXPECT_LT(different->inliers, same->inliers / 2);
+  FloatFeatureSet broken = *a;
+  broken.descriptors.pop_back();
+  EXPECT_EQ(VerifyGeometry(broken, {}, *b, {}, exhaustive).status().code(),
+            StatusCode::kInvalidArgument);
 }
 
 TEST(GeometricVerifierTest, ModeNamesRoundTrip) {

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <opencv2/core.hpp>
 #include <thread>
 
 #include "tests/test_support.h"
@@ -53,7 +54,8 @@ TEST_F(PlaceDatabaseTest, CreateRejectsBadConfig) {
   bad_threshold.filter.place_threshold = -1;
   EXPECT_FALSE(PlaceDatabase::Create(vocabulary_, bad_threshold).ok());
 
-  EXPECT_EQ(PlaceDatabase::Create(nullptr, {}).status().code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(PlaceDatabase::Create(AnyVocabulary(), {}).status().code(),
+            StatusCode::kInvalidArgument);
 }
 
 TEST_F(PlaceDatabaseTest, AddStoresStaticFeaturesAndReportsCounts) {
@@ -342,6 +344,84 @@ TEST_F(PlaceDatabaseTest, ConcurrentQueriesDuringAddAndRemove) {
   EXPECT_EQ(failures.load(), 0);
   EXPECT_GT(queries.load(), 0);
   EXPECT_EQ(db->Stats().places, 24u - 5u);
+}
+
+// Three agents stream RGB-D frames with loop closure at once while a reader queries as one of
+// them: per-agent state (Algorithm 1, the loop-closure detector and its long-term memory in the
+// payload store) must stay per agent and race-free. Run under ThreadSanitizer by tools/test.sh.
+TEST_F(PlaceDatabaseTest, ConcurrentAgentStreamsWithDepthAndLoopClosure) {
+  DatabaseConfig config;
+  config.loop_closure.short_term_memory = 2;
+  config.loop_closure.max_working_memory = 3;  // forces transfers to and retrievals from LTM
+  config.loop_closure.min_candidates = 2;
+  auto db = MakeDatabase(config);
+  constexpr int kFrames = 14;
+  std::vector<Observation> frames;
+  for (int i = 1; i <= kFrames; ++i) {
+    Observation frame = Frame(i);
+    // A flat wall at 2 m, then something at 0.7 m covering the left half (a deviation).
+    cv::Mat depth(frame.image.rows, frame.image.cols, CV_16U, cv::Scalar(2000));
+    if (i > 6) depth(cv::Rect(0, 0, depth.cols / 2, depth.rows)).setTo(700);
+    frame.depth = DepthObservation{depth, {}, {}};
+    frames.push_back(std::move(frame));
+  }
+  std::atomic<int> failures{0};
+  std::atomic<bool> done{false};
+  std::vector<std::thread> agents;
+  std::vector<int> stored(3, 0), merged(3, 0), removing(3, 0);
+  for (int a = 0; a < 3; ++a) {
+    agents.emplace_back([&, a] {
+      const std::string agent = "agent-" + std::to_string(a);
+      for (int pass = 0; pass < 2; ++pass) {
+        for (const Observation& source : frames) {
+          Observation frame = source;
+          frame.metadata.agent_id = agent;
+          auto processed = db->Process(frame, FrameRole::kStream);
+          if (!processed.ok() || !db->AdvanceStream(&*processed, agent).ok()) {
+            failures.fetch_add(1);
+            continue;
+          }
+          removing[size_t(a)] += processed->depth_state && processed->depth_state->removing;
+          if (!processed->valid) continue;
+          auto outcome = db->CloseLoop(*processed, frame.metadata);
+          if (!outcome.ok()) {
+            failures.fetch_add(1);
+            continue;
+          }
+          (outcome->merged ? merged : stored)[size_t(a)] += 1;
+        }
+      }
+    });
+  }
+  std::thread reader([&] {
+    while (!done.load()) {
+      auto result = db->Query(frames[3], QueryOptions{});
+      if (!result.ok()) failures.fetch_add(1);
+      (void)db->Stats();
+      (void)db->LoopStats("agent-0");
+    }
+  });
+  for (auto& agent : agents) agent.join();
+  done.store(true);
+  reader.join();
+  EXPECT_EQ(failures.load(), 0);
+  size_t total_stored = 0;
+  for (int a = 0; a < 3; ++a) {
+    total_stored += size_t(stored[size_t(a)]);
+    // Each stream saw its own deviation: 8 frames at 0.7 m, removal from the 7th of them (the
+    // second pass starts from a static level that already includes the first pass's frames).
+    EXPECT_GT(removing[size_t(a)], 0) << "agent " << a;
+    auto loop = db->LoopStats("agent-" + std::to_string(a));
+    ASSERT_TRUE(loop.ok());
+    EXPECT_EQ(loop->places, size_t(stored[size_t(a)]));
+    EXPECT_GT(loop->transferred, 0u);
+  }
+  const DatabaseStats stats = db->Stats();
+  EXPECT_EQ(stats.places, total_stored);
+  EXPECT_EQ(stats.streams, 3u);
+  EXPECT_GT(stats.loop_long_term, 0u);
+  EXPECT_EQ(db->ResetStream("agent-1").code(), StatusCode::kOk);
+  EXPECT_EQ(db->ResetStream("agent-1").code(), StatusCode::kNotFound);
 }
 
 }  // namespace

@@ -27,7 +27,9 @@
 
 #include "core/detector.h"
 #include "core/map_store.h"
+#include "core/sift_features.h"
 #include "proto/placedb.grpc.pb.h"
+#include "rgbd/rgbd_support.h"
 #include "server/config.h"
 #include "server/convert.h"
 #include "tests/test_support.h"
@@ -524,7 +526,7 @@ TEST_F(ServerTest, BadInputGetsItsCodeAndLeavesTheMapIntact) {
     o->mutable_encoded_image()->set_data(std::string("\xFF\xD8\xFF\xE0\x00\x10", 6) +
                                          std::string(200, '\x11'));
   });
-  add("no frame", grpc::StatusCode::INVALID_ARGUMENT, "encoded_image, raw_image or features",
+  add("no frame", grpc::StatusCode::INVALID_ARGUMENT, "encoded_image, raw_image, features or",
       [](v1::Observation* o) { o->clear_frame(); });
   add("keypoint outside the image", grpc::StatusCode::INVALID_ARGUMENT,
       "observation.features.keypoints[3].x: 700 lies outside the 512x384 image",
@@ -596,9 +598,24 @@ TEST_F(ServerTest, BadInputGetsItsCodeAndLeavesTheMapIntact) {
       [](v1::Observation* o) {
         o->set_dynamic_mask_png(EncodePng(cv::Mat::zeros(10, 10, CV_8U)));
       });
-  add("depth of the wrong size", grpc::StatusCode::INVALID_ARGUMENT, "observation.depth",
+  add("depth of another aspect ratio", grpc::StatusCode::INVALID_ARGUMENT, "observation.depth",
       [](v1::Observation* o) {
+        o->mutable_depth()->set_png16(EncodePng(cv::Mat::zeros(64, 64, CV_16U)));
+      });
+  add("depth intrinsics outside the image", grpc::StatusCode::INVALID_ARGUMENT,
+      "observation.depth.intrinsics.cx", [](v1::Observation* o) {
         o->mutable_depth()->set_png16(EncodePng(cv::Mat::zeros(48, 64, CV_16U)));
+        v1::Intrinsics* k = o->mutable_depth()->mutable_intrinsics();
+        k->set_fx(500);
+        k->set_fy(500);
+        k->set_cx(900);
+        k->set_cy(200);
+      });
+  add("SIFT features on an ORB map", grpc::StatusCode::INVALID_ARGUMENT,
+      "observation.sift_features", [](v1::Observation* o) {
+        v1::SiftFeatures* sift = o->mutable_sift_features();
+        sift->set_image_width(512);
+        sift->set_image_height(384);
       });
   add("8-bit depth", grpc::StatusCode::INVALID_ARGUMENT, "16-bit", [](v1::Observation* o) {
     o->mutable_depth()->set_png16(EncodePng(cv::Mat::zeros(480, 640, CV_8U)));
@@ -1250,6 +1267,601 @@ TEST_F(ServerTest, RestartReopensMapsWithTheirOwnVocabulary) {
   ASSERT_TRUE(Query("other-map", RtabmapObservation(1, "a"), &response).ok());
   ASSERT_FALSE(response.matches().empty());
   EXPECT_GT(response.matches(0).inliers(), 12);
+}
+
+// ---- RGB-D: SIFT maps, depth, loop closure ------------------------------------------------------
+
+// The Debian SIFT vocabulary (the sift_vocabulary ctest fixture builds it), loaded once.
+std::shared_ptr<const FloatVocabulary> SiftVocabulary() {
+  static const std::shared_ptr<const FloatVocabulary> vocabulary = [] {
+    auto loaded = rgbd::LoadOrTrainSiftVocabulary(rgbd::SiftVocabularyPath());
+    EXPECT_TRUE(loaded.ok()) << loaded.status().ToString();
+    return loaded.ok() ? *loaded : nullptr;
+  }();
+  return vocabulary;
+}
+
+// The server's configuration with the SIFT vocabulary as "sift" (preloaded by StartServerWithSift).
+ServerConfig WithSift(ServerConfig config) {
+  config.vocabularies["sift"] = rgbd::SiftVocabularyPath();
+  return config;
+}
+
+ServerDeps SiftDeps() {
+  ServerDeps deps;
+  deps.vocabularies.emplace("sift", SiftVocabulary());
+  return deps;
+}
+
+v1::MapConfig SiftMapConfig() {
+  v1::MapConfig config;
+  config.set_vocabulary("sift");
+  config.set_feature_type(v1::FEATURE_TYPE_SIFT);
+  return config;
+}
+
+// SIFT of `observation`'s JPEG exactly as the server computes it for a default SIFT map.
+v1::SiftFeatures SiftFeaturesOf(const v1::Observation& observation) {
+  const std::string& bytes = observation.encoded_image().data();
+  cv::Mat gray = cv::imdecode(cv::Mat(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data())),
+                              cv::IMREAD_GRAYSCALE);
+  auto features = ExtractSift(gray, SiftConfig{});
+  EXPECT_TRUE(features.ok()) << features.status().ToString();
+  v1::SiftFeatures out;
+  server::SiftFeaturesToProto(*features, &out);
+  return out;
+}
+
+// An rgbd-people / slambook2 frame: the colour image as PNG bytes, depth as a 16-bit PNG (mm).
+v1::Observation RgbdObservation(const rgbd::RgbdFrame& frame, const std::string& agent,
+                                uint64_t sequence) {
+  v1::Observation observation;
+  observation.set_agent_id(agent);
+  observation.set_sequence(sequence);
+  observation.mutable_encoded_image()->set_data(ReadBytes(frame.image_path));
+  const cv::Mat depth = cv::imread(frame.depth_path, cv::IMREAD_UNCHANGED | cv::IMREAD_ANYDEPTH);
+  EXPECT_EQ(depth.type(), CV_16UC1) << frame.depth_path;
+  observation.mutable_depth()->set_png16(EncodePng(depth));
+  return observation;
+}
+
+IngestOutcome IngestWithHeader(v1::PlaceDb::Stub* stub, const v1::IngestHeader& header,
+                               const std::vector<v1::Observation>& observations) {
+  grpc::ClientContext context;
+  auto stream = stub->Ingest(&context);
+  std::thread writer([&] {
+    v1::IngestRequest first;
+    *first.mutable_header() = header;
+    if (!stream->Write(first)) return;
+    for (const v1::Observation& observation : observations) {
+      v1::IngestRequest request;
+      *request.mutable_observation() = observation;
+      if (!stream->Write(request)) return;
+    }
+    stream->WritesDone();
+  });
+  IngestOutcome out;
+  v1::IngestResponse response;
+  while (stream->Read(&response)) out.responses.push_back(response);
+  writer.join();
+  out.status = stream->Finish();
+  return out;
+}
+
+// A SIFT map: created on the float vocabulary, frames ingested as images, queried back (as images
+// and as precomputed SIFT) with exhaustive verification, stored SIFT features read back.
+TEST_F(ServerTest, SiftMapIngestsImagesAndFindsThemVerified) {
+  ASSERT_TRUE(SiftVocabulary());
+  ASSERT_NO_FATAL_FAILURE(StartServer(WithSift(Config()), SiftDeps()));
+  {
+    grpc::ClientContext context;
+    v1::ServerInfo info;
+    ASSERT_TRUE(stub_->GetServerInfo(&context, {}, &info).ok());
+    std::map<std::string, v1::FeatureType> kinds;
+    for (const auto& vocabulary : info.vocabularies()) {
+      kinds[vocabulary.name()] = vocabulary.feature_type();
+    }
+    EXPECT_EQ(kinds["default"], v1::FEATURE_TYPE_ORB);
+    EXPECT_EQ(kinds["sift"], v1::FEATURE_TYPE_SIFT);
+  }
+  v1::MapConfig config;
+  config.set_vocabulary("sift");  // feature_type unspecified: the vocabulary's kind
+  config.mutable_verification()->set_mode(v1::VERIFICATION_MODE_EXHAUSTIVE);
+  const v1::MapDescription created = CreateMap("sift-map", config);
+  EXPECT_EQ(created.config().feature_type(), v1::FEATURE_TYPE_SIFT);
+  EXPECT_EQ(created.config().sift().max_features(), 1000);  // effective values filled in
+  EXPECT_NEAR(created.config().sift().contrast_threshold(), 0.04, 1e-9);
+  EXPECT_NEAR(created.config().depth().threshold_m(), 0.15, 1e-6);
+  EXPECT_EQ(created.config().depth().band_policy(), v1::BAND_POLICY_APPEARED_LAYER);
+  EXPECT_NEAR(created.config().loop_closure().loop_threshold(), 0.12, 1e-9);
+  EXPECT_EQ(created.vocabulary_checksum(), SiftVocabulary()->checksum_hex());
+
+  std::vector<v1::Observation> observations;
+  for (int frame = 1; frame <= 24; ++frame) observations.push_back(RtabmapObservation(frame, "a"));
+  const IngestOutcome outcome = IngestAll(stub_.get(), "sift-map", observations);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();
+  ASSERT_EQ(outcome.responses.size(), observations.size());
+  std::vector<size_t> stored;
+  for (size_t i = 0; i < outcome.responses.size(); ++i) {
+    const v1::IngestResponse& response = outcome.responses[i];
+    ASSERT_FALSE(response.has_error()) << i << ": " << response.error().message();
+    EXPECT_EQ(
+        response.counts().total(),
+        response.counts().dynamic() + response.counts().depth_removed() + response.counts().kept());
+    EXPECT_GT(response.timings().extract_ms(), 0);
+    if (response.stored()) stored.push_back(i);
+  }
+  // The corridor is low-texture for SIFT: most frames, not necessarily all, are places.
+  ASSERT_GE(stored.size(), 12u);
+  EXPECT_EQ(Stats("sift-map").places(), stored.size());
+
+  int verified = 0;
+  for (size_t k = 0; k < stored.size(); k += 3) {
+    const size_t i = stored[k];
+    v1::QueryResponse response;
+    ASSERT_TRUE(Query("sift-map", observations[i], &response, 3).ok());
+    ASSERT_TRUE(response.valid()) << response.rejection();
+    ASSERT_FALSE(response.matches().empty());
+    EXPECT_EQ(response.matches(0).place_id(), outcome.responses[i].place_id()) << "frame " << i + 1;
+    EXPECT_NEAR(response.matches(0).score(), 1.0, 1e-5);
+    verified += response.matches(0).verified();
+    EXPECT_GT(response.matches(0).inliers(), 0);
+    // Precomputed SIFT: the same ranking as the image.
+    v1::Observation features_only;
+    *features_only.mutable_sift_features() = SiftFeaturesOf(observations[i]);
+    v1::QueryResponse from_features;
+    ASSERT_TRUE(Query("sift-map", features_only, &from_features, 3).ok());
+    ASSERT_EQ(from_features.matches_size(), response.matches_size());
+    for (int m = 0; m < response.matches_size(); ++m) {
+      EXPECT_EQ(from_features.matches(m).place_id(), response.matches(m).place_id());
+      EXPECT_NEAR(from_features.matches(m).score(), response.matches(m).score(), 1e-9);
+    }
+  }
+  EXPECT_EQ(verified, int((stored.size() + 2) / 3)) << "every self-match is verified";
+
+  // Stored SIFT features on request: 512 bytes per kept keypoint.
+  grpc::ClientContext context;
+  v1::GetPlaceRequest request;
+  request.set_map("sift-map");
+  request.set_place_id(outcome.responses[stored[0]].place_id());
+  request.set_include_features(true);
+  v1::Place place;
+  ASSERT_TRUE(stub_->GetPlace(&context, request, &place).ok());
+  EXPECT_FALSE(place.has_features());
+  EXPECT_EQ(uint32_t(place.sift_features().keypoints_size()), place.counts().kept());
+  EXPECT_EQ(place.sift_features().descriptors().size(),
+            size_t(place.sift_features().keypoints_size()) * 512);
+
+  // ORB features cannot go into a SIFT map.
+  v1::Observation orb_only;
+  *orb_only.mutable_features() = FeaturesOf(observations[0]);
+  v1::QueryResponse response;
+  const grpc::Status wrong_type = Query("sift-map", orb_only, &response);
+  EXPECT_EQ(wrong_type.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(wrong_type.error_message().find("observation.features"), std::string::npos)
+      << wrong_type.error_message();
+}
+
+// A map's feature type must be its vocabulary's kind.
+TEST_F(ServerTest, FeatureTypeMustMatchTheVocabulary) {
+  ASSERT_TRUE(SiftVocabulary());
+  ASSERT_NO_FATAL_FAILURE(StartServer(WithSift(Config()), SiftDeps()));
+  v1::MapConfig sift_on_orb;
+  sift_on_orb.set_feature_type(v1::FEATURE_TYPE_SIFT);  // on "default", a binary vocabulary
+  const grpc::Status refused = CreateMapStatus("x", sift_on_orb);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(refused.error_message().rfind("config.feature_type", 0), 0u) << refused.error_message();
+  v1::MapConfig orb_on_sift;
+  orb_on_sift.set_vocabulary("sift");
+  orb_on_sift.set_feature_type(v1::FEATURE_TYPE_ORB);
+  EXPECT_EQ(CreateMapStatus("x", orb_on_sift).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  v1::MapConfig too_many = SiftMapConfig();
+  too_many.mutable_sift()->set_max_features(5000);  // over limits.max_descriptors_per_frame 2000
+  const grpc::Status budget = CreateMapStatus("x", too_many);
+  EXPECT_EQ(budget.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+  EXPECT_NE(budget.error_message().find("config.sift.max_features"), std::string::npos);
+  v1::MapConfig bad_sift = SiftMapConfig();
+  bad_sift.mutable_sift()->set_octave_layers(0);
+  const grpc::Status layers = CreateMapStatus("x", bad_sift);
+  EXPECT_EQ(layers.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(layers.error_message().find("config.sift.octave_layers"), std::string::npos);
+  v1::MapConfig bad_depth;
+  bad_depth.mutable_depth()->set_threshold_m(-1);
+  const grpc::Status depth = CreateMapStatus("x", bad_depth);
+  EXPECT_EQ(depth.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(depth.error_message().rfind("config.depth.threshold_m", 0), 0u)
+      << depth.error_message();
+  v1::MapConfig bad_band;
+  bad_band.mutable_depth()->mutable_rise_band()->set_near_m(3);
+  bad_band.mutable_depth()->mutable_rise_band()->set_far_m(2);
+  EXPECT_NE(CreateMapStatus("x", bad_band).error_message().find("config.depth.rise_band"),
+            std::string::npos);
+  v1::MapConfig bad_loop;
+  bad_loop.mutable_loop_closure()->set_loop_threshold(1.5);
+  const grpc::Status loop = CreateMapStatus("x", bad_loop);
+  EXPECT_EQ(loop.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(loop.error_message().rfind("config.loop_closure.loop_threshold", 0), 0u)
+      << loop.error_message();
+  // All = the limit: a SIFT map never extracts more than a frame may carry.
+  v1::MapConfig all = SiftMapConfig();
+  all.mutable_sift()->set_max_features(0);
+  EXPECT_EQ(CreateMap("all", all).config().sift().max_features(), 2000);
+  // Settings round-trip.
+  v1::MapConfig tuned;
+  tuned.mutable_depth()->set_threshold_m(0.3f);
+  tuned.mutable_depth()->set_band_policy(v1::BAND_POLICY_FIXED);
+  tuned.mutable_depth()->set_stream_filter(false);
+  tuned.mutable_loop_closure()->set_short_term_memory(12);
+  const v1::MapDescription described = CreateMap("tuned", tuned);
+  EXPECT_EQ(described.config().feature_type(), v1::FEATURE_TYPE_ORB);
+  EXPECT_NEAR(described.config().depth().threshold_m(), 0.3, 1e-6);
+  EXPECT_EQ(described.config().depth().band_policy(), v1::BAND_POLICY_FIXED);
+  EXPECT_FALSE(described.config().depth().stream_filter());
+  EXPECT_EQ(described.config().loop_closure().short_term_memory(), 12);
+  grpc::ClientContext context;
+  v1::ListMapsResponse maps;
+  ASSERT_TRUE(stub_->ListMaps(&context, {}, &maps).ok());
+  EXPECT_EQ(maps.maps_size(), 2) << "a refused CreateMap left a map behind";
+}
+
+// RGB-D frames (colour + 16-bit depth in mm): every ingest response carries Algorithm 1's state
+// for its agent's stream, and the counts add up. A static room (slambook2), then the rgbd-people
+// frames (their level comes and goes around the room's), the room again, then the room with
+// something approaching: a block at 1.2 m over a sixth of the depth image, frame after frame. The
+// level deviates for good, and from the 7th such frame on the layer that appeared is removed.
+TEST_F(ServerTest, DepthFramesReportAlgorithmOneAndCountsAddUp) {
+  const auto room = rgbd::SlambookFrames();
+  const auto people = rgbd::RgbdPeopleFrames();
+  ASSERT_EQ(room.size(), 5u);
+  ASSERT_EQ(people.size(), 8u);
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("rgbd");
+  std::vector<v1::Observation> observations;
+  uint64_t sequence = 0;
+  for (int pass = 0; pass < 2; ++pass) {
+    for (const auto& frame : room) {
+      observations.push_back(RgbdObservation(frame, "kinect", ++sequence));
+    }
+  }
+  for (int pass = 0; pass < 2; ++pass) {
+    for (const auto& frame : people) {
+      observations.push_back(RgbdObservation(frame, "kinect", ++sequence));
+    }
+  }
+  for (const auto& frame : room) {  // back to the room: the deviation count starts afresh
+    observations.push_back(RgbdObservation(frame, "kinect", ++sequence));
+  }
+  const size_t approaching = observations.size();
+  for (int i = 0; i < 10; ++i) {
+    const rgbd::RgbdFrame& frame = room[size_t(i) % room.size()];
+    v1::Observation observation = RgbdObservation(frame, "kinect", ++sequence);
+    cv::Mat depth = cv::imread(frame.depth_path, cv::IMREAD_UNCHANGED | cv::IMREAD_ANYDEPTH);
+    depth(cv::Rect(190, 140, 260, 200)).setTo(cv::Scalar(1200));
+    observation.mutable_depth()->set_png16(EncodePng(depth));
+    observations.push_back(std::move(observation));
+  }
+  const IngestOutcome outcome = IngestAll(stub_.get(), "rgbd", observations);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();
+  ASSERT_EQ(outcome.responses.size(), observations.size());
+  uint64_t stored = 0, removing = 0, removed = 0;
+  bool deviated = false;
+  for (size_t i = 0; i < outcome.responses.size(); ++i) {
+    const v1::IngestResponse& response = outcome.responses[i];
+    ASSERT_FALSE(response.has_error()) << i << ": " << response.error().message();
+    ASSERT_TRUE(response.has_depth()) << i;
+    const v1::DepthState& depth = response.depth();
+    EXPECT_EQ(depth.frame(), i);
+    EXPECT_EQ(depth.warming_up(), i < 3) << i;
+    EXPECT_GT(depth.mean_depth_m(), 0.5) << i;
+    EXPECT_GT(depth.valid_fraction(), 0.3) << i;
+    const v1::FrameCounts& counts = response.counts();
+    EXPECT_EQ(counts.total(), counts.dynamic() + counts.depth_removed() + counts.kept()) << i;
+    if (!depth.removing()) {
+      EXPECT_EQ(counts.depth_removed(), 0u) << i;
+    }
+    if (depth.removing()) {
+      ++removing;
+      EXPECT_GE(i, approaching + 6) << "removal before the 7th deviating frame";
+      EXPECT_LE(depth.band_near_m(), 1.2f);
+      EXPECT_GE(depth.band_far_m(), 1.2f);
+      EXPECT_FALSE(depth.band_source().empty());
+      EXPECT_GT(counts.depth_removed(), 0u) << i;
+    }
+    if (i >= approaching) {
+      EXPECT_TRUE(depth.deviating()) << i;
+      EXPECT_LT(depth.difference_m(), -0.15) << i;
+    }
+    removed += counts.depth_removed();
+    deviated |= depth.deviating();
+    EXPECT_GT(response.timings().depth_ms(), 0) << i;
+    stored += response.stored();
+  }
+  EXPECT_TRUE(deviated);
+  EXPECT_GE(removing, 3u) << "a lasting deviation must switch removal on";
+  EXPECT_GT(removed, 0u);
+  const v1::MapStats stats = Stats("rgbd");
+  EXPECT_EQ(stats.places(), stored);
+  EXPECT_EQ(stats.streams(), 1u);
+
+  // A query from the agent applies its stream's current decision without advancing it.
+  v1::QueryResponse response;
+  for (int again = 0; again < 2; ++again) {
+    ASSERT_TRUE(Query("rgbd", observations.back(), &response).ok());
+    ASSERT_TRUE(response.has_depth());
+    EXPECT_EQ(response.depth().frame(), observations.size() - 1) << "a query advanced the stream";
+    EXPECT_TRUE(response.depth().removing());
+    EXPECT_GT(response.counts().depth_removed(), 0u);
+    EXPECT_EQ(
+        response.counts().total(),
+        response.counts().dynamic() + response.counts().depth_removed() + response.counts().kept());
+  }
+
+  // Depth of another resolution with the same aspect ratio, raw float32 with intrinsics: fine.
+  v1::Observation half = RgbdObservation(people[0], "other", 1);
+  cv::Mat depth = cv::imread(people[0].depth_path, cv::IMREAD_UNCHANGED | cv::IMREAD_ANYDEPTH);
+  cv::Mat small;
+  cv::resize(depth, small, cv::Size(320, 240), 0, 0, cv::INTER_NEAREST);
+  half.mutable_depth()->set_png16(EncodePng(small));
+  ASSERT_TRUE(Query("rgbd", half, &response).ok());
+  EXPECT_TRUE(response.valid());
+  EXPECT_EQ(response.counts().total(), response.counts().dynamic() + response.counts().kept());
+  v1::Observation metres = RgbdObservation(people[0], "other", 2);
+  cv::Mat values;
+  depth.convertTo(values, CV_32F, 0.001);
+  v1::RawDepth* raw = metres.mutable_depth()->mutable_raw_float32();
+  raw->set_width(uint32_t(values.cols));
+  raw->set_height(uint32_t(values.rows));
+  raw->set_data(std::string(reinterpret_cast<const char*>(values.data), values.total() * 4));
+  v1::Intrinsics* intrinsics = metres.mutable_depth()->mutable_intrinsics();
+  intrinsics->set_fx(525);
+  intrinsics->set_fy(525);
+  intrinsics->set_cx(319.5);
+  intrinsics->set_cy(239.5);
+  ASSERT_TRUE(Query("rgbd", metres, &response).ok());
+  intrinsics->set_fx(-1);
+  const grpc::Status bad = Query("rgbd", metres, &response);
+  EXPECT_EQ(bad.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(bad.error_message().find("observation.depth.intrinsics.fx"), std::string::npos)
+      << bad.error_message();
+}
+
+// Loop-closure mode over gRPC on the RTAB-Map loop (ORB, default vocabulary): every valid frame
+// gets the detector's answer; loops are found, each one a true revisit by the dataset's ground
+// truth; frames merged by rehearsal are not stored.
+TEST_F(ServerTest, LoopClosureIngestFindsTrueLoopsAndStoresNoMergedFrame) {
+  const cv::Mat truth = rgbd::RtabmapGroundTruth();
+  ASSERT_EQ(truth.rows, 84);
+  ServerConfig config = Config();
+  config.metrics_listen = "127.0.0.1:0";
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  CreateMap("loop");
+  std::vector<v1::Observation> observations;
+  for (int frame = 1; frame <= 84; ++frame) observations.push_back(RtabmapObservation(frame, "a"));
+  v1::IngestHeader header;
+  header.set_map("loop");
+  header.set_loop_closure(true);
+  header.mutable_matches()->set_top_k(3);
+  const IngestOutcome outcome = IngestWithHeader(stub_.get(), header, observations);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();
+  ASSERT_EQ(outcome.responses.size(), 84u);
+
+  std::map<uint32_t, std::vector<int>> frames_of;  // place -> frames it became / merged
+  uint64_t stored = 0, merged = 0, loops = 0, false_loops = 0;
+  for (int t = 1; t <= 84; ++t) {
+    const v1::IngestResponse& response = outcome.responses[size_t(t - 1)];
+    ASSERT_FALSE(response.has_error()) << t << ": " << response.error().message();
+    if (!response.stored() && !response.has_loop_closure()) {
+      EXPECT_FALSE(response.rejection().empty()) << t;  // an invalid frame: not in the detector
+      continue;
+    }
+    ASSERT_TRUE(response.has_loop_closure()) << t;
+    const v1::LoopClosure& lc = response.loop_closure();
+    EXPECT_EQ(lc.place_id(), response.place_id()) << t;
+    EXPECT_NE(response.place_id(), 0u) << t;
+    if (lc.merged()) {
+      ++merged;
+      EXPECT_FALSE(response.stored()) << t;
+      EXPECT_TRUE(response.rejection().empty()) << t;
+      ASSERT_TRUE(frames_of.count(lc.place_id())) << "merged into an unknown place, frame " << t;
+    } else {
+      EXPECT_TRUE(response.stored()) << t;
+      ++stored;
+    }
+    if (t > 1) {
+      EXPECT_FALSE(response.matches().empty()) << t;
+    }
+    if (lc.loop_found()) {
+      ++loops;
+      ASSERT_TRUE(frames_of.count(lc.loop_place_id())) << t;
+      EXPECT_GT(lc.loop_posterior(), 0);
+      // The revisited place looks like the newest frame merged into it.
+      const int f = frames_of[lc.loop_place_id()].back();
+      const bool correct = truth.at<uint8_t>(t - 1, f - 1) == 255;
+      false_loops += !correct;
+      EXPECT_TRUE(correct) << "frame " << t << " closed a loop with place " << lc.loop_place_id()
+                           << " (frame " << f << "), not a revisit";
+    }
+    frames_of[lc.place_id()].push_back(t);
+  }
+  EXPECT_GT(loops, 0u) << "the RTAB-Map loop returns to its start";
+  EXPECT_EQ(false_loops, 0u);
+  const v1::MapStats stats = Stats("loop");
+  EXPECT_EQ(stats.places(), stored) << "merged frames must not be stored";
+  EXPECT_EQ(stats.loops_accepted(), loops);
+  EXPECT_EQ(stats.streams(), 1u);
+  EXPECT_GT(stats.loop_working_memory(), 0u);
+  std::printf("loop closure over gRPC: 84 frames -> %llu stored, %llu merged, %llu loops\n",
+              static_cast<unsigned long long>(stored), static_cast<unsigned long long>(merged),
+              static_cast<unsigned long long>(loops));
+
+  // Rehearsal: a frame seen again right away is merged into the place it repeats, not stored.
+  CreateMap("rehearsal");
+  header.set_map("rehearsal");
+  header.clear_matches();
+  const IngestOutcome repeated = IngestWithHeader(
+      stub_.get(), header,
+      {RtabmapObservation(1, "a"), RtabmapObservation(1, "a"), RtabmapObservation(1, "a"),
+       RtabmapObservation(20, "a"), RtabmapObservation(20, "a")});
+  ASSERT_TRUE(repeated.status.ok()) << repeated.status.error_message();
+  ASSERT_EQ(repeated.responses.size(), 5u);
+  uint64_t repeated_stored = 0;
+  for (size_t i = 0; i < 5; ++i) {
+    const v1::IngestResponse& response = repeated.responses[i];
+    ASSERT_TRUE(response.has_loop_closure()) << i << response.error().message();
+    repeated_stored += response.stored();
+    if (i == 1 || i == 2 || i == 4) {
+      EXPECT_TRUE(response.loop_closure().merged()) << i;
+      EXPECT_FALSE(response.stored()) << i;
+      EXPECT_TRUE(response.rejection().empty()) << i;
+      EXPECT_EQ(response.place_id(), repeated.responses[i - 1].place_id()) << i;
+    }
+  }
+  EXPECT_TRUE(repeated.responses[0].stored());
+  EXPECT_EQ(Stats("rehearsal").places(), repeated_stored);
+
+  using Labels = std::map<std::string, std::string>;
+  const auto metrics = Scrape();
+  EXPECT_EQ(MetricValue(metrics, "placedb_loop_closures_total", Labels{{"map", "loop"}}),
+            double(loops));
+  if (merged > 0) {
+    EXPECT_EQ(MetricValue(metrics, "placedb_frames_merged_total", Labels{{"map", "loop"}}),
+              double(merged));
+  }
+  EXPECT_EQ(MetricValue(metrics, "placedb_frames_merged_total", Labels{{"map", "rehearsal"}}),
+            double(5 - repeated_stored));
+  EXPECT_EQ(MetricValue(metrics, "placedb_frames_ingested_total", Labels{{"map", "loop"}}),
+            double(stored));
+  EXPECT_GT(MetricValue(metrics, "placedb_stage_seconds_count", Labels{{"stage", "loop_closure"}}),
+            0);
+
+  // Without loop_closure in the header, the same map stores every valid frame as before.
+  const IngestOutcome plain = IngestAll(stub_.get(), "loop", {RtabmapObservation(1, "b")});
+  ASSERT_EQ(plain.responses.size(), 1u);
+  EXPECT_TRUE(plain.responses[0].stored());
+  EXPECT_FALSE(plain.responses[0].has_loop_closure());
+}
+
+// Bad SIFT features and unregistrable depth are refused with the field named, storing nothing.
+TEST_F(ServerTest, BadSiftFeaturesAndDepthAreRefused) {
+  ASSERT_TRUE(SiftVocabulary());
+  ASSERT_NO_FATAL_FAILURE(StartServer(WithSift(Config()), SiftDeps()));
+  CreateMap("sift-map", SiftMapConfig());
+  const v1::Observation good = RtabmapObservation(3, "a");
+  const v1::SiftFeatures features = SiftFeaturesOf(good);
+  ASSERT_GT(features.keypoints_size(), 30);
+  struct Case {
+    std::string name;
+    v1::Observation observation;
+    std::string message;
+  };
+  std::vector<Case> cases;
+  auto add = [&](std::string name, std::string message,
+                 const std::function<void(v1::Observation*)>& edit) {
+    v1::Observation observation = good;
+    edit(&observation);
+    cases.push_back({std::move(name), std::move(observation), std::move(message)});
+  };
+  add("descriptor bytes not a multiple of 512", "observation.sift_features.descriptors",
+      [&](v1::Observation* o) {
+        *o->mutable_sift_features() = features;
+        o->mutable_sift_features()->mutable_descriptors()->resize(features.descriptors().size() -
+                                                                  4);
+      });
+  add("one descriptor too few", "observation.sift_features.descriptors", [&](v1::Observation* o) {
+    *o->mutable_sift_features() = features;
+    o->mutable_sift_features()->mutable_descriptors()->resize(features.descriptors().size() - 512);
+  });
+  add("keypoint outside the image", "observation.sift_features.keypoints[3].x",
+      [&](v1::Observation* o) {
+        *o->mutable_sift_features() = features;
+        o->mutable_sift_features()->mutable_keypoints(3)->set_x(9999);
+      });
+  add("non-finite descriptor value", "observation.sift_features", [&](v1::Observation* o) {
+    *o->mutable_sift_features() = features;
+    const float nan = std::nanf("");
+    o->mutable_sift_features()->mutable_descriptors()->replace(
+        512 * 2 + 4 * 7, 4, reinterpret_cast<const char*>(&nan), 4);
+  });
+  add("depth with another aspect ratio", "observation.depth", [](v1::Observation* o) {
+    o->mutable_depth()->set_png16(EncodePng(cv::Mat(300, 300, CV_16U, cv::Scalar(1500))));
+  });
+  add("sift features with depth of another aspect ratio", "observation.depth",
+      [&](v1::Observation* o) {
+        *o->mutable_sift_features() = features;
+        o->mutable_depth()->set_png16(EncodePng(cv::Mat(100, 50, CV_16U, cv::Scalar(1500))));
+      });
+  std::vector<v1::Observation> bad;
+  for (const Case& c : cases) {
+    v1::QueryResponse response;
+    const grpc::Status status = Query("sift-map", c.observation, &response);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << c.name;
+    EXPECT_NE(status.error_message().find(c.message), std::string::npos)
+        << c.name << ": " << status.error_message();
+    bad.push_back(c.observation);
+  }
+  const IngestOutcome outcome = IngestAll(stub_.get(), "sift-map", bad);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();
+  ASSERT_EQ(outcome.responses.size(), cases.size());
+  for (size_t i = 0; i < cases.size(); ++i) {
+    const v1::IngestResponse& response = outcome.responses[i];
+    EXPECT_FALSE(response.stored()) << cases[i].name;
+    EXPECT_EQ(response.error().code(), int(grpc::StatusCode::INVALID_ARGUMENT)) << cases[i].name;
+    EXPECT_NE(response.error().message().find(cases[i].message), std::string::npos)
+        << cases[i].name << ": " << response.error().message();
+  }
+  const v1::MapStats stats = Stats("sift-map");
+  EXPECT_EQ(stats.places(), 0u);
+  EXPECT_EQ(stats.invalid_rejected(), 0u);
+  EXPECT_EQ(stats.streams(), 0u) << "a refused frame must not touch the agent's stream state";
+  // The good frame itself goes in.
+  const IngestOutcome fine = IngestAll(stub_.get(), "sift-map", {good});
+  ASSERT_EQ(fine.responses.size(), 1u);
+  EXPECT_TRUE(fine.responses[0].stored())
+      << fine.responses[0].rejection() << fine.responses[0].error().message();
+}
+
+// An embedded-default vocabulary whose file is missing is a warning (maps that need it are
+// unavailable); one the operator named is a startup error.
+TEST_F(ServerTest, MissingEmbeddedSiftVocabularyIsAWarningUnlessConfigured) {
+  ServerConfig config = Config();
+  config.vocabularies["sift"] = root_ + "/nowhere/sift-debian.pdbfv";
+  config.optional_vocabularies = {"sift"};
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  const grpc::Status missing = CreateMapStatus("s", SiftMapConfig());
+  EXPECT_EQ(missing.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  EXPECT_NE(missing.error_message().find("not loaded"), std::string::npos)
+      << missing.error_message();
+  {
+    grpc::ClientContext context;
+    v1::ServerInfo info;
+    ASSERT_TRUE(stub_->GetServerInfo(&context, {}, &info).ok());
+    ASSERT_EQ(info.vocabularies_size(), 1);
+    EXPECT_EQ(info.vocabularies(0).name(), "default");
+  }
+  StopServer();
+  config.optional_vocabularies.clear();
+  auto refused = Server::Start(config, {});
+  ASSERT_FALSE(refused.ok());
+  EXPECT_NE(refused.status().message().find("vocabulary 'sift'"), std::string::npos)
+      << refused.status().ToString();
+
+  // Which entries are optional: the embedded ones as embedded (also when a file repeats them).
+  const char* plain[] = {"placedb-server"};
+  auto defaults = server::ParseCommandLine(1, plain, [](const char*) { return nullptr; });
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->config.vocabularies.at("sift"), "var/vocabulary/sift-debian.pdbfv");
+  EXPECT_TRUE(defaults->config.optional_vocabularies.count("sift"));
+  const char* flagged[] = {"placedb-server", "--vocabulary", "sift=/data/sift.pdbfv"};
+  auto flag = server::ParseCommandLine(3, flagged, [](const char*) { return nullptr; });
+  ASSERT_TRUE(flag.ok());
+  EXPECT_FALSE(flag->config.optional_vocabularies.count("sift"));
+  ServerConfig from_file;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(ServerConfig{}), &from_file).ok());
+  EXPECT_TRUE(from_file.optional_vocabularies.count("sift"));
+  ASSERT_TRUE(server::ApplyConfigYaml(
+                  "vocabularies:\n  default: a.pdbv\n  sift: /data/sift.pdbfv\n", &from_file)
+                  .ok());
+  EXPECT_FALSE(from_file.optional_vocabularies.count("sift"));
 }
 
 // Server-side detection (YOLOX-Nano): boxes from the server, or merged with the agent's.

@@ -2,13 +2,17 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <chrono>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <map>
 #include <thread>
 
 #include "core/codec.h"
 #include "core/map_store.h"
+#include "rgbd/rgbd_support.h"
 #include "tests/test_support.h"
 
 namespace fs = std::filesystem;
@@ -54,6 +58,56 @@ std::vector<Ranked> QueryAll(const PlaceMap& map, const std::vector<Observation>
     out.push_back(ranked);
   }
   return out;
+}
+
+// The SIFT vocabulary trained on Debian's sample images (rgbd/rgbd_support.h), loaded once.
+std::shared_ptr<const FloatVocabulary> SiftVocabulary() {
+  static const std::shared_ptr<const FloatVocabulary> vocabulary =
+      []() -> std::shared_ptr<const FloatVocabulary> {
+    auto loaded = rgbd::LoadOrTrainSiftVocabulary(rgbd::SiftVocabularyPath());
+    EXPECT_TRUE(loaded.ok()) << loaded.status().ToString();
+    return loaded.ok() ? *loaded : nullptr;
+  }();
+  return vocabulary;
+}
+
+// Little-endian bytes, to hand-build values in the formats older versions wrote.
+struct Bytes {
+  std::string s;
+  template <typename T>
+  Bytes& Put(T v) {
+    s.append(reinterpret_cast<const char*>(&v), sizeof v);
+    return *this;
+  }
+  Bytes& Varint(uint64_t v) {
+    for (; v >= 0x80; v >>= 7) s.push_back(char(uint8_t(v) | 0x80));
+    s.push_back(char(v));
+    return *this;
+  }
+  Bytes& Str(const std::string& text) {
+    Varint(text.size());
+    s += text;
+    return *this;
+  }
+};
+
+// A map config exactly as the encoder wrote it before RGB-D (format 1: no feature_type, sift,
+// depth or loop_closure).
+constexpr char kFormat1Config[] =
+    R"({"dynamic_classes":[0,2],"filter":{"method":"exact_coverage","place_threshold":25,)"
+    R"("sensitivity_threshold":0.25},"format":1,"min_box_confidence":0.30000001192092896,)"
+    R"("orb":{"edge_threshold":31,"fast_threshold":20,"levels":8,"max_features":700,)"
+    R"("patch_size":31,"scale_factor":1.2000000476837158},"scoring":"l1",)"
+    R"("verification":{"candidates":0,"levels_up":2,"max_hamming":64,"min_inliers":15,)"
+    R"("mode":"exhaustive","ransac_confidence":0.99,"ransac_max_iterations":500,)"
+    R"("ransac_threshold_px":2.0,"ratio":0.800000011920929}})";
+
+// kFormat1Config as format 2 with `extra` members added.
+std::string Format2ConfigWith(const std::string& extra) {
+  std::string json = kFormat1Config;
+  json.replace(json.find(R"("format":1)"), 10, R"("format":2)");
+  json.pop_back();  // the closing brace
+  return json + "," + extra + "}";
 }
 
 class StorageTest : public ::testing::Test {
@@ -136,6 +190,272 @@ TEST(Codec, DamagedBytesAreCorruptionNotACrash) {
   EXPECT_EQ(DecodeBow(bow).status().code(), StatusCode::kCorruption);
   EXPECT_EQ(DecodeDatabaseConfig("{not json").status().code(), StatusCode::kCorruption);
   EXPECT_EQ(DecodePlaceKey("abc").status().code(), StatusCode::kCorruption);
+}
+
+TEST(Codec, RecordsCarryDepthRemovedAndVersionOneStillDecodes) {
+  PlaceRecord record;
+  record.id = 9;
+  record.metadata.agent_id = "kinect";
+  record.counts = {100, 20, 60, 0.2, 20};
+  const std::string encoded = EncodePlaceRecord(record);
+  EXPECT_EQ(encoded[0], 2) << "place records are format version 2";
+  auto decoded = DecodePlaceRecord(encoded);
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  EXPECT_EQ(decoded->counts.depth_removed, 20u);
+  EXPECT_EQ(decoded->counts.static_, 60u);
+  // Counts that do not add up (total = dynamic + depth_removed + static) are corruption.
+  record.counts.depth_removed = 21;
+  EXPECT_EQ(DecodePlaceRecord(EncodePlaceRecord(record)).status().code(), StatusCode::kCorruption);
+
+  // Version 1, as maps made before RGB-D hold it: no depth_removed.
+  Bytes v1;
+  v1.Put<uint8_t>(1).Put<uint32_t>(42).Str("rover").Put<uint64_t>(7).Put<int64_t>(123);
+  v1.Put<uint8_t>(0);                                                           // no pose
+  v1.Put<uint32_t>(100).Put<uint32_t>(30).Put<uint32_t>(70).Put<double>(0.25);  // counts
+  v1.Varint(1).Put<int32_t>(0).Put<float>(0.9f).Put<float>(1).Put<float>(2).Put<float>(3);
+  v1.Put<float>(4);
+  auto old = DecodePlaceRecord(v1.s);
+  ASSERT_TRUE(old.ok()) << old.status().ToString();
+  EXPECT_EQ(old->id, 42u);
+  EXPECT_EQ(old->metadata.agent_id, "rover");
+  EXPECT_EQ(old->metadata.sequence, 7u);
+  EXPECT_EQ(old->counts.total, 100u);
+  EXPECT_EQ(old->counts.static_, 70u);
+  EXPECT_EQ(old->counts.depth_removed, 0u);
+  ASSERT_EQ(old->boxes_used.size(), 1u);
+  EXPECT_EQ(old->boxes_used[0].rect, cv::Rect2f(1, 2, 3, 4));
+  for (size_t cut = 0; cut < v1.s.size(); ++cut) {
+    EXPECT_EQ(DecodePlaceRecord(std::string_view(v1.s).substr(0, cut)).status().code(),
+              StatusCode::kCorruption);
+  }
+
+  // Invalid observations: the same.
+  InvalidObservation invalid;
+  invalid.serial = 3;
+  invalid.counts = {50, 10, 5, 0.5, 35};
+  invalid.reason = "too few";
+  const std::string invalid_encoded = EncodeInvalidObservation(invalid);
+  EXPECT_EQ(invalid_encoded[0], 2);
+  auto invalid_decoded = DecodeInvalidObservation(invalid_encoded);
+  ASSERT_TRUE(invalid_decoded.ok()) << invalid_decoded.status().ToString();
+  EXPECT_EQ(invalid_decoded->counts.depth_removed, 35u);
+  Bytes invalid_v1;
+  invalid_v1.Put<uint8_t>(1).Put<uint64_t>(3).Str("a").Put<uint64_t>(1).Put<int64_t>(2);
+  invalid_v1.Put<uint8_t>(0).Put<uint32_t>(15).Put<uint32_t>(10).Put<uint32_t>(5);
+  invalid_v1.Put<double>(0.5).Varint(0).Str("too few");
+  auto invalid_old = DecodeInvalidObservation(invalid_v1.s);
+  ASSERT_TRUE(invalid_old.ok()) << invalid_old.status().ToString();
+  EXPECT_EQ(invalid_old->counts.total, 15u);
+  EXPECT_EQ(invalid_old->counts.depth_removed, 0u);
+  EXPECT_EQ(invalid_old->reason, "too few");
+}
+
+TEST(Codec, FloatFeaturesRoundTripAndDamageIsCorruption) {
+  ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+  SiftConfig sift;
+  sift.max_features = 200;
+  auto features = ExtractSift(testing::ReadGray(testing::RtabmapFramePath(1)), sift);
+  ASSERT_TRUE(features.ok()) << features.status().ToString();
+  ASSERT_GT(features->size(), 50u);
+  DirectIndex direct;
+  direct.levels_up = 2;
+  direct.node_ids = {3, 11, 4000};
+  direct.offsets = {0, 2, 3, 5};
+  direct.feature_ids = {0, 5, 1, 2, 7};
+  const std::string bytes = EncodeFloatFeatures(*features, direct);
+  EXPECT_EQ(uint8_t(bytes[0]), 0x81);
+  FloatFeatureSet out;
+  DirectIndex direct_out;
+  ASSERT_TRUE(DecodeFloatFeatures(bytes, &out, &direct_out).ok());
+  EXPECT_EQ(out.image_width, features->image_width);
+  EXPECT_EQ(out.image_height, features->image_height);
+  EXPECT_EQ(out.keypoints, features->keypoints);
+  EXPECT_EQ(out.descriptors, features->descriptors);
+  EXPECT_EQ(direct_out, direct);
+
+  // Neither decoder takes the other's payload.
+  FeatureSet orb;
+  DirectIndex orb_direct;
+  EXPECT_EQ(DecodeFeatures(bytes, &orb, &orb_direct).code(), StatusCode::kCorruption);
+  const std::string orb_bytes =
+      EncodeFeatures(testing::ExtractFile(testing::RtabmapFramePath(1), 50), DirectIndex{});
+  EXPECT_EQ(DecodeFloatFeatures(orb_bytes, &out, &direct_out).code(), StatusCode::kCorruption);
+
+  // Every truncation of a small payload, trailing bytes, a wrong version.
+  const FloatFeatureSet small = SelectFloatFeatures(*features, {0, 1, 2, 3, 4, 5, 6, 7});
+  DirectIndex small_direct;
+  small_direct.levels_up = 1;
+  small_direct.node_ids = {3};
+  small_direct.offsets = {0, 2};
+  small_direct.feature_ids = {0, 7};
+  const std::string good = EncodeFloatFeatures(small, small_direct);
+  ASSERT_TRUE(DecodeFloatFeatures(good, &out, &direct_out).ok());
+  EXPECT_EQ(out.descriptors, small.descriptors);
+  for (size_t cut = 0; cut < good.size(); ++cut) {
+    ASSERT_EQ(DecodeFloatFeatures(std::string_view(good).substr(0, cut), &out, &direct_out).code(),
+              StatusCode::kCorruption)
+        << "cut at " << cut;
+  }
+  EXPECT_EQ(DecodeFloatFeatures(good + '\0', &out, &direct_out).code(), StatusCode::kCorruption);
+  std::string damaged = good;
+  damaged[0] = char(0x82);
+  const Status version = DecodeFloatFeatures(damaged, &out, &direct_out);
+  EXPECT_EQ(version.code(), StatusCode::kCorruption);
+  EXPECT_NE(version.message().find("version"), std::string::npos) << version.ToString();
+  // A NaN descriptor value (the first float after 1 + 4 + 4 + 1 + 8 * 21 bytes).
+  damaged = good;
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  std::memcpy(damaged.data() + 178, &nan, sizeof nan);
+  EXPECT_EQ(DecodeFloatFeatures(damaged, &out, &direct_out).code(), StatusCode::kCorruption);
+  // A huge claimed keypoint count must not allocate or read past the end.
+  Bytes huge;
+  huge.Put<uint8_t>(0x81).Put<uint32_t>(640).Put<uint32_t>(480).Varint(uint64_t(1) << 40);
+  huge.s += std::string(600, '\0');
+  EXPECT_EQ(DecodeFloatFeatures(huge.s, &out, &direct_out).code(), StatusCode::kCorruption);
+  // A direct index naming a feature the payload does not have.
+  small_direct.feature_ids = {0, 8};
+  EXPECT_EQ(DecodeFloatFeatures(EncodeFloatFeatures(small, small_direct), &out, &direct_out).code(),
+            StatusCode::kCorruption);
+}
+
+TEST(Codec, RgbdConfigRoundTripsAndFormat1ConfigsLoadAsOrb) {
+  DatabaseConfig c;
+  c.feature_type = FeatureType::kSift;
+  c.sift = {1500, 4, 0.03, 12, 1.5};
+  c.depth.refine_boxes = false;
+  c.depth.refine.bin_m = 0.04f;
+  c.depth.refine.min_mode_fraction = 0.2f;
+  c.depth.refine.dilate_px = 6;
+  c.depth.refine.min_valid_fraction = 0.3f;
+  c.depth.stream_filter = false;
+  DepthFilterConfig& f = c.depth.filter;
+  f.format.metres_per_unit = 0.0002;
+  f.format.min_depth_m = 0.2f;
+  f.format.max_depth_m = 8.0f;
+  f.mean_mode = MeanDepthMode::kAllPixels;
+  f.threshold_m = 0.3f;
+  f.persistence = 3;
+  f.static_window = 7;
+  f.warmup_frames = 2;
+  f.band_policy = BandPolicy::kNearestLayer;
+  f.rise_band = {1.5f, 4.0f};
+  f.fall_band = {0.1f, 0.9f};
+  f.nearest_layer.min_gap_m = 0.2f;
+  f.nearest_layer.max_layer_fraction = 0.6f;
+  f.appeared_layer.margin_m = 0.05f;
+  f.appeared_layer.merge_gap_m = 0.15f;
+  f.feature_window_radius = 3;
+  f.remove_features_without_depth = true;
+  f.use_range = true;
+  f.rebaseline_after = 40;
+  LoopClosureConfig& l = c.loop_closure;
+  l.likelihood_similarity = SimilarityMeasure::kScore;
+  l.rehearsal_similarity = SimilarityMeasure::kScore;
+  l.likelihood_baseline = LikelihoodBaseline::kNone;
+  l.scoring = ScoringType::kL2;
+  l.loop_threshold = 0.2;
+  l.rehearsal_threshold = 0.3;
+  l.short_term_memory = 5;
+  l.no_loop_stay = 0.85;
+  l.loop_to_no_loop = 0.15;
+  l.transition_sigma = 2;
+  l.transition_radius = 10;
+  l.hypothesis_radius = 1;
+  l.min_candidates = 4;
+  l.min_similarity_excess = 0.05;
+  l.max_working_memory = 50;
+  l.time_budget_ms = 3.5;
+  l.retrieval_radius = 2;
+  l.max_retrieved = 3;
+  const std::string encoded = EncodeDatabaseConfig(c);
+  auto decoded = DecodeDatabaseConfig(encoded);
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  EXPECT_EQ(EncodeDatabaseConfig(*decoded), encoded);  // every field the encoder writes
+  EXPECT_EQ(decoded->feature_type, FeatureType::kSift);
+  EXPECT_EQ(decoded->sift.octave_layers, 4);
+  EXPECT_EQ(decoded->sift.contrast_threshold, 0.03);
+  EXPECT_FALSE(decoded->depth.refine_boxes);
+  EXPECT_EQ(decoded->depth.refine.dilate_px, 6);
+  EXPECT_EQ(decoded->depth.filter.format.metres_per_unit, 0.0002);
+  EXPECT_EQ(decoded->depth.filter.mean_mode, MeanDepthMode::kAllPixels);
+  EXPECT_EQ(decoded->depth.filter.threshold_m, 0.3f);
+  EXPECT_EQ(decoded->depth.filter.band_policy, BandPolicy::kNearestLayer);
+  EXPECT_EQ(decoded->depth.filter.fall_band, (DepthBand{0.1f, 0.9f}));
+  EXPECT_EQ(decoded->depth.filter.appeared_layer.margin_m, 0.05f);
+  EXPECT_TRUE(decoded->depth.filter.use_range);
+  EXPECT_EQ(decoded->depth.filter.rebaseline_after, 40);
+  EXPECT_EQ(decoded->loop_closure.likelihood_baseline, LikelihoodBaseline::kNone);
+  EXPECT_EQ(decoded->loop_closure.scoring, ScoringType::kL2);
+  EXPECT_EQ(decoded->loop_closure.max_working_memory, 50u);
+  EXPECT_EQ(decoded->loop_closure.time_budget_ms, 3.5);
+  EXPECT_EQ(decoded->loop_closure.max_retrieved, 3);
+
+  // A map made before RGB-D: an ORB map with every new setting at its default.
+  auto old = DecodeDatabaseConfig(kFormat1Config);
+  ASSERT_TRUE(old.ok()) << old.status().ToString();
+  DatabaseConfig expected;
+  expected.orb.max_features = 700;
+  expected.filter.method = FilterMethod::kExactCoverage;
+  expected.filter.place_threshold = 25;
+  expected.dynamic_classes = {0, 2};
+  expected.min_box_confidence = 0.3f;
+  expected.verification.mode = VerificationMode::kExhaustive;
+  EXPECT_EQ(old->feature_type, FeatureType::kOrb);
+  EXPECT_EQ(EncodeDatabaseConfig(*old), EncodeDatabaseConfig(expected));
+  // Partial sections keep the defaults of what they leave out.
+  auto partial = DecodeDatabaseConfig(
+      Format2ConfigWith(R"("depth":{"filter":{"persistence":2}},"loop_closure":{})"));
+  ASSERT_TRUE(partial.ok()) << partial.status().ToString();
+  EXPECT_EQ(partial->depth.filter.persistence, 2);
+  EXPECT_EQ(partial->depth.filter.static_window, DepthFilterConfig{}.static_window);
+  EXPECT_EQ(partial->loop_closure.short_term_memory, LoopClosureConfig{}.short_term_memory);
+
+  // Bad values are refused naming their key.
+  struct Bad {
+    std::string extra;
+    StatusCode code;
+    std::string key;
+  };
+  const Bad bad[] = {
+      {R"("feature_type":"surf")", StatusCode::kInvalidArgument, "feature_type"},
+      {R"("feature_type":3)", StatusCode::kCorruption, "feature_type"},
+      {R"("sift":{"sigma":"wide"})", StatusCode::kCorruption, "sift.sigma"},
+      {R"("depth":[])", StatusCode::kCorruption, "depth"},
+      {R"("depth":{"filter":{"threshold_m":"far"}})", StatusCode::kCorruption,
+       "depth.filter.threshold_m"},
+      {R"("depth":{"filter":{"persistence":-2}})", StatusCode::kInvalidArgument, "persistence"},
+      {R"("depth":{"filter":{"band_policy":"widest"}})", StatusCode::kInvalidArgument,
+       "depth.filter.band_policy"},
+      {R"("depth":{"filter":{"fall_band":{"near_m":0.5}}})", StatusCode::kCorruption,
+       "depth.filter.fall_band.far_m"},
+      {R"("depth":{"filter":{"rise_band":{"near_m":3,"far_m":1}}})", StatusCode::kInvalidArgument,
+       "rise_band"},
+      {R"("depth":{"refine":{"dilate_px":1e12}})", StatusCode::kCorruption,
+       "depth.refine.dilate_px"},
+      {R"("depth":{"filter":{"format":{"min_depth_m":1e300}}})", StatusCode::kInvalidArgument,
+       "depth.filter.format.min_depth_m"},
+      {R"("loop_closure":{"max_working_memory":-1})", StatusCode::kInvalidArgument,
+       "loop_closure.max_working_memory"},
+      {R"("loop_closure":{"short_term_memory":2.5})", StatusCode::kCorruption,
+       "loop_closure.short_term_memory"},
+      {R"("loop_closure":{"likelihood_baseline":"mean"})", StatusCode::kInvalidArgument,
+       "loop_closure.likelihood_baseline"},
+      {R"("loop_closure":{"loop_threshold":7})", StatusCode::kInvalidArgument, "loop_closure"},
+  };
+  for (const Bad& b : bad) {
+    const Status status = DecodeDatabaseConfig(Format2ConfigWith(b.extra)).status();
+    EXPECT_EQ(status.code(), b.code) << b.extra << ": " << status.ToString();
+    EXPECT_NE(status.message().find(b.key), std::string::npos)
+        << b.extra << ": " << status.ToString();
+  }
+  std::string future = kFormat1Config;
+  future.replace(future.find(R"("format":1)"), 10, R"("format":3)");
+  EXPECT_EQ(DecodeDatabaseConfig(future).status().code(), StatusCode::kCorruption);
+  std::string no_orb = kFormat1Config;
+  no_orb.replace(no_orb.find(R"("orb")"), 5, R"("bro")");
+  const Status missing = DecodeDatabaseConfig(no_orb).status();
+  EXPECT_EQ(missing.code(), StatusCode::kCorruption);
+  EXPECT_NE(missing.message().find("orb"), std::string::npos) << missing.ToString();
 }
 
 TEST_F(StorageTest, ReopenGivesIdenticalResultsOnRtabmapAndCamVid) {
@@ -262,8 +582,8 @@ TEST_F(StorageTest, AnotherVocabularyIsRefused) {
   EXPECT_NE(refused.status().message().find(vocabulary_->checksum_hex()), std::string::npos);
   auto map = dir->OpenMap("m", vocabulary_);
   ASSERT_TRUE(map.ok());
-  EXPECT_EQ((*map)->CheckVocabulary(**other).code(), StatusCode::kFailedPrecondition);
-  EXPECT_TRUE((*map)->CheckVocabulary(*vocabulary_).ok());
+  EXPECT_EQ((*map)->CheckVocabulary(*other).code(), StatusCode::kFailedPrecondition);
+  EXPECT_TRUE((*map)->CheckVocabulary(vocabulary_).ok());
 }
 
 TEST_F(StorageTest, CheckpointAndRestore) {
@@ -449,6 +769,303 @@ TEST_F(StorageTest, ForeignOrCorruptedFilesGiveClearErrors) {
       << broken.status().ToString();
   // Other maps are unaffected.
   ASSERT_TRUE(dir->CreateMap("healthy", {}, vocabulary_).ok());
+}
+
+TEST_F(StorageTest, SiftMapSurvivesReopenAndRefusesTheWrongVocabularyKind) {
+  const auto sift = SiftVocabulary();
+  ASSERT_TRUE(sift);
+  MapOptions options;
+  options.database.feature_type = FeatureType::kSift;
+  options.database.verification.mode = VerificationMode::kExhaustive;
+  std::vector<Observation> frames;
+  for (int i = 1; i <= 24; i += 2) frames.push_back(RtabmapFrame(i));
+  std::map<size_t, PlaceId> id_of;  // frame -> place
+  std::map<PlaceId, StoredPlace> stored;
+  {
+    auto dir = OpenDir();
+    // The vocabulary's kind must be the map's feature type.
+    auto orb_with_sift = dir->CreateMap("orb-map", {}, sift);
+    ASSERT_FALSE(orb_with_sift.ok());
+    EXPECT_EQ(orb_with_sift.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_NE(orb_with_sift.status().message().find("float (SIFT)"), std::string::npos)
+        << orb_with_sift.status().ToString();
+    auto sift_with_orb = dir->CreateMap("sift-map", options, vocabulary_);
+    ASSERT_FALSE(sift_with_orb.ok());
+    EXPECT_EQ(sift_with_orb.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_NE(sift_with_orb.status().message().find("binary (ORB)"), std::string::npos)
+        << sift_with_orb.status().ToString();
+    EXPECT_TRUE(dir->ListMaps().empty());
+
+    auto map = dir->CreateMap("sift", options, sift);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    for (size_t i = 0; i < frames.size(); ++i) {
+      auto added = (*map)->Add(frames[i]);
+      ASSERT_TRUE(added.ok()) << added.status().ToString();
+      if (added->stored) id_of[i] = added->id;
+    }
+    ASSERT_GE(id_of.size(), 8u);
+    for (const auto& [i, id] : id_of) {
+      auto place = (*map)->GetPlace(id);
+      ASSERT_TRUE(place.ok()) << place.status().ToString();
+      EXPECT_TRUE(place->payload.features.empty());
+      EXPECT_EQ(place->payload.float_features.size(), place->record.counts.static_);
+      // What was stored is the frame's SC features, exactly.
+      auto processed = (*map)->Process(frames[i]);
+      ASSERT_TRUE(processed.ok());
+      EXPECT_EQ(place->payload.float_features.keypoints,
+                processed->static_float_features.keypoints);
+      EXPECT_EQ(place->payload.float_features.descriptors,
+                processed->static_float_features.descriptors);
+      EXPECT_EQ(place->payload.direct, processed->direct);
+      stored[id] = std::move(place).value();
+    }
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+  }
+  auto dir = OpenDir();
+  auto refused = dir->OpenMap("sift", vocabulary_);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), StatusCode::kFailedPrecondition);
+  EXPECT_NE(refused.status().message().find(sift->checksum_hex()), std::string::npos)
+      << refused.status().ToString();
+  EXPECT_NE(refused.status().message().find("float (SIFT)"), std::string::npos);
+  auto map = dir->OpenMap("sift", sift);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_EQ((*map)->info().options.database.feature_type, FeatureType::kSift);
+  EXPECT_EQ((*map)->info().vocabulary_checksum, sift->checksum());
+  EXPECT_EQ((*map)->CheckVocabulary(vocabulary_).code(), StatusCode::kFailedPrecondition);
+  EXPECT_TRUE((*map)->CheckVocabulary(sift).ok());
+  EXPECT_EQ(dir->OpenMap("sift", vocabulary_).status().code(), StatusCode::kFailedPrecondition);
+  const Status integrity = (*map)->VerifyIntegrity();
+  EXPECT_TRUE(integrity.ok()) << integrity.ToString();
+  EXPECT_EQ((*map)->Stats().database.places, id_of.size());
+  for (const auto& [id, before] : stored) {
+    auto after = (*map)->GetPlace(id);
+    ASSERT_TRUE(after.ok()) << after.status().ToString();
+    EXPECT_EQ(after->record.metadata, before.record.metadata);
+    EXPECT_EQ(after->payload.float_features.image_width, before.payload.float_features.image_width);
+    EXPECT_EQ(after->payload.float_features.keypoints, before.payload.float_features.keypoints);
+    EXPECT_EQ(after->payload.float_features.descriptors, before.payload.float_features.descriptors);
+    EXPECT_EQ(after->payload.direct, before.payload.direct);
+    EXPECT_EQ(after->payload.bow, before.payload.bow);
+  }
+  // Each frame finds its own place, geometrically verified.
+  for (const auto& [i, id] : id_of) {
+    QueryOptions query;
+    query.top_k = 3;
+    auto result = (*map)->Query(frames[i], query);
+    ASSERT_TRUE(result.ok()) << result.status().ToString();
+    ASSERT_FALSE(result->matches.empty());
+    EXPECT_EQ(result->matches[0].place, id) << "frame " << i;
+    EXPECT_TRUE(result->matches[0].verified)
+        << "frame " << i << ": " << result->matches[0].inliers << " inliers";
+  }
+  // An ORB map refuses the float vocabulary as well.
+  ASSERT_TRUE(dir->CreateMap("orb", {}, vocabulary_).ok());
+  dir->CloseMap("orb");
+  EXPECT_EQ(dir->OpenMap("orb", sift).status().code(), StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(dir->OpenMap("orb", vocabulary_).ok());
+}
+
+// The frames of a revisit: 1..20 with frame 6 seen twice in a row (rehearsal merges it), then
+// 1..20 again.
+std::vector<int> RevisitSequence() {
+  std::vector<int> sequence;
+  for (int i = 1; i <= 20; ++i) {
+    sequence.push_back(i);
+    if (i == 6) sequence.push_back(i);
+  }
+  for (int i = 1; i <= 20; ++i) sequence.push_back(i);
+  return sequence;
+}
+
+TEST_F(StorageTest, LoopClosureReadsLongTermMemoryFromRocksDb) {
+  MapOptions options;
+  LoopClosureConfig& loop = options.database.loop_closure;
+  loop.max_working_memory = 5;
+  loop.short_term_memory = 2;
+  loop.min_candidates = 2;
+  auto dir = OpenDir();
+  auto map = dir->CreateMap("looping", options, vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  const std::vector<int> sequence = RevisitSequence();
+  size_t valid = 0, merged = 0, retrieved = 0, transferred = 0, max_long_term = 0, loops = 0;
+  for (size_t n = 0; n < sequence.size(); ++n) {
+    Observation observation = RtabmapFrame(sequence[n]);
+    observation.metadata.agent_id = "rover";
+    observation.metadata.sequence = n + 1;
+    auto frame = (*map)->Process(observation, FrameRole::kStream);
+    ASSERT_TRUE(frame.ok()) << frame.status().ToString();
+    ASSERT_TRUE((*map)->AdvanceStream(&*frame, "rover").ok());
+    if (!frame->valid) {
+      ASSERT_TRUE((*map)->Commit(*frame, observation.metadata).ok());
+      continue;
+    }
+    ++valid;
+    AddResult added;
+    auto outcome = (*map)->CloseLoop(*frame, observation.metadata, &added);
+    ASSERT_TRUE(outcome.ok()) << "frame " << n << ": " << outcome.status().ToString();
+    if (outcome->merged) {
+      ++merged;
+      EXPECT_FALSE(added.stored);
+      EXPECT_EQ(added.counts.static_, frame->counts.static_);
+      EXPECT_NE(outcome->place, 0u);
+    } else {
+      EXPECT_TRUE(added.stored);
+      EXPECT_EQ(outcome->place, added.id);
+      EXPECT_GE(added.timings.store_ms, 0.0);
+    }
+    if (outcome->loop) {
+      ++loops;
+      EXPECT_TRUE((*map)->database().Get(*outcome->loop)) << "a loop to an unknown place";
+    }
+    retrieved += outcome->retrieved;
+    transferred += outcome->transferred;
+    max_long_term = std::max(max_long_term, (*map)->Stats().database.loop_long_term);
+  }
+  std::printf("%zu valid frames, %zu merged, %zu transferred, %zu retrieved, %zu loops\n", valid,
+              merged, transferred, retrieved, loops);
+  EXPECT_GT(merged, 0u);
+  EXPECT_GT(transferred, 0u);
+  EXPECT_GT(max_long_term, 0u) << "no place ever left working memory";
+  EXPECT_GT(retrieved, 0u) << "no place came back from long-term memory (RocksDB)";
+  const MapStats stats = (*map)->Stats();
+  EXPECT_EQ(stats.database.places, valid - merged) << "merged frames must not be stored";
+  EXPECT_EQ(stats.database.streams, 1u);
+  EXPECT_LE(stats.database.loop_working_memory, 2u + 5u);
+  auto loop_stats = (*map)->database().LoopStats("rover");
+  ASSERT_TRUE(loop_stats.ok());
+  EXPECT_EQ(loop_stats->retrieved, retrieved);
+  EXPECT_EQ(loop_stats->merged, merged);
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+
+  // Stream state is in memory only: a reopened map starts every agent afresh.
+  map->reset();
+  dir->CloseMap("looping");
+  dir.reset();
+  dir = OpenDir();
+  auto reopened = dir->OpenMap("looping", vocabulary_);
+  ASSERT_TRUE(reopened.ok()) << reopened.status().ToString();
+  EXPECT_EQ((*reopened)->Stats().database.places, valid - merged);
+  EXPECT_EQ((*reopened)->Stats().database.streams, 0u);
+  EXPECT_EQ((*reopened)->database().LoopStats("rover").status().code(), StatusCode::kNotFound);
+}
+
+// CloseLoop commits under the lifecycle lock it already holds: deleting the map meanwhile must
+// neither deadlock nor crash, and later calls see NOT_FOUND.
+TEST_F(StorageTest, ConcurrentLoopClosureAndMapDeletion) {
+  auto dir = OpenDir();
+  MapOptions options;
+  options.database.loop_closure.max_working_memory = 3;
+  options.database.loop_closure.short_term_memory = 1;
+  auto map = dir->CreateMap("doomed", options, vocabulary_);
+  ASSERT_TRUE(map.ok());
+  std::vector<ProcessedFrame> frames;
+  for (int i = 1; i <= 12; ++i) {
+    auto frame = (*map)->Process(RtabmapFrame(i), FrameRole::kStream);
+    ASSERT_TRUE(frame.ok());
+    ASSERT_TRUE((*map)->AdvanceStream(&*frame, "rover").ok());
+    if (frame->valid) frames.push_back(*frame);
+  }
+  std::atomic<int> closed{0};
+  std::atomic<int> failures{0};
+  std::thread looper([&] {
+    for (uint64_t n = 0;; ++n) {
+      PlaceMetadata metadata;
+      metadata.agent_id = "rover";
+      metadata.sequence = n;
+      AddResult added;
+      auto outcome = (*map)->CloseLoop(frames[n % frames.size()], metadata, &added);
+      if (!outcome.ok()) {
+        if (outcome.status().code() != StatusCode::kNotFound) failures.fetch_add(1);
+        return;
+      }
+      closed.fetch_add(1);
+    }
+  });
+  while (closed.load() < 5) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  ASSERT_TRUE(dir->DeleteMap("doomed").ok());
+  looper.join();
+  EXPECT_EQ(failures.load(), 0);
+  AddResult added;
+  EXPECT_EQ((*map)->CloseLoop(frames[0], {}, &added).status().code(), StatusCode::kNotFound);
+  ProcessedFrame frame = frames[0];
+  EXPECT_EQ((*map)->AdvanceStream(&frame, "rover").code(), StatusCode::kNotFound);
+}
+
+TEST_F(StorageTest, DepthRemovedCountsSurviveReopen) {
+  MapOptions options;
+  options.store_invalid = true;
+  DepthFilterConfig& filter = options.database.depth.filter;
+  filter.band_policy = BandPolicy::kFixed;
+  filter.fall_band = {0.0f, 1.5f};
+  filter.persistence = 0;
+  filter.warmup_frames = 1;
+  filter.static_window = 2;
+  const cv::Mat image = testing::ReadGray(testing::RtabmapFramePath(1));
+  // A static scene 3 m away; then its left half comes to 1 m and stays; then all of it.
+  const cv::Mat far(image.size(), CV_16U, cv::Scalar(3000));
+  cv::Mat half = far.clone();
+  half(cv::Rect(0, 0, image.cols / 2, image.rows)).setTo(1000);
+  const cv::Mat near(image.size(), CV_16U, cv::Scalar(1000));
+  uint64_t sequence = 0;
+  auto observe = [&](const cv::Mat& depth) {
+    Observation observation;
+    observation.image = image;
+    observation.depth = DepthObservation{depth, std::nullopt, std::nullopt};
+    observation.metadata.agent_id = "kinect";
+    observation.metadata.sequence = ++sequence;
+    return observation;
+  };
+  std::map<PlaceId, FrameCounts> removing;  // stored places with features removed by depth
+  FrameCounts invalid_counts;
+  {
+    auto dir = OpenDir();
+    auto map = dir->CreateMap("depth", options, vocabulary_);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    for (int i = 0; i < 3; ++i) {
+      auto added = (*map)->Add(observe(far));
+      ASSERT_TRUE(added.ok()) << added.status().ToString();
+      ASSERT_TRUE(added->stored) << added->rejection;
+      EXPECT_EQ(added->counts.depth_removed, 0u);
+    }
+    for (int i = 0; i < 6; ++i) {
+      auto added = (*map)->Add(observe(half));
+      ASSERT_TRUE(added.ok()) << added.status().ToString();
+      ASSERT_TRUE(added->stored) << added->rejection;
+      ASSERT_TRUE(added->depth_state.has_value());
+      if (added->counts.depth_removed > 0) {
+        EXPECT_TRUE(added->depth_state->removing);
+        EXPECT_EQ(added->counts.total,
+                  added->counts.dynamic + added->counts.depth_removed + added->counts.static_);
+        removing[added->id] = added->counts;
+      }
+    }
+    ASSERT_FALSE(removing.empty()) << "Algorithm 1 never removed the near half's features";
+    // The whole view in the band: nothing static left, an invalid frame kept as metadata.
+    auto added = (*map)->Add(observe(near));
+    ASSERT_TRUE(added.ok()) << added.status().ToString();
+    EXPECT_FALSE(added->stored);
+    invalid_counts = added->counts;
+    EXPECT_GT(invalid_counts.depth_removed, 0u);
+    EXPECT_EQ(invalid_counts.static_, 0u);
+  }
+  auto dir = OpenDir();
+  auto map = dir->OpenMap("depth", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+  for (const auto& [id, counts] : removing) {
+    auto place = (*map)->GetPlace(id);
+    ASSERT_TRUE(place.ok()) << place.status().ToString();
+    EXPECT_EQ(place->record.counts.depth_removed, counts.depth_removed);
+    EXPECT_EQ(place->record.counts.static_, counts.static_);
+    EXPECT_EQ(place->record.counts.total, counts.total);
+    EXPECT_EQ(place->payload.features.size(), counts.static_);
+  }
+  auto invalid = (*map)->InvalidObservations(10);
+  ASSERT_EQ(invalid.size(), 1u);
+  EXPECT_EQ(invalid[0].counts.depth_removed, invalid_counts.depth_removed);
+  EXPECT_EQ(invalid[0].metadata.sequence, sequence);
+  EXPECT_NE(invalid[0].reason.find("depth filter"), std::string::npos) << invalid[0].reason;
 }
 
 }  // namespace

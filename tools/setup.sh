@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Sets up placedb on a fresh Debian 12 machine: installs the Debian packages it needs, builds it
-# in Release and prepares the defaults (the default vocabulary, trained on Debian's own sample
-# images). Idempotent: re-running skips what is already done.
+# in Release and prepares the defaults (the ORB and SIFT vocabularies, trained on Debian's own
+# sample images). Idempotent: re-running skips what is already done.
 #
 #   tools/setup.sh            install + build + defaults
 #   tools/setup.sh --run      ... then run placedb on its embedded defaults
@@ -53,11 +53,14 @@ cmake -S . -B "$BUILD_DIR" -G Ninja -DCMAKE_BUILD_TYPE=Release
 cmake --build "$BUILD_DIR" -j "$jobs"
 
 tools/build_default_vocabulary.sh "$BUILD_DIR/tools/placedb-vocab" var/vocabulary/default.pdbv
+# The SIFT vocabulary for SIFT maps (float words, k=10, L=4, Debian sample images only; ~30 s).
+"$BUILD_DIR/rgbd/placedb-sift-vocab" --out var/vocabulary/sift-debian.pdbfv --if-missing
 # The detector model: from ../shared/models when present, else the official download, else
 # server-side detection stays off (the service says so; maps that need it are refused).
 PLACEDB_BUILD_DIR="$BUILD_DIR" tools/install_models.sh var/models
 
-echo "setup: done. Binaries in $BUILD_DIR/, default vocabulary var/vocabulary/default.pdbv"
+echo "setup: done. Binaries in $BUILD_DIR/, vocabularies var/vocabulary/default.pdbv (ORB) and" \
+  "var/vocabulary/sift-debian.pdbfv (SIFT)"
 if ((run)); then
   exec tools/run.sh
 fi

@@ -1,0 +1,20 @@
+# placedb_discover_tests(<target> LABELS <label> [FIXTURES <fixture>...])
+#
+# gtest_discover_tests() with a label and any number of required fixtures. Its PROPERTIES
+# argument flattens list values (FIXTURES_REQUIRED "a;b" would become extra property names and
+# silently lose the fixtures and the label), so the fixtures are set on the discovered tests by an
+# include file that ctest reads after the discovery's own.
+include(GoogleTest)
+
+function(placedb_discover_tests target)
+  cmake_parse_arguments(ARG "" "LABELS" "FIXTURES" ${ARGN})
+  gtest_discover_tests(${target} PROPERTIES LABELS ${ARG_LABELS} DISCOVERY_TIMEOUT 60)
+  if(ARG_FIXTURES)
+    set(include_file ${CMAKE_CURRENT_BINARY_DIR}/${target}_fixtures.cmake)
+    file(WRITE ${include_file}
+      "if(${target}_TESTS)\n"
+      "  set_tests_properties(\${${target}_TESTS} PROPERTIES FIXTURES_REQUIRED \"${ARG_FIXTURES}\")\n"
+      "endif()\n")
+    set_property(DIRECTORY APPEND PROPERTY TEST_INCLUDE_FILES ${include_file})
+  endif()
+endfunction()
