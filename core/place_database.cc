@@ -256,12 +256,12 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
       return frame;
     }
     // A query applies the agent's current decision without advancing its stream.
+    std::optional<DepthFrameState> current;
     if (auto stream = streams_->Find(observation.metadata.agent_id)) {
       std::lock_guard lock(stream->mutex);
-      if (stream->last_depth && stream->last_depth->removing) {
-        ApplyDepthBand(&frame, *stream->last_depth, filter.remove_features_without_depth);
-      }
+      current = stream->last_depth;
     }
+    if (current) ApplyDepthBand(&frame, *current, filter.remove_features_without_depth);
     frame.timings.depth_ms += stage.Lap();
   }
   Finish(&frame, &stage);
