@@ -17,10 +17,9 @@ Result<BowVector> PayloadLongTermMemory::Fetch(PlaceId detector_place) {
     return Status::NotFound("loop-closure place " + std::to_string(detector_place) +
                             " has no stored vector");
   }
-  auto payload = payloads_->Get(place);
-  if (!payload.ok())
-    return payload.status().WithContext("retrieving place " + std::to_string(place));
-  return (*payload)->bow;
+  auto bow = payloads_->GetBow(place);
+  if (!bow.ok()) return bow.status().WithContext("retrieving place " + std::to_string(place));
+  return bow;
 }
 
 void PayloadLongTermMemory::Release(PlaceId detector_place) {

@@ -7,8 +7,8 @@
 // nothing extra (its BoW vector is in its payload already, on disk for a persistent map) and is
 // read back when it is retrieved.
 //
-// State is in memory only: a restarted server (or a reopened map) starts every agent's stream
-// afresh (Algorithm 1 warms up in 3 frames; loop closure only sees places added since).
+// State is in memory only: after a restart (or a reopened map) Algorithm 1 warms up again in 3
+// frames, and PlaceDatabase::CloseLoop replays the agent's stored places into a new detector.
 #pragma once
 
 #include <memory>

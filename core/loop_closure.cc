@@ -233,9 +233,7 @@ bool LoopClosureDetector::Retrieve(PlaceId id, Status* status) {
   return true;
 }
 
-Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, uint64_t frame_tag) {
-  Stopwatch total;
-  LoopClosureUpdate update;
+Status LoopClosureDetector::CheckBow(const BowVector& input) const {
   for (size_t i = 0; i < input.size(); ++i) {
     if (input[i].word >= word_count_) {
       return Status::InvalidArgument(
@@ -250,6 +248,64 @@ Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, ui
       return Status::InvalidArgument("bow[" + std::to_string(i) + "].weight must be positive");
     }
   }
+  return Status::Ok();
+}
+
+PlaceId LoopClosureDetector::AddPlace(BowVector bow, uint64_t frame_tag) {
+  const PlaceId id = PlaceId(places_.size());
+  Place place;
+  place.bow = std::move(bow);
+  place.frames.push_back(frame_tag);
+  // Linked to the newest place (the previous frame's), whatever its tier.
+  const PlaceId before = places_.size() > 1 ? id - 1 : kNoPlace;
+  if (before != kNoPlace) chain_[before][1] = id;
+  places_.push_back(std::move(place));
+  tier_.push_back(uint8_t(MemoryTier::kShortTerm));
+  chain_.push_back({before, kNoPlace});
+  has_loops_.push_back(0);
+  posterior_.push_back(0.0);
+  stm_.push_back(id);
+  while (int(stm_.size()) > config_.short_term_memory) {
+    const PlaceId oldest = stm_.front();
+    stm_.erase(stm_.begin());
+    MoveToWorking(oldest);
+  }
+  return id;
+}
+
+void LoopClosureDetector::TransferExcess(size_t excess,
+                                         const std::function<bool(PlaceId)>& is_protected,
+                                         std::vector<PlaceId>* transferred, Status* status) {
+  std::vector<PlaceId> chosen;
+  for (auto it = transfer_order_.begin(); it != transfer_order_.end() && chosen.size() < excess;
+       ++it) {
+    if (!is_protected(it->second)) chosen.push_back(it->second);
+  }
+  for (PlaceId id : chosen) {
+    if (MoveToLongTerm(id, status) && transferred) transferred->push_back(id);
+  }
+}
+
+Result<PlaceId> LoopClosureDetector::Replay(const BowVector& input, uint64_t frame_tag) {
+  PLACEDB_RETURN_IF_ERROR(CheckBow(input));
+  if (input.empty()) return Status::InvalidArgument("cannot replay an empty BoW vector");
+  BowVector bow = input;
+  NormalizeForScoring(&bow, config_.scoring);
+  const PlaceId id = AddPlace(std::move(bow), frame_tag);
+  ++frames_;
+  if (config_.max_working_memory > 0 && wm_.size() > config_.max_working_memory) {
+    Status status;
+    TransferExcess(
+        wm_.size() - config_.max_working_memory, [](PlaceId) { return false; }, nullptr, &status);
+    PLACEDB_RETURN_IF_ERROR(status);
+  }
+  return id;
+}
+
+Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, uint64_t frame_tag) {
+  Stopwatch total;
+  LoopClosureUpdate update;
+  PLACEDB_RETURN_IF_ERROR(CheckBow(input));
   ++frames_;
   if (input.empty()) {
     update.skipped = true;
@@ -273,25 +329,7 @@ Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, ui
     update.merged = true;
     ++merged_;
   } else {
-    const PlaceId id = PlaceId(places_.size());
-    Place place;
-    place.bow = std::move(bow);
-    place.frames.push_back(frame_tag);
-    // Linked to the newest place (the previous frame's), whatever its tier.
-    const PlaceId before = places_.size() > 1 ? id - 1 : kNoPlace;
-    if (before != kNoPlace) chain_[before][1] = id;
-    places_.push_back(std::move(place));
-    tier_.push_back(uint8_t(MemoryTier::kShortTerm));
-    chain_.push_back({before, kNoPlace});
-    has_loops_.push_back(0);
-    posterior_.push_back(0.0);
-    stm_.push_back(id);
-    update.place = id;
-    while (int(stm_.size()) > config_.short_term_memory) {
-      const PlaceId oldest = stm_.front();
-      stm_.erase(stm_.begin());
-      MoveToWorking(oldest);
-    }
+    update.place = AddPlace(std::move(bow), frame_tag);
   }
   const Place& current = places_[update.place];
   update.memory_ms += lap.Lap();
@@ -473,14 +511,7 @@ Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, ui
              std::find(update.retrieved.begin(), update.retrieved.end(), id) !=
                  update.retrieved.end();
     };
-    std::vector<PlaceId> chosen;
-    for (auto it = transfer_order_.begin(); it != transfer_order_.end() && chosen.size() < excess;
-         ++it) {
-      if (!is_protected(it->second)) chosen.push_back(it->second);
-    }
-    for (PlaceId id : chosen) {
-      if (MoveToLongTerm(id, &update.memory_status)) update.transferred.push_back(id);
-    }
+    TransferExcess(excess, is_protected, &update.transferred, &update.memory_status);
   }
   update.memory_ms += lap.Lap();
   update.total_ms = total.ElapsedMs();

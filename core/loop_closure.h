@@ -30,6 +30,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <set>
@@ -173,6 +174,12 @@ class LoopClosureDetector {
   // One frame: `bow` as Transform() produced it (normalised here), `frame_tag` any caller id
   // (sequence number, timestamp). INVALID_ARGUMENT for a word outside the vocabulary.
   Result<LoopClosureUpdate> Update(const BowVector& bow, uint64_t frame_tag);
+  // Rebuilds memory from places stored earlier (e.g. a reopened map), oldest first: `bow` becomes
+  // a new place linked to the previous one, without rehearsal and without a filter update; the
+  // working-memory size bound applies (transferred places go to the LongTermMemory). Weights and
+  // loop links of the earlier run are not known here. INVALID_ARGUMENT as Update, and for an
+  // empty vector.
+  Result<PlaceId> Replay(const BowVector& bow, uint64_t frame_tag);
 
   std::optional<PlaceInfo> Get(PlaceId place) const;
   double Posterior(PlaceId place) const;  // 0 for places outside WM
@@ -191,6 +198,12 @@ class LoopClosureDetector {
     size_t wm_slot = 0;  // position in wm_ while in WM
   };
   MemoryTier tier(PlaceId id) const { return MemoryTier(tier_[id]); }
+  Status CheckBow(const BowVector& bow) const;
+  // A new STM place linked to the newest one; the oldest STM place moves to WM when STM is full.
+  PlaceId AddPlace(BowVector normalised_bow, uint64_t frame_tag);
+  // Moves up to `excess` WM places (lowest weight, then oldest; not `is_protected`) to LTM.
+  void TransferExcess(size_t excess, const std::function<bool(PlaceId)>& is_protected,
+                      std::vector<PlaceId>* transferred, Status* status);
 
   LoopClosureDetector(uint32_t word_count, const LoopClosureConfig& config,
                       std::shared_ptr<LongTermMemory> ltm);

@@ -289,6 +289,18 @@ class RocksPayloadStore final : public PayloadStore {
   // The map wrote the payload in the place's batch before indexing it.
   Status Put(PlaceId, std::shared_ptr<const PlacePayload>) override { return Status::Ok(); }
 
+  // The vector alone: loop closure's long-term memory needs no features.
+  Result<BowVector> GetBow(PlaceId id) const override {
+    std::string bow_bytes;
+    auto s =
+        storage_->db->Get(rocksdb::ReadOptions(), storage_->cf(kBow), PlaceKey(id), &bow_bytes);
+    if (s.IsNotFound()) return Status::NotFound("place " + std::to_string(id) + " not found");
+    PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading place " + std::to_string(id)));
+    auto bow = DecodeBow(bow_bytes);
+    if (!bow.ok()) return bow.status().WithContext("place " + std::to_string(id));
+    return bow;
+  }
+
   Result<std::shared_ptr<const PlacePayload>> Get(PlaceId id) const override {
     const std::string key = PlaceKey(id);
     std::string bow_bytes, feature_bytes;

@@ -68,6 +68,12 @@ size_t PayloadBytes(const PlacePayload& payload) {
              sizeof(uint32_t);
 }
 
+Result<BowVector> PayloadStore::GetBow(PlaceId id) const {
+  auto payload = Get(id);
+  if (!payload.ok()) return payload.status();
+  return (*payload)->bow;
+}
+
 Status InMemoryPayloadStore::Put(PlaceId id, std::shared_ptr<const PlacePayload> payload) {
   std::unique_lock lock(mutex_);
   const size_t bytes = PayloadBytes(*payload);
@@ -342,6 +348,7 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
   if (!frame.valid) return Status::InvalidArgument("loop closure needs a valid frame");
   auto stream = streams_->Get(metadata.agent_id);
   std::lock_guard lock(stream->mutex);
+  size_t replayed_places = 0;
   if (!stream->loop) {
     LoopClosureConfig config = config_.loop_closure;
     config.scoring = config_.scoring;  // the long-term memory hands back the payloads' vectors
@@ -349,10 +356,18 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
     auto detector = LoopClosureDetector::Create(vocabulary_.word_count(), config, stream->ltm);
     if (!detector.ok()) return detector.status();
     stream->loop = std::move(detector).value();
+    auto replayed = ReplayAgentPlaces(metadata.agent_id, stream->loop.get(), stream->ltm.get());
+    if (!replayed.ok()) {
+      stream->loop.reset();
+      return replayed.status().WithContext("rebuilding the loop-closure memory of agent '" +
+                                           metadata.agent_id + "'");
+    }
+    replayed_places = *replayed;
   }
   auto update = stream->loop->Update(frame.bow, metadata.sequence);
   if (!update.ok()) return update.status();
   LoopClosureOutcome outcome;
+  outcome.replayed = replayed_places;
   outcome.merged = update->merged;
   outcome.candidates = update->candidates;
   outcome.retrieved = update->retrieved.size();
@@ -374,6 +389,37 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
   stream->ltm->Bind(update->place, *stored);
   outcome.place = *stored;
   return outcome;
+}
+
+Result<size_t> PlaceDatabase::ReplayAgentPlaces(const std::string& agent_id,
+                                                LoopClosureDetector* detector,
+                                                PayloadLongTermMemory* ltm) const {
+  std::vector<std::shared_ptr<const PlaceRecord>> earlier;
+  {
+    std::shared_lock lock(mutex_);
+    for (const auto& [id, record] : records_) {
+      if (record->metadata.agent_id == agent_id) earlier.push_back(record);
+    }
+  }
+  std::sort(earlier.begin(), earlier.end(), [](const auto& a, const auto& b) {
+    return a->metadata.sequence != b->metadata.sequence
+               ? a->metadata.sequence < b->metadata.sequence
+               : a->id < b->id;
+  });
+  size_t replayed = 0;
+  for (const auto& record : earlier) {
+    auto bow = payloads_->GetBow(record->id);
+    if (!bow.ok()) {
+      if (bow.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
+      return bow.status();
+    }
+    if (bow->empty()) continue;
+    auto place = detector->Replay(*bow, record->metadata.sequence);
+    if (!place.ok()) return place.status();
+    ltm->Bind(*place, record->id);
+    ++replayed;
+  }
+  return replayed;
 }
 
 Status PlaceDatabase::ResetStream(const std::string& agent_id) {

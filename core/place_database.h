@@ -177,6 +177,9 @@ class PayloadStore {
   virtual Status Put(PlaceId id, std::shared_ptr<const PlacePayload> payload) = 0;
   // NOT_FOUND when the place is unknown (e.g. removed meanwhile).
   virtual Result<std::shared_ptr<const PlacePayload>> Get(PlaceId id) const = 0;
+  // The place's BoW vector alone (loop closure's long-term memory reads it back). By default
+  // from Get(); a persistent store reads just the vector.
+  virtual Result<BowVector> GetBow(PlaceId id) const;
   virtual Status Erase(PlaceId id) = 0;
   virtual size_t MemoryBytes() const = 0;
 };
@@ -244,6 +247,9 @@ struct LoopClosureOutcome {
   size_t retrieved = 0;    // long-term -> working memory in this update
   size_t transferred = 0;  // working -> long-term memory in this update
   double update_ms = 0;    // the detector's update alone
+  // The agent's earlier places replayed into a new detector by this call (first loop-closure
+  // frame of the agent since the map was opened or its stream reset), else 0.
+  size_t replayed = 0;
 };
 
 struct DatabaseStats {
@@ -262,6 +268,7 @@ struct DatabaseStats {
 };
 
 class AgentStreams;
+class PayloadLongTermMemory;
 
 class PlaceDatabase {
  public:
@@ -289,7 +296,10 @@ class PlaceDatabase {
   // valid frame, then, unless rehearsal merged the frame into the previous place, calls `store`
   // (which persists the frame and returns its place id) and binds the detector's place to it.
   // With `store` null, Insert() is used. The agent's places in long-term memory are read back
-  // from the payload store when retrieved.
+  // from the payload store when retrieved. The agent's first call (since the database was
+  // created or opened, or its stream reset) replays the places it stored earlier, oldest first,
+  // into the new detector (their weights and loop links are not kept), so loops can close on
+  // them after a restart.
   Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                                        const std::function<Result<PlaceId>()>& store = nullptr);
   // Forgets an agent's stream state (Algorithm 1 and loop closure); NOT_FOUND if none.
@@ -328,6 +338,9 @@ class PlaceDatabase {
                 std::shared_ptr<PayloadStore> payloads);
   // Validity, then the BoW vector and direct index of the SC features.
   void Finish(ProcessedFrame* frame, Stopwatch* stage) const;
+  // Replays the agent's stored places, oldest first, into a new detector and binds them.
+  Result<size_t> ReplayAgentPlaces(const std::string& agent_id, LoopClosureDetector* detector,
+                                   PayloadLongTermMemory* ltm) const;
   // Removes the SC features whose depth lies in Algorithm 1's band (when it is removing).
   static void ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState& state,
                              bool remove_without_depth);

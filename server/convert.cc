@@ -1253,6 +1253,7 @@ void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out)
   out->set_candidates(uint32_t(outcome.candidates));
   out->set_retrieved(uint32_t(outcome.retrieved));
   out->set_transferred(uint32_t(outcome.transferred));
+  out->set_replayed(uint32_t(outcome.replayed));
 }
 
 QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id) {

@@ -252,6 +252,47 @@ TEST(LoopClosure, WorkingMemoryBoundKeepsSearchFlatAndRetrievesNeighbours) {
   EXPECT_EQ(bucket_ms.size(), kPlaces / 500);
 }
 
+// A detector rebuilt from stored places (a reopened map) closes loops on them like the one that
+// saw them live.
+TEST(LoopClosure, ReplayedPlacesAreLoopCandidates) {
+  LoopClosureConfig config;
+  config.short_term_memory = 5;
+  config.max_working_memory = 30;
+  auto live = MakeDetector(config);
+  auto rebuilt = MakeDetector(config);
+  ASSERT_TRUE(live && rebuilt);
+  for (uint32_t p = 0; p < 60; ++p) {
+    ASSERT_TRUE(live->Update(PlaceBow(p), p).ok());
+    auto replayed = rebuilt->Replay(PlaceBow(p), p);
+    ASSERT_TRUE(replayed.ok());
+    EXPECT_EQ(*replayed, PlaceId(p + 1));
+  }
+  const auto stats = rebuilt->Stats();
+  EXPECT_EQ(stats.places, 60u);
+  EXPECT_EQ(stats.short_term, 5u);
+  EXPECT_EQ(stats.working, 30u);  // the bound applies while replaying: the oldest went to LTM
+  EXPECT_EQ(stats.long_term, 25u);
+  EXPECT_EQ(stats.loops, 0u);
+  EXPECT_EQ(rebuilt->Get(2)->neighbours, (std::vector<PlaceId>{1, 3}));
+  // Revisit places 40-47 (in WM in both): both close loops onto them.
+  for (auto* detector : {live.get(), rebuilt.get()}) {
+    int loops = 0;
+    for (uint32_t p = 40; p < 48; ++p) {
+      auto u = detector->Update(PlaceBow(p, 3, 0.8), 1000 + p);
+      ASSERT_TRUE(u.ok());
+      if (u->loop) {
+        ++loops;
+        EXPECT_GE(*u->loop, PlaceId(40));
+        EXPECT_LE(*u->loop, PlaceId(49));
+      }
+    }
+    EXPECT_GE(loops, 4);
+  }
+  EXPECT_EQ(rebuilt->Replay(BowVector{}, 0).status().code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(rebuilt->Replay(BowVector{{kWords, 1.0f}}, 0).status().code(),
+            StatusCode::kInvalidArgument);
+}
+
 TEST(LoopClosure, TimeBudgetTransfersPlaces) {
   LoopClosureConfig config;
   config.short_term_memory = 5;

@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <filesystem>
 #include <map>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -17,6 +18,7 @@
 #include <vector>
 
 #include "core/detector.h"
+#include "core/map_store.h"
 #include "core/place_database.h"
 #include "rgbd/rgbd_support.h"
 #include "tests/test_support.h"
@@ -403,6 +405,60 @@ TEST(RgbdDatabaseLoop, BoundedWorkingMemoryReadsLongTermPlacesFromPayloads) {
   EXPECT_EQ(f.false_loops, 0);
   EXPECT_GT(f.transferred, 0u);
   EXPECT_GT(f.retrieved, 0u);
+}
+
+// A restart in the middle of the route: the persistent map is closed and reopened, and the
+// agent's first loop-closure frame replays its stored places into a new detector, so the revisits
+// after the restart close loops on places stored before it.
+TEST(RgbdDatabaseLoop, ReopenedMapReplaysTheAgentsPlaces) {
+  REQUIRE_SHARED_DATA();
+  const cv::Mat truth = rgbd::RtabmapGroundTruth();
+  ASSERT_EQ(truth.rows, 84);
+  const std::string root = testing::MakeTempDir("placedb-rgbd-reopen");
+  std::map<PlaceId, std::vector<int>> frames_of;
+  int stored_before = 0, loops_after = 0, loops_on_earlier = 0, false_loops = 0;
+  size_t replayed = 0;
+  for (int phase = 0; phase < 2; ++phase) {
+    auto directory = DataDirectory::Open(root + "/data");
+    ASSERT_TRUE(directory.ok()) << directory.status().ToString();
+    auto map = phase == 0
+                   ? (*directory)->CreateMap("route", MapOptions{}, testing::DefaultVocabulary())
+                   : (*directory)->OpenMap("route", testing::DefaultVocabulary());
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    const int first = phase == 0 ? 1 : 46, last = phase == 0 ? 45 : 84;
+    for (int t = first; t <= last; ++t) {
+      Observation observation;
+      observation.image = testing::ReadGray(rgbd::RtabmapFramePath(t));
+      observation.metadata.agent_id = "rtabmap";
+      observation.metadata.sequence = uint64_t(t);
+      auto frame = (*map)->Process(observation, FrameRole::kStream);
+      ASSERT_TRUE(frame.ok());
+      ASSERT_TRUE((*map)->AdvanceStream(&*frame, "rtabmap").ok());
+      if (!frame->valid) continue;
+      AddResult added;
+      auto outcome = (*map)->CloseLoop(*frame, observation.metadata, &added);
+      ASSERT_TRUE(outcome.ok()) << outcome.status().ToString();
+      if (phase == 1 && replayed == 0) replayed = outcome->replayed;  // the first one
+      EXPECT_EQ(added.stored, !outcome->merged);
+      frames_of[outcome->place].push_back(t);
+      if (phase == 0) stored_before += added.stored;
+      if (phase == 1 && outcome->loop) {
+        ++loops_after;
+        bool right = false;
+        for (int f : frames_of[*outcome->loop]) right |= truth.at<uint8_t>(t - 1, f - 1) == 255;
+        false_loops += !right;
+        loops_on_earlier += frames_of[*outcome->loop].front() <= 45;
+      }
+    }
+  }
+  std::printf(
+      "[reopen] %d places stored before the restart, %zu replayed on the first frame after it; "
+      "after it %d loops (%d onto places from before the restart, %d false)\n",
+      stored_before, replayed, loops_after, loops_on_earlier, false_loops);
+  EXPECT_EQ(replayed, size_t(stored_before));
+  EXPECT_GT(loops_on_earlier, 0);
+  EXPECT_EQ(false_loops, 0);
+  std::filesystem::remove_all(root);
 }
 
 }  // namespace
