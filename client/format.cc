@@ -242,14 +242,18 @@ std::string FormatDepthRemoval(const v1::FrameCounts& counts, const v1::DepthSta
 }
 
 std::string FormatLoopClosure(const v1::LoopClosure& loop) {
-  if (loop.merged()) return "merged into " + std::to_string(loop.place_id());
+  // The agent's first loop-closure frame since the server started replays its earlier places.
+  const std::string replayed =
+      loop.replayed() > 0 ? " [" + std::to_string(loop.replayed()) + " earlier places replayed]"
+                          : "";
+  if (loop.merged()) return "merged into " + std::to_string(loop.place_id()) + replayed;
   if (loop.loop_found()) {
     return "loop: place " + std::to_string(loop.loop_place_id()) + " (posterior " +
-           FormatDouble(loop.loop_posterior(), 3) + ")";
+           FormatDouble(loop.loop_posterior(), 3) + ")" + replayed;
   }
-  if (loop.best_place_id() == 0) return "no loop";
+  if (loop.best_place_id() == 0) return "no loop" + replayed;
   return "no loop (best place " + std::to_string(loop.best_place_id()) + ", posterior " +
-         FormatDouble(loop.best_posterior(), 3) + ")";
+         FormatDouble(loop.best_posterior(), 3) + ")" + replayed;
 }
 
 nlohmann::json DepthStateJson(const v1::DepthState& depth) {
@@ -278,7 +282,8 @@ nlohmann::json LoopClosureJson(const v1::LoopClosure& loop) {
           {"best_posterior", loop.best_posterior()},
           {"candidates", loop.candidates()},
           {"retrieved", loop.retrieved()},
-          {"transferred", loop.transferred()}};
+          {"transferred", loop.transferred()},
+          {"replayed", loop.replayed()}};
 }
 
 Table::Table(std::vector<std::string> headers) {
