@@ -259,6 +259,7 @@ struct CreateFlags {
   int stm = 0;
   uint32_t max_wm = 0;
   double wm_time_budget_ms = 0;
+  bool no_verify_loops = false;
   // Which were given (unset fields take the server's defaults).
   CLI::Option* features_option = nullptr;
   CLI::Option* sift_features_option = nullptr;
@@ -360,7 +361,8 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
            ", time_budget " +
            (loop.time_budget_ms() == 0 ? std::string("none")
                                        : FormatDouble(loop.time_budget_ms(), 1) + " ms") +
-           ", min_candidates " + std::to_string(loop.min_candidates())});
+           ", min_candidates " + std::to_string(loop.min_candidates()) + ", verify " +
+           (loop.verify() ? "on" : "off")});
   PrintKeyValues(io.out, "map " + map.name(), config);
   std::vector<std::pair<std::string, std::string>> stats;
   stats.push_back({"places", std::to_string(s.places())});
@@ -374,6 +376,8 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
   stats.push_back({"loop working memory", std::to_string(s.loop_working_memory())});
   stats.push_back({"loop long-term", std::to_string(s.loop_long_term())});
   stats.push_back({"loops accepted", std::to_string(s.loops_accepted())});
+  stats.push_back(
+      {"loops rejected", std::to_string(s.loops_rejected()) + "  (failed verification)"});
   PrintKeyValues(io.out, "statistics", stats);
 }
 
@@ -407,6 +411,7 @@ int MapsCreate(const Connection& connection, const CreateFlags& flags, bool json
   if (flags.stm_option->count()) loop->set_short_term_memory(flags.stm);
   if (flags.max_wm_option->count()) loop->set_max_working_memory(flags.max_wm);
   if (flags.wm_time_budget_option->count()) loop->set_time_budget_ms(flags.wm_time_budget_ms);
+  if (flags.no_verify_loops) loop->set_verify(false);
   v1::DetectionSettings* detection = config->mutable_detection();
   if (!flags.detection.empty()) detection->set_enabled(flags.detection == "on");
   size_t start = 0;
@@ -864,6 +869,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
           ->add_option("--wm-time-budget-ms", create_flags.wm_time_budget_ms,
                        "loop closure: time budget per update, ms (default 0 = none)")
           ->check(CLI::NonNegativeNumber);
+  create->add_flag("--no-verify-loops", create_flags.no_verify_loops,
+                   "loop closure: keep loops the filter accepts without geometric verification");
   CLI::App* list = maps->add_subcommand("list", "list the maps");
   std::string show_name;
   CLI::App* show = maps->add_subcommand("show", "a map's configuration and statistics");

@@ -249,7 +249,14 @@ std::string FormatLoopClosure(const v1::LoopClosure& loop) {
   if (loop.merged()) return "merged into " + std::to_string(loop.place_id()) + replayed;
   if (loop.loop_found()) {
     return "loop: place " + std::to_string(loop.loop_place_id()) + " (posterior " +
-           FormatDouble(loop.loop_posterior(), 3) + ")" + replayed;
+           FormatDouble(loop.loop_posterior(), 3) +
+           (loop.loop_inliers() > 0 ? ", " + std::to_string(loop.loop_inliers()) + " inliers"
+                                    : std::string()) +
+           ")" + replayed;
+  }
+  if (loop.loop_rejected()) {
+    return "loop to place " + std::to_string(loop.rejected_place_id()) + " failed verification (" +
+           std::to_string(loop.loop_inliers()) + " inliers)" + replayed;
   }
   if (loop.best_place_id() == 0) return "no loop" + replayed;
   return "no loop (best place " + std::to_string(loop.best_place_id()) + ", posterior " +
@@ -283,7 +290,10 @@ nlohmann::json LoopClosureJson(const v1::LoopClosure& loop) {
           {"candidates", loop.candidates()},
           {"retrieved", loop.retrieved()},
           {"transferred", loop.transferred()},
-          {"replayed", loop.replayed()}};
+          {"replayed", loop.replayed()},
+          {"loop_inliers", loop.loop_inliers()},
+          {"loop_rejected", loop.loop_rejected()},
+          {"rejected_place_id", loop.rejected_place_id()}};
 }
 
 Table::Table(std::vector<std::string> headers) {

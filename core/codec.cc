@@ -754,6 +754,7 @@ std::string EncodeDatabaseConfig(const DatabaseConfig& c) {
                        {"candidates", v.candidates}};
   j["depth"] = EncodeDepth(c.depth);
   j["loop_closure"] = EncodeLoopClosure(c.loop_closure);
+  j["verify_loops"] = c.verify_loops;
   return j.dump();
 }
 
@@ -803,6 +804,7 @@ Result<DatabaseConfig> DecodeDatabaseConfig(std::string_view text) {
   v.Get("candidates", &c.verification.candidates, true);
   DecodeDepth(root.Object("depth"), &c.depth);
   DecodeLoopClosure(root.Object("loop_closure"), &c.loop_closure);
+  root.Get("verify_loops", &c.verify_loops);
   if (!error.ok()) return error.WithContext("map config");
   PLACEDB_RETURN_IF_ERROR(ValidateDatabaseConfig(c).WithContext("map config"));
   return c;

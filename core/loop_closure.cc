@@ -518,6 +518,27 @@ Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, ui
   return update;
 }
 
+Status LoopClosureDetector::RejectLoop(PlaceId place, PlaceId loop) {
+  if (place == kNoPlace || loop == kNoPlace || place >= places_.size() || loop >= places_.size()) {
+    return Status::NotFound("no loop link " + std::to_string(place) + " -> " +
+                            std::to_string(loop));
+  }
+  auto& from = places_[place].loops;
+  auto it = std::find(from.begin(), from.end(), loop);
+  if (it == from.end()) {
+    return Status::NotFound("no loop link " + std::to_string(place) + " -> " +
+                            std::to_string(loop));
+  }
+  from.erase(it);
+  auto& to = places_[loop].loops;
+  to.erase(std::remove(to.begin(), to.end(), place), to.end());
+  has_loops_[place] = !from.empty();
+  has_loops_[loop] = !to.empty();
+  --loops_;
+  ++rejected_;
+  return Status::Ok();
+}
+
 std::optional<PlaceInfo> LoopClosureDetector::Get(PlaceId id) const {
   if (id == kNoPlace || id >= places_.size()) return std::nullopt;
   const Place& place = places_[id];
@@ -547,6 +568,7 @@ LoopClosureStats LoopClosureDetector::Stats() const {
   stats.frames = frames_;
   stats.merged = merged_;
   stats.loops = loops_;
+  stats.rejected = rejected_;
   stats.retrieved = retrieved_;
   stats.transferred = transferred_;
   stats.index_bytes = index_.MemoryBytes();

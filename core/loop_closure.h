@@ -159,6 +159,7 @@ struct LoopClosureStats {
   uint64_t frames = 0;
   uint64_t merged = 0;
   uint64_t loops = 0;
+  uint64_t rejected = 0;  // accepted by the filter, then taken back (RejectLoop)
   uint64_t retrieved = 0;
   uint64_t transferred = 0;
   size_t index_bytes = 0;
@@ -180,6 +181,10 @@ class LoopClosureDetector {
   // loop links of the earlier run are not known here. INVALID_ARGUMENT as Update, and for an
   // empty vector.
   Result<PlaceId> Replay(const BowVector& bow, uint64_t frame_tag);
+  // Takes back the loop the last Update() accepted from `place` to `loop` (e.g. it failed
+  // geometric verification): the link is removed and the loop is counted as rejected instead.
+  // NOT_FOUND when there is no such link.
+  Status RejectLoop(PlaceId place, PlaceId loop);
 
   std::optional<PlaceInfo> Get(PlaceId place) const;
   double Posterior(PlaceId place) const;  // 0 for places outside WM
@@ -236,7 +241,7 @@ class LoopClosureDetector {
   mutable std::vector<uint32_t> visit_mark_;
   mutable uint32_t visit_generation_ = 0;
   mutable BowVector index_form_;
-  uint64_t frames_ = 0, merged_ = 0, loops_ = 0, retrieved_ = 0, transferred_ = 0;
+  uint64_t frames_ = 0, merged_ = 0, loops_ = 0, rejected_ = 0, retrieved_ = 0, transferred_ = 0;
   size_t long_term_ = 0;
 };
 

@@ -374,9 +374,21 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
   outcome.transferred = update->transferred.size();
   outcome.update_ms = update->total_ms;
   if (update->loop) {
-    outcome.loop = stream->ltm->Bound(*update->loop);
-    outcome.loop_posterior = update->best_posterior;
-    if (*outcome.loop == 0) outcome.loop.reset();  // a place whose store had failed
+    const PlaceId target = stream->ltm->Bound(*update->loop);
+    bool keep = target != 0;  // else a place whose store had failed: nothing to return to
+    if (keep && config_.verify_loops) {
+      auto verified = VerifyLoop(frame, target);
+      outcome.loop_inliers = verified.ok() ? *verified : 0;
+      keep = verified.ok() && *verified >= config_.verification.min_inliers;
+    }
+    if (keep) {
+      outcome.loop = target;
+      outcome.loop_posterior = update->best_posterior;
+    } else {
+      PLACEDB_RETURN_IF_ERROR(stream->loop->RejectLoop(update->place, *update->loop));
+      outcome.loop_rejected = true;
+      outcome.rejected_loop = target;
+    }
   }
   outcome.best = stream->ltm->Bound(update->best);
   outcome.best_posterior = update->best_posterior;
@@ -389,6 +401,22 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
   stream->ltm->Bind(update->place, *stored);
   outcome.place = *stored;
   return outcome;
+}
+
+Result<int> PlaceDatabase::VerifyLoop(const ProcessedFrame& frame, PlaceId place) const {
+  auto payload = payloads_->Get(place);
+  if (!payload.ok()) return payload.status();
+  VerificationConfig verification = config_.verification;
+  if (verification.mode == VerificationMode::kDisabled) {
+    verification.mode = VerificationMode::kExhaustive;
+  }
+  auto verified = frame.feature_type == FeatureType::kSift
+                      ? VerifyGeometry(frame.static_float_features, frame.direct,
+                                       (*payload)->float_features, (*payload)->direct, verification)
+                      : VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
+                                       (*payload)->direct, verification);
+  if (!verified.ok()) return verified.status();
+  return verified->inliers;
 }
 
 Result<size_t> PlaceDatabase::ReplayAgentPlaces(const std::string& agent_id,
@@ -666,6 +694,7 @@ DatabaseStats PlaceDatabase::Stats() const {
     stats.loop_working_memory += loop.short_term + loop.working;
     stats.loop_long_term += loop.long_term;
     stats.loops_accepted += loop.loops;
+    stats.loops_rejected += loop.rejected;
   }
   return stats;
 }

@@ -71,6 +71,9 @@ struct DatabaseConfig {
   DepthConfig depth;
   // The Bayesian loop closure of CloseLoop(); its scoring is always the database's.
   LoopClosureConfig loop_closure;
+  // A loop the filter accepts is kept only if the frame verifies geometrically against the
+  // loop's stored place (`verification`, exhaustive when its mode is disabled; min_inliers).
+  bool verify_loops = true;
 };
 
 Status ValidateDatabaseConfig(const DatabaseConfig& config);
@@ -241,7 +244,12 @@ struct LoopClosureOutcome {
   PlaceId place = 0;            // the place the frame became (stored) or was merged into
   std::optional<PlaceId> loop;  // accepted loop closure: the revisited place
   double loop_posterior = 0;    // posterior of the accepted loop (0 without one)
-  PlaceId best = 0;             // best hypothesis, accepted or not (0: none, or unbound)
+  // With verify_loops: the accepted loop's inliers, and whether verification took it back
+  // (`loop` is then empty and `rejected_loop` names the place).
+  int loop_inliers = 0;
+  bool loop_rejected = false;
+  PlaceId rejected_loop = 0;
+  PlaceId best = 0;  // best hypothesis, accepted or not (0: none, or unbound)
   double best_posterior = 0;
   size_t candidates = 0;   // places in the agent's working memory that were searched
   size_t retrieved = 0;    // long-term -> working memory in this update
@@ -265,6 +273,7 @@ struct DatabaseStats {
   size_t loop_working_memory = 0;  // places searched by loop closure (STM + WM)
   size_t loop_long_term = 0;       // places in long-term memory (in the payload store, unsearched)
   uint64_t loops_accepted = 0;
+  uint64_t loops_rejected = 0;  // accepted by the filter, failed geometric verification
 };
 
 class AgentStreams;
@@ -338,6 +347,8 @@ class PlaceDatabase {
                 std::shared_ptr<PayloadStore> payloads);
   // Validity, then the BoW vector and direct index of the SC features.
   void Finish(ProcessedFrame* frame, Stopwatch* stage) const;
+  // Geometric verification of a loop: the frame against the stored place; the inlier count.
+  Result<int> VerifyLoop(const ProcessedFrame& frame, PlaceId place) const;
   // Replays the agent's stored places, oldest first, into a new detector and binds them.
   Result<size_t> ReplayAgentPlaces(const std::string& agent_id, LoopClosureDetector* detector,
                                    PayloadLongTermMemory* ltm) const;

@@ -381,7 +381,9 @@ Status DepthSettingsFromProto(const v1::DepthSettings& s, DepthConfig* depth) {
   return Status::Ok();
 }
 
-Status LoopClosureSettingsFromProto(const v1::LoopClosureSettings& s, LoopClosureConfig* c) {
+Status LoopClosureSettingsFromProto(const v1::LoopClosureSettings& s, LoopClosureConfig* c,
+                                    bool* verify_loops) {
+  if (s.has_verify()) *verify_loops = s.verify();
   const std::string at = "config.loop_closure.";
   if (s.has_loop_threshold()) {
     if (!(s.loop_threshold() >= 0 && s.loop_threshold() <= 1)) {
@@ -461,7 +463,8 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, const Limits& lim
   if (sift.has_sigma()) d.sift.sigma = sift.sigma();
 
   PLACEDB_RETURN_IF_ERROR(DepthSettingsFromProto(c.depth(), &d.depth));
-  PLACEDB_RETURN_IF_ERROR(LoopClosureSettingsFromProto(c.loop_closure(), &d.loop_closure));
+  PLACEDB_RETURN_IF_ERROR(
+      LoopClosureSettingsFromProto(c.loop_closure(), &d.loop_closure, &d.verify_loops));
 
   const v1::DetectionSettings& det = c.detection();
   settings->detection_enabled = !det.has_enabled() || det.enabled();
@@ -573,6 +576,7 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
   loop->set_max_working_memory(uint32_t(lc.max_working_memory));
   loop->set_time_budget_ms(lc.time_budget_ms);
   loop->set_min_candidates(lc.min_candidates);
+  loop->set_verify(d.verify_loops);
   v1::DetectionSettings* det = out->mutable_detection();
   det->set_enabled(settings.detection_enabled);
   for (int id : d.dynamic_classes) det->add_classes(CocoClassName(id));
@@ -603,6 +607,7 @@ void MapStatsToProto(const MapStats& stats, v1::MapStats* out) {
   out->set_loop_working_memory(stats.database.loop_working_memory);
   out->set_loop_long_term(stats.database.loop_long_term);
   out->set_loops_accepted(stats.database.loops_accepted);
+  out->set_loops_rejected(stats.database.loops_rejected);
 }
 
 // ---- Observations -------------------------------------------------------------------------------
@@ -1254,6 +1259,9 @@ void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out)
   out->set_retrieved(uint32_t(outcome.retrieved));
   out->set_transferred(uint32_t(outcome.transferred));
   out->set_replayed(uint32_t(outcome.replayed));
+  out->set_loop_inliers(outcome.loop_inliers);
+  out->set_loop_rejected(outcome.loop_rejected);
+  out->set_rejected_place_id(outcome.rejected_loop);
 }
 
 QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id) {

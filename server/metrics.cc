@@ -76,6 +76,11 @@ Metrics::Metrics()
                  .Name("placedb_loop_closures_total")
                  .Help("Loop closures accepted on ingest streams in loop-closure mode")
                  .Register(*registry_)),
+      loops_rejected_(BuildCounter()
+                          .Name("placedb_loop_closures_rejected_total")
+                          .Help("Loop closures the Bayesian filter accepted that failed geometric "
+                                "verification (not reported as loops)")
+                          .Register(*registry_)),
       places_(
           BuildGauge().Name("placedb_places").Help("Places stored in a map").Register(*registry_)),
       disk_bytes_(BuildGauge()
@@ -152,6 +157,10 @@ void Metrics::LoopClosed(const std::string& map) {
   loops_.Add({{"map", map}}).Increment();
 }
 
+void Metrics::LoopRejected(const std::string& map) {
+  loops_rejected_.Add({{"map", map}}).Increment();
+}
+
 void Metrics::SetMapGauges(const std::string& map, double places, double bytes_on_disk) {
   places_.Add({{"map", map}}).Set(places);
   disk_bytes_.Add({{"map", map}}).Set(bytes_on_disk);
@@ -165,6 +174,7 @@ void Metrics::ForgetMap(const std::string& map) {
   ingested_.Remove(&ingested_.Add({{"map", map}}));
   merged_.Remove(&merged_.Add({{"map", map}}));
   loops_.Remove(&loops_.Add({{"map", map}}));
+  loops_rejected_.Remove(&loops_rejected_.Add({{"map", map}}));
   for (const char* cls : {"dynamic", "depth_removed", "static"}) {
     descriptors_.Remove(&descriptors_.Add({{"map", map}, {"class", cls}}));
   }

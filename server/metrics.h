@@ -52,6 +52,7 @@ class Metrics {
   // an accepted loop closure.
   void FrameMerged(const std::string& map);
   void LoopClosed(const std::string& map);
+  void LoopRejected(const std::string& map);  // accepted by the filter, failed verification
   void SetMapGauges(const std::string& map, double places, double bytes_on_disk);
   void ForgetMap(const std::string& map);  // a deleted map's series go away
   void StreamOpened();
@@ -68,6 +69,7 @@ class Metrics {
   prometheus::Family<prometheus::Counter>& descriptors_;
   prometheus::Family<prometheus::Counter>& merged_;
   prometheus::Family<prometheus::Counter>& loops_;
+  prometheus::Family<prometheus::Counter>& loops_rejected_;
   prometheus::Family<prometheus::Gauge>& places_;
   prometheus::Family<prometheus::Gauge>& disk_bytes_;
   prometheus::Gauge& streams_;

@@ -575,6 +575,7 @@ void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
         if (loop) {
           LoopClosureToProto(*loop, response.mutable_loop_closure());
           if (loop->loop) metrics_->LoopClosed(map.name);
+          if (loop->loop_rejected) metrics_->LoopRejected(map.name);
         }
         if (loop && loop->merged) {
           // Rehearsal: the frame is the place it was merged into; nothing new is stored.

@@ -15,6 +15,7 @@
 #include <cstdlib>
 #include <map>
 #include <opencv2/imgcodecs.hpp>
+#include <optional>
 #include <random>
 #include <set>
 #include <string>
@@ -291,6 +292,29 @@ TEST(LoopClosure, ReplayedPlacesAreLoopCandidates) {
   EXPECT_EQ(rebuilt->Replay(BowVector{}, 0).status().code(), StatusCode::kInvalidArgument);
   EXPECT_EQ(rebuilt->Replay(BowVector{{kWords, 1.0f}}, 0).status().code(),
             StatusCode::kInvalidArgument);
+}
+
+TEST(LoopClosure, RejectedLoopLosesItsLink) {
+  auto detector = MakeDetector(LoopClosureConfig{});
+  ASSERT_TRUE(detector);
+  for (uint32_t p = 0; p < 60; ++p) ASSERT_TRUE(detector->Update(PlaceBow(p), p).ok());
+  std::optional<std::pair<PlaceId, PlaceId>> accepted;
+  for (uint32_t p = 10; p < 20 && !accepted; ++p) {
+    auto u = detector->Update(PlaceBow(p, 5, 0.8), 100 + p);
+    ASSERT_TRUE(u.ok());
+    if (u->loop) accepted = std::make_pair(u->place, *u->loop);
+  }
+  ASSERT_TRUE(accepted.has_value()) << "no loop accepted on the revisit";
+  const auto [place, loop] = *accepted;
+  const uint64_t loops = detector->Stats().loops;
+  ASSERT_EQ(detector->Get(place)->loops, std::vector<PlaceId>{loop});
+  EXPECT_TRUE(detector->RejectLoop(place, loop).ok());
+  EXPECT_TRUE(detector->Get(place)->loops.empty());
+  EXPECT_TRUE(detector->Get(loop)->loops.empty());
+  EXPECT_EQ(detector->Stats().loops, loops - 1);
+  EXPECT_EQ(detector->Stats().rejected, 1u);
+  EXPECT_EQ(detector->RejectLoop(place, loop).code(), StatusCode::kNotFound);
+  EXPECT_EQ(detector->RejectLoop(place, 100000).code(), StatusCode::kNotFound);
 }
 
 TEST(LoopClosure, TimeBudgetTransfersPlaces) {

@@ -311,7 +311,7 @@ TEST(RgbdDatabase, SiftMapVerifiesRevisitsGeometrically) {
 
 struct LoopFigures {
   int frames = 0, stored = 0, merged = 0, loops = 0, false_loops = 0, positives = 0,
-      true_positives = 0;
+      true_positives = 0, rejected = 0, rejected_true = 0;
   size_t transferred = 0, retrieved = 0;
 };
 
@@ -357,6 +357,15 @@ LoopFigures RunLoop(const AnyVocabulary& vocabulary, DatabaseConfig config,
     }
     frames_of[outcome->place].push_back(t);
     figures.positives += positive;
+    if (outcome->loop_rejected) {
+      // Accepted by the filter, taken back by geometric verification.
+      ++figures.rejected;
+      bool right = false;
+      for (int f : frames_of[outcome->rejected_loop]) {
+        right |= truth.at<uint8_t>(t - 1, f - 1) == 255;
+      }
+      figures.rejected_true += right;
+    }
     if (!outcome->loop) continue;
     ++figures.loops;
     bool right = false;
@@ -368,13 +377,15 @@ LoopFigures RunLoop(const AnyVocabulary& vocabulary, DatabaseConfig config,
   const DatabaseStats stats = database->Stats();
   EXPECT_EQ(stats.places, size_t(figures.stored));
   EXPECT_EQ(stats.loops_accepted, uint64_t(figures.loops));
+  EXPECT_EQ(stats.loops_rejected, uint64_t(figures.rejected));
   std::printf(
-      "[%s] %d frames -> %d places stored, %d merged by rehearsal; loops %d (%d false); recall "
-      "%d/%d = %.1f%%; WM->LTM %zu, LTM->WM %zu (read back from the payload store)\n",
+      "[%s] %d frames -> %d places stored, %d merged by rehearsal; loops %d (%d false), %d "
+      "taken back by verification (%d of them true); recall %d/%d = %.1f%%; WM->LTM %zu, LTM->WM "
+      "%zu (read back from the payload store)\n",
       label.c_str(), figures.frames, figures.stored, figures.merged, figures.loops,
-      figures.false_loops, figures.true_positives, figures.positives,
-      100.0 * figures.true_positives / std::max(1, figures.positives), figures.transferred,
-      figures.retrieved);
+      figures.false_loops, figures.rejected, figures.rejected_true, figures.true_positives,
+      figures.positives, 100.0 * figures.true_positives / std::max(1, figures.positives),
+      figures.transferred, figures.retrieved);
   return figures;
 }
 
@@ -395,6 +406,36 @@ TEST(RgbdDatabaseLoop, OrbStreamClosesLoopsWithoutFalsePositives) {
   EXPECT_EQ(f.false_loops, 0);
   EXPECT_GT(f.positives, 30);
   EXPECT_GE(2 * f.true_positives, f.positives) << "recall below 50 %";
+}
+
+// Without geometric verification of accepted loops (the filter alone, as the paper).
+TEST(RgbdDatabaseLoop, UnverifiedLoopsOnBothFeatureTypes) {
+  REQUIRE_SHARED_DATA();
+  DatabaseConfig sift;
+  sift.feature_type = FeatureType::kSift;
+  sift.filter.place_threshold = 10;
+  sift.verify_loops = false;
+  const LoopFigures s = RunLoop(SiftVocabulary(), sift, "sift stream, unverified");
+  DatabaseConfig orb;
+  orb.verify_loops = false;
+  const LoopFigures o = RunLoop(testing::DefaultVocabulary(), orb, "orb stream, unverified");
+  for (const LoopFigures* f : {&s, &o}) {
+    EXPECT_EQ(f->false_loops, 0);
+    EXPECT_EQ(f->rejected, 0);
+    EXPECT_GE(2 * f->true_positives, f->positives) << "recall below 50 %";
+  }
+}
+
+// Verification decides: with an inlier minimum no frame pair reaches, every loop the filter
+// accepts is taken back, and the stream goes on.
+TEST(RgbdDatabaseLoop, LoopsThatFailVerificationAreTakenBack) {
+  REQUIRE_SHARED_DATA();
+  DatabaseConfig config;
+  config.verification.min_inliers = 5000;
+  const LoopFigures f = RunLoop(testing::DefaultVocabulary(), config, "orb stream, 5000 inliers");
+  EXPECT_EQ(f.loops, 0);
+  EXPECT_EQ(f.rejected, 34);  // every loop of the unverified run
+  EXPECT_EQ(f.rejected_true, 34);
 }
 
 TEST(RgbdDatabaseLoop, BoundedWorkingMemoryReadsLongTermPlacesFromPayloads) {

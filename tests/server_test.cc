@@ -1646,7 +1646,7 @@ TEST_F(ServerTest, LoopClosureIngestFindsTrueLoopsAndStoresNoMergedFrame) {
   ASSERT_EQ(outcome.responses.size(), 84u);
 
   std::map<uint32_t, std::vector<int>> frames_of;  // place -> frames it became / merged
-  uint64_t stored = 0, merged = 0, loops = 0, false_loops = 0;
+  uint64_t stored = 0, merged = 0, loops = 0, false_loops = 0, rejected = 0;
   for (int t = 1; t <= 84; ++t) {
     const v1::IngestResponse& response = outcome.responses[size_t(t - 1)];
     ASSERT_FALSE(response.has_error()) << t << ": " << response.error().message();
@@ -1670,10 +1670,16 @@ TEST_F(ServerTest, LoopClosureIngestFindsTrueLoopsAndStoresNoMergedFrame) {
     if (t > 1) {
       EXPECT_FALSE(response.matches().empty()) << t;
     }
+    if (lc.loop_rejected()) {
+      ++rejected;
+      EXPECT_FALSE(lc.loop_found()) << t;
+      EXPECT_LT(lc.loop_inliers(), 15) << t;
+    }
     if (lc.loop_found()) {
       ++loops;
       ASSERT_TRUE(frames_of.count(lc.loop_place_id())) << t;
       EXPECT_GT(lc.loop_posterior(), 0);
+      EXPECT_GE(lc.loop_inliers(), 15) << t;  // verified by default (min_inliers)
       // The revisited place looks like the newest frame merged into it.
       const int f = frames_of[lc.loop_place_id()].back();
       const bool correct = truth.at<uint8_t>(t - 1, f - 1) == 255;
@@ -1688,11 +1694,14 @@ TEST_F(ServerTest, LoopClosureIngestFindsTrueLoopsAndStoresNoMergedFrame) {
   const v1::MapStats stats = Stats("loop");
   EXPECT_EQ(stats.places(), stored) << "merged frames must not be stored";
   EXPECT_EQ(stats.loops_accepted(), loops);
+  EXPECT_EQ(stats.loops_rejected(), rejected);
   EXPECT_EQ(stats.streams(), 1u);
   EXPECT_GT(stats.loop_working_memory(), 0u);
-  std::printf("loop closure over gRPC: 84 frames -> %llu stored, %llu merged, %llu loops\n",
-              static_cast<unsigned long long>(stored), static_cast<unsigned long long>(merged),
-              static_cast<unsigned long long>(loops));
+  std::printf(
+      "loop closure over gRPC: 84 frames -> %llu stored, %llu merged, %llu loops (%llu taken "
+      "back by verification)\n",
+      static_cast<unsigned long long>(stored), static_cast<unsigned long long>(merged),
+      static_cast<unsigned long long>(loops), static_cast<unsigned long long>(rejected));
 
   // Rehearsal: a frame seen again right away is merged into the place it repeats, not stored.
   CreateMap("rehearsal");

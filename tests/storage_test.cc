@@ -367,12 +367,14 @@ TEST(Codec, RgbdConfigRoundTripsAndFormat1ConfigsLoadAsOrb) {
   l.time_budget_ms = 3.5;
   l.retrieval_radius = 2;
   l.max_retrieved = 3;
+  c.verify_loops = false;
   const std::string encoded = EncodeDatabaseConfig(c);
   auto decoded = DecodeDatabaseConfig(encoded);
   ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
   EXPECT_EQ(EncodeDatabaseConfig(*decoded), encoded);  // every field the encoder writes
   EXPECT_EQ(decoded->feature_type, FeatureType::kSift);
   EXPECT_EQ(decoded->sift.octave_layers, 4);
+  EXPECT_FALSE(decoded->verify_loops);
   EXPECT_EQ(decoded->sift.contrast_threshold, 0.03);
   EXPECT_FALSE(decoded->depth.refine_boxes);
   EXPECT_EQ(decoded->depth.refine.dilate_px, 6);
