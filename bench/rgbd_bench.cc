@@ -260,7 +260,8 @@ void GrowingMap(const std::shared_ptr<const FloatVocabulary>& vocabulary,
   std::printf(
       "# growing map: SIFT PlaceDatabase, one stream; frames synthesised from %zu real SIFT sets "
       "(%zu random descriptors + N(0, 4) noise each, precomputed features %dx%d), SIFT vocabulary "
-      "%u words, verification disabled, payloads without descriptors; WM bound %zu places "
+      "%u words, verification (and loop verification) disabled, payloads without descriptors; WM "
+      "bound %zu places "
       "(STM 30); unbounded baseline up to %zu frames; medians over the %zu frames before each "
       "mark\n",
       sets.size(), kPerFrame, kWidth, kHeight, vocabulary->word_count(), wm_bound, unbounded_max,
@@ -269,6 +270,7 @@ void GrowingMap(const std::shared_ptr<const FloatVocabulary>& vocabulary,
     DatabaseConfig config;
     config.feature_type = FeatureType::kSift;
     config.verification.mode = VerificationMode::kDisabled;
+    config.verify_loops = false;  // the payloads hold no descriptors to verify with
     config.loop_closure.max_working_memory = bounded ? wm_bound : 0;
     auto db = PlaceDatabase::Create(AnyVocabulary(vocabulary), config,
                                     std::make_shared<BowOnlyPayloadStore>());
