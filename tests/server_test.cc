@@ -113,16 +113,14 @@ struct IngestOutcome {
 
 // One Ingest stream: writes the header and every observation from one thread while reading
 // responses on this one, as a real agent does.
-IngestOutcome IngestAll(v1::PlaceDb::Stub* stub, const std::string& map,
-                        const std::vector<v1::Observation>& observations,
-                        const v1::MatchOptions* matches = nullptr) {
+IngestOutcome IngestWithHeader(v1::PlaceDb::Stub* stub, const v1::IngestHeader& header,
+                               const std::vector<v1::Observation>& observations) {
   grpc::ClientContext context;
   auto stream = stub->Ingest(&context);
   std::thread writer([&] {
-    v1::IngestRequest header;
-    header.mutable_header()->set_map(map);
-    if (matches) *header.mutable_header()->mutable_matches() = *matches;
-    if (!stream->Write(header)) return;
+    v1::IngestRequest first;
+    *first.mutable_header() = header;
+    if (!stream->Write(first)) return;
     for (const v1::Observation& observation : observations) {
       v1::IngestRequest request;
       *request.mutable_observation() = observation;
@@ -136,6 +134,15 @@ IngestOutcome IngestAll(v1::PlaceDb::Stub* stub, const std::string& map,
   writer.join();
   out.status = stream->Finish();
   return out;
+}
+
+IngestOutcome IngestAll(v1::PlaceDb::Stub* stub, const std::string& map,
+                        const std::vector<v1::Observation>& observations,
+                        const v1::MatchOptions* matches = nullptr) {
+  v1::IngestHeader header;
+  header.set_map(map);
+  if (matches) *header.mutable_matches() = *matches;
+  return IngestWithHeader(stub, header, observations);
 }
 
 // ---- Metrics scraping ---------------------------------------------------------------------------
@@ -1323,29 +1330,6 @@ v1::Observation RgbdObservation(const rgbd::RgbdFrame& frame, const std::string&
   EXPECT_EQ(depth.type(), CV_16UC1) << frame.depth_path;
   observation.mutable_depth()->set_png16(EncodePng(depth));
   return observation;
-}
-
-IngestOutcome IngestWithHeader(v1::PlaceDb::Stub* stub, const v1::IngestHeader& header,
-                               const std::vector<v1::Observation>& observations) {
-  grpc::ClientContext context;
-  auto stream = stub->Ingest(&context);
-  std::thread writer([&] {
-    v1::IngestRequest first;
-    *first.mutable_header() = header;
-    if (!stream->Write(first)) return;
-    for (const v1::Observation& observation : observations) {
-      v1::IngestRequest request;
-      *request.mutable_observation() = observation;
-      if (!stream->Write(request)) return;
-    }
-    stream->WritesDone();
-  });
-  IngestOutcome out;
-  v1::IngestResponse response;
-  while (stream->Read(&response)) out.responses.push_back(response);
-  writer.join();
-  out.status = stream->Finish();
-  return out;
 }
 
 // A SIFT map: created on the float vocabulary, frames ingested as images, queried back (as images
