@@ -464,10 +464,11 @@ int MapsList(const Connection& connection, bool json, CliIo& io) {
     io.out << "no maps\n";
     return kExitOk;
   }
-  Table table({"NAME", ">PLACES", "VOCABULARY", "STATUS"});
+  Table table({"NAME", ">PLACES", "VOCABULARY", "FEATURES", "STATUS"});
   for (const v1::MapSummary& map : response.maps()) {
     table.Add({map.name(), map.available() ? std::to_string(map.places()) : "-",
                map.vocabulary().empty() ? "-" : map.vocabulary(),
+               map.available() ? FeatureTypeName(map.feature_type()) : "-",
                map.available() ? "available" : "unavailable: " + map.unavailable_reason()});
   }
   table.Print(io.out);

@@ -254,7 +254,10 @@ grpc::Status PlaceDbService::ListMaps(grpc::ServerContext* context, const v1::Li
     summary->set_available(entry->map != nullptr);
     summary->set_unavailable_reason(entry->unavailable_reason);
     summary->set_vocabulary(entry->vocabulary_name);
-    if (entry->map) summary->set_places(entry->map->database().Stats().places);
+    if (entry->map) {
+      summary->set_places(entry->map->database().Stats().places);
+      summary->set_feature_type(FeatureTypeToProto(entry->map->database().config().feature_type));
+    }
   }
   return Finish("ListMaps", context, grpc::Status::OK);
 }

@@ -1486,6 +1486,15 @@ TEST_F(ServerTest, FeatureTypeMustMatchTheVocabulary) {
   v1::ListMapsResponse maps;
   ASSERT_TRUE(stub_->ListMaps(&context, {}, &maps).ok());
   EXPECT_EQ(maps.maps_size(), 2) << "a refused CreateMap left a map behind";
+  for (const v1::MapSummary& summary : maps.maps()) {
+    grpc::ClientContext get_context;
+    v1::GetMapRequest get;
+    get.set_name(summary.name());
+    v1::MapDescription description;
+    ASSERT_TRUE(stub_->GetMap(&get_context, get, &description).ok());
+    EXPECT_NE(summary.feature_type(), v1::FEATURE_TYPE_UNSPECIFIED) << summary.name();
+    EXPECT_EQ(summary.feature_type(), description.config().feature_type()) << summary.name();
+  }
 }
 
 // RGB-D frames (colour + 16-bit depth in mm): every ingest response carries Algorithm 1's state
