@@ -9,6 +9,10 @@ const char* FeatureTypeName(FeatureType type) {
   return type == FeatureType::kSift ? "sift" : "orb";
 }
 
+const char* VocabularyKindName(FeatureType type) {
+  return type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)";
+}
+
 Result<FeatureType> ParseFeatureType(const std::string& name) {
   if (name == "orb") return FeatureType::kOrb;
   if (name == "sift") return FeatureType::kSift;
@@ -61,7 +65,7 @@ size_t AnyVocabulary::memory_bytes() const {
   return floating_ ? floating_->memory_bytes() : binary_ ? binary_->memory_bytes() : 0;
 }
 const char* AnyVocabulary::kind() const {
-  return floating_ ? "float (SIFT)" : "binary (ORB)";
+  return VocabularyKindName(feature_type());
 }
 
 }  // namespace placedb

@@ -21,6 +21,8 @@ enum class FeatureType { kOrb, kSift };
 
 const char* FeatureTypeName(FeatureType type);                  // "orb", "sift"
 Result<FeatureType> ParseFeatureType(const std::string& name);  // "orb", "sift"
+// The kind of vocabulary a feature type needs, for messages: "binary (ORB)", "float (SIFT)".
+const char* VocabularyKindName(FeatureType type);
 
 class AnyVocabulary {
  public:

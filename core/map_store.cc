@@ -163,11 +163,6 @@ Result<MapInfo> DecodeInfo(const std::string& text) {
   return info;
 }
 
-// "binary (ORB)" or "float (SIFT)", as AnyVocabulary::kind() says it.
-const char* VocabularyKind(FeatureType type) {
-  return type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)";
-}
-
 std::string Hex(uint64_t v) {
   char buffer[17];
   std::snprintf(buffer, sizeof buffer, "%016llx", static_cast<unsigned long long>(v));
@@ -390,7 +385,7 @@ Status PlaceMap::CheckVocabulary(const AnyVocabulary& vocabulary) const {
     return Status::Ok();
   }
   return Status::FailedPrecondition("map '" + info_.name + "' was built with " +
-                                    VocabularyKind(type) + " vocabulary " +
+                                    VocabularyKindName(type) + " vocabulary " +
                                     Hex(info_.vocabulary_checksum) + ", not " + vocabulary.kind() +
                                     " vocabulary " + vocabulary.checksum_hex());
 }
@@ -826,7 +821,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& na
   const FeatureType type = options.database.feature_type;
   if (vocabulary.feature_type() != type) {
     return Status::InvalidArgument("map '" + name + "': feature_type " + FeatureTypeName(type) +
-                                   " needs a " + VocabularyKind(type) +
+                                   " needs a " + VocabularyKindName(type) +
                                    " vocabulary; this one is " + vocabulary.kind());
   }
   std::lock_guard lock(mutex_);

@@ -123,8 +123,7 @@ Result<std::unique_ptr<PlaceDatabase>> PlaceDatabase::Create(
   if (vocabulary.feature_type() != config.feature_type) {
     return Status::InvalidArgument(
         std::string("feature_type ") + FeatureTypeName(config.feature_type) + " needs a " +
-        (config.feature_type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)") +
-        " vocabulary; this one is " + vocabulary.kind());
+        VocabularyKindName(config.feature_type) + " vocabulary; this one is " + vocabulary.kind());
   }
   return std::unique_ptr<PlaceDatabase>(
       new PlaceDatabase(std::move(vocabulary), std::move(config), std::move(payloads)));
@@ -183,7 +182,6 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
   }
   const int width = sift ? float_features->image_width : features->image_width;
   const int height = sift ? float_features->image_height : features->image_height;
-  const std::vector<Keypoint>& keypoints = sift ? float_features->keypoints : features->keypoints;
   frame.timings.extract_ms = stage.Lap();
 
   DynamicObjects dynamic;
@@ -240,7 +238,6 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
                                 : SelectFeatures(*features, filtered->static_indices);
   }
   frame.timings.filter_ms = stage.Lap();
-  (void)keypoints;
 
   // ---- Algorithm 1 needs the feature depths; the decision itself is per agent stream.
   if (!frame.depth_m.empty() && config_.depth.stream_filter) {

@@ -146,11 +146,6 @@ struct ProcessedFrame {
   std::vector<float> static_depth_m;  // per SC feature while Algorithm 1 is pending
   bool stream_pending = false;        // Process(kStream) left Algorithm 1 to AdvanceStream()
   std::optional<DepthFrameState> depth_state;  // Algorithm 1's decision for this frame
-
-  size_t static_count() const {
-    return feature_type == FeatureType::kSift ? static_float_features.size()
-                                              : static_features.size();
-  }
 };
 
 // What the database keeps in memory per place: small, immutable once stored.

@@ -22,6 +22,7 @@
 #include "eval/report.h"
 #include "eval/revisits.h"
 #include "eval/runner.h"
+#include "tools/shared_data.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;
@@ -29,10 +30,7 @@ using namespace placedb::eval;
 
 namespace {
 
-std::string SharedDir() {
-  if (const char* env = std::getenv("PLACEDB_SHARED_DIR")) return env;
-  return PLACEDB_SHARED_DIR;
-}
+using placedb::data::SharedDir;
 
 std::string DefaultModel() {
   const std::string installed = std::string(PLACEDB_MODELS_DIR) + "/yolox_nano.onnx";

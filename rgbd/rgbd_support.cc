@@ -10,15 +10,6 @@ namespace fs = std::filesystem;
 
 namespace placedb::rgbd {
 
-std::string SharedDir() {
-  if (const char* env = std::getenv("PLACEDB_SHARED_DIR")) return env;
-  return PLACEDB_SHARED_DIR_RGBD;
-}
-
-bool HaveSharedData() {
-  return fs::is_directory(SharedDir() + "/data");
-}
-
 std::vector<RgbdFrame> RgbdPeopleFrames() {
   std::vector<RgbdFrame> frames;
   const fs::path root = fs::path(SharedDir()) / "data" / "rgbd-people";
@@ -55,27 +46,6 @@ std::vector<RgbdFrame> SlambookFrames() {
 
 CameraIntrinsics SlambookIntrinsics() {
   return {518.0, 519.0, 325.5, 253.5};
-}
-
-std::string RtabmapFramePath(int frame) {
-  return SharedDir() + "/data/rtabmap-loop/" + std::to_string(frame) + ".jpg";
-}
-
-cv::Mat RtabmapGroundTruth() {
-  return cv::imread(SharedDir() + "/data/rtabmap-loop/ground_truth.bmp", cv::IMREAD_GRAYSCALE);
-}
-
-std::vector<std::string> DebianSampleImages() {
-  std::vector<std::string> paths;
-  for (const char* dir : {"/usr/share/doc/opencv-doc/examples/data", "/usr/share/darknet/data"}) {
-    if (!fs::is_directory(dir)) continue;
-    for (const auto& entry : fs::directory_iterator(dir)) {
-      const auto ext = entry.path().extension().string();
-      if (ext == ".jpg" || ext == ".png") paths.push_back(entry.path().string());
-    }
-  }
-  std::sort(paths.begin(), paths.end());
-  return paths;
 }
 
 std::string YoloxModelPath() {

@@ -13,11 +13,12 @@
 #include "core/float_vocabulary.h"
 #include "core/sift_features.h"
 #include "core/status.h"
+#include "tools/shared_data.h"
 
 namespace placedb::rgbd {
 
-std::string SharedDir();  // $PLACEDB_SHARED_DIR or the configured ../shared
-bool HaveSharedData();
+using data::HaveSharedData;
+using data::SharedDir;  // $PLACEDB_SHARED_DIR or the configured ../shared
 
 struct RgbdFrame {
   std::string name;        // "test1/1534837737.203029" or "slambook/1"
@@ -33,11 +34,11 @@ std::vector<RgbdFrame> SlambookFrames();
 CameraIntrinsics SlambookIntrinsics();
 
 // rtabmap-loop frame paths (1-based) and its 84x84 ground truth (empty Mat when unreadable).
-std::string RtabmapFramePath(int frame);
-cv::Mat RtabmapGroundTruth();
+using data::RtabmapFramePath;
+using data::RtabmapGroundTruth;
 
 // OpenCV's and darknet's sample images (the default vocabulary's training set), sorted.
-std::vector<std::string> DebianSampleImages();
+using data::DebianSampleImages;
 
 // Where the YOLOX model is (configured models dir, else ../shared/models), or "" if absent.
 std::string YoloxModelPath();

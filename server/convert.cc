@@ -234,10 +234,6 @@ v1::BoxSource BoxSourceToProto(BoxSource source) {
 
 namespace {
 
-const char* KindOf(FeatureType type) {
-  return type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)";
-}
-
 const char* FeatureTypeProtoName(FeatureType type) {
   return type == FeatureType::kSift ? "FEATURE_TYPE_SIFT" : "FEATURE_TYPE_ORB";
 }
@@ -258,10 +254,10 @@ Result<FeatureType> FeatureTypeFromProto(v1::FeatureType type, const MapVocabula
   }
   if (wanted != vocabulary.feature_type) {
     return Invalid("config.feature_type",
-                   std::string(FeatureTypeProtoName(wanted)) + " needs a " + KindOf(wanted) +
-                       " vocabulary, but vocabulary '" + vocabulary.name + "' is " +
-                       KindOf(vocabulary.feature_type) + ": name one of the server's " +
-                       KindOf(wanted) +
+                   std::string(FeatureTypeProtoName(wanted)) + " needs a " +
+                       VocabularyKindName(wanted) + " vocabulary, but vocabulary '" +
+                       vocabulary.name + "' is " + VocabularyKindName(vocabulary.feature_type) +
+                       ": name one of the server's " + VocabularyKindName(wanted) +
                        " vocabularies in config.vocabulary (GetServerInfo lists them)");
   }
   return wanted;

@@ -544,14 +544,10 @@ void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
         if (stream->loop_closure && frame.valid) {
           // The agent's loop-closure detector, then (unless rehearsal merges the frame into the
           // previous place) the durable write.
-          Stopwatch closing;
-          AddResult committed;
+          AddResult committed;  // the commit's result and its store_ms (none when merged)
           auto outcome = map.map->CloseLoop(frame, work.metadata, &committed);
           if (!outcome.ok()) return ToGrpc(outcome.status(), "loop closure");
           work.timings.loop_closure_ms = outcome->update_ms;
-          if (!outcome->merged && committed.timings.store_ms <= 0) {
-            committed.timings.store_ms = std::max(0.0, closing.ElapsedMs() - outcome->update_ms);
-          }
           loop = std::move(outcome).value();
           added = std::move(committed);
           return grpc::Status::OK;

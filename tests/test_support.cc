@@ -13,15 +13,6 @@ namespace fs = std::filesystem;
 
 namespace placedb::testing {
 
-std::string SharedDir() {
-  if (const char* env = std::getenv("PLACEDB_SHARED_DIR")) return env;
-  return PLACEDB_SHARED_DIR;
-}
-
-bool HaveSharedData() {
-  return fs::is_directory(SharedDir() + "/data");
-}
-
 namespace {
 std::vector<std::string>& TempDirs() {
   static std::vector<std::string> dirs;
@@ -90,29 +81,11 @@ cv::Mat CamVidDynamicMask(const CamVidFrame& frame) {
   return mask;
 }
 
-std::string RtabmapFramePath(int frame) {
-  return SharedDir() + "/data/rtabmap-loop/" + std::to_string(frame) + ".jpg";
-}
-
 cv::Mat RtabmapGroundTruth() {
-  cv::Mat truth =
-      cv::imread(SharedDir() + "/data/rtabmap-loop/ground_truth.bmp", cv::IMREAD_GRAYSCALE);
+  cv::Mat truth = data::RtabmapGroundTruth();
   EXPECT_EQ(truth.rows, 84);
   EXPECT_EQ(truth.cols, 84);
   return truth;
-}
-
-std::vector<std::string> DebianSampleImages() {
-  std::vector<std::string> paths;
-  for (const char* dir : {"/usr/share/doc/opencv-doc/examples/data", "/usr/share/darknet/data"}) {
-    if (!fs::is_directory(dir)) continue;
-    for (const auto& entry : fs::directory_iterator(dir)) {
-      const auto ext = entry.path().extension().string();
-      if (ext == ".jpg" || ext == ".png") paths.push_back(entry.path().string());
-    }
-  }
-  std::sort(paths.begin(), paths.end());
-  return paths;
 }
 
 FeatureSet ExtractFile(const std::string& path, int max_features) {

@@ -8,11 +8,12 @@
 
 #include "core/features.h"
 #include "core/vocabulary.h"  // DefaultVocabulary() lives in test_vocabulary.cc
+#include "tools/shared_data.h"
 
 namespace placedb::testing {
 
-std::string SharedDir();  // ../shared (PLACEDB_SHARED_DIR), may not exist
-bool HaveSharedData();    // ../shared/data present
+using data::HaveSharedData;  // ../shared/data present
+using data::SharedDir;       // ../shared (PLACEDB_SHARED_DIR), may not exist
 std::string DefaultVocabularyPath();
 // Loads the default vocabulary once per process (fails the test if it is missing).
 std::shared_ptr<const Vocabulary> DefaultVocabulary();
@@ -34,11 +35,11 @@ std::vector<CamVidFrame> CamVidFrames();  // sorted by sequence, then frame
 cv::Mat CamVidDynamicMask(const CamVidFrame& frame);  // CV_8U 255 = dynamic
 
 // RTAB-Map loop (../shared/data/rtabmap-loop): frames 1..84 and the 84x84 ground truth.
-std::string RtabmapFramePath(int frame);  // 1-based
-cv::Mat RtabmapGroundTruth();             // CV_8U, (i, j) = 255 when frame i+1 and j+1 match
+using data::RtabmapFramePath;  // 1-based
+cv::Mat RtabmapGroundTruth();  // data::RtabmapGroundTruth, failing the test unless it is 84x84
 
 // Debian sample images (opencv-doc, darknet), as used for the default vocabulary.
-std::vector<std::string> DebianSampleImages();
+using data::DebianSampleImages;
 
 // ORB features of an image file with the given feature budget.
 FeatureSet ExtractFile(const std::string& path, int max_features = 1000);
