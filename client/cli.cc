@@ -4,6 +4,7 @@
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <cstring>
 #include <fstream>
@@ -31,6 +32,23 @@ int RpcFailed(CliIo& io, const grpc::Status& status) {
 int UsageError(CliIo& io, const std::string& message) {
   io.err << "error: " << message << '\n';
   return kExitUsage;
+}
+
+// Box refinement spellings from the generated enum's own names (BOX_REFINEMENT_GRABCUT ->
+// "grabcut"), so a value added to the proto is a CLI value too.
+const std::map<std::string, v1::BoxRefinement>& BoxRefinementNames() {
+  static const std::map<std::string, v1::BoxRefinement> names = [] {
+    std::map<std::string, v1::BoxRefinement> out;
+    const std::string prefix = "BOX_REFINEMENT_";
+    for (int i = v1::BoxRefinement_MIN; i <= v1::BoxRefinement_MAX; ++i) {
+      if (!v1::BoxRefinement_IsValid(i) || i == v1::BOX_REFINEMENT_UNSPECIFIED) continue;
+      std::string name = v1::BoxRefinement_Name(v1::BoxRefinement(i)).substr(prefix.size());
+      for (char& c : name) c = char(std::tolower(static_cast<unsigned char>(c)));
+      out.emplace(name, v1::BoxRefinement(i));
+    }
+    return out;
+  }();
+  return names;
 }
 
 // Short CLI spellings of the API enums.
@@ -249,6 +267,12 @@ struct CreateFlags {
   // Depth (docs/rgbd.md).
   bool no_refine_boxes = false;
   bool no_depth_filter = false;
+  // Monocular box refinement, the short-term tier and re-ranking.
+  std::string box_refinement;
+  std::string short_term;  // on | off
+  double short_term_horizon_s = 0;
+  CLI::Option* short_term_horizon_option = nullptr;
+  std::string rerank;  // on | off
   float depth_scale = 0;
   float depth_threshold = 0;
   std::string band_policy;
@@ -319,13 +343,25 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
   config.push_back({"filter", FilterName(f.method()) + ", sensitivity " +
                                   FormatDouble(f.sensitivity_threshold(), 2) +
                                   ", place_threshold " + std::to_string(f.place_threshold())});
+  std::string refinement = "grabcut";
+  for (const auto& [name, value] : BoxRefinementNames()) {
+    if (value == f.box_refinement()) refinement = name;
+  }
+  config.push_back({"refine_boxes", refinement});
+  const v1::ShortTermSettings& st = f.short_term();
+  config.push_back({"short_term", st.enabled()
+                                      ? "on, horizon " + FormatDouble(st.horizon_s(), 0) +
+                                            " s, max_places " + std::to_string(st.max_places()) +
+                                            ", weight " + FormatDouble(st.weight(), 2)
+                                      : std::string("off")});
   config.push_back({"scoring", ScoringName(c.scoring())});
   const v1::VerificationSettings& v = c.verification();
   config.push_back(
       {"verification",
        VerificationName(v.mode()) + ", level " + std::to_string(v.levels_up()) + ", min_inliers " +
            std::to_string(v.min_inliers()) + ", candidates " +
-           (v.candidates() == 0 ? std::string("all") : std::to_string(v.candidates()))});
+           (v.candidates() == 0 ? std::string("all") : std::to_string(v.candidates())) +
+           ", rerank " + (v.rerank() ? "on" : "off")});
   config.push_back({"store_invalid", c.store_invalid() ? "yes" : "no"});
   const v1::DepthSettings& depth = c.depth();
   auto on_off = [](bool has, bool value) { return has ? (value ? "on" : "off") : "-"; };
@@ -430,12 +466,21 @@ int MapsCreate(const Connection& connection, const CreateFlags& flags, bool json
   if (!flags.filter.empty()) filter->set_method(FilterNames().at(flags.filter));
   if (flags.sensitivity_option->count()) filter->set_sensitivity_threshold(flags.sensitivity);
   if (flags.place_threshold_option->count()) filter->set_place_threshold(flags.place_threshold);
+  if (!flags.box_refinement.empty()) {
+    filter->set_box_refinement(BoxRefinementNames().at(flags.box_refinement));
+  }
+  if (!flags.short_term.empty())
+    filter->mutable_short_term()->set_enabled(flags.short_term == "on");
+  if (flags.short_term_horizon_option->count()) {
+    filter->mutable_short_term()->set_horizon_s(flags.short_term_horizon_s);
+  }
   if (!flags.scoring.empty()) config->set_scoring(ScoringNames().at(flags.scoring));
   v1::VerificationSettings* verification = config->mutable_verification();
   if (!flags.verify.empty()) verification->set_mode(VerifyNames().at(flags.verify));
   if (flags.level_option->count()) verification->set_levels_up(flags.level);
   if (flags.min_inliers_option->count()) verification->set_min_inliers(flags.min_inliers);
   if (flags.candidates_option->count()) verification->set_candidates(flags.candidates);
+  if (!flags.rerank.empty()) verification->set_rerank(flags.rerank == "on");
   config->set_store_invalid(flags.store_invalid);
 
   auto context = connection.NewContext();
@@ -801,6 +846,21 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   create_flags.place_threshold_option =
       create->add_option("--place-threshold", create_flags.place_threshold,
                          "a frame is a place iff static descriptors > N (default 20)");
+  create
+      ->add_option("--refine-boxes", create_flags.box_refinement,
+                   "narrow boxes to their objects without depth (default grabcut)")
+      ->check(CLI::IsMember(Keys(BoxRefinementNames())));
+  create
+      ->add_option("--short-term", create_flags.short_term,
+                   "keep recent places' dynamic words in memory (default on)")
+      ->check(CLI::IsMember({"on", "off"}));
+  create_flags.short_term_horizon_option =
+      create->add_option("--short-term-horizon", create_flags.short_term_horizon_s,
+                         "short-term horizon in seconds (default 60)");
+  create
+      ->add_option("--rerank", create_flags.rerank,
+                   "re-rank verified candidates by inliers (default on)")
+      ->check(CLI::IsMember({"on", "off"}));
   create->add_option("--scoring", create_flags.scoring, "score (default l1)")
       ->check(CLI::IsMember(Keys(ScoringNames())));
   create->add_option("--verify", create_flags.verify, "geometric verification (default disabled)")

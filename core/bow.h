@@ -36,4 +36,8 @@ struct DirectIndex {
   bool operator==(const DirectIndex&) const = default;
 };
 
+// The direct index of the features of `a` followed by those of `b` (whose ids are shifted by
+// `b_offset`, the size of a's feature set); both at the same level.
+DirectIndex MergeDirectIndices(const DirectIndex& a, const DirectIndex& b, uint32_t b_offset);
+
 }  // namespace placedb

@@ -64,4 +64,29 @@ void BuildDirectIndex(std::span<const NodeId> feature_nodes, DirectIndex* direct
   direct->offsets.push_back(uint32_t(n));
 }
 
+DirectIndex MergeDirectIndices(const DirectIndex& a, const DirectIndex& b, uint32_t b_offset) {
+  DirectIndex merged;
+  merged.levels_up = a.levels_up;
+  merged.offsets.push_back(0);
+  size_t i = 0, j = 0;
+  while (i < a.node_ids.size() || j < b.node_ids.size()) {
+    const bool take_a =
+        j >= b.node_ids.size() || (i < a.node_ids.size() && a.node_ids[i] <= b.node_ids[j]);
+    const bool take_b =
+        i >= a.node_ids.size() || (j < b.node_ids.size() && b.node_ids[j] <= a.node_ids[i]);
+    merged.node_ids.push_back(take_a ? a.node_ids[i] : b.node_ids[j]);
+    if (take_a) {
+      for (uint32_t f : a.features_of(i)) merged.feature_ids.push_back(f);
+      ++i;
+    }
+    if (take_b) {
+      for (uint32_t f : b.features_of(j)) merged.feature_ids.push_back(f + b_offset);
+      ++j;
+    }
+    merged.offsets.push_back(uint32_t(merged.feature_ids.size()));
+  }
+  if (merged.node_ids.empty()) merged.offsets.clear();
+  return merged;
+}
+
 }  // namespace placedb

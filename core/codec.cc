@@ -16,7 +16,8 @@ constexpr uint8_t kRecordV2 = 2;            // place record: counts with depth_r
 constexpr uint8_t kInvalidV2 = 2;           // invalid observation: counts with depth_removed
 constexpr uint8_t kFeaturesV1 = 1;          // ORB features: 32-byte descriptors
 constexpr uint8_t kFloatFeaturesV1 = 0x81;  // SIFT features: 128 float32 per keypoint
-constexpr int kConfigFormat = 2;            // JSON map config: 1 (ORB only) or 2 (RGB-D)
+// JSON map config: 1 (ORB only), 2 (RGB-D), 3 (box refinement, short-term tier, re-ranking).
+constexpr int kConfigFormat = 3;
 
 class Writer {
  public:
@@ -366,6 +367,14 @@ class Fields {
   void Get(const char* key, int* out, bool required = false) {
     int64_t v = 0;
     if (Integer(key, required, INT_MIN, INT_MAX, &v)) *out = int(v);
+  }
+  void Get(const char* key, int64_t* out, bool required = false) {
+    int64_t v = 0;
+    if (Integer(key, required, INT64_MIN, INT64_MAX, &v)) *out = v;
+  }
+  void Get(const char* key, uint32_t* out, bool required = false) {
+    int64_t v = 0;
+    if (Integer(key, required, 0, UINT32_MAX, &v)) *out = uint32_t(v);
   }
   void Get(const char* key, size_t* out, bool required = false) {
     const Json* value = Find(key, required);
@@ -751,7 +760,20 @@ std::string EncodeDatabaseConfig(const DatabaseConfig& c) {
                        {"ransac_threshold_px", v.ransac_threshold_px},
                        {"ransac_confidence", v.ransac_confidence},
                        {"ransac_max_iterations", v.ransac_max_iterations},
-                       {"candidates", v.candidates}};
+                       {"candidates", v.candidates},
+                       {"rerank", v.rerank}};
+  const BoxRefinementConfig& b = c.box_refinement;
+  j["box_refinement"] = {{"method", BoxRefinementName(b.method)},
+                         {"context", b.context},
+                         {"max_side", b.max_side},
+                         {"iterations", b.iterations},
+                         {"min_fraction", b.min_fraction},
+                         {"max_fraction", b.max_fraction},
+                         {"dilate_px", b.dilate_px}};
+  j["short_term"] = {{"enabled", c.short_term.enabled},
+                     {"horizon_ns", c.short_term.horizon_ns},
+                     {"max_places", c.short_term.max_places},
+                     {"weight", c.short_term.weight}};
   j["depth"] = EncodeDepth(c.depth);
   j["loop_closure"] = EncodeLoopClosure(c.loop_closure);
   j["verify_loops"] = c.verify_loops;
@@ -802,6 +824,24 @@ Result<DatabaseConfig> DecodeDatabaseConfig(std::string_view text) {
   v.Get("ransac_confidence", &c.verification.ransac_confidence, true);
   v.Get("ransac_max_iterations", &c.verification.ransac_max_iterations, true);
   v.Get("candidates", &c.verification.candidates, true);
+  // Maps written before format 3 keep what they did: whole boxes, no tier, no re-ranking.
+  c.verification.rerank = false;
+  c.box_refinement.method = BoxRefinement::kNone;
+  c.short_term.enabled = false;
+  v.Get("rerank", &c.verification.rerank, format >= 3);
+  Fields b = root.Object("box_refinement", format >= 3);
+  b.Enum("method", &c.box_refinement.method, ParseBoxRefinement, format >= 3);
+  b.Get("context", &c.box_refinement.context);
+  b.Get("max_side", &c.box_refinement.max_side);
+  b.Get("iterations", &c.box_refinement.iterations);
+  b.Get("min_fraction", &c.box_refinement.min_fraction);
+  b.Get("max_fraction", &c.box_refinement.max_fraction);
+  b.Get("dilate_px", &c.box_refinement.dilate_px);
+  Fields st = root.Object("short_term", format >= 3);
+  st.Get("enabled", &c.short_term.enabled, format >= 3);
+  st.Get("horizon_ns", &c.short_term.horizon_ns);
+  st.Get("max_places", &c.short_term.max_places);
+  st.Get("weight", &c.short_term.weight);
   DecodeDepth(root.Object("depth"), &c.depth);
   DecodeLoopClosure(root.Object("loop_closure"), &c.loop_closure);
   root.Get("verify_loops", &c.verify_loops);

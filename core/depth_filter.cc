@@ -604,7 +604,6 @@ Result<RefinedObjects> RefineDynamicObjects(const DynamicObjects& objects, const
   RefinedObjects out;
   cv::Mat mask =
       objects.mask.empty() ? cv::Mat::zeros(height, width, CV_8U) : cv::Mat(objects.mask != 0);
-  const cv::Rect image(0, 0, width, height);
   for (size_t i = 0; i < objects.boxes.size(); ++i) {
     const DynamicBox& box = objects.boxes[i];
     const cv::Rect2f& r = box.rect;
@@ -614,12 +613,7 @@ Result<RefinedObjects> RefineDynamicObjects(const DynamicObjects& objects, const
     }
     RefinedBox refined;
     refined.box = box;
-    // Pixels whose centres lie in the box, as dynamic_filter.h counts them.
-    const int c0 = std::clamp(int(std::ceil(double(r.x) - 0.5)), 0, width);
-    const int c1 = std::clamp(int(std::ceil(double(r.x) + r.width - 0.5)), 0, width);
-    const int r0 = std::clamp(int(std::ceil(double(r.y) - 0.5)), 0, height);
-    const int r1 = std::clamp(int(std::ceil(double(r.y) + r.height - 0.5)), 0, height);
-    const cv::Rect roi = cv::Rect(c0, r0, c1 - c0, r1 - r0) & image;
+    const cv::Rect roi = BoxPixelRect(r, width, height);
     if (roi.area() == 0) {
       refined.dynamic_fraction = 0;
       out.boxes.push_back(refined);

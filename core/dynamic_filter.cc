@@ -329,6 +329,13 @@ cv::Mat RasterizeDynamicRegion(const DynamicObjects& objects, int width, int hei
   return region;
 }
 
+cv::Rect BoxPixelRect(const cv::Rect2f& rect, int width, int height) {
+  const ClippedBox clipped = ClipBox(rect.x, rect.y, rect.width, rect.height, width, height);
+  if (clipped.empty()) return {};
+  return {clipped.col_begin, clipped.row_begin, clipped.col_end - clipped.col_begin,
+          clipped.row_end - clipped.row_begin};
+}
+
 Result<FilterResult> ClassifyDescriptors(const FeatureSet& features, const DynamicObjects& objects,
                                          const FilterConfig& config) {
   PLACEDB_RETURN_IF_ERROR(ValidateFilterConfig(config));

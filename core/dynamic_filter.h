@@ -75,4 +75,8 @@ Result<FilterResult> ClassifyDescriptors(const FeatureSet& features, const Dynam
 // The union of boxes and mask as an image-sized CV_8U mask (255 = dynamic).
 cv::Mat RasterizeDynamicRegion(const DynamicObjects& objects, int width, int height);
 
+// The pixels a (finite, non-negative) box covers, clipped to the width x height image: those
+// whose centres lie in the box, as every filter method counts them. Empty when none.
+cv::Rect BoxPixelRect(const cv::Rect2f& rect, int width, int height);
+
 }  // namespace placedb

@@ -162,6 +162,13 @@ Result<FeatureSet> MakeFeatureSet(int image_width, int image_height,
   return features;
 }
 
+FeatureSet ConcatFeatures(const FeatureSet& a, const FeatureSet& b) {
+  FeatureSet joined = a;
+  joined.keypoints.insert(joined.keypoints.end(), b.keypoints.begin(), b.keypoints.end());
+  joined.descriptors.insert(joined.descriptors.end(), b.descriptors.begin(), b.descriptors.end());
+  return joined;
+}
+
 FeatureSet SelectFeatures(const FeatureSet& features, const std::vector<uint32_t>& keep) {
   FeatureSet selected;
   selected.image_width = features.image_width;

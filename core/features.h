@@ -69,6 +69,8 @@ Result<FeatureSet> MakeFeatureSet(int image_width, int image_height,
 
 // Keeps only the features whose index is listed in `keep` (ascending), e.g. the SC set.
 FeatureSet SelectFeatures(const FeatureSet& features, const std::vector<uint32_t>& keep);
+// The features of `a` followed by those of `b` (same image size).
+FeatureSet ConcatFeatures(const FeatureSet& a, const FeatureSet& b);
 
 // OpenCV interop, for verification and tests.
 std::vector<cv::KeyPoint> ToCvKeypoints(const std::vector<Keypoint>& keypoints);

@@ -35,6 +35,10 @@ struct VerificationConfig {
   double ransac_confidence = 0.99;
   int ransac_max_iterations = 500;
   int candidates = 0;  // verify only the best N candidates; 0 = all returned
+  // Spatial re-ranking (Philbin et al. 2007): the verified candidates move ahead of the others,
+  // most inliers first; the rest keep their BoW order. Off: verification only marks them (what
+  // DBoW2 does).
+  bool rerank = true;
 };
 
 Status ValidateVerificationConfig(const VerificationConfig& config);

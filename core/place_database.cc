@@ -13,6 +13,19 @@ Status ValidateDepthConfig(const DepthConfig& config) {
   return Status::Ok();
 }
 
+Status ValidateShortTermConfig(const ShortTermConfig& config) {
+  if (config.horizon_ns <= 0) {
+    return Status::InvalidArgument("short_term.horizon_ns must be positive");
+  }
+  if (config.max_places == 0) {
+    return Status::InvalidArgument("short_term.max_places must be positive");
+  }
+  if (!(config.weight > 0.0f && config.weight <= 10.0f)) {
+    return Status::InvalidArgument("short_term.weight must be in (0, 10]");
+  }
+  return Status::Ok();
+}
+
 Status ValidateDatabaseConfig(const DatabaseConfig& config) {
   if (config.feature_type != FeatureType::kOrb && config.feature_type != FeatureType::kSift) {
     return Status::InvalidArgument("feature_type " + std::to_string(int(config.feature_type)) +
@@ -24,6 +37,8 @@ Status ValidateDatabaseConfig(const DatabaseConfig& config) {
   PLACEDB_RETURN_IF_ERROR(
       ValidateLoopClosureConfig(config.loop_closure).WithContext("loop_closure"));
   PLACEDB_RETURN_IF_ERROR(ValidateFilterConfig(config.filter));
+  PLACEDB_RETURN_IF_ERROR(ValidateBoxRefinementConfig(config.box_refinement));
+  PLACEDB_RETURN_IF_ERROR(ValidateShortTermConfig(config.short_term));
   PLACEDB_RETURN_IF_ERROR(ValidateVerificationConfig(config.verification));
   if (!(config.min_box_confidence >= 0.0f && config.min_box_confidence <= 1.0f)) {
     return Status::InvalidArgument("min_box_confidence must be in [0, 1]");
@@ -112,7 +127,8 @@ PlaceDatabase::PlaceDatabase(AnyVocabulary vocabulary, DatabaseConfig config,
       config_(std::move(config)),
       payloads_(payloads ? std::move(payloads) : std::make_shared<InMemoryPayloadStore>()),
       streams_(std::make_unique<AgentStreams>()),
-      index_(vocabulary_.word_count(), config_.scoring) {}
+      index_(vocabulary_.word_count(), config_.scoring),
+      short_term_index_(vocabulary_.word_count(), config_.scoring) {}
 
 PlaceDatabase::~PlaceDatabase() = default;
 
@@ -219,6 +235,18 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
     frame.timings.depth_ms += stage.Lap();
   }
 
+  // ---- Without depth: narrow the boxes to their objects' pixels.
+  if (!observation.depth.has_value() && config_.box_refinement.method != BoxRefinement::kNone &&
+      !dynamic.boxes.empty()) {
+    const bool image_matches = observation.image.cols == width && observation.image.rows == height;
+    auto refined = RefineBoxesToMasks(dynamic, image_matches ? observation.image : cv::Mat(), width,
+                                      height, config_.box_refinement);
+    if (!refined.ok()) return refined.status().WithContext("box refinement");
+    for (const BoxMask& box : refined->boxes) frame.boxes_refined += box.segmented ? 1 : 0;
+    dynamic = std::move(refined->objects);
+    frame.timings.refine_ms = stage.Lap();
+  }
+
   // ---- DC/SC.
   auto filtered = sift ? ClassifyFloatDescriptors(*float_features, dynamic, config_.filter)
                        : ClassifyDescriptors(*features, dynamic, config_.filter);
@@ -238,6 +266,22 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
                                 : SelectFeatures(*features, filtered->static_indices);
   }
   frame.timings.filter_ms = stage.Lap();
+
+  // ---- The short-term tier keeps the DC words (in memory, for recent places).
+  if (config_.short_term.enabled && !filtered->dynamic_indices.empty()) {
+    if (sift) {
+      const FloatFeatureSet dynamic_features =
+          SelectFloatFeatures(*float_features, filtered->dynamic_indices);
+      vocabulary_.floating()->Transform(dynamic_features.descriptors, &frame.dynamic_bow, nullptr,
+                                        0);
+    } else {
+      frame.dynamic_features = SelectFeatures(*features, filtered->dynamic_indices);
+      vocabulary_.binary()->Transform(frame.dynamic_features.descriptors, &frame.dynamic_bow,
+                                      &frame.dynamic_direct, config_.verification.levels_up);
+    }
+    NormalizeForScoring(&frame.dynamic_bow, config_.scoring);
+    frame.timings.transform_ms += stage.Lap();
+  }
 
   // ---- Algorithm 1 needs the feature depths; the decision itself is per agent stream.
   if (!frame.depth_m.empty() && config_.depth.stream_filter) {
@@ -518,6 +562,9 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
     UndoInsertLocked(place, payload->bow);
     return stored;
   }
+  if (config_.short_term.enabled && metadata.timestamp_ns > 0 && !frame.dynamic_bow.empty()) {
+    AddShortTermLocked(place, metadata, frame);
+  }
   return place;
 }
 
@@ -577,6 +624,7 @@ Status PlaceDatabase::Remove(PlaceId id) {
   // A persistent store makes the removal durable here; if it cannot, the place stays.
   if (Status erased = payloads_->Erase(id); !erased.ok()) return erased;
   PLACEDB_RETURN_IF_ERROR(index_.Remove(id, (*payload)->bow));
+  RemoveShortTermLocked(id);
   const PlaceRecord& record = *it->second;
   descriptors_kept_ -= record.counts.static_;
   descriptors_dropped_ -= record.counts.dynamic;
@@ -589,6 +637,11 @@ Result<QueryResult> PlaceDatabase::Query(const Observation& observation,
                                          const QueryOptions& options) const {
   auto processed = Process(observation, FrameRole::kQuery);
   if (!processed.ok()) return processed.status();
+  if (options.timestamp_ns == 0 && observation.metadata.timestamp_ns != 0) {
+    QueryOptions timed = options;
+    timed.timestamp_ns = observation.metadata.timestamp_ns;
+    return Search(*processed, timed);
+  }
   return Search(*processed, options);
 }
 
@@ -604,6 +657,8 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
 
   Stopwatch stage;
   std::vector<std::pair<ScoredPlace, std::shared_ptr<const PlaceRecord>>> candidates;
+  // Per candidate: its DC features when the short-term tier holds them within the horizon.
+  std::vector<std::shared_ptr<const std::pair<FeatureSet, DirectIndex>>> recent_dynamic;
   {
     std::shared_lock lock(mutex_);
     std::function<bool(PlaceId)> accept;
@@ -613,10 +668,26 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
         return it != records_.end() && options.accept(*it->second);
       };
     }
-    const std::vector<ScoredPlace> ranked = index_.Query(frame.bow, options.top_k, accept);
+    const std::vector<ScoredPlace> bonus = config_.short_term.enabled && !frame.dynamic_bow.empty()
+                                               ? ShortTermBonusLocked(frame, options.timestamp_ns)
+                                               : std::vector<ScoredPlace>();
+    const std::vector<ScoredPlace> ranked = index_.Query(frame.bow, options.top_k, accept, bonus);
     candidates.reserve(ranked.size());
     for (const ScoredPlace& scored : ranked) {
       candidates.emplace_back(scored, records_.at(scored.place));
+    }
+    if (!frame.dynamic_features.empty() && !short_term_.empty()) {
+      const int64_t now =
+          options.timestamp_ns > 0 ? options.timestamp_ns : short_term_by_time_.rbegin()->first;
+      recent_dynamic.resize(candidates.size());
+      for (size_t i = 0; i < candidates.size(); ++i) {
+        auto it = short_term_.find(candidates[i].first.place);
+        if (it == short_term_.end() || !it->second.dynamic_features) continue;
+        const int64_t t = it->second.timestamp_ns;
+        if (t <= now + config_.short_term.horizon_ns && t >= now - config_.short_term.horizon_ns) {
+          recent_dynamic[i] = it->second.dynamic_features;
+        }
+      }
     }
   }
   result.timings.search_ms = stage.Lap();
@@ -636,12 +707,24 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
     if (i < to_verify) {
       auto payload = payloads_->Get(scored.place);
       if (!payload.ok()) continue;  // removed while we searched
-      auto verified =
-          frame.feature_type == FeatureType::kSift
-              ? VerifyGeometry(frame.static_float_features, frame.direct,
-                               (*payload)->float_features, (*payload)->direct, verification)
-              : VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                               (*payload)->direct, verification);
+      Result<VerificationResult> verified = VerificationResult{};
+      if (frame.feature_type == FeatureType::kSift) {
+        verified = VerifyGeometry(frame.static_float_features, frame.direct,
+                                  (*payload)->float_features, (*payload)->direct, verification);
+      } else if (i < recent_dynamic.size() && recent_dynamic[i]) {
+        // Both frames' SC + DC features: the objects both saw are evidence.
+        const auto& [dynamic, dynamic_direct] = *recent_dynamic[i];
+        verified = VerifyGeometry(ConcatFeatures(frame.static_features, frame.dynamic_features),
+                                  MergeDirectIndices(frame.direct, frame.dynamic_direct,
+                                                     uint32_t(frame.static_features.size())),
+                                  ConcatFeatures((*payload)->features, dynamic),
+                                  MergeDirectIndices((*payload)->direct, dynamic_direct,
+                                                     uint32_t((*payload)->features.size())),
+                                  verification);
+      } else {
+        verified = VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
+                                  (*payload)->direct, verification);
+      }
       if (verified.ok()) {
         match.inliers = verified->inliers;
         match.verified = verified->verified;
@@ -649,6 +732,14 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
     }
     if (options.verified_only && !match.verified) continue;
     result.matches.push_back(std::move(match));
+  }
+  if (verification.rerank) {
+    // Stable: verified first by inliers, the others keep their BoW order.
+    std::stable_sort(result.matches.begin(), result.matches.end(),
+                     [](const Match& a, const Match& b) {
+                       if (a.verified != b.verified) return a.verified;
+                       return a.verified && a.inliers > b.inliers;
+                     });
   }
   result.timings.verify_ms = stage.Lap();
   result.timings.total_ms += result.timings.search_ms + result.timings.verify_ms;
@@ -682,6 +773,11 @@ DatabaseStats PlaceDatabase::Stats() const {
   stats.index_bytes = index_.MemoryBytes();
   stats.record_bytes = record_bytes_;
   stats.payload_bytes = payloads_->MemoryBytes();
+  stats.short_term_places = short_term_.size();
+  stats.short_term_bytes = short_term_index_.MemoryBytes();
+  for (const auto& [id, entry] : short_term_) {
+    stats.short_term_bytes += sizeof(entry) + entry.dynamic_bow.capacity() * sizeof(BowEntry);
+  }
   lock.unlock();
   for (const auto& stream : streams_->All()) {
     ++stats.streams;
@@ -694,6 +790,70 @@ DatabaseStats PlaceDatabase::Stats() const {
     stats.loops_rejected += loop.rejected;
   }
   return stats;
+}
+
+namespace {
+
+double DynamicShare(const FrameCounts& counts) {
+  return counts.total == 0 ? 0.0 : double(counts.dynamic) / double(counts.total);
+}
+
+}  // namespace
+
+void PlaceDatabase::AddShortTermLocked(PlaceId place, const PlaceMetadata& metadata,
+                                       const ProcessedFrame& frame) {
+  if (!short_term_index_.Add(place, frame.dynamic_bow).ok()) return;
+  std::shared_ptr<const std::pair<FeatureSet, DirectIndex>> features;
+  if (!frame.dynamic_features.empty()) {
+    features = std::make_shared<const std::pair<FeatureSet, DirectIndex>>(frame.dynamic_features,
+                                                                          frame.dynamic_direct);
+  }
+  short_term_.emplace(place,
+                      ShortTermEntry{metadata.timestamp_ns, metadata.agent_id, frame.dynamic_bow,
+                                     DynamicShare(frame.counts), std::move(features)});
+  short_term_by_time_.emplace(metadata.timestamp_ns, place);
+  TimeOrdered& agent = short_term_by_agent_[metadata.agent_id];
+  agent.emplace(metadata.timestamp_ns, place);
+  // Evict what left the horizon of the agent's newest observation, then the oldest of all
+  // beyond max_places.
+  const int64_t newest = agent.rbegin()->first;
+  while (agent.begin()->first < newest - config_.short_term.horizon_ns) {
+    RemoveShortTermLocked(agent.begin()->second);  // `agent` keeps its newest entry
+  }
+  while (short_term_.size() > config_.short_term.max_places) {
+    RemoveShortTermLocked(short_term_by_time_.begin()->second);
+  }
+}
+
+void PlaceDatabase::RemoveShortTermLocked(PlaceId place) {
+  auto it = short_term_.find(place);
+  if (it == short_term_.end()) return;
+  const std::pair<int64_t, PlaceId> key{it->second.timestamp_ns, place};
+  (void)short_term_index_.Remove(place, it->second.dynamic_bow);
+  short_term_by_time_.erase(key);
+  auto agent = short_term_by_agent_.find(it->second.agent_id);
+  if (agent != short_term_by_agent_.end()) {
+    agent->second.erase(key);
+    if (agent->second.empty()) short_term_by_agent_.erase(agent);
+  }
+  short_term_.erase(it);
+}
+
+std::vector<ScoredPlace> PlaceDatabase::ShortTermBonusLocked(const ProcessedFrame& frame,
+                                                             int64_t timestamp_ns) const {
+  std::vector<ScoredPlace> bonus;
+  if (short_term_.empty()) return bonus;
+  const int64_t now = timestamp_ns > 0 ? timestamp_ns : short_term_by_time_.rbegin()->first;
+  const int64_t horizon = config_.short_term.horizon_ns;
+  const double query_share = DynamicShare(frame.counts);
+  for (const ScoredPlace& scored : short_term_index_.Query(frame.dynamic_bow, short_term_.size())) {
+    const ShortTermEntry& entry = short_term_.at(scored.place);
+    if (entry.timestamp_ns > now + horizon || entry.timestamp_ns < now - horizon) continue;
+    const double share = std::min({query_share, entry.dynamic_share, 0.9});
+    bonus.push_back(
+        {scored.place, double(config_.short_term.weight) * scored.score * share / (1.0 - share)});
+  }
+  return bonus;
 }
 
 PlaceId PlaceDatabase::next_id() const {

@@ -24,6 +24,7 @@
 #include <memory>
 #include <opencv2/core.hpp>
 #include <optional>
+#include <set>
 #include <shared_mutex>
 #include <string>
 #include <unordered_map>
@@ -31,6 +32,7 @@
 
 #include "core/any_vocabulary.h"
 #include "core/bow.h"
+#include "core/box_masks.h"
 #include "core/depth_filter.h"
 #include "core/dynamic_filter.h"
 #include "core/features.h"
@@ -57,12 +59,39 @@ struct DepthConfig {
 
 Status ValidateDepthConfig(const DepthConfig& config);
 
+// The short-term tier: Munoz & Dexter's own limit (their Figs. 8-9) is that the objects the filter
+// drops are often still there on a short revisit (parked cars, a queue of people), where they are
+// evidence of the place. The tier keeps each place's DC (dynamic) words, in memory only and never
+// on disk (the durable map keeps SC alone), for a horizon. A query scores a place observed within
+// the horizon of the query's timestamp on its SC words plus `weight` x the similarity of the two
+// frames' DC words, each set normalised on its own, so different objects add only noise while
+// the same objects add evidence. The DC similarity counts as much as the DC descriptors' share
+// of the frames would give it in one joint vector (x b / (1 - b), b = the smaller of the two
+// frames' DC shares): a frame with a few DC descriptors gets a small bonus, however alike they
+// are. Verification against a place inside the horizon matches the SC and DC features of both
+// frames (ORB maps): objects both frames saw add inliers, different objects add none. Older
+// places, and frames without a timestamp, are scored and verified on SC words alone. The tier holds
+// each agent's places of the last `horizon_ns` (counted back from that agent's newest timestamp),
+// at most `max_places` in all (the oldest leave first); it starts empty when a map is opened.
+struct ShortTermConfig {
+  bool enabled = true;
+  int64_t horizon_ns = 60'000'000'000;  // 60 s
+  uint32_t max_places = 5000;
+  float weight = 1.0f;
+};
+
+Status ValidateShortTermConfig(const ShortTermConfig& config);
+
 struct DatabaseConfig {
   // The map's feature type; must be the vocabulary's (binary -> ORB, float -> SIFT).
   FeatureType feature_type = FeatureType::kOrb;
   OrbConfig orb;
   SiftConfig sift;
   FilterConfig filter;
+  // Boxes are narrowed to their objects' pixels before filtering (frames without depth; with
+  // depth, `depth.refine_boxes` applies instead).
+  BoxRefinementConfig box_refinement;
+  ShortTermConfig short_term;
   // Boxes of these COCO classes at or above this confidence count as dynamic objects.
   std::vector<int> dynamic_classes = {0, 1, 2, 3, 5, 7};
   float min_box_confidence = 0.2f;
@@ -139,10 +168,17 @@ struct ProcessedFrame {
   DirectIndex direct;                     // SC only, at verification.levels_up
   std::vector<DynamicBox> boxes_used;
   StageTimings timings;
+  // The short-term tier (config.short_term.enabled): the DC descriptors' BoW vector, normalised
+  // for the database's scoring, and (ORB maps) the DC features with their direct index, so that
+  // verification against a recent place can use the objects both frames saw; empty without DC
+  // descriptors.
+  BowVector dynamic_bow;
+  FeatureSet dynamic_features;
+  DirectIndex dynamic_direct;
 
   // RGB-D. `depth_m` is the frame's depth in metres (CV_32F, 0 = invalid), empty without depth.
   cv::Mat depth_m;
-  size_t boxes_refined = 0;           // boxes narrowed to their object's depth layer
+  size_t boxes_refined = 0;           // boxes narrowed to their object's depth layer or segmented
   std::vector<float> static_depth_m;  // per SC feature while Algorithm 1 is pending
   bool stream_pending = false;        // Process(kStream) left Algorithm 1 to AdvanceStream()
   std::optional<DepthFrameState> depth_state;  // Algorithm 1's decision for this frame
@@ -211,6 +247,8 @@ struct AddResult {
 struct QueryOptions {
   size_t top_k = 10;
   bool verified_only = false;  // drop candidates that fail verification
+  // The query's observation time, for the short-term tier; 0 = the newest place's time.
+  int64_t timestamp_ns = 0;
   // Optional extra filter on candidates (e.g. exclude the agent's own recent places).
   std::function<bool(const PlaceRecord&)> accept;
 };
@@ -263,6 +301,8 @@ struct DatabaseStats {
   size_t index_bytes = 0;            // inverted index (postings + tables)
   size_t record_bytes = 0;           // in-memory place records (metadata, counts, boxes)
   size_t payload_bytes = 0;          // payloads the PayloadStore holds in memory
+  size_t short_term_places = 0;      // places whose DC words the short-term tier holds
+  size_t short_term_bytes = 0;       // the tier's index and vectors
   // Agent streams with per-agent state, and their loop-closure memory (summed over agents).
   size_t streams = 0;
   size_t loop_working_memory = 0;  // places searched by loop closure (STM + WM)
@@ -354,6 +394,13 @@ class PlaceDatabase {
   Status InsertLocked(std::shared_ptr<const PlaceRecord> record, const BowVector& bow);
   void UndoInsertLocked(PlaceId id, const BowVector& bow);
   std::vector<DynamicBox> SelectBoxes(const std::vector<DynamicBox>& boxes) const;
+  // The short-term tier; callers hold the writer lock.
+  void AddShortTermLocked(PlaceId place, const PlaceMetadata& metadata,
+                          const ProcessedFrame& frame);
+  void RemoveShortTermLocked(PlaceId place);
+  // The tier's score bonuses for a query (reader lock held).
+  std::vector<ScoredPlace> ShortTermBonusLocked(const ProcessedFrame& frame,
+                                                int64_t timestamp_ns) const;
 
   const AnyVocabulary vocabulary_;
   const DatabaseConfig config_;
@@ -368,6 +415,22 @@ class PlaceDatabase {
   uint64_t descriptors_dropped_ = 0;
   uint64_t invalid_rejected_ = 0;
   size_t record_bytes_ = 0;
+
+  struct ShortTermEntry {
+    int64_t timestamp_ns = 0;
+    std::string agent_id;
+    BowVector dynamic_bow;
+    double dynamic_share = 0;  // DC descriptors / all descriptors of the frame
+    // ORB maps: the DC features and their direct index, for verification.
+    std::shared_ptr<const std::pair<FeatureSet, DirectIndex>> dynamic_features;
+  };
+  InvertedIndex short_term_index_;
+  std::unordered_map<PlaceId, ShortTermEntry> short_term_;
+  using TimeOrdered = std::set<std::pair<int64_t, PlaceId>>;  // oldest first
+  TimeOrdered short_term_by_time_;
+  // Each agent's places: the horizon counts back from the agent's own newest observation, so
+  // agents whose clocks differ (or that paused) keep their recent places.
+  std::unordered_map<std::string, TimeOrdered> short_term_by_agent_;
 };
 
 }  // namespace placedb

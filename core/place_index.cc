@@ -6,6 +6,7 @@
 #include <cstring>
 #include <string>
 #include <type_traits>
+#include <unordered_map>
 #include <utility>
 
 namespace placedb {
@@ -411,7 +412,8 @@ void InvertedIndex::Accumulate(const std::vector<PostingRun>& runs, QueryScratch
 }
 
 std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k,
-                                              const std::function<bool(PlaceId)>& accept) const {
+                                              const std::function<bool(PlaceId)>& accept,
+                                              std::span<const ScoredPlace> bonus) const {
   std::vector<ScoredPlace> result;
   if (top_k == 0 || place_count_ == 0) return result;
 
@@ -479,6 +481,21 @@ std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k
     // return such a place.
     if (present_[place]) {
       candidates.push_back({place, FinalizeScore(scoring_, accumulated, query_constant)});
+    }
+  }
+  if (!bonus.empty()) {
+    // `listed` still marks the scored places: add to those, append the others.
+    std::unordered_map<PlaceId, size_t> position;
+    for (size_t i = 0; i < candidates.size(); ++i) position.emplace(candidates[i].place, i);
+    for (const ScoredPlace& extra : bonus) {
+      if (extra.place >= present_.size() || !present_[extra.place]) continue;
+      auto it = position.find(extra.place);
+      if (it != position.end()) {
+        candidates[it->second].score += extra.score;
+      } else if (!scratch.listed[extra.place]) {
+        position.emplace(extra.place, candidates.size());
+        candidates.push_back(extra);
+      }
     }
   }
   for (const PlaceId place : scratch.touched) scratch.listed[place] = 0;

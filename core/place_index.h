@@ -10,6 +10,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <span>
 #include <vector>
 
 #include "core/bow.h"
@@ -40,9 +41,12 @@ class InvertedIndex {
   bool Contains(PlaceId place) const;
 
   // The top `top_k` places by score, best first (ties: lower place id first). Places for which
-  // `accept` returns false are skipped. `bow` normalised like in Add.
+  // `accept` returns false are skipped. `bow` normalised like in Add. `bonus` adds to the score
+  // of indexed places (each listed once), also of places that share no word with `bow`: the
+  // short-term tier's dynamic-word similarity (core/place_database.h).
   std::vector<ScoredPlace> Query(const BowVector& bow, size_t top_k,
-                                 const std::function<bool(PlaceId)>& accept = {}) const;
+                                 const std::function<bool(PlaceId)>& accept = {},
+                                 std::span<const ScoredPlace> bonus = {}) const;
 
   size_t place_count() const { return place_count_; }
   size_t posting_count() const { return posting_count_; }

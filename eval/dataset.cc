@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -31,6 +32,59 @@ std::string Where(const char* list, size_t i, const Entry& entry) {
   return std::string(list) + "[" + std::to_string(i) + "] (id " + entry.id + ")";
 }
 
+// The COCO ids of the paper's dynamic classes (person 0, bicycle 1, car 2, motorcycle 3, bus 5,
+// truck 7): the only classes an oracle box may have.
+const std::set<int>& DynamicClassIds() {
+  static const std::set<int> ids = [] {
+    std::set<int> out;
+    for (const std::string& name : DefaultDynamicClassNames()) {
+      auto id = CocoClassId(name);
+      if (id.ok()) out.insert(*id);
+    }
+    return out;
+  }();
+  return ids;
+}
+
+// An image's size from its header (PNG, JPEG), else by decoding it; empty when unreadable.
+cv::Size ImageSize(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  unsigned char head[26] = {};
+  if (!in.read(reinterpret_cast<char*>(head), sizeof(head))) return cv::Size();
+  auto big16 = [](const unsigned char* p) { return (int(p[0]) << 8) | int(p[1]); };
+  auto big32 = [](const unsigned char* p) {
+    return int((uint32_t(p[0]) << 24) | (uint32_t(p[1]) << 16) | (uint32_t(p[2]) << 8) | p[3]);
+  };
+  static const unsigned char kPng[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1A, '\n'};
+  if (std::equal(kPng, kPng + 8, head) && std::equal(head + 12, head + 16, "IHDR")) {
+    return cv::Size(big32(head + 16), big32(head + 20));
+  }
+  if (head[0] == 0xFF && head[1] == 0xD8) {
+    // Walk the JPEG markers to the first start-of-frame (SOF0-SOF15 but DHT, JPG, DAC).
+    in.clear();
+    in.seekg(2);
+    unsigned char marker[4];
+    while (in.read(reinterpret_cast<char*>(marker), 4)) {
+      if (marker[0] != 0xFF) break;
+      if (marker[1] == 0xFF) {  // fill byte
+        in.seekg(-3, std::ios::cur);
+        continue;
+      }
+      const int length = big16(marker + 2);
+      const int type = marker[1];
+      if (type >= 0xC0 && type <= 0xCF && type != 0xC4 && type != 0xC8 && type != 0xCC) {
+        unsigned char frame[5];
+        if (!in.read(reinterpret_cast<char*>(frame), 5)) break;
+        return cv::Size(big16(frame + 3), big16(frame + 1));
+      }
+      if (length < 2) break;
+      in.seekg(length - 2, std::ios::cur);
+    }
+  }
+  cv::Mat image = cv::imread(path, cv::IMREAD_UNCHANGED);
+  return image.size();
+}
+
 Status ValidateEntry(const Dataset& dataset, const char* list, size_t i, const Entry& entry,
                      bool check_files) {
   if (entry.id.empty()) {
@@ -44,11 +98,24 @@ Status ValidateEntry(const Dataset& dataset, const char* list, size_t i, const E
   if (entry.boxes) {
     for (size_t b = 0; b < entry.boxes->size(); ++b) {
       const DynamicBox& box = (*entry.boxes)[b];
+      const std::string where = Where(list, i, entry) + ": boxes[" + std::to_string(b) + "]";
       if (!(box.rect.width > 0 && box.rect.height > 0) || !(box.confidence >= 0) ||
           !(box.confidence <= 1) || box.class_id < 0) {
-        return Status::InvalidArgument(Where(list, i, entry) + ": boxes[" + std::to_string(b) +
-                                       "] needs a class id >= 0, a positive size and a "
+        return Status::InvalidArgument(where +
+                                       " needs a class id >= 0, a positive size and a "
                                        "confidence in [0, 1]");
+      }
+      if (!DynamicClassIds().count(box.class_id)) {
+        return Status::InvalidArgument(
+            where + " has class " + std::to_string(box.class_id) + " (" +
+            CocoClassName(box.class_id) +
+            "), not a dynamic class: oracle boxes mark person 0, bicycle 1, car 2, motorcycle "
+            "3, bus 5 or truck 7");
+      }
+      if (!(box.rect.x + box.rect.width > 0 && box.rect.y + box.rect.height > 0)) {
+        return Status::InvalidArgument(where +
+                                       " lies entirely outside the image (left of or "
+                                       "above it)");
       }
     }
   }
@@ -60,6 +127,24 @@ Status ValidateEntry(const Dataset& dataset, const char* list, size_t i, const E
     if (!entry.mask.empty() && !fs::exists(dataset.Resolve(entry.mask))) {
       return Status::NotFound(Where(list, i, entry) + ": mask " + dataset.Resolve(entry.mask) +
                               " does not exist");
+    }
+    if (entry.boxes && !entry.boxes->empty()) {
+      const cv::Size size = ImageSize(dataset.Resolve(entry.image));
+      if (size.empty()) {
+        return Status::InvalidArgument(Where(list, i, entry) + ": cannot read the size of " +
+                                       dataset.Resolve(entry.image));
+      }
+      for (size_t b = 0; b < entry.boxes->size(); ++b) {
+        const cv::Rect2f& r = (*entry.boxes)[b].rect;
+        if (!(r.x < size.width && r.y < size.height)) {
+          char text[160];
+          std::snprintf(text, sizeof(text),
+                        ": boxes[%zu] [%g %g %g %g] lies entirely outside the %dx%d image", b,
+                        double(r.x), double(r.y), double(r.width), double(r.height), size.width,
+                        size.height);
+          return Status::InvalidArgument(Where(list, i, entry) + text);
+        }
+      }
     }
   }
   return Status::Ok();

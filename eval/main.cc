@@ -1,14 +1,13 @@
 // placedb-eval: the paper's section V (Munoz & Dexter, Table III and Figs. 5-7) as a harness.
 //
-//   placedb-eval prepare camvid|camvid-stops|rtabmap|folder|revisits ... --out DIR
+//   placedb-eval prepare camvid|camvid-stops|rtabmap|folder|revisits|revisits-hard ... --out DIR
 //   placedb-eval run --dataset DIR --out RESULTS_DIR [--features 300,500,...] [--geom none,0,1,2,6]
 //       [--boxes oracle|detector|none] [--masks oracle|none] [--confidence 0.2]
 //       [--filter keypoint_in_box|exact_coverage --sensitivity 0.25] [--server ADDRESS]
 //
 // See docs/evaluation.md for the dataset format, the metrics and the figures.
-#include <unistd.h>
-
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
@@ -131,32 +130,47 @@ int main(int argc, char** argv) {
   folders->add_option("--boxes", folder.boxes_csv, "CSV image,class,confidence,x,y,width,height");
   add_out(folders);
 
-  RevisitOptions revisit;
-  revisit.camvid_dir = SharedDir() + "/data/camvid";
+  // `revisits` and its hard preset `revisits-hard` take the same flags (different defaults).
+  RevisitOptions revisit, hard = HardRevisitOptions();
+  revisit.camvid_dir = hard.camvid_dir = SharedDir() + "/data/camvid";
   std::string coverage = "0.1:0.4";
+  auto add_revisit_flags = [&](CLI::App* command, RevisitOptions& o) {
+    command->add_option("--camvid", o.camvid_dir, "CamVid directory")->capture_default_str();
+    command->add_option("--places", o.places, "places")->capture_default_str();
+    command->add_option("--visits", o.visits, "visits per place (visit 0 = database)")
+        ->capture_default_str();
+    command->add_option("--coverage", coverage, "dynamic coverage per visit, MIN:MAX or VALUE")
+        ->capture_default_str();
+    command->add_option("--seed", o.seed, "random seed")->capture_default_str();
+    command->add_option("--viewpoint", o.viewpoint, "homography strength (0 = none)")
+        ->capture_default_str();
+    command->add_option("--photometric", o.photometric, "photometric strength (0 = none)")
+        ->capture_default_str();
+    command
+        ->add_option("--max-background-coverage", o.max_background_coverage,
+                     "backgrounds' own dynamic coverage at most")
+        ->capture_default_str();
+    command
+        ->add_option("--min-separation", o.min_separation_frames,
+                     "backgrounds of a sequence at least this many video frames apart")
+        ->capture_default_str();
+    command->add_option("--out", out, "dataset directory to write")->required();
+    command->add_flag("--csv", csv, "write the CSV form instead of dataset.json");
+  };
   CLI::App* revisits =
       prepare->add_subcommand("revisits", "synthetic revisits with different dynamic objects");
-  revisits->add_option("--camvid", revisit.camvid_dir, "CamVid directory")->capture_default_str();
-  revisits->add_option("--places", revisit.places, "places")->capture_default_str();
-  revisits->add_option("--visits", revisit.visits, "visits per place (visit 0 = database)")
+  add_revisit_flags(revisits, revisit);
+  bool no_vtest = false;
+  CLI::App* revisits_hard = prepare->add_subcommand(
+      "revisits-hard",
+      "harder revisits: backgrounds keep their own (unmarked) objects, random placement, people "
+      "from vtest.avi, stronger viewpoint and light changes");
+  add_revisit_flags(revisits_hard, hard);
+  revisits_hard
+      ->add_option("--vtest", hard.video_people, "people video (Debian package opencv-doc)")
       ->capture_default_str();
-  revisits->add_option("--coverage", coverage, "dynamic coverage per visit, MIN:MAX or VALUE")
-      ->capture_default_str();
-  revisits->add_option("--seed", revisit.seed, "random seed")->capture_default_str();
-  revisits->add_option("--viewpoint", revisit.viewpoint, "homography strength (0 = none)")
-      ->capture_default_str();
-  revisits->add_option("--photometric", revisit.photometric, "photometric strength (0 = none)")
-      ->capture_default_str();
-  revisits
-      ->add_option("--max-background-coverage", revisit.max_background_coverage,
-                   "backgrounds' own dynamic coverage at most")
-      ->capture_default_str();
-  revisits
-      ->add_option("--min-separation", revisit.min_separation_frames,
-                   "backgrounds of a sequence at least this many video frames apart")
-      ->capture_default_str();
-  revisits->add_option("--out", out, "dataset directory to write")->required();
-  revisits->add_flag("--csv", csv, "write the CSV form instead of dataset.json");
+  revisits_hard->add_flag("--no-vtest", no_vtest,
+                          "paste CamVid objects only (no people from vtest.avi)");
 
   // ---- run ----------------------------------------------------------------------------------
   CLI::App* run = app.add_subcommand("run", "BoBW vs BoBW+DO over a configuration grid");
@@ -197,8 +211,29 @@ int main(int argc, char** argv) {
   run->add_option("--detector-config", detector_config, "darknet .cfg");
   run->add_option("--preprocessing", preprocessing, "letterbox | centre_crop | stretch")
       ->capture_default_str();
+  std::string cache_dir;
+  bool combine_boxes_and_masks = false;
+  run->add_flag("--combine-boxes-and-masks", combine_boxes_and_masks,
+                "with --masks oracle and an explicit --boxes: filter with both (merged)");
   run->add_option("--detections-cache", detections_cache,
-                  "detections JSON reused across runs (default: in the dataset directory)");
+                  "detections JSON reused across runs (default: in --cache-dir)");
+  run->add_option("--cache-dir", cache_dir,
+                  "directory of the detections cache, keyed by image content (default: --out)");
+  std::string refinement = "grabcut", short_term = "on";
+  double short_term_horizon_s = 60;
+  run->add_option("--refine-boxes", refinement, "BoBW+DO: none | shape | grabcut")
+      ->capture_default_str();
+  run->add_option("--short-term", short_term, "BoBW+DO: the short-term tier of DC words: on | off")
+      ->check(CLI::IsMember({"on", "off"}))
+      ->capture_default_str();
+  run->add_option("--short-term-horizon", short_term_horizon_s, "short-term horizon, seconds")
+      ->capture_default_str();
+  run->add_option("--short-term-weight", options.short_term_config.weight,
+                  "weight of the DC-word similarity")
+      ->capture_default_str();
+  run->add_option("--rerank", options.rerank,
+                  "verify the best N candidates and re-rank them by inliers (0 = best only)")
+      ->capture_default_str();
   run->add_option("--threads", options.threads, "worker threads")->capture_default_str();
   run->add_option("--server", server, "run against a live placedb-server at ADDRESS");
   run->add_option("--title", title, "report title");
@@ -223,18 +258,36 @@ int main(int argc, char** argv) {
       auto dataset = PrepareFolder(folder);
       return dataset.ok() ? Save(*dataset, out, csv) : Fail(dataset.status());
     }
-    if (revisits->parsed()) {
-      if (!ParseRange(coverage, &revisit.min_coverage, &revisit.max_coverage)) {
+    if (revisits->parsed() || revisits_hard->parsed()) {
+      RevisitOptions& o = revisits->parsed() ? revisit : hard;
+      if (!ParseRange(coverage, &o.min_coverage, &o.max_coverage)) {
         return Fail(Status::InvalidArgument("--coverage: MIN:MAX or VALUE, got " + coverage));
       }
-      revisit.out_dir = out;
-      auto built = BuildRevisits(revisit);
+      if (no_vtest) o.video_people.clear();
+      o.out_dir = out;
+      auto built = BuildRevisits(o);
       if (!built.ok()) return Fail(built.status());
-      double worst = 0;
+      double worst = 0, sum = 0;
+      std::vector<double> measured;
+      int objects = 0, video_objects = 0, background_objects = 0;
       for (const VisitInfo& v : built->visits) {
         worst = std::max(worst, std::abs(v.measured_coverage - v.requested_coverage));
+        measured.push_back(v.measured_coverage);
+        sum += v.measured_coverage;
+        objects += v.objects;
+        video_objects += v.video_objects;
+        background_objects += v.background_objects;
       }
+      std::sort(measured.begin(), measured.end());
+      auto at = [&](double q) { return measured[size_t(q * double(measured.size() - 1) + 0.5)]; };
       std::printf("revisits: largest |measured - requested| coverage %.4f\n", worst);
+      std::printf(
+          "revisits: %zu visits, coverage min %.3f p10 %.3f median %.3f mean %.3f p90 %.3f max "
+          "%.3f; pasted objects %d (%d from %s); background's own objects %d (%s)\n",
+          measured.size(), measured.front(), at(0.1), at(0.5), sum / double(measured.size()),
+          at(0.9), measured.back(), objects, video_objects,
+          o.video_people.empty() ? "no video" : fs::path(o.video_people).filename().c_str(),
+          background_objects, o.mask_background_objects ? "marked dynamic" : "not marked");
       return Save(built->dataset, out, csv);
     }
     return 2;
@@ -257,9 +310,46 @@ int main(int argc, char** argv) {
   auto mask_input = ParseMaskInput(masks);
   if (!mask_input.ok()) return Fail(mask_input.status());
   options.masks = *mask_input;
+  // Oracle masks and boxes are merged by the filter: never by accident. `--masks oracle` alone
+  // means masks only; with an explicit `--boxes` too, the merge must be asked for.
+  const bool boxes_given = run->count("--boxes") > 0;
+  if (options.masks == MaskInput::kOracle) {
+    if (!boxes_given) {
+      options.boxes = BoxInput::kNone;
+    } else if (options.boxes != BoxInput::kNone && !combine_boxes_and_masks) {
+      return Fail(Status::InvalidArgument(
+          "--masks oracle with --boxes " + boxes +
+          ": the filter would merge the boxes with the masks; pass --combine-boxes-and-masks "
+          "to mean that, or leave out --boxes (masks only)"));
+    }
+  } else if (combine_boxes_and_masks) {
+    Log("warning: --combine-boxes-and-masks ignored: no --masks oracle");
+  }
   auto method = ParseFilterMethod(filter);
   if (!method.ok()) return Fail(method.status());
   options.filter = *method;
+  // Options this run ignores: say so, and do not record them (run.json).
+  if (run->count("--sensitivity") > 0 && options.filter != FilterMethod::kExactCoverage) {
+    Log("warning: --sensitivity ignored: it is the exact_coverage threshold, and the filter is " +
+        std::string(FilterMethodName(options.filter)));
+  }
+  if (options.boxes != BoxInput::kDetector) {
+    if (run->count("--confidence") > 0) {
+      Log("warning: --confidence ignored: it thresholds detector boxes, and --boxes is " +
+          std::string(options.boxes == BoxInput::kOracle ? "oracle" : "none"));
+    }
+    for (const char* flag : {"--model", "--detector-backend", "--detector-config",
+                             "--preprocessing", "--detections-cache", "--cache-dir"}) {
+      if (run->count(flag) > 0) {
+        Log(std::string("warning: ") + flag + " ignored: no detector boxes (--boxes detector)");
+      }
+    }
+  }
+  auto refine = ParseBoxRefinement(refinement);
+  if (!refine.ok()) return Fail(refine.status());
+  options.refinement = *refine;
+  options.short_term = short_term == "on";
+  options.short_term_config.horizon_ns = int64_t(short_term_horizon_s * 1e9);
   if (options.boxes == BoxInput::kDetector) {
     auto backend = ParseDetectorBackend(detector_backend);
     if (!backend.ok()) return Fail(backend.status());
@@ -271,11 +361,10 @@ int main(int argc, char** argv) {
     options.detector.preprocessing = *pre;
     options.detector.opencv_threads = 0;  // set below for the whole process
     if (detections_cache.empty()) {
+      // Entries are keyed by image content, so one cache directory can serve every dataset.
       const std::string name =
           "detections_" + fs::path(model).stem().string() + "_" + preprocessing + ".json";
-      detections_cache = access(dataset->directory.c_str(), W_OK) == 0
-                             ? dataset->directory + "/" + name
-                             : results_dir + "/" + name;
+      detections_cache = (cache_dir.empty() ? results_dir : cache_dir) + "/" + name;
     }
     options.detections_cache = detections_cache;
     std::error_code ec;

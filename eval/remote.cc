@@ -74,6 +74,23 @@ v1::MapConfig ToProto(const DatabaseConfig& config, bool filtering) {
   map.mutable_verification()->set_levels_up(config.verification.levels_up);
   map.mutable_verification()->set_min_inliers(config.verification.min_inliers);
   map.mutable_verification()->set_candidates(config.verification.candidates);
+  map.mutable_verification()->set_rerank(config.verification.rerank);
+  switch (config.box_refinement.method) {
+    case BoxRefinement::kNone:
+      map.mutable_filter()->set_box_refinement(v1::BOX_REFINEMENT_NONE);
+      break;
+    case BoxRefinement::kShape:
+      map.mutable_filter()->set_box_refinement(v1::BOX_REFINEMENT_SHAPE);
+      break;
+    case BoxRefinement::kGrabCut:
+      map.mutable_filter()->set_box_refinement(v1::BOX_REFINEMENT_GRABCUT);
+      break;
+  }
+  v1::ShortTermSettings* short_term = map.mutable_filter()->mutable_short_term();
+  short_term->set_enabled(config.short_term.enabled);
+  short_term->set_horizon_s(double(config.short_term.horizon_ns) / 1e9);
+  short_term->set_max_places(config.short_term.max_places);
+  short_term->set_weight(config.short_term.weight);
   return map;
 }
 

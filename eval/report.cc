@@ -491,11 +491,17 @@ std::string RunJson(const RunResults& results) {
   j["database_entries"] = results.database_size;
   j["queries"] = results.query_coverage.size();
   const RunOptions& o = results.options;
-  j["options"] = {{"features", o.features},       {"geoms", o.geoms},
-                  {"confidences", o.confidences}, {"filter", FilterMethodName(o.filter)},
-                  {"sensitivity", o.sensitivity}, {"place_threshold", o.place_threshold},
-                  {"min_inliers", o.min_inliers}, {"top_k", o.top_k},
+  j["options"] = {{"features", o.features},
+                  {"geoms", o.geoms},
+                  {"filter", FilterMethodName(o.filter)},
+                  {"place_threshold", o.place_threshold},
+                  {"min_inliers", o.min_inliers},
+                  {"top_k", o.top_k},
                   {"threads", o.threads}};
+  // Only what applied: the sensitivity is exact_coverage's threshold, the confidences threshold
+  // detector boxes.
+  if (o.filter == FilterMethod::kExactCoverage) j["options"]["sensitivity"] = o.sensitivity;
+  if (o.boxes == BoxInput::kDetector) j["options"]["confidences"] = o.confidences;
   json extract = json::object();
   for (const auto& [features, ms] : results.extract_mean_ms) extract[std::to_string(features)] = ms;
   j["extract_mean_ms"] = extract;

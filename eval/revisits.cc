@@ -9,8 +9,10 @@
 #include <opencv2/features2d.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <opencv2/videoio.hpp>
 #include <set>
 
+#include "core/detector.h"
 #include "eval/adapters.h"
 
 namespace fs = std::filesystem;
@@ -85,12 +87,15 @@ int SharedInliers(const std::vector<cv::KeyPoint>& ka, const cv::Mat& da,
   return cv::countNonZero(inliers);
 }
 
-// Gain, bias, gamma per channel, then Gaussian sensor noise.
-void Photometric(cv::Mat& image, Rng& rng, double strength) {
+// Gain, bias, gamma per channel, an optional blur, then Gaussian sensor noise.
+void Photometric(cv::Mat& image, Rng& rng, const RevisitOptions& options) {
+  const double strength = options.photometric;
   if (strength <= 0) return;
-  const double gain = rng.Uniform(1 - 0.25 * strength, 1 + 0.25 * strength);
-  const double bias = rng.Uniform(-20 * strength, 20 * strength);
-  const double gamma = std::exp(rng.Uniform(-0.22 * strength, 0.22 * strength));
+  const double gain =
+      rng.Uniform(1 - options.gain_range * strength, 1 + options.gain_range * strength);
+  const double bias = rng.Uniform(-options.bias_range * strength, options.bias_range * strength);
+  const double gamma = std::exp(
+      rng.Uniform(-options.log_gamma_range * strength, options.log_gamma_range * strength));
   cv::Mat lut(1, 256, CV_8UC3);
   for (int c = 0; c < 3; ++c) {
     const double channel_gain = gain * rng.Uniform(1 - 0.05 * strength, 1 + 0.05 * strength);
@@ -100,7 +105,11 @@ void Photometric(cv::Mat& image, Rng& rng, double strength) {
     }
   }
   cv::LUT(image, lut, image);
-  const double sigma = rng.Uniform(0, 3 * strength);
+  if (options.max_blur_sigma > 0) {  // no draw otherwise: the default stream stays as it was
+    const double blur = rng.Uniform(0, options.max_blur_sigma * strength);
+    if (blur >= 0.05) cv::GaussianBlur(image, image, cv::Size(0, 0), blur);
+  }
+  const double sigma = rng.Uniform(0, options.max_noise_sigma * strength);
   cv::RNG noise_rng(rng.Next());
   cv::Mat noise(image.size(), CV_16SC3);
   noise_rng.fill(noise, cv::RNG::NORMAL, cv::Scalar::all(0), cv::Scalar::all(sigma));
@@ -110,12 +119,455 @@ void Photometric(cv::Mat& image, Rng& rng, double strength) {
   wide.convertTo(image, CV_8UC3);
 }
 
+// ---- Random placement (the hard variant) ---------------------------------------------------
+
+constexpr int kRoad = 3;
+constexpr int kPavement = 4;
+
+// Where the horizon is, roughly: the first row whose ground (Road, Pavement) covers 2 % of the
+// width (the street's far end), kept within [0.35, 0.75] of the height; half the height when
+// there is no ground. Too low where something hides the far end: sizes below are bounded.
+int HorizonRow(const cv::Mat& labels) {
+  const int lo = int(0.35 * labels.rows), hi = int(0.75 * labels.rows);
+  for (int r = 0; r < labels.rows; ++r) {
+    const uchar* row = labels.ptr<uchar>(r);
+    int ground = 0;
+    for (int c = 0; c < labels.cols; ++c) ground += row[c] == kRoad || row[c] == kPavement;
+    if (ground >= labels.cols / 50) return std::clamp(r, lo, hi);
+  }
+  return labels.rows / 2;
+}
+
+// An object to paste: a BGR patch, its binary shape, its COCO class and, for a CamVid object,
+// where it stood in its own frame (its perspective).
+struct Cutout {
+  cv::Mat patch;  // BGR
+  cv::Mat mask;   // CV_8U 255 = the object
+  int area = 0;   // of mask
+  int coco = 0;
+  bool vehicle = false;  // stands on Road (cars, bicycles); people on Road or Pavement
+  bool upright = false;  // a person (walking or cycling): about 1.7 m tall
+  bool from_video = false;
+  std::string name;
+  int source_bottom = 0;   // CamVid: the row below the object's last row in its frame
+  int source_horizon = 0;  // CamVid: HorizonRow of its frame
+  bool cut_left = false, cut_right = false, cut_bottom = false;  // by its frame's edges
+};
+
+// A planned paste: the scaled object, 1-pixel padded, and where it goes.
+struct Placement {
+  const Cutout* cutout = nullptr;
+  double scale = 1;
+  cv::Mat patch;    // BGR, padded
+  cv::Mat alpha;    // CV_32F, padded: 3x3 mean of the binary shape
+  cv::Rect placed;  // padded, in frame coordinates (may extend past the frame)
+  int bottom = 0;   // the row below the object's last row: its ground line (painter's order)
+};
+
+// The padded patch and feathered alpha of `cutout` at `size` (the same 1-pixel feathering as
+// the near-original placement; the shape is resized linearly and re-binarised).
+void Scaled(const Cutout& cutout, cv::Size size, cv::Mat* patch, cv::Mat* alpha) {
+  cv::Mat shape;
+  cv::resize(cutout.patch, *patch, size, 0, 0, cv::INTER_LINEAR);
+  cv::resize(cutout.mask, shape, size, 0, 0, cv::INTER_LINEAR);
+  cv::threshold(shape, shape, 127, 255, cv::THRESH_BINARY);
+  cv::Mat padded;
+  cv::copyMakeBorder(shape, padded, 1, 1, 1, 1, cv::BORDER_CONSTANT, 0);
+  cv::copyMakeBorder(*patch, *patch, 1, 1, 1, 1, cv::BORDER_REPLICATE);
+  padded.convertTo(*alpha, CV_32F, 1.0 / 255);
+  cv::blur(*alpha, *alpha, cv::Size(3, 3), cv::Point(-1, -1), cv::BORDER_CONSTANT);
+}
+
+// Does the object's bottom row stand on the ground of the (warped) background labels? Three
+// points of the bottom row (a quarter, half and three quarters of the width, within the frame)
+// on Road or Pavement, the middle one on Road for vehicles.
+bool OnGround(const cv::Mat& labels, int x, int width, int bottom, bool vehicle) {
+  const int row = std::min(bottom, labels.rows) - 1;
+  if (row < 0) return false;
+  for (int quarter = 1; quarter <= 3; ++quarter) {
+    const int col = std::clamp(x + quarter * width / 4, 0, labels.cols - 1);
+    const int label = labels.at<uchar>(row, col);
+    if (label != kRoad && label != kPavement) return false;
+    if (vehicle && quarter == 2 && label != kRoad) return false;
+  }
+  return true;
+}
+
+struct PasteResult {
+  cv::Mat painted;                // CV_8U 255 = a pixel a pasted object changed
+  std::vector<DynamicBox> boxes;  // the visible part of each pasted object
+  std::string names;
+  int objects = 0, video_objects = 0;  // visible
+};
+
+// Random placement of one visit (RevisitOptions::random_placement): plans objects until the
+// coverage of `mask` (what is already marked) plus what they will change reaches the target,
+// then draws them far to near, each hidden where a nearer object of the background stands.
+PasteResult PasteAtRandom(cv::Mat& image, const cv::Mat& labels, const cv::Mat& background_dynamic,
+                          const cv::Mat& mask, const std::vector<const Cutout*>& still,
+                          const std::vector<const Cutout*>& video, std::set<const Cutout*>& used,
+                          double target, const RevisitOptions& options, Rng& rng) {
+  const cv::Size size = image.size();
+  const cv::Rect frame(0, 0, size.width, size.height);
+  const double pixels = double(size.area());
+  const int horizon = HorizonRow(labels);
+  const double max_overlap = 0.4;
+  // The background's own objects, each with its bottom row: one whose bottom is below a pasted
+  // object's (nearer to the camera) hides it.
+  cv::Mat components, stats, centroids;
+  const int count =
+      cv::connectedComponentsWithStats(background_dynamic, components, stats, centroids, 8);
+  std::vector<int> component_bottom(size_t(std::max(count, 1)), 0);
+  for (int c = 1; c < count; ++c) {
+    component_bottom[size_t(c)] =
+        stats.at<int>(c, cv::CC_STAT_TOP) + stats.at<int>(c, cv::CC_STAT_HEIGHT);
+  }
+  // Planned footprints (1 + plan index), and what the mask will be: marked already, or changed
+  // by the drawing below.
+  cv::Mat owner = cv::Mat::zeros(size, CV_16U);
+  cv::Mat will_paint = mask.clone();
+  std::vector<Placement> plans;
+  std::vector<int> footprints;
+  double coverage = cv::countNonZero(will_paint) / pixels;  // exactly the final mask's
+  for (int attempt = 0; attempt < 800 && coverage < target - 0.005; ++attempt) {
+    const double need = target - coverage;
+    const bool from_video = !video.empty() && rng.Uniform(0, 1) < options.video_share;
+    const std::vector<const Cutout*>& pool = from_video ? video : still;
+    if (pool.empty()) continue;
+    // Of a few random unused objects, the largest that fits what is left (fewer, larger
+    // objects, as in a real street), else the smallest.
+    const Cutout* pick = nullptr;
+    for (int draw = 0; draw < 8; ++draw) {
+      const Cutout* c = pool[rng.Below(pool.size())];
+      if (used.count(c)) continue;
+      const bool fits = c->area / pixels <= need;
+      const bool pick_fits = pick && pick->area / pixels <= need;
+      if (!pick || (fits && (!pick_fits || c->area > pick->area)) ||
+          (!fits && !pick_fits && c->area < pick->area)) {
+        pick = c;
+      }
+    }
+    if (!pick) continue;
+    const Cutout& cutout = *pick;
+    const double h0 = cutout.mask.rows, w0 = cutout.mask.cols;
+    for (int draw = 0; draw < 12; ++draw) {
+      // Scale and ground line (perspective: on flat ground, an object's height in pixels is
+      // proportional to its bottom's distance below the horizon). A person of the video gets a
+      // height in [min, max] of the frame; people (video, CamVid pedestrians and cyclists)
+      // stand where a camera at 0.7-0.9 of their height sees them; a CamVid vehicle keeps the
+      // height / distance-below-the-horizon ratio it had in its own frame (bounded to
+      // [0.6, 2.5]: cars to buses); an object cut by the bottom edge stays on it.
+      double scale;
+      if (cutout.from_video) {
+        scale = rng.Uniform(options.video_min_height, options.video_max_height) * size.height / h0;
+        if (cutout.area * scale * scale / pixels > need) {
+          scale = std::sqrt(need * pixels / cutout.area);
+        }
+        if (h0 * scale < options.video_min_height * size.height) break;  // too little left
+      } else {
+        const double lowest =
+            cutout.cut_bottom ? std::max(options.min_scale, 0.9) : options.min_scale;
+        scale = rng.Uniform(lowest, std::max(lowest, options.max_scale));
+        if (cutout.area * scale * scale / pixels > need) {
+          scale = std::sqrt(need * pixels / cutout.area);
+        }
+        scale = std::min(scale, size.width / w0);
+        if (scale < lowest) break;  // too large for what is left
+      }
+      double ratio;  // height / distance of the bottom below the horizon
+      if (cutout.upright) {
+        ratio = 1 / rng.Uniform(0.7, 0.9);
+      } else {
+        ratio =
+            std::clamp(h0 / std::max(1, cutout.source_bottom - cutout.source_horizon), 0.6, 2.5);
+      }
+      int bottom = cutout.cut_bottom ? size.height : horizon + int(std::lround(h0 * scale / ratio));
+      const int sw = std::max(1, int(std::lround(w0 * scale)));
+      const int sh = std::max(1, int(std::lround(h0 * scale)));
+      const int top = bottom - sh;
+      // In the frame, the bottom in its lower 3/4 and below the horizon.
+      if (top < 0 || bottom > size.height || bottom < size.height / 4 || bottom <= horizon) {
+        continue;
+      }
+      int x = int(rng.Below(size_t(std::max(0, size.width - sw) + 1)));
+      if (cutout.cut_left && !cutout.cut_right) x = 0;
+      if (cutout.cut_right && !cutout.cut_left) x = size.width - sw;
+      if (!OnGround(labels, x, sw, bottom, cutout.vehicle)) continue;
+
+      Placement plan;
+      plan.cutout = &cutout;
+      plan.scale = scale;
+      plan.bottom = bottom;
+      plan.placed = cv::Rect(x - 1, top - 1, sw + 2, sh + 2);
+      Scaled(cutout, cv::Size(sw, sh), &plan.patch, &plan.alpha);
+      // Every object stays mostly visible: at most 40 % of this object's footprint hidden by
+      // nearer objects of the background or shared with planned objects, and at most 40 % of
+      // any planned object's footprint shared with this one. (Standing in front of the
+      // background's own objects is fine: a passing bus hides a parked car.)
+      const cv::Rect visible = plan.placed & frame;
+      int area = 0, hidden = 0, on_planned = 0;
+      std::map<int, int> per_plan;
+      for (int r = visible.y; r < visible.br().y; ++r) {
+        const float* a = plan.alpha.ptr<float>(r - plan.placed.y) + (visible.x - plan.placed.x);
+        const uint16_t* o = owner.ptr<uint16_t>(r) + visible.x;
+        const int* comp = components.ptr<int>(r) + visible.x;
+        for (int c = 0; c < visible.width; ++c) {
+          if (a[c] <= 0) continue;
+          ++area;
+          hidden += comp[c] > 0 && component_bottom[size_t(comp[c])] > bottom;
+          if (o[c]) {
+            ++on_planned;
+            ++per_plan[o[c] - 1];
+          }
+        }
+      }
+      bool fits = area > 0 && hidden + on_planned <= max_overlap * area;
+      for (const auto& [k, n] : per_plan) fits = fits && n <= max_overlap * footprints[size_t(k)];
+      if (!fits) continue;
+      const uint16_t id = uint16_t(plans.size() + 1);
+      int added = 0;
+      for (int r = visible.y; r < visible.br().y; ++r) {
+        const float* a = plan.alpha.ptr<float>(r - plan.placed.y) + (visible.x - plan.placed.x);
+        uint16_t* o = owner.ptr<uint16_t>(r) + visible.x;
+        uchar* w = will_paint.ptr<uchar>(r) + visible.x;
+        const int* comp = components.ptr<int>(r) + visible.x;
+        for (int c = 0; c < visible.width; ++c) {
+          if (a[c] <= 0) continue;
+          if (!o[c]) o[c] = id;
+          if (w[c] || (comp[c] > 0 && component_bottom[size_t(comp[c])] > bottom)) continue;
+          w[c] = 255;
+          ++added;
+        }
+      }
+      coverage += added / pixels;
+      footprints.push_back(area);
+      plans.push_back(std::move(plan));
+      used.insert(&cutout);
+      break;
+    }
+  }
+
+  // Draw far to near, each object hidden where a nearer object of the background stands.
+  std::vector<size_t> order(plans.size());
+  for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::stable_sort(order.begin(), order.end(),
+                   [&](size_t a, size_t b) { return plans[a].bottom < plans[b].bottom; });
+  PasteResult result;
+  result.painted = cv::Mat::zeros(size, CV_8U);
+  cv::Mat shown = cv::Mat::zeros(size, CV_16U);  // 1 + plan index of the object drawn last
+  for (size_t i : order) {
+    const Placement& plan = plans[i];
+    const cv::Rect visible = plan.placed & frame;
+    for (int r = visible.y; r < visible.br().y; ++r) {
+      const int lr = r - plan.placed.y, lc = visible.x - plan.placed.x;
+      const float* a = plan.alpha.ptr<float>(lr) + lc;
+      const cv::Vec3b* p = plan.patch.ptr<cv::Vec3b>(lr) + lc;
+      cv::Vec3b* o = image.ptr<cv::Vec3b>(r) + visible.x;
+      uchar* m = result.painted.ptr<uchar>(r) + visible.x;
+      uint16_t* s = shown.ptr<uint16_t>(r) + visible.x;
+      const int* comp = components.ptr<int>(r) + visible.x;
+      for (int c = 0; c < visible.width; ++c) {
+        if (a[c] <= 0) continue;
+        if (comp[c] > 0 && component_bottom[size_t(comp[c])] > plan.bottom) continue;
+        for (int k = 0; k < 3; ++k) {
+          o[c][k] = cv::saturate_cast<uchar>(a[c] * p[c][k] + (1 - a[c]) * o[c][k]);
+        }
+        m[c] = 255;
+        s[c] = uint16_t(i + 1);
+      }
+    }
+  }
+  // Boxes of what is visible of each object (at least 20 pixels), in planning order.
+  for (size_t i = 0; i < plans.size(); ++i) {
+    const cv::Mat mine = shown == int(i + 1);
+    const int visible_pixels = cv::countNonZero(mine);
+    const Cutout& cutout = *plans[i].cutout;
+    char name[128];
+    std::snprintf(name, sizeof(name), "%s%s x%.2f%s", result.names.empty() ? "" : ", ",
+                  cutout.name.c_str(), plans[i].scale, visible_pixels < 20 ? " (hidden)" : "");
+    result.names += name;
+    if (visible_pixels < 20) continue;
+    DynamicBox box;
+    box.class_id = cutout.coco;
+    box.confidence = 1.0f;
+    box.rect = cv::Rect2f(cv::boundingRect(mine));
+    result.boxes.push_back(box);
+    ++result.objects;
+    result.video_objects += cutout.from_video;
+  }
+  return result;
+}
+
 Status WriteImage(const std::string& path, const cv::Mat& image, const std::vector<int>& params) {
   if (!cv::imwrite(path, image, params)) return Status::IoError("cannot write " + path);
   return Status::Ok();
 }
 
 }  // namespace
+
+RevisitOptions HardRevisitOptions() {
+  RevisitOptions options;
+  options.max_background_coverage = 0.25;
+  options.min_ground_fraction = 0.22;
+  options.mask_background_objects = false;
+  options.random_placement = true;
+  options.min_scale = 0.5;
+  options.max_scale = 1.6;
+  options.donors_from_other_sequences = true;
+  options.video_people = kDebianVtestPath;
+  options.video_share = 0.5;
+  options.viewpoint_margin = 0.125;  // corners 5-20 % in from each edge
+  options.viewpoint_jitter = 0.075;
+  options.gain_range = 0.4;
+  options.bias_range = 30;
+  options.log_gamma_range = 0.35;
+  options.max_noise_sigma = 4;
+  options.max_blur_sigma = 1;
+  return options;
+}
+
+Result<std::vector<VideoCutout>> SegmentVideoPeople(const std::string& video_path,
+                                                    const VideoPeopleOptions& options) {
+  if (options.median_every < 1 || options.every < 1 || options.threshold < 1 ||
+      !(options.min_aspect > 0 && options.min_aspect <= options.max_aspect)) {
+    return Status::InvalidArgument("video people: bad segmentation options");
+  }
+  std::error_code ec;
+  if (!fs::exists(video_path, ec)) {
+    return Status::NotFound(video_path +
+                            " does not exist (OpenCV's vtest.avi comes with the Debian package "
+                            "opencv-doc: apt-get install opencv-doc)");
+  }
+  cv::VideoCapture capture(video_path);
+  if (!capture.isOpened()) return Status::NotFound("cannot open the video " + video_path);
+  // One pass: keep the frames the median needs and the frames people are cut from.
+  std::vector<cv::Mat> sampled;
+  std::vector<std::pair<int, cv::Mat>> cut_frames;
+  cv::Mat frame;
+  for (int index = 0; capture.read(frame); ++index) {
+    if (frame.empty() || frame.type() != CV_8UC3) continue;
+    if (index % options.median_every == 0) sampled.push_back(frame.clone());
+    if (index % options.every == 0) cut_frames.emplace_back(index, frame.clone());
+  }
+  if (sampled.size() < 3) return Status::FailedPrecondition(video_path + ": too few frames");
+  const cv::Size size = sampled[0].size();
+  for (const cv::Mat& f : sampled) {
+    if (f.size() != size) return Status::FailedPrecondition(video_path + ": frame size changes");
+  }
+
+  // Per-pixel, per-channel temporal median: the empty scene.
+  cv::Mat background(size, CV_8UC3);
+  const size_t values = size_t(size.area()) * 3, n = sampled.size();
+  std::vector<const uchar*> planes;
+  for (const cv::Mat& f : sampled) planes.push_back(f.ptr<uchar>(0));
+  std::vector<uchar> samples(n);
+  uchar* out = background.ptr<uchar>(0);
+  for (size_t v = 0; v < values; ++v) {
+    for (size_t k = 0; k < n; ++k) samples[k] = planes[k][v];
+    std::nth_element(samples.begin(), samples.begin() + std::ptrdiff_t(n / 2), samples.end());
+    out[v] = samples[n / 2];
+  }
+
+  const cv::Mat open_kernel = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(3, 3));
+  const cv::Mat close_kernel = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(9, 9));
+  std::vector<VideoCutout> cutouts;
+  for (const auto& [index, image] : cut_frames) {
+    if (image.size() != size) continue;
+    cv::Mat difference, channels[3];
+    cv::absdiff(image, background, difference);
+    cv::split(difference, channels);
+    cv::Mat largest = cv::max(cv::max(channels[0], channels[1]), channels[2]);
+    cv::Mat foreground = largest > options.threshold;
+    // Cast shadows are not the person: darker than the background by a similar factor in every
+    // channel (the colour stays, the light drops).
+    for (int r = 0; r < size.height; ++r) {
+      const cv::Vec3b* f = image.ptr<cv::Vec3b>(r);
+      const cv::Vec3b* b = background.ptr<cv::Vec3b>(r);
+      uchar* m = foreground.ptr<uchar>(r);
+      for (int c = 0; c < size.width; ++c) {
+        if (!m[c]) continue;
+        double lo = 2, hi = 0;
+        for (int k = 0; k < 3; ++k) {
+          const double ratio = (f[c][k] + 1.0) / (b[c][k] + 1.0);
+          lo = std::min(lo, ratio);
+          hi = std::max(hi, ratio);
+        }
+        if (lo >= options.shadow_min_ratio && hi <= options.shadow_max_ratio &&
+            hi - lo <= options.shadow_max_spread) {
+          m[c] = 0;
+        }
+      }
+    }
+    cv::morphologyEx(foreground, foreground, cv::MORPH_OPEN, open_kernel);
+    cv::morphologyEx(foreground, foreground, cv::MORPH_CLOSE, close_kernel);
+    // Holes filled: a person's clothes that happen to match the ground are still the person.
+    std::vector<std::vector<cv::Point>> contours;
+    cv::findContours(foreground, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
+    cv::Mat filled = cv::Mat::zeros(size, CV_8U);
+    cv::drawContours(filled, contours, -1, cv::Scalar(255), cv::FILLED, cv::LINE_8);
+    // One pixel off the outline: the outline's pixels blend the person with the ground.
+    cv::erode(filled, filled, open_kernel);
+    cv::Mat components, stats, centroids;
+    const int count = cv::connectedComponentsWithStats(filled, components, stats, centroids, 8);
+    int number = 0;
+    for (int c = 1; c < count; ++c) {
+      const cv::Rect rect(stats.at<int>(c, cv::CC_STAT_LEFT), stats.at<int>(c, cv::CC_STAT_TOP),
+                          stats.at<int>(c, cv::CC_STAT_WIDTH),
+                          stats.at<int>(c, cv::CC_STAT_HEIGHT));
+      const int area = stats.at<int>(c, cv::CC_STAT_AREA);
+      const double aspect = double(rect.height) / rect.width;
+      if (area < options.min_area || rect.height < options.min_height ||
+          aspect < options.min_aspect || aspect > options.max_aspect ||
+          area < options.min_fill * rect.area() || rect.x == 0 || rect.y == 0 ||
+          rect.br().x >= size.width || rect.br().y >= size.height) {
+        continue;
+      }
+      VideoCutout cutout;
+      char name[64];
+      std::snprintf(name, sizeof(name), "vtest_f%05d#%d", index, ++number);
+      cutout.name = name;
+      cutout.frame = index;
+      cutout.rect = rect;
+      cutout.patch = image(rect).clone();
+      cutout.mask = components(rect) == c;
+      cutouts.push_back(std::move(cutout));
+    }
+  }
+  // A fixed camera over flat ground: a person's height in pixels is close to a linear function
+  // of the row their feet are on. Fit it (least squares, then again without the outliers) and
+  // keep the components within `max_height_deviation` of it: two people one behind the other,
+  // or a person cut in two, are not one person.
+  if (options.max_height_deviation > 0 && cutouts.size() >= 8) {
+    std::vector<bool> keep(cutouts.size(), true);
+    for (int round = 0; round < 2; ++round) {
+      double n = 0, sx = 0, sy = 0, sxx = 0, sxy = 0;
+      for (size_t i = 0; i < cutouts.size(); ++i) {
+        if (!keep[i]) continue;
+        const double x = cutouts[i].rect.br().y, y = cutouts[i].rect.height;
+        n += 1;
+        sx += x;
+        sy += y;
+        sxx += x * x;
+        sxy += x * y;
+      }
+      const double denominator = n * sxx - sx * sx;
+      if (n < 3 || denominator <= 0) break;
+      const double slope = (n * sxy - sx * sy) / denominator;
+      const double intercept = (sy - slope * sx) / n;
+      for (size_t i = 0; i < cutouts.size(); ++i) {
+        const double expected = intercept + slope * cutouts[i].rect.br().y;
+        keep[i] = expected > 0 && std::abs(cutouts[i].rect.height - expected) <=
+                                      options.max_height_deviation * expected;
+      }
+    }
+    std::vector<VideoCutout> kept;
+    for (size_t i = 0; i < cutouts.size(); ++i) {
+      if (keep[i]) kept.push_back(std::move(cutouts[i]));
+    }
+    cutouts = std::move(kept);
+  }
+  return cutouts;
+}
 
 Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
   if (options.places < 1) return Status::InvalidArgument("places must be at least 1");
@@ -125,8 +577,55 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
     return Status::InvalidArgument("coverage: need 0 <= min_coverage <= max_coverage <= 0.6");
   }
   if (options.out_dir.empty()) return Status::InvalidArgument("out_dir is required");
+  if (!(options.min_scale > 0 && options.min_scale <= options.max_scale)) {
+    return Status::InvalidArgument("scale: need 0 < min_scale <= max_scale");
+  }
+  if (!(options.video_share >= 0 && options.video_share <= 1) ||
+      !(options.video_min_height > 0 && options.video_min_height <= options.video_max_height &&
+        options.video_max_height <= 1)) {
+    return Status::InvalidArgument(
+        "video people: need video_share in [0, 1] and 0 < video_min_height <= video_max_height "
+        "<= 1");
+  }
+  if (!options.video_people.empty() && !options.random_placement) {
+    return Status::InvalidArgument("video people are pasted with random_placement only");
+  }
+  if (!(options.viewpoint_margin >= 0 && options.viewpoint_jitter >= 0 &&
+        options.viewpoint_margin + options.viewpoint_jitter < 0.45) ||
+      !(options.max_blur_sigma >= 0 && options.max_noise_sigma >= 0)) {
+    return Status::InvalidArgument("viewpoint / photometric ranges out of bounds");
+  }
   auto listed = ListCamVid(options.camvid_dir);
   if (!listed.ok()) return listed.status();
+
+  // People of the fixed-camera video, segmented by background subtraction.
+  std::vector<Cutout> video_cutouts;
+  if (!options.video_people.empty()) {
+    std::error_code exists_error;
+    if (!fs::exists(options.video_people, exists_error)) {
+      return Status::FailedPrecondition(
+          options.video_people +
+          " does not exist: the hard revisits paste people of OpenCV's vtest.avi, which comes "
+          "with the Debian package opencv-doc (apt-get install opencv-doc); or leave it out "
+          "(--no-vtest)");
+    }
+    auto people = SegmentVideoPeople(options.video_people);
+    if (!people.ok()) return people.status();
+    if (people->empty()) {
+      return Status::FailedPrecondition("no people found in " + options.video_people);
+    }
+    for (VideoCutout& person : *people) {
+      Cutout cutout;
+      cutout.patch = std::move(person.patch);
+      cutout.mask = std::move(person.mask);
+      cutout.area = cv::countNonZero(cutout.mask);
+      cutout.coco = 0;  // person
+      cutout.upright = true;
+      cutout.from_video = true;
+      cutout.name = person.name;
+      video_cutouts.push_back(std::move(cutout));
+    }
+  }
 
   // Every frame's labels and coverage.
   std::vector<Frame> frames;
@@ -145,7 +644,10 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
   Rng rng(StreamSeed(options.seed, 0xB6, 0));
   std::vector<size_t> candidates;
   for (size_t i = 0; i < frames.size(); ++i) {
-    if (frames[i].coverage <= options.max_background_coverage && frames[i].labels.size() == size) {
+    if (frames[i].coverage <= options.max_background_coverage && frames[i].labels.size() == size &&
+        (options.min_ground_fraction <= 0 ||
+         cv::countNonZero((frames[i].labels == kRoad) | (frames[i].labels == kPavement)) >=
+             options.min_ground_fraction * double(frames[i].labels.total()))) {
       candidates.push_back(i);
     }
   }
@@ -192,6 +694,9 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
         "only " + std::to_string(backgrounds.size()) +
         " distinct CamVid backgrounds with at most " +
         std::to_string(options.max_background_coverage) + " dynamic coverage, " +
+        (options.min_ground_fraction > 0
+             ? "at least " + std::to_string(options.min_ground_fraction) + " Road + Pavement, "
+             : std::string()) +
         std::to_string(options.min_separation_frames) + " frames apart; asked for " +
         std::to_string(options.places) +
         " places (lower places, or raise max_background_coverage / lower min_separation_frames)");
@@ -233,6 +738,30 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
                                       std::to_string(options.min_object_area) +
                                       " pixels to paste in " + options.camvid_dir);
   }
+  // For random placement: every donor as a cutout that remembers its perspective and the
+  // frame edges that cut it.
+  std::vector<Cutout> still_cutouts;
+  if (options.random_placement) {
+    std::map<size_t, int> horizons;
+    for (const DonorObject& donor : donors) {
+      const cv::Mat& labels = frames[donor.frame].labels;
+      if (!horizons.count(donor.frame)) horizons[donor.frame] = HorizonRow(labels);
+      Cutout cutout;
+      cutout.patch = donor.patch;
+      cutout.mask = donor.mask;
+      cutout.area = donor.area;
+      cutout.coco = CamVidLabelToCoco(donor.label);
+      cutout.vehicle = donor.label != kCamVidPedestrian;
+      cutout.upright = donor.label != kCamVidCar;
+      cutout.name = donor.name;
+      cutout.source_bottom = donor.rect.y + donor.rect.height;
+      cutout.source_horizon = horizons[donor.frame];
+      cutout.cut_left = donor.rect.x == 0;
+      cutout.cut_right = donor.rect.x + donor.rect.width >= labels.cols;
+      cutout.cut_bottom = cutout.source_bottom >= labels.rows;
+      still_cutouts.push_back(std::move(cutout));
+    }
+  }
 
   // ---- Visits -------------------------------------------------------------------------------
   std::error_code ec;
@@ -243,16 +772,45 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
   RevisitResult result;
   Dataset& dataset = result.dataset;
   dataset.directory = options.out_dir;
-  dataset.name =
-      "revisits-" + std::to_string(options.places) + "x" + std::to_string(options.visits);
-  char description[512];
-  std::snprintf(description, sizeof(description),
-                "Synthetic revisits of %d real CamVid places (seed %llu): %d visits each with a "
-                "random homography, a photometric change and real CamVid dynamic objects from "
-                "other frames pasted to a coverage in [%.2f, %.2f]. Database = visit 0, queries "
-                "= the other visits, ground truth = the same place's visit 0.",
-                options.places, static_cast<unsigned long long>(options.seed), options.visits,
-                options.min_coverage, options.max_coverage);
+  const bool original =
+      options.mask_background_objects && !options.random_placement && options.video_people.empty();
+  dataset.name = std::string(original ? "revisits-" : "revisits-hard-") +
+                 std::to_string(options.places) + "x" + std::to_string(options.visits);
+  char description[1024];
+  if (original) {
+    std::snprintf(description, sizeof(description),
+                  "Synthetic revisits of %d real CamVid places (seed %llu): %d visits each with a "
+                  "random homography, a photometric change and real CamVid dynamic objects from "
+                  "other frames pasted to a coverage in [%.2f, %.2f]. Database = visit 0, queries "
+                  "= the other visits, ground truth = the same place's visit 0.",
+                  options.places, static_cast<unsigned long long>(options.seed), options.visits,
+                  options.min_coverage, options.max_coverage);
+  } else {
+    std::snprintf(
+        description, sizeof(description),
+        "Hard synthetic revisits of %d real CamVid places (seed %llu), backgrounds with up to "
+        "%.0f %% dynamic coverage of their own, %s: %d visits each with a random homography "
+        "(corners %.0f-%.0f %% in), a photometric change (gain +-%.2f, bias +-%.0f, log gamma "
+        "+-%.2f, noise sigma <= %.1f, blur sigma <= %.1f) and dynamic objects from %s%s%s pasted "
+        "%s to a coverage of pasted objects in [%.2f, %.2f]. Database = visit 0, queries = the "
+        "other visits, ground truth = the same place's visit 0.",
+        options.places, static_cast<unsigned long long>(options.seed),
+        options.max_background_coverage * 100,
+        options.mask_background_objects
+            ? "whose own objects are marked dynamic"
+            : "whose own objects stay in every visit and are NOT marked (part of the place; "
+              "listed in each entry's source)",
+        options.visits, 100 * (options.viewpoint_margin - options.viewpoint_jitter),
+        100 * (options.viewpoint_margin + options.viewpoint_jitter), options.gain_range,
+        options.bias_range, options.log_gamma_range, options.max_noise_sigma,
+        options.max_blur_sigma,
+        options.donors_from_other_sequences ? "other CamVid sequences" : "other CamVid frames",
+        options.video_people.empty() ? "" : " and people segmented out of ",
+        options.video_people.empty() ? "" : fs::path(options.video_people).filename().c_str(),
+        options.random_placement ? "at random on the ground, perspective-consistent"
+                                 : "near their original position",
+        options.min_coverage, options.max_coverage);
+  }
   dataset.description = description;
   const double pixels = double(size.area());
   const std::vector<int> jpeg = {cv::IMWRITE_JPEG_QUALITY, options.jpeg_quality};
@@ -269,16 +827,34 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
     for (size_t d = 0; d < donors.size(); ++d) {
       const Frame& from = frames[donors[d].frame];
       if (from.info.sequence != background.info.sequence ||
-          std::abs(from.info.frame - background.info.frame) >= options.donor_exclusion_frames) {
+          (!options.donors_from_other_sequences &&
+           std::abs(from.info.frame - background.info.frame) >= options.donor_exclusion_frames)) {
         allowed.push_back(d);
       }
     }
     std::set<size_t> used;  // a donor object appears in at most one visit of a place
+    // Random placement: the allowed CamVid objects that can be placed by perspective (not cut
+    // by the top edge, standing below their frame's horizon), and the video's people.
+    std::vector<const Cutout*> still, video;
+    std::set<const Cutout*> used_cutouts;
+    if (options.random_placement) {
+      for (size_t d : allowed) {
+        const Cutout& cutout = still_cutouts[d];
+        if (donors[d].rect.y == 0) continue;
+        if (!cutout.upright && !cutout.cut_bottom &&
+            cutout.source_bottom - cutout.source_horizon < 3) {
+          continue;
+        }
+        still.push_back(&cutout);
+      }
+      for (const Cutout& cutout : video_cutouts) video.push_back(&cutout);
+    }
     std::string first_id;
     for (int visit = 0; visit < options.visits; ++visit) {
       Rng vrng(StreamSeed(options.seed, uint64_t(place) + 1, uint64_t(visit) + 1));
       // Viewpoint: an inner quadrilateral, jittered, onto the whole frame.
-      const double margin = 0.08 * options.viewpoint, jitter = 0.05 * options.viewpoint;
+      const double margin = options.viewpoint_margin * options.viewpoint;
+      const double jitter = options.viewpoint_jitter * options.viewpoint;
       const float w = float(size.width), h = float(size.height);
       auto inset = [&](double m) {
         return float(std::max(0.0, m + vrng.Uniform(-jitter, jitter)));
@@ -294,14 +870,29 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
                           cv::BORDER_REFLECT);
       cv::warpPerspective(background.labels, labels, homography, size, cv::INTER_NEAREST,
                           cv::BORDER_REFLECT);
-      cv::Mat mask = DynamicOf(labels);
-      std::vector<DynamicBox> boxes = BoxesFromLabels(labels, 20);
+      const cv::Mat background_dynamic = DynamicOf(labels);
+      const std::vector<DynamicBox> background_boxes = BoxesFromLabels(labels, 20);
+      cv::Mat mask = options.mask_background_objects ? background_dynamic.clone()
+                                                     : cv::Mat(cv::Mat::zeros(size, CV_8U));
+      std::vector<DynamicBox> boxes;
+      if (options.mask_background_objects) boxes = background_boxes;
 
       const double target = vrng.Uniform(options.min_coverage, options.max_coverage);
       double coverage = cv::countNonZero(mask) / pixels;
       std::string pasted_names;
-      int pasted = 0;
-      for (int attempt = 0; attempt < 400 && coverage < target - 0.005 && !allowed.empty();
+      int pasted = 0, pasted_video = 0;
+      if (options.random_placement) {
+        PasteResult paste = PasteAtRandom(image, labels, background_dynamic, mask, still, video,
+                                          used_cutouts, target, options, vrng);
+        mask |= paste.painted;
+        boxes.insert(boxes.end(), paste.boxes.begin(), paste.boxes.end());
+        pasted_names = paste.names;
+        pasted = paste.objects;
+        pasted_video = paste.video_objects;
+        coverage = cv::countNonZero(mask) / pixels;
+      }
+      for (int attempt = 0; attempt < 400 && coverage < target - 0.005 && !allowed.empty() &&
+                            !options.random_placement;
            ++attempt) {
         // Of a few random unused donors, the largest that fits what is left (fewer, larger
         // objects, as in a real street), else the smallest, scaled down.
@@ -388,7 +979,7 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
         pasted_names += name;
         coverage = cv::countNonZero(mask) / pixels;
       }
-      Photometric(image, vrng, options.photometric);
+      Photometric(image, vrng, options);
 
       char id[32];
       std::snprintf(id, sizeof(id), "p%03d_v%d", place, visit);
@@ -406,6 +997,18 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
                     "background %s (own coverage %.3f); requested coverage %.3f; pasted: ",
                     background.info.stem.c_str(), background.coverage, target);
       entry.source = source + (pasted_names.empty() ? std::string("none") : pasted_names);
+      if (!options.mask_background_objects) {
+        // The background's own objects are part of the place: recorded here, not as dynamic.
+        entry.source += "; background objects (static here, x y w h): ";
+        if (background_boxes.empty()) entry.source += "none";
+        for (size_t b = 0; b < background_boxes.size(); ++b) {
+          const cv::Rect2f& r = background_boxes[b].rect;
+          char object[96];
+          std::snprintf(object, sizeof(object), "%s%s [%.0f %.0f %.0f %.0f]", b ? ", " : "",
+                        CocoClassName(background_boxes[b].class_id), r.x, r.y, r.width, r.height);
+          entry.source += object;
+        }
+      }
       PLACEDB_RETURN_IF_ERROR(WriteImage(dataset.Resolve(entry.image), image, jpeg));
       PLACEDB_RETURN_IF_ERROR(WriteImage(dataset.Resolve(entry.mask), mask, png));
 
@@ -417,6 +1020,9 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
       info.requested_coverage = target;
       info.measured_coverage = coverage;
       info.objects = pasted;
+      info.video_objects = pasted_video;
+      info.background_objects = int(background_boxes.size());
+      info.homography = homography;
       result.visits.push_back(info);
       if (visit == 0) {
         first_id = entry.id;

@@ -80,9 +80,32 @@ std::string DetectorKey(const DetectorConfig& config) {
          std::to_string(config.nms_iou_threshold);
 }
 
+// Cache entries are keyed by the image file's content, not its path: the same bytes anywhere
+// (another dataset directory, a copy) hit the same entry, and a changed file misses.
+constexpr const char* kCacheKeys = "fnv1a64-of-file-bytes";
+
+// 64-bit FNV-1a of the file's bytes as 16 hex digits.
+Result<std::string> ContentKey(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return Status::IoError("cannot read " + path);
+  uint64_t hash = 0xcbf29ce484222325ull;
+  char buffer[1 << 16];
+  while (in.read(buffer, sizeof(buffer)) || in.gcount() > 0) {
+    const std::streamsize n = in.gcount();
+    for (std::streamsize i = 0; i < n; ++i) {
+      hash ^= uint64_t(static_cast<unsigned char>(buffer[i]));
+      hash *= 0x100000001b3ull;
+    }
+  }
+  if (in.bad()) return Status::IoError("cannot read " + path);
+  char hex[17];
+  std::snprintf(hex, sizeof(hex), "%016llx", static_cast<unsigned long long>(hash));
+  return std::string(hex);
+}
+
 // The cached detections, when they were made by the same detector at a threshold at or below
 // `config.confidence_threshold`; that threshold is then lowered to the cache's so new detections
-// join it consistently.
+// join it consistently. A cache keyed otherwise (older files keyed by path) is ignored.
 std::map<std::string, Detection> ReadDetectionCache(const std::string& path,
                                                     DetectorConfig* config) {
   std::map<std::string, Detection> cache;
@@ -91,6 +114,7 @@ std::map<std::string, Detection> ReadDetectionCache(const std::string& path,
   try {
     json j = json::parse(in);
     if (j.value("detector", std::string()) != DetectorKey(*config)) return cache;
+    if (j.value("keys", std::string()) != kCacheKeys) return cache;
     const float cached = j.value("min_confidence", 1.0f);
     if (cached > config->confidence_threshold + 1e-6f) return cache;
     config->confidence_threshold = cached;
@@ -117,6 +141,7 @@ Status WriteDetectionCache(const std::string& path, const DetectorConfig& config
                            const std::map<std::string, Detection>& cache) {
   json j;
   j["detector"] = DetectorKey(config);
+  j["keys"] = kCacheKeys;
   j["min_confidence"] = config.confidence_threshold;
   j["images"] = json::object();
   for (const auto& [image, detection] : cache) {
@@ -153,13 +178,24 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
   std::vector<const Entry*> entries;
   for (const Entry& e : dataset.database) entries.push_back(&e);
   for (const Entry& e : dataset.queries) entries.push_back(&e);
-  std::vector<std::string> missing;
-  for (const Entry* e : entries) {
-    const std::string image = dataset.Resolve(e->image);
-    if (!cache.count(image)) missing.push_back(image);
+  // Every entry's content key; one path per key still to detect.
+  std::vector<std::string> keys(entries.size());
+  std::vector<Status> key_errors(entries.size());
+  ParallelFor(entries.size(), options.threads, [&](size_t i) {
+    auto key = ContentKey(dataset.Resolve(entries[i]->image));
+    if (key.ok()) {
+      keys[i] = std::move(key).value();
+    } else {
+      key_errors[i] = key.status();
+    }
+  });
+  for (const Status& error : key_errors) PLACEDB_RETURN_IF_ERROR(error);
+  std::map<std::string, std::string> missing_paths;  // key -> a file with that content
+  for (size_t i = 0; i < entries.size(); ++i) {
+    if (!cache.count(keys[i])) missing_paths.emplace(keys[i], dataset.Resolve(entries[i]->image));
   }
-  std::sort(missing.begin(), missing.end());
-  missing.erase(std::unique(missing.begin(), missing.end()), missing.end());
+  const std::vector<std::pair<std::string, std::string>> missing(missing_paths.begin(),
+                                                                 missing_paths.end());
   if (!missing.empty()) {
     auto detector = CreateDetector(config);
     if (!detector.ok()) return detector.status().WithContext("creating the detector");
@@ -167,24 +203,38 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
                      " images with " + (*detector)->Describe());
     std::vector<Detection> found(missing.size());
     std::vector<Status> errors(missing.size());
+    // Progress every 25 images and at the end: images done / total, mean ms per image.
+    std::mutex progress_mutex;
+    size_t done = 0;
+    double done_ms = 0;
     ParallelFor(missing.size(), options.threads, [&](size_t i) {
-      cv::Mat bgr = cv::imread(missing[i], cv::IMREAD_COLOR);
+      const std::string& path = missing[i].second;
+      cv::Mat bgr = cv::imread(path, cv::IMREAD_COLOR);
       if (bgr.empty()) {
-        errors[i] = Status::IoError("cannot read " + missing[i]);
-        return;
+        errors[i] = Status::IoError("cannot read " + path);
+      } else {
+        Stopwatch watch;
+        auto boxes = (*detector)->Detect(bgr);
+        found[i].ms = watch.ElapsedMs();
+        if (boxes.ok()) {
+          found[i].boxes = std::move(boxes).value();
+        } else {
+          errors[i] = boxes.status().WithContext(path);
+        }
       }
-      Stopwatch watch;
-      auto boxes = (*detector)->Detect(bgr);
-      found[i].ms = watch.ElapsedMs();
-      if (!boxes.ok()) {
-        errors[i] = boxes.status().WithContext(missing[i]);
-        return;
+      std::lock_guard<std::mutex> lock(progress_mutex);
+      ++done;
+      done_ms += found[i].ms;
+      if (done % 25 == 0 || done == missing.size()) {
+        char line[128];
+        std::snprintf(line, sizeof(line), "detection: %zu/%zu images, mean %.1f ms per image", done,
+                      missing.size(), done_ms / double(done));
+        Log(options, line);
       }
-      found[i].boxes = std::move(boxes).value();
     });
     for (size_t i = 0; i < missing.size(); ++i) {
       PLACEDB_RETURN_IF_ERROR(errors[i]);
-      cache[missing[i]] = std::move(found[i]);
+      cache[missing[i].first] = std::move(found[i]);
     }
     if (!options.detections_cache.empty()) {
       PLACEDB_RETURN_IF_ERROR(WriteDetectionCache(options.detections_cache, config, cache));
@@ -192,7 +242,7 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
   }
   double total_ms = 0;
   for (size_t i = 0; i < entries.size(); ++i) {
-    const Detection& detection = cache.at(dataset.Resolve(entries[i]->image));
+    const Detection& detection = cache.at(keys[i]);
     total_ms += detection.ms;
     DynamicObjects& out = i < dataset.database.size()
                               ? inputs->database_dynamic[i]
@@ -219,6 +269,7 @@ class InProcessBackend final : public Backend {
     orb.max_features = features;
     const size_t n = dataset.database.size() + dataset.queries.size();
     std::vector<FeatureSet> extracted(n);
+    std::vector<cv::Mat> images(n);
     std::vector<Status> errors(n);
     std::vector<double> ms(n, 0.0);
     ParallelFor(n, threads_, [&](size_t i) {
@@ -226,9 +277,11 @@ class InProcessBackend final : public Backend {
                                ? dataset.database[i]
                                : dataset.queries[i - dataset.database.size()];
       const std::string path = dataset.Resolve(entry.image);
-      // Grayscale, decoded as the server decodes a frame that needs no detection.
+      // ORB on the grayscale decode, as the server extracts; the colour decode is what the
+      // server's box refinement sees.
       cv::Mat gray = cv::imread(path, cv::IMREAD_GRAYSCALE);
-      if (gray.empty()) {
+      images[i] = cv::imread(path, cv::IMREAD_COLOR);
+      if (gray.empty() || images[i].empty()) {
         errors[i] = Status::IoError("cannot read " + path);
         return;
       }
@@ -248,6 +301,9 @@ class InProcessBackend final : public Backend {
     query_features_.assign(
         std::make_move_iterator(extracted.begin() + std::ptrdiff_t(dataset.database.size())),
         std::make_move_iterator(extracted.end()));
+    database_images_.assign(images.begin(),
+                            images.begin() + std::ptrdiff_t(dataset.database.size()));
+    query_images_.assign(images.begin() + std::ptrdiff_t(dataset.database.size()), images.end());
     double total = 0;
     for (double value : ms) total += value;
     extract_mean_ms_ = n ? total / double(n) : 0;
@@ -339,6 +395,8 @@ class InProcessBackend final : public Backend {
     observation.features = query ? query_features_[i] : database_features_[i];
     if (filtering) {
       observation.dynamic = query ? inputs.query_dynamic[i] : inputs.database_dynamic[i];
+      // The pixels, for box refinement (the features stay the precomputed ones).
+      observation.image = query ? query_images_[i] : database_images_[i];
     }
     const Entry& entry = query ? inputs.dataset->queries[i] : inputs.dataset->database[i];
     observation.metadata = Metadata(entry, i);
@@ -349,6 +407,8 @@ class InProcessBackend final : public Backend {
   int threads_;
   std::vector<FeatureSet> database_features_;
   std::vector<FeatureSet> query_features_;
+  std::vector<cv::Mat> database_images_;  // BGR
+  std::vector<cv::Mat> query_images_;
   double extract_mean_ms_ = 0;
 };
 
@@ -383,6 +443,17 @@ std::string DynamicSourceName(const RunOptions& options) {
     std::snprintf(threshold, sizeof(threshold), " %g%%", options.sensitivity * 100.0);
     source += threshold;
   }
+  if (options.refinement != BoxRefinement::kNone) {
+    source += std::string(", boxes refined: ") + BoxRefinementName(options.refinement);
+  }
+  if (options.short_term) {
+    char tier[96];
+    std::snprintf(tier, sizeof(tier), ", short-term tier %gs x %g",
+                  double(options.short_term_config.horizon_ns) / 1e9,
+                  double(options.short_term_config.weight));
+    source += tier;
+  }
+  if (options.rerank > 0) source += ", re-rank top " + std::to_string(options.rerank);
   return source;
 }
 
@@ -505,7 +576,14 @@ DatabaseConfig MakeDatabaseConfig(const RunOptions& options, int features, int g
     config.verification.levels_up = geom;
   }
   config.verification.min_inliers = options.min_inliers;
-  config.verification.candidates = 1;  // DBoW2's loop detector verifies its best candidate
+  // DBoW2's loop detector verifies its best candidate; re-ranking verifies the best N.
+  config.verification.candidates = options.rerank > 0 ? options.rerank : 1;
+  config.verification.rerank = options.rerank > 0;
+  if (filtering) {
+    config.box_refinement.method = options.refinement;
+    config.short_term = options.short_term_config;
+    config.short_term.enabled = options.short_term;
+  }
   return config;
 }
 

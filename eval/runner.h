@@ -58,6 +58,16 @@ struct RunOptions {
   FilterMethod filter = FilterMethod::kKeypointInBox;
   float sensitivity = 0.25f;  // exact_coverage only
   int place_threshold = 20;
+  // The defaults below are the service's (a map created with default settings); the paper's
+  // BoBW+DO is --refine-boxes none --short-term off --rerank 0.
+  // BoBW+DO: boxes narrowed to their objects' pixels (core/box_masks.h) before filtering.
+  BoxRefinement refinement = BoxRefinement::kGrabCut;
+  // BoBW+DO: the short-term tier of DC words (core/place_database.h, ShortTermConfig).
+  bool short_term = true;
+  ShortTermConfig short_term_config;
+  // Both methods: verify the best `rerank` candidates and re-rank them by inliers (spatial
+  // re-ranking); 0 = verify the best candidate only, as DBoW2's loop detector does.
+  int rerank = 10;
   int min_inliers = 15;
   size_t top_k = 10;
   DetectorConfig detector;                      // model path etc. for BoxInput::kDetector

@@ -126,6 +126,33 @@ Result<FilterMethod> FilterFromProto(v1::FilterMethod method) {
   }
 }
 
+Result<BoxRefinement> BoxRefinementFromProto(v1::BoxRefinement method) {
+  switch (method) {
+    case v1::BOX_REFINEMENT_UNSPECIFIED:
+    case v1::BOX_REFINEMENT_GRABCUT:
+      return BoxRefinement::kGrabCut;
+    case v1::BOX_REFINEMENT_NONE:
+      return BoxRefinement::kNone;
+    case v1::BOX_REFINEMENT_SHAPE:
+      return BoxRefinement::kShape;
+    default:
+      return Invalid("config.filter.box_refinement",
+                     "unknown value " + std::to_string(int(method)));
+  }
+}
+
+v1::BoxRefinement BoxRefinementToProto(BoxRefinement method) {
+  switch (method) {
+    case BoxRefinement::kNone:
+      return v1::BOX_REFINEMENT_NONE;
+    case BoxRefinement::kShape:
+      return v1::BOX_REFINEMENT_SHAPE;
+    case BoxRefinement::kGrabCut:
+      return v1::BOX_REFINEMENT_GRABCUT;
+  }
+  return v1::BOX_REFINEMENT_UNSPECIFIED;
+}
+
 v1::FilterMethod FilterToProto(FilterMethod method) {
   switch (method) {
     case FilterMethod::kNone:
@@ -495,6 +522,20 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, const Limits& lim
   d.filter.method = *method;
   if (f.has_sensitivity_threshold()) d.filter.sensitivity_threshold = f.sensitivity_threshold();
   if (f.has_place_threshold()) d.filter.place_threshold = f.place_threshold();
+  auto refinement = BoxRefinementFromProto(f.box_refinement());
+  if (!refinement.ok()) return refinement.status();
+  d.box_refinement.method = *refinement;
+  const v1::ShortTermSettings& st = f.short_term();
+  d.short_term.enabled = !st.has_enabled() || st.enabled();
+  if (st.has_horizon_s()) {
+    if (!(st.horizon_s() > 0 && st.horizon_s() <= 1e9)) {
+      return Invalid("config.filter.short_term.horizon_s",
+                     "must be in (0, 1e9] seconds, got " + Num(st.horizon_s()));
+    }
+    d.short_term.horizon_ns = int64_t(st.horizon_s() * 1e9);
+  }
+  if (st.has_max_places()) d.short_term.max_places = st.max_places();
+  if (st.has_weight()) d.short_term.weight = st.weight();
 
   auto scoring = ScoringFromProto(c.scoring());
   if (!scoring.ok()) return scoring.status();
@@ -507,6 +548,7 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, const Limits& lim
   if (v.has_levels_up()) d.verification.levels_up = v.levels_up();
   if (v.has_min_inliers()) d.verification.min_inliers = v.min_inliers();
   if (v.has_candidates()) d.verification.candidates = v.candidates();
+  d.verification.rerank = !v.has_rerank() || v.rerank();
   if (d.verification.candidates < 0) {
     return Invalid("config.verification.candidates", "must be >= 0");
   }
@@ -582,12 +624,19 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
   f->set_method(FilterToProto(d.filter.method));
   f->set_sensitivity_threshold(d.filter.sensitivity_threshold);
   f->set_place_threshold(d.filter.place_threshold);
+  f->set_box_refinement(BoxRefinementToProto(d.box_refinement.method));
+  v1::ShortTermSettings* st = f->mutable_short_term();
+  st->set_enabled(d.short_term.enabled);
+  st->set_horizon_s(double(d.short_term.horizon_ns) / 1e9);
+  st->set_max_places(d.short_term.max_places);
+  st->set_weight(d.short_term.weight);
   out->set_scoring(ScoringToProto(d.scoring));
   v1::VerificationSettings* v = out->mutable_verification();
   v->set_mode(VerificationToProto(d.verification.mode));
   v->set_levels_up(d.verification.levels_up);
   v->set_min_inliers(d.verification.min_inliers);
   v->set_candidates(d.verification.candidates);
+  v->set_rerank(d.verification.rerank);
   out->set_store_invalid(options.store_invalid);
 }
 
@@ -604,6 +653,7 @@ void MapStatsToProto(const MapStats& stats, v1::MapStats* out) {
   out->set_loop_long_term(stats.database.loop_long_term);
   out->set_loops_accepted(stats.database.loops_accepted);
   out->set_loops_rejected(stats.database.loops_rejected);
+  out->set_short_term_places(stats.database.short_term_places);
 }
 
 // ---- Observations -------------------------------------------------------------------------------
@@ -1163,6 +1213,7 @@ void TimingsToProto(const StageTimings& t, double queue_ms, v1::StageTimings* ou
   out->set_verify_ms(t.verify_ms);
   out->set_store_ms(t.store_ms);
   out->set_loop_closure_ms(t.loop_closure_ms);
+  out->set_refine_ms(t.refine_ms);
   out->set_total_ms(t.total_ms);
 }
 

@@ -175,6 +175,7 @@ void PlaceDbService::ObserveStages(const StageTimings& t) {
   if (t.detect_ms > 0) observe("detect", t.detect_ms);
   observe("extract", t.extract_ms);
   if (t.depth_ms > 0) observe("depth", t.depth_ms);
+  if (t.refine_ms > 0) observe("refine", t.refine_ms);
   observe("filter", t.filter_ms);
   if (t.transform_ms > 0) observe("transform", t.transform_ms);
   if (t.search_ms > 0) observe("search", t.search_ms);
@@ -376,7 +377,11 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
                             "), which is off on this server (configure detector.model)");
   }
   Stopwatch stage;
-  auto decoded = DecodeObservation(observation, config_.limits, /*color=*/server_boxes, field);
+  // Colour for the detector, and for GrabCut when the map refines the agent's boxes with it.
+  const bool color = server_boxes || (settings.detection_enabled && observation.boxes_size() > 0 &&
+                                      map.map->database().config().box_refinement.method ==
+                                          BoxRefinement::kGrabCut);
+  auto decoded = DecodeObservation(observation, config_.limits, color, field);
   if (!decoded.ok()) return ToGrpc(decoded.status());
   work->timings.decode_ms = stage.Lap();
   Observation& frame = decoded->observation;
@@ -412,6 +417,7 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
   work->frame = std::move(processed).value();
   work->timings.extract_ms = work->frame.timings.extract_ms;
   work->timings.depth_ms = work->frame.timings.depth_ms;
+  work->timings.refine_ms = work->frame.timings.refine_ms;
   work->timings.filter_ms = work->frame.timings.filter_ms;
   work->timings.transform_ms = work->frame.timings.transform_ms;
   work->metadata = std::move(frame.metadata);
@@ -443,8 +449,9 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
     if (status.ok() && Expired(context)) status = Cancelled(context, "before searching");
     if (status.ok())
       status = Guarded("searching", [&] {
-        const QueryOptions options =
+        QueryOptions options =
             QueryOptionsFromProto(request->options(), request->observation().agent_id());
+        options.timestamp_ns = request->observation().timestamp_ns();
         QueryResult result = map.map->Search(work.frame, options);
         work.timings.search_ms = result.timings.search_ms;
         work.timings.verify_ms = result.timings.verify_ms;
@@ -534,8 +541,8 @@ void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
         work.timings.depth_ms = frame.timings.depth_ms;
         work.timings.transform_ms = frame.timings.transform_ms;
         if (front->matches && frame.valid) {
-          const QueryOptions options =
-              QueryOptionsFromProto(*front->matches, work.metadata.agent_id);
+          QueryOptions options = QueryOptionsFromProto(*front->matches, work.metadata.agent_id);
+          options.timestamp_ns = work.metadata.timestamp_ns;
           QueryResult result = map.map->Search(frame, options);
           work.timings.search_ms = result.timings.search_ms;
           work.timings.verify_ms = result.timings.verify_ms;

@@ -9,7 +9,9 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <set>
 #include <sstream>
 
@@ -147,6 +149,60 @@ TEST_F(EvalTest, DatasetRoundTripsThroughJsonAndCsv) {
   EXPECT_EQ(ValidateDataset(bad, false).code(), StatusCode::kInvalidArgument);
 }
 
+TEST_F(EvalTest, BoxesOutsideTheImageOrOfStaticClassesAreRefused) {
+  Dataset dataset;
+  dataset.name = "boxes";
+  dataset.directory = testing::MakeTempDir("placedb-eval-boxes");
+  for (int frame : {1, 2}) {
+    Entry entry;
+    entry.id = "db" + std::to_string(frame);
+    entry.image = RtabmapDir() + "/" + std::to_string(frame) + ".jpg";  // 512x384
+    // Every dynamic class, at the image's edges: accepted.
+    entry.boxes = std::vector<DynamicBox>{
+        {0, 1.0f, cv::Rect2f(-5, -5, 10, 10)}, {1, 1.0f, cv::Rect2f(500, 370, 50, 50)},
+        {2, 1.0f, cv::Rect2f(0, 0, 512, 384)}, {3, 1.0f, cv::Rect2f(10, 10, 5, 5)},
+        {5, 1.0f, cv::Rect2f(10, 10, 5, 5)},   {7, 1.0f, cv::Rect2f(10, 10, 5, 5)}};
+    dataset.database.push_back(entry);
+  }
+  ASSERT_TRUE(SaveDataset(dataset).ok());
+  ASSERT_TRUE(LoadDataset(dataset.directory).ok());
+
+  auto refused = [&](const Dataset& bad, bool check_files) {
+    const Status status = ValidateDataset(bad, check_files);
+    EXPECT_EQ(status.code(), StatusCode::kInvalidArgument) << status.ToString();
+    EXPECT_NE(status.message().find("id db2"), std::string::npos) << status.message();
+    return status.message();
+  };
+  // A static class (traffic light, 9) as an oracle box: refused, with or without files.
+  Dataset bad = dataset;
+  (*bad.database[1].boxes)[3].class_id = 9;
+  EXPECT_NE(refused(bad, false).find("traffic light"), std::string::npos);
+  ASSERT_FALSE(SaveDataset(bad).ok());
+  // Entirely right of / below the image: refused once the image's size is known (the files).
+  bad = dataset;
+  (*bad.database[1].boxes)[1].rect = cv::Rect2f(512, 10, 20, 20);
+  EXPECT_TRUE(ValidateDataset(bad, false).ok());
+  EXPECT_NE(refused(bad, true).find("outside the 512x384 image"), std::string::npos);
+  bad = dataset;
+  (*bad.database[1].boxes)[1].rect = cv::Rect2f(10, 384, 20, 20);
+  refused(bad, true);
+  // Entirely left of / above it: refused even without the files.
+  bad = dataset;
+  (*bad.database[1].boxes)[0].rect = cv::Rect2f(-30, 10, 30, 20);
+  refused(bad, false);
+  bad = dataset;
+  (*bad.database[1].boxes)[0].rect = cv::Rect2f(10, -20, 30, 20);
+  refused(bad, false);
+  // And when a saved dataset is loaded.
+  bad = dataset;
+  (*bad.database[1].boxes)[2].rect = cv::Rect2f(600, 0, 10, 10);
+  ASSERT_TRUE(SaveDataset(bad).ok());  // no file check on save
+  const auto loaded = LoadDataset(bad.directory);
+  ASSERT_FALSE(loaded.ok());
+  EXPECT_NE(loaded.status().message().find("database[1] (id db2): boxes[2]"), std::string::npos)
+      << loaded.status().ToString();
+}
+
 TEST_F(EvalTest, FolderLayoutBecomesADataset) {
   const std::string root = testing::MakeTempDir("placedb-eval-folder");
   fs::create_directories(root + "/database");
@@ -255,6 +311,7 @@ TEST_F(EvalTest, CamVidAdjacencySubset) {
   run.boxes = BoxInput::kNone;
   run.masks = MaskInput::kOracle;
   run.filter = FilterMethod::kExactCoverage;
+  run.rerank = 0;  // verification of the best candidate only (DBoW2's loop detector)
   const RunResults results = Evaluate(dataset, run);
   for (const char* method : {kBoBW, kBoBWDO}) {
     const MethodRun* r = Find(results, 500, kNoGeom, method);
@@ -372,6 +429,122 @@ TEST_F(EvalTest, RevisitBuilderIsReproducibleAndHitsTheRequestedCoverage) {
   const MethodRun* with_do = Find(results, 500, kNoGeom, kBoBWDO);
   ASSERT_TRUE(bobw && with_do);
   EXPECT_LT(with_do->database.descriptors_kept, bobw->database.descriptors_kept);
+}
+
+TEST_F(EvalTest, VideoPeopleAreSegmentedByBackgroundSubtraction) {
+  ASSERT_TRUE(fs::exists(kDebianVtestPath)) << "vtest.avi: install the Debian package opencv-doc";
+  auto people = SegmentVideoPeople(kDebianVtestPath);
+  ASSERT_TRUE(people.ok()) << people.status().ToString();
+  EXPECT_GT(people->size(), 100u);  // 53 frames, several people each
+  for (const VideoCutout& person : *people) {
+    EXPECT_GT(person.rect.height, person.rect.width) << person.name;  // upright
+    ASSERT_EQ(person.mask.size(), person.rect.size()) << person.name;
+    ASSERT_EQ(person.patch.size(), person.rect.size()) << person.name;
+    EXPECT_GE(cv::countNonZero(person.mask), 500) << person.name;
+  }
+  EXPECT_EQ(SegmentVideoPeople("/no/such/vtest.avi").status().code(), StatusCode::kNotFound);
+}
+
+TEST_F(EvalTest, HardRevisitsAreReproducibleAndMarkOnlyThePastedObjects) {
+  RevisitOptions options = HardRevisitOptions();
+  options.camvid_dir = CamVidDir();
+  options.places = 4;
+  options.visits = 2;
+  options.min_coverage = 0.15;
+  options.max_coverage = 0.35;
+  options.seed = 11;
+  ASSERT_TRUE(fs::exists(options.video_people)) << "vtest.avi: install opencv-doc";
+  options.out_dir = testing::MakeTempDir("placedb-eval-hard-a");
+  auto first = BuildRevisits(options);
+  ASSERT_TRUE(first.ok()) << first.status().ToString();
+  options.out_dir = testing::MakeTempDir("placedb-eval-hard-b");
+  auto second = BuildRevisits(options);
+  ASSERT_TRUE(second.ok()) << second.status().ToString();
+  ASSERT_TRUE(SaveDataset(first->dataset).ok());
+  ASSERT_TRUE(SaveDataset(second->dataset).ok());
+  const Dataset& a = first->dataset;
+  const Dataset& b = second->dataset;
+  ASSERT_EQ(a.database.size(), 4u);
+  ASSERT_EQ(a.queries.size(), 4u);
+  ASSERT_EQ(first->visits.size(), 8u);
+  // Same options: byte-identical dataset.json, images and masks.
+  EXPECT_EQ(ReadFile(a.directory + "/dataset.json"), ReadFile(b.directory + "/dataset.json"));
+  EXPECT_TRUE(LoadDataset(a.directory).ok());
+
+  auto camvid = ListCamVid(CamVidDir());
+  ASSERT_TRUE(camvid.ok());
+  int video_objects = 0, objects = 0, unmarked_background_pixels = 0;
+  for (size_t v = 0; v < first->visits.size(); ++v) {
+    const VisitInfo& visit = first->visits[v];
+    const Entry& ea =
+        visit.visit == 0 ? a.database[size_t(visit.place)] : a.queries[size_t(visit.place)];
+    const Entry& eb =
+        visit.visit == 0 ? b.database[size_t(visit.place)] : b.queries[size_t(visit.place)];
+    ASSERT_EQ(ea.id, visit.id);
+    EXPECT_EQ(ReadFile(a.Resolve(ea.image)), ReadFile(b.Resolve(eb.image))) << ea.id;
+    EXPECT_EQ(ReadFile(a.Resolve(ea.mask)), ReadFile(b.Resolve(eb.mask))) << ea.id;
+    // Coverage is the pasted objects' (planned on what will be drawn: at most the feathered
+    // edge of the last object above the target).
+    cv::Mat mask = cv::imread(a.Resolve(ea.mask), cv::IMREAD_GRAYSCALE);
+    ASSERT_FALSE(mask.empty());
+    EXPECT_NEAR(cv::countNonZero(mask) / double(mask.total()), *ea.coverage, 1e-12);
+    EXPECT_LE(visit.measured_coverage, visit.requested_coverage + 0.015) << ea.id;
+    EXPECT_GT(visit.measured_coverage, 0.05) << ea.id;
+    // Boxes: one per visible pasted object, dynamic classes only; the background's own objects
+    // are listed in `source`, not as boxes.
+    ASSERT_TRUE(ea.boxes.has_value());
+    EXPECT_EQ(int(ea.boxes->size()), visit.objects) << ea.id;
+    for (const DynamicBox& box : *ea.boxes) {
+      EXPECT_TRUE(box.class_id == 0 || box.class_id == 1 || box.class_id == 2) << ea.id;
+      // Every box is on marked pixels.
+      const cv::Rect r = cv::Rect(box.rect) & cv::Rect(0, 0, mask.cols, mask.rows);
+      EXPECT_GT(cv::countNonZero(mask(r)), 0) << ea.id;
+    }
+    EXPECT_NE(ea.source.find("background objects (static here"), std::string::npos);
+    objects += visit.objects;
+    video_objects += visit.video_objects;
+    // The background's own objects, moved by the visit's viewpoint, are in the picture and NOT
+    // in the mask (where nothing pasted stands in front of them).
+    const auto frame = std::find_if(camvid->begin(), camvid->end(), [&](const CamVidFrame& f) {
+      return f.stem == visit.background;
+    });
+    ASSERT_NE(frame, camvid->end());
+    cv::Mat labels = cv::imread(frame->label_path, cv::IMREAD_GRAYSCALE), warped;
+    cv::warpPerspective(labels, warped, visit.homography, labels.size(), cv::INTER_NEAREST,
+                        cv::BORDER_REFLECT);
+    cv::Mat own =
+        (warped == kCamVidCar) | (warped == kCamVidPedestrian) | (warped == kCamVidBicyclist);
+    if (visit.background_objects > 0) {
+      EXPECT_GE(cv::countNonZero(own), 20) << ea.id;
+    }
+    unmarked_background_pixels += cv::countNonZero(own & ~mask);
+    // Donors from other sequences only.
+    const std::string sequence = visit.background.substr(0, visit.background.find('_'));
+    const std::string pasted = ea.source.substr(ea.source.find("pasted: "));
+    EXPECT_EQ(pasted.find(sequence + "_"), std::string::npos) << ea.source;
+  }
+  EXPECT_GT(unmarked_background_pixels, 1000);  // with the old oracle it would be 0
+  EXPECT_GT(video_objects, 0);                  // both sources
+  EXPECT_LT(video_objects, objects);
+  // The two visits of a place differ.
+  EXPECT_NE(ReadFile(a.Resolve(a.database[0].image)), ReadFile(a.Resolve(a.queries[0].image)));
+
+  // Without the video, the hard preset says which package brings it.
+  options.video_people = "/no/such/dir/vtest.avi";
+  options.out_dir = testing::MakeTempDir("placedb-eval-hard-c");
+  auto missing = BuildRevisits(options);
+  ASSERT_FALSE(missing.ok());
+  EXPECT_EQ(missing.status().code(), StatusCode::kFailedPrecondition);
+  EXPECT_NE(missing.status().message().find("opencv-doc"), std::string::npos);
+  // --no-vtest: CamVid objects only.
+  options.video_people.clear();
+  options.places = 2;
+  auto camvid_only = BuildRevisits(options);
+  ASSERT_TRUE(camvid_only.ok()) << camvid_only.status().ToString();
+  for (const VisitInfo& visit : camvid_only->visits) {
+    EXPECT_EQ(visit.video_objects, 0);
+    EXPECT_GT(visit.objects, 0);
+  }
 }
 
 // ---- Scoring, empty ground truth, reports ---------------------------------------------------
@@ -528,6 +701,72 @@ TEST_F(EvalTest, DetectorBoxesAreCachedAndFilteredByConfidence) {
   EXPECT_NE(md.find("BoBW+DO @0.40"), std::string::npos);
 }
 
+TEST_F(EvalTest, DetectionCacheIsKeyedByImageContent) {
+  std::string model = std::string(PLACEDB_MODELS_DIR) + "/yolox_nano.onnx";
+  if (!fs::exists(model)) model = testing::SharedDir() + "/models/yolox_nano.onnx";
+  ASSERT_TRUE(fs::exists(model)) << "no YOLOX-Nano model (tools/install_models.sh)";
+  // Three entries, two of them the same bytes at two paths.
+  auto make = [](const std::string& directory) {
+    Dataset dataset;
+    dataset.name = "cache";
+    dataset.directory = directory;
+    fs::create_directories(directory + "/a");
+    fs::create_directories(directory + "/b");
+    const std::string street = CamVidDir() + "/images/0016E5_05130.jpg";
+    fs::copy_file(street, directory + "/a/street.jpg");
+    fs::copy_file(street, directory + "/b/same_bytes.jpg");
+    fs::copy_file(CamVidDir() + "/images/Seq05VD_f01920.jpg", directory + "/a/other.jpg");
+    for (const char* image : {"a/street.jpg", "b/same_bytes.jpg", "a/other.jpg"}) {
+      Entry entry;
+      entry.id = image;
+      entry.image = image;
+      dataset.database.push_back(entry);
+    }
+    return dataset;
+  };
+  const Dataset first = make(testing::MakeTempDir("placedb-eval-cache-a"));
+  RunOptions run = SmallRun({300}, {kNoGeom});
+  run.boxes = BoxInput::kDetector;
+  run.confidences = {0.2f};
+  run.detector = YoloxNanoConfig(fs::path(model).parent_path().string());
+  run.detections_cache = testing::MakeTempDir("placedb-eval-cache") + "/cache.json";
+  std::vector<std::string> logged;
+  run.log = [&](const std::string& line) { logged.push_back(line); };
+  auto inputs = PrepareInputs(first, run);
+  ASSERT_TRUE(inputs.ok()) << inputs.status().ToString();
+  // Two distinct contents were detected (and said so), not three paths.
+  EXPECT_NE(std::find_if(logged.begin(), logged.end(),
+                         [](const std::string& line) {
+                           return line.rfind("detection: 2/2 images, mean ", 0) == 0;
+                         }),
+            logged.end());
+  std::ifstream in(run.detections_cache);
+  const nlohmann::json cache = nlohmann::json::parse(in);
+  ASSERT_EQ(cache["images"].size(), 2u);
+  for (const auto& [key, value] : cache["images"].items()) {
+    EXPECT_EQ(key.size(), 16u) << key;  // 64-bit hash in hex, no path
+    EXPECT_EQ(key.find('/'), std::string::npos) << key;
+  }
+  EXPECT_EQ(inputs->database_dynamic[0].boxes.size(), inputs->database_dynamic[1].boxes.size());
+  EXPECT_GT(inputs->database_dynamic[0].boxes.size(), 0u);
+
+  // The same bytes elsewhere: served from the cache, no detector needed.
+  const Dataset moved = make(testing::MakeTempDir("placedb-eval-cache-b"));
+  RunOptions cached = run;
+  cached.detector.model_path = "/no/such/dir/yolox_nano.onnx";  // same model name
+  logged.clear();
+  auto again = PrepareInputs(moved, cached);
+  ASSERT_TRUE(again.ok()) << again.status().ToString();
+  EXPECT_TRUE(logged.empty());
+  for (size_t i = 0; i < moved.database.size(); ++i) {
+    ASSERT_EQ(again->database_dynamic[i].boxes.size(), inputs->database_dynamic[i].boxes.size());
+  }
+  // Changed bytes at a cached path: a miss (the detector is needed, and here it cannot load).
+  fs::copy_file(CamVidDir() + "/images/0001TP_006690.jpg", moved.Resolve("a/other.jpg"),
+                fs::copy_options::overwrite_existing);
+  EXPECT_FALSE(PrepareInputs(moved, cached).ok());
+}
+
 // ---- Live server ----------------------------------------------------------------------------
 
 TEST_F(EvalTest, ServerBackendAgreesWithInProcess) {
@@ -550,6 +789,10 @@ TEST_F(EvalTest, ServerBackendAgreesWithInProcess) {
   run.boxes = BoxInput::kOracle;
   run.masks = MaskInput::kOracle;
   run.filter = FilterMethod::kExactCoverage;
+  // The shape prior needs no pixels, so both sides refine alike (GrabCut would make the server
+  // decode colour, whose grayscale conversion is not libjpeg's grayscale decode that ORB sees
+  // in-process); the short-term tier and re-ranking run on both sides as configured.
+  run.refinement = BoxRefinement::kShape;
   const RunResults local = Evaluate(dataset, run);
   std::vector<std::string> logged;
   auto remote_backend = MakeServerBackend(address, testing::DefaultVocabulary(),

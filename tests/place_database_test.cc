@@ -82,7 +82,10 @@ TEST_F(PlaceDatabaseTest, AddStoresStaticFeaturesAndReportsCounts) {
 }
 
 TEST_F(PlaceDatabaseTest, DynamicDescriptorsAreDroppedNotStored) {
-  auto db = MakeDatabase();
+  // Whole boxes, as the paper filters (box refinement has its own tests).
+  DatabaseConfig whole_boxes;
+  whole_boxes.box_refinement.method = BoxRefinement::kNone;
+  auto db = MakeDatabase(whole_boxes);
   Observation frame = Frame(5);
   // A person box over the left half of the image.
   frame.dynamic.boxes.push_back(
@@ -96,7 +99,7 @@ TEST_F(PlaceDatabaseTest, DynamicDescriptorsAreDroppedNotStored) {
   ASSERT_EQ(added->boxes_used.size(), 1u);
   // The database keeps exactly the SC features: check them through a payload store we hold.
   auto payloads = std::make_shared<InMemoryPayloadStore>();
-  auto observed = PlaceDatabase::Create(vocabulary_, {}, payloads);
+  auto observed = PlaceDatabase::Create(vocabulary_, whole_boxes, payloads);
   ASSERT_TRUE(observed.ok());
   auto again = (*observed)->Add(frame);
   ASSERT_TRUE(again.ok() && again->stored);
@@ -422,6 +425,139 @@ TEST_F(PlaceDatabaseTest, ConcurrentAgentStreamsWithDepthAndLoopClosure) {
   EXPECT_GT(stats.loop_long_term, 0u);
   EXPECT_EQ(db->ResetStream("agent-1").code(), StatusCode::kOk);
   EXPECT_EQ(db->ResetStream("agent-1").code(), StatusCode::kNotFound);
+}
+
+}  // namespace
+}  // namespace placedb
+
+namespace placedb {
+namespace {
+
+class ShortTermTierTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    auto vocabulary = Vocabulary::Load(testing::DefaultVocabularyPath());
+    ASSERT_TRUE(vocabulary.ok()) << vocabulary.status().ToString();
+    vocabulary_ = *vocabulary;
+  }
+
+  // An RTAB-Map frame with a "car" over the middle of the view: neighbouring frames see the
+  // same things there, as a revisit within seconds sees the same parked car.
+  static Observation Frame(int index, int64_t timestamp_s, const std::string& agent = "robot") {
+    Observation observation;
+    observation.image = testing::ReadGray(testing::RtabmapFramePath(index));
+    observation.metadata.agent_id = agent;
+    observation.metadata.sequence = uint64_t(index);
+    observation.metadata.timestamp_ns = timestamp_s * 1'000'000'000;
+    const float w = float(observation.image.cols), h = float(observation.image.rows);
+    observation.dynamic.boxes.push_back(
+        {2, 0.9f, cv::Rect2f(w * 0.3f, h * 0.2f, w * 0.4f, h * 0.6f)});
+    return observation;
+  }
+
+  std::unique_ptr<PlaceDatabase> Make(bool short_term, uint32_t max_places = 5000) {
+    DatabaseConfig config;
+    config.box_refinement.method = BoxRefinement::kNone;
+    config.short_term.enabled = short_term;
+    config.short_term.max_places = max_places;
+    auto db = PlaceDatabase::Create(vocabulary_, config);
+    EXPECT_TRUE(db.ok()) << db.status().ToString();
+    return std::move(db).value();
+  }
+
+  static double ScoreOf(const QueryResult& result, PlaceId place) {
+    for (const Match& match : result.matches) {
+      if (match.place == place) return match.score;
+    }
+    return 0;
+  }
+
+  std::shared_ptr<const Vocabulary> vocabulary_;
+};
+
+TEST_F(ShortTermTierTest, RecentPlacesScoreTheirDynamicWordsOlderOnesDoNot) {
+  auto with_tier = Make(true);
+  auto without = Make(false);
+  auto stored = with_tier->Add(Frame(10, 100));
+  auto stored_plain = without->Add(Frame(10, 100));
+  ASSERT_TRUE(stored.ok() && stored->stored && stored_plain.ok() && stored_plain->stored);
+  ASSERT_GT(stored->counts.dynamic, 20u);
+  EXPECT_EQ(with_tier->Stats().short_term_places, 1u);
+  EXPECT_EQ(without->Stats().short_term_places, 0u);
+
+  auto recent = with_tier->Query(Frame(11, 101), {});
+  auto plain = without->Query(Frame(11, 101), {});
+  ASSERT_TRUE(recent.ok() && plain.ok());
+  const double sc_only = ScoreOf(*plain, stored_plain->id);
+  ASSERT_GT(sc_only, 0);
+  // Inside the horizon the objects both frames saw add to the score...
+  EXPECT_GT(ScoreOf(*recent, stored->id), sc_only * 1.02);
+  // ...beyond it (and with the clock far away either way) the place is scored on SC alone.
+  auto later = with_tier->Query(Frame(11, 100 + 61), {});
+  auto earlier = with_tier->Query(Frame(11, 100 - 61), {});
+  ASSERT_TRUE(later.ok() && earlier.ok());
+  EXPECT_DOUBLE_EQ(ScoreOf(*later, stored->id), sc_only);
+  EXPECT_DOUBLE_EQ(ScoreOf(*earlier, stored->id), sc_only);
+  // Nothing of the tier is stored: the durable counts are SC only.
+  EXPECT_EQ(with_tier->Stats().descriptors_kept, without->Stats().descriptors_kept);
+}
+
+TEST_F(ShortTermTierTest, HorizonAndCapacityEvictAndRemovalForgets) {
+  auto db = Make(true, /*max_places=*/2);
+  auto a = db->Add(Frame(10, 100));
+  auto b = db->Add(Frame(12, 130));
+  ASSERT_TRUE(a.ok() && b.ok() && a->stored && b->stored);
+  EXPECT_EQ(db->Stats().short_term_places, 2u);
+  // Another agent's clock does not evict this agent's places; capacity does.
+  auto c = db->Add(Frame(14, 5, "other"));
+  ASSERT_TRUE(c.ok() && c->stored);
+  EXPECT_EQ(db->Stats().short_term_places, 2u);
+  // The agent's newest observation 70 s on: its places older than 60 s before it leave.
+  auto d = db->Add(Frame(30, 200));
+  ASSERT_TRUE(d.ok()) << d.status().ToString();
+  ASSERT_TRUE(d->stored) << d->rejection << " static " << d->counts.static_ << " total " << d->counts.total;
+  const DatabaseStats stats = db->Stats();
+  EXPECT_LE(stats.short_term_places, 2u);
+  EXPECT_EQ(stats.places, 4u);
+  ASSERT_TRUE(db->Remove(d->id).ok());
+  EXPECT_LT(db->Stats().short_term_places, stats.short_term_places);
+}
+
+TEST(SpatialReRanking, VerifiedCandidatesComeFirstByInliers) {
+  auto vocabulary = Vocabulary::Load(testing::DefaultVocabularyPath());
+  ASSERT_TRUE(vocabulary.ok());
+  for (bool rerank : {false, true}) {
+    DatabaseConfig config;
+    config.verification.mode = VerificationMode::kExhaustive;
+    config.verification.rerank = rerank;
+    auto db = PlaceDatabase::Create(*vocabulary, config);
+    ASSERT_TRUE(db.ok());
+    for (int i = 1; i <= 40; ++i) {
+      Observation frame;
+      frame.image = testing::ReadGray(testing::RtabmapFramePath(i));
+      frame.metadata.sequence = uint64_t(i);
+      ASSERT_TRUE((*db)->Add(frame).ok());
+    }
+    int reordered = 0;
+    for (int q = 41; q <= 84; q += 3) {
+      Observation query;
+      query.image = testing::ReadGray(testing::RtabmapFramePath(q));
+      auto result = (*db)->Query(query, {.top_k = 10});
+      ASSERT_TRUE(result.ok());
+      const auto& m = result->matches;
+      for (size_t i = 1; i < m.size(); ++i) {
+        if (rerank) {
+          EXPECT_FALSE(!m[i - 1].verified && m[i].verified) << "query " << q;
+          if (m[i - 1].verified && m[i].verified) EXPECT_GE(m[i - 1].inliers, m[i].inliers);
+          if (!m[i - 1].verified && !m[i].verified) EXPECT_GE(m[i - 1].score, m[i].score);
+          reordered += m[i - 1].score < m[i].score ? 1 : 0;
+        } else {
+          EXPECT_GE(m[i - 1].score, m[i].score) << "query " << q;
+        }
+      }
+    }
+    if (rerank) EXPECT_GT(reordered, 0) << "re-ranking never changed the BoW order";
+  }
 }
 
 }  // namespace

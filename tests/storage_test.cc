@@ -402,6 +402,10 @@ TEST(Codec, RgbdConfigRoundTripsAndFormat1ConfigsLoadAsOrb) {
   expected.dynamic_classes = {0, 2};
   expected.min_box_confidence = 0.3f;
   expected.verification.mode = VerificationMode::kExhaustive;
+  // Before format 3: whole boxes, no short-term tier, no re-ranking (what those maps did).
+  expected.box_refinement.method = BoxRefinement::kNone;
+  expected.short_term.enabled = false;
+  expected.verification.rerank = false;
   EXPECT_EQ(old->feature_type, FeatureType::kOrb);
   EXPECT_EQ(EncodeDatabaseConfig(*old), EncodeDatabaseConfig(expected));
   // Partial sections keep the defaults of what they leave out.
@@ -1068,6 +1072,41 @@ TEST_F(StorageTest, DepthRemovedCountsSurviveReopen) {
   EXPECT_EQ(invalid[0].counts.depth_removed, invalid_counts.depth_removed);
   EXPECT_EQ(invalid[0].metadata.sequence, sequence);
   EXPECT_NE(invalid[0].reason.find("depth filter"), std::string::npos) << invalid[0].reason;
+}
+
+}  // namespace
+}  // namespace placedb
+
+namespace placedb {
+namespace {
+
+TEST(CodecFormat3, BoxRefinementShortTermAndReRankingRoundTrip) {
+  DatabaseConfig config;
+  config.box_refinement.method = BoxRefinement::kShape;
+  config.box_refinement.max_side = 96;
+  config.box_refinement.dilate_px = 3;
+  config.short_term.enabled = false;
+  config.short_term.horizon_ns = 5'000'000'000;
+  config.short_term.max_places = 77;
+  config.short_term.weight = 0.5f;
+  config.verification.rerank = false;
+  auto decoded = DecodeDatabaseConfig(EncodeDatabaseConfig(config));
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  EXPECT_EQ(decoded->box_refinement.method, BoxRefinement::kShape);
+  EXPECT_EQ(decoded->box_refinement.max_side, 96);
+  EXPECT_EQ(decoded->box_refinement.dilate_px, 3);
+  EXPECT_FALSE(decoded->short_term.enabled);
+  EXPECT_EQ(decoded->short_term.horizon_ns, 5'000'000'000);
+  EXPECT_EQ(decoded->short_term.max_places, 77u);
+  EXPECT_EQ(decoded->short_term.weight, 0.5f);
+  EXPECT_FALSE(decoded->verification.rerank);
+  EXPECT_EQ(EncodeDatabaseConfig(*decoded), EncodeDatabaseConfig(config));
+  // The defaults of a new map: GrabCut, the tier on, re-ranking on.
+  auto defaults = DecodeDatabaseConfig(EncodeDatabaseConfig(DatabaseConfig{}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->box_refinement.method, BoxRefinement::kGrabCut);
+  EXPECT_TRUE(defaults->short_term.enabled);
+  EXPECT_TRUE(defaults->verification.rerank);
 }
 
 }  // namespace
