@@ -272,7 +272,8 @@ struct CreateFlags {
   std::string short_term;  // on | off
   double short_term_horizon_s = 0;
   CLI::Option* short_term_horizon_option = nullptr;
-  std::string rerank;  // on | off
+  std::string rerank;         // on | off
+  std::string static_budget;  // on | off
   float depth_scale = 0;
   float depth_threshold = 0;
   std::string band_policy;
@@ -347,7 +348,8 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
   for (const auto& [name, value] : BoxRefinementNames()) {
     if (value == f.box_refinement()) refinement = name;
   }
-  config.push_back({"refine_boxes", refinement});
+  config.push_back({"refine_boxes",
+                    refinement + ", static_budget " + (f.static_feature_budget() ? "on" : "off")});
   const v1::ShortTermSettings& st = f.short_term();
   config.push_back({"short_term", st.enabled()
                                       ? "on, horizon " + FormatDouble(st.horizon_s(), 0) +
@@ -469,8 +471,12 @@ int MapsCreate(const Connection& connection, const CreateFlags& flags, bool json
   if (!flags.box_refinement.empty()) {
     filter->set_box_refinement(BoxRefinementNames().at(flags.box_refinement));
   }
-  if (!flags.short_term.empty())
+  if (!flags.short_term.empty()) {
     filter->mutable_short_term()->set_enabled(flags.short_term == "on");
+  }
+  if (!flags.static_budget.empty()) {
+    filter->set_static_feature_budget(flags.static_budget == "on");
+  }
   if (flags.short_term_horizon_option->count()) {
     filter->mutable_short_term()->set_horizon_s(flags.short_term_horizon_s);
   }
@@ -857,6 +863,10 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   create_flags.short_term_horizon_option =
       create->add_option("--short-term-horizon", create_flags.short_term_horizon_s,
                          "short-term horizon in seconds (default 60)");
+  create
+      ->add_option("--static-budget", create_flags.static_budget,
+                   "spend the ORB budget on static pixels when objects are known (default on)")
+      ->check(CLI::IsMember({"on", "off"}));
   create
       ->add_option("--rerank", create_flags.rerank,
                    "re-rank verified candidates by inliers (default on)")

@@ -770,6 +770,7 @@ std::string EncodeDatabaseConfig(const DatabaseConfig& c) {
                          {"min_fraction", b.min_fraction},
                          {"max_fraction", b.max_fraction},
                          {"dilate_px", b.dilate_px}};
+  j["static_feature_budget"] = c.static_feature_budget;
   j["short_term"] = {{"enabled", c.short_term.enabled},
                      {"horizon_ns", c.short_term.horizon_ns},
                      {"max_places", c.short_term.max_places},
@@ -824,8 +825,11 @@ Result<DatabaseConfig> DecodeDatabaseConfig(std::string_view text) {
   v.Get("ransac_confidence", &c.verification.ransac_confidence, true);
   v.Get("ransac_max_iterations", &c.verification.ransac_max_iterations, true);
   v.Get("candidates", &c.verification.candidates, true);
-  // Maps written before format 3 keep what they did: whole boxes, no tier, no re-ranking.
+  // Maps written before format 3 keep what they did: whole boxes, the whole frame's feature
+  // budget, no tier, no re-ranking.
   c.verification.rerank = false;
+  c.static_feature_budget = false;
+  root.Get("static_feature_budget", &c.static_feature_budget, format >= 3);
   c.box_refinement.method = BoxRefinement::kNone;
   c.short_term.enabled = false;
   v.Get("rerank", &c.verification.rerank, format >= 3);

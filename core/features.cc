@@ -58,11 +58,14 @@ Result<cv::Mat> ToGray8(const cv::Mat& image) {
   return gray;
 }
 
-Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config) {
+Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config, const cv::Mat& where) {
   PLACEDB_RETURN_IF_ERROR(ValidateOrbConfig(config));
   auto gray_result = ToGray8(image);
   if (!gray_result.ok()) return gray_result.status();
   const cv::Mat& gray = *gray_result;
+  if (!where.empty() && (where.type() != CV_8UC1 || where.size() != gray.size())) {
+    return Status::InvalidArgument("ORB detection mask must be CV_8U and the image's size");
+  }
   // A fresh detector per call: cv::ORB keeps per-call buffers, so sharing one across threads
   // would need a lock; construction is cheap next to detection.
   cv::Ptr<cv::ORB> orb = cv::ORB::create(config.max_features, config.scale_factor, config.levels,
@@ -77,7 +80,11 @@ Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config) {
   std::vector<cv::KeyPoint> cv_keypoints;
   cv::Mat cv_descriptors;
   try {
-    orb->detectAndCompute(gray, cv::noArray(), cv_keypoints, cv_descriptors);
+    if (where.empty()) {
+      orb->detectAndCompute(gray, cv::noArray(), cv_keypoints, cv_descriptors);
+    } else {
+      orb->detectAndCompute(gray, where, cv_keypoints, cv_descriptors);
+    }
   } catch (const cv::Exception& e) {
     return Status::InvalidArgument(std::string("ORB extraction failed on a ") +
                                    std::to_string(gray.cols) + "x" + std::to_string(gray.rows) +

@@ -54,7 +54,10 @@ Result<cv::Mat> ToGray8(const cv::Mat& image);
 
 // Runs ORB on `image` (8-bit grayscale or BGR; BGR is converted). An image with no texture
 // yields an empty set, not an error. An empty or non-8-bit image is INVALID_ARGUMENT.
-Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config);
+// With `where` (CV_8U, image-sized; empty = everywhere), keypoints are detected only on its
+// non-zero pixels; the budget is spent there.
+Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config,
+                              const cv::Mat& where = cv::Mat());
 
 // Validates a precomputed set: image size positive (at most 100000 per side), as many
 // descriptors as keypoints, every keypoint finite, inside [0, width) x [0, height), size > 0,

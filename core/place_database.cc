@@ -190,20 +190,69 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
   } else if (observation.features.has_value()) {
     PLACEDB_RETURN_IF_ERROR(ValidateFeatures(*observation.features));
     features = &*observation.features;
-  } else {
-    auto result = ExtractOrb(observation.image, config_.orb);
-    if (!result.ok()) return result.status();
-    extracted = std::move(result).value();
-    features = &extracted;
   }
-  const int width = sift ? float_features->image_width : features->image_width;
-  const int height = sift ? float_features->image_height : features->image_height;
-  frame.timings.extract_ms = stage.Lap();
 
   DynamicObjects dynamic;
   dynamic.boxes = SelectBoxes(observation.dynamic.boxes);
   dynamic.mask = observation.dynamic.mask;
   frame.boxes_used = dynamic.boxes;
+  // Boxes are narrowed to their objects' pixels on frames without depth (depth refines below).
+  bool refined = false;
+  auto refine = [&](int width, int height) -> Status {
+    refined = true;
+    if (observation.depth.has_value() || config_.box_refinement.method == BoxRefinement::kNone ||
+        dynamic.boxes.empty()) {
+      return Status::Ok();
+    }
+    Stopwatch watch;
+    const bool image_matches = observation.image.cols == width && observation.image.rows == height;
+    auto result = RefineBoxesToMasks(dynamic, image_matches ? observation.image : cv::Mat(), width,
+                                     height, config_.box_refinement);
+    if (!result.ok()) return result.status().WithContext("box refinement");
+    for (const BoxMask& box : result->boxes) frame.boxes_refined += box.segmented ? 1 : 0;
+    dynamic = std::move(result->objects);
+    frame.timings.refine_ms = watch.ElapsedMs();
+    return Status::Ok();
+  };
+
+  if (!sift && !observation.features.has_value()) {
+    // ORB from pixels. With dynamic objects known (and no depth, which decides per pixel later),
+    // the feature budget is spent on the static pixels: the place then keeps as many static
+    // features as a frame without objects. The objects' own features, for the short-term tier,
+    // are those a whole-frame extraction finds on them (as many as without the budget).
+    const bool budget = config_.static_feature_budget && !observation.depth.has_value() &&
+                        (!dynamic.boxes.empty() || !dynamic.mask.empty()) &&
+                        !observation.image.empty();
+    if (budget) {
+      PLACEDB_RETURN_IF_ERROR(refine(observation.image.cols, observation.image.rows));
+      stage.Lap();
+    }
+    const cv::Mat region =
+        budget ? RasterizeDynamicRegion(dynamic, observation.image.cols, observation.image.rows)
+               : cv::Mat();
+    const int dynamic_pixels = region.empty() ? 0 : cv::countNonZero(region);
+    auto whole = ExtractOrb(observation.image, config_.orb);
+    if (!whole.ok()) return whole.status();
+    extracted = std::move(whole).value();
+    if (dynamic_pixels > 0) {
+      auto on_static = ExtractOrb(observation.image, config_.orb, region == 0);
+      if (!on_static.ok()) return on_static.status();
+      std::vector<uint32_t> on_objects;
+      if (config_.short_term.enabled) {
+        for (uint32_t i = 0; i < extracted.size(); ++i) {
+          const Keypoint& kp = extracted.keypoints[i];
+          const int col = std::clamp(int(std::lround(kp.x)), 0, region.cols - 1);
+          const int row = std::clamp(int(std::lround(kp.y)), 0, region.rows - 1);
+          if (region.at<uint8_t>(row, col) != 0) on_objects.push_back(i);
+        }
+      }
+      extracted = ConcatFeatures(*on_static, SelectFeatures(extracted, on_objects));
+    }
+    features = &extracted;
+  }
+  const int width = sift ? float_features->image_width : features->image_width;
+  const int height = sift ? float_features->image_height : features->image_height;
+  frame.timings.extract_ms = stage.Lap();
 
   // ---- Depth: decode, and narrow every dynamic box to its object's depth layer.
   std::optional<CameraIntrinsics> intrinsics;
@@ -235,16 +284,9 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
     frame.timings.depth_ms += stage.Lap();
   }
 
-  // ---- Without depth: narrow the boxes to their objects' pixels.
-  if (!observation.depth.has_value() && config_.box_refinement.method != BoxRefinement::kNone &&
-      !dynamic.boxes.empty()) {
-    const bool image_matches = observation.image.cols == width && observation.image.rows == height;
-    auto refined = RefineBoxesToMasks(dynamic, image_matches ? observation.image : cv::Mat(), width,
-                                      height, config_.box_refinement);
-    if (!refined.ok()) return refined.status().WithContext("box refinement");
-    for (const BoxMask& box : refined->boxes) frame.boxes_refined += box.segmented ? 1 : 0;
-    dynamic = std::move(refined->objects);
-    frame.timings.refine_ms = stage.Lap();
+  if (!refined) {
+    PLACEDB_RETURN_IF_ERROR(refine(width, height));
+    stage.Lap();
   }
 
   // ---- DC/SC.

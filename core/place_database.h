@@ -91,6 +91,10 @@ struct DatabaseConfig {
   // Boxes are narrowed to their objects' pixels before filtering (frames without depth; with
   // depth, `depth.refine_boxes` applies instead).
   BoxRefinementConfig box_refinement;
+  // ORB from pixels with dynamic objects known (no depth): detect `orb.max_features` on the
+  // static pixels (plus an area share on the objects for the short-term tier) instead of on the
+  // whole frame, so filtering does not shrink the place's static features.
+  bool static_feature_budget = true;
   ShortTermConfig short_term;
   // Boxes of these COCO classes at or above this confidence count as dynamic objects.
   std::vector<int> dynamic_classes = {0, 1, 2, 3, 5, 7};

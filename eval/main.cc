@@ -219,11 +219,15 @@ int main(int argc, char** argv) {
                   "detections JSON reused across runs (default: in --cache-dir)");
   run->add_option("--cache-dir", cache_dir,
                   "directory of the detections cache, keyed by image content (default: --out)");
-  std::string refinement = "grabcut", short_term = "on";
+  std::string refinement = "grabcut", short_term = "on", static_budget = "on";
   double short_term_horizon_s = 60;
   run->add_option("--refine-boxes", refinement, "BoBW+DO: none | shape | grabcut")
       ->capture_default_str();
   run->add_option("--short-term", short_term, "BoBW+DO: the short-term tier of DC words: on | off")
+      ->check(CLI::IsMember({"on", "off"}))
+      ->capture_default_str();
+  run->add_option("--static-budget", static_budget,
+                  "BoBW+DO: spend the ORB budget on static pixels: on | off")
       ->check(CLI::IsMember({"on", "off"}))
       ->capture_default_str();
   run->add_option("--short-term-horizon", short_term_horizon_s, "short-term horizon, seconds")
@@ -349,6 +353,7 @@ int main(int argc, char** argv) {
   if (!refine.ok()) return Fail(refine.status());
   options.refinement = *refine;
   options.short_term = short_term == "on";
+  options.static_budget = static_budget == "on";
   options.short_term_config.horizon_ns = int64_t(short_term_horizon_s * 1e9);
   if (options.boxes == BoxInput::kDetector) {
     auto backend = ParseDetectorBackend(detector_backend);

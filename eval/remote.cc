@@ -75,6 +75,7 @@ v1::MapConfig ToProto(const DatabaseConfig& config, bool filtering) {
   map.mutable_verification()->set_min_inliers(config.verification.min_inliers);
   map.mutable_verification()->set_candidates(config.verification.candidates);
   map.mutable_verification()->set_rerank(config.verification.rerank);
+  map.mutable_filter()->set_static_feature_budget(config.static_feature_budget);
   switch (config.box_refinement.method) {
     case BoxRefinement::kNone:
       map.mutable_filter()->set_box_refinement(v1::BOX_REFINEMENT_NONE);

@@ -270,6 +270,7 @@ class InProcessBackend final : public Backend {
     const size_t n = dataset.database.size() + dataset.queries.size();
     std::vector<FeatureSet> extracted(n);
     std::vector<cv::Mat> images(n);
+    std::vector<cv::Mat> grays(n);
     std::vector<Status> errors(n);
     std::vector<double> ms(n, 0.0);
     ParallelFor(n, threads_, [&](size_t i) {
@@ -281,6 +282,7 @@ class InProcessBackend final : public Backend {
       // server's box refinement sees.
       cv::Mat gray = cv::imread(path, cv::IMREAD_GRAYSCALE);
       images[i] = cv::imread(path, cv::IMREAD_COLOR);
+      grays[i] = gray;
       if (gray.empty() || images[i].empty()) {
         errors[i] = Status::IoError("cannot read " + path);
         return;
@@ -304,6 +306,8 @@ class InProcessBackend final : public Backend {
     database_images_.assign(images.begin(),
                             images.begin() + std::ptrdiff_t(dataset.database.size()));
     query_images_.assign(images.begin() + std::ptrdiff_t(dataset.database.size()), images.end());
+    database_gray_.assign(grays.begin(), grays.begin() + std::ptrdiff_t(dataset.database.size()));
+    query_gray_.assign(grays.begin() + std::ptrdiff_t(dataset.database.size()), grays.end());
     double total = 0;
     for (double value : ms) total += value;
     extract_mean_ms_ = n ? total / double(n) : 0;
@@ -316,6 +320,10 @@ class InProcessBackend final : public Backend {
     auto created = PlaceDatabase::Create(vocabulary_, config);
     if (!created.ok()) return created.status();
     PlaceDatabase& db = **created;
+    // The static feature budget needs the pixels: ORB then runs in the pipeline, as in the
+    // server, instead of the features extracted once per budget.
+    const bool pixels_only = filtering && config.static_feature_budget;
+    colour_for_boxes_ = config.box_refinement.method == BoxRefinement::kGrabCut;
     MethodRun run;
     Stopwatch build;
 
@@ -323,7 +331,7 @@ class InProcessBackend final : public Backend {
     std::vector<std::optional<ProcessedFrame>> processed(n);
     std::vector<Status> errors(n);
     ParallelFor(n, threads_, [&](size_t i) {
-      auto frame = db.Process(Observe(inputs, i, false, filtering));
+      auto frame = db.Process(Observe(inputs, i, false, filtering, pixels_only));
       if (!frame.ok()) {
         errors[i] = frame.status().WithContext("database entry " + dataset.database[i].id);
         return;
@@ -363,7 +371,7 @@ class InProcessBackend final : public Backend {
     query_options.top_k = top_k;
     const bool verification = config.verification.mode != VerificationMode::kDisabled;
     for (size_t q = 0; q < dataset.queries.size(); ++q) {
-      auto result = db.Query(Observe(inputs, q, true, filtering), query_options);
+      auto result = db.Query(Observe(inputs, q, true, filtering, pixels_only), query_options);
       if (!result.ok()) return result.status().WithContext("query " + dataset.queries[q].id);
       std::vector<RankedMatch> ranked;
       for (const Match& match : result->matches) {
@@ -390,13 +398,22 @@ class InProcessBackend final : public Backend {
     return metadata;
   }
 
-  Observation Observe(const EvalInputs& inputs, size_t i, bool query, bool filtering) const {
+  Observation Observe(const EvalInputs& inputs, size_t i, bool query, bool filtering,
+                      bool pixels_only) const {
     Observation observation;
-    observation.features = query ? query_features_[i] : database_features_[i];
+    const DynamicObjects& dynamic = query ? inputs.query_dynamic[i] : inputs.database_dynamic[i];
+    const bool objects = filtering && (!dynamic.boxes.empty() || !dynamic.mask.empty());
+    // Without objects the pipeline extracts what was extracted once per budget: reuse it.
+    if (!pixels_only || !objects) {
+      observation.features = query ? query_features_[i] : database_features_[i];
+    }
     if (filtering) {
-      observation.dynamic = query ? inputs.query_dynamic[i] : inputs.database_dynamic[i];
-      // The pixels, for box refinement (the features stay the precomputed ones).
-      observation.image = query ? query_images_[i] : database_images_[i];
+      observation.dynamic = dynamic;
+      // The pixels, as the server decodes them: colour when GrabCut refines the boxes, else the
+      // grayscale decode that ORB sees.
+      observation.image = colour_for_boxes_ && !dynamic.boxes.empty()
+                              ? (query ? query_images_[i] : database_images_[i])
+                              : (query ? query_gray_[i] : database_gray_[i]);
     }
     const Entry& entry = query ? inputs.dataset->queries[i] : inputs.dataset->database[i];
     observation.metadata = Metadata(entry, i);
@@ -409,6 +426,9 @@ class InProcessBackend final : public Backend {
   std::vector<FeatureSet> query_features_;
   std::vector<cv::Mat> database_images_;  // BGR
   std::vector<cv::Mat> query_images_;
+  std::vector<cv::Mat> database_gray_;  // the grayscale decode
+  std::vector<cv::Mat> query_gray_;
+  bool colour_for_boxes_ = false;  // set by Run() for its configuration
   double extract_mean_ms_ = 0;
 };
 
@@ -453,6 +473,7 @@ std::string DynamicSourceName(const RunOptions& options) {
                   double(options.short_term_config.weight));
     source += tier;
   }
+  if (options.static_budget) source += ", static feature budget";
   if (options.rerank > 0) source += ", re-rank top " + std::to_string(options.rerank);
   return source;
 }
@@ -583,6 +604,7 @@ DatabaseConfig MakeDatabaseConfig(const RunOptions& options, int features, int g
     config.box_refinement.method = options.refinement;
     config.short_term = options.short_term_config;
     config.short_term.enabled = options.short_term;
+    config.static_feature_budget = options.static_budget;
   }
   return config;
 }

@@ -59,11 +59,13 @@ struct RunOptions {
   float sensitivity = 0.25f;  // exact_coverage only
   int place_threshold = 20;
   // The defaults below are the service's (a map created with default settings); the paper's
-  // BoBW+DO is --refine-boxes none --short-term off --rerank 0.
+  // BoBW+DO is --refine-boxes none --short-term off --static-budget off --rerank 0.
   // BoBW+DO: boxes narrowed to their objects' pixels (core/box_masks.h) before filtering.
   BoxRefinement refinement = BoxRefinement::kGrabCut;
   // BoBW+DO: the short-term tier of DC words (core/place_database.h, ShortTermConfig).
   bool short_term = true;
+  // BoBW+DO: ORB's budget spent on the static pixels (DatabaseConfig::static_feature_budget).
+  bool static_budget = true;
   ShortTermConfig short_term_config;
   // Both methods: verify the best `rerank` candidates and re-rank them by inliers (spatial
   // re-ranking); 0 = verify the best candidate only, as DBoW2's loop detector does.

@@ -522,6 +522,7 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, const Limits& lim
   d.filter.method = *method;
   if (f.has_sensitivity_threshold()) d.filter.sensitivity_threshold = f.sensitivity_threshold();
   if (f.has_place_threshold()) d.filter.place_threshold = f.place_threshold();
+  d.static_feature_budget = !f.has_static_feature_budget() || f.static_feature_budget();
   auto refinement = BoxRefinementFromProto(f.box_refinement());
   if (!refinement.ok()) return refinement.status();
   d.box_refinement.method = *refinement;
@@ -625,6 +626,7 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
   f->set_sensitivity_threshold(d.filter.sensitivity_threshold);
   f->set_place_threshold(d.filter.place_threshold);
   f->set_box_refinement(BoxRefinementToProto(d.box_refinement.method));
+  f->set_static_feature_budget(d.static_feature_budget);
   v1::ShortTermSettings* st = f->mutable_short_term();
   st->set_enabled(d.short_term.enabled);
   st->set_horizon_s(double(d.short_term.horizon_ns) / 1e9);

@@ -252,6 +252,7 @@ TEST_F(EvalTest, RtabmapLoopMatchesTheRecognitionTest) {
 
   RunOptions run = SmallRun({500}, {kNoGeom, 6});
   run.boxes = BoxInput::kNone;  // nothing annotated: BoBW+DO sees no dynamic objects
+  run.rerank = 0;               // verification of the best candidate only
   const RunResults results = Evaluate(*dataset, run);
   const MethodRun* plain = Find(results, 500, kNoGeom, kBoBW);
   const MethodRun* verified = Find(results, 500, 6, kBoBW);

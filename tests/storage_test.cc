@@ -406,6 +406,7 @@ TEST(Codec, RgbdConfigRoundTripsAndFormat1ConfigsLoadAsOrb) {
   expected.box_refinement.method = BoxRefinement::kNone;
   expected.short_term.enabled = false;
   expected.verification.rerank = false;
+  expected.static_feature_budget = false;
   EXPECT_EQ(old->feature_type, FeatureType::kOrb);
   EXPECT_EQ(EncodeDatabaseConfig(*old), EncodeDatabaseConfig(expected));
   // Partial sections keep the defaults of what they leave out.
@@ -1090,6 +1091,7 @@ TEST(CodecFormat3, BoxRefinementShortTermAndReRankingRoundTrip) {
   config.short_term.max_places = 77;
   config.short_term.weight = 0.5f;
   config.verification.rerank = false;
+  config.static_feature_budget = false;
   auto decoded = DecodeDatabaseConfig(EncodeDatabaseConfig(config));
   ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
   EXPECT_EQ(decoded->box_refinement.method, BoxRefinement::kShape);
@@ -1100,13 +1102,15 @@ TEST(CodecFormat3, BoxRefinementShortTermAndReRankingRoundTrip) {
   EXPECT_EQ(decoded->short_term.max_places, 77u);
   EXPECT_EQ(decoded->short_term.weight, 0.5f);
   EXPECT_FALSE(decoded->verification.rerank);
+  EXPECT_FALSE(decoded->static_feature_budget);
   EXPECT_EQ(EncodeDatabaseConfig(*decoded), EncodeDatabaseConfig(config));
-  // The defaults of a new map: GrabCut, the tier on, re-ranking on.
+  // The defaults of a new map: GrabCut, the static budget, the tier and re-ranking on.
   auto defaults = DecodeDatabaseConfig(EncodeDatabaseConfig(DatabaseConfig{}));
   ASSERT_TRUE(defaults.ok());
   EXPECT_EQ(defaults->box_refinement.method, BoxRefinement::kGrabCut);
   EXPECT_TRUE(defaults->short_term.enabled);
   EXPECT_TRUE(defaults->verification.rerank);
+  EXPECT_TRUE(defaults->static_feature_budget);
 }
 
 }  // namespace
