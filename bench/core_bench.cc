@@ -24,6 +24,7 @@
 #include <thread>
 #include <vector>
 
+#include "bench/bench_output.h"
 #include "core/features.h"
 #include "core/place_index.h"
 #include "core/scoring.h"
@@ -31,24 +32,15 @@
 
 namespace fs = std::filesystem;
 using namespace placedb;
+using bench::Median;
+using bench::Print;
 
 namespace {
-
-double Median(std::vector<double> values) {
-  if (values.empty()) return 0;
-  std::sort(values.begin(), values.end());
-  return values[values.size() / 2];
-}
 
 double NowMs() {
   return std::chrono::duration<double, std::milli>(
              std::chrono::steady_clock::now().time_since_epoch())
       .count();
-}
-
-void Print(const std::string& name, double value, const char* unit) {
-  std::printf("%s %.4g %s\n", name.c_str(), value, unit);
-  std::fflush(stdout);
 }
 
 std::vector<std::string> SourceImages(const std::string& shared) {

@@ -23,10 +23,12 @@
 #include <thread>
 #include <vector>
 
+#include "bench/bench_output.h"
 #include "core/detector.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;
+using bench::Print;
 
 namespace {
 
@@ -40,11 +42,6 @@ double Percentile(std::vector<double> values, double fraction) {
   if (values.empty()) return 0;
   std::sort(values.begin(), values.end());
   return values[std::min(values.size() - 1, size_t(fraction * double(values.size())))];
-}
-
-void Print(const std::string& name, double value, const char* unit) {
-  std::printf("%s %.4g %s\n", name.c_str(), value, unit);
-  std::fflush(stdout);
 }
 
 std::vector<std::string> ListImages(const std::string& dir) {

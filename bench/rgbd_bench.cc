@@ -40,6 +40,7 @@
 #include <string>
 #include <vector>
 
+#include "bench/bench_output.h"
 #include "core/any_vocabulary.h"
 #include "core/float_vocabulary.h"
 #include "core/place_database.h"
@@ -49,21 +50,12 @@
 #include "rgbd/rgbd_support.h"
 
 using namespace placedb;
+using bench::Median;
+using bench::Print;
 
 namespace {
 
 const char kAgent[] = "bench";
-
-double Median(std::vector<double> values) {
-  if (values.empty()) return 0;
-  std::sort(values.begin(), values.end());
-  return values[values.size() / 2];
-}
-
-void Print(const std::string& name, double value, const char* unit) {
-  std::printf("%s %.4g %s\n", name.c_str(), value, unit);
-  std::fflush(stdout);
-}
 
 void PrintLoad(const char* when) {
   double load[3] = {0, 0, 0};

@@ -20,10 +20,12 @@
 #include <sstream>
 #include <thread>
 
+#include "bench/bench_output.h"
 #include "core/map_store.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;
+using bench::Print;
 
 namespace {
 
@@ -31,11 +33,6 @@ double NowMs() {
   return std::chrono::duration<double, std::milli>(
              std::chrono::steady_clock::now().time_since_epoch())
       .count();
-}
-
-void Print(const std::string& name, double value, const char* unit) {
-  std::printf("%s %.4g %s\n", name.c_str(), value, unit);
-  std::fflush(stdout);
 }
 
 struct Frame {

@@ -231,22 +231,21 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
         budget ? RasterizeDynamicRegion(dynamic, observation.image.cols, observation.image.rows)
                : cv::Mat();
     const int dynamic_pixels = region.empty() ? 0 : cv::countNonZero(region);
-    auto whole = ExtractOrb(observation.image, config_.orb);
-    if (!whole.ok()) return whole.status();
-    extracted = std::move(whole).value();
-    if (dynamic_pixels > 0) {
-      auto on_static = ExtractOrb(observation.image, config_.orb, region == 0);
-      if (!on_static.ok()) return on_static.status();
+    auto result =
+        ExtractOrb(observation.image, config_.orb, dynamic_pixels > 0 ? region == 0 : cv::Mat());
+    if (!result.ok()) return result.status();
+    extracted = std::move(result).value();
+    if (dynamic_pixels > 0 && config_.short_term.enabled) {
+      auto whole = ExtractOrb(observation.image, config_.orb);
+      if (!whole.ok()) return whole.status();
       std::vector<uint32_t> on_objects;
-      if (config_.short_term.enabled) {
-        for (uint32_t i = 0; i < extracted.size(); ++i) {
-          const Keypoint& kp = extracted.keypoints[i];
-          const int col = std::clamp(int(std::lround(kp.x)), 0, region.cols - 1);
-          const int row = std::clamp(int(std::lround(kp.y)), 0, region.rows - 1);
-          if (region.at<uint8_t>(row, col) != 0) on_objects.push_back(i);
-        }
+      for (uint32_t i = 0; i < whole->size(); ++i) {
+        const Keypoint& kp = whole->keypoints[i];
+        const int col = std::clamp(int(std::lround(kp.x)), 0, region.cols - 1);
+        const int row = std::clamp(int(std::lround(kp.y)), 0, region.rows - 1);
+        if (region.at<uint8_t>(row, col) != 0) on_objects.push_back(i);
       }
-      extracted = ConcatFeatures(*on_static, SelectFeatures(extracted, on_objects));
+      extracted = ConcatFeatures(extracted, SelectFeatures(*whole, on_objects));
     }
     features = &extracted;
   }
@@ -719,14 +718,11 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
       candidates.emplace_back(scored, records_.at(scored.place));
     }
     if (!frame.dynamic_features.empty() && !short_term_.empty()) {
-      const int64_t now =
-          options.timestamp_ns > 0 ? options.timestamp_ns : short_term_by_time_.rbegin()->first;
+      const int64_t now = ShortTermNowLocked(options.timestamp_ns);
       recent_dynamic.resize(candidates.size());
       for (size_t i = 0; i < candidates.size(); ++i) {
         auto it = short_term_.find(candidates[i].first.place);
-        if (it == short_term_.end() || !it->second.dynamic_features) continue;
-        const int64_t t = it->second.timestamp_ns;
-        if (t <= now + config_.short_term.horizon_ns && t >= now - config_.short_term.horizon_ns) {
+        if (it != short_term_.end() && InHorizon(it->second, now)) {
           recent_dynamic[i] = it->second.dynamic_features;
         }
       }
@@ -819,6 +815,14 @@ DatabaseStats PlaceDatabase::Stats() const {
   stats.short_term_bytes = short_term_index_.MemoryBytes();
   for (const auto& [id, entry] : short_term_) {
     stats.short_term_bytes += sizeof(entry) + entry.dynamic_bow.capacity() * sizeof(BowEntry);
+    if (entry.dynamic_features) {
+      const auto& [features, direct] = *entry.dynamic_features;
+      stats.short_term_bytes +=
+          features.keypoints.capacity() * sizeof(Keypoint) +
+          features.descriptors.capacity() * sizeof(Descriptor256) +
+          (direct.node_ids.capacity() + direct.offsets.capacity() + direct.feature_ids.capacity()) *
+              sizeof(uint32_t);
+    }
   }
   lock.unlock();
   for (const auto& stream : streams_->All()) {
@@ -867,6 +871,15 @@ void PlaceDatabase::AddShortTermLocked(PlaceId place, const PlaceMetadata& metad
   }
 }
 
+int64_t PlaceDatabase::ShortTermNowLocked(int64_t query_timestamp_ns) const {
+  return query_timestamp_ns > 0 ? query_timestamp_ns : short_term_by_time_.rbegin()->first;
+}
+
+bool PlaceDatabase::InHorizon(const ShortTermEntry& entry, int64_t now) const {
+  const int64_t horizon = config_.short_term.horizon_ns;
+  return entry.timestamp_ns <= now + horizon && entry.timestamp_ns >= now - horizon;
+}
+
 void PlaceDatabase::RemoveShortTermLocked(PlaceId place) {
   auto it = short_term_.find(place);
   if (it == short_term_.end()) return;
@@ -885,12 +898,11 @@ std::vector<ScoredPlace> PlaceDatabase::ShortTermBonusLocked(const ProcessedFram
                                                              int64_t timestamp_ns) const {
   std::vector<ScoredPlace> bonus;
   if (short_term_.empty()) return bonus;
-  const int64_t now = timestamp_ns > 0 ? timestamp_ns : short_term_by_time_.rbegin()->first;
-  const int64_t horizon = config_.short_term.horizon_ns;
+  const int64_t now = ShortTermNowLocked(timestamp_ns);
   const double query_share = DynamicShare(frame.counts);
   for (const ScoredPlace& scored : short_term_index_.Query(frame.dynamic_bow, short_term_.size())) {
     const ShortTermEntry& entry = short_term_.at(scored.place);
-    if (entry.timestamp_ns > now + horizon || entry.timestamp_ns < now - horizon) continue;
+    if (!InHorizon(entry, now)) continue;
     const double share = std::min({query_share, entry.dynamic_share, 0.9});
     bonus.push_back(
         {scored.place, double(config_.short_term.weight) * scored.score * share / (1.0 - share)});

@@ -402,6 +402,10 @@ class PlaceDatabase {
   void AddShortTermLocked(PlaceId place, const PlaceMetadata& metadata,
                           const ProcessedFrame& frame);
   void RemoveShortTermLocked(PlaceId place);
+  // The tier's clock for a query: its own timestamp, else the newest place's (tier not empty).
+  int64_t ShortTermNowLocked(int64_t query_timestamp_ns) const;
+  struct ShortTermEntry;
+  bool InHorizon(const ShortTermEntry& entry, int64_t now) const;
   // The tier's score bonuses for a query (reader lock held).
   std::vector<ScoredPlace> ShortTermBonusLocked(const ProcessedFrame& frame,
                                                 int64_t timestamp_ns) const;

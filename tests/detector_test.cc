@@ -18,6 +18,7 @@
 #include <thread>
 #include <vector>
 
+#include "core/box_masks.h"
 #include "tests/test_support.h"
 
 namespace fs = std::filesystem;
@@ -819,6 +820,62 @@ TEST(DetectorModelFiles, YoloxLoadsWithTheExpectedOutput) {
   auto boxes = (*created)->Detect(ReadColour(std::string(kDarknetSamples) + "/person.jpg"));
   ASSERT_TRUE(boxes.ok()) << boxes.status().ToString();
   EXPECT_TRUE(HasBox(*boxes, {0}, 0.5f)) << BoxesToString(*boxes);
+}
+
+}  // namespace
+}  // namespace placedb
+
+namespace placedb {
+namespace {
+
+// The union of YOLOX boxes (confidence 0.2) against CamVid's dynamic label pixels, as whole boxes
+// and refined (core/box_masks.h): how much of what is marked dynamic is on an object
+// (precision), and how much of the objects' pixels inside the boxes stays marked (recall).
+TEST(DetectorBoxRefinement, RefinedDetectorBoxesMarkLessBackground) {
+  REQUIRE_MODELS();
+  const Detector* detector = CachedDetector(DetectorBackend::kYoloxOnnx);
+  ASSERT_NE(detector, nullptr);
+  std::map<BoxRefinement, double> marked, on_object, object_in_boxes, object_kept;
+  size_t boxes = 0;
+  for (const CamVidFrame& frame : EvaluationFrames()) {
+    const cv::Mat image = ReadColour(frame.image_path);
+    const cv::Mat object = testing::CamVidDynamicMask(frame) != 0;
+    DynamicObjects objects;
+    for (const DynamicBox& box : DetectOrFail(*detector, image)) {
+      if (box.class_id == 0 || box.class_id == 1 || box.class_id == 2 || box.class_id == 3 ||
+          box.class_id == 5 || box.class_id == 7) {
+        objects.boxes.push_back(box);
+      }
+    }
+    boxes += objects.boxes.size();
+    const cv::Mat whole = RasterizeDynamicRegion(objects, image.cols, image.rows) != 0;
+    for (BoxRefinement method :
+         {BoxRefinement::kNone, BoxRefinement::kShape, BoxRefinement::kGrabCut}) {
+      BoxRefinementConfig config;
+      config.method = method;
+      auto refined = RefineBoxesToMasks(objects, image, image.cols, image.rows, config);
+      ASSERT_TRUE(refined.ok()) << refined.status().ToString();
+      const cv::Mat region = RasterizeDynamicRegion(refined->objects, image.cols, image.rows) != 0;
+      marked[method] += cv::countNonZero(region);
+      on_object[method] += cv::countNonZero(region & object);
+      object_in_boxes[method] += cv::countNonZero(whole & object);
+      object_kept[method] += cv::countNonZero(region & object);
+    }
+  }
+  ASSERT_GT(boxes, 50u);
+  auto precision = [&](BoxRefinement m) { return on_object[m] / marked[m]; };
+  auto recall = [&](BoxRefinement m) { return object_kept[m] / object_in_boxes[m]; };
+  std::printf(
+      "[refine] %zu YOLOX boxes: on-object share of marked pixels: boxes %.3f, shape %.3f, "
+      "grabcut %.3f; object pixels in boxes still marked: shape %.3f, grabcut %.3f; marked "
+      "pixels vs boxes: shape %.3f, grabcut %.3f\n",
+      boxes, precision(BoxRefinement::kNone), precision(BoxRefinement::kShape),
+      precision(BoxRefinement::kGrabCut), recall(BoxRefinement::kShape),
+      recall(BoxRefinement::kGrabCut), marked[BoxRefinement::kShape] / marked[BoxRefinement::kNone],
+      marked[BoxRefinement::kGrabCut] / marked[BoxRefinement::kNone]);
+  EXPECT_GT(precision(BoxRefinement::kShape), precision(BoxRefinement::kNone));
+  EXPECT_GT(precision(BoxRefinement::kGrabCut), precision(BoxRefinement::kShape));
+  EXPECT_GT(recall(BoxRefinement::kGrabCut), 0.75);
 }
 
 }  // namespace

@@ -547,21 +547,29 @@ TEST(SpatialReRanking, VerifiedCandidatesComeFirstByInliers) {
     for (int q = 41; q <= 84; q += 3) {
       Observation query;
       query.image = testing::ReadGray(testing::RtabmapFramePath(q));
-      auto result = (*db)->Query(query, {.top_k = 10});
+      QueryOptions options;
+      options.top_k = 10;
+      auto result = (*db)->Query(query, options);
       ASSERT_TRUE(result.ok());
       const auto& m = result->matches;
       for (size_t i = 1; i < m.size(); ++i) {
         if (rerank) {
           EXPECT_FALSE(!m[i - 1].verified && m[i].verified) << "query " << q;
-          if (m[i - 1].verified && m[i].verified) EXPECT_GE(m[i - 1].inliers, m[i].inliers);
-          if (!m[i - 1].verified && !m[i].verified) EXPECT_GE(m[i - 1].score, m[i].score);
+          if (m[i - 1].verified && m[i].verified) {
+            EXPECT_GE(m[i - 1].inliers, m[i].inliers);
+          }
+          if (!m[i - 1].verified && !m[i].verified) {
+            EXPECT_GE(m[i - 1].score, m[i].score);
+          }
           reordered += m[i - 1].score < m[i].score ? 1 : 0;
         } else {
           EXPECT_GE(m[i - 1].score, m[i].score) << "query " << q;
         }
       }
     }
-    if (rerank) EXPECT_GT(reordered, 0) << "re-ranking never changed the BoW order";
+    if (rerank) {
+      EXPECT_GT(reordered, 0) << "re-ranking never changed the BoW order";
+    }
   }
 }
 
