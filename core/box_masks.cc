@@ -82,7 +82,9 @@ bool SegmentBox(const cv::Mat& bgr, const cv::Rect& box, int class_id,
   cv::Mat labels(small.size(), CV_8U, cv::Scalar(cv::GC_BGD));
   labels(inner).setTo(cv::GC_PR_BGD);
   DrawShape(inner, class_id, cv::GC_PR_FGD, &labels);
-  const int foreground = cv::countNonZero(labels == cv::GC_PR_FGD);
+  cv::Mat probable_object;
+  cv::compare(labels, cv::GC_PR_FGD, probable_object, cv::CMP_EQ);
+  const int foreground = cv::countNonZero(probable_object);
   const int background = int(labels.total()) - foreground;
   if (foreground < 8 || background < 8) return false;
   const uint64_t seed = (uint64_t(uint32_t(box.x)) << 48) ^ (uint64_t(uint32_t(box.y)) << 32) ^
@@ -95,10 +97,15 @@ bool SegmentBox(const cv::Mat& bgr, const cv::Rect& box, int class_id,
   } catch (const cv::Exception&) {
     return false;  // degenerate colour models (e.g. a flat patch): the shape prior stands
   }
-  cv::Mat fg = (labels == cv::GC_FGD) | (labels == cv::GC_PR_FGD);
+  // Object = GC_FGD (1) or GC_PR_FGD (3): the labels' lowest bit. (Plain functions, not
+  // cv::MatExpr, whose lazily created operator objects live in uninstrumented OpenCV where
+  // ThreadSanitizer cannot see their initialisation.)
+  cv::Mat fg;
+  cv::bitwise_and(labels, cv::Scalar(1), fg);
+  fg.convertTo(fg, CV_8U, 255.0);
   cv::Mat full;
   cv::resize(fg, full, context.size(), 0, 0, cv::INTER_LINEAR);
-  full = full > 127;
+  cv::threshold(full, full, 127, 255, cv::THRESH_BINARY);
   if (config.dilate_px > 0) {
     const int k = 2 * config.dilate_px + 1;
     cv::dilate(full, full, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(k, k)));
@@ -180,8 +187,8 @@ Result<BoxRefinementResult> RefineBoxesToMasks(const DynamicObjects& objects, co
     for (const DynamicBox& box : objects.boxes) out.boxes.push_back({box, false, 1.0});
     return out;
   }
-  cv::Mat mask =
-      objects.mask.empty() ? cv::Mat::zeros(height, width, CV_8U) : cv::Mat(objects.mask != 0);
+  cv::Mat mask(height, width, CV_8U, cv::Scalar(0));
+  if (!objects.mask.empty()) cv::compare(objects.mask, 0, mask, cv::CMP_NE);
   cv::Mat bgr;
   if (config.method == BoxRefinement::kGrabCut && !image.empty()) {
     if (image.channels() == 3) {
@@ -210,7 +217,7 @@ Result<BoxRefinementResult> RefineBoxesToMasks(const DynamicObjects& objects, co
         continue;
       }
     }
-    cv::Mat shape = cv::Mat::zeros(pixels.size(), CV_8U);
+    cv::Mat shape(pixels.size(), CV_8U, cv::Scalar(0));
     DrawShape(cv::Rect(0, 0, pixels.width, pixels.height), box.class_id, 255, &shape);
     refined.object_fraction = double(cv::countNonZero(shape)) / double(pixels.area());
     cv::Mat target = mask(pixels);

@@ -231,8 +231,9 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
         budget ? RasterizeDynamicRegion(dynamic, observation.image.cols, observation.image.rows)
                : cv::Mat();
     const int dynamic_pixels = region.empty() ? 0 : cv::countNonZero(region);
-    auto result =
-        ExtractOrb(observation.image, config_.orb, dynamic_pixels > 0 ? region == 0 : cv::Mat());
+    cv::Mat static_pixels;
+    if (dynamic_pixels > 0) cv::compare(region, 0, static_pixels, cv::CMP_EQ);
+    auto result = ExtractOrb(observation.image, config_.orb, static_pixels);
     if (!result.ok()) return result.status();
     extracted = std::move(result).value();
     if (dynamic_pixels > 0 && config_.short_term.enabled) {
