@@ -344,7 +344,7 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
   config.push_back({"filter", FilterName(f.method()) + ", sensitivity " +
                                   FormatDouble(f.sensitivity_threshold(), 2) +
                                   ", place_threshold " + std::to_string(f.place_threshold())});
-  std::string refinement = "grabcut";
+  std::string refinement = "shape";
   for (const auto& [name, value] : BoxRefinementNames()) {
     if (value == f.box_refinement()) refinement = name;
   }
@@ -854,7 +854,7 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
                          "a frame is a place iff static descriptors > N (default 20)");
   create
       ->add_option("--refine-boxes", create_flags.box_refinement,
-                   "narrow boxes to their objects without depth (default grabcut)")
+                   "narrow boxes to their objects without depth (default shape)")
       ->check(CLI::IsMember(Keys(BoxRefinementNames())));
   create
       ->add_option("--short-term", create_flags.short_term,

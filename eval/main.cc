@@ -219,7 +219,7 @@ int main(int argc, char** argv) {
                   "detections JSON reused across runs (default: in --cache-dir)");
   run->add_option("--cache-dir", cache_dir,
                   "directory of the detections cache, keyed by image content (default: --out)");
-  std::string refinement = "grabcut", short_term = "on", static_budget = "on";
+  std::string refinement = "shape", short_term = "on", static_budget = "on";
   double short_term_horizon_s = 60;
   run->add_option("--refine-boxes", refinement, "BoBW+DO: none | shape | grabcut")
       ->capture_default_str();

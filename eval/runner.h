@@ -61,7 +61,7 @@ struct RunOptions {
   // The defaults below are the service's (a map created with default settings); the paper's
   // BoBW+DO is --refine-boxes none --short-term off --static-budget off --rerank 0.
   // BoBW+DO: boxes narrowed to their objects' pixels (core/box_masks.h) before filtering.
-  BoxRefinement refinement = BoxRefinement::kGrabCut;
+  BoxRefinement refinement = BoxRefinement::kShape;
   // BoBW+DO: the short-term tier of DC words (core/place_database.h, ShortTermConfig).
   bool short_term = true;
   // BoBW+DO: ORB's budget spent on the static pixels (DatabaseConfig::static_feature_budget).

@@ -128,11 +128,11 @@ Result<FilterMethod> FilterFromProto(v1::FilterMethod method) {
 
 Result<BoxRefinement> BoxRefinementFromProto(v1::BoxRefinement method) {
   switch (method) {
-    case v1::BOX_REFINEMENT_UNSPECIFIED:
     case v1::BOX_REFINEMENT_GRABCUT:
       return BoxRefinement::kGrabCut;
     case v1::BOX_REFINEMENT_NONE:
       return BoxRefinement::kNone;
+    case v1::BOX_REFINEMENT_UNSPECIFIED:
     case v1::BOX_REFINEMENT_SHAPE:
       return BoxRefinement::kShape;
     default:

@@ -99,11 +99,13 @@ TEST(BoxMasks, DeterministicWhateverRanBeforeOnTheThread) {
   DynamicObjects objects;
   objects.boxes.push_back({0, 0.8f, cv::Rect2f(100, 80, 90, 160)});
   objects.boxes.push_back({2, 0.8f, cv::Rect2f(250, 180, 150, 100)});
-  auto first = RefineBoxesToMasks(objects, image, image.cols, image.rows, {});
+  BoxRefinementConfig grabcut;
+  grabcut.method = BoxRefinement::kGrabCut;
+  auto first = RefineBoxesToMasks(objects, image, image.cols, image.rows, grabcut);
   ASSERT_TRUE(first.ok());
   cv::theRNG().state = 12345;  // another user of OpenCV's RNG on this thread
   (void)cv::theRNG().next();
-  auto second = RefineBoxesToMasks(objects, image, image.cols, image.rows, {});
+  auto second = RefineBoxesToMasks(objects, image, image.cols, image.rows, grabcut);
   ASSERT_TRUE(second.ok());
   EXPECT_EQ(cv::countNonZero(first->objects.mask != second->objects.mask), 0);
 }
@@ -114,6 +116,7 @@ TEST(BoxMasks, ShapeWithoutPixelsKeepsTheInputMaskAndRejectsBadInput) {
   objects.mask(cv::Rect(0, 0, 10, 10)).setTo(1);
   objects.boxes.push_back({0, 0.9f, cv::Rect2f(100, 0, 40, 100)});  // a person: an ellipse
   BoxRefinementConfig config;  // GrabCut, but no image: the shape prior stands in
+  config.method = BoxRefinement::kGrabCut;
   auto refined = RefineBoxesToMasks(objects, cv::Mat(), 200, 100, config);
   ASSERT_TRUE(refined.ok()) << refined.status().ToString();
   const cv::Mat& mask = refined->objects.mask;

@@ -1104,10 +1104,10 @@ TEST(CodecFormat3, BoxRefinementShortTermAndReRankingRoundTrip) {
   EXPECT_FALSE(decoded->verification.rerank);
   EXPECT_FALSE(decoded->static_feature_budget);
   EXPECT_EQ(EncodeDatabaseConfig(*decoded), EncodeDatabaseConfig(config));
-  // The defaults of a new map: GrabCut, the static budget, the tier and re-ranking on.
+  // The defaults of a new map: the shape prior, the static budget, the tier and re-ranking on.
   auto defaults = DecodeDatabaseConfig(EncodeDatabaseConfig(DatabaseConfig{}));
   ASSERT_TRUE(defaults.ok());
-  EXPECT_EQ(defaults->box_refinement.method, BoxRefinement::kGrabCut);
+  EXPECT_EQ(defaults->box_refinement.method, BoxRefinement::kShape);
   EXPECT_TRUE(defaults->short_term.enabled);
   EXPECT_TRUE(defaults->verification.rerank);
   EXPECT_TRUE(defaults->static_feature_budget);
