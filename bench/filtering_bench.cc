@@ -102,7 +102,7 @@ int main(int argc, char** argv) {
       {"static_budget", BoxRefinement::kNone, true, false, 1},
       {"short_term", BoxRefinement::kNone, false, true, 1},
       {"rerank10", BoxRefinement::kNone, false, false, 10},
-      {"default", BoxRefinement::kGrabCut, true, true, 10},
+      {"default", BoxRefinement::kShape, true, true, 10},
   };
   for (const Variant& variant : variants) {
     DatabaseConfig config;
