@@ -80,11 +80,7 @@ Result<FeatureSet> ExtractOrb(const cv::Mat& image, const OrbConfig& config, con
   std::vector<cv::KeyPoint> cv_keypoints;
   cv::Mat cv_descriptors;
   try {
-    if (where.empty()) {
-      orb->detectAndCompute(gray, cv::noArray(), cv_keypoints, cv_descriptors);
-    } else {
-      orb->detectAndCompute(gray, where, cv_keypoints, cv_descriptors);
-    }
+    orb->detectAndCompute(gray, where, cv_keypoints, cv_descriptors);  // empty: no mask
   } catch (const cv::Exception& e) {
     return Status::InvalidArgument(std::string("ORB extraction failed on a ") +
                                    std::to_string(gray.cols) + "x" + std::to_string(gray.rows) +

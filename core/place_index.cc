@@ -484,18 +484,19 @@ std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k
     }
   }
   if (!bonus.empty()) {
-    // `listed` still marks the scored places: add to those, append the others.
-    std::unordered_map<PlaceId, size_t> position;
-    for (size_t i = 0; i < candidates.size(); ++i) position.emplace(candidates[i].place, i);
-    for (const ScoredPlace& extra : bonus) {
-      if (extra.place >= present_.size() || !present_[extra.place]) continue;
-      auto it = position.find(extra.place);
-      if (it != position.end()) {
-        candidates[it->second].score += extra.score;
-      } else if (!scratch.listed[extra.place]) {
-        position.emplace(extra.place, candidates.size());
-        candidates.push_back(extra);
-      }
+    // The bonus list is short (the short-term tier): index it, not the candidates.
+    std::unordered_map<PlaceId, double> extra;
+    for (const ScoredPlace& b : bonus) {
+      if (b.place < present_.size() && present_[b.place]) extra.emplace(b.place, b.score);
+    }
+    for (ScoredPlace& candidate : candidates) {
+      auto it = extra.find(candidate.place);
+      if (it == extra.end()) continue;
+      candidate.score += it->second;
+      extra.erase(it);
+    }
+    for (const ScoredPlace& b : bonus) {  // places that share no word with `bow`
+      if (extra.count(b.place)) candidates.push_back(b);
     }
   }
   for (const PlaceId place : scratch.touched) scratch.listed[place] = 0;
