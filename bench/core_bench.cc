@@ -25,10 +25,10 @@
 #include <vector>
 
 #include "bench/bench_output.h"
-#include "core/features.h"
-#include "core/place_index.h"
-#include "core/scoring.h"
-#include "core/vocabulary.h"
+#include "core/features/orb_features.h"
+#include "core/search/place_index.h"
+#include "core/search/scoring.h"
+#include "core/vocabulary/vocabulary.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;

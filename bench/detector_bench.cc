@@ -24,7 +24,7 @@
 #include <vector>
 
 #include "bench/bench_output.h"
-#include "core/detector.h"
+#include "core/detect/detector.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;

@@ -20,8 +20,8 @@
 #include <vector>
 
 #include "bench/bench_output.h"
-#include "core/detector.h"
-#include "core/place_database.h"
+#include "core/detect/detector.h"
+#include "core/pipeline/place_database.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;

@@ -41,13 +41,13 @@
 #include <vector>
 
 #include "bench/bench_output.h"
-#include "core/any_vocabulary.h"
-#include "core/float_vocabulary.h"
-#include "core/place_database.h"
-#include "core/sift_features.h"
-#include "core/timing.h"
-#include "core/vocabulary.h"
-#include "rgbd/rgbd_support.h"
+#include "core/base/timing.h"
+#include "core/features/sift_features.h"
+#include "core/pipeline/place_database.h"
+#include "core/vocabulary/any_vocabulary.h"
+#include "core/vocabulary/float_vocabulary.h"
+#include "core/vocabulary/vocabulary.h"
+#include "tools/rgbd_data.h"
 
 using namespace placedb;
 using bench::Median;
@@ -388,16 +388,15 @@ int main(int argc, char** argv) {
     return 1;
   }
   std::shared_ptr<const Vocabulary> orb_vocabulary;
-  if (auto loaded = Vocabulary::Load(PLACEDB_DEFAULT_VOCABULARY_RGBD); loaded.ok()) {
+  if (auto loaded = Vocabulary::Load(PLACEDB_DEFAULT_VOCABULARY); loaded.ok()) {
     orb_vocabulary = *loaded;
   } else {
-    std::printf("# no ORB vocabulary at %s: ORB baseline skipped\n",
-                PLACEDB_DEFAULT_VOCABULARY_RGBD);
+    std::printf("# no ORB vocabulary at %s: ORB baseline skipped\n", PLACEDB_DEFAULT_VOCABULARY);
   }
   std::printf("# SIFT vocabulary %s: %u words\n", rgbd::SiftVocabularyPath().c_str(),
               (*sift_vocabulary)->word_count());
   if (orb_vocabulary) {
-    std::printf("# ORB vocabulary %s: %u words\n", PLACEDB_DEFAULT_VOCABULARY_RGBD,
+    std::printf("# ORB vocabulary %s: %u words\n", PLACEDB_DEFAULT_VOCABULARY,
                 orb_vocabulary->word_count());
   }
   if (int rc = RgbdPath(*sift_vocabulary, orb_vocabulary, passes); rc != 0) return rc;

@@ -21,7 +21,7 @@
 #include <thread>
 
 #include "bench/bench_output.h"
-#include "core/map_store.h"
+#include "core/storage/map_store.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;

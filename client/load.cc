@@ -17,7 +17,7 @@
 #include "client/loopback.h"
 #include "client/progress.h"
 #include "client/queue.h"
-#include "core/features.h"
+#include "core/features/orb_features.h"
 
 namespace placedb::client {
 

@@ -18,3 +18,25 @@ function(placedb_discover_tests target)
     set_property(DIRECTORY APPEND PROPERTY TEST_INCLUDE_FILES ${include_file})
   endif()
 endfunction()
+
+# placedb_add_test(<name> LABEL <label> LIBS <target>... [SOURCES <file>...]
+#                  [FIXTURES <fixture>...] [DEFINITIONS <definition>...])
+#
+# The one way a test is registered (tests/CMakeLists.txt holds every call): a GoogleTest binary
+# from SOURCES (default <name>.cc), linked to LIBS, discovered with LABEL and FIXTURES. Unit tests
+# join the target `placedb_unit_tests`, which the sanitizer stages of tools/test.sh build.
+function(placedb_add_test name)
+  cmake_parse_arguments(ARG "" "LABEL" "SOURCES;LIBS;FIXTURES;DEFINITIONS" ${ARGN})
+  if(NOT ARG_SOURCES)
+    set(ARG_SOURCES ${name}.cc)
+  endif()
+  add_executable(${name} ${ARG_SOURCES})
+  target_link_libraries(${name} PRIVATE ${ARG_LIBS} GTest::gtest_main)
+  if(ARG_DEFINITIONS)
+    target_compile_definitions(${name} PRIVATE ${ARG_DEFINITIONS})
+  endif()
+  placedb_discover_tests(${name} LABELS ${ARG_LABEL} FIXTURES ${ARG_FIXTURES})
+  if(ARG_LABEL STREQUAL "unit")
+    add_dependencies(placedb_unit_tests ${name})
+  endif()
+endfunction()

@@ -9,7 +9,7 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
-#include "core/detector.h"
+#include "core/detect/detector.h"
 
 namespace fs = std::filesystem;
 

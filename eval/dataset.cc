@@ -12,7 +12,7 @@
 #include <set>
 #include <sstream>
 
-#include "core/detector.h"
+#include "core/detect/detector.h"
 
 namespace fs = std::filesystem;
 using json = nlohmann::json;

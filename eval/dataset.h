@@ -15,8 +15,8 @@
 #include <string>
 #include <vector>
 
-#include "core/dynamic_filter.h"
-#include "core/status.h"
+#include "core/base/status.h"
+#include "core/filter/dynamic_filter.h"
 
 namespace placedb::eval {
 

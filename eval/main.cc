@@ -13,8 +13,8 @@
 #include <iostream>
 #include <opencv2/core.hpp>
 
-#include "core/detector.h"
-#include "core/vocabulary.h"
+#include "core/detect/detector.h"
+#include "core/vocabulary/vocabulary.h"
 #include "eval/adapters.h"
 #include "eval/dataset.h"
 #include "eval/remote.h"

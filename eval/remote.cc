@@ -10,7 +10,7 @@
 #include <sstream>
 #include <thread>
 
-#include "core/timing.h"
+#include "core/base/timing.h"
 #include "proto/placedb.grpc.pb.h"
 
 namespace placedb::eval {

@@ -12,8 +12,8 @@
 #include <memory>
 #include <string>
 
-#include "core/status.h"
-#include "core/vocabulary.h"
+#include "core/base/status.h"
+#include "core/vocabulary/vocabulary.h"
 #include "eval/runner.h"
 
 namespace placedb::eval {

@@ -10,7 +10,7 @@
 
 #include <string>
 
-#include "core/status.h"
+#include "core/base/status.h"
 #include "eval/runner.h"
 
 namespace placedb::eval {

@@ -12,7 +12,7 @@
 #include <opencv2/videoio.hpp>
 #include <set>
 
-#include "core/detector.h"
+#include "core/detect/detector.h"
 #include "eval/adapters.h"
 
 namespace fs = std::filesystem;

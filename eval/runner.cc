@@ -14,9 +14,9 @@
 #include <optional>
 #include <thread>
 
-#include "core/codec.h"
-#include "core/features.h"
-#include "core/timing.h"
+#include "core/base/timing.h"
+#include "core/features/orb_features.h"
+#include "core/storage/codec.h"
 
 namespace fs = std::filesystem;
 using json = nlohmann::json;

@@ -23,11 +23,11 @@
 #include <string>
 #include <vector>
 
-#include "core/detector.h"
-#include "core/dynamic_filter.h"
-#include "core/place_database.h"
-#include "core/status.h"
-#include "core/vocabulary.h"
+#include "core/base/status.h"
+#include "core/detect/detector.h"
+#include "core/filter/dynamic_filter.h"
+#include "core/pipeline/place_database.h"
+#include "core/vocabulary/vocabulary.h"
 #include "eval/dataset.h"
 
 namespace placedb::eval {

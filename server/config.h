@@ -11,8 +11,8 @@
 #include <string>
 #include <vector>
 
-#include "core/map_store.h"
-#include "core/status.h"
+#include "core/base/status.h"
+#include "core/storage/map_store.h"
 
 namespace placedb::server {
 

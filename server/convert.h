@@ -10,10 +10,10 @@
 #include <string>
 #include <vector>
 
-#include "core/detector.h"
-#include "core/map_store.h"
-#include "core/place_database.h"
-#include "core/status.h"
+#include "core/base/status.h"
+#include "core/detect/detector.h"
+#include "core/pipeline/place_database.h"
+#include "core/storage/map_store.h"
 #include "proto/placedb.pb.h"
 #include "server/config.h"
 

@@ -20,8 +20,8 @@
 #include <string>
 #include <vector>
 
-#include "core/any_vocabulary.h"
-#include "core/map_store.h"
+#include "core/storage/map_store.h"
+#include "core/vocabulary/any_vocabulary.h"
 #include "server/convert.h"
 
 namespace placedb::server {

@@ -13,9 +13,9 @@
 #include <mutex>
 #include <string>
 
-#include "core/any_vocabulary.h"
-#include "core/detector.h"
-#include "core/status.h"
+#include "core/base/status.h"
+#include "core/detect/detector.h"
+#include "core/vocabulary/any_vocabulary.h"
 #include "server/config.h"
 
 namespace grpc {

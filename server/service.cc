@@ -9,7 +9,7 @@
 #include <future>
 #include <thread>
 
-#include "core/timing.h"
+#include "core/base/timing.h"
 
 namespace placedb::server {
 

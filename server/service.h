@@ -24,7 +24,7 @@
 #include <set>
 #include <string>
 
-#include "core/detector.h"
+#include "core/detect/detector.h"
 #include "proto/placedb.grpc.pb.h"
 #include "server/config.h"
 #include "server/map_registry.h"

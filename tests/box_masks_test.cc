@@ -1,6 +1,6 @@
 // Box refinement (core/box_masks.h) on real CamVid frames: every labelled car and pedestrian's
 // bounding box is refined and compared with the object's own label pixels.
-#include "core/box_masks.h"
+#include "core/filter/box_masks.h"
 
 #include <gtest/gtest.h>
 
@@ -9,7 +9,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "core/timing.h"
+#include "core/base/timing.h"
 #include "tests/test_support.h"
 
 namespace placedb {

@@ -25,10 +25,10 @@
 #include "client/format.h"
 #include "client/frame_source.h"
 #include "client/loopback.h"
-#include "rgbd/rgbd_support.h"
 #include "server/config.h"
 #include "server/server.h"
 #include "tests/test_support.h"
+#include "tools/rgbd_data.h"
 
 namespace placedb {
 namespace {

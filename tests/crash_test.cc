@@ -14,7 +14,7 @@
 #include <set>
 #include <thread>
 
-#include "core/map_store.h"
+#include "core/storage/map_store.h"
 #include "tests/test_support.h"
 
 namespace placedb {

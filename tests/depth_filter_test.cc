@@ -14,7 +14,7 @@
 // median depth of the box's torso region; "background" is every pixel outside the person boxes
 // plus the in-box pixels at least 0.75 m behind the torso. Pixels in neither class (in-box depth
 // edges, invalid depth) are left out of the counts. Set PLACEDB_RGBD_DEBUG_DIR to get overlays.
-#include "core/depth_filter.h"
+#include "core/filter/depth_filter.h"
 
 #include <gtest/gtest.h>
 
@@ -27,9 +27,9 @@
 #include <string>
 #include <vector>
 
-#include "core/detector.h"
-#include "core/sift_features.h"
-#include "rgbd/rgbd_support.h"
+#include "core/detect/detector.h"
+#include "core/features/sift_features.h"
+#include "tools/rgbd_data.h"
 
 namespace placedb {
 namespace {

@@ -1,6 +1,6 @@
 // Detector tests on the real models (PLACEDB_MODELS_DIR, else ../shared/models) and real images
 // (darknet's samples, CamVid). A missing model fails with the command that installs it.
-#include "core/detector.h"
+#include "core/detect/detector.h"
 
 #include <gtest/gtest.h>
 
@@ -18,7 +18,7 @@
 #include <thread>
 #include <vector>
 
-#include "core/box_masks.h"
+#include "core/filter/box_masks.h"
 #include "tests/test_support.h"
 
 namespace fs = std::filesystem;

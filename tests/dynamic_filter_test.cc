@@ -1,6 +1,6 @@
 // The DC/SC filter: synthetic geometry for each method, then real CamVid frames whose label maps
 // give the exact dynamic-object pixels, checked against an independent per-pixel computation.
-#include "core/dynamic_filter.h"
+#include "core/filter/dynamic_filter.h"
 
 #include <gtest/gtest.h>
 

@@ -1,7 +1,5 @@
 // ORB extraction on real images, validation of precomputed features, selection and OpenCV
 // interop.
-#include "core/features.h"
-
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -13,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "core/features/orb_features.h"
 #include "tests/test_support.h"
 
 namespace placedb {

@@ -1,4 +1,4 @@
-#include "core/geometric_verifier.h"
+#include "core/search/geometric_verifier.h"
 
 #include <gtest/gtest.h>
 
@@ -6,7 +6,7 @@
 #include <numeric>
 #include <opencv2/imgproc.hpp>
 
-#include "core/sift_features.h"
+#include "core/features/sift_features.h"
 #include "tests/test_support.h"
 
 namespace placedb {

@@ -5,7 +5,7 @@
 // loop wrapping at 81-84 -> 1-5) with SIFT (float vocabulary trained on Debian's sample images
 // only) and with ORB (the default binary vocabulary): no accepted loop may contradict
 // ground_truth.bmp, and recall is printed. PLACEDB_LC_TRACE=1 prints every update.
-#include "core/loop_closure.h"
+#include "core/search/loop_closure.h"
 
 #include <gtest/gtest.h>
 
@@ -21,11 +21,11 @@
 #include <string>
 #include <vector>
 
-#include "core/features.h"
-#include "core/scoring.h"
-#include "core/sift_features.h"
-#include "rgbd/rgbd_support.h"
+#include "core/features/orb_features.h"
+#include "core/features/sift_features.h"
+#include "core/search/scoring.h"
 #include "tests/test_support.h"
+#include "tools/rgbd_data.h"
 
 namespace placedb {
 namespace {

@@ -1,5 +1,5 @@
 // The frame pipeline and in-memory place database, on real images with the default vocabulary.
-#include "core/place_database.h"
+#include "core/pipeline/place_database.h"
 
 #include <gtest/gtest.h>
 

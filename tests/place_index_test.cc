@@ -1,4 +1,4 @@
-#include "core/place_index.h"
+#include "core/search/place_index.h"
 
 #include <gtest/gtest.h>
 

@@ -10,7 +10,7 @@
 #include <cstdio>
 #include <cstdlib>
 
-#include "core/place_database.h"
+#include "core/pipeline/place_database.h"
 #include "tests/test_support.h"
 
 namespace placedb {

@@ -17,11 +17,11 @@
 #include <string>
 #include <vector>
 
-#include "core/detector.h"
-#include "core/map_store.h"
-#include "core/place_database.h"
-#include "rgbd/rgbd_support.h"
+#include "core/detect/detector.h"
+#include "core/pipeline/place_database.h"
+#include "core/storage/map_store.h"
 #include "tests/test_support.h"
+#include "tools/rgbd_data.h"
 
 namespace placedb {
 namespace {

@@ -1,4 +1,4 @@
-#include "core/scoring.h"
+#include "core/search/scoring.h"
 
 #include <gtest/gtest.h>
 

@@ -25,14 +25,14 @@
 #include <sstream>
 #include <thread>
 
-#include "core/detector.h"
-#include "core/map_store.h"
-#include "core/sift_features.h"
+#include "core/detect/detector.h"
+#include "core/features/sift_features.h"
+#include "core/storage/map_store.h"
 #include "proto/placedb.grpc.pb.h"
-#include "rgbd/rgbd_support.h"
 #include "server/config.h"
 #include "server/convert.h"
 #include "tests/test_support.h"
+#include "tools/rgbd_data.h"
 
 namespace placedb {
 namespace {

@@ -17,10 +17,10 @@
 #include <string>
 #include <vector>
 
-#include "core/float_vocabulary.h"
-#include "core/scoring.h"
-#include "core/sift_features.h"
-#include "rgbd/rgbd_support.h"
+#include "core/features/sift_features.h"
+#include "core/search/scoring.h"
+#include "core/vocabulary/float_vocabulary.h"
+#include "tools/rgbd_data.h"
 
 namespace placedb {
 namespace {

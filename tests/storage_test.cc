@@ -10,10 +10,10 @@
 #include <map>
 #include <thread>
 
-#include "core/codec.h"
-#include "core/map_store.h"
-#include "rgbd/rgbd_support.h"
+#include "core/storage/codec.h"
+#include "core/storage/map_store.h"
 #include "tests/test_support.h"
+#include "tools/rgbd_data.h"
 
 namespace fs = std::filesystem;
 
@@ -60,7 +60,7 @@ std::vector<Ranked> QueryAll(const PlaceMap& map, const std::vector<Observation>
   return out;
 }
 
-// The SIFT vocabulary trained on Debian's sample images (rgbd/rgbd_support.h), loaded once.
+// The SIFT vocabulary trained on Debian's sample images (tools/rgbd_data.h), loaded once.
 std::shared_ptr<const FloatVocabulary> SiftVocabulary() {
   static const std::shared_ptr<const FloatVocabulary> vocabulary =
       []() -> std::shared_ptr<const FloatVocabulary> {

@@ -6,8 +6,8 @@
 #include <string>
 #include <vector>
 
-#include "core/features.h"
-#include "core/vocabulary.h"  // DefaultVocabulary() lives in test_vocabulary.cc
+#include "core/features/orb_features.h"
+#include "core/vocabulary/vocabulary.h"  // DefaultVocabulary() lives in test_vocabulary.cc
 #include "tools/shared_data.h"
 
 namespace placedb::testing {

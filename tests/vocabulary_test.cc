@@ -2,7 +2,7 @@
 //
 // Trains small vocabularies on ORB descriptors of Debian's sample images (real data, no mocks)
 // and checks every result against a brute-force reference written here.
-#include "core/vocabulary.h"
+#include "core/vocabulary/vocabulary.h"
 
 #include <gtest/gtest.h>
 
@@ -20,7 +20,7 @@
 #include <thread>
 #include <vector>
 
-#include "core/vocabulary_trainer.h"
+#include "core/vocabulary/vocabulary_trainer.h"
 #include "tests/test_support.h"
 
 namespace placedb {

@@ -13,7 +13,7 @@
 #include <string>
 #include <vector>
 
-#include "core/place_database.h"
+#include "core/pipeline/place_database.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;

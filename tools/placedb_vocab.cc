@@ -23,9 +23,9 @@
 #include <thread>
 #include <vector>
 
-#include "core/features.h"
-#include "core/vocabulary.h"
-#include "core/vocabulary_trainer.h"
+#include "core/features/orb_features.h"
+#include "core/vocabulary/vocabulary.h"
+#include "core/vocabulary/vocabulary_trainer.h"
 
 namespace fs = std::filesystem;
 

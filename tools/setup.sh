@@ -54,7 +54,7 @@ cmake --build "$BUILD_DIR" -j "$jobs"
 
 tools/build_default_vocabulary.sh "$BUILD_DIR/tools/placedb-vocab" var/vocabulary/default.pdbv
 # The SIFT vocabulary for SIFT maps (float words, k=10, L=4, Debian sample images only; ~30 s).
-"$BUILD_DIR/rgbd/placedb-sift-vocab" --out var/vocabulary/sift-debian.pdbfv --if-missing
+"$BUILD_DIR/tools/placedb-sift-vocab" --out var/vocabulary/sift-debian.pdbfv --if-missing
 # The detector model: from ../shared/models when present, else the official download, else
 # server-side detection stays off (the service says so; maps that need it are refused).
 PLACEDB_BUILD_DIR="$BUILD_DIR" tools/install_models.sh var/models

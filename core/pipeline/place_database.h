@@ -1,0 +1,444 @@
+// PlaceDatabase: one in-memory place database (a "map") and the frame pipeline in front of it.
+//
+// A frame goes: extract (ORB or SIFT, by the map's feature type, or the caller's precomputed
+// features) -> [depth: refine the dynamic boxes to the objects' depth layers] -> filter (DC/SC by
+// the dynamic objects) -> [depth, stream frames: Algorithm 1 of Deng et al. for the agent's
+// stream, AdvanceStream()] -> validity (|SC| > placeThreshold) -> transform (SC-only BoW vector
+// and direct index) -> store or search -> verify -> [loop closure for the agent's stream,
+// CloseLoop()]. An invalid frame is neither stored nor matched; the result says why. DC
+// descriptors, and those Algorithm 1 removes, are counted and dropped, never kept.
+//
+// Per-agent state (core/agent_streams.h): Algorithm 1 and the Bayesian loop-closure detector
+// need the agent's frames in order, so they run in AdvanceStream() / CloseLoop(), which the
+// caller invokes in each agent's sequence order; everything else is stateless and parallel.
+//
+// Thread safety: any number of concurrent Query() calls together with Add()/Remove(). The
+// expensive stages run outside any lock; only index mutation takes the writer lock and
+// searching takes the reader lock. Verification reads immutable, shared place records. Calls
+// for one agent stream serialise on that stream's own mutex.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <opencv2/core.hpp>
+#include <optional>
+#include <set>
+#include <shared_mutex>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "core/base/status.h"
+#include "core/base/timing.h"
+#include "core/features/orb_features.h"
+#include "core/features/sift_features.h"
+#include "core/filter/box_masks.h"
+#include "core/filter/depth_filter.h"
+#include "core/filter/dynamic_filter.h"
+#include "core/search/geometric_verifier.h"
+#include "core/search/loop_closure.h"
+#include "core/search/place_index.h"
+#include "core/search/scoring.h"
+#include "core/vocabulary/any_vocabulary.h"
+#include "core/vocabulary/bow.h"
+#include "core/vocabulary/vocabulary.h"
+
+namespace placedb {
+
+// What a map does with depth (docs/rgbd.md). Only frames that carry depth are affected.
+struct DepthConfig {
+  // Inside a dynamic box only the object's own depth layer is dynamic (beyond the paper).
+  bool refine_boxes = true;
+  RefineConfig refine;
+  // Algorithm 1 on each agent's stream of frames with depth (AdvanceStream()).
+  bool stream_filter = true;
+  DepthFilterConfig filter;  // filter.format: default scale and valid range of depth images
+};
+
+Status ValidateDepthConfig(const DepthConfig& config);
+
+// The short-term tier: Munoz & Dexter's own limit (their Figs. 8-9) is that the objects the filter
+// drops are often still there on a short revisit (parked cars, a queue of people), where they are
+// evidence of the place. The tier keeps each place's DC (dynamic) words, in memory only and never
+// on disk (the durable map keeps SC alone), for a horizon. A query scores a place observed within
+// the horizon of the query's timestamp on its SC words plus `weight` x the similarity of the two
+// frames' DC words, each set normalised on its own, so different objects add only noise while
+// the same objects add evidence. The DC similarity counts as much as the DC descriptors' share
+// of the frames would give it in one joint vector (x b / (1 - b), b = the smaller of the two
+// frames' DC shares): a frame with a few DC descriptors gets a small bonus, however alike they
+// are. Verification against a place inside the horizon matches the SC and DC features of both
+// frames (ORB maps): objects both frames saw add inliers, different objects add none. Older
+// places, and frames without a timestamp, are scored and verified on SC words alone. The tier holds
+// each agent's places of the last `horizon_ns` (counted back from that agent's newest timestamp),
+// at most `max_places` in all (the oldest leave first); it starts empty when a map is opened.
+struct ShortTermConfig {
+  bool enabled = true;
+  int64_t horizon_ns = 60'000'000'000;  // 60 s
+  uint32_t max_places = 5000;
+  float weight = 1.0f;
+};
+
+Status ValidateShortTermConfig(const ShortTermConfig& config);
+
+struct DatabaseConfig {
+  // The map's feature type; must be the vocabulary's (binary -> ORB, float -> SIFT).
+  FeatureType feature_type = FeatureType::kOrb;
+  OrbConfig orb;
+  SiftConfig sift;
+  FilterConfig filter;
+  // Boxes are narrowed to their objects' pixels before filtering (frames without depth; with
+  // depth, `depth.refine_boxes` applies instead).
+  BoxRefinementConfig box_refinement;
+  // ORB from pixels with dynamic objects known (no depth): detect `orb.max_features` on the
+  // static pixels (plus an area share on the objects for the short-term tier) instead of on the
+  // whole frame, so filtering does not shrink the place's static features.
+  bool static_feature_budget = true;
+  ShortTermConfig short_term;
+  // Boxes of these COCO classes at or above this confidence count as dynamic objects.
+  std::vector<int> dynamic_classes = {0, 1, 2, 3, 5, 7};
+  float min_box_confidence = 0.2f;
+  ScoringType scoring = ScoringType::kL1;
+  VerificationConfig verification;
+  DepthConfig depth;
+  // The Bayesian loop closure of CloseLoop(); its scoring is always the database's.
+  LoopClosureConfig loop_closure;
+  // A loop the filter accepts is kept only if the frame verifies geometrically against the
+  // loop's stored place (`verification`, exhaustive when its mode is disabled; min_inliers).
+  bool verify_loops = true;
+};
+
+Status ValidateDatabaseConfig(const DatabaseConfig& config);
+
+struct Pose {
+  std::array<double, 3> position{};               // x y z
+  std::array<double, 4> orientation{0, 0, 0, 1};  // qx qy qz qw
+  bool operator==(const Pose&) const = default;
+};
+
+struct PlaceMetadata {
+  std::string agent_id;
+  uint64_t sequence = 0;
+  int64_t timestamp_ns = 0;
+  std::optional<Pose> pose;
+  bool operator==(const PlaceMetadata&) const = default;
+};
+
+// A depth image registered to the colour image (same aspect ratio; it may be smaller).
+struct DepthObservation {
+  cv::Mat raw;  // CV_16U (units of metres_per_unit) or CV_32F
+  // Overrides the map's depth format for this frame (metres per unit of `raw`).
+  std::optional<double> metres_per_unit;
+  std::optional<CameraIntrinsics> intrinsics;  // of the colour image
+};
+
+// One frame as the engine sees it: an image, or precomputed features, plus dynamic objects and
+// optionally depth.
+struct Observation {
+  cv::Mat image;  // 8-bit gray or BGR; used when no precomputed features are given
+  std::optional<FeatureSet> features;             // ORB maps: precomputed ORB (validated)
+  std::optional<FloatFeatureSet> float_features;  // SIFT maps: precomputed SIFT (validated)
+  std::optional<DepthObservation> depth;
+  DynamicObjects dynamic;
+  PlaceMetadata metadata;
+};
+
+struct FrameCounts {
+  uint32_t total = 0;           // descriptors extracted / given
+  uint32_t dynamic = 0;         // DC: dropped
+  uint32_t static_ = 0;         // SC: kept
+  double dynamic_coverage = 0;  // fraction of the image's pixels on dynamic objects
+  // Of the non-DC descriptors, removed by Algorithm 1 (an approaching object seen in depth);
+  // total = dynamic + depth_removed + static_.
+  uint32_t depth_removed = 0;
+};
+
+// Which per-agent state a frame may use.
+enum class FrameRole {
+  kQuery,   // stateless; Algorithm 1's current decision for the agent applies, unchanged
+  kStream,  // the agent's next frame: AdvanceStream() must follow, in the agent's order
+};
+
+// The outcome of extract + filter + transform for one frame.
+struct ProcessedFrame {
+  FrameCounts counts;
+  bool valid = false;
+  std::string rejection;  // why the frame is invalid; empty when valid
+  FeatureType feature_type = FeatureType::kOrb;
+  FeatureSet static_features;             // SC only (ORB maps)
+  FloatFeatureSet static_float_features;  // SC only (SIFT maps)
+  BowVector bow;                          // SC only, normalised for the database's scoring
+  DirectIndex direct;                     // SC only, at verification.levels_up
+  std::vector<DynamicBox> boxes_used;
+  StageTimings timings;
+  // The short-term tier (config.short_term.enabled): the DC descriptors' BoW vector, normalised
+  // for the database's scoring, and (ORB maps) the DC features with their direct index, so that
+  // verification against a recent place can use the objects both frames saw; empty without DC
+  // descriptors.
+  BowVector dynamic_bow;
+  FeatureSet dynamic_features;
+  DirectIndex dynamic_direct;
+
+  // RGB-D. `depth_m` is the frame's depth in metres (CV_32F, 0 = invalid), empty without depth.
+  cv::Mat depth_m;
+  size_t boxes_refined = 0;           // boxes narrowed to their object's depth layer or segmented
+  std::vector<float> static_depth_m;  // per SC feature while Algorithm 1 is pending
+  bool stream_pending = false;        // Process(kStream) left Algorithm 1 to AdvanceStream()
+  std::optional<DepthFrameState> depth_state;  // Algorithm 1's decision for this frame
+};
+
+// What the database keeps in memory per place: small, immutable once stored.
+struct PlaceRecord {
+  PlaceId id = 0;
+  PlaceMetadata metadata;
+  FrameCounts counts;
+  std::vector<DynamicBox> boxes_used;
+};
+
+// The bulky part of a place: what verification and removal need. Kept by a PayloadStore, so a
+// persistent map can leave it on disk and read it only for the candidates it verifies.
+struct PlacePayload {
+  FeatureSet features;             // SC keypoints + descriptors (ORB maps)
+  FloatFeatureSet float_features;  // SC keypoints + descriptors (SIFT maps)
+  DirectIndex direct;              // at the database's verification.levels_up
+  BowVector bow;                   // normalised for the database's scoring
+};
+
+// Where PlaceDatabase keeps payloads. Implementations must allow concurrent Get() calls with
+// one Put()/Erase() at a time.
+class PayloadStore {
+ public:
+  virtual ~PayloadStore() = default;
+  // Called when a place is inserted. A persistent store that already wrote the payload (in the
+  // same atomic batch as the place) may just cache or ignore it.
+  virtual Status Put(PlaceId id, std::shared_ptr<const PlacePayload> payload) = 0;
+  // NOT_FOUND when the place is unknown (e.g. removed meanwhile).
+  virtual Result<std::shared_ptr<const PlacePayload>> Get(PlaceId id) const = 0;
+  // The place's BoW vector alone (loop closure's long-term memory reads it back). By default
+  // from Get(); a persistent store reads just the vector.
+  virtual Result<BowVector> GetBow(PlaceId id) const;
+  virtual Status Erase(PlaceId id) = 0;
+  virtual size_t MemoryBytes() const = 0;
+};
+
+// The default: payloads in memory.
+class InMemoryPayloadStore final : public PayloadStore {
+ public:
+  Status Put(PlaceId id, std::shared_ptr<const PlacePayload> payload) override;
+  Result<std::shared_ptr<const PlacePayload>> Get(PlaceId id) const override;
+  Status Erase(PlaceId id) override;
+  size_t MemoryBytes() const override;
+
+ private:
+  mutable std::shared_mutex mutex_;
+  std::unordered_map<PlaceId, std::shared_ptr<const PlacePayload>> payloads_;
+  size_t bytes_ = 0;
+};
+
+size_t PayloadBytes(const PlacePayload& payload);
+
+struct AddResult {
+  bool stored = false;
+  PlaceId id = 0;         // valid when stored
+  std::string rejection;  // why not stored
+  FrameCounts counts;
+  std::vector<DynamicBox> boxes_used;
+  StageTimings timings;
+  std::optional<DepthFrameState> depth_state;
+};
+
+struct QueryOptions {
+  size_t top_k = 10;
+  bool verified_only = false;  // drop candidates that fail verification
+  // The query's observation time, for the short-term tier; 0 = the newest place's time.
+  int64_t timestamp_ns = 0;
+  // Optional extra filter on candidates (e.g. exclude the agent's own recent places).
+  std::function<bool(const PlaceRecord&)> accept;
+};
+
+struct Match {
+  PlaceId place = 0;
+  double score = 0;
+  int inliers = 0;        // 0 when verification is disabled or not reached
+  bool verified = false;  // true when inliers >= min_inliers (always false when disabled)
+  PlaceMetadata metadata;
+};
+
+struct QueryResult {
+  bool valid = false;
+  std::string rejection;
+  FrameCounts counts;
+  std::vector<DynamicBox> boxes_used;
+  std::vector<Match> matches;  // best first
+  StageTimings timings;
+  std::optional<DepthFrameState> depth_state;
+};
+
+// The loop-closure answer for one stream frame (CloseLoop()), in database place ids.
+struct LoopClosureOutcome {
+  bool merged = false;          // rehearsal: the frame was merged into `place`, not stored
+  PlaceId place = 0;            // the place the frame became (stored) or was merged into
+  std::optional<PlaceId> loop;  // accepted loop closure: the revisited place
+  double loop_posterior = 0;    // posterior of the accepted loop (0 without one)
+  // With verify_loops: the accepted loop's inliers, and whether verification took it back
+  // (`loop` is then empty and `rejected_loop` names the place).
+  int loop_inliers = 0;
+  bool loop_rejected = false;
+  PlaceId rejected_loop = 0;
+  PlaceId best = 0;  // best hypothesis, accepted or not (0: none, or unbound)
+  double best_posterior = 0;
+  size_t candidates = 0;   // places in the agent's working memory that were searched
+  size_t retrieved = 0;    // long-term -> working memory in this update
+  size_t transferred = 0;  // working -> long-term memory in this update
+  double update_ms = 0;    // the detector's update alone
+  // The agent's earlier places replayed into a new detector by this call (first loop-closure
+  // frame of the agent since the map was opened or its stream reset), else 0.
+  size_t replayed = 0;
+};
+
+struct DatabaseStats {
+  size_t places = 0;
+  uint64_t descriptors_kept = 0;     // SC descriptors of stored places
+  uint64_t descriptors_dropped = 0;  // DC descriptors of stored places
+  uint64_t invalid_rejected = 0;     // frames refused by Add() as invalid
+  size_t index_bytes = 0;            // inverted index (postings + tables)
+  size_t record_bytes = 0;           // in-memory place records (metadata, counts, boxes)
+  size_t payload_bytes = 0;          // payloads the PayloadStore holds in memory
+  size_t short_term_places = 0;      // places whose DC words the short-term tier holds
+  size_t short_term_bytes = 0;       // the tier's index and vectors
+  // Agent streams with per-agent state, and their loop-closure memory (summed over agents).
+  size_t streams = 0;
+  size_t loop_working_memory = 0;  // places searched by loop closure (STM + WM)
+  size_t loop_long_term = 0;       // places in long-term memory (in the payload store, unsearched)
+  uint64_t loops_accepted = 0;
+  uint64_t loops_rejected = 0;  // accepted by the filter, failed geometric verification
+};
+
+class AgentStreams;
+class PayloadLongTermMemory;
+
+class PlaceDatabase {
+ public:
+  // INVALID_ARGUMENT for a bad config or a vocabulary of the wrong kind for
+  // config.feature_type; the vocabulary is shared, never copied. Without a payload store,
+  // payloads stay in memory.
+  static Result<std::unique_ptr<PlaceDatabase>> Create(
+      AnyVocabulary vocabulary, DatabaseConfig config,
+      std::shared_ptr<PayloadStore> payloads = nullptr);
+  ~PlaceDatabase();
+
+  const DatabaseConfig& config() const { return config_; }
+  const AnyVocabulary& vocabulary() const { return vocabulary_; }
+
+  // Extract, filter, validate and transform without touching the database. With kStream and
+  // depth (and config.depth.stream_filter), Algorithm 1, validity and transform are left to
+  // AdvanceStream() (`stream_pending`).
+  Result<ProcessedFrame> Process(const Observation& observation,
+                                 FrameRole role = FrameRole::kQuery) const;
+  // Finishes a kStream frame: Algorithm 1 with the agent's stream state (frames of one agent
+  // must arrive here in order), then validity and transform. No-op unless `stream_pending`.
+  Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);
+
+  // Loop closure for an agent's stream (frames in order): updates the agent's detector with a
+  // valid frame, then, unless rehearsal merged the frame into the previous place, calls `store`
+  // (which persists the frame and returns its place id) and binds the detector's place to it.
+  // With `store` null, Insert() is used. The agent's places in long-term memory are read back
+  // from the payload store when retrieved. The agent's first call (since the database was
+  // created or opened, or its stream reset) replays the places it stored earlier, oldest first,
+  // into the new detector (their weights and loop links are not kept), so loops can close on
+  // them after a restart.
+  Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                       const std::function<Result<PlaceId>()>& store = nullptr);
+  // Forgets an agent's stream state (Algorithm 1 and loop closure); NOT_FOUND if none.
+  Status ResetStream(const std::string& agent_id);
+  // The agent's loop-closure statistics; NOT_FOUND when it has no detector yet.
+  Result<LoopClosureStats> LoopStats(const std::string& agent_id) const;
+
+  // Processes (as the agent's next stream frame) and, when valid, stores the frame.
+  Result<AddResult> Add(const Observation& observation);
+  // Stores an already processed valid frame. With `id` given (restoring from storage) that id is
+  // used: ALREADY_EXISTS if taken. Returns the id.
+  Result<PlaceId> Insert(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                         std::optional<PlaceId> id = std::nullopt);
+  // Re-indexes a stored place as a persistent map reloads it: the payload stays in the
+  // PayloadStore, only the record and BoW vector are needed.
+  Status Restore(PlaceRecord record, const BowVector& bow);
+  // Reserves the id the next Insert() without an explicit id would take.
+  PlaceId ReserveId();
+  // Makes sure future ids are >= `next` (a reopened map never reuses a deleted place's id).
+  void ReserveIdsBelow(PlaceId next);
+  Status Remove(PlaceId id);  // NOT_FOUND if absent
+  // Counts a frame refused as invalid (Add() does this itself).
+  void CountInvalid(uint64_t frames = 1);
+
+  Result<QueryResult> Query(const Observation& observation, const QueryOptions& options) const;
+  // Searches with an already processed frame (used by ingest-with-matches).
+  QueryResult Search(const ProcessedFrame& frame, const QueryOptions& options) const;
+
+  std::shared_ptr<const PlaceRecord> Get(PlaceId id) const;  // nullptr if absent
+  std::vector<PlaceId> ListPlaces() const;                   // ascending
+  DatabaseStats Stats() const;
+  PlaceId next_id() const;
+
+ private:
+  PlaceDatabase(AnyVocabulary vocabulary, DatabaseConfig config,
+                std::shared_ptr<PayloadStore> payloads);
+  // Validity, then the BoW vector and direct index of the SC features.
+  void Finish(ProcessedFrame* frame, Stopwatch* stage) const;
+  // Geometric verification of a loop: the frame against the stored place; the inlier count.
+  Result<int> VerifyLoop(const ProcessedFrame& frame, PlaceId place) const;
+  // Replays the agent's stored places, oldest first, into a new detector and binds them.
+  Result<size_t> ReplayAgentPlaces(const std::string& agent_id, LoopClosureDetector* detector,
+                                   PayloadLongTermMemory* ltm) const;
+  // Removes the SC features whose depth lies in Algorithm 1's band (when it is removing).
+  static void ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState& state,
+                             bool remove_without_depth);
+  // Adds the record and its postings; caller holds the writer lock.
+  Status InsertLocked(std::shared_ptr<const PlaceRecord> record, const BowVector& bow);
+  void UndoInsertLocked(PlaceId id, const BowVector& bow);
+  std::vector<DynamicBox> SelectBoxes(const std::vector<DynamicBox>& boxes) const;
+  // The short-term tier; callers hold the writer lock.
+  void AddShortTermLocked(PlaceId place, const PlaceMetadata& metadata,
+                          const ProcessedFrame& frame);
+  void RemoveShortTermLocked(PlaceId place);
+  // The tier's clock for a query: its own timestamp, else the newest place's (tier not empty).
+  int64_t ShortTermNowLocked(int64_t query_timestamp_ns) const;
+  struct ShortTermEntry;
+  bool InHorizon(const ShortTermEntry& entry, int64_t now) const;
+  // The tier's score bonuses for a query (reader lock held).
+  std::vector<ScoredPlace> ShortTermBonusLocked(const ProcessedFrame& frame,
+                                                int64_t timestamp_ns) const;
+
+  const AnyVocabulary vocabulary_;
+  const DatabaseConfig config_;
+  const std::shared_ptr<PayloadStore> payloads_;
+  const std::unique_ptr<AgentStreams> streams_;
+
+  mutable std::shared_mutex mutex_;
+  InvertedIndex index_;
+  std::unordered_map<PlaceId, std::shared_ptr<const PlaceRecord>> records_;
+  PlaceId next_id_ = 1;
+  uint64_t descriptors_kept_ = 0;
+  uint64_t descriptors_dropped_ = 0;
+  uint64_t invalid_rejected_ = 0;
+  size_t record_bytes_ = 0;
+
+  struct ShortTermEntry {
+    int64_t timestamp_ns = 0;
+    std::string agent_id;
+    BowVector dynamic_bow;
+    double dynamic_share = 0;  // DC descriptors / all descriptors of the frame
+    // ORB maps: the DC features and their direct index, for verification.
+    std::shared_ptr<const std::pair<FeatureSet, DirectIndex>> dynamic_features;
+  };
+  InvertedIndex short_term_index_;
+  std::unordered_map<PlaceId, ShortTermEntry> short_term_;
+  using TimeOrdered = std::set<std::pair<int64_t, PlaceId>>;  // oldest first
+  TimeOrdered short_term_by_time_;
+  // Each agent's places: the horizon counts back from the agent's own newest observation, so
+  // agents whose clocks differ (or that paused) keep their recent places.
+  std::unordered_map<std::string, TimeOrdered> short_term_by_agent_;
+};
+
+}  // namespace placedb

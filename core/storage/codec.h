@@ -1,0 +1,63 @@
+// Binary encodings of what a map persists. Every value starts with a one-byte format version so
+// records can evolve; decoding is bounds-checked and returns CORRUPTION, never reads past the
+// end or trusts a length. Keys are big-endian so RocksDB's byte order is numeric order.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+
+#include "core/base/status.h"
+#include "core/features/orb_features.h"
+#include "core/features/sift_features.h"
+#include "core/pipeline/place_database.h"
+#include "core/vocabulary/bow.h"
+
+namespace placedb {
+
+// Place-id keys: 4 bytes big-endian.
+std::string PlaceKey(PlaceId id);
+Result<PlaceId> DecodePlaceKey(std::string_view key);
+// 8-byte big-endian keys (invalid-observation log).
+std::string U64Key(uint64_t value);
+Result<uint64_t> DecodeU64Key(std::string_view key);
+
+// Version 2 (written): counts include depth_removed. Version 1 (read): no depth_removed (0).
+std::string EncodePlaceRecord(const PlaceRecord& record);
+Result<PlaceRecord> DecodePlaceRecord(std::string_view bytes);
+
+// BoW: word ids delta-coded as varints, weights as float32.
+std::string EncodeBow(const BowVector& bow);
+Result<BowVector> DecodeBow(std::string_view bytes);
+
+// SC keypoints, descriptors and the direct index (what verification needs), ORB maps:
+// 32-byte binary descriptors.
+std::string EncodeFeatures(const FeatureSet& features, const DirectIndex& direct);
+Status DecodeFeatures(std::string_view bytes, FeatureSet* features, DirectIndex* direct);
+
+// The same for SIFT maps: keypoints as for ORB, then 128 float32 (little-endian) per keypoint,
+// then the direct index. Its own version byte (0x81), so neither decoder takes the other's
+// payload.
+std::string EncodeFloatFeatures(const FloatFeatureSet& features, const DirectIndex& direct);
+Status DecodeFloatFeatures(std::string_view bytes, FloatFeatureSet* features, DirectIndex* direct);
+
+// Map configuration as JSON (readable with `ldb`, tolerant of added fields). Format 2 adds
+// feature_type, sift, depth and loop_closure; a missing key takes its default, so format-1
+// configs (ORB maps made before RGB-D) decode unchanged. A value of the wrong type is
+// CORRUPTION naming its key; a value out of range is INVALID_ARGUMENT naming it.
+std::string EncodeDatabaseConfig(const DatabaseConfig& config);
+Result<DatabaseConfig> DecodeDatabaseConfig(std::string_view json);
+
+// An invalid observation kept as metadata only. Version 2 (written) carries depth_removed;
+// version 1 is still read.
+struct InvalidObservation {
+  uint64_t serial = 0;  // order of arrival in this map
+  PlaceMetadata metadata;
+  FrameCounts counts;
+  std::vector<DynamicBox> boxes_used;
+  std::string reason;
+};
+std::string EncodeInvalidObservation(const InvalidObservation& observation);
+Result<InvalidObservation> DecodeInvalidObservation(std::string_view bytes);
+
+}  // namespace placedb

@@ -1,0 +1,180 @@
+// Durable maps: place databases persisted in RocksDB (see docs/storage.md for the layout).
+//
+// A DataDirectory holds many maps, each its own RocksDB instance under maps/<name>/. A PlaceMap
+// is a PlaceDatabase (the in-memory serving index) whose places are written to RocksDB first:
+// one atomic WriteBatch per place (record, BoW vector, SC features + direct index), acknowledged
+// only once the write-ahead log is synced. DC descriptors are never written; their counts are.
+// Reopening a map rebuilds the inverted index from the stored BoW vectors; features stay on disk
+// and are read only for the candidates being verified.
+//
+// Thread safety: a PlaceMap takes concurrent Add/Query/Remove calls. A DataDirectory serialises
+// create/open/delete. DeleteMap() waits for in-flight calls on the map, closes it and removes
+// its files; holders of the PlaceMap then get NOT_FOUND ("map was deleted"), never a crash.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "core/base/status.h"
+#include "core/pipeline/place_database.h"
+#include "core/storage/codec.h"
+#include "core/vocabulary/any_vocabulary.h"
+#include "core/vocabulary/vocabulary.h"
+
+namespace placedb {
+
+namespace detail {
+struct MapStorage;  // RocksDB handles of one map (map_store.cc)
+}  // namespace detail
+
+enum class SyncMode {
+  kEveryWrite,   // each place's batch is written with sync=true (RocksDB groups concurrent ones)
+  kGroupCommit,  // batches are written unsynced; a syncer fsyncs the WAL at most every
+                 // group_commit_delay_ms and only then acknowledges the places it covered
+};
+
+struct StorageOptions {
+  SyncMode sync = SyncMode::kEveryWrite;
+  int group_commit_delay_ms = 5;
+  size_t block_cache_bytes = size_t(64) << 20;  // shared by all maps of the directory
+};
+
+struct MapOptions {
+  DatabaseConfig database;
+  // Keep invalid observations as metadata only (no descriptors), to see where the robot saw
+  // nothing usable. Off by default: invalid observations are counted, not stored.
+  bool store_invalid = false;
+  // Settings of the layer above (the service's detection policy), stored with the map's info so
+  // they are written atomically with it and travel with checkpoints. Opaque to storage.
+  std::string service_json;
+};
+
+struct MapStats {
+  DatabaseStats database;        // places, descriptors kept/dropped, invalid, memory
+  uint64_t invalid_stored = 0;   // invalid observations kept as metadata
+  uint64_t bytes_on_disk = 0;    // every file of the map's directory
+  uint64_t bytes_in_memory = 0;  // index + records + payload cache
+};
+
+struct MapInfo {
+  std::string name;
+  MapOptions options;                // options.database.feature_type: the vocabulary's kind
+  uint64_t vocabulary_checksum = 0;  // AnyVocabulary::checksum(), binary or float
+  int64_t created_unix_ms = 0;
+};
+
+// A persisted place with its payload read back from disk.
+struct StoredPlace {
+  PlaceRecord record;
+  PlacePayload payload;
+};
+
+class PlaceMap {
+ public:
+  ~PlaceMap();  // flushes and closes RocksDB
+  PlaceMap(const PlaceMap&) = delete;
+  PlaceMap& operator=(const PlaceMap&) = delete;
+
+  const MapInfo& info() const { return info_; }
+  const PlaceDatabase& database() const { return *database_; }
+
+  // FAILED_PRECONDITION naming both checksums (and kinds) when `vocabulary` is not the map's.
+  Status CheckVocabulary(const AnyVocabulary& vocabulary) const;
+
+  // Process (as the agent's next stream frame) + AdvanceStream + (when valid) durable write +
+  // index. An invalid frame is counted, and stored as metadata when the map's store_invalid is
+  // set. Returns once durable.
+  Result<AddResult> Add(const Observation& observation);
+  // Stores an already processed frame (ingest-with-matches searches first, then commits).
+  Result<AddResult> Commit(const ProcessedFrame& frame, const PlaceMetadata& metadata);
+  Result<ProcessedFrame> Process(const Observation& observation,
+                                 FrameRole role = FrameRole::kQuery) const {
+    return database_->Process(observation, role);
+  }
+  // See PlaceDatabase::AdvanceStream: the agent's frames in order.
+  Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);
+  // Loop closure for an ingest stream (PlaceDatabase::CloseLoop) with Commit() as the store: a
+  // frame that rehearsal does not merge is written durably; `added` then receives the commit's
+  // result (stored = false when merged). The long-term memory of the agent's detector is this
+  // map's RocksDB payloads.
+  Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                       AddResult* added);
+  Result<QueryResult> Query(const Observation& observation, const QueryOptions& options) const;
+  // An invalid result with the reason when the map was deleted meanwhile.
+  QueryResult Search(const ProcessedFrame& frame, const QueryOptions& options) const;
+
+  Result<StoredPlace> GetPlace(PlaceId id) const;  // NOT_FOUND if absent
+  Status RemovePlace(PlaceId id);                  // durable before it returns
+  std::vector<InvalidObservation> InvalidObservations(size_t limit) const;
+  MapStats Stats() const;
+
+  // An online, consistent copy of the map into `directory` (which must not exist), made with
+  // RocksDB checkpoints (hard links where possible). Restore it with DataDirectory::RestoreMap.
+  Status Checkpoint(const std::string& directory) const;
+  // Scans every column family and checks they agree (each place has its BoW and features, and
+  // nothing else is stored). Used by crash tests; cheap enough for an operator's fsck.
+  Status VerifyIntegrity() const;
+
+ private:
+  friend class DataDirectory;
+  PlaceMap(MapInfo info, std::string path, std::unique_ptr<detail::MapStorage> storage,
+           AnyVocabulary vocabulary);
+  Status Load();  // rebuilds the serving index from disk
+  // Commit() for a caller that already holds storage_->lifecycle shared and checked `closed`
+  // (CloseLoop's store callback: the shared lock must not be taken twice).
+  Result<AddResult> CommitLocked(const ProcessedFrame& frame, const PlaceMetadata& metadata);
+  Result<AddResult> StoreInvalid(const ProcessedFrame& frame, const PlaceMetadata& metadata);
+  Status Deleted() const;
+
+  MapInfo info_;
+  std::string path_;
+  std::unique_ptr<detail::MapStorage> storage_;
+  AnyVocabulary vocabulary_;
+  std::unique_ptr<PlaceDatabase> database_;
+};
+
+class DataDirectory {
+ public:
+  // Creates the directory when missing. A non-empty directory without placedb's marker file,
+  // or with a damaged one, is refused (FAILED_PRECONDITION / CORRUPTION), never touched.
+  static Result<std::unique_ptr<DataDirectory>> Open(const std::string& path,
+                                                     StorageOptions options = {});
+  ~DataDirectory();
+
+  const std::string& path() const { return path_; }
+  const StorageOptions& options() const { return options_; }
+
+  // Names: 1-64 characters of [A-Za-z0-9_.-], starting with a letter or digit.
+  static Status ValidateMapName(const std::string& name);
+
+  Result<std::shared_ptr<PlaceMap>> CreateMap(const std::string& name, const MapOptions& options,
+                                              AnyVocabulary vocabulary);
+  // Reads a map's stored info without opening it for writing (e.g. to pick its vocabulary).
+  Result<MapInfo> ReadMapInfo(const std::string& name) const;
+  // Opens (or returns the already open) map; FAILED_PRECONDITION if `vocabulary` is not the
+  // one the map was built with.
+  Result<std::shared_ptr<PlaceMap>> OpenMap(const std::string& name, AnyVocabulary vocabulary);
+  std::vector<std::string> ListMaps() const;  // sorted
+  Status DeleteMap(const std::string& name);
+  // Copies a checkpoint made by PlaceMap::Checkpoint in as map `name` (which must not exist).
+  Status RestoreMap(const std::string& name, const std::string& checkpoint_directory);
+  // Closes a map (it stays on disk); holders of the shared_ptr keep it until they let go.
+  void CloseMap(const std::string& name);
+
+ private:
+  DataDirectory(std::string path, StorageOptions options);
+  std::string MapPath(const std::string& name) const;
+
+  const std::string path_;
+  const StorageOptions options_;
+  std::shared_ptr<void> block_cache_;  // rocksdb::Cache, shared by every map
+  mutable std::mutex mutex_;
+  std::unordered_map<std::string, std::shared_ptr<PlaceMap>> open_;
+};
+
+}  // namespace placedb

@@ -1,0 +1,71 @@
+#include "core/vocabulary/any_vocabulary.h"
+
+#include <cstring>
+#include <fstream>
+
+namespace placedb {
+
+const char* FeatureTypeName(FeatureType type) {
+  return type == FeatureType::kSift ? "sift" : "orb";
+}
+
+const char* VocabularyKindName(FeatureType type) {
+  return type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)";
+}
+
+Result<FeatureType> ParseFeatureType(const std::string& name) {
+  if (name == "orb") return FeatureType::kOrb;
+  if (name == "sift") return FeatureType::kSift;
+  return Status::InvalidArgument("feature type: unknown name '" + name +
+                                 "'; expected one of orb, sift");
+}
+
+AnyVocabulary::AnyVocabulary(std::shared_ptr<const Vocabulary> binary)
+    : binary_(std::move(binary)) {}
+
+AnyVocabulary::AnyVocabulary(std::shared_ptr<const FloatVocabulary> floating)
+    : floating_(std::move(floating)) {}
+
+Result<AnyVocabulary> AnyVocabulary::Load(const std::string& path) {
+  char magic[8] = {};
+  {
+    std::ifstream in(path, std::ios::binary);
+    if (!in) return Status::NotFound("vocabulary file '" + path + "' cannot be opened");
+    in.read(magic, sizeof(magic));
+  }
+  if (std::memcmp(magic, "PDBFVOC1", sizeof(magic)) == 0) {
+    auto floating = FloatVocabulary::Load(path);
+    if (!floating.ok()) return floating.status();
+    return AnyVocabulary(std::move(floating).value());
+  }
+  auto binary = Vocabulary::Load(path);
+  if (!binary.ok()) return binary.status();
+  return AnyVocabulary(std::move(binary).value());
+}
+
+uint32_t AnyVocabulary::word_count() const {
+  return floating_ ? floating_->word_count() : binary_ ? binary_->word_count() : 0;
+}
+uint32_t AnyVocabulary::node_count() const {
+  return floating_ ? floating_->node_count() : binary_ ? binary_->node_count() : 0;
+}
+int AnyVocabulary::branching() const {
+  return floating_ ? floating_->branching() : binary_ ? binary_->branching() : 0;
+}
+int AnyVocabulary::depth() const {
+  return floating_ ? floating_->depth() : binary_ ? binary_->depth() : 0;
+}
+uint64_t AnyVocabulary::checksum() const {
+  return floating_ ? floating_->checksum() : binary_ ? binary_->checksum() : 0;
+}
+std::string AnyVocabulary::checksum_hex() const {
+  return floating_ ? floating_->checksum_hex() : binary_ ? binary_->checksum_hex() : "";
+}
+size_t AnyVocabulary::memory_bytes() const {
+  return floating_ ? floating_->memory_bytes() : binary_ ? binary_->memory_bytes() : 0;
+}
+const char* AnyVocabulary::kind() const {
+  return VocabularyKindName(feature_type());
+}
+
+}  // namespace placedb
