@@ -4,7 +4,8 @@
 #   deploy/test-image.sh [--cache DIR] [--models DIR] [--build-arg K=V]... [--context DIR] [--keep]
 #                        [--timeout SECONDS]
 #
-#  1. base: `debootstrap --variant=minbase bookworm` (deb.debian.org), made to look like
+#  1. base: `debootstrap --variant=minbase bookworm` from this machine's own apt mirror (read
+#     from /etc/apt/sources.list{,.d}), made to look like
 #     debian:bookworm-slim (its dpkg path excludes, apt settings, deb822 sources), imported into
 #     podman as localhost/debian:bookworm-slim;
 #  2. build: `podman build --isolation chroot --format docker` of the Dockerfile with
@@ -21,7 +22,7 @@
 #     non-zero; SIGTERM shuts down cleanly (exit 0); a restart on the same data directory (the
 #     VOLUME) finds every place; the data belongs to the image's non-root user.
 #
-# Needs root (debootstrap, chroot, mounts, podman) and reaches only deb.debian.org (packages)
+# Needs root (debootstrap, chroot, mounts, podman) and reaches only the host's apt mirrors (packages)
 # and 127.0.0.1. Installs podman, debootstrap, prometheus, python3-grpcio, python3-protobuf,
 # protobuf-compiler, curl and opencv-doc (the test images) with apt-get when missing. Everything
 # it makes lives in one temporary directory, removed at exit (--keep keeps it).
@@ -169,15 +170,41 @@ free_port() {
   /usr/bin/python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'
 }
 
+# The first URI this machine's apt sources use for `suite` (deb822 .sources or one-line .list):
+# the image is built from the same mirror the host installs from, whatever it is.
+apt_mirror_for() {
+  local suite=$1 file uris suites
+  for file in /etc/apt/sources.list.d/*.sources; do
+    [[ -f "$file" ]] || continue
+    # deb822 stanzas are separated by blank lines; comments start with '#'.
+    awk -v suite="$suite" '
+      /^[[:space:]]*#/ { next }
+      /^[[:space:]]*$/ { if (uris != "" && found) { print uris; exit } uris = ""; found = 0; next }
+      tolower($1) == "uris:" { uris = $2 }
+      tolower($1) == "suites:" { for (i = 2; i <= NF; i++) if ($i == suite) found = 1 }
+      END { if (uris != "" && found) print uris }' "$file" | head -n 1
+  done | head -n 1 | grep . && return 0
+  for file in /etc/apt/sources.list /etc/apt/sources.list.d/*.list; do
+    [[ -f "$file" ]] || continue
+    awk -v suite="$suite" '$1 == "deb" {
+        i = 2; if ($i ~ /^\[/) { while ($i !~ /\]$/) i++; i++ }
+        if ($(i + 1) == suite) { print $i; exit } }' "$file"
+  done | head -n 1 | grep .
+}
+
 # ---- 1. base image -----------------------------------------------------------------------------
 phase "base image (debootstrap minbase)"
+debian_mirror=$(apt_mirror_for bookworm) ||
+  die "no apt source for bookworm in /etc/apt/sources.list{,.d}: the base image needs a Debian mirror"
+security_mirror=$(apt_mirror_for bookworm-security) || security_mirror=""
+say "Debian mirror (from this machine's apt sources): $debian_mirror"
 base_tar="$work/base-bookworm.tar"
 [[ -n "$cache" ]] && base_tar="$cache/base-bookworm.tar"
 if [[ -s "$base_tar" ]]; then
   say "reusing $base_tar (delete it for a fresh debootstrap)"
 else
   base="$work/base"
-  timeout 1200 debootstrap --variant=minbase bookworm "$base" http://deb.debian.org/debian \
+  timeout 1200 debootstrap --variant=minbase bookworm "$base" "$debian_mirror" \
     >"$work/debootstrap.log" 2>&1 || { tail -n 30 "$work/debootstrap.log" >&2; die "debootstrap"; }
   # What debian:bookworm-slim has: no docs/man/locales installed by dpkg, apt without caches
   # and recommends-as-usual, deb822 sources with updates and security.
@@ -200,19 +227,16 @@ Dir::Cache::srcpkgcache "";
 EOF
   printf 'Acquire::Languages "none";\n' >"$base/etc/apt/apt.conf.d/docker-no-languages"
   rm -f "$base/etc/apt/sources.list"
-  cat >"$base/etc/apt/sources.list.d/debian.sources" <<'EOF'
-Types: deb
-URIs: http://deb.debian.org/debian
-Suites: bookworm bookworm-updates
-Components: main
-Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
-
-Types: deb
-URIs: http://deb.debian.org/debian-security
-Suites: bookworm-security
-Components: main
-Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
-EOF
+  {
+    printf 'Types: deb\nURIs: %s\nSuites: bookworm bookworm-updates\nComponents: main\n' \
+      "$debian_mirror"
+    printf 'Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg\n'
+    if [[ -n "$security_mirror" ]]; then
+      printf '\nTypes: deb\nURIs: %s\nSuites: bookworm-security\nComponents: main\n' \
+        "$security_mirror"
+      printf 'Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg\n'
+    fi
+  } >"$base/etc/apt/sources.list.d/debian.sources"
   find "$base/usr/share/doc" -mindepth 1 -not -name copyright -not -type d -delete
   rm -rf "$base"/usr/share/{man,info,groff,lintian,linda}/* "$base"/var/lib/apt/lists/* \
     "$base"/var/cache/apt/*.bin "$base"/var/cache/apt/archives/*.deb "$base"/var/log/*.log
