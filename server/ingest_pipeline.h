@@ -88,8 +88,8 @@ class IngestPipeline {
     // Sends a completed frame, on the delivery thread, in submission order. False: the consumer
     // is gone (later frames are skipped). Required.
     std::function<bool(Frame&)> deliver;
-    // Whether the stream is over (cancelled, past its deadline); polled while the reader waits
-    // for room. Optional.
+    // Whether the stream is over (cancelled, past its deadline); polled on the reader thread
+    // while it waits, in AwaitRoom() and Submit(). Optional.
     std::function<bool()> expired = {};
     // Unblocks the reader when draining and nothing is left to answer. It runs under the
     // pipeline's lock, possibly more than once: cheap, idempotent, never calls the pipeline.
