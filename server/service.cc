@@ -4,12 +4,13 @@
 
 #include <algorithm>
 #include <chrono>
-#include <condition_variable>
-#include <deque>
 #include <future>
-#include <thread>
+#include <optional>
+#include <string>
+#include <vector>
 
 #include "core/base/timing.h"
+#include "server/ingest_pipeline.h"
 
 namespace placedb::server {
 
@@ -83,42 +84,6 @@ struct PlaceDbService::Work {
   StageTimings timings;
   ProcessedFrame frame;
   PlaceMetadata metadata;
-};
-
-// One observation of a stream, from its arrival to its response.
-struct PlaceDbService::Slot {
-  uint64_t index = 0;
-  uint64_t sequence = 0;
-  Clock::time_point arrived;
-  double queue_ms = 0;
-  std::unique_ptr<v1::IngestRequest> request;  // freed once decoded
-  bool ready = false;                          // first half done (or failed)
-  grpc::Status status;                         // first half's outcome
-  std::optional<v1::MatchOptions> matches;
-  Work work;
-};
-
-// One open Ingest call. The handler thread reads, workers process, the writer thread writes.
-struct PlaceDbService::Stream {
-  grpc::ServerContext* context = nullptr;
-  grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* io = nullptr;
-  std::shared_ptr<const MapEntry> map;
-  std::optional<v1::MatchOptions> header_matches;
-  bool loop_closure = false;  // IngestHeader.loop_closure
-
-  std::mutex mutex;
-  std::condition_variable changed;
-  std::deque<std::shared_ptr<Slot>> pipeline;  // read, not yet completed, in order
-  bool completing = false;                     // a thread is in ReadyAndAdvance()'s loop
-  std::deque<v1::IngestResponse> outbox;       // completed, not yet written, in order
-  size_t unanswered = 0;                       // read, not yet written
-  bool reading_done = false;
-  bool write_failed = false;
-  bool draining = false;
-
-  // For the close log line.
-  uint64_t frames = 0, stored = 0, merged = 0, rejected = 0, errors = 0;
-  std::vector<std::string> agents;  // first few distinct agent ids
 };
 
 PlaceDbService::PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool,
@@ -496,127 +461,160 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
 
 // ---- Ingest -------------------------------------------------------------------------------------
 
-// Marks `slot` ready and, unless another thread is already completing this stream's slots,
-// completes every ready slot at the front of the pipeline in order. Marking and checking happen
-// under one lock hold: once a thread returns from here it never touches the stream again (the
-// handler may destroy it as soon as the last response is written).
-void PlaceDbService::ReadyAndAdvance(Stream* stream, Slot* slot) {
-  std::unique_lock lock(stream->mutex);
-  slot->ready = true;
-  if (stream->completing) return;
-  stream->completing = true;
-  while (!stream->pipeline.empty() && stream->pipeline.front()->ready) {
-    std::shared_ptr<Slot> front = std::move(stream->pipeline.front());
-    stream->pipeline.pop_front();
-    lock.unlock();
-    v1::IngestResponse response;
-    response.set_sequence(front->sequence);
-    response.set_index(front->index);
-    if (front->status.ok() && Expired(stream->context)) {
-      front->status = Cancelled(stream->context, "before storing");
-    }
-    if (!front->status.ok()) {
-      response.mutable_error()->set_code(int(front->status.error_code()));
-      response.mutable_error()->set_message(front->status.error_message());
-      metrics_->FrameRejected(stream->map->name, GrpcCodeLabel(front->status.error_code()));
-      if (front->status.error_code() != grpc::StatusCode::CANCELLED &&
-          front->status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
-        spdlog::warn("ingest frame error map={} index={} sequence={} code={} message=\"{}\"",
-                     stream->map->name, front->index, front->sequence,
-                     GrpcCodeName(front->status.error_code()), front->status.error_message());
-      }
-    } else {
-      Work& work = front->work;
-      const MapEntry& map = *stream->map;
-      ProcessedFrame& frame = work.frame;
-      Result<AddResult> added = Status::Internal("not stored");
-      std::optional<LoopClosureOutcome> loop;
-      const grpc::Status second_half = Guarded("searching and storing", [&] {
-        // The agent's stream state, in its order: Algorithm 1 on depth, then validity and the
-        // BoW vector (a no-op for frames without depth).
-        if (Status advanced = map.map->AdvanceStream(&frame, work.metadata.agent_id);
-            !advanced.ok()) {
-          return ToGrpc(advanced, "observation");
-        }
-        work.timings.depth_ms = frame.timings.depth_ms;
-        work.timings.transform_ms = frame.timings.transform_ms;
-        if (front->matches && frame.valid) {
-          QueryOptions options = QueryOptionsFromProto(*front->matches, work.metadata.agent_id);
-          options.timestamp_ns = work.metadata.timestamp_ns;
-          QueryResult result = map.map->Search(frame, options);
-          work.timings.search_ms = result.timings.search_ms;
-          work.timings.verify_ms = result.timings.verify_ms;
-          MatchesToProto(result.matches, response.mutable_matches());
-        }
-        if (stream->loop_closure && frame.valid) {
-          // The agent's loop-closure detector, then (unless rehearsal merges the frame into the
-          // previous place) the durable write.
-          AddResult committed;  // the commit's result and its store_ms (none when merged)
-          auto outcome = map.map->CloseLoop(frame, work.metadata, &committed);
-          if (!outcome.ok()) return ToGrpc(outcome.status(), "loop closure");
-          work.timings.loop_closure_ms = outcome->update_ms;
-          loop = std::move(outcome).value();
-          added = std::move(committed);
-          return grpc::Status::OK;
-        }
-        added = map.map->Commit(frame, work.metadata);
-        return added.ok() ? grpc::Status::OK : ToGrpc(added.status(), "storing");
-      });
-      if (!second_half.ok()) {
-        front->status = second_half;
-        response.clear_matches();
-        response.mutable_error()->set_code(int(front->status.error_code()));
-        response.mutable_error()->set_message(front->status.error_message());
-        metrics_->FrameRejected(map.name, GrpcCodeLabel(front->status.error_code()));
-        spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map.name,
-                     front->index, GrpcCodeName(front->status.error_code()),
-                     front->status.error_message());
-      } else {
-        CountsToProto(frame.counts, response.mutable_counts());
-        BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
-        if (frame.depth_state) DepthStateToProto(*frame.depth_state, response.mutable_depth());
-        work.timings.store_ms = added->timings.store_ms;
-        metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.depth_removed,
-                                   frame.counts.static_);
-        if (loop) {
-          LoopClosureToProto(*loop, response.mutable_loop_closure());
-          if (loop->loop) metrics_->LoopClosed(map.name);
-          if (loop->loop_rejected) metrics_->LoopRejected(map.name);
-        }
-        if (loop && loop->merged) {
-          // Rehearsal: the frame is the place it was merged into; nothing new is stored.
-          response.set_stored(false);
-          response.set_place_id(loop->place);
-          metrics_->FrameMerged(map.name);
-        } else {
-          response.set_stored(added->stored);
-          if (added->stored) {
-            response.set_place_id(added->id);
-            metrics_->FrameIngested(map.name);
-          } else {
-            response.set_rejection(added->rejection);
-            metrics_->FrameRejected(map.name, "invalid_place");
-          }
-        }
-        work.timings.total_ms = MsSince(front->arrived);
-        TimingsToProto(work.timings, front->queue_ms, response.mutable_timings());
-        ObserveStages(work.timings);
-      }
-    }
-    lock.lock();
-    if (!front->status.ok()) {
-      ++stream->errors;
-    } else if (response.stored()) {
-      ++stream->stored;
-    } else if (response.loop_closure().merged()) {
-      ++stream->merged;
-    } else {
-      ++stream->rejected;
-    }
-    stream->outbox.push_back(std::move(response));
-    stream->changed.notify_all();
+// One open Ingest call: the handler thread reads, the pipeline does the rest.
+struct PlaceDbService::Stream {
+  grpc::ServerContext* context = nullptr;
+  std::shared_ptr<const MapEntry> map;
+  std::optional<v1::MatchOptions> header_matches;
+  bool loop_closure = false;           // IngestHeader.loop_closure
+  IngestPipeline* pipeline = nullptr;  // set before the stream is listed in streams_
+  grpc::Status refusal;                // why the pool refused the last frame (handler thread)
+
+  // For the close log line, read after the pipeline is closed. `frames` and `agents`: the handler
+  // thread; the outcomes: Complete(), which the pipeline runs one frame at a time.
+  uint64_t frames = 0, stored = 0, merged = 0, rejected = 0, errors = 0;
+  std::vector<std::string> agents;  // first few distinct agent ids
+};
+
+// One observation of a stream, from its arrival to its response.
+struct PlaceDbService::Slot final : IngestPipeline::Frame {
+  Slot(PlaceDbService* service, Stream* stream) : service(service), stream(stream) {}
+
+  void Prepare() override {
+    queue_ms = MsSince(arrived);
+    status = Guarded("processing the observation", [&] {
+      return service->Prepare(stream->context, *stream->map, request->observation(), "observation",
+                              FrameRole::kStream, &work);
+    });
+    request.reset();  // the decoded frame is all that is needed now
   }
-  stream->completing = false;
+  void Refused(IngestPipeline::Admission why) override {
+    status = why == IngestPipeline::Admission::kPoolStopped
+                 ? service->Unavailable()
+                 : Cancelled(stream->context, "while waiting for a worker");
+    request.reset();
+    stream->refusal = status;
+  }
+  void Complete() override { service->Complete(stream, this); }
+
+  PlaceDbService* const service;
+  Stream* const stream;
+  uint64_t index = 0;
+  uint64_t sequence = 0;
+  Clock::time_point arrived;
+  double queue_ms = 0;
+  std::unique_ptr<v1::IngestRequest> request;  // freed once decoded
+  grpc::Status status;                         // the outcome so far
+  std::optional<v1::MatchOptions> matches;
+  Work work;                    // freed once completed
+  v1::IngestResponse response;  // Complete()'s, for the writer
+};
+
+void PlaceDbService::Complete(Stream* stream, Slot* slot) {
+  v1::IngestResponse& response = slot->response;
+  response.set_sequence(slot->sequence);
+  response.set_index(slot->index);
+  if (slot->status.ok() && Expired(stream->context)) {
+    slot->status = Cancelled(stream->context, "before storing");
+  }
+  if (!slot->status.ok()) {
+    response.mutable_error()->set_code(int(slot->status.error_code()));
+    response.mutable_error()->set_message(slot->status.error_message());
+    metrics_->FrameRejected(stream->map->name, GrpcCodeLabel(slot->status.error_code()));
+    if (slot->status.error_code() != grpc::StatusCode::CANCELLED &&
+        slot->status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
+      spdlog::warn("ingest frame error map={} index={} sequence={} code={} message=\"{}\"",
+                   stream->map->name, slot->index, slot->sequence,
+                   GrpcCodeName(slot->status.error_code()), slot->status.error_message());
+    }
+  } else {
+    Work& work = slot->work;
+    const MapEntry& map = *stream->map;
+    ProcessedFrame& frame = work.frame;
+    Result<AddResult> added = Status::Internal("not stored");
+    std::optional<LoopClosureOutcome> loop;
+    const grpc::Status second_half = Guarded("searching and storing", [&] {
+      // The agent's stream state, in its order: Algorithm 1 on depth, then validity and the
+      // BoW vector (a no-op for frames without depth).
+      if (Status advanced = map.map->AdvanceStream(&frame, work.metadata.agent_id);
+          !advanced.ok()) {
+        return ToGrpc(advanced, "observation");
+      }
+      work.timings.depth_ms = frame.timings.depth_ms;
+      work.timings.transform_ms = frame.timings.transform_ms;
+      if (slot->matches && frame.valid) {
+        QueryOptions options = QueryOptionsFromProto(*slot->matches, work.metadata.agent_id);
+        options.timestamp_ns = work.metadata.timestamp_ns;
+        QueryResult result = map.map->Search(frame, options);
+        work.timings.search_ms = result.timings.search_ms;
+        work.timings.verify_ms = result.timings.verify_ms;
+        MatchesToProto(result.matches, response.mutable_matches());
+      }
+      if (stream->loop_closure && frame.valid) {
+        // The agent's loop-closure detector, then (unless rehearsal merges the frame into the
+        // previous place) the durable write.
+        AddResult committed;  // the commit's result and its store_ms (none when merged)
+        auto outcome = map.map->CloseLoop(frame, work.metadata, &committed);
+        if (!outcome.ok()) return ToGrpc(outcome.status(), "loop closure");
+        work.timings.loop_closure_ms = outcome->update_ms;
+        loop = std::move(outcome).value();
+        added = std::move(committed);
+        return grpc::Status::OK;
+      }
+      added = map.map->Commit(frame, work.metadata);
+      return added.ok() ? grpc::Status::OK : ToGrpc(added.status(), "storing");
+    });
+    if (!second_half.ok()) {
+      slot->status = second_half;
+      response.clear_matches();
+      response.mutable_error()->set_code(int(slot->status.error_code()));
+      response.mutable_error()->set_message(slot->status.error_message());
+      metrics_->FrameRejected(map.name, GrpcCodeLabel(slot->status.error_code()));
+      spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map.name,
+                   slot->index, GrpcCodeName(slot->status.error_code()),
+                   slot->status.error_message());
+    } else {
+      CountsToProto(frame.counts, response.mutable_counts());
+      BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
+      if (frame.depth_state) DepthStateToProto(*frame.depth_state, response.mutable_depth());
+      work.timings.store_ms = added->timings.store_ms;
+      metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.depth_removed,
+                                 frame.counts.static_);
+      if (loop) {
+        LoopClosureToProto(*loop, response.mutable_loop_closure());
+        if (loop->loop) metrics_->LoopClosed(map.name);
+        if (loop->loop_rejected) metrics_->LoopRejected(map.name);
+      }
+      if (loop && loop->merged) {
+        // Rehearsal: the frame is the place it was merged into; nothing new is stored.
+        response.set_stored(false);
+        response.set_place_id(loop->place);
+        metrics_->FrameMerged(map.name);
+      } else {
+        response.set_stored(added->stored);
+        if (added->stored) {
+          response.set_place_id(added->id);
+          metrics_->FrameIngested(map.name);
+        } else {
+          response.set_rejection(added->rejection);
+          metrics_->FrameRejected(map.name, "invalid_place");
+        }
+      }
+      work.timings.total_ms = MsSince(slot->arrived);
+      TimingsToProto(work.timings, slot->queue_ms, response.mutable_timings());
+      ObserveStages(work.timings);
+    }
+  }
+  slot->work = Work();  // the response may wait for a slow reader; the frame's data need not
+  if (!slot->status.ok()) {
+    ++stream->errors;
+  } else if (response.stored()) {
+    ++stream->stored;
+  } else if (response.loop_closure().merged()) {
+    ++stream->merged;
+  } else {
+    ++stream->rejected;
+  }
 }
 
 grpc::Status PlaceDbService::Ingest(
@@ -652,10 +650,19 @@ grpc::Status PlaceDbService::Ingest(
 
   Stream stream;
   stream.context = context;
-  stream.io = io;
   stream.map = *entry;
   if (first.header().has_matches()) stream.header_matches = first.header().matches();
   stream.loop_closure = first.header().loop_closure();
+  // Declared after `stream`, so closed before it: its frames point to the stream.
+  IngestPipeline pipeline(pool_, limits.max_inflight_per_stream,
+                          {.deliver =
+                               [io](IngestPipeline::Frame& frame) {
+                                 return io->Write(static_cast<Slot&>(frame).response);
+                               },
+                           .expired = [context] { return Expired(context); },
+                           // Unblocks a handler waiting in Read().
+                           .interrupt = [context] { context->TryCancel(); }});
+  stream.pipeline = &pipeline;
   {
     std::lock_guard lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
@@ -672,53 +679,19 @@ grpc::Status PlaceDbService::Ingest(
   spdlog::info("ingest stream opened peer={} map={} loop_closure={}", Peer(context),
                stream.map->name, stream.loop_closure);
 
-  // The writer: responses in order, as they complete.
-  std::thread writer([this, &stream] {
-    std::unique_lock lock(stream.mutex);
-    while (true) {
-      stream.changed.wait(lock, [&] {
-        return !stream.outbox.empty() || (stream.reading_done && stream.unanswered == 0);
-      });
-      if (stream.outbox.empty()) return;
-      v1::IngestResponse response = std::move(stream.outbox.front());
-      stream.outbox.pop_front();
-      const bool skip = stream.write_failed;
-      lock.unlock();
-      const bool written = !skip && stream.io->Write(response);
-      lock.lock();
-      if (!written) stream.write_failed = true;
-      --stream.unanswered;
-      stream.changed.notify_all();
-      if (stream.draining && stream.unanswered == 0 && !stream.reading_done) {
-        stream.context->TryCancel();  // unblocks the reader; nothing is left to answer
-      }
-    }
-  });
-
   grpc::Status status = grpc::Status::OK;
   uint64_t index = 0;
   while (true) {
     // Backpressure, per stream: no more than max_inflight_per_stream unanswered frames.
-    {
-      std::unique_lock lock(stream.mutex);
-      while (stream.unanswered >= limits.max_inflight_per_stream && !stream.draining &&
-             !stream.write_failed && !Expired(context)) {
-        stream.changed.wait_for(lock, std::chrono::milliseconds(50));
-      }
-      if (stream.draining) {
-        status = Unavailable();
-        break;
-      }
-      if (stream.write_failed || Expired(context)) {
-        status = Cancelled(context, "(stream closed)");
-        break;
-      }
+    if (const auto room = pipeline.AwaitRoom(); room != IngestPipeline::Room::kReady) {
+      status = room == IngestPipeline::Room::kDraining ? Unavailable()
+                                                       : Cancelled(context, "(stream closed)");
+      break;
     }
     auto request = std::make_unique<v1::IngestRequest>();
     if (!io->Read(request.get())) {
       if (Expired(context)) {
-        std::lock_guard lock(stream.mutex);
-        status = stream.draining ? Unavailable() : Cancelled(context, "(stream cancelled)");
+        status = pipeline.draining() ? Unavailable() : Cancelled(context, "(stream cancelled)");
       }
       break;
     }
@@ -727,7 +700,7 @@ grpc::Status PlaceDbService::Ingest(
                        ": after the header, every message must be an observation");
       break;
     }
-    auto slot = std::make_shared<Slot>();
+    auto slot = std::make_unique<Slot>(this, &stream);
     slot->index = index++;
     slot->arrived = Clock::now();
     slot->sequence = request->observation().sequence();
@@ -736,55 +709,28 @@ grpc::Status PlaceDbService::Ingest(
     } else {
       slot->matches = stream.header_matches;
     }
+    std::string agent = request->observation().agent_id();
     slot->request = std::move(request);
-    {
-      std::lock_guard lock(stream.mutex);
-      if (stream.draining) {  // refused unread: the client sees it was never answered
-        status = Unavailable();
-        break;
-      }
-      ++stream.frames;
-      const std::string& agent = slot->request->observation().agent_id();
-      if (stream.agents.size() < 4 &&
-          std::find(stream.agents.begin(), stream.agents.end(), agent) == stream.agents.end()) {
-        stream.agents.push_back(agent);
-      }
-      stream.pipeline.push_back(slot);
-      ++stream.unanswered;
+    // Global backpressure is inside: Submit() waits for room in the pool's queue.
+    const IngestPipeline::Admission admission = pipeline.Submit(std::move(slot));
+    if (admission == IngestPipeline::Admission::kDraining) {
+      status = Unavailable();  // refused unread: the client sees it was never answered
+      break;
     }
-    auto task = [this, &stream, slot] {
-      slot->queue_ms = MsSince(slot->arrived);
-      slot->status = Guarded("processing the observation", [&] {
-        return Prepare(stream.context, *stream.map, slot->request->observation(), "observation",
-                       FrameRole::kStream, &slot->work);
-      });
-      slot->request.reset();  // the decoded frame is all that is needed now
-      ReadyAndAdvance(&stream, slot.get());
-    };
-    // Backpressure, global: wait for room in the pool's queue before reading on.
-    const auto submitted =
-        pool_->Submit(task, Clock::time_point::max(), [context] { return Expired(context); });
-    if (submitted != WorkerPool::SubmitResult::kQueued) {
-      slot->status = submitted == WorkerPool::SubmitResult::kStopped
-                         ? Unavailable()
-                         : Cancelled(context, "while waiting for a worker");
-      slot->request.reset();
-      status = slot->status;
-      // Only this (failed) slot can be ready and not yet completed here: nothing heavy runs on
-      // the handler thread.
-      ReadyAndAdvance(&stream, slot.get());
+    ++stream.frames;
+    if (stream.agents.size() < 4 &&
+        std::find(stream.agents.begin(), stream.agents.end(), agent) == stream.agents.end()) {
+      stream.agents.push_back(std::move(agent));
+    }
+    if (admission != IngestPipeline::Admission::kQueued) {
+      status = stream.refusal;  // the frame itself was answered with the same error
       break;
     }
   }
 
   // Every frame read is completed and answered (or dropped if the client is gone) before the
   // call returns: the workers reference this stream.
-  {
-    std::lock_guard lock(stream.mutex);
-    stream.reading_done = true;
-    stream.changed.notify_all();
-  }
-  writer.join();
+  pipeline.Close();
   {
     std::lock_guard lock(streams_mutex_);
     streams_.erase(&stream);
@@ -807,14 +753,9 @@ void PlaceDbService::BeginDrain() {
   draining_ = true;
   draining_flag_ = true;
   for (grpc::ServerContext* context : awaiting_header_) context->TryCancel();
-  for (Stream* stream : streams_) {
-    std::lock_guard stream_lock(stream->mutex);
-    stream->draining = true;
-    stream->changed.notify_all();
-    // An idle stream's handler is blocked in Read(): cancel it now. A busy one is cancelled by
-    // its writer once its last frame is answered.
-    if (stream->unanswered == 0) stream->context->TryCancel();
-  }
+  // An idle stream's handler is blocked in Read() and is cancelled now; a busy one once its last
+  // frame is answered (IngestPipeline::Drain).
+  for (Stream* stream : streams_) stream->pipeline->Drain();
 }
 
 void PlaceDbService::RefreshMapGauges() {

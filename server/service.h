@@ -1,15 +1,14 @@
 // placedb.v1.PlaceDb on the synchronous gRPC API, with the frame pipeline on a bounded pool.
 //
-// Ingest: the call's handler thread reads; each observation becomes a slot in the stream's
-// ordered pipeline and a task on the WorkerPool (decode, detect, extract, depth, filter,
-// transform). The agent's stream state (Algorithm 1 on depth, PlaceMap::AdvanceStream), search
-// and store (or, in loop-closure mode, PlaceMap::CloseLoop) run in stream order (a per-stream
-// strand: whichever worker finishes the front slot's first half runs the second half of every
-// ready slot in order), so a frame's matches are the map before that frame, and its place id is
-// stored before the next frame's search.
-// A per-stream writer thread sends responses in order. The handler reads its next message only
-// when the stream has fewer than max_inflight_per_stream frames unanswered and the pool's queue
-// has room: backpressure reaches the client through HTTP/2 flow control.
+// Ingest: the call's handler thread reads and hands each observation to the stream's
+// IngestPipeline (server/ingest_pipeline.h), which prepares it on the WorkerPool (decode, detect,
+// extract, depth, filter, transform) and completes it in stream order: the agent's stream state
+// (Algorithm 1 on depth, PlaceMap::AdvanceStream), search and store (or, in loop-closure mode,
+// PlaceMap::CloseLoop), so a frame's matches are the map before that frame, and its place id is
+// stored before the next frame's search. The pipeline's delivery thread writes the responses in
+// order. The handler reads its next message only when the stream has fewer than
+// max_inflight_per_stream frames unanswered and the pool's queue has room: backpressure reaches
+// the client through HTTP/2 flow control.
 //
 // Cancellation and deadlines are checked between stages; a cancelled frame is never stored.
 #pragma once
@@ -80,11 +79,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   grpc::Status Prepare(grpc::ServerContext* context, const MapEntry& map,
                        const v1::Observation& observation, const std::string& field, FrameRole role,
                        Work* work);
-  // Marks a slot's first half done, then runs the second half (the agent's stream state:
-  // Algorithm 1; search when asked; then store, or loop closure + store in loop-closure mode)
-  // of every ready slot at the front of the stream's pipeline, in order, unless another thread
-  // already is.
-  void ReadyAndAdvance(Stream* stream, Slot* slot);
+  // The second half of an Ingest frame (the agent's stream state: Algorithm 1; search when
+  // asked; then store, or loop closure + store in loop-closure mode) and its response. The
+  // stream's pipeline runs it in stream order, one frame at a time.
+  void Complete(Stream* stream, Slot* slot);
   grpc::Status Finish(const char* method, grpc::ServerContext* context, grpc::Status status);
   grpc::Status Unavailable() const;
   void ObserveStages(const StageTimings& timings);

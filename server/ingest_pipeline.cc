@@ -1,0 +1,126 @@
+#include "server/ingest_pipeline.h"
+
+#include <algorithm>
+#include <chrono>
+#include <utility>
+
+namespace placedb::server {
+
+IngestPipeline::IngestPipeline(WorkerPool* pool, size_t max_inflight, Callbacks callbacks)
+    : pool_(pool),
+      max_inflight_(std::max<size_t>(max_inflight, 1)),
+      callbacks_(std::move(callbacks)),
+      delivery_([this] { Deliver(); }) {}
+
+IngestPipeline::~IngestPipeline() {
+  Close();
+}
+
+IngestPipeline::Room IngestPipeline::AwaitRoom() {
+  // `expired` has no wake-up hook (a cancelled call does not signal us): poll it.
+  constexpr auto kPoll = std::chrono::milliseconds(50);
+  const auto expired = [this] { return callbacks_.expired && callbacks_.expired(); };
+  std::unique_lock lock(mutex_);
+  while (unanswered_ >= max_inflight_ && !draining_ && !deliver_failed_ && !expired()) {
+    changed_.wait_for(lock, kPoll);
+  }
+  if (draining_) return Room::kDraining;
+  if (deliver_failed_ || expired()) return Room::kClosed;
+  return Room::kReady;
+}
+
+IngestPipeline::Admission IngestPipeline::Submit(std::unique_ptr<Frame> frame) {
+  auto owned = std::make_unique<Slot>();
+  owned->frame = std::move(frame);
+  Slot* const slot = owned.get();
+  {
+    std::lock_guard lock(mutex_);
+    if (draining_) return Admission::kDraining;  // the caller sees it was never answered
+    pending_.push_back(std::move(owned));
+    ++unanswered_;
+  }
+  // Captures plain pointers: once ReadyAndAdvance() returns, the task never touches either again
+  // (the slot may be delivered and destroyed by then, and the pipeline closed).
+  auto task = [this, slot] {
+    slot->frame->Prepare();
+    ReadyAndAdvance(slot);
+  };
+  // Global backpressure: the reader waits here for room in the pool's queue before reading on.
+  const auto submitted = pool_->Submit(task, WorkerPool::Clock::time_point::max(), [this] {
+    return callbacks_.expired && callbacks_.expired();
+  });
+  if (submitted == WorkerPool::SubmitResult::kQueued) return Admission::kQueued;
+  const Admission why = submitted == WorkerPool::SubmitResult::kStopped ? Admission::kPoolStopped
+                                                                        : Admission::kGaveUp;
+  slot->frame->Refused(why);
+  // Only this frame can be ready and not yet completed here, so at most its own (cheap)
+  // Complete() runs on the reader thread.
+  ReadyAndAdvance(slot);
+  return why;
+}
+
+// Marking and checking happen under one lock hold, so exactly one thread completes each frame,
+// and a thread that returns from here never touches the pipeline again.
+void IngestPipeline::ReadyAndAdvance(Slot* slot) {
+  std::unique_lock lock(mutex_);
+  slot->ready = true;
+  if (completing_) return;  // the completing thread will reach this slot
+  completing_ = true;
+  while (!pending_.empty() && pending_.front()->ready) {
+    std::unique_ptr<Frame> front = std::move(pending_.front()->frame);
+    pending_.pop_front();
+    lock.unlock();
+    front->Complete();
+    lock.lock();
+    outbox_.push_back(std::move(front));
+    changed_.notify_all();
+  }
+  completing_ = false;
+}
+
+void IngestPipeline::Deliver() {
+  std::unique_lock lock(mutex_);
+  while (true) {
+    changed_.wait(lock, [&] { return !outbox_.empty() || (reading_done_ && unanswered_ == 0); });
+    if (outbox_.empty()) return;
+    std::unique_ptr<Frame> frame = std::move(outbox_.front());
+    outbox_.pop_front();
+    const bool skip = deliver_failed_;
+    lock.unlock();
+    const bool delivered = !skip && callbacks_.deliver(*frame);
+    frame.reset();  // outside the lock: a frame may hold a lot
+    lock.lock();
+    if (!delivered) deliver_failed_ = true;
+    --unanswered_;
+    changed_.notify_all();
+    if (draining_ && unanswered_ == 0 && !reading_done_ && callbacks_.interrupt) {
+      callbacks_.interrupt();  // the reader may be blocked on input; nothing is left to answer
+    }
+  }
+}
+
+void IngestPipeline::Close() {
+  {
+    std::lock_guard lock(mutex_);
+    reading_done_ = true;
+    changed_.notify_all();
+  }
+  // Every submitted frame is answered before this returns: workers reference the pipeline.
+  if (delivery_.joinable()) delivery_.join();
+}
+
+void IngestPipeline::Drain() {
+  std::lock_guard lock(mutex_);
+  draining_ = true;
+  changed_.notify_all();
+  // An idle reader is blocked on input: interrupt it now. A busy one is interrupted by the
+  // delivery thread once its last frame is answered.
+  if (unanswered_ == 0 && callbacks_.interrupt) callbacks_.interrupt();
+}
+
+bool IngestPipeline::draining() const {
+  std::lock_guard lock(mutex_);
+  return draining_;
+}
+
+}  // namespace placedb::server

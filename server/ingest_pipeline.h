@@ -1,0 +1,148 @@
+// The machinery of one ingest stream, without the wire: frames are read by one thread, processed
+// in parallel on a WorkerPool, finished one at a time in the order they were read, and delivered
+// in that order by the pipeline's own delivery thread.
+//
+// A frame's work comes in two halves (IngestPipeline::Frame). Prepare() is independent of the
+// other frames (decode, extract, filter), so frames of one stream prepare in parallel, in any
+// order. Complete() depends on every earlier frame (a place is stored before the next frame
+// searches), so it runs in stream order, one frame at a time: whichever worker finishes preparing
+// the frame at the front completes it and every prepared frame behind it (a strand; no thread
+// waits for another). Completed frames go to an outbox that the delivery thread drains in order.
+//
+// Threads and calls:
+// - The reader (the one thread that owns the stream, e.g. an RPC handler) calls, in a loop,
+//   AwaitRoom() before reading the next request, then Submit() with its frame; when reading ends
+//   (end of input, error, refusal) it calls Close(), which returns once every submitted frame is
+//   answered. Only the reader calls AwaitRoom(), Submit() and Close().
+// - Pool workers run Prepare() and Complete(); the reader runs Refused() and, for a refused frame,
+//   may run Complete() too (inside Submit()).
+// - The delivery thread runs `deliver`, one frame at a time, in submission order.
+// - Drain() and draining() may be called from any thread.
+//
+// Limits: at most `max_inflight` frames are unanswered (submitted, not yet delivered or skipped);
+// AwaitRoom() blocks the reader until there is room, so a slow consumer stops the reading, and
+// nothing read is dropped. Submit() waits for room in the pool's queue (global backpressure).
+//
+// Errors and ending:
+// - A frame's own failure is its business: Prepare() and Complete() record it in the frame (the
+//   stream goes on). They must not throw: a frame whose stage throws is never answered, and the
+//   stream never ends.
+// - When `deliver` returns false (the consumer is gone), every later frame is still completed but
+//   skipped instead of delivered, and AwaitRoom() says kClosed.
+// - When `expired` says so (cancelled, past the deadline), AwaitRoom() says kClosed and a Submit()
+//   still waiting for the pool gives up (the frame is refused, then completed and answered).
+// - Drain() (server shutdown): AwaitRoom() and Submit() refuse from then on, frames already
+//   submitted are still completed and delivered, and `interrupt` is called once nothing is left
+//   to answer, to unblock a reader waiting for input.
+// Close() (or the destructor) is the only safe end: it waits for the workers and the delivery
+// thread to be done with the pipeline and with every frame.
+#pragma once
+
+#include <condition_variable>
+#include <cstddef>
+#include <deque>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <thread>
+
+#include "server/worker_pool.h"
+
+namespace placedb::server {
+
+class IngestPipeline {
+ public:
+  // What AwaitRoom() found.
+  enum class Room {
+    kReady,     // read and submit the next request
+    kDraining,  // Drain() was called: stop reading
+    kClosed,    // the consumer is gone, or `expired` said so: stop reading
+  };
+  // What Submit() did with a frame.
+  enum class Admission {
+    kQueued,       // on the pool; it will be prepared, completed and delivered
+    kDraining,     // Drain() was called: dropped unanswered (never counted as in flight)
+    kPoolStopped,  // the pool is stopping: Refused(), then completed and delivered
+    kGaveUp,       // `expired` said so while waiting for the pool: as kPoolStopped
+  };
+
+  // One request's work, written by the caller. The pipeline owns it from Submit() until it has
+  // been delivered (or skipped), and destroys it on the delivery thread (or in Submit(), when it
+  // drops it).
+  class Frame {
+   public:
+    virtual ~Frame() = default;
+    // The first half, on a pool worker, concurrently with other frames' Prepare() and with the
+    // Complete() of earlier frames.
+    virtual void Prepare() = 0;
+    // Instead of Prepare(), on the reader thread, when the pool did not take the frame
+    // (kPoolStopped or kGaveUp). Complete() still follows, in order.
+    virtual void Refused(Admission why) = 0;
+    // The second half, after this frame's Prepare() (or Refused()) and after every earlier
+    // frame's Complete(), before any later frame's: the Complete() calls of one pipeline never
+    // overlap, and each sees everything the earlier ones did. Usually on a worker.
+    virtual void Complete() = 0;
+  };
+
+  struct Callbacks {
+    // Sends a completed frame, on the delivery thread, in submission order. False: the consumer
+    // is gone (later frames are skipped). Required.
+    std::function<bool(Frame&)> deliver;
+    // Whether the stream is over (cancelled, past its deadline); polled on the reader thread
+    // while it waits, in AwaitRoom() and Submit(). Optional.
+    std::function<bool()> expired = {};
+    // Unblocks the reader when draining and nothing is left to answer. It runs under the
+    // pipeline's lock, possibly more than once: cheap, idempotent, never calls the pipeline.
+    // Optional.
+    std::function<void()> interrupt = {};
+  };
+
+  // Starts the delivery thread. `pool` must outlive the pipeline; `max_inflight` >= 1.
+  IngestPipeline(WorkerPool* pool, size_t max_inflight, Callbacks callbacks);
+  ~IngestPipeline();  // Close()
+  IngestPipeline(const IngestPipeline&) = delete;
+  IngestPipeline& operator=(const IngestPipeline&) = delete;
+
+  // Reader: waits until fewer than `max_inflight` frames are unanswered, or until the stream is
+  // draining or closed (checked in that order; `expired` is polled every 50 ms).
+  Room AwaitRoom();
+  // Reader: admits `frame` at the back of the stream and queues its Prepare() on the pool,
+  // waiting for room there (until `expired`). Not kQueued: see Admission.
+  Admission Submit(std::unique_ptr<Frame> frame);
+  // Reader: no more frames. Returns once every submitted frame is completed and delivered (or
+  // skipped) and the delivery thread has ended. Idempotent.
+  void Close();
+
+  // Any thread: refuse new frames, finish the submitted ones (see the file comment).
+  void Drain();
+  bool draining() const;
+
+ private:
+  struct Slot {
+    std::unique_ptr<Frame> frame;
+    bool ready = false;  // Prepare() or Refused() done
+  };
+
+  // Marks `slot` ready and, unless another thread already is, completes every ready slot at the
+  // front of the stream, in order.
+  void ReadyAndAdvance(Slot* slot);
+  void Deliver();  // the delivery thread
+
+  WorkerPool* const pool_;
+  const size_t max_inflight_;
+  const Callbacks callbacks_;
+
+  mutable std::mutex mutex_;
+  std::condition_variable changed_;
+  std::deque<std::unique_ptr<Slot>> pending_;  // submitted, not yet completed, in order
+  bool completing_ = false;                    // a thread is in ReadyAndAdvance()'s loop
+  std::deque<std::unique_ptr<Frame>> outbox_;  // completed, not yet delivered, in order
+  size_t unanswered_ = 0;                      // submitted, not yet delivered or skipped
+  bool reading_done_ = false;
+  bool deliver_failed_ = false;
+  bool draining_ = false;
+
+  std::thread delivery_;  // last: starts once the state above exists
+};
+
+}  // namespace placedb::server
