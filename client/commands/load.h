@@ -13,6 +13,10 @@
 #include "client/cli.h"
 #include "client/connection.h"
 
+namespace CLI {
+class App;
+}  // namespace CLI
+
 namespace placedb::client {
 
 struct LoadOptions {
@@ -36,6 +40,10 @@ struct LoadOptions {
   std::string agent_prefix = "load";
 };
 
+// Adds `load` to `app`, its options bound to *options; returns the subcommand.
+CLI::App* RegisterLoad(CLI::App& app, LoadOptions* options);
+
+// Opens its own connection: the target is checked to be loopback first.
 int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& options, bool json,
             CliIo& io);
 

@@ -9,6 +9,10 @@
 #include "client/cli.h"
 #include "client/connection.h"
 
+namespace CLI {
+class App;
+}  // namespace CLI
+
 namespace placedb::client {
 
 struct IngestOptions {
@@ -29,6 +33,9 @@ struct IngestOptions {
   std::string intrinsics;     // "fx,fy,cx,cy" ("" = none)
   bool loop_closure = false;  // IngestHeader.loop_closure: per-agent Bayesian loop closure
 };
+
+// Adds `ingest` to `app`, its options bound to *options; returns the subcommand.
+CLI::App* RegisterIngest(CLI::App& app, IngestOptions* options);
 
 int RunIngest(const Connection& connection, const IngestOptions& options, bool json, CliIo& io);
 
