@@ -15,10 +15,10 @@
 namespace placedb::server_testing {
 namespace {
 
-// The checkout (this file is tests/server/config_test.cc in it).
+// The checkout, from CMake: __FILE__ is relative to the build directory when ccache's base_dir
+// rewrites the compiler's paths, and the test runs in another directory.
 std::string SourceDir() {
-  const std::string file = __FILE__;
-  return file.substr(0, file.rfind("/tests/"));
+  return PLACEDB_SOURCE_DIR;
 }
 
 // An embedded-default vocabulary whose file is missing is a warning (maps that need it are
