@@ -19,14 +19,16 @@ function(placedb_discover_tests target)
   endif()
 endfunction()
 
-# placedb_add_test(<name> LABEL <label> LIBS <target>... [SOURCES <file>...]
+# placedb_add_test(<name> LABEL <label> [CONCURRENCY] LIBS <target>... [SOURCES <file>...]
 #                  [FIXTURES <fixture>...] [DEFINITIONS <definition>...])
 #
 # The one way a test is registered (tests/CMakeLists.txt holds every call): a GoogleTest binary
 # from SOURCES (default <name>.cc), linked to LIBS, discovered with LABEL and FIXTURES. Unit tests
-# join the target `placedb_unit_tests`, which the sanitizer stages of tools/test.sh build.
+# join the target `placedb_unit_tests` (built by the ASan+UBSan stage of tools/test.sh);
+# CONCURRENCY marks binaries with concurrency cases (test names containing "Concurren"), which
+# join `placedb_concurrency_tests` (built and run by the ThreadSanitizer stage).
 function(placedb_add_test name)
-  cmake_parse_arguments(ARG "" "LABEL" "SOURCES;LIBS;FIXTURES;DEFINITIONS" ${ARGN})
+  cmake_parse_arguments(ARG "CONCURRENCY" "LABEL" "SOURCES;LIBS;FIXTURES;DEFINITIONS" ${ARGN})
   if(NOT ARG_SOURCES)
     set(ARG_SOURCES ${name}.cc)
   endif()
@@ -38,5 +40,8 @@ function(placedb_add_test name)
   placedb_discover_tests(${name} LABELS ${ARG_LABEL} FIXTURES ${ARG_FIXTURES})
   if(ARG_LABEL STREQUAL "unit")
     add_dependencies(placedb_unit_tests ${name})
+  endif()
+  if(ARG_CONCURRENCY)
+    add_dependencies(placedb_concurrency_tests ${name})
   endif()
 endfunction()

@@ -35,8 +35,7 @@ ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:ha
 step "Concurrency tests under ThreadSanitizer"
 cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPLACEDB_WERROR=ON \
   -DPLACEDB_TSAN=ON -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
-cmake --build build-tsan -j "$jobs" --target place_database_test place_index_test storage_test server_test placedb-vocab \
-  placedb-sift-vocab ingest_pipeline_test
+cmake --build build-tsan -j "$jobs" --target placedb_concurrency_tests
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tools/tsan.supp" \
   ctest --test-dir build-tsan --output-on-failure -R 'Concurren' --timeout 1500
 

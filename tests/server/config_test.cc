@@ -1,0 +1,144 @@
+// The server's configuration: file, then environment, then flags; which vocabularies are
+// optional; a vocabulary or detector that does not load at startup.
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <map>
+#include <string>
+
+#include "core/base/status.h"
+#include "core/storage/map_store.h"
+#include "tests/server/server_fixture.h"
+#include "tests/test_support.h"
+
+namespace placedb::server_testing {
+namespace {
+
+// The checkout, from CMake: __FILE__ is relative to the build directory when ccache's base_dir
+// rewrites the compiler's paths, and the test runs in another directory.
+std::string SourceDir() {
+  return PLACEDB_SOURCE_DIR;
+}
+
+// An embedded-default vocabulary whose file is missing is a warning (maps that need it are
+// unavailable); one the operator named is a startup error.
+TEST_F(ServerTest, MissingEmbeddedSiftVocabularyIsAWarningUnlessConfigured) {
+  ServerConfig config = Config();
+  config.vocabularies["sift"] = root_ + "/nowhere/sift-debian.pdbfv";
+  config.optional_vocabularies = {"sift"};
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  const grpc::Status missing = CreateMapStatus("s", SiftMapConfig());
+  EXPECT_EQ(missing.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  EXPECT_NE(missing.error_message().find("not loaded"), std::string::npos)
+      << missing.error_message();
+  {
+    grpc::ClientContext context;
+    v1::ServerInfo info;
+    ASSERT_TRUE(stub_->GetServerInfo(&context, {}, &info).ok());
+    ASSERT_EQ(info.vocabularies_size(), 1);
+    EXPECT_EQ(info.vocabularies(0).name(), "default");
+  }
+  StopServer();
+  config.optional_vocabularies.clear();
+  auto refused = Server::Start(config, {});
+  ASSERT_FALSE(refused.ok());
+  EXPECT_NE(refused.status().message().find("vocabulary 'sift'"), std::string::npos)
+      << refused.status().ToString();
+
+  // Which entries are optional: the embedded ones as embedded (also when a file repeats them).
+  const char* plain[] = {"placedb-server"};
+  auto defaults = server::ParseCommandLine(1, plain, [](const char*) { return nullptr; });
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->config.vocabularies.at("sift"), "var/vocabulary/sift-debian.pdbfv");
+  EXPECT_TRUE(defaults->config.optional_vocabularies.count("sift"));
+  const char* flagged[] = {"placedb-server", "--vocabulary", "sift=/data/sift.pdbfv"};
+  auto flag = server::ParseCommandLine(3, flagged, [](const char*) { return nullptr; });
+  ASSERT_TRUE(flag.ok());
+  EXPECT_FALSE(flag->config.optional_vocabularies.count("sift"));
+  ServerConfig from_file;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(ServerConfig{}), &from_file).ok());
+  EXPECT_TRUE(from_file.optional_vocabularies.count("sift"));
+  ASSERT_TRUE(server::ApplyConfigYaml(
+                  "vocabularies:\n  default: a.pdbv\n  sift: /data/sift.pdbfv\n", &from_file)
+                  .ok());
+  EXPECT_FALSE(from_file.optional_vocabularies.count("sift"));
+}
+
+// A detector model that does not load: detection is off (and says why) unless it is required.
+TEST_F(ServerTest, DetectorThatFailsToLoadIsOffUnlessRequired) {
+  ServerConfig config = Config();
+  config.detector.model = root_ + "/no-such-model.onnx";
+  config.detector.required = true;
+  auto refused = Server::Start(config, {{{"default", vocabulary_}}, nullptr});
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), StatusCode::kNotFound) << refused.status().ToString();
+
+  config.detector.required = false;
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  grpc::ClientContext context;
+  v1::ServerInfo info;
+  ASSERT_TRUE(stub_->GetServerInfo(&context, {}, &info).ok());
+  EXPECT_EQ(info.detector().rfind("off: NOT_FOUND", 0), 0u) << info.detector();
+  v1::MapConfig server_boxes;
+  server_boxes.mutable_detection()->set_box_source(v1::BOX_SOURCE_BOTH);
+  EXPECT_EQ(CreateMapStatus("m", server_boxes).error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  // Maps on agents' boxes work as ever.
+  CreateMap("m");
+  const IngestOutcome outcome = IngestAll(stub_.get(), "m", {RtabmapObservation(1, "a")});
+  ASSERT_EQ(outcome.responses.size(), 1u);
+  EXPECT_TRUE(outcome.responses[0].stored());
+}
+
+TEST(ServerConfigTest, FileThenEnvironmentThenFlags) {
+  const std::string dir = testing::MakeTempDir("placedb-config");
+  const std::string path = dir + "/placedb.yaml";
+  std::ofstream(path) << "listen: 0.0.0.0:6000\n"
+                         "data_dir: /srv/placedb\n"
+                         "threads: 3\n"
+                         "vocabularies:\n  default: a.pdbv\n  indoor: b.pdbv\n"
+                         "limits:\n  max_boxes_per_frame: 9\n"
+                         "storage:\n  sync: group_commit\n";
+  std::map<std::string, std::string> env = {{"PLACEDB_DATA_DIR", "/env/data"},
+                                            {"PLACEDB_METRICS_PORT", "9999"}};
+  auto getenv = [&](const char* name) -> const char* {
+    auto it = env.find(name);
+    return it == env.end() ? nullptr : it->second.c_str();
+  };
+  const char* argv[] = {"placedb-server", "--config",       path.c_str(),  "--threads", "5",
+                        "--vocabulary",   "outdoor=c.pdbv", "--max-boxes", "11"};
+  auto parsed = server::ParseCommandLine(9, argv, getenv);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  ASSERT_FALSE(parsed->exit_code);
+  const ServerConfig& c = parsed->config;
+  EXPECT_EQ(c.listen, "0.0.0.0:6000");          // file
+  EXPECT_EQ(c.data_dir, "/env/data");           // environment over file
+  EXPECT_EQ(c.metrics_listen, "0.0.0.0:9999");  // environment (port only)
+  EXPECT_EQ(c.threads, 5);                      // flag over file
+  EXPECT_EQ(c.limits.max_boxes_per_frame, 11u);
+  EXPECT_EQ(c.storage.sync, SyncMode::kGroupCommit);
+  EXPECT_EQ(c.vocabularies.size(), 3u);
+  EXPECT_EQ(c.vocabularies.at("indoor"), "b.pdbv");
+  EXPECT_EQ(c.vocabularies.at("outdoor"), "c.pdbv");
+
+  // Round trip through --print-config's YAML.
+  ServerConfig again;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(c), &again).ok());
+  EXPECT_EQ(server::ConfigToYaml(again), server::ConfigToYaml(c));
+
+  ServerConfig bad;
+  const Status typo = server::ApplyConfigYaml("limits:\n  max_boxes: 3\n", &bad);
+  EXPECT_EQ(typo.code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(typo.message().find("limits.max_boxes"), std::string::npos) << typo.message();
+  EXPECT_FALSE(server::ApplyConfigYaml("threads: many\n", &bad).ok());
+  ServerConfig no_default;
+  no_default.vocabularies = {{"indoor", "b.pdbv"}};
+  EXPECT_NE(server::ValidateServerConfig(no_default).message().find("default"), std::string::npos);
+  // The example config in the repository is valid.
+  ServerConfig example;
+  EXPECT_TRUE(server::ApplyConfigFile(SourceDir() + "/server/placedb.yaml", &example).ok());
+  EXPECT_TRUE(server::ValidateServerConfig(example).ok());
+}
+
+}  // namespace
+}  // namespace placedb::server_testing

@@ -1,0 +1,115 @@
+// The /metrics endpoint (Prometheus text over HTTP): what was sent, counted by method, code,
+// map and stage; a deleted map's series go away.
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "tests/server/server_fixture.h"
+
+namespace placedb::server_testing {
+namespace {
+
+// /metrics over HTTP counts what was sent.
+TEST_F(ServerTest, MetricsEndpointCountsWhatWasSent) {
+  ServerConfig config = Config();
+  config.metrics_listen = "127.0.0.1:0";
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  CreateMap("m");
+  std::vector<v1::Observation> observations;
+  for (int frame = 1; frame <= 6; ++frame) observations.push_back(RtabmapObservation(frame, "a"));
+  v1::Observation covered = RtabmapObservation(7, "a");  // a person over everything: invalid
+  v1::Box* box = covered.add_boxes();
+  box->set_class_name("person");
+  box->set_confidence(0.9f);
+  box->mutable_rect()->set_width(640);
+  box->mutable_rect()->set_height(480);
+  observations.push_back(covered);
+  v1::Observation broken = RtabmapObservation(8, "a");
+  broken.mutable_encoded_image()->set_data("broken");
+  observations.push_back(broken);
+  const IngestOutcome outcome = IngestAll(stub_.get(), "m", observations);
+  ASSERT_TRUE(outcome.status.ok());
+  ASSERT_EQ(outcome.responses.size(), 8u);
+  EXPECT_FALSE(outcome.responses[6].stored());
+  EXPECT_NE(outcome.responses[6].rejection().find("placeThreshold"), std::string::npos);
+  EXPECT_TRUE(outcome.responses[7].has_error());
+  double kept = 0, dropped = 0;
+  for (const auto& response : outcome.responses) {
+    kept += response.counts().kept();
+    dropped += response.counts().dynamic();
+  }
+  v1::QueryResponse response;
+  ASSERT_TRUE(Query("m", RtabmapObservation(41, "q"), &response).ok());
+  ASSERT_TRUE(Query("m", RtabmapObservation(42, "q"), &response).ok());
+  EXPECT_EQ(Query("m", broken, &response).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  {
+    grpc::ClientContext context;
+    v1::GetMapRequest request;
+    request.set_name("missing");
+    v1::MapDescription description;
+    EXPECT_EQ(stub_->GetMap(&context, request, &description).error_code(),
+              grpc::StatusCode::NOT_FOUND);
+  }
+
+  const auto metrics = Scrape();
+  ASSERT_FALSE(metrics.empty());
+  using Labels = std::map<std::string, std::string>;
+  EXPECT_EQ(MetricValue(metrics, "placedb_rpc_requests_total",
+                        Labels{{"method", "Ingest"}, {"code", "OK"}}),
+            1);
+  EXPECT_EQ(MetricValue(metrics, "placedb_rpc_requests_total",
+                        Labels{{"method", "Query"}, {"code", "OK"}}),
+            2);
+  EXPECT_EQ(MetricValue(metrics, "placedb_rpc_requests_total",
+                        Labels{{"method", "Query"}, {"code", "INVALID_ARGUMENT"}}),
+            1);
+  EXPECT_EQ(MetricValue(metrics, "placedb_rpc_requests_total",
+                        Labels{{"method", "GetMap"}, {"code", "NOT_FOUND"}}),
+            1);
+  EXPECT_EQ(MetricValue(metrics, "placedb_rpc_requests_total",
+                        Labels{{"method", "CreateMap"}, {"code", "OK"}}),
+            1);
+  EXPECT_EQ(MetricValue(metrics, "placedb_frames_ingested_total", Labels{{"map", "m"}}), 6);
+  EXPECT_EQ(MetricValue(metrics, "placedb_frames_rejected_total",
+                        Labels{{"map", "m"}, {"reason", "invalid_place"}}),
+            1);
+  EXPECT_EQ(MetricValue(metrics, "placedb_frames_rejected_total",
+                        Labels{{"map", "m"}, {"reason", "invalid_argument"}}),
+            1);
+  EXPECT_EQ(
+      MetricValue(metrics, "placedb_descriptors_total", Labels{{"map", "m"}, {"class", "static"}}),
+      kept);
+  EXPECT_EQ(
+      MetricValue(metrics, "placedb_descriptors_total", Labels{{"map", "m"}, {"class", "dynamic"}}),
+      dropped);
+  EXPECT_GT(dropped, 0);
+  EXPECT_EQ(MetricValue(metrics, "placedb_places", Labels{{"map", "m"}}), 6);
+  EXPECT_GT(MetricValue(metrics, "placedb_map_on_disk_bytes", Labels{{"map", "m"}}), 0);
+  EXPECT_EQ(MetricValue(metrics, "placedb_streams_in_flight"), 0);
+  EXPECT_EQ(MetricValue(metrics, "placedb_queue_depth"), 0);
+  // One "total" observation per processed frame: 7 ingested (6 stored + 1 invalid), 2 queries.
+  EXPECT_EQ(MetricValue(metrics, "placedb_stage_seconds_count", Labels{{"stage", "total"}}), 9);
+  EXPECT_EQ(MetricValue(metrics, "placedb_stage_seconds_count", Labels{{"stage", "store"}}), 7);
+  EXPECT_EQ(MetricValue(metrics, "placedb_stage_seconds_count", Labels{{"stage", "extract"}}), 9);
+  EXPECT_EQ(MetricValue(metrics, "placedb_detector_seconds_count"), 0);
+
+  // A deleted map's series go away.
+  {
+    grpc::ClientContext context;
+    v1::DeleteMapRequest request;
+    request.set_name("m");
+    v1::DeleteMapResponse deleted;
+    ASSERT_TRUE(stub_->DeleteMap(&context, request, &deleted).ok());
+  }
+  const auto later = Scrape();
+  EXPECT_TRUE(std::isnan(MetricValue(later, "placedb_places", Labels{{"map", "m"}})));
+  EXPECT_TRUE(
+      std::isnan(MetricValue(later, "placedb_frames_ingested_total", Labels{{"map", "m"}})));
+}
+
+}  // namespace
+}  // namespace placedb::server_testing

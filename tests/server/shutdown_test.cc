@@ -1,0 +1,311 @@
+// Shutting down: streams open and busy lose no acknowledged place, a frame in the middle of the
+// pipeline is finished while health says NOT_SERVING, and the placedb-server binary exits 0 on
+// SIGTERM.
+#include <arpa/inet.h>
+#include <grpc/grpc.h>
+#include <grpcpp/generic/generic_stub.h>
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstdio>
+#include <future>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/detect/detector.h"
+#include "core/storage/map_store.h"
+#include "tests/server/server_fixture.h"
+#include "tests/test_support.h"
+
+namespace placedb::server_testing {
+namespace {
+
+// Streams are open and busy when the server shuts down: every place it acknowledged is on disk.
+TEST_F(ServerTest, ShutdownWithOpenStreamsLosesNoAcknowledgedPlace) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("m");
+  std::vector<v1::Observation> frames;
+  for (int frame = 1; frame <= 20; ++frame) frames.push_back(RtabmapObservation(frame, "a"));
+
+  std::mutex mutex;
+  std::condition_variable acked_cv;
+  std::vector<uint32_t> acked;
+  std::atomic<bool> stop{false};
+  std::vector<grpc::Status> finals(2);
+  std::vector<std::thread> agents;
+  for (int agent = 0; agent < 2; ++agent) {
+    agents.emplace_back([&, agent] {
+      grpc::ClientContext context;
+      auto stream = stub_->Ingest(&context);
+      std::thread writer([&] {
+        v1::IngestRequest header;
+        header.mutable_header()->set_map("m");
+        if (!stream->Write(header)) return;
+        for (size_t i = size_t(agent); !stop; ++i) {
+          v1::IngestRequest request;
+          *request.mutable_observation() = frames[i % frames.size()];
+          if (!stream->Write(request)) return;
+        }
+        stream->WritesDone();
+      });
+      v1::IngestResponse response;
+      while (stream->Read(&response)) {
+        if (response.stored()) {
+          std::lock_guard lock(mutex);
+          acked.push_back(response.place_id());
+          acked_cv.notify_all();
+        }
+      }
+      stop = true;
+      writer.join();
+      finals[size_t(agent)] = stream->Finish();
+    });
+  }
+  // Also an idle stream (header only) and one that never sent its header: neither may hold up
+  // the shutdown until its deadline.
+  grpc::ClientContext idle_context, silent_context;
+  auto idle = stub_->Ingest(&idle_context);
+  v1::IngestRequest header;
+  header.mutable_header()->set_map("m");
+  ASSERT_TRUE(idle->Write(header));
+  auto silent = stub_->Ingest(&silent_context);
+  {
+    std::unique_lock lock(mutex);
+    ASSERT_TRUE(
+        acked_cv.wait_for(lock, std::chrono::seconds(60), [&] { return acked.size() >= 12; }));
+  }
+  const auto shutdown_started = std::chrono::steady_clock::now();
+  server_->Shutdown();  // streams still open and sending
+  const double shutdown_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - shutdown_started).count();
+  EXPECT_LT(shutdown_s, 5.0) << "shutdown waited for idle streams (deadline is 10 s)";
+  for (auto& agent : agents) agent.join();
+  v1::IngestResponse ignored;
+  EXPECT_FALSE(idle->Read(&ignored));
+  EXPECT_FALSE(idle->Finish().ok());
+  EXPECT_FALSE(silent->Read(&ignored));
+  EXPECT_FALSE(silent->Finish().ok());
+  for (const grpc::Status& status : finals) {
+    EXPECT_TRUE(status.error_code() == grpc::StatusCode::UNAVAILABLE ||
+                status.error_code() == grpc::StatusCode::CANCELLED)
+        << int(status.error_code()) << " " << status.error_message();
+  }
+  StopServer();
+
+  auto directory = DataDirectory::Open(root_ + "/data");
+  ASSERT_TRUE(directory.ok()) << directory.status().ToString();
+  auto map = (*directory)->OpenMap("m", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+  std::lock_guard lock(mutex);
+  EXPECT_GE((*map)->Stats().database.places, acked.size());
+  for (uint32_t id : acked) EXPECT_TRUE((*map)->GetPlace(id).ok()) << "acknowledged place " << id;
+  std::printf(
+      "[server] shutdown with 2 busy streams in %.3f s: %zu acknowledged places, %zu on "
+      "disk\n",
+      shutdown_s, acked.size(), (*map)->Stats().database.places);
+}
+
+// A detector that blocks until released: holds a frame in the middle of the pipeline.
+class GateDetector final : public Detector {
+ public:
+  Result<std::vector<DynamicBox>> Detect(const cv::Mat& image) const override {
+    std::unique_lock lock(mutex_);
+    entered_ = true;
+    changed_.notify_all();
+    changed_.wait(lock, [&] { return open_; });
+    return std::vector<DynamicBox>{
+        {0, 0.9f, cv::Rect2f(0, 0, image.cols / 4.0f, image.rows / 4.0f)}};
+  }
+  void WaitEntered() const {
+    std::unique_lock lock(mutex_);
+    changed_.wait(lock, [&] { return entered_; });
+  }
+  void Open() const {
+    std::lock_guard lock(mutex_);
+    open_ = true;
+    changed_.notify_all();
+  }
+  std::string model_name() const override { return "gate"; }
+  std::string Describe() const override { return "gate (test)"; }
+  int input_size() const override { return 416; }
+  const DetectorConfig& config() const override { return config_; }
+
+ private:
+  DetectorConfig config_;
+  mutable std::mutex mutex_;
+  mutable std::condition_variable changed_;
+  mutable bool entered_ = false;
+  mutable bool open_ = false;
+};
+
+grpc::Status HealthCheck(const std::shared_ptr<grpc::Channel>& channel, std::string* status) {
+  grpc::GenericStub generic(channel);
+  grpc::Slice empty("");  // an empty HealthCheckRequest: the whole server
+  grpc::ByteBuffer request(&empty, 1), response;
+  grpc::ClientContext context;
+  std::promise<grpc::Status> done;
+  generic.UnaryCall(&context, "/grpc.health.v1.Health/Check", grpc::StubOptions(), &request,
+                    &response, [&](grpc::Status s) { done.set_value(s); });
+  const grpc::Status result = done.get_future().get();
+  std::vector<grpc::Slice> slices;
+  (void)response.Dump(&slices);
+  status->clear();
+  for (const auto& s : slices) status->append(reinterpret_cast<const char*>(s.begin()), s.size());
+  return result;
+}
+
+// A frame in the middle of the pipeline when shutdown starts is still stored and answered; while
+// it finishes, health says NOT_SERVING and new calls are refused.
+TEST_F(ServerTest, ShutdownFinishesInFlightFramesAndReportsNotServing) {
+  auto gate = std::make_shared<GateDetector>();
+  ServerDeps deps;
+  deps.detector = gate;
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config(), deps));
+  v1::MapConfig server_boxes;
+  server_boxes.mutable_detection()->set_box_source(v1::BOX_SOURCE_SERVER);
+  CreateMap("m", server_boxes);
+
+  IngestOutcome outcome;
+  std::thread agent([&] { outcome = IngestAll(stub_.get(), "m", {RtabmapObservation(1, "a")}); });
+  gate->WaitEntered();  // the frame is being detected
+  std::thread stopper([&] { server_->Shutdown(); });
+  // Draining: health is NOT_SERVING (2) and new work is refused.
+  std::string health;
+  for (int i = 0; i < 500; ++i) {
+    ASSERT_TRUE(HealthCheck(channel_, &health).ok());
+    if (health == std::string("\x08\x02", 2)) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  EXPECT_EQ(health, std::string("\x08\x02", 2));
+  v1::QueryResponse response;
+  EXPECT_EQ(Query("m", RtabmapObservation(2, "a"), &response).error_code(),
+            grpc::StatusCode::UNAVAILABLE);
+  gate->Open();
+  stopper.join();
+  agent.join();
+  ASSERT_EQ(outcome.responses.size(), 1u) << outcome.status.error_message();
+  EXPECT_TRUE(outcome.responses[0].stored());
+  EXPECT_EQ(outcome.responses[0].boxes_used_size(), 1);
+  EXPECT_GT(outcome.responses[0].timings().detect_ms(), 0);
+  StopServer();
+  auto directory = DataDirectory::Open(root_ + "/data");
+  ASSERT_TRUE(directory.ok());
+  auto map = (*directory)->OpenMap("m", vocabulary_);
+  ASSERT_TRUE(map.ok());
+  EXPECT_TRUE((*map)->GetPlace(outcome.responses[0].place_id()).ok());
+}
+
+// build/tests/server_shutdown_test -> build/server/placedb-server
+std::string ServerBinary() {
+  char self[4096];
+  const ssize_t n = readlink("/proc/self/exe", self, sizeof self - 1);
+  if (n <= 0) return "";
+  std::string path(self, size_t(n));
+  path = path.substr(0, path.rfind('/'));  // build/tests
+  return path.substr(0, path.rfind('/')) + "/server/placedb-server";
+}
+
+int FreePort() {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  EXPECT_EQ(bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
+  socklen_t length = sizeof address;
+  getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length);
+  close(fd);
+  return ntohs(address.sin_port);
+}
+
+// SIGTERM with streams open: the process drains, flushes and exits 0; the places are on disk.
+TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
+  ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+  const std::string binary = ServerBinary();
+  ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
+  const std::string root = testing::MakeTempDir("placedb-binary");
+  const std::string address = "127.0.0.1:" + std::to_string(FreePort());
+  const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
+  const std::string data = root + "/data";
+  std::vector<std::string> args = {binary,     "--listen",         address, "--data-dir",
+                                   data,       "--metrics-listen", "off",   "--vocabulary",
+                                   vocabulary, "--log-level",      "warn"};
+  std::vector<char*> argv;
+  for (std::string& arg : args) argv.push_back(arg.data());
+  argv.push_back(nullptr);
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    execv(binary.c_str(), argv.data());
+    _exit(127);
+  }
+  grpc::ChannelArguments channel_args;  // retry quickly while the child starts
+  channel_args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 50);
+  channel_args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 50);
+  channel_args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 200);
+  auto channel =
+      grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), channel_args);
+  const bool connected =
+      channel->WaitForConnected(std::chrono::system_clock::now() + std::chrono::seconds(20));
+  if (!connected) kill(pid, SIGKILL);
+  ASSERT_TRUE(connected) << "placedb-server did not start listening on " << address;
+  auto stub = v1::PlaceDb::NewStub(channel);
+  {
+    grpc::ClientContext context;
+    v1::CreateMapRequest request;
+    request.set_name("m");
+    v1::MapDescription description;
+    ASSERT_TRUE(stub->CreateMap(&context, request, &description).ok());
+  }
+  std::vector<v1::Observation> frames;
+  for (int frame = 1; frame <= 5; ++frame) frames.push_back(RtabmapObservation(frame, "a"));
+  const IngestOutcome outcome = IngestAll(stub.get(), "m", frames);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();
+  grpc::ClientContext idle_context;  // an open, idle stream must not hold up the exit
+  auto idle = stub->Ingest(&idle_context);
+  v1::IngestRequest header;
+  header.mutable_header()->set_map("m");
+  ASSERT_TRUE(idle->Write(header));
+
+  const auto signalled = std::chrono::steady_clock::now();
+  ASSERT_EQ(kill(pid, SIGTERM), 0);
+  int status = 0;
+  pid_t done = 0;
+  while ((done = waitpid(pid, &status, WNOHANG)) == 0 &&
+         std::chrono::steady_clock::now() - signalled < std::chrono::seconds(20)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  if (done == 0) kill(pid, SIGKILL);
+  ASSERT_EQ(done, pid) << "placedb-server did not exit within 20 s of SIGTERM";
+  ASSERT_TRUE(WIFEXITED(status));
+  EXPECT_EQ(WEXITSTATUS(status), 0);
+  EXPECT_LT(std::chrono::steady_clock::now() - signalled, std::chrono::seconds(5));
+  v1::IngestResponse ignored;
+  EXPECT_FALSE(idle->Read(&ignored));
+  (void)idle->Finish();
+
+  auto directory = DataDirectory::Open(data);
+  ASSERT_TRUE(directory.ok()) << directory.status().ToString();
+  auto map = (*directory)->OpenMap("m", testing::DefaultVocabulary());
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  for (const auto& response : outcome.responses) {
+    if (response.stored()) {
+      EXPECT_TRUE((*map)->GetPlace(response.place_id()).ok());
+    }
+  }
+  EXPECT_EQ((*map)->Stats().database.places, 5u);
+}
+
+}  // namespace
+}  // namespace placedb::server_testing
