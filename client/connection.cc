@@ -8,6 +8,8 @@
 #include <sstream>
 #include <vector>
 
+#include "proto/status.h"
+
 namespace placedb::client {
 
 std::optional<Connection> Connection::Open(const ConnectionOptions& options, std::string* error) {
@@ -50,25 +52,7 @@ std::unique_ptr<grpc::ClientContext> Connection::NewContext(bool unary) const {
 }
 
 std::string CodeName(int code) {
-  static const char* const kNames[] = {"OK",
-                                       "CANCELLED",
-                                       "UNKNOWN",
-                                       "INVALID_ARGUMENT",
-                                       "DEADLINE_EXCEEDED",
-                                       "NOT_FOUND",
-                                       "ALREADY_EXISTS",
-                                       "PERMISSION_DENIED",
-                                       "RESOURCE_EXHAUSTED",
-                                       "FAILED_PRECONDITION",
-                                       "ABORTED",
-                                       "OUT_OF_RANGE",
-                                       "UNIMPLEMENTED",
-                                       "INTERNAL",
-                                       "UNAVAILABLE",
-                                       "DATA_LOSS",
-                                       "UNAUTHENTICATED"};
-  if (code >= 0 && code < int(std::size(kNames))) return kNames[code];
-  return "CODE_" + std::to_string(code);
+  return wire::GrpcCodeName(code);
 }
 
 std::string Describe(const grpc::Status& status) {

@@ -11,20 +11,15 @@
 #include <thread>
 
 #include "core/base/timing.h"
+#include "proto/convert_config.h"
 #include "proto/placedb.grpc.pb.h"
+#include "proto/status.h"
 
 namespace placedb::eval {
 
 namespace {
 
 namespace v1 = ::placedb::v1;
-
-Status FromGrpc(const grpc::Status& status, const std::string& what) {
-  if (status.ok()) return Status::Ok();
-  return Status(
-      StatusCode::kFailedPrecondition,
-      what + ": " + std::to_string(int(status.error_code())) + " " + status.error_message());
-}
 
 Result<std::string> ReadBytes(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
@@ -34,64 +29,17 @@ Result<std::string> ReadBytes(const std::string& path) {
   return bytes.str();
 }
 
-v1::FilterMethod ToProto(FilterMethod method) {
-  switch (method) {
-    case FilterMethod::kNone:
-      return v1::FILTER_METHOD_NONE;
-    case FilterMethod::kKeypointInBox:
-      return v1::FILTER_METHOD_KEYPOINT_IN_BOX;
-    case FilterMethod::kCornerDistance:
-      return v1::FILTER_METHOD_CORNER_DISTANCE;
-    case FilterMethod::kExactCoverage:
-      return v1::FILTER_METHOD_EXACT_COVERAGE;
-  }
-  return v1::FILTER_METHOD_UNSPECIFIED;
-}
-
-v1::VerificationMode ToProto(VerificationMode mode) {
-  switch (mode) {
-    case VerificationMode::kDisabled:
-      return v1::VERIFICATION_MODE_DISABLED;
-    case VerificationMode::kDirectIndex:
-      return v1::VERIFICATION_MODE_DIRECT_INDEX;
-    case VerificationMode::kExhaustive:
-      return v1::VERIFICATION_MODE_EXHAUSTIVE;
-  }
-  return v1::VERIFICATION_MODE_UNSPECIFIED;
-}
-
+// The grid point's whole configuration, so the server runs what the in-process backend runs
+// (scoring, refinement, short-term tier, ...). Boxes always come with the observations, as in
+// process: the harness supplies them (oracle files or its own detector), so the box source is the
+// agent's; filtering off is detection off.
 v1::MapConfig ToProto(const DatabaseConfig& config, bool filtering) {
+  MapOptions options;
+  options.database = config;
+  const wire::ServiceMapSettings settings{.box_source = BoxSource::kAgent,
+                                          .detection_enabled = filtering};
   v1::MapConfig map;
-  map.mutable_orb()->set_max_features(config.orb.max_features);
-  map.mutable_detection()->set_enabled(filtering);
-  map.mutable_detection()->set_min_confidence(config.min_box_confidence);
-  map.mutable_detection()->set_box_source(v1::BOX_SOURCE_AGENT);
-  map.mutable_filter()->set_method(ToProto(config.filter.method));
-  map.mutable_filter()->set_sensitivity_threshold(config.filter.sensitivity_threshold);
-  map.mutable_filter()->set_place_threshold(config.filter.place_threshold);
-  map.set_scoring(v1::SCORING_L1);
-  map.mutable_verification()->set_mode(ToProto(config.verification.mode));
-  map.mutable_verification()->set_levels_up(config.verification.levels_up);
-  map.mutable_verification()->set_min_inliers(config.verification.min_inliers);
-  map.mutable_verification()->set_candidates(config.verification.candidates);
-  map.mutable_verification()->set_rerank(config.verification.rerank);
-  map.mutable_filter()->set_static_feature_budget(config.static_feature_budget);
-  switch (config.box_refinement.method) {
-    case BoxRefinement::kNone:
-      map.mutable_filter()->set_box_refinement(v1::BOX_REFINEMENT_NONE);
-      break;
-    case BoxRefinement::kShape:
-      map.mutable_filter()->set_box_refinement(v1::BOX_REFINEMENT_SHAPE);
-      break;
-    case BoxRefinement::kGrabCut:
-      map.mutable_filter()->set_box_refinement(v1::BOX_REFINEMENT_GRABCUT);
-      break;
-  }
-  v1::ShortTermSettings* short_term = map.mutable_filter()->mutable_short_term();
-  short_term->set_enabled(config.short_term.enabled);
-  short_term->set_horizon_s(double(config.short_term.horizon_ns) / 1e9);
-  short_term->set_max_places(config.short_term.max_places);
-  short_term->set_weight(config.short_term.weight);
+  wire::MapConfigToProto(options, settings, /*vocabulary_name=*/"", &map);
   return map;
 }
 
@@ -144,7 +92,7 @@ class ServerBackend final : public Backend {
       *request.mutable_config() = ToProto(config, filtering);
       v1::MapDescription description;
       PLACEDB_RETURN_IF_ERROR(
-          FromGrpc(stub_->CreateMap(&context, request, &description), "CreateMap " + map));
+          wire::FromGrpc(stub_->CreateMap(&context, request, &description), "CreateMap " + map));
     }
     Status result = Fill(inputs, map, filtering);
     MethodRun run;
@@ -153,7 +101,7 @@ class ServerBackend final : public Backend {
       v1::GetMapRequest request;
       request.set_name(map);
       v1::MapDescription description;
-      result = FromGrpc(stub_->GetMap(&context, request, &description), "GetMap " + map);
+      result = wire::FromGrpc(stub_->GetMap(&context, request, &description), "GetMap " + map);
       const v1::MapStats& stats = description.stats();
       run.database.places = stats.places();
       run.database.invalid = stats.invalid_rejected();
@@ -172,8 +120,8 @@ class ServerBackend final : public Backend {
       request.mutable_options()->set_top_k(uint32_t(top_k));
       v1::QueryResponse response;
       Stopwatch watch;
-      result =
-          FromGrpc(stub_->Query(&context, request, &response), "Query " + dataset.queries[q].id);
+      result = wire::FromGrpc(stub_->Query(&context, request, &response),
+                              "Query " + dataset.queries[q].id);
       const double ms = watch.ElapsedMs();
       if (!result.ok()) break;
       std::vector<RankedMatch> ranked;
@@ -195,7 +143,7 @@ class ServerBackend final : public Backend {
       request.set_name(map);
       v1::DeleteMapResponse response;
       const Status deleted =
-          FromGrpc(stub_->DeleteMap(&context, request, &response), "DeleteMap " + map);
+          wire::FromGrpc(stub_->DeleteMap(&context, request, &response), "DeleteMap " + map);
       if (result.ok()) result = deleted;
     }
     if (!result.ok()) return result;
@@ -258,15 +206,14 @@ class ServerBackend final : public Backend {
     while (stream->Read(&response)) {
       ++answered;
       if (response.has_error() && first_error.ok()) {
-        first_error = Status(StatusCode::kInvalidArgument,
-                             "ingesting " + dataset.database[response.index()].id + ": " +
-                                 response.error().message());
+        first_error =
+            wire::FromProto(response.error(), "ingesting " + dataset.database[response.index()].id);
       }
     }
     writer.join();
     const grpc::Status finished = stream->Finish();
     build_seconds_ = watch.ElapsedMs() / 1000.0;
-    PLACEDB_RETURN_IF_ERROR(FromGrpc(finished, "Ingest into " + map));
+    PLACEDB_RETURN_IF_ERROR(wire::FromGrpc(finished, "Ingest into " + map));
     PLACEDB_RETURN_IF_ERROR(first_error);
     if (write_failed || answered != dataset.database.size()) {
       return Status::Internal("Ingest into " + map + ": " + std::to_string(answered) + " of " +

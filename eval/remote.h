@@ -20,8 +20,9 @@ namespace placedb::eval {
 
 // Connects to `address` (host:port) and checks the server answers GetServerInfo. When
 // `local_vocabulary` is given and the server's "default" vocabulary has another checksum, `log`
-// is told (the results would not compare with in-process runs). UNAVAILABLE-like failures are
-// FAILED_PRECONDITION naming the address.
+// is told (the results would not compare with in-process runs). A server that does not answer is
+// FAILED_PRECONDITION naming the address; the backend's later calls keep the server's code
+// (proto/status.h).
 Result<std::unique_ptr<Backend>> MakeServerBackend(
     const std::string& address, std::shared_ptr<const Vocabulary> local_vocabulary,
     const std::function<void(const std::string&)>& log);

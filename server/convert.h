@@ -1,7 +1,9 @@
-// Translation between the placedb.v1 wire types and the core's types. Everything that arrives
-// is validated here before the core sees it; INVALID_ARGUMENT messages name the offending field
-// as a path into the request ("observation.features.keypoints[3].x: 700 lies outside the
-// 640x480 image"), RESOURCE_EXHAUSTED messages name the limit ("limits.max_boxes_per_frame").
+// Translation between the placedb.v1 wire types and the core's types for frames and results (the
+// status mapping and map configurations: proto/status.h, proto/convert_config.h). Everything
+// that arrives is validated here before the core sees it; INVALID_ARGUMENT messages name the
+// offending field as a path into the request ("observation.features.keypoints[3].x: 700 lies
+// outside the 640x480 image"), RESOURCE_EXHAUSTED messages name the limit
+// ("limits.max_boxes_per_frame").
 #pragma once
 
 #include <grpcpp/support/status.h>
@@ -14,52 +16,27 @@
 #include "core/detect/detector.h"
 #include "core/pipeline/place_database.h"
 #include "core/storage/map_store.h"
+#include "proto/convert_config.h"
 #include "proto/placedb.pb.h"
+#include "proto/status.h"
 #include "server/config.h"
 
 namespace placedb::server {
 
 namespace v1 = ::placedb::v1;
 
-// ---- Status -------------------------------------------------------------------------------------
+// The status mapping and the configuration conversions are the wire library's (proto/).
+using wire::GrpcCodeLabel;
+using wire::GrpcCodeName;
+using wire::ToGrpc;
 
-// 1:1: INVALID_ARGUMENT, NOT_FOUND, ALREADY_EXISTS, FAILED_PRECONDITION, RESOURCE_EXHAUSTED,
-// CORRUPTION -> DATA_LOSS, IO_ERROR -> UNAVAILABLE, INTERNAL, CANCELLED.
-grpc::StatusCode ToGrpcCode(StatusCode code);
-grpc::Status ToGrpc(const Status& status);
-grpc::Status ToGrpc(const Status& status, const std::string& context);  // "context: message"
-const char* GrpcCodeName(grpc::StatusCode code);                        // "INVALID_ARGUMENT"
-std::string GrpcCodeLabel(grpc::StatusCode code);  // "invalid_argument" (metric labels)
-
-// ---- Maps ---------------------------------------------------------------------------------------
-
-// What the service keeps per map besides the core's database config (in the map's own info,
-// MapOptions::service_json: see map_registry.h).
-struct ServiceMapSettings {
-  BoxSource box_source = BoxSource::kAgent;
-  bool detection_enabled = true;
-  bool operator==(const ServiceMapSettings&) const = default;
-};
-
-// The vocabulary a new map will use: its kind fixes the map's feature type.
-struct MapVocabulary {
-  std::string name;  // for messages
-  FeatureType feature_type = FeatureType::kOrb;
-};
-
-// Defaults for unset fields; INVALID_ARGUMENT "config.<field>: ..." for bad values (a
-// feature_type the vocabulary cannot quantise: "config.feature_type: ..."), and
-// RESOURCE_EXHAUSTED when the map's feature budget (config.orb.max_features for ORB maps,
-// config.sift.max_features for SIFT maps) exceeds limits.max_descriptors_per_frame. A SIFT
-// max_features of 0 ("all") is taken as limits.max_descriptors_per_frame.
-Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& config, const Limits& limits,
-                                       const MapVocabulary& vocabulary,
-                                       ServiceMapSettings* settings);
-// Every effective value filled in (feature type, ORB, SIFT, depth, loop closure, ...).
-void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& settings,
-                      const std::string& vocabulary_name, v1::MapConfig* out);
-void MapStatsToProto(const MapStats& stats, v1::MapStats* out);
-v1::FeatureType FeatureTypeToProto(FeatureType type);
+using wire::FeatureTypeToProto;
+using wire::MapConfigToProto;
+using wire::MapOptionsFromProto;
+using wire::MapStatsToProto;
+using wire::MapVocabulary;
+using wire::QueryOptionsFromProto;
+using wire::ServiceMapSettings;
 
 // ---- Observations -------------------------------------------------------------------------------
 
@@ -100,6 +77,5 @@ void FeaturesToProto(const FeatureSet& features, v1::Features* out);
 void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out);
 void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out);
 void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out);
-QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id);
 
 }  // namespace placedb::server

@@ -175,7 +175,7 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
   if (!vocabulary.ok()) return Finish("CreateMap", context, ToGrpc(vocabulary.status()));
   ServiceMapSettings settings;
   auto options = MapOptionsFromProto(
-      request->config(), config_.limits,
+      request->config(), config_.limits.max_descriptors_per_frame,
       MapVocabulary{(*vocabulary)->name, (*vocabulary)->vocabulary.feature_type()}, &settings);
   if (!options.ok()) return Finish("CreateMap", context, ToGrpc(options.status()));
   // Unspecified box source: the server's detector when it has one, else the agent's boxes. The

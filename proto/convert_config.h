@@ -1,0 +1,71 @@
+// Conversion of map configurations, statistics and match options between the placedb.v1 wire
+// types and the core's. What arrives is validated before the core sees it: INVALID_ARGUMENT
+// messages name the offending field as a path into the request ("config.depth.threshold_m: must
+// be positive, got -1"), RESOURCE_EXHAUSTED messages name the limit. Every proto <-> core enum
+// mapping of the API lives here; their names are proto/names.h.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "core/base/status.h"
+#include "core/detect/detector.h"
+#include "core/pipeline/place_database.h"
+#include "core/storage/map_store.h"
+#include "proto/placedb.pb.h"
+
+namespace placedb::wire {
+
+namespace v1 = ::placedb::v1;
+
+// What the service keeps per map besides the core's database config (in the map's own info,
+// MapOptions::service_json: see server/map_registry.h).
+struct ServiceMapSettings {
+  BoxSource box_source = BoxSource::kAgent;
+  bool detection_enabled = true;
+  bool operator==(const ServiceMapSettings&) const = default;
+};
+
+// The vocabulary a new map will use: its kind fixes the map's feature type.
+struct MapVocabulary {
+  std::string name;  // for messages
+  FeatureType feature_type = FeatureType::kOrb;
+};
+
+// Defaults for unset fields; INVALID_ARGUMENT "config.<field>: ..." for bad values (a
+// feature_type the vocabulary cannot quantise: "config.feature_type: ..."), and
+// RESOURCE_EXHAUSTED when the map's feature budget (config.orb.max_features for ORB maps,
+// config.sift.max_features for SIFT maps) exceeds `max_descriptors_per_frame` (the server's
+// limits.max_descriptors_per_frame). A SIFT max_features of 0 ("all") is taken as that limit.
+// An UNSPECIFIED detection.box_source is agent here (the server picks its detector when it has
+// one). `settings` receives the detection policy.
+Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& config,
+                                       uint32_t max_descriptors_per_frame,
+                                       const MapVocabulary& vocabulary,
+                                       ServiceMapSettings* settings);
+// Every effective value filled in (feature type, ORB, SIFT, depth, loop closure, ...): what
+// MapOptionsFromProto turns back into the same options.
+void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& settings,
+                      const std::string& vocabulary_name, v1::MapConfig* out);
+void MapStatsToProto(const MapStats& stats, v1::MapStats* out);
+
+// The proto <-> core enum mappings. FromProto takes UNSPECIFIED as the default the proto
+// documents; values outside the enum are INVALID_ARGUMENT naming `field`.
+v1::FeatureType FeatureTypeToProto(FeatureType type);
+v1::FilterMethod FilterToProto(FilterMethod method);
+Result<FilterMethod> FilterFromProto(v1::FilterMethod method, const std::string& field);
+v1::BoxRefinement BoxRefinementToProto(BoxRefinement method);
+Result<BoxRefinement> BoxRefinementFromProto(v1::BoxRefinement method, const std::string& field);
+v1::Scoring ScoringToProto(ScoringType scoring);
+Result<ScoringType> ScoringFromProto(v1::Scoring scoring, const std::string& field);
+v1::VerificationMode VerificationToProto(VerificationMode mode);
+Result<VerificationMode> VerificationFromProto(v1::VerificationMode mode, const std::string& field);
+v1::BoxSource BoxSourceToProto(BoxSource source);
+Result<BoxSource> BoxSourceFromProto(v1::BoxSource source, const std::string& field);
+v1::BandPolicy BandPolicyToProto(BandPolicy policy);
+Result<BandPolicy> BandPolicyFromProto(v1::BandPolicy policy, const std::string& field);
+
+// top_k 0 -> 10, capped at 1000; exclude_same_agent skips `agent_id`'s places.
+QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id);
+
+}  // namespace placedb::wire

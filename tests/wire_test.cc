@@ -1,0 +1,543 @@
+// The wire library (proto/): every enum value named, parsed and mapped both ways, every status
+// code both ways, and every MapConfig field through the configuration conversion and back.
+#include <google/protobuf/util/message_differencer.h>
+#include <gtest/gtest.h>
+
+#include <functional>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "core/detect/detector.h"
+#include "core/filter/box_masks.h"
+#include "core/filter/depth_filter.h"
+#include "core/filter/dynamic_filter.h"
+#include "core/search/geometric_verifier.h"
+#include "core/vocabulary/any_vocabulary.h"
+#include "core/vocabulary/weighting.h"
+#include "proto/convert_config.h"
+#include "proto/names.h"
+#include "proto/status.h"
+
+namespace placedb::wire {
+namespace {
+
+using google::protobuf::EnumDescriptor;
+using google::protobuf::FieldDescriptor;
+using google::protobuf::util::MessageDifferencer;
+
+// ---- Names --------------------------------------------------------------------------------------
+
+// Every enum the API declares.
+std::vector<const EnumDescriptor*> ApiEnums() {
+  std::vector<const EnumDescriptor*> enums;
+  const google::protobuf::FileDescriptor* file = v1::MapConfig::descriptor()->file();
+  for (int i = 0; i < file->enum_type_count(); ++i) enums.push_back(file->enum_type(i));
+  return enums;
+}
+
+TEST(Names, EveryValueOfEveryApiEnumRoundTrips) {
+  const std::vector<const EnumDescriptor*> enums = ApiEnums();
+  ASSERT_GE(enums.size(), 8u);
+  for (const EnumDescriptor* type : enums) {
+    for (int i = 0; i < type->value_count(); ++i) {
+      const int number = type->value(i)->number();
+      if (number == 0) continue;
+      const std::string name = EnumValueName(type, number);
+      SCOPED_TRACE(type->value(i)->name() + " -> " + name);
+      auto parsed = ParseEnumValue(type, name);
+      ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+      EXPECT_EQ(*parsed, number);
+      // The proto3 JSON spelling parses too.
+      auto full = ParseEnumValue(type, type->value(i)->name());
+      ASSERT_TRUE(full.ok()) << full.status().ToString();
+      EXPECT_EQ(*full, number);
+    }
+  }
+}
+
+TEST(Names, CanonicalNamesAreTheCoresNames) {
+  EXPECT_EQ(EnumNames<v1::Scoring>(),
+            (std::vector<std::string>{"l1", "l2", "chi2", "kl", "bhattacharyya", "dot"}));
+  EXPECT_EQ(EnumNames<v1::VerificationMode>(),
+            (std::vector<std::string>{"disabled", "direct", "exhaustive"}));
+  EXPECT_EQ(
+      EnumNames<v1::FilterMethod>(),
+      (std::vector<std::string>{"none", "keypoint_in_box", "corner_distance", "exact_coverage"}));
+  EXPECT_EQ(EnumNames<v1::BoxSource>(), (std::vector<std::string>{"agent", "server", "both"}));
+  EXPECT_EQ(EnumNames<v1::BoxRefinement>(), (std::vector<std::string>{"none", "shape", "grabcut"}));
+  EXPECT_EQ(EnumNames<v1::FeatureType>(), (std::vector<std::string>{"orb", "sift"}));
+  EXPECT_EQ(EnumNames<v1::BandPolicy>(),
+            (std::vector<std::string>{"fixed", "nearest_layer", "appeared_layer"}));
+  EXPECT_EQ(EnumNames<v1::PixelFormat>(), (std::vector<std::string>{"gray8", "bgr8", "rgb8"}));
+
+  // Each core value's name is the name of the proto value it maps to.
+  for (ScoringType t : {ScoringType::kL1, ScoringType::kL2, ScoringType::kChiSquare,
+                        ScoringType::kKL, ScoringType::kBhattacharyya, ScoringType::kDotProduct}) {
+    EXPECT_EQ(EnumName(ScoringToProto(t)), ScoringName(t));
+  }
+  for (VerificationMode m : {VerificationMode::kDisabled, VerificationMode::kDirectIndex,
+                             VerificationMode::kExhaustive}) {
+    EXPECT_EQ(EnumName(VerificationToProto(m)), VerificationModeName(m));
+  }
+  for (FilterMethod m : {FilterMethod::kNone, FilterMethod::kKeypointInBox,
+                         FilterMethod::kCornerDistance, FilterMethod::kExactCoverage}) {
+    EXPECT_EQ(EnumName(FilterToProto(m)), FilterMethodName(m));
+  }
+  for (BoxSource s : {BoxSource::kAgent, BoxSource::kServer, BoxSource::kBoth}) {
+    EXPECT_EQ(EnumName(BoxSourceToProto(s)), BoxSourceName(s));
+  }
+  for (BoxRefinement r : {BoxRefinement::kNone, BoxRefinement::kShape, BoxRefinement::kGrabCut}) {
+    EXPECT_EQ(EnumName(BoxRefinementToProto(r)), BoxRefinementName(r));
+  }
+  for (FeatureType t : {FeatureType::kOrb, FeatureType::kSift}) {
+    EXPECT_EQ(EnumName(FeatureTypeToProto(t)), FeatureTypeName(t));
+  }
+  for (BandPolicy p : {BandPolicy::kFixed, BandPolicy::kNearestLayer, BandPolicy::kAppearedLayer}) {
+    EXPECT_EQ(EnumName(BandPolicyToProto(p)), BandPolicyName(p));
+  }
+}
+
+// The spellings client/cli.cc's flags accepted before the names were derived keep parsing.
+TEST(Names, OldSpellingsParse) {
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("chi_square"), v1::SCORING_CHI_SQUARE);
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("dot_product"), v1::SCORING_DOT_PRODUCT);
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("chi2"), v1::SCORING_CHI_SQUARE);
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("dot"), v1::SCORING_DOT_PRODUCT);
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("l1"), v1::SCORING_L1);
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("l2"), v1::SCORING_L2);
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("kl"), v1::SCORING_KL);
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("bhattacharyya"), v1::SCORING_BHATTACHARYYA);
+  EXPECT_EQ(*ParseEnum<v1::VerificationMode>("disabled"), v1::VERIFICATION_MODE_DISABLED);
+  EXPECT_EQ(*ParseEnum<v1::VerificationMode>("direct"), v1::VERIFICATION_MODE_DIRECT_INDEX);
+  EXPECT_EQ(*ParseEnum<v1::VerificationMode>("direct_index"), v1::VERIFICATION_MODE_DIRECT_INDEX);
+  EXPECT_EQ(*ParseEnum<v1::VerificationMode>("exhaustive"), v1::VERIFICATION_MODE_EXHAUSTIVE);
+  EXPECT_EQ(*ParseEnum<v1::FilterMethod>("none"), v1::FILTER_METHOD_NONE);
+  EXPECT_EQ(*ParseEnum<v1::FilterMethod>("keypoint_in_box"), v1::FILTER_METHOD_KEYPOINT_IN_BOX);
+  EXPECT_EQ(*ParseEnum<v1::FilterMethod>("corner_distance"), v1::FILTER_METHOD_CORNER_DISTANCE);
+  EXPECT_EQ(*ParseEnum<v1::FilterMethod>("exact_coverage"), v1::FILTER_METHOD_EXACT_COVERAGE);
+  EXPECT_EQ(*ParseEnum<v1::FeatureType>("orb"), v1::FEATURE_TYPE_ORB);
+  EXPECT_EQ(*ParseEnum<v1::FeatureType>("sift"), v1::FEATURE_TYPE_SIFT);
+  EXPECT_EQ(*ParseEnum<v1::BandPolicy>("fixed"), v1::BAND_POLICY_FIXED);
+  EXPECT_EQ(*ParseEnum<v1::BandPolicy>("nearest_layer"), v1::BAND_POLICY_NEAREST_LAYER);
+  EXPECT_EQ(*ParseEnum<v1::BandPolicy>("appeared_layer"), v1::BAND_POLICY_APPEARED_LAYER);
+  EXPECT_EQ(*ParseEnum<v1::BoxSource>("agent"), v1::BOX_SOURCE_AGENT);
+  EXPECT_EQ(*ParseEnum<v1::BoxSource>("server"), v1::BOX_SOURCE_SERVER);
+  EXPECT_EQ(*ParseEnum<v1::BoxSource>("both"), v1::BOX_SOURCE_BOTH);
+  EXPECT_EQ(*ParseEnum<v1::BoxRefinement>("none"), v1::BOX_REFINEMENT_NONE);
+  EXPECT_EQ(*ParseEnum<v1::BoxRefinement>("shape"), v1::BOX_REFINEMENT_SHAPE);
+  EXPECT_EQ(*ParseEnum<v1::BoxRefinement>("grabcut"), v1::BOX_REFINEMENT_GRABCUT);
+
+  // A flag's choices: the names, then the other spellings.
+  EXPECT_EQ(EnumSpellings<v1::Scoring>(),
+            (std::vector<std::string>{"l1", "l2", "chi2", "kl", "bhattacharyya", "dot",
+                                      "chi_square", "dot_product"}));
+  EXPECT_EQ(EnumSpellings<v1::VerificationMode>(),
+            (std::vector<std::string>{"disabled", "direct", "exhaustive", "direct_index"}));
+  EXPECT_EQ(EnumSpellings<v1::BoxSource>(), EnumNames<v1::BoxSource>());
+}
+
+// UNSPECIFIED prints as the value the server takes it for, and is never a choice.
+TEST(Names, UnspecifiedPrintsItsDefaultAndDoesNotParse) {
+  EXPECT_EQ(EnumName(v1::FILTER_METHOD_UNSPECIFIED), "keypoint_in_box");
+  EXPECT_EQ(EnumName(v1::SCORING_UNSPECIFIED), "l1");
+  EXPECT_EQ(EnumName(v1::VERIFICATION_MODE_UNSPECIFIED), "disabled");
+  EXPECT_EQ(EnumName(v1::BOX_SOURCE_UNSPECIFIED), "agent");
+  EXPECT_EQ(EnumName(v1::BOX_REFINEMENT_UNSPECIFIED), "shape");
+  EXPECT_EQ(EnumName(v1::BAND_POLICY_UNSPECIFIED), "appeared_layer");
+  EXPECT_EQ(EnumName(v1::FEATURE_TYPE_UNSPECIFIED), "unspecified");
+  EXPECT_EQ(EnumName(v1::PIXEL_FORMAT_UNSPECIFIED), "unspecified");
+  // The default's name parses as the value itself, not as UNSPECIFIED.
+  EXPECT_EQ(*ParseEnum<v1::Scoring>("l1"), v1::SCORING_L1);
+  EXPECT_FALSE(ParseEnum<v1::FeatureType>("unspecified").ok());
+  EXPECT_FALSE(ParseEnum<v1::Scoring>("SCORING_UNSPECIFIED").ok());
+}
+
+TEST(Names, UnknownNamesAndNumbers) {
+  auto bad = ParseEnum<v1::Scoring>("cosine");
+  ASSERT_FALSE(bad.ok());
+  EXPECT_EQ(bad.status().code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(bad.status().message(),
+            "unknown scoring 'cosine' (expected l1, l2, chi2, kl, bhattacharyya or dot)");
+  EXPECT_EQ(ParseEnum<v1::VerificationMode>("Direct").status().message(),
+            "unknown verification mode 'Direct' (expected disabled, direct or exhaustive)");
+  // Proto3 enums are open: a newer peer's value still gets a name.
+  EXPECT_EQ(EnumName(v1::Scoring(17)), "scoring_17");
+  EXPECT_EQ(EnumName(v1::FilterMethod(9)), "filter_method_9");
+}
+
+// ---- Enum mappings ------------------------------------------------------------------------------
+
+// Every proto value maps to a core value that maps back to it; UNSPECIFIED to the documented
+// default; a value outside the enum is INVALID_ARGUMENT naming the field.
+template <typename P, typename C>
+void ExpectMapping(Result<C> (*from)(P, const std::string&), P (*to)(C), P unspecified,
+                   P default_value) {
+  const EnumDescriptor* type = google::protobuf::GetEnumDescriptor<P>();
+  for (int i = 0; i < type->value_count(); ++i) {
+    const P value = P(type->value(i)->number());
+    SCOPED_TRACE(type->value(i)->name());
+    auto core = from(value, "config.x");
+    ASSERT_TRUE(core.ok()) << core.status().ToString();
+    EXPECT_EQ(to(*core), value == unspecified ? default_value : value);
+  }
+  auto bad = from(P(99), "config.x");
+  ASSERT_FALSE(bad.ok());
+  EXPECT_EQ(bad.status().code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(bad.status().message(), "config.x: unknown value 99");
+}
+
+TEST(EnumMappings, EveryValueBothWays) {
+  ExpectMapping(&FilterFromProto, &FilterToProto, v1::FILTER_METHOD_UNSPECIFIED,
+                v1::FILTER_METHOD_KEYPOINT_IN_BOX);
+  ExpectMapping(&BoxRefinementFromProto, &BoxRefinementToProto, v1::BOX_REFINEMENT_UNSPECIFIED,
+                v1::BOX_REFINEMENT_SHAPE);
+  ExpectMapping(&ScoringFromProto, &ScoringToProto, v1::SCORING_UNSPECIFIED, v1::SCORING_L1);
+  ExpectMapping(&VerificationFromProto, &VerificationToProto, v1::VERIFICATION_MODE_UNSPECIFIED,
+                v1::VERIFICATION_MODE_DISABLED);
+  ExpectMapping(&BoxSourceFromProto, &BoxSourceToProto, v1::BOX_SOURCE_UNSPECIFIED,
+                v1::BOX_SOURCE_AGENT);
+  ExpectMapping(&BandPolicyFromProto, &BandPolicyToProto, v1::BAND_POLICY_UNSPECIFIED,
+                v1::BAND_POLICY_APPEARED_LAYER);
+}
+
+// ---- Status -------------------------------------------------------------------------------------
+
+const StatusCode kCoreCodes[] = {StatusCode::kOk,
+                                 StatusCode::kInvalidArgument,
+                                 StatusCode::kNotFound,
+                                 StatusCode::kAlreadyExists,
+                                 StatusCode::kFailedPrecondition,
+                                 StatusCode::kResourceExhausted,
+                                 StatusCode::kCorruption,
+                                 StatusCode::kIoError,
+                                 StatusCode::kInternal,
+                                 StatusCode::kCancelled};
+
+TEST(StatusMapping, EveryCoreCodeRoundTrips) {
+  std::set<int> grpc_codes;
+  for (StatusCode code : kCoreCodes) {
+    SCOPED_TRACE(StatusCodeName(code));
+    const grpc::StatusCode wire = ToGrpcCode(code);
+    grpc_codes.insert(int(wire));
+    EXPECT_EQ(FromGrpcCode(wire), code);
+    if (code == StatusCode::kOk) continue;
+    const Status status(code, "map 'x' not found");
+    const grpc::Status sent = ToGrpc(status, "GetMap");
+    EXPECT_EQ(sent.error_code(), wire);
+    EXPECT_EQ(sent.error_message(), "GetMap: map 'x' not found");
+    const Status received = FromGrpc(ToGrpc(status));
+    EXPECT_EQ(received.code(), code);
+    EXPECT_EQ(received.message(), "map 'x' not found");
+  }
+  EXPECT_EQ(grpc_codes.size(), std::size(kCoreCodes));  // 1:1
+  EXPECT_EQ(ToGrpcCode(StatusCode::kCorruption), grpc::StatusCode::DATA_LOSS);
+  EXPECT_EQ(ToGrpcCode(StatusCode::kIoError), grpc::StatusCode::UNAVAILABLE);
+  EXPECT_TRUE(ToGrpc(Status::Ok(), "GetMap").ok());
+  EXPECT_TRUE(FromGrpc(grpc::Status::OK, "GetMap").ok());
+}
+
+TEST(StatusMapping, EveryGrpcCodeMapsAndKeepsItsName) {
+  const std::vector<std::pair<grpc::StatusCode, StatusCode>> expected = {
+      {grpc::StatusCode::OK, StatusCode::kOk},
+      {grpc::StatusCode::CANCELLED, StatusCode::kCancelled},
+      {grpc::StatusCode::UNKNOWN, StatusCode::kInternal},
+      {grpc::StatusCode::INVALID_ARGUMENT, StatusCode::kInvalidArgument},
+      {grpc::StatusCode::DEADLINE_EXCEEDED, StatusCode::kCancelled},
+      {grpc::StatusCode::NOT_FOUND, StatusCode::kNotFound},
+      {grpc::StatusCode::ALREADY_EXISTS, StatusCode::kAlreadyExists},
+      {grpc::StatusCode::PERMISSION_DENIED, StatusCode::kFailedPrecondition},
+      {grpc::StatusCode::RESOURCE_EXHAUSTED, StatusCode::kResourceExhausted},
+      {grpc::StatusCode::FAILED_PRECONDITION, StatusCode::kFailedPrecondition},
+      {grpc::StatusCode::ABORTED, StatusCode::kFailedPrecondition},
+      {grpc::StatusCode::OUT_OF_RANGE, StatusCode::kInvalidArgument},
+      {grpc::StatusCode::UNIMPLEMENTED, StatusCode::kInternal},
+      {grpc::StatusCode::INTERNAL, StatusCode::kInternal},
+      {grpc::StatusCode::UNAVAILABLE, StatusCode::kIoError},
+      {grpc::StatusCode::DATA_LOSS, StatusCode::kCorruption},
+      {grpc::StatusCode::UNAUTHENTICATED, StatusCode::kFailedPrecondition}};
+  for (const auto& [code, core] : expected) {
+    SCOPED_TRACE(GrpcCodeName(code));
+    EXPECT_EQ(FromGrpcCode(code), core);
+    if (code == grpc::StatusCode::OK) continue;
+    const Status status = FromGrpc(grpc::Status(code, "late"), "Query q1");
+    EXPECT_EQ(status.code(), core);
+    // A code the core folds into another keeps its gRPC name in the message.
+    const bool folded = ToGrpcCode(core) != code;
+    EXPECT_EQ(status.message(), folded ? "Query q1: " + GrpcCodeName(code) + ": late"
+                                       : std::string("Query q1: late"));
+  }
+  EXPECT_EQ(FromGrpcCode(99), StatusCode::kInternal);
+
+  v1::ErrorStatus error;
+  error.set_code(int(grpc::StatusCode::RESOURCE_EXHAUSTED));
+  error.set_message("observation.boxes: 300 boxes exceed limits.max_boxes_per_frame = 256");
+  const Status frame = FromProto(error, "ingesting frame_7");
+  EXPECT_EQ(frame.code(), StatusCode::kResourceExhausted);
+  EXPECT_EQ(frame.message(),
+            "ingesting frame_7: observation.boxes: 300 boxes exceed limits.max_boxes_per_frame = "
+            "256");
+  error.set_code(99);
+  EXPECT_EQ(FromProto(error, "x").message(), "x: CODE_99: " + error.message());
+}
+
+TEST(StatusMapping, CodeNamesAndLabels) {
+  const char* const names[] = {"OK",
+                               "CANCELLED",
+                               "UNKNOWN",
+                               "INVALID_ARGUMENT",
+                               "DEADLINE_EXCEEDED",
+                               "NOT_FOUND",
+                               "ALREADY_EXISTS",
+                               "PERMISSION_DENIED",
+                               "RESOURCE_EXHAUSTED",
+                               "FAILED_PRECONDITION",
+                               "ABORTED",
+                               "OUT_OF_RANGE",
+                               "UNIMPLEMENTED",
+                               "INTERNAL",
+                               "UNAVAILABLE",
+                               "DATA_LOSS",
+                               "UNAUTHENTICATED"};
+  for (int code = 0; code < int(std::size(names)); ++code) {
+    EXPECT_EQ(GrpcCodeName(code), names[code]);
+  }
+  EXPECT_EQ(GrpcCodeName(17), "CODE_17");
+  EXPECT_EQ(GrpcCodeName(-2), "CODE_-2");
+  EXPECT_EQ(GrpcCodeLabel(grpc::StatusCode::INVALID_ARGUMENT), "invalid_argument");
+  EXPECT_EQ(GrpcCodeLabel(grpc::StatusCode::OK), "ok");
+}
+
+// ---- Map configuration --------------------------------------------------------------------------
+
+constexpr uint32_t kMaxDescriptors = 10000;
+
+// The effective configuration of a map created with nothing set.
+v1::MapConfig DefaultConfig() {
+  v1::MapConfig config;
+  MapConfigToProto(MapOptions{}, ServiceMapSettings{}, "default", &config);
+  return config;
+}
+
+struct FieldCase {
+  std::string path;  // the leaf field it sets, "depth.rise_band.near_m"
+  std::function<void(v1::MapConfig*)> set;
+  FeatureType vocabulary = FeatureType::kOrb;
+  bool may_be_default = false;  // the enum cases go through every value, the default's too
+};
+
+// One non-default, valid value for every leaf field of MapConfig, and every value of its enums.
+std::vector<FieldCase> FieldCases() {
+  std::vector<FieldCase> cases = {
+      {"vocabulary", [](v1::MapConfig* c) { c->set_vocabulary("indoor"); }},
+      {"feature_type", [](v1::MapConfig* c) { c->set_feature_type(v1::FEATURE_TYPE_SIFT); },
+       FeatureType::kSift},
+      {"orb.max_features", [](v1::MapConfig* c) { c->mutable_orb()->set_max_features(500); }},
+      {"orb.scale_factor", [](v1::MapConfig* c) { c->mutable_orb()->set_scale_factor(1.5f); }},
+      {"orb.levels", [](v1::MapConfig* c) { c->mutable_orb()->set_levels(6); }},
+      {"orb.edge_threshold", [](v1::MapConfig* c) { c->mutable_orb()->set_edge_threshold(40); }},
+      {"orb.patch_size", [](v1::MapConfig* c) { c->mutable_orb()->set_patch_size(25); }},
+      {"orb.fast_threshold", [](v1::MapConfig* c) { c->mutable_orb()->set_fast_threshold(12); }},
+      {"sift.max_features", [](v1::MapConfig* c) { c->mutable_sift()->set_max_features(700); }},
+      {"sift.octave_layers", [](v1::MapConfig* c) { c->mutable_sift()->set_octave_layers(4); }},
+      {"sift.contrast_threshold",
+       [](v1::MapConfig* c) { c->mutable_sift()->set_contrast_threshold(0.03); }},
+      {"sift.edge_threshold", [](v1::MapConfig* c) { c->mutable_sift()->set_edge_threshold(12); }},
+      {"sift.sigma", [](v1::MapConfig* c) { c->mutable_sift()->set_sigma(1.4); }},
+      {"depth.refine_boxes", [](v1::MapConfig* c) { c->mutable_depth()->set_refine_boxes(false); }},
+      {"depth.stream_filter",
+       [](v1::MapConfig* c) { c->mutable_depth()->set_stream_filter(false); }},
+      {"depth.scale", [](v1::MapConfig* c) { c->mutable_depth()->set_scale(0.0002f); }},
+      {"depth.min_depth_m", [](v1::MapConfig* c) { c->mutable_depth()->set_min_depth_m(0.3f); }},
+      {"depth.max_depth_m", [](v1::MapConfig* c) { c->mutable_depth()->set_max_depth_m(8.5f); }},
+      {"depth.mean_all_pixels",
+       [](v1::MapConfig* c) { c->mutable_depth()->set_mean_all_pixels(true); }},
+      {"depth.threshold_m", [](v1::MapConfig* c) { c->mutable_depth()->set_threshold_m(0.25f); }},
+      {"depth.persistence", [](v1::MapConfig* c) { c->mutable_depth()->set_persistence(3); }},
+      {"depth.static_window", [](v1::MapConfig* c) { c->mutable_depth()->set_static_window(14); }},
+      {"depth.rise_band.near_m",
+       [](v1::MapConfig* c) { c->mutable_depth()->mutable_rise_band()->set_near_m(1.5f); }},
+      {"depth.rise_band.far_m",
+       [](v1::MapConfig* c) { c->mutable_depth()->mutable_rise_band()->set_far_m(5.0f); }},
+      {"depth.fall_band.near_m",
+       [](v1::MapConfig* c) { c->mutable_depth()->mutable_fall_band()->set_near_m(0.25f); }},
+      {"depth.fall_band.far_m",
+       [](v1::MapConfig* c) { c->mutable_depth()->mutable_fall_band()->set_far_m(0.75f); }},
+      {"depth.remove_features_without_depth",
+       [](v1::MapConfig* c) { c->mutable_depth()->set_remove_features_without_depth(true); }},
+      {"depth.use_range", [](v1::MapConfig* c) { c->mutable_depth()->set_use_range(true); }},
+      {"depth.rebaseline_after",
+       [](v1::MapConfig* c) { c->mutable_depth()->set_rebaseline_after(50); }},
+      {"loop_closure.loop_threshold",
+       [](v1::MapConfig* c) { c->mutable_loop_closure()->set_loop_threshold(0.3); }},
+      {"loop_closure.rehearsal_threshold",
+       [](v1::MapConfig* c) { c->mutable_loop_closure()->set_rehearsal_threshold(0.5); }},
+      {"loop_closure.short_term_memory",
+       [](v1::MapConfig* c) { c->mutable_loop_closure()->set_short_term_memory(20); }},
+      {"loop_closure.max_working_memory",
+       [](v1::MapConfig* c) { c->mutable_loop_closure()->set_max_working_memory(100); }},
+      {"loop_closure.time_budget_ms",
+       [](v1::MapConfig* c) { c->mutable_loop_closure()->set_time_budget_ms(5); }},
+      {"loop_closure.min_candidates",
+       [](v1::MapConfig* c) { c->mutable_loop_closure()->set_min_candidates(3); }},
+      {"loop_closure.verify",
+       [](v1::MapConfig* c) { c->mutable_loop_closure()->set_verify(false); }},
+      // Detection off selects no class: the effective configuration lists none.
+      {"detection.enabled",
+       [](v1::MapConfig* c) {
+         c->mutable_detection()->set_enabled(false);
+         c->mutable_detection()->clear_classes();
+       }},
+      {"detection.classes",
+       [](v1::MapConfig* c) {
+         c->mutable_detection()->clear_classes();
+         c->mutable_detection()->add_classes("person");
+         c->mutable_detection()->add_classes("dog");
+       }},
+      {"detection.min_confidence",
+       [](v1::MapConfig* c) { c->mutable_detection()->set_min_confidence(0.5f); }},
+      {"filter.sensitivity_threshold",
+       [](v1::MapConfig* c) { c->mutable_filter()->set_sensitivity_threshold(0.4f); }},
+      {"filter.place_threshold",
+       [](v1::MapConfig* c) { c->mutable_filter()->set_place_threshold(30); }},
+      {"filter.static_feature_budget",
+       [](v1::MapConfig* c) { c->mutable_filter()->set_static_feature_budget(false); }},
+      {"filter.short_term.enabled",
+       [](v1::MapConfig* c) { c->mutable_filter()->mutable_short_term()->set_enabled(false); }},
+      {"filter.short_term.horizon_s",
+       [](v1::MapConfig* c) { c->mutable_filter()->mutable_short_term()->set_horizon_s(30.5); }},
+      {"filter.short_term.max_places",
+       [](v1::MapConfig* c) { c->mutable_filter()->mutable_short_term()->set_max_places(100); }},
+      {"filter.short_term.weight",
+       [](v1::MapConfig* c) { c->mutable_filter()->mutable_short_term()->set_weight(0.5f); }},
+      {"verification.levels_up",
+       [](v1::MapConfig* c) { c->mutable_verification()->set_levels_up(3); }},
+      {"verification.min_inliers",
+       [](v1::MapConfig* c) { c->mutable_verification()->set_min_inliers(20); }},
+      {"verification.candidates",
+       [](v1::MapConfig* c) { c->mutable_verification()->set_candidates(5); }},
+      {"verification.rerank",
+       [](v1::MapConfig* c) { c->mutable_verification()->set_rerank(false); }},
+      {"store_invalid", [](v1::MapConfig* c) { c->set_store_invalid(true); }},
+  };
+  // Every specified value of the enum fields (the defaults come back as themselves).
+  auto each = [&](const EnumDescriptor* type, const std::string& path,
+                  std::function<void(v1::MapConfig*, int)> set) {
+    for (int i = 0; i < type->value_count(); ++i) {
+      const int number = type->value(i)->number();
+      if (number == 0) continue;
+      cases.push_back(
+          {path, [set, number](v1::MapConfig* c) { set(c, number); }, FeatureType::kOrb, true});
+    }
+  };
+  each(v1::BandPolicy_descriptor(), "depth.band_policy",
+       [](v1::MapConfig* c, int v) { c->mutable_depth()->set_band_policy(v1::BandPolicy(v)); });
+  each(v1::BoxSource_descriptor(), "detection.box_source",
+       [](v1::MapConfig* c, int v) { c->mutable_detection()->set_box_source(v1::BoxSource(v)); });
+  each(v1::FilterMethod_descriptor(), "filter.method",
+       [](v1::MapConfig* c, int v) { c->mutable_filter()->set_method(v1::FilterMethod(v)); });
+  each(v1::BoxRefinement_descriptor(), "filter.box_refinement", [](v1::MapConfig* c, int v) {
+    c->mutable_filter()->set_box_refinement(v1::BoxRefinement(v));
+  });
+  each(v1::Scoring_descriptor(), "scoring",
+       [](v1::MapConfig* c, int v) { c->set_scoring(v1::Scoring(v)); });
+  each(v1::VerificationMode_descriptor(), "verification.mode", [](v1::MapConfig* c, int v) {
+    c->mutable_verification()->set_mode(v1::VerificationMode(v));
+  });
+  return cases;
+}
+
+void LeafPaths(const google::protobuf::Descriptor* message, const std::string& prefix,
+               std::set<std::string>* out) {
+  for (int i = 0; i < message->field_count(); ++i) {
+    const FieldDescriptor* field = message->field(i);
+    const std::string path = prefix + field->name();
+    if (field->type() == FieldDescriptor::TYPE_MESSAGE) {
+      LeafPaths(field->message_type(), path + ".", out);
+    } else {
+      out->insert(path);
+    }
+  }
+}
+
+// A field added to MapConfig without a case here fails this test.
+TEST(MapConfigConversion, EveryFieldHasACase) {
+  std::set<std::string> leaves;
+  LeafPaths(v1::MapConfig::descriptor(), "", &leaves);
+  std::set<std::string> covered;
+  for (const FieldCase& c : FieldCases()) covered.insert(c.path);
+  EXPECT_EQ(covered, leaves);
+}
+
+TEST(MapConfigConversion, EveryFieldComesBack) {
+  const v1::MapConfig defaults = DefaultConfig();
+  for (const FieldCase& field : FieldCases()) {
+    v1::MapConfig config = defaults;
+    field.set(&config);
+    SCOPED_TRACE(field.path + " = " + config.ShortDebugString());
+    if (!field.may_be_default) {
+      ASSERT_FALSE(MessageDifferencer::Equals(config, defaults)) << "the value is the default";
+    }
+    ServiceMapSettings settings;
+    auto options = MapOptionsFromProto(config, kMaxDescriptors,
+                                       MapVocabulary{"test", field.vocabulary}, &settings);
+    ASSERT_TRUE(options.ok()) << options.status().ToString();
+    v1::MapConfig back;
+    MapConfigToProto(*options, settings, config.vocabulary(), &back);
+    std::string differences;
+    MessageDifferencer differencer;
+    differencer.ReportDifferencesToString(&differences);
+    EXPECT_TRUE(differencer.Compare(config, back)) << differences;
+  }
+}
+
+TEST(MapConfigConversion, UnsetFieldsTakeTheDefaults) {
+  ServiceMapSettings settings;
+  auto options =
+      MapOptionsFromProto(v1::MapConfig(), kMaxDescriptors, MapVocabulary{"default"}, &settings);
+  ASSERT_TRUE(options.ok()) << options.status().ToString();
+  v1::MapConfig back;
+  MapConfigToProto(*options, settings, "default", &back);
+  EXPECT_TRUE(MessageDifferencer::Equals(back, DefaultConfig())) << back.ShortDebugString();
+  EXPECT_EQ(settings, ServiceMapSettings{});
+}
+
+TEST(MapConfigConversion, FeatureBudgetIsTheServersLimit) {
+  v1::MapConfig config;
+  config.mutable_orb()->set_max_features(2000);
+  ServiceMapSettings settings;
+  auto refused = MapOptionsFromProto(config, 1000, MapVocabulary{"default"}, &settings);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), StatusCode::kResourceExhausted);
+  EXPECT_EQ(refused.status().message(),
+            "config.orb.max_features = 2000 exceeds limits.max_descriptors_per_frame = 1000");
+  // SIFT's "all" is the limit.
+  config.Clear();
+  config.mutable_sift()->set_max_features(0);
+  auto all =
+      MapOptionsFromProto(config, 1000, MapVocabulary{"sift", FeatureType::kSift}, &settings);
+  ASSERT_TRUE(all.ok()) << all.status().ToString();
+  EXPECT_EQ(all->database.sift.max_features, 1000);
+}
+
+TEST(MatchOptionsConversion, DefaultsAndCap) {
+  v1::MatchOptions options;
+  EXPECT_EQ(QueryOptionsFromProto(options, "a").top_k, 10u);
+  options.set_top_k(5000);
+  options.set_verified_only(true);
+  QueryOptions out = QueryOptionsFromProto(options, "a");
+  EXPECT_EQ(out.top_k, 1000u);
+  EXPECT_TRUE(out.verified_only);
+  EXPECT_FALSE(out.accept);
+  options.set_exclude_same_agent(true);
+  out = QueryOptionsFromProto(options, "a");
+  ASSERT_TRUE(out.accept);
+  PlaceRecord mine, theirs;
+  mine.metadata.agent_id = "a";
+  theirs.metadata.agent_id = "b";
+  EXPECT_FALSE(out.accept(mine));
+  EXPECT_TRUE(out.accept(theirs));
+}
+
+}  // namespace
+}  // namespace placedb::wire
