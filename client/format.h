@@ -41,26 +41,6 @@ std::string FormatDuration(double seconds);  // "1m05s", "3.2s"
 std::string FormatUnixNs(int64_t unix_ns);   // "2025-11-22T00:40:12.123Z", "-" for 0
 std::string FormatUnixMs(int64_t unix_ms);
 
-// client/cli.cc's names of the API enums, until its commands call proto/names.h themselves.
-inline std::string FilterName(v1::FilterMethod method) {
-  return wire::EnumName(method);
-}
-inline std::string ScoringName(v1::Scoring scoring) {
-  return wire::EnumName(scoring);
-}
-inline std::string VerificationName(v1::VerificationMode mode) {
-  return wire::EnumName(mode);
-}
-inline std::string BoxSourceName(v1::BoxSource source) {
-  return wire::EnumName(source);
-}
-inline std::string FeatureTypeName(v1::FeatureType type) {
-  return wire::EnumName(type);
-}
-inline std::string BandPolicyName(v1::BandPolicy policy) {
-  return wire::EnumName(policy);
-}
-
 // The depth state of a frame (Algorithm 1, docs/rgbd.md):
 //   "frame 12: mean 2.31 m, static 2.45 m (-0.14 m), count 3, removing 1.20-1.60 m
 //    (appeared_layer), 97% valid"

@@ -1,22 +1,33 @@
-// The CLI spellings of the placedb.v1 enums (`maps create --filter exact_coverage`), name ->
-// value. Kept in one file so that deriving them from the proto's descriptors changes only this.
+// Flags that take a placedb.v1 enum by name (`maps create --scoring chi2`): the names and the
+// older spellings proto/names.h accepts, checked by CLI11, with the canonical names in --help.
 #pragma once
 
-#include <map>
+#include <CLI/CLI.hpp>
 #include <string>
 
-#include "proto/placedb.pb.h"
+#include "proto/names.h"
 
 namespace placedb::client {
 
-namespace v1 = ::placedb::v1;
+// A CLI11 check that accepts exactly what wire::ParseEnum<E> parses; --help shows the names.
+template <wire::ProtoEnum E>
+CLI::Validator EnumFlag() {
+  std::string choices;
+  for (const std::string& name : wire::EnumNames<E>()) {
+    choices += (choices.empty() ? "" : ",") + name;
+  }
+  return CLI::Validator(
+      [](std::string& value) -> std::string {
+        auto parsed = wire::ParseEnum<E>(value);
+        return parsed.ok() ? std::string() : parsed.status().message();
+      },
+      "{" + choices + "}");
+}
 
-const std::map<std::string, v1::BoxRefinement>& BoxRefinementNames();
-const std::map<std::string, v1::FilterMethod>& FilterNames();
-const std::map<std::string, v1::Scoring>& ScoringNames();
-const std::map<std::string, v1::VerificationMode>& VerifyNames();
-const std::map<std::string, v1::FeatureType>& FeatureTypeNames();
-const std::map<std::string, v1::BandPolicy>& BandPolicyNames();
-const std::map<std::string, v1::BoxSource>& BoxSourceNames();
+// The value of a flag EnumFlag<E>() has checked.
+template <wire::ProtoEnum E>
+E EnumFlagValue(const std::string& flag) {
+  return *wire::ParseEnum<E>(flag);
+}
 
 }  // namespace placedb::client

@@ -15,13 +15,6 @@ namespace {
 
 using Rows = std::vector<std::pair<std::string, std::string>>;
 
-template <typename Map>
-std::vector<std::string> Keys(const Map& map) {
-  std::vector<std::string> keys;
-  for (const auto& [key, value] : map) keys.push_back(key);
-  return keys;
-}
-
 std::string Join(const std::vector<std::string>& items, const std::string& separator) {
   std::string text;
   for (const std::string& item : items) text += (text.empty() ? "" : separator) + item;
@@ -41,7 +34,7 @@ Rows ConfigRows(const v1::MapDescription& map) {
                                       " (checksum " + map.vocabulary_checksum() + ")"});
   config.push_back({"features", c.feature_type() == v1::FEATURE_TYPE_UNSPECIFIED
                                     ? std::string("(the vocabulary's)")
-                                    : FeatureTypeName(c.feature_type())});
+                                    : wire::EnumName(c.feature_type())});
   if (c.feature_type() != v1::FEATURE_TYPE_SIFT) {
     const v1::OrbSettings& orb = c.orb();
     config.push_back({"orb", "max_features " + std::to_string(orb.max_features()) +
@@ -66,17 +59,14 @@ Rows ConfigRows(const v1::MapDescription& map) {
   const v1::DetectionSettings& d = c.detection();
   std::vector<std::string> classes(d.classes().begin(), d.classes().end());
   config.push_back({"detection", std::string(d.enabled() ? "on" : "off") + ", box_source " +
-                                     BoxSourceName(d.box_source()) + ", min_confidence " +
+                                     wire::EnumName(d.box_source()) + ", min_confidence " +
                                      FormatDouble(d.min_confidence(), 2) + ", classes " +
                                      (classes.empty() ? "(default)" : Join(classes, ","))});
   const v1::FilterSettings& f = c.filter();
-  config.push_back({"filter", FilterName(f.method()) + ", sensitivity " +
+  config.push_back({"filter", wire::EnumName(f.method()) + ", sensitivity " +
                                   FormatDouble(f.sensitivity_threshold(), 2) +
                                   ", place_threshold " + std::to_string(f.place_threshold())});
-  std::string refinement = "shape";
-  for (const auto& [name, value] : BoxRefinementNames()) {
-    if (value == f.box_refinement()) refinement = name;
-  }
+  const std::string refinement = wire::EnumName(f.box_refinement());
   config.push_back({"refine_boxes",
                     refinement + ", static_budget " + (f.static_feature_budget() ? "on" : "off")});
   const v1::ShortTermSettings& st = f.short_term();
@@ -85,11 +75,11 @@ Rows ConfigRows(const v1::MapDescription& map) {
                                             " s, max_places " + std::to_string(st.max_places()) +
                                             ", weight " + FormatDouble(st.weight(), 2)
                                       : std::string("off")});
-  config.push_back({"scoring", ScoringName(c.scoring())});
+  config.push_back({"scoring", wire::EnumName(c.scoring())});
   const v1::VerificationSettings& v = c.verification();
   config.push_back(
       {"verification",
-       VerificationName(v.mode()) + ", level " + std::to_string(v.levels_up()) + ", min_inliers " +
+       wire::EnumName(v.mode()) + ", level " + std::to_string(v.levels_up()) + ", min_inliers " +
            std::to_string(v.min_inliers()) + ", candidates " +
            (v.candidates() == 0 ? std::string("all") : std::to_string(v.candidates())) +
            ", rerank " + (v.rerank() ? "on" : "off")});
@@ -110,7 +100,7 @@ Rows ConfigRows(const v1::MapDescription& map) {
            (depth.mean_all_pixels() ? "all pixels" : "valid pixels") + ", threshold " +
            Metres(depth.threshold_m()) + ", persistence " + std::to_string(depth.persistence()) +
            ", static_window " + std::to_string(depth.static_window()) + ", band " +
-           BandPolicyName(depth.band_policy()) + " (rise " +
+           wire::EnumName(depth.band_policy()) + " (rise " +
            FormatDouble(depth.rise_band().near_m(), 2) + "-" +
            FormatDouble(depth.rise_band().far_m(), 2) + " m, fall " +
            FormatDouble(depth.fall_band().near_m(), 2) + "-" +
@@ -163,7 +153,7 @@ v1::CreateMapRequest CreateRequest(const CreateFlags& flags) {
   v1::MapConfig* config = request.mutable_config();
   config->set_vocabulary(flags.vocabulary);
   if (!flags.feature_type.empty()) {
-    config->set_feature_type(FeatureTypeNames().at(flags.feature_type));
+    config->set_feature_type(EnumFlagValue<v1::FeatureType>(flags.feature_type));
   }
   if (flags.features_option->count()) config->mutable_orb()->set_max_features(flags.features);
   if (flags.sift_features_option->count()) {
@@ -174,7 +164,8 @@ v1::CreateMapRequest CreateRequest(const CreateFlags& flags) {
   if (flags.no_depth_filter) depth->set_stream_filter(false);
   if (flags.depth_scale_option->count()) depth->set_scale(flags.depth_scale);
   if (flags.depth_threshold_option->count()) depth->set_threshold_m(flags.depth_threshold);
-  if (!flags.band_policy.empty()) depth->set_band_policy(BandPolicyNames().at(flags.band_policy));
+  if (!flags.band_policy.empty())
+    depth->set_band_policy(EnumFlagValue<v1::BandPolicy>(flags.band_policy));
   if (flags.paper_literal) {  // Algorithm 1 as written: the mean over all pixels, fixed bands
     depth->set_mean_all_pixels(true);
     depth->set_band_policy(v1::BAND_POLICY_FIXED);
@@ -200,14 +191,14 @@ v1::CreateMapRequest CreateRequest(const CreateFlags& flags) {
   }
   if (flags.confidence_option->count()) detection->set_min_confidence(flags.confidence);
   if (!flags.box_source.empty()) {
-    detection->set_box_source(BoxSourceNames().at(flags.box_source));
+    detection->set_box_source(EnumFlagValue<v1::BoxSource>(flags.box_source));
   }
   v1::FilterSettings* filter = config->mutable_filter();
-  if (!flags.filter.empty()) filter->set_method(FilterNames().at(flags.filter));
+  if (!flags.filter.empty()) filter->set_method(EnumFlagValue<v1::FilterMethod>(flags.filter));
   if (flags.sensitivity_option->count()) filter->set_sensitivity_threshold(flags.sensitivity);
   if (flags.place_threshold_option->count()) filter->set_place_threshold(flags.place_threshold);
   if (!flags.box_refinement.empty()) {
-    filter->set_box_refinement(BoxRefinementNames().at(flags.box_refinement));
+    filter->set_box_refinement(EnumFlagValue<v1::BoxRefinement>(flags.box_refinement));
   }
   if (!flags.short_term.empty()) {
     filter->mutable_short_term()->set_enabled(flags.short_term == "on");
@@ -218,9 +209,10 @@ v1::CreateMapRequest CreateRequest(const CreateFlags& flags) {
   if (flags.short_term_horizon_option->count()) {
     filter->mutable_short_term()->set_horizon_s(flags.short_term_horizon_s);
   }
-  if (!flags.scoring.empty()) config->set_scoring(ScoringNames().at(flags.scoring));
+  if (!flags.scoring.empty()) config->set_scoring(EnumFlagValue<v1::Scoring>(flags.scoring));
   v1::VerificationSettings* verification = config->mutable_verification();
-  if (!flags.verify.empty()) verification->set_mode(VerifyNames().at(flags.verify));
+  if (!flags.verify.empty())
+    verification->set_mode(EnumFlagValue<v1::VerificationMode>(flags.verify));
   if (flags.level_option->count()) verification->set_levels_up(flags.level);
   if (flags.min_inliers_option->count()) verification->set_min_inliers(flags.min_inliers);
   if (flags.candidates_option->count()) verification->set_candidates(flags.candidates);
@@ -246,10 +238,10 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
   flags->confidence_option =
       create->add_option("--confidence", flags->confidence, "minimum box confidence (default 0.2)");
   create->add_option("--box-source", flags->box_source, "where boxes come from (default agent)")
-      ->check(CLI::IsMember(Keys(BoxSourceNames())));
+      ->check(EnumFlag<v1::BoxSource>());
   create
       ->add_option("--filter", flags->filter, "dynamic-descriptor filter (default keypoint_in_box)")
-      ->check(CLI::IsMember(Keys(FilterNames())));
+      ->check(EnumFlag<v1::FilterMethod>());
   flags->sensitivity_option = create->add_option(
       "--sensitivity", flags->sensitivity, "exact_coverage threshold in [0, 1) (default 0.25)");
   flags->place_threshold_option =
@@ -258,7 +250,7 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
   create
       ->add_option("--refine-boxes", flags->box_refinement,
                    "narrow boxes to their objects without depth (default shape)")
-      ->check(CLI::IsMember(Keys(BoxRefinementNames())));
+      ->check(EnumFlag<v1::BoxRefinement>());
   create
       ->add_option("--short-term", flags->short_term,
                    "keep recent places' dynamic words in memory (default on)")
@@ -274,9 +266,9 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
       ->add_option("--rerank", flags->rerank, "re-rank verified candidates by inliers (default on)")
       ->check(CLI::IsMember({"on", "off"}));
   create->add_option("--scoring", flags->scoring, "score (default l1)")
-      ->check(CLI::IsMember(Keys(ScoringNames())));
+      ->check(EnumFlag<v1::Scoring>());
   create->add_option("--verify", flags->verify, "geometric verification (default disabled)")
-      ->check(CLI::IsMember(Keys(VerifyNames())));
+      ->check(EnumFlag<v1::VerificationMode>());
   flags->level_option =
       create->add_option("--level", flags->level, "direct-index level above the words (default 2)");
   flags->min_inliers_option = create->add_option("--min-inliers", flags->min_inliers,
@@ -288,7 +280,7 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
   create
       ->add_option("--feature-type", flags->feature_type,
                    "orb or sift; must agree with the vocabulary (default: the vocabulary's kind)")
-      ->check(CLI::IsMember(Keys(FeatureTypeNames())));
+      ->check(EnumFlag<v1::FeatureType>());
   flags->sift_features_option = create
                                     ->add_option("--sift-features", flags->sift_features,
                                                  "SIFT features per frame (default 1000, 0 = all)")
@@ -311,7 +303,7 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
       create
           ->add_option("--band-policy", flags->band_policy,
                        "depth band removed while deviating (default appeared_layer)")
-          ->check(CLI::IsMember(Keys(BandPolicyNames())));
+          ->check(EnumFlag<v1::BandPolicy>());
   create
       ->add_flag("--paper-literal", flags->paper_literal,
                  "Algorithm 1 as written: mean over all pixels, fixed bands")
@@ -394,7 +386,7 @@ int MapsList(const Connection& connection, bool json, CliIo& io) {
   for (const v1::MapSummary& map : response.maps()) {
     table.Add({map.name(), map.available() ? std::to_string(map.places()) : "-",
                map.vocabulary().empty() ? "-" : map.vocabulary(),
-               map.available() ? FeatureTypeName(map.feature_type()) : "-",
+               map.available() ? wire::EnumName(map.feature_type()) : "-",
                map.available() ? "available" : "unavailable: " + map.unavailable_reason()});
   }
   table.Print(io.out);

@@ -37,7 +37,7 @@ int RunInfo(const Connection& connection, bool json, CliIo& io) {
     vocabularies.Add(
         {v.name(),
          v.feature_type() == v1::FEATURE_TYPE_UNSPECIFIED ? std::string("-")
-                                                          : FeatureTypeName(v.feature_type()),
+                                                          : wire::EnumName(v.feature_type()),
          std::to_string(v.words()), std::to_string(v.nodes()), std::to_string(v.branching()),
          std::to_string(v.depth()), FormatBytes(v.memory_bytes()), v.checksum(), v.path()});
   }
