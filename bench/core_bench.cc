@@ -25,6 +25,7 @@
 #include <vector>
 
 #include "bench/bench_output.h"
+#include "core/base/files.h"
 #include "core/features/orb_features.h"
 #include "core/search/place_index.h"
 #include "core/search/scoring.h"
@@ -46,14 +47,9 @@ double NowMs() {
 std::vector<std::string> SourceImages(const std::string& shared) {
   std::vector<std::string> paths;
   auto add_dir = [&](const std::string& dir, size_t every) {
-    if (!fs::is_directory(dir)) return;
-    std::vector<std::string> found;
-    for (const auto& entry : fs::directory_iterator(dir)) {
-      const auto ext = entry.path().extension().string();
-      if (ext == ".jpg" || ext == ".png") found.push_back(entry.path().string());
-    }
-    std::sort(found.begin(), found.end());
-    for (size_t i = 0; i < found.size(); i += every) paths.push_back(found[i]);
+    auto found = ListImageFiles(dir);
+    if (!found.ok()) return;
+    for (size_t i = 0; i < found->size(); i += every) paths.push_back((*found)[i]);
   };
   add_dir("/usr/share/doc/opencv-doc/examples/data", 1);
   add_dir("/usr/share/darknet/data", 1);

@@ -24,6 +24,8 @@
 #include <vector>
 
 #include "bench/bench_output.h"
+#include "core/base/files.h"
+#include "core/base/stats.h"
 #include "core/detect/detector.h"
 
 namespace fs = std::filesystem;
@@ -38,21 +40,10 @@ double NowMs() {
       .count();
 }
 
-double Percentile(std::vector<double> values, double fraction) {
-  if (values.empty()) return 0;
-  std::sort(values.begin(), values.end());
-  return values[std::min(values.size() - 1, size_t(fraction * double(values.size())))];
-}
-
+// The image files of `dir` in natural order; none when it is missing.
 std::vector<std::string> ListImages(const std::string& dir) {
-  std::vector<std::string> paths;
-  if (!fs::is_directory(dir)) return paths;
-  for (const auto& entry : fs::directory_iterator(dir)) {
-    const auto ext = entry.path().extension().string();
-    if (ext == ".jpg" || ext == ".png") paths.push_back(entry.path().string());
-  }
-  std::sort(paths.begin(), paths.end());
-  return paths;
+  auto images = ListImageFiles(dir);
+  return images.ok() ? std::move(*images) : std::vector<std::string>();
 }
 
 std::vector<cv::Mat> LoadFrames(const std::string& shared, size_t count, std::string* source) {

@@ -3,11 +3,10 @@
 #include <google/protobuf/io/coded_stream.h>
 #include <grpcpp/generic/generic_stub.h>
 
-#include <fstream>
 #include <future>
-#include <sstream>
 #include <vector>
 
+#include "core/base/files.h"
 #include "proto/status.h"
 
 namespace placedb::client {
@@ -19,14 +18,12 @@ std::optional<Connection> Connection::Open(const ConnectionOptions& options, std
   if (options.tls) {
     grpc::SslCredentialsOptions ssl;
     if (!options.ca_cert.empty()) {
-      std::ifstream in(options.ca_cert, std::ios::binary);
-      if (!in) {
-        *error = "--ca-cert: cannot read " + options.ca_cert;
+      auto pem = ReadWholeFile(options.ca_cert);
+      if (!pem.ok()) {
+        *error = "--ca-cert: " + pem.status().message();
         return std::nullopt;
       }
-      std::stringstream pem;
-      pem << in.rdbuf();
-      ssl.pem_root_certs = pem.str();
+      ssl.pem_root_certs = std::move(*pem);
     }
     credentials = grpc::SslCredentials(ssl);
   } else {

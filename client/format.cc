@@ -9,6 +9,8 @@
 #include <ctime>
 #include <numeric>
 
+#include "core/base/stats.h"
+
 namespace placedb::client {
 
 LatencySummary Summarize(std::vector<double> samples) {
@@ -16,15 +18,10 @@ LatencySummary Summarize(std::vector<double> samples) {
   summary.count = samples.size();
   if (samples.empty()) return summary;
   std::sort(samples.begin(), samples.end());
-  auto rank = [&](double p) {
-    // Nearest rank: the smallest sample with at least p of the samples at or below it.
-    size_t index = size_t(std::ceil(p * double(samples.size())));
-    return samples[std::clamp<size_t>(index, 1, samples.size()) - 1];
-  };
   summary.mean = std::accumulate(samples.begin(), samples.end(), 0.0) / double(samples.size());
-  summary.p50 = rank(0.50);
-  summary.p90 = rank(0.90);
-  summary.p99 = rank(0.99);
+  summary.p50 = PercentileOfSorted(samples, 0.50);
+  summary.p90 = PercentileOfSorted(samples, 0.90);
+  summary.p99 = PercentileOfSorted(samples, 0.99);
   summary.max = samples.back();
   return summary;
 }
@@ -256,34 +253,6 @@ std::string ProtoJson(const google::protobuf::Message& message) {
   (void)google::protobuf::util::MessageToJsonString(message, &json, options);
   while (!json.empty() && json.back() == '\n') json.pop_back();
   return json;
-}
-
-bool NaturalLess(const std::string& a, const std::string& b) {
-  size_t i = 0, j = 0;
-  while (i < a.size() && j < b.size()) {
-    const bool da = std::isdigit(static_cast<unsigned char>(a[i]));
-    const bool db = std::isdigit(static_cast<unsigned char>(b[j]));
-    if (da && db) {
-      size_t ei = i, ej = j;
-      while (ei < a.size() && std::isdigit(static_cast<unsigned char>(a[ei]))) ++ei;
-      while (ej < b.size() && std::isdigit(static_cast<unsigned char>(b[ej]))) ++ej;
-      // Compare the runs as numbers: strip leading zeros, then longer is larger.
-      size_t si = i, sj = j;
-      while (si + 1 < ei && a[si] == '0') ++si;
-      while (sj + 1 < ej && b[sj] == '0') ++sj;
-      if (ei - si != ej - sj) return ei - si < ej - sj;
-      const int cmp = a.compare(si, ei - si, b, sj, ej - sj);
-      if (cmp != 0) return cmp < 0;
-      if (ei - i != ej - j) return ei - i < ej - j;  // "01" after "1": deterministic
-      i = ei;
-      j = ej;
-    } else {
-      if (a[i] != b[j]) return a[i] < b[j];
-      ++i;
-      ++j;
-    }
-  }
-  return a.size() - i < b.size() - j;
 }
 
 }  // namespace placedb::client

@@ -77,7 +77,4 @@ void PrintKeyValues(std::ostream& out, const std::string& title,
 // integers are strings, per the proto3 JSON mapping.)
 std::string ProtoJson(const google::protobuf::Message& message);
 
-// Natural order of file names: "2.jpg" < "10.jpg", digit runs compared as numbers.
-bool NaturalLess(const std::string& a, const std::string& b);
-
 }  // namespace placedb::client

@@ -11,9 +11,9 @@
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
-#include <sstream>
 
 #include "client/format.h"
+#include "core/base/files.h"
 
 namespace fs = std::filesystem;
 
@@ -26,12 +26,6 @@ std::string LowerExtension(const fs::path& path) {
   std::transform(ext.begin(), ext.end(), ext.begin(),
                  [](unsigned char c) { return char(std::tolower(c)); });
   return ext;
-}
-
-bool IsImageExtension(const std::string& ext) {
-  static const char* const kImages[] = {".jpg", ".jpeg", ".png", ".bmp",  ".pgm",
-                                        ".ppm", ".pnm",  ".tif", ".tiff", ".webp"};
-  return std::find(std::begin(kImages), std::end(kImages), ext) != std::end(kImages);
 }
 
 bool IsListExtension(const std::string& ext) {
@@ -54,14 +48,12 @@ bool IsJpegOrPng(const std::string& bytes) {
 }
 
 bool ReadImageBytes(const std::string& path, std::string* bytes, std::string* error) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) {
-    *error = "cannot read " + path;
+  auto contents = ReadWholeFile(path);
+  if (!contents.ok()) {
+    *error = contents.status().message();
     return false;
   }
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  *bytes = buffer.str();
+  *bytes = std::move(*contents);
   if (IsJpegOrPng(*bytes)) return true;
   cv::Mat image = cv::imread(path, cv::IMREAD_UNCHANGED);
   if (image.empty()) {
@@ -94,14 +86,12 @@ std::string FindDepthImage(const std::string& depth_dir, const std::string& colo
 }
 
 bool ReadDepthImage(const std::string& path, v1::DepthImage* depth, std::string* error) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) {
-    *error = "cannot read depth image " + path;
+  auto contents = ReadWholeFile(path);
+  if (!contents.ok()) {
+    *error = "depth image: " + contents.status().message();
     return false;
   }
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  std::string bytes = buffer.str();
+  std::string bytes = std::move(*contents);
   // A PNG's IHDR: bit depth at byte 24, colour type at 25 (0 = greyscale).
   const bool png = bytes.size() >= 26 && bytes.compare(0, 8, "\x89PNG\r\n\x1a\n") == 0;
   if (png && uint8_t(bytes[24]) == 16 && uint8_t(bytes[25]) == 0) {
@@ -210,24 +200,22 @@ std::unique_ptr<FrameSource> FrameSource::Open(const std::vector<std::string>& s
     std::error_code ec;
     const fs::path path(arg);
     if (fs::is_directory(path, ec)) {
-      std::vector<std::string> names;
-      for (const auto& entry : fs::directory_iterator(path, ec)) {
-        const std::string name = entry.path().filename().string();
-        if (entry.is_regular_file(ec) && IsImageExtension(LowerExtension(entry.path())) &&
-            (glob.empty() || fnmatch(glob.c_str(), name.c_str(), 0) == 0)) {
-          names.push_back(name);
-        }
-      }
-      if (ec) {
-        *error = "cannot list " + arg + ": " + ec.message();
+      auto images = ListImageFiles(arg);
+      if (!images.ok()) {
+        *error = images.status().message();
         return nullptr;
       }
-      if (names.empty()) {
+      size_t matched = 0;
+      for (const std::string& image : *images) {
+        const std::string name = fs::path(image).filename().string();
+        if (!glob.empty() && fnmatch(glob.c_str(), name.c_str(), 0) != 0) continue;
+        add_image(image);
+        ++matched;
+      }
+      if (matched == 0) {
         *error = arg + " holds no image files" + (glob.empty() ? "" : " matching " + glob);
         return nullptr;
       }
-      std::sort(names.begin(), names.end(), NaturalLess);
-      for (const std::string& name : names) add_image((path / name).string());
       continue;
     }
     if (!fs::is_regular_file(path, ec)) {
@@ -259,7 +247,7 @@ std::unique_ptr<FrameSource> FrameSource::Open(const std::vector<std::string>& s
       }
       continue;
     }
-    if (IsImageExtension(ext)) {
+    if (IsImageFile(path)) {
       add_image(arg);
       continue;
     }

@@ -9,6 +9,7 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
+#include "core/base/files.h"
 #include "core/detect/detector.h"
 
 namespace fs = std::filesystem;
@@ -32,32 +33,6 @@ int CamVidLabelToCoco(int label) {
   }
 }
 
-bool NaturalLess(const std::string& a, const std::string& b) {
-  size_t i = 0, j = 0;
-  auto digit = [](char c) { return std::isdigit(static_cast<unsigned char>(c)) != 0; };
-  while (i < a.size() && j < b.size()) {
-    if (digit(a[i]) && digit(b[j])) {
-      size_t i2 = i, j2 = j;
-      while (i2 < a.size() && digit(a[i2])) ++i2;
-      while (j2 < b.size() && digit(b[j2])) ++j2;
-      // Compare by value: strip leading zeros, then by length, then lexicographically.
-      size_t ia = i, jb = j;
-      while (ia + 1 < i2 && a[ia] == '0') ++ia;
-      while (jb + 1 < j2 && b[jb] == '0') ++jb;
-      const std::string na = a.substr(ia, i2 - ia), nb = b.substr(jb, j2 - jb);
-      if (na.size() != nb.size()) return na.size() < nb.size();
-      if (na != nb) return na < nb;
-      i = i2;
-      j = j2;
-    } else {
-      if (a[i] != b[j]) return a[i] < b[j];
-      ++i;
-      ++j;
-    }
-  }
-  return a.size() - i < b.size() - j;
-}
-
 Result<std::vector<CamVidFrame>> ListCamVid(const std::string& camvid_dir) {
   const fs::path images = fs::path(camvid_dir) / "images";
   if (!fs::is_directory(images)) {
@@ -67,7 +42,7 @@ Result<std::vector<CamVidFrame>> ListCamVid(const std::string& camvid_dir) {
   }
   std::vector<CamVidFrame> frames;
   for (const auto& file : fs::directory_iterator(images)) {
-    if (file.path().extension() != ".jpg" && file.path().extension() != ".png") continue;
+    if (!IsImageFile(file.path())) continue;
     const std::string stem = file.path().stem().string();
     const size_t underscore = stem.rfind('_');
     if (underscore == std::string::npos) continue;
@@ -276,25 +251,6 @@ Result<Dataset> PrepareRtabmap(const RtabmapOptions& options) {
   return dataset;
 }
 
-namespace {
-
-Result<std::vector<fs::path>> ListImages(const std::string& directory) {
-  if (!fs::is_directory(directory)) return Status::NotFound(directory + ": no such directory");
-  std::vector<fs::path> paths;
-  for (const auto& file : fs::directory_iterator(directory)) {
-    std::string ext = file.path().extension().string();
-    std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
-    if (ext == ".jpg" || ext == ".jpeg" || ext == ".png") paths.push_back(file.path());
-  }
-  std::sort(paths.begin(), paths.end(), [](const fs::path& a, const fs::path& b) {
-    return NaturalLess(a.filename().string(), b.filename().string());
-  });
-  if (paths.empty()) return Status::InvalidArgument(directory + ": no .jpg/.jpeg/.png images");
-  return paths;
-}
-
-}  // namespace
-
 Result<Dataset> PrepareFolder(const FolderOptions& options) {
   Dataset dataset;
   dataset.name = fs::path(options.database_dir).parent_path().filename().string();
@@ -307,12 +263,13 @@ Result<Dataset> PrepareFolder(const FolderOptions& options) {
   for (int list = 0; list < 2; ++list) {
     const std::string& dir = list == 0 ? options.database_dir : options.queries_dir;
     const std::string& masks = list == 0 ? options.database_masks_dir : options.queries_masks_dir;
-    auto images = ListImages(dir);
+    auto images = ListImageFiles(dir);
     if (!images.ok()) return images.status();
+    if (images->empty()) return Status::InvalidArgument(dir + ": no image files");
     std::vector<Entry>& out = list == 0 ? dataset.database : dataset.queries;
     auto& ids = list == 0 ? database_ids : query_ids;
     int64_t sequence = 0;
-    for (const fs::path& path : *images) {
+    for (const fs::path path : *images) {
       Entry entry;
       entry.id = path.filename().string();
       entry.image = fs::absolute(path).lexically_normal().string();

@@ -89,7 +89,7 @@ Result<Dataset> PrepareRtabmap(const RtabmapOptions& options);
 // ---- Generic folders ----------------------------------------------------------------------
 
 struct FolderOptions {
-  std::string database_dir;  // images (.jpg/.jpeg/.png), natural order
+  std::string database_dir;  // images (IsImageFile), in natural order
   std::string queries_dir;
   // CSV with columns `query,database`: file names (or stems) relative to the folders, one row
   // per matching pair. A query without rows has an empty ground truth.
@@ -101,8 +101,5 @@ struct FolderOptions {
   std::string boxes_csv;
 };
 Result<Dataset> PrepareFolder(const FolderOptions& options);
-
-// "frame10" after "frame9": digit runs compare by value.
-bool NaturalLess(const std::string& a, const std::string& b);
 
 }  // namespace placedb::eval

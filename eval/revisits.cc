@@ -10,6 +10,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/videoio.hpp>
+#include <optional>
 #include <set>
 
 #include "core/detect/detector.h"
@@ -200,154 +201,200 @@ struct PasteResult {
   int objects = 0, video_objects = 0;  // visible
 };
 
-// Random placement of one visit (RevisitOptions::random_placement): plans objects until the
-// coverage of `mask` (what is already marked) plus what they will change reaches the target,
-// then draws them far to near, each hidden where a nearer object of the background stands.
-PasteResult PasteAtRandom(cv::Mat& image, const cv::Mat& labels, const cv::Mat& background_dynamic,
-                          const cv::Mat& mask, const std::vector<const Cutout*>& still,
-                          const std::vector<const Cutout*>& video, std::set<const Cutout*>& used,
-                          double target, const RevisitOptions& options, Rng& rng) {
-  const cv::Size size = image.size();
-  const cv::Rect frame(0, 0, size.width, size.height);
-  const double pixels = double(size.area());
-  const int horizon = HorizonRow(labels);
-  const double max_overlap = 0.4;
-  // The background's own objects, each with its bottom row: one whose bottom is below a pasted
-  // object's (nearer to the camera) hides it.
-  cv::Mat components, stats, centroids;
-  const int count =
-      cv::connectedComponentsWithStats(background_dynamic, components, stats, centroids, 8);
-  std::vector<int> component_bottom(size_t(std::max(count, 1)), 0);
+// Every pasted object stays mostly visible: at most this share of its footprint hidden or
+// shared, and at most this share of any planned object's footprint shared with it.
+constexpr double kMaxOverlap = 0.4;
+
+// The background's own objects with their bottom rows: one whose bottom is below a pasted
+// object's (nearer to the camera) hides it.
+struct Occluders {
+  cv::Mat components;       // CV_32S component of the background's dynamic mask, 0 = none
+  std::vector<int> bottom;  // per component: the row below its last row
+
+  bool Hides(int component, int ground_line) const {
+    return component > 0 && bottom[size_t(component)] > ground_line;
+  }
+};
+
+Occluders FindOccluders(const cv::Mat& background_dynamic) {
+  Occluders occluders;
+  cv::Mat stats, centroids;
+  const int count = cv::connectedComponentsWithStats(background_dynamic, occluders.components,
+                                                     stats, centroids, 8);
+  occluders.bottom.assign(size_t(std::max(count, 1)), 0);
   for (int c = 1; c < count; ++c) {
-    component_bottom[size_t(c)] =
+    occluders.bottom[size_t(c)] =
         stats.at<int>(c, cv::CC_STAT_TOP) + stats.at<int>(c, cv::CC_STAT_HEIGHT);
   }
-  // Planned footprints (1 + plan index), and what the mask will be: marked already, or changed
-  // by the drawing below.
-  cv::Mat owner = cv::Mat::zeros(size, CV_16U);
-  cv::Mat will_paint = mask.clone();
-  std::vector<Placement> plans;
-  std::vector<int> footprints;
-  double coverage = cv::countNonZero(will_paint) / pixels;  // exactly the final mask's
-  for (int attempt = 0; attempt < 800 && coverage < target - 0.005; ++attempt) {
-    const double need = target - coverage;
-    const bool from_video = !video.empty() && rng.Uniform(0, 1) < options.video_share;
-    const std::vector<const Cutout*>& pool = from_video ? video : still;
-    if (pool.empty()) continue;
-    // Of a few random unused objects, the largest that fits what is left (fewer, larger
-    // objects, as in a real street), else the smallest.
-    const Cutout* pick = nullptr;
-    for (int draw = 0; draw < 8; ++draw) {
-      const Cutout* c = pool[rng.Below(pool.size())];
-      if (used.count(c)) continue;
-      const bool fits = c->area / pixels <= need;
-      const bool pick_fits = pick && pick->area / pixels <= need;
-      if (!pick || (fits && (!pick_fits || c->area > pick->area)) ||
-          (!fits && !pick_fits && c->area < pick->area)) {
-        pick = c;
-      }
-    }
-    if (!pick) continue;
-    const Cutout& cutout = *pick;
-    const double h0 = cutout.mask.rows, w0 = cutout.mask.cols;
-    for (int draw = 0; draw < 12; ++draw) {
-      // Scale and ground line (perspective: on flat ground, an object's height in pixels is
-      // proportional to its bottom's distance below the horizon). A person of the video gets a
-      // height in [min, max] of the frame; people (video, CamVid pedestrians and cyclists)
-      // stand where a camera at 0.7-0.9 of their height sees them; a CamVid vehicle keeps the
-      // height / distance-below-the-horizon ratio it had in its own frame (bounded to
-      // [0.6, 2.5]: cars to buses); an object cut by the bottom edge stays on it.
-      double scale;
-      if (cutout.from_video) {
-        scale = rng.Uniform(options.video_min_height, options.video_max_height) * size.height / h0;
-        if (cutout.area * scale * scale / pixels > need) {
-          scale = std::sqrt(need * pixels / cutout.area);
-        }
-        if (h0 * scale < options.video_min_height * size.height) break;  // too little left
-      } else {
-        const double lowest =
-            cutout.cut_bottom ? std::max(options.min_scale, 0.9) : options.min_scale;
-        scale = rng.Uniform(lowest, std::max(lowest, options.max_scale));
-        if (cutout.area * scale * scale / pixels > need) {
-          scale = std::sqrt(need * pixels / cutout.area);
-        }
-        scale = std::min(scale, size.width / w0);
-        if (scale < lowest) break;  // too large for what is left
-      }
-      double ratio;  // height / distance of the bottom below the horizon
-      if (cutout.upright) {
-        ratio = 1 / rng.Uniform(0.7, 0.9);
-      } else {
-        ratio =
-            std::clamp(h0 / std::max(1, cutout.source_bottom - cutout.source_horizon), 0.6, 2.5);
-      }
-      int bottom = cutout.cut_bottom ? size.height : horizon + int(std::lround(h0 * scale / ratio));
-      const int sw = std::max(1, int(std::lround(w0 * scale)));
-      const int sh = std::max(1, int(std::lround(h0 * scale)));
-      const int top = bottom - sh;
-      // In the frame, the bottom in its lower 3/4 and below the horizon.
-      if (top < 0 || bottom > size.height || bottom < size.height / 4 || bottom <= horizon) {
-        continue;
-      }
-      int x = int(rng.Below(size_t(std::max(0, size.width - sw) + 1)));
-      if (cutout.cut_left && !cutout.cut_right) x = 0;
-      if (cutout.cut_right && !cutout.cut_left) x = size.width - sw;
-      if (!OnGround(labels, x, sw, bottom, cutout.vehicle)) continue;
+  return occluders;
+}
 
-      Placement plan;
-      plan.cutout = &cutout;
-      plan.scale = scale;
-      plan.bottom = bottom;
-      plan.placed = cv::Rect(x - 1, top - 1, sw + 2, sh + 2);
-      Scaled(cutout, cv::Size(sw, sh), &plan.patch, &plan.alpha);
-      // Every object stays mostly visible: at most 40 % of this object's footprint hidden by
-      // nearer objects of the background or shared with planned objects, and at most 40 % of
-      // any planned object's footprint shared with this one. (Standing in front of the
-      // background's own objects is fine: a passing bus hides a parked car.)
-      const cv::Rect visible = plan.placed & frame;
-      int area = 0, hidden = 0, on_planned = 0;
-      std::map<int, int> per_plan;
-      for (int r = visible.y; r < visible.br().y; ++r) {
-        const float* a = plan.alpha.ptr<float>(r - plan.placed.y) + (visible.x - plan.placed.x);
-        const uint16_t* o = owner.ptr<uint16_t>(r) + visible.x;
-        const int* comp = components.ptr<int>(r) + visible.x;
-        for (int c = 0; c < visible.width; ++c) {
-          if (a[c] <= 0) continue;
-          ++area;
-          hidden += comp[c] > 0 && component_bottom[size_t(comp[c])] > bottom;
-          if (o[c]) {
-            ++on_planned;
-            ++per_plan[o[c] - 1];
-          }
-        }
-      }
-      bool fits = area > 0 && hidden + on_planned <= max_overlap * area;
-      for (const auto& [k, n] : per_plan) fits = fits && n <= max_overlap * footprints[size_t(k)];
-      if (!fits) continue;
-      const uint16_t id = uint16_t(plans.size() + 1);
-      int added = 0;
-      for (int r = visible.y; r < visible.br().y; ++r) {
-        const float* a = plan.alpha.ptr<float>(r - plan.placed.y) + (visible.x - plan.placed.x);
-        uint16_t* o = owner.ptr<uint16_t>(r) + visible.x;
-        uchar* w = will_paint.ptr<uchar>(r) + visible.x;
-        const int* comp = components.ptr<int>(r) + visible.x;
-        for (int c = 0; c < visible.width; ++c) {
-          if (a[c] <= 0) continue;
-          if (!o[c]) o[c] = id;
-          if (w[c] || (comp[c] > 0 && component_bottom[size_t(comp[c])] > bottom)) continue;
-          w[c] = 255;
-          ++added;
-        }
-      }
-      coverage += added / pixels;
-      footprints.push_back(area);
-      plans.push_back(std::move(plan));
-      used.insert(&cutout);
-      break;
+// The objects planned for one visit so far.
+struct PastePlan {
+  cv::Mat owner;       // CV_16U: 1 + index of the first plan whose footprint covers a pixel
+  cv::Mat will_paint;  // CV_8U: marked already, or changed by the drawing
+  std::vector<Placement> plans;
+  std::vector<int> footprints;  // per plan: pixels under its alpha, within the frame
+  double coverage = 0;          // of will_paint: exactly the final mask's
+};
+
+// Of a few random unused objects of `pool`, the largest that fits what is left (fewer, larger
+// objects, as in a real street), else the smallest; null when every draw was used.
+const Cutout* PickCutout(const std::vector<const Cutout*>& pool,
+                         const std::set<const Cutout*>& used, double need, double pixels,
+                         Rng& rng) {
+  const Cutout* pick = nullptr;
+  for (int draw = 0; draw < 8; ++draw) {
+    const Cutout* c = pool[rng.Below(pool.size())];
+    if (used.count(c)) continue;
+    const bool fits = c->area / pixels <= need;
+    const bool pick_fits = pick && pick->area / pixels <= need;
+    if (!pick || (fits && (!pick_fits || c->area > pick->area)) ||
+        (!fits && !pick_fits && c->area < pick->area)) {
+      pick = c;
     }
   }
+  return pick;
+}
 
-  // Draw far to near, each object hidden where a nearer object of the background stands.
+// A random scale for `cutout` covering at most `need` of the frame; none when what is left is
+// too little (a person of the video below the minimum height, a CamVid object below its lowest
+// scale). A person of the video gets a height in [min, max] of the frame; an object cut by the
+// bottom edge is not shrunk much (it stays on that edge).
+std::optional<double> DrawScale(const Cutout& cutout, double need, cv::Size size,
+                                const RevisitOptions& options, Rng& rng) {
+  const double pixels = double(size.area());
+  const double h0 = cutout.mask.rows, w0 = cutout.mask.cols;
+  double scale;
+  if (cutout.from_video) {
+    scale = rng.Uniform(options.video_min_height, options.video_max_height) * size.height / h0;
+    if (cutout.area * scale * scale / pixels > need) {
+      scale = std::sqrt(need * pixels / cutout.area);
+    }
+    if (h0 * scale < options.video_min_height * size.height) return std::nullopt;
+  } else {
+    const double lowest = cutout.cut_bottom ? std::max(options.min_scale, 0.9) : options.min_scale;
+    scale = rng.Uniform(lowest, std::max(lowest, options.max_scale));
+    if (cutout.area * scale * scale / pixels > need) {
+      scale = std::sqrt(need * pixels / cutout.area);
+    }
+    scale = std::min(scale, size.width / w0);
+    if (scale < lowest) return std::nullopt;
+  }
+  return scale;
+}
+
+// The pixels under `placement`'s alpha within the frame when it fits beside the plan: at most
+// kMaxOverlap of them hidden by nearer objects of the background or shared with planned objects,
+// and at most kMaxOverlap of any planned object's footprint shared with it; 0 when it does not.
+// (Standing in front of the background's own objects is fine: a passing bus hides a parked car.)
+int FootprintIfFits(const Placement& placement, const cv::Rect& visible, const PastePlan& plan,
+                    const Occluders& occluders) {
+  int area = 0, hidden = 0, on_planned = 0;
+  std::map<int, int> per_plan;
+  for (int r = visible.y; r < visible.br().y; ++r) {
+    const float* a =
+        placement.alpha.ptr<float>(r - placement.placed.y) + (visible.x - placement.placed.x);
+    const uint16_t* o = plan.owner.ptr<uint16_t>(r) + visible.x;
+    const int* comp = occluders.components.ptr<int>(r) + visible.x;
+    for (int c = 0; c < visible.width; ++c) {
+      if (a[c] <= 0) continue;
+      ++area;
+      hidden += occluders.Hides(comp[c], placement.bottom);
+      if (o[c]) {
+        ++on_planned;
+        ++per_plan[o[c] - 1];
+      }
+    }
+  }
+  bool fits = area > 0 && hidden + on_planned <= kMaxOverlap * area;
+  for (const auto& [k, n] : per_plan) {
+    fits = fits && n <= kMaxOverlap * plan.footprints[size_t(k)];
+  }
+  return fits ? area : 0;
+}
+
+// Adds `placement` to the plan: claims the unowned pixels of its footprint and counts the
+// pixels it will change (not marked yet, not hidden by a nearer object of the background).
+void AddToPlan(Placement placement, const cv::Rect& visible, int footprint,
+               const Occluders& occluders, double pixels, PastePlan* plan) {
+  const uint16_t id = uint16_t(plan->plans.size() + 1);
+  int added = 0;
+  for (int r = visible.y; r < visible.br().y; ++r) {
+    const float* a =
+        placement.alpha.ptr<float>(r - placement.placed.y) + (visible.x - placement.placed.x);
+    uint16_t* o = plan->owner.ptr<uint16_t>(r) + visible.x;
+    uchar* w = plan->will_paint.ptr<uchar>(r) + visible.x;
+    const int* comp = occluders.components.ptr<int>(r) + visible.x;
+    for (int c = 0; c < visible.width; ++c) {
+      if (a[c] <= 0) continue;
+      if (!o[c]) o[c] = id;
+      if (w[c] || occluders.Hides(comp[c], placement.bottom)) continue;
+      w[c] = 255;
+      ++added;
+    }
+  }
+  plan->coverage += added / pixels;
+  plan->footprints.push_back(footprint);
+  plan->plans.push_back(std::move(placement));
+}
+
+// Up to 12 random placements of `cutout` on the ground of `labels`; adds the first that fits to
+// the plan. False when none did or what is left is too little for it.
+bool PlaceCutout(const Cutout& cutout, double need, const cv::Mat& labels, cv::Size size,
+                 int horizon, const Occluders& occluders, const RevisitOptions& options, Rng& rng,
+                 PastePlan* plan) {
+  const cv::Rect frame(0, 0, size.width, size.height);
+  const double h0 = cutout.mask.rows, w0 = cutout.mask.cols;
+  for (int draw = 0; draw < 12; ++draw) {
+    // Ground line by perspective: on flat ground, an object's height in pixels is proportional
+    // to its bottom's distance below the horizon. People (video, CamVid pedestrians and
+    // cyclists) stand where a camera at 0.7-0.9 of their height sees them; a CamVid vehicle
+    // keeps the height / distance-below-the-horizon ratio it had in its own frame (bounded to
+    // [0.6, 2.5]: cars to buses); an object cut by the bottom edge stays on it.
+    const std::optional<double> drawn = DrawScale(cutout, need, size, options, rng);
+    if (!drawn) return false;
+    const double scale = *drawn;
+    double ratio;  // height / distance of the bottom below the horizon
+    if (cutout.upright) {
+      ratio = 1 / rng.Uniform(0.7, 0.9);
+    } else {
+      ratio = std::clamp(h0 / std::max(1, cutout.source_bottom - cutout.source_horizon), 0.6, 2.5);
+    }
+    int bottom = cutout.cut_bottom ? size.height : horizon + int(std::lround(h0 * scale / ratio));
+    const int sw = std::max(1, int(std::lround(w0 * scale)));
+    const int sh = std::max(1, int(std::lround(h0 * scale)));
+    const int top = bottom - sh;
+    // In the frame, the bottom in its lower 3/4 and below the horizon.
+    if (top < 0 || bottom > size.height || bottom < size.height / 4 || bottom <= horizon) {
+      continue;
+    }
+    int x = int(rng.Below(size_t(std::max(0, size.width - sw) + 1)));
+    if (cutout.cut_left && !cutout.cut_right) x = 0;
+    if (cutout.cut_right && !cutout.cut_left) x = size.width - sw;
+    if (!OnGround(labels, x, sw, bottom, cutout.vehicle)) continue;
+
+    Placement placement;
+    placement.cutout = &cutout;
+    placement.scale = scale;
+    placement.bottom = bottom;
+    placement.placed = cv::Rect(x - 1, top - 1, sw + 2, sh + 2);
+    Scaled(cutout, cv::Size(sw, sh), &placement.patch, &placement.alpha);
+    const cv::Rect visible = placement.placed & frame;
+    const int footprint = FootprintIfFits(placement, visible, *plan, occluders);
+    if (footprint == 0) continue;
+    AddToPlan(std::move(placement), visible, footprint, occluders, double(size.area()), plan);
+    return true;
+  }
+  return false;
+}
+
+// Draws the planned objects far to near into `image`, each hidden where a nearer object of the
+// background stands; the result's boxes and names follow the planning order.
+PasteResult DrawPlan(const std::vector<Placement>& plans, const Occluders& occluders,
+                     cv::Mat& image) {
+  const cv::Size size = image.size();
+  const cv::Rect frame(0, 0, size.width, size.height);
   std::vector<size_t> order(plans.size());
   for (size_t i = 0; i < order.size(); ++i) order[i] = i;
   std::stable_sort(order.begin(), order.end(),
@@ -365,10 +412,10 @@ PasteResult PasteAtRandom(cv::Mat& image, const cv::Mat& labels, const cv::Mat& 
       cv::Vec3b* o = image.ptr<cv::Vec3b>(r) + visible.x;
       uchar* m = result.painted.ptr<uchar>(r) + visible.x;
       uint16_t* s = shown.ptr<uint16_t>(r) + visible.x;
-      const int* comp = components.ptr<int>(r) + visible.x;
+      const int* comp = occluders.components.ptr<int>(r) + visible.x;
       for (int c = 0; c < visible.width; ++c) {
         if (a[c] <= 0) continue;
-        if (comp[c] > 0 && component_bottom[size_t(comp[c])] > plan.bottom) continue;
+        if (occluders.Hides(comp[c], plan.bottom)) continue;
         for (int k = 0; k < 3; ++k) {
           o[c][k] = cv::saturate_cast<uchar>(a[c] * p[c][k] + (1 - a[c]) * o[c][k]);
         }
@@ -396,6 +443,35 @@ PasteResult PasteAtRandom(cv::Mat& image, const cv::Mat& labels, const cv::Mat& 
     result.video_objects += cutout.from_video;
   }
   return result;
+}
+
+// Random placement of one visit (RevisitOptions::random_placement): plans objects until the
+// coverage of `mask` (what is already marked) plus what they will change reaches the target,
+// then draws them far to near, each hidden where a nearer object of the background stands.
+PasteResult PasteAtRandom(cv::Mat& image, const cv::Mat& labels, const cv::Mat& background_dynamic,
+                          const cv::Mat& mask, const std::vector<const Cutout*>& still,
+                          const std::vector<const Cutout*>& video, std::set<const Cutout*>& used,
+                          double target, const RevisitOptions& options, Rng& rng) {
+  const cv::Size size = image.size();
+  const double pixels = double(size.area());
+  const int horizon = HorizonRow(labels);
+  const Occluders occluders = FindOccluders(background_dynamic);
+  PastePlan plan;
+  plan.owner = cv::Mat::zeros(size, CV_16U);
+  plan.will_paint = mask.clone();
+  plan.coverage = cv::countNonZero(plan.will_paint) / pixels;
+  for (int attempt = 0; attempt < 800 && plan.coverage < target - 0.005; ++attempt) {
+    const double need = target - plan.coverage;
+    const bool from_video = !video.empty() && rng.Uniform(0, 1) < options.video_share;
+    const std::vector<const Cutout*>& pool = from_video ? video : still;
+    if (pool.empty()) continue;
+    const Cutout* pick = PickCutout(pool, used, need, pixels, rng);
+    if (!pick) continue;
+    if (PlaceCutout(*pick, need, labels, size, horizon, occluders, options, rng, &plan)) {
+      used.insert(pick);
+    }
+  }
+  return DrawPlan(plan.plans, occluders, image);
 }
 
 Status WriteImage(const std::string& path, const cv::Mat& image, const std::vector<int>& params) {
@@ -569,7 +645,11 @@ Result<std::vector<VideoCutout>> SegmentVideoPeople(const std::string& video_pat
   return cutouts;
 }
 
-Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
+// ---- BuildRevisits, step by step -----------------------------------------------------------
+
+namespace {
+
+Status ValidateRevisitOptions(const RevisitOptions& options) {
   if (options.places < 1) return Status::InvalidArgument("places must be at least 1");
   if (options.visits < 2) return Status::InvalidArgument("visits must be at least 2");
   if (!(options.min_coverage >= 0 && options.min_coverage <= options.max_coverage &&
@@ -595,42 +675,45 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
       !(options.max_blur_sigma >= 0 && options.max_noise_sigma >= 0)) {
     return Status::InvalidArgument("viewpoint / photometric ranges out of bounds");
   }
-  auto listed = ListCamVid(options.camvid_dir);
-  if (!listed.ok()) return listed.status();
+  return Status::Ok();
+}
 
-  // People of the fixed-camera video, segmented by background subtraction.
-  std::vector<Cutout> video_cutouts;
-  if (!options.video_people.empty()) {
-    std::error_code exists_error;
-    if (!fs::exists(options.video_people, exists_error)) {
-      return Status::FailedPrecondition(
-          options.video_people +
-          " does not exist: the hard revisits paste people of OpenCV's vtest.avi, which comes "
-          "with the Debian package opencv-doc (apt-get install opencv-doc); or leave it out "
-          "(--no-vtest)");
-    }
-    auto people = SegmentVideoPeople(options.video_people);
-    if (!people.ok()) return people.status();
-    if (people->empty()) {
-      return Status::FailedPrecondition("no people found in " + options.video_people);
-    }
-    for (VideoCutout& person : *people) {
-      Cutout cutout;
-      cutout.patch = std::move(person.patch);
-      cutout.mask = std::move(person.mask);
-      cutout.area = cv::countNonZero(cutout.mask);
-      cutout.coco = 0;  // person
-      cutout.upright = true;
-      cutout.from_video = true;
-      cutout.name = person.name;
-      video_cutouts.push_back(std::move(cutout));
-    }
+// People of the fixed-camera video, segmented by background subtraction; none without a video.
+Result<std::vector<Cutout>> VideoCutouts(const RevisitOptions& options) {
+  std::vector<Cutout> cutouts;
+  if (options.video_people.empty()) return cutouts;
+  std::error_code exists_error;
+  if (!fs::exists(options.video_people, exists_error)) {
+    return Status::FailedPrecondition(
+        options.video_people +
+        " does not exist: the hard revisits paste people of OpenCV's vtest.avi, which comes "
+        "with the Debian package opencv-doc (apt-get install opencv-doc); or leave it out "
+        "(--no-vtest)");
   }
+  auto people = SegmentVideoPeople(options.video_people);
+  if (!people.ok()) return people.status();
+  if (people->empty()) {
+    return Status::FailedPrecondition("no people found in " + options.video_people);
+  }
+  for (VideoCutout& person : *people) {
+    Cutout cutout;
+    cutout.patch = std::move(person.patch);
+    cutout.mask = std::move(person.mask);
+    cutout.area = cv::countNonZero(cutout.mask);
+    cutout.coco = 0;  // person
+    cutout.upright = true;
+    cutout.from_video = true;
+    cutout.name = person.name;
+    cutouts.push_back(std::move(cutout));
+  }
+  return cutouts;
+}
 
-  // Every frame's labels and coverage.
+// Every frame's labels and coverage.
+Result<std::vector<Frame>> ReadFrames(const std::vector<CamVidFrame>& listed) {
   std::vector<Frame> frames;
-  frames.reserve(listed->size());
-  for (const CamVidFrame& info : *listed) {
+  frames.reserve(listed.size());
+  for (const CamVidFrame& info : listed) {
     Frame frame;
     frame.info = info;
     frame.labels = cv::imread(info.label_path, cv::IMREAD_GRAYSCALE);
@@ -638,9 +721,13 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
     frame.coverage = cv::countNonZero(DynamicOf(frame.labels)) / double(frame.labels.total());
     frames.push_back(std::move(frame));
   }
-  const cv::Size size = frames[0].labels.size();
+  return frames;
+}
 
-  // ---- Backgrounds: low coverage, far apart, visually distinct -----------------------------
+// Backgrounds: low coverage, enough ground, far apart and visually distinct (too few shared
+// ORB inliers), drawn in a seeded random order.
+Result<std::vector<size_t>> ChooseBackgrounds(const std::vector<Frame>& frames, cv::Size size,
+                                              const RevisitOptions& options) {
   Rng rng(StreamSeed(options.seed, 0xB6, 0));
   std::vector<size_t> candidates;
   for (size_t i = 0; i < frames.size(); ++i) {
@@ -701,9 +788,14 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
         std::to_string(options.places) +
         " places (lower places, or raise max_background_coverage / lower min_separation_frames)");
   }
-  const std::set<size_t> background_set(backgrounds.begin(), backgrounds.end());
+  return backgrounds;
+}
 
-  // ---- Donor objects: dynamic components of every non-background frame ---------------------
+// Donor objects: the dynamic components of every frame that is not a background.
+Result<std::vector<DonorObject>> CollectDonors(const std::vector<Frame>& frames,
+                                               const std::vector<size_t>& backgrounds,
+                                               const RevisitOptions& options) {
+  const std::set<size_t> background_set(backgrounds.begin(), backgrounds.end());
   std::vector<DonorObject> donors;
   for (size_t i = 0; i < frames.size(); ++i) {
     if (background_set.count(i) || frames[i].coverage == 0) continue;
@@ -738,46 +830,45 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
                                       std::to_string(options.min_object_area) +
                                       " pixels to paste in " + options.camvid_dir);
   }
-  // For random placement: every donor as a cutout that remembers its perspective and the
-  // frame edges that cut it.
-  std::vector<Cutout> still_cutouts;
-  if (options.random_placement) {
-    std::map<size_t, int> horizons;
-    for (const DonorObject& donor : donors) {
-      const cv::Mat& labels = frames[donor.frame].labels;
-      if (!horizons.count(donor.frame)) horizons[donor.frame] = HorizonRow(labels);
-      Cutout cutout;
-      cutout.patch = donor.patch;
-      cutout.mask = donor.mask;
-      cutout.area = donor.area;
-      cutout.coco = CamVidLabelToCoco(donor.label);
-      cutout.vehicle = donor.label != kCamVidPedestrian;
-      cutout.upright = donor.label != kCamVidCar;
-      cutout.name = donor.name;
-      cutout.source_bottom = donor.rect.y + donor.rect.height;
-      cutout.source_horizon = horizons[donor.frame];
-      cutout.cut_left = donor.rect.x == 0;
-      cutout.cut_right = donor.rect.x + donor.rect.width >= labels.cols;
-      cutout.cut_bottom = cutout.source_bottom >= labels.rows;
-      still_cutouts.push_back(std::move(cutout));
-    }
+  return donors;
+}
+
+// For random placement: every donor as a cutout that remembers its perspective and the frame
+// edges that cut it (one per donor, same index).
+std::vector<Cutout> StillCutouts(const std::vector<DonorObject>& donors,
+                                 const std::vector<Frame>& frames) {
+  std::vector<Cutout> cutouts;
+  std::map<size_t, int> horizons;
+  for (const DonorObject& donor : donors) {
+    const cv::Mat& labels = frames[donor.frame].labels;
+    if (!horizons.count(donor.frame)) horizons[donor.frame] = HorizonRow(labels);
+    Cutout cutout;
+    cutout.patch = donor.patch;
+    cutout.mask = donor.mask;
+    cutout.area = donor.area;
+    cutout.coco = CamVidLabelToCoco(donor.label);
+    cutout.vehicle = donor.label != kCamVidPedestrian;
+    cutout.upright = donor.label != kCamVidCar;
+    cutout.name = donor.name;
+    cutout.source_bottom = donor.rect.y + donor.rect.height;
+    cutout.source_horizon = horizons[donor.frame];
+    cutout.cut_left = donor.rect.x == 0;
+    cutout.cut_right = donor.rect.x + donor.rect.width >= labels.cols;
+    cutout.cut_bottom = cutout.source_bottom >= labels.rows;
+    cutouts.push_back(std::move(cutout));
   }
+  return cutouts;
+}
 
-  // ---- Visits -------------------------------------------------------------------------------
-  std::error_code ec;
-  fs::create_directories(fs::path(options.out_dir) / "images", ec);
-  fs::create_directories(fs::path(options.out_dir) / "masks", ec);
-  if (ec) return Status::IoError("cannot create " + options.out_dir + ": " + ec.message());
+// The original variant: background objects marked, near-original placement, no video people.
+bool IsOriginalVariant(const RevisitOptions& options) {
+  return options.mask_background_objects && !options.random_placement &&
+         options.video_people.empty();
+}
 
-  RevisitResult result;
-  Dataset& dataset = result.dataset;
-  dataset.directory = options.out_dir;
-  const bool original =
-      options.mask_background_objects && !options.random_placement && options.video_people.empty();
-  dataset.name = std::string(original ? "revisits-" : "revisits-hard-") +
-                 std::to_string(options.places) + "x" + std::to_string(options.visits);
+std::string DatasetDescription(const RevisitOptions& options) {
   char description[1024];
-  if (original) {
+  if (IsOriginalVariant(options)) {
     std::snprintf(description, sizeof(description),
                   "Synthetic revisits of %d real CamVid places (seed %llu): %d visits each with a "
                   "random homography, a photometric change and real CamVid dynamic objects from "
@@ -811,227 +902,348 @@ Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
                                  : "near their original position",
         options.min_coverage, options.max_coverage);
   }
-  dataset.description = description;
+  return description;
+}
+
+// What every place's visits are made of.
+struct Sources {
+  cv::Size size;                      // of every background frame
+  std::vector<Frame> frames;          // every CamVid frame
+  std::vector<size_t> backgrounds;    // one frame per place
+  std::vector<DonorObject> donors;    // objects of the other frames
+  std::vector<Cutout> still_cutouts;  // random placement: the donors, same index
+  std::vector<Cutout> video_cutouts;  // random placement: people of the video
+};
+
+// The objects one place's visits may paste, and those its visits used already.
+struct PlaceDonors {
+  std::vector<size_t> allowed;  // donors from other sequences or far enough in time
+  std::set<size_t> used;        // a donor object appears in at most one visit of a place
+  // Random placement: the allowed CamVid objects that can be placed by perspective (not cut
+  // by the top edge, standing below their frame's horizon), and the video's people.
+  std::vector<const Cutout*> still, video;
+  std::set<const Cutout*> used_cutouts;
+};
+
+PlaceDonors DonorsForPlace(const Sources& sources, const Frame& background,
+                           const RevisitOptions& options) {
+  PlaceDonors place;
+  for (size_t d = 0; d < sources.donors.size(); ++d) {
+    const Frame& from = sources.frames[sources.donors[d].frame];
+    if (from.info.sequence != background.info.sequence ||
+        (!options.donors_from_other_sequences &&
+         std::abs(from.info.frame - background.info.frame) >= options.donor_exclusion_frames)) {
+      place.allowed.push_back(d);
+    }
+  }
+  if (options.random_placement) {
+    for (size_t d : place.allowed) {
+      const Cutout& cutout = sources.still_cutouts[d];
+      if (sources.donors[d].rect.y == 0) continue;
+      if (!cutout.upright && !cutout.cut_bottom &&
+          cutout.source_bottom - cutout.source_horizon < 3) {
+        continue;
+      }
+      place.still.push_back(&cutout);
+    }
+    for (const Cutout& cutout : sources.video_cutouts) place.video.push_back(&cutout);
+  }
+  return place;
+}
+
+// One rendered visit of a place.
+struct RenderedVisit {
+  cv::Mat homography;                        // background -> visit
+  cv::Mat image;                             // BGR
+  cv::Mat mask;                              // CV_8U 255 = dynamic
+  std::vector<DynamicBox> boxes;             // the dynamic objects
+  std::vector<DynamicBox> background_boxes;  // the background's own objects, as warped
+  double target = 0, coverage = 0;           // requested and measured coverage of `mask`
+  std::string pasted_names;
+  int pasted = 0, pasted_video = 0;
+};
+
+// Viewpoint: an inner quadrilateral of the frame, its corners jittered, onto the whole frame.
+cv::Mat ViewpointHomography(cv::Size size, const RevisitOptions& options, Rng& rng) {
+  const double margin = options.viewpoint_margin * options.viewpoint;
+  const double jitter = options.viewpoint_jitter * options.viewpoint;
+  const float w = float(size.width), h = float(size.height);
+  auto inset = [&](double m) { return float(std::max(0.0, m + rng.Uniform(-jitter, jitter))); };
+  const cv::Point2f src[4] = {{inset(margin) * w, inset(margin) * h},
+                              {w - 1 - inset(margin) * w, inset(margin) * h},
+                              {w - 1 - inset(margin) * w, h - 1 - inset(margin) * h},
+                              {inset(margin) * w, h - 1 - inset(margin) * h}};
+  const cv::Point2f dst[4] = {{0, 0}, {w - 1, 0}, {w - 1, h - 1}, {0, h - 1}};
+  return cv::getPerspectiveTransform(src, dst);
+}
+
+// Of a few random unused allowed donors, the largest that fits what is left (fewer, larger
+// objects, as in a real street), else the smallest; donors.size() when every draw was used.
+size_t ChooseDonor(const std::vector<DonorObject>& donors, const PlaceDonors& place, double need,
+                   double pixels, Rng& rng) {
+  size_t d = donors.size();
+  for (int draw = 0; draw < 8; ++draw) {
+    const size_t c = place.allowed[rng.Below(place.allowed.size())];
+    if (place.used.count(c)) continue;
+    const bool fits = donors[c].area / pixels <= need;
+    if (d == donors.size()) {
+      d = c;
+    } else {
+      const bool chosen_fits = donors[d].area / pixels <= need;
+      if ((fits && (!chosen_fits || donors[c].area > donors[d].area)) ||
+          (!fits && !chosen_fits && donors[c].area < donors[d].area)) {
+        d = c;
+      }
+    }
+  }
+  return d;
+}
+
+// Blends `donor` scaled to sw x sh with its top-left at (x, y) into `image` with a feathered
+// alpha (the 3x3 mean of the binary mask) and marks every pixel it touches in `mask`. Returns
+// how many pixels changed and their bounding box.
+int BlendDonor(const DonorObject& donor, int sw, int sh, int x, int y, cv::Mat& image,
+               cv::Mat& mask, cv::Rect* changed_box) {
+  cv::Mat patch, object_mask;
+  cv::resize(donor.patch, patch, cv::Size(sw, sh), 0, 0, cv::INTER_LINEAR);
+  cv::resize(donor.mask, object_mask, cv::Size(sw, sh), 0, 0, cv::INTER_NEAREST);
+  cv::Mat alpha;
+  cv::Mat padded;
+  cv::copyMakeBorder(object_mask, padded, 1, 1, 1, 1, cv::BORDER_CONSTANT, 0);
+  cv::copyMakeBorder(patch, patch, 1, 1, 1, 1, cv::BORDER_REPLICATE);
+  padded.convertTo(alpha, CV_32F, 1.0 / 255);
+  cv::blur(alpha, alpha, cv::Size(3, 3), cv::Point(-1, -1), cv::BORDER_CONSTANT);
+  const cv::Rect placed(x - 1, y - 1, sw + 2, sh + 2);
+  const cv::Rect visible = placed & cv::Rect(0, 0, image.cols, image.rows);
+  if (visible.area() == 0) return 0;
+  const cv::Rect local = visible - placed.tl();
+  int changed = 0;
+  for (int r = 0; r < visible.height; ++r) {
+    const float* a = alpha.ptr<float>(local.y + r) + local.x;
+    const cv::Vec3b* p = patch.ptr<cv::Vec3b>(local.y + r) + local.x;
+    cv::Vec3b* o = image.ptr<cv::Vec3b>(visible.y + r) + visible.x;
+    uchar* m = mask.ptr<uchar>(visible.y + r) + visible.x;
+    for (int c = 0; c < visible.width; ++c) {
+      if (a[c] <= 0) continue;
+      for (int k = 0; k < 3; ++k) {
+        o[c][k] = cv::saturate_cast<uchar>(a[c] * p[c][k] + (1 - a[c]) * o[c][k]);
+      }
+      m[c] = 255;
+      *changed_box |= cv::Rect(visible.x + c, visible.y + r, 1, 1);
+      ++changed;
+    }
+  }
+  return changed;
+}
+
+// Near-original placement (the original variant): pastes unused allowed donors until the
+// coverage of the visit's mask reaches its target, each a little scaled with its bottom where
+// it stood (on the road) and its centre moved a little, or its cut edge kept on the border.
+void PasteNearOriginal(const std::vector<DonorObject>& donors, PlaceDonors* place, Rng& rng,
+                       RenderedVisit* visit) {
+  const cv::Size size = visit->image.size();
   const double pixels = double(size.area());
+  const float w = float(size.width);
+  for (int attempt = 0;
+       attempt < 400 && visit->coverage < visit->target - 0.005 && !place->allowed.empty();
+       ++attempt) {
+    const double need = visit->target - visit->coverage;
+    const size_t d = ChooseDonor(donors, *place, need, pixels, rng);
+    if (d == donors.size()) continue;
+    const DonorObject& donor = donors[d];
+    double scale = rng.Uniform(0.9, 1.1);
+    const double fraction = donor.area / pixels;
+    if (fraction * scale * scale > need) scale = std::sqrt(need / fraction);
+    if (scale < 0.5) continue;  // too large for what is left: try another object
+    const int sw = std::max(1, int(std::lround(donor.rect.width * scale)));
+    const int sh = std::max(1, int(std::lround(donor.rect.height * scale)));
+    const bool left = donor.rect.x == 0;
+    const bool right = donor.rect.x + donor.rect.width >= size.width;
+    int x;
+    if (left && !right) {
+      x = 0;
+    } else if (right && !left) {
+      x = size.width - sw;
+    } else {
+      const double cx = donor.rect.x + donor.rect.width / 2.0 + rng.Uniform(-0.15, 0.15) * w;
+      x = int(std::lround(cx - sw / 2.0));
+    }
+    const int y = donor.rect.y + donor.rect.height - sh;
+    cv::Rect changed_box;
+    if (BlendDonor(donor, sw, sh, x, y, visit->image, visit->mask, &changed_box) == 0) continue;
+    place->used.insert(d);
+    ++visit->pasted;
+    DynamicBox box;
+    box.class_id = CamVidLabelToCoco(donor.label);
+    box.confidence = 1.0f;
+    box.rect = cv::Rect2f(changed_box);
+    visit->boxes.push_back(box);
+    char name[96];
+    std::snprintf(name, sizeof(name), "%s%s x%.2f", visit->pasted_names.empty() ? "" : ", ",
+                  donor.name.c_str(), scale);
+    visit->pasted_names += name;
+    visit->coverage = cv::countNonZero(visit->mask) / pixels;
+  }
+}
+
+// One visit: the background from a new viewpoint, objects pasted to a random coverage, then a
+// photometric change. Every random draw comes from `rng`, in this order.
+RenderedVisit RenderVisit(const Sources& sources, const Frame& background,
+                          const cv::Mat& background_image, PlaceDonors* place,
+                          const RevisitOptions& options, Rng& rng) {
+  const cv::Size size = sources.size;
+  const double pixels = double(size.area());
+  RenderedVisit visit;
+  visit.homography = ViewpointHomography(size, options, rng);
+  cv::Mat labels;
+  cv::warpPerspective(background_image, visit.image, visit.homography, size, cv::INTER_LINEAR,
+                      cv::BORDER_REFLECT);
+  cv::warpPerspective(background.labels, labels, visit.homography, size, cv::INTER_NEAREST,
+                      cv::BORDER_REFLECT);
+  const cv::Mat background_dynamic = DynamicOf(labels);
+  visit.background_boxes = BoxesFromLabels(labels, 20);
+  visit.mask = options.mask_background_objects ? background_dynamic.clone()
+                                               : cv::Mat(cv::Mat::zeros(size, CV_8U));
+  if (options.mask_background_objects) visit.boxes = visit.background_boxes;
+
+  visit.target = rng.Uniform(options.min_coverage, options.max_coverage);
+  visit.coverage = cv::countNonZero(visit.mask) / pixels;
+  if (options.random_placement) {
+    PasteResult paste =
+        PasteAtRandom(visit.image, labels, background_dynamic, visit.mask, place->still,
+                      place->video, place->used_cutouts, visit.target, options, rng);
+    visit.mask |= paste.painted;
+    visit.boxes.insert(visit.boxes.end(), paste.boxes.begin(), paste.boxes.end());
+    visit.pasted_names = paste.names;
+    visit.pasted = paste.objects;
+    visit.pasted_video = paste.video_objects;
+    visit.coverage = cv::countNonZero(visit.mask) / pixels;
+  } else {
+    PasteNearOriginal(sources.donors, place, rng, &visit);
+  }
+  Photometric(visit.image, rng, options);
+  return visit;
+}
+
+// Where an entry's pixels come from: the background, the requested coverage and what was
+// pasted; with unmarked background objects, those too (they are part of the place).
+std::string VisitSource(const Frame& background, const RenderedVisit& visit,
+                        const RevisitOptions& options) {
+  char source[160];
+  std::snprintf(source, sizeof(source),
+                "background %s (own coverage %.3f); requested coverage %.3f; pasted: ",
+                background.info.stem.c_str(), background.coverage, visit.target);
+  std::string text =
+      source + (visit.pasted_names.empty() ? std::string("none") : visit.pasted_names);
+  if (!options.mask_background_objects) {
+    text += "; background objects (static here, x y w h): ";
+    if (visit.background_boxes.empty()) text += "none";
+    for (size_t b = 0; b < visit.background_boxes.size(); ++b) {
+      const cv::Rect2f& r = visit.background_boxes[b].rect;
+      char object[96];
+      std::snprintf(object, sizeof(object), "%s%s [%.0f %.0f %.0f %.0f]", b ? ", " : "",
+                    CocoClassName(visit.background_boxes[b].class_id), r.x, r.y, r.width, r.height);
+      text += object;
+    }
+  }
+  return text;
+}
+
+// Writes a visit's image and mask and adds it to the dataset: visit 0 to the database, the
+// others to the queries with visit 0 as their ground truth.
+Status AddVisit(const RenderedVisit& visit, const Frame& background, int place, int visit_index,
+                const RevisitOptions& options, RevisitResult* result) {
+  Dataset& dataset = result->dataset;
+  char id[32];
+  std::snprintf(id, sizeof(id), "p%03d_v%d", place, visit_index);
+  Entry entry;
+  entry.id = id;
+  entry.image = std::string("images/") + id + ".jpg";
+  entry.mask = std::string("masks/") + id + ".png";
+  entry.boxes = visit.boxes;
+  entry.agent = "visit" + std::to_string(visit_index);
+  entry.sequence = place;
+  entry.timestamp_ns = int64_t(visit_index) * 3600 * 1000000000LL + int64_t(place) * 1000000000LL;
+  entry.coverage = visit.coverage;
+  entry.source = VisitSource(background, visit, options);
   const std::vector<int> jpeg = {cv::IMWRITE_JPEG_QUALITY, options.jpeg_quality};
   const std::vector<int> png = {cv::IMWRITE_PNG_COMPRESSION, 9};
+  PLACEDB_RETURN_IF_ERROR(WriteImage(dataset.Resolve(entry.image), visit.image, jpeg));
+  PLACEDB_RETURN_IF_ERROR(WriteImage(dataset.Resolve(entry.mask), visit.mask, png));
 
+  VisitInfo info;
+  info.id = id;
+  info.place = place;
+  info.visit = visit_index;
+  info.background = background.info.stem;
+  info.requested_coverage = visit.target;
+  info.measured_coverage = visit.coverage;
+  info.objects = visit.pasted;
+  info.video_objects = visit.pasted_video;
+  info.background_objects = int(visit.background_boxes.size());
+  info.homography = visit.homography;
+  result->visits.push_back(info);
+  if (visit_index == 0) {
+    dataset.database.push_back(std::move(entry));
+  } else {
+    entry.ground_truth = {dataset.database.back().id};
+    dataset.queries.push_back(std::move(entry));
+  }
+  return Status::Ok();
+}
+
+// Every visit of one place, each from its own random stream.
+Status BuildPlace(const Sources& sources, int place, const RevisitOptions& options,
+                  RevisitResult* result) {
+  const Frame& background = sources.frames[sources.backgrounds[size_t(place)]];
+  cv::Mat background_image = cv::imread(background.info.image_path, cv::IMREAD_COLOR);
+  if (background_image.empty() || background_image.size() != sources.size) {
+    return Status::IoError("cannot read background " + background.info.image_path);
+  }
+  PlaceDonors donors = DonorsForPlace(sources, background, options);
+  for (int visit = 0; visit < options.visits; ++visit) {
+    Rng rng(StreamSeed(options.seed, uint64_t(place) + 1, uint64_t(visit) + 1));
+    const RenderedVisit rendered =
+        RenderVisit(sources, background, background_image, &donors, options, rng);
+    PLACEDB_RETURN_IF_ERROR(AddVisit(rendered, background, place, visit, options, result));
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
+Result<RevisitResult> BuildRevisits(const RevisitOptions& options) {
+  PLACEDB_RETURN_IF_ERROR(ValidateRevisitOptions(options));
+  auto listed = ListCamVid(options.camvid_dir);
+  if (!listed.ok()) return listed.status();
+  Sources sources;
+  auto video = VideoCutouts(options);
+  if (!video.ok()) return video.status();
+  sources.video_cutouts = std::move(*video);
+  auto frames = ReadFrames(*listed);
+  if (!frames.ok()) return frames.status();
+  sources.frames = std::move(*frames);
+  sources.size = sources.frames[0].labels.size();
+  auto backgrounds = ChooseBackgrounds(sources.frames, sources.size, options);
+  if (!backgrounds.ok()) return backgrounds.status();
+  sources.backgrounds = std::move(*backgrounds);
+  auto donors = CollectDonors(sources.frames, sources.backgrounds, options);
+  if (!donors.ok()) return donors.status();
+  sources.donors = std::move(*donors);
+  if (options.random_placement)
+    sources.still_cutouts = StillCutouts(sources.donors, sources.frames);
+
+  std::error_code ec;
+  fs::create_directories(fs::path(options.out_dir) / "images", ec);
+  fs::create_directories(fs::path(options.out_dir) / "masks", ec);
+  if (ec) return Status::IoError("cannot create " + options.out_dir + ": " + ec.message());
+  RevisitResult result;
+  result.dataset.directory = options.out_dir;
+  result.dataset.name = std::string(IsOriginalVariant(options) ? "revisits-" : "revisits-hard-") +
+                        std::to_string(options.places) + "x" + std::to_string(options.visits);
+  result.dataset.description = DatasetDescription(options);
   for (int place = 0; place < options.places; ++place) {
-    const Frame& background = frames[backgrounds[size_t(place)]];
-    cv::Mat background_image = cv::imread(background.info.image_path, cv::IMREAD_COLOR);
-    if (background_image.empty() || background_image.size() != size) {
-      return Status::IoError("cannot read background " + background.info.image_path);
-    }
-    // Donors allowed for this place: other sequences or far enough in time.
-    std::vector<size_t> allowed;
-    for (size_t d = 0; d < donors.size(); ++d) {
-      const Frame& from = frames[donors[d].frame];
-      if (from.info.sequence != background.info.sequence ||
-          (!options.donors_from_other_sequences &&
-           std::abs(from.info.frame - background.info.frame) >= options.donor_exclusion_frames)) {
-        allowed.push_back(d);
-      }
-    }
-    std::set<size_t> used;  // a donor object appears in at most one visit of a place
-    // Random placement: the allowed CamVid objects that can be placed by perspective (not cut
-    // by the top edge, standing below their frame's horizon), and the video's people.
-    std::vector<const Cutout*> still, video;
-    std::set<const Cutout*> used_cutouts;
-    if (options.random_placement) {
-      for (size_t d : allowed) {
-        const Cutout& cutout = still_cutouts[d];
-        if (donors[d].rect.y == 0) continue;
-        if (!cutout.upright && !cutout.cut_bottom &&
-            cutout.source_bottom - cutout.source_horizon < 3) {
-          continue;
-        }
-        still.push_back(&cutout);
-      }
-      for (const Cutout& cutout : video_cutouts) video.push_back(&cutout);
-    }
-    std::string first_id;
-    for (int visit = 0; visit < options.visits; ++visit) {
-      Rng vrng(StreamSeed(options.seed, uint64_t(place) + 1, uint64_t(visit) + 1));
-      // Viewpoint: an inner quadrilateral, jittered, onto the whole frame.
-      const double margin = options.viewpoint_margin * options.viewpoint;
-      const double jitter = options.viewpoint_jitter * options.viewpoint;
-      const float w = float(size.width), h = float(size.height);
-      auto inset = [&](double m) {
-        return float(std::max(0.0, m + vrng.Uniform(-jitter, jitter)));
-      };
-      const cv::Point2f src[4] = {{inset(margin) * w, inset(margin) * h},
-                                  {w - 1 - inset(margin) * w, inset(margin) * h},
-                                  {w - 1 - inset(margin) * w, h - 1 - inset(margin) * h},
-                                  {inset(margin) * w, h - 1 - inset(margin) * h}};
-      const cv::Point2f dst[4] = {{0, 0}, {w - 1, 0}, {w - 1, h - 1}, {0, h - 1}};
-      const cv::Mat homography = cv::getPerspectiveTransform(src, dst);
-      cv::Mat image, labels;
-      cv::warpPerspective(background_image, image, homography, size, cv::INTER_LINEAR,
-                          cv::BORDER_REFLECT);
-      cv::warpPerspective(background.labels, labels, homography, size, cv::INTER_NEAREST,
-                          cv::BORDER_REFLECT);
-      const cv::Mat background_dynamic = DynamicOf(labels);
-      const std::vector<DynamicBox> background_boxes = BoxesFromLabels(labels, 20);
-      cv::Mat mask = options.mask_background_objects ? background_dynamic.clone()
-                                                     : cv::Mat(cv::Mat::zeros(size, CV_8U));
-      std::vector<DynamicBox> boxes;
-      if (options.mask_background_objects) boxes = background_boxes;
-
-      const double target = vrng.Uniform(options.min_coverage, options.max_coverage);
-      double coverage = cv::countNonZero(mask) / pixels;
-      std::string pasted_names;
-      int pasted = 0, pasted_video = 0;
-      if (options.random_placement) {
-        PasteResult paste = PasteAtRandom(image, labels, background_dynamic, mask, still, video,
-                                          used_cutouts, target, options, vrng);
-        mask |= paste.painted;
-        boxes.insert(boxes.end(), paste.boxes.begin(), paste.boxes.end());
-        pasted_names = paste.names;
-        pasted = paste.objects;
-        pasted_video = paste.video_objects;
-        coverage = cv::countNonZero(mask) / pixels;
-      }
-      for (int attempt = 0; attempt < 400 && coverage < target - 0.005 && !allowed.empty() &&
-                            !options.random_placement;
-           ++attempt) {
-        // Of a few random unused donors, the largest that fits what is left (fewer, larger
-        // objects, as in a real street), else the smallest, scaled down.
-        const double need = target - coverage;
-        size_t d = donors.size();
-        for (int draw = 0; draw < 8; ++draw) {
-          const size_t c = allowed[vrng.Below(allowed.size())];
-          if (used.count(c)) continue;
-          const bool fits = donors[c].area / pixels <= need;
-          if (d == donors.size()) {
-            d = c;
-          } else {
-            const bool chosen_fits = donors[d].area / pixels <= need;
-            if ((fits && (!chosen_fits || donors[c].area > donors[d].area)) ||
-                (!fits && !chosen_fits && donors[c].area < donors[d].area)) {
-              d = c;
-            }
-          }
-        }
-        if (d == donors.size()) continue;
-        const DonorObject& donor = donors[d];
-        double scale = vrng.Uniform(0.9, 1.1);
-        const double fraction = donor.area / pixels;
-        if (fraction * scale * scale > need) scale = std::sqrt(need / fraction);
-        if (scale < 0.5) continue;  // too large for what is left: try another object
-        const int sw = std::max(1, int(std::lround(donor.rect.width * scale)));
-        const int sh = std::max(1, int(std::lround(donor.rect.height * scale)));
-        // Anchor: the bottom of the object stays where it was (on the road); horizontally its
-        // centre moves a little, or its cut edge stays on the frame border it touched.
-        const bool left = donor.rect.x == 0;
-        const bool right = donor.rect.x + donor.rect.width >= size.width;
-        int x;
-        if (left && !right) {
-          x = 0;
-        } else if (right && !left) {
-          x = size.width - sw;
-        } else {
-          const double cx = donor.rect.x + donor.rect.width / 2.0 + vrng.Uniform(-0.15, 0.15) * w;
-          x = int(std::lround(cx - sw / 2.0));
-        }
-        const int y = donor.rect.y + donor.rect.height - sh;
-        cv::Mat patch, object_mask;
-        cv::resize(donor.patch, patch, cv::Size(sw, sh), 0, 0, cv::INTER_LINEAR);
-        cv::resize(donor.mask, object_mask, cv::Size(sw, sh), 0, 0, cv::INTER_NEAREST);
-        // Feathered alpha: the 3x3 mean of the binary mask; every pixel it touches is dynamic.
-        cv::Mat alpha;
-        cv::Mat padded;
-        cv::copyMakeBorder(object_mask, padded, 1, 1, 1, 1, cv::BORDER_CONSTANT, 0);
-        cv::copyMakeBorder(patch, patch, 1, 1, 1, 1, cv::BORDER_REPLICATE);
-        padded.convertTo(alpha, CV_32F, 1.0 / 255);
-        cv::blur(alpha, alpha, cv::Size(3, 3), cv::Point(-1, -1), cv::BORDER_CONSTANT);
-        const cv::Rect placed(x - 1, y - 1, sw + 2, sh + 2);
-        const cv::Rect visible = placed & cv::Rect(0, 0, size.width, size.height);
-        if (visible.area() == 0) continue;
-        const cv::Rect local = visible - placed.tl();
-        int changed = 0;
-        cv::Rect changed_box;
-        for (int r = 0; r < visible.height; ++r) {
-          const float* a = alpha.ptr<float>(local.y + r) + local.x;
-          const cv::Vec3b* p = patch.ptr<cv::Vec3b>(local.y + r) + local.x;
-          cv::Vec3b* o = image.ptr<cv::Vec3b>(visible.y + r) + visible.x;
-          uchar* m = mask.ptr<uchar>(visible.y + r) + visible.x;
-          for (int c = 0; c < visible.width; ++c) {
-            if (a[c] <= 0) continue;
-            for (int k = 0; k < 3; ++k) {
-              o[c][k] = cv::saturate_cast<uchar>(a[c] * p[c][k] + (1 - a[c]) * o[c][k]);
-            }
-            m[c] = 255;
-            changed_box |= cv::Rect(visible.x + c, visible.y + r, 1, 1);
-            ++changed;
-          }
-        }
-        if (changed == 0) continue;
-        used.insert(d);
-        ++pasted;
-        DynamicBox box;
-        box.class_id = CamVidLabelToCoco(donor.label);
-        box.confidence = 1.0f;
-        box.rect = cv::Rect2f(changed_box);
-        boxes.push_back(box);
-        char name[96];
-        std::snprintf(name, sizeof(name), "%s%s x%.2f", pasted_names.empty() ? "" : ", ",
-                      donor.name.c_str(), scale);
-        pasted_names += name;
-        coverage = cv::countNonZero(mask) / pixels;
-      }
-      Photometric(image, vrng, options);
-
-      char id[32];
-      std::snprintf(id, sizeof(id), "p%03d_v%d", place, visit);
-      Entry entry;
-      entry.id = id;
-      entry.image = std::string("images/") + id + ".jpg";
-      entry.mask = std::string("masks/") + id + ".png";
-      entry.boxes = boxes;
-      entry.agent = "visit" + std::to_string(visit);
-      entry.sequence = place;
-      entry.timestamp_ns = int64_t(visit) * 3600 * 1000000000LL + int64_t(place) * 1000000000LL;
-      entry.coverage = coverage;
-      char source[160];
-      std::snprintf(source, sizeof(source),
-                    "background %s (own coverage %.3f); requested coverage %.3f; pasted: ",
-                    background.info.stem.c_str(), background.coverage, target);
-      entry.source = source + (pasted_names.empty() ? std::string("none") : pasted_names);
-      if (!options.mask_background_objects) {
-        // The background's own objects are part of the place: recorded here, not as dynamic.
-        entry.source += "; background objects (static here, x y w h): ";
-        if (background_boxes.empty()) entry.source += "none";
-        for (size_t b = 0; b < background_boxes.size(); ++b) {
-          const cv::Rect2f& r = background_boxes[b].rect;
-          char object[96];
-          std::snprintf(object, sizeof(object), "%s%s [%.0f %.0f %.0f %.0f]", b ? ", " : "",
-                        CocoClassName(background_boxes[b].class_id), r.x, r.y, r.width, r.height);
-          entry.source += object;
-        }
-      }
-      PLACEDB_RETURN_IF_ERROR(WriteImage(dataset.Resolve(entry.image), image, jpeg));
-      PLACEDB_RETURN_IF_ERROR(WriteImage(dataset.Resolve(entry.mask), mask, png));
-
-      VisitInfo info;
-      info.id = id;
-      info.place = place;
-      info.visit = visit;
-      info.background = background.info.stem;
-      info.requested_coverage = target;
-      info.measured_coverage = coverage;
-      info.objects = pasted;
-      info.video_objects = pasted_video;
-      info.background_objects = int(background_boxes.size());
-      info.homography = homography;
-      result.visits.push_back(info);
-      if (visit == 0) {
-        first_id = entry.id;
-        dataset.database.push_back(std::move(entry));
-      } else {
-        entry.ground_truth = {first_id};
-        dataset.queries.push_back(std::move(entry));
-      }
-    }
+    PLACEDB_RETURN_IF_ERROR(BuildPlace(sources, place, options, &result));
   }
   return result;
 }

@@ -1,7 +1,6 @@
 #include "eval/runner.h"
 
 #include <algorithm>
-#include <atomic>
 #include <cctype>
 #include <cmath>
 #include <cstdio>
@@ -12,8 +11,9 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <optional>
-#include <thread>
 
+#include "core/base/parallel.h"
+#include "core/base/stats.h"
 #include "core/base/timing.h"
 #include "core/features/orb_features.h"
 #include "core/storage/codec.h"
@@ -24,19 +24,6 @@ using json = nlohmann::json;
 namespace placedb::eval {
 
 namespace {
-
-// Runs f(i) for i in [0, n) on `threads` threads (the caller's included).
-template <typename F>
-void ParallelFor(size_t n, int threads, F&& f) {
-  std::atomic<size_t> next{0};
-  auto worker = [&] {
-    for (size_t i; (i = next.fetch_add(1)) < n;) f(i);
-  };
-  std::vector<std::thread> pool;
-  for (int t = 1; t < std::max(1, threads) && size_t(t) < n; ++t) pool.emplace_back(worker);
-  worker();
-  for (std::thread& thread : pool) thread.join();
-}
 
 std::string Lower(std::string text) {
   std::transform(text.begin(), text.end(), text.begin(),
@@ -181,7 +168,7 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
   // Every entry's content key; one path per key still to detect.
   std::vector<std::string> keys(entries.size());
   std::vector<Status> key_errors(entries.size());
-  ParallelFor(entries.size(), options.threads, [&](size_t i) {
+  ParallelFor(entries.size(), options.threads, [&](size_t i, int) {
     auto key = ContentKey(dataset.Resolve(entries[i]->image));
     if (key.ok()) {
       keys[i] = std::move(key).value();
@@ -207,7 +194,7 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
     std::mutex progress_mutex;
     size_t done = 0;
     double done_ms = 0;
-    ParallelFor(missing.size(), options.threads, [&](size_t i) {
+    ParallelFor(missing.size(), options.threads, [&](size_t i, int) {
       const std::string& path = missing[i].second;
       cv::Mat bgr = cv::imread(path, cv::IMREAD_COLOR);
       if (bgr.empty()) {
@@ -273,7 +260,7 @@ class InProcessBackend final : public Backend {
     std::vector<cv::Mat> grays(n);
     std::vector<Status> errors(n);
     std::vector<double> ms(n, 0.0);
-    ParallelFor(n, threads_, [&](size_t i) {
+    ParallelFor(n, threads_, [&](size_t i, int) {
       const Entry& entry = i < dataset.database.size()
                                ? dataset.database[i]
                                : dataset.queries[i - dataset.database.size()];
@@ -330,7 +317,7 @@ class InProcessBackend final : public Backend {
     const size_t n = dataset.database.size();
     std::vector<std::optional<ProcessedFrame>> processed(n);
     std::vector<Status> errors(n);
-    ParallelFor(n, threads_, [&](size_t i) {
+    ParallelFor(n, threads_, [&](size_t i, int) {
       auto frame = db.Process(Observe(inputs, i, false, filtering, pixels_only));
       if (!frame.ok()) {
         errors[i] = frame.status().WithContext("database entry " + dataset.database[i].id);
@@ -433,14 +420,6 @@ class InProcessBackend final : public Backend {
   bool colour_for_boxes_ = false;  // set by Run() for its configuration
   double extract_mean_ms_ = 0;
 };
-
-double Percentile(std::vector<double> values, double p) {
-  if (values.empty()) return 0;
-  std::sort(values.begin(), values.end());
-  // Nearest rank.
-  const size_t rank = size_t(std::ceil(p / 100.0 * double(values.size())));
-  return values[std::min(values.size() - 1, rank == 0 ? 0 : rank - 1)];
-}
 
 std::string DynamicSourceName(const RunOptions& options) {
   std::string boxes;
@@ -738,8 +717,8 @@ Summary Summarize(const RunResults& results, const MethodRun& run, const Coverag
     for (double l : latencies) total += l;
     summary.latency_mean_ms = total / double(latencies.size());
     summary.match_mean_ms = match_total / double(latencies.size());
-    summary.latency_p50_ms = Percentile(latencies, 50);
-    summary.latency_p90_ms = Percentile(latencies, 90);
+    summary.latency_p50_ms = Percentile(latencies, 0.50);
+    summary.latency_p90_ms = Percentile(latencies, 0.90);
   }
   return summary;
 }

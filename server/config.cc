@@ -4,11 +4,11 @@
 
 #include <CLI/CLI.hpp>
 #include <cmath>
-#include <fstream>
 #include <iostream>
 #include <set>
-#include <sstream>
 #include <thread>
+
+#include "core/base/files.h"
 
 namespace placedb::server {
 
@@ -246,11 +246,9 @@ Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config) {
 }
 
 Status ApplyConfigFile(const std::string& path, ServerConfig* config) {
-  std::ifstream in(path);
-  if (!in) return Status::NotFound("config file " + path + " cannot be read");
-  std::stringstream text;
-  text << in.rdbuf();
-  return ApplyConfigYaml(text.str(), config).WithContext("config file " + path);
+  auto text = ReadWholeFile(path);
+  if (!text.ok()) return text.status().WithContext("config file " + path);
+  return ApplyConfigYaml(*text, config).WithContext("config file " + path);
 }
 
 // ---- Environment --------------------------------------------------------------------------------

@@ -25,6 +25,7 @@
 #include "client/format.h"
 #include "client/frame_source.h"
 #include "client/loopback.h"
+#include "core/base/files.h"
 #include "server/config.h"
 #include "server/server.h"
 #include "tests/test_support.h"
@@ -599,9 +600,7 @@ TEST(ClientDepthTest, PairsDepthImagesByStemAndEncodesThem) {
   v1::DepthImage png;
   ASSERT_TRUE(client::ReadDepthImage(root + "/depth/1.png", &png, &error)) << error;
   ASSERT_EQ(png.data_case(), v1::DepthImage::kPng16);
-  std::ifstream file(root + "/depth/1.png", std::ios::binary);
-  const std::string file_bytes((std::istreambuf_iterator<char>(file)), {});
-  EXPECT_EQ(png.png16(), file_bytes);
+  EXPECT_EQ(png.png16(), testing::ReadFileBytes(root + "/depth/1.png"));
   // 16-bit PGM: re-encoded as a 16-bit PNG with the same values.
   v1::DepthImage pgm;
   ASSERT_TRUE(client::ReadDepthImage(root + "/depth/2.pgm", &pgm, &error)) << error;
@@ -1050,7 +1049,7 @@ TEST_F(SiftClientTest, SiftMapCreateIngestAndFeatures) {
 TEST(ClientFormatTest, NaturalOrderAndPercentiles) {
   std::vector<std::string> names = {"10.jpg",      "2.jpg", "1.jpg",   "frame_011.png",
                                     "frame_9.png", "b.jpg", "a10.jpg", "a9.jpg"};
-  std::sort(names.begin(), names.end(), client::NaturalLess);
+  std::sort(names.begin(), names.end(), NaturalLess);
   EXPECT_EQ(names, (std::vector<std::string>{"1.jpg", "2.jpg", "10.jpg", "a9.jpg", "a10.jpg",
                                              "b.jpg", "frame_9.png", "frame_011.png"}));
   std::vector<double> samples;

@@ -29,6 +29,7 @@ namespace {
 using testing::CamVidFrame;
 using testing::CamVidFrames;
 using testing::MakeTempDir;
+using testing::ReadFileBytes;
 using testing::SharedDir;
 
 constexpr const char* kDarknetSamples = "/usr/share/darknet/data";
@@ -298,11 +299,6 @@ void WriteFile(const std::string& path, const std::string& bytes) {
   out.write(bytes.data(), std::streamsize(bytes.size()));
 }
 
-std::string ReadFile(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-}
-
 TEST(DetectorConfigErrors, FilesThatAreNotModelsFailCleanly) {
   REQUIRE_MODELS();
   const std::string dir = MakeTempDir("placedb-detector");
@@ -332,7 +328,7 @@ TEST(DetectorConfigErrors, FilesThatAreNotModelsFailCleanly) {
   config = YoloFastestConfig(ModelsDir());
   config.model_path = jpeg;
   expect_precondition(config, "jpeg as weights");
-  const std::string weights = ReadFile(ModelsDir() + "/yolo-fastest-1.1-xl.weights");
+  const std::string weights = ReadFileBytes(ModelsDir() + "/yolo-fastest-1.1-xl.weights");
   WriteFile(dir + "/truncated.weights", weights.substr(0, weights.size() / 2));
   config.model_path = dir + "/truncated.weights";
   expect_precondition(config, "truncated weights");

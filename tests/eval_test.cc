@@ -36,12 +36,7 @@ std::string RtabmapDir() {
   return testing::SharedDir() + "/data/rtabmap-loop";
 }
 
-std::string ReadFile(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  std::ostringstream bytes;
-  bytes << in.rdbuf();
-  return bytes.str();
-}
+using testing::ReadFileBytes;
 
 std::vector<std::string> Lines(const std::string& text) {
   std::vector<std::string> lines;
@@ -401,8 +396,10 @@ TEST_F(EvalTest, RevisitBuilderIsReproducibleAndHitsTheRequestedCoverage) {
     for (size_t i = 0; i < entries_a.size(); ++i) {
       const Entry& ea = entries_a[i];
       // Same seed: byte-identical image and mask files.
-      EXPECT_EQ(ReadFile(a.Resolve(ea.image)), ReadFile(b.Resolve(entries_b[i].image))) << ea.id;
-      EXPECT_EQ(ReadFile(a.Resolve(ea.mask)), ReadFile(b.Resolve(entries_b[i].mask))) << ea.id;
+      EXPECT_EQ(ReadFileBytes(a.Resolve(ea.image)), ReadFileBytes(b.Resolve(entries_b[i].image)))
+          << ea.id;
+      EXPECT_EQ(ReadFileBytes(a.Resolve(ea.mask)), ReadFileBytes(b.Resolve(entries_b[i].mask)))
+          << ea.id;
       // The written mask is the stated coverage.
       cv::Mat mask = cv::imread(a.Resolve(ea.mask), cv::IMREAD_GRAYSCALE);
       ASSERT_FALSE(mask.empty());
@@ -414,8 +411,8 @@ TEST_F(EvalTest, RevisitBuilderIsReproducibleAndHitsTheRequestedCoverage) {
     }
   }
   // The two visits of a place differ (viewpoint, light, objects) but show the same place.
-  const std::string v0 = ReadFile(a.Resolve(a.database[0].image));
-  const std::string v1 = ReadFile(a.Resolve(a.queries[0].image));
+  const std::string v0 = ReadFileBytes(a.Resolve(a.database[0].image));
+  const std::string v1 = ReadFileBytes(a.Resolve(a.queries[0].image));
   EXPECT_NE(v0, v1);
   ASSERT_TRUE(SaveDataset(a).ok());
   EXPECT_TRUE(LoadDataset(a.directory).ok());
@@ -469,7 +466,8 @@ TEST_F(EvalTest, HardRevisitsAreReproducibleAndMarkOnlyThePastedObjects) {
   ASSERT_EQ(a.queries.size(), 4u);
   ASSERT_EQ(first->visits.size(), 8u);
   // Same options: byte-identical dataset.json, images and masks.
-  EXPECT_EQ(ReadFile(a.directory + "/dataset.json"), ReadFile(b.directory + "/dataset.json"));
+  EXPECT_EQ(ReadFileBytes(a.directory + "/dataset.json"),
+            ReadFileBytes(b.directory + "/dataset.json"));
   EXPECT_TRUE(LoadDataset(a.directory).ok());
 
   auto camvid = ListCamVid(CamVidDir());
@@ -482,8 +480,8 @@ TEST_F(EvalTest, HardRevisitsAreReproducibleAndMarkOnlyThePastedObjects) {
     const Entry& eb =
         visit.visit == 0 ? b.database[size_t(visit.place)] : b.queries[size_t(visit.place)];
     ASSERT_EQ(ea.id, visit.id);
-    EXPECT_EQ(ReadFile(a.Resolve(ea.image)), ReadFile(b.Resolve(eb.image))) << ea.id;
-    EXPECT_EQ(ReadFile(a.Resolve(ea.mask)), ReadFile(b.Resolve(eb.mask))) << ea.id;
+    EXPECT_EQ(ReadFileBytes(a.Resolve(ea.image)), ReadFileBytes(b.Resolve(eb.image))) << ea.id;
+    EXPECT_EQ(ReadFileBytes(a.Resolve(ea.mask)), ReadFileBytes(b.Resolve(eb.mask))) << ea.id;
     // Coverage is the pasted objects' (planned on what will be drawn: at most the feathered
     // edge of the last object above the target).
     cv::Mat mask = cv::imread(a.Resolve(ea.mask), cv::IMREAD_GRAYSCALE);
@@ -528,7 +526,8 @@ TEST_F(EvalTest, HardRevisitsAreReproducibleAndMarkOnlyThePastedObjects) {
   EXPECT_GT(video_objects, 0);                  // both sources
   EXPECT_LT(video_objects, objects);
   // The two visits of a place differ.
-  EXPECT_NE(ReadFile(a.Resolve(a.database[0].image)), ReadFile(a.Resolve(a.queries[0].image)));
+  EXPECT_NE(ReadFileBytes(a.Resolve(a.database[0].image)),
+            ReadFileBytes(a.Resolve(a.queries[0].image)));
 
   // Without the video, the hard preset says which package brings it.
   options.video_people = "/no/such/dir/vtest.avi";
@@ -618,15 +617,15 @@ TEST_F(EvalTest, QueriesWithoutGroundTruthAndReportShapes) {
 
   const std::string dir = testing::MakeTempDir("placedb-eval-report");
   ASSERT_TRUE(WriteReport(results, *dataset, dir, "test").ok());
-  const std::vector<std::string> csv = Lines(ReadFile(dir + "/results.csv"));
+  const std::vector<std::string> csv = Lines(ReadFileBytes(dir + "/results.csv"));
   ASSERT_EQ(csv.size(), 1 + 8 * 4u);  // header + runs x bins
   const size_t columns = SplitCsvLine(csv[0]).size();
   for (const std::string& line : csv) EXPECT_EQ(SplitCsvLine(line).size(), columns) << line;
   EXPECT_NE(csv[1].find(",NoGeom,"), std::string::npos);
   EXPECT_NE(csv[1].find(",BoBW,All,"), std::string::npos);
-  EXPECT_EQ(Lines(ReadFile(dir + "/queries.csv")).size(), 1 + 8 * 10u);
+  EXPECT_EQ(Lines(ReadFileBytes(dir + "/queries.csv")).size(), 1 + 8 * 10u);
 
-  const std::vector<std::string> md = Lines(ReadFile(dir + "/table3.md"));
+  const std::vector<std::string> md = Lines(ReadFileBytes(dir + "/table3.md"));
   auto header = std::find_if(md.begin(), md.end(), [](const std::string& line) {
     return line.rfind("| keys | Geom | All BoBW | All BoBW+DO | +- |", 0) == 0;
   });

@@ -17,6 +17,7 @@
 #include <string>
 #include <vector>
 
+#include "core/base/files.h"
 #include "core/features/sift_features.h"
 #include "core/search/scoring.h"
 #include "core/vocabulary/float_vocabulary.h"
@@ -343,11 +344,9 @@ TEST(FloatVocabulary, SaveLoadRoundTripAndCorruption) {
     EXPECT_EQ((*loaded)->WordOf(c.data()), (*trained)->WordOf(c.data()));
   EXPECT_FALSE(fs::exists(path + ".tmp"));
 
-  std::string bytes;
-  {
-    std::ifstream in(path, std::ios::binary);
-    bytes.assign(std::istreambuf_iterator<char>(in), {});
-  }
+  auto read = ReadWholeFile(path);
+  ASSERT_TRUE(read.ok()) << read.status().ToString();
+  const std::string bytes = std::move(*read);
   auto write = [&](const std::string& name, const std::string& content) {
     const std::string p = TempPath(name);
     std::ofstream(p, std::ios::binary) << content;

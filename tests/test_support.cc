@@ -9,6 +9,8 @@
 #include <opencv2/imgcodecs.hpp>
 #include <random>
 
+#include "core/base/files.h"
+
 namespace fs = std::filesystem;
 
 namespace placedb::testing {
@@ -43,6 +45,12 @@ std::string MakeTempDir(const std::string& prefix) {
   return dir;
 }
 
+std::string ReadFileBytes(const std::string& path) {
+  auto bytes = ReadWholeFile(path);
+  EXPECT_TRUE(bytes.ok()) << bytes.status().ToString();
+  return bytes.ok() ? std::move(*bytes) : std::string();
+}
+
 cv::Mat ReadGray(const std::string& path) {
   cv::Mat image = cv::imread(path, cv::IMREAD_GRAYSCALE);
   EXPECT_FALSE(image.empty()) << "cannot read " << path;
@@ -56,7 +64,7 @@ std::vector<CamVidFrame> CamVidFrames() {
   for (const auto& entry : fs::directory_iterator(root + "/images")) {
     const std::string stem = entry.path().stem().string();  // SEQ_FRAME
     const auto underscore = stem.rfind('_');
-    if (entry.path().extension() != ".jpg" || underscore == std::string::npos) continue;
+    if (!IsImageFile(entry.path()) || underscore == std::string::npos) continue;
     CamVidFrame frame;
     frame.sequence = stem.substr(0, underscore);
     // Frame numbers: "0001TP_006690", but "0006R0_f00930" in one sequence.

@@ -22,6 +22,8 @@ std::shared_ptr<const Vocabulary> DefaultVocabulary();
 std::string MakeTempDir(const std::string& prefix);
 
 cv::Mat ReadGray(const std::string& path);  // fails the test if unreadable
+// The bytes of a file (ReadWholeFile); fails the test and returns "" if it cannot be read.
+std::string ReadFileBytes(const std::string& path);
 
 // CamVid (../shared/data/camvid).
 struct CamVidFrame {

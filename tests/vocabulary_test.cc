@@ -27,6 +27,7 @@ namespace placedb {
 namespace {
 
 using Images = std::vector<std::vector<Descriptor256>>;
+using testing::ReadFileBytes;
 
 // ORB descriptors of every Debian sample image (~100 images, ~80k descriptors), extracted once.
 const Images& SampleImages() {
@@ -143,13 +144,6 @@ class ScratchDir {
  private:
   std::string path_;
 };
-
-std::string ReadBytes(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  return buffer.str();
-}
 
 void WriteBytes(const std::string& path, const std::string& bytes) {
   std::ofstream out(path, std::ios::binary | std::ios::trunc);
@@ -656,7 +650,7 @@ TEST(VocabularyIoTest, DamagedBinaryFilesFailCleanly) {
   const std::string& dir = scratch.path();
   const std::string good_path = dir + "/good.pdbv";
   ASSERT_TRUE(v->SaveBinary(good_path).ok());
-  const std::string good = ReadBytes(good_path);
+  const std::string good = ReadFileBytes(good_path);
   ASSERT_EQ(good.size(), kHeaderBytes + v->memory_bytes());
   const std::string path = dir + "/bad.pdbv";
   auto load = [&](const std::string& bytes) {
@@ -686,7 +680,8 @@ TEST(VocabularyIoTest, DamagedBinaryFilesFailCleanly) {
   // Foreign files.
   expect_fails("\x89PNG\r\n\x1a\n and so on, not a vocabulary at all", StatusCode::kInvalidArgument,
                "magic");
-  expect_fails(ReadBytes(testing::DebianSampleImages()[0]), StatusCode::kInvalidArgument, "magic");
+  expect_fails(ReadFileBytes(testing::DebianSampleImages()[0]), StatusCode::kInvalidArgument,
+               "magic");
   // Flipped bits in the block: checksum.
   {
     std::string bytes = good;
@@ -796,13 +791,13 @@ TEST(VocabularyIoTest, Dbow2TextRoundTripIsExact) {
   }
   // Export of the import is byte-identical; Load() sniffs the text format.
   ASSERT_TRUE((*imported)->ExportDbow2Text(dir + "/b.txt").ok());
-  EXPECT_EQ(ReadBytes(dir + "/a.txt"), ReadBytes(dir + "/b.txt"));
+  EXPECT_EQ(ReadFileBytes(dir + "/a.txt"), ReadFileBytes(dir + "/b.txt"));
   auto sniffed = Vocabulary::Load(dir + "/b.txt");
   ASSERT_TRUE(sniffed.ok()) << sniffed.status().ToString();
   EXPECT_EQ((*sniffed)->checksum(), v->checksum());
 
   // The format itself: "k L scoring weighting", then parent, leaf flag, 32 bytes, weight.
-  std::istringstream text(ReadBytes(dir + "/a.txt"));
+  std::istringstream text(ReadFileBytes(dir + "/a.txt"));
   std::string line;
   std::getline(text, line);
   EXPECT_EQ(line, "10 4 0 0");

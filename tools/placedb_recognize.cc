@@ -13,6 +13,7 @@
 #include <string>
 #include <vector>
 
+#include "core/base/files.h"
 #include "core/pipeline/place_database.h"
 
 namespace fs = std::filesystem;
@@ -26,40 +27,15 @@ void Usage() {
       "usage: placedb-recognize --vocabulary FILE --database LIST --queries LIST\n"
       "         [--features N=1000] [--top-k K=3] [--scoring l1|l2|chi2|kl|bhattacharyya|dot]\n"
       "         [--verify disabled|direct|exhaustive] [--levels-up N=2] [--min-inliers N=12]\n"
-      "  LIST: a directory of .jpg/.png images or a text file with one path per line\n");
-}
-
-// "frame10" after "frame9": compare digit runs by value.
-bool NaturalLess(const std::string& a, const std::string& b) {
-  size_t i = 0, j = 0;
-  while (i < a.size() && j < b.size()) {
-    if (std::isdigit(static_cast<unsigned char>(a[i])) &&
-        std::isdigit(static_cast<unsigned char>(b[j]))) {
-      size_t i2 = i, j2 = j;
-      while (i2 < a.size() && std::isdigit(static_cast<unsigned char>(a[i2]))) ++i2;
-      while (j2 < b.size() && std::isdigit(static_cast<unsigned char>(b[j2]))) ++j2;
-      const std::string na = a.substr(i, i2 - i), nb = b.substr(j, j2 - j);
-      if (na.size() != nb.size()) return na.size() < nb.size();
-      if (na != nb) return na < nb;
-      i = i2;
-      j = j2;
-    } else {
-      if (a[i] != b[j]) return a[i] < b[j];
-      ++i;
-      ++j;
-    }
-  }
-  return a.size() - i < b.size() - j;
+      "  LIST: a directory of images or a text file with one image path per line\n");
 }
 
 Result<std::vector<std::string>> ReadList(const std::string& list) {
   std::vector<std::string> paths;
   if (fs::is_directory(list)) {
-    for (const auto& entry : fs::directory_iterator(list)) {
-      const auto ext = entry.path().extension().string();
-      if (ext == ".jpg" || ext == ".jpeg" || ext == ".png") paths.push_back(entry.path().string());
-    }
-    std::sort(paths.begin(), paths.end(), NaturalLess);
+    auto images = ListImageFiles(list);
+    if (!images.ok()) return images.status();
+    paths = std::move(*images);
   } else {
     std::ifstream in(list);
     if (!in) return Status::NotFound(list + ": no such directory or list file");

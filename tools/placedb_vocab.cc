@@ -23,6 +23,8 @@
 #include <thread>
 #include <vector>
 
+#include "core/base/files.h"
+#include "core/base/parallel.h"
 #include "core/features/orb_features.h"
 #include "core/vocabulary/vocabulary.h"
 #include "core/vocabulary/vocabulary_trainer.h"
@@ -40,7 +42,7 @@ constexpr char kUsage[] =
     "  placedb-vocab train --out FILE [--images DIR]... [--video FILE [--video-every N]]...\n"
     "                      [--k 10] [--L 6] [--features 1000] [--seed 1] [--augment 0]\n"
     "                      [--threads 0] [--max-images N]\n"
-    "      Extracts ORB from every .jpg/.png in each DIR (not recursive, sorted) and from every\n"
+    "      Extracts ORB from every image in each DIR (not recursive, natural order) and every\n"
     "      Nth frame of each video (--video-every applies to the --video before it; default 1),\n"
     "      adds --augment randomly warped views of each still image, trains a k-branch, L-level\n"
     "      vocabulary and saves it in the binary format. --max-images caps the source images\n"
@@ -222,21 +224,6 @@ cv::Mat AugmentedView(const cv::Mat& image, ViewRandom& random) {
   return adjusted;
 }
 
-std::vector<std::string> ListImages(const std::string& dir) {
-  std::vector<std::string> paths;
-  std::error_code error;
-  if (!fs::is_directory(dir, error)) throw std::runtime_error("not a directory: " + dir);
-  for (const auto& entry : fs::directory_iterator(dir)) {
-    if (!entry.is_regular_file()) continue;
-    std::string ext = entry.path().extension().string();
-    std::transform(ext.begin(), ext.end(), ext.begin(),
-                   [](unsigned char c) { return char(std::tolower(c)); });
-    if (ext == ".jpg" || ext == ".jpeg" || ext == ".png") paths.push_back(entry.path().string());
-  }
-  std::sort(paths.begin(), paths.end());
-  return paths;
-}
-
 // One source image: a still (read from its path by a worker) or a decoded video frame.
 struct Source {
   std::string name;
@@ -252,9 +239,10 @@ int RunTrain(const TrainOptions& options) {
 
   std::vector<Source> sources;
   for (const std::string& dir : options.image_dirs) {
-    const auto paths = ListImages(dir);
-    std::printf("images: %zu in %s\n", paths.size(), dir.c_str());
-    for (const auto& path : paths) sources.push_back({path, cv::Mat(), true});
+    const auto paths = ListImageFiles(dir);
+    if (!paths.ok()) throw std::runtime_error(paths.status().message());
+    std::printf("images: %zu in %s\n", paths->size(), dir.c_str());
+    for (const auto& path : *paths) sources.push_back({path, cv::Mat(), true});
   }
   const auto limit = [&] { return options.max_images > 0 ? size_t(options.max_images) : SIZE_MAX; };
   if (sources.size() > limit()) sources.resize(limit());
@@ -278,56 +266,47 @@ int RunTrain(const TrainOptions& options) {
   OrbConfig orb;
   orb.max_features = options.features;
   std::vector<std::vector<std::vector<Descriptor256>>> views(sources.size());
-  std::atomic<size_t> next{0};
   std::atomic<size_t> finished{0};
   std::atomic<size_t> extracted{0};
   std::mutex print_mutex;
   std::vector<std::string> warnings;
-  auto worker = [&] {
-    for (size_t s; (s = next.fetch_add(1)) < sources.size();) {
-      const Source& source = sources[s];
-      try {
-        cv::Mat image = source.still ? cv::imread(source.name, cv::IMREAD_GRAYSCALE) : source.frame;
-        if (image.empty()) {
-          std::lock_guard lock(print_mutex);
-          warnings.push_back("skipped unreadable image " + source.name);
-        } else {
-          const int view_count = 1 + (source.still ? options.augment : 0);
-          for (int view = 0; view < view_count; ++view) {
-            cv::Mat input = image;
-            if (view > 0) {
-              ViewRandom random(options.seed, s, uint64_t(view));
-              input = AugmentedView(image, random);
-            }
-            auto features = ExtractOrb(input, orb);
-            if (!features.ok()) {
-              std::lock_guard lock(print_mutex);
-              warnings.push_back(source.name + ": " + features.status().ToString());
-              continue;
-            }
-            extracted += features->descriptors.size();
-            views[s].push_back(std::move(features->descriptors));
+  ParallelFor(sources.size(), threads, [&](size_t s, int) {
+    const Source& source = sources[s];
+    try {
+      cv::Mat image = source.still ? cv::imread(source.name, cv::IMREAD_GRAYSCALE) : source.frame;
+      if (image.empty()) {
+        std::lock_guard lock(print_mutex);
+        warnings.push_back("skipped unreadable image " + source.name);
+      } else {
+        const int view_count = 1 + (source.still ? options.augment : 0);
+        for (int view = 0; view < view_count; ++view) {
+          cv::Mat input = image;
+          if (view > 0) {
+            ViewRandom random(options.seed, s, uint64_t(view));
+            input = AugmentedView(image, random);
           }
+          auto features = ExtractOrb(input, orb);
+          if (!features.ok()) {
+            std::lock_guard lock(print_mutex);
+            warnings.push_back(source.name + ": " + features.status().ToString());
+            continue;
+          }
+          extracted += features->descriptors.size();
+          views[s].push_back(std::move(features->descriptors));
         }
-      } catch (const std::exception& e) {  // cv::Exception, or bad_alloc on a huge image
-        std::lock_guard lock(print_mutex);
-        warnings.push_back("skipped " + source.name + ": " + e.what());
       }
-      const size_t done = ++finished;
-      if (done % 50 == 0 || done == sources.size()) {
-        std::lock_guard lock(print_mutex);
-        std::printf("extracted %zu/%zu source images, %zu descriptors (%.1f s)\n", done,
-                    sources.size(), extracted.load(), SecondsSince(start));
-        std::fflush(stdout);
-      }
+    } catch (const std::exception& e) {  // cv::Exception, or bad_alloc on a huge image
+      std::lock_guard lock(print_mutex);
+      warnings.push_back("skipped " + source.name + ": " + e.what());
     }
-  };
-  {
-    std::vector<std::thread> pool;
-    for (int t = 1; t < threads; ++t) pool.emplace_back(worker);
-    worker();
-    for (auto& thread : pool) thread.join();
-  }
+    const size_t done = ++finished;
+    if (done % 50 == 0 || done == sources.size()) {
+      std::lock_guard lock(print_mutex);
+      std::printf("extracted %zu/%zu source images, %zu descriptors (%.1f s)\n", done,
+                  sources.size(), extracted.load(), SecondsSince(start));
+      std::fflush(stdout);
+    }
+  });
   for (const auto& warning : warnings) std::fprintf(stderr, "warning: %s\n", warning.c_str());
   sources.clear();  // the decoded frames are no longer needed
 

@@ -6,6 +6,8 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "core/base/files.h"
+
 namespace fs = std::filesystem;
 
 namespace placedb::rgbd {
@@ -17,7 +19,7 @@ std::vector<RgbdFrame> RgbdPeopleFrames() {
   for (const auto& sequence : fs::directory_iterator(root / "image")) {
     if (!sequence.is_directory()) continue;
     for (const auto& entry : fs::directory_iterator(sequence.path())) {
-      if (entry.path().extension() != ".png") continue;
+      if (!IsImageFile(entry.path())) continue;
       const std::string seq = sequence.path().filename().string();
       const std::string stem = entry.path().stem().string();
       RgbdFrame frame;

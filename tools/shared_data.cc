@@ -5,6 +5,8 @@
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 
+#include "core/base/files.h"
+
 namespace fs = std::filesystem;
 
 namespace placedb::data {
@@ -31,8 +33,7 @@ std::vector<std::string> DebianSampleImages() {
   for (const char* dir : {"/usr/share/doc/opencv-doc/examples/data", "/usr/share/darknet/data"}) {
     if (!fs::is_directory(dir)) continue;
     for (const auto& entry : fs::directory_iterator(dir)) {
-      const auto ext = entry.path().extension().string();
-      if (ext == ".jpg" || ext == ".png") paths.push_back(entry.path().string());
+      if (IsImageFile(entry.path())) paths.push_back(entry.path().string());
     }
   }
   std::sort(paths.begin(), paths.end());

@@ -9,7 +9,6 @@
 #include <cstdint>
 #include <cstring>
 #include <filesystem>
-#include <fstream>
 #include <functional>
 #include <mutex>
 #include <numeric>
@@ -19,6 +18,8 @@
 #include <sstream>
 #include <thread>
 #include <utility>
+
+#include "core/base/files.h"
 
 namespace placedb {
 
@@ -105,14 +106,12 @@ Result<std::vector<uchar>> ReadModelFile(const std::string& path, const char* fi
     return Status::InvalidArgument(std::string(field) + " '" + path +
                                    "' is a directory, not a model file");
   }
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return Status::IoError(std::string(field) + " '" + path + "' cannot be opened");
-  std::vector<uchar> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  if (in.bad()) return Status::IoError(std::string(field) + " '" + path + "' could not be read");
-  if (bytes.empty()) {
+  auto contents = ReadWholeFile(path);
+  if (!contents.ok()) return contents.status().WithContext(std::string(field) + " '" + path + "'");
+  if (contents->empty()) {
     return Status::FailedPrecondition(std::string(field) + " '" + path + "' is empty");
   }
-  return bytes;
+  return std::vector<uchar>(contents->begin(), contents->end());
 }
 
 // ---- Darknet model preparation -------------------------------------------------------------

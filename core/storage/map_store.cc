@@ -18,6 +18,8 @@
 #include <shared_mutex>
 #include <thread>
 
+#include "core/base/files.h"
+
 namespace fs = std::filesystem;
 
 namespace placedb {
@@ -726,9 +728,9 @@ Result<std::unique_ptr<DataDirectory>> DataDirectory::Open(const std::string& pa
     return Status::FailedPrecondition(path + " exists and is not a directory");
   }
   if (fs::exists(marker, ec)) {
-    std::ifstream in(marker);
-    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    if (text != kMarkerText) {
+    auto text = ReadWholeFile(marker.string());
+    if (!text.ok()) return text.status();
+    if (*text != kMarkerText) {
       return Status::Corruption(marker.string() + " is damaged or from another placedb version");
     }
   } else {

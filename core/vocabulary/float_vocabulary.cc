@@ -10,6 +10,7 @@
 #include <numeric>
 #include <thread>
 
+#include "core/base/parallel.h"
 #include "core/vocabulary/bow_builder.h"
 #include "core/vocabulary/vocabulary.h"  // Checksum64
 
@@ -98,24 +99,13 @@ uint32_t NearestCentre(const float* point, const std::vector<float>& centres, in
 void Assign(const float* data, int dims, const std::vector<uint32_t>& points,
             const std::vector<float>& centres, int threads, std::vector<uint32_t>* labels) {
   labels->resize(points.size());
-  auto run = [&](size_t chunk_begin, size_t chunk_step) {
-    for (size_t chunk = chunk_begin; chunk * kAssignChunk < points.size(); chunk += chunk_step) {
-      const size_t end = std::min(points.size(), (chunk + 1) * kAssignChunk);
-      for (size_t i = chunk * kAssignChunk; i < end; ++i) {
-        (*labels)[i] = NearestCentre(data + size_t(points[i]) * size_t(dims), centres, dims);
-      }
-    }
-  };
   const size_t chunks = (points.size() + kAssignChunk - 1) / kAssignChunk;
-  const int workers = int(std::min<size_t>(size_t(std::max(threads, 1)), chunks));
-  if (workers <= 1) {
-    run(0, 1);
-    return;
-  }
-  std::vector<std::thread> pool;
-  for (int t = 1; t < workers; ++t) pool.emplace_back(run, size_t(t), size_t(workers));
-  run(0, size_t(workers));
-  for (auto& thread : pool) thread.join();
+  ParallelFor(chunks, threads, [&](size_t chunk, int) {
+    const size_t end = std::min(points.size(), (chunk + 1) * kAssignChunk);
+    for (size_t i = chunk * kAssignChunk; i < end; ++i) {
+      (*labels)[i] = NearestCentre(data + size_t(points[i]) * size_t(dims), centres, dims);
+    }
+  });
 }
 
 struct Cluster {

@@ -17,6 +17,7 @@
 #include <utility>
 #include <vector>
 
+#include "core/base/files.h"
 #include "core/vocabulary/vocabulary.h"
 
 namespace placedb {
@@ -199,26 +200,6 @@ Status WriteFileAtomically(const std::string& path, std::initializer_list<Piece>
   }
   if (!status.ok()) ::unlink(temp.c_str());
   return status;
-}
-
-Result<std::string> ReadWholeFile(const std::string& path) {
-  auto opened = OpenForReading(path);
-  if (!opened.ok()) return opened.status();
-  FileDescriptor fd(*opened);
-  struct stat info;
-  if (::fstat(fd.get(), &info) != 0) return Status::IoError(Errno("cannot stat", path));
-  std::string contents;
-  try {
-    contents.resize(size_t(info.st_size));
-  } catch (const std::bad_alloc&) {
-    return Status::ResourceExhausted("out of memory reading " + path);
-  } catch (const std::length_error&) {
-    return Status::ResourceExhausted("file too large: " + path);
-  }
-  auto read = ReadFully(fd.get(), contents.data(), contents.size(), path);
-  if (!read.ok()) return read.status();
-  contents.resize(*read);
-  return contents;
 }
 
 // ---- DBoW2 text parsing --------------------------------------------------------------------

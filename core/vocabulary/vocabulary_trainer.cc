@@ -14,14 +14,14 @@
 
 #include <algorithm>
 #include <array>
-#include <atomic>
 #include <bit>
 #include <cmath>
 #include <cstring>
 #include <new>
 #include <string>
-#include <system_error>
 #include <thread>
+
+#include "core/base/parallel.h"
 
 namespace placedb {
 
@@ -31,42 +31,6 @@ constexpr size_t kChunk = 4096;            // descriptors per parallel task
 constexpr size_t kLargeNode = 8 * kChunk;  // nodes this big are split with all threads
 constexpr uint8_t kUnassigned = 0xFF;      // branching <= 64 fits in a byte
 constexpr uint64_t kStreamSalt = 0x6c8e9cf570932bd5ull;
-
-// Runs fn(task, worker) for every task in [0, tasks) on up to `threads` threads; the caller is
-// worker 0. An exception in a task (only std::bad_alloc is expected) is rethrown as bad_alloc
-// on the caller once all threads have stopped.
-template <typename Fn>
-void ParallelFor(size_t tasks, int threads, const Fn& fn) {
-  const size_t workers = std::min<size_t>(size_t(std::max(threads, 1)), tasks);
-  if (workers <= 1) {
-    for (size_t task = 0; task < tasks; ++task) fn(task, 0);
-    return;
-  }
-  std::atomic<size_t> next{0};
-  std::atomic<bool> failed{false};
-  auto work = [&](int worker) {
-    try {
-      for (size_t task; !failed.load(std::memory_order_relaxed) &&
-                        (task = next.fetch_add(1, std::memory_order_relaxed)) < tasks;) {
-        fn(task, worker);
-      }
-    } catch (...) {
-      failed = true;
-    }
-  };
-  std::vector<std::thread> pool;
-  pool.reserve(workers - 1);
-  for (size_t w = 1; w < workers; ++w) {
-    try {
-      pool.emplace_back(work, int(w));
-    } catch (const std::system_error&) {
-      break;  // fewer threads than asked: the work queue still drains
-    }
-  }
-  work(0);
-  for (std::thread& thread : pool) thread.join();
-  if (failed) throw std::bad_alloc();
-}
 
 // A counter-based random stream: value i is a hash of i keyed by the stream's key.
 class RandomStream {
