@@ -276,8 +276,7 @@ void GrowingMap(const std::shared_ptr<const FloatVocabulary>& vocabulary,
     std::normal_distribution<float> noise(0.0f, 4.0f);
     Observation observation;
     observation.metadata.agent_id = kAgent;
-    observation.float_features.emplace();
-    FloatFeatureSet& features = *observation.float_features;
+    FloatFeatureSet features;
     features.image_width = kWidth;
     features.image_height = kHeight;
     features.keypoints.resize(kPerFrame);
@@ -302,6 +301,7 @@ void GrowingMap(const std::shared_ptr<const FloatVocabulary>& vocabulary,
         }
       }
       observation.metadata.sequence = t;
+      observation.features = features;
 
       Stopwatch process_watch;
       auto frame = (*db)->Process(observation, FrameRole::kStream);

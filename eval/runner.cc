@@ -341,9 +341,10 @@ class InProcessBackend final : public Backend {
       record.metadata = metadata;
       record.counts = frame.counts;
       record.boxes_used = frame.boxes_used;
-      run.database.encoded_bytes += EncodePlaceRecord(record).size() + EncodeBow(frame.bow).size() +
-                                    EncodeFeatures(frame.static_features, frame.direct).size() +
-                                    3 * PlaceKey(*id).size();
+      run.database.encoded_bytes +=
+          EncodePlaceRecord(record).size() + EncodeBow(frame.bow).size() +
+          EncodeLocalFeatures(frame.static_features, frame.direct).size() +
+          3 * PlaceKey(*id).size();
       processed[i].reset();
     }
     run.database.build_seconds = build.ElapsedMs() / 1000.0;

@@ -463,21 +463,21 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Lim
       auto features = FeaturesFromProto(o.features(), limits, field + ".features");
       if (!features.ok()) return features.status();
       obs.features = std::move(features).value();
-      width = obs.features->image_width;
-      height = obs.features->image_height;
       break;
     }
     case v1::Observation::kSiftFeatures: {
       auto features = SiftFeaturesFromProto(o.sift_features(), limits, field + ".sift_features");
       if (!features.ok()) return features.status();
-      obs.float_features = std::move(features).value();
-      width = obs.float_features->image_width;
-      height = obs.float_features->image_height;
+      obs.features = std::move(features).value();
       break;
     }
     default:
       return Invalid(field,
                      "one of encoded_image, raw_image, features or sift_features is required");
+  }
+  if (obs.features.has_value()) {
+    width = obs.features->image_width();
+    height = obs.features->image_height();
   }
   if (out.has_pixels) {
     width = obs.image.cols;
@@ -619,6 +619,14 @@ void KeypointsToProto(const std::vector<Keypoint>& keypoints, Out* out) {
 }
 
 }  // namespace
+
+void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out) {
+  if (const FeatureSet* orb = features.orb()) {
+    FeaturesToProto(*orb, out->mutable_features());
+  } else {
+    SiftFeaturesToProto(*features.sift(), out->mutable_sift_features());
+  }
+}
 
 void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out) {
   out->set_image_width(uint32_t(features.image_width));

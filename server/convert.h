@@ -75,6 +75,8 @@ void MatchesToProto(const std::vector<Match>& matches,
 void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimings* out);
 void FeaturesToProto(const FeatureSet& features, v1::Features* out);
 void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out);
+// A place's features into the field of their family: `features` (ORB) or `sift_features`.
+void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out);
 void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out);
 void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out);
 

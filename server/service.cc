@@ -258,11 +258,7 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   CountsToProto(place->record.counts, response->mutable_counts());
   BoxesToProto(place->record.boxes_used, response->mutable_boxes_used());
   if (request->include_features()) {
-    if ((*entry)->map->database().config().feature_type == FeatureType::kSift) {
-      SiftFeaturesToProto(place->payload.float_features, response->mutable_sift_features());
-    } else {
-      FeaturesToProto(place->payload.features, response->mutable_features());
-    }
+    PlaceFeaturesToProto(place->payload.features, response);
   }
   return Finish("GetPlace", context, grpc::Status::OK);
 }

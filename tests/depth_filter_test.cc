@@ -642,8 +642,8 @@ TEST(RgbdPeople, RefinedMasksKeepBackgroundInsideBoxes) {
     boxes.boxes = f.persons;
     auto refined = RefineDynamicObjects(boxes, f.metres, f.bgr.cols, f.bgr.rows, RefineConfig{});
     ASSERT_TRUE(refined.ok()) << refined.status().ToString();
-    auto by_box = ClassifyFloatDescriptors(f.sift, boxes, filter);
-    auto by_mask = ClassifyFloatDescriptors(f.sift, refined->objects, filter);
+    auto by_box = ClassifyDescriptors(f.sift, boxes, filter);
+    auto by_mask = ClassifyDescriptors(f.sift, refined->objects, filter);
     ASSERT_TRUE(by_box.ok() && by_mask.ok());
     std::vector<uint8_t> dc_box(f.sift.size(), 0), dc_mask(f.sift.size(), 0);
     for (uint32_t i : by_box->dynamic_indices) dc_box[i] = 1;

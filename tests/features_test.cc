@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "core/features/local_features.h"
 #include "core/features/orb_features.h"
 #include "tests/test_support.h"
 
@@ -423,6 +424,119 @@ TEST(SelectFeatures, KeepsTheListedIndicesInOrder) {
   const FeatureSet all = SelectFeatures(features, {0, 1, 2, 3, 4, 5, 6, 7});
   EXPECT_EQ(all.keypoints, features.keypoints);
   EXPECT_EQ(all.descriptors, features.descriptors);
+}
+
+// A valid hand-made SIFT set of `count` keypoints (HandMadeFeatures' positions).
+FloatFeatureSet HandMadeSiftFeatures(int count) {
+  const FeatureSet orb = HandMadeFeatures(count);
+  FloatFeatureSet features;
+  features.image_width = orb.image_width;
+  features.image_height = orb.image_height;
+  features.keypoints = orb.keypoints;
+  for (int i = 0; i < count * kSiftDimensions; ++i) features.descriptors.push_back(float(i % 97));
+  return features;
+}
+
+TEST(LocalFeatures, OperationsFollowTheFamily) {
+  const FeatureSet orb = HandMadeFeatures(8);
+  const LocalFeatures features = orb;
+  EXPECT_EQ(features.type(), FeatureType::kOrb);
+  ASSERT_NE(features.orb(), nullptr);
+  EXPECT_EQ(features.sift(), nullptr);
+  EXPECT_EQ(features.size(), 8u);
+  EXPECT_EQ(features.image_width(), 640);
+  EXPECT_EQ(features.image_height(), 480);
+  EXPECT_EQ(features.keypoints(), orb.keypoints);
+  EXPECT_TRUE(features.Validate().ok());
+
+  const LocalFeatures selected = features.Select({1, 4, 6});
+  ASSERT_NE(selected.orb(), nullptr);
+  EXPECT_EQ(selected.orb()->keypoints, SelectFeatures(orb, {1, 4, 6}).keypoints);
+  EXPECT_EQ(selected.orb()->descriptors, SelectFeatures(orb, {1, 4, 6}).descriptors);
+
+  auto joined = LocalFeatures::Concat(selected, features.Select({0}));
+  ASSERT_TRUE(joined.ok()) << joined.status().ToString();
+  ASSERT_NE(joined->orb(), nullptr);
+  EXPECT_EQ(joined->orb()->keypoints, SelectFeatures(orb, {1, 4, 6, 0}).keypoints);
+  EXPECT_EQ(joined->orb()->descriptors, SelectFeatures(orb, {1, 4, 6, 0}).descriptors);
+
+  const FloatFeatureSet float_set = HandMadeSiftFeatures(5);
+  const LocalFeatures sift = float_set;
+  EXPECT_EQ(sift.type(), FeatureType::kSift);
+  EXPECT_EQ(sift.orb(), nullptr);
+  EXPECT_TRUE(sift.Validate().ok()) << sift.Validate().ToString();
+  const LocalFeatures sift_selected = sift.Select({0, 3});
+  ASSERT_NE(sift_selected.sift(), nullptr);
+  EXPECT_EQ(sift_selected.sift()->descriptors, SelectFloatFeatures(float_set, {0, 3}).descriptors);
+  auto sift_joined = LocalFeatures::Concat(sift_selected, sift.Select({4}));
+  ASSERT_TRUE(sift_joined.ok());
+  EXPECT_EQ(sift_joined->sift()->descriptors,
+            SelectFloatFeatures(float_set, {0, 3, 4}).descriptors);
+
+  // Families do not mix, and validation is the family's own.
+  EXPECT_EQ(LocalFeatures::Concat(features, sift).status().code(), StatusCode::kInvalidArgument);
+  FloatFeatureSet broken = float_set;
+  broken.descriptors[130] = std::nanf("");
+  const Status invalid = LocalFeatures(broken).Validate();
+  EXPECT_EQ(invalid.code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(invalid.ToString(), ValidateFloatFeatures(broken).ToString());
+
+  const LocalFeatures empty = LocalFeatures::Empty(FeatureType::kSift, 64, 48);
+  EXPECT_EQ(empty.type(), FeatureType::kSift);
+  EXPECT_TRUE(empty.empty());
+  EXPECT_EQ(empty.image_width(), 64);
+  EXPECT_EQ(empty.image_height(), 48);
+}
+
+TEST(FeatureExtractor, RunsTheFamilysExtractor) {
+  const std::vector<std::string> images = RequireSampleImages();
+  ASSERT_FALSE(images.empty());
+  const cv::Mat image = ReadGray(images.front());
+  cv::Mat left = cv::Mat::zeros(image.size(), CV_8U);
+  left(cv::Rect(0, 0, image.cols / 2, image.rows)).setTo(255);
+  OrbConfig orb;
+  orb.max_features = 300;
+  SiftConfig sift;
+  sift.max_features = 200;
+
+  auto orb_extractor = FeatureExtractor::Create(FeatureType::kOrb, orb, sift);
+  ASSERT_TRUE(orb_extractor.ok()) << orb_extractor.status().ToString();
+  EXPECT_EQ((*orb_extractor)->type(), FeatureType::kOrb);
+  for (const cv::Mat& mask : {cv::Mat(), left}) {
+    auto extracted = (*orb_extractor)->Extract(image, mask);
+    auto expected = ExtractOrb(image, orb, mask);
+    ASSERT_TRUE(extracted.ok() && expected.ok());
+    ASSERT_NE(extracted->orb(), nullptr);
+    EXPECT_GT(extracted->size(), 50u);
+    EXPECT_EQ(extracted->orb()->keypoints, expected->keypoints);
+    EXPECT_EQ(extracted->orb()->descriptors, expected->descriptors);
+  }
+
+  auto sift_extractor = FeatureExtractor::Create(FeatureType::kSift, orb, sift);
+  ASSERT_TRUE(sift_extractor.ok()) << sift_extractor.status().ToString();
+  EXPECT_EQ((*sift_extractor)->type(), FeatureType::kSift);
+  auto extracted = (*sift_extractor)->Extract(image, left);
+  auto expected = ExtractSift(image, sift, left);
+  ASSERT_TRUE(extracted.ok() && expected.ok());
+  ASSERT_NE(extracted->sift(), nullptr);
+  EXPECT_GT(extracted->size(), 50u);
+  EXPECT_EQ(extracted->sift()->keypoints, expected->keypoints);
+  EXPECT_EQ(extracted->sift()->descriptors, expected->descriptors);
+
+  // Only the pipeline's measured ORB behaviours are on.
+  EXPECT_TRUE((*orb_extractor)->budgets_static_pixels());
+  EXPECT_TRUE((*orb_extractor)->verifies_dynamic_features());
+  EXPECT_FALSE((*sift_extractor)->budgets_static_pixels());
+  EXPECT_FALSE((*sift_extractor)->verifies_dynamic_features());
+
+  // The family's config is validated; the other family's is not its concern.
+  OrbConfig bad_orb;
+  bad_orb.max_features = 0;
+  EXPECT_EQ(FeatureExtractor::Create(FeatureType::kOrb, bad_orb, sift).status().code(),
+            StatusCode::kInvalidArgument);
+  EXPECT_TRUE(FeatureExtractor::Create(FeatureType::kSift, bad_orb, sift).ok());
+  EXPECT_EQ(FeatureExtractor::Create(FeatureType(7), orb, sift).status().code(),
+            StatusCode::kInvalidArgument);
 }
 
 TEST(OpenCvInterop, KeypointsAndDescriptorsRoundTrip) {

@@ -109,7 +109,7 @@ TEST_F(PlaceDatabaseTest, DynamicDescriptorsAreDroppedNotStored) {
   ASSERT_TRUE(payload.ok());
   EXPECT_EQ((*payload)->features.size(), added->counts.static_);
   EXPECT_GT(db->Stats().payload_bytes, 0u);
-  for (const Keypoint& kp : (*payload)->features.keypoints) {
+  for (const Keypoint& kp : (*payload)->features.keypoints()) {
     EXPECT_GE(kp.x, frame.image.cols / 2.0f) << "a keypoint inside the box was kept";
   }
   EXPECT_EQ(db->Stats().descriptors_dropped, added->counts.dynamic);
@@ -207,16 +207,18 @@ TEST_F(PlaceDatabaseTest, BadPrecomputedInputIsRejectedAndChangesNothing) {
   const DatabaseStats before = db->Stats();
 
   Observation bad;
-  bad.features = testing::ExtractFile(RtabmapFramePath(2));
-  bad.features->keypoints[3].x = float(bad.features->image_width + 10);
+  FeatureSet outside = testing::ExtractFile(RtabmapFramePath(2));
+  outside.keypoints[3].x = float(outside.image_width + 10);
+  bad.features = std::move(outside);
   auto added = db->Add(bad);
   ASSERT_FALSE(added.ok());
   EXPECT_EQ(added.status().code(), StatusCode::kInvalidArgument);
   EXPECT_NE(added.status().message().find("keypoints[3]"), std::string::npos);
 
   Observation mismatched;
-  mismatched.features = testing::ExtractFile(RtabmapFramePath(2));
-  mismatched.features->descriptors.pop_back();
+  FeatureSet short_of_descriptors = testing::ExtractFile(RtabmapFramePath(2));
+  short_of_descriptors.descriptors.pop_back();
+  mismatched.features = std::move(short_of_descriptors);
   EXPECT_EQ(db->Add(mismatched).status().code(), StatusCode::kInvalidArgument);
 
   Observation wrong_mask = Frame(2);
@@ -610,7 +612,7 @@ TEST(StaticFeatureBudget, FilteringKeepsTheWholeBudgetOfStaticFeatures) {
   // The objects' features are the whole-frame extraction's (the short-term tier's words).
   EXPECT_EQ(on.dynamic, off.dynamic);
   EXPECT_FALSE(processed[true].dynamic_bow.empty());
-  for (const Keypoint& kp : processed[true].static_features.keypoints) {
+  for (const Keypoint& kp : processed[true].static_features.keypoints()) {
     EXPECT_GE(kp.x + 0.5f, w * 0.45f) << "a static feature inside the box";
   }
 }

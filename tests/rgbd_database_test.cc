@@ -156,7 +156,7 @@ TEST(RgbdDatabase, ApproachingPersonIsRemovedFromStoredPlaces) {
         return composite.person.at<uint8_t>(int(kp.y), int(kp.x)) != 0;
       };
       for (const Keypoint& kp : features->keypoints) person_before += on_person(kp);
-      for (const Keypoint& kp : processed->static_float_features.keypoints) {
+      for (const Keypoint& kp : processed->static_features.keypoints()) {
         person_after += on_person(kp);
       }
     } else {

@@ -168,7 +168,7 @@ TEST(Sift, PrecomputedSetsAreValidated) {
 
   DynamicObjects objects;
   objects.boxes.push_back({0, 0.9f, cv::Rect2f(0, 0, 20, 30)});
-  auto split = ClassifyFloatDescriptors(*set, objects, FilterConfig{});
+  auto split = ClassifyDescriptors(*set, objects, FilterConfig{});
   ASSERT_TRUE(split.ok()) << split.status().ToString();
   EXPECT_EQ(split->dynamic_indices, (std::vector<uint32_t>{0}));
   EXPECT_EQ(split->static_indices, (std::vector<uint32_t>{1}));

@@ -814,15 +814,15 @@ TEST_F(StorageTest, SiftMapSurvivesReopenAndRefusesTheWrongVocabularyKind) {
     for (const auto& [i, id] : id_of) {
       auto place = (*map)->GetPlace(id);
       ASSERT_TRUE(place.ok()) << place.status().ToString();
-      EXPECT_TRUE(place->payload.features.empty());
-      EXPECT_EQ(place->payload.float_features.size(), place->record.counts.static_);
+      EXPECT_EQ(place->payload.features.orb(), nullptr);  // a SIFT map keeps no ORB features
+      EXPECT_EQ(place->payload.features.sift()->size(), place->record.counts.static_);
       // What was stored is the frame's SC features, exactly.
       auto processed = (*map)->Process(frames[i]);
       ASSERT_TRUE(processed.ok());
-      EXPECT_EQ(place->payload.float_features.keypoints,
-                processed->static_float_features.keypoints);
-      EXPECT_EQ(place->payload.float_features.descriptors,
-                processed->static_float_features.descriptors);
+      EXPECT_EQ(place->payload.features.sift()->keypoints,
+                processed->static_features.sift()->keypoints);
+      EXPECT_EQ(place->payload.features.sift()->descriptors,
+                processed->static_features.sift()->descriptors);
       EXPECT_EQ(place->payload.direct, processed->direct);
       stored[id] = std::move(place).value();
     }
@@ -849,9 +849,11 @@ TEST_F(StorageTest, SiftMapSurvivesReopenAndRefusesTheWrongVocabularyKind) {
     auto after = (*map)->GetPlace(id);
     ASSERT_TRUE(after.ok()) << after.status().ToString();
     EXPECT_EQ(after->record.metadata, before.record.metadata);
-    EXPECT_EQ(after->payload.float_features.image_width, before.payload.float_features.image_width);
-    EXPECT_EQ(after->payload.float_features.keypoints, before.payload.float_features.keypoints);
-    EXPECT_EQ(after->payload.float_features.descriptors, before.payload.float_features.descriptors);
+    EXPECT_EQ(after->payload.features.sift()->image_width,
+              before.payload.features.sift()->image_width);
+    EXPECT_EQ(after->payload.features.sift()->keypoints, before.payload.features.sift()->keypoints);
+    EXPECT_EQ(after->payload.features.sift()->descriptors,
+              before.payload.features.sift()->descriptors);
     EXPECT_EQ(after->payload.direct, before.payload.direct);
     EXPECT_EQ(after->payload.bow, before.payload.bow);
   }

@@ -336,12 +336,14 @@ cv::Rect BoxPixelRect(const cv::Rect2f& rect, int width, int height) {
           clipped.row_end - clipped.row_begin};
 }
 
-Result<FilterResult> ClassifyDescriptors(const FeatureSet& features, const DynamicObjects& objects,
+Result<FilterResult> ClassifyDescriptors(const LocalFeatures& features,
+                                         const DynamicObjects& objects,
                                          const FilterConfig& config) {
   PLACEDB_RETURN_IF_ERROR(ValidateFilterConfig(config));
-  PLACEDB_RETURN_IF_ERROR(ValidateFeatures(features));
-  const int width = features.image_width;
-  const int height = features.image_height;
+  PLACEDB_RETURN_IF_ERROR(features.Validate());
+  const int width = features.image_width();
+  const int height = features.image_height();
+  const std::vector<Keypoint>& keypoints = features.keypoints();
   PLACEDB_RETURN_IF_ERROR(ValidateObjects(objects, width, height));
 
   const size_t count = features.size();
@@ -371,7 +373,7 @@ Result<FilterResult> ClassifyDescriptors(const FeatureSet& features, const Dynam
 
   result.static_indices.reserve(count);
   for (size_t i = 0; i < count; ++i) {
-    const Keypoint& kp = features.keypoints[i];
+    const Keypoint& kp = keypoints[i];
     const cv::Point pixel = KeypointPixel(kp, width, height);
     bool dynamic = false;
     switch (config.method) {
@@ -393,30 +395,6 @@ Result<FilterResult> ClassifyDescriptors(const FeatureSet& features, const Dynam
   }
   result.valid = result.static_indices.size() > size_t(config.place_threshold);
   return result;
-}
-
-namespace {
-
-FeatureSet KeypointsOnly(const FloatFeatureSet& features) {
-  FeatureSet set;
-  set.image_width = features.image_width;
-  set.image_height = features.image_height;
-  set.keypoints = features.keypoints;
-  set.descriptors.resize(features.keypoints.size());
-  return set;
-}
-
-}  // namespace
-
-Result<FilterResult> ClassifyFloatDescriptors(const FloatFeatureSet& features,
-                                              const DynamicObjects& objects,
-                                              const FilterConfig& config) {
-  if (features.descriptors.size() != features.keypoints.size() * kSiftDimensions) {
-    return Status::InvalidArgument("descriptors: " + std::to_string(features.descriptors.size()) +
-                                   " floats for " + std::to_string(features.keypoints.size()) +
-                                   " keypoints");
-  }
-  return ClassifyDescriptors(KeypointsOnly(features), objects, config);
 }
 
 }  // namespace placedb

@@ -24,8 +24,7 @@
 
 #include "core/base/status.h"
 #include "core/detect/dynamic_objects.h"
-#include "core/features/orb_features.h"
-#include "core/features/sift_features.h"
+#include "core/features/local_features.h"
 
 namespace placedb {
 
@@ -56,17 +55,13 @@ struct FilterResult {
   size_t total() const { return static_indices.size() + dynamic_indices.size(); }
 };
 
-// Classifies every descriptor of `features` as DC or SC. A mask must be CV_8U and exactly
-// image-sized (INVALID_ARGUMENT otherwise); boxes are clipped to the image. With no boxes and no
-// mask (or kNone) every descriptor is SC and the frame coverage is 0.
-Result<FilterResult> ClassifyDescriptors(const FeatureSet& features, const DynamicObjects& objects,
-                                         const FilterConfig& config);
-
-// The DC/SC split above for a float set: the classifiers only look at keypoints,
-// so this runs ClassifyDescriptors on the keypoints with placeholder binary descriptors.
-Result<FilterResult> ClassifyFloatDescriptors(const FloatFeatureSet& features,
-                                              const DynamicObjects& objects,
-                                              const FilterConfig& config);
+// Classifies every descriptor of `features` (either family: the classifiers look only at the
+// keypoints and the image size) as DC or SC. The features must be valid (LocalFeatures::Validate).
+// A mask must be CV_8U and exactly image-sized (INVALID_ARGUMENT otherwise); boxes are clipped to
+// the image. With no boxes and no mask (or kNone) every descriptor is SC and the frame coverage
+// is 0.
+Result<FilterResult> ClassifyDescriptors(const LocalFeatures& features,
+                                         const DynamicObjects& objects, const FilterConfig& config);
 
 // The union of boxes and mask as an image-sized CV_8U mask (255 = dynamic).
 cv::Mat RasterizeDynamicRegion(const DynamicObjects& objects, int width, int height);

@@ -1,6 +1,7 @@
 #include "core/pipeline/place_database.h"
 
 #include <algorithm>
+#include <cctype>
 #include <mutex>
 
 #include "core/pipeline/agent_streams.h"
@@ -59,6 +60,31 @@ size_t RecordBytes(const PlaceRecord& record) {
          record.boxes_used.capacity() * sizeof(DynamicBox);
 }
 
+// "ORB", "SIFT": for messages.
+std::string FeatureTypeLabel(FeatureType type) {
+  std::string label = FeatureTypeName(type);
+  for (char& c : label) c = char(std::toupper(static_cast<unsigned char>(c)));
+  return label;
+}
+
+// Verification against a place the short-term tier holds: both frames' SC + DC features, so
+// the objects both saw are evidence.
+Result<VerificationResult> VerifyWithObjects(
+    const ProcessedFrame& frame, const PlacePayload& place,
+    const std::pair<LocalFeatures, DirectIndex>& place_objects, const VerificationConfig& config) {
+  const auto& [objects, objects_direct] = place_objects;
+  auto query = LocalFeatures::Concat(frame.static_features, frame.dynamic_features);
+  if (!query.ok()) return query.status();
+  auto candidate = LocalFeatures::Concat(place.features, objects);
+  if (!candidate.ok()) return candidate.status();
+  return VerifyGeometry(
+      *query,
+      MergeDirectIndices(frame.direct, frame.dynamic_direct,
+                         uint32_t(frame.static_features.size())),
+      *candidate, MergeDirectIndices(place.direct, objects_direct, uint32_t(place.features.size())),
+      config);
+}
+
 std::string InvalidReason(const FrameCounts& counts, int place_threshold) {
   std::string depth;
   if (counts.depth_removed > 0) {
@@ -73,10 +99,7 @@ std::string InvalidReason(const FrameCounts& counts, int place_threshold) {
 }  // namespace
 
 size_t PayloadBytes(const PlacePayload& payload) {
-  return sizeof(PlacePayload) + payload.features.keypoints.capacity() * sizeof(Keypoint) +
-         payload.features.descriptors.capacity() * sizeof(Descriptor256) +
-         payload.float_features.keypoints.capacity() * sizeof(Keypoint) +
-         payload.float_features.descriptors.capacity() * sizeof(float) +
+  return sizeof(PlacePayload) + payload.features.MemoryBytes() +
          payload.bow.capacity() * sizeof(BowEntry) +
          (payload.direct.node_ids.capacity() + payload.direct.offsets.capacity() +
           payload.direct.feature_ids.capacity()) *
@@ -122,9 +145,11 @@ size_t InMemoryPayloadStore::MemoryBytes() const {
 }
 
 PlaceDatabase::PlaceDatabase(AnyVocabulary vocabulary, DatabaseConfig config,
+                             std::unique_ptr<const FeatureExtractor> extractor,
                              std::shared_ptr<PayloadStore> payloads)
     : vocabulary_(std::move(vocabulary)),
       config_(std::move(config)),
+      extractor_(std::move(extractor)),
       payloads_(payloads ? std::move(payloads) : std::make_shared<InMemoryPayloadStore>()),
       streams_(std::make_unique<AgentStreams>()),
       index_(vocabulary_.word_count(), config_.scoring),
@@ -141,8 +166,10 @@ Result<std::unique_ptr<PlaceDatabase>> PlaceDatabase::Create(
         std::string("feature_type ") + FeatureTypeName(config.feature_type) + " needs a " +
         VocabularyKindName(config.feature_type) + " vocabulary; this one is " + vocabulary.kind());
   }
-  return std::unique_ptr<PlaceDatabase>(
-      new PlaceDatabase(std::move(vocabulary), std::move(config), std::move(payloads)));
+  auto extractor = FeatureExtractor::Create(config.feature_type, config.orb, config.sift);
+  if (!extractor.ok()) return extractor.status();
+  return std::unique_ptr<PlaceDatabase>(new PlaceDatabase(
+      std::move(vocabulary), std::move(config), std::move(extractor).value(), std::move(payloads)));
 }
 
 std::vector<DynamicBox> PlaceDatabase::SelectBoxes(const std::vector<DynamicBox>& boxes) const {
@@ -156,40 +183,53 @@ std::vector<DynamicBox> PlaceDatabase::SelectBoxes(const std::vector<DynamicBox>
   return selected;
 }
 
+Result<LocalFeatures> PlaceDatabase::ExtractFromPixels(
+    const Observation& observation, DynamicObjects* dynamic,
+    const std::function<Status(int, int)>& refine) const {
+  // With dynamic objects known (and no depth, which decides per pixel later), the feature budget
+  // is spent on the static pixels: the place then keeps as many static features as a frame
+  // without objects. The objects' own features, for the short-term tier, are those a whole-frame
+  // extraction finds on them (as many as without the budget).
+  const bool budget = config_.static_feature_budget && extractor_->budgets_static_pixels() &&
+                      !observation.depth.has_value() &&
+                      (!dynamic->boxes.empty() || !dynamic->mask.empty()) &&
+                      !observation.image.empty();
+  if (budget) PLACEDB_RETURN_IF_ERROR(refine(observation.image.cols, observation.image.rows));
+  const cv::Mat region =
+      budget ? RasterizeDynamicRegion(*dynamic, observation.image.cols, observation.image.rows)
+             : cv::Mat();
+  const int dynamic_pixels = region.empty() ? 0 : cv::countNonZero(region);
+  cv::Mat static_pixels;
+  if (dynamic_pixels > 0) cv::compare(region, 0, static_pixels, cv::CMP_EQ);
+  auto extracted = extractor_->Extract(observation.image, static_pixels);
+  if (!extracted.ok() || dynamic_pixels == 0 || !config_.short_term.enabled) return extracted;
+  auto whole = extractor_->Extract(observation.image);
+  if (!whole.ok()) return whole.status();
+  std::vector<uint32_t> on_objects;
+  for (uint32_t i = 0; i < whole->size(); ++i) {
+    const Keypoint& kp = whole->keypoints()[i];
+    const int col = std::clamp(int(std::lround(kp.x)), 0, region.cols - 1);
+    const int row = std::clamp(int(std::lround(kp.y)), 0, region.rows - 1);
+    if (region.at<uint8_t>(row, col) != 0) on_objects.push_back(i);
+  }
+  return LocalFeatures::Concat(*extracted, whole->Select(on_objects));
+}
+
 Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
                                               FrameRole role) const {
   ProcessedFrame frame;
-  frame.feature_type = config_.feature_type;
   Stopwatch total;
   Stopwatch stage;
-  const bool sift = config_.feature_type == FeatureType::kSift;
 
-  // ---- Extract (or validate the caller's features) into the map's feature type.
-  FeatureSet extracted;
-  FloatFeatureSet extracted_float;
-  const FeatureSet* features = nullptr;
-  const FloatFeatureSet* float_features = nullptr;
-  if (sift && observation.features.has_value()) {
-    return Status::InvalidArgument(
-        "this map's features are SIFT: it takes SIFT features or an image, not ORB features");
-  }
-  if (!sift && observation.float_features.has_value()) {
-    return Status::InvalidArgument(
-        "this map's features are ORB: it takes ORB features or an image, not SIFT features");
-  }
-  if (sift) {
-    if (observation.float_features.has_value()) {
-      PLACEDB_RETURN_IF_ERROR(ValidateFloatFeatures(*observation.float_features));
-      float_features = &*observation.float_features;
-    } else {
-      auto result = ExtractSift(observation.image, config_.sift);
-      if (!result.ok()) return result.status();
-      extracted_float = std::move(result).value();
-      float_features = &extracted_float;
+  // The caller's features must be of the map's feature type.
+  if (observation.features.has_value()) {
+    if (observation.features->type() != config_.feature_type) {
+      const std::string map = FeatureTypeLabel(config_.feature_type);
+      return Status::InvalidArgument("this map's features are " + map + ": it takes " + map +
+                                     " features or an image, not " +
+                                     FeatureTypeLabel(observation.features->type()) + " features");
     }
-  } else if (observation.features.has_value()) {
-    PLACEDB_RETURN_IF_ERROR(ValidateFeatures(*observation.features));
-    features = &*observation.features;
+    PLACEDB_RETURN_IF_ERROR(observation.features->Validate());
   }
 
   DynamicObjects dynamic;
@@ -215,44 +255,20 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
     return Status::Ok();
   };
 
-  if (!sift && !observation.features.has_value()) {
-    // ORB from pixels. With dynamic objects known (and no depth, which decides per pixel later),
-    // the feature budget is spent on the static pixels: the place then keeps as many static
-    // features as a frame without objects. The objects' own features, for the short-term tier,
-    // are those a whole-frame extraction finds on them (as many as without the budget).
-    const bool budget = config_.static_feature_budget && !observation.depth.has_value() &&
-                        (!dynamic.boxes.empty() || !dynamic.mask.empty()) &&
-                        !observation.image.empty();
-    if (budget) {
-      PLACEDB_RETURN_IF_ERROR(refine(observation.image.cols, observation.image.rows));
-      stage.Lap();
-    }
-    const cv::Mat region =
-        budget ? RasterizeDynamicRegion(dynamic, observation.image.cols, observation.image.rows)
-               : cv::Mat();
-    const int dynamic_pixels = region.empty() ? 0 : cv::countNonZero(region);
-    cv::Mat static_pixels;
-    if (dynamic_pixels > 0) cv::compare(region, 0, static_pixels, cv::CMP_EQ);
-    auto result = ExtractOrb(observation.image, config_.orb, static_pixels);
+  // ---- Extract (or take the caller's features).
+  LocalFeatures extracted;
+  const LocalFeatures* features = &extracted;
+  if (observation.features.has_value()) {
+    features = &*observation.features;
+  } else {
+    auto result = ExtractFromPixels(observation, &dynamic, refine);
     if (!result.ok()) return result.status();
     extracted = std::move(result).value();
-    if (dynamic_pixels > 0 && config_.short_term.enabled) {
-      auto whole = ExtractOrb(observation.image, config_.orb);
-      if (!whole.ok()) return whole.status();
-      std::vector<uint32_t> on_objects;
-      for (uint32_t i = 0; i < whole->size(); ++i) {
-        const Keypoint& kp = whole->keypoints[i];
-        const int col = std::clamp(int(std::lround(kp.x)), 0, region.cols - 1);
-        const int row = std::clamp(int(std::lround(kp.y)), 0, region.rows - 1);
-        if (region.at<uint8_t>(row, col) != 0) on_objects.push_back(i);
-      }
-      extracted = ConcatFeatures(extracted, SelectFeatures(*whole, on_objects));
-    }
-    features = &extracted;
   }
-  const int width = sift ? float_features->image_width : features->image_width;
-  const int height = sift ? float_features->image_height : features->image_height;
-  frame.timings.extract_ms = stage.Lap();
+  const int width = features->image_width();
+  const int height = features->image_height();
+  // Box refinement before a budgeted extraction is not extraction time.
+  frame.timings.extract_ms = stage.Lap() - frame.timings.refine_ms;
 
   // ---- Depth: decode, and narrow every dynamic box to its object's depth layer.
   std::optional<CameraIntrinsics> intrinsics;
@@ -290,37 +306,24 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
   }
 
   // ---- DC/SC.
-  auto filtered = sift ? ClassifyFloatDescriptors(*float_features, dynamic, config_.filter)
-                       : ClassifyDescriptors(*features, dynamic, config_.filter);
+  auto filtered = ClassifyDescriptors(*features, dynamic, config_.filter);
   if (!filtered.ok()) return filtered.status();
   frame.counts.total = uint32_t(filtered->total());
   frame.counts.dynamic = uint32_t(filtered->dynamic_indices.size());
   frame.counts.static_ = uint32_t(filtered->static_indices.size());
   frame.counts.dynamic_coverage = filtered->frame_dynamic_coverage;
-  if (sift) {
-    frame.static_float_features =
-        filtered->dynamic_indices.empty()
-            ? *float_features
-            : SelectFloatFeatures(*float_features, filtered->static_indices);
-  } else {
-    frame.static_features = filtered->dynamic_indices.empty()
-                                ? *features
-                                : SelectFeatures(*features, filtered->static_indices);
-  }
+  frame.static_features =
+      filtered->dynamic_indices.empty() ? *features : features->Select(filtered->static_indices);
   frame.timings.filter_ms = stage.Lap();
 
   // ---- The short-term tier keeps the DC words (in memory, for recent places).
   if (config_.short_term.enabled && !filtered->dynamic_indices.empty()) {
-    if (sift) {
-      const FloatFeatureSet dynamic_features =
-          SelectFloatFeatures(*float_features, filtered->dynamic_indices);
-      vocabulary_.floating()->Transform(dynamic_features.descriptors, &frame.dynamic_bow, nullptr,
-                                        0);
-    } else {
-      frame.dynamic_features = SelectFeatures(*features, filtered->dynamic_indices);
-      vocabulary_.binary()->Transform(frame.dynamic_features.descriptors, &frame.dynamic_bow,
-                                      &frame.dynamic_direct, config_.verification.levels_up);
-    }
+    LocalFeatures dynamic_features = features->Select(filtered->dynamic_indices);
+    const bool keep = extractor_->verifies_dynamic_features();
+    PLACEDB_RETURN_IF_ERROR(vocabulary_.Transform(dynamic_features, &frame.dynamic_bow,
+                                                  keep ? &frame.dynamic_direct : nullptr,
+                                                  config_.verification.levels_up));
+    if (keep) frame.dynamic_features = std::move(dynamic_features);
     NormalizeForScoring(&frame.dynamic_bow, config_.scoring);
     frame.timings.transform_ms += stage.Lap();
   }
@@ -333,11 +336,9 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
           "depth.intrinsics: the map measures range (use_range) and "
           "needs the camera intrinsics with every depth image");
     }
-    const std::vector<Keypoint>& kept =
-        sift ? frame.static_float_features.keypoints : frame.static_features.keypoints;
-    frame.static_depth_m =
-        SampleFeatureDepths(frame.depth_m, width, height, kept, filter.feature_window_radius,
-                            filter.use_range ? &*intrinsics : nullptr);
+    frame.static_depth_m = SampleFeatureDepths(
+        frame.depth_m, width, height, frame.static_features.keypoints(),
+        filter.feature_window_radius, filter.use_range ? &*intrinsics : nullptr);
     if (role == FrameRole::kStream) {
       frame.stream_pending = true;
       frame.timings.depth_ms += stage.Lap();
@@ -353,7 +354,7 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
     if (current) ApplyDepthBand(&frame, *current, filter.remove_features_without_depth);
     frame.timings.depth_ms += stage.Lap();
   }
-  Finish(&frame, &stage);
+  PLACEDB_RETURN_IF_ERROR(Finish(&frame, &stage));
   frame.timings.total_ms = total.ElapsedMs();
   return frame;
 }
@@ -366,11 +367,7 @@ void PlaceDatabase::ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState&
   std::vector<uint32_t> removed;
   SplitByBand(frame->static_depth_m, state.band, remove_without_depth, &kept, &removed);
   if (removed.empty()) return;
-  if (frame->feature_type == FeatureType::kSift) {
-    frame->static_float_features = SelectFloatFeatures(frame->static_float_features, kept);
-  } else {
-    frame->static_features = SelectFeatures(frame->static_features, kept);
-  }
+  frame->static_features = frame->static_features.Select(kept);
   std::vector<float> depths;
   depths.reserve(kept.size());
   for (uint32_t i : kept) depths.push_back(frame->static_depth_m[i]);
@@ -379,7 +376,7 @@ void PlaceDatabase::ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState&
   frame->counts.static_ -= uint32_t(removed.size());
 }
 
-void PlaceDatabase::Finish(ProcessedFrame* frame, Stopwatch* stage) const {
+Status PlaceDatabase::Finish(ProcessedFrame* frame, Stopwatch* stage) const {
   frame->stream_pending = false;
   frame->static_depth_m.clear();
   frame->valid = int(frame->counts.static_) > config_.filter.place_threshold;
@@ -387,17 +384,13 @@ void PlaceDatabase::Finish(ProcessedFrame* frame, Stopwatch* stage) const {
     // The paper's efficiency gain: an invalid representation is neither transformed, stored
     // nor matched.
     frame->rejection = InvalidReason(frame->counts, config_.filter.place_threshold);
-    return;
+    return Status::Ok();
   }
-  if (frame->feature_type == FeatureType::kSift) {
-    vocabulary_.floating()->Transform(frame->static_float_features.descriptors, &frame->bow,
-                                      &frame->direct, config_.verification.levels_up);
-  } else {
-    vocabulary_.binary()->Transform(frame->static_features.descriptors, &frame->bow, &frame->direct,
-                                    config_.verification.levels_up);
-  }
+  PLACEDB_RETURN_IF_ERROR(vocabulary_.Transform(frame->static_features, &frame->bow, &frame->direct,
+                                                config_.verification.levels_up));
   NormalizeForScoring(&frame->bow, config_.scoring);
   frame->timings.transform_ms += stage->Lap();
+  return Status::Ok();
 }
 
 Status PlaceDatabase::AdvanceStream(ProcessedFrame* frame, const std::string& agent_id) {
@@ -417,7 +410,7 @@ Status PlaceDatabase::AdvanceStream(ProcessedFrame* frame, const std::string& ag
     ApplyDepthBand(frame, state, config_.depth.filter.remove_features_without_depth);
   }
   frame->timings.depth_ms += stage.Lap();
-  Finish(frame, &stage);
+  PLACEDB_RETURN_IF_ERROR(Finish(frame, &stage));
   frame->timings.total_ms += frame->timings.depth_ms + frame->timings.transform_ms - before;
   return Status::Ok();
 }
@@ -493,11 +486,8 @@ Result<int> PlaceDatabase::VerifyLoop(const ProcessedFrame& frame, PlaceId place
   if (verification.mode == VerificationMode::kDisabled) {
     verification.mode = VerificationMode::kExhaustive;
   }
-  auto verified = frame.feature_type == FeatureType::kSift
-                      ? VerifyGeometry(frame.static_float_features, frame.direct,
-                                       (*payload)->float_features, (*payload)->direct, verification)
-                      : VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                                       (*payload)->direct, verification);
+  auto verified = VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
+                                 (*payload)->direct, verification);
   if (!verified.ok()) return verified.status();
   return verified->inliers;
 }
@@ -588,11 +578,10 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
   record->counts = frame.counts;
   record->boxes_used = frame.boxes_used;
   auto payload = std::make_shared<PlacePayload>();
-  if (frame.feature_type != config_.feature_type) {
+  if (frame.static_features.type() != config_.feature_type) {
     return Status::InvalidArgument("frame's features are not the database's type");
   }
   payload->features = frame.static_features;
-  payload->float_features = frame.static_float_features;
   payload->direct = frame.direct;
   payload->bow = frame.bow;
 
@@ -700,7 +689,7 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
   Stopwatch stage;
   std::vector<std::pair<ScoredPlace, std::shared_ptr<const PlaceRecord>>> candidates;
   // Per candidate: its DC features when the short-term tier holds them within the horizon.
-  std::vector<std::shared_ptr<const std::pair<FeatureSet, DirectIndex>>> recent_dynamic;
+  std::vector<std::shared_ptr<const std::pair<LocalFeatures, DirectIndex>>> recent_dynamic;
   {
     std::shared_lock lock(mutex_);
     std::function<bool(PlaceId)> accept;
@@ -746,24 +735,11 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
     if (i < to_verify) {
       auto payload = payloads_->Get(scored.place);
       if (!payload.ok()) continue;  // removed while we searched
-      Result<VerificationResult> verified = VerificationResult{};
-      if (frame.feature_type == FeatureType::kSift) {
-        verified = VerifyGeometry(frame.static_float_features, frame.direct,
-                                  (*payload)->float_features, (*payload)->direct, verification);
-      } else if (i < recent_dynamic.size() && recent_dynamic[i]) {
-        // Both frames' SC + DC features: the objects both saw are evidence.
-        const auto& [dynamic, dynamic_direct] = *recent_dynamic[i];
-        verified = VerifyGeometry(ConcatFeatures(frame.static_features, frame.dynamic_features),
-                                  MergeDirectIndices(frame.direct, frame.dynamic_direct,
-                                                     uint32_t(frame.static_features.size())),
-                                  ConcatFeatures((*payload)->features, dynamic),
-                                  MergeDirectIndices((*payload)->direct, dynamic_direct,
-                                                     uint32_t((*payload)->features.size())),
-                                  verification);
-      } else {
-        verified = VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                                  (*payload)->direct, verification);
-      }
+      const Result<VerificationResult> verified =
+          i < recent_dynamic.size() && recent_dynamic[i]
+              ? VerifyWithObjects(frame, **payload, *recent_dynamic[i], verification)
+              : VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
+                               (*payload)->direct, verification);
       if (verified.ok()) {
         match.inliers = verified->inliers;
         match.verified = verified->verified;
@@ -819,8 +795,7 @@ DatabaseStats PlaceDatabase::Stats() const {
     if (entry.dynamic_features) {
       const auto& [features, direct] = *entry.dynamic_features;
       stats.short_term_bytes +=
-          features.keypoints.capacity() * sizeof(Keypoint) +
-          features.descriptors.capacity() * sizeof(Descriptor256) +
+          features.MemoryBytes() +
           (direct.node_ids.capacity() + direct.offsets.capacity() + direct.feature_ids.capacity()) *
               sizeof(uint32_t);
     }
@@ -850,10 +825,10 @@ double DynamicShare(const FrameCounts& counts) {
 void PlaceDatabase::AddShortTermLocked(PlaceId place, const PlaceMetadata& metadata,
                                        const ProcessedFrame& frame) {
   if (!short_term_index_.Add(place, frame.dynamic_bow).ok()) return;
-  std::shared_ptr<const std::pair<FeatureSet, DirectIndex>> features;
+  std::shared_ptr<const std::pair<LocalFeatures, DirectIndex>> features;
   if (!frame.dynamic_features.empty()) {
-    features = std::make_shared<const std::pair<FeatureSet, DirectIndex>>(frame.dynamic_features,
-                                                                          frame.dynamic_direct);
+    features = std::make_shared<const std::pair<LocalFeatures, DirectIndex>>(frame.dynamic_features,
+                                                                             frame.dynamic_direct);
   }
   short_term_.emplace(place,
                       ShortTermEntry{metadata.timestamp_ns, metadata.agent_id, frame.dynamic_bow,

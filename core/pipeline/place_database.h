@@ -1,8 +1,8 @@
 // PlaceDatabase: one in-memory place database (a "map") and the frame pipeline in front of it.
 //
-// A frame goes: extract (ORB or SIFT, by the map's feature type, or the caller's precomputed
-// features) -> [depth: refine the dynamic boxes to the objects' depth layers] -> filter (DC/SC by
-// the dynamic objects) -> [depth, stream frames: Algorithm 1 of Deng et al. for the agent's
+// A frame goes: extract (the map's FeatureExtractor, ORB or SIFT, or the caller's precomputed
+// LocalFeatures) -> [depth: refine the dynamic boxes to the objects' depth layers] -> filter (DC/SC
+// by the dynamic objects) -> [depth, stream frames: Algorithm 1 of Deng et al. for the agent's
 // stream, AdvanceStream()] -> validity (|SC| > placeThreshold) -> transform (SC-only BoW vector
 // and direct index) -> store or search -> verify -> [loop closure for the agent's stream,
 // CloseLoop()]. An invalid frame is neither stored nor matched; the result says why. DC
@@ -32,8 +32,7 @@
 
 #include "core/base/status.h"
 #include "core/base/timing.h"
-#include "core/features/orb_features.h"
-#include "core/features/sift_features.h"
+#include "core/features/local_features.h"
 #include "core/filter/box_masks.h"
 #include "core/filter/depth_filter.h"
 #include "core/filter/dynamic_filter.h"
@@ -137,8 +136,8 @@ struct DepthObservation {
 // optionally depth.
 struct Observation {
   cv::Mat image;  // 8-bit gray or BGR; used when no precomputed features are given
-  std::optional<FeatureSet> features;             // ORB maps: precomputed ORB (validated)
-  std::optional<FloatFeatureSet> float_features;  // SIFT maps: precomputed SIFT (validated)
+  // Precomputed features (validated), of the map's feature type.
+  std::optional<LocalFeatures> features;
   std::optional<DepthObservation> depth;
   DynamicObjects dynamic;
   PlaceMetadata metadata;
@@ -164,20 +163,18 @@ enum class FrameRole {
 struct ProcessedFrame {
   FrameCounts counts;
   bool valid = false;
-  std::string rejection;  // why the frame is invalid; empty when valid
-  FeatureType feature_type = FeatureType::kOrb;
-  FeatureSet static_features;             // SC only (ORB maps)
-  FloatFeatureSet static_float_features;  // SC only (SIFT maps)
-  BowVector bow;                          // SC only, normalised for the database's scoring
-  DirectIndex direct;                     // SC only, at verification.levels_up
+  std::string rejection;          // why the frame is invalid; empty when valid
+  LocalFeatures static_features;  // SC only, of the map's feature type
+  BowVector bow;                  // SC only, normalised for the database's scoring
+  DirectIndex direct;             // SC only, at verification.levels_up
   std::vector<DynamicBox> boxes_used;
   StageTimings timings;
   // The short-term tier (config.short_term.enabled): the DC descriptors' BoW vector, normalised
-  // for the database's scoring, and (ORB maps) the DC features with their direct index, so that
-  // verification against a recent place can use the objects both frames saw; empty without DC
-  // descriptors.
+  // for the database's scoring, and (ORB maps: FeatureExtractor::verifies_dynamic_features) the
+  // DC features with their direct index, so that verification against a recent place can use the
+  // objects both frames saw; empty without DC descriptors.
   BowVector dynamic_bow;
-  FeatureSet dynamic_features;
+  LocalFeatures dynamic_features;
   DirectIndex dynamic_direct;
 
   // RGB-D. `depth_m` is the frame's depth in metres (CV_32F, 0 = invalid), empty without depth.
@@ -199,10 +196,9 @@ struct PlaceRecord {
 // The bulky part of a place: what verification and removal need. Kept by a PayloadStore, so a
 // persistent map can leave it on disk and read it only for the candidates it verifies.
 struct PlacePayload {
-  FeatureSet features;             // SC keypoints + descriptors (ORB maps)
-  FloatFeatureSet float_features;  // SC keypoints + descriptors (SIFT maps)
-  DirectIndex direct;              // at the database's verification.levels_up
-  BowVector bow;                   // normalised for the database's scoring
+  LocalFeatures features;  // SC keypoints + descriptors, of the map's feature type
+  DirectIndex direct;      // at the database's verification.levels_up
+  BowVector bow;           // normalised for the database's scoring
 };
 
 // Where PlaceDatabase keeps payloads. Implementations must allow concurrent Get() calls with
@@ -383,9 +379,15 @@ class PlaceDatabase {
 
  private:
   PlaceDatabase(AnyVocabulary vocabulary, DatabaseConfig config,
+                std::unique_ptr<const FeatureExtractor> extractor,
                 std::shared_ptr<PayloadStore> payloads);
+  // Extracts the map's features from the observation's pixels. With dynamic objects known and
+  // no depth, an extractor that budgets_static_pixels() spends its budget on the static pixels,
+  // after `refine(width, height)` has narrowed `dynamic`'s boxes to their objects.
+  Result<LocalFeatures> ExtractFromPixels(const Observation& observation, DynamicObjects* dynamic,
+                                          const std::function<Status(int, int)>& refine) const;
   // Validity, then the BoW vector and direct index of the SC features.
-  void Finish(ProcessedFrame* frame, Stopwatch* stage) const;
+  Status Finish(ProcessedFrame* frame, Stopwatch* stage) const;
   // Geometric verification of a loop: the frame against the stored place; the inlier count.
   Result<int> VerifyLoop(const ProcessedFrame& frame, PlaceId place) const;
   // Replays the agent's stored places, oldest first, into a new detector and binds them.
@@ -412,6 +414,7 @@ class PlaceDatabase {
 
   const AnyVocabulary vocabulary_;
   const DatabaseConfig config_;
+  const std::unique_ptr<const FeatureExtractor> extractor_;  // of config_.feature_type
   const std::shared_ptr<PayloadStore> payloads_;
   const std::unique_ptr<AgentStreams> streams_;
 
@@ -429,8 +432,8 @@ class PlaceDatabase {
     std::string agent_id;
     BowVector dynamic_bow;
     double dynamic_share = 0;  // DC descriptors / all descriptors of the frame
-    // ORB maps: the DC features and their direct index, for verification.
-    std::shared_ptr<const std::pair<FeatureSet, DirectIndex>> dynamic_features;
+    // The DC features and their direct index, for verification (when the family keeps them).
+    std::shared_ptr<const std::pair<LocalFeatures, DirectIndex>> dynamic_features;
   };
   InvertedIndex short_term_index_;
   std::unordered_map<PlaceId, ShortTermEntry> short_term_;

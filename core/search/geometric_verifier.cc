@@ -247,12 +247,13 @@ Status ValidateVerificationConfig(const VerificationConfig& config) {
   return Status::Ok();
 }
 
-Result<VerificationResult> VerifyGeometry(const FeatureSet& query, const DirectIndex& query_direct,
-                                          const FeatureSet& candidate,
-                                          const DirectIndex& candidate_direct,
-                                          const VerificationConfig& config) {
-  PLACEDB_RETURN_IF_ERROR(ValidateVerificationConfig(config));
-  if (config.mode == VerificationMode::kDisabled) return VerificationResult{};
+namespace {
+
+// Putative matches by Hamming distance (at most max_hamming), then RANSAC.
+Result<VerificationResult> VerifyBinary(const FeatureSet& query, const DirectIndex& query_direct,
+                                        const FeatureSet& candidate,
+                                        const DirectIndex& candidate_direct,
+                                        const VerificationConfig& config) {
   if (query.descriptors.size() != query.keypoints.size()) {
     return Status::InvalidArgument("query features: " + std::to_string(query.descriptors.size()) +
                                    " descriptors for " + std::to_string(query.keypoints.size()) +
@@ -270,13 +271,12 @@ Result<VerificationResult> VerifyGeometry(const FeatureSet& query, const DirectI
                      });
 }
 
-Result<VerificationResult> VerifyGeometry(const FloatFeatureSet& query,
-                                          const DirectIndex& query_direct,
-                                          const FloatFeatureSet& candidate,
-                                          const DirectIndex& candidate_direct,
-                                          const VerificationConfig& config) {
-  PLACEDB_RETURN_IF_ERROR(ValidateVerificationConfig(config));
-  if (config.mode == VerificationMode::kDisabled) return VerificationResult{};
+// Putative matches by L2 distance (max_hamming does not apply), then RANSAC.
+Result<VerificationResult> VerifyFloat(const FloatFeatureSet& query,
+                                       const DirectIndex& query_direct,
+                                       const FloatFeatureSet& candidate,
+                                       const DirectIndex& candidate_direct,
+                                       const VerificationConfig& config) {
   const auto check = [](const FloatFeatureSet& set, const char* which) {
     if (set.descriptors.size() != set.keypoints.size() * size_t(kSiftDimensions)) {
       return Status::InvalidArgument(
@@ -298,6 +298,26 @@ Result<VerificationResult> VerifyGeometry(const FloatFeatureSet& query,
                            sum += (a[k] - b[k]) * (a[k] - b[k]);
                          return std::sqrt(sum);
                        });
+}
+
+}  // namespace
+
+Result<VerificationResult> VerifyGeometry(const LocalFeatures& query,
+                                          const DirectIndex& query_direct,
+                                          const LocalFeatures& candidate,
+                                          const DirectIndex& candidate_direct,
+                                          const VerificationConfig& config) {
+  PLACEDB_RETURN_IF_ERROR(ValidateVerificationConfig(config));
+  if (config.mode == VerificationMode::kDisabled) return VerificationResult{};
+  if (query.orb() && candidate.orb()) {
+    return VerifyBinary(*query.orb(), query_direct, *candidate.orb(), candidate_direct, config);
+  }
+  if (query.sift() && candidate.sift()) {
+    return VerifyFloat(*query.sift(), query_direct, *candidate.sift(), candidate_direct, config);
+  }
+  return Status::InvalidArgument(std::string("cannot verify ") + FeatureTypeName(query.type()) +
+                                 " features against " + FeatureTypeName(candidate.type()) +
+                                 " features");
 }
 
 }  // namespace placedb

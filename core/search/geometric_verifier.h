@@ -11,8 +11,7 @@
 #include <string>
 
 #include "core/base/status.h"
-#include "core/features/orb_features.h"
-#include "core/features/sift_features.h"
+#include "core/features/local_features.h"
 #include "core/vocabulary/bow.h"
 
 namespace placedb {
@@ -49,19 +48,14 @@ struct VerificationResult {
   bool verified = false;
 };
 
-// Verifies `candidate` against `query`. For kDirectIndex both direct indices must have been
-// built at config.levels_up (INVALID_ARGUMENT otherwise); kExhaustive ignores them. Fewer than 8
+// Verifies `candidate` against `query` (features of one family: INVALID_ARGUMENT otherwise).
+// Putative matches: ORB by Hamming distance (at most max_hamming), SIFT by L2 distance; both
+// with the ratio test. For kDirectIndex both direct indices must have been built at
+// config.levels_up (INVALID_ARGUMENT otherwise); kExhaustive ignores them. Fewer than 8
 // putative matches means 0 inliers (a fundamental matrix needs 8 points).
-Result<VerificationResult> VerifyGeometry(const FeatureSet& query, const DirectIndex& query_direct,
-                                          const FeatureSet& candidate,
-                                          const DirectIndex& candidate_direct,
-                                          const VerificationConfig& config);
-
-// The same for SIFT: putative matches by L2 distance with the ratio test (max_hamming does not
-// apply), then the same RANSAC.
-Result<VerificationResult> VerifyGeometry(const FloatFeatureSet& query,
+Result<VerificationResult> VerifyGeometry(const LocalFeatures& query,
                                           const DirectIndex& query_direct,
-                                          const FloatFeatureSet& candidate,
+                                          const LocalFeatures& candidate,
                                           const DirectIndex& candidate_direct,
                                           const VerificationConfig& config);
 

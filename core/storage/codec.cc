@@ -730,6 +730,25 @@ Status DecodeFloatFeatures(std::string_view bytes, FloatFeatureSet* features, Di
   return Status::Ok();
 }
 
+std::string EncodeLocalFeatures(const LocalFeatures& features, const DirectIndex& direct) {
+  if (const FeatureSet* orb = features.orb()) return EncodeFeatures(*orb, direct);
+  return EncodeFloatFeatures(*features.sift(), direct);
+}
+
+Status DecodeLocalFeatures(std::string_view bytes, FeatureType type, LocalFeatures* features,
+                           DirectIndex* direct) {
+  if (type == FeatureType::kSift) {
+    FloatFeatureSet sift;
+    PLACEDB_RETURN_IF_ERROR(DecodeFloatFeatures(bytes, &sift, direct));
+    *features = std::move(sift);
+  } else {
+    FeatureSet orb;
+    PLACEDB_RETURN_IF_ERROR(DecodeFeatures(bytes, &orb, direct));
+    *features = std::move(orb);
+  }
+  return Status::Ok();
+}
+
 std::string EncodeDatabaseConfig(const DatabaseConfig& c) {
   Json j;
   j["format"] = kConfigFormat;

@@ -8,8 +8,7 @@
 #include <string_view>
 
 #include "core/base/status.h"
-#include "core/features/orb_features.h"
-#include "core/features/sift_features.h"
+#include "core/features/local_features.h"
 #include "core/pipeline/place_database.h"
 #include "core/vocabulary/bow.h"
 
@@ -40,6 +39,12 @@ Status DecodeFeatures(std::string_view bytes, FeatureSet* features, DirectIndex*
 // payload.
 std::string EncodeFloatFeatures(const FloatFeatureSet& features, const DirectIndex& direct);
 Status DecodeFloatFeatures(std::string_view bytes, FloatFeatureSet* features, DirectIndex* direct);
+
+// A map's features value, by the features' family (EncodeFeatures or EncodeFloatFeatures), and
+// back: `type` is the map's feature type, so a payload of the other family is CORRUPTION.
+std::string EncodeLocalFeatures(const LocalFeatures& features, const DirectIndex& direct);
+Status DecodeLocalFeatures(std::string_view bytes, FeatureType type, LocalFeatures* features,
+                           DirectIndex* direct);
 
 // Map configuration as JSON (readable with `ldb`, tolerant of added fields). Format 2 adds
 // feature_type, sift, depth and loop_closure; a missing key takes its default, so format-1

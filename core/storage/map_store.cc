@@ -272,9 +272,7 @@ namespace {
 
 // A place's features value, decoded by the map's feature type.
 Status DecodePayloadFeatures(FeatureType type, std::string_view bytes, PlacePayload* payload) {
-  return type == FeatureType::kSift
-             ? DecodeFloatFeatures(bytes, &payload->float_features, &payload->direct)
-             : DecodeFeatures(bytes, &payload->features, &payload->direct);
+  return DecodeLocalFeatures(bytes, type, &payload->features, &payload->direct);
 }
 
 // Payloads live in RocksDB: read on demand for verification and for loop closure's long-term
@@ -554,10 +552,10 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   if (!frame.valid) return StoreInvalid(frame, metadata);
   // Checked before writing: a batch the index then refused would leave an unindexed place.
   const DatabaseConfig& config = info_.options.database;
-  if (frame.feature_type != config.feature_type) {
+  if (frame.static_features.type() != config.feature_type) {
     return Status::InvalidArgument(std::string("frame's features are ") +
-                                   FeatureTypeName(frame.feature_type) + ", the map's are " +
-                                   FeatureTypeName(config.feature_type));
+                                   FeatureTypeName(frame.static_features.type()) +
+                                   ", the map's are " + FeatureTypeName(config.feature_type));
   }
   if (frame.direct.levels_up != config.verification.levels_up) {
     return Status::InvalidArgument("frame's direct index is at level " +
@@ -574,10 +572,7 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   rocksdb::WriteBatch batch;
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
-  batch.Put(storage_->cf(kFeatures), key,
-            frame.feature_type == FeatureType::kSift
-                ? EncodeFloatFeatures(frame.static_float_features, frame.direct)
-                : EncodeFeatures(frame.static_features, frame.direct));
+  batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
   PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch).WithContext("storing a place"));
   // Durable: now make it searchable.
   auto id = database_->Insert(frame, metadata, record.id);
@@ -680,10 +675,7 @@ Status PlaceMap::VerifyIntegrity() const {
     PLACEDB_RETURN_IF_ERROR(DecodePayloadFeatures(info_.options.database.feature_type,
                                                   its[2]->value().ToStringView(), &payload)
                                 .WithContext("place " + std::to_string(record->id)));
-    const size_t stored = info_.options.database.feature_type == FeatureType::kSift
-                              ? payload.float_features.size()
-                              : payload.features.size();
-    if (stored != record->counts.static_) {
+    if (payload.features.size() != record->counts.static_) {
       return Status::Corruption("place " + std::to_string(record->id) +
                                 ": stored features disagree with its counts");
     }

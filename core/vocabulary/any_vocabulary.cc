@@ -5,19 +5,8 @@
 
 namespace placedb {
 
-const char* FeatureTypeName(FeatureType type) {
-  return type == FeatureType::kSift ? "sift" : "orb";
-}
-
 const char* VocabularyKindName(FeatureType type) {
   return type == FeatureType::kSift ? "float (SIFT)" : "binary (ORB)";
-}
-
-Result<FeatureType> ParseFeatureType(const std::string& name) {
-  if (name == "orb") return FeatureType::kOrb;
-  if (name == "sift") return FeatureType::kSift;
-  return Status::InvalidArgument("feature type: unknown name '" + name +
-                                 "'; expected one of orb, sift");
 }
 
 AnyVocabulary::AnyVocabulary(std::shared_ptr<const Vocabulary> binary)
@@ -66,6 +55,20 @@ size_t AnyVocabulary::memory_bytes() const {
 }
 const char* AnyVocabulary::kind() const {
   return VocabularyKindName(feature_type());
+}
+
+Status AnyVocabulary::Transform(const LocalFeatures& features, BowVector* bow, DirectIndex* direct,
+                                int levels_up) const {
+  if (binary_ && features.orb()) {
+    binary_->Transform(features.orb()->descriptors, bow, direct, levels_up);
+  } else if (floating_ && features.sift()) {
+    floating_->Transform(features.sift()->descriptors, bow, direct, levels_up);
+  } else {
+    return Status::InvalidArgument(std::string(FeatureTypeName(features.type())) +
+                                   " features need a " + VocabularyKindName(features.type()) +
+                                   " vocabulary; this one is " + (*this ? kind() : "missing"));
+  }
+  return Status::Ok();
 }
 
 }  // namespace placedb

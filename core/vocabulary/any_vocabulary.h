@@ -1,7 +1,8 @@
 // AnyVocabulary: the vocabulary a map quantises with, binary (ORB, vocabulary.h) or float (SIFT,
 // float_vocabulary.h). A map is typed by its feature: the vocabulary's kind fixes which features
 // it takes. Both kinds produce the same BowVector / DirectIndex, so the inverted index, scoring,
-// storage of BoW vectors and loop closure do not care which one is behind it.
+// storage of BoW vectors and loop closure do not care which one is behind it; Transform() takes
+// the map's LocalFeatures and quantises them with the vocabulary of their family.
 //
 // A cheap value (a shared_ptr): copies share the vocabulary, never copy it. Implicitly built from
 // either shared_ptr, so code written for ORB maps keeps passing a Vocabulary.
@@ -12,15 +13,12 @@
 #include <string>
 
 #include "core/base/status.h"
+#include "core/features/local_features.h"
 #include "core/vocabulary/float_vocabulary.h"
 #include "core/vocabulary/vocabulary.h"
 
 namespace placedb {
 
-enum class FeatureType { kOrb, kSift };
-
-const char* FeatureTypeName(FeatureType type);                  // "orb", "sift"
-Result<FeatureType> ParseFeatureType(const std::string& name);  // "orb", "sift"
 // The kind of vocabulary a feature type needs, for messages: "binary (ORB)", "float (SIFT)".
 const char* VocabularyKindName(FeatureType type);
 
@@ -47,6 +45,12 @@ class AnyVocabulary {
   size_t memory_bytes() const;
   // "binary (ORB)" or "float (SIFT)": for messages.
   const char* kind() const;
+
+  // Quantises `features` into a weighted BoW vector and, when `direct` is given, the direct
+  // index at `levels_up` (Vocabulary::Transform). INVALID_ARGUMENT when the features are not of
+  // this vocabulary's feature type, or without a vocabulary.
+  Status Transform(const LocalFeatures& features, BowVector* bow, DirectIndex* direct,
+                   int levels_up) const;
 
  private:
   std::shared_ptr<const Vocabulary> binary_;
