@@ -1,18 +1,17 @@
 #include "eval/remote.h"
 
-#include <grpcpp/grpcpp.h>
 #include <unistd.h>
 
-#include <atomic>
 #include <chrono>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
+#include <optional>
 #include <sstream>
-#include <thread>
 
+#include "client/connection.h"
+#include "client/ingest_stream.h"
 #include "core/base/timing.h"
 #include "proto/convert_config.h"
-#include "proto/placedb.grpc.pb.h"
 #include "proto/status.h"
 
 namespace placedb::eval {
@@ -45,12 +44,9 @@ v1::MapConfig ToProto(const DatabaseConfig& config, bool filtering) {
 
 class ServerBackend final : public Backend {
  public:
-  ServerBackend(std::string address, std::shared_ptr<grpc::Channel> channel)
-      : address_(std::move(address)),
-        channel_(std::move(channel)),
-        stub_(v1::PlaceDb::NewStub(channel_)) {}
+  explicit ServerBackend(client::Connection connection) : connection_(std::move(connection)) {}
 
-  std::string Name() const override { return "server " + address_; }
+  std::string Name() const override { return "server " + connection_.options().address; }
 
   Status Prepare(const EvalInputs& inputs, int /*features*/) override {
     if (prepared_) return Status::Ok();
@@ -86,22 +82,23 @@ class ServerBackend final : public Backend {
     const std::string map =
         "placedb-eval-" + std::to_string(::getpid()) + "-" + std::to_string(counter_++);
     {
-      grpc::ClientContext context;
+      auto context = connection_.NewContext();
       v1::CreateMapRequest request;
       request.set_name(map);
       *request.mutable_config() = ToProto(config, filtering);
       v1::MapDescription description;
-      PLACEDB_RETURN_IF_ERROR(
-          wire::FromGrpc(stub_->CreateMap(&context, request, &description), "CreateMap " + map));
+      PLACEDB_RETURN_IF_ERROR(wire::FromGrpc(
+          connection_.stub()->CreateMap(context.get(), request, &description), "CreateMap " + map));
     }
     Status result = Fill(inputs, map, filtering);
     MethodRun run;
     if (result.ok()) {
-      grpc::ClientContext context;
+      auto context = connection_.NewContext();
       v1::GetMapRequest request;
       request.set_name(map);
       v1::MapDescription description;
-      result = wire::FromGrpc(stub_->GetMap(&context, request, &description), "GetMap " + map);
+      result = wire::FromGrpc(connection_.stub()->GetMap(context.get(), request, &description),
+                              "GetMap " + map);
       const v1::MapStats& stats = description.stats();
       run.database.places = stats.places();
       run.database.invalid = stats.invalid_rejected();
@@ -113,14 +110,14 @@ class ServerBackend final : public Backend {
     }
     const bool verification = config.verification.mode != VerificationMode::kDisabled;
     for (size_t q = 0; result.ok() && q < dataset.queries.size(); ++q) {
-      grpc::ClientContext context;
+      auto context = connection_.NewContext();
       v1::QueryRequest request;
       request.set_map(map);
       *request.mutable_observation() = Observe(inputs, q, true, filtering);
       request.mutable_options()->set_top_k(uint32_t(top_k));
       v1::QueryResponse response;
       Stopwatch watch;
-      result = wire::FromGrpc(stub_->Query(&context, request, &response),
+      result = wire::FromGrpc(connection_.stub()->Query(context.get(), request, &response),
                               "Query " + dataset.queries[q].id);
       const double ms = watch.ElapsedMs();
       if (!result.ok()) break;
@@ -138,12 +135,12 @@ class ServerBackend final : public Backend {
       run.queries.push_back(outcome);
     }
     {
-      grpc::ClientContext context;
+      auto context = connection_.NewContext();
       v1::DeleteMapRequest request;
       request.set_name(map);
       v1::DeleteMapResponse response;
-      const Status deleted =
-          wire::FromGrpc(stub_->DeleteMap(&context, request, &response), "DeleteMap " + map);
+      const Status deleted = wire::FromGrpc(
+          connection_.stub()->DeleteMap(context.get(), request, &response), "DeleteMap " + map);
       if (result.ok()) result = deleted;
     }
     if (!result.ok()) return result;
@@ -175,56 +172,43 @@ class ServerBackend final : public Backend {
     return o;
   }
 
-  // One Ingest stream with every database entry; a writer thread keeps the server fed while
-  // this thread reads the answers (the server applies backpressure).
+  // One Ingest stream with every database entry, in order. The window is the whole database: the
+  // server's backpressure alone paces the stream, so build_seconds measures the server.
   Status Fill(const EvalInputs& inputs, const std::string& map, bool filtering) {
     const Dataset& dataset = *inputs.dataset;
-    Stopwatch watch;
-    grpc::ClientContext context;
-    auto stream = stub_->Ingest(&context);
-    std::atomic<bool> write_failed{false};
-    std::thread writer([&] {
-      v1::IngestRequest header;
-      header.mutable_header()->set_map(map);
-      if (!stream->Write(header)) {
-        write_failed = true;
-        return;
-      }
-      for (size_t i = 0; i < dataset.database.size(); ++i) {
-        v1::IngestRequest request;
-        *request.mutable_observation() = Observe(inputs, i, false, filtering);
-        if (!stream->Write(request)) {
-          write_failed = true;
-          break;
-        }
-      }
-      stream->WritesDone();
-    });
-    v1::IngestResponse response;
-    Status first_error;
+    const size_t count = dataset.database.size();
+    v1::IngestHeader header;
+    header.set_map(map);
+    size_t sent = 0;
     size_t answered = 0;
-    while (stream->Read(&response)) {
-      ++answered;
-      if (response.has_error() && first_error.ok()) {
-        first_error =
-            wire::FromProto(response.error(), "ingesting " + dataset.database[response.index()].id);
-      }
-    }
-    writer.join();
-    const grpc::Status finished = stream->Finish();
+    Status first_error;
+    Stopwatch watch;
+    const grpc::Status finished = client::IngestStream::Run(
+        connection_, header, /*window=*/count,
+        [&](client::Outgoing* next) {
+          if (sent == count) return false;
+          next->observation = Observe(inputs, sent, false, filtering);
+          next->tag = sent++;
+          return true;
+        },
+        [&](const client::Answered& answer) {
+          ++answered;
+          if (answer.response.has_error() && first_error.ok()) {
+            first_error = wire::FromProto(answer.response.error(),
+                                          "ingesting " + dataset.database[answer.tag].id);
+          }
+        });
     build_seconds_ = watch.ElapsedMs() / 1000.0;
     PLACEDB_RETURN_IF_ERROR(wire::FromGrpc(finished, "Ingest into " + map));
     PLACEDB_RETURN_IF_ERROR(first_error);
-    if (write_failed || answered != dataset.database.size()) {
+    if (answered != count) {
       return Status::Internal("Ingest into " + map + ": " + std::to_string(answered) + " of " +
-                              std::to_string(dataset.database.size()) + " answered");
+                              std::to_string(count) + " answered");
     }
     return Status::Ok();
   }
 
-  const std::string address_;
-  std::shared_ptr<grpc::Channel> channel_;
-  std::unique_ptr<v1::PlaceDb::Stub> stub_;
+  const client::Connection connection_;
   bool prepared_ = false;
   std::vector<std::string> database_images_, query_images_;
   std::vector<std::string> database_masks_, query_masks_;
@@ -237,17 +221,20 @@ class ServerBackend final : public Backend {
 Result<std::unique_ptr<Backend>> MakeServerBackend(
     const std::string& address, std::shared_ptr<const Vocabulary> local_vocabulary,
     const std::function<void(const std::string&)>& log) {
-  grpc::ChannelArguments arguments;
-  arguments.SetMaxReceiveMessageSize(64 << 20);
-  arguments.SetMaxSendMessageSize(64 << 20);
-  auto channel = grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), arguments);
-  auto stub = v1::PlaceDb::NewStub(channel);
-  grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
-  context.set_wait_for_ready(true);
+  // No deadline on the backend's calls (a query takes what it takes); only the first call waits
+  // at most 10 s for the server to come up.
+  client::ConnectionOptions options;
+  options.address = address;
+  options.timeout_s = 0;
+  std::string error;
+  std::optional<client::Connection> connection = client::Connection::Open(options, &error);
+  if (!connection) return Status::FailedPrecondition(error);
+  auto context = connection->NewContext();
+  context->set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  context->set_wait_for_ready(true);
   v1::GetServerInfoRequest request;
   v1::ServerInfo info;
-  const grpc::Status status = stub->GetServerInfo(&context, request, &info);
+  const grpc::Status status = connection->stub()->GetServerInfo(context.get(), request, &info);
   if (!status.ok()) {
     return Status::FailedPrecondition("placedb-server at " + address +
                                       " does not answer: " + status.error_message());
@@ -262,7 +249,7 @@ Result<std::unique_ptr<Backend>> MakeServerBackend(
       }
     }
   }
-  return std::unique_ptr<Backend>(new ServerBackend(address, std::move(channel)));
+  return std::unique_ptr<Backend>(new ServerBackend(std::move(*connection)));
 }
 
 }  // namespace placedb::eval

@@ -1,7 +1,8 @@
 // The live-server backend of the harness: every grid point becomes a map on a running
 // placedb-server (proto/placedb.proto), filled with one Ingest stream of the database entries
 // (encoded image bytes as stored on disk, plus the run's boxes / mask PNG for BoBW+DO) and
-// queried with one Query RPC per query entry; the map is deleted afterwards.
+// queried with one Query RPC per query entry; the map is deleted afterwards. The calls go through
+// the CLI's client library (client/connection.h, client/ingest_stream.h).
 //
 // Figures: latency is the client's wall-clock round trip of each Query (decode, extraction,
 // filter, transform, search, verification and transport); database size is the map's files on
