@@ -64,19 +64,6 @@ json ParseJson(const CliRun& run) {
   return doc;
 }
 
-// A port on which nothing listens (bound, then released).
-int ClosedPort() {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  EXPECT_EQ(bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
-  socklen_t length = sizeof address;
-  getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length);
-  close(fd);
-  return ntohs(address.sin_port);
-}
-
 class ClientTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -402,7 +389,7 @@ TEST_F(ClientTest, InfoAndHealth) {
   // Tokens and TLS options are accepted (the server does not check tokens yet).
   EXPECT_EQ(Cli({"--token", "secret", "health"}).code, 0);
 
-  const std::string nowhere = "127.0.0.1:" + std::to_string(ClosedPort());
+  const std::string nowhere = "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
   CliRun unreachable = RunPlacedb({"--address", nowhere, "--timeout", "5", "health"});
   EXPECT_EQ(unreachable.code, 2);
   EXPECT_EQ(unreachable.out, "UNREACHABLE\n");

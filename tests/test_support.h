@@ -24,6 +24,9 @@ std::string MakeTempDir(const std::string& prefix);
 cv::Mat ReadGray(const std::string& path);  // fails the test if unreadable
 // The bytes of a file (ReadWholeFile); fails the test and returns "" if it cannot be read.
 std::string ReadFileBytes(const std::string& path);
+// A loopback TCP port nothing listens on (bound, then released): for a server to start on, or
+// for a client to fail to reach.
+int UnusedLoopbackPort();
 
 // CamVid (../shared/data/camvid).
 struct CamVidFrame {

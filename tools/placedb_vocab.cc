@@ -61,38 +61,6 @@ double SecondsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
-const char* ScoringLabel(ScoringType type) {
-  switch (type) {
-    case ScoringType::kL1:
-      return "l1";
-    case ScoringType::kL2:
-      return "l2";
-    case ScoringType::kChiSquare:
-      return "chi2";
-    case ScoringType::kKL:
-      return "kl";
-    case ScoringType::kBhattacharyya:
-      return "bhattacharyya";
-    case ScoringType::kDotProduct:
-      return "dot";
-  }
-  return "unknown";
-}
-
-const char* WeightingLabel(WeightingType type) {
-  switch (type) {
-    case WeightingType::kTfIdf:
-      return "tf-idf";
-    case WeightingType::kTf:
-      return "tf";
-    case WeightingType::kIdf:
-      return "idf";
-    case WeightingType::kBinary:
-      return "binary";
-  }
-  return "unknown";
-}
-
 // Walks argv as "--name value" pairs.
 class Arguments {
  public:
@@ -425,9 +393,9 @@ int RunInfo(Arguments& args) {
   std::printf("L:         %d\n", v.depth());
   std::printf("nodes:     %u\n", v.node_count());
   std::printf("words:     %u\n", v.word_count());
-  std::printf("scoring:   %s (%d)\n", ScoringLabel(v.default_scoring()),
+  std::printf("scoring:   %s (%d)\n", ScoringName(v.default_scoring()),
               static_cast<int>(v.default_scoring()));
-  std::printf("weighting: %s (%d)\n", WeightingLabel(v.weighting()),
+  std::printf("weighting: %s (%d)\n", WeightingName(v.weighting()),
               static_cast<int>(v.weighting()));
   std::printf("checksum:  %s\n", v.checksum_hex().c_str());
   std::printf("memory:    %.1f MB\n", double(v.memory_bytes()) / 1e6);

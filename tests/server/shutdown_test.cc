@@ -217,25 +217,13 @@ std::string ServerBinary() {
   return path.substr(0, path.rfind('/')) + "/server/placedb-server";
 }
 
-int FreePort() {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  EXPECT_EQ(bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
-  socklen_t length = sizeof address;
-  getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length);
-  close(fd);
-  return ntohs(address.sin_port);
-}
-
 // SIGTERM with streams open: the process drains, flushes and exits 0; the places are on disk.
 TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
   ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
   const std::string binary = ServerBinary();
   ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
   const std::string root = testing::MakeTempDir("placedb-binary");
-  const std::string address = "127.0.0.1:" + std::to_string(FreePort());
+  const std::string address = "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
   const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
   const std::string data = root + "/data";
   std::vector<std::string> args = {binary,     "--listen",         address, "--data-dir",
