@@ -4,7 +4,6 @@
 #include <filesystem>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <nlohmann/json.hpp>
 #include <thread>
 
@@ -13,6 +12,7 @@
 #include "client/ingest_stream.h"
 #include "client/progress.h"
 #include "client/queue.h"
+#include "core/base/thread_annotations.h"
 
 namespace placedb::client {
 
@@ -109,7 +109,8 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
                                     : options.agent_id + "-" + std::to_string(i + 1));
   }
 
-  std::mutex mutex;  // everything below, and io.out
+  // Everything below, and io.out. Locals cannot be GUARDED_BY (only members can).
+  Mutex mutex;
   std::vector<FrameRecord> records;
   records.reserve(source->total().value_or(0));
   std::vector<double> latencies;
@@ -147,12 +148,12 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
         ++sent;
         *outgoing = std::move(*item);
         outgoing->observation.set_timestamp_ns(UnixNowNs());
-        std::lock_guard lock(mutex);
+        MutexLock lock(mutex);
         records[outgoing->tag].sent = true;
         return true;
       };
       auto answered = [&](const Answered& answer) {
-        std::lock_guard lock(mutex);
+        MutexLock lock(mutex);
         FrameRecord& record = records[answer.tag];
         record.answered = true;
         record.latency_ms = answer.latency_ms;
@@ -220,7 +221,7 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
                                                     answered, [&] { queues[i]->Abort(); });
       queues[i]->Abort();  // whatever is left will not be sent
       if (!status.ok()) {
-        std::lock_guard lock(mutex);
+        MutexLock lock(mutex);
         stream_errors.emplace_back(agent_ids[i], status);
         ++errors_by_code[CodeName(int(status.error_code()))];
       }
@@ -239,7 +240,7 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
         record.local_error = error;
         ++local_errors;
         progress.Message("warning: " + error + " (skipped)");
-        std::lock_guard lock(mutex);
+        MutexLock lock(mutex);
         records.push_back(std::move(record));
         continue;
       }
@@ -252,7 +253,7 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
           record.local_error = error;
           ++local_errors;
           progress.Message("warning: " + error + " (skipped)");
-          std::lock_guard lock(mutex);
+          MutexLock lock(mutex);
           records.push_back(std::move(record));
           continue;
         }
@@ -266,7 +267,7 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
       record.agent = agent_ids[agent];
       record.sequence = options.sequence_start + frame.index;
       {
-        std::lock_guard lock(mutex);
+        MutexLock lock(mutex);
         outgoing.tag = records.size();
         records.push_back(std::move(record));
       }

@@ -6,7 +6,6 @@
 #include <fstream>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <thread>
@@ -17,6 +16,7 @@
 #include "client/loopback.h"
 #include "client/progress.h"
 #include "client/queue.h"
+#include "core/base/thread_annotations.h"
 #include "core/features/orb_features.h"
 
 namespace placedb::client {
@@ -222,7 +222,8 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
                                    : (options.duration_s > 0 ? 0 : uint64_t(templates.size()));
   const double query_ratio = std::clamp(options.query_ratio, 0.0, 1.0);
 
-  std::mutex mutex;  // stats below
+  // Stats below. Locals cannot be GUARDED_BY (only members can).
+  Mutex mutex;
   KindStats ingest, query;
   std::vector<std::pair<std::string, grpc::Status>> stream_errors;
   Clock::time_point last_answer;
@@ -262,7 +263,7 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
             const grpc::Status status =
                 connection->stub()->Query(context.get(), request, &response);
             const Clock::time_point now = Clock::now();
-            std::lock_guard lock(mutex);
+            MutexLock lock(mutex);
             ++query.count;
             query.latency_ms.push_back(MsBetween(job->due.value_or(sent), now));
             if (status.ok()) {
@@ -306,7 +307,7 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
       auto answered = [&](const Answered& answer) {
         const Clock::time_point now = Clock::now();
         const v1::IngestResponse& response = answer.response;
-        std::lock_guard lock(mutex);
+        MutexLock lock(mutex);
         ++ingest.count;
         ingest.latency_ms.push_back(answer.latency_ms);
         if (response.has_error()) {
@@ -330,7 +331,7 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
       queries.Finish();
       if (querier.joinable()) querier.join();
       if (!status.ok()) {
-        std::lock_guard lock(mutex);
+        MutexLock lock(mutex);
         stream_errors.emplace_back(options.agent_prefix + "-" + std::to_string(i + 1), status);
         ++ingest.errors_by_code[CodeName(int(status.error_code()))];
       }

@@ -136,12 +136,12 @@ PlaceDbService::~PlaceDbService() = default;
 class PlaceDbService::CallScope {
  public:
   explicit CallScope(PlaceDbService* service) : service_(service) {
-    std::lock_guard lock(service_->calls_mutex_);
+    MutexLock lock(service_->calls_mutex_);
     ++service_->calls_in_flight_;
   }
   ~CallScope() {
-    std::lock_guard lock(service_->calls_mutex_);
-    if (--service_->calls_in_flight_ == 0) service_->calls_idle_.notify_all();
+    MutexLock lock(service_->calls_mutex_);
+    if (--service_->calls_in_flight_ == 0) service_->calls_idle_.NotifyAll();
   }
   CallScope(const CallScope&) = delete;
   CallScope& operator=(const CallScope&) = delete;
@@ -151,8 +151,11 @@ class PlaceDbService::CallScope {
 };
 
 bool PlaceDbService::WaitIdle(std::chrono::steady_clock::time_point deadline) {
-  std::unique_lock lock(calls_mutex_);
-  return calls_idle_.wait_until(lock, deadline, [&] { return calls_in_flight_ == 0; });
+  MutexLock lock(calls_mutex_);
+  while (calls_in_flight_ != 0) {
+    if (!calls_idle_.WaitUntil(calls_mutex_, deadline)) return calls_in_flight_ == 0;
+  }
+  return true;
 }
 
 grpc::Status PlaceDbService::Finish(const char* method, grpc::ServerContext* context,
@@ -628,14 +631,14 @@ grpc::Status PlaceDbService::Ingest(
 
   // The header names the map.
   {
-    std::lock_guard lock(streams_mutex_);
+    MutexLock lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
     awaiting_header_.insert(context);
   }
   v1::IngestRequest first;
   const bool read_header = io->Read(&first);
   {
-    std::lock_guard lock(streams_mutex_);
+    MutexLock lock(streams_mutex_);
     awaiting_header_.erase(context);
   }
   if (!read_header) {
@@ -657,7 +660,7 @@ grpc::Status PlaceDbService::Ingest(
   if (first.header().has_matches()) stream.header_matches = first.header().matches();
   stream.loop_closure = first.header().loop_closure();
   {
-    std::lock_guard lock(streams_mutex_);
+    MutexLock lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
     if (streams_.size() >= limits.max_concurrent_streams) {
       return Finish("Ingest", context,
@@ -673,7 +676,7 @@ grpc::Status PlaceDbService::Ingest(
                stream.map->name, stream.loop_closure);
 
   // The writer: responses in order, as they complete.
-  std::thread writer([this, &stream] {
+  std::thread writer([&stream] {
     std::unique_lock lock(stream.mutex);
     while (true) {
       stream.changed.wait(lock, [&] {
@@ -786,7 +789,7 @@ grpc::Status PlaceDbService::Ingest(
   }
   writer.join();
   {
-    std::lock_guard lock(streams_mutex_);
+    MutexLock lock(streams_mutex_);
     streams_.erase(&stream);
   }
   metrics_->StreamClosed();
@@ -803,7 +806,7 @@ grpc::Status PlaceDbService::Ingest(
 // ---- Shutdown and gauges ------------------------------------------------------------------------
 
 void PlaceDbService::BeginDrain() {
-  std::lock_guard lock(streams_mutex_);
+  MutexLock lock(streams_mutex_);
   draining_ = true;
   draining_flag_ = true;
   for (grpc::ServerContext* context : awaiting_header_) context->TryCancel();
