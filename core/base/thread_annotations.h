@@ -81,8 +81,9 @@ namespace placedb {
 
 class CondVar;
 
-// std::mutex as a capability. The lower-case lock()/unlock() make it BasicLockable, for the
-// rare caller that needs a std algorithm (std::scoped_lock over two mutexes).
+// std::mutex as a capability. The lower-case lock()/unlock() make it BasicLockable, so
+// std::condition_variable_any and std::scoped_lock accept it (but the analysis cannot see
+// their holds: prefer MutexLock and CondVar).
 class CAPABILITY("mutex") Mutex {
  public:
   Mutex() = default;
@@ -91,7 +92,6 @@ class CAPABILITY("mutex") Mutex {
 
   void Lock() ACQUIRE() { mutex_.lock(); }
   void Unlock() RELEASE() { mutex_.unlock(); }
-  bool TryLock() TRY_ACQUIRE(true) { return mutex_.try_lock(); }
   void lock() ACQUIRE() { mutex_.lock(); }
   void unlock() RELEASE() { mutex_.unlock(); }
 
@@ -165,7 +165,7 @@ class CAPABILITY("shared mutex") SharedMutex {
   void Unlock() RELEASE() { mutex_.unlock(); }
   void ReaderLock() ACQUIRE_SHARED() { mutex_.lock_shared(); }
   void ReaderUnlock() RELEASE_SHARED() { mutex_.unlock_shared(); }
-  // SharedLockable, for std algorithms.
+  // SharedLockable, as Mutex's lower-case pair.
   void lock() ACQUIRE() { mutex_.lock(); }
   void unlock() RELEASE() { mutex_.unlock(); }
   void lock_shared() ACQUIRE_SHARED() { mutex_.lock_shared(); }
@@ -179,20 +179,12 @@ class CAPABILITY("shared mutex") SharedMutex {
 class SCOPED_CAPABILITY WriterLock {
  public:
   explicit WriterLock(SharedMutex& mutex) ACQUIRE(mutex) : mutex_(mutex) { mutex_.Lock(); }
-  ~WriterLock() RELEASE() {
-    if (held_) mutex_.Unlock();
-  }
+  ~WriterLock() RELEASE() { mutex_.Unlock(); }
   WriterLock(const WriterLock&) = delete;
   WriterLock& operator=(const WriterLock&) = delete;
 
-  void Unlock() RELEASE() {
-    mutex_.Unlock();
-    held_ = false;
-  }
-
  private:
   SharedMutex& mutex_;
-  bool held_ = true;
 };
 
 // Shared hold of a SharedMutex for a scope.
