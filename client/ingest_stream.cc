@@ -1,9 +1,9 @@
 #include "client/ingest_stream.h"
 
-#include <condition_variable>
 #include <deque>
-#include <mutex>
 #include <thread>
+
+#include "core/base/thread_annotations.h"
 
 namespace placedb::client {
 
@@ -17,11 +17,14 @@ grpc::Status IngestStream::Run(const Connection& connection, const v1::IngestHea
   auto context = connection.NewContext(/*unary=*/false);
   auto stream = connection.stub()->Ingest(context.get());
 
-  std::mutex mutex;
-  std::condition_variable changed;
-  std::deque<Pending> pending;
-  bool reader_done = false;
-  bool writer_done = false;
+  // Between the writer thread and this (reader) thread; a struct so the analysis knows the lock.
+  struct Shared {
+    Mutex mutex;
+    CondVar changed;
+    std::deque<Pending> pending GUARDED_BY(mutex);
+    bool reader_done GUARDED_BY(mutex) = false;
+    bool writer_done GUARDED_BY(mutex) = false;
+  } shared;
   window = std::max<size_t>(window, 1);
 
   std::thread writer([&] {
@@ -30,15 +33,17 @@ grpc::Status IngestStream::Run(const Connection& connection, const v1::IngestHea
     if (stream->Write(request)) {
       while (true) {
         {
-          std::unique_lock lock(mutex);
-          changed.wait(lock, [&] { return pending.size() < window || reader_done; });
-          if (reader_done) break;
+          MutexLock lock(shared.mutex);
+          while (shared.pending.size() >= window && !shared.reader_done) {
+            shared.changed.Wait(shared.mutex);
+          }
+          if (shared.reader_done) break;
         }
         Outgoing outgoing;
         if (!next(&outgoing)) {
           {
-            std::lock_guard lock(mutex);
-            writer_done = true;
+            MutexLock lock(shared.mutex);
+            shared.writer_done = true;
           }
           stream->WritesDone();
           break;
@@ -46,40 +51,42 @@ grpc::Status IngestStream::Run(const Connection& connection, const v1::IngestHea
         request.Clear();
         *request.mutable_observation() = std::move(outgoing.observation);
         {
-          std::lock_guard lock(mutex);
-          if (reader_done) break;
-          pending.push_back({outgoing.tag, outgoing.due.value_or(Clock::now())});
+          MutexLock lock(shared.mutex);
+          if (shared.reader_done) break;
+          shared.pending.push_back({outgoing.tag, outgoing.due.value_or(Clock::now())});
         }
         if (!stream->Write(request)) break;  // the stream is over; Finish() says why
       }
     }
-    std::lock_guard lock(mutex);
-    writer_done = true;
+    MutexLock lock(shared.mutex);
+    shared.writer_done = true;
   });
 
   v1::IngestResponse response;
   while (stream->Read(&response)) {
     Answered out;
     {
-      std::lock_guard lock(mutex);
-      if (pending.empty()) continue;  // a response for nothing sent: the server's bug, not ours
-      out.tag = pending.front().tag;
+      MutexLock lock(shared.mutex);
+      // A response for nothing sent: the server's bug, not ours.
+      if (shared.pending.empty()) continue;
+      out.tag = shared.pending.front().tag;
       out.latency_ms =
-          std::chrono::duration<double, std::milli>(Clock::now() - pending.front().start).count();
-      pending.pop_front();
+          std::chrono::duration<double, std::milli>(Clock::now() - shared.pending.front().start)
+              .count();
+      shared.pending.pop_front();
     }
-    changed.notify_all();
+    shared.changed.NotifyAll();
     out.response = std::move(response);
     answered(out);
     response.Clear();
   }
   bool call_broken = false;
   {
-    std::lock_guard lock(mutex);
-    reader_done = true;
-    call_broken = !writer_done;
+    MutexLock lock(shared.mutex);
+    shared.reader_done = true;
+    call_broken = !shared.writer_done;
   }
-  changed.notify_all();
+  shared.changed.NotifyAll();
   // The server ended the stream before we were done sending: the writer's Write fails and the
   // window wait ends by themselves; `next` may be blocked in the caller's code.
   if (call_broken && on_broken) on_broken();

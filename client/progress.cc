@@ -43,11 +43,11 @@ std::string Progress::Render(bool final) const {
 }
 
 void Progress::Loop() {
-  std::unique_lock lock(mutex_);
+  MutexLock lock(mutex_);
   const auto interval =
       tty_ ? std::chrono::duration<double>(0.1) : std::chrono::duration<double>(line_interval_s_);
   while (!stopped_) {
-    wake_.wait_for(lock, interval);
+    wake_.WaitFor(mutex_, interval);
     if (stopped_) break;
     const std::string text = Render(false);
     if (tty_) {
@@ -62,7 +62,7 @@ void Progress::Loop() {
 }
 
 void Progress::Message(const std::string& line) {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   if (tty_ && drawn_width_ > 0) {
     err_ << '\r' << std::string(drawn_width_, ' ') << '\r';
     drawn_width_ = 0;
@@ -72,13 +72,13 @@ void Progress::Message(const std::string& line) {
 
 void Progress::Stop() {
   {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     if (stopped_) return;
     stopped_ = true;
   }
-  wake_.notify_all();
+  wake_.NotifyAll();
   thread_.join();
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   const std::string text = Render(true);
   if (tty_) {
     err_ << '\r' << text

@@ -3,14 +3,13 @@
 #pragma once
 
 #include <atomic>
-#include <condition_variable>
-#include <mutex>
 #include <optional>
 #include <ostream>
 #include <string>
 #include <thread>
 
 #include "client/connection.h"
+#include "core/base/thread_annotations.h"
 
 namespace placedb::client {
 
@@ -27,19 +26,19 @@ class Progress {
   void Stop();
 
  private:
-  void Loop();
+  void Loop() EXCLUDES(mutex_);
   std::string Render(bool final) const;
 
-  std::ostream& err_;
+  std::ostream& err_ GUARDED_BY(mutex_);
   const bool tty_;
   const std::optional<size_t> total_;
   const double line_interval_s_;
   const Clock::time_point start_ = Clock::now();
-  std::atomic<size_t> done_{0};
-  std::mutex mutex_;  // err_, stopped_
-  std::condition_variable wake_;
-  bool stopped_ = false;
-  size_t drawn_width_ = 0;
+  std::atomic<size_t> done_{0};  // atomic: Add() takes no lock
+  Mutex mutex_;
+  CondVar wake_;
+  bool stopped_ GUARDED_BY(mutex_) = false;
+  size_t drawn_width_ GUARDED_BY(mutex_) = 0;
   std::thread thread_;
 };
 

@@ -1,10 +1,10 @@
 // A bounded blocking queue between a producer (frame reader) and an agent's stream writer.
 #pragma once
 
-#include <condition_variable>
 #include <deque>
-#include <mutex>
 #include <optional>
+
+#include "core/base/thread_annotations.h"
 
 namespace placedb::client {
 
@@ -15,50 +15,50 @@ class BoundedQueue {
 
   // Blocks while full. False when the queue was aborted (the item is dropped).
   bool Push(T item) {
-    std::unique_lock lock(mutex_);
-    changed_.wait(lock, [&] { return items_.size() < capacity_ || aborted_; });
+    MutexLock lock(mutex_);
+    while (items_.size() >= capacity_ && !aborted_) changed_.Wait(mutex_);
     if (aborted_) return false;
     items_.push_back(std::move(item));
-    changed_.notify_all();
+    changed_.NotifyAll();
     return true;
   }
 
   // Blocks while empty; nullopt once finished and drained, or aborted.
   std::optional<T> Pop() {
-    std::unique_lock lock(mutex_);
-    changed_.wait(lock, [&] { return !items_.empty() || finished_ || aborted_; });
+    MutexLock lock(mutex_);
+    while (items_.empty() && !finished_ && !aborted_) changed_.Wait(mutex_);
     if (aborted_ || items_.empty()) return std::nullopt;
     T item = std::move(items_.front());
     items_.pop_front();
-    changed_.notify_all();
+    changed_.NotifyAll();
     return item;
   }
 
   // No more pushes: Pop drains what is left, then returns nullopt.
   void Finish() {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     finished_ = true;
-    changed_.notify_all();
+    changed_.NotifyAll();
   }
 
   // The consumer is gone: pushes fail, pops return nullopt, queued items are dropped. Returns how
   // many were dropped.
   size_t Abort() {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     aborted_ = true;
     const size_t dropped = items_.size();
     items_.clear();
-    changed_.notify_all();
+    changed_.NotifyAll();
     return dropped;
   }
 
  private:
   const size_t capacity_;
-  std::mutex mutex_;
-  std::condition_variable changed_;
-  std::deque<T> items_;
-  bool finished_ = false;
-  bool aborted_ = false;
+  Mutex mutex_;
+  CondVar changed_;
+  std::deque<T> items_ GUARDED_BY(mutex_);
+  bool finished_ GUARDED_BY(mutex_) = false;
+  bool aborted_ GUARDED_BY(mutex_) = false;
 };
 
 }  // namespace placedb::client

@@ -6,7 +6,6 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <mutex>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -14,6 +13,7 @@
 
 #include "core/base/parallel.h"
 #include "core/base/stats.h"
+#include "core/base/thread_annotations.h"
 #include "core/base/timing.h"
 #include "core/features/orb_features.h"
 #include "core/storage/codec.h"
@@ -191,9 +191,11 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
     std::vector<Detection> found(missing.size());
     std::vector<Status> errors(missing.size());
     // Progress every 25 images and at the end: images done / total, mean ms per image.
-    std::mutex progress_mutex;
-    size_t done = 0;
-    double done_ms = 0;
+    struct {
+      Mutex mutex;
+      size_t done GUARDED_BY(mutex) = 0;
+      double done_ms GUARDED_BY(mutex) = 0;
+    } progress;
     ParallelFor(missing.size(), options.threads, [&](size_t i, int) {
       const std::string& path = missing[i].second;
       cv::Mat bgr = cv::imread(path, cv::IMREAD_COLOR);
@@ -209,13 +211,13 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
           errors[i] = boxes.status().WithContext(path);
         }
       }
-      std::lock_guard<std::mutex> lock(progress_mutex);
-      ++done;
-      done_ms += found[i].ms;
+      MutexLock lock(progress.mutex);
+      const size_t done = ++progress.done;
+      progress.done_ms += found[i].ms;
       if (done % 25 == 0 || done == missing.size()) {
         char line[128];
         std::snprintf(line, sizeof(line), "detection: %zu/%zu images, mean %.1f ms per image", done,
-                      missing.size(), done_ms / double(done));
+                      missing.size(), progress.done_ms / double(done));
         Log(options, line);
       }
     });

@@ -35,6 +35,8 @@ Result<std::unique_ptr<MapRegistry>> MapRegistry::Open(const std::string& data_d
   if (!directory.ok()) return directory.status().WithContext("data directory " + data_dir);
   std::unique_ptr<MapRegistry> registry(
       new MapRegistry(std::move(directory).value(), std::move(vocabularies), std::move(missing)));
+  // Not shared yet, so uncontended; held because Load() and maps_ require them.
+  MutexLock create_lock(registry->create_mutex_);
   for (const std::string& name : registry->directory_->ListMaps()) {
     auto entry = registry->Load(name);
     if (entry->map) {
@@ -45,6 +47,7 @@ Result<std::unique_ptr<MapRegistry>> MapRegistry::Open(const std::string& data_d
     } else {
       spdlog::warn("map '{}' unavailable: {}", name, entry->unavailable_reason);
     }
+    MutexLock lock(registry->mutex_);
     registry->maps_[name] = std::move(entry);
   }
   return registry;
@@ -131,7 +134,7 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Get(const std::string& name
   if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
     return Status::InvalidArgument(field + ": " + valid.message());
   }
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   auto it = maps_.find(name);
   if (it == maps_.end()) return Status::NotFound("map '" + name + "' not found");
   if (!it->second->map) {
@@ -152,10 +155,10 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Create(const std::string& n
   if (!resolved.ok()) return resolved.status();
   const VocabularyEntry* vocabulary = *resolved;
   const std::string& vocab_name = vocabulary->name;
-  std::lock_guard create_lock(create_mutex_);
+  MutexLock create_lock(create_mutex_);
   if (!directory_) return Status::IoError("the data directory is closed (shutting down)");
   {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     if (maps_.count(name)) return Status::AlreadyExists("map '" + name + "' already exists");
   }
   MapOptions stored = options;
@@ -167,7 +170,7 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Create(const std::string& n
   entry->map = std::move(map).value();
   entry->vocabulary_name = vocab_name;
   entry->settings = settings;
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   maps_[name] = entry;
   return std::shared_ptr<const MapEntry>(entry);
 }
@@ -176,23 +179,23 @@ Status MapRegistry::Delete(const std::string& name) {
   if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
     return Status::InvalidArgument("name: " + valid.message());
   }
-  std::lock_guard create_lock(create_mutex_);
+  MutexLock create_lock(create_mutex_);
   if (!directory_) return Status::IoError("the data directory is closed (shutting down)");
   {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     if (!maps_.count(name)) return Status::NotFound("map '" + name + "' not found");
   }
   // The directory refuses further writes to the map; in-flight holders keep it until done.
   PLACEDB_RETURN_IF_ERROR(directory_->DeleteMap(name));
   {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     maps_.erase(name);
   }
   return Status::Ok();
 }
 
 std::vector<std::shared_ptr<const MapEntry>> MapRegistry::List() const {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   std::vector<std::shared_ptr<const MapEntry>> out;
   out.reserve(maps_.size());
   for (const auto& [name, entry] : maps_) out.push_back(entry);
@@ -200,10 +203,10 @@ std::vector<std::shared_ptr<const MapEntry>> MapRegistry::List() const {
 }
 
 void MapRegistry::CloseAll() {
-  std::lock_guard create_lock(create_mutex_);
+  MutexLock create_lock(create_mutex_);
   std::map<std::string, std::shared_ptr<const MapEntry>> maps;
   {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     maps.swap(maps_);
   }
   maps.clear();  // the last holder of each map flushes and closes its RocksDB

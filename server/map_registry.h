@@ -16,10 +16,10 @@
 
 #include <map>
 #include <memory>
-#include <mutex>
 #include <string>
 #include <vector>
 
+#include "core/base/thread_annotations.h"
 #include "core/storage/map_store.h"
 #include "core/vocabulary/any_vocabulary.h"
 #include "server/convert.h"
@@ -83,17 +83,17 @@ class MapRegistry {
   MapRegistry(std::unique_ptr<DataDirectory> directory, std::vector<VocabularyEntry> vocabularies,
               std::vector<MissingVocabulary> missing);
   std::string MissingNote() const;  // "; not loaded: sift (path: reason)" or ""
-  std::shared_ptr<const MapEntry> Load(const std::string& name);
+  std::shared_ptr<const MapEntry> Load(const std::string& name) REQUIRES(create_mutex_);
   // The service's per-map settings, kept in the map's own info (MapOptions::service_json).
   static ServiceMapSettings DecodeSettings(const std::string& name, const std::string& text);
   static std::string EncodeSettings(const ServiceMapSettings& settings);
 
-  std::unique_ptr<DataDirectory> directory_;
+  std::unique_ptr<DataDirectory> directory_ GUARDED_BY(create_mutex_);  // null once closed
   const std::vector<VocabularyEntry> vocabularies_;
   const std::vector<MissingVocabulary> missing_;
-  std::mutex create_mutex_;  // serialises Create/Delete
-  mutable std::mutex mutex_;
-  std::map<std::string, std::shared_ptr<const MapEntry>> maps_;
+  Mutex create_mutex_;  // serialises Create/Delete
+  mutable Mutex mutex_ ACQUIRED_AFTER(create_mutex_);
+  std::map<std::string, std::shared_ptr<const MapEntry>> maps_ GUARDED_BY(mutex_);
 };
 
 }  // namespace placedb::server

@@ -191,9 +191,9 @@ Server::~Server() {
 
 void Server::Shutdown() {
   {
-    std::unique_lock lock(shutdown_mutex_);
+    MutexLock lock(shutdown_mutex_);
     if (shutdown_started_) {
-      shutdown_done_.wait(lock, [&] { return shutdown_finished_; });
+      while (!shutdown_finished_) shutdown_done_.Wait(shutdown_mutex_);
       return;
     }
     shutdown_started_ = true;
@@ -223,14 +223,14 @@ void Server::Shutdown() {
   if (maps_) maps_->CloseAll();  // flushes and closes RocksDB
   spdlog::info("shutdown complete in {:.3f} s",
                std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());
-  std::lock_guard lock(shutdown_mutex_);
+  MutexLock lock(shutdown_mutex_);
   shutdown_finished_ = true;
-  shutdown_done_.notify_all();
+  shutdown_done_.NotifyAll();
 }
 
 void Server::Wait() {
-  std::unique_lock lock(shutdown_mutex_);
-  shutdown_done_.wait(lock, [&] { return shutdown_finished_; });
+  MutexLock lock(shutdown_mutex_);
+  while (!shutdown_finished_) shutdown_done_.Wait(shutdown_mutex_);
 }
 
 }  // namespace placedb::server

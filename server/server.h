@@ -7,13 +7,12 @@
 //                        // shutdown_deadline_s), close maps (flush)
 #pragma once
 
-#include <condition_variable>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <string>
 
 #include "core/base/status.h"
+#include "core/base/thread_annotations.h"
 #include "core/detect/detector.h"
 #include "core/vocabulary/any_vocabulary.h"
 #include "server/config.h"
@@ -68,10 +67,10 @@ class Server {
   int port_ = 0;
   int metrics_port_ = 0;
 
-  std::mutex shutdown_mutex_;
-  std::condition_variable shutdown_done_;
-  bool shutdown_started_ = false;
-  bool shutdown_finished_ = false;
+  Mutex shutdown_mutex_;
+  CondVar shutdown_done_;
+  bool shutdown_started_ GUARDED_BY(shutdown_mutex_) = false;
+  bool shutdown_finished_ GUARDED_BY(shutdown_mutex_) = false;
 };
 
 // Loads a detector as config.detector describes (null when no model is configured).

@@ -101,12 +101,12 @@ PlaceDbService::~PlaceDbService() = default;
 class PlaceDbService::CallScope {
  public:
   explicit CallScope(PlaceDbService* service) : service_(service) {
-    std::lock_guard lock(service_->calls_mutex_);
+    MutexLock lock(service_->calls_mutex_);
     ++service_->calls_in_flight_;
   }
   ~CallScope() {
-    std::lock_guard lock(service_->calls_mutex_);
-    if (--service_->calls_in_flight_ == 0) service_->calls_idle_.notify_all();
+    MutexLock lock(service_->calls_mutex_);
+    if (--service_->calls_in_flight_ == 0) service_->calls_idle_.NotifyAll();
   }
   CallScope(const CallScope&) = delete;
   CallScope& operator=(const CallScope&) = delete;
@@ -116,8 +116,11 @@ class PlaceDbService::CallScope {
 };
 
 bool PlaceDbService::WaitIdle(std::chrono::steady_clock::time_point deadline) {
-  std::unique_lock lock(calls_mutex_);
-  return calls_idle_.wait_until(lock, deadline, [&] { return calls_in_flight_ == 0; });
+  MutexLock lock(calls_mutex_);
+  while (calls_in_flight_ != 0) {
+    if (!calls_idle_.WaitUntil(calls_mutex_, deadline)) return calls_in_flight_ == 0;
+  }
+  return true;
 }
 
 grpc::Status PlaceDbService::Finish(const char* method, grpc::ServerContext* context,
@@ -622,14 +625,14 @@ grpc::Status PlaceDbService::Ingest(
 
   // The header names the map.
   {
-    std::lock_guard lock(streams_mutex_);
+    MutexLock lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
     awaiting_header_.insert(context);
   }
   v1::IngestRequest first;
   const bool read_header = io->Read(&first);
   {
-    std::lock_guard lock(streams_mutex_);
+    MutexLock lock(streams_mutex_);
     awaiting_header_.erase(context);
   }
   if (!read_header) {
@@ -660,7 +663,7 @@ grpc::Status PlaceDbService::Ingest(
                            .interrupt = [context] { context->TryCancel(); }});
   stream.pipeline = &pipeline;
   {
-    std::lock_guard lock(streams_mutex_);
+    MutexLock lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
     if (streams_.size() >= limits.max_concurrent_streams) {
       return Finish("Ingest", context,
@@ -728,7 +731,7 @@ grpc::Status PlaceDbService::Ingest(
   // call returns: the workers reference this stream.
   pipeline.Close();
   {
-    std::lock_guard lock(streams_mutex_);
+    MutexLock lock(streams_mutex_);
     streams_.erase(&stream);
   }
   metrics_->StreamClosed();
@@ -745,7 +748,7 @@ grpc::Status PlaceDbService::Ingest(
 // ---- Shutdown and gauges ------------------------------------------------------------------------
 
 void PlaceDbService::BeginDrain() {
-  std::lock_guard lock(streams_mutex_);
+  MutexLock lock(streams_mutex_);
   draining_ = true;
   draining_flag_ = true;
   for (grpc::ServerContext* context : awaiting_header_) context->TryCancel();

@@ -23,6 +23,7 @@
 #include <set>
 #include <string>
 
+#include "core/base/thread_annotations.h"
 #include "core/detect/detector.h"
 #include "proto/placedb.grpc.pb.h"
 #include "server/config.h"
@@ -96,15 +97,17 @@ class PlaceDbService final : public v1::PlaceDb::Service {
 
   // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
   class CallScope;
-  std::mutex calls_mutex_;
-  std::condition_variable calls_idle_;
-  size_t calls_in_flight_ = 0;
+  Mutex calls_mutex_;
+  CondVar calls_idle_;
+  size_t calls_in_flight_ GUARDED_BY(calls_mutex_) = 0;
 
-  std::mutex streams_mutex_;
-  std::set<Stream*> streams_;
-  std::set<grpc::ServerContext*> awaiting_header_;  // Ingest calls not yet past their header
-  bool draining_ = false;
-  std::atomic<bool> draining_flag_{false};
+  // Taken before a stream's own mutex (BeginDrain), never after.
+  Mutex streams_mutex_;
+  std::set<Stream*> streams_ GUARDED_BY(streams_mutex_);
+  // Ingest calls not yet past their header
+  std::set<grpc::ServerContext*> awaiting_header_ GUARDED_BY(streams_mutex_);
+  bool draining_ GUARDED_BY(streams_mutex_) = false;
+  std::atomic<bool> draining_flag_{false};  // draining_ for readers that take no lock
 };
 
 }  // namespace placedb::server

@@ -23,19 +23,19 @@ WorkerPool::SubmitResult WorkerPool::Submit(Task task, Clock::time_point until,
   // Poll `give_up` at this period while waiting for room (cancellation has no wake-up hook).
   constexpr auto kPoll = std::chrono::milliseconds(20);
   {
-    std::unique_lock lock(mutex_);
+    MutexLock lock(mutex_);
     while (!stopping_ && queue_.size() >= capacity_) {
       const auto now = Clock::now();
       if (now >= until) return SubmitResult::kFull;
       if (give_up && give_up()) return SubmitResult::kGaveUp;
-      has_room_.wait_until(lock, std::min(until, now + kPoll));
+      has_room_.WaitUntil(mutex_, std::min(until, now + kPoll));
     }
     if (stopping_) return SubmitResult::kStopped;
     queue_.push_back(std::move(task));
     // Under the lock, so reports of the depth arrive in the order the depth changed.
     if (on_depth_) on_depth_(queue_.size());
   }
-  has_task_.notify_one();
+  has_task_.NotifyOne();
   return SubmitResult::kQueued;
 }
 
@@ -43,14 +43,14 @@ void WorkerPool::Run() {
   while (true) {
     Task task;
     {
-      std::unique_lock lock(mutex_);
-      has_task_.wait(lock, [&] { return stopping_ || !queue_.empty(); });
+      MutexLock lock(mutex_);
+      while (!stopping_ && queue_.empty()) has_task_.Wait(mutex_);
       if (queue_.empty()) return;  // stopping and drained
       task = std::move(queue_.front());
       queue_.pop_front();
       if (on_depth_) on_depth_(queue_.size());
     }
-    has_room_.notify_one();
+    has_room_.NotifyOne();
     try {
       task();  // tasks handle their own errors; this only keeps a worker alive
     } catch (const std::exception& e) {
@@ -63,12 +63,12 @@ void WorkerPool::Run() {
 
 void WorkerPool::Stop() {
   {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     stopping_ = true;
   }
-  has_task_.notify_all();
-  has_room_.notify_all();
-  std::lock_guard join_lock(join_mutex_);
+  has_task_.NotifyAll();
+  has_room_.NotifyAll();
+  MutexLock join_lock(join_mutex_);
   for (auto& worker : workers_) {
     if (worker.joinable()) worker.join();
   }
@@ -76,7 +76,7 @@ void WorkerPool::Stop() {
 }
 
 size_t WorkerPool::queue_depth() const {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   return queue_.size();
 }
 

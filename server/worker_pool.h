@@ -8,13 +8,13 @@
 #pragma once
 
 #include <chrono>
-#include <condition_variable>
 #include <cstddef>
 #include <deque>
 #include <functional>
-#include <mutex>
 #include <thread>
 #include <vector>
+
+#include "core/base/thread_annotations.h"
 
 namespace placedb::server {
 
@@ -48,18 +48,18 @@ class WorkerPool {
   int threads() const { return threads_; }
 
  private:
-  void Run();
+  void Run() EXCLUDES(mutex_);
 
   const int threads_;
   const size_t capacity_;
   const std::function<void(size_t)> on_depth_;
-  mutable std::mutex mutex_;
-  std::condition_variable has_task_;
-  std::condition_variable has_room_;
-  std::deque<Task> queue_;
-  bool stopping_ = false;
-  std::mutex join_mutex_;  // one Stop() joins, concurrent ones wait for it
-  std::vector<std::thread> workers_;
+  mutable Mutex mutex_;
+  CondVar has_task_;
+  CondVar has_room_;
+  std::deque<Task> queue_ GUARDED_BY(mutex_);
+  bool stopping_ GUARDED_BY(mutex_) = false;
+  Mutex join_mutex_;  // one Stop() joins, concurrent ones wait for it
+  std::vector<std::thread> workers_ GUARDED_BY(join_mutex_);
 };
 
 }  // namespace placedb::server

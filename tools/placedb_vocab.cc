@@ -14,7 +14,6 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
-#include <mutex>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -25,6 +24,7 @@
 
 #include "core/base/files.h"
 #include "core/base/parallel.h"
+#include "core/base/thread_annotations.h"
 #include "core/features/orb_features.h"
 #include "core/vocabulary/vocabulary.h"
 #include "core/vocabulary/vocabulary_trainer.h"
@@ -236,15 +236,18 @@ int RunTrain(const TrainOptions& options) {
   std::vector<std::vector<std::vector<Descriptor256>>> views(sources.size());
   std::atomic<size_t> finished{0};
   std::atomic<size_t> extracted{0};
-  std::mutex print_mutex;
-  std::vector<std::string> warnings;
+  // The workers' warnings, and their progress lines on stdout.
+  struct {
+    Mutex mutex;
+    std::vector<std::string> warnings GUARDED_BY(mutex);
+  } printed;
   ParallelFor(sources.size(), threads, [&](size_t s, int) {
     const Source& source = sources[s];
     try {
       cv::Mat image = source.still ? cv::imread(source.name, cv::IMREAD_GRAYSCALE) : source.frame;
       if (image.empty()) {
-        std::lock_guard lock(print_mutex);
-        warnings.push_back("skipped unreadable image " + source.name);
+        MutexLock lock(printed.mutex);
+        printed.warnings.push_back("skipped unreadable image " + source.name);
       } else {
         const int view_count = 1 + (source.still ? options.augment : 0);
         for (int view = 0; view < view_count; ++view) {
@@ -255,8 +258,8 @@ int RunTrain(const TrainOptions& options) {
           }
           auto features = ExtractOrb(input, orb);
           if (!features.ok()) {
-            std::lock_guard lock(print_mutex);
-            warnings.push_back(source.name + ": " + features.status().ToString());
+            MutexLock lock(printed.mutex);
+            printed.warnings.push_back(source.name + ": " + features.status().ToString());
             continue;
           }
           extracted += features->descriptors.size();
@@ -264,18 +267,23 @@ int RunTrain(const TrainOptions& options) {
         }
       }
     } catch (const std::exception& e) {  // cv::Exception, or bad_alloc on a huge image
-      std::lock_guard lock(print_mutex);
-      warnings.push_back("skipped " + source.name + ": " + e.what());
+      MutexLock lock(printed.mutex);
+      printed.warnings.push_back("skipped " + source.name + ": " + e.what());
     }
     const size_t done = ++finished;
     if (done % 50 == 0 || done == sources.size()) {
-      std::lock_guard lock(print_mutex);
+      MutexLock lock(printed.mutex);
       std::printf("extracted %zu/%zu source images, %zu descriptors (%.1f s)\n", done,
                   sources.size(), extracted.load(), SecondsSince(start));
       std::fflush(stdout);
     }
   });
-  for (const auto& warning : warnings) std::fprintf(stderr, "warning: %s\n", warning.c_str());
+  {
+    MutexLock lock(printed.mutex);  // the workers are done: uncontended
+    for (const auto& warning : printed.warnings) {
+      std::fprintf(stderr, "warning: %s\n", warning.c_str());
+    }
+  }
   sources.clear();  // the decoded frames are no longer needed
 
   std::vector<std::vector<Descriptor256>> images;

@@ -17,6 +17,7 @@ PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev
   libspdlog-dev libfmt-dev libcli11-dev libyaml-cpp-dev nlohmann-json3-dev
   clang-format
+  clang-14  # CI's -Wthread-safety stage (tools/test.sh)
   # Debian's sample images: the default vocabulary is trained on these (never on eval data).
   opencv-doc darknet
 )

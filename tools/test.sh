@@ -3,7 +3,9 @@
 #   1. packages (idempotent, as tools/setup.sh --deps),
 #   2. a -Werror Release build and every test through ctest (unit, recognition on real images),
 #   3. the unit tests again under AddressSanitizer + UndefinedBehaviorSanitizer,
-#   4. the concurrency tests under ThreadSanitizer.
+#   4. the concurrency tests under ThreadSanitizer,
+#   5. a clang build with -Wthread-safety -Werror: the lock annotations (core/base/
+#      thread_annotations.h) checked by the compiler.
 # Benchmarks are not tests: run them with tools/bench.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -38,5 +40,13 @@ cmake -S . -B build-tsan -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPLACEDB_WE
 cmake --build build-tsan -j "$jobs" --target placedb_concurrency_tests
 TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tools/tsan.supp" \
   ctest --test-dir build-tsan --output-on-failure -R 'Concurren' --timeout 1500
+
+step "Lock annotations under clang -Wthread-safety"
+# Compiling is the check: the libraries and executables, no tests, no optimiser, no debug info.
+cmake -S . -B build-clang -G Ninja -DCMAKE_BUILD_TYPE=Debug -DCMAKE_CXX_FLAGS_DEBUG=-O0 \
+  -DCMAKE_C_COMPILER=clang-14 -DCMAKE_CXX_COMPILER=clang++-14 -DPLACEDB_WERROR=ON \
+  -DPLACEDB_THREAD_SAFETY=ON -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
+cmake --build build-clang -j "$jobs" --target placedb-server placedb placedb-load placedb-eval \
+  placedb-vocab placedb-sift-vocab placedb-recognize
 
 step "All test stages passed"

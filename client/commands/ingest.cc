@@ -5,7 +5,6 @@
 #include <filesystem>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <nlohmann/json.hpp>
 #include <thread>
 
@@ -15,6 +14,7 @@
 #include "client/ingest_stream.h"
 #include "client/progress.h"
 #include "client/queue.h"
+#include "core/base/thread_annotations.h"
 
 namespace placedb::client {
 
@@ -128,14 +128,20 @@ struct IngestRun {
   const std::vector<std::string> agent_ids;
   v1::IngestHeader header;
 
-  std::mutex mutex;  // everything below, and out
-  std::vector<FrameRecord> records;
-  std::vector<double> latencies;
-  size_t stored = 0, rejected = 0, frame_errors = 0;
-  size_t merged = 0, loops_found = 0;                   // --loop-closure
-  size_t depth_frames_removing = 0, depth_removed = 0;  // --depth
-  std::map<std::string, size_t> rejected_by_reason, errors_by_code;
-  std::vector<std::pair<std::string, grpc::Status>> stream_errors;
+  // Everything below, and the writes to `out` while agents run.
+  Mutex mutex;
+  std::vector<FrameRecord> records GUARDED_BY(mutex);
+  std::vector<double> latencies GUARDED_BY(mutex);
+  size_t stored GUARDED_BY(mutex) = 0;
+  size_t rejected GUARDED_BY(mutex) = 0;
+  size_t frame_errors GUARDED_BY(mutex) = 0;
+  size_t merged GUARDED_BY(mutex) = 0;                 // --loop-closure
+  size_t loops_found GUARDED_BY(mutex) = 0;            // --loop-closure
+  size_t depth_frames_removing GUARDED_BY(mutex) = 0;  // --depth
+  size_t depth_removed GUARDED_BY(mutex) = 0;          // --depth
+  std::map<std::string, size_t> rejected_by_reason GUARDED_BY(mutex);
+  std::map<std::string, size_t> errors_by_code GUARDED_BY(mutex);
+  std::vector<std::pair<std::string, grpc::Status>> stream_errors GUARDED_BY(mutex);
 
   Progress progress;
   std::vector<std::unique_ptr<BoundedQueue<Outgoing>>> queues;  // one per agent
@@ -179,7 +185,7 @@ void PrintFrameLine(const IngestRun& run, const FrameRecord& record,
 
 // An agent's answer: the frame's record, the tallies, and its line.
 void RecordAnswer(IngestRun& run, const Answered& answer) {
-  std::lock_guard lock(run.mutex);
+  MutexLock lock(run.mutex);
   FrameRecord& record = run.records[answer.tag];
   record.answered = true;
   record.latency_ms = answer.latency_ms;
@@ -233,7 +239,7 @@ void RunAgent(IngestRun& run, size_t i) {
     ++sent;
     *outgoing = std::move(*item);
     outgoing->observation.set_timestamp_ns(UnixNowNs());
-    std::lock_guard lock(run.mutex);
+    MutexLock lock(run.mutex);
     run.records[outgoing->tag].sent = true;
     return true;
   };
@@ -242,7 +248,7 @@ void RunAgent(IngestRun& run, size_t i) {
                                                 next, answered, [&] { queue.Abort(); });
   queue.Abort();  // whatever is left will not be sent
   if (!status.ok()) {
-    std::lock_guard lock(run.mutex);
+    MutexLock lock(run.mutex);
     run.stream_errors.emplace_back(run.agent_ids[i], status);
     ++run.errors_by_code[CodeName(int(status.error_code()))];
   }
@@ -257,7 +263,7 @@ size_t DealFrames(IngestRun& run, FrameSource& source, const DepthPlan& depth_pl
     record.local_error = error;
     ++local_errors;
     run.progress.Message("warning: " + error + " (skipped)");
-    std::lock_guard lock(run.mutex);
+    MutexLock lock(run.mutex);
     run.records.push_back(std::move(record));
   };
   Frame frame;
@@ -290,7 +296,7 @@ size_t DealFrames(IngestRun& run, FrameSource& source, const DepthPlan& depth_pl
     record.agent = run.agent_ids[agent];
     record.sequence = options.sequence_start + frame.index;
     {
-      std::lock_guard lock(run.mutex);
+      MutexLock lock(run.mutex);
       outgoing.tag = run.records.size();
       run.records.push_back(std::move(record));
     }

@@ -7,7 +7,6 @@
 #include <fstream>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <thread>
@@ -19,6 +18,7 @@
 #include "client/loopback.h"
 #include "client/progress.h"
 #include "client/queue.h"
+#include "core/base/thread_annotations.h"
 #include "core/features/orb_features.h"
 
 namespace placedb::client {
@@ -243,10 +243,11 @@ struct LoadPlan {
 
 // What the agents measured.
 struct LoadTally {
-  std::mutex mutex;  // everything below
-  KindStats ingest, query;
-  std::vector<std::pair<std::string, grpc::Status>> stream_errors;
-  Clock::time_point last_answer;
+  Mutex mutex;
+  KindStats ingest GUARDED_BY(mutex);
+  KindStats query GUARDED_BY(mutex);
+  std::vector<std::pair<std::string, grpc::Status>> stream_errors GUARDED_BY(mutex);
+  Clock::time_point last_answer GUARDED_BY(mutex);
 };
 
 // Agent i's queries, one at a time beside its Ingest stream.
@@ -262,7 +263,7 @@ void RunQuerier(const LoadPlan& plan, size_t i, BoundedQueue<QueryJob>& queries,
     const Clock::time_point sent = Clock::now();
     const grpc::Status status = plan.connection.stub()->Query(context.get(), request, &response);
     const Clock::time_point now = Clock::now();
-    std::lock_guard lock(tally.mutex);
+    MutexLock lock(tally.mutex);
     KindStats& query = tally.query;
     ++query.count;
     query.latency_ms.push_back(MsBetween(job->due.value_or(sent), now));
@@ -316,7 +317,7 @@ void RunAgent(const LoadPlan& plan, size_t i, LoadTally& tally, Progress& progre
   auto answered = [&](const Answered& answer) {
     const Clock::time_point now = Clock::now();
     const v1::IngestResponse& response = answer.response;
-    std::lock_guard lock(tally.mutex);
+    MutexLock lock(tally.mutex);
     KindStats& ingest = tally.ingest;
     ++ingest.count;
     ingest.latency_ms.push_back(answer.latency_ms);
@@ -341,7 +342,7 @@ void RunAgent(const LoadPlan& plan, size_t i, LoadTally& tally, Progress& progre
   queries.Finish();
   if (querier.joinable()) querier.join();
   if (!status.ok()) {
-    std::lock_guard lock(tally.mutex);
+    MutexLock lock(tally.mutex);
     tally.stream_errors.emplace_back(plan.options.agent_prefix + "-" + std::to_string(i + 1),
                                      status);
     ++tally.ingest.errors_by_code[CodeName(int(status.error_code()))];

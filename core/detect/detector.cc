@@ -5,7 +5,6 @@
 #include <bitset>
 #include <cctype>
 #include <cmath>
-#include <condition_variable>
 #include <cstdint>
 #include <cstring>
 #include <filesystem>
@@ -20,6 +19,7 @@
 #include <utility>
 
 #include "core/base/files.h"
+#include "core/base/thread_annotations.h"
 
 namespace placedb {
 
@@ -321,7 +321,7 @@ class NetPool {
   NetPool(Factory factory, int capacity) : factory_(std::move(factory)), capacity_(capacity) {}
 
   void Add(cv::dnn::Net net) {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     idle_.push_back(std::move(net));
     ++created_;
   }
@@ -329,8 +329,8 @@ class NetPool {
   // Returns a Net for the caller's exclusive use; give it back with Release().
   Result<cv::dnn::Net> Acquire() {
     {
-      std::unique_lock lock(mutex_);
-      available_.wait(lock, [&] { return !idle_.empty() || created_ < capacity_; });
+      MutexLock lock(mutex_);
+      while (idle_.empty() && created_ >= capacity_) available_.Wait(mutex_);
       if (!idle_.empty()) {
         cv::dnn::Net net = std::move(idle_.back());
         idle_.pop_back();
@@ -340,28 +340,28 @@ class NetPool {
     }
     Result<cv::dnn::Net> net = factory_();
     if (!net.ok()) {
-      std::lock_guard lock(mutex_);
+      MutexLock lock(mutex_);
       --created_;
-      available_.notify_one();
+      available_.NotifyOne();
     }
     return net;
   }
 
   void Release(cv::dnn::Net net) {
     {
-      std::lock_guard lock(mutex_);
+      MutexLock lock(mutex_);
       idle_.push_back(std::move(net));
     }
-    available_.notify_one();
+    available_.NotifyOne();
   }
 
  private:
   Factory factory_;
   const int capacity_;
-  std::mutex mutex_;
-  std::condition_variable available_;
-  std::vector<cv::dnn::Net> idle_;
-  int created_ = 0;
+  Mutex mutex_;
+  CondVar available_;
+  std::vector<cv::dnn::Net> idle_ GUARDED_BY(mutex_);
+  int created_ GUARDED_BY(mutex_) = 0;
 };
 
 // ---- The detector --------------------------------------------------------------------------

@@ -36,25 +36,25 @@ PlaceId PayloadLongTermMemory::Bound(PlaceId detector_place) const {
 }
 
 std::shared_ptr<AgentStream> AgentStreams::Get(const std::string& agent_id) {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   auto& stream = streams_[agent_id];
   if (!stream) stream = std::make_shared<AgentStream>();
   return stream;
 }
 
 std::shared_ptr<AgentStream> AgentStreams::Find(const std::string& agent_id) const {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   auto it = streams_.find(agent_id);
   return it == streams_.end() ? nullptr : it->second;
 }
 
 bool AgentStreams::Erase(const std::string& agent_id) {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   return streams_.erase(agent_id) > 0;
 }
 
 std::vector<std::shared_ptr<AgentStream>> AgentStreams::All() const {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   std::vector<std::shared_ptr<AgentStream>> all;
   all.reserve(streams_.size());
   for (const auto& [agent, stream] : streams_) all.push_back(stream);

@@ -12,12 +12,12 @@
 #pragma once
 
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <unordered_map>
 #include <vector>
 
+#include "core/base/thread_annotations.h"
 #include "core/filter/depth_filter.h"
 #include "core/search/loop_closure.h"
 
@@ -40,17 +40,20 @@ class PayloadLongTermMemory final : public LongTermMemory {
   PlaceId Bound(PlaceId detector_place) const;  // 0 when unbound
 
  private:
+  // No lock of its own: only its stream's detector and CloseLoop use it, under the stream's
+  // mutex (AgentStream::ltm is GUARDED_BY it).
   std::shared_ptr<PayloadStore> payloads_;
   std::vector<PlaceId> bound_;  // detector place -> database place
   std::unordered_map<PlaceId, BowVector> unbound_;
 };
 
 struct AgentStream {
-  std::mutex mutex;  // held while a stage of this stream runs
-  std::optional<DepthStreamFilter> depth;
-  std::optional<DepthFrameState> last_depth;  // Algorithm 1's latest decision (for queries)
-  std::unique_ptr<LoopClosureDetector> loop;
-  std::shared_ptr<PayloadLongTermMemory> ltm;
+  Mutex mutex;  // held while a stage of this stream runs
+  std::optional<DepthStreamFilter> depth GUARDED_BY(mutex);
+  // Algorithm 1's latest decision (for queries)
+  std::optional<DepthFrameState> last_depth GUARDED_BY(mutex);
+  std::unique_ptr<LoopClosureDetector> loop GUARDED_BY(mutex);
+  std::shared_ptr<PayloadLongTermMemory> ltm GUARDED_BY(mutex);
 };
 
 class AgentStreams {
@@ -62,8 +65,8 @@ class AgentStreams {
   std::vector<std::shared_ptr<AgentStream>> All() const;
 
  private:
-  mutable std::mutex mutex_;
-  std::unordered_map<std::string, std::shared_ptr<AgentStream>> streams_;
+  mutable Mutex mutex_;
+  std::unordered_map<std::string, std::shared_ptr<AgentStream>> streams_ GUARDED_BY(mutex_);
 };
 
 }  // namespace placedb

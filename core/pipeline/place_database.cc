@@ -113,7 +113,7 @@ Result<BowVector> PayloadStore::GetBow(PlaceId id) const {
 }
 
 Status InMemoryPayloadStore::Put(PlaceId id, std::shared_ptr<const PlacePayload> payload) {
-  std::unique_lock lock(mutex_);
+  WriterLock lock(mutex_);
   const size_t bytes = PayloadBytes(*payload);
   if (!payloads_.emplace(id, std::move(payload)).second) {
     return Status::AlreadyExists("payload of place " + std::to_string(id) + " already stored");
@@ -123,14 +123,14 @@ Status InMemoryPayloadStore::Put(PlaceId id, std::shared_ptr<const PlacePayload>
 }
 
 Result<std::shared_ptr<const PlacePayload>> InMemoryPayloadStore::Get(PlaceId id) const {
-  std::shared_lock lock(mutex_);
+  ReaderLock lock(mutex_);
   auto it = payloads_.find(id);
   if (it == payloads_.end()) return Status::NotFound("place " + std::to_string(id) + " not found");
   return it->second;
 }
 
 Status InMemoryPayloadStore::Erase(PlaceId id) {
-  std::unique_lock lock(mutex_);
+  WriterLock lock(mutex_);
   auto it = payloads_.find(id);
   if (it == payloads_.end()) return Status::NotFound("place " + std::to_string(id) + " not found");
   bytes_ -= PayloadBytes(*it->second);
@@ -139,7 +139,7 @@ Status InMemoryPayloadStore::Erase(PlaceId id) {
 }
 
 size_t InMemoryPayloadStore::MemoryBytes() const {
-  std::shared_lock lock(mutex_);
+  ReaderLock lock(mutex_);
   // Plus a rough per-entry cost of the hash map node.
   return bytes_ + payloads_.size() * (sizeof(PlaceId) + sizeof(void*) * 4);
 }
@@ -348,7 +348,7 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
     // A query applies the agent's current decision without advancing its stream.
     std::optional<DepthFrameState> current;
     if (auto stream = streams_->Find(observation.metadata.agent_id)) {
-      std::lock_guard lock(stream->mutex);
+      MutexLock lock(stream->mutex);
       current = stream->last_depth;
     }
     if (current) ApplyDepthBand(&frame, *current, filter.remove_features_without_depth);
@@ -399,7 +399,7 @@ Status PlaceDatabase::AdvanceStream(ProcessedFrame* frame, const std::string& ag
   const double before = frame->timings.depth_ms + frame->timings.transform_ms;
   {
     auto stream = streams_->Get(agent_id);
-    std::lock_guard lock(stream->mutex);
+    MutexLock lock(stream->mutex);
     if (!stream->depth) {
       auto filter = DepthStreamFilter::Create(config_.depth.filter);
       if (!filter.ok()) return filter.status();
@@ -423,7 +423,7 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
   }
   if (!frame.valid) return Status::InvalidArgument("loop closure needs a valid frame");
   auto stream = streams_->Get(metadata.agent_id);
-  std::lock_guard lock(stream->mutex);
+  MutexLock lock(stream->mutex);
   size_t replayed_places = 0;
   if (!stream->loop) {
     LoopClosureConfig config = config_.loop_closure;
@@ -497,7 +497,7 @@ Result<size_t> PlaceDatabase::ReplayAgentPlaces(const std::string& agent_id,
                                                 PayloadLongTermMemory* ltm) const {
   std::vector<std::shared_ptr<const PlaceRecord>> earlier;
   {
-    std::shared_lock lock(mutex_);
+    ReaderLock lock(mutex_);
     for (const auto& [id, record] : records_) {
       if (record->metadata.agent_id == agent_id) earlier.push_back(record);
     }
@@ -533,7 +533,7 @@ Status PlaceDatabase::ResetStream(const std::string& agent_id) {
 Result<LoopClosureStats> PlaceDatabase::LoopStats(const std::string& agent_id) const {
   auto stream = streams_->Find(agent_id);
   if (stream) {
-    std::lock_guard lock(stream->mutex);
+    MutexLock lock(stream->mutex);
     if (stream->loop) return stream->loop->Stats();
   }
   return Status::NotFound("agent '" + agent_id + "' has no loop-closure state");
@@ -585,7 +585,7 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
   payload->direct = frame.direct;
   payload->bow = frame.bow;
 
-  std::unique_lock lock(mutex_);
+  WriterLock lock(mutex_);
   record->id = id.value_or(next_id_);
   const PlaceId place = record->id;
   PLACEDB_RETURN_IF_ERROR(InsertLocked(std::move(record), payload->bow));
@@ -600,7 +600,7 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
 }
 
 Status PlaceDatabase::Restore(PlaceRecord record, const BowVector& bow) {
-  std::unique_lock lock(mutex_);
+  WriterLock lock(mutex_);
   return InsertLocked(std::make_shared<const PlaceRecord>(std::move(record)), bow);
 }
 
@@ -632,22 +632,22 @@ void PlaceDatabase::UndoInsertLocked(PlaceId id, const BowVector& bow) {
 }
 
 PlaceId PlaceDatabase::ReserveId() {
-  std::unique_lock lock(mutex_);
+  WriterLock lock(mutex_);
   return next_id_++;
 }
 
 void PlaceDatabase::ReserveIdsBelow(PlaceId next) {
-  std::unique_lock lock(mutex_);
+  WriterLock lock(mutex_);
   next_id_ = std::max(next_id_, next);
 }
 
 void PlaceDatabase::CountInvalid(uint64_t frames) {
-  std::unique_lock lock(mutex_);
+  WriterLock lock(mutex_);
   invalid_rejected_ += frames;
 }
 
 Status PlaceDatabase::Remove(PlaceId id) {
-  std::unique_lock lock(mutex_);
+  WriterLock lock(mutex_);
   auto it = records_.find(id);
   if (it == records_.end()) return Status::NotFound("place " + std::to_string(id) + " not found");
   auto payload = payloads_->Get(id);
@@ -691,10 +691,11 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
   // Per candidate: its DC features when the short-term tier holds them within the horizon.
   std::vector<std::shared_ptr<const std::pair<LocalFeatures, DirectIndex>>> recent_dynamic;
   {
-    std::shared_lock lock(mutex_);
+    ReaderLock lock(mutex_);
     std::function<bool(PlaceId)> accept;
     if (options.accept) {
-      accept = [&](PlaceId id) {
+      // index_.Query calls it under this lock.
+      accept = [&](PlaceId id) REQUIRES_SHARED(mutex_) {
         auto it = records_.find(id);
         return it != records_.end() && options.accept(*it->second);
       };
@@ -762,7 +763,7 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
 }
 
 std::shared_ptr<const PlaceRecord> PlaceDatabase::Get(PlaceId id) const {
-  std::shared_lock lock(mutex_);
+  ReaderLock lock(mutex_);
   auto it = records_.find(id);
   return it == records_.end() ? nullptr : it->second;
 }
@@ -770,7 +771,7 @@ std::shared_ptr<const PlaceRecord> PlaceDatabase::Get(PlaceId id) const {
 std::vector<PlaceId> PlaceDatabase::ListPlaces() const {
   std::vector<PlaceId> ids;
   {
-    std::shared_lock lock(mutex_);
+    ReaderLock lock(mutex_);
     ids.reserve(records_.size());
     for (const auto& [id, record] : records_) ids.push_back(id);
   }
@@ -779,7 +780,7 @@ std::vector<PlaceId> PlaceDatabase::ListPlaces() const {
 }
 
 DatabaseStats PlaceDatabase::Stats() const {
-  std::shared_lock lock(mutex_);
+  ReaderLock lock(mutex_);
   DatabaseStats stats;
   stats.places = records_.size();
   stats.descriptors_kept = descriptors_kept_;
@@ -800,10 +801,10 @@ DatabaseStats PlaceDatabase::Stats() const {
               sizeof(uint32_t);
     }
   }
-  lock.unlock();
+  lock.Unlock();
   for (const auto& stream : streams_->All()) {
     ++stats.streams;
-    std::lock_guard stream_lock(stream->mutex);
+    MutexLock stream_lock(stream->mutex);
     if (!stream->loop) continue;
     const LoopClosureStats loop = stream->loop->Stats();
     stats.loop_working_memory += loop.short_term + loop.working;
@@ -887,7 +888,7 @@ std::vector<ScoredPlace> PlaceDatabase::ShortTermBonusLocked(const ProcessedFram
 }
 
 PlaceId PlaceDatabase::next_id() const {
-  std::shared_lock lock(mutex_);
+  ReaderLock lock(mutex_);
   return next_id_;
 }
 

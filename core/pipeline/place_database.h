@@ -25,12 +25,12 @@
 #include <opencv2/core.hpp>
 #include <optional>
 #include <set>
-#include <shared_mutex>
 #include <string>
 #include <unordered_map>
 #include <vector>
 
 #include "core/base/status.h"
+#include "core/base/thread_annotations.h"
 #include "core/base/timing.h"
 #include "core/features/local_features.h"
 #include "core/filter/box_masks.h"
@@ -227,9 +227,9 @@ class InMemoryPayloadStore final : public PayloadStore {
   size_t MemoryBytes() const override;
 
  private:
-  mutable std::shared_mutex mutex_;
-  std::unordered_map<PlaceId, std::shared_ptr<const PlacePayload>> payloads_;
-  size_t bytes_ = 0;
+  mutable SharedMutex mutex_;
+  std::unordered_map<PlaceId, std::shared_ptr<const PlacePayload>> payloads_ GUARDED_BY(mutex_);
+  size_t bytes_ GUARDED_BY(mutex_) = 0;
 };
 
 size_t PayloadBytes(const PlacePayload& payload);
@@ -392,40 +392,44 @@ class PlaceDatabase {
   Result<int> VerifyLoop(const ProcessedFrame& frame, PlaceId place) const;
   // Replays the agent's stored places, oldest first, into a new detector and binds them.
   Result<size_t> ReplayAgentPlaces(const std::string& agent_id, LoopClosureDetector* detector,
-                                   PayloadLongTermMemory* ltm) const;
+                                   PayloadLongTermMemory* ltm) const EXCLUDES(mutex_);
   // Removes the SC features whose depth lies in Algorithm 1's band (when it is removing).
   static void ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState& state,
                              bool remove_without_depth);
   // Adds the record and its postings; caller holds the writer lock.
-  Status InsertLocked(std::shared_ptr<const PlaceRecord> record, const BowVector& bow);
-  void UndoInsertLocked(PlaceId id, const BowVector& bow);
+  Status InsertLocked(std::shared_ptr<const PlaceRecord> record, const BowVector& bow)
+      REQUIRES(mutex_);
+  void UndoInsertLocked(PlaceId id, const BowVector& bow) REQUIRES(mutex_);
   std::vector<DynamicBox> SelectBoxes(const std::vector<DynamicBox>& boxes) const;
   // The short-term tier; callers hold the writer lock.
-  void AddShortTermLocked(PlaceId place, const PlaceMetadata& metadata,
-                          const ProcessedFrame& frame);
-  void RemoveShortTermLocked(PlaceId place);
+  void AddShortTermLocked(PlaceId place, const PlaceMetadata& metadata, const ProcessedFrame& frame)
+      REQUIRES(mutex_);
+  void RemoveShortTermLocked(PlaceId place) REQUIRES(mutex_);
   // The tier's clock for a query: its own timestamp, else the newest place's (tier not empty).
-  int64_t ShortTermNowLocked(int64_t query_timestamp_ns) const;
+  int64_t ShortTermNowLocked(int64_t query_timestamp_ns) const REQUIRES_SHARED(mutex_);
   struct ShortTermEntry;
   bool InHorizon(const ShortTermEntry& entry, int64_t now) const;
   // The tier's score bonuses for a query (reader lock held).
   std::vector<ScoredPlace> ShortTermBonusLocked(const ProcessedFrame& frame,
-                                                int64_t timestamp_ns) const;
+                                                int64_t timestamp_ns) const REQUIRES_SHARED(mutex_);
 
+  // Set at construction and never reassigned: read without a lock. The payload store and the
+  // streams lock inside.
   const AnyVocabulary vocabulary_;
   const DatabaseConfig config_;
   const std::unique_ptr<const FeatureExtractor> extractor_;  // of config_.feature_type
   const std::shared_ptr<PayloadStore> payloads_;
   const std::unique_ptr<AgentStreams> streams_;
 
-  mutable std::shared_mutex mutex_;
-  InvertedIndex index_;
-  std::unordered_map<PlaceId, std::shared_ptr<const PlaceRecord>> records_;
-  PlaceId next_id_ = 1;
-  uint64_t descriptors_kept_ = 0;
-  uint64_t descriptors_dropped_ = 0;
-  uint64_t invalid_rejected_ = 0;
-  size_t record_bytes_ = 0;
+  // Taken after a stream's mutex (CloseLoop's store callback runs under it), never before.
+  mutable SharedMutex mutex_;
+  InvertedIndex index_ GUARDED_BY(mutex_);
+  std::unordered_map<PlaceId, std::shared_ptr<const PlaceRecord>> records_ GUARDED_BY(mutex_);
+  PlaceId next_id_ GUARDED_BY(mutex_) = 1;
+  uint64_t descriptors_kept_ GUARDED_BY(mutex_) = 0;
+  uint64_t descriptors_dropped_ GUARDED_BY(mutex_) = 0;
+  uint64_t invalid_rejected_ GUARDED_BY(mutex_) = 0;
+  size_t record_bytes_ GUARDED_BY(mutex_) = 0;
 
   struct ShortTermEntry {
     int64_t timestamp_ns = 0;
@@ -435,13 +439,13 @@ class PlaceDatabase {
     // The DC features and their direct index, for verification (when the family keeps them).
     std::shared_ptr<const std::pair<LocalFeatures, DirectIndex>> dynamic_features;
   };
-  InvertedIndex short_term_index_;
-  std::unordered_map<PlaceId, ShortTermEntry> short_term_;
+  InvertedIndex short_term_index_ GUARDED_BY(mutex_);
+  std::unordered_map<PlaceId, ShortTermEntry> short_term_ GUARDED_BY(mutex_);
   using TimeOrdered = std::set<std::pair<int64_t, PlaceId>>;  // oldest first
-  TimeOrdered short_term_by_time_;
+  TimeOrdered short_term_by_time_ GUARDED_BY(mutex_);
   // Each agent's places: the horizon counts back from the agent's own newest observation, so
   // agents whose clocks differ (or that paused) keep their recent places.
-  std::unordered_map<std::string, TimeOrdered> short_term_by_agent_;
+  std::unordered_map<std::string, TimeOrdered> short_term_by_agent_ GUARDED_BY(mutex_);
 };
 
 }  // namespace placedb

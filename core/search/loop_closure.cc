@@ -169,7 +169,9 @@ void LoopClosureDetector::Neighbourhood(PlaceId from, int radius,
   out->push_back({from, 0});
   visit_mark_[from] = visit_generation_;
   for (size_t head = 0; head < out->size(); ++head) {
-    const auto [id, d] = (*out)[head];
+    // Not a structured binding: clang 14 cannot capture one in the lambda below.
+    const PlaceId id = (*out)[head].first;
+    const int d = (*out)[head].second;
     if (d >= radius) continue;
     auto visit = [&](PlaceId next) {
       if (next == kNoPlace || visit_mark_[next] == visit_generation_) return;

@@ -11,11 +11,9 @@
 
 #include <atomic>
 #include <chrono>
-#include <condition_variable>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
-#include <shared_mutex>
 #include <thread>
 
 #include "core/base/files.h"
@@ -179,50 +177,52 @@ class GroupCommitter {
       : db_(db), delay_(delay), thread_([this] { Run(); }) {}
   ~GroupCommitter() {
     {
-      std::lock_guard lock(mutex_);
+      MutexLock lock(mutex_);
       stopping_ = true;
     }
-    wake_syncer_.notify_all();
+    wake_syncer_.NotifyAll();
     thread_.join();
   }
 
   Status WaitDurable() {
-    std::unique_lock lock(mutex_);
+    MutexLock lock(mutex_);
     const uint64_t ticket = ++requested_;
-    wake_syncer_.notify_one();
-    synced_cv_.wait(lock, [&] { return synced_ >= ticket; });
+    wake_syncer_.NotifyOne();
+    while (synced_ < ticket) synced_cv_.Wait(mutex_);
     return last_status_;
   }
 
  private:
   void Run() {
-    std::unique_lock lock(mutex_);
+    MutexLock lock(mutex_);
     while (true) {
-      wake_syncer_.wait(lock, [&] { return stopping_ || requested_ > synced_; });
+      while (!stopping_ && requested_ <= synced_) wake_syncer_.Wait(mutex_);
       if (requested_ == synced_ && stopping_) return;
       if (!stopping_) {
         // Let more writers join this sync, bounded by the configured delay.
-        wake_syncer_.wait_for(lock, delay_, [&] { return stopping_; });
+        const auto deadline = std::chrono::steady_clock::now() + delay_;
+        while (!stopping_ && wake_syncer_.WaitUntil(mutex_, deadline)) {
+        }
       }
       const uint64_t target = requested_;
-      lock.unlock();
+      lock.Unlock();
       const rocksdb::Status synced = db_->SyncWAL();
-      lock.lock();
+      lock.Lock();
       last_status_ = FromRocks(synced, "syncing the write-ahead log");
       synced_ = target;
-      synced_cv_.notify_all();
+      synced_cv_.NotifyAll();
     }
   }
 
   rocksdb::DB* db_;
   const std::chrono::milliseconds delay_;
-  std::mutex mutex_;
-  std::condition_variable wake_syncer_;
-  std::condition_variable synced_cv_;
-  uint64_t requested_ = 0;
-  uint64_t synced_ = 0;
-  bool stopping_ = false;
-  Status last_status_;
+  Mutex mutex_;
+  CondVar wake_syncer_;
+  CondVar synced_cv_;
+  uint64_t requested_ GUARDED_BY(mutex_) = 0;
+  uint64_t synced_ GUARDED_BY(mutex_) = 0;
+  bool stopping_ GUARDED_BY(mutex_) = false;
+  Status last_status_ GUARDED_BY(mutex_);
   std::thread thread_;
 };
 
@@ -230,16 +230,17 @@ class GroupCommitter {
 
 namespace detail {
 struct MapStorage {
+  // Set before the map is shared and reset only by Close(), under the owning PlaceMap's
+  // lifecycle_ exclusively; every other use holds it shared. Not GUARDED_BY: the payload store
+  // reads them inside PlaceDatabase calls made under the caller's hold, which the analysis
+  // cannot follow.
   std::unique_ptr<rocksdb::DB> db;
   std::vector<rocksdb::ColumnFamilyHandle*> handles;
   SyncMode sync = SyncMode::kEveryWrite;
   std::unique_ptr<GroupCommitter> committer;
+  // Atomics: counters updated under a shared hold by concurrent writers.
   std::atomic<uint64_t> next_invalid_serial{1};
   std::atomic<uint64_t> invalid_stored{0};
-  // Operations hold it shared; deleting the map takes it exclusively, so in-flight work ends
-  // before the database closes and later calls see `closed`.
-  std::shared_mutex lifecycle;
-  bool closed = false;
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -251,7 +252,6 @@ struct MapStorage {
       (void)db->Close();
       db.reset();
     }
-    closed = true;
   }
   ~MapStorage() { Close(); }
 
@@ -363,14 +363,14 @@ Status PlaceMap::Deleted() const {
 
 Result<QueryResult> PlaceMap::Query(const Observation& observation,
                                     const QueryOptions& options) const {
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   return database_->Query(observation, options);
 }
 
 QueryResult PlaceMap::Search(const ProcessedFrame& frame, const QueryOptions& options) const {
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) {
+  ReaderLock alive(lifecycle_);
+  if (closed_) {
     QueryResult result;
     result.rejection = Deleted().message();
     return result;
@@ -453,15 +453,15 @@ Result<AddResult> PlaceMap::Add(const Observation& observation) {
   // does not wait for it.
   auto frame = database_->Process(observation, FrameRole::kStream);
   if (!frame.ok()) return frame.status();
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   PLACEDB_RETURN_IF_ERROR(database_->AdvanceStream(&*frame, observation.metadata.agent_id));
   return CommitLocked(*frame, observation.metadata);
 }
 
 Status PlaceMap::AdvanceStream(ProcessedFrame* frame, const std::string& agent_id) {
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   return database_->AdvanceStream(frame, agent_id);
 }
 
@@ -474,10 +474,10 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
   // long-term memory reads payloads from RocksDB, both under this hold. Taking the shared lock
   // again inside could deadlock behind a waiting DeleteMap (std::shared_mutex is not
   // reentrant and may block new readers while a writer waits).
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   bool committed = false;
-  auto store = [&]() -> Result<PlaceId> {
+  auto store = [&]() REQUIRES_SHARED(lifecycle_) -> Result<PlaceId> {
     auto stored = CommitLocked(frame, metadata);
     if (!stored.ok()) return stored.status();
     committed = true;
@@ -538,8 +538,8 @@ Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,
 }
 
 Result<AddResult> PlaceMap::Commit(const ProcessedFrame& frame, const PlaceMetadata& metadata) {
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   return CommitLocked(frame, metadata);
 }
 
@@ -590,8 +590,8 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
 }
 
 Result<StoredPlace> PlaceMap::GetPlace(PlaceId id) const {
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   auto record = database_->Get(id);
   if (!record)
     return Status::NotFound("place " + std::to_string(id) + " not found in map '" + info_.name +
@@ -603,15 +603,15 @@ Result<StoredPlace> PlaceMap::GetPlace(PlaceId id) const {
 }
 
 Status PlaceMap::RemovePlace(PlaceId id) {
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   return database_->Remove(id);
 }
 
 std::vector<InvalidObservation> PlaceMap::InvalidObservations(size_t limit) const {
   std::vector<InvalidObservation> out;
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return out;
+  ReaderLock alive(lifecycle_);
+  if (closed_) return out;
   std::unique_ptr<rocksdb::Iterator> it(storage_->db->NewIterator({}, storage_->cf(kInvalid)));
   for (it->SeekToFirst(); it->Valid() && out.size() < limit; it->Next()) {
     auto decoded = DecodeInvalidObservation(it->value().ToStringView());
@@ -624,8 +624,8 @@ MapStats PlaceMap::Stats() const {
   MapStats stats;
   stats.database = database_->Stats();
   stats.invalid_stored = storage_->invalid_stored;
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return stats;
+  ReaderLock alive(lifecycle_);
+  if (closed_) return stats;
   stats.bytes_on_disk = DirectoryBytes(path_);
   uint64_t memtables = 0;
   storage_->db->GetAggregatedIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables, &memtables);
@@ -635,8 +635,8 @@ MapStats PlaceMap::Stats() const {
 }
 
 Status PlaceMap::Checkpoint(const std::string& directory) const {
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   if (fs::exists(directory)) {
     return Status::AlreadyExists("checkpoint directory " + directory + " already exists");
   }
@@ -649,8 +649,8 @@ Status PlaceMap::Checkpoint(const std::string& directory) const {
 }
 
 Status PlaceMap::VerifyIntegrity() const {
-  std::shared_lock alive(storage_->lifecycle);
-  if (storage_->closed) return Deleted();
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
   rocksdb::ReadOptions options;
   options.fill_cache = false;
   std::vector<std::unique_ptr<rocksdb::Iterator>> its;
@@ -704,7 +704,7 @@ DataDirectory::DataDirectory(std::string path, StorageOptions options)
 }
 
 DataDirectory::~DataDirectory() {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   open_.clear();
 }
 
@@ -818,7 +818,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& na
                                    " needs a " + VocabularyKindName(type) +
                                    " vocabulary; this one is " + vocabulary.kind());
   }
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   const std::string path = MapPath(name);
   if (fs::exists(path)) return Status::AlreadyExists("map '" + name + "' already exists");
   auto storage = OpenStorage(path, /*create=*/true, options_, block_cache_);
@@ -849,7 +849,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& na
 
 Result<MapInfo> DataDirectory::ReadMapInfo(const std::string& name) const {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   if (auto it = open_.find(name); it != open_.end()) return it->second->info();
   const std::string path = MapPath(name);
   if (!fs::is_directory(path)) return Status::NotFound("map '" + name + "' not found");
@@ -873,7 +873,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(const std::string& name
                                                          AnyVocabulary vocabulary) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   if (auto it = open_.find(name); it != open_.end()) {
     PLACEDB_RETURN_IF_ERROR(it->second->CheckVocabulary(vocabulary));
     return it->second;
@@ -908,7 +908,7 @@ std::vector<std::string> DataDirectory::ListMaps() const {
 
 Status DataDirectory::DeleteMap(const std::string& name) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   const std::string path = MapPath(name);
   if (!fs::is_directory(path)) return Status::NotFound("map '" + name + "' not found");
   static std::atomic<uint64_t> counter{0};
@@ -919,7 +919,8 @@ Status DataDirectory::DeleteMap(const std::string& name) {
   if (auto it = open_.find(name); it != open_.end()) {
     // Holders keep a PlaceMap that answers NOT_FOUND from now on; its database closes here,
     // after in-flight calls finish, so the files and the name are free at once.
-    std::unique_lock closing(it->second->storage_->lifecycle);
+    WriterLock closing(it->second->lifecycle_);
+    it->second->closed_ = true;
     it->second->storage_->Close();
     open_.erase(it);
   }
@@ -936,7 +937,7 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
   if (!fs::exists(fs::path(checkpoint) / "CURRENT")) {
     return Status::InvalidArgument(checkpoint + " is not a map checkpoint (no CURRENT file)");
   }
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   const std::string path = MapPath(name);
   if (fs::exists(path)) return Status::AlreadyExists("map '" + name + "' already exists");
   const std::string staging = (fs::path(path_) / "maps" / (".restoring-" + name)).string();
@@ -973,7 +974,7 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
 }
 
 void DataDirectory::CloseMap(const std::string& name) {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   open_.erase(name);
 }
 

@@ -14,13 +14,13 @@
 
 #include <cstdint>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <unordered_map>
 #include <vector>
 
 #include "core/base/status.h"
+#include "core/base/thread_annotations.h"
 #include "core/pipeline/place_database.h"
 #include "core/storage/codec.h"
 #include "core/vocabulary/any_vocabulary.h"
@@ -125,9 +125,10 @@ class PlaceMap {
   PlaceMap(MapInfo info, std::string path, std::unique_ptr<detail::MapStorage> storage,
            AnyVocabulary vocabulary);
   Status Load();  // rebuilds the serving index from disk
-  // Commit() for a caller that already holds storage_->lifecycle shared and checked `closed`
+  // Commit() for a caller that already holds lifecycle_ shared and checked `closed_`
   // (CloseLoop's store callback: the shared lock must not be taken twice).
-  Result<AddResult> CommitLocked(const ProcessedFrame& frame, const PlaceMetadata& metadata);
+  Result<AddResult> CommitLocked(const ProcessedFrame& frame, const PlaceMetadata& metadata)
+      REQUIRES_SHARED(lifecycle_);
   Result<AddResult> StoreInvalid(const ProcessedFrame& frame, const PlaceMetadata& metadata);
   Status Deleted() const;
 
@@ -136,6 +137,10 @@ class PlaceMap {
   std::unique_ptr<detail::MapStorage> storage_;
   AnyVocabulary vocabulary_;
   std::unique_ptr<PlaceDatabase> database_;
+  // Operations hold it shared; DeleteMap takes it exclusively, so in-flight work ends before
+  // the database closes and later calls see `closed_`.
+  mutable SharedMutex lifecycle_;
+  bool closed_ GUARDED_BY(lifecycle_) = false;
 };
 
 class DataDirectory {
@@ -173,8 +178,9 @@ class DataDirectory {
   const std::string path_;
   const StorageOptions options_;
   std::shared_ptr<void> block_cache_;  // rocksdb::Cache, shared by every map
-  mutable std::mutex mutex_;
-  std::unordered_map<std::string, std::shared_ptr<PlaceMap>> open_;
+  // Taken before a map's lifecycle lock (DeleteMap closes the map under both).
+  mutable Mutex mutex_;
+  std::unordered_map<std::string, std::shared_ptr<PlaceMap>> open_ GUARDED_BY(mutex_);
 };
 
 }  // namespace placedb
