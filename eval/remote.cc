@@ -3,13 +3,12 @@
 #include <unistd.h>
 
 #include <chrono>
-#include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <optional>
-#include <sstream>
 
 #include "client/connection.h"
 #include "client/ingest_stream.h"
+#include "core/base/files.h"
 #include "core/base/timing.h"
 #include "proto/convert_config.h"
 #include "proto/status.h"
@@ -19,14 +18,6 @@ namespace placedb::eval {
 namespace {
 
 namespace v1 = ::placedb::v1;
-
-Result<std::string> ReadBytes(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return Status::IoError("cannot read " + path);
-  std::ostringstream bytes;
-  bytes << in.rdbuf();
-  return bytes.str();
-}
 
 // The grid point's whole configuration, so the server runs what the in-process backend runs
 // (scoring, refinement, short-term tier, ...). Boxes always come with the observations, as in
@@ -58,7 +49,7 @@ class ServerBackend final : public Backend {
       auto& images = list == 0 ? database_images_ : query_images_;
       auto& masks = list == 0 ? database_masks_ : query_masks_;
       for (size_t i = 0; i < entries.size(); ++i) {
-        auto bytes = ReadBytes(dataset.Resolve(entries[i].image));
+        auto bytes = ReadWholeFile(dataset.Resolve(entries[i].image));
         if (!bytes.ok()) return bytes.status();
         images.push_back(std::move(bytes).value());
         std::string png;

@@ -2,24 +2,13 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
+
+#include "proto/field_errors.h"
 
 namespace placedb::wire {
 
-namespace {
-
-Status Invalid(const std::string& field, const std::string& what) {
-  return Status::InvalidArgument(field + ": " + what);
-}
-
-// 700, 0.25, 1e+20: numbers in messages as a person writes them.
-std::string Num(double v) {
-  char buffer[32];
-  std::snprintf(buffer, sizeof buffer, "%g", v);
-  return buffer;
-}
-
-}  // namespace
+using internal::Invalid;
+using internal::Num;
 
 // ---- Enums -------------------------------------------------------------------------------------
 

@@ -13,6 +13,7 @@
 
 #include "core/base/status.h"
 #include "core/storage/map_store.h"
+#include "proto/convert_frame.h"
 
 namespace placedb::server {
 
@@ -28,6 +29,13 @@ struct Limits {
   uint32_t max_concurrent_unary = 64;               // unary calls being served at once
   uint32_t unary_queue_wait_ms = 2000;              // a unary call waits this long for room
   uint64_t memory_quota_bytes = uint64_t(1) << 30;  // gRPC's ResourceQuota (transport buffers)
+
+  // The ones an observation is checked against when it is decoded.
+  wire::FrameLimits frame() const {
+    return {.max_image_pixels = max_image_pixels,
+            .max_descriptors_per_frame = max_descriptors_per_frame,
+            .max_boxes_per_frame = max_boxes_per_frame};
+  }
 };
 
 // Server-side detection (core/detector.h). Absent model = detection off.

@@ -22,9 +22,11 @@
 #include "core/base/thread_annotations.h"
 #include "core/storage/map_store.h"
 #include "core/vocabulary/any_vocabulary.h"
-#include "server/convert.h"
+#include "proto/convert_config.h"
 
 namespace placedb::server {
+
+using wire::ServiceMapSettings;
 
 struct VocabularyEntry {
   std::string name;

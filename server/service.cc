@@ -10,9 +10,37 @@
 #include <vector>
 
 #include "core/base/timing.h"
+#include "proto/convert_config.h"
+#include "proto/convert_frame.h"
+#include "proto/convert_result.h"
+#include "proto/status.h"
 #include "server/ingest_pipeline.h"
 
 namespace placedb::server {
+
+// The wire library (proto/): status codes, configurations, observations in, results out.
+using wire::GrpcCodeLabel;
+using wire::GrpcCodeName;
+using wire::ToGrpc;
+
+using wire::FeatureTypeToProto;
+using wire::MapConfigToProto;
+using wire::MapOptionsFromProto;
+using wire::MapStatsToProto;
+using wire::MapVocabulary;
+using wire::QueryOptionsFromProto;
+
+using wire::CheckFeatureType;
+using wire::DecodeObservation;
+
+using wire::BoxesToProto;
+using wire::CountsToProto;
+using wire::DepthStateToProto;
+using wire::LoopClosureToProto;
+using wire::MatchesToProto;
+using wire::MetadataToProto;
+using wire::PlaceFeaturesToProto;
+using wire::TimingsToProto;
 
 namespace {
 
@@ -319,19 +347,10 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
                                      FrameRole role, Work* work) {
   if (Expired(context)) return Cancelled(context, "before decoding");
   const ServiceMapSettings& settings = map.settings;
-  // A map is typed by its feature: precomputed features of the other type cannot be quantised.
-  const FeatureType feature_type = map.map->database().config().feature_type;
-  if (feature_type == FeatureType::kSift &&
-      observation.frame_case() == v1::Observation::kFeatures) {
-    return Invalid(field + ".features: map '" + map.name +
-                   "' is a SIFT map (feature_type SIFT): send sift_features or pixels "
-                   "(encoded_image, raw_image), not ORB features");
-  }
-  if (feature_type == FeatureType::kOrb &&
-      observation.frame_case() == v1::Observation::kSiftFeatures) {
-    return Invalid(field + ".sift_features: map '" + map.name +
-                   "' is an ORB map (feature_type ORB): send features or pixels "
-                   "(encoded_image, raw_image), not SIFT features");
+  if (Status typed =
+          CheckFeatureType(observation, map.map->database().config().feature_type, map.name, field);
+      !typed.ok()) {
+    return ToGrpc(typed);
   }
   const bool server_boxes = settings.detection_enabled && settings.box_source != BoxSource::kAgent;
   if (server_boxes && !detector_) {
@@ -345,7 +364,7 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
   const bool color = server_boxes || (settings.detection_enabled && observation.boxes_size() > 0 &&
                                       map.map->database().config().box_refinement.method ==
                                           BoxRefinement::kGrabCut);
-  auto decoded = DecodeObservation(observation, config_.limits, color, field);
+  auto decoded = DecodeObservation(observation, config_.limits.frame(), color, field);
   if (!decoded.ok()) return ToGrpc(decoded.status());
   work->timings.decode_ms = stage.Lap();
   Observation& frame = decoded->observation;

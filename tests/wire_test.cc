@@ -1,5 +1,6 @@
 // The wire library (proto/): every enum value named, parsed and mapped both ways, every status
-// code both ways, and every MapConfig field through the configuration conversion and back.
+// code both ways, every MapConfig field through the configuration conversion and back, and
+// precomputed features of both families out as results and back in as observations.
 #include <google/protobuf/util/message_differencer.h>
 #include <gtest/gtest.h>
 
@@ -16,6 +17,8 @@
 #include "core/vocabulary/any_vocabulary.h"
 #include "core/vocabulary/weighting.h"
 #include "proto/convert_config.h"
+#include "proto/convert_frame.h"
+#include "proto/convert_result.h"
 #include "proto/names.h"
 #include "proto/status.h"
 
@@ -537,6 +540,108 @@ TEST(MatchOptionsConversion, DefaultsAndCap) {
   theirs.metadata.agent_id = "b";
   EXPECT_FALSE(out.accept(mine));
   EXPECT_TRUE(out.accept(theirs));
+}
+
+// ---- Frames and results -------------------------------------------------------------------------
+
+constexpr FrameLimits kFrameLimits{.max_image_pixels = 4096 * 4096,
+                                   .max_descriptors_per_frame = 10000,
+                                   .max_boxes_per_frame = 256};
+
+std::vector<Keypoint> SomeKeypoints() {
+  std::vector<Keypoint> keypoints;
+  for (int i = 0; i < 4; ++i) {
+    keypoints.push_back(Keypoint{.x = 3.5f + float(i) * 11,
+                                 .y = 40.25f - float(i) * 9,
+                                 .size = 31 + float(i),
+                                 .angle = i == 0 ? -1.0f : float(i) * 90,
+                                 .response = 0.001f * float(i + 1),
+                                 .octave = i});
+  }
+  return keypoints;
+}
+
+TEST(FrameConversion, OrbFeaturesComeBackAsSent) {
+  FeatureSet sent{
+      .image_width = 64, .image_height = 48, .keypoints = SomeKeypoints(), .descriptors = {}};
+  for (size_t i = 0; i < sent.keypoints.size(); ++i) {
+    uint8_t bytes[Descriptor256::kBytes];
+    for (int b = 0; b < Descriptor256::kBytes; ++b) bytes[b] = uint8_t(i * 37 + size_t(b) * 11);
+    sent.descriptors.push_back(Descriptor256::FromBytes(bytes));
+  }
+  v1::Observation observation;
+  FeaturesToProto(sent, observation.mutable_features());
+  auto decoded = DecodeObservation(observation, kFrameLimits, /*color=*/false, "observation");
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  ASSERT_TRUE(decoded->observation.features.has_value());
+  const FeatureSet* back = decoded->observation.features->orb();
+  ASSERT_NE(back, nullptr);
+  EXPECT_FALSE(decoded->has_pixels);
+  EXPECT_EQ(back->image_width, 64);
+  EXPECT_EQ(back->image_height, 48);
+  EXPECT_EQ(back->keypoints, sent.keypoints);
+  EXPECT_EQ(back->descriptors, sent.descriptors);
+}
+
+TEST(FrameConversion, SiftFeaturesComeBackAsSent) {
+  FloatFeatureSet sent{
+      .image_width = 64, .image_height = 48, .keypoints = SomeKeypoints(), .descriptors = {}};
+  for (size_t i = 0; i < sent.keypoints.size() * size_t(kSiftDimensions); ++i) {
+    sent.descriptors.push_back(float(i % 97) * 0.125f - 5.0f);
+  }
+  v1::Observation observation;
+  SiftFeaturesToProto(sent, observation.mutable_sift_features());
+  EXPECT_EQ(observation.sift_features().descriptors().size(), sent.keypoints.size() * 512);
+  auto decoded = DecodeObservation(observation, kFrameLimits, /*color=*/false, "observation");
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  ASSERT_TRUE(decoded->observation.features.has_value());
+  const FloatFeatureSet* back = decoded->observation.features->sift();
+  ASSERT_NE(back, nullptr);
+  EXPECT_EQ(back->image_width, 64);
+  EXPECT_EQ(back->image_height, 48);
+  EXPECT_EQ(back->keypoints, sent.keypoints);
+  EXPECT_EQ(back->descriptors, sent.descriptors);
+}
+
+TEST(FrameConversion, KeypointsOverTheLimitAreNamed) {
+  FeatureSet sent{
+      .image_width = 64, .image_height = 48, .keypoints = SomeKeypoints(), .descriptors = {}};
+  sent.descriptors.resize(sent.keypoints.size());
+  v1::Observation observation;
+  FeaturesToProto(sent, observation.mutable_features());
+  FrameLimits limits = kFrameLimits;
+  limits.max_descriptors_per_frame = 3;
+  auto decoded = DecodeObservation(observation, limits, /*color=*/false, "observation");
+  ASSERT_FALSE(decoded.ok());
+  EXPECT_EQ(decoded.status().code(), StatusCode::kResourceExhausted);
+  EXPECT_EQ(decoded.status().message(),
+            "observation.features.keypoints: 4 keypoints exceed "
+            "limits.max_descriptors_per_frame = 3");
+}
+
+TEST(FrameConversion, FeaturesOfTheOtherFamilyAreRefusedWithTheField) {
+  v1::Observation orb;
+  orb.mutable_features();
+  v1::Observation sift;
+  sift.mutable_sift_features();
+  v1::Observation pixels;
+  pixels.mutable_encoded_image();
+
+  const Status orb_into_sift = CheckFeatureType(orb, FeatureType::kSift, "m", "observation");
+  EXPECT_EQ(orb_into_sift.code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(orb_into_sift.message(),
+            "observation.features: map 'm' is a SIFT map (feature_type SIFT): send sift_features "
+            "or pixels (encoded_image, raw_image), not ORB features");
+  const Status sift_into_orb = CheckFeatureType(sift, FeatureType::kOrb, "m", "observation");
+  EXPECT_EQ(sift_into_orb.code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(sift_into_orb.message(),
+            "observation.sift_features: map 'm' is an ORB map (feature_type ORB): send features "
+            "or pixels (encoded_image, raw_image), not SIFT features");
+
+  EXPECT_TRUE(CheckFeatureType(orb, FeatureType::kOrb, "m", "observation").ok());
+  EXPECT_TRUE(CheckFeatureType(sift, FeatureType::kSift, "m", "observation").ok());
+  EXPECT_TRUE(CheckFeatureType(pixels, FeatureType::kOrb, "m", "observation").ok());
+  EXPECT_TRUE(CheckFeatureType(pixels, FeatureType::kSift, "m", "observation").ok());
 }
 
 }  // namespace

@@ -20,6 +20,7 @@
 #include "client/queue.h"
 #include "core/base/thread_annotations.h"
 #include "core/features/orb_features.h"
+#include "proto/convert_result.h"
 
 namespace placedb::client {
 
@@ -51,26 +52,6 @@ OrbConfig OrbFromMap(const v1::MapConfig& config) {
   if (s.has_patch_size()) orb.patch_size = s.patch_size();
   if (s.has_fast_threshold()) orb.fast_threshold = s.fast_threshold();
   return orb;
-}
-
-void ToProto(const FeatureSet& features, v1::Features* out) {
-  out->set_image_width(uint32_t(features.image_width));
-  out->set_image_height(uint32_t(features.image_height));
-  for (const Keypoint& k : features.keypoints) {
-    v1::Keypoint* keypoint = out->add_keypoints();
-    keypoint->set_x(k.x);
-    keypoint->set_y(k.y);
-    keypoint->set_size(k.size);
-    keypoint->set_angle(k.angle);
-    keypoint->set_response(k.response);
-    keypoint->set_octave(k.octave);
-  }
-  std::string* bytes = out->mutable_descriptors();
-  bytes->resize(features.descriptors.size() * size_t(Descriptor256::kBytes));
-  for (size_t i = 0; i < features.descriptors.size(); ++i) {
-    features.descriptors[i].ToBytes(reinterpret_cast<uint8_t*>(bytes->data()) +
-                                    i * size_t(Descriptor256::kBytes));
-  }
 }
 
 // What one RPC kind (ingest or query) measured.
@@ -213,7 +194,7 @@ bool MakeTemplates(const LoadOptions& options, const LoadMap& map,
              << features.status().ToString() << '\n';
       return false;
     }
-    ToProto(*features, (*templates)[i].mutable_features());
+    wire::FeaturesToProto(*features, (*templates)[i].mutable_features());
   }
   encoded->clear();
   return true;

@@ -8,14 +8,13 @@
 #include <unistd.h>
 
 #include <cmath>
-#include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
 #include <thread>
 
 #include "core/features/orb_features.h"
 #include "core/features/sift_features.h"
-#include "server/convert.h"
+#include "proto/convert_result.h"
 #include "tests/test_support.h"
 
 namespace placedb::server_testing {
@@ -32,14 +31,6 @@ const bool kGrpcInitialised = [] {
 
 }  // namespace
 
-std::string ReadBytes(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  EXPECT_TRUE(in) << "cannot read " << path;
-  std::stringstream bytes;
-  bytes << in.rdbuf();
-  return bytes.str();
-}
-
 std::string EncodePng(const cv::Mat& image) {
   std::vector<uint8_t> bytes;
   EXPECT_TRUE(cv::imencode(".png", image, bytes));
@@ -52,7 +43,7 @@ v1::Observation JpegObservation(const std::string& path, const std::string& agen
   observation.set_agent_id(agent);
   observation.set_sequence(sequence);
   observation.set_timestamp_ns(int64_t(sequence) * 100'000'000);
-  observation.mutable_encoded_image()->set_data(ReadBytes(path));
+  observation.mutable_encoded_image()->set_data(testing::ReadFileBytes(path));
   return observation;
 }
 
@@ -75,7 +66,7 @@ v1::Features FeaturesOf(const v1::Observation& observation) {
   auto features = ExtractOrb(gray, OrbConfig{});
   EXPECT_TRUE(features.ok()) << features.status().ToString();
   v1::Features out;
-  server::FeaturesToProto(*features, &out);
+  wire::FeaturesToProto(*features, &out);
   return out;
 }
 
@@ -86,7 +77,7 @@ v1::SiftFeatures SiftFeaturesOf(const v1::Observation& observation) {
   auto features = ExtractSift(gray, SiftConfig{});
   EXPECT_TRUE(features.ok()) << features.status().ToString();
   v1::SiftFeatures out;
-  server::SiftFeaturesToProto(*features, &out);
+  wire::SiftFeaturesToProto(*features, &out);
   return out;
 }
 
@@ -95,7 +86,7 @@ v1::Observation RgbdObservation(const rgbd::RgbdFrame& frame, const std::string&
   v1::Observation observation;
   observation.set_agent_id(agent);
   observation.set_sequence(sequence);
-  observation.mutable_encoded_image()->set_data(ReadBytes(frame.image_path));
+  observation.mutable_encoded_image()->set_data(testing::ReadFileBytes(frame.image_path));
   const cv::Mat depth = cv::imread(frame.depth_path, cv::IMREAD_UNCHANGED | cv::IMREAD_ANYDEPTH);
   EXPECT_EQ(depth.type(), CV_16UC1) << frame.depth_path;
   observation.mutable_depth()->set_png16(EncodePng(depth));

@@ -30,7 +30,6 @@ using server::ServerDeps;
 
 // ---- Frames -------------------------------------------------------------------------------------
 
-std::string ReadBytes(const std::string& path);  // fails the test if unreadable
 std::string EncodePng(const cv::Mat& image);
 
 // The JPEG file at `path` as an observation of `agent` (timestamp: sequence x 100 ms).

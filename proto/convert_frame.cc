@@ -1,28 +1,24 @@
-#include "server/convert.h"
+#include "proto/convert_frame.h"
 
-#include <algorithm>
 #include <cmath>
-#include <cstdio>
 #include <cstring>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <span>
+#include <utility>
 
-namespace placedb::server {
+#include "core/detect/detector.h"
+#include "core/features/orb_features.h"
+#include "core/features/sift_features.h"
+#include "core/filter/depth_filter.h"
+#include "proto/field_errors.h"
 
-// ---- Observations -------------------------------------------------------------------------------
+namespace placedb::wire {
+
+using internal::Invalid;
+using internal::Num;
 
 namespace {
-
-Status Invalid(const std::string& field, const std::string& what) {
-  return Status::InvalidArgument(field + ": " + what);
-}
-
-// 700, 0.25, 1e+20: numbers in messages as a person writes them.
-std::string Num(double v) {
-  char buffer[32];
-  std::snprintf(buffer, sizeof buffer, "%g", v);
-  return buffer;
-}
 
 uint32_t ReadBe32(const unsigned char* p) {
   return (uint32_t(p[0]) << 24) | (uint32_t(p[1]) << 16) | (uint32_t(p[2]) << 8) | uint32_t(p[3]);
@@ -35,7 +31,7 @@ std::string Dims(int width, int height) {
   return std::to_string(width) + "x" + std::to_string(height);
 }
 
-Status CheckPixels(uint64_t width, uint64_t height, const Limits& limits,
+Status CheckPixels(uint64_t width, uint64_t height, const FrameLimits& limits,
                    const std::string& field) {
   if (width * height > limits.max_image_pixels) {
     return Status::ResourceExhausted(
@@ -102,7 +98,7 @@ Result<Pose> PoseFromProto(const v1::Pose& p, const std::string& field) {
 
 // Decodes JPEG/PNG bytes after checking the header against the pixel limit (so a small file
 // claiming a huge image is refused before any allocation).
-Result<cv::Mat> DecodeImageBytes(const std::string& bytes, int flags, const Limits& limits,
+Result<cv::Mat> DecodeImageBytes(const std::string& bytes, int flags, const FrameLimits& limits,
                                  const std::string& field, bool png_only) {
   auto header = ReadImageHeader(bytes);
   if (!header.ok()) return Invalid(field, header.status().message());
@@ -127,7 +123,7 @@ Result<cv::Mat> DecodeImageBytes(const std::string& bytes, int flags, const Limi
 }
 
 // The frame's size as a features message states it.
-Status FeatureImageSize(uint32_t width, uint32_t height, const Limits& limits,
+Status FeatureImageSize(uint32_t width, uint32_t height, const FrameLimits& limits,
                         const std::string& field) {
   if (width == 0 || height == 0 || width > 100000 || height > 100000) {
     return Invalid(field + ".image_width/image_height",
@@ -136,7 +132,7 @@ Status FeatureImageSize(uint32_t width, uint32_t height, const Limits& limits,
   return CheckPixels(width, height, limits, field + ".image_width/image_height");
 }
 
-Status CheckKeypointCount(size_t count, const Limits& limits, const std::string& field) {
+Status CheckKeypointCount(size_t count, const FrameLimits& limits, const std::string& field) {
   if (count > limits.max_descriptors_per_frame) {
     return Status::ResourceExhausted(field + ".keypoints: " + std::to_string(count) +
                                      " keypoints exceed limits.max_descriptors_per_frame = " +
@@ -177,7 +173,7 @@ Result<std::vector<Keypoint>> KeypointsFromProto(
   return out;
 }
 
-Result<FeatureSet> FeaturesFromProto(const v1::Features& f, const Limits& limits,
+Result<FeatureSet> FeaturesFromProto(const v1::Features& f, const FrameLimits& limits,
                                      const std::string& field) {
   PLACEDB_RETURN_IF_ERROR(FeatureImageSize(f.image_width(), f.image_height(), limits, field));
   const size_t count = size_t(f.keypoints_size());
@@ -213,7 +209,7 @@ Result<FeatureSet> FeaturesFromProto(const v1::Features& f, const Limits& limits
   return features;
 }
 
-Result<FloatFeatureSet> SiftFeaturesFromProto(const v1::SiftFeatures& f, const Limits& limits,
+Result<FloatFeatureSet> SiftFeaturesFromProto(const v1::SiftFeatures& f, const FrameLimits& limits,
                                               const std::string& field) {
   PLACEDB_RETURN_IF_ERROR(FeatureImageSize(f.image_width(), f.image_height(), limits, field));
   const size_t count = size_t(f.keypoints_size());
@@ -268,7 +264,7 @@ Status IntrinsicsFromProto(const v1::Intrinsics& k, int width, int height, const
 
 // A depth image as the core takes it: the raw values (CV_16U for png16, CV_32F for
 // raw_float32), the frame's scale and intrinsics. `width` x `height` is the colour frame's size.
-Result<DepthObservation> DepthFromProto(const v1::DepthImage& depth, const Limits& limits,
+Result<DepthObservation> DepthFromProto(const v1::DepthImage& depth, const FrameLimits& limits,
                                         int width, int height, const std::string& field) {
   if (!std::isfinite(depth.scale()) || depth.scale() < 0) {
     return Invalid(field + ".scale", "must be >= 0 (0 = the map's depth scale)");
@@ -381,7 +377,24 @@ Result<ImageHeader> ReadImageHeader(const std::string& bytes) {
   return Status::InvalidArgument("not a JPEG or PNG image");
 }
 
-Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Limits& limits,
+Status CheckFeatureType(const v1::Observation& observation, FeatureType map_type,
+                        const std::string& map_name, const std::string& field) {
+  if (map_type == FeatureType::kSift && observation.frame_case() == v1::Observation::kFeatures) {
+    return Invalid(field + ".features",
+                   "map '" + map_name +
+                       "' is a SIFT map (feature_type SIFT): send sift_features or pixels "
+                       "(encoded_image, raw_image), not ORB features");
+  }
+  if (map_type == FeatureType::kOrb && observation.frame_case() == v1::Observation::kSiftFeatures) {
+    return Invalid(field + ".sift_features",
+                   "map '" + map_name +
+                       "' is an ORB map (feature_type ORB): send features or pixels "
+                       "(encoded_image, raw_image), not SIFT features");
+  }
+  return Status::Ok();
+}
+
+Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const FrameLimits& limits,
                                              bool color, const std::string& field) {
   DecodedObservation out;
   Observation& obs = out.observation;
@@ -511,176 +524,4 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Lim
   return out;
 }
 
-// ---- Results ------------------------------------------------------------------------------------
-
-void CountsToProto(const FrameCounts& counts, v1::FrameCounts* out) {
-  out->set_total(counts.total);
-  out->set_dynamic(counts.dynamic);
-  out->set_kept(counts.static_);
-  out->set_dynamic_coverage(counts.dynamic_coverage);
-  out->set_depth_removed(counts.depth_removed);
-}
-
-void BoxesToProto(const std::vector<DynamicBox>& boxes,
-                  google::protobuf::RepeatedPtrField<v1::UsedBox>* out) {
-  out->Reserve(int(boxes.size()));
-  for (const DynamicBox& box : boxes) {
-    v1::UsedBox* b = out->Add();
-    b->set_class_id(box.class_id);
-    b->set_class_name(CocoClassName(box.class_id));
-    b->set_confidence(box.confidence);
-    b->mutable_rect()->set_x(box.rect.x);
-    b->mutable_rect()->set_y(box.rect.y);
-    b->mutable_rect()->set_width(box.rect.width);
-    b->mutable_rect()->set_height(box.rect.height);
-  }
-}
-
-void MetadataToProto(const PlaceMetadata& metadata, v1::PlaceMetadata* out) {
-  out->set_agent_id(metadata.agent_id);
-  out->set_sequence(metadata.sequence);
-  out->set_timestamp_ns(metadata.timestamp_ns);
-  if (metadata.pose) {
-    v1::Pose* p = out->mutable_pose();
-    p->set_x(metadata.pose->position[0]);
-    p->set_y(metadata.pose->position[1]);
-    p->set_z(metadata.pose->position[2]);
-    p->set_qx(metadata.pose->orientation[0]);
-    p->set_qy(metadata.pose->orientation[1]);
-    p->set_qz(metadata.pose->orientation[2]);
-    p->set_qw(metadata.pose->orientation[3]);
-  }
-}
-
-void MatchesToProto(const std::vector<Match>& matches,
-                    google::protobuf::RepeatedPtrField<v1::Match>* out) {
-  out->Reserve(int(matches.size()));
-  for (const Match& match : matches) {
-    v1::Match* m = out->Add();
-    m->set_place_id(match.place);
-    m->set_score(match.score);
-    m->set_inliers(match.inliers);
-    m->set_verified(match.verified);
-    MetadataToProto(match.metadata, m->mutable_metadata());
-  }
-}
-
-void TimingsToProto(const StageTimings& t, double queue_ms, v1::StageTimings* out) {
-  out->set_queue_ms(queue_ms);
-  out->set_decode_ms(t.decode_ms);
-  out->set_detect_ms(t.detect_ms);
-  out->set_extract_ms(t.extract_ms);
-  out->set_filter_ms(t.filter_ms);
-  out->set_depth_ms(t.depth_ms);
-  out->set_transform_ms(t.transform_ms);
-  out->set_search_ms(t.search_ms);
-  out->set_verify_ms(t.verify_ms);
-  out->set_store_ms(t.store_ms);
-  out->set_loop_closure_ms(t.loop_closure_ms);
-  out->set_refine_ms(t.refine_ms);
-  out->set_total_ms(t.total_ms);
-}
-
-void FeaturesToProto(const FeatureSet& features, v1::Features* out) {
-  out->set_image_width(uint32_t(features.image_width));
-  out->set_image_height(uint32_t(features.image_height));
-  out->mutable_keypoints()->Reserve(int(features.keypoints.size()));
-  for (const Keypoint& k : features.keypoints) {
-    v1::Keypoint* kp = out->add_keypoints();
-    kp->set_x(k.x);
-    kp->set_y(k.y);
-    kp->set_size(k.size);
-    kp->set_angle(k.angle);
-    kp->set_response(k.response);
-    kp->set_octave(k.octave);
-  }
-  std::string* bytes = out->mutable_descriptors();
-  bytes->resize(features.descriptors.size() * size_t(Descriptor256::kBytes));
-  for (size_t i = 0; i < features.descriptors.size(); ++i) {
-    features.descriptors[i].ToBytes(reinterpret_cast<uint8_t*>(bytes->data()) +
-                                    i * size_t(Descriptor256::kBytes));
-  }
-}
-
-namespace {
-
-template <typename Out>
-void KeypointsToProto(const std::vector<Keypoint>& keypoints, Out* out) {
-  out->mutable_keypoints()->Reserve(int(keypoints.size()));
-  for (const Keypoint& k : keypoints) {
-    v1::Keypoint* kp = out->add_keypoints();
-    kp->set_x(k.x);
-    kp->set_y(k.y);
-    kp->set_size(k.size);
-    kp->set_angle(k.angle);
-    kp->set_response(k.response);
-    kp->set_octave(k.octave);
-  }
-}
-
-}  // namespace
-
-void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out) {
-  if (const FeatureSet* orb = features.orb()) {
-    FeaturesToProto(*orb, out->mutable_features());
-  } else {
-    SiftFeaturesToProto(*features.sift(), out->mutable_sift_features());
-  }
-}
-
-void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out) {
-  out->set_image_width(uint32_t(features.image_width));
-  out->set_image_height(uint32_t(features.image_height));
-  KeypointsToProto(features.keypoints, out);
-  // 128 little-endian float32 per keypoint.
-  std::string* bytes = out->mutable_descriptors();
-  bytes->resize(features.descriptors.size() * sizeof(float));
-  auto* p = reinterpret_cast<uint8_t*>(bytes->data());
-  for (float v : features.descriptors) {
-    uint32_t u = 0;
-    std::memcpy(&u, &v, sizeof u);
-    p[0] = uint8_t(u);
-    p[1] = uint8_t(u >> 8);
-    p[2] = uint8_t(u >> 16);
-    p[3] = uint8_t(u >> 24);
-    p += 4;
-  }
-}
-
-void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out) {
-  out->set_frame(state.frame);
-  out->set_mean_depth_m(state.mean_depth_m);
-  out->set_static_level_m(state.static_level_m);
-  out->set_difference_m(state.difference_m);
-  out->set_count(state.count);
-  out->set_warming_up(state.warming_up);
-  out->set_deviating(state.deviating);
-  out->set_removing(state.removing);
-  if (state.removing) {
-    out->set_band_near_m(state.band.near_m);
-    out->set_band_far_m(state.band.far_m);
-  }
-  out->set_band_source(state.band_source);
-  out->set_valid_fraction(state.valid_fraction);
-}
-
-void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out) {
-  out->set_merged(outcome.merged);
-  out->set_place_id(outcome.place);
-  out->set_loop_found(outcome.loop.has_value());
-  if (outcome.loop) {
-    out->set_loop_place_id(*outcome.loop);
-    out->set_loop_posterior(outcome.loop_posterior);
-  }
-  out->set_best_place_id(outcome.best);
-  out->set_best_posterior(outcome.best_posterior);
-  out->set_candidates(uint32_t(outcome.candidates));
-  out->set_retrieved(uint32_t(outcome.retrieved));
-  out->set_transferred(uint32_t(outcome.transferred));
-  out->set_replayed(uint32_t(outcome.replayed));
-  out->set_loop_inliers(outcome.loop_inliers);
-  out->set_loop_rejected(outcome.loop_rejected);
-  out->set_rejected_place_id(outcome.rejected_loop);
-}
-
-}  // namespace placedb::server
+}  // namespace placedb::wire

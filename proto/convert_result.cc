@@ -1,0 +1,172 @@
+#include "proto/convert_result.h"
+
+#include <cstring>
+#include <string>
+
+#include "core/detect/detector.h"
+
+namespace placedb::wire {
+
+namespace {
+
+// The keypoints of either family's message (both carry v1::Keypoint).
+template <typename Out>
+void KeypointsToProto(const std::vector<Keypoint>& keypoints, Out* out) {
+  out->mutable_keypoints()->Reserve(int(keypoints.size()));
+  for (const Keypoint& k : keypoints) {
+    v1::Keypoint* kp = out->add_keypoints();
+    kp->set_x(k.x);
+    kp->set_y(k.y);
+    kp->set_size(k.size);
+    kp->set_angle(k.angle);
+    kp->set_response(k.response);
+    kp->set_octave(k.octave);
+  }
+}
+
+}  // namespace
+
+void CountsToProto(const FrameCounts& counts, v1::FrameCounts* out) {
+  out->set_total(counts.total);
+  out->set_dynamic(counts.dynamic);
+  out->set_kept(counts.static_);
+  out->set_dynamic_coverage(counts.dynamic_coverage);
+  out->set_depth_removed(counts.depth_removed);
+}
+
+void BoxesToProto(const std::vector<DynamicBox>& boxes,
+                  google::protobuf::RepeatedPtrField<v1::UsedBox>* out) {
+  out->Reserve(int(boxes.size()));
+  for (const DynamicBox& box : boxes) {
+    v1::UsedBox* b = out->Add();
+    b->set_class_id(box.class_id);
+    b->set_class_name(CocoClassName(box.class_id));
+    b->set_confidence(box.confidence);
+    b->mutable_rect()->set_x(box.rect.x);
+    b->mutable_rect()->set_y(box.rect.y);
+    b->mutable_rect()->set_width(box.rect.width);
+    b->mutable_rect()->set_height(box.rect.height);
+  }
+}
+
+void MetadataToProto(const PlaceMetadata& metadata, v1::PlaceMetadata* out) {
+  out->set_agent_id(metadata.agent_id);
+  out->set_sequence(metadata.sequence);
+  out->set_timestamp_ns(metadata.timestamp_ns);
+  if (metadata.pose) {
+    v1::Pose* p = out->mutable_pose();
+    p->set_x(metadata.pose->position[0]);
+    p->set_y(metadata.pose->position[1]);
+    p->set_z(metadata.pose->position[2]);
+    p->set_qx(metadata.pose->orientation[0]);
+    p->set_qy(metadata.pose->orientation[1]);
+    p->set_qz(metadata.pose->orientation[2]);
+    p->set_qw(metadata.pose->orientation[3]);
+  }
+}
+
+void MatchesToProto(const std::vector<Match>& matches,
+                    google::protobuf::RepeatedPtrField<v1::Match>* out) {
+  out->Reserve(int(matches.size()));
+  for (const Match& match : matches) {
+    v1::Match* m = out->Add();
+    m->set_place_id(match.place);
+    m->set_score(match.score);
+    m->set_inliers(match.inliers);
+    m->set_verified(match.verified);
+    MetadataToProto(match.metadata, m->mutable_metadata());
+  }
+}
+
+void TimingsToProto(const StageTimings& t, double queue_ms, v1::StageTimings* out) {
+  out->set_queue_ms(queue_ms);
+  out->set_decode_ms(t.decode_ms);
+  out->set_detect_ms(t.detect_ms);
+  out->set_extract_ms(t.extract_ms);
+  out->set_filter_ms(t.filter_ms);
+  out->set_depth_ms(t.depth_ms);
+  out->set_transform_ms(t.transform_ms);
+  out->set_search_ms(t.search_ms);
+  out->set_verify_ms(t.verify_ms);
+  out->set_store_ms(t.store_ms);
+  out->set_loop_closure_ms(t.loop_closure_ms);
+  out->set_refine_ms(t.refine_ms);
+  out->set_total_ms(t.total_ms);
+}
+
+void FeaturesToProto(const FeatureSet& features, v1::Features* out) {
+  out->set_image_width(uint32_t(features.image_width));
+  out->set_image_height(uint32_t(features.image_height));
+  KeypointsToProto(features.keypoints, out);
+  std::string* bytes = out->mutable_descriptors();
+  bytes->resize(features.descriptors.size() * size_t(Descriptor256::kBytes));
+  for (size_t i = 0; i < features.descriptors.size(); ++i) {
+    features.descriptors[i].ToBytes(reinterpret_cast<uint8_t*>(bytes->data()) +
+                                    i * size_t(Descriptor256::kBytes));
+  }
+}
+
+void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out) {
+  if (const FeatureSet* orb = features.orb()) {
+    FeaturesToProto(*orb, out->mutable_features());
+  } else {
+    SiftFeaturesToProto(*features.sift(), out->mutable_sift_features());
+  }
+}
+
+void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out) {
+  out->set_image_width(uint32_t(features.image_width));
+  out->set_image_height(uint32_t(features.image_height));
+  KeypointsToProto(features.keypoints, out);
+  // 128 little-endian float32 per keypoint.
+  std::string* bytes = out->mutable_descriptors();
+  bytes->resize(features.descriptors.size() * sizeof(float));
+  auto* p = reinterpret_cast<uint8_t*>(bytes->data());
+  for (float v : features.descriptors) {
+    uint32_t u = 0;
+    std::memcpy(&u, &v, sizeof u);
+    p[0] = uint8_t(u);
+    p[1] = uint8_t(u >> 8);
+    p[2] = uint8_t(u >> 16);
+    p[3] = uint8_t(u >> 24);
+    p += 4;
+  }
+}
+
+void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out) {
+  out->set_frame(state.frame);
+  out->set_mean_depth_m(state.mean_depth_m);
+  out->set_static_level_m(state.static_level_m);
+  out->set_difference_m(state.difference_m);
+  out->set_count(state.count);
+  out->set_warming_up(state.warming_up);
+  out->set_deviating(state.deviating);
+  out->set_removing(state.removing);
+  if (state.removing) {
+    out->set_band_near_m(state.band.near_m);
+    out->set_band_far_m(state.band.far_m);
+  }
+  out->set_band_source(state.band_source);
+  out->set_valid_fraction(state.valid_fraction);
+}
+
+void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out) {
+  out->set_merged(outcome.merged);
+  out->set_place_id(outcome.place);
+  out->set_loop_found(outcome.loop.has_value());
+  if (outcome.loop) {
+    out->set_loop_place_id(*outcome.loop);
+    out->set_loop_posterior(outcome.loop_posterior);
+  }
+  out->set_best_place_id(outcome.best);
+  out->set_best_posterior(outcome.best_posterior);
+  out->set_candidates(uint32_t(outcome.candidates));
+  out->set_retrieved(uint32_t(outcome.retrieved));
+  out->set_transferred(uint32_t(outcome.transferred));
+  out->set_replayed(uint32_t(outcome.replayed));
+  out->set_loop_inliers(outcome.loop_inliers);
+  out->set_loop_rejected(outcome.loop_rejected);
+  out->set_rejected_place_id(outcome.rejected_loop);
+}
+
+}  // namespace placedb::wire

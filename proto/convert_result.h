@@ -1,0 +1,38 @@
+// Results out: the core's frame counts, boxes, matches, timings, features, depth state and
+// loop-closure outcome as placedb.v1 messages. Observations in: proto/convert_frame.h.
+#pragma once
+
+#include <google/protobuf/repeated_ptr_field.h>
+
+#include <vector>
+
+#include "core/base/timing.h"
+#include "core/detect/dynamic_objects.h"
+#include "core/features/local_features.h"
+#include "core/features/orb_features.h"
+#include "core/features/sift_features.h"
+#include "core/filter/depth_filter.h"
+#include "core/pipeline/place_database.h"
+#include "proto/placedb.pb.h"
+
+namespace placedb::wire {
+
+namespace v1 = ::placedb::v1;
+
+void CountsToProto(const FrameCounts& counts, v1::FrameCounts* out);
+void BoxesToProto(const std::vector<DynamicBox>& boxes,
+                  google::protobuf::RepeatedPtrField<v1::UsedBox>* out);
+void MetadataToProto(const PlaceMetadata& metadata, v1::PlaceMetadata* out);
+void MatchesToProto(const std::vector<Match>& matches,
+                    google::protobuf::RepeatedPtrField<v1::Match>* out);
+void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimings* out);
+// Precomputed features as an agent sends them: 32-byte ORB descriptors, or 128 little-endian
+// float32 per SIFT keypoint.
+void FeaturesToProto(const FeatureSet& features, v1::Features* out);
+void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out);
+// A place's features into the field of their family: `features` (ORB) or `sift_features`.
+void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out);
+void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out);
+void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out);
+
+}  // namespace placedb::wire
