@@ -20,9 +20,9 @@ IngestPipeline::Room IngestPipeline::AwaitRoom() {
   // `expired` has no wake-up hook (a cancelled call does not signal us): poll it.
   constexpr auto kPoll = std::chrono::milliseconds(50);
   const auto expired = [this] { return callbacks_.expired && callbacks_.expired(); };
-  std::unique_lock lock(mutex_);
+  MutexLock lock(mutex_);
   while (unanswered_ >= max_inflight_ && !draining_ && !deliver_failed_ && !expired()) {
-    changed_.wait_for(lock, kPoll);
+    changed_.WaitFor(mutex_, kPoll);
   }
   if (draining_) return Room::kDraining;
   if (deliver_failed_ || expired()) return Room::kClosed;
@@ -34,7 +34,7 @@ IngestPipeline::Admission IngestPipeline::Submit(std::unique_ptr<Frame> frame) {
   owned->frame = std::move(frame);
   Slot* const slot = owned.get();
   {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     if (draining_) return Admission::kDraining;  // the caller sees it was never answered
     pending_.push_back(std::move(owned));
     ++unanswered_;
@@ -62,37 +62,37 @@ IngestPipeline::Admission IngestPipeline::Submit(std::unique_ptr<Frame> frame) {
 // Marking and checking happen under one lock hold, so exactly one thread completes each frame,
 // and a thread that returns from here never touches the pipeline again.
 void IngestPipeline::ReadyAndAdvance(Slot* slot) {
-  std::unique_lock lock(mutex_);
+  MutexLock lock(mutex_);
   slot->ready = true;
   if (completing_) return;  // the completing thread will reach this slot
   completing_ = true;
   while (!pending_.empty() && pending_.front()->ready) {
     std::unique_ptr<Frame> front = std::move(pending_.front()->frame);
     pending_.pop_front();
-    lock.unlock();
+    lock.Unlock();
     front->Complete();
-    lock.lock();
+    lock.Lock();
     outbox_.push_back(std::move(front));
-    changed_.notify_all();
+    changed_.NotifyAll();
   }
   completing_ = false;
 }
 
 void IngestPipeline::Deliver() {
-  std::unique_lock lock(mutex_);
+  MutexLock lock(mutex_);
   while (true) {
-    changed_.wait(lock, [&] { return !outbox_.empty() || (reading_done_ && unanswered_ == 0); });
+    while (outbox_.empty() && !(reading_done_ && unanswered_ == 0)) changed_.Wait(mutex_);
     if (outbox_.empty()) return;
     std::unique_ptr<Frame> frame = std::move(outbox_.front());
     outbox_.pop_front();
     const bool skip = deliver_failed_;
-    lock.unlock();
+    lock.Unlock();
     const bool delivered = !skip && callbacks_.deliver(*frame);
     frame.reset();  // outside the lock: a frame may hold a lot
-    lock.lock();
+    lock.Lock();
     if (!delivered) deliver_failed_ = true;
     --unanswered_;
-    changed_.notify_all();
+    changed_.NotifyAll();
     if (draining_ && unanswered_ == 0 && !reading_done_ && callbacks_.interrupt) {
       callbacks_.interrupt();  // the reader may be blocked on input; nothing is left to answer
     }
@@ -101,25 +101,25 @@ void IngestPipeline::Deliver() {
 
 void IngestPipeline::Close() {
   {
-    std::lock_guard lock(mutex_);
+    MutexLock lock(mutex_);
     reading_done_ = true;
-    changed_.notify_all();
+    changed_.NotifyAll();
   }
   // Every submitted frame is answered before this returns: workers reference the pipeline.
   if (delivery_.joinable()) delivery_.join();
 }
 
 void IngestPipeline::Drain() {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   draining_ = true;
-  changed_.notify_all();
+  changed_.NotifyAll();
   // An idle reader is blocked on input: interrupt it now. A busy one is interrupted by the
   // delivery thread once its last frame is answered.
   if (unanswered_ == 0 && callbacks_.interrupt) callbacks_.interrupt();
 }
 
 bool IngestPipeline::draining() const {
-  std::lock_guard lock(mutex_);
+  MutexLock lock(mutex_);
   return draining_;
 }
 

@@ -38,14 +38,13 @@
 // thread to be done with the pipeline and with every frame.
 #pragma once
 
-#include <condition_variable>
 #include <cstddef>
 #include <deque>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <thread>
 
+#include "core/base/thread_annotations.h"
 #include "server/worker_pool.h"
 
 namespace placedb::server {
@@ -105,42 +104,44 @@ class IngestPipeline {
 
   // Reader: waits until fewer than `max_inflight` frames are unanswered, or until the stream is
   // draining or closed (checked in that order; `expired` is polled every 50 ms).
-  Room AwaitRoom();
+  Room AwaitRoom() EXCLUDES(mutex_);
   // Reader: admits `frame` at the back of the stream and queues its Prepare() on the pool,
   // waiting for room there (until `expired`). Not kQueued: see Admission.
-  Admission Submit(std::unique_ptr<Frame> frame);
+  Admission Submit(std::unique_ptr<Frame> frame) EXCLUDES(mutex_);
   // Reader: no more frames. Returns once every submitted frame is completed and delivered (or
   // skipped) and the delivery thread has ended. Idempotent.
-  void Close();
+  void Close() EXCLUDES(mutex_);
 
   // Any thread: refuse new frames, finish the submitted ones (see the file comment).
-  void Drain();
-  bool draining() const;
+  void Drain() EXCLUDES(mutex_);
+  bool draining() const EXCLUDES(mutex_);
 
  private:
   struct Slot {
     std::unique_ptr<Frame> frame;
-    bool ready = false;  // Prepare() or Refused() done
+    bool ready = false;  // Prepare() or Refused() done; read and written under mutex_
   };
 
   // Marks `slot` ready and, unless another thread already is, completes every ready slot at the
   // front of the stream, in order.
-  void ReadyAndAdvance(Slot* slot);
-  void Deliver();  // the delivery thread
+  void ReadyAndAdvance(Slot* slot) EXCLUDES(mutex_);
+  void Deliver() EXCLUDES(mutex_);  // the delivery thread
 
   WorkerPool* const pool_;
   const size_t max_inflight_;
   const Callbacks callbacks_;
 
-  mutable std::mutex mutex_;
-  std::condition_variable changed_;
-  std::deque<std::unique_ptr<Slot>> pending_;  // submitted, not yet completed, in order
-  bool completing_ = false;                    // a thread is in ReadyAndAdvance()'s loop
-  std::deque<std::unique_ptr<Frame>> outbox_;  // completed, not yet delivered, in order
-  size_t unanswered_ = 0;                      // submitted, not yet delivered or skipped
-  bool reading_done_ = false;
-  bool deliver_failed_ = false;
-  bool draining_ = false;
+  mutable Mutex mutex_;
+  CondVar changed_;
+  // Submitted, not yet completed, in order.
+  std::deque<std::unique_ptr<Slot>> pending_ GUARDED_BY(mutex_);
+  bool completing_ GUARDED_BY(mutex_) = false;  // a thread is in ReadyAndAdvance()'s loop
+  // Completed, not yet delivered, in order.
+  std::deque<std::unique_ptr<Frame>> outbox_ GUARDED_BY(mutex_);
+  size_t unanswered_ GUARDED_BY(mutex_) = 0;  // submitted, not yet delivered or skipped
+  bool reading_done_ GUARDED_BY(mutex_) = false;
+  bool deliver_failed_ GUARDED_BY(mutex_) = false;
+  bool draining_ GUARDED_BY(mutex_) = false;
 
   std::thread delivery_;  // last: starts once the state above exists
 };

@@ -128,8 +128,9 @@ struct IngestRun {
   const std::vector<std::string> agent_ids;
   v1::IngestHeader header;
 
-  // Everything below, and the writes to `out` while agents run.
-  Mutex mutex;
+  // Everything below, and the writes to `out` while agents run. Mutable: the summary, written
+  // after the agents have joined, reads under it too (uncontended).
+  mutable Mutex mutex;
   std::vector<FrameRecord> records GUARDED_BY(mutex);
   std::vector<double> latencies GUARDED_BY(mutex);
   size_t stored GUARDED_BY(mutex) = 0;
@@ -315,6 +316,7 @@ struct IngestTotals {
 };
 
 IngestTotals Totals(IngestRun& run, size_t local_errors, double elapsed) {
+  MutexLock lock(run.mutex);
   IngestTotals totals;
   for (FrameRecord& record : run.records) {
     totals.sent += record.sent;
@@ -368,6 +370,7 @@ nlohmann::json FrameJson(const FrameRecord& record, bool matches) {
 }
 
 nlohmann::json SummaryJson(const IngestRun& run, const IngestTotals& totals, bool with_depth) {
+  MutexLock lock(run.mutex);
   nlohmann::json out;
   out["map"] = run.options.map;
   out["agents"] = run.agent_ids;
@@ -408,6 +411,7 @@ std::string CountList(const std::map<std::string, size_t>& counts) {
 }
 
 void PrintSummary(const IngestRun& run, const IngestTotals& totals, bool with_depth) {
+  MutexLock lock(run.mutex);
   const IngestOptions& options = run.options;
   std::ostream& out = run.out;
   const size_t agents = run.agent_ids.size();
@@ -515,8 +519,11 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
   const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
 
   const IngestTotals totals = Totals(run, local_errors, elapsed);
-  for (const auto& [agent, status] : run.stream_errors) {
-    io.err << "error: agent " << agent << ": " << Describe(status) << '\n';
+  {
+    MutexLock lock(run.mutex);
+    for (const auto& [agent, status] : run.stream_errors) {
+      io.err << "error: agent " << agent << ": " << Describe(status) << '\n';
+    }
   }
   if (json) {
     io.out << SummaryJson(run, totals, depth.enabled).dump(2) << '\n';

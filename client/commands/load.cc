@@ -223,12 +223,16 @@ struct LoadPlan {
 };
 
 // What the agents measured.
+struct LoadCounts {
+  KindStats ingest, query;
+  std::vector<std::pair<std::string, grpc::Status>> stream_errors;
+  Clock::time_point last_answer;
+};
+
+// The agents' shared tally; read once, locked, after they have joined.
 struct LoadTally {
   Mutex mutex;
-  KindStats ingest GUARDED_BY(mutex);
-  KindStats query GUARDED_BY(mutex);
-  std::vector<std::pair<std::string, grpc::Status>> stream_errors GUARDED_BY(mutex);
-  Clock::time_point last_answer GUARDED_BY(mutex);
+  LoadCounts counts GUARDED_BY(mutex);
 };
 
 // Agent i's queries, one at a time beside its Ingest stream.
@@ -245,7 +249,7 @@ void RunQuerier(const LoadPlan& plan, size_t i, BoundedQueue<QueryJob>& queries,
     const grpc::Status status = plan.connection.stub()->Query(context.get(), request, &response);
     const Clock::time_point now = Clock::now();
     MutexLock lock(tally.mutex);
-    KindStats& query = tally.query;
+    KindStats& query = tally.counts.query;
     ++query.count;
     query.latency_ms.push_back(MsBetween(job->due.value_or(sent), now));
     if (status.ok()) {
@@ -255,7 +259,7 @@ void RunQuerier(const LoadPlan& plan, size_t i, BoundedQueue<QueryJob>& queries,
       ++query.errors;
       ++query.errors_by_code[CodeName(int(status.error_code()))];
     }
-    tally.last_answer = std::max(tally.last_answer, now);
+    tally.counts.last_answer = std::max(tally.counts.last_answer, now);
     progress.Add();
   }
 }
@@ -299,7 +303,7 @@ void RunAgent(const LoadPlan& plan, size_t i, LoadTally& tally, Progress& progre
     const Clock::time_point now = Clock::now();
     const v1::IngestResponse& response = answer.response;
     MutexLock lock(tally.mutex);
-    KindStats& ingest = tally.ingest;
+    KindStats& ingest = tally.counts.ingest;
     ++ingest.count;
     ingest.latency_ms.push_back(answer.latency_ms);
     if (response.has_error()) {
@@ -310,7 +314,7 @@ void RunAgent(const LoadPlan& plan, size_t i, LoadTally& tally, Progress& progre
       (response.stored() ? ingest.stored : ingest.rejected)++;
       ingest.AddTimings(response.timings());
     }
-    tally.last_answer = std::max(tally.last_answer, now);
+    tally.counts.last_answer = std::max(tally.counts.last_answer, now);
     progress.Add();
   };
   v1::IngestHeader header;
@@ -324,14 +328,14 @@ void RunAgent(const LoadPlan& plan, size_t i, LoadTally& tally, Progress& progre
   if (querier.joinable()) querier.join();
   if (!status.ok()) {
     MutexLock lock(tally.mutex);
-    tally.stream_errors.emplace_back(plan.options.agent_prefix + "-" + std::to_string(i + 1),
-                                     status);
-    ++tally.ingest.errors_by_code[CodeName(int(status.error_code()))];
+    tally.counts.stream_errors.emplace_back(plan.options.agent_prefix + "-" + std::to_string(i + 1),
+                                            status);
+    ++tally.counts.ingest.errors_by_code[CodeName(int(status.error_code()))];
   }
 }
 
 // Errors of both kinds by code name.
-nlohmann::json ErrorsTotal(const LoadTally& tally) {
+nlohmann::json ErrorsTotal(const LoadCounts& tally) {
   nlohmann::json errors_total = nlohmann::json::object();
   for (const auto* kind : {&tally.ingest, &tally.query}) {
     for (const auto& [code, n] : kind->errors_by_code) {
@@ -366,7 +370,7 @@ struct LoadReport {
   const std::string& target;
   const LoadPlan& plan;
   const LoadMap& map;
-  const LoadTally& tally;
+  const LoadCounts& tally;
   double elapsed = 0;  // seconds, from the start to the last answer
   size_t answered = 0;
   nlohmann::json errors_total;
@@ -565,7 +569,10 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
   Progress progress(io.err, io.err_is_tty, total, 5.0);
   plan.t0 = Clock::now();
   if (options.duration_s > 0) plan.end = plan.t0 + Seconds(options.duration_s);
-  tally.last_answer = plan.t0;
+  {
+    MutexLock lock(tally.mutex);
+    tally.counts.last_answer = plan.t0;
+  }
 
   std::vector<std::thread> threads;
   for (size_t i = 0; i < plan.agents; ++i) {
@@ -573,17 +580,21 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
   }
   for (std::thread& thread : threads) thread.join();
   progress.Stop();
+  const LoadCounts counts = [&] {
+    MutexLock lock(tally.mutex);  // the agents have joined: uncontended
+    return tally.counts;
+  }();
   DeleteTemporaryMap(*connection, options, map, io);
 
   const double elapsed =
-      std::max(1e-9, std::chrono::duration<double>(tally.last_answer - plan.t0).count());
+      std::max(1e-9, std::chrono::duration<double>(counts.last_answer - plan.t0).count());
   const LoadReport report{.target = connection_options.address,
                           .plan = plan,
                           .map = map,
-                          .tally = tally,
+                          .tally = counts,
                           .elapsed = elapsed,
-                          .answered = tally.ingest.count + tally.query.count,
-                          .errors_total = ErrorsTotal(tally)};
+                          .answered = counts.ingest.count + counts.query.count,
+                          .errors_total = ErrorsTotal(counts)};
   const nlohmann::json report_json = ReportJson(report);
   if (!options.json_out.empty()) {
     std::ofstream out(options.json_out);
@@ -598,7 +609,7 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
   } else {
     PrintReport(report, io.out);
   }
-  return tally.stream_errors.empty() && report.errors_total.empty() ? kExitOk : kExitRpcError;
+  return counts.stream_errors.empty() && report.errors_total.empty() ? kExitOk : kExitRpcError;
 }
 
 }  // namespace placedb::client
