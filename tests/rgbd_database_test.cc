@@ -26,19 +26,12 @@
 namespace placedb {
 namespace {
 
+using testing::SiftVocabulary;
+
 #define REQUIRE_SHARED_DATA()                                                          \
   do {                                                                                 \
     if (!rgbd::HaveSharedData()) FAIL() << "missing " << rgbd::SharedDir() << "/data"; \
   } while (false)
-
-std::shared_ptr<const FloatVocabulary> SiftVocabulary() {
-  static const std::shared_ptr<const FloatVocabulary> vocabulary = [] {
-    auto loaded = rgbd::LoadOrTrainSiftVocabulary(rgbd::SiftVocabularyPath());
-    EXPECT_TRUE(loaded.ok()) << loaded.status().ToString();
-    return loaded.ok() ? *loaded : nullptr;
-  }();
-  return vocabulary;
-}
 
 std::unique_ptr<PlaceDatabase> MakeDatabase(const AnyVocabulary& vocabulary,
                                             const DatabaseConfig& config) {

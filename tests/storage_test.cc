@@ -21,6 +21,7 @@ namespace placedb {
 namespace {
 
 using testing::DefaultVocabulary;
+using testing::SiftVocabulary;
 
 Observation RtabmapFrame(int index) {
   Observation observation;
@@ -58,17 +59,6 @@ std::vector<Ranked> QueryAll(const PlaceMap& map, const std::vector<Observation>
     out.push_back(ranked);
   }
   return out;
-}
-
-// The SIFT vocabulary trained on Debian's sample images (tools/rgbd_data.h), loaded once.
-std::shared_ptr<const FloatVocabulary> SiftVocabulary() {
-  static const std::shared_ptr<const FloatVocabulary> vocabulary =
-      []() -> std::shared_ptr<const FloatVocabulary> {
-    auto loaded = rgbd::LoadOrTrainSiftVocabulary(rgbd::SiftVocabularyPath());
-    EXPECT_TRUE(loaded.ok()) << loaded.status().ToString();
-    return loaded.ok() ? *loaded : nullptr;
-  }();
-  return vocabulary;
 }
 
 // Little-endian bytes, to hand-build values in the formats older versions wrote.
@@ -573,23 +563,16 @@ TEST_F(StorageTest, AnotherVocabularyIsRefused) {
     ASSERT_TRUE(dir->CreateMap("m", {}, vocabulary_).ok());
   }
   // A different vocabulary: the same tree with one word weight changed.
-  VocabularyTree tree = vocabulary_->ToTree();
-  for (size_t i = 0; i < tree.word_id.size(); ++i) {
-    if (tree.word_id[i] >= 0) {
-      tree.weight[i] += 1.0f;
-      break;
-    }
-  }
-  auto other = Vocabulary::FromTree(tree);
-  ASSERT_TRUE(other.ok()) << other.status().ToString();
+  const std::shared_ptr<const Vocabulary> other = testing::OtherVocabulary();
+  ASSERT_TRUE(other);
   auto dir = OpenDir();
-  auto refused = dir->OpenMap("m", *other);
+  auto refused = dir->OpenMap("m", other);
   ASSERT_FALSE(refused.ok());
   EXPECT_EQ(refused.status().code(), StatusCode::kFailedPrecondition);
   EXPECT_NE(refused.status().message().find(vocabulary_->checksum_hex()), std::string::npos);
   auto map = dir->OpenMap("m", vocabulary_);
   ASSERT_TRUE(map.ok());
-  EXPECT_EQ((*map)->CheckVocabulary(*other).code(), StatusCode::kFailedPrecondition);
+  EXPECT_EQ((*map)->CheckVocabulary(other).code(), StatusCode::kFailedPrecondition);
   EXPECT_TRUE((*map)->CheckVocabulary(vocabulary_).ok());
 }
 

@@ -7,7 +7,8 @@
 #include <vector>
 
 #include "core/features/orb_features.h"
-#include "core/vocabulary/vocabulary.h"  // DefaultVocabulary() lives in test_vocabulary.cc
+#include "core/vocabulary/float_vocabulary.h"  // SiftVocabulary(): test_vocabulary.cc
+#include "core/vocabulary/vocabulary.h"        // DefaultVocabulary() lives in test_vocabulary.cc
 #include "tools/shared_data.h"
 
 namespace placedb::testing {
@@ -17,6 +18,11 @@ using data::SharedDir;       // ../shared (PLACEDB_SHARED_DIR), may not exist
 std::string DefaultVocabularyPath();
 // Loads the default vocabulary once per process (fails the test if it is missing).
 std::shared_ptr<const Vocabulary> DefaultVocabulary();
+// A vocabulary with the default's tree and one word weight changed: another checksum.
+std::shared_ptr<const Vocabulary> OtherVocabulary();
+// The SIFT vocabulary trained on Debian's sample images (tools/rgbd_data.h, fixture
+// sift_vocabulary), loaded once; null (and the test failed) when it cannot be loaded.
+std::shared_ptr<const FloatVocabulary> SiftVocabulary();
 
 // A fresh empty directory under the system temp dir, removed at process exit.
 std::string MakeTempDir(const std::string& prefix);

@@ -15,19 +15,13 @@ namespace {
 // Maps reopen with the vocabulary whose checksum they recorded; one whose vocabulary is not
 // configured is listed as unavailable (not fatal) until it is.
 TEST_F(ServerTest, RestartReopensMapsWithTheirOwnVocabulary) {
-  VocabularyTree tree = vocabulary_->ToTree();
-  for (size_t i = 0; i < tree.word_id.size(); ++i) {
-    if (tree.word_id[i] >= 0) {
-      tree.weight[i] += 1.0f;
-      break;
-    }
-  }
-  auto other = Vocabulary::FromTree(tree);
-  ASSERT_TRUE(other.ok()) << other.status().ToString();
+  // Another vocabulary: the default's tree with one word weight changed.
+  const std::shared_ptr<const Vocabulary> other = placedb::testing::OtherVocabulary();
+  ASSERT_TRUE(other);
   ServerConfig config = Config();
   config.vocabularies["other"] = "(preloaded)";
   ServerDeps deps;
-  deps.vocabularies["other"] = *other;
+  deps.vocabularies["other"] = other;
   ASSERT_NO_FATAL_FAILURE(StartServer(config, deps));
   v1::MapConfig with_other;
   with_other.set_vocabulary("other");
@@ -56,7 +50,7 @@ TEST_F(ServerTest, RestartReopensMapsWithTheirOwnVocabulary) {
     EXPECT_EQ(maps.maps(0).places(), 1u);
     EXPECT_EQ(maps.maps(1).name(), "other-map");
     EXPECT_FALSE(maps.maps(1).available());
-    EXPECT_NE(maps.maps(1).unavailable_reason().find((*other)->checksum_hex()), std::string::npos)
+    EXPECT_NE(maps.maps(1).unavailable_reason().find(other->checksum_hex()), std::string::npos)
         << maps.maps(1).unavailable_reason();
   }
   v1::QueryResponse response;
@@ -78,7 +72,7 @@ TEST_F(ServerTest, RestartReopensMapsWithTheirOwnVocabulary) {
   EXPECT_EQ(description.config().vocabulary(), "other");
   EXPECT_EQ(description.config().filter().method(), v1::FILTER_METHOD_EXACT_COVERAGE);
   EXPECT_EQ(description.stats().places(), 1u);
-  EXPECT_EQ(description.vocabulary_checksum(), (*other)->checksum_hex());
+  EXPECT_EQ(description.vocabulary_checksum(), other->checksum_hex());
   ASSERT_TRUE(Query("other-map", RtabmapObservation(1, "a"), &response).ok());
   ASSERT_FALSE(response.matches().empty());
   EXPECT_GT(response.matches(0).inliers(), 12);

@@ -125,15 +125,6 @@ IngestOutcome IngestAll(v1::PlaceDb::Stub* stub, const std::string& map,
   return IngestWithHeader(stub, header, observations);
 }
 
-std::shared_ptr<const FloatVocabulary> SiftVocabulary() {
-  static const std::shared_ptr<const FloatVocabulary> vocabulary = [] {
-    auto loaded = rgbd::LoadOrTrainSiftVocabulary(rgbd::SiftVocabularyPath());
-    EXPECT_TRUE(loaded.ok()) << loaded.status().ToString();
-    return loaded.ok() ? *loaded : nullptr;
-  }();
-  return vocabulary;
-}
-
 ServerConfig WithSift(ServerConfig config) {
   config.vocabularies["sift"] = rgbd::SiftVocabularyPath();
   return config;

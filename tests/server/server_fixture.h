@@ -19,6 +19,7 @@
 #include "proto/placedb.grpc.pb.h"
 #include "server/config.h"
 #include "server/server.h"
+#include "tests/test_support.h"
 #include "tools/rgbd_data.h"
 
 namespace placedb::server_testing {
@@ -64,7 +65,7 @@ IngestOutcome IngestAll(v1::PlaceDb::Stub* stub, const std::string& map,
 // ---- SIFT maps ----------------------------------------------------------------------------------
 
 // The Debian SIFT vocabulary (the sift_vocabulary ctest fixture builds it), loaded once.
-std::shared_ptr<const FloatVocabulary> SiftVocabulary();
+using placedb::testing::SiftVocabulary;
 // The server's configuration with the SIFT vocabulary as "sift" (preloaded by SiftDeps()).
 ServerConfig WithSift(ServerConfig config);
 ServerDeps SiftDeps();
