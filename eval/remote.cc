@@ -11,6 +11,7 @@
 #include "core/base/files.h"
 #include "core/base/timing.h"
 #include "proto/convert_config.h"
+#include "proto/convert_frame.h"
 #include "proto/status.h"
 
 namespace placedb::eval {
@@ -148,15 +149,7 @@ class ServerBackend final : public Backend {
     o.mutable_encoded_image()->set_data(query ? query_images_[i] : database_images_[i]);
     if (filtering) {
       const DynamicObjects& dynamic = query ? inputs.query_dynamic[i] : inputs.database_dynamic[i];
-      for (const DynamicBox& box : dynamic.boxes) {
-        v1::Box* b = o.add_boxes();
-        b->set_class_id(box.class_id);
-        b->set_confidence(box.confidence);
-        b->mutable_rect()->set_x(box.rect.x);
-        b->mutable_rect()->set_y(box.rect.y);
-        b->mutable_rect()->set_width(box.rect.width);
-        b->mutable_rect()->set_height(box.rect.height);
-      }
+      for (const DynamicBox& box : dynamic.boxes) wire::AgentBoxToProto(box, o.add_boxes());
       const std::string& mask = query ? query_masks_[i] : database_masks_[i];
       if (!mask.empty()) o.set_dynamic_mask_png(mask);
     }

@@ -524,4 +524,13 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Fra
   return out;
 }
 
+void AgentBoxToProto(const DynamicBox& box, v1::Box* out) {
+  out->set_class_id(box.class_id);
+  out->set_confidence(box.confidence);
+  out->mutable_rect()->set_x(box.rect.x);
+  out->mutable_rect()->set_y(box.rect.y);
+  out->mutable_rect()->set_width(box.rect.width);
+  out->mutable_rect()->set_height(box.rect.height);
+}
+
 }  // namespace placedb::wire

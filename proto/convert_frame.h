@@ -43,6 +43,10 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& observation,
                                              const FrameLimits& limits, bool color,
                                              const std::string& field);
 
+// An agent's box as an observation's `boxes` entry (class id, confidence, rect): what
+// DecodeObservation reads back into `agent_boxes`.
+void AgentBoxToProto(const DynamicBox& box, v1::Box* out);
+
 // A map is typed by its feature: precomputed features of the other family cannot be quantised.
 // INVALID_ARGUMENT "<field>.features: map '<map_name>' is a SIFT map ..." (or ".sift_features"
 // for an ORB map); pixels suit either.

@@ -603,6 +603,26 @@ TEST(FrameConversion, SiftFeaturesComeBackAsSent) {
   EXPECT_EQ(back->descriptors, sent.descriptors);
 }
 
+TEST(FrameConversion, AgentBoxesComeBackAsSent) {
+  FeatureSet features{
+      .image_width = 64, .image_height = 48, .keypoints = SomeKeypoints(), .descriptors = {}};
+  features.descriptors.resize(features.keypoints.size());
+  const std::vector<DynamicBox> sent = {
+      {.class_id = 0, .confidence = 0.75f, .rect = cv::Rect2f(2.5f, 3.25f, 20.0f, 30.5f)},
+      {.class_id = 2, .confidence = 1.0f, .rect = cv::Rect2f(-4.0f, 10.0f, 80.0f, 12.0f)}};
+  v1::Observation observation;
+  FeaturesToProto(features, observation.mutable_features());
+  for (const DynamicBox& box : sent) AgentBoxToProto(box, observation.add_boxes());
+  auto decoded = DecodeObservation(observation, kFrameLimits, /*color=*/false, "observation");
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  ASSERT_EQ(decoded->agent_boxes.size(), sent.size());
+  for (size_t i = 0; i < sent.size(); ++i) {
+    EXPECT_EQ(decoded->agent_boxes[i].class_id, sent[i].class_id) << i;
+    EXPECT_EQ(decoded->agent_boxes[i].confidence, sent[i].confidence) << i;
+    EXPECT_EQ(decoded->agent_boxes[i].rect, sent[i].rect) << i;
+  }
+}
+
 TEST(FrameConversion, KeypointsOverTheLimitAreNamed) {
   FeatureSet sent{
       .image_width = 64, .image_height = 48, .keypoints = SomeKeypoints(), .descriptors = {}};
