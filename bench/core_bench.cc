@@ -18,6 +18,7 @@
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <random>
 #include <sstream>
 #include <string>
@@ -71,13 +72,15 @@ cv::Mat RandomView(const cv::Mat& image, std::mt19937_64& rng) {
   return view;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+struct Options {
   std::string vocabulary_path;
   std::string shared = PLACEDB_SHARED_DIR;
   std::vector<size_t> sweep = {1000, 10000, 100000};
   size_t view_count = 1500;
+};
+
+// The command line; an exit code when the program must stop (usage error).
+std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
   for (int i = 1; i < argc; ++i) {
     std::string arg = argv[i];
     auto next = [&]() -> std::string {
@@ -88,15 +91,17 @@ int main(int argc, char** argv) {
       return argv[++i];
     };
     if (arg == "--vocabulary") {
-      vocabulary_path = next();
+      options->vocabulary_path = next();
     } else if (arg == "--shared") {
-      shared = next();
+      options->shared = next();
     } else if (arg == "--views") {
-      view_count = std::stoul(next());
+      options->view_count = std::stoul(next());
     } else if (arg == "--places") {
-      sweep.clear();
+      options->sweep.clear();
       std::stringstream list(next());
-      for (std::string item; std::getline(list, item, ',');) sweep.push_back(std::stoul(item));
+      for (std::string item; std::getline(list, item, ',');) {
+        options->sweep.push_back(std::stoul(item));
+      }
     } else {
       std::fprintf(stderr,
                    "usage: placedb-bench-core --vocabulary FILE [--places 1000,10000,100000] "
@@ -104,21 +109,24 @@ int main(int argc, char** argv) {
       return 2;
     }
   }
-  if (vocabulary_path.empty()) {
+  if (options->vocabulary_path.empty()) {
     std::fprintf(stderr, "--vocabulary FILE is required\n");
     return 2;
   }
+  return std::nullopt;
+}
 
-  // --- vocabulary load -------------------------------------------------------------------
+// Binary load time (median of 7), with the vocabulary it loaded; nullptr after an error.
+std::shared_ptr<const Vocabulary> BenchVocabularyLoad(const std::string& path) {
   std::vector<double> load_ms;
   std::shared_ptr<const Vocabulary> vocabulary;
   for (int run = 0; run < 7; ++run) {
     const double start = NowMs();
-    auto loaded = Vocabulary::LoadBinary(vocabulary_path);
+    auto loaded = Vocabulary::LoadBinary(path);
     load_ms.push_back(NowMs() - start);
     if (!loaded.ok()) {
       std::fprintf(stderr, "%s\n", loaded.status().ToString().c_str());
-      return 1;
+      return nullptr;
     }
     vocabulary = *loaded;
   }
@@ -126,46 +134,199 @@ int main(int argc, char** argv) {
               vocabulary->depth(), vocabulary->word_count(), vocabulary->node_count(),
               vocabulary->memory_bytes() / 1e6);
   Print("vocabulary_load_binary", Median(load_ms), "ms");
-  {
-    const std::string text = (fs::temp_directory_path() / "placedb-bench-vocab.txt").string();
-    if (!vocabulary->ExportDbow2Text(text).ok()) return 1;
-    const double start = NowMs();
-    auto imported = Vocabulary::ImportDbow2Text(text);
-    Print("baseline_vocabulary_load_dbow2_text", NowMs() - start, "ms");
-    fs::remove(text);
-    if (!imported.ok() || (*imported)->checksum() != vocabulary->checksum()) {
-      std::fprintf(stderr, "text round trip changed the vocabulary\n");
-      return 1;
+  return vocabulary;
+}
+
+// The baseline for the binary load: the same vocabulary through DBoW2 text, which must round
+// trip unchanged. False after an error.
+bool BenchDbow2TextLoad(const Vocabulary& vocabulary) {
+  const std::string text = (fs::temp_directory_path() / "placedb-bench-vocab.txt").string();
+  if (!vocabulary.ExportDbow2Text(text).ok()) return false;
+  const double start = NowMs();
+  auto imported = Vocabulary::ImportDbow2Text(text);
+  Print("baseline_vocabulary_load_dbow2_text", NowMs() - start, "ms");
+  fs::remove(text);
+  if (!imported.ok() || (*imported)->checksum() != vocabulary.checksum()) {
+    std::fprintf(stderr, "text round trip changed the vocabulary\n");
+    return false;
+  }
+  return true;
+}
+
+// The real views of the workload (header), on every core; views under 100 descriptors dropped.
+std::vector<FeatureSet> ExtractViews(const std::vector<std::string>& sources, size_t view_count) {
+  OrbConfig orb;
+  orb.max_features = 1000;
+  std::vector<FeatureSet> views(view_count);
+  std::vector<std::thread> workers;
+  const unsigned threads = std::max(1u, std::thread::hardware_concurrency());
+  for (unsigned t = 0; t < threads; ++t) {
+    workers.emplace_back([&, t] {
+      for (size_t v = t; v < view_count; v += threads) {
+        std::mt19937_64 rng(v);
+        cv::Mat image = cv::imread(sources[v % sources.size()], cv::IMREAD_GRAYSCALE);
+        if (image.empty()) continue;
+        cv::Mat view = v < sources.size() ? RandomView(image, rng) : RandomView(image, rng);
+        auto features = ExtractOrb(view, orb);
+        if (features.ok()) views[v] = std::move(features).value();
+      }
+    });
+  }
+  for (auto& worker : workers) worker.join();
+  std::erase_if(views, [](const FeatureSet& f) { return f.size() < 100; });
+  return views;
+}
+
+// The transform's baseline: the same BoW vector built one descriptor at a time (WordOf, then
+// sort and merge), as a straightforward tree walk does.
+BowVector TransformOneAtATime(const Vocabulary& vocabulary,
+                              const std::vector<Descriptor256>& descriptors) {
+  BowVector naive;
+  naive.reserve(descriptors.size());
+  for (const auto& d : descriptors) {
+    const WordId word = vocabulary.WordOf(d);
+    naive.push_back({word, vocabulary.WordWeight(word)});
+  }
+  std::sort(naive.begin(), naive.end(),
+            [](const BowEntry& a, const BowEntry& b) { return a.word < b.word; });
+  size_t out = 0;
+  for (size_t i = 0; i < naive.size(); ++i) {
+    if (out > 0 && naive[out - 1].word == naive[i].word) {
+      naive[out - 1].weight += naive[i].weight;
+    } else {
+      naive[out++] = naive[i];
     }
   }
+  naive.resize(out);
+  for (auto& entry : naive) entry.weight /= float(descriptors.size());
+  return naive;
+}
+
+// Transform time per image (up to 400 views), with and without a direct index, against the
+// one-at-a-time baseline. False when the baseline disagrees.
+bool BenchTransform(const Vocabulary& vocabulary, const std::vector<FeatureSet>& views) {
+  std::vector<double> bow_ms, direct_ms, naive_ms;
+  BowVector bow;
+  DirectIndex direct;
+  for (size_t v = 0; v < std::min<size_t>(views.size(), 400); ++v) {
+    const auto& descriptors = views[v].descriptors;
+    double start = NowMs();
+    vocabulary.Transform(descriptors, &bow, nullptr, 0);
+    bow_ms.push_back(NowMs() - start);
+    start = NowMs();
+    vocabulary.Transform(descriptors, &bow, &direct, 2);
+    direct_ms.push_back(NowMs() - start);
+    start = NowMs();
+    const BowVector naive = TransformOneAtATime(vocabulary, descriptors);
+    naive_ms.push_back(NowMs() - start);
+    if (naive.size() != bow.size()) {
+      std::fprintf(stderr, "baseline transform disagrees with Transform\n");
+      return false;
+    }
+  }
+  Print("transform_per_image", Median(bow_ms), "ms");
+  Print("transform_per_image_with_direct_index_level2", Median(direct_ms), "ms");
+  Print("baseline_transform_per_image_one_at_a_time", Median(naive_ms), "ms");
+  return true;
+}
+
+// The size sweep's growing map, and (while small) the vectors the linear-scan baseline scores.
+struct SweepMap {
+  explicit SweepMap(uint32_t word_count) : index(word_count, ScoringType::kL1) {}
+  InvertedIndex index;
+  std::vector<BowVector> stored;  // kept only while small, for the brute-force baseline
+  std::mt19937_64 rng{12345};
+  size_t places = 0;
+  uint64_t stored_descriptors = 0;
+  BowVector bow;
+};
+
+// Adds places up to `target`: after one pass over the real views, noisy copies of them (90 %
+// of the descriptors, 4 bit flips each) so that places stay distinct. False after an error.
+bool GrowTo(size_t target, const Vocabulary& vocabulary, const std::vector<FeatureSet>& views,
+            SweepMap* map) {
+  while (map->places < target) {
+    const size_t places = map->places;
+    const FeatureSet& view = views[places % views.size()];
+    std::vector<Descriptor256> noisy;
+    noisy.reserve(view.size());
+    std::uniform_int_distribution<int> bit(0, 255);
+    std::uniform_real_distribution<double> keep(0, 1);
+    for (const auto& d : view.descriptors) {
+      if (places >= views.size() && keep(map->rng) > 0.9) continue;
+      Descriptor256 copy = d;
+      if (places >= views.size()) {
+        for (int f = 0; f < 4; ++f) {
+          const int b = bit(map->rng);
+          copy.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
+        }
+      }
+      noisy.push_back(copy);
+    }
+    vocabulary.Transform(noisy, &map->bow, nullptr, 0);
+    NormalizeForScoring(&map->bow, ScoringType::kL1);
+    map->stored_descriptors += noisy.size();
+    if (!map->index.Add(PlaceId(places + 1), map->bow).ok()) return false;
+    if (target <= 10000) map->stored.push_back(map->bow);
+    ++map->places;
+  }
+  return true;
+}
+
+// Top-10 query time at this size (60 queries; the linear scan on 10 of them while the map is
+// small) and the index's memory per descriptor. False when a query finds nothing.
+bool BenchQueries(size_t target, const Vocabulary& vocabulary, const std::vector<FeatureSet>& views,
+                  const SweepMap& map) {
+  // Queries: fresh random views of the sources (not stored).
+  std::vector<double> query_ms, brute_ms;
+  for (int q = 0; q < 60; ++q) {
+    const FeatureSet& view = views[size_t(q * 7919) % views.size()];
+    BowVector query;
+    vocabulary.Transform(view.descriptors, &query, nullptr, 0);
+    NormalizeForScoring(&query, ScoringType::kL1);
+    double start = NowMs();
+    auto top = map.index.Query(query, 10);
+    query_ms.push_back(NowMs() - start);
+    if (top.empty()) return false;
+    if (target <= 10000 && q < 10) {
+      start = NowMs();
+      std::vector<double> scores(map.stored.size());
+      for (size_t p = 0; p < map.stored.size(); ++p)
+        scores[p] = Score(query, map.stored[p], ScoringType::kL1);
+      std::partial_sort(scores.begin(), scores.begin() + std::min<size_t>(10, scores.size()),
+                        scores.end(), std::greater<>());
+      brute_ms.push_back(NowMs() - start);
+    }
+  }
+  const std::string n = std::to_string(target);
+  Print("query_top10_at_" + n + "_places", Median(query_ms), "ms");
+  if (!brute_ms.empty()) {
+    Print("baseline_query_top10_linear_scan_at_" + n + "_places", Median(brute_ms), "ms");
+  }
+  Print("index_bytes_per_descriptor_at_" + n + "_places",
+        double(map.index.MemoryBytes()) / double(map.stored_descriptors), "bytes");
+  Print("postings_per_descriptor_at_" + n + "_places",
+        double(map.index.posting_count()) / double(map.stored_descriptors), "ratio");
+  return true;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Options options;
+  if (auto exit_code = ParseOptions(argc, argv, &options)) return *exit_code;
+
+  // --- vocabulary load -------------------------------------------------------------------
+  const std::shared_ptr<const Vocabulary> vocabulary = BenchVocabularyLoad(options.vocabulary_path);
+  if (vocabulary == nullptr || !BenchDbow2TextLoad(*vocabulary)) return 1;
 
   // --- real views --------------------------------------------------------------------------
-  const std::vector<std::string> sources = SourceImages(shared);
+  const std::vector<std::string> sources = SourceImages(options.shared);
   if (sources.empty()) {
     std::fprintf(stderr, "no source images (install opencv-doc and darknet)\n");
     return 1;
   }
-  OrbConfig orb;
-  orb.max_features = 1000;
-  std::vector<FeatureSet> views(view_count);
-  {
-    std::vector<std::thread> workers;
-    const unsigned threads = std::max(1u, std::thread::hardware_concurrency());
-    for (unsigned t = 0; t < threads; ++t) {
-      workers.emplace_back([&, t] {
-        for (size_t v = t; v < view_count; v += threads) {
-          std::mt19937_64 rng(v);
-          cv::Mat image = cv::imread(sources[v % sources.size()], cv::IMREAD_GRAYSCALE);
-          if (image.empty()) continue;
-          cv::Mat view = v < sources.size() ? RandomView(image, rng) : RandomView(image, rng);
-          auto features = ExtractOrb(view, orb);
-          if (features.ok()) views[v] = std::move(features).value();
-        }
-      });
-    }
-    for (auto& worker : workers) worker.join();
-  }
-  std::erase_if(views, [](const FeatureSet& f) { return f.size() < 100; });
+  const std::vector<FeatureSet> views = ExtractViews(sources, options.view_count);
   size_t descriptor_total = 0;
   for (const auto& view : views) descriptor_total += view.size();
   std::printf(
@@ -174,113 +335,15 @@ int main(int argc, char** argv) {
       views.size(), sources.size(), double(descriptor_total) / double(views.size()));
 
   // --- transform ---------------------------------------------------------------------------
-  {
-    std::vector<double> bow_ms, direct_ms, naive_ms;
-    BowVector bow;
-    DirectIndex direct;
-    for (size_t v = 0; v < std::min<size_t>(views.size(), 400); ++v) {
-      const auto& descriptors = views[v].descriptors;
-      double start = NowMs();
-      vocabulary->Transform(descriptors, &bow, nullptr, 0);
-      bow_ms.push_back(NowMs() - start);
-      start = NowMs();
-      vocabulary->Transform(descriptors, &bow, &direct, 2);
-      direct_ms.push_back(NowMs() - start);
-      // Baseline: the same BoW vector built one descriptor at a time (WordOf, then sort and
-      // merge), as a straightforward tree walk does.
-      start = NowMs();
-      BowVector naive;
-      naive.reserve(descriptors.size());
-      for (const auto& d : descriptors) {
-        const WordId word = vocabulary->WordOf(d);
-        naive.push_back({word, vocabulary->WordWeight(word)});
-      }
-      std::sort(naive.begin(), naive.end(),
-                [](const BowEntry& a, const BowEntry& b) { return a.word < b.word; });
-      size_t out = 0;
-      for (size_t i = 0; i < naive.size(); ++i) {
-        if (out > 0 && naive[out - 1].word == naive[i].word) {
-          naive[out - 1].weight += naive[i].weight;
-        } else {
-          naive[out++] = naive[i];
-        }
-      }
-      naive.resize(out);
-      for (auto& entry : naive) entry.weight /= float(descriptors.size());
-      naive_ms.push_back(NowMs() - start);
-      if (naive.size() != bow.size()) {
-        std::fprintf(stderr, "baseline transform disagrees with Transform\n");
-        return 1;
-      }
-    }
-    Print("transform_per_image", Median(bow_ms), "ms");
-    Print("transform_per_image_with_direct_index_level2", Median(direct_ms), "ms");
-    Print("baseline_transform_per_image_one_at_a_time", Median(naive_ms), "ms");
-  }
+  if (!BenchTransform(*vocabulary, views)) return 1;
 
   // --- size sweep: query top-10 and index memory ------------------------------------------
+  std::vector<size_t> sweep = options.sweep;
   std::sort(sweep.begin(), sweep.end());
-  InvertedIndex index(vocabulary->word_count(), ScoringType::kL1);
-  std::vector<BowVector> stored;  // kept only while small, for the brute-force baseline
-  std::mt19937_64 rng(12345);
-  size_t places = 0;
-  uint64_t stored_descriptors = 0;
-  BowVector bow;
+  SweepMap map(vocabulary->word_count());
   for (size_t target : sweep) {
-    while (places < target) {
-      const FeatureSet& view = views[places % views.size()];
-      std::vector<Descriptor256> noisy;
-      noisy.reserve(view.size());
-      std::uniform_int_distribution<int> bit(0, 255);
-      std::uniform_real_distribution<double> keep(0, 1);
-      for (const auto& d : view.descriptors) {
-        if (places >= views.size() && keep(rng) > 0.9) continue;
-        Descriptor256 copy = d;
-        if (places >= views.size()) {
-          for (int f = 0; f < 4; ++f) {
-            const int b = bit(rng);
-            copy.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
-          }
-        }
-        noisy.push_back(copy);
-      }
-      vocabulary->Transform(noisy, &bow, nullptr, 0);
-      NormalizeForScoring(&bow, ScoringType::kL1);
-      stored_descriptors += noisy.size();
-      if (!index.Add(PlaceId(places + 1), bow).ok()) return 1;
-      if (target <= 10000) stored.push_back(bow);
-      ++places;
-    }
-    // Queries: fresh random views of the sources (not stored).
-    std::vector<double> query_ms, brute_ms;
-    for (int q = 0; q < 60; ++q) {
-      const FeatureSet& view = views[size_t(q * 7919) % views.size()];
-      BowVector query;
-      vocabulary->Transform(view.descriptors, &query, nullptr, 0);
-      NormalizeForScoring(&query, ScoringType::kL1);
-      double start = NowMs();
-      auto top = index.Query(query, 10);
-      query_ms.push_back(NowMs() - start);
-      if (top.empty()) return 1;
-      if (target <= 10000 && q < 10) {
-        start = NowMs();
-        std::vector<double> scores(stored.size());
-        for (size_t p = 0; p < stored.size(); ++p)
-          scores[p] = Score(query, stored[p], ScoringType::kL1);
-        std::partial_sort(scores.begin(), scores.begin() + std::min<size_t>(10, scores.size()),
-                          scores.end(), std::greater<>());
-        brute_ms.push_back(NowMs() - start);
-      }
-    }
-    const std::string n = std::to_string(target);
-    Print("query_top10_at_" + n + "_places", Median(query_ms), "ms");
-    if (!brute_ms.empty()) {
-      Print("baseline_query_top10_linear_scan_at_" + n + "_places", Median(brute_ms), "ms");
-    }
-    Print("index_bytes_per_descriptor_at_" + n + "_places",
-          double(index.MemoryBytes()) / double(stored_descriptors), "bytes");
-    Print("postings_per_descriptor_at_" + n + "_places",
-          double(index.posting_count()) / double(stored_descriptors), "ratio");
+    if (!GrowTo(target, *vocabulary, views, &map)) return 1;
+    if (!BenchQueries(target, *vocabulary, views, map)) return 1;
   }
   return 0;
 }

@@ -16,6 +16,7 @@
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <random>
 #include <sstream>
 #include <thread>
@@ -127,11 +128,13 @@ IngestFigures Ingest(DataDirectory& dir, const std::string& name, const MapOptio
   return figures;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+struct Options {
   std::string vocabulary_path, work_dir, shared = PLACEDB_SHARED_DIR;
   std::vector<size_t> reopen_sizes = {10000, 100000};
+};
+
+// The command line; an exit code when the program must stop (usage error).
+std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     if (i + 1 >= argc) {
@@ -142,131 +145,136 @@ int main(int argc, char** argv) {
     }
     const std::string value = argv[++i];
     if (arg == "--vocabulary") {
-      vocabulary_path = value;
+      options->vocabulary_path = value;
     } else if (arg == "--dir") {
-      work_dir = value;
+      options->work_dir = value;
     } else if (arg == "--shared") {
-      shared = value;
+      options->shared = value;
     } else if (arg == "--reopen") {
-      reopen_sizes.clear();
+      options->reopen_sizes.clear();
       std::stringstream list(value);
       for (std::string item; std::getline(list, item, ',');)
-        reopen_sizes.push_back(std::stoul(item));
+        options->reopen_sizes.push_back(std::stoul(item));
     } else {
       std::fprintf(stderr, "unknown option %s\n", arg.c_str());
       return 2;
     }
   }
-  auto vocabulary = Vocabulary::Load(vocabulary_path);
-  if (!vocabulary.ok()) {
-    std::fprintf(stderr, "%s\n", vocabulary.status().ToString().c_str());
-    return 1;
-  }
-  if (work_dir.empty()) work_dir = (fs::temp_directory_path() / "placedb-bench-storage").string();
-  fs::remove_all(work_dir);
-  const std::vector<Frame> frames = LoadCamVid(shared);
-  std::printf(
-      "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",
-      frames.size(), (*vocabulary)->word_count());
+  return std::nullopt;
+}
 
-  // 1. With and without filtering, every write synced.
-  {
-    auto dir = DataDirectory::Open(work_dir + "/fig6");
-    if (!dir.ok()) return 1;
-    MapOptions plain;
-    plain.database.filter.method = FilterMethod::kNone;
-    MapOptions filtered;
-    filtered.database.filter.method = FilterMethod::kKeypointInBox;
-    const IngestFigures bobw = Ingest(**dir, "bobw", plain, frames, *vocabulary);
-    const IngestFigures bobw_do = Ingest(**dir, "bobw-do", filtered, frames, *vocabulary);
-    Print("db_bytes_bobw", double(bobw.bytes), "bytes");
-    Print("db_bytes_bobw_do", double(bobw_do.bytes), "bytes");
-    Print("db_size_reduction", 100.0 * (1.0 - double(bobw_do.bytes) / double(bobw.bytes)),
-          "percent");
-    Print("descriptors_dropped_bobw_do",
-          100.0 * double(bobw_do.dropped) / double(bobw_do.dropped + bobw_do.kept), "percent");
-    Print("bytes_per_place_bobw", double(bobw.bytes) / double(bobw.places), "bytes");
-    Print("bytes_per_place_bobw_do", double(bobw_do.bytes) / double(bobw_do.places), "bytes");
-    Print("ingest_sync_every_write_bobw", bobw.places_per_s, "places/s");
-    Print("ingest_sync_every_write_bobw_do", bobw_do.places_per_s, "places/s");
+// 1. The paper's Fig. 6: the same frames with and without filtering, every write synced. False
+// after an error.
+bool BenchFiltering(const std::string& work_dir, const std::vector<Frame>& frames,
+                    const std::shared_ptr<const Vocabulary>& vocabulary) {
+  auto dir = DataDirectory::Open(work_dir + "/fig6");
+  if (!dir.ok()) return false;
+  MapOptions plain;
+  plain.database.filter.method = FilterMethod::kNone;
+  MapOptions filtered;
+  filtered.database.filter.method = FilterMethod::kKeypointInBox;
+  const IngestFigures bobw = Ingest(**dir, "bobw", plain, frames, vocabulary);
+  const IngestFigures bobw_do = Ingest(**dir, "bobw-do", filtered, frames, vocabulary);
+  Print("db_bytes_bobw", double(bobw.bytes), "bytes");
+  Print("db_bytes_bobw_do", double(bobw_do.bytes), "bytes");
+  Print("db_size_reduction", 100.0 * (1.0 - double(bobw_do.bytes) / double(bobw.bytes)), "percent");
+  Print("descriptors_dropped_bobw_do",
+        100.0 * double(bobw_do.dropped) / double(bobw_do.dropped + bobw_do.kept), "percent");
+  Print("bytes_per_place_bobw", double(bobw.bytes) / double(bobw.places), "bytes");
+  Print("bytes_per_place_bobw_do", double(bobw_do.bytes) / double(bobw_do.places), "bytes");
+  Print("ingest_sync_every_write_bobw", bobw.places_per_s, "places/s");
+  Print("ingest_sync_every_write_bobw_do", bobw_do.places_per_s, "places/s");
+  return true;
+}
+
+// 2. Persist rate under one sync policy: the frames processed first, then committed by
+// `writers` threads, so that only the durable commit (and index insert) is timed. False after
+// an error.
+bool BenchPersist(const std::string& work_dir, const std::vector<Frame>& frames,
+                  const std::shared_ptr<const Vocabulary>& vocabulary, SyncMode mode, int writers) {
+  StorageOptions storage;
+  storage.sync = mode;
+  const std::string label =
+      std::string(mode == SyncMode::kEveryWrite ? "sync_every_write" : "group_commit_5ms") + "_" +
+      std::to_string(writers) + "_writers";
+  auto dir = DataDirectory::Open(work_dir + "/" + label, storage);
+  if (!dir.ok()) return false;
+  MapOptions options;
+  auto map = (*dir)->CreateMap("m", options, vocabulary);
+  if (!map.ok()) return false;
+  std::vector<ProcessedFrame> processed;
+  for (const Frame& frame : frames) {
+    Observation observation;
+    observation.features = frame.features;
+    auto p = (*map)->Process(observation);
+    if (p.ok() && p->valid) processed.push_back(*p);
   }
-  // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads.
-  for (SyncMode mode : {SyncMode::kEveryWrite, SyncMode::kGroupCommit}) {
-    for (int writers : {2, 8}) {
-      StorageOptions storage;
-      storage.sync = mode;
-      const std::string label =
-          std::string(mode == SyncMode::kEveryWrite ? "sync_every_write" : "group_commit_5ms") +
-          "_" + std::to_string(writers) + "_writers";
-      auto dir = DataDirectory::Open(work_dir + "/" + label, storage);
-      if (!dir.ok()) return 1;
-      MapOptions options;
-      auto map = (*dir)->CreateMap("m", options, *vocabulary);
-      if (!map.ok()) return 1;
-      std::vector<ProcessedFrame> processed;
-      for (const Frame& frame : frames) {
+  const double start = NowMs();
+  std::vector<std::thread> threads;
+  for (int t = 0; t < writers; ++t) {
+    threads.emplace_back([&, t] {
+      for (size_t i = size_t(t); i < processed.size(); i += size_t(writers)) {
+        if (!(*map)->Commit(processed[i], {}).ok()) std::exit(1);
+      }
+    });
+  }
+  for (auto& thread : threads) thread.join();
+  Print("persist_" + label, double(processed.size()) / ((NowMs() - start) / 1000.0), "places/s");
+  return true;
+}
+
+// Places `first` .. `target` - 1 added by 2 writers: CamVid feature sets with a random 90 % of
+// their descriptors kept and 4 bits flipped in each, so that places stay distinct.
+void AddNoisyPlaces(PlaceMap& map, const std::vector<Frame>& frames, size_t first, size_t target) {
+  std::vector<std::thread> writers;
+  for (unsigned t = 0; t < 2; ++t) {
+    writers.emplace_back([&, t] {
+      std::mt19937_64 rng(first + t);
+      std::uniform_int_distribution<int> bit(0, 255);
+      std::uniform_real_distribution<double> keep(0, 1);
+      for (size_t p = first + t; p < target; p += 2) {
+        const Frame& frame = frames[p % frames.size()];
         Observation observation;
-        observation.features = frame.features;
-        auto p = (*map)->Process(observation);
-        if (p.ok() && p->valid) processed.push_back(*p);
-      }
-      const double start = NowMs();
-      std::vector<std::thread> threads;
-      for (int t = 0; t < writers; ++t) {
-        threads.emplace_back([&, t] {
-          for (size_t i = size_t(t); i < processed.size(); i += size_t(writers)) {
-            if (!(*map)->Commit(processed[i], {}).ok()) std::exit(1);
+        FeatureSet noisy;
+        noisy.image_width = frame.features.image_width;
+        noisy.image_height = frame.features.image_height;
+        for (size_t i = 0; i < frame.features.size(); ++i) {
+          if (keep(rng) > 0.9) continue;
+          Descriptor256 d = frame.features.descriptors[i];
+          for (int f = 0; f < 4; ++f) {
+            const int b = bit(rng);
+            d.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
           }
-        });
+          noisy.keypoints.push_back(frame.features.keypoints[i]);
+          noisy.descriptors.push_back(d);
+        }
+        observation.features = std::move(noisy);
+        observation.dynamic.boxes = frame.boxes;
+        if (!map.Add(observation).ok()) std::exit(1);
       }
-      for (auto& thread : threads) thread.join();
-      Print("persist_" + label, double(processed.size()) / ((NowMs() - start) / 1000.0),
-            "places/s");
-    }
+    });
   }
+  for (auto& writer : writers) writer.join();
+}
 
-  // 3. Reopen time as the map grows.
+// 3. Reopen time as one map grows through `reopen_sizes` (with the ingest rate, bytes on disk
+// and in memory at each size). False after an error.
+bool BenchReopen(const std::string& work_dir, const std::vector<Frame>& frames,
+                 const std::shared_ptr<const Vocabulary>& vocabulary,
+                 std::vector<size_t> reopen_sizes) {
   std::printf("# reopen workload: CamVid feature sets x (90 %% subsample, 4 bit flips)\n");
   std::sort(reopen_sizes.begin(), reopen_sizes.end());
   auto dir = DataDirectory::Open(work_dir + "/reopen");
-  if (!dir.ok()) return 1;
+  if (!dir.ok()) return false;
   MapOptions options;
   options.database.filter.method = FilterMethod::kKeypointInBox;
-  auto map = (*dir)->CreateMap("sweep", options, *vocabulary);
-  if (!map.ok()) return 1;
+  auto map = (*dir)->CreateMap("sweep", options, vocabulary);
+  if (!map.ok()) return false;
   size_t places = 0;
   for (size_t target : reopen_sizes) {
     const double start = NowMs();
     const size_t first = places;
-    std::vector<std::thread> writers;
-    for (unsigned t = 0; t < 2; ++t) {
-      writers.emplace_back([&, t] {
-        std::mt19937_64 rng(first + t);
-        std::uniform_int_distribution<int> bit(0, 255);
-        std::uniform_real_distribution<double> keep(0, 1);
-        for (size_t p = first + t; p < target; p += 2) {
-          const Frame& frame = frames[p % frames.size()];
-          Observation observation;
-          FeatureSet noisy;
-          noisy.image_width = frame.features.image_width;
-          noisy.image_height = frame.features.image_height;
-          for (size_t i = 0; i < frame.features.size(); ++i) {
-            if (keep(rng) > 0.9) continue;
-            Descriptor256 d = frame.features.descriptors[i];
-            for (int f = 0; f < 4; ++f) {
-              const int b = bit(rng);
-              d.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
-            }
-            noisy.keypoints.push_back(frame.features.keypoints[i]);
-            noisy.descriptors.push_back(d);
-          }
-          observation.features = std::move(noisy);
-          observation.dynamic.boxes = frame.boxes;
-          if (!(*map)->Add(observation).ok()) std::exit(1);
-        }
-      });
-    }
-    for (auto& writer : writers) writer.join();
+    AddNoisyPlaces(**map, frames, first, target);
     places = target;
     const std::string n = std::to_string(target);
     Print("ingest_2_writers_to_" + n, double(target - first) / ((NowMs() - start) / 1000.0),
@@ -275,14 +283,43 @@ int main(int argc, char** argv) {
     map->reset();
     (*dir)->CloseMap("sweep");
     const double reopen_start = NowMs();
-    map = (*dir)->OpenMap("sweep", *vocabulary);
-    if (!map.ok()) return 1;
+    map = (*dir)->OpenMap("sweep", vocabulary);
+    if (!map.ok()) return false;
     Print("reopen_at_" + n + "_places", (NowMs() - reopen_start) / 1000.0, "s");
     Print("bytes_on_disk_at_" + n + "_places", double((*map)->Stats().bytes_on_disk), "bytes");
     Print("bytes_in_memory_at_" + n + "_places", double(stats.bytes_in_memory), "bytes");
   }
   map->reset();
   dir->reset();
+  return true;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Options options;
+  if (auto exit_code = ParseOptions(argc, argv, &options)) return *exit_code;
+  auto vocabulary = Vocabulary::Load(options.vocabulary_path);
+  if (!vocabulary.ok()) {
+    std::fprintf(stderr, "%s\n", vocabulary.status().ToString().c_str());
+    return 1;
+  }
+  std::string work_dir = options.work_dir;
+  if (work_dir.empty()) work_dir = (fs::temp_directory_path() / "placedb-bench-storage").string();
+  fs::remove_all(work_dir);
+  const std::vector<Frame> frames = LoadCamVid(options.shared);
+  std::printf(
+      "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",
+      frames.size(), (*vocabulary)->word_count());
+
+  if (!BenchFiltering(work_dir, frames, *vocabulary)) return 1;
+  // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads.
+  for (SyncMode mode : {SyncMode::kEveryWrite, SyncMode::kGroupCommit}) {
+    for (int writers : {2, 8}) {
+      if (!BenchPersist(work_dir, frames, *vocabulary, mode, writers)) return 1;
+    }
+  }
+  if (!BenchReopen(work_dir, frames, *vocabulary, options.reopen_sizes)) return 1;
   fs::remove_all(work_dir);
   return 0;
 }

@@ -317,8 +317,25 @@ Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, ui
   BowVector bow = input;
   NormalizeForScoring(&bow, config_.scoring);
 
-  // ---- STM and rehearsal.
   Stopwatch lap;
+  update.place = RehearseOrAddPlace(std::move(bow), frame_tag, &update.merged);
+  update.memory_ms += lap.Lap();
+
+  update.candidates = wm_.size();
+  std::vector<ScoredPlace> scored = SearchWorkingMemory(places_[update.place].bow);
+  update.search_ms = lap.Lap();
+
+  FilterStep(&scored, &update);
+  update.filter_ms = lap.Lap();
+
+  RetrieveNeighbours(&update);
+  TransferOverBounds(total, &update);
+  update.memory_ms += lap.Lap();
+  update.total_ms = total.ElapsedMs();
+  return update;
+}
+
+PlaceId LoopClosureDetector::RehearseOrAddPlace(BowVector bow, uint64_t frame_tag, bool* merged) {
   const PlaceId previous = stm_.empty() ? kNoPlace : stm_.back();
   if (previous != kNoPlace && config_.rehearsal_threshold <= 1.0 &&
       Similarity(config_.rehearsal_similarity, bow, places_[previous].bow) >=
@@ -327,177 +344,210 @@ Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, ui
     place.weight += 1;
     place.bow = std::move(bow);
     place.frames.push_back(frame_tag);
-    update.place = previous;
-    update.merged = true;
+    *merged = true;
     ++merged_;
-  } else {
-    update.place = AddPlace(std::move(bow), frame_tag);
+    return previous;
   }
-  const Place& current = places_[update.place];
-  update.memory_ms += lap.Lap();
+  return AddPlace(std::move(bow), frame_tag);
+}
 
-  // ---- Likelihood: similarity to every WM place.
+std::vector<ScoredPlace> LoopClosureDetector::SearchWorkingMemory(const BowVector& bow) const {
   const size_t n = wm_.size();
-  update.candidates = n;
-  std::vector<double> likelihood;
   std::vector<ScoredPlace> scored;
   if (n > 0) {
-    scored = index_.Query(IndexForm(current.bow), n);
+    scored = index_.Query(IndexForm(bow), n);
     if (config_.likelihood_similarity == SimilarityMeasure::kWordOverlap) {
       // Shared-word counts -> shared / words of the larger vector.
-      const double words = double(current.bow.size());
+      const double words = double(bow.size());
       for (auto& s : scored) {
         s.score /= std::max(words, double(places_[s.place].bow.size()));
       }
     }
   }
-  update.search_ms = lap.Lap();
+  return scored;
+}
 
+void LoopClosureDetector::FilterStep(std::vector<ScoredPlace>* scored, LoopClosureUpdate* update) {
+  const size_t n = wm_.size();
   if (n == 0) {
     no_loop_ = 1.0;
-    update.no_loop_posterior = 1.0;
+    update->no_loop_posterior = 1.0;
+    return;
+  }
+  // Dense by place id but only WM entries are touched: the cost follows |WM|, not the map.
+  thread_local std::vector<double> place_likelihood;
+  thread_local std::vector<double> score_of;
+  thread_local std::vector<double> predicted;
+  const double no_loop_likelihood = Observe(scored, &place_likelihood, &score_of);
+  const double predicted_no_loop = Predict(&predicted);
+  UpdatePosterior(place_likelihood, no_loop_likelihood, predicted, predicted_no_loop);
+  update->no_loop_posterior = no_loop_;
+
+  const PlaceId best = BestHypothesis();
+  update->best = best;
+  update->best_score = score_of[best];
+  const double hypothesis = HypothesisPosterior(best);
+  update->best_posterior = hypothesis;
+  // Only a place this very observation favours over "no loop" (its likelihood above the
+  // no-loop likelihood, hence also > 1) can be accepted: without evidence the transition model
+  // alone drifts belief onto places (half the mass at equilibrium when every likelihood is 1),
+  // which with few WM places exceeds T_loop on its own.
+  update->best_likelihood = place_likelihood[best];
+  update->no_loop_likelihood = no_loop_likelihood;
+  if (hypothesis > config_.loop_threshold && place_likelihood[best] > 1.0 &&
+      place_likelihood[best] > no_loop_likelihood && n >= size_t(config_.min_candidates) &&
+      score_of[best] >= config_.min_similarity_excess) {
+    update->loop = best;
+    AddLoopLink(update->place, best);
+  }
+}
+
+double LoopClosureDetector::Observe(std::vector<ScoredPlace>* scored,
+                                    std::vector<double>* place_likelihood,
+                                    std::vector<double>* score_of) const {
+  const size_t n = wm_.size();
+  // With a baseline, the WM's typical similarity (the median, places that share no word
+  // counting 0) is first subtracted: a fixed vocabulary gives every frame of one building a
+  // common floor of shared words, which the mu/sigma normalisation would otherwise read as "no
+  // place stands out".
+  double baseline = 0;
+  if (config_.likelihood_baseline == LikelihoodBaseline::kMedian && scored->size() * 2 > n) {
+    thread_local std::vector<double> values;
+    values.clear();
+    for (const auto& s : *scored) values.push_back(s.score);
+    values.resize(n, 0.0);  // untouched places: 0
+    std::nth_element(values.begin(), values.begin() + std::ptrdiff_t(n / 2), values.end());
+    baseline = values[n / 2];
+  }
+  for (auto& s : *scored) s.score = std::max(0.0, s.score - baseline);
+  double sum = 0, sum_sq = 0;
+  for (const auto& s : *scored) {
+    sum += s.score;
+    sum_sq += s.score * s.score;
+  }
+  const double mean = sum / double(n);
+  const double sigma = std::sqrt(std::max(0.0, sum_sq / double(n) - mean * mean));
+  const double no_loop_likelihood = sigma > 1e-12 && mean > 0 ? mean / sigma + 1.0 : 1.0;
+  place_likelihood->resize(places_.size());
+  score_of->resize(places_.size());
+  for (PlaceId i : wm_) {
+    (*place_likelihood)[i] = 1.0;
+    (*score_of)[i] = 0.0;
+  }
+  for (const auto& s : *scored) {
+    (*score_of)[s.place] = s.score;
+    if (mean > 0 && s.score >= mean + sigma)
+      (*place_likelihood)[s.place] = (s.score - sigma) / mean;
+  }
+  return no_loop_likelihood;
+}
+
+double LoopClosureDetector::Predict(std::vector<double>* predicted) const {
+  const size_t n = wm_.size();
+  predicted->resize(places_.size());
+  double places_mass = 0;
+  for (PlaceId j : wm_) places_mass += posterior_[j];
+  const double uniform = (1.0 - config_.no_loop_stay) * no_loop_ / double(n);
+  for (PlaceId i : wm_) (*predicted)[i] = uniform;
+  double predicted_no_loop =
+      config_.no_loop_stay * no_loop_ + config_.loop_to_no_loop * places_mass;
+  std::vector<std::pair<PlaceId, int>> hood;
+  for (PlaceId j : wm_) {
+    const double pj = posterior_[j];
+    if (pj <= 0) continue;
+    // The Gaussian is normalised over the WM and LTM neighbours; the LTM share goes to "no
+    // loop" (the robot may be at a place WM no longer holds). Renormalising over the WM
+    // neighbours alone would let a place whose neighbours were transferred keep all its belief
+    // and hoard it frame after frame. STM neighbours (the newest places, reached through the
+    // previous place or a fresh loop link) are no hypotheses and are left out.
+    Neighbourhood(j, config_.transition_radius, &hood);
+    double norm = 0;
+    for (const auto& [i, d] : hood) {
+      if (tier(i) != MemoryTier::kShortTerm) norm += gaussian_[size_t(d)];
+    }
+    const double spread = pj * (1.0 - config_.loop_to_no_loop) / norm;
+    for (const auto& [i, d] : hood) {
+      if (tier(i) == MemoryTier::kWorking) {
+        (*predicted)[i] += spread * gaussian_[size_t(d)];
+      } else if (tier(i) == MemoryTier::kLongTerm) {
+        predicted_no_loop += spread * gaussian_[size_t(d)];
+      }
+    }
+  }
+  return predicted_no_loop;
+}
+
+void LoopClosureDetector::UpdatePosterior(const std::vector<double>& place_likelihood,
+                                          double no_loop_likelihood,
+                                          const std::vector<double>& predicted,
+                                          double predicted_no_loop) {
+  double total_mass = no_loop_likelihood * predicted_no_loop;
+  for (PlaceId i : wm_) {
+    posterior_[i] = place_likelihood[i] * predicted[i];
+    total_mass += posterior_[i];
+  }
+  if (total_mass > 0) {
+    no_loop_ = no_loop_likelihood * predicted_no_loop / total_mass;
+    for (PlaceId i : wm_) posterior_[i] /= total_mass;
   } else {
-    // Observation model. With a baseline, the WM's typical similarity (the median, places that
-    // share no word counting 0) is first subtracted: a fixed vocabulary gives every frame of one
-    // building a common floor of shared words, which the mu/sigma normalisation would otherwise
-    // read as "no place stands out".
-    double baseline = 0;
-    if (config_.likelihood_baseline == LikelihoodBaseline::kMedian && scored.size() * 2 > n) {
-      thread_local std::vector<double> values;
-      values.clear();
-      for (const auto& s : scored) values.push_back(s.score);
-      values.resize(n, 0.0);  // untouched places: 0
-      std::nth_element(values.begin(), values.begin() + std::ptrdiff_t(n / 2), values.end());
-      baseline = values[n / 2];
-    }
-    for (auto& s : scored) s.score = std::max(0.0, s.score - baseline);
-    double sum = 0, sum_sq = 0;
-    for (const auto& s : scored) {
-      sum += s.score;
-      sum_sq += s.score * s.score;
-    }
-    const double mean = sum / double(n);
-    const double sigma = std::sqrt(std::max(0.0, sum_sq / double(n) - mean * mean));
-    const double no_loop_likelihood = sigma > 1e-12 && mean > 0 ? mean / sigma + 1.0 : 1.0;
-    // Dense by place id but only WM entries are touched: the cost follows |WM|, not the map.
-    thread_local std::vector<double> place_likelihood;
-    thread_local std::vector<double> score_of;
-    thread_local std::vector<double> predicted;
-    place_likelihood.resize(places_.size());
-    score_of.resize(places_.size());
-    predicted.resize(places_.size());
-    for (PlaceId i : wm_) {
-      place_likelihood[i] = 1.0;
-      score_of[i] = 0.0;
-    }
-    for (const auto& s : scored) {
-      score_of[s.place] = s.score;
-      if (mean > 0 && s.score >= mean + sigma) place_likelihood[s.place] = (s.score - sigma) / mean;
-    }
+    no_loop_ = 1.0;
+    for (PlaceId i : wm_) posterior_[i] = 0;
+  }
+}
 
-    // Prediction (transition model) from the previous posterior.
-    double places_mass = 0;
-    for (PlaceId j : wm_) places_mass += posterior_[j];
-    const double uniform = (1.0 - config_.no_loop_stay) * no_loop_ / double(n);
-    for (PlaceId i : wm_) predicted[i] = uniform;
-    double predicted_no_loop =
-        config_.no_loop_stay * no_loop_ + config_.loop_to_no_loop * places_mass;
-    std::vector<std::pair<PlaceId, int>> hood;
-    for (PlaceId j : wm_) {
-      const double pj = posterior_[j];
-      if (pj <= 0) continue;
-      // The Gaussian is normalised over the WM and LTM neighbours; the LTM share goes to "no
-      // loop" (the robot may be at a place WM no longer holds). Renormalising over the WM
-      // neighbours alone would let a place whose neighbours were transferred keep all its belief
-      // and hoard it frame after frame. STM neighbours (the newest places, reached through the
-      // previous place or a fresh loop link) are no hypotheses and are left out.
-      Neighbourhood(j, config_.transition_radius, &hood);
-      double norm = 0;
-      for (const auto& [i, d] : hood) {
-        if (tier(i) != MemoryTier::kShortTerm) norm += gaussian_[size_t(d)];
-      }
-      const double spread = pj * (1.0 - config_.loop_to_no_loop) / norm;
-      for (const auto& [i, d] : hood) {
-        if (tier(i) == MemoryTier::kWorking) {
-          predicted[i] += spread * gaussian_[size_t(d)];
-        } else if (tier(i) == MemoryTier::kLongTerm) {
-          predicted_no_loop += spread * gaussian_[size_t(d)];
-        }
-      }
-    }
-
-    // Posterior.
-    double total_mass = no_loop_likelihood * predicted_no_loop;
-    for (PlaceId i : wm_) {
-      posterior_[i] = place_likelihood[i] * predicted[i];
-      total_mass += posterior_[i];
-    }
-    if (total_mass > 0) {
-      no_loop_ = no_loop_likelihood * predicted_no_loop / total_mass;
-      for (PlaceId i : wm_) posterior_[i] /= total_mass;
-    } else {
-      no_loop_ = 1.0;
-      for (PlaceId i : wm_) posterior_[i] = 0;
-    }
-    update.no_loop_posterior = no_loop_;
-
-    // Best hypothesis (ties: lower id).
-    PlaceId best = kNoPlace;
-    for (PlaceId i : wm_) {
-      if (best == kNoPlace || posterior_[i] > posterior_[best] ||
-          (posterior_[i] == posterior_[best] && i < best)) {
-        best = i;
-      }
-    }
-    update.best = best;
-    update.best_score = score_of[best];
-    double hypothesis = posterior_[best];
-    if (config_.hypothesis_radius > 0) {
-      Neighbourhood(best, config_.hypothesis_radius, &hood);
-      hypothesis = 0;
-      for (const auto& [i, d] : hood) {
-        if (tier(i) == MemoryTier::kWorking) hypothesis += posterior_[i];
-      }
-    }
-    update.best_posterior = hypothesis;
-    // Only a place this very observation favours over "no loop" (its likelihood above the
-    // no-loop likelihood, hence also > 1) can be accepted: without evidence the transition model
-    // alone drifts belief onto places (half the mass at equilibrium when every likelihood is 1),
-    // which with few WM places exceeds T_loop on its own.
-    update.best_likelihood = place_likelihood[best];
-    update.no_loop_likelihood = no_loop_likelihood;
-    if (hypothesis > config_.loop_threshold && place_likelihood[best] > 1.0 &&
-        place_likelihood[best] > no_loop_likelihood && n >= size_t(config_.min_candidates) &&
-        score_of[best] >= config_.min_similarity_excess) {
-      update.loop = best;
-      Place& here = places_[update.place];
-      if (std::find(here.loops.begin(), here.loops.end(), best) == here.loops.end()) {
-        here.loops.push_back(best);
-        places_[best].loops.push_back(update.place);
-        has_loops_[update.place] = 1;
-        has_loops_[best] = 1;
-      }
-      ++loops_;
+PlaceId LoopClosureDetector::BestHypothesis() const {
+  PlaceId best = kNoPlace;
+  for (PlaceId i : wm_) {
+    if (best == kNoPlace || posterior_[i] > posterior_[best] ||
+        (posterior_[i] == posterior_[best] && i < best)) {
+      best = i;
     }
   }
-  update.filter_ms = lap.Lap();
+  return best;
+}
 
-  // ---- Retrieval: LTM neighbours of the best hypothesis come back to WM.
-  if (update.best != kNoPlace && config_.max_retrieved > 0 && config_.retrieval_radius > 0 &&
-      long_term_ > 0) {
+double LoopClosureDetector::HypothesisPosterior(PlaceId best) const {
+  double hypothesis = posterior_[best];
+  if (config_.hypothesis_radius > 0) {
     std::vector<std::pair<PlaceId, int>> hood;
-    Neighbourhood(update.best, config_.retrieval_radius, &hood);
-    std::stable_sort(hood.begin(), hood.end(), [](const auto& a, const auto& b) {
-      return a.second != b.second ? a.second < b.second : a.first < b.first;
-    });
-    for (const auto& [id, d] : hood) {
-      if (int(update.retrieved.size()) >= config_.max_retrieved) break;
-      if (tier(id) != MemoryTier::kLongTerm) continue;
-      if (Retrieve(id, &update.memory_status)) update.retrieved.push_back(id);
+    Neighbourhood(best, config_.hypothesis_radius, &hood);
+    hypothesis = 0;
+    for (const auto& [i, d] : hood) {
+      if (tier(i) == MemoryTier::kWorking) hypothesis += posterior_[i];
     }
   }
+  return hypothesis;
+}
 
-  // ---- Transfer: keep WM within its bounds.
+void LoopClosureDetector::AddLoopLink(PlaceId place, PlaceId loop) {
+  Place& here = places_[place];
+  if (std::find(here.loops.begin(), here.loops.end(), loop) == here.loops.end()) {
+    here.loops.push_back(loop);
+    places_[loop].loops.push_back(place);
+    has_loops_[place] = 1;
+    has_loops_[loop] = 1;
+  }
+  ++loops_;
+}
+
+void LoopClosureDetector::RetrieveNeighbours(LoopClosureUpdate* update) {
+  if (update->best == kNoPlace || config_.max_retrieved <= 0 || config_.retrieval_radius <= 0 ||
+      long_term_ == 0) {
+    return;
+  }
+  std::vector<std::pair<PlaceId, int>> hood;
+  Neighbourhood(update->best, config_.retrieval_radius, &hood);
+  std::stable_sort(hood.begin(), hood.end(), [](const auto& a, const auto& b) {
+    return a.second != b.second ? a.second < b.second : a.first < b.first;
+  });
+  for (const auto& [id, d] : hood) {
+    if (int(update->retrieved.size()) >= config_.max_retrieved) break;
+    if (tier(id) != MemoryTier::kLongTerm) continue;
+    if (Retrieve(id, &update->memory_status)) update->retrieved.push_back(id);
+  }
+}
+
+void LoopClosureDetector::TransferOverBounds(const Stopwatch& total, LoopClosureUpdate* update) {
   size_t excess = 0;
   if (config_.max_working_memory > 0 && wm_.size() > config_.max_working_memory) {
     excess = wm_.size() - config_.max_working_memory;
@@ -509,15 +559,12 @@ Result<LoopClosureUpdate> LoopClosureDetector::Update(const BowVector& input, ui
   }
   if (excess > 0) {
     auto is_protected = [&](PlaceId id) {
-      return id == update.best || (update.loop && id == *update.loop) ||
-             std::find(update.retrieved.begin(), update.retrieved.end(), id) !=
-                 update.retrieved.end();
+      return id == update->best || (update->loop && id == *update->loop) ||
+             std::find(update->retrieved.begin(), update->retrieved.end(), id) !=
+                 update->retrieved.end();
     };
-    TransferExcess(excess, is_protected, &update.transferred, &update.memory_status);
+    TransferExcess(excess, is_protected, &update->transferred, &update->memory_status);
   }
-  update.memory_ms += lap.Lap();
-  update.total_ms = total.ElapsedMs();
-  return update;
 }
 
 Status LoopClosureDetector::RejectLoop(PlaceId place, PlaceId loop) {

@@ -45,6 +45,8 @@
 
 namespace placedb {
 
+class Stopwatch;  // core/base/timing.h
+
 inline constexpr PlaceId kNoPlace = 0;
 
 // Where the BoW vectors of places in long-term memory live. The detector calls Store() when a
@@ -209,6 +211,35 @@ class LoopClosureDetector {
   // Moves up to `excess` WM places (lowest weight, then oldest; not `is_protected`) to LTM.
   void TransferExcess(size_t excess, const std::function<bool(PlaceId)>& is_protected,
                       std::vector<PlaceId>* transferred, Status* status);
+
+  // The steps of Update(), in order.
+  // STM and rehearsal: merges a frame nearly identical to the previous place into it (newer look,
+  // weight + 1), so a robot standing still does not fill memory; else AddPlace. Sets `merged`.
+  PlaceId RehearseOrAddPlace(BowVector normalised_bow, uint64_t frame_tag, bool* merged);
+  // The likelihood's similarities: WM places sharing a word with `bow`, in [0, 1].
+  std::vector<ScoredPlace> SearchWorkingMemory(const BowVector& bow) const;
+  // One Bayes filter step over WM and the loop decision; empties the filter when WM is empty.
+  void FilterStep(std::vector<ScoredPlace>* scored, LoopClosureUpdate* update);
+  // Observation (equation 1): baseline-subtracted scores and likelihoods by id; returns the
+  // no-loop likelihood mu / sigma + 1.
+  double Observe(std::vector<ScoredPlace>* scored, std::vector<double>* place_likelihood,
+                 std::vector<double>* score_of) const;
+  // Prediction (equation 2) from the previous posterior: WM beliefs by id; returns "no loop"'s.
+  double Predict(std::vector<double>* predicted) const;
+  // Posterior = likelihood x prediction, normalised over "no loop" and WM.
+  void UpdatePosterior(const std::vector<double>& place_likelihood, double no_loop_likelihood,
+                       const std::vector<double>& predicted, double predicted_no_loop);
+  // The WM place of highest posterior (ties: lower id); WM must not be empty.
+  PlaceId BestHypothesis() const;
+  // The posterior acceptance compares with T_loop: summed over WM within hypothesis_radius.
+  double HypothesisPosterior(PlaceId best) const;
+  // An accepted loop: links both places (once) and counts it.
+  void AddLoopLink(PlaceId place, PlaceId loop);
+  // Retrieval: LTM neighbours of the best hypothesis back to WM, so a revisit can compete.
+  void RetrieveNeighbours(LoopClosureUpdate* update);
+  // Transfer: WM back within its place bound and, after an update over budget, its time budget;
+  // the best hypothesis, the accepted loop and the retrieved places stay.
+  void TransferOverBounds(const Stopwatch& total, LoopClosureUpdate* update);
 
   LoopClosureDetector(uint32_t word_count, const LoopClosureConfig& config,
                       std::shared_ptr<LongTermMemory> ltm);
