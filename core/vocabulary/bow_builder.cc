@@ -6,6 +6,18 @@
 
 namespace placedb {
 
+int ClearTransformOutputs(BowVector* bow, DirectIndex* direct, int levels_up) {
+  if (bow != nullptr) bow->clear();
+  if (direct != nullptr) {
+    levels_up = std::max(levels_up, 0);
+    direct->levels_up = levels_up;
+    direct->node_ids.clear();
+    direct->offsets.clear();
+    direct->feature_ids.clear();
+  }
+  return levels_up;
+}
+
 void BuildBowVector(std::span<const WordId> feature_words, const float* word_weights,
                     WeightingType weighting, BowVector* bow) {
   bow->clear();

@@ -9,6 +9,10 @@
 
 namespace placedb {
 
+// Empties what a Transform fills (either may be null). With a direct index, `levels_up` is
+// clamped to >= 0 and recorded in it; the (possibly clamped) value is returned.
+int ClearTransformOutputs(BowVector* bow, DirectIndex* direct, int levels_up);
+
 // `feature_words[i]` is the word of feature i; `word_weights` the vocabulary's per-word weights.
 // DBoW2 semantics: TF-IDF = occurrences * idf / n, TF = occurrences / n, IDF = idf once,
 // BINARY = 1 once; words whose weight is not positive (idf 0: seen in every training image)

@@ -401,14 +401,7 @@ WordId FloatVocabulary::WordOf(const float* descriptor) const {
 void FloatVocabulary::Transform(std::span<const float> descriptors, BowVector* bow,
                                 DirectIndex* direct, int levels_up) const {
   const size_t n = descriptors.size() / size_t(dimensions_);
-  if (bow != nullptr) bow->clear();
-  if (direct != nullptr) {
-    levels_up = std::max(levels_up, 0);
-    direct->levels_up = levels_up;
-    direct->node_ids.clear();
-    direct->offsets.clear();
-    direct->feature_ids.clear();
-  }
+  levels_up = ClearTransformOutputs(bow, direct, levels_up);
   if (n == 0) return;
   const int group_level = std::max(0, depth_ - levels_up);
   std::vector<uint32_t> leaf(n), group(direct != nullptr ? n : 0);

@@ -409,14 +409,7 @@ void Vocabulary::Descend(const Descriptor256* descriptors, size_t count, uint32_
 void Vocabulary::Transform(std::span<const Descriptor256> descriptors, BowVector* bow,
                            DirectIndex* direct, int levels_up) const {
   const size_t n = descriptors.size();
-  if (bow != nullptr) bow->clear();
-  if (direct != nullptr) {
-    levels_up = std::max(levels_up, 0);
-    direct->levels_up = levels_up;
-    direct->node_ids.clear();
-    direct->offsets.clear();
-    direct->feature_ids.clear();
-  }
+  levels_up = ClearTransformOutputs(bow, direct, levels_up);
   if (n == 0) return;
 
   thread_local std::vector<uint32_t> leaf;
