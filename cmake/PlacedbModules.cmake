@@ -26,7 +26,7 @@ function(placedb_core_module name)
     target_link_libraries(placedb_${name} PUBLIC ${ARG_LIBS})
   endif()
 
-  file(GLOB files ${CMAKE_CURRENT_SOURCE_DIR}/*.h ${CMAKE_CURRENT_SOURCE_DIR}/*.cc)
+  file(GLOB files CONFIGURE_DEPENDS ${CMAKE_CURRENT_SOURCE_DIR}/*.h ${CMAKE_CURRENT_SOURCE_DIR}/*.cc)
   foreach(file IN LISTS files)
     file(STRINGS ${file} includes REGEX "^#include \"core/[a-z_]+/")
     foreach(line IN LISTS includes)

@@ -44,7 +44,7 @@ TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$PWD/tools/ts
 step "Lock annotations under clang -Wthread-safety"
 # Compiling is the check: the libraries and executables, no tests, no optimiser, no debug info.
 cmake -S . -B build-clang -G Ninja -DCMAKE_BUILD_TYPE=Debug -DCMAKE_CXX_FLAGS_DEBUG=-O0 \
-  -DCMAKE_C_COMPILER=clang-14 -DCMAKE_CXX_COMPILER=clang++-14 -DPLACEDB_WERROR=ON \
+  -DCMAKE_CXX_COMPILER=clang++-14 -DPLACEDB_WERROR=ON \
   -DPLACEDB_THREAD_SAFETY=ON -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
 cmake --build build-clang -j "$jobs" --target placedb-server placedb placedb-load placedb-eval \
   placedb-vocab placedb-sift-vocab placedb-recognize
