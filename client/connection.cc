@@ -48,12 +48,8 @@ std::unique_ptr<grpc::ClientContext> Connection::NewContext(bool unary) const {
   return context;
 }
 
-std::string CodeName(int code) {
-  return wire::GrpcCodeName(code);
-}
-
 std::string Describe(const grpc::Status& status) {
-  std::string text = CodeName(int(status.error_code()));
+  std::string text = wire::GrpcCodeName(int(status.error_code()));
   if (!status.error_message().empty()) text += ": " + status.error_message();
   return text;
 }

@@ -55,9 +55,6 @@ class Connection {
   std::shared_ptr<v1::PlaceDb::Stub> stub_;
 };
 
-// "NOT_FOUND" for grpc::StatusCode::NOT_FOUND; "CODE_<n>" for values outside the enum (the codes
-// of IngestResponse.error travel as integers). proto/status.h holds the table.
-std::string CodeName(int code);
 // "NOT_FOUND: map 'x' not found".
 std::string Describe(const grpc::Status& status);
 

@@ -14,6 +14,7 @@
 
 #include "client/format.h"
 #include "core/base/files.h"
+#include "core/base/text.h"
 
 namespace fs = std::filesystem;
 
@@ -22,10 +23,7 @@ namespace placedb::client {
 namespace {
 
 std::string LowerExtension(const fs::path& path) {
-  std::string ext = path.extension().string();
-  std::transform(ext.begin(), ext.end(), ext.begin(),
-                 [](unsigned char c) { return char(std::tolower(c)); });
-  return ext;
+  return AsciiLower(path.extension().string());
 }
 
 bool IsListExtension(const std::string& ext) {

@@ -13,6 +13,7 @@
 
 #include "core/base/parallel.h"
 #include "core/base/stats.h"
+#include "core/base/text.h"
 #include "core/base/thread_annotations.h"
 #include "core/base/timing.h"
 #include "core/features/orb_features.h"
@@ -24,12 +25,6 @@ using json = nlohmann::json;
 namespace placedb::eval {
 
 namespace {
-
-std::string Lower(std::string text) {
-  std::transform(text.begin(), text.end(), text.begin(),
-                 [](unsigned char c) { return char(std::tolower(c)); });
-  return text;
-}
 
 void Log(const RunOptions& options, const std::string& line) {
   if (options.log) options.log(line);
@@ -469,7 +464,7 @@ std::string GeomName(int geom) {
 }
 
 Result<int> ParseGeom(const std::string& text) {
-  std::string t = Lower(text);
+  std::string t = AsciiLower(text);
   if (t == "none" || t == "nogeom" || t == "disabled" || t == "off") return kNoGeom;
   if (t == "exhaustive") return 6;
   if (t.rfind("geo-", 0) == 0) t = t.substr(4);
@@ -481,7 +476,7 @@ Result<int> ParseGeom(const std::string& text) {
 }
 
 Result<BoxInput> ParseBoxInput(const std::string& text) {
-  const std::string t = Lower(text);
+  const std::string t = AsciiLower(text);
   if (t == "none") return BoxInput::kNone;
   if (t == "oracle") return BoxInput::kOracle;
   if (t == "detector") return BoxInput::kDetector;
@@ -489,7 +484,7 @@ Result<BoxInput> ParseBoxInput(const std::string& text) {
 }
 
 Result<MaskInput> ParseMaskInput(const std::string& text) {
-  const std::string t = Lower(text);
+  const std::string t = AsciiLower(text);
   if (t == "none") return MaskInput::kNone;
   if (t == "oracle") return MaskInput::kOracle;
   return Status::InvalidArgument("masks \"" + text + "\": use oracle or none");

@@ -2,6 +2,8 @@
 
 #include <cctype>
 
+#include "core/base/text.h"
+
 namespace placedb::wire {
 
 namespace {
@@ -19,17 +21,11 @@ std::string SnakeName(const EnumDescriptor* type) {
   return out;
 }
 
-std::string Lower(std::string_view text) {
-  std::string out(text);
-  for (char& c : out) c = char(std::tolower(static_cast<unsigned char>(c)));
-  return out;
-}
-
 // FILTER_METHOD_KEYPOINT_IN_BOX -> "keypoint_in_box" (proto style prefixes every value with the
 // enum's name; a value that is not prefixed keeps its whole name).
 std::string Suffix(const EnumValueDescriptor* value) {
   const std::string prefix = SnakeName(value->type()) + "_";
-  std::string name = Lower(value->name());
+  std::string name = AsciiLower(value->name());
   if (name.size() > prefix.size() && name.compare(0, prefix.size(), prefix) == 0) {
     name.erase(0, prefix.size());
   }

@@ -2,6 +2,8 @@
 
 #include <cctype>
 
+#include "core/base/text.h"
+
 namespace placedb::wire {
 
 grpc::StatusCode ToGrpcCode(StatusCode code) {
@@ -136,9 +138,7 @@ std::string GrpcCodeName(int code) {
 }
 
 std::string GrpcCodeLabel(int code) {
-  std::string name = GrpcCodeName(code);
-  for (char& c : name) c = char(std::tolower(static_cast<unsigned char>(c)));
-  return name;
+  return AsciiLower(GrpcCodeName(code));
 }
 
 }  // namespace placedb::wire

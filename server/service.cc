@@ -671,16 +671,10 @@ grpc::Status PlaceDbService::Ingest(
   stream.map = *entry;
   if (first.header().has_matches()) stream.header_matches = first.header().matches();
   stream.loop_closure = first.header().loop_closure();
-  // Declared after `stream`, so closed before it: its frames point to the stream.
-  IngestPipeline pipeline(pool_, limits.max_inflight_per_stream,
-                          {.deliver =
-                               [io](IngestPipeline::Frame& frame) {
-                                 return io->Write(static_cast<Slot&>(frame).response);
-                               },
-                           .expired = [context] { return Expired(context); },
-                           // Unblocks a handler waiting in Read().
-                           .interrupt = [context] { context->TryCancel(); }});
-  stream.pipeline = &pipeline;
+  // Declared after `stream`, so closed before it: its frames point to the stream. Made only for
+  // an admitted stream (its delivery thread starts with it), and under the lock that lists the
+  // stream, so a drain never sees a listed stream without its pipeline.
+  std::optional<IngestPipeline> admitted;
   {
     MutexLock lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
@@ -691,8 +685,19 @@ grpc::Status PlaceDbService::Ingest(
                                      std::to_string(limits.max_concurrent_streams) +
                                      " Ingest streams are open; retry later"));
     }
+    admitted.emplace(
+        pool_, limits.max_inflight_per_stream,
+        IngestPipeline::Callbacks{.deliver =
+                                      [io](IngestPipeline::Frame& frame) {
+                                        return io->Write(static_cast<Slot&>(frame).response);
+                                      },
+                                  .expired = [context] { return Expired(context); },
+                                  // Unblocks a handler waiting in Read().
+                                  .interrupt = [context] { context->TryCancel(); }});
+    stream.pipeline = &*admitted;
     streams_.insert(&stream);
   }
+  IngestPipeline& pipeline = *admitted;
   metrics_->StreamOpened();
   spdlog::info("ingest stream opened peer={} map={} loop_closure={}", Peer(context),
                stream.map->name, stream.loop_closure);

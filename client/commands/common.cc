@@ -3,6 +3,7 @@
 #include <chrono>
 
 #include "client/format.h"
+#include "proto/status.h"
 
 namespace placedb::client {
 
@@ -42,7 +43,7 @@ nlohmann::json StreamErrorsJson(
   nlohmann::json streams = nlohmann::json::array();
   for (const auto& [agent, status] : stream_errors) {
     streams.push_back({{"agent", agent},
-                       {"code", CodeName(int(status.error_code()))},
+                       {"code", wire::GrpcCodeName(int(status.error_code()))},
                        {"message", status.error_message()}});
   }
   return streams;

@@ -15,6 +15,7 @@
 #include "client/progress.h"
 #include "client/queue.h"
 #include "core/base/thread_annotations.h"
+#include "proto/status.h"
 
 namespace placedb::client {
 
@@ -156,7 +157,7 @@ void PrintFrameLine(const IngestRun& run, const FrameRecord& record,
   std::ostream& out = run.out;
   out << record.name << " -> ";
   if (response.has_error()) {
-    out << "error: " << CodeName(response.error().code());
+    out << "error: " << wire::GrpcCodeName(response.error().code());
   } else if (was_merged) {
     out << FormatLoopClosure(response.loop_closure());
   } else if (response.stored()) {
@@ -198,8 +199,9 @@ void RecordAnswer(IngestRun& run, const Answered& answer) {
   const bool was_merged = response.has_loop_closure() && response.loop_closure().merged();
   if (response.has_error()) {
     ++run.frame_errors;
-    ++run.errors_by_code[CodeName(response.error().code())];
-    run.progress.Message("frame " + record.name + ": " + CodeName(response.error().code()) + ": " +
+    ++run.errors_by_code[wire::GrpcCodeName(response.error().code())];
+    run.progress.Message("frame " + record.name + ": " +
+                         wire::GrpcCodeName(response.error().code()) + ": " +
                          response.error().message());
   } else if (was_merged) {
     ++run.merged;
@@ -251,7 +253,7 @@ void RunAgent(IngestRun& run, size_t i) {
   if (!status.ok()) {
     MutexLock lock(run.mutex);
     run.stream_errors.emplace_back(run.agent_ids[i], status);
-    ++run.errors_by_code[CodeName(int(status.error_code()))];
+    ++run.errors_by_code[wire::GrpcCodeName(int(status.error_code()))];
   }
 }
 
@@ -350,7 +352,7 @@ nlohmann::json FrameJson(const FrameRecord& record, bool matches) {
   if (response.has_depth()) r["depth"] = DepthStateJson(response.depth());
   if (!response.rejection().empty()) r["rejection"] = response.rejection();
   if (response.has_error()) {
-    r["error"] = {{"code", CodeName(response.error().code())},
+    r["error"] = {{"code", wire::GrpcCodeName(response.error().code())},
                   {"message", response.error().message()}};
   } else if (!record.local_error.empty()) {
     r["error"] = {{"code", "LOCAL"}, {"message", record.local_error}};

@@ -21,6 +21,7 @@
 #include "core/base/thread_annotations.h"
 #include "core/features/orb_features.h"
 #include "proto/convert_result.h"
+#include "proto/status.h"
 
 namespace placedb::client {
 
@@ -257,7 +258,7 @@ void RunQuerier(const LoadPlan& plan, size_t i, BoundedQueue<QueryJob>& queries,
       query.AddTimings(response.timings());
     } else {
       ++query.errors;
-      ++query.errors_by_code[CodeName(int(status.error_code()))];
+      ++query.errors_by_code[wire::GrpcCodeName(int(status.error_code()))];
     }
     tally.counts.last_answer = std::max(tally.counts.last_answer, now);
     progress.Add();
@@ -308,7 +309,7 @@ void RunAgent(const LoadPlan& plan, size_t i, LoadTally& tally, Progress& progre
     ingest.latency_ms.push_back(answer.latency_ms);
     if (response.has_error()) {
       ++ingest.errors;
-      ++ingest.errors_by_code[CodeName(response.error().code())];
+      ++ingest.errors_by_code[wire::GrpcCodeName(response.error().code())];
     } else {
       ++ingest.ok;
       (response.stored() ? ingest.stored : ingest.rejected)++;
@@ -330,7 +331,7 @@ void RunAgent(const LoadPlan& plan, size_t i, LoadTally& tally, Progress& progre
     MutexLock lock(tally.mutex);
     tally.counts.stream_errors.emplace_back(plan.options.agent_prefix + "-" + std::to_string(i + 1),
                                             status);
-    ++tally.counts.ingest.errors_by_code[CodeName(int(status.error_code()))];
+    ++tally.counts.ingest.errors_by_code[wire::GrpcCodeName(int(status.error_code()))];
   }
 }
 

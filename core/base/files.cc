@@ -12,6 +12,8 @@
 #include <stdexcept>
 #include <utility>
 
+#include "core/base/text.h"
+
 namespace placedb {
 
 namespace {
@@ -70,9 +72,7 @@ Result<std::string> ReadWholeFile(const std::string& path) {
 }
 
 bool IsImageFile(const fs::path& path) {
-  std::string ext = path.extension().string();
-  std::transform(ext.begin(), ext.end(), ext.begin(),
-                 [](unsigned char c) { return char(std::tolower(c)); });
+  const std::string ext = AsciiLower(path.extension().string());
   static const char* const kImages[] = {".jpg", ".jpeg", ".png", ".bmp",  ".pgm",
                                         ".ppm", ".pnm",  ".tif", ".tiff", ".webp"};
   return std::find(std::begin(kImages), std::end(kImages), ext) != std::end(kImages);
