@@ -14,10 +14,12 @@ PACKAGES=(
   libopencv-dev libeigen3-dev libtbb-dev
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   librocksdb-dev prometheus-cpp-dev
+  libturbojpeg0-dev  # strict JPEG decoding (core/decode)
+  libjemalloc-dev    # the server's allocator: memory is returned after load
   libgtest-dev libgmock-dev libbenchmark-dev
   libspdlog-dev libfmt-dev libcli11-dev libyaml-cpp-dev nlohmann-json3-dev
   clang-format
-  clang-14  # CI's -Wthread-safety stage (tools/test.sh)
+  clang-14 libclang-rt-14-dev  # CI's -Wthread-safety and libFuzzer stages (tools/test.sh)
   # Debian's sample images: the default vocabulary is trained on these (never on eval data).
   opencv-doc darknet
 )
