@@ -1,5 +1,8 @@
 // Durable maps on a real RocksDB in a temp directory, with real frames.
 #include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <atomic>
 #include <chrono>
@@ -759,6 +762,62 @@ TEST_F(StorageTest, ForeignOrCorruptedFilesGiveClearErrors) {
       << broken.status().ToString();
   // Other maps are unaffected.
   ASSERT_TRUE(dir->CreateMap("healthy", {}, vocabulary_).ok());
+}
+
+// One process per data directory: a second Open() is refused while the first lives (even in
+// the same process), the message names the holder, and nothing of the directory changes; the
+// lock goes with its holder, including a holder killed with SIGKILL.
+TEST_F(StorageTest, DataDirectoryIsLockedByItsFirstOpener) {
+  const std::string path = root_ + "/locked";
+  std::vector<std::string> files_before;
+  {
+    auto first = DataDirectory::Open(path);
+    ASSERT_TRUE(first.ok()) << first.status().ToString();
+    for (const auto& entry : fs::recursive_directory_iterator(path)) {
+      files_before.push_back(entry.path().string());
+    }
+    auto second = DataDirectory::Open(path);
+    ASSERT_FALSE(second.ok());
+    EXPECT_EQ(second.status().code(), StatusCode::kFailedPrecondition);
+    EXPECT_NE(second.status().message().find("in use by another placedb process (pid " +
+                                             std::to_string(getpid()) + ")"),
+              std::string::npos)
+        << second.status().ToString();
+    std::vector<std::string> files_after;
+    for (const auto& entry : fs::recursive_directory_iterator(path)) {
+      files_after.push_back(entry.path().string());
+    }
+    EXPECT_EQ(files_after, files_before);
+    ASSERT_TRUE((*first)->CreateMap("still-writable", {}, vocabulary_).ok());
+  }
+  ASSERT_TRUE(DataDirectory::Open(path).ok()) << "the lock outlived its DataDirectory";
+
+  int ready[2];
+  ASSERT_EQ(pipe(ready), 0);
+  const pid_t child = fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    auto held = DataDirectory::Open(path);
+    const char byte = held.ok() ? '1' : '0';
+    (void)!write(ready[1], &byte, 1);
+    pause();  // holds the lock until killed
+    _exit(0);
+  }
+  char byte = 0;
+  ASSERT_EQ(read(ready[0], &byte, 1), 1);
+  ASSERT_EQ(byte, '1');
+  auto while_held = DataDirectory::Open(path);
+  EXPECT_EQ(while_held.status().code(), StatusCode::kFailedPrecondition);
+  EXPECT_NE(while_held.status().message().find("(pid " + std::to_string(child) + ")"),
+            std::string::npos)
+      << while_held.status().ToString();
+  kill(child, SIGKILL);
+  waitpid(child, nullptr, 0);
+  close(ready[0]);
+  close(ready[1]);
+  auto after_kill = DataDirectory::Open(path);
+  ASSERT_TRUE(after_kill.ok()) << after_kill.status().ToString();
+  EXPECT_EQ((*after_kill)->ListMaps(), std::vector<std::string>{"still-writable"});
 }
 
 TEST_F(StorageTest, SiftMapSurvivesReopenAndRefusesTheWrongVocabularyKind) {

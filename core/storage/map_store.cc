@@ -698,8 +698,8 @@ Status PlaceMap::VerifyIntegrity() const {
 
 // ---------------------------------------------------------------------------------------------
 
-DataDirectory::DataDirectory(std::string path, StorageOptions options)
-    : path_(std::move(path)), options_(options) {
+DataDirectory::DataDirectory(std::string path, StorageOptions options, DirectoryLock lock)
+    : path_(std::move(path)), options_(options), lock_(std::move(lock)) {
   block_cache_ = rocksdb::NewLRUCache(options_.block_cache_bytes);
 }
 
@@ -738,9 +738,12 @@ Result<std::unique_ptr<DataDirectory>> DataDirectory::Open(const std::string& pa
     out.close();
     if (!out) return Status::IoError("writing " + marker.string());
   }
+  // Locked before anything below writes (maps/): the marker's checks above only read.
+  auto lock = DirectoryLock::Acquire(path);
+  if (!lock.ok()) return lock.status();
   fs::create_directories(root / "maps", ec);
   if (ec) return Status::IoError("creating " + (root / "maps").string() + ": " + ec.message());
-  return std::unique_ptr<DataDirectory>(new DataDirectory(path, options));
+  return std::unique_ptr<DataDirectory>(new DataDirectory(path, options, std::move(lock).value()));
 }
 
 Status DataDirectory::ValidateMapName(const std::string& name) {

@@ -23,6 +23,7 @@
 #include "core/base/thread_annotations.h"
 #include "core/pipeline/place_database.h"
 #include "core/storage/codec.h"
+#include "core/storage/directory_lock.h"
 #include "core/vocabulary/any_vocabulary.h"
 #include "core/vocabulary/vocabulary.h"
 
@@ -146,7 +147,9 @@ class PlaceMap {
 class DataDirectory {
  public:
   // Creates the directory when missing. A non-empty directory without placedb's marker file,
-  // or with a damaged one, is refused (FAILED_PRECONDITION / CORRUPTION), never touched.
+  // or with a damaged one, is refused (FAILED_PRECONDITION / CORRUPTION), never touched. The
+  // directory stays locked (DirectoryLock) while the DataDirectory lives: a second Open() of
+  // it, from any process, is FAILED_PRECONDITION naming the holder's pid.
   static Result<std::unique_ptr<DataDirectory>> Open(const std::string& path,
                                                      StorageOptions options = {});
   ~DataDirectory();
@@ -172,11 +175,12 @@ class DataDirectory {
   void CloseMap(const std::string& name);
 
  private:
-  DataDirectory(std::string path, StorageOptions options);
+  DataDirectory(std::string path, StorageOptions options, DirectoryLock lock);
   std::string MapPath(const std::string& name) const;
 
   const std::string path_;
   const StorageOptions options_;
+  const DirectoryLock lock_;
   std::shared_ptr<void> block_cache_;  // rocksdb::Cache, shared by every map
   // Taken before a map's lifecycle lock (DeleteMap closes the map under both).
   mutable Mutex mutex_;

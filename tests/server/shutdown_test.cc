@@ -295,5 +295,66 @@ TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
   EXPECT_EQ((*map)->Stats().database.places, 5u);
 }
 
+// A second server on the same data directory refuses to start (exit 1, the reason on stderr)
+// instead of serving every map as unavailable and creating new ones beside the first's.
+TEST(ServerBinaryTest, SecondServerOnTheSameDataDirectoryRefusesToStart) {
+  const std::string binary = ServerBinary();
+  ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
+  const std::string data = testing::MakeTempDir("placedb-binary-lock") + "/data";
+  const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
+  auto start = [&](int stderr_fd) {
+    const std::string address =
+        "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
+    std::vector<std::string> args = {binary,     "--listen",         address, "--data-dir",
+                                     data,       "--metrics-listen", "off",   "--vocabulary",
+                                     vocabulary, "--log-level",      "warn"};
+    std::vector<char*> argv;
+    for (std::string& arg : args) argv.push_back(arg.data());
+    argv.push_back(nullptr);
+    const pid_t pid = fork();
+    if (pid == 0) {
+      if (stderr_fd >= 0) {  // the log goes to stdout, usage errors to stderr
+        dup2(stderr_fd, STDOUT_FILENO);
+        dup2(stderr_fd, STDERR_FILENO);
+      }
+      execv(binary.c_str(), argv.data());
+      _exit(127);
+    }
+    return std::make_pair(pid, address);
+  };
+  const auto [first, first_address] = start(-1);
+  ASSERT_GT(first, 0);
+  auto channel = grpc::CreateChannel(first_address, grpc::InsecureChannelCredentials());
+  const bool serving =
+      channel->WaitForConnected(std::chrono::system_clock::now() + std::chrono::seconds(20));
+  if (!serving) kill(first, SIGKILL);
+  ASSERT_TRUE(serving) << "the first placedb-server did not start";
+
+  int err[2];
+  ASSERT_EQ(pipe(err), 0);
+  const auto [second, second_address] = start(err[1]);
+  close(err[1]);
+  std::string output;
+  char buffer[4096];
+  for (ssize_t n; (n = read(err[0], buffer, sizeof buffer)) > 0;) output.append(buffer, size_t(n));
+  close(err[0]);
+  int status = 0;
+  ASSERT_EQ(waitpid(second, &status, 0), second);
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) != 0) << output;
+  EXPECT_NE(output.find("data directory " + data + ": in use by another placedb process (pid " +
+                        std::to_string(first) + ")"),
+            std::string::npos)
+      << output;
+
+  // The first server still serves.
+  auto stub = v1::PlaceDb::NewStub(channel);
+  grpc::ClientContext context;
+  v1::ListMapsRequest request;
+  v1::ListMapsResponse response;
+  EXPECT_TRUE(stub->ListMaps(&context, request, &response).ok());
+  kill(first, SIGTERM);
+  waitpid(first, &status, 0);
+}
+
 }  // namespace
 }  // namespace placedb::server_testing
