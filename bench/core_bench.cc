@@ -125,7 +125,11 @@ std::shared_ptr<const Vocabulary> BenchVocabularyLoad(const std::string& path) {
     auto loaded = Vocabulary::LoadBinary(path);
     load_ms.push_back(NowMs() - start);
     if (!loaded.ok()) {
-      std::fprintf(stderr, "%s\n", loaded.status().ToString().c_str());
+      // The benchmark times the binary format; a DBoW2 text file converts in one command.
+      std::fprintf(stderr,
+                   "placedb-bench-core: %s\n(a DBoW2 text vocabulary? convert it first: "
+                   "placedb-vocab convert --in %s --out FILE.pdbv)\n",
+                   loaded.status().ToString().c_str(), path.c_str());
       return nullptr;
     }
     vocabulary = *loaded;
@@ -141,7 +145,10 @@ std::shared_ptr<const Vocabulary> BenchVocabularyLoad(const std::string& path) {
 // trip unchanged. False after an error.
 bool BenchDbow2TextLoad(const Vocabulary& vocabulary) {
   const std::string text = (fs::temp_directory_path() / "placedb-bench-vocab.txt").string();
-  if (!vocabulary.ExportDbow2Text(text).ok()) return false;
+  if (const Status exported = vocabulary.ExportDbow2Text(text); !exported.ok()) {
+    std::fprintf(stderr, "placedb-bench-core: %s\n", exported.ToString().c_str());
+    return false;
+  }
   const double start = NowMs();
   auto imported = Vocabulary::ImportDbow2Text(text);
   Print("baseline_vocabulary_load_dbow2_text", NowMs() - start, "ms");

@@ -858,14 +858,40 @@ TEST(VocabularyIoTest, Dbow2TextKeepsFileWordNumbering) {
   EXPECT_EQ((*v)->NodeWord(2), 2u);
   EXPECT_FLOAT_EQ((*v)->WordWeight(2), 0.5f);
   EXPECT_EQ((*v)->NodeWord(3), 0u);
-  // The text format could not keep this numbering, so exporting it is refused.
+  // Exported back in DBoW2's own line order: the same file, byte for byte, and the same
+  // vocabulary when imported again.
   const Status exported = (*v)->ExportDbow2Text(dir + "/out.txt");
-  EXPECT_EQ(exported.code(), StatusCode::kFailedPrecondition) << exported.ToString();
+  ASSERT_TRUE(exported.ok()) << exported.ToString();
+  EXPECT_EQ(ReadFileBytes(dir + "/out.txt"), text);
+  auto again = Vocabulary::ImportDbow2Text(dir + "/out.txt");
+  ASSERT_TRUE(again.ok()) << again.status().ToString();
+  EXPECT_EQ((*again)->checksum(), (*v)->checksum());
   // The binary format keeps it.
   ASSERT_TRUE((*v)->SaveBinary(dir + "/dfs.pdbv").ok());
   auto loaded = Vocabulary::LoadBinary(dir + "/dfs.pdbv");
   ASSERT_TRUE(loaded.ok());
   EXPECT_EQ((*loaded)->NodeWord(2), 2u);
+}
+
+// Word ids that no leaf-line order can express (two sibling leaves numbered against their
+// order) are kept by the binary format and refused by the text export, which would renumber them.
+TEST(VocabularyIoTest, Dbow2TextExportRefusesANumberingItCannotExpress) {
+  VocabularyTree tree = SmallTree();
+  tree.word_id = {-1, -1, 0, 2, 1};  // C and D, siblings in that order, numbered 2 and 1
+  auto v = Vocabulary::FromTree(tree);
+  ASSERT_TRUE(v.ok()) << v.status().ToString();
+  const ScratchDir scratch;
+  const Status exported = (*v)->ExportDbow2Text(scratch.path() + "/out.txt");
+  EXPECT_EQ(exported.code(), StatusCode::kFailedPrecondition) << exported.ToString();
+  EXPECT_NE(exported.message().find("save it as binary"), std::string::npos);
+  EXPECT_FALSE(std::filesystem::exists(scratch.path() + "/out.txt"));
+  // The breadth-first numbering of the same tree exports and round trips.
+  auto standard = Vocabulary::FromTree(SmallTree());
+  ASSERT_TRUE(standard.ok());
+  ASSERT_TRUE((*standard)->ExportDbow2Text(scratch.path() + "/bfs.txt").ok());
+  auto imported = Vocabulary::ImportDbow2Text(scratch.path() + "/bfs.txt");
+  ASSERT_TRUE(imported.ok()) << imported.status().ToString();
+  EXPECT_EQ((*imported)->checksum(), (*standard)->checksum());
 }
 
 TEST(VocabularyIoTest, MalformedDbow2TextNamesTheLine) {

@@ -123,6 +123,11 @@ class Vocabulary {
   }
 
   std::vector<uint32_t> Parents() const;  // parent of every node (the root's is 0)
+  // An order to list the nodes in DBoW2 text (the root excluded) that reads back as this tree:
+  // each node after its parent, siblings in the tree's order (which breaks distance ties in
+  // Transform), and leaves in word-id order (the format numbers words by leaf line). Empty when
+  // the word numbering allows no such order; DBoW2's files and our trainer's trees always do.
+  std::vector<uint32_t> TextExportOrder() const;
 
   // Lockstep greedy descent of `count` descriptors: leaf node of each, and (when `group` is
   // given) the node at `group_level` on its path, or the leaf when that is shallower.

@@ -548,20 +548,44 @@ Result<std::shared_ptr<const Vocabulary>> Vocabulary::ImportDbow2Text(const std:
   return vocabulary;
 }
 
-Status Vocabulary::ExportDbow2Text(const std::string& path) const {
-  const std::string context = "exporting DBoW2 text vocabulary " + path;
-  // The text format numbers words by leaf order in the file, which is breadth-first here; other
-  // word numberings would be silently renumbered by a re-import, so refuse them.
-  {
-    uint32_t next_word = 0;
-    for (uint32_t node = 0; node < node_count_; ++node) {
-      if (child_count_[node] == 0 && node_word_[node] != next_word++) {
-        return Status::FailedPrecondition(
-                   "word ids do not follow the breadth-first order of the leaves, which the text "
-                   "format cannot preserve")
-            .WithContext(context);
+std::vector<uint32_t> Vocabulary::TextExportOrder() const {
+  // Lists nodes as late as the constraints allow: a leaf's line when its word is next, after
+  // its ancestors and their earlier siblings (which every order must list first). A leaf that
+  // has to be listed before its word is next proves that no order exists, so this finds an
+  // order whenever there is one: DBoW2's files, depth-first or in sibling blocks, and
+  // breadth-first trees alike.
+  const std::vector<uint32_t> parent = Parents();
+  std::vector<uint8_t> listed(node_count_, 0);
+  std::vector<uint32_t> order;
+  order.reserve(node_count_ > 0 ? node_count_ - 1 : 0);
+  uint32_t next_word = 0;
+  std::vector<uint32_t> path;
+  while (next_word < word_count_) {
+    path.clear();
+    for (uint32_t node = word_node_[next_word]; node != 0; node = parent[node]) {
+      path.push_back(node);
+    }
+    for (auto it = path.rbegin(); it != path.rend(); ++it) {
+      for (uint32_t sibling = first_child_[parent[*it]]; sibling <= *it; ++sibling) {
+        if (listed[sibling]) continue;
+        listed[sibling] = 1;
+        order.push_back(sibling);
+        if (child_count_[sibling] == 0 && node_word_[sibling] != next_word++) return {};
       }
     }
+  }
+  if (order.size() + 1 != node_count_) return {};
+  return order;
+}
+
+Status Vocabulary::ExportDbow2Text(const std::string& path) const {
+  const std::string context = "exporting DBoW2 text vocabulary " + path;
+  const std::vector<uint32_t> order = TextExportOrder();
+  if (order.empty()) {
+    return Status::FailedPrecondition(
+               "its word ids are in an order that no DBoW2 text file can express (the format "
+               "numbers words by the order of the leaf lines); save it as binary instead")
+        .WithContext(context);
   }
   std::string out;
   try {
@@ -570,10 +594,13 @@ Status Vocabulary::ExportDbow2Text(const std::string& path) const {
            std::to_string(static_cast<int>(scoring_)) + ' ' +
            std::to_string(static_cast<int>(weighting_)) + '\n';
     const std::vector<uint32_t> parent = Parents();
+    std::vector<uint32_t> line_of(node_count_, 0);  // the node's id in the file (root: 0)
     char number[64];
-    for (uint32_t node = 1; node < node_count_; ++node) {
+    for (size_t i = 0; i < order.size(); ++i) {
+      const uint32_t node = order[i];
+      line_of[node] = uint32_t(i + 1);
       const bool leaf = child_count_[node] == 0;
-      char* end = std::to_chars(number, number + sizeof(number), parent[node]).ptr;
+      char* end = std::to_chars(number, number + sizeof(number), line_of[parent[node]]).ptr;
       out.append(number, end);
       out += leaf ? " 1 " : " 0 ";
       const uint8_t* bytes = node_descriptor_[node].bytes();
