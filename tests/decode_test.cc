@@ -2,9 +2,11 @@
 // here: cut short, random bytes over the scan data, a frame header that claims another size, a
 // damaged CRC, trailing data. Good images decode to the pixels cv::imdecode gives.
 #include <gtest/gtest.h>
+#include <zlib.h>
 
 #include <cstdint>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <random>
 #include <span>
 #include <string>
@@ -65,6 +67,61 @@ std::string WithJpegSize(const std::string& jpeg, uint32_t width, uint32_t heigh
   PutBe16(&out, sof + 3, height);
   PutBe16(&out, sof + 5, width);
   return out;
+}
+
+void PutBe32(std::string* bytes, size_t at, uint32_t value) {
+  for (int i = 0; i < 4; ++i) (*bytes)[at + size_t(i)] = char((value >> (24 - 8 * i)) & 0xFF);
+}
+
+// A PNG chunk: length, type, data, CRC.
+std::string Chunk(const char* type, const std::string& data) {
+  std::string chunk(4, '\0');
+  PutBe32(&chunk, 0, uint32_t(data.size()));
+  chunk += type;
+  chunk += data;
+  const uLong crc = crc32(crc32(0L, Z_NULL, 0), reinterpret_cast<const Bytef*>(chunk.data() + 4),
+                          uInt(chunk.size() - 4));
+  std::string tail(4, '\0');
+  PutBe32(&tail, 0, uint32_t(crc));
+  return chunk + tail;
+}
+
+// An Adam7-interlaced 8-bit PNG of `image` (gray or BGR), written here: OpenCV writes none.
+// `drop` bytes are left out at the end of the image data (compressed correctly all the same).
+std::string InterlacedPng(const cv::Mat& image, size_t drop = 0) {
+  const int channels = image.channels();
+  std::string raw;
+  static constexpr int kPasses[7][4] = {{0, 0, 8, 8}, {4, 0, 8, 8}, {0, 4, 4, 8}, {2, 0, 4, 4},
+                                        {0, 2, 2, 4}, {1, 0, 2, 2}, {0, 1, 1, 2}};
+  for (const auto& [x0, y0, dx, dy] : kPasses) {
+    if (x0 >= image.cols || y0 >= image.rows) continue;
+    for (int y = y0; y < image.rows; y += dy) {
+      raw += '\0';  // filter: none
+      for (int x = x0; x < image.cols; x += dx) {
+        const uint8_t* pixel = image.ptr<uint8_t>(y) + x * channels;
+        if (channels == 1) {
+          raw += char(pixel[0]);
+        } else {
+          raw += {char(pixel[2]), char(pixel[1]), char(pixel[0])};  // PNG is RGB
+        }
+      }
+    }
+  }
+  raw.resize(raw.size() - drop);
+  uLongf size = compressBound(uLong(raw.size()));
+  std::string compressed(size, '\0');
+  EXPECT_EQ(compress2(reinterpret_cast<Bytef*>(compressed.data()), &size,
+                      reinterpret_cast<const Bytef*>(raw.data()), uLong(raw.size()), 6),
+            Z_OK);
+  compressed.resize(size);
+  std::string header(13, '\0');
+  PutBe32(&header, 0, uint32_t(image.cols));
+  PutBe32(&header, 4, uint32_t(image.rows));
+  header[8] = 8;                      // bit depth
+  header[9] = channels == 1 ? 0 : 2;  // gray or RGB
+  header[12] = 1;                     // Adam7
+  return std::string("\x89PNG\r\n\x1A\n", 8) + Chunk("IHDR", header) + Chunk("IDAT", compressed) +
+         Chunk("IEND", "");
 }
 
 std::string Code(const Status& status) {
@@ -228,9 +285,47 @@ TEST_F(DecodeTest, DamagedPngIsRefused) {
   PutBe16(&resized, 16 + 2, 1280);
   EXPECT_EQ(refused(resized, "PNG data is corrupt (the IHDR chunk at byte 8 fails its CRC check)"),
             "refused");
+  // A header rewritten to another size with a matching CRC: the image data holds more (or fewer)
+  // bytes than it promises (libpng alone would only warn about surplus data and decode 240 rows).
+  for (uint32_t height : {240u, 479u, 481u}) {
+    std::string rewritten = png_;
+    PutBe32(&rewritten, 20, height);
+    const uLong crc =
+        crc32(crc32(0L, Z_NULL, 0), reinterpret_cast<const Bytef*>(rewritten.data() + 12), 17);
+    PutBe32(&rewritten, 29, uint32_t(crc));
+    EXPECT_EQ(refused(rewritten, height < 480 ? "PNG data holds more image data than its "
+                                                "header's 640x" +
+                                                    std::to_string(height)
+                                              : "PNG data holds less image data"),
+              "refused")
+        << height;
+  }
   // Trailing data after IEND is refused (the policy: image_decoder.h).
   EXPECT_EQ(refused(png_ + "garbage", "PNG data has 7 bytes after its IEND chunk"), "refused");
   EXPECT_EQ(refused(png_ + png_, "PNG data has"), "refused");
+}
+
+TEST_F(DecodeTest, InterlacedPngDecodes) {
+  // Odd sizes exercise every Adam7 pass's rounding; the pixels are a real frame's.
+  const cv::Mat frame = cv::imread(testing::SharedDir() + "/data/camvid/images/0001TP_006690.jpg");
+  ASSERT_FALSE(frame.empty());
+  for (const cv::Size size :
+       {cv::Size(37, 23), cv::Size(1, 1), cv::Size(5, 9), cv::Size(480, 360)}) {
+    for (const bool gray : {true, false}) {
+      cv::Mat image = frame(cv::Rect(cv::Point(0, 0), size)).clone();
+      if (gray) cv::cvtColor(image, image, cv::COLOR_BGR2GRAY);
+      const std::string png = InterlacedPng(image);
+      auto decoded =
+          DecodeImage(Span(png), DecodeOptions{gray ? ColorMode::kGray : ColorMode::kColor, 0});
+      ASSERT_TRUE(decoded.ok()) << size << " " << decoded.status().ToString();
+      EXPECT_EQ(MaxDifference(*decoded, image), 0.0) << size;
+      // One byte less of image data is refused.
+      auto short_data = DecodeImage(Span(InterlacedPng(image, 1)), DecodeOptions{});
+      ASSERT_FALSE(short_data.ok()) << size;
+      EXPECT_EQ(short_data.status().message().rfind("PNG data holds less image data", 0), 0u)
+          << short_data.status().message();
+    }
+  }
 }
 
 TEST_F(DecodeTest, TrailingBytesAfterJpegEndAreAccepted) {

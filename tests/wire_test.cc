@@ -284,6 +284,35 @@ TEST(StatusMapping, EveryGrpcCodeMapsAndKeepsItsName) {
   EXPECT_EQ(FromProto(error, "x").message(), "x: CODE_99: " + error.message());
 }
 
+TEST(StatusMapping, ClientMessagesHideServerPaths) {
+  const std::string dir = "/srv/placedb/data";
+  EXPECT_EQ(HidePaths("IO error: While appending to file: /srv/placedb/data/maps/m1/000012.log: "
+                      "No space left on device",
+                      dir),
+            "IO error: While appending to file: maps/m1/000012.log: No space left on device");
+  EXPECT_EQ(HidePaths("cannot open /srv/placedb/data.", dir), "cannot open <data_dir>.");
+  EXPECT_EQ(HidePaths("data directory /srv/placedb/data/: gone", dir),
+            "data directory <data_dir>: gone");
+  // Any other absolute path: its file name.
+  EXPECT_EQ(HidePaths("model_path '/opt/models/yolox_nano.onnx' does not exist", dir),
+            "model_path 'yolox_nano.onnx' does not exist");
+  EXPECT_EQ(HidePaths("(/usr/share/placedb/default.pdbv)", dir), "(default.pdbv)");
+  EXPECT_EQ(HidePaths("/usr/share/placedb/vocabularies/", dir), "vocabularies");
+  // A data directory spelled with a trailing slash or dots still matches.
+  EXPECT_EQ(HidePaths("at /srv/placedb/data/maps/m1/LOCK", "/srv/placedb/./data/"),
+            "at maps/m1/LOCK");
+  // Not paths: slashes inside words, fractions, a lone slash.
+  for (const std::string& text :
+       {std::string("observation.features.image_width/image_height: must be in [1, 100000]"),
+        std::string("1 / 2"), std::string("a/b"), std::string("/"), std::string("")}) {
+    EXPECT_EQ(HidePaths(text, dir), text);
+  }
+  const grpc::Status hidden = HidePaths(
+      grpc::Status(grpc::StatusCode::UNAVAILABLE, "write /srv/placedb/data/maps/m/x failed"), dir);
+  EXPECT_EQ(hidden.error_code(), grpc::StatusCode::UNAVAILABLE);
+  EXPECT_EQ(hidden.error_message(), "write maps/m/x failed");
+}
+
 TEST(StatusMapping, CodeNamesAndLabels) {
   const char* const names[] = {"OK",
                                "CANCELLED",

@@ -6,6 +6,7 @@
 #include <cstring>
 #include <memory>
 #include <opencv2/imgcodecs.hpp>
+#include <vector>
 
 namespace placedb {
 
@@ -48,14 +49,24 @@ Status SizeLimit(uint64_t width, uint64_t height, uint64_t max_pixels, ImageForm
 
 // ---- PNG ----------------------------------------------------------------------------------------
 
+// What the chunk walk learns: the header and where the compressed image data is.
+struct PngLayout {
+  ImageInfo info;
+  uint8_t bit_depth = 0;
+  uint8_t color_type = 0;
+  bool interlaced = false;
+  std::vector<std::span<const uint8_t>> idat;  // every IDAT chunk's data, in order
+};
+
 // Walks every chunk: complete, CRC-correct, IHDR first, at least one IDAT, IEND last and nothing
 // after it. libpng itself only warns about damaged ancillary chunks and ignores what follows
 // IEND; here both are refusals.
-Result<ImageInfo> CheckPngStructure(std::span<const uint8_t> bytes) {
+Result<PngLayout> CheckPngStructure(std::span<const uint8_t> bytes) {
   const uint8_t* p = bytes.data();
   const size_t n = bytes.size();
   size_t pos = 8;
-  ImageInfo info;
+  PngLayout layout;
+  ImageInfo& info = layout.info;
   info.format = ImageFormat::kPng;
   bool seen_idat = false;
   for (int index = 0;; ++index) {
@@ -102,11 +113,17 @@ Result<ImageInfo> CheckPngStructure(std::span<const uint8_t> bytes) {
       }
       info.width = width;
       info.height = height;
+      layout.bit_depth = data[8];
+      layout.color_type = data[9];
+      layout.interlaced = data[12] != 0;
     } else if (std::memcmp(type, "IHDR", 4) == 0) {
       return Status::InvalidArgument("PNG data is corrupt (a second IHDR chunk at byte " +
                                      std::to_string(pos) + ")");
     }
-    if (std::memcmp(type, "IDAT", 4) == 0) seen_idat = true;
+    if (std::memcmp(type, "IDAT", 4) == 0) {
+      seen_idat = true;
+      layout.idat.emplace_back(data, length);
+    }
     pos += size_t(length) + 12;
     if (std::memcmp(type, "IEND", 4) == 0) {
       if (!seen_idat) {
@@ -116,7 +133,7 @@ Result<ImageInfo> CheckPngStructure(std::span<const uint8_t> bytes) {
         return Status::InvalidArgument("PNG data has " + std::to_string(n - pos) +
                                        " bytes after its IEND chunk (trailing data is refused)");
       }
-      return info;
+      return layout;
     }
   }
 }
@@ -145,10 +162,110 @@ Result<ImageInfo> ReadPngInfo(std::span<const uint8_t> bytes) {
   return ImageInfo{ImageFormat::kPng, width, height};
 }
 
+// Bytes of one filtered row (filter byte included) of `width` pixels.
+uint64_t PngRowBytes(uint64_t width, uint64_t bits_per_pixel) {
+  return 1 + (width * bits_per_pixel + 7) / 8;
+}
+
+// The exact size of the decompressed image data the header promises (Adam7: seven sub-images).
+Result<uint64_t> PngExpectedBytes(const PngLayout& layout) {
+  int channels = 0;
+  const uint8_t depth = layout.bit_depth;
+  switch (layout.color_type) {
+    case 0:  // gray
+      channels = (depth == 1 || depth == 2 || depth == 4 || depth == 8 || depth == 16) ? 1 : 0;
+      break;
+    case 3:  // palette
+      channels = (depth == 1 || depth == 2 || depth == 4 || depth == 8) ? 1 : 0;
+      break;
+    case 2:  // RGB
+      channels = (depth == 8 || depth == 16) ? 3 : 0;
+      break;
+    case 4:  // gray + alpha
+      channels = (depth == 8 || depth == 16) ? 2 : 0;
+      break;
+    case 6:  // RGBA
+      channels = (depth == 8 || depth == 16) ? 4 : 0;
+      break;
+    default:
+      break;
+  }
+  if (channels == 0) {
+    return Status::InvalidArgument("PNG header is invalid (colour type " +
+                                   std::to_string(layout.color_type) + " with bit depth " +
+                                   std::to_string(depth) + ")");
+  }
+  const uint64_t bits = uint64_t(channels) * depth;
+  const uint64_t w = layout.info.width, h = layout.info.height;  // < 2^31 each: no overflow below
+  if (!layout.interlaced) return h * PngRowBytes(w, bits);
+  static constexpr int kPasses[7][4] = {{0, 0, 8, 8}, {4, 0, 8, 8}, {0, 4, 4, 8}, {2, 0, 4, 4},
+                                        {0, 2, 2, 4}, {1, 0, 2, 2}, {0, 1, 1, 2}};
+  uint64_t total = 0;
+  for (const auto& [x0, y0, dx, dy] : kPasses) {
+    const uint64_t pw = w > uint64_t(x0) ? (w - uint64_t(x0) + uint64_t(dx) - 1) / uint64_t(dx) : 0;
+    const uint64_t ph = h > uint64_t(y0) ? (h - uint64_t(y0) + uint64_t(dy) - 1) / uint64_t(dy) : 0;
+    if (pw != 0 && ph != 0) total += ph * PngRowBytes(pw, bits);
+  }
+  return total;
+}
+
+// Inflates the IDAT stream without keeping it: it must be valid zlib data (its checksum too) and
+// hold exactly the bytes the header promises. libpng only warns about surplus data, so a header
+// rewritten (with its CRC) to fewer rows would otherwise decode.
+Status CheckPngImageData(const PngLayout& layout) {
+  auto expected = PngExpectedBytes(layout);
+  if (!expected.ok()) return expected.status();
+  z_stream z{};
+  if (inflateInit(&z) != Z_OK) return Status::Internal("zlib: cannot initialise inflate");
+  struct End {
+    z_stream* z;
+    ~End() { inflateEnd(z); }
+  } end{&z};
+  std::vector<unsigned char> scratch_buffer(size_t(1) << 18);
+  unsigned char* scratch = scratch_buffer.data();
+  uint64_t produced = 0;
+  bool finished = false;
+  for (size_t chunk = 0; chunk < layout.idat.size(); ++chunk) {
+    z.next_in = const_cast<Bytef*>(layout.idat[chunk].data());
+    z.avail_in = uInt(layout.idat[chunk].size());
+    while (z.avail_in > 0 && !finished) {
+      z.next_out = scratch;
+      z.avail_out = uInt(scratch_buffer.size());
+      const int result = inflate(&z, Z_NO_FLUSH);
+      produced += scratch_buffer.size() - z.avail_out;
+      if (produced > *expected) {
+        return Status::InvalidArgument("PNG data holds more image data than its header's " +
+                                       std::to_string(layout.info.width) + "x" +
+                                       std::to_string(layout.info.height) + " image");
+      }
+      if (result == Z_STREAM_END) {
+        finished = true;
+      } else if (result != Z_OK) {
+        return Status::InvalidArgument(std::string("PNG data is corrupt (zlib: ") +
+                                       (z.msg ? z.msg : "inflate failed") + ")");
+      }
+    }
+    if (finished && (z.avail_in > 0 || chunk + 1 < layout.idat.size())) {
+      return Status::InvalidArgument("PNG data has data after the end of its compressed image");
+    }
+  }
+  if (!finished) {
+    return Status::InvalidArgument("PNG data is truncated (its compressed image data ends early)");
+  }
+  if (produced != *expected) {
+    return Status::InvalidArgument("PNG data holds less image data than its header's " +
+                                   std::to_string(layout.info.width) + "x" +
+                                   std::to_string(layout.info.height) + " image needs");
+  }
+  return Status::Ok();
+}
+
 Result<cv::Mat> DecodePng(std::span<const uint8_t> bytes, const DecodeOptions& options) {
-  auto info = CheckPngStructure(bytes);
-  if (!info.ok()) return info.status();
+  auto layout = CheckPngStructure(bytes);
+  if (!layout.ok()) return layout.status();
+  const ImageInfo* info = &layout->info;
   PLACEDB_RETURN_IF_ERROR(SizeLimit(info->width, info->height, options.max_pixels, info->format));
+  PLACEDB_RETURN_IF_ERROR(CheckPngImageData(*layout));
   int flags = cv::IMREAD_COLOR;
   if (options.mode == ColorMode::kGray) flags = cv::IMREAD_GRAYSCALE;
   if (options.mode == ColorMode::kUnchanged) flags = cv::IMREAD_UNCHANGED;
