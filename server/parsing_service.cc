@@ -86,6 +86,11 @@ std::string Diagnose(const std::string& bytes, const Descriptor* type, const std
     const FieldDescriptor* field = type ? type->FindFieldByNumber(number) : nullptr;
     const std::string name = FieldName(path, field, number, seen[number]++);
     const std::string numbered = field ? name + " (" + std::to_string(number) + ")" : name;
+    if (int(WireFormatLite::GetTagWireType(tag)) > 5) {
+      return "the data is malformed (wire type " +
+             std::to_string(int(WireFormatLite::GetTagWireType(tag))) + " in field " + numbered +
+             ")";
+    }
     if (WireFormatLite::GetTagWireType(tag) != WireFormatLite::WIRETYPE_LENGTH_DELIMITED) {
       if (!WireFormatLite::SkipField(&input, tag)) {
         return "the data is truncated or malformed (in field " + numbered + ")";

@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "server/parsing_service.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {
@@ -339,6 +340,26 @@ TEST_F(UntrustedInputTest, MalformedIngestMessageEndsTheStreamNamingIt) {
       << status.error_message();
   EXPECT_TRUE(responses.empty());
   EXPECT_EQ(Stats("m").places(), 2u);
+}
+
+// The diagnosis of bytes protobuf refused, on its own (server/parsing_service.h).
+TEST(DiagnoseMessageTest, NamesTheFirstProblemWithItsPath) {
+  v1::QueryRequest query;
+  query.set_map("m");
+  query.mutable_observation()->add_boxes()->set_class_name("car");
+  query.mutable_observation()->add_boxes()->set_class_name("bus");
+  std::string bytes = query.SerializeAsString();
+  // The second box's class name made invalid UTF-8: the repeated field's index is named.
+  bytes.replace(bytes.find("bus"), 3, "b\xF5s");
+  EXPECT_EQ(server::DiagnoseMessage(bytes, v1::QueryRequest()),
+            "field observation.boxes[1].class_name (2) is not valid UTF-8");
+  // A field number 0, an invalid wire type, a varint that never ends.
+  EXPECT_EQ(server::DiagnoseMessage(std::string("\x00\x01", 2), v1::QueryRequest()),
+            "the data is malformed (a bad field tag at byte 0)");
+  EXPECT_EQ(server::DiagnoseMessage(std::string("\x0F\x01", 2), v1::QueryRequest()),
+            "the data is malformed (wire type 7 in field map (1))");
+  EXPECT_EQ(server::DiagnoseMessage(std::string("\x20\xFF\xFF", 3), v1::QueryRequest()),
+            "the data is truncated or malformed (in field field number 4)");
 }
 
 // ---- No absolute path reaches a client ------------------------------------------------------
