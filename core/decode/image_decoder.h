@@ -8,9 +8,10 @@
 // chunk structure is walked first (every chunk complete and its CRC correct, an IHDR first, IDAT
 // data, an IEND last, no byte after it), its compressed data inflated once to check it holds
 // exactly the header's image (a second pass: PNG decoding costs about 1.5-1.9x cv::imdecode's),
-// then libpng decodes it through OpenCV. Any other format is refused. JPEG has no checksum: a few
-// damaged scan bytes that libjpeg resynchronises over are not detected (docs/service.md). The size in the header is checked against the pixel limit before anything is
-// allocated, so a small file that claims a huge image costs nothing.
+// then libpng decodes it through OpenCV. Any other format is refused. The size in the header is
+// checked against the pixel limit before anything is allocated, so a small file that claims a
+// huge image costs nothing. JPEG has no checksum: a few damaged scan bytes that libjpeg
+// resynchronises over are not detected (docs/service.md has the rates).
 //
 // Policies (docs/service.md, "Images"):
 // - Bytes after a JPEG's EOI marker are accepted (camera firmware appends trailers there); bytes
