@@ -1,8 +1,9 @@
 // placedb image decoding benchmark: prints `name value unit` lines.
 //
 // The strict decoder (core/decode/image_decoder.h: TurboJPEG with warnings as errors; PNG chunk
-// and CRC walk, then libpng through OpenCV) against cv::imdecode on the same bytes in the same
-// run, one thread, the two interleaved image by image so both see the same machine load:
+// and CRC walk, then libpng with its benign errors made errors) against cv::imdecode on the same
+// bytes in the same run, one thread, the two interleaved image by image so both see the same
+// machine load:
 //  - real 640x480 JPEGs: the rgbd-people camera frames (../shared/data, PNG) encoded at quality
 //    90 by OpenCV, and Debian's opencv-doc 640x480 JPEG files as they are;
 //  - the same camera frames as PNG (the CRC walk's cost).

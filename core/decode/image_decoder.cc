@@ -1,11 +1,11 @@
 #include "core/decode/image_decoder.h"
 
+#include <png.h>
 #include <turbojpeg.h>
 #include <zlib.h>
 
 #include <cstring>
 #include <memory>
-#include <opencv2/imgcodecs.hpp>
 #include <vector>
 
 namespace placedb {
@@ -49,24 +49,14 @@ Status SizeLimit(uint64_t width, uint64_t height, uint64_t max_pixels, ImageForm
 
 // ---- PNG ----------------------------------------------------------------------------------------
 
-// What the chunk walk learns: the header and where the compressed image data is.
-struct PngLayout {
-  ImageInfo info;
-  uint8_t bit_depth = 0;
-  uint8_t color_type = 0;
-  bool interlaced = false;
-  std::vector<std::span<const uint8_t>> idat;  // every IDAT chunk's data, in order
-};
-
 // Walks every chunk: complete, CRC-correct, IHDR first, at least one IDAT, IEND last and nothing
 // after it. libpng itself only warns about damaged ancillary chunks and ignores what follows
 // IEND; here both are refusals.
-Result<PngLayout> CheckPngStructure(std::span<const uint8_t> bytes) {
+Result<ImageInfo> CheckPngStructure(std::span<const uint8_t> bytes) {
   const uint8_t* p = bytes.data();
   const size_t n = bytes.size();
   size_t pos = 8;
-  PngLayout layout;
-  ImageInfo& info = layout.info;
+  ImageInfo info;
   info.format = ImageFormat::kPng;
   bool seen_idat = false;
   for (int index = 0;; ++index) {
@@ -113,17 +103,11 @@ Result<PngLayout> CheckPngStructure(std::span<const uint8_t> bytes) {
       }
       info.width = width;
       info.height = height;
-      layout.bit_depth = data[8];
-      layout.color_type = data[9];
-      layout.interlaced = data[12] != 0;
     } else if (std::memcmp(type, "IHDR", 4) == 0) {
       return Status::InvalidArgument("PNG data is corrupt (a second IHDR chunk at byte " +
                                      std::to_string(pos) + ")");
     }
-    if (std::memcmp(type, "IDAT", 4) == 0) {
-      seen_idat = true;
-      layout.idat.emplace_back(data, length);
-    }
+    if (std::memcmp(type, "IDAT", 4) == 0) seen_idat = true;
     pos += size_t(length) + 12;
     if (std::memcmp(type, "IEND", 4) == 0) {
       if (!seen_idat) {
@@ -133,7 +117,7 @@ Result<PngLayout> CheckPngStructure(std::span<const uint8_t> bytes) {
         return Status::InvalidArgument("PNG data has " + std::to_string(n - pos) +
                                        " bytes after its IEND chunk (trailing data is refused)");
       }
-      return layout;
+      return info;
     }
   }
 }
@@ -162,136 +146,128 @@ Result<ImageInfo> ReadPngInfo(std::span<const uint8_t> bytes) {
   return ImageInfo{ImageFormat::kPng, width, height};
 }
 
-// Bytes of one filtered row (filter byte included) of `width` pixels.
-uint64_t PngRowBytes(uint64_t width, uint64_t bits_per_pixel) {
-  return 1 + (width * bits_per_pixel + 7) / 8;
+// libpng reads the bytes (already checked by the chunk walk) from memory; its errors, and its
+// "benign" errors (too much or too little image data, bad CRC, ...), which png_set_benign_errors
+// makes errors, end the decode with the first message.
+struct PngSource {
+  std::span<const uint8_t> bytes;
+  size_t pos = 0;
+  std::string error;
+};
+
+void PngErrorFn(png_structp png, png_const_charp message) {
+  auto* source = static_cast<PngSource*>(png_get_error_ptr(png));
+  if (source->error.empty()) source->error = message ? message : "unknown error";
+  png_longjmp(png, 1);
 }
 
-// The exact size of the decompressed image data the header promises (Adam7: seven sub-images).
-Result<uint64_t> PngExpectedBytes(const PngLayout& layout) {
-  int channels = 0;
-  const uint8_t depth = layout.bit_depth;
-  switch (layout.color_type) {
-    case 0:  // gray
-      channels = (depth == 1 || depth == 2 || depth == 4 || depth == 8 || depth == 16) ? 1 : 0;
-      break;
-    case 3:  // palette
-      channels = (depth == 1 || depth == 2 || depth == 4 || depth == 8) ? 1 : 0;
-      break;
-    case 2:  // RGB
-      channels = (depth == 8 || depth == 16) ? 3 : 0;
-      break;
-    case 4:  // gray + alpha
-      channels = (depth == 8 || depth == 16) ? 2 : 0;
-      break;
-    case 6:  // RGBA
-      channels = (depth == 8 || depth == 16) ? 4 : 0;
-      break;
-    default:
-      break;
-  }
-  if (channels == 0) {
-    return Status::InvalidArgument("PNG header is invalid (colour type " +
-                                   std::to_string(layout.color_type) + " with bit depth " +
-                                   std::to_string(depth) + ")");
-  }
-  const uint64_t bits = uint64_t(channels) * depth;
-  const uint64_t w = layout.info.width, h = layout.info.height;  // < 2^31 each: no overflow below
-  if (!layout.interlaced) return h * PngRowBytes(w, bits);
-  static constexpr int kPasses[7][4] = {{0, 0, 8, 8}, {4, 0, 8, 8}, {0, 4, 4, 8}, {2, 0, 4, 4},
-                                        {0, 2, 2, 4}, {1, 0, 2, 2}, {0, 1, 1, 2}};
-  uint64_t total = 0;
-  for (const auto& [x0, y0, dx, dy] : kPasses) {
-    const uint64_t pw = w > uint64_t(x0) ? (w - uint64_t(x0) + uint64_t(dx) - 1) / uint64_t(dx) : 0;
-    const uint64_t ph = h > uint64_t(y0) ? (h - uint64_t(y0) + uint64_t(dy) - 1) / uint64_t(dy) : 0;
-    if (pw != 0 && ph != 0) total += ph * PngRowBytes(pw, bits);
-  }
-  return total;
+// Plain warnings concern the ancillary data libpng is told to skip; nothing about the pixels.
+void PngWarningFn(png_structp, png_const_charp) {}
+
+void PngReadFn(png_structp png, png_bytep out, size_t length) {
+  auto* source = static_cast<PngSource*>(png_get_io_ptr(png));
+  if (source->bytes.size() - source->pos < length)
+    png_error(png, "read beyond the end of the data");
+  std::memcpy(out, source->bytes.data() + source->pos, length);
+  source->pos += length;
 }
 
-// Inflates the IDAT stream without keeping it: it must be valid zlib data (its checksum too) and
-// hold exactly the bytes the header promises. libpng only warns about surplus data, so a header
-// rewritten (with its CRC) to fewer rows would otherwise decode.
-Status CheckPngImageData(const PngLayout& layout) {
-  auto expected = PngExpectedBytes(layout);
-  if (!expected.ok()) return expected.status();
-  z_stream z{};
-  if (inflateInit(&z) != Z_OK) return Status::Internal("zlib: cannot initialise inflate");
-  struct End {
-    z_stream* z;
-    ~End() { inflateEnd(z); }
-  } end{&z};
-  std::vector<unsigned char> scratch_buffer(size_t(1) << 18);
-  unsigned char* scratch = scratch_buffer.data();
-  uint64_t produced = 0;
-  bool finished = false;
-  for (size_t chunk = 0; chunk < layout.idat.size(); ++chunk) {
-    z.next_in = const_cast<Bytef*>(layout.idat[chunk].data());
-    z.avail_in = uInt(layout.idat[chunk].size());
-    while (z.avail_in > 0 && !finished) {
-      z.next_out = scratch;
-      z.avail_out = uInt(scratch_buffer.size());
-      const int result = inflate(&z, Z_NO_FLUSH);
-      produced += scratch_buffer.size() - z.avail_out;
-      if (produced > *expected) {
-        return Status::InvalidArgument("PNG data holds more image data than its header's " +
-                                       std::to_string(layout.info.width) + "x" +
-                                       std::to_string(layout.info.height) + " image");
-      }
-      if (result == Z_STREAM_END) {
-        finished = true;
-      } else if (result != Z_OK) {
-        return Status::InvalidArgument(std::string("PNG data is corrupt (zlib: ") +
-                                       (z.msg ? z.msg : "inflate failed") + ")");
-      }
+// One decode's state: everything a longjmp out of libpng must leave intact lives here, in the
+// caller's frame, so the frame with setjmp holds nothing that needs destroying.
+struct PngJob {
+  PngSource source;
+  png_structp png = nullptr;
+  png_infop info = nullptr;
+  png_infop end = nullptr;
+  cv::Mat image;
+  std::vector<png_bytep> rows;
+  ~PngJob() {
+    if (png) png_destroy_read_struct(&png, &info, &end);
+  }
+};
+
+// The decode itself, with cv::imdecode's choice of output and libpng transforms for each mode,
+// so the pixels are the same as OpenCV's (also libpng). False with job->source.error on failure.
+bool RunPng(PngJob* job, ColorMode mode) {
+  png_structp png = job->png;
+  if (setjmp(png_jmpbuf(png))) return false;
+  png_set_read_fn(png, &job->source, PngReadFn);
+  png_set_benign_errors(png, 0);
+  // Ancillary chunks that cannot change the pixels OpenCV returns are skipped, and with them
+  // their own failure modes. (gAMA, sRGB, cHRM and iCCP stay: libpng's RGB-to-gray conversion,
+  // OpenCV's for gray frames, works in linear light when it knows the gamma.)
+  static const png_byte kSkipped[] =
+      "bKGD\0eXIf\0hIST\0iTXt\0oFFs\0pCAL\0pHYs\0sBIT\0sCAL\0sPLT\0"
+      "sTER\0tEXt\0tIME\0zTXt";
+  png_set_keep_unknown_chunks(png, PNG_HANDLE_CHUNK_NEVER, kSkipped, int(sizeof(kSkipped) / 5));
+  png_read_info(png, job->info);
+  png_uint_32 width = 0, height = 0;
+  int bit_depth = 0, color_type = 0;
+  png_get_IHDR(png, job->info, &width, &height, &bit_depth, &color_type, nullptr, nullptr, nullptr);
+  const bool has_color = (color_type & PNG_COLOR_MASK_COLOR) != 0;
+
+  int channels = 1, depth = CV_8U;
+  if (mode == ColorMode::kColor) {
+    channels = 3;
+  } else if (mode == ColorMode::kUnchanged) {
+    if (color_type == PNG_COLOR_TYPE_RGB || color_type == PNG_COLOR_TYPE_PALETTE) {
+      channels = png_get_valid(png, job->info, PNG_INFO_tRNS) ? 4 : 3;
+    } else if (color_type == PNG_COLOR_TYPE_GRAY_ALPHA || color_type == PNG_COLOR_TYPE_RGB_ALPHA) {
+      channels = 4;
     }
-    if (finished && (z.avail_in > 0 || chunk + 1 < layout.idat.size())) {
-      return Status::InvalidArgument("PNG data has data after the end of its compressed image");
-    }
+    if (bit_depth == 16) depth = CV_16U;
   }
-  if (!finished) {
-    return Status::InvalidArgument("PNG data is truncated (its compressed image data ends early)");
+  if (depth == CV_8U && bit_depth == 16) {
+    png_set_strip_16(png);
+  } else if (bit_depth == 16) {
+    png_set_swap(png);  // PNG is big-endian; cv::Mat holds native (little-endian) values
   }
-  if (produced != *expected) {
-    return Status::InvalidArgument("PNG data holds less image data than its header's " +
-                                   std::to_string(layout.info.width) + "x" +
-                                   std::to_string(layout.info.height) + " image needs");
+  if (channels < 4) {
+    png_set_strip_alpha(png);
+  } else {
+    png_set_tRNS_to_alpha(png);
   }
-  return Status::Ok();
+  if (color_type == PNG_COLOR_TYPE_PALETTE) png_set_palette_to_rgb(png);
+  if (!has_color && bit_depth < 8) png_set_expand_gray_1_2_4_to_8(png);
+  if (channels > 1 && has_color) {
+    png_set_bgr(png);
+  } else if (channels > 1) {
+    png_set_gray_to_rgb(png);
+  } else {
+    png_set_rgb_to_gray(png, 1, 0.299, 0.587);  // OpenCV's weights
+  }
+  png_set_interlace_handling(png);
+  png_read_update_info(png, job->info);
+
+  job->image.create(int(height), int(width), CV_MAKETYPE(depth, channels));
+  // The transforms must produce exactly the rows allocated: never write past them.
+  if (png_get_rowbytes(png, job->info) != job->image.step[0] ||
+      png_get_channels(png, job->info) != channels) {
+    job->source.error = "unexpected row layout after conversion";
+    return false;
+  }
+  job->rows.resize(height);
+  for (png_uint_32 y = 0; y < height; ++y) job->rows[y] = job->image.ptr<png_byte>(int(y));
+  png_read_image(png, job->rows.data());
+  png_read_end(png, job->end);
+  return true;
 }
 
 Result<cv::Mat> DecodePng(std::span<const uint8_t> bytes, const DecodeOptions& options) {
   auto layout = CheckPngStructure(bytes);
   if (!layout.ok()) return layout.status();
-  const ImageInfo* info = &layout->info;
-  PLACEDB_RETURN_IF_ERROR(SizeLimit(info->width, info->height, options.max_pixels, info->format));
-  PLACEDB_RETURN_IF_ERROR(CheckPngImageData(*layout));
-  int flags = cv::IMREAD_COLOR;
-  if (options.mode == ColorMode::kGray) flags = cv::IMREAD_GRAYSCALE;
-  if (options.mode == ColorMode::kUnchanged) flags = cv::IMREAD_UNCHANGED;
-  cv::Mat image;
-  try {
-    if (bytes.size() > size_t(INT32_MAX)) {
-      return Status::InvalidArgument("PNG data of " + std::to_string(bytes.size()) +
-                                     " bytes is too large");
-    }
-    const cv::Mat buffer(1, int(bytes.size()), CV_8U, const_cast<uint8_t*>(bytes.data()));
-    image = cv::imdecode(buffer, flags);
-  } catch (const cv::Exception& e) {
-    return Status::InvalidArgument(std::string("PNG data cannot be decoded (") + e.what() + ")");
+  const ImageInfo& info = *layout;
+  PLACEDB_RETURN_IF_ERROR(SizeLimit(info.width, info.height, options.max_pixels, info.format));
+  PngJob job;
+  job.source.bytes = bytes;
+  job.png = png_create_read_struct(PNG_LIBPNG_VER_STRING, &job.source, PngErrorFn, PngWarningFn);
+  if (job.png) job.info = png_create_info_struct(job.png);
+  if (job.png) job.end = png_create_info_struct(job.png);
+  if (!job.png || !job.info || !job.end) return Status::Internal("libpng: cannot create a reader");
+  if (!RunPng(&job, options.mode)) {
+    return Status::InvalidArgument("PNG data is corrupt (libpng: " + job.source.error + ")");
   }
-  if (image.empty()) {
-    // The chunks are intact, so the compressed image data itself is wrong (libpng's reason goes
-    // to stderr only).
-    return Status::InvalidArgument(
-        "PNG data is corrupt (its compressed image data does not decode)");
-  }
-  if (uint32_t(image.cols) != info->width || uint32_t(image.rows) != info->height) {
-    return Status::InvalidArgument(
-        "PNG data decoded to " + std::to_string(image.cols) + "x" + std::to_string(image.rows) +
-        ", its header says " + std::to_string(info->width) + "x" + std::to_string(info->height));
-  }
-  return image;
+  return std::move(job.image);
 }
 
 // ---- JPEG ---------------------------------------------------------------------------------------

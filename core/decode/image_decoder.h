@@ -6,9 +6,10 @@
 // treated as an error (truncated data, corrupt entropy-coded data, data left over before a marker:
 // the signs of a header that does not match its data); libjpeg's own message is quoted. PNG's
 // chunk structure is walked first (every chunk complete and its CRC correct, an IHDR first, IDAT
-// data, an IEND last, no byte after it), its compressed data inflated once to check it holds
-// exactly the header's image (a second pass: PNG decoding costs about 1.5-1.9x cv::imdecode's),
-// then libpng decodes it through OpenCV. Any other format is refused. The size in the header is
+// data, an IEND last, no byte after it), then libpng decodes it with its "benign" errors made
+// errors (image data that holds more or less than the header's size: a header rewritten with a
+// matching CRC), with cv::imdecode's conversions, so the pixels are OpenCV's. Any other format is
+// refused. The size in the header is
 // checked against the pixel limit before anything is allocated, so a small file that claims a
 // huge image costs nothing. JPEG has no checksum: a few damaged scan bytes that libjpeg
 // resynchronises over are not detected (docs/service.md has the rates).
