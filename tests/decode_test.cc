@@ -2,6 +2,7 @@
 // here: cut short, random bytes over the scan data, a frame header that claims another size, a
 // damaged CRC, trailing data. Good images decode to the pixels cv::imdecode gives.
 #include <gtest/gtest.h>
+#include <turbojpeg.h>
 #include <zlib.h>
 
 #include <cstdint>
@@ -326,6 +327,50 @@ TEST_F(DecodeTest, InterlacedPngDecodes) {
                 "PNG data is corrupt (libpng: Not enough image data)");
     }
   }
+}
+
+// `image` (BGR) encoded by TurboJPEG as `pixel_format` with `flags` (progressive, ...).
+std::string TurboJpeg(const cv::Mat& image, int pixel_format, int flags) {
+  tjhandle handle = tjInitCompress();
+  unsigned char* buffer = nullptr;
+  unsigned long size = 0;
+  cv::Mat source = image;
+  if (pixel_format == TJPF_CMYK) {
+    // CMYK pixels: the BGR frame's complement and a zero K plane, enough for a real CMYK file.
+    cv::Mat bgra;
+    cv::cvtColor(image, bgra, cv::COLOR_BGR2BGRA);
+    source = cv::Scalar::all(255) - bgra;
+    source.forEach<cv::Vec4b>([](cv::Vec4b& p, const int*) { p[3] = 0; });
+  }
+  const int ok = tjCompress2(handle, source.data, source.cols, int(source.step[0]), source.rows,
+                             pixel_format, &buffer, &size, TJSAMP_420, 90, flags);
+  EXPECT_EQ(ok, 0) << tjGetErrorStr2(handle);
+  std::string bytes(reinterpret_cast<const char*>(buffer), size);
+  tjFree(buffer);
+  tjDestroy(handle);
+  return bytes;
+}
+
+TEST_F(DecodeTest, ProgressiveJpegDecodesAndCmykIsRefused) {
+  const cv::Mat frame = cv::imread(testing::SharedDir() + "/data/camvid/images/0001TP_006690.jpg");
+  ASSERT_FALSE(frame.empty());
+  const std::string progressive = TurboJpeg(frame, TJPF_BGR, TJFLAG_PROGRESSIVE);
+  auto decoded = DecodeImage(Span(progressive), DecodeOptions{ColorMode::kColor, 0});
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  EXPECT_EQ(MaxDifference(*decoded, cv::imdecode(cv::Mat(1, int(progressive.size()), CV_8U,
+                                                         const_cast<char*>(progressive.data())),
+                                                 cv::IMREAD_COLOR)),
+            0.0);
+  // Cut short, a progressive file is refused too (its later scans are missing).
+  const std::string cut = progressive.substr(0, progressive.size() * 3 / 4);
+  EXPECT_EQ(DecodeImage(Span(cut), DecodeOptions{}).status().message(),
+            "JPEG data is truncated (libjpeg: Premature end of JPEG file)");
+
+  const std::string cmyk = TurboJpeg(frame, TJPF_CMYK, 0);
+  auto refused = DecodeImage(Span(cmyk), DecodeOptions{});
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().message(),
+            "JPEG data is CMYK, which is not supported (send RGB or gray)");
 }
 
 TEST_F(DecodeTest, TrailingBytesAfterJpegEndAreAccepted) {
