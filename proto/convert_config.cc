@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 
 #include "proto/field_errors.h"
 
@@ -460,7 +461,10 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, uint32_t max_desc
   // The map's feature budget: only its own feature type extracts.
   if (d.feature_type == FeatureType::kSift) {
     // 0 ("all") is capped by the server's limit, so a frame never exceeds it.
-    if (d.sift.max_features == 0) d.sift.max_features = int(max_descriptors_per_frame);
+    // (The limit is a uint32 of the server's configuration: clamped, never wrapped, to an int.)
+    if (d.sift.max_features == 0) {
+      d.sift.max_features = int(std::min<uint32_t>(max_descriptors_per_frame, INT32_MAX));
+    }
     PLACEDB_RETURN_IF_ERROR(
         CheckBudget("config.sift.max_features", d.sift.max_features, max_descriptors_per_frame));
   } else {

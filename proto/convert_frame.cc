@@ -2,11 +2,11 @@
 
 #include <cmath>
 #include <cstring>
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <span>
 #include <utility>
 
+#include "core/decode/image_decoder.h"
 #include "core/detect/detector.h"
 #include "core/features/orb_features.h"
 #include "core/features/sift_features.h"
@@ -20,24 +20,45 @@ using internal::Num;
 
 namespace {
 
-uint32_t ReadBe32(const unsigned char* p) {
-  return (uint32_t(p[0]) << 24) | (uint32_t(p[1]) << 16) | (uint32_t(p[2]) << 8) | uint32_t(p[3]);
-}
-uint32_t ReadBe16(const unsigned char* p) {
-  return (uint32_t(p[0]) << 8) | uint32_t(p[1]);
-}
-
-std::string Dims(int width, int height) {
+// Sizes are printed from their unsigned wire values: 4000000000 stays 4000000000.
+std::string Dims(uint64_t width, uint64_t height) {
   return std::to_string(width) + "x" + std::to_string(height);
 }
 
+// The largest side of any image, mask, depth or feature frame (before the pixel limit).
+constexpr uint64_t kMaxSide = 100000;
+
 Status CheckPixels(uint64_t width, uint64_t height, const FrameLimits& limits,
                    const std::string& field) {
-  if (width * height > limits.max_image_pixels) {
+  uint64_t pixels = 0;
+  if (!CheckedMul(width, height, &pixels) || pixels > limits.max_image_pixels) {
     return Status::ResourceExhausted(
-        field + ": " + std::to_string(width) + "x" + std::to_string(height) + " = " +
-        std::to_string(width * height) +
-        " pixels exceed limits.max_image_pixels = " + std::to_string(limits.max_image_pixels));
+        field + ": " + Dims(width, height) +
+        (pixels != 0 ? " = " + std::to_string(pixels) + " pixels" : std::string(" pixels")) +
+        " exceed limits.max_image_pixels = " + std::to_string(limits.max_image_pixels));
+  }
+  return Status::Ok();
+}
+
+// "<what> must be in [1, 100000], got 4000000000x1": both sides checked before any product.
+Status CheckSides(uint64_t width, uint64_t height, const std::string& field) {
+  if (width == 0 || height == 0 || width > kMaxSide || height > kMaxSide) {
+    return Invalid(field,
+                   "must be in [1, " + std::to_string(kMaxSide) + "], got " + Dims(width, height));
+  }
+  return Status::Ok();
+}
+
+// The exact byte count of a raw image (core/decode: overflow-checked), or INVALID_ARGUMENT
+// naming `data_field` when `size` differs.
+Status CheckRawBytes(uint64_t width, uint64_t height, uint64_t bytes_per_pixel, size_t size,
+                     const std::string& data_field) {
+  auto expected = RawImageBytes(width, height, bytes_per_pixel);
+  if (!expected.ok()) return Invalid(data_field, expected.status().message());
+  if (uint64_t(size) != *expected) {
+    return Invalid(data_field, std::to_string(size) + " bytes, expected " + Dims(width, height) +
+                                   " x " + std::to_string(bytes_per_pixel) + " = " +
+                                   std::to_string(*expected));
   }
   return Status::Ok();
 }
@@ -96,39 +117,26 @@ Result<Pose> PoseFromProto(const v1::Pose& p, const std::string& field) {
   return pose;
 }
 
-// Decodes JPEG/PNG bytes after checking the header against the pixel limit (so a small file
-// claiming a huge image is refused before any allocation).
-Result<cv::Mat> DecodeImageBytes(const std::string& bytes, int flags, const FrameLimits& limits,
-                                 const std::string& field, bool png_only) {
-  auto header = ReadImageHeader(bytes);
-  if (!header.ok()) return Invalid(field, header.status().message());
-  if (png_only && header->format != ImageHeader::Format::kPng) {
-    return Invalid(field, "must be a PNG image");
-  }
-  PLACEDB_RETURN_IF_ERROR(
-      CheckPixels(uint64_t(header->width), uint64_t(header->height), limits, field));
-  cv::Mat image;
-  try {
-    const cv::Mat buffer(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data()));
-    image = cv::imdecode(buffer, flags);
-  } catch (const cv::Exception& e) {
-    return Invalid(field, std::string("cannot be decoded: ") + e.what());
-  }
-  if (image.empty()) {
-    return Invalid(field, std::string("cannot be decoded (damaged or truncated ") +
-                              (header->format == ImageHeader::Format::kPng ? "PNG" : "JPEG") + ")");
-  }
-  PLACEDB_RETURN_IF_ERROR(CheckPixels(uint64_t(image.cols), uint64_t(image.rows), limits, field));
+// Decodes JPEG/PNG bytes strictly (core/decode/image_decoder.h: damaged, truncated or
+// inconsistent data is refused) after checking the header against the pixel limit, so a small
+// file claiming a huge image is refused before any allocation.
+Result<cv::Mat> DecodeImageBytes(const std::string& bytes, ColorMode mode,
+                                 const FrameLimits& limits, const std::string& field,
+                                 bool png_only) {
+  const std::span<const uint8_t> data(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size());
+  auto info = ReadImageInfo(data);
+  if (!info.ok()) return Invalid(field, info.status().message());
+  if (png_only && info->format != ImageFormat::kPng) return Invalid(field, "must be a PNG image");
+  PLACEDB_RETURN_IF_ERROR(CheckPixels(info->width, info->height, limits, field));
+  auto image = DecodeImage(data, DecodeOptions{mode, limits.max_image_pixels});
+  if (!image.ok()) return Status(image.status().code(), field + ": " + image.status().message());
   return image;
 }
 
 // The frame's size as a features message states it.
 Status FeatureImageSize(uint32_t width, uint32_t height, const FrameLimits& limits,
                         const std::string& field) {
-  if (width == 0 || height == 0 || width > 100000 || height > 100000) {
-    return Invalid(field + ".image_width/image_height",
-                   "must be in [1, 100000], got " + Dims(int(width), int(height)));
-  }
+  PLACEDB_RETURN_IF_ERROR(CheckSides(width, height, field + ".image_width/image_height"));
   return CheckPixels(width, height, limits, field + ".image_width/image_height");
 }
 
@@ -272,8 +280,8 @@ Result<DepthObservation> DepthFromProto(const v1::DepthImage& depth, const Frame
   DepthObservation out;
   switch (depth.data_case()) {
     case v1::DepthImage::kPng16: {
-      auto image = DecodeImageBytes(depth.png16(), cv::IMREAD_UNCHANGED | cv::IMREAD_ANYDEPTH,
-                                    limits, field + ".png16", /*png_only=*/true);
+      auto image = DecodeImageBytes(depth.png16(), ColorMode::kUnchanged, limits, field + ".png16",
+                                    /*png_only=*/true);
       if (!image.ok()) return image.status();
       if (image->type() != CV_16UC1) {
         return Invalid(field + ".png16", "must be a 16-bit single-channel PNG");
@@ -283,21 +291,15 @@ Result<DepthObservation> DepthFromProto(const v1::DepthImage& depth, const Frame
     }
     case v1::DepthImage::kRawFloat32: {
       const v1::RawDepth& raw = depth.raw_float32();
-      if (raw.width() == 0 || raw.height() == 0 || raw.width() > 100000 || raw.height() > 100000) {
-        return Invalid(field + ".raw_float32", "width and height must be in [1, 100000], got " +
-                                                   Dims(int(raw.width()), int(raw.height())));
-      }
+      PLACEDB_RETURN_IF_ERROR(
+          CheckSides(raw.width(), raw.height(), field + ".raw_float32.width/height"));
       PLACEDB_RETURN_IF_ERROR(
           CheckPixels(raw.width(), raw.height(), limits, field + ".raw_float32"));
-      const uint64_t expected = uint64_t(raw.width()) * raw.height() * 4;
-      if (raw.data().size() != expected) {
-        return Invalid(field + ".raw_float32.data", std::to_string(raw.data().size()) +
-                                                        " bytes, expected " +
-                                                        Dims(int(raw.width()), int(raw.height())) +
-                                                        " x 4 = " + std::to_string(expected));
-      }
+      PLACEDB_RETURN_IF_ERROR(CheckRawBytes(raw.width(), raw.height(), sizeof(float),
+                                            raw.data().size(), field + ".raw_float32.data"));
+      // Both sides are <= 100000 (CheckSides): they fit in an int.
       cv::Mat values(int(raw.height()), int(raw.width()), CV_32F);
-      std::memcpy(values.data, raw.data().data(), expected);
+      std::memcpy(values.data, raw.data().data(), raw.data().size());
       for (int y = 0; y < values.rows; ++y) {
         const float* row = values.ptr<float>(y);
         for (int x = 0; x < values.cols; ++x) {
@@ -329,53 +331,6 @@ Result<DepthObservation> DepthFromProto(const v1::DepthImage& depth, const Frame
 }
 
 }  // namespace
-
-Result<ImageHeader> ReadImageHeader(const std::string& bytes) {
-  const auto* p = reinterpret_cast<const unsigned char*>(bytes.data());
-  const size_t n = bytes.size();
-  static const unsigned char kPng[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1A, '\n'};
-  if (n >= 8 && std::memcmp(p, kPng, 8) == 0) {
-    if (n < 24 || std::memcmp(p + 12, "IHDR", 4) != 0) {
-      return Status::InvalidArgument("truncated PNG (no IHDR header)");
-    }
-    const uint32_t width = ReadBe32(p + 16);
-    const uint32_t height = ReadBe32(p + 20);
-    if (width == 0 || height == 0 || width > (1u << 30) || height > (1u << 30)) {
-      return Status::InvalidArgument("PNG header claims a " + std::to_string(width) + "x" +
-                                     std::to_string(height) + " image");
-    }
-    return ImageHeader{ImageHeader::Format::kPng, int(width), int(height)};
-  }
-  if (n >= 3 && p[0] == 0xFF && p[1] == 0xD8 && p[2] == 0xFF) {
-    size_t i = 2;
-    while (i + 4 <= n) {
-      if (p[i] != 0xFF) return Status::InvalidArgument("damaged JPEG (bad marker)");
-      while (i < n && p[i] == 0xFF) ++i;  // fill bytes
-      if (i >= n) break;
-      const unsigned char marker = p[i++];
-      if (marker == 0xD8 || marker == 0x01 || (marker >= 0xD0 && marker <= 0xD7)) continue;
-      if (marker == 0xD9 || marker == 0xDA) break;  // end / scan before any frame header
-      if (i + 2 > n) break;
-      const uint32_t length = ReadBe16(p + i);
-      if (length < 2) return Status::InvalidArgument("damaged JPEG (bad segment length)");
-      const bool sof =
-          (marker >= 0xC0 && marker <= 0xCF) && marker != 0xC4 && marker != 0xC8 && marker != 0xCC;
-      if (sof) {
-        if (i + 7 > n) break;
-        const uint32_t height = ReadBe16(p + i + 3);
-        const uint32_t width = ReadBe16(p + i + 5);
-        if (width == 0 || height == 0) {
-          return Status::InvalidArgument("JPEG header claims a " + std::to_string(width) + "x" +
-                                         std::to_string(height) + " image");
-        }
-        return ImageHeader{ImageHeader::Format::kJpeg, int(width), int(height)};
-      }
-      i += length;
-    }
-    return Status::InvalidArgument("damaged or truncated JPEG (no frame header)");
-  }
-  return Status::InvalidArgument("not a JPEG or PNG image");
-}
 
 Status CheckFeatureType(const v1::Observation& observation, FeatureType map_type,
                         const std::string& map_name, const std::string& field) {
@@ -425,9 +380,9 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Fra
   int width = 0, height = 0;
   switch (o.frame_case()) {
     case v1::Observation::kEncodedImage: {
-      auto image = DecodeImageBytes(o.encoded_image().data(),
-                                    color ? cv::IMREAD_COLOR : cv::IMREAD_GRAYSCALE, limits,
-                                    field + ".encoded_image.data", /*png_only=*/false);
+      auto image =
+          DecodeImageBytes(o.encoded_image().data(), color ? ColorMode::kColor : ColorMode::kGray,
+                           limits, field + ".encoded_image.data", /*png_only=*/false);
       if (!image.ok()) return image.status();
       obs.image = std::move(image).value();
       out.has_pixels = true;
@@ -448,18 +403,11 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Fra
         default:
           return Invalid(at + ".format", "GRAY8, BGR8 or RGB8 is required");
       }
-      if (raw.width() == 0 || raw.height() == 0 || raw.width() > 100000 || raw.height() > 100000) {
-        return Invalid(at + ".width/height",
-                       "must be in [1, 100000], got " + Dims(int(raw.width()), int(raw.height())));
-      }
+      PLACEDB_RETURN_IF_ERROR(CheckSides(raw.width(), raw.height(), at + ".width/height"));
       PLACEDB_RETURN_IF_ERROR(CheckPixels(raw.width(), raw.height(), limits, at));
-      const uint64_t expected = uint64_t(raw.width()) * raw.height() * uint64_t(channels);
-      if (raw.data().size() != expected) {
-        return Invalid(at + ".data", std::to_string(raw.data().size()) + " bytes, expected " +
-                                         Dims(int(raw.width()), int(raw.height())) + " x " +
-                                         std::to_string(channels) + " = " +
-                                         std::to_string(expected));
-      }
+      PLACEDB_RETURN_IF_ERROR(CheckRawBytes(raw.width(), raw.height(), uint64_t(channels),
+                                            raw.data().size(), at + ".data"));
+      // Both sides are <= 100000 (CheckSides): they fit in an int.
       const cv::Mat view(int(raw.height()), int(raw.width()), channels == 1 ? CV_8UC1 : CV_8UC3,
                          const_cast<char*>(raw.data().data()));
       if (raw.format() == v1::PIXEL_FORMAT_RGB8) {
@@ -506,7 +454,7 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Fra
 
   if (!o.dynamic_mask_png().empty()) {
     const std::string at = field + ".dynamic_mask_png";
-    auto mask = DecodeImageBytes(o.dynamic_mask_png(), cv::IMREAD_GRAYSCALE, limits, at,
+    auto mask = DecodeImageBytes(o.dynamic_mask_png(), ColorMode::kGray, limits, at,
                                  /*png_only=*/true);
     if (!mask.ok()) return mask.status();
     if (mask->cols != width || mask->rows != height) {

@@ -36,6 +36,10 @@ struct DecodedObservation {
 };
 
 // Validates and decodes `observation`; `field` is its path in the request ("observation").
+// Images are decoded strictly (core/decode/image_decoder.h): truncated, corrupt or inconsistent
+// JPEG/PNG data is INVALID_ARGUMENT ("observation.encoded_image.data: JPEG data is truncated
+// (libjpeg: Premature end of JPEG file)"); sizes are checked before any arithmetic and reported
+// as sent ("image_width/image_height: must be in [1, 100000], got 4000000000x1").
 // `color` asks for BGR pixels (server-side detection) instead of grayscale. Depth must be
 // decodable, within the limits, finite and non-negative (NaN = no depth), and registrable to the
 // frame (the same aspect ratio: it may be smaller); its intrinsics are checked against the frame.
@@ -52,13 +56,5 @@ void AgentBoxToProto(const DynamicBox& box, v1::Box* out);
 // for an ORB map); pixels suit either.
 Status CheckFeatureType(const v1::Observation& observation, FeatureType map_type,
                         const std::string& map_name, const std::string& field);
-
-// Width and height from a PNG or JPEG header without decoding; INVALID_ARGUMENT otherwise.
-struct ImageHeader {
-  enum class Format { kPng, kJpeg } format;
-  int width = 0;
-  int height = 0;
-};
-Result<ImageHeader> ReadImageHeader(const std::string& bytes);
 
 }  // namespace placedb::wire

@@ -1,6 +1,9 @@
 #include "proto/status.h"
 
+#include <algorithm>
 #include <cctype>
+#include <filesystem>
+#include <vector>
 
 #include "core/base/text.h"
 
@@ -139,6 +142,97 @@ std::string GrpcCodeName(int code) {
 
 std::string GrpcCodeLabel(int code) {
   return AsciiLower(GrpcCodeName(code));
+}
+
+namespace {
+
+// Where a path token may start: the message's start or after a separator.
+bool TokenBoundary(char c) {
+  return std::isspace(static_cast<unsigned char>(c)) || c == '(' || c == '[' || c == '\'' ||
+         c == '"' || c == '=' || c == ',' || c == '`';
+}
+
+// Where a path token ends: a separator, or ':' / '.' / ',' followed by a space or the end
+// ("/data/x/CURRENT: No such file", "cannot open /data/x.").
+size_t TokenEnd(const std::string& s, size_t start) {
+  size_t i = start;
+  while (i < s.size()) {
+    const char c = s[i];
+    if (std::isspace(static_cast<unsigned char>(c)) || c == '\'' || c == '"' || c == ')' ||
+        c == ']' || c == '`') {
+      break;
+    }
+    if ((c == ':' || c == '.' || c == ',' || c == ';') &&
+        (i + 1 == s.size() || std::isspace(static_cast<unsigned char>(s[i + 1])))) {
+      break;
+    }
+    ++i;
+  }
+  return i;
+}
+
+// The absolute spellings of the data directory, longest first, without a trailing '/'.
+std::vector<std::string> DataDirSpellings(const std::string& data_dir) {
+  std::vector<std::string> out;
+  if (data_dir.empty()) return out;
+  namespace fs = std::filesystem;
+  std::error_code error;
+  auto add = [&](std::string path) {
+    while (path.size() > 1 && path.back() == '/') path.pop_back();
+    if (path.size() > 1 && path[0] == '/' && std::find(out.begin(), out.end(), path) == out.end()) {
+      out.push_back(std::move(path));
+    }
+  };
+  add(data_dir);
+  const fs::path absolute = fs::absolute(data_dir, error);
+  if (!error) add(absolute.lexically_normal().string());
+  const fs::path canonical = fs::weakly_canonical(data_dir, error);
+  if (!error) add(canonical.string());
+  std::sort(out.begin(), out.end(),
+            [](const std::string& a, const std::string& b) { return a.size() > b.size(); });
+  return out;
+}
+
+std::string ClientPath(const std::string& path, const std::vector<std::string>& data_dirs) {
+  for (const std::string& dir : data_dirs) {
+    if (path == dir || path == dir + "/") return "<data_dir>";
+    if (path.size() > dir.size() && path.compare(0, dir.size(), dir) == 0 &&
+        path[dir.size()] == '/') {
+      return path.substr(dir.size() + 1);
+    }
+  }
+  std::string trimmed = path;
+  while (trimmed.size() > 1 && trimmed.back() == '/') trimmed.pop_back();
+  return trimmed.substr(trimmed.rfind('/') + 1);
+}
+
+}  // namespace
+
+std::string HidePaths(const std::string& message, const std::string& data_dir) {
+  if (message.find('/') == std::string::npos) return message;  // the common case: nothing to do
+  const std::vector<std::string> data_dirs = DataDirSpellings(data_dir);
+  std::string out;
+  out.reserve(message.size());
+  size_t i = 0;
+  while (i < message.size()) {
+    const bool starts_token = i == 0 || TokenBoundary(message[i - 1]);
+    const bool absolute = message[i] == '/' && i + 1 < message.size() &&
+                          !std::isspace(static_cast<unsigned char>(message[i + 1]));
+    if (starts_token && absolute) {
+      const size_t end = TokenEnd(message, i);
+      out += ClientPath(message.substr(i, end - i), data_dirs);
+      i = end;
+      continue;
+    }
+    out += message[i++];
+  }
+  return out;
+}
+
+grpc::Status HidePaths(const grpc::Status& status, const std::string& data_dir) {
+  if (status.ok()) return status;
+  return grpc::Status(status.error_code(), HidePaths(status.error_message(), data_dir),
+                      status.error_details());
 }
 
 }  // namespace placedb::wire

@@ -37,4 +37,12 @@ Status FromProto(const v1::ErrorStatus& error, const std::string& context);
 std::string GrpcCodeName(int code);
 std::string GrpcCodeLabel(int code);  // "invalid_argument": metric labels
 
+// A message fit for a client: no absolute filesystem path of the server in it. A path inside
+// `data_dir` (the server's data directory, in any absolute spelling: as configured, made
+// absolute, or canonical) becomes relative to it ("maps/m1/000012.log"; the directory itself
+// "<data_dir>"); any other absolute path (a token starting with "/" and a path component)
+// becomes its file name ("/opt/models/yolox.onnx" -> "yolox.onnx"). Server logs keep the paths.
+std::string HidePaths(const std::string& message, const std::string& data_dir);
+grpc::Status HidePaths(const grpc::Status& status, const std::string& data_dir);
+
 }  // namespace placedb::wire

@@ -11,6 +11,7 @@
 
 #include "server/map_registry.h"
 #include "server/metrics.h"
+#include "server/parsing_service.h"
 #include "server/service.h"
 #include "server/worker_pool.h"
 
@@ -136,11 +137,17 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
       std::make_unique<PlaceDbService>(server->config_, server->maps_.get(), server->pool_.get(),
                                        metrics, server->detector_.get(), detector_status);
 
+  // Requests are parsed by ParsingService, so malformed ones get INVALID_ARGUMENT with a reason.
+  server->parsing_ = std::make_unique<ParsingService>(server->service_.get());
+  if (const auto missing = server->parsing_->Unregistered(); !missing.empty()) {
+    return Status::Internal("server/parsing_service.cc does not register " + missing.front());
+  }
+
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   builder.AddListeningPort(c.listen, grpc::InsecureServerCredentials(), &server->port_);
-  builder.RegisterService(server->service_.get());
+  builder.RegisterService(server->parsing_.get());
   builder.SetMaxReceiveMessageSize(int(c.limits.max_message_bytes));
   // Transport memory and handler threads are bounded: a flood of calls gets RESOURCE_EXHAUSTED
   // instead of exhausting the machine. Each open stream holds a handler thread.

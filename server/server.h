@@ -25,6 +25,7 @@ namespace placedb::server {
 
 class MapRegistry;
 class Metrics;
+class ParsingService;
 class PlaceDbService;
 class WorkerPool;
 
@@ -63,6 +64,7 @@ class Server {
   std::shared_ptr<const Detector> detector_;
   std::unique_ptr<WorkerPool> pool_;
   std::unique_ptr<PlaceDbService> service_;
+  std::unique_ptr<ParsingService> parsing_;  // what gRPC calls: parses, then calls service_
   std::unique_ptr<grpc::Server> server_;
   int port_ = 0;
   int metrics_port_ = 0;

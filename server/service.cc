@@ -21,6 +21,7 @@ namespace placedb::server {
 // The wire library (proto/): status codes, configurations, observations in, results out.
 using wire::GrpcCodeLabel;
 using wire::GrpcCodeName;
+using wire::HidePaths;
 using wire::ToGrpc;
 
 using wire::FeatureTypeToProto;
@@ -158,7 +159,7 @@ grpc::Status PlaceDbService::Finish(const char* method, grpc::ServerContext* con
     spdlog::warn("rpc error method={} code={} peer={} message=\"{}\"", method,
                  GrpcCodeName(status.error_code()), Peer(context), status.error_message());
   }
-  return status;
+  return HidePaths(status, config_.data_dir);  // the log keeps the server's paths, not the client
 }
 
 grpc::Status PlaceDbService::Unavailable() const {
@@ -249,7 +250,7 @@ grpc::Status PlaceDbService::ListMaps(grpc::ServerContext* context, const v1::Li
     v1::MapSummary* summary = response->add_maps();
     summary->set_name(entry->name);
     summary->set_available(entry->map != nullptr);
-    summary->set_unavailable_reason(entry->unavailable_reason);
+    summary->set_unavailable_reason(HidePaths(entry->unavailable_reason, config_.data_dir));
     summary->set_vocabulary(entry->vocabulary_name);
     if (entry->map) {
       summary->set_places(entry->map->database().Stats().places);
@@ -317,7 +318,7 @@ grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
   for (const VocabularyEntry& entry : maps_->vocabularies()) {
     v1::VocabularyInfo* info = response->add_vocabularies();
     info->set_name(entry.name);
-    info->set_path(entry.path);
+    info->set_path(HidePaths(entry.path, config_.data_dir));  // the file name: no server paths
     info->set_checksum(entry.vocabulary.checksum_hex());
     info->set_words(entry.vocabulary.word_count());
     info->set_nodes(entry.vocabulary.node_count());
@@ -326,7 +327,8 @@ grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
     info->set_memory_bytes(entry.vocabulary.memory_bytes());
     info->set_feature_type(FeatureTypeToProto(entry.vocabulary.feature_type()));
   }
-  response->set_detector(detector_ ? detector_->Describe() : detector_status_);
+  response->set_detector(
+      HidePaths(detector_ ? detector_->Describe() : detector_status_, config_.data_dir));
   const Limits& l = config_.limits;
   v1::Limits* limits = response->mutable_limits();
   limits->set_max_message_bytes(l.max_message_bytes);
@@ -537,7 +539,8 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
   }
   if (!slot->status.ok()) {
     response.mutable_error()->set_code(int(slot->status.error_code()));
-    response.mutable_error()->set_message(slot->status.error_message());
+    response.mutable_error()->set_message(
+        HidePaths(slot->status.error_message(), config_.data_dir));
     metrics_->FrameRejected(stream->map->name, GrpcCodeLabel(slot->status.error_code()));
     if (slot->status.error_code() != grpc::StatusCode::CANCELLED &&
         slot->status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
@@ -586,7 +589,8 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       slot->status = second_half;
       response.clear_matches();
       response.mutable_error()->set_code(int(slot->status.error_code()));
-      response.mutable_error()->set_message(slot->status.error_message());
+      response.mutable_error()->set_message(
+          HidePaths(slot->status.error_message(), config_.data_dir));
       metrics_->FrameRejected(map.name, GrpcCodeLabel(slot->status.error_code()));
       spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map.name,
                    slot->index, GrpcCodeName(slot->status.error_code()),
@@ -635,9 +639,41 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
   }
 }
 
+namespace {
+
+// gRPC's own reader-writer, which parses before we see a message (unparseable = stream end).
+class GrpcIngestStream final : public IngestStreamIo {
+ public:
+  explicit GrpcIngestStream(grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* io)
+      : io_(io) {}
+  void SendInitialMetadata() override { io_->SendInitialMetadata(); }
+  bool NextMessageSize(uint32_t* size) override { return io_->NextMessageSize(size); }
+  bool Read(v1::IngestRequest* message) override { return io_->Read(message); }
+  bool Write(const v1::IngestResponse& message, grpc::WriteOptions options) override {
+    return io_->Write(message, options);
+  }
+  grpc::Status ReadError() const override { return grpc::Status::OK; }
+
+ private:
+  grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* const io_;
+};
+
+}  // namespace
+
 grpc::Status PlaceDbService::Ingest(
     grpc::ServerContext* context,
-    grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* io) {
+    grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* stream) {
+  GrpcIngestStream io(stream);
+  return IngestStream(context, &io);
+}
+
+grpc::Status PlaceDbService::RefuseMalformed(const char* method, grpc::ServerContext* context,
+                                             grpc::Status status) {
+  CallScope scope(this);
+  return Finish(method, context, std::move(status));
+}
+
+grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestStreamIo* io) {
   CallScope scope(this);
   const Clock::time_point opened = Clock::now();
   const Limits& limits = config_.limits;
@@ -654,6 +690,7 @@ grpc::Status PlaceDbService::Ingest(
     MutexLock lock(streams_mutex_);
     awaiting_header_.erase(context);
   }
+  if (!read_header && !io->ReadError().ok()) return Finish("Ingest", context, io->ReadError());
   if (!read_header) {
     return Finish("Ingest", context,
                   Expired(context) ? Cancelled(context, "before the header")
@@ -713,7 +750,9 @@ grpc::Status PlaceDbService::Ingest(
     }
     auto request = std::make_unique<v1::IngestRequest>();
     if (!io->Read(request.get())) {
-      if (Expired(context)) {
+      if (!io->ReadError().ok()) {
+        status = io->ReadError();  // the frames before it are still answered
+      } else if (Expired(context)) {
         status = pipeline.draining() ? Unavailable() : Cancelled(context, "(stream cancelled)");
       }
       break;

@@ -29,10 +29,13 @@
 #include "server/config.h"
 #include "server/map_registry.h"
 #include "server/metrics.h"
+#include "server/parsing_service.h"
 #include "server/worker_pool.h"
 
 namespace placedb::server {
 
+// The handlers, checked against the proto by the generated interface; gRPC reaches them through
+// ParsingService (server/parsing_service.h), which parses the requests itself.
 class PlaceDbService final : public v1::PlaceDb::Service {
  public:
   // `detector` null = server-side detection off; `detector_status` then says why ("off", or
@@ -52,6 +55,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   grpc::Status Ingest(
       grpc::ServerContext* context,
       grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* stream) override;
+  // Ingest over any reader-writer; a message that fails to parse ends the stream with its error.
+  grpc::Status IngestStream(grpc::ServerContext* context, IngestStreamIo* io);
   grpc::Status Query(grpc::ServerContext* context, const v1::QueryRequest* request,
                      v1::QueryResponse* response) override;
   grpc::Status GetPlace(grpc::ServerContext* context, const v1::GetPlaceRequest* request,
@@ -69,6 +74,9 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   bool WaitIdle(std::chrono::steady_clock::time_point deadline);
   // Sets the per-map gauges (places, bytes on disk); run before each metrics scrape.
   void RefreshMapGauges();
+  // A request that is not a valid message (ParsingService): counted and logged as every answer.
+  grpc::Status RefuseMalformed(const char* method, grpc::ServerContext* context,
+                               grpc::Status status);
 
   struct Stream;  // one open Ingest call (service.cc)
   struct Slot;    // one observation of a stream (service.cc)

@@ -284,6 +284,35 @@ TEST(StatusMapping, EveryGrpcCodeMapsAndKeepsItsName) {
   EXPECT_EQ(FromProto(error, "x").message(), "x: CODE_99: " + error.message());
 }
 
+TEST(StatusMapping, ClientMessagesHideServerPaths) {
+  const std::string dir = "/srv/placedb/data";
+  EXPECT_EQ(HidePaths("IO error: While appending to file: /srv/placedb/data/maps/m1/000012.log: "
+                      "No space left on device",
+                      dir),
+            "IO error: While appending to file: maps/m1/000012.log: No space left on device");
+  EXPECT_EQ(HidePaths("cannot open /srv/placedb/data.", dir), "cannot open <data_dir>.");
+  EXPECT_EQ(HidePaths("data directory /srv/placedb/data/: gone", dir),
+            "data directory <data_dir>: gone");
+  // Any other absolute path: its file name.
+  EXPECT_EQ(HidePaths("model_path '/opt/models/yolox_nano.onnx' does not exist", dir),
+            "model_path 'yolox_nano.onnx' does not exist");
+  EXPECT_EQ(HidePaths("(/usr/share/placedb/default.pdbv)", dir), "(default.pdbv)");
+  EXPECT_EQ(HidePaths("/usr/share/placedb/vocabularies/", dir), "vocabularies");
+  // A data directory spelled with a trailing slash or dots still matches.
+  EXPECT_EQ(HidePaths("at /srv/placedb/data/maps/m1/LOCK", "/srv/placedb/./data/"),
+            "at maps/m1/LOCK");
+  // Not paths: slashes inside words, fractions, a lone slash.
+  for (const std::string& text :
+       {std::string("observation.features.image_width/image_height: must be in [1, 100000]"),
+        std::string("1 / 2"), std::string("a/b"), std::string("/"), std::string("")}) {
+    EXPECT_EQ(HidePaths(text, dir), text);
+  }
+  const grpc::Status hidden = HidePaths(
+      grpc::Status(grpc::StatusCode::UNAVAILABLE, "write /srv/placedb/data/maps/m/x failed"), dir);
+  EXPECT_EQ(hidden.error_code(), grpc::StatusCode::UNAVAILABLE);
+  EXPECT_EQ(hidden.error_message(), "write maps/m/x failed");
+}
+
 TEST(StatusMapping, CodeNamesAndLabels) {
   const char* const names[] = {"OK",
                                "CANCELLED",
@@ -637,6 +666,99 @@ TEST(FrameConversion, KeypointsOverTheLimitAreNamed) {
   EXPECT_EQ(decoded.status().message(),
             "observation.features.keypoints: 4 keypoints exceed "
             "limits.max_descriptors_per_frame = 3");
+}
+
+// Sizes arrive as uint32: each is checked and reported as sent, before any product or narrowing
+// (4000000000 was once reported as -294967296).
+TEST(FrameConversion, SizesAreReportedAsSentAndCheckedBeforeArithmetic) {
+  const std::vector<uint32_t> bad_sides = {0u, 100001u, 1u << 31, 4'000'000'000u, 0xFFFFFFFFu};
+  for (uint32_t side : bad_sides) {
+    const std::string sent = std::to_string(side);
+    v1::Observation features;
+    features.mutable_features()->set_image_width(side);
+    features.mutable_features()->set_image_height(1);
+    auto decoded = DecodeObservation(features, kFrameLimits, /*color=*/false, "observation");
+    ASSERT_FALSE(decoded.ok()) << side;
+    EXPECT_EQ(decoded.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_EQ(decoded.status().message(),
+              "observation.features.image_width/image_height: must be in [1, 100000], got " + sent +
+                  "x1");
+
+    v1::Observation sift;
+    sift.mutable_sift_features()->set_image_width(7);
+    sift.mutable_sift_features()->set_image_height(side);
+    decoded = DecodeObservation(sift, kFrameLimits, /*color=*/false, "observation");
+    ASSERT_FALSE(decoded.ok()) << side;
+    EXPECT_EQ(decoded.status().message(),
+              "observation.sift_features.image_width/image_height: must be in [1, 100000], got 7x" +
+                  sent);
+
+    v1::Observation raw;
+    raw.mutable_raw_image()->set_width(side);
+    raw.mutable_raw_image()->set_height(side);
+    raw.mutable_raw_image()->set_format(v1::PIXEL_FORMAT_GRAY8);
+    decoded = DecodeObservation(raw, kFrameLimits, /*color=*/false, "observation");
+    ASSERT_FALSE(decoded.ok()) << side;
+    EXPECT_EQ(
+        decoded.status().message(),
+        "observation.raw_image.width/height: must be in [1, 100000], got " + sent + "x" + sent);
+
+    v1::Observation depth;
+    depth.mutable_raw_image()->set_width(64);
+    depth.mutable_raw_image()->set_height(48);
+    depth.mutable_raw_image()->set_format(v1::PIXEL_FORMAT_GRAY8);
+    depth.mutable_raw_image()->set_data(std::string(64 * 48, '\x40'));
+    depth.mutable_depth()->mutable_raw_float32()->set_width(side);
+    depth.mutable_depth()->mutable_raw_float32()->set_height(3);
+    decoded = DecodeObservation(depth, kFrameLimits, /*color=*/false, "observation");
+    ASSERT_FALSE(decoded.ok()) << side;
+    EXPECT_EQ(
+        decoded.status().message(),
+        "observation.depth.raw_float32.width/height: must be in [1, 100000], got " + sent + "x3");
+  }
+}
+
+TEST(FrameConversion, PixelCountsAndByteCountsUse64Bits) {
+  // 100000 x 100000 passes the side check; its 10^10 pixels do not fit in 32 bits.
+  v1::Observation raw;
+  raw.mutable_raw_image()->set_width(100000);
+  raw.mutable_raw_image()->set_height(100000);
+  raw.mutable_raw_image()->set_format(v1::PIXEL_FORMAT_BGR8);
+  raw.mutable_raw_image()->set_data("abc");
+  auto decoded = DecodeObservation(raw, kFrameLimits, /*color=*/false, "observation");
+  ASSERT_FALSE(decoded.ok());
+  EXPECT_EQ(decoded.status().code(), StatusCode::kResourceExhausted);
+  EXPECT_EQ(decoded.status().message(),
+            "observation.raw_image: 100000x100000 = 10000000000 pixels exceed "
+            "limits.max_image_pixels = 16777216");
+  // With no pixel limit, the byte count (3 * 10^10) is exact, and the data must match it.
+  FrameLimits unlimited = kFrameLimits;
+  unlimited.max_image_pixels = UINT64_MAX;
+  decoded = DecodeObservation(raw, unlimited, /*color=*/false, "observation");
+  ASSERT_FALSE(decoded.ok());
+  EXPECT_EQ(decoded.status().code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(decoded.status().message(),
+            "observation.raw_image.data: 3 bytes, expected 100000x100000 x 3 = 30000000000");
+  v1::Observation depth;
+  depth.mutable_features()->set_image_width(100000);
+  depth.mutable_features()->set_image_height(100000);
+  depth.mutable_depth()->mutable_raw_float32()->set_width(100000);
+  depth.mutable_depth()->mutable_raw_float32()->set_height(100000);
+  decoded = DecodeObservation(depth, unlimited, /*color=*/false, "observation");
+  ASSERT_FALSE(decoded.ok());
+  EXPECT_EQ(decoded.status().message(),
+            "observation.depth.raw_float32.data: 0 bytes, expected 100000x100000 x 4 = "
+            "40000000000");
+  // One byte short of an exact raw image is refused, the exact count is accepted.
+  v1::Observation exact;
+  exact.mutable_raw_image()->set_width(64);
+  exact.mutable_raw_image()->set_height(48);
+  exact.mutable_raw_image()->set_format(v1::PIXEL_FORMAT_RGB8);
+  exact.mutable_raw_image()->set_data(std::string(64 * 48 * 3 - 1, '\x20'));
+  EXPECT_EQ(DecodeObservation(exact, kFrameLimits, false, "observation").status().message(),
+            "observation.raw_image.data: 9215 bytes, expected 64x48 x 3 = 9216");
+  exact.mutable_raw_image()->mutable_data()->push_back('\x20');
+  EXPECT_TRUE(DecodeObservation(exact, kFrameLimits, false, "observation").ok());
 }
 
 TEST(FrameConversion, FeaturesOfTheOtherFamilyAreRefusedWithTheField) {

@@ -1,0 +1,73 @@
+// placedb.v1.PlaceDb as gRPC sees it: every method registered over raw bytes (grpc::ByteBuffer)
+// and parsed here with protobuf, so that a request that is not a valid message is answered with
+// INVALID_ARGUMENT and a message that names its type and the problem:
+//
+//   request is not a valid placedb.v1.CreateMapRequest: field name (1) is not valid UTF-8
+//   message 3 of the Ingest stream (observation 2) is not a valid placedb.v1.IngestRequest:
+//     the data is truncated (field observation (2) claims 20480 bytes, 1200 remain)
+//
+// gRPC's generated synchronous handlers answer such a request with INTERNAL and an empty message
+// before any of our code runs, and an Ingest message that fails to parse looks to the handler
+// like the client's half-close (the stream would end OK). Parsed requests go to PlaceDbService's
+// handlers unchanged; responses are serialised as gRPC's own handlers do. Reflection and the
+// health service are unaffected (the service name comes from the method paths).
+#pragma once
+
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/impl/service_type.h>
+
+#include <deque>
+#include <string>
+#include <vector>
+
+#include "proto/placedb.grpc.pb.h"
+
+namespace google::protobuf {
+class Message;
+}
+
+namespace placedb::server {
+
+namespace v1 = ::placedb::v1;
+class PlaceDbService;
+
+// An Ingest stream as its handler sees it: gRPC's reader-writer plus why Read() returned false.
+class IngestStreamIo
+    : public grpc::ServerReaderWriterInterface<v1::IngestResponse, v1::IngestRequest> {
+ public:
+  // OK when the stream simply ended (the client half-closed, or the call is over);
+  // INVALID_ARGUMENT naming the message when the last one read was not a valid IngestRequest.
+  virtual grpc::Status ReadError() const = 0;
+};
+
+// Parses `bytes` into `message`. Returns "" on success, else why they are not a valid message of
+// its type ("field name (1) is not valid UTF-8", "the data is truncated (...)"), with the path of
+// the offending field; `message` is then unspecified.
+std::string ParseMessage(const grpc::ByteBuffer& bytes, google::protobuf::Message* message);
+// The same diagnosis for flat bytes that protobuf refused to parse (exposed for tests/fuzzing).
+std::string DiagnoseMessage(const std::string& bytes, const google::protobuf::Message& prototype);
+
+class ParsingService final : public grpc::Service {
+ public:
+  // `service` answers every parsed request; it must outlive this.
+  explicit ParsingService(PlaceDbService* service);
+
+  // Methods of placedb.v1.PlaceDb (from the proto's descriptor) with no registration here: an RPC
+  // added to placedb.proto needs one line in parsing_service.cc. Server::Start refuses to start
+  // while this is not empty.
+  std::vector<std::string> Unregistered() const;
+
+ private:
+  template <typename Request, typename Response>
+  void AddUnary(const char* method,
+                grpc::Status (PlaceDbService::*handler)(grpc::ServerContext*, const Request*,
+                                                        Response*));
+  void AddIngest(const char* method);
+  const char* Path(const char* method);  // "/placedb.v1.PlaceDb/<method>", stable storage
+
+  PlaceDbService* const service_;
+  std::deque<std::string> paths_;  // RpcServiceMethod keeps a pointer to its name
+  std::vector<std::string> registered_;
+};
+
+}  // namespace placedb::server
