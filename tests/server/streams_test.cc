@@ -258,7 +258,7 @@ class GateDetector final : public Detector {
 // processed for longer than the idle timeout is not. No timing is assumed: the idle stream opens
 // after the busy stream's frame was read, so by the time the watchdog closes it the busy stream
 // has been quiet longer, and the watchdog has looked at it in the same pass or an earlier one.
-TEST_F(ServerTest, IdleStreamIsClosedButFrameInFlightKeepsItsStream) {
+TEST_F(ServerTest, IdleStreamIsClosedButConcurrentFrameInFlightKeepsItsStream) {
   auto gate = std::make_shared<GateDetector>();
   ServerDeps deps;
   deps.detector = gate;
