@@ -111,6 +111,10 @@ RUN for b in /usr/local/bin/placedb*; do \
 # Configuration: the file (PLACEDB_CONFIG; mount your own over it), then PLACEDB_* environment,
 # then flags (arguments after the image name). docs/service.md lists every key.
 ENV PLACEDB_CONFIG=/etc/placedb/placedb.yaml
+# Metrics on every interface, for a Prometheus in another container (the server's default is
+# loopback). An environment variable rather than only the config file's key, so that a mounted
+# config without metrics_listen still exposes them.
+ENV PLACEDB_METRICS_LISTEN=0.0.0.0:9464
 USER placedb:placedb
 WORKDIR /var/lib/placedb
 VOLUME ["/var/lib/placedb"]

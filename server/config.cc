@@ -48,6 +48,12 @@ Status ValidateServerConfig(const ServerConfig& c) {
     if (c.metrics_path.empty() || c.metrics_path[0] != '/') {
       return Bad("metrics_path", "must start with '/'");
     }
+    if (c.metrics_threads < 2 || c.metrics_threads > 64) {
+      return Bad("metrics_threads", "must be in [2, 64]");
+    }
+    if (c.metrics_request_timeout_ms < 100 || c.metrics_request_timeout_ms > 600000) {
+      return Bad("metrics_request_timeout_ms", "must be in [100, 600000]");
+    }
   }
   if (c.data_dir.empty()) return Bad("data_dir", "must not be empty");
   if (c.threads < 0 || c.threads > 1024) return Bad("threads", "must be in [0, 1024]");
@@ -78,6 +84,12 @@ Status ValidateServerConfig(const ServerConfig& c) {
   if (l.max_concurrent_unary < 1) return Bad("limits.max_concurrent_unary", "must be >= 1");
   if (l.memory_quota_bytes < (uint64_t(16) << 20)) {
     return Bad("limits.memory_quota_bytes", "must be >= 16 MiB");
+  }
+  if (l.stream_header_timeout_ms < 100 || l.stream_header_timeout_ms > 3600000) {
+    return Bad("limits.stream_header_timeout_ms", "must be in [100, 3600000]");
+  }
+  if (l.stream_idle_timeout_ms < 100 || l.stream_idle_timeout_ms > 86400000) {
+    return Bad("limits.stream_idle_timeout_ms", "must be in [100, 86400000]");
   }
   if (!(c.shutdown_deadline_s >= 0 && c.shutdown_deadline_s <= 3600)) {
     return Bad("shutdown_deadline_s", "must be in [0, 3600]");
@@ -141,11 +153,15 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
   YamlReader r;
   PLACEDB_RETURN_IF_ERROR(r.Check(
       root, "",
-      {"listen", "metrics_listen", "metrics_path", "data_dir", "threads", "opencv_threads",
-       "vocabularies", "storage", "limits", "shutdown_deadline_s", "detector", "log_level"}));
+      {"listen", "metrics_listen", "metrics_path", "metrics_threads", "metrics_request_timeout_ms",
+       "data_dir", "threads", "opencv_threads", "vocabularies", "storage", "limits",
+       "shutdown_deadline_s", "detector", "log_level"}));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "listen", &c->listen));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_listen", &c->metrics_listen));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_path", &c->metrics_path));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_threads", &c->metrics_threads));
+  PLACEDB_RETURN_IF_ERROR(
+      r.Read(root, "", "metrics_request_timeout_ms", &c->metrics_request_timeout_ms));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "data_dir", &c->data_dir));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "threads", &c->threads));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "opencv_threads", &c->opencv_threads));
@@ -198,7 +214,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
                 {"max_message_bytes", "max_image_pixels", "max_descriptors_per_frame",
                  "max_boxes_per_frame", "max_concurrent_streams", "max_queued_frames",
                  "max_inflight_per_stream", "max_concurrent_unary", "unary_queue_wait_ms",
-                 "memory_quota_bytes"}));
+                 "memory_quota_bytes", "stream_header_timeout_ms", "stream_idle_timeout_ms"}));
     Limits& x = c->limits;
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_message_bytes", &x.max_message_bytes));
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_image_pixels", &x.max_image_pixels));
@@ -213,6 +229,10 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_concurrent_unary", &x.max_concurrent_unary));
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "unary_queue_wait_ms", &x.unary_queue_wait_ms));
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "memory_quota_bytes", &x.memory_quota_bytes));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(l, "limits", "stream_header_timeout_ms", &x.stream_header_timeout_ms));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(l, "limits", "stream_idle_timeout_ms", &x.stream_idle_timeout_ms));
   }
   if (const YAML::Node d = root["detector"]; d) {
     PLACEDB_RETURN_IF_ERROR(
@@ -302,7 +322,7 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   auto* o_listen = app.add_option("--listen", listen, "gRPC address host:port (0.0.0.0:50051)");
   auto* o_data = app.add_option("--data-dir", data_dir, "data directory (./var/data)");
   auto* o_metrics = app.add_option("--metrics-listen", metrics_listen,
-                                   "Prometheus endpoint host:port (0.0.0.0:9464), 'off' = none");
+                                   "Prometheus endpoint host:port (127.0.0.1:9464), 'off' = none");
   auto* o_threads = app.add_option("--threads", threads, "worker threads (0 = every core)");
   auto* o_vocab = app.add_option("--vocabulary", vocabularies,
                                  "NAME=PATH, repeatable; adds or replaces a named vocabulary");
@@ -370,6 +390,8 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "listen" << YAML::Value << c.listen;
   e << YAML::Key << "metrics_listen" << YAML::Value << c.metrics_listen;
   e << YAML::Key << "metrics_path" << YAML::Value << c.metrics_path;
+  e << YAML::Key << "metrics_threads" << YAML::Value << c.metrics_threads;
+  e << YAML::Key << "metrics_request_timeout_ms" << YAML::Value << c.metrics_request_timeout_ms;
   e << YAML::Key << "data_dir" << YAML::Value << c.data_dir;
   e << YAML::Key << "threads" << YAML::Value << c.threads;
   e << YAML::Key << "opencv_threads" << YAML::Value << c.opencv_threads;
@@ -394,6 +416,8 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "max_concurrent_unary" << YAML::Value << l.max_concurrent_unary;
   e << YAML::Key << "unary_queue_wait_ms" << YAML::Value << l.unary_queue_wait_ms;
   e << YAML::Key << "memory_quota_bytes" << YAML::Value << l.memory_quota_bytes;
+  e << YAML::Key << "stream_header_timeout_ms" << YAML::Value << l.stream_header_timeout_ms;
+  e << YAML::Key << "stream_idle_timeout_ms" << YAML::Value << l.stream_idle_timeout_ms;
   e << YAML::EndMap;
   e << YAML::Key << "shutdown_deadline_s" << YAML::Value << c.shutdown_deadline_s;
   const DetectorSettings& d = c.detector;

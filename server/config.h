@@ -29,6 +29,12 @@ struct Limits {
   uint32_t max_concurrent_unary = 64;               // unary calls being served at once
   uint32_t unary_queue_wait_ms = 2000;              // a unary call waits this long for room
   uint64_t memory_quota_bytes = uint64_t(1) << 30;  // gRPC's ResourceQuota (transport buffers)
+  // An Ingest stream holds a handler thread and a max_concurrent_streams slot from its start:
+  // the server closes (cancels) one whose IngestHeader has not arrived within
+  // stream_header_timeout_ms, and one with no frame in flight that receives nothing for
+  // stream_idle_timeout_ms, or whose answer the client has not taken for that long.
+  uint32_t stream_header_timeout_ms = 10000;
+  uint32_t stream_idle_timeout_ms = 60000;
 
   // The ones an observation is checked against when it is decoded.
   wire::FrameLimits frame() const {
@@ -61,8 +67,13 @@ std::map<std::string, std::string> EmbeddedVocabularies();
 
 struct ServerConfig {
   std::string listen = "0.0.0.0:50051";
-  std::string metrics_listen = "0.0.0.0:9464";  // empty = no metrics endpoint
+  // Loopback by default: deployments that are scraped from elsewhere set 0.0.0.0:9464.
+  std::string metrics_listen = "127.0.0.1:9464";  // empty = no metrics endpoint
   std::string metrics_path = "/metrics";
+  // The endpoint's worker threads (each open HTTP connection holds one) and how long a request
+  // may take to arrive and be answered before its connection is closed.
+  int metrics_threads = 4;
+  uint32_t metrics_request_timeout_ms = 5000;
   std::string data_dir = "./var/data";
   int threads = 0;         // worker threads; 0 = hardware concurrency
   int opencv_threads = 1;  // cv::setNumThreads; frames are parallel already. -1 = leave alone

@@ -4,6 +4,8 @@
 #include <prometheus/exposer.h>
 
 #include <exception>
+#include <string>
+#include <vector>
 
 namespace placedb::server {
 
@@ -92,26 +94,48 @@ Metrics::Metrics()
                    .Help("Open Ingest streams")
                    .Register(*registry_)
                    .Add({})),
+      streams_reclaimed_(BuildCounter()
+                             .Name("placedb_ingest_streams_closed_total")
+                             .Help("Ingest streams the server closed, by reason (header_timeout: "
+                                   "no IngestHeader in time, idle_timeout: nothing received for "
+                                   "too long with no frame in flight, write_timeout: the client "
+                                   "did not take an answer for too long)")
+                             .Register(*registry_)),
       queue_depth_(BuildGauge()
                        .Name("placedb_queue_depth")
                        .Help("Frames waiting for a worker")
                        .Register(*registry_)
                        .Add({})),
-      detector_seconds_(detector_.Add({}, SecondsBuckets())) {}
+      detector_seconds_(detector_.Add({}, SecondsBuckets())) {
+  // Present from the start (at 0), so that a rate over them is defined before the first close.
+  for (const char* reason : {"header_timeout", "idle_timeout", "write_timeout"}) {
+    streams_reclaimed_.Add({{"reason", reason}});
+  }
+}
 
 Metrics::~Metrics() {
   StopServing();
 }
 
-Status Metrics::Serve(const std::string& listen, const std::string& path,
-                      std::function<void()> before_scrape) {
+Status Metrics::Serve(const Endpoint& endpoint, std::function<void()> before_scrape) {
   collectable_ = std::make_shared<RefreshingCollectable>(registry_, std::move(before_scrape));
+  // civetweb's options (civetweb 1.15): a connection holds a worker while it is open, and
+  // request_timeout_ms bounds every read and write of a request, so a client that never finishes
+  // its request header loses its connection instead of holding a worker for good. No keep-alive:
+  // a scraper's idle connection would hold a worker too.
+  std::vector<std::string> options = {
+      "listening_ports",    endpoint.listen,
+      "num_threads",        std::to_string(endpoint.threads),
+      "request_timeout_ms", std::to_string(endpoint.request_timeout_ms),
+      "enable_keep_alive",  "no",
+  };
   try {
-    exposer_ = std::make_unique<prometheus::Exposer>(listen, /*num_threads=*/1);
+    exposer_ = std::make_unique<prometheus::Exposer>(std::move(options));
   } catch (const std::exception& e) {
-    return Status::IoError("metrics endpoint: cannot listen on " + listen + ": " + e.what());
+    return Status::IoError("metrics endpoint: cannot listen on " + endpoint.listen + ": " +
+                           e.what());
   }
-  exposer_->RegisterCollectable(collectable_, path);
+  exposer_->RegisterCollectable(collectable_, endpoint.path);
   const std::vector<int> ports = exposer_->GetListeningPorts();
   port_ = ports.empty() ? 0 : ports.front();
   return Status::Ok();
@@ -192,6 +216,9 @@ void Metrics::StreamOpened() {
 }
 void Metrics::StreamClosed() {
   streams_.Decrement();
+}
+void Metrics::StreamReclaimed(const std::string& reason) {
+  streams_reclaimed_.Add({{"reason", reason}}).Increment();
 }
 void Metrics::SetQueueDepth(size_t depth) {
   queue_depth_.Set(double(depth));

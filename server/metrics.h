@@ -27,10 +27,18 @@ class Metrics {
   Metrics();
   ~Metrics();
 
-  // Serves `path` on `listen` (host:port; port 0 picks one). `before_scrape` runs before each
-  // collection (to refresh the per-map gauges). IO_ERROR when the address cannot be bound.
-  Status Serve(const std::string& listen, const std::string& path,
-               std::function<void()> before_scrape);
+  // How the endpoint serves HTTP: `threads` workers (each open connection holds one, so a slow
+  // client takes one worker, never the endpoint), and a connection whose request has not
+  // arrived and been answered within `request_timeout_ms` is closed.
+  struct Endpoint {
+    std::string listen;  // host:port; port 0 picks one
+    std::string path;
+    int threads = 4;
+    uint32_t request_timeout_ms = 5000;
+  };
+  // Serves the metrics. `before_scrape` runs before each collection (to refresh the per-map
+  // gauges). IO_ERROR when the address cannot be bound.
+  Status Serve(const Endpoint& endpoint, std::function<void()> before_scrape);
   int port() const { return port_; }  // 0 when not serving
   void StopServing();
 
@@ -57,6 +65,8 @@ class Metrics {
   void ForgetMap(const std::string& map);  // a deleted map's series go away
   void StreamOpened();
   void StreamClosed();
+  // The server closed an Ingest stream: "header_timeout", "idle_timeout" or "write_timeout".
+  void StreamReclaimed(const std::string& reason);
   void SetQueueDepth(size_t depth);
 
  private:
@@ -73,6 +83,7 @@ class Metrics {
   prometheus::Family<prometheus::Gauge>& places_;
   prometheus::Family<prometheus::Gauge>& disk_bytes_;
   prometheus::Gauge& streams_;
+  prometheus::Family<prometheus::Counter>& streams_reclaimed_;
   prometheus::Gauge& queue_depth_;
   prometheus::Histogram& detector_seconds_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback

@@ -175,8 +175,12 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
 
   if (!c.metrics_listen.empty()) {
     PlaceDbService* service = server->service_.get();
-    Status serving = metrics->Serve(c.metrics_listen, c.metrics_path,
-                                    [service] { service->RefreshMapGauges(); });
+    Status serving =
+        metrics->Serve(Metrics::Endpoint{.listen = c.metrics_listen,
+                                         .path = c.metrics_path,
+                                         .threads = c.metrics_threads,
+                                         .request_timeout_ms = c.metrics_request_timeout_ms},
+                       [service] { service->RefreshMapGauges(); });
     if (!serving.ok()) {
       server->Shutdown();
       return serving;

@@ -123,9 +123,17 @@ PlaceDbService::PlaceDbService(const ServerConfig& config, MapRegistry* maps, Wo
       pool_(pool),
       metrics_(metrics),
       detector_(detector),
-      detector_status_(std::move(detector_status)) {}
+      detector_status_(std::move(detector_status)),
+      watchdog_([this] { Watchdog(); }) {}
 
-PlaceDbService::~PlaceDbService() = default;
+PlaceDbService::~PlaceDbService() {
+  {
+    MutexLock lock(streams_mutex_);
+    stopping_ = true;
+    watchdog_wake_.NotifyAll();
+  }
+  watchdog_.join();
+}
 
 class PlaceDbService::CallScope {
  public:
@@ -481,9 +489,63 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
 
 // ---- Ingest -------------------------------------------------------------------------------------
 
+// One Ingest call as the watchdog sees it: listed in watches_ from the handler's start to its end.
+// The handler thread, the stream's frames (on workers and the delivery thread) and the watchdog
+// share it under its own mutex.
+struct PlaceDbService::Watch {
+  explicit Watch(grpc::ServerContext* context)
+      : context(context), peer(context->peer()), opened(Clock::now()) {}
+
+  void HeaderArrived() {
+    MutexLock lock(mutex);
+    header = true;
+    quiet_since = Clock::now();
+  }
+  // A frame was read (a Slot made): the stream is busy until it is answered or dropped.
+  void FrameRead() {
+    MutexLock lock(mutex);
+    ++in_flight;
+    quiet_since = Clock::now();
+  }
+  void FrameDone() {
+    MutexLock lock(mutex);
+    if (--in_flight == 0) quiet_since = Clock::now();  // idle from the last answer on
+  }
+  // Around the delivery thread's Write(), which blocks while the client takes no answers.
+  void Writing() {
+    MutexLock lock(mutex);
+    writing_since = Clock::now();
+  }
+  void Written() {
+    MutexLock lock(mutex);
+    writing_since.reset();
+    quiet_since = Clock::now();
+  }
+  // Why the watchdog closed the stream, once it did: CANCELLED, naming the limit.
+  std::optional<grpc::Status> Closed() {
+    MutexLock lock(mutex);
+    if (!closed_reason) return std::nullopt;
+    return grpc::Status(grpc::StatusCode::CANCELLED, "closed by the server: " + closed_why);
+  }
+
+  grpc::ServerContext* const context;
+  const std::string peer;
+  const Clock::time_point opened;
+  Mutex mutex;
+  bool header GUARDED_BY(mutex) = false;
+  // Since when nothing happened: opened, or the last message read, answer written, or frame
+  // answered.
+  Clock::time_point quiet_since GUARDED_BY(mutex) = opened;
+  size_t in_flight GUARDED_BY(mutex) = 0;  // frames read, not yet answered or dropped
+  std::optional<Clock::time_point> writing_since GUARDED_BY(mutex);  // an answer being written
+  const char* closed_reason GUARDED_BY(mutex) = nullptr;             // the metric's label
+  std::string closed_why GUARDED_BY(mutex);
+};
+
 // One open Ingest call: the handler thread reads, the pipeline does the rest.
 struct PlaceDbService::Stream {
   grpc::ServerContext* context = nullptr;
+  Watch* watch = nullptr;
   std::shared_ptr<const MapEntry> map;
   std::optional<v1::MatchOptions> header_matches;
   bool loop_closure = false;           // IngestHeader.loop_closure
@@ -498,7 +560,14 @@ struct PlaceDbService::Stream {
 
 // One observation of a stream, from its arrival to its response.
 struct PlaceDbService::Slot final : IngestPipeline::Frame {
-  Slot(PlaceDbService* service, Stream* stream) : service(service), stream(stream) {}
+  // Made when the observation has been read; destroyed once answered (or dropped): while it
+  // exists, its stream is never idle.
+  Slot(PlaceDbService* service, Stream* stream) : service(service), stream(stream) {
+    stream->watch->FrameRead();
+  }
+  ~Slot() override { stream->watch->FrameDone(); }
+  Slot(const Slot&) = delete;
+  Slot& operator=(const Slot&) = delete;
 
   void Prepare() override {
     queue_ms = MsSince(arrived);
@@ -678,20 +747,42 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
   const Clock::time_point opened = Clock::now();
   const Limits& limits = config_.limits;
 
-  // The header names the map.
+  // Admission first: a stream holds a handler thread from now on, header or not, so it counts
+  // against the limit from now on; over it, the thread is freed at once.
+  Watch watch(context);
   {
     MutexLock lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
-    awaiting_header_.insert(context);
+    if (watches_.size() >= limits.max_concurrent_streams) {
+      return Finish("Ingest", context,
+                    grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                                 "limits.max_concurrent_streams = " +
+                                     std::to_string(limits.max_concurrent_streams) +
+                                     " Ingest streams are open; retry later"));
+    }
+    watches_.insert(&watch);
   }
+  metrics_->StreamOpened();
+  // Unlisted on every way out, before `watch` goes: the watchdog reaches it only through the set.
+  struct Unlist {
+    PlaceDbService* service;
+    Watch* watch;
+    ~Unlist() {
+      {
+        MutexLock lock(service->streams_mutex_);
+        service->watches_.erase(watch);
+      }
+      service->metrics_->StreamClosed();
+    }
+  } unlist{this, &watch};
+
+  // The header names the map. The watchdog cancels the call if it does not come in time.
   v1::IngestRequest first;
   const bool read_header = io->Read(&first);
-  {
-    MutexLock lock(streams_mutex_);
-    awaiting_header_.erase(context);
-  }
+  if (read_header) watch.HeaderArrived();
   if (!read_header && !io->ReadError().ok()) return Finish("Ingest", context, io->ReadError());
   if (!read_header) {
+    if (auto closed = watch.Closed()) return Finish("Ingest", context, *closed);
     return Finish("Ingest", context,
                   Expired(context) ? Cancelled(context, "before the header")
                                    : Invalid("the stream ended before its IngestHeader"));
@@ -705,37 +796,34 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
 
   Stream stream;
   stream.context = context;
+  stream.watch = &watch;
   stream.map = *entry;
   if (first.header().has_matches()) stream.header_matches = first.header().matches();
   stream.loop_closure = first.header().loop_closure();
-  // Declared after `stream`, so closed before it: its frames point to the stream. Made only for
-  // an admitted stream (its delivery thread starts with it), and under the lock that lists the
-  // stream, so a drain never sees a listed stream without its pipeline.
+  // Declared after `stream`, so closed before it: its frames point to the stream. Made under the
+  // lock that lists the stream, so a drain never sees a listed stream without its pipeline.
   std::optional<IngestPipeline> admitted;
   {
     MutexLock lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
-    if (streams_.size() >= limits.max_concurrent_streams) {
-      return Finish("Ingest", context,
-                    grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                                 "limits.max_concurrent_streams = " +
-                                     std::to_string(limits.max_concurrent_streams) +
-                                     " Ingest streams are open; retry later"));
-    }
-    admitted.emplace(
-        pool_, limits.max_inflight_per_stream,
-        IngestPipeline::Callbacks{.deliver =
-                                      [io](IngestPipeline::Frame& frame) {
-                                        return io->Write(static_cast<Slot&>(frame).response);
-                                      },
-                                  .expired = [context] { return Expired(context); },
-                                  // Unblocks a handler waiting in Read().
-                                  .interrupt = [context] { context->TryCancel(); }});
+    admitted.emplace(pool_, limits.max_inflight_per_stream,
+                     IngestPipeline::Callbacks{.deliver =
+                                                   [io, &watch](IngestPipeline::Frame& frame) {
+                                                     // Timed: a client that takes no answers blocks
+                                                     // here.
+                                                     watch.Writing();
+                                                     const bool written = io->Write(
+                                                         static_cast<Slot&>(frame).response);
+                                                     watch.Written();
+                                                     return written;
+                                                   },
+                                               .expired = [context] { return Expired(context); },
+                                               // Unblocks a handler waiting in Read().
+                                               .interrupt = [context] { context->TryCancel(); }});
     stream.pipeline = &*admitted;
     streams_.insert(&stream);
   }
   IngestPipeline& pipeline = *admitted;
-  metrics_->StreamOpened();
   spdlog::info("ingest stream opened peer={} map={} loop_closure={}", Peer(context),
                stream.map->name, stream.loop_closure);
 
@@ -797,7 +885,7 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
     MutexLock lock(streams_mutex_);
     streams_.erase(&stream);
   }
-  metrics_->StreamClosed();
+  if (auto closed = watch.Closed()) status = *closed;
   std::string agents;
   for (const std::string& agent : stream.agents) agents += (agents.empty() ? "" : ",") + agent;
   spdlog::info(
@@ -814,10 +902,63 @@ void PlaceDbService::BeginDrain() {
   MutexLock lock(streams_mutex_);
   draining_ = true;
   draining_flag_ = true;
-  for (grpc::ServerContext* context : awaiting_header_) context->TryCancel();
+  for (Watch* watch : watches_) {
+    MutexLock watch_lock(watch->mutex);
+    if (!watch->header) watch->context->TryCancel();  // blocked reading its header
+  }
   // An idle stream's handler is blocked in Read() and is cancelled now; a busy one once its last
   // frame is answered (IngestPipeline::Drain).
   for (Stream* stream : streams_) stream->pipeline->Drain();
+}
+
+void PlaceDbService::Watchdog() {
+  const Limits& limits = config_.limits;
+  // A tenth of the shorter timeout: a stream is closed within 10% after its time is up.
+  const auto tick =
+      std::clamp(std::chrono::milliseconds(
+                     std::min(limits.stream_header_timeout_ms, limits.stream_idle_timeout_ms) / 10),
+                 std::chrono::milliseconds(10), std::chrono::milliseconds(1000));
+  MutexLock lock(streams_mutex_);
+  while (!stopping_) {
+    ReclaimExpired(Clock::now());
+    watchdog_wake_.WaitFor(streams_mutex_, tick);
+  }
+}
+
+void PlaceDbService::ReclaimExpired(Clock::time_point now) {
+  const Limits& limits = config_.limits;
+  const auto header_timeout = std::chrono::milliseconds(limits.stream_header_timeout_ms);
+  const auto idle_timeout = std::chrono::milliseconds(limits.stream_idle_timeout_ms);
+  for (Watch* watch : watches_) {
+    MutexLock lock(watch->mutex);
+    if (watch->closed_reason) continue;  // already cancelled; its handler is on its way out
+    if (!watch->header) {
+      if (now - watch->opened < header_timeout) continue;
+      watch->closed_reason = "header_timeout";
+      watch->closed_why = "no IngestHeader within limits.stream_header_timeout_ms = " +
+                          std::to_string(limits.stream_header_timeout_ms) + " ms";
+    } else if (watch->writing_since && now - *watch->writing_since >= idle_timeout) {
+      // Not idle (an answer is pending), but the client stopped reading: flow control holds the
+      // write and, through it, the stream's thread and slot.
+      watch->closed_reason = "write_timeout";
+      watch->closed_why = "the client took no answer within limits.stream_idle_timeout_ms = " +
+                          std::to_string(limits.stream_idle_timeout_ms) + " ms";
+    } else if (watch->in_flight == 0 && now - watch->quiet_since >= idle_timeout) {
+      watch->closed_reason = "idle_timeout";
+      watch->closed_why =
+          "no frame in flight and nothing received within limits.stream_idle_timeout_ms = " +
+          std::to_string(limits.stream_idle_timeout_ms) + " ms";
+    } else {
+      continue;
+    }
+    // The synchronous API has no way to end a call whose handler is blocked in Read() or
+    // Write() but to cancel it: the client sees CANCELLED; this log line and the metric say why.
+    metrics_->StreamReclaimed(watch->closed_reason);  // counted before the client can see it
+    watch->context->TryCancel();
+    spdlog::warn("ingest stream closed by the server peer={} reason={}: {} (open {:.3f}s)",
+                 watch->peer, watch->closed_reason, watch->closed_why,
+                 std::chrono::duration<double>(now - watch->opened).count());
+  }
 }
 
 void PlaceDbService::RefreshMapGauges() {

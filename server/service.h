@@ -11,6 +11,13 @@
 // the client through HTTP/2 flow control.
 //
 // Cancellation and deadlines are checked between stages; a cancelled frame is never stored.
+//
+// Open streams are bounded and reclaimed: an Ingest call counts against
+// limits.max_concurrent_streams from the moment its handler runs (over the limit it is refused
+// at once with RESOURCE_EXHAUSTED, freeing the thread), and the service's watchdog thread
+// cancels a stream whose header is late (stream_header_timeout_ms), one that is idle (no frame
+// in flight and nothing received for stream_idle_timeout_ms) and one whose client has not taken
+// an answer for stream_idle_timeout_ms. A frame being processed never makes its stream idle.
 #pragma once
 
 #include <grpcpp/grpcpp.h>
@@ -22,6 +29,7 @@
 #include <mutex>
 #include <set>
 #include <string>
+#include <thread>
 
 #include "core/base/thread_annotations.h"
 #include "core/detect/detector.h"
@@ -78,7 +86,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   grpc::Status RefuseMalformed(const char* method, grpc::ServerContext* context,
                                grpc::Status status);
 
-  struct Stream;  // one open Ingest call (service.cc)
+  struct Watch;   // one Ingest call as the watchdog sees it, from its handler's start (service.cc)
+  struct Stream;  // one open Ingest call past its header (service.cc)
   struct Slot;    // one observation of a stream (service.cc)
   struct Work;    // one frame's processing state (service.cc)
 
@@ -95,6 +104,9 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   grpc::Status Finish(const char* method, grpc::ServerContext* context, grpc::Status status);
   grpc::Status Unavailable() const;
   void ObserveStages(const StageTimings& timings);
+  // The watchdog thread: every tick, cancels the streams past one of their timeouts.
+  void Watchdog() EXCLUDES(streams_mutex_);
+  void ReclaimExpired(std::chrono::steady_clock::time_point now) REQUIRES(streams_mutex_);
 
   const ServerConfig& config_;
   MapRegistry* const maps_;
@@ -112,10 +124,14 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // Taken before a stream's own mutex (BeginDrain), never after.
   Mutex streams_mutex_;
   std::set<Stream*> streams_ GUARDED_BY(streams_mutex_);
-  // Ingest calls not yet past their header
-  std::set<grpc::ServerContext*> awaiting_header_ GUARDED_BY(streams_mutex_);
+  // Every Ingest call being served, header or not: what max_concurrent_streams counts and the
+  // watchdog scans. A Watch's own mutex is taken after streams_mutex_, never before.
+  std::set<Watch*> watches_ GUARDED_BY(streams_mutex_);
   bool draining_ GUARDED_BY(streams_mutex_) = false;
-  std::atomic<bool> draining_flag_{false};  // draining_ for readers that take no lock
+  std::atomic<bool> draining_flag_{false};            // draining_ for readers that take no lock
+  bool stopping_ GUARDED_BY(streams_mutex_) = false;  // the destructor: the watchdog ends
+  CondVar watchdog_wake_;                             // with streams_mutex_
+  std::thread watchdog_;                              // last: starts once the state above exists
 };
 
 }  // namespace placedb::server

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Runs placedb on its embedded defaults: the gRPC service on 0.0.0.0:50051 (metrics on :9464),
-# data in var/data, the default vocabulary, and server-side detection with YOLOX-Nano when
-# tools/install_models.sh found the model (otherwise detection is off and the server says so).
+# Runs placedb on its embedded defaults: the gRPC service on 0.0.0.0:50051 (metrics on
+# 127.0.0.1:9464), data in var/data, the default vocabulary, and server-side detection with
+# YOLOX-Nano when tools/install_models.sh found the model (otherwise detection is off and the
+# server says so).
 # Extra arguments go to placedb-server (see --help); stop it with Ctrl-C or SIGTERM.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -6,6 +6,8 @@
 #include <fstream>
 #include <map>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "core/base/status.h"
 #include "core/storage/map_store.h"
@@ -96,8 +98,11 @@ TEST(ServerConfigTest, FileThenEnvironmentThenFlags) {
   std::ofstream(path) << "listen: 0.0.0.0:6000\n"
                          "data_dir: /srv/placedb\n"
                          "threads: 3\n"
+                         "metrics_threads: 6\n"
+                         "metrics_request_timeout_ms: 700\n"
                          "vocabularies:\n  default: a.pdbv\n  indoor: b.pdbv\n"
                          "limits:\n  max_boxes_per_frame: 9\n"
+                         "  stream_header_timeout_ms: 1500\n  stream_idle_timeout_ms: 2500\n"
                          "storage:\n  sync: group_commit\n";
   std::map<std::string, std::string> env = {{"PLACEDB_DATA_DIR", "/env/data"},
                                             {"PLACEDB_METRICS_PORT", "9999"}};
@@ -111,10 +116,14 @@ TEST(ServerConfigTest, FileThenEnvironmentThenFlags) {
   ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
   ASSERT_FALSE(parsed->exit_code);
   const ServerConfig& c = parsed->config;
-  EXPECT_EQ(c.listen, "0.0.0.0:6000");          // file
-  EXPECT_EQ(c.data_dir, "/env/data");           // environment over file
-  EXPECT_EQ(c.metrics_listen, "0.0.0.0:9999");  // environment (port only)
-  EXPECT_EQ(c.threads, 5);                      // flag over file
+  EXPECT_EQ(c.listen, "0.0.0.0:6000");            // file
+  EXPECT_EQ(c.data_dir, "/env/data");             // environment over file
+  EXPECT_EQ(c.metrics_listen, "127.0.0.1:9999");  // environment (port only), loopback default
+  EXPECT_EQ(c.metrics_threads, 6);
+  EXPECT_EQ(c.metrics_request_timeout_ms, 700u);
+  EXPECT_EQ(c.limits.stream_header_timeout_ms, 1500u);
+  EXPECT_EQ(c.limits.stream_idle_timeout_ms, 2500u);
+  EXPECT_EQ(c.threads, 5);  // flag over file
   EXPECT_EQ(c.limits.max_boxes_per_frame, 11u);
   EXPECT_EQ(c.storage.sync, SyncMode::kGroupCommit);
   EXPECT_EQ(c.vocabularies.size(), 3u);
@@ -125,12 +134,28 @@ TEST(ServerConfigTest, FileThenEnvironmentThenFlags) {
   ServerConfig again;
   ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(c), &again).ok());
   EXPECT_EQ(server::ConfigToYaml(again), server::ConfigToYaml(c));
+  EXPECT_EQ(again.metrics_threads, 6);
+  EXPECT_EQ(again.metrics_request_timeout_ms, 700u);
+  EXPECT_EQ(again.limits.stream_header_timeout_ms, 1500u);
+  EXPECT_EQ(again.limits.stream_idle_timeout_ms, 2500u);
 
   ServerConfig bad;
   const Status typo = server::ApplyConfigYaml("limits:\n  max_boxes: 3\n", &bad);
   EXPECT_EQ(typo.code(), StatusCode::kInvalidArgument);
   EXPECT_NE(typo.message().find("limits.max_boxes"), std::string::npos) << typo.message();
   EXPECT_FALSE(server::ApplyConfigYaml("threads: many\n", &bad).ok());
+  // Out-of-range timeouts and thread counts name their key.
+  for (const auto& [yaml, key] : std::vector<std::pair<std::string, std::string>>{
+           {"limits:\n  stream_header_timeout_ms: 0\n", "limits.stream_header_timeout_ms"},
+           {"limits:\n  stream_idle_timeout_ms: 10\n", "limits.stream_idle_timeout_ms"},
+           {"metrics_threads: 1\n", "metrics_threads"},
+           {"metrics_request_timeout_ms: 0\n", "metrics_request_timeout_ms"}}) {
+    ServerConfig out_of_range;
+    ASSERT_TRUE(server::ApplyConfigYaml(yaml, &out_of_range).ok()) << yaml;
+    const Status invalid = server::ValidateServerConfig(out_of_range);
+    EXPECT_EQ(invalid.code(), StatusCode::kInvalidArgument) << yaml;
+    EXPECT_NE(invalid.message().find(key), std::string::npos) << invalid.message();
+  }
   ServerConfig no_default;
   no_default.vocabularies = {{"indoor", "b.pdbv"}};
   EXPECT_NE(server::ValidateServerConfig(no_default).message().find("default"), std::string::npos);
@@ -138,6 +163,13 @@ TEST(ServerConfigTest, FileThenEnvironmentThenFlags) {
   ServerConfig example;
   EXPECT_TRUE(server::ApplyConfigFile(SourceDir() + "/server/placedb.yaml", &example).ok());
   EXPECT_TRUE(server::ValidateServerConfig(example).ok());
+  // ... and shows the defaults (of the stream and metrics-endpoint keys at least).
+  const ServerConfig defaults;
+  EXPECT_EQ(example.metrics_listen, defaults.metrics_listen);
+  EXPECT_EQ(example.metrics_threads, defaults.metrics_threads);
+  EXPECT_EQ(example.metrics_request_timeout_ms, defaults.metrics_request_timeout_ms);
+  EXPECT_EQ(example.limits.stream_header_timeout_ms, defaults.limits.stream_header_timeout_ms);
+  EXPECT_EQ(example.limits.stream_idle_timeout_ms, defaults.limits.stream_idle_timeout_ms);
 }
 
 }  // namespace

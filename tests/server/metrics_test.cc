@@ -1,8 +1,14 @@
 // The /metrics endpoint (Prometheus text over HTTP): what was sent, counted by method, code,
-// map and stage; a deleted map's series go away.
+// map and stage; a deleted map's series go away; slow HTTP clients cannot block it.
+#include <arpa/inet.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <sys/time.h>
+#include <unistd.h>
 
+#include <cerrno>
 #include <cmath>
 #include <map>
 #include <string>
@@ -109,6 +115,92 @@ TEST_F(ServerTest, MetricsEndpointCountsWhatWasSent) {
   EXPECT_TRUE(std::isnan(MetricValue(later, "placedb_places", Labels{{"map", "m"}})));
   EXPECT_TRUE(
       std::isnan(MetricValue(later, "placedb_frames_ingested_total", Labels{{"map", "m"}})));
+}
+
+// A loopback TCP connection to `port` whose reads give up after `receive_timeout_s`; -1 if it
+// cannot connect.
+int Connect(int port, int receive_timeout_s) {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  if (fd < 0) return -1;
+  timeval timeout{};
+  timeout.tv_sec = receive_timeout_s;
+  setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof timeout);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(uint16_t(port));
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof address) != 0) {
+    close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+// A client that starts a request and never finishes its header.
+int OpenSlowConnection(int port) {
+  const int fd = Connect(port, 60);
+  const std::string partial = "GET /metrics HTTP/1.1\r\nHost: 127.0.0.1\r\n";
+  if (fd >= 0) {
+    EXPECT_EQ(send(fd, partial.data(), partial.size(), 0), ssize_t(partial.size()));
+  }
+  return fd;
+}
+
+// Reads until the server closes the connection. False when a read gave up (timed out) first.
+bool ReadUntilClosed(int fd, std::string* reply) {
+  char buffer[4096];
+  while (true) {
+    const ssize_t n = recv(fd, buffer, sizeof buffer, 0);
+    if (n > 0) {
+      reply->append(buffer, size_t(n));
+      continue;
+    }
+    if (n == 0 || errno == ECONNRESET) return true;
+    return false;  // EAGAIN: the receive timeout
+  }
+}
+
+// Slow clients hold at most metrics_threads - 1 of the endpoint's workers: a scrape still gets
+// through while they are open. (With one worker, the scrape waits for the first slow client's
+// request timeout, here far longer than the scrape's own receive timeout.)
+TEST_F(ServerTest, MetricsEndpointServesWhileSlowClientsHoldConnections) {
+  ServerConfig config = Config();
+  config.metrics_listen = "127.0.0.1:0";
+  config.metrics_threads = 4;
+  config.metrics_request_timeout_ms = 120000;  // the slow clients stay for the whole test
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  std::vector<int> slow;
+  for (int i = 0; i < config.metrics_threads - 1; ++i) {
+    slow.push_back(OpenSlowConnection(server_->metrics_port()));
+    ASSERT_GE(slow.back(), 0);
+  }
+  for (int round = 0; round < 3; ++round) {
+    const int fd = Connect(server_->metrics_port(), 30);
+    ASSERT_GE(fd, 0);
+    const std::string request = "GET /metrics HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n";
+    ASSERT_EQ(send(fd, request.data(), request.size(), 0), ssize_t(request.size()));
+    std::string reply;
+    EXPECT_TRUE(ReadUntilClosed(fd, &reply)) << "the scrape was blocked by the slow clients";
+    close(fd);
+    const auto metrics = ParseMetrics(reply);
+    EXPECT_EQ(MetricValue(metrics, "placedb_streams_in_flight"), 0);
+  }
+  for (int fd : slow) close(fd);
+}
+
+// A client that never finishes its request is disconnected after metrics_request_timeout_ms.
+TEST_F(ServerTest, MetricsEndpointClosesSlowConnections) {
+  ServerConfig config = Config();
+  config.metrics_listen = "127.0.0.1:0";
+  config.metrics_request_timeout_ms = 300;
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  const int fd = OpenSlowConnection(server_->metrics_port());
+  ASSERT_GE(fd, 0);
+  std::string reply;
+  EXPECT_TRUE(ReadUntilClosed(fd, &reply)) << "still open after 60 s";
+  close(fd);
+  EXPECT_EQ(reply.find("placedb_"), std::string::npos) << reply;  // never served
+  EXPECT_FALSE(Scrape().empty());                                 // and the endpoint goes on
 }
 
 }  // namespace
