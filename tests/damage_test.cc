@@ -124,6 +124,10 @@ class DamageTest : public ::testing::Test {
     map_dir_ = root_ + "/data/maps/lab";
   }
 
+  DataDirectory::VocabularyFor Vocab() const {
+    return [this](const MapInfo&) -> Result<AnyVocabulary> { return AnyVocabulary(vocabulary_); };
+  }
+
   std::unique_ptr<DataDirectory> OpenDir() {
     auto dir = DataDirectory::Open(root_ + "/data");
     EXPECT_TRUE(dir.ok()) << dir.status().ToString();
@@ -206,7 +210,7 @@ class DamageTest : public ::testing::Test {
   // RecoverMap accepts the loss; the count is exact: places 1..kept survive, the rest are lost.
   void ExpectRecovered(DataDirectory& dir, uint64_t expected_lost) {
     MapDamage accepted;
-    auto map = dir.RecoverMap("lab", vocabulary_, &accepted);
+    auto map = dir.RecoverMap("lab", Vocab(), &accepted);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
     const uint64_t kept = (*map)->Stats().database.places;
     EXPECT_EQ(kept + expected_lost, uint64_t(kPlaces));
@@ -262,7 +266,7 @@ TEST_F(DamageTest, KilledAndCleanReopensKeepEveryAcknowledgedPlace) {
   dir->CloseMap("lab");
   map = Result<std::shared_ptr<PlaceMap>>(Status::Internal("released"));
   MapDamage accepted;
-  auto recovered = dir->RecoverMap("lab", vocabulary_, &accepted);
+  auto recovered = dir->RecoverMap("lab", Vocab(), &accepted);
   ASSERT_TRUE(recovered.ok()) << recovered.status().ToString();
   EXPECT_EQ(accepted.writes_lost, 0u);
   EXPECT_TRUE((*recovered)->damage_history().empty());
@@ -356,7 +360,7 @@ TEST_F(DamageTest, MapDirectoryReplacedByAFileIsListedAsDamage) {
   ASSERT_FALSE(info.ok());
   EXPECT_EQ(info.status().code(), StatusCode::kCorruption);
   ExpectDamaged(*dir, "maps/lab is a file");
-  auto recovered = dir->RecoverMap("lab", vocabulary_);
+  auto recovered = dir->RecoverMap("lab", Vocab());
   ASSERT_FALSE(recovered.ok());
   EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
   EXPECT_TRUE(dir->DeleteMap("lab").ok());
@@ -373,7 +377,7 @@ TEST_F(DamageTest, CorruptBowBlockIsDamageAtOpen) {
       ExpectDamaged(*dir, "maps/lab/" + fs::path(files[0]).filename().string());
   EXPECT_NE(damage.reason.find("checksum"), std::string::npos) << damage.reason;
   // Point-in-time recovery cannot mend an SST block: the map stays damaged.
-  auto recovered = dir->RecoverMap("lab", vocabulary_);
+  auto recovered = dir->RecoverMap("lab", Vocab());
   ASSERT_FALSE(recovered.ok());
   EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
   ExpectDamaged(*dir, "maps/lab/" + fs::path(files[0]).filename().string());

@@ -1371,7 +1371,8 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(const std::string& name
     return it->second;
   }
   MapDamage found;
-  auto map = OpenLocked(name, std::move(vocabulary), &found);
+  auto map = OpenLocked(
+      name, [&](const MapInfo&) -> Result<AnyVocabulary> { return vocabulary; }, &found);
   if (!map.ok()) {
     if (damage) *damage = found;
     return map.status();
@@ -1381,7 +1382,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(const std::string& name
 }
 
 Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& name,
-                                                            AnyVocabulary vocabulary,
+                                                            const VocabularyFor& vocabulary_for,
                                                             MapDamage* damage) {
   const std::string path = MapPath(name);
   const std::string where = "maps/" + name;
@@ -1447,6 +1448,8 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
   }
   auto history = ReadHistory(**storage);
   if (!history.ok()) return damaged(where + ": " + history.status().message());
+  auto vocabulary = vocabulary_for(*info);
+  if (!vocabulary.ok()) return vocabulary.status();
   // Writes kept beyond the acknowledged ones (in flight at a crash) are durable now that RocksDB
   // has recovered them: ACKED counts them, so that losing them later is seen too.
   AckState start = *acked;
@@ -1459,10 +1462,10 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
   }
   (*storage)->acks = std::move(tracker).value();
   std::shared_ptr<PlaceMap> map(
-      new PlaceMap(std::move(info).value(), path, std::move(storage).value(), vocabulary));
+      new PlaceMap(std::move(info).value(), path, std::move(storage).value(), *vocabulary));
   map->damage_history_ = std::move(history).value();
   map->open_note_ = note;
-  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(vocabulary));
+  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(*vocabulary));
   if (Status loaded = map->Load(); !loaded.ok()) {
     if (loaded.code() == StatusCode::kCorruption || loaded.code() == StatusCode::kIoError) {
       return damaged(Relative(loaded.message()));
@@ -1473,10 +1476,9 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
 }
 
 Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& name,
-                                                            AnyVocabulary vocabulary,
+                                                            const VocabularyFor& vocabulary_for,
                                                             MapDamage* accepted) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
-  if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
   MutexLock lock(mutex_);
   if (open_.count(name)) {
     return Status::FailedPrecondition("map '" + name + "' is open, so it is not damaged");
@@ -1486,7 +1488,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& n
   MapDamage loss;
   {
     // Not damaged after all (e.g. the operator put a file back): open it, record nothing.
-    auto map = OpenLocked(name, vocabulary, &loss);
+    auto map = OpenLocked(name, vocabulary_for, &loss);
     if (map.ok()) {
       open_[name] = *map;
       if (accepted) *accepted = MapDamage();
@@ -1541,9 +1543,11 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& n
   auto history = ReadHistory(**storage);
   std::vector<MapDamage> entries = history.ok() ? *history : std::vector<MapDamage>();
   entries.push_back(counted);
+  auto vocabulary = vocabulary_for(*info);
+  if (!vocabulary.ok()) return vocabulary.status();
   std::shared_ptr<PlaceMap> map(
-      new PlaceMap(std::move(info).value(), path, std::move(storage).value(), vocabulary));
-  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(vocabulary));
+      new PlaceMap(std::move(info).value(), path, std::move(storage).value(), *vocabulary));
+  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(*vocabulary));
   // The index first: if a block it needs is corrupt, the map stays damaged and nothing is
   // recorded.
   if (Status loaded = map->Load(); !loaded.ok()) {

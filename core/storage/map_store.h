@@ -21,6 +21,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -231,7 +232,11 @@ class DataDirectory {
   // (persisted) and opens it. `accepted` receives the loss (zero counts when nothing was lost).
   // FAILED_PRECONDITION when the map is open (it is not damaged) or cannot be recovered this way
   // (a corrupt SST block: restore a checkpoint); on failure the map stays damaged.
-  Result<std::shared_ptr<PlaceMap>> RecoverMap(const std::string& name, AnyVocabulary vocabulary,
+  // `vocabulary_for` picks the map's vocabulary from its stored info (which may be unreadable
+  // until the recovery has run).
+  using VocabularyFor = std::function<Result<AnyVocabulary>(const MapInfo&)>;
+  Result<std::shared_ptr<PlaceMap>> RecoverMap(const std::string& name,
+                                               const VocabularyFor& vocabulary_for,
                                                MapDamage* accepted = nullptr);
   // Sorted. Every valid map name under maps/, also a file where a map's directory should be
   // (so damage is listed, not hidden).
@@ -246,7 +251,8 @@ class DataDirectory {
   DataDirectory(std::string path, StorageOptions options);
   std::string MapPath(const std::string& name) const;
   // OpenMap without the lookup; fills damage->reason when the map is damaged.
-  Result<std::shared_ptr<PlaceMap>> OpenLocked(const std::string& name, AnyVocabulary vocabulary,
+  Result<std::shared_ptr<PlaceMap>> OpenLocked(const std::string& name,
+                                               const VocabularyFor& vocabulary_for,
                                                MapDamage* damage) REQUIRES(mutex_);
   // "maps/<name>/..." for messages: no absolute paths.
   std::string Relative(const std::string& text) const;
