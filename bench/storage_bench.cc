@@ -4,12 +4,14 @@
 //     without filtering (BoBW) and one with it (BoBW+DO: boxes = bounding boxes of the label
 //     maps' Car/Pedestrian/Bicyclist components, the paper's keypoint-in-box rule), then bytes
 //     on disk after a flush, the reduction, bytes per place, and ingest rates.
-//  2. Persist rate (durable commit + index) by sync policy with 2 and 8 concurrent writers.
+//  2. Persist rate (durable commit + index) by sync policy with 1, 2 and 8 concurrent writers,
+//     each with and without the ACKED high-water mark (StorageOptions::acked_file), same run.
 //  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
 //     places), committed by 2 writers, then the map is closed and reopened.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
+//                              [--only persist]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -131,6 +133,7 @@ IngestFigures Ingest(DataDirectory& dir, const std::string& name, const MapOptio
 struct Options {
   std::string vocabulary_path, work_dir, shared = PLACEDB_SHARED_DIR;
   std::vector<size_t> reopen_sizes = {10000, 100000};
+  bool persist_only = false;
 };
 
 // The command line; an exit code when the program must stop (usage error).
@@ -140,7 +143,7 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
     if (i + 1 >= argc) {
       std::fprintf(stderr,
                    "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-                   "[--reopen 10000,100000] [--shared DIR]\n");
+                   "[--reopen 10000,100000] [--shared DIR] [--only persist]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -155,6 +158,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       std::stringstream list(value);
       for (std::string item; std::getline(list, item, ',');)
         options->reopen_sizes.push_back(std::stoul(item));
+    } else if (arg == "--only" && value == "persist") {
+      options->persist_only = true;
     } else {
       std::fprintf(stderr, "unknown option %s\n", arg.c_str());
       return 2;
@@ -191,12 +196,14 @@ bool BenchFiltering(const std::string& work_dir, const std::vector<Frame>& frame
 // `writers` threads, so that only the durable commit (and index insert) is timed. False after
 // an error.
 bool BenchPersist(const std::string& work_dir, const std::vector<Frame>& frames,
-                  const std::shared_ptr<const Vocabulary>& vocabulary, SyncMode mode, int writers) {
+                  const std::shared_ptr<const Vocabulary>& vocabulary, SyncMode mode, int writers,
+                  bool acked_file) {
   StorageOptions storage;
   storage.sync = mode;
+  storage.acked_file = acked_file;
   const std::string label =
       std::string(mode == SyncMode::kEveryWrite ? "sync_every_write" : "group_commit_5ms") + "_" +
-      std::to_string(writers) + "_writers";
+      std::to_string(writers) + "_writers" + (acked_file ? "" : "_no_acked");
   auto dir = DataDirectory::Open(work_dir + "/" + label, storage);
   if (!dir.ok()) return false;
   MapOptions options;
@@ -312,14 +319,19 @@ int main(int argc, char** argv) {
       "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",
       frames.size(), (*vocabulary)->word_count());
 
-  if (!BenchFiltering(work_dir, frames, *vocabulary)) return 1;
-  // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads.
+  if (!options.persist_only && !BenchFiltering(work_dir, frames, *vocabulary)) return 1;
+  // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads; with the
+  // ACKED high-water mark (the default) and without it, one after the other, to show its cost.
   for (SyncMode mode : {SyncMode::kEveryWrite, SyncMode::kGroupCommit}) {
-    for (int writers : {2, 8}) {
-      if (!BenchPersist(work_dir, frames, *vocabulary, mode, writers)) return 1;
+    for (int writers : {1, 2, 8}) {
+      for (bool acked_file : {true, false}) {
+        if (!BenchPersist(work_dir, frames, *vocabulary, mode, writers, acked_file)) return 1;
+      }
     }
   }
-  if (!BenchReopen(work_dir, frames, *vocabulary, options.reopen_sizes)) return 1;
+  if (!options.persist_only && !BenchReopen(work_dir, frames, *vocabulary, options.reopen_sizes)) {
+    return 1;
+  }
   fs::remove_all(work_dir);
   return 0;
 }

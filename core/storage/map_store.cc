@@ -1172,21 +1172,25 @@ std::string LossText(const MapDamage& damage) {
   return text;
 }
 
-// The map's write-ahead log files and their sizes, for reasons: "maps/lab/000012.log (5 bytes)".
+// The map's write-ahead log files and their sizes, for reasons: "maps/lab/000012.log (5 bytes)";
+// empty logs only when no other is left.
 std::string WalFiles(const std::string& path, const std::string& name) {
-  std::vector<std::string> logs;
+  std::vector<std::pair<std::string, uintmax_t>> logs;
   std::error_code ec;
   for (const auto& entry : fs::directory_iterator(path, ec)) {
     if (entry.path().extension() != ".log") continue;
     std::error_code size_ec;
     const auto size = entry.file_size(size_ec);
-    logs.push_back("maps/" + name + "/" + entry.path().filename().string() + " (" +
-                   (size_ec ? std::string("size unknown") : std::to_string(size) + " bytes") + ")");
+    logs.push_back({"maps/" + name + "/" + entry.path().filename().string(), size_ec ? 0 : size});
   }
   std::sort(logs.begin(), logs.end());
   if (logs.empty()) return "no write-ahead log file is left";
-  std::string text = "write-ahead log: ";
-  for (size_t i = 0; i < logs.size(); ++i) text += (i ? ", " : "") + logs[i];
+  const bool any_data = std::any_of(logs.begin(), logs.end(), [](auto& l) { return l.second; });
+  std::string text;
+  for (const auto& [file, size] : logs) {
+    if (any_data && size == 0) continue;
+    text += (text.empty() ? "" : ", ") + file + " (" + std::to_string(size) + " bytes)";
+  }
   return text;
 }
 
@@ -1282,7 +1286,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& na
                         "flushing map info");
   }
   if (written.ok()) written = CreateAcked(path, {});
-  if (written.ok()) {
+  if (written.ok() && options_.acked_file) {
     auto acks = AckTracker::Open(path, {2, 0, 0});
     written = acks.status();
     if (acks.ok()) (*storage)->acks = std::move(acks).value();
@@ -1403,14 +1407,19 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
         storage.status().code() != StatusCode::kIoError) {
       return storage.status().WithContext("map '" + name + "'");
     }
+    // RocksDB's reader does not say which log a bad record is in: name the logs.
     std::string error = Relative(storage.status().message());
-    if (error.find(where + "/") == std::string::npos) error += " (" + WalFiles(path, name) + ")";
+    const std::string prefix = "opening the map's RocksDB: ";
+    if (error.rfind(prefix, 0) == 0) error.erase(0, prefix.size());
+    if (error.find(where + "/") == std::string::npos) error = WalFiles(path, name) + ": " + error;
     // Is only an unacknowledged tail damaged (a torn write at power loss)? Count what
     // point-in-time recovery keeps, without changing any file.
     auto readonly = OpenReadOnly(path, block_cache_, Recovery::kPointInTime);
     if (!readonly.ok()) {
-      return damaged(error + "; point-in-time recovery cannot open it either: " +
-                     Relative(readonly.status().message()));
+      std::string again = Relative(readonly.status().message());
+      if (again.rfind(prefix, 0) == 0) again.erase(0, prefix.size());
+      return damaged(error + "; point-in-time recovery cannot open it either" +
+                     (again == error ? "" : ": " + again));
     }
     auto contents = ReadContents(**readonly);
     readonly->reset();
@@ -1436,7 +1445,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
     PLACEDB_RETURN_IF_ERROR(CreateAcked(path, {0, 0, contents->max_place}));
     acked = AckState{2, 0, contents->max_place};
   }
-  if (FindLoss(*acked, *contents, damage)) {
+  if (options_.acked_file && FindLoss(*acked, *contents, damage)) {
     return damaged(where + ": " + LossText(*damage) +
                    "; the write-ahead log ends early or was deleted (" + WalFiles(path, name) +
                    ")");
@@ -1460,7 +1469,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
   if (start.writes != acked->writes || start.max_place != acked->max_place) {
     PLACEDB_RETURN_IF_ERROR((*tracker)->Raise(start).WithContext(where));
   }
-  (*storage)->acks = std::move(tracker).value();
+  if (options_.acked_file) (*storage)->acks = std::move(tracker).value();
   std::shared_ptr<PlaceMap> map(
       new PlaceMap(std::move(info).value(), path, std::move(storage).value(), *vocabulary));
   map->damage_history_ = std::move(history).value();
