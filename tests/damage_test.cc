@@ -367,6 +367,39 @@ TEST_F(DamageTest, MapDirectoryReplacedByAFileIsListedAsDamage) {
   EXPECT_TRUE(dir->ListMaps().empty());
 }
 
+TEST_F(DamageTest, MissingMapInfoRecordIsDamage) {
+  {
+    // A clean close first: everything in SST files, so that RocksDB opened here without
+    // placedb's merge operator replays no placedb write.
+    auto dir = OpenDir();
+    ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
+    dir->CloseMap("lab");
+  }
+  {
+    std::vector<rocksdb::ColumnFamilyDescriptor> families;
+    for (const char* name : {"default", "places", "bow", "features", "invalid"}) {
+      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
+    }
+    std::vector<rocksdb::ColumnFamilyHandle*> handles;
+    rocksdb::DB* raw = nullptr;
+    ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir_, families, &handles, &raw).ok());
+    rocksdb::WriteOptions sync;
+    sync.sync = true;
+    EXPECT_TRUE(raw->Delete(sync, handles[0], "info").ok());
+    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
+    delete raw;
+  }
+  auto dir = OpenDir();
+  auto info = dir->ReadMapInfo("lab");
+  ASSERT_FALSE(info.ok());
+  EXPECT_EQ(info.status().code(), StatusCode::kCorruption);
+  ExpectDamaged(*dir, "maps/lab: the map info record is missing");
+  // Without it the map's configuration is unknown: only a checkpoint helps.
+  auto recovered = dir->RecoverMap("lab", Vocab());
+  ASSERT_FALSE(recovered.ok());
+  EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
+}
+
 TEST_F(DamageTest, CorruptBowBlockIsDamageAtOpen) {
   // The index is rebuilt from the BoW vectors at open: a corrupt block there is found at once.
   const auto files = SstFilesOf("bow");
