@@ -301,10 +301,13 @@ grpc::Status PlaceDbService::RecoverMap(grpc::ServerContext* context,
   if (!entry.ok()) return Finish("RecoverMap", context, ToGrpc(entry.status()));
   Describe(**entry, response->mutable_map());
   wire::MapDamageToProto(accepted, response->mutable_accepted());
-  spdlog::error(
-      "map '{}' recovered with data loss accepted: {} acknowledged places lost ({} writes); {}; "
-      "peer={}",
-      request->name(), accepted.places_lost, accepted.writes_lost, accepted.reason, Peer(context));
+  // Error level when anything was lost: an operator's log search for damage must find it.
+  spdlog::log(accepted.writes_lost > 0 ? spdlog::level::err : spdlog::level::warn,
+              "map '{}' recovered with data loss accepted: {} acknowledged places lost ({} "
+              "writes); {}; peer={}",
+              request->name(), accepted.places_lost, accepted.writes_lost,
+              accepted.reason.empty() ? std::string("it was not damaged") : accepted.reason,
+              Peer(context));
   return Finish("RecoverMap", context, grpc::Status::OK);
 }
 
