@@ -298,10 +298,16 @@ Status WriteAckSlot(int fd, const AckState& state) {
   PutLe64(slot + 24, state.max_place);
   PutLe64(slot + 32, Fnv1a(slot, 32));
   const off_t offset = kAckSlotOffset[state.generation % 2];
+  // A full disk is RESOURCE_EXHAUSTED, as for RocksDB's own writes (FromRocks).
+  auto failed = [](const std::string& what) {
+    const std::string message = Errno(what);
+    return errno == ENOSPC || errno == EDQUOT ? Status::ResourceExhausted(message)
+                                              : Status::IoError(message);
+  };
   if (pwrite(fd, slot, sizeof slot, offset) != ssize_t(sizeof slot)) {
-    return Status::IoError(Errno("writing ACKED"));
+    return failed("writing ACKED");
   }
-  if (fdatasync(fd) != 0) return Status::IoError(Errno("syncing ACKED"));
+  if (fdatasync(fd) != 0) return failed("syncing ACKED");
   return Status::Ok();
 }
 

@@ -234,7 +234,9 @@ class DataDirectory {
   // counts the acknowledged writes lost against ACKED, records that in the map's damage history
   // (persisted) and opens it. `accepted` receives the loss (zero counts when nothing was lost).
   // FAILED_PRECONDITION when the map is open (it is not damaged) or cannot be recovered this way
-  // (a corrupt SST block: restore a checkpoint); on failure the map stays damaged.
+  // (a corrupt SST block, a lost info record: restore a checkpoint; a file in place of the map's
+  // directory); on failure the map stays damaged and its history unchanged (RepairDB may have
+  // rebuilt the MANIFEST). A map that opens normally after all is returned, nothing recorded.
   // `vocabulary_for` picks the map's vocabulary from its stored info (which may be unreadable
   // until the recovery has run).
   using VocabularyFor = std::function<Result<AnyVocabulary>(const MapInfo&)>;
@@ -244,6 +246,7 @@ class DataDirectory {
   // Sorted. Every valid map name under maps/, also a file where a map's directory should be
   // (so damage is listed, not hidden).
   std::vector<std::string> ListMaps() const;
+  // Also a damaged map, and a file in place of a map's directory.
   Status DeleteMap(const std::string& name);
   // Copies a checkpoint made by PlaceMap::Checkpoint in as map `name` (which must not exist).
   Status RestoreMap(const std::string& name, const std::string& checkpoint_directory);
