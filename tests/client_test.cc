@@ -259,6 +259,9 @@ TEST_F(ClientTest, MapsRecoverAndScrub) {
   CliRun refused = Cli({"maps", "scrub", "lab"});
   EXPECT_EQ(refused.code, 1);
   EXPECT_NE(refused.err.find("DATA_LOSS"), std::string::npos) << refused.err;
+  CliRun ingest = Cli({"ingest", "lab", FramesDir(7, 8)});
+  EXPECT_EQ(ingest.code, 1);
+  EXPECT_NE(ingest.err.find("DATA_LOSS: map 'lab' is damaged"), std::string::npos) << ingest.err;
   CliRun unconfirmed = Cli({"maps", "recover", "lab"});
   EXPECT_EQ(unconfirmed.code, 2);
   EXPECT_NE(unconfirmed.err.find("--accept-data-loss"), std::string::npos) << unconfirmed.err;
