@@ -1557,6 +1557,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& n
   }
   auto history = ReadHistory(**storage);
   std::vector<MapDamage> entries = history.ok() ? *history : std::vector<MapDamage>();
+  if (!history.ok()) counted.reason += "; the earlier damage history was unreadable";
   entries.push_back(counted);
   auto vocabulary = vocabulary_for(*info);
   if (!vocabulary.ok()) return vocabulary.status();
