@@ -4,12 +4,14 @@
 //     without filtering (BoBW) and one with it (BoBW+DO: boxes = bounding boxes of the label
 //     maps' Car/Pedestrian/Bicyclist components, the paper's keypoint-in-box rule), then bytes
 //     on disk after a flush, the reduction, bytes per place, and ingest rates.
-//  2. Persist rate (durable commit + index) by sync policy with 2 and 8 concurrent writers.
+//  2. Persist rate (durable commit + index) by sync policy with 1, 2 and 8 concurrent writers,
+//     each with and without the ACKED high-water mark (StorageOptions::acked_file), same run.
 //  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
 //     places), committed by 2 writers, then the map is closed and reopened.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
+//                              [--only persist]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -131,6 +133,7 @@ IngestFigures Ingest(DataDirectory& dir, const std::string& name, const MapOptio
 struct Options {
   std::string vocabulary_path, work_dir, shared = PLACEDB_SHARED_DIR;
   std::vector<size_t> reopen_sizes = {10000, 100000};
+  bool persist_only = false;
 };
 
 // The command line; an exit code when the program must stop (usage error).
@@ -140,7 +143,7 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
     if (i + 1 >= argc) {
       std::fprintf(stderr,
                    "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-                   "[--reopen 10000,100000] [--shared DIR]\n");
+                   "[--reopen 10000,100000] [--shared DIR] [--only persist]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -155,6 +158,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       std::stringstream list(value);
       for (std::string item; std::getline(list, item, ',');)
         options->reopen_sizes.push_back(std::stoul(item));
+    } else if (arg == "--only" && value == "persist") {
+      options->persist_only = true;
     } else {
       std::fprintf(stderr, "unknown option %s\n", arg.c_str());
       return 2;
@@ -188,20 +193,23 @@ bool BenchFiltering(const std::string& work_dir, const std::vector<Frame>& frame
 }
 
 // 2. Persist rate under one sync policy: the frames processed first, then committed by
-// `writers` threads, so that only the durable commit (and index insert) is timed. False after
-// an error.
-bool BenchPersist(const std::string& work_dir, const std::vector<Frame>& frames,
-                  const std::shared_ptr<const Vocabulary>& vocabulary, SyncMode mode, int writers) {
+// `writers` threads, so that only the durable commit (and index insert) is timed. Places/s, or
+// a negative number after an error.
+double BenchPersist(const std::string& work_dir, const std::vector<Frame>& frames,
+                    const std::shared_ptr<const Vocabulary>& vocabulary, SyncMode mode, int writers,
+                    bool acked_file) {
   StorageOptions storage;
   storage.sync = mode;
+  storage.acked_file = acked_file;
   const std::string label =
       std::string(mode == SyncMode::kEveryWrite ? "sync_every_write" : "group_commit_5ms") + "_" +
-      std::to_string(writers) + "_writers";
-  auto dir = DataDirectory::Open(work_dir + "/" + label, storage);
-  if (!dir.ok()) return false;
+      std::to_string(writers) + "_writers" + (acked_file ? "" : "_no_acked");
+  static int run = 0;
+  auto dir = DataDirectory::Open(work_dir + "/" + label + "-" + std::to_string(run++), storage);
+  if (!dir.ok()) return -1;
   MapOptions options;
   auto map = (*dir)->CreateMap("m", options, vocabulary);
-  if (!map.ok()) return false;
+  if (!map.ok()) return -1;
   std::vector<ProcessedFrame> processed;
   for (const Frame& frame : frames) {
     Observation observation;
@@ -219,8 +227,7 @@ bool BenchPersist(const std::string& work_dir, const std::vector<Frame>& frames,
     });
   }
   for (auto& thread : threads) thread.join();
-  Print("persist_" + label, double(processed.size()) / ((NowMs() - start) / 1000.0), "places/s");
-  return true;
+  return double(processed.size()) / ((NowMs() - start) / 1000.0);
 }
 
 // Places `first` .. `target` - 1 added by 2 writers: CamVid feature sets with a random 90 % of
@@ -312,14 +319,29 @@ int main(int argc, char** argv) {
       "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",
       frames.size(), (*vocabulary)->word_count());
 
-  if (!BenchFiltering(work_dir, frames, *vocabulary)) return 1;
-  // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads.
+  if (!options.persist_only && !BenchFiltering(work_dir, frames, *vocabulary)) return 1;
+  // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads; with the
+  // ACKED high-water mark (the default) and without it, in the order with, without, without,
+  // with (drift in the machine's load then weighs on both alike); the mean of the two runs.
   for (SyncMode mode : {SyncMode::kEveryWrite, SyncMode::kGroupCommit}) {
-    for (int writers : {2, 8}) {
-      if (!BenchPersist(work_dir, frames, *vocabulary, mode, writers)) return 1;
+    for (int writers : {1, 2, 8}) {
+      double rate[2] = {0, 0};  // [acked_file]
+      for (bool acked_file : {true, false, false, true}) {
+        const double r = BenchPersist(work_dir, frames, *vocabulary, mode, writers, acked_file);
+        if (r < 0) return 1;
+        rate[acked_file] += r / 2;
+      }
+      const std::string label =
+          std::string(mode == SyncMode::kEveryWrite ? "sync_every_write" : "group_commit_5ms") +
+          "_" + std::to_string(writers) + "_writers";
+      Print("persist_" + label, rate[1], "places/s");
+      Print("persist_" + label + "_no_acked", rate[0], "places/s");
+      Print("acked_cost_" + label, 100.0 * (1.0 - rate[1] / rate[0]), "%");
     }
   }
-  if (!BenchReopen(work_dir, frames, *vocabulary, options.reopen_sizes)) return 1;
+  if (!options.persist_only && !BenchReopen(work_dir, frames, *vocabulary, options.reopen_sizes)) {
+    return 1;
+  }
   fs::remove_all(work_dir);
   return 0;
 }

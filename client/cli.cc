@@ -77,6 +77,10 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   if (maps.remove->parsed()) {
     return MapsDelete(c, maps_flags.delete_name, maps_flags.delete_yes, json, io);
   }
+  if (maps.recover->parsed()) {
+    return MapsRecover(c, maps_flags.recover_name, maps_flags.accept_data_loss, json, io);
+  }
+  if (maps.scrub->parsed()) return MapsScrub(c, maps_flags.scrub_name, json, io);
   if (ingest->parsed()) return RunIngest(c, ingest_options, json, io);
   if (query->parsed()) return RunQuery(c, query_flags, json, io);
   if (place.get->parsed()) {

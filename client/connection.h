@@ -26,6 +26,7 @@ enum ExitCode : int {
   kExitOk = 0,
   kExitRpcError = 1,  // an RPC failed (message printed with the gRPC code name)
   kExitUsage = 2,     // bad command line or unreadable local input
+  kExitDamage = 3,    // `maps scrub` found damage
 };
 
 struct ConnectionOptions {

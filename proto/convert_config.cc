@@ -562,6 +562,31 @@ void MapStatsToProto(const MapStats& stats, v1::MapStats* out) {
   out->set_short_term_places(stats.database.short_term_places);
 }
 
+void MapDamageToProto(const MapDamage& damage, v1::MapDamage* out) {
+  out->set_reason(damage.reason);
+  out->set_writes_lost(damage.writes_lost);
+  out->set_places_lost(damage.places_lost);
+  out->set_first_lost_place(damage.first_lost);
+  out->set_last_lost_place(damage.last_lost);
+  out->set_recovered_unix_ms(damage.recovered_unix_ms);
+}
+
+void ScrubReportToProto(const ScrubReport& report, v1::ScrubReport* out) {
+  out->set_places_checked(report.places_checked);
+  out->set_files_checked(report.files_checked);
+  for (const ScrubReport::Place& place : report.damaged_places) {
+    v1::ScrubReport::DamagedPlace* damaged = out->add_damaged_places();
+    damaged->set_place_id(place.id);
+    damaged->set_reason(place.reason);
+  }
+  for (const ScrubReport::File& file : report.damaged_files) {
+    v1::ScrubReport::DamagedFile* damaged = out->add_damaged_files();
+    damaged->set_file(file.file);
+    damaged->set_reason(file.reason);
+  }
+  out->set_clean(report.clean());
+}
+
 QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id) {
   QueryOptions out;
   out.top_k = options.top_k() == 0 ? 10 : std::min<size_t>(options.top_k(), 1000);

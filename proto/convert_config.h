@@ -48,6 +48,8 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& config,
 void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& settings,
                       const std::string& vocabulary_name, v1::MapConfig* out);
 void MapStatsToProto(const MapStats& stats, v1::MapStats* out);
+void MapDamageToProto(const MapDamage& damage, v1::MapDamage* out);
+void ScrubReportToProto(const ScrubReport& report, v1::ScrubReport* out);
 
 // The proto <-> core enum mappings. FromProto takes UNSPECIFIED as the default the proto
 // documents; values outside the enum are INVALID_ARGUMENT naming `field`.

@@ -44,6 +44,15 @@ Result<std::unique_ptr<MapRegistry>> MapRegistry::Open(const std::string& data_d
                    entry->vocabulary_name,
                    FeatureTypeName(entry->map->database().config().feature_type),
                    entry->map->database().Stats().places);
+      if (!entry->map->open_note().empty()) {
+        spdlog::warn("map '{}': {}", name, entry->map->open_note());
+      }
+      if (entry->places_lost() > 0 || !entry->map->damage_history().empty()) {
+        spdlog::warn("map '{}' was recovered from damage earlier: {} acknowledged places lost",
+                     name, entry->places_lost());
+      }
+    } else if (entry->damaged) {
+      spdlog::error("map '{}' is DAMAGED and not served: {}", name, entry->unavailable_reason);
     } else {
       spdlog::warn("map '{}' unavailable: {}", name, entry->unavailable_reason);
     }
@@ -94,54 +103,135 @@ Result<const VocabularyEntry*> MapRegistry::ResolveVocabulary(const std::string&
                                  "' is not configured (configured: " + configured + ")");
 }
 
+uint64_t MapEntry::places_lost() const {
+  if (!map) return damage.places_lost;
+  uint64_t lost = 0;
+  for (const MapDamage& accepted : map->damage_history()) lost += accepted.places_lost;
+  return lost;
+}
+
+Result<const VocabularyEntry*> MapRegistry::VocabularyFor(const MapInfo& info) const {
+  for (const VocabularyEntry& candidate : vocabularies_) {
+    if (candidate.vocabulary.checksum() == info.vocabulary_checksum) return &candidate;
+  }
+  std::string configured;
+  for (const VocabularyEntry& candidate : vocabularies_) {
+    configured += (configured.empty() ? "" : ", ") + candidate.name + "=" +
+                  candidate.vocabulary.checksum_hex();
+  }
+  return Status::FailedPrecondition("built with vocabulary " + Hex(info.vocabulary_checksum) +
+                                    ", which is not configured (configured: " + configured +
+                                    MissingNote() +
+                                    "); add it under `vocabularies` in the server config");
+}
+
 std::shared_ptr<const MapEntry> MapRegistry::Load(const std::string& name) {
   auto entry = std::make_shared<MapEntry>();
   entry->name = name;
+  auto damaged = [&](const std::string& reason) {
+    entry->damaged = true;
+    entry->damage.reason = reason;
+    entry->unavailable_reason = reason;
+    return entry;
+  };
   auto info = directory_->ReadMapInfo(name);
   if (!info.ok()) {
+    if (info.status().code() == StatusCode::kCorruption) return damaged(info.status().message());
     entry->unavailable_reason = "cannot read its info: " + info.status().ToString();
     return entry;
   }
-  const VocabularyEntry* vocabulary = nullptr;
-  for (const VocabularyEntry& candidate : vocabularies_) {
-    if (candidate.vocabulary.checksum() == info->vocabulary_checksum) vocabulary = &candidate;
-  }
-  if (!vocabulary) {
-    std::string configured;
-    for (const VocabularyEntry& candidate : vocabularies_) {
-      configured += (configured.empty() ? "" : ", ") + candidate.name + "=" +
-                    candidate.vocabulary.checksum_hex();
-    }
-    entry->unavailable_reason = "built with vocabulary " + Hex(info->vocabulary_checksum) +
-                                ", which is not configured (configured: " + configured +
-                                MissingNote() +
-                                "); add it under `vocabularies` in the server config";
+  auto vocabulary = VocabularyFor(*info);
+  if (!vocabulary.ok()) {
+    entry->unavailable_reason = vocabulary.status().message();
     return entry;
   }
-  auto map = directory_->OpenMap(name, vocabulary->vocabulary);
+  MapDamage damage;
+  auto map = directory_->OpenMap(name, (*vocabulary)->vocabulary, &damage);
   if (!map.ok()) {
+    if (!damage.reason.empty()) {
+      damaged(damage.reason);
+      entry->damage = damage;
+      return entry;
+    }
     entry->unavailable_reason = "cannot be opened: " + map.status().ToString();
     return entry;
   }
   entry->map = std::move(map).value();
-  entry->vocabulary_name = vocabulary->name;
+  entry->vocabulary_name = (*vocabulary)->name;
   entry->settings = DecodeSettings(name, entry->map->info().options.service_json);
   return entry;
 }
 
 Result<std::shared_ptr<const MapEntry>> MapRegistry::Get(const std::string& name,
                                                          const std::string& field) const {
+  auto entry = Find(name, field);
+  if (!entry.ok()) return entry;
+  if ((*entry)->damaged) {
+    return Status::Corruption("map '" + name + "' is damaged: " + (*entry)->unavailable_reason +
+                              " (see `placedb maps recover`)");
+  }
+  if (!(*entry)->map) {
+    return Status::FailedPrecondition("map '" + name +
+                                      "' is unavailable: " + (*entry)->unavailable_reason);
+  }
+  return entry;
+}
+
+Result<std::shared_ptr<const MapEntry>> MapRegistry::Find(const std::string& name,
+                                                          const std::string& field) const {
   if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
     return Status::InvalidArgument(field + ": " + valid.message());
   }
   MutexLock lock(mutex_);
   auto it = maps_.find(name);
   if (it == maps_.end()) return Status::NotFound("map '" + name + "' not found");
-  if (!it->second->map) {
-    return Status::FailedPrecondition("map '" + name +
-                                      "' is unavailable: " + it->second->unavailable_reason);
-  }
   return it->second;
+}
+
+Result<std::shared_ptr<const MapEntry>> MapRegistry::Recover(const std::string& name,
+                                                             bool accept_data_loss,
+                                                             MapDamage* accepted) {
+  auto existing = Find(name, "name");
+  if (!existing.ok()) return existing.status();
+  if (!accept_data_loss) {
+    return Status::InvalidArgument(
+        "accept_data_loss: must be set: recovering map '" + name +
+        "' drops for good whatever cannot be read (" +
+        ((*existing)->damaged ? (*existing)->unavailable_reason : std::string("not damaged")) +
+        ")");
+  }
+  MutexLock create_lock(create_mutex_);
+  if (!directory_) return Status::IoError("the data directory is closed (shutting down)");
+  {
+    MutexLock lock(mutex_);
+    auto it = maps_.find(name);
+    if (it == maps_.end()) return Status::NotFound("map '" + name + "' not found");
+    if (!it->second->damaged) {
+      return Status::FailedPrecondition(
+          "map '" + name + "' is not damaged" +
+          (it->second->map ? std::string()
+                           : ": it is unavailable: " + it->second->unavailable_reason));
+    }
+  }
+  std::string vocabulary_name;
+  auto map = directory_->RecoverMap(
+      name,
+      [&](const MapInfo& info) -> Result<AnyVocabulary> {
+        auto vocabulary = VocabularyFor(info);
+        if (!vocabulary.ok()) return vocabulary.status();
+        vocabulary_name = (*vocabulary)->name;
+        return (*vocabulary)->vocabulary;
+      },
+      accepted);
+  if (!map.ok()) return map.status();
+  auto entry = std::make_shared<MapEntry>();
+  entry->name = name;
+  entry->map = std::move(map).value();
+  entry->vocabulary_name = vocabulary_name;
+  entry->settings = DecodeSettings(name, entry->map->info().options.service_json);
+  MutexLock lock(mutex_);
+  maps_[name] = entry;
+  return std::shared_ptr<const MapEntry>(entry);
 }
 
 Result<std::shared_ptr<const MapEntry>> MapRegistry::Create(const std::string& name,

@@ -5,7 +5,9 @@
 // checksum the map recorded (DataDirectory::ReadMapInfo). A vocabulary is binary (ORB maps) or
 // float (SIFT maps): AnyVocabulary. A map whose vocabulary is not configured (or is an embedded
 // default whose file is missing), or that fails to open, is listed as unavailable with the
-// reason; it is not fatal.
+// reason; it is not fatal. A map whose files are damaged or that lost acknowledged places
+// (DataDirectory::OpenMap's CORRUPTION) is listed as damaged, logged at error level naming the
+// file, and refused with CORRUPTION (DATA_LOSS) until Recover accepts the loss.
 //
 // Service settings the core's database config has no field for (box source, detection on/off)
 // are stored as JSON in the map's own info (MapOptions::service_json): written atomically with
@@ -47,6 +49,10 @@ struct MapEntry {
   std::string vocabulary_name;
   ServiceMapSettings settings;
   std::string unavailable_reason;
+  bool damaged = false;  // unavailable because damaged; `damage` says how
+  MapDamage damage;
+  // Places lost: found missing (damaged) or accepted as lost (the map's damage history).
+  uint64_t places_lost() const;
 };
 
 class MapRegistry {
@@ -61,9 +67,18 @@ class MapRegistry {
   ~MapRegistry();
 
   // NOT_FOUND when the map does not exist; FAILED_PRECONDITION (with the reason) when it exists
-  // but is unavailable. `field` names the request field holding the name.
+  // but is unavailable; CORRUPTION (with the reason) when it is damaged. `field` names the
+  // request field holding the name.
   Result<std::shared_ptr<const MapEntry>> Get(const std::string& name,
                                               const std::string& field) const;
+  // The entry whatever its state (GetMap shows damaged maps too); NOT_FOUND when absent.
+  Result<std::shared_ptr<const MapEntry>> Find(const std::string& name,
+                                               const std::string& field) const;
+  // DataDirectory::RecoverMap for a damaged map: INVALID_ARGUMENT unless `accept_data_loss`;
+  // FAILED_PRECONDITION when the map is not damaged or cannot be recovered (it stays damaged).
+  // `accepted` receives the loss accepted. The entry is replaced by the recovered map's.
+  Result<std::shared_ptr<const MapEntry>> Recover(const std::string& name, bool accept_data_loss,
+                                                  MapDamage* accepted);
   // INVALID_ARGUMENT for a bad name (`field` prefix) or unknown vocabulary; ALREADY_EXISTS.
   Result<std::shared_ptr<const MapEntry>> Create(const std::string& name, const MapOptions& options,
                                                  const std::string& vocabulary_name,
@@ -86,6 +101,9 @@ class MapRegistry {
               std::vector<MissingVocabulary> missing);
   std::string MissingNote() const;  // "; not loaded: sift (path: reason)" or ""
   std::shared_ptr<const MapEntry> Load(const std::string& name) REQUIRES(create_mutex_);
+  // The configured vocabulary whose checksum the map recorded; FAILED_PRECONDITION naming the
+  // configured ones otherwise.
+  Result<const VocabularyEntry*> VocabularyFor(const MapInfo& info) const;
   // The service's per-map settings, kept in the map's own info (MapOptions::service_json).
   static ServiceMapSettings DecodeSettings(const std::string& name, const std::string& text);
   static std::string EncodeSettings(const ServiceMapSettings& settings);

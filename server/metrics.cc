@@ -89,6 +89,15 @@ Metrics::Metrics()
                       .Name("placedb_map_on_disk_bytes")
                       .Help("Bytes of a map's files on disk")
                       .Register(*registry_)),
+      damaged_(BuildGauge()
+                   .Name("placedb_map_damaged")
+                   .Help("1 while a map is damaged (not served until recovered), else 0")
+                   .Register(*registry_)),
+      places_lost_(BuildGauge()
+                       .Name("placedb_map_places_lost")
+                       .Help("Acknowledged places a map is missing (damaged) or lost for good "
+                             "(recovered)")
+                       .Register(*registry_)),
       streams_(BuildGauge()
                    .Name("placedb_streams_in_flight")
                    .Help("Open Ingest streams")
@@ -190,11 +199,18 @@ void Metrics::SetMapGauges(const std::string& map, double places, double bytes_o
   disk_bytes_.Add({{"map", map}}).Set(bytes_on_disk);
 }
 
+void Metrics::SetMapDamage(const std::string& map, bool damaged, double places_lost) {
+  damaged_.Add({{"map", map}}).Set(damaged ? 1 : 0);
+  places_lost_.Add({{"map", map}}).Set(places_lost);
+}
+
 void Metrics::ForgetMap(const std::string& map) {
   // Family::Add returns the existing series for known labels, so this finds them to remove.
   // Only the label sets this class creates are removed (rejection reasons are a closed set).
   places_.Remove(&places_.Add({{"map", map}}));
   disk_bytes_.Remove(&disk_bytes_.Add({{"map", map}}));
+  damaged_.Remove(&damaged_.Add({{"map", map}}));
+  places_lost_.Remove(&places_lost_.Add({{"map", map}}));
   ingested_.Remove(&ingested_.Add({{"map", map}}));
   merged_.Remove(&merged_.Add({{"map", map}}));
   loops_.Remove(&loops_.Add({{"map", map}}));

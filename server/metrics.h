@@ -62,6 +62,10 @@ class Metrics {
   void LoopClosed(const std::string& map);
   void LoopRejected(const std::string& map);  // accepted by the filter, failed verification
   void SetMapGauges(const std::string& map, double places, double bytes_on_disk);
+  // A map's damage (docs/storage.md, "Damage"): placedb_map_damaged 1 while it is damaged, and
+  // placedb_map_places_lost, the acknowledged places found missing (damaged) or accepted as
+  // lost (recovered).
+  void SetMapDamage(const std::string& map, bool damaged, double places_lost);
   void ForgetMap(const std::string& map);  // a deleted map's series go away
   void StreamOpened();
   void StreamClosed();
@@ -82,6 +86,8 @@ class Metrics {
   prometheus::Family<prometheus::Counter>& loops_rejected_;
   prometheus::Family<prometheus::Gauge>& places_;
   prometheus::Family<prometheus::Gauge>& disk_bytes_;
+  prometheus::Family<prometheus::Gauge>& damaged_;
+  prometheus::Family<prometheus::Gauge>& places_lost_;
   prometheus::Gauge& streams_;
   prometheus::Family<prometheus::Counter>& streams_reclaimed_;
   prometheus::Gauge& queue_depth_;

@@ -194,9 +194,25 @@ void PlaceDbService::ObserveStages(const StageTimings& t) {
 
 namespace {
 
+v1::MapState StateOf(const MapEntry& entry) {
+  if (entry.damaged) return v1::MAP_STATE_DAMAGED;
+  if (!entry.map) return v1::MAP_STATE_UNAVAILABLE;
+  return entry.map->damage_history().empty() ? v1::MAP_STATE_AVAILABLE : v1::MAP_STATE_RECOVERED;
+}
+
 void Describe(const MapEntry& entry, v1::MapDescription* out) {
-  const MapInfo& info = entry.map->info();
   out->set_name(entry.name);
+  out->set_state(StateOf(entry));
+  out->set_places_lost(entry.places_lost());
+  if (!entry.map) {
+    out->set_unavailable_reason(entry.unavailable_reason);
+    if (entry.damaged) wire::MapDamageToProto(entry.damage, out->mutable_damage());
+    return;
+  }
+  for (const MapDamage& accepted : entry.map->damage_history()) {
+    wire::MapDamageToProto(accepted, out->add_damage_history());
+  }
+  const MapInfo& info = entry.map->info();
   MapConfigToProto(info.options, entry.settings, entry.vocabulary_name, out->mutable_config());
   MapStatsToProto(entry.map->Stats(), out->mutable_stats());
   out->set_vocabulary_checksum(entry.map->database().vocabulary().checksum_hex());
@@ -245,7 +261,8 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
 grpc::Status PlaceDbService::GetMap(grpc::ServerContext* context, const v1::GetMapRequest* request,
                                     v1::MapDescription* response) {
   CallScope scope(this);
-  auto entry = maps_->Get(request->name(), "name");
+  // Damaged and unavailable maps are described too: their state is what an operator looks for.
+  auto entry = maps_->Find(request->name(), "name");
   if (!entry.ok()) return Finish("GetMap", context, ToGrpc(entry.status()));
   Describe(**entry, response);
   return Finish("GetMap", context, grpc::Status::OK);
@@ -260,6 +277,8 @@ grpc::Status PlaceDbService::ListMaps(grpc::ServerContext* context, const v1::Li
     summary->set_available(entry->map != nullptr);
     summary->set_unavailable_reason(HidePaths(entry->unavailable_reason, config_.data_dir));
     summary->set_vocabulary(entry->vocabulary_name);
+    summary->set_state(StateOf(*entry));
+    summary->set_places_lost(entry->places_lost());
     if (entry->map) {
       summary->set_places(entry->map->database().Stats().places);
       summary->set_feature_type(FeatureTypeToProto(entry->map->database().config().feature_type));
@@ -279,6 +298,50 @@ grpc::Status PlaceDbService::DeleteMap(grpc::ServerContext* context,
   metrics_->ForgetMap(request->name());
   spdlog::info("map '{}' deleted, peer={}", request->name(), Peer(context));
   return Finish("DeleteMap", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::RecoverMap(grpc::ServerContext* context,
+                                        const v1::RecoverMapRequest* request,
+                                        v1::RecoverMapResponse* response) {
+  CallScope scope(this);
+  if (draining_flag_) return Finish("RecoverMap", context, Unavailable());
+  MapDamage accepted;
+  auto entry = maps_->Recover(request->name(), request->accept_data_loss(), &accepted);
+  if (!entry.ok()) return Finish("RecoverMap", context, ToGrpc(entry.status()));
+  Describe(**entry, response->mutable_map());
+  wire::MapDamageToProto(accepted, response->mutable_accepted());
+  // Error level when anything was lost: an operator's log search for damage must find it.
+  spdlog::log(accepted.writes_lost > 0 ? spdlog::level::err : spdlog::level::warn,
+              "map '{}' recovered with data loss accepted: {} acknowledged places lost ({} "
+              "writes); {}; peer={}",
+              request->name(), accepted.places_lost, accepted.writes_lost,
+              accepted.reason.empty() ? std::string("it was not damaged") : accepted.reason,
+              Peer(context));
+  return Finish("RecoverMap", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::ScrubMap(grpc::ServerContext* context,
+                                      const v1::ScrubMapRequest* request,
+                                      v1::ScrubReport* response) {
+  CallScope scope(this);
+  auto entry = maps_->Get(request->name(), "name");
+  if (!entry.ok()) return Finish("ScrubMap", context, ToGrpc(entry.status()));
+  auto report = (*entry)->map->Scrub();
+  if (!report.ok()) return Finish("ScrubMap", context, ToGrpc(report.status()));
+  wire::ScrubReportToProto(*report, response);
+  if (report->clean()) {
+    spdlog::info("map '{}' scrubbed: {} places, {} files, no damage", request->name(),
+                 report->places_checked, report->files_checked);
+  } else {
+    spdlog::error("map '{}' scrubbed: {} of {} places and {} of {} files damaged{}{}",
+                  request->name(), report->damaged_places.size(), report->places_checked,
+                  report->damaged_files.size(), report->files_checked,
+                  report->damaged_files.empty() ? "" : "; first: ",
+                  report->damaged_files.empty()
+                      ? ""
+                      : report->damaged_files[0].file + ": " + report->damaged_files[0].reason);
+  }
+  return Finish("ScrubMap", context, grpc::Status::OK);
 }
 
 // ---- Places -------------------------------------------------------------------------------------
@@ -963,6 +1026,7 @@ void PlaceDbService::ReclaimExpired(Clock::time_point now) {
 
 void PlaceDbService::RefreshMapGauges() {
   for (const auto& entry : maps_->List()) {
+    metrics_->SetMapDamage(entry->name, entry->damaged, double(entry->places_lost()));
     if (!entry->map) continue;
     const MapStats stats = entry->map->Stats();
     metrics_->SetMapGauges(entry->name, double(stats.database.places), double(stats.bytes_on_disk));

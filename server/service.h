@@ -60,6 +60,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                         v1::ListMapsResponse* response) override;
   grpc::Status DeleteMap(grpc::ServerContext* context, const v1::DeleteMapRequest* request,
                          v1::DeleteMapResponse* response) override;
+  grpc::Status RecoverMap(grpc::ServerContext* context, const v1::RecoverMapRequest* request,
+                          v1::RecoverMapResponse* response) override;
+  grpc::Status ScrubMap(grpc::ServerContext* context, const v1::ScrubMapRequest* request,
+                        v1::ScrubReport* response) override;
   grpc::Status Ingest(
       grpc::ServerContext* context,
       grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* stream) override;
@@ -80,7 +84,7 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   void BeginDrain();
   // Waits until no call is being served (after BeginDrain), or until `deadline`. True if idle.
   bool WaitIdle(std::chrono::steady_clock::time_point deadline);
-  // Sets the per-map gauges (places, bytes on disk); run before each metrics scrape.
+  // Sets the per-map gauges (places, bytes on disk, damage); run before each metrics scrape.
   void RefreshMapGauges();
   // A request that is not a valid message (ParsingService): counted and logged as every answer.
   grpc::Status RefuseMalformed(const char* method, grpc::ServerContext* context,

@@ -225,6 +225,59 @@ TEST_F(ClientTest, MapsCreateListShowDelete) {
 
 // Frames 1..20 of the loop as two agents; a revisit frame then finds a ground-truth match, and the
 // matched place can be read and deleted.
+// A damaged map (its ACKED file deleted) is listed as DAMAGED; `maps scrub` on it fails with
+// DATA_LOSS; `maps recover` refuses without --accept-data-loss, recovers with it, and `maps
+// scrub` then finds nothing (exit 0; exit 3 is for damage found, covered by the service tests).
+TEST_F(ClientTest, MapsRecoverAndScrub) {
+  ASSERT_EQ(Cli({"maps", "create", "lab"}).code, 0);
+  CliRun ingested = Cli({"ingest", "lab", FramesDir(1, 6)});
+  ASSERT_EQ(ingested.code, 0) << ingested.err;
+  server_.reset();
+  ASSERT_TRUE(fs::remove(root_ + "/data/maps/lab/ACKED"));
+  {
+    server::ServerConfig config;
+    config.listen = "127.0.0.1:0";
+    config.metrics_listen = "";
+    config.data_dir = root_ + "/data";
+    config.threads = 2;
+    config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};
+    server::ServerDeps deps;
+    deps.vocabularies.emplace("default", testing::DefaultVocabulary());
+    auto started = server::Server::Start(config, deps);
+    ASSERT_TRUE(started.ok()) << started.status().ToString();
+    server_ = std::move(started).value();
+    address_ = "127.0.0.1:" + std::to_string(server_->port());
+  }
+  CliRun listed = Cli({"maps", "list"});
+  ASSERT_EQ(listed.code, 0) << listed.err;
+  EXPECT_NE(listed.out.find("DAMAGED: maps/lab/ACKED is missing"), std::string::npos) << listed.out;
+  EXPECT_EQ(listed.out.find(root_), std::string::npos) << listed.out;
+  CliRun shown = Cli({"maps", "show", "lab"});
+  ASSERT_EQ(shown.code, 0) << shown.err;
+  EXPECT_NE(shown.out.find("placedb maps recover lab --accept-data-loss"), std::string::npos)
+      << shown.out;
+  CliRun refused = Cli({"maps", "scrub", "lab"});
+  EXPECT_EQ(refused.code, 1);
+  EXPECT_NE(refused.err.find("DATA_LOSS"), std::string::npos) << refused.err;
+  CliRun ingest = Cli({"ingest", "lab", FramesDir(7, 8)});
+  EXPECT_EQ(ingest.code, 1);
+  EXPECT_NE(ingest.err.find("DATA_LOSS: map 'lab' is damaged"), std::string::npos) << ingest.err;
+  CliRun unconfirmed = Cli({"maps", "recover", "lab"});
+  EXPECT_EQ(unconfirmed.code, 2);
+  EXPECT_NE(unconfirmed.err.find("--accept-data-loss"), std::string::npos) << unconfirmed.err;
+  CliRun recovered = Cli({"maps", "recover", "lab", "--accept-data-loss"});
+  ASSERT_EQ(recovered.code, 0) << recovered.err;
+  EXPECT_NE(recovered.out.find("recovered map 'lab': 0 places lost"), std::string::npos)
+      << recovered.out;
+  listed = Cli({"maps", "list"});
+  EXPECT_NE(listed.out.find("recovered (0 places lost)"), std::string::npos) << listed.out;
+  CliRun scrubbed = Cli({"maps", "scrub", "lab", "--json"});
+  ASSERT_EQ(scrubbed.code, 0) << scrubbed.err;
+  const json report = ParseJson(scrubbed);
+  EXPECT_EQ(report["clean"], true);
+  EXPECT_GT(std::stoi(report["places_checked"].get<std::string>()), 0);
+}
+
 TEST_F(ClientTest, IngestFolderAsTwoAgentsThenQueryFindsTheRevisit) {
   ASSERT_EQ(Cli({"maps", "create", "loop"}).code, 0);
   const std::string frames = FramesDir(1, 20);

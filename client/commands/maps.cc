@@ -141,9 +141,53 @@ Rows StatsRows(const v1::MapStats& s) {
   return stats;
 }
 
+std::string DamageText(const v1::MapDamage& damage) {
+  std::string text = std::to_string(damage.places_lost()) + " places lost";
+  if (damage.places_lost() > 0) {
+    text += " (ids " + std::to_string(damage.first_lost_place()) + ".." +
+            std::to_string(damage.last_lost_place()) + ")";
+  }
+  return text + ", " + std::to_string(damage.writes_lost()) + " writes: " + damage.reason();
+}
+
+// "available", "recovered (N places lost)", "damaged: reason", "unavailable: reason".
+std::string StateText(v1::MapState state, uint64_t places_lost, const std::string& reason) {
+  switch (state) {
+    case v1::MAP_STATE_RECOVERED:
+      return "recovered (" + std::to_string(places_lost) + " places lost)";
+    case v1::MAP_STATE_DAMAGED:
+      return "DAMAGED: " + reason;
+    case v1::MAP_STATE_UNAVAILABLE:
+      return "unavailable: " + reason;
+    default:
+      return "available";
+  }
+}
+
 void PrintMap(const v1::MapDescription& map, CliIo& io) {
-  PrintKeyValues(io.out, "map " + map.name(), ConfigRows(map));
+  if (map.state() == v1::MAP_STATE_DAMAGED || map.state() == v1::MAP_STATE_UNAVAILABLE) {
+    Rows rows = {{"state", StateText(map.state(), map.places_lost(), map.unavailable_reason())}};
+    if (map.state() == v1::MAP_STATE_DAMAGED) {
+      rows.push_back({"places lost", map.damage().writes_lost() == 0 && map.places_lost() == 0
+                                         ? std::string("unknown until recovered")
+                                         : std::to_string(map.places_lost())});
+      rows.push_back({"recover", "placedb maps recover " + map.name() + " --accept-data-loss"});
+    }
+    PrintKeyValues(io.out, "map " + map.name(), rows);
+    return;
+  }
+  Rows config = ConfigRows(map);
+  config.insert(config.begin(),
+                {"state", StateText(map.state(), map.places_lost(), map.unavailable_reason())});
+  PrintKeyValues(io.out, "map " + map.name(), config);
   PrintKeyValues(io.out, "statistics", StatsRows(map.stats()));
+  if (map.damage_history_size() > 0) {
+    Rows history;
+    for (const v1::MapDamage& damage : map.damage_history()) {
+      history.push_back({FormatUnixMs(damage.recovered_unix_ms()), DamageText(damage)});
+    }
+    PrintKeyValues(io.out, "damage history (losses accepted)", history);
+  }
 }
 
 // Only the options given are set; the server fills in the rest.
@@ -351,6 +395,14 @@ MapsCommands RegisterMaps(CLI::App& app, MapsFlags* flags) {
   commands.remove = maps->add_subcommand("delete", "delete a map and all its places");
   commands.remove->add_option("NAME", flags->delete_name, "map name")->required();
   commands.remove->add_flag("--yes,-y", flags->delete_yes, "do not ask for confirmation");
+  commands.recover = maps->add_subcommand(
+      "recover", "accept a damaged map's losses: reopen it with what can be read");
+  commands.recover->add_option("NAME", flags->recover_name, "map name")->required();
+  commands.recover->add_flag("--accept-data-loss", flags->accept_data_loss,
+                             "required: what cannot be read is dropped for good");
+  commands.scrub = maps->add_subcommand(
+      "scrub", "read every place of a map and verify its files (exit 3 when damaged)");
+  commands.scrub->add_option("NAME", flags->scrub_name, "map name")->required();
   return commands;
 }
 
@@ -384,10 +436,15 @@ int MapsList(const Connection& connection, bool json, CliIo& io) {
   }
   Table table({"NAME", ">PLACES", "VOCABULARY", "FEATURES", "STATUS"});
   for (const v1::MapSummary& map : response.maps()) {
+    // A server without map states (older) says only available or not.
+    const v1::MapState state =
+        map.state() != v1::MAP_STATE_UNSPECIFIED
+            ? map.state()
+            : (map.available() ? v1::MAP_STATE_AVAILABLE : v1::MAP_STATE_UNAVAILABLE);
     table.Add({map.name(), map.available() ? std::to_string(map.places()) : "-",
                map.vocabulary().empty() ? "-" : map.vocabulary(),
                map.available() ? wire::EnumName(map.feature_type()) : "-",
-               map.available() ? "available" : "unavailable: " + map.unavailable_reason()});
+               StateText(state, map.places_lost(), map.unavailable_reason())});
   }
   table.Print(io.out);
   return kExitOk;
@@ -434,6 +491,66 @@ int MapsDelete(const Connection& connection, const std::string& name, bool yes, 
     io.out << "deleted map '" << name << "'\n";
   }
   return kExitOk;
+}
+
+int MapsRecover(const Connection& connection, const std::string& name, bool accept_data_loss,
+                bool json, CliIo& io) {
+  if (!accept_data_loss) {
+    return UsageError(io, "recovering map '" + name +
+                              "' drops for good whatever cannot be read; say so with "
+                              "--accept-data-loss (see `placedb maps show " +
+                              name + "` for the damage)");
+  }
+  auto context = connection.NewContext();
+  v1::RecoverMapRequest request;
+  request.set_name(name);
+  request.set_accept_data_loss(true);
+  v1::RecoverMapResponse response;
+  const grpc::Status status = connection.stub()->RecoverMap(context.get(), request, &response);
+  if (!status.ok()) return RpcFailed(io, status);
+  if (json) {
+    io.out << ProtoJson(response) << '\n';
+    return kExitOk;
+  }
+  if (response.accepted().reason().empty()) {
+    io.out << "map '" << name << "' was not damaged: opened, nothing lost\n";
+  } else {
+    io.out << "recovered map '" << name << "': " << DamageText(response.accepted()) << '\n';
+  }
+  PrintMap(response.map(), io);
+  return kExitOk;
+}
+
+int MapsScrub(const Connection& connection, const std::string& name, bool json, CliIo& io) {
+  auto context = connection.NewContext();
+  v1::ScrubMapRequest request;
+  request.set_name(name);
+  v1::ScrubReport report;
+  const grpc::Status status = connection.stub()->ScrubMap(context.get(), request, &report);
+  if (!status.ok()) return RpcFailed(io, status);
+  if (json) {
+    io.out << ProtoJson(report) << '\n';
+  } else {
+    io.out << "scrubbed map '" << name << "': " << report.places_checked() << " places, "
+           << report.files_checked() << " files: "
+           << (report.clean() ? "no damage"
+                              : std::to_string(report.damaged_places_size()) + " places and " +
+                                    std::to_string(report.damaged_files_size()) + " files damaged")
+           << '\n';
+    if (report.damaged_files_size() > 0) {
+      Table files({"FILE", "DAMAGE"});
+      for (const auto& file : report.damaged_files()) files.Add({file.file(), file.reason()});
+      files.Print(io.out);
+    }
+    if (report.damaged_places_size() > 0) {
+      Table places({">PLACE", "DAMAGE"});
+      for (const auto& place : report.damaged_places()) {
+        places.Add({std::to_string(place.place_id()), place.reason()});
+      }
+      places.Print(io.out);
+    }
+  }
+  return report.clean() ? kExitOk : kExitDamage;
 }
 
 }  // namespace placedb::client

@@ -1,5 +1,5 @@
-// `placedb maps create|list|show|delete` (docs/cli.md, "maps"). Options of `maps create` left
-// unset keep the server's defaults: the request sets only what was given.
+// `placedb maps create|list|show|delete|recover|scrub` (docs/cli.md, "maps"). Options of `maps
+// create` left unset keep the server's defaults: the request sets only what was given.
 #pragma once
 
 #include <cstdint>
@@ -79,6 +79,9 @@ struct MapsFlags {
   std::string show_name;
   std::string delete_name;
   bool delete_yes = false;
+  std::string recover_name;
+  bool accept_data_loss = false;
+  std::string scrub_name;
 };
 
 // The `maps` subcommands; the one parsed says which Maps* function runs.
@@ -87,6 +90,8 @@ struct MapsCommands {
   CLI::App* list = nullptr;
   CLI::App* show = nullptr;
   CLI::App* remove = nullptr;
+  CLI::App* recover = nullptr;
+  CLI::App* scrub = nullptr;
 };
 
 // Adds `maps` and its subcommands to `app`, their options bound to *flags.
@@ -98,5 +103,10 @@ int MapsShow(const Connection& connection, const std::string& name, bool json, C
 // Asks on io.in unless `yes`; refuses when io.in is not a terminal.
 int MapsDelete(const Connection& connection, const std::string& name, bool yes, bool json,
                CliIo& io);
+// RecoverMap: refused locally without --accept-data-loss (the server refuses it too).
+int MapsRecover(const Connection& connection, const std::string& name, bool accept_data_loss,
+                bool json, CliIo& io);
+// ScrubMap: prints the report; kExitDamage when anything is damaged.
+int MapsScrub(const Connection& connection, const std::string& name, bool json, CliIo& io);
 
 }  // namespace placedb::client

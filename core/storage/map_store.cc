@@ -1,5 +1,6 @@
 #include "core/storage/map_store.h"
 
+#include <fcntl.h>
 #include <rocksdb/cache.h>
 #include <rocksdb/convenience.h>
 #include <rocksdb/db.h>
@@ -8,9 +9,12 @@
 #include <rocksdb/table.h>
 #include <rocksdb/utilities/checkpoint.h>
 #include <rocksdb/write_batch.h>
+#include <unistd.h>
 
 #include <atomic>
+#include <cerrno>
 #include <chrono>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -33,6 +37,11 @@ constexpr char kFormatKey[] = "format";
 constexpr char kInfoKey[] = "info";
 constexpr char kIdFloorKey[] = "id_floor";               // ids below this were handed out once
 constexpr char kInvalidCountKey[] = "invalid_rejected";  // merge counter
+// Merge counter, +1 in every batch that is acknowledged (places, removals, stored invalid
+// frames): what the database holds, compared at open with ACKED (what was acknowledged).
+constexpr char kWritesKey[] = "acked_writes";
+constexpr char kDamageHistoryKey[] = "damage_history";  // JSON array of accepted losses
+constexpr char kAckedFile[] = "ACKED";
 
 const char* const kColumnFamilies[] = {rocksdb::kDefaultColumnFamilyName.c_str(), "places", "bow",
                                        "features", "invalid"};
@@ -110,7 +119,26 @@ rocksdb::DBOptions DatabaseOptions() {
   options.keep_log_file_num = 3;
   options.max_total_wal_size = size_t(128) << 20;
   options.avoid_flush_during_shutdown = false;
+  // A missing or shortened WAL is reported by RocksDB at open (not only by ACKED's count).
+  options.track_and_verify_wals_in_manifest = true;
   return options;
+}
+
+// Replaces `map_path` (as given, and absolute) in `text` with "maps/<name>": client-visible
+// messages never carry the server's absolute paths.
+std::string RelativeTo(std::string text, const std::string& map_path, const std::string& name) {
+  const std::string relative = "maps/" + name;
+  std::error_code ec;
+  std::vector<std::string> forms = {fs::absolute(map_path, ec).lexically_normal().string(),
+                                    fs::weakly_canonical(map_path, ec).string(), map_path};
+  for (const std::string& form : forms) {
+    if (form.empty()) continue;
+    for (size_t at = text.find(form); at != std::string::npos;
+         at = text.find(form, at + relative.size())) {
+      text.replace(at, form.size(), relative);
+    }
+  }
+  return text;
 }
 
 uint64_t DirectoryBytes(const std::string& path) {
@@ -226,6 +254,182 @@ class GroupCommitter {
   std::thread thread_;
 };
 
+// ACKED: the acknowledged high-water mark, independent of RocksDB's files. Two 40-byte slots at
+// offsets 0 and 512 (different sectors), written alternately with pwrite + fdatasync, so a torn
+// write leaves the other slot intact; the valid slot with the higher generation wins.
+// Slot: "PDBACK01", generation, acknowledged writes, highest acknowledged place id, FNV-1a 64 of
+// the 32 bytes before it; integers little-endian.
+struct AckState {
+  uint64_t generation = 0;
+  uint64_t writes = 0;
+  uint64_t max_place = 0;
+};
+
+constexpr char kAckMagic[8] = {'P', 'D', 'B', 'A', 'C', 'K', '0', '1'};
+constexpr size_t kAckSlotBytes = 40;
+constexpr off_t kAckSlotOffset[2] = {0, 512};
+constexpr size_t kAckFileBytes = 1024;
+
+uint64_t Fnv1a(const unsigned char* data, size_t size) {
+  uint64_t hash = 0xcbf29ce484222325ull;
+  for (size_t i = 0; i < size; ++i) hash = (hash ^ data[i]) * 0x100000001b3ull;
+  return hash;
+}
+
+void PutLe64(unsigned char* out, uint64_t v) {
+  for (int i = 0; i < 8; ++i) out[i] = static_cast<unsigned char>(v >> (8 * i));
+}
+
+uint64_t GetLe64(const unsigned char* in) {
+  uint64_t v = 0;
+  for (int i = 7; i >= 0; --i) v = (v << 8) | in[i];
+  return v;
+}
+
+std::string Errno(const std::string& what) {
+  return what + ": " + std::strerror(errno);
+}
+
+Status WriteAckSlot(int fd, const AckState& state) {
+  unsigned char slot[kAckSlotBytes];
+  std::memcpy(slot, kAckMagic, 8);
+  PutLe64(slot + 8, state.generation);
+  PutLe64(slot + 16, state.writes);
+  PutLe64(slot + 24, state.max_place);
+  PutLe64(slot + 32, Fnv1a(slot, 32));
+  const off_t offset = kAckSlotOffset[state.generation % 2];
+  // A full disk is RESOURCE_EXHAUSTED, as for RocksDB's own writes (FromRocks).
+  auto failed = [](const std::string& what) {
+    const std::string message = Errno(what);
+    return errno == ENOSPC || errno == EDQUOT ? Status::ResourceExhausted(message)
+                                              : Status::IoError(message);
+  };
+  if (pwrite(fd, slot, sizeof slot, offset) != ssize_t(sizeof slot)) {
+    return failed("writing ACKED");
+  }
+  if (fdatasync(fd) != 0) return failed("syncing ACKED");
+  return Status::Ok();
+}
+
+// NOT_FOUND when the file is missing; CORRUPTION when neither slot is valid.
+Result<AckState> ReadAcked(const std::string& file) {
+  const int fd = open(file.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    if (errno == ENOENT) return Status::NotFound("ACKED is missing");
+    return Status::IoError(Errno("opening ACKED"));
+  }
+  unsigned char bytes[kAckFileBytes] = {};
+  const ssize_t n = pread(fd, bytes, sizeof bytes, 0);
+  close(fd);
+  if (n < 0) return Status::IoError(Errno("reading ACKED"));
+  std::optional<AckState> best;
+  for (off_t offset : kAckSlotOffset) {
+    if (n < offset + ssize_t(kAckSlotBytes)) continue;
+    const unsigned char* slot = bytes + offset;
+    if (std::memcmp(slot, kAckMagic, 8) != 0 || GetLe64(slot + 32) != Fnv1a(slot, 32)) continue;
+    AckState state{GetLe64(slot + 8), GetLe64(slot + 16), GetLe64(slot + 24)};
+    if (!best || state.generation > best->generation) best = state;
+  }
+  if (!best) {
+    return Status::Corruption("ACKED is damaged: " + std::to_string(n) +
+                              " bytes, no record passes its checksum");
+  }
+  return *best;
+}
+
+Status SyncDirectory(const std::string& directory) {
+  const int fd = open(directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0) return Status::IoError(Errno("opening " + directory));
+  const int synced = fsync(fd);
+  close(fd);
+  if (synced != 0) return Status::IoError(Errno("syncing " + directory));
+  return Status::Ok();
+}
+
+// Creates (or replaces) ACKED holding `state` in both slots, durably.
+Status CreateAcked(const std::string& map_path, AckState state) {
+  const std::string file = (fs::path(map_path) / kAckedFile).string();
+  const std::string staging = file + ".tmp";
+  const int fd = open(staging.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) return Status::IoError(Errno("creating ACKED"));
+  Status written;
+  // Full size up front: later slot writes never change the size, so fdatasync stays cheap.
+  if (ftruncate(fd, off_t(kAckFileBytes)) != 0) written = Status::IoError(Errno("sizing ACKED"));
+  for (int i = 0; i < 2 && written.ok(); ++i, ++state.generation) {
+    written = WriteAckSlot(fd, state);
+  }
+  close(fd);
+  if (written.ok() && rename(staging.c_str(), file.c_str()) != 0) {
+    written = Status::IoError(Errno("installing ACKED"));
+  }
+  if (written.ok()) written = SyncDirectory(map_path);
+  return written;
+}
+
+// Records acknowledged writes in ACKED before they are acknowledged. Concurrent writers share
+// one fdatasync: a writer that finds a sync in progress waits for the next one, which a leader
+// among the waiters makes for all of them.
+class AckTracker {
+ public:
+  static Result<std::unique_ptr<AckTracker>> Open(const std::string& map_path, AckState state) {
+    const std::string file = (fs::path(map_path) / kAckedFile).string();
+    const int fd = open(file.c_str(), O_WRONLY | O_CLOEXEC);
+    if (fd < 0) return Status::IoError(Errno("opening ACKED for writing"));
+    return std::unique_ptr<AckTracker>(new AckTracker(fd, state));
+  }
+  ~AckTracker() { close(fd_); }
+
+  // Makes ACKED count at least `state` (writes a map recovered beyond its acknowledged ones).
+  Status Raise(const AckState& state) {
+    MutexLock lock(mutex_);
+    while (syncing_) synced_cv_.Wait(mutex_);
+    pending_.writes = std::max(pending_.writes, state.writes);
+    pending_.max_place = std::max(pending_.max_place, state.max_place);
+    AckState next = pending_;
+    next.generation = ++generation_;
+    return WriteAckSlot(fd_, next);
+  }
+
+  // Returns once ACKED counts this write (`place`: its id, 0 for other writes) durably.
+  Status Acknowledge(PlaceId place) {
+    MutexLock lock(mutex_);
+    pending_.writes += 1;
+    pending_.max_place = std::max<uint64_t>(pending_.max_place, place);
+    const uint64_t ticket = ++requested_;
+    while (durable_ < ticket) {
+      if (syncing_) {
+        synced_cv_.Wait(mutex_);
+        continue;
+      }
+      syncing_ = true;
+      const uint64_t target = requested_;
+      AckState next = pending_;
+      next.generation = ++generation_;
+      lock.Unlock();
+      const Status written = WriteAckSlot(fd_, next);
+      lock.Lock();
+      syncing_ = false;
+      last_status_ = written;
+      durable_ = target;
+      synced_cv_.NotifyAll();
+    }
+    return last_status_;
+  }
+
+ private:
+  AckTracker(int fd, AckState state) : fd_(fd), generation_(state.generation), pending_(state) {}
+
+  const int fd_;
+  Mutex mutex_;
+  CondVar synced_cv_;
+  uint64_t generation_ GUARDED_BY(mutex_);
+  AckState pending_ GUARDED_BY(mutex_);  // everything acknowledged or being acknowledged
+  uint64_t requested_ GUARDED_BY(mutex_) = 0;
+  uint64_t durable_ GUARDED_BY(mutex_) = 0;
+  bool syncing_ GUARDED_BY(mutex_) = false;
+  Status last_status_ GUARDED_BY(mutex_);
+};
+
 }  // namespace
 
 namespace detail {
@@ -238,6 +442,7 @@ struct MapStorage {
   std::vector<rocksdb::ColumnFamilyHandle*> handles;
   SyncMode sync = SyncMode::kEveryWrite;
   std::unique_ptr<GroupCommitter> committer;
+  std::unique_ptr<AckTracker> acks;  // null only while a map is being created or recovered
   // Atomics: counters updated under a shared hold by concurrent writers.
   std::atomic<uint64_t> next_invalid_serial{1};
   std::atomic<uint64_t> invalid_stored{0};
@@ -246,6 +451,7 @@ struct MapStorage {
 
   void Close() {
     committer.reset();
+    acks.reset();
     if (db) {
       for (auto* handle : handles) (void)db->DestroyColumnFamilyHandle(handle);
       handles.clear();
@@ -255,11 +461,16 @@ struct MapStorage {
   }
   ~MapStorage() { Close(); }
 
-  Status Write(rocksdb::WriteBatch* batch) {
+  // `place`: the id of the place the batch stores, 0 for other writes.
+  Status Write(rocksdb::WriteBatch* batch, PlaceId place = 0) {
+    // Counted in the batch itself, so the database holds exactly the writes it kept.
+    batch->Merge(cf(kMeta), kWritesKey, CounterOperand(1));
     rocksdb::WriteOptions options;
     options.sync = sync == SyncMode::kEveryWrite;
     PLACEDB_RETURN_IF_ERROR(FromRocks(db->Write(options, batch), "writing to the map"));
-    if (committer) return committer->WaitDurable();
+    if (committer) PLACEDB_RETURN_IF_ERROR(committer->WaitDurable());
+    // Durable in the WAL; ACKED counts it before anyone is told.
+    if (acks) return acks->Acknowledge(place);
     return Status::Ok();
   }
 };
@@ -404,6 +615,8 @@ Status PlaceMap::Load() {
   places->SeekToFirst();
   bows->SeekToFirst();
   for (; places->Valid(); places->Next(), bows->Next()) {
+    // An unreadable block ends an iterator: report it (it names the file), not a missing vector.
+    PLACEDB_RETURN_IF_ERROR(FromRocks(bows->status(), "scanning BoW vectors"));
     if (!bows->Valid() || places->key() != bows->key()) {
       return Status::Corruption("map '" + info_.name + "': place " + places->key().ToString(true) +
                                 " has no BoW vector");
@@ -573,7 +786,7 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
   batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
-  PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch).WithContext("storing a place"));
+  PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, record.id).WithContext("storing a place"));
   // Durable: now make it searchable.
   auto id = database_->Insert(frame, metadata, record.id);
   if (!id.ok()) return id.status();
@@ -598,7 +811,11 @@ Result<StoredPlace> PlaceMap::GetPlace(PlaceId id) const {
                             "'");
   RocksPayloadStore payloads(storage_.get(), info_.options.database.feature_type);
   auto payload = payloads.Get(id);
-  if (!payload.ok()) return payload.status();
+  if (!payload.ok()) {
+    // A corrupt block is DATA_LOSS naming the file, relative to the data directory.
+    return Status(payload.status().code(),
+                  RelativeTo(payload.status().message(), path_, info_.name));
+  }
   return StoredPlace{*record, **payload};
 }
 
@@ -696,6 +913,76 @@ Status PlaceMap::VerifyIntegrity() const {
   return Status::Ok();
 }
 
+Result<ScrubReport> PlaceMap::Scrub() const {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  ScrubReport report;
+  auto relative = [&](const std::string& text) { return RelativeTo(text, path_, info_.name); };
+  // Every block of every live SST file, whichever family it belongs to.
+  std::vector<rocksdb::LiveFileMetaData> files;
+  storage_->db->GetLiveFilesMetaData(&files);
+  const rocksdb::Options options(DatabaseOptions(), rocksdb::ColumnFamilyOptions());
+  rocksdb::ReadOptions verify;
+  verify.fill_cache = false;
+  verify.verify_checksums = true;
+  for (const rocksdb::LiveFileMetaData& file : files) {
+    ++report.files_checked;
+    const std::string file_path = file.db_path + file.name;
+    const rocksdb::Status s =
+        rocksdb::VerifySstFileChecksum(options, rocksdb::EnvOptions(), verify, file_path);
+    if (!s.ok()) {
+      report.damaged_files.push_back({relative(file_path), relative(s.ToString())});
+    }
+  }
+  // Every indexed place, each of its values read and decoded.
+  const FeatureType type = info_.options.database.feature_type;
+  for (PlaceId id : database_->ListPlaces()) {
+    ++report.places_checked;
+    const std::string key = PlaceKey(id);
+    std::string record_bytes, bow_bytes, feature_bytes;
+    auto fail = [&](const std::string& reason) {
+      report.damaged_places.push_back({id, relative(reason)});
+    };
+    Status read =
+        FromRocks(storage_->db->Get(verify, storage_->cf(kPlaces), key, &record_bytes), "record");
+    if (!read.ok()) {
+      fail(read.ToString());
+      continue;
+    }
+    auto record = DecodePlaceRecord(record_bytes);
+    if (!record.ok() || record->id != id) {
+      fail(record.ok() ? "record holds id " + std::to_string(record->id)
+                       : "record: " + record.status().ToString());
+      continue;
+    }
+    read = FromRocks(storage_->db->Get(verify, storage_->cf(kBow), key, &bow_bytes), "BoW vector");
+    if (!read.ok()) {
+      fail(read.ToString());
+      continue;
+    }
+    if (auto bow = DecodeBow(bow_bytes); !bow.ok()) {
+      fail("BoW vector: " + bow.status().ToString());
+      continue;
+    }
+    read = FromRocks(storage_->db->Get(verify, storage_->cf(kFeatures), key, &feature_bytes),
+                     "features");
+    if (!read.ok()) {
+      fail(read.ToString());
+      continue;
+    }
+    PlacePayload payload;
+    if (Status decoded = DecodePayloadFeatures(type, feature_bytes, &payload); !decoded.ok()) {
+      fail("features: " + decoded.ToString());
+      continue;
+    }
+    if (payload.features.size() != record->counts.static_) {
+      fail("features: " + std::to_string(payload.features.size()) + " stored, the record counts " +
+           std::to_string(record->counts.static_));
+    }
+  }
+  return report;
+}
+
 // ---------------------------------------------------------------------------------------------
 
 DataDirectory::DataDirectory(std::string path, StorageOptions options, DirectoryLock lock)
@@ -769,22 +1056,46 @@ std::string DataDirectory::MapPath(const std::string& name) const {
 
 namespace {
 
-Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool create,
-                                                const StorageOptions& options,
-                                                const std::shared_ptr<void>& cache_void) {
+// How an existing map's RocksDB is opened.
+enum class Recovery {
+  kStrict,       // kAbsoluteConsistency + WAL tracking: any damage is an error
+  kPointInTime,  // RocksDB's default: stop replaying the WAL at the first bad record
+};
+
+std::vector<rocksdb::ColumnFamilyDescriptor> Families(const std::shared_ptr<void>& cache_void) {
   auto cache = std::static_pointer_cast<rocksdb::Cache>(cache_void);
-  rocksdb::DBOptions db_options = DatabaseOptions();
-  db_options.create_if_missing = create;
-  db_options.error_if_exists = create;
-  db_options.create_missing_column_families = create;
   std::vector<rocksdb::ColumnFamilyDescriptor> families;
   for (int cf = 0; cf < kCfCount; ++cf) {
     families.emplace_back(kColumnFamilies[cf], FamilyOptions(Cf(cf), cache));
   }
+  return families;
+}
+
+rocksdb::DBOptions RecoveryOptions(Recovery recovery) {
+  rocksdb::DBOptions options = DatabaseOptions();
+  if (recovery == Recovery::kStrict) {
+    options.wal_recovery_mode = rocksdb::WALRecoveryMode::kAbsoluteConsistency;
+  } else {
+    options.wal_recovery_mode = rocksdb::WALRecoveryMode::kPointInTimeRecovery;
+    options.track_and_verify_wals_in_manifest = false;
+  }
+  return options;
+}
+
+Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool create,
+                                                const StorageOptions& options,
+                                                const std::shared_ptr<void>& cache_void,
+                                                Recovery recovery = Recovery::kStrict,
+                                                bool create_families = false) {
+  rocksdb::DBOptions db_options = RecoveryOptions(recovery);
+  db_options.create_if_missing = create;
+  db_options.error_if_exists = create;
+  db_options.create_missing_column_families = create || create_families;
   auto storage = std::make_unique<MapStorage>();
   rocksdb::DB* raw = nullptr;
-  rocksdb::Status s = rocksdb::DB::Open(db_options, path, families, &storage->handles, &raw);
-  if (!s.ok()) return FromRocks(s, "opening map at " + path);
+  rocksdb::Status s =
+      rocksdb::DB::Open(db_options, path, Families(cache_void), &storage->handles, &raw);
+  if (!s.ok()) return FromRocks(s, "opening the map's RocksDB");
   storage->db.reset(raw);
   storage->sync = options.sync;
   if (options.sync == SyncMode::kGroupCommit) {
@@ -794,17 +1105,157 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
   return storage;
 }
 
-Result<MapInfo> ReadInfo(MapStorage& storage, const std::string& path) {
+// Read-only: changes no file (a WAL is replayed into memory only).
+Result<std::unique_ptr<MapStorage>> OpenReadOnly(const std::string& path,
+                                                 const std::shared_ptr<void>& cache_void,
+                                                 Recovery recovery) {
+  auto storage = std::make_unique<MapStorage>();
+  rocksdb::DB* raw = nullptr;
+  rocksdb::Status s = rocksdb::DB::OpenForReadOnly(RecoveryOptions(recovery), path,
+                                                   Families(cache_void), &storage->handles, &raw);
+  if (!s.ok()) return FromRocks(s, "opening the map's RocksDB");
+  storage->db.reset(raw);
+  return storage;
+}
+
+// What a map's RocksDB holds, to compare with ACKED.
+struct Contents {
+  uint64_t writes = 0;    // acknowledged-write counter (kWritesKey)
+  PlaceId max_place = 0;  // highest stored place id
+  PlaceId floor = 0;      // id_floor: ids below were handed out (removals)
+};
+
+Result<Contents> ReadContents(MapStorage& storage) {
+  Contents contents;
+  std::string value;
+  auto s = storage.db->Get({}, storage.cf(kMeta), kWritesKey, &value);
+  if (!s.IsNotFound()) {
+    PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading the write counter"));
+    rocksdb::Slice slice(value);
+    contents.writes = CounterMergeOperator::Decode(&slice);
+  }
+  s = storage.db->Get({}, storage.cf(kMeta), kIdFloorKey, &value);
+  if (s.ok()) {
+    auto floor = DecodePlaceKey(value);
+    if (floor.ok()) contents.floor = *floor;
+  } else if (!s.IsNotFound()) {
+    PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading the id floor"));
+  }
+  rocksdb::ReadOptions options;
+  options.fill_cache = false;
+  std::unique_ptr<rocksdb::Iterator> places(storage.db->NewIterator(options, storage.cf(kPlaces)));
+  places->SeekToLast();
+  if (places->Valid()) {
+    auto id = DecodePlaceKey(places->key().ToStringView());
+    if (id.ok()) contents.max_place = *id;
+  }
+  PLACEDB_RETURN_IF_ERROR(FromRocks(places->status(), "reading the last place"));
+  return contents;
+}
+
+// Fills `damage` with what `present` lacks of `acked`; false when nothing acknowledged is missing.
+bool FindLoss(const AckState& acked, const Contents& present, MapDamage* damage) {
+  if (present.writes >= acked.writes) return false;
+  damage->writes_lost = acked.writes - present.writes;
+  const PlaceId accounted =
+      std::max<PlaceId>(present.max_place, present.floor ? present.floor - 1 : 0);
+  if (acked.max_place > accounted) {
+    damage->first_lost = accounted + 1;
+    damage->last_lost = PlaceId(acked.max_place);
+    damage->places_lost = damage->last_lost - damage->first_lost + 1;
+  }
+  return true;
+}
+
+std::string LossText(const MapDamage& damage) {
+  std::string text = std::to_string(damage.writes_lost) + " acknowledged write" +
+                     (damage.writes_lost == 1 ? " is" : "s are") + " missing";
+  if (damage.places_lost > 0) {
+    text += ": " + std::to_string(damage.places_lost) + " place" +
+            (damage.places_lost == 1 ? " (id " + std::to_string(damage.first_lost) + ")"
+                                     : "s (ids " + std::to_string(damage.first_lost) + ".." +
+                                           std::to_string(damage.last_lost) + ")");
+  } else {
+    text += " (removals or stored invalid frames; no place id is missing)";
+  }
+  return text;
+}
+
+// The map's write-ahead log files and their sizes, for reasons: "maps/lab/000012.log (5 bytes)";
+// empty logs only when no other is left.
+std::string WalFiles(const std::string& path, const std::string& name) {
+  std::vector<std::pair<std::string, uintmax_t>> logs;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(path, ec)) {
+    if (entry.path().extension() != ".log") continue;
+    std::error_code size_ec;
+    const auto size = entry.file_size(size_ec);
+    logs.push_back({"maps/" + name + "/" + entry.path().filename().string(), size_ec ? 0 : size});
+  }
+  std::sort(logs.begin(), logs.end());
+  if (logs.empty()) return "no write-ahead log file is left";
+  const bool any_data = std::any_of(logs.begin(), logs.end(), [](auto& l) { return l.second; });
+  std::string text;
+  for (const auto& [file, size] : logs) {
+    if (any_data && size == 0) continue;
+    text += (text.empty() ? "" : ", ") + file + " (" + std::to_string(size) + " bytes)";
+  }
+  return text;
+}
+
+Result<std::vector<MapDamage>> ReadHistory(MapStorage& storage) {
+  std::vector<MapDamage> history;
+  std::string text;
+  auto s = storage.db->Get({}, storage.cf(kMeta), kDamageHistoryKey, &text);
+  if (s.IsNotFound()) return history;
+  PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading the damage history"));
+  const nlohmann::json j = nlohmann::json::parse(text, nullptr, false);
+  if (!j.is_array()) return Status::Corruption("the damage history is not a JSON array");
+  try {
+    for (const auto& item : j) {
+      MapDamage damage;
+      damage.reason = item.at("reason").get<std::string>();
+      damage.writes_lost = item.at("writes_lost").get<uint64_t>();
+      damage.places_lost = item.at("places_lost").get<uint64_t>();
+      damage.first_lost = item.at("first_lost").get<PlaceId>();
+      damage.last_lost = item.at("last_lost").get<PlaceId>();
+      damage.recovered_unix_ms = item.at("recovered_unix_ms").get<int64_t>();
+      history.push_back(std::move(damage));
+    }
+  } catch (const nlohmann::json::exception& e) {
+    return Status::Corruption(std::string("damage history: ") + e.what());
+  }
+  return history;
+}
+
+std::string EncodeHistory(const std::vector<MapDamage>& history) {
+  nlohmann::json j = nlohmann::json::array();
+  for (const MapDamage& damage : history) {
+    j.push_back({{"reason", damage.reason},
+                 {"writes_lost", damage.writes_lost},
+                 {"places_lost", damage.places_lost},
+                 {"first_lost", damage.first_lost},
+                 {"last_lost", damage.last_lost},
+                 {"recovered_unix_ms", damage.recovered_unix_ms}});
+  }
+  return j.dump();
+}
+
+// `where`: the map's directory relative to the data directory, for messages.
+Result<MapInfo> ReadInfo(MapStorage& storage, const std::string& where) {
   std::string format, info_text;
   auto s = storage.db->Get({}, storage.cf(kMeta), kFormatKey, &format);
   if (s.IsNotFound() || (s.ok() && format != kMapFormat)) {
-    return Status::Corruption(path + " is a RocksDB database but not a placedb map (format '" +
+    return Status::Corruption(where + " is a RocksDB database but not a placedb map (format '" +
                               format + "')");
   }
   PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading map format"));
-  PLACEDB_RETURN_IF_ERROR(
-      FromRocks(storage.db->Get({}, storage.cf(kMeta), kInfoKey, &info_text), "reading map info"));
-  return DecodeInfo(info_text);
+  s = storage.db->Get({}, storage.cf(kMeta), kInfoKey, &info_text);
+  if (s.IsNotFound()) return Status::Corruption(where + ": the map info record is missing");
+  PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading map info"));
+  auto info = DecodeInfo(info_text);
+  if (!info.ok()) return info.status().WithContext(where + ": the map info record is damaged");
+  return info;
 }
 
 }  // namespace
@@ -837,6 +1288,18 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& na
   rocksdb::WriteOptions sync;
   sync.sync = true;
   Status written = FromRocks((*storage)->db->Write(sync, &batch), "writing map info");
+  // The info goes to an SST at once: a lost or deleted WAL can then cost places, never the
+  // map's identity.
+  if (written.ok()) {
+    written = FromRocks((*storage)->db->Flush(rocksdb::FlushOptions(), (*storage)->handles),
+                        "flushing map info");
+  }
+  if (written.ok()) written = CreateAcked(path, {});
+  if (written.ok() && options_.acked_file) {
+    auto acks = AckTracker::Open(path, {2, 0, 0});
+    written = acks.status();
+    if (acks.ok()) (*storage)->acks = std::move(acks).value();
+  }
   if (!written.ok()) {
     storage->reset();
     std::error_code ec;
@@ -850,30 +1313,69 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& na
   return map;
 }
 
+std::string DataDirectory::Relative(const std::string& text) const {
+  std::string out = text;
+  std::error_code ec;
+  for (const std::string& form : {fs::absolute(path_, ec).lexically_normal().string(),
+                                  fs::weakly_canonical(path_, ec).string(), path_}) {
+    if (form.empty()) continue;
+    const std::string prefix = form.back() == '/' ? form : form + "/";
+    for (size_t at = out.find(prefix); at != std::string::npos; at = out.find(prefix, at)) {
+      out.erase(at, prefix.size());
+    }
+  }
+  return out;
+}
+
+namespace {
+
+// A map path that cannot be a RocksDB database: CORRUPTION naming it; NOT_FOUND when absent.
+Status CheckMapPath(const std::string& path, const std::string& name) {
+  std::error_code ec;
+  const auto status = fs::symlink_status(path, ec);
+  if (!fs::exists(status)) return Status::NotFound("map '" + name + "' not found");
+  const std::string where = "maps/" + name;
+  if (!fs::is_directory(fs::status(path, ec))) {
+    return Status::Corruption(where + " is a file, not a map directory");
+  }
+  if (!fs::exists(fs::path(path) / "CURRENT", ec)) {
+    return Status::Corruption(where + "/CURRENT is missing: RocksDB cannot tell which MANIFEST " +
+                              "describes the map");
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
 Result<MapInfo> DataDirectory::ReadMapInfo(const std::string& name) const {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   MutexLock lock(mutex_);
   if (auto it = open_.find(name); it != open_.end()) return it->second->info();
   const std::string path = MapPath(name);
-  if (!fs::is_directory(path)) return Status::NotFound("map '" + name + "' not found");
+  const std::string where = "maps/" + name;
+  PLACEDB_RETURN_IF_ERROR(CheckMapPath(path, name));
   // Read-only open: safe while nothing else has the map open (we hold the lock).
-  rocksdb::DBOptions db_options = DatabaseOptions();
-  std::vector<rocksdb::ColumnFamilyDescriptor> families;
-  auto cache = std::static_pointer_cast<rocksdb::Cache>(block_cache_);
-  for (int cf = 0; cf < kCfCount; ++cf) {
-    families.emplace_back(kColumnFamilies[cf], FamilyOptions(Cf(cf), cache));
+  auto storage = OpenReadOnly(path, block_cache_, Recovery::kPointInTime);
+  if (!storage.ok()) {
+    return Status(storage.status().code(), Relative(storage.status().message()));
   }
-  MapStorage storage;
-  rocksdb::DB* raw = nullptr;
-  PLACEDB_RETURN_IF_ERROR(
-      FromRocks(rocksdb::DB::OpenForReadOnly(db_options, path, families, &storage.handles, &raw),
-                "opening map '" + name + "'"));
-  storage.db.reset(raw);
-  return ReadInfo(storage, path);
+  auto info = ReadInfo(**storage, where);
+  if (!info.ok() && info.status().code() == StatusCode::kCorruption) {
+    // The info record lost with acknowledged writes: the WAL holding it is gone.
+    auto acked = ReadAcked((fs::path(path) / kAckedFile).string());
+    auto contents = ReadContents(**storage);
+    MapDamage damage;
+    if (acked.ok() && contents.ok() && FindLoss(*acked, *contents, &damage)) {
+      return Status::Corruption(info.status().message() + "; " + LossText(damage) + "; " +
+                                WalFiles(path, name));
+    }
+  }
+  return info;
 }
 
 Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(const std::string& name,
-                                                         AnyVocabulary vocabulary) {
+                                                         AnyVocabulary vocabulary,
+                                                         MapDamage* damage) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
   MutexLock lock(mutex_);
@@ -881,20 +1383,214 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(const std::string& name
     PLACEDB_RETURN_IF_ERROR(it->second->CheckVocabulary(vocabulary));
     return it->second;
   }
-  const std::string path = MapPath(name);
-  if (!fs::is_directory(path)) return Status::NotFound("map '" + name + "' not found");
-  if (!fs::exists(fs::path(path) / "CURRENT")) {
-    return Status::Corruption(path + " is not a RocksDB database (no CURRENT file)");
+  MapDamage found;
+  auto map = OpenLocked(
+      name, [&](const MapInfo&) -> Result<AnyVocabulary> { return vocabulary; }, &found);
+  if (!map.ok()) {
+    if (damage) *damage = found;
+    return map.status();
   }
-  auto storage = OpenStorage(path, /*create=*/false, options_, block_cache_);
-  if (!storage.ok()) return storage.status();
-  auto info = ReadInfo(**storage, path);
-  if (!info.ok()) return info.status();
+  open_[name] = *map;
+  return map;
+}
+
+Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& name,
+                                                            const VocabularyFor& vocabulary_for,
+                                                            MapDamage* damage) {
+  const std::string path = MapPath(name);
+  const std::string where = "maps/" + name;
+  auto damaged = [&](const std::string& reason) {
+    damage->reason = reason;
+    return Status::Corruption("map '" + name + "' is damaged: " + reason);
+  };
+  if (Status checked = CheckMapPath(path, name); !checked.ok()) {
+    if (checked.code() != StatusCode::kCorruption) return checked;
+    return damaged(checked.message());
+  }
+  const std::string acked_file = (fs::path(path) / kAckedFile).string();
+  auto acked = ReadAcked(acked_file);
+  std::string note;
+  auto storage = OpenStorage(path, /*create=*/false, options_, block_cache_, Recovery::kStrict);
+  if (!storage.ok()) {
+    if (storage.status().code() != StatusCode::kCorruption &&
+        storage.status().code() != StatusCode::kIoError) {
+      return storage.status().WithContext("map '" + name + "'");
+    }
+    // RocksDB's reader does not say which log a bad record is in: name the logs.
+    std::string error = Relative(storage.status().message());
+    const std::string prefix = "opening the map's RocksDB: ";
+    if (error.rfind(prefix, 0) == 0) error.erase(0, prefix.size());
+    if (error.find(where + "/") == std::string::npos) error = WalFiles(path, name) + ": " + error;
+    // Is only an unacknowledged tail damaged (a torn write at power loss)? Count what
+    // point-in-time recovery keeps, without changing any file.
+    auto readonly = OpenReadOnly(path, block_cache_, Recovery::kPointInTime);
+    if (!readonly.ok()) {
+      std::string again = Relative(readonly.status().message());
+      if (again.rfind(prefix, 0) == 0) again.erase(0, prefix.size());
+      return damaged(error + "; point-in-time recovery cannot open it either" +
+                     (again == error ? "" : ": " + again));
+    }
+    auto contents = ReadContents(**readonly);
+    readonly->reset();
+    if (!contents.ok()) return damaged(error + "; " + Relative(contents.status().message()));
+    if (!acked.ok()) {
+      return damaged(error + "; " + where + "/" + acked.status().message() +
+                     ", so whether acknowledged writes were lost cannot be told");
+    }
+    if (FindLoss(*acked, *contents, damage)) return damaged(error + "; " + LossText(*damage));
+    storage = OpenStorage(path, /*create=*/false, options_, block_cache_, Recovery::kPointInTime);
+    if (!storage.ok()) return damaged(Relative(storage.status().message()));
+    note = "tolerated " + error + ": only unacknowledged writes were lost";
+  }
+  auto contents = ReadContents(**storage);
+  if (!contents.ok()) return damaged(Relative(contents.status().message()));
+  if (!acked.ok()) {
+    if (acked.status().code() != StatusCode::kNotFound || contents->writes != 0) {
+      return damaged(where + "/" + acked.status().message() + " (" +
+                     std::to_string(contents->writes) +
+                     " acknowledged writes are stored), so whether any were lost cannot be told");
+    }
+    // A map made before ACKED existed: counting starts now.
+    PLACEDB_RETURN_IF_ERROR(CreateAcked(path, {0, 0, contents->max_place}));
+    acked = AckState{2, 0, contents->max_place};
+  }
+  if (options_.acked_file && FindLoss(*acked, *contents, damage)) {
+    return damaged(where + ": " + LossText(*damage) +
+                   "; the write-ahead log ends early or was deleted (" + WalFiles(path, name) +
+                   ")");
+  }
+  auto info = ReadInfo(**storage, where);
+  if (!info.ok()) {
+    if (info.status().code() == StatusCode::kCorruption) return damaged(info.status().message());
+    return info.status();
+  }
+  auto history = ReadHistory(**storage);
+  if (!history.ok()) return damaged(where + ": " + history.status().message());
+  auto vocabulary = vocabulary_for(*info);
+  if (!vocabulary.ok()) return vocabulary.status();
+  // Writes kept beyond the acknowledged ones (in flight at a crash) are durable now that RocksDB
+  // has recovered them: ACKED counts them, so that losing them later is seen too.
+  AckState start = *acked;
+  start.writes = std::max(start.writes, contents->writes);
+  start.max_place = std::max<uint64_t>(start.max_place, contents->max_place);
+  auto tracker = AckTracker::Open(path, *acked);
+  if (!tracker.ok()) return tracker.status().WithContext(where);
+  if (start.writes != acked->writes || start.max_place != acked->max_place) {
+    PLACEDB_RETURN_IF_ERROR((*tracker)->Raise(start).WithContext(where));
+  }
+  if (options_.acked_file) (*storage)->acks = std::move(tracker).value();
   std::shared_ptr<PlaceMap> map(
-      new PlaceMap(std::move(info).value(), path, std::move(storage).value(), vocabulary));
-  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(vocabulary));
-  PLACEDB_RETURN_IF_ERROR(map->Load());
+      new PlaceMap(std::move(info).value(), path, std::move(storage).value(), *vocabulary));
+  map->damage_history_ = std::move(history).value();
+  map->open_note_ = note;
+  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(*vocabulary));
+  if (Status loaded = map->Load(); !loaded.ok()) {
+    if (loaded.code() == StatusCode::kCorruption || loaded.code() == StatusCode::kIoError) {
+      return damaged(Relative(loaded.message()));
+    }
+    return loaded;
+  }
+  return map;
+}
+
+Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& name,
+                                                            const VocabularyFor& vocabulary_for,
+                                                            MapDamage* accepted) {
+  PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
+  MutexLock lock(mutex_);
+  if (open_.count(name)) {
+    return Status::FailedPrecondition("map '" + name + "' is open, so it is not damaged");
+  }
+  const std::string path = MapPath(name);
+  const std::string where = "maps/" + name;
+  MapDamage loss;
+  {
+    // Not damaged after all (e.g. the operator put a file back): open it, record nothing.
+    auto map = OpenLocked(name, vocabulary_for, &loss);
+    if (map.ok()) {
+      open_[name] = *map;
+      if (accepted) *accepted = MapDamage();
+      return map;
+    }
+    if (loss.reason.empty()) return map.status();  // not damage: vocabulary, I/O, ...
+  }
+  std::error_code ec;
+  if (!fs::is_directory(path, ec)) {
+    return Status::FailedPrecondition(where + " is a file, not a map directory: move it away " +
+                                      "and restore the map from a checkpoint");
+  }
+  auto acked = ReadAcked((fs::path(path) / kAckedFile).string());
+  std::string method = "point-in-time recovery";
+  auto storage =
+      OpenStorage(path, /*create=*/false, options_, block_cache_, Recovery::kPointInTime);
+  if (!storage.ok()) {
+    // MANIFEST or CURRENT unusable: rebuild them from the SST and WAL files.
+    auto families = Families(block_cache_);
+    rocksdb::Status repaired =
+        rocksdb::RepairDB(path, RecoveryOptions(Recovery::kPointInTime), families);
+    if (!repaired.ok()) {
+      return Status::Corruption("map '" + name + "' cannot be recovered: " +
+                                Relative(FromRocks(repaired, "RocksDB repair").message()));
+    }
+    method = "RocksDB repair (MANIFEST rebuilt from the SST and WAL files)";
+    // Repair keeps only the column families that hold data: the empty ones are made again.
+    storage = OpenStorage(path, /*create=*/false, options_, block_cache_, Recovery::kPointInTime,
+                          /*create_families=*/true);
+    if (!storage.ok()) {
+      return Status::Corruption("map '" + name +
+                                "' cannot be recovered: " + Relative(storage.status().message()));
+    }
+  }
+  auto contents = ReadContents(**storage);
+  if (!contents.ok()) {
+    return Status::Corruption("map '" + name +
+                              "' cannot be recovered: " + Relative(contents.status().message()));
+  }
+  MapDamage counted;
+  if (acked.ok()) FindLoss(*acked, *contents, &counted);
+  counted.reason =
+      loss.reason + "; recovered with " + method +
+      (acked.ok() ? ""
+                  : "; the count of lost writes is unknown (" + acked.status().message() + ")");
+  counted.recovered_unix_ms = NowUnixMs();
+  auto info = ReadInfo(**storage, where);
+  if (!info.ok()) {
+    return Status::FailedPrecondition("map '" + name + "' cannot be recovered: " +
+                                      info.status().message() + "; restore it from a checkpoint");
+  }
+  auto history = ReadHistory(**storage);
+  std::vector<MapDamage> entries = history.ok() ? *history : std::vector<MapDamage>();
+  if (!history.ok()) counted.reason += "; the earlier damage history was unreadable";
+  entries.push_back(counted);
+  auto vocabulary = vocabulary_for(*info);
+  if (!vocabulary.ok()) return vocabulary.status();
+  std::shared_ptr<PlaceMap> map(
+      new PlaceMap(std::move(info).value(), path, std::move(storage).value(), *vocabulary));
+  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(*vocabulary));
+  // The index first: if a block it needs is corrupt, the map stays damaged and nothing is
+  // recorded.
+  if (Status loaded = map->Load(); !loaded.ok()) {
+    return Status::FailedPrecondition(
+        "map '" + name + "' cannot be recovered this way: " + Relative(loaded.message()) +
+        "; restore it from a checkpoint");
+  }
+  MapStorage& storage_ref = *map->storage_;
+  rocksdb::WriteOptions sync;
+  sync.sync = true;
+  PLACEDB_RETURN_IF_ERROR(FromRocks(
+      storage_ref.db->Put(sync, storage_ref.cf(kMeta), kDamageHistoryKey, EncodeHistory(entries)),
+      "recording the recovery"));
+  // What the map holds now is what counts as acknowledged from here on.
+  const AckState start{
+      0, contents->writes,
+      std::max<uint64_t>(contents->max_place, contents->floor ? contents->floor - 1 : 0)};
+  PLACEDB_RETURN_IF_ERROR(CreateAcked(path, start).WithContext(where));
+  auto tracker = AckTracker::Open(path, {start.generation + 2, start.writes, start.max_place});
+  if (!tracker.ok()) return tracker.status().WithContext(where);
+  storage_ref.acks = std::move(tracker).value();
+  map->damage_history_ = std::move(entries);
   open_[name] = map;
+  if (accepted) *accepted = counted;
   return map;
 }
 
@@ -903,7 +1599,8 @@ std::vector<std::string> DataDirectory::ListMaps() const {
   std::error_code ec;
   for (const auto& entry : fs::directory_iterator(fs::path(path_) / "maps", ec)) {
     const std::string name = entry.path().filename().string();
-    if (entry.is_directory() && ValidateMapName(name).ok()) names.push_back(name);
+    // Files too: a file where a map's directory should be is damage to show, not to hide.
+    if (ValidateMapName(name).ok()) names.push_back(name);
   }
   std::sort(names.begin(), names.end());
   return names;
@@ -913,7 +1610,11 @@ Status DataDirectory::DeleteMap(const std::string& name) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   MutexLock lock(mutex_);
   const std::string path = MapPath(name);
-  if (!fs::is_directory(path)) return Status::NotFound("map '" + name + "' not found");
+  std::error_code exists_ec;
+  // A damaged map may be a file where its directory should be: it is deleted the same way.
+  if (!fs::exists(fs::symlink_status(path, exists_ec))) {
+    return Status::NotFound("map '" + name + "' not found");
+  }
   static std::atomic<uint64_t> counter{0};
   const std::string trash =
       (fs::path(path_) / "maps" /
@@ -954,7 +1655,7 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
     auto storage = OpenStorage(staging, false, options_, block_cache_);
     valid = storage.status();
     if (valid.ok()) {
-      auto info = ReadInfo(**storage, staging);
+      auto info = ReadInfo(**storage, Relative(staging));
       valid = info.status();
       if (valid.ok()) {
         MapInfo renamed = *info;
@@ -964,6 +1665,16 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
         valid = FromRocks(
             (*storage)->db->Put(sync, (*storage)->cf(kMeta), kInfoKey, EncodeInfo(renamed)),
             "renaming the restored map");
+      }
+      // A checkpoint holds RocksDB's files only: what it holds is what counts as acknowledged.
+      auto contents = valid.ok() ? ReadContents(**storage) : Result<Contents>(valid);
+      if (contents.ok()) {
+        valid = CreateAcked(
+            staging,
+            {0, contents->writes,
+             std::max<uint64_t>(contents->max_place, contents->floor ? contents->floor - 1 : 0)});
+      } else {
+        valid = contents.status();
       }
     }
   }

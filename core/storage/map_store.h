@@ -7,12 +7,21 @@
 // Reopening a map rebuilds the inverted index from the stored BoW vectors; features stay on disk
 // and are read only for the candidates being verified.
 //
+// Damage is never silent (docs/storage.md, "Damage"): every acknowledged write is counted twice,
+// in the map's RocksDB (a merge counter inside the write's own batch) and in a small checksummed
+// file beside it (ACKED, fdatasync'ed before the write is acknowledged). Opening a map compares
+// the two; a map that lost acknowledged writes, or whose files RocksDB cannot read, does not
+// open: OpenMap answers CORRUPTION naming the file (relative to the data directory) and what is
+// wrong. RecoverMap is the operator's explicit choice to accept the loss; the map then carries
+// the loss in its damage history for good.
+//
 // Thread safety: a PlaceMap takes concurrent Add/Query/Remove calls. A DataDirectory serialises
 // create/open/delete. DeleteMap() waits for in-flight calls on the map, closes it and removes
 // its files; holders of the PlaceMap then get NOT_FOUND ("map was deleted"), never a crash.
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -43,6 +52,9 @@ struct StorageOptions {
   SyncMode sync = SyncMode::kEveryWrite;
   int group_commit_delay_ms = 5;
   size_t block_cache_bytes = size_t(64) << 20;  // shared by all maps of the directory
+  // Count acknowledged writes in ACKED (docs/storage.md, "Damage"). Off only to measure its
+  // cost: writes are then not counted and opening a map does not check for lost writes.
+  bool acked_file = true;
 };
 
 struct MapOptions {
@@ -69,6 +81,36 @@ struct MapInfo {
   int64_t created_unix_ms = 0;
 };
 
+// Acknowledged writes a map lost, and why. Reasons name the file relative to the data directory
+// ("maps/lab/000012.log: ..."), never an absolute path.
+struct MapDamage {
+  std::string reason;
+  uint64_t writes_lost = 0;  // acknowledged writes (places, removals, stored invalid frames)
+  // Acknowledged place ids missing: first..last (0 when none). With concurrent writers the range
+  // may also hold ids whose writes were in flight and never acknowledged (an upper bound).
+  uint64_t places_lost = 0;
+  PlaceId first_lost = 0;
+  PlaceId last_lost = 0;
+  int64_t recovered_unix_ms = 0;  // when the operator accepted it (history entries)
+};
+
+// PlaceMap::Scrub's findings.
+struct ScrubReport {
+  struct Place {
+    PlaceId id = 0;
+    std::string reason;
+  };
+  struct File {
+    std::string file;  // relative to the data directory
+    std::string reason;
+  };
+  uint64_t places_checked = 0;
+  uint64_t files_checked = 0;
+  std::vector<Place> damaged_places;
+  std::vector<File> damaged_files;
+  bool clean() const { return damaged_places.empty() && damaged_files.empty(); }
+};
+
 // A persisted place with its payload read back from disk.
 struct StoredPlace {
   PlaceRecord record;
@@ -83,6 +125,12 @@ class PlaceMap {
 
   const MapInfo& info() const { return info_; }
   const PlaceDatabase& database() const { return *database_; }
+  // Losses the operator accepted with DataDirectory::RecoverMap, oldest first; kept for good
+  // (a map with any is shown as recovered).
+  const std::vector<MapDamage>& damage_history() const { return damage_history_; }
+  // What opening the map tolerated, for the operator's log ("" when nothing): a torn tail of
+  // the write-ahead log that held no acknowledged write.
+  const std::string& open_note() const { return open_note_; }
 
   // FAILED_PRECONDITION naming both checksums (and kinds) when `vocabulary` is not the map's.
   Status CheckVocabulary(const AnyVocabulary& vocabulary) const;
@@ -120,12 +168,17 @@ class PlaceMap {
   // Scans every column family and checks they agree (each place has its BoW and features, and
   // nothing else is stored). Used by crash tests; cheap enough for an operator's fsck.
   Status VerifyIntegrity() const;
+  // Reads every place (record, BoW vector, features; each decoded) and verifies every block of
+  // every SST file. Damage goes into the report, not the status; the status is an error only
+  // when the scrub itself cannot run (map deleted). Changes nothing.
+  Result<ScrubReport> Scrub() const;
 
  private:
   friend class DataDirectory;
   PlaceMap(MapInfo info, std::string path, std::unique_ptr<detail::MapStorage> storage,
            AnyVocabulary vocabulary);
-  Status Load();  // rebuilds the serving index from disk
+  // Rebuilds the serving index from disk. A read error is CORRUPTION naming the file.
+  Status Load();
   // Commit() for a caller that already holds lifecycle_ shared and checked `closed_`
   // (CloseLoop's store callback: the shared lock must not be taken twice).
   Result<AddResult> CommitLocked(const ProcessedFrame& frame, const PlaceMetadata& metadata)
@@ -134,6 +187,8 @@ class PlaceMap {
   Status Deleted() const;
 
   MapInfo info_;
+  std::vector<MapDamage> damage_history_;
+  std::string open_note_;
   std::string path_;
   std::unique_ptr<detail::MapStorage> storage_;
   AnyVocabulary vocabulary_;
@@ -163,11 +218,38 @@ class DataDirectory {
   Result<std::shared_ptr<PlaceMap>> CreateMap(const std::string& name, const MapOptions& options,
                                               AnyVocabulary vocabulary);
   // Reads a map's stored info without opening it for writing (e.g. to pick its vocabulary).
+  // Changes nothing on disk. CORRUPTION naming the file when the map is damaged (a file where
+  // the map's directory should be, CURRENT or MANIFEST missing or unreadable, the info record
+  // lost).
   Result<MapInfo> ReadMapInfo(const std::string& name) const;
   // Opens (or returns the already open) map; FAILED_PRECONDITION if `vocabulary` is not the
-  // one the map was built with.
-  Result<std::shared_ptr<PlaceMap>> OpenMap(const std::string& name, AnyVocabulary vocabulary);
-  std::vector<std::string> ListMaps() const;  // sorted
+  // one the map was built with. CORRUPTION when the map is damaged: RocksDB cannot read a file
+  // (even an unacknowledged torn tail is accepted only when no acknowledged write is missing),
+  // acknowledged writes are missing, ACKED is missing or unreadable, or a block the index
+  // needs is corrupt. The reason names the file; `damage` (optional) receives it with the
+  // counts when they could be established. A damaged map is not opened for writing; the files
+  // are left as they are, except that a successful read-write open of a map whose WAL lost its
+  // tail has already replayed what was left.
+  Result<std::shared_ptr<PlaceMap>> OpenMap(const std::string& name, AnyVocabulary vocabulary,
+                                            MapDamage* damage = nullptr);
+  // The operator's explicit choice to accept a damaged map's losses: reopens it with
+  // point-in-time recovery (RocksDB's RepairDB when its MANIFEST or CURRENT is unusable),
+  // counts the acknowledged writes lost against ACKED, records that in the map's damage history
+  // (persisted) and opens it. `accepted` receives the loss (zero counts when nothing was lost).
+  // FAILED_PRECONDITION when the map is open (it is not damaged) or cannot be recovered this way
+  // (a corrupt SST block, a lost info record: restore a checkpoint; a file in place of the map's
+  // directory); on failure the map stays damaged and its history unchanged (RepairDB may have
+  // rebuilt the MANIFEST). A map that opens normally after all is returned, nothing recorded.
+  // `vocabulary_for` picks the map's vocabulary from its stored info (which may be unreadable
+  // until the recovery has run).
+  using VocabularyFor = std::function<Result<AnyVocabulary>(const MapInfo&)>;
+  Result<std::shared_ptr<PlaceMap>> RecoverMap(const std::string& name,
+                                               const VocabularyFor& vocabulary_for,
+                                               MapDamage* accepted = nullptr);
+  // Sorted. Every valid map name under maps/, also a file where a map's directory should be
+  // (so damage is listed, not hidden).
+  std::vector<std::string> ListMaps() const;
+  // Also a damaged map, and a file in place of a map's directory.
   Status DeleteMap(const std::string& name);
   // Copies a checkpoint made by PlaceMap::Checkpoint in as map `name` (which must not exist).
   Status RestoreMap(const std::string& name, const std::string& checkpoint_directory);
@@ -177,6 +259,12 @@ class DataDirectory {
  private:
   DataDirectory(std::string path, StorageOptions options, DirectoryLock lock);
   std::string MapPath(const std::string& name) const;
+  // OpenMap without the lookup; fills damage->reason when the map is damaged.
+  Result<std::shared_ptr<PlaceMap>> OpenLocked(const std::string& name,
+                                               const VocabularyFor& vocabulary_for,
+                                               MapDamage* damage) REQUIRES(mutex_);
+  // "maps/<name>/..." for messages: no absolute paths.
+  std::string Relative(const std::string& text) const;
 
   const std::string path_;
   const StorageOptions options_;

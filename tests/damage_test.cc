@@ -1,0 +1,480 @@
+// Damage to a map's files is never silent: a real map of RTAB-Map frames is built by a child
+// process that is killed (its last places only in the write-ahead log), then each test damages a
+// copy of its files the way a disk or an operator can and checks that the map is not opened with
+// fewer places: OpenMap says CORRUPTION naming the file, RecoverMap accepts the loss and counts it
+// exactly, Scrub finds a corrupt SST block.
+#include <gtest/gtest.h>
+#include <rocksdb/db.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+
+#include "core/storage/map_store.h"
+#include "tests/test_support.h"
+
+namespace fs = std::filesystem;
+
+namespace placedb {
+namespace {
+
+constexpr char kChildEnv[] = "PLACEDB_DAMAGE_CHILD";
+constexpr int kFlushed = 40;  // places the child flushes to SST files (a clean close)
+constexpr int kPlaces = 82;   // acknowledged places in all; the last 42 only in the WAL
+
+// The valid RTAB-Map frames, processed once per process (cycled to reach kPlaces).
+std::vector<ProcessedFrame> Frames(const PlaceDatabase& db) {
+  std::vector<ProcessedFrame> frames;
+  for (int i = 1; i <= 84; ++i) {
+    Observation observation;
+    observation.image = testing::ReadGray(testing::RtabmapFramePath(i));
+    auto frame = db.Process(observation);
+    if (frame.ok() && frame->valid) frames.push_back(*frame);
+  }
+  return frames;
+}
+
+// The child: creates map "lab", stores kFlushed places, closes it cleanly (RocksDB flushes them
+// to SST files), reopens it, stores the rest and exits without closing anything, as a SIGKILL
+// would: those places are acknowledged, in the WAL and in no SST. Prints "ack ID" per place.
+[[noreturn]] void RunChild(const std::string& data_dir) {
+  auto vocabulary = testing::DefaultVocabulary();
+  auto dir = DataDirectory::Open(data_dir);
+  if (!vocabulary || !dir.ok()) std::_Exit(3);
+  std::vector<ProcessedFrame> frames;
+  {
+    auto map = (*dir)->CreateMap("lab", {}, vocabulary);
+    if (!map.ok()) std::_Exit(4);
+    frames = Frames((*map)->database());
+    if (frames.empty()) std::_Exit(5);
+    for (int n = 0; n < kFlushed; ++n) {
+      PlaceMetadata metadata{"robot", uint64_t(n), 0, std::nullopt};
+      auto added = (*map)->Commit(frames[size_t(n) % frames.size()], metadata);
+      if (!added.ok() || !added->stored) std::_Exit(6);
+      std::printf("ack %u\n", added->id);
+    }
+    (*dir)->CloseMap("lab");
+  }
+  // The files as they are now: a map whose WAL will "end early" (DamageTest uses it).
+  std::error_code ec;
+  fs::copy(data_dir + "/maps/lab", data_dir + "/../early", fs::copy_options::recursive, ec);
+  if (ec) std::_Exit(9);
+  auto map = (*dir)->OpenMap("lab", vocabulary);
+  if (!map.ok()) std::_Exit(7);
+  for (int n = kFlushed; n < kPlaces; ++n) {
+    PlaceMetadata metadata{"robot", uint64_t(n), 0, std::nullopt};
+    auto added = (*map)->Commit(frames[size_t(n) % frames.size()], metadata);
+    if (!added.ok() || !added->stored) std::_Exit(8);
+    std::printf("ack %u\n", added->id);
+  }
+  std::fflush(stdout);
+  std::_Exit(0);  // no destructor runs: nothing is flushed, as after SIGKILL
+}
+
+class DamageTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    if (!testing::HaveSharedData()) return;
+    template_root_ = new std::string(testing::MakeTempDir("placedb-damage-template"));
+    const std::string data_dir = *template_root_ + "/data";
+    int pipe_fds[2];
+    ASSERT_EQ(pipe(pipe_fds), 0);
+    const std::string env = std::string(kChildEnv) + "=" + data_dir;
+    const pid_t child = fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+      dup2(pipe_fds[1], STDOUT_FILENO);
+      close(pipe_fds[0]);
+      close(pipe_fds[1]);
+      putenv(const_cast<char*>(env.c_str()));
+      execl("/proc/self/exe", "damage_test_child", static_cast<char*>(nullptr));
+      std::_Exit(127);
+    }
+    close(pipe_fds[1]);
+    std::string output;
+    char buffer[4096];
+    for (ssize_t n; (n = read(pipe_fds[0], buffer, sizeof buffer)) > 0;) {
+      output.append(buffer, size_t(n));
+    }
+    close(pipe_fds[0]);
+    int status = 0;
+    waitpid(child, &status, 0);
+    ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << "child failed: " << status;
+    int acks = 0;
+    for (size_t at = output.find("ack "); at != std::string::npos;
+         at = output.find("ack ", at + 1)) {
+      ++acks;
+    }
+    ASSERT_EQ(acks, kPlaces);
+  }
+  static void TearDownTestSuite() {
+    delete template_root_;
+    template_root_ = nullptr;
+  }
+
+  void SetUp() override {
+    ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+    ASSERT_TRUE(template_root_);
+    vocabulary_ = testing::DefaultVocabulary();
+    ASSERT_TRUE(vocabulary_);
+    root_ = testing::MakeTempDir("placedb-damage");
+    fs::copy(*template_root_ + "/data", root_ + "/data", fs::copy_options::recursive);
+    map_dir_ = root_ + "/data/maps/lab";
+  }
+
+  DataDirectory::VocabularyFor Vocab() const {
+    return [this](const MapInfo&) -> Result<AnyVocabulary> { return AnyVocabulary(vocabulary_); };
+  }
+
+  std::unique_ptr<DataDirectory> OpenDir() {
+    auto dir = DataDirectory::Open(root_ + "/data");
+    EXPECT_TRUE(dir.ok()) << dir.status().ToString();
+    return dir.ok() ? std::move(dir).value() : nullptr;
+  }
+
+  // The map's files whose name ends with `suffix` (".log", ".sst"), by name.
+  std::vector<fs::path> Files(const std::string& suffix) const {
+    std::vector<fs::path> files;
+    for (const auto& entry : fs::directory_iterator(map_dir_)) {
+      const std::string name = entry.path().filename().string();
+      if (name.size() >= suffix.size() && name.ends_with(suffix)) files.push_back(entry.path());
+    }
+    std::sort(files.begin(), files.end());
+    return files;
+  }
+
+  // The live WAL, holding the child's last places: the largest log.
+  fs::path Wal() const {
+    fs::path wal;
+    for (const fs::path& log : Files(".log")) {
+      if (wal.empty() || fs::file_size(log) > fs::file_size(wal)) wal = log;
+    }
+    EXPECT_FALSE(wal.empty());
+    EXPECT_GT(fs::file_size(wal), 1000000u)
+        << "the WAL should hold " << kPlaces - kFlushed << " places";
+    return wal;
+  }
+
+  // The SST files of one column family, read from the map's MANIFEST (RocksDB read-only).
+  std::vector<std::string> SstFilesOf(const std::string& family) const {
+    std::vector<rocksdb::ColumnFamilyDescriptor> families;
+    for (const char* name : {"default", "places", "bow", "features", "invalid"}) {
+      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
+    }
+    std::vector<rocksdb::ColumnFamilyHandle*> handles;
+    rocksdb::DB* raw = nullptr;
+    std::vector<std::string> files;
+    auto s = rocksdb::DB::OpenForReadOnly(rocksdb::DBOptions(), map_dir_, families, &handles, &raw);
+    EXPECT_TRUE(s.ok()) << s.ToString();
+    if (!s.ok()) return files;
+    std::vector<rocksdb::LiveFileMetaData> live;
+    raw->GetLiveFilesMetaData(&live);
+    for (const auto& file : live) {
+      if (file.column_family_name == family) files.push_back(file.db_path + file.name);
+    }
+    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
+    delete raw;
+    return files;
+  }
+
+  static std::string ReadFile(const std::string& path) {
+    std::ifstream in(path, std::ios::binary);
+    return std::string(std::istreambuf_iterator<char>(in), {});
+  }
+
+  static void Overwrite(const fs::path& file, uintmax_t offset, size_t bytes) {
+    std::fstream stream(file, std::ios::in | std::ios::out | std::ios::binary);
+    stream.seekp(std::streamoff(offset));
+    const std::string noise(bytes, '\xa5');
+    stream.write(noise.data(), std::streamsize(noise.size()));
+    ASSERT_TRUE(stream.good()) << file;
+  }
+
+  // OpenMap must fail with CORRUPTION, the reason naming `file_part`, never an absolute path.
+  MapDamage ExpectDamaged(DataDirectory& dir, const std::string& file_part) {
+    MapDamage damage;
+    auto map = dir.OpenMap("lab", vocabulary_, &damage);
+    EXPECT_FALSE(map.ok()) << "a damaged map opened with "
+                           << (map.ok() ? (*map)->Stats().database.places : 0) << " places";
+    if (map.ok()) return damage;
+    EXPECT_EQ(map.status().code(), StatusCode::kCorruption) << map.status().ToString();
+    std::printf("[damage] %s\n", damage.reason.c_str());
+    EXPECT_NE(damage.reason.find(file_part), std::string::npos) << damage.reason;
+    EXPECT_EQ(damage.reason.find(root_), std::string::npos) << damage.reason;
+    EXPECT_EQ(map.status().message().find(root_), std::string::npos) << map.status().message();
+    return damage;
+  }
+
+  // RecoverMap accepts the loss; the count is exact: places 1..kept survive, the rest are lost.
+  void ExpectRecovered(DataDirectory& dir, uint64_t expected_lost) {
+    MapDamage accepted;
+    auto map = dir.RecoverMap("lab", Vocab(), &accepted);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    const uint64_t kept = (*map)->Stats().database.places;
+    EXPECT_EQ(kept + expected_lost, uint64_t(kPlaces));
+    EXPECT_EQ(accepted.places_lost, expected_lost);
+    EXPECT_EQ(accepted.writes_lost, expected_lost);
+    if (expected_lost > 0) {
+      EXPECT_EQ(accepted.first_lost, PlaceId(kept + 1));
+      EXPECT_EQ(accepted.last_lost, PlaceId(kPlaces));
+    }
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+    ASSERT_EQ((*map)->damage_history().size(), 1u);
+    EXPECT_EQ((*map)->damage_history()[0].places_lost, expected_lost);
+    // The map works again, and its history survives a restart.
+    for (PlaceId id = 1; id <= kept; ++id) EXPECT_NE((*map)->database().Get(id), nullptr) << id;
+    dir.CloseMap("lab");
+    map = Result<std::shared_ptr<PlaceMap>>(Status::Internal("released"));
+    auto again = OpenDir();
+    auto reopened = again->OpenMap("lab", vocabulary_);
+    ASSERT_TRUE(reopened.ok()) << reopened.status().ToString();
+    EXPECT_EQ((*reopened)->Stats().database.places, kept);
+    ASSERT_EQ((*reopened)->damage_history().size(), 1u);
+    EXPECT_EQ((*reopened)->damage_history()[0].places_lost, expected_lost);
+  }
+
+  static std::string* template_root_;
+  std::shared_ptr<const Vocabulary> vocabulary_;
+  std::string root_;
+  std::string map_dir_;
+};
+
+std::string* DamageTest::template_root_ = nullptr;
+
+TEST_F(DamageTest, KilledAndCleanReopensKeepEveryAcknowledgedPlace) {
+  {
+    auto dir = OpenDir();
+    auto map = dir->OpenMap("lab", vocabulary_);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
+    EXPECT_TRUE((*map)->open_note().empty()) << (*map)->open_note();
+    EXPECT_TRUE((*map)->damage_history().empty());
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+    auto scrub = (*map)->Scrub();
+    ASSERT_TRUE(scrub.ok());
+    EXPECT_TRUE(scrub->clean());
+    EXPECT_EQ(scrub->places_checked, uint64_t(kPlaces));
+    EXPECT_GT(scrub->files_checked, 0u);
+  }
+  auto dir = OpenDir();  // after a clean close
+  auto map = dir->OpenMap("lab", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
+  // Not damaged: nothing to accept.
+  dir->CloseMap("lab");
+  map = Result<std::shared_ptr<PlaceMap>>(Status::Internal("released"));
+  MapDamage accepted;
+  auto recovered = dir->RecoverMap("lab", Vocab(), &accepted);
+  ASSERT_TRUE(recovered.ok()) << recovered.status().ToString();
+  EXPECT_EQ(accepted.writes_lost, 0u);
+  EXPECT_TRUE((*recovered)->damage_history().empty());
+}
+
+TEST_F(DamageTest, TruncatedWalIsDamageNamingTheLog) {
+  const fs::path wal = Wal();
+  fs::resize_file(wal, fs::file_size(wal) / 2);
+  auto dir = OpenDir();
+  const MapDamage damage = ExpectDamaged(*dir, "maps/lab/" + wal.filename().string());
+  EXPECT_GT(damage.places_lost, 0u);
+  EXPECT_NE(damage.reason.find("acknowledged"), std::string::npos) << damage.reason;
+  // Reading its info does not hide it either, and changes nothing.
+  const auto size = fs::file_size(wal);
+  ExpectRecovered(*dir, damage.places_lost);
+  EXPECT_GT(size, 0u);
+}
+
+TEST_F(DamageTest, GarbledWalIsDamage) {
+  const fs::path wal = Wal();
+  Overwrite(wal, fs::file_size(wal) / 3, 200);
+  auto dir = OpenDir();
+  const MapDamage damage = ExpectDamaged(*dir, "maps/lab/" + wal.filename().string());
+  EXPECT_GT(damage.places_lost, 0u);
+  ExpectRecovered(*dir, damage.places_lost);
+}
+
+TEST_F(DamageTest, DeletedWalIsDamage) {
+  fs::remove(Wal());
+  auto dir = OpenDir();
+  // RocksDB opens it without complaint (the log was never closed): ACKED's count tells.
+  const MapDamage damage = ExpectDamaged(*dir, "the write-ahead log ends early");
+  EXPECT_EQ(damage.places_lost, uint64_t(kPlaces - kFlushed));
+  ExpectRecovered(*dir, kPlaces - kFlushed);
+}
+
+TEST_F(DamageTest, WalEndingEarlyAtARecordBoundaryIsCaughtByAcked) {
+  // RocksDB cannot see a log cut exactly between records: the map's files as they were after
+  // the first kFlushed places, with the final ACKED, are that case. Only ACKED's count tells.
+  const std::string acked = ReadFile(map_dir_ + "/ACKED");
+  fs::remove_all(map_dir_);
+  fs::copy(*template_root_ + "/early", map_dir_, fs::copy_options::recursive);
+  std::ofstream(map_dir_ + "/ACKED", std::ios::binary | std::ios::trunc) << acked;
+  auto dir = OpenDir();
+  const MapDamage damage = ExpectDamaged(*dir, "write-ahead log ends early");
+  EXPECT_EQ(damage.places_lost, uint64_t(kPlaces - kFlushed));
+  EXPECT_EQ(damage.first_lost, PlaceId(kFlushed + 1));
+  ExpectRecovered(*dir, kPlaces - kFlushed);
+}
+
+TEST_F(DamageTest, DeletedAckedIsDamage) {
+  fs::remove(map_dir_ + "/ACKED");
+  auto dir = OpenDir();
+  const MapDamage damage = ExpectDamaged(*dir, "maps/lab/ACKED is missing");
+  ExpectRecovered(*dir, 0);
+}
+
+TEST_F(DamageTest, HalfTruncatedManifestIsDamageAndRepairable) {
+  std::vector<fs::path> manifests;
+  for (const auto& entry : fs::directory_iterator(map_dir_)) {
+    if (entry.path().filename().string().starts_with("MANIFEST-"))
+      manifests.push_back(entry.path());
+  }
+  ASSERT_EQ(manifests.size(), 1u);
+  fs::resize_file(manifests[0], fs::file_size(manifests[0]) / 2);
+  auto dir = OpenDir();
+  const std::string name = "maps/lab/" + manifests[0].filename().string();
+  auto info = dir->ReadMapInfo("lab");
+  ASSERT_FALSE(info.ok());
+  EXPECT_EQ(info.status().code(), StatusCode::kCorruption) << info.status().ToString();
+  ExpectDamaged(*dir, name);
+  // RocksDB's repair rebuilds the MANIFEST from the SST and WAL files: nothing is lost.
+  ExpectRecovered(*dir, 0);
+}
+
+TEST_F(DamageTest, DeletedCurrentIsDamage) {
+  fs::remove(map_dir_ + "/CURRENT");
+  auto dir = OpenDir();
+  EXPECT_EQ(dir->ReadMapInfo("lab").status().code(), StatusCode::kCorruption);
+  const MapDamage damage = ExpectDamaged(*dir, "maps/lab/CURRENT");
+  EXPECT_NE(damage.reason.find("missing"), std::string::npos);
+  ExpectRecovered(*dir, 0);
+}
+
+TEST_F(DamageTest, MapDirectoryReplacedByAFileIsListedAsDamage) {
+  fs::remove_all(map_dir_);
+  std::ofstream(map_dir_) << "not a map";
+  auto dir = OpenDir();
+  EXPECT_EQ(dir->ListMaps(), std::vector<std::string>{"lab"});
+  auto info = dir->ReadMapInfo("lab");
+  ASSERT_FALSE(info.ok());
+  EXPECT_EQ(info.status().code(), StatusCode::kCorruption);
+  ExpectDamaged(*dir, "maps/lab is a file");
+  auto recovered = dir->RecoverMap("lab", Vocab());
+  ASSERT_FALSE(recovered.ok());
+  EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(dir->DeleteMap("lab").ok());
+  EXPECT_TRUE(dir->ListMaps().empty());
+}
+
+TEST_F(DamageTest, MissingMapInfoRecordIsDamage) {
+  {
+    // A clean close first: everything in SST files, so that RocksDB opened here without
+    // placedb's merge operator replays no placedb write.
+    auto dir = OpenDir();
+    ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
+    dir->CloseMap("lab");
+  }
+  {
+    std::vector<rocksdb::ColumnFamilyDescriptor> families;
+    for (const char* name : {"default", "places", "bow", "features", "invalid"}) {
+      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
+    }
+    std::vector<rocksdb::ColumnFamilyHandle*> handles;
+    rocksdb::DB* raw = nullptr;
+    ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir_, families, &handles, &raw).ok());
+    rocksdb::WriteOptions sync;
+    sync.sync = true;
+    EXPECT_TRUE(raw->Delete(sync, handles[0], "info").ok());
+    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
+    delete raw;
+  }
+  auto dir = OpenDir();
+  auto info = dir->ReadMapInfo("lab");
+  ASSERT_FALSE(info.ok());
+  EXPECT_EQ(info.status().code(), StatusCode::kCorruption);
+  ExpectDamaged(*dir, "maps/lab: the map info record is missing");
+  // Without it the map's configuration is unknown: only a checkpoint helps.
+  auto recovered = dir->RecoverMap("lab", Vocab());
+  ASSERT_FALSE(recovered.ok());
+  EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
+}
+
+TEST_F(DamageTest, CorruptBowBlockIsDamageAtOpen) {
+  // The index is rebuilt from the BoW vectors at open: a corrupt block there is found at once.
+  const auto files = SstFilesOf("bow");
+  ASSERT_EQ(files.size(), 1u);
+  Overwrite(files[0], fs::file_size(files[0]) / 3, 64);
+  auto dir = OpenDir();
+  const MapDamage damage =
+      ExpectDamaged(*dir, "maps/lab/" + fs::path(files[0]).filename().string());
+  EXPECT_NE(damage.reason.find("checksum"), std::string::npos) << damage.reason;
+  // Point-in-time recovery cannot mend an SST block: the map stays damaged.
+  auto recovered = dir->RecoverMap("lab", Vocab());
+  ASSERT_FALSE(recovered.ok());
+  EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
+  ExpectDamaged(*dir, "maps/lab/" + fs::path(files[0]).filename().string());
+}
+
+TEST_F(DamageTest, ScrubFindsACorruptFeaturesBlock) {
+  const auto files = SstFilesOf("features");
+  ASSERT_EQ(files.size(), 1u);
+  const std::string sst = "maps/lab/" + fs::path(files[0]).filename().string();
+  Overwrite(files[0], fs::file_size(files[0]) / 2, 64);
+  auto dir = OpenDir();
+  // Features are read only for verification: the map opens, the damage is found by reading.
+  auto map = dir->OpenMap("lab", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  auto report = (*map)->Scrub();
+  ASSERT_TRUE(report.ok());
+  EXPECT_FALSE(report->clean());
+  EXPECT_EQ(report->places_checked, uint64_t(kPlaces));
+  ASSERT_EQ(report->damaged_files.size(), 1u);
+  EXPECT_EQ(report->damaged_files[0].file, sst);
+  ASSERT_GE(report->damaged_places.size(), 1u);
+  EXPECT_LE(report->damaged_places.size(), 3u);  // the one or two places of one 16 KB block
+  for (const auto& place : report->damaged_places) {
+    EXPECT_LE(place.id, PlaceId(kFlushed)) << "only flushed places are in the SST";
+    EXPECT_NE(place.reason.find(sst), std::string::npos) << place.reason;
+    auto read = (*map)->GetPlace(place.id);
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.status().code(), StatusCode::kCorruption) << read.status().ToString();
+    EXPECT_EQ(read.status().message().find(root_), std::string::npos) << read.status().message();
+  }
+  // Every other place reads back.
+  for (PlaceId id = 1; id <= PlaceId(kPlaces); ++id) {
+    bool damaged = false;
+    for (const auto& place : report->damaged_places) damaged |= place.id == id;
+    if (!damaged) {
+      EXPECT_TRUE((*map)->GetPlace(id).ok()) << id;
+    }
+  }
+}
+
+TEST_F(DamageTest, TornUnacknowledgedTailIsToleratedAndNoted) {
+  // A torn last record (power lost mid-write) holds no acknowledged write: the map opens with
+  // every acknowledged place, and says what it tolerated.
+  const fs::path wal = Wal();
+  // A full-record header (checksum, length 1000, type 1) with only 100 bytes of its body.
+  std::string torn;
+  const uintmax_t left_in_block = 32768 - fs::file_size(wal) % 32768;
+  if (left_in_block < 7 + 100) torn.assign(left_in_block, '\0');  // the block's trailer
+  torn += std::string("\x12\x34\x56\x78\xe8\x03\x01", 7) + std::string(100, '\x07');
+  std::ofstream(wal, std::ios::app | std::ios::binary) << torn;
+  auto dir = OpenDir();
+  auto map = dir->OpenMap("lab", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
+  EXPECT_NE((*map)->open_note().find(wal.filename().string()), std::string::npos)
+      << (*map)->open_note();
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+}
+
+}  // namespace
+}  // namespace placedb
+
+int main(int argc, char** argv) {
+  if (const char* data_dir = std::getenv(placedb::kChildEnv)) placedb::RunChild(data_dir);
+  ::testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
