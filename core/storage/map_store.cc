@@ -4,13 +4,18 @@
 #include <rocksdb/convenience.h>
 #include <rocksdb/db.h>
 #include <rocksdb/filter_policy.h>
+#include <rocksdb/listener.h>
 #include <rocksdb/merge_operator.h>
 #include <rocksdb/table.h>
 #include <rocksdb/utilities/checkpoint.h>
 #include <rocksdb/write_batch.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cstdarg>
+#include <cstdio>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -43,9 +48,10 @@ Status FromRocks(const rocksdb::Status& s, const std::string& context) {
   const std::string message = context + ": " + s.ToString();
   if (s.IsNotFound()) return Status::NotFound(message);
   if (s.IsCorruption()) return Status::Corruption(message);
+  // NoSpace is an IOError with a subcode: checked first.
+  if (s.IsNoSpace() || s.IsMemoryLimit()) return Status::ResourceExhausted(message);
   if (s.IsIOError()) return Status::IoError(message);
   if (s.IsInvalidArgument()) return Status::Corruption(message);  // e.g. missing column family
-  if (s.IsNoSpace() || s.IsMemoryLimit()) return Status::ResourceExhausted(message);
   return Status::Internal(message);
 }
 
@@ -102,8 +108,62 @@ rocksdb::ColumnFamilyOptions FamilyOptions(Cf cf, const std::shared_ptr<rocksdb:
   return options;
 }
 
-rocksdb::DBOptions DatabaseOptions() {
+// RocksDB's info log (`LOG` in the map's directory), written without RocksDB's own file writer:
+// once a write to that one has failed (a full disk), its next line trips an assertion, and
+// Debian's librocksdb 7.8 is built with assertions, so a full disk aborted the process. Lines
+// that cannot be written are dropped; the previous log is kept as LOG.old.
+class InfoLog final : public rocksdb::Logger {
+ public:
+  explicit InfoLog(const std::string& path) {
+    std::error_code ec;
+    fs::rename(path, path + ".old", ec);
+    file_ = std::fopen(path.c_str(), "w");
+  }
+  ~InfoLog() override {
+    if (!closed_) {
+      closed_ = true;
+      (void)CloseImpl();
+    }
+  }
+  using rocksdb::Logger::Logv;
+  void Logv(const char* format, va_list ap) override {
+    if (!file_) return;
+    char line[2048];
+    const auto now = std::chrono::system_clock::now();
+    const std::time_t seconds = std::chrono::system_clock::to_time_t(now);
+    std::tm utc{};
+    gmtime_r(&seconds, &utc);
+    const auto micros =
+        std::chrono::duration_cast<std::chrono::microseconds>(now.time_since_epoch()).count() %
+        1000000;
+    int n = std::snprintf(line, sizeof line, "%04d/%02d/%02d-%02d:%02d:%02d.%06lld ",
+                          utc.tm_year + 1900, utc.tm_mon + 1, utc.tm_mday, utc.tm_hour, utc.tm_min,
+                          utc.tm_sec, static_cast<long long>(micros));
+    const int body = std::vsnprintf(line + n, sizeof line - size_t(n) - 1, format, ap);
+    if (body > 0) n = std::min(n + body, int(sizeof line) - 2);
+    if (line[n - 1] != '\n') line[n++] = '\n';
+    if (std::fwrite(line, 1, size_t(n), file_) != size_t(n) || std::fflush(file_) != 0) {
+      std::clearerr(file_);  // a full disk: drop the line, try again with the next
+    }
+  }
+
+ protected:
+  rocksdb::Status CloseImpl() override {
+    if (file_) std::fclose(file_);
+    file_ = nullptr;
+    return rocksdb::Status::OK();
+  }
+
+ private:
+  std::FILE* file_ = nullptr;
+};
+
+// `directory`: the map's RocksDB directory, created here when missing (for the info log).
+rocksdb::DBOptions DatabaseOptions(const std::string& directory) {
   rocksdb::DBOptions options;
+  std::error_code ec;
+  fs::create_directories(directory, ec);
+  options.info_log = std::make_shared<InfoLog>((fs::path(directory) / "LOG").string());
   options.IncreaseParallelism(2);
   options.paranoid_checks = true;
   options.max_open_files = 256;
@@ -184,7 +244,7 @@ class GroupCommitter {
     thread_.join();
   }
 
-  Status WaitDurable() {
+  rocksdb::Status WaitDurable() {
     MutexLock lock(mutex_);
     const uint64_t ticket = ++requested_;
     wake_syncer_.NotifyOne();
@@ -208,7 +268,7 @@ class GroupCommitter {
       lock.Unlock();
       const rocksdb::Status synced = db_->SyncWAL();
       lock.Lock();
-      last_status_ = FromRocks(synced, "syncing the write-ahead log");
+      last_status_ = synced;
       synced_ = target;
       synced_cv_.NotifyAll();
     }
@@ -222,7 +282,7 @@ class GroupCommitter {
   uint64_t requested_ GUARDED_BY(mutex_) = 0;
   uint64_t synced_ GUARDED_BY(mutex_) = 0;
   bool stopping_ GUARDED_BY(mutex_) = false;
-  Status last_status_ GUARDED_BY(mutex_);
+  rocksdb::Status last_status_ GUARDED_BY(mutex_);
   std::thread thread_;
 };
 
@@ -238,9 +298,15 @@ struct MapStorage {
   std::vector<rocksdb::ColumnFamilyHandle*> handles;
   SyncMode sync = SyncMode::kEveryWrite;
   std::unique_ptr<GroupCommitter> committer;
+  std::string map_name;  // for messages: never the directory's path
   // Atomics: counters updated under a shared hold by concurrent writers.
   std::atomic<uint64_t> next_invalid_serial{1};
   std::atomic<uint64_t> invalid_stored{0};
+  // After a NoSpace error (a write's, or a flush's reported by the listener) RocksDB refuses
+  // writes until DB::Resume() succeeds: the next write tries it, so writes resume as soon as
+  // there is space again.
+  std::atomic<bool> resume_needed{false};
+  Mutex resume_mutex;
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -255,17 +321,68 @@ struct MapStorage {
   }
   ~MapStorage() { Close(); }
 
-  Status Write(rocksdb::WriteBatch* batch) {
+  Status DiskFull(const std::string& what) const {
+    return Status::ResourceExhausted("disk full: map '" + map_name + "': " + what +
+                                     " failed (its data directory has no space left; free "
+                                     "space, then retry)");
+  }
+
+  Status WriteError(const rocksdb::Status& s, const std::string& what) {
+    if (s.IsNoSpace()) {
+      resume_needed = true;
+      return DiskFull(what);
+    }
+    return FromRocks(s, what);
+  }
+
+  // `what` names the operation for messages ("storing place 12"). `durable` = false: a write
+  // that may ride on the next synced one (counters).
+  Status Write(rocksdb::WriteBatch* batch, const std::string& what, bool durable = true) {
+    if (resume_needed) PLACEDB_RETURN_IF_ERROR(Resume(what));
     rocksdb::WriteOptions options;
-    options.sync = sync == SyncMode::kEveryWrite;
-    PLACEDB_RETURN_IF_ERROR(FromRocks(db->Write(options, batch), "writing to the map"));
-    if (committer) return committer->WaitDurable();
+    options.sync = durable && sync == SyncMode::kEveryWrite;
+    if (rocksdb::Status s = db->Write(options, batch); !s.ok()) return WriteError(s, what);
+    if (durable && committer) {
+      if (rocksdb::Status s = committer->WaitDurable(); !s.ok()) return WriteError(s, what);
+    }
     return Status::Ok();
   }
+
+  Status Resume(const std::string& what) {
+    MutexLock lock(resume_mutex);
+    if (!resume_needed) return Status::Ok();  // another writer resumed meanwhile
+    // Flushes the memtables (a fresh write-ahead log), so it needs room for them.
+    const rocksdb::Status s = db->Resume();
+    if (s.ok()) {
+      resume_needed = false;
+      return Status::Ok();
+    }
+    if (s.IsNoSpace() || s.IsBusy()) return DiskFull(what);
+    return FromRocks(s, what + " (resuming after a full disk)");
+  }
+};
+
+// Keeps RocksDB's own NoSpace recovery off: it waits for free space of a whole write buffer
+// (32 MB here), polls every few seconds and meanwhile refuses DB::Resume(). MapStorage::Write
+// resumes on the next write instead.
+class DiskFullListener : public rocksdb::EventListener {
+ public:
+  explicit DiskFullListener(MapStorage* storage) : storage_(storage) {}
+  void OnBackgroundError(rocksdb::BackgroundErrorReason, rocksdb::Status* error) override {
+    if (error->IsNoSpace()) storage_->resume_needed = true;
+  }
+  void OnErrorRecoveryBegin(rocksdb::BackgroundErrorReason, rocksdb::Status,
+                            bool* auto_recovery) override {
+    *auto_recovery = false;
+  }
+
+ private:
+  MapStorage* const storage_;  // outlives the DB: MapStorage::Close() closes it first
 };
 
 }  // namespace detail
 
+using detail::DiskFullListener;
 using detail::MapStorage;
 
 namespace {
@@ -330,7 +447,7 @@ class RocksPayloadStore final : public PayloadStore {
       if (decoded.ok()) current = *decoded;
     }
     if (id + 1 > current) batch.Put(storage_->cf(kMeta), kIdFloorKey, PlaceKey(id + 1));
-    return storage_->Write(&batch).WithContext("removing place " + std::to_string(id));
+    return storage_->Write(&batch, "removing place " + std::to_string(id));
   }
 
   size_t MemoryBytes() const override { return 0; }
@@ -524,12 +641,12 @@ Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,
     observation.reason = frame.rejection;
     batch.Put(storage_->cf(kInvalid), U64Key(observation.serial),
               EncodeInvalidObservation(observation));
-    PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch));
+    PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing an invalid observation"));
     ++storage_->invalid_stored;
   } else {
     // Only a counter: not worth an fsync of its own; it rides on the next synced write.
     PLACEDB_RETURN_IF_ERROR(
-        FromRocks(storage_->db->Write(rocksdb::WriteOptions(), &batch), "counting"));
+        storage_->Write(&batch, "counting an invalid frame", /*durable=*/false));
   }
   database_->CountInvalid();
   result.timings.store_ms = store.ElapsedMs();
@@ -573,7 +690,7 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
   batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
-  PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch).WithContext("storing a place"));
+  PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing place " + std::to_string(record.id)));
   // Durable: now make it searchable.
   auto id = database_->Insert(frame, metadata, record.id);
   if (!id.ok()) return id.status();
@@ -766,11 +883,11 @@ std::string DataDirectory::MapPath(const std::string& name) const {
 
 namespace {
 
-Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool create,
-                                                const StorageOptions& options,
+Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, const std::string& name,
+                                                bool create, const StorageOptions& options,
                                                 const std::shared_ptr<void>& cache_void) {
   auto cache = std::static_pointer_cast<rocksdb::Cache>(cache_void);
-  rocksdb::DBOptions db_options = DatabaseOptions();
+  rocksdb::DBOptions db_options = DatabaseOptions(path);
   db_options.create_if_missing = create;
   db_options.error_if_exists = create;
   db_options.create_missing_column_families = create;
@@ -779,6 +896,8 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
     families.emplace_back(kColumnFamilies[cf], FamilyOptions(Cf(cf), cache));
   }
   auto storage = std::make_unique<MapStorage>();
+  storage->map_name = name;
+  db_options.listeners.push_back(std::make_shared<DiskFullListener>(storage.get()));
   rocksdb::DB* raw = nullptr;
   rocksdb::Status s = rocksdb::DB::Open(db_options, path, families, &storage->handles, &raw);
   if (!s.ok()) return FromRocks(s, "opening map at " + path);
@@ -821,7 +940,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& na
   MutexLock lock(mutex_);
   const std::string path = MapPath(name);
   if (fs::exists(path)) return Status::AlreadyExists("map '" + name + "' already exists");
-  auto storage = OpenStorage(path, /*create=*/true, options_, block_cache_);
+  auto storage = OpenStorage(path, name, /*create=*/true, options_, block_cache_);
   if (!storage.ok()) return storage.status();
   MapInfo info;
   info.name = name;
@@ -854,7 +973,7 @@ Result<MapInfo> DataDirectory::ReadMapInfo(const std::string& name) const {
   const std::string path = MapPath(name);
   if (!fs::is_directory(path)) return Status::NotFound("map '" + name + "' not found");
   // Read-only open: safe while nothing else has the map open (we hold the lock).
-  rocksdb::DBOptions db_options = DatabaseOptions();
+  rocksdb::DBOptions db_options = DatabaseOptions(path);
   std::vector<rocksdb::ColumnFamilyDescriptor> families;
   auto cache = std::static_pointer_cast<rocksdb::Cache>(block_cache_);
   for (int cf = 0; cf < kCfCount; ++cf) {
@@ -883,7 +1002,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(const std::string& name
   if (!fs::exists(fs::path(path) / "CURRENT")) {
     return Status::Corruption(path + " is not a RocksDB database (no CURRENT file)");
   }
-  auto storage = OpenStorage(path, /*create=*/false, options_, block_cache_);
+  auto storage = OpenStorage(path, name, /*create=*/false, options_, block_cache_);
   if (!storage.ok()) return storage.status();
   auto info = ReadInfo(**storage, path);
   if (!info.ok()) return info.status();
@@ -948,7 +1067,7 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
   Status valid;
   {
     // Validate before it becomes visible: it must open as a placedb map; rename it inside.
-    auto storage = OpenStorage(staging, false, options_, block_cache_);
+    auto storage = OpenStorage(staging, name, false, options_, block_cache_);
     valid = storage.status();
     if (valid.ok()) {
       auto info = ReadInfo(**storage, staging);
