@@ -53,6 +53,9 @@ class Metrics {
   void FrameMerged(const std::string& map);
   void LoopClosed(const std::string& map);
   void LoopRejected(const std::string& map);  // accepted by the filter, failed verification
+  // A failed write (or storage read) of a map, by kind: disk_full (RESOURCE_EXHAUSTED), io_error,
+  // corruption; other codes are not storage errors and are not counted.
+  void StorageError(const std::string& map, const Status& status);
   void SetMapGauges(const std::string& map, double places, double bytes_on_disk);
   void ForgetMap(const std::string& map);  // a deleted map's series go away
   void StreamOpened();
@@ -70,6 +73,7 @@ class Metrics {
   prometheus::Family<prometheus::Counter>& merged_;
   prometheus::Family<prometheus::Counter>& loops_;
   prometheus::Family<prometheus::Counter>& loops_rejected_;
+  prometheus::Family<prometheus::Counter>& storage_errors_;
   prometheus::Family<prometheus::Gauge>& places_;
   prometheus::Family<prometheus::Gauge>& disk_bytes_;
   prometheus::Gauge& streams_;

@@ -12,6 +12,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <string>
 
@@ -56,7 +57,12 @@ bool WriteFiller(const std::string& path, size_t mib) {
   return bool(out);
 }
 
-class DiskFullTest : public ::testing::TestWithParam<SyncMode> {
+struct DiskFullCase {
+  SyncMode sync;
+  uint64_t reserve;  // StorageOptions::disk_reserve_bytes: 0 = RocksDB runs out of space itself
+};
+
+class DiskFullTest : public ::testing::TestWithParam<DiskFullCase> {
  protected:
   void SetUp() override {
     if (geteuid() != 0) GTEST_SKIP() << "mounting a tmpfs needs root";
@@ -84,8 +90,9 @@ TEST_P(DiskFullTest, FullDiskRefusesWritesKeepsReadsAndResumes) {
   const std::string data_dir = mount_point_ + "/data";
   const std::string filler = mount_point_ + "/filler";
   StorageOptions storage;
-  storage.sync = GetParam();
-  storage.group_commit_delay_ms = 1;  // one writer: a shorter wait per place
+  storage.sync = GetParam().sync;
+  storage.disk_reserve_bytes = GetParam().reserve;
+  storage.group_commit_delay_ms = 1;       // one writer: a shorter wait per place
   std::map<PlaceId, size_t> acknowledged;  // place -> frame
   std::vector<ProcessedFrame> frames;
   {
@@ -123,15 +130,22 @@ TEST_P(DiskFullTest, FullDiskRefusesWritesKeepsReadsAndResumes) {
     EXPECT_NE(refused.message().find("free space, then retry"), std::string::npos);
     EXPECT_EQ(refused.message().find(mount_point_), std::string::npos) << refused.message();
 
-    // Still full: the next write is refused the same way, and so is a removal.
+    // Still full: the next write is refused the same way. A removal is refused once RocksDB
+    // itself ran out of space (the place stays); within the reserve it goes through.
     auto again = (*map)->Commit(frames[0], {});
     ASSERT_FALSE(again.ok());
     EXPECT_EQ(again.status().code(), StatusCode::kResourceExhausted);
     const PlaceId kept = acknowledged.begin()->first;
-    Status removed = (*map)->RemovePlace(kept);
-    EXPECT_EQ(removed.code(), StatusCode::kResourceExhausted) << removed.ToString();
-    EXPECT_EQ(removed.message().rfind("disk full: map 'full': removing place ", 0), 0u)
-        << removed.message();
+    const PlaceId removed_id = std::prev(acknowledged.end())->first;
+    Status removed = (*map)->RemovePlace(removed_id);
+    if (GetParam().reserve > 0) {
+      EXPECT_TRUE(removed.ok()) << removed.ToString();
+      acknowledged.erase(removed_id);
+    } else {
+      EXPECT_EQ(removed.code(), StatusCode::kResourceExhausted) << removed.ToString();
+      EXPECT_EQ(removed.message().rfind("disk full: map 'full': removing place ", 0), 0u)
+          << removed.message();
+    }
 
     // Reads keep working: every acknowledged place, queries (which verify against features
     // on disk), stats and the map list.
@@ -175,12 +189,65 @@ TEST_P(DiskFullTest, FullDiskRefusesWritesKeepsReadsAndResumes) {
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(SyncModes, DiskFullTest,
-                         ::testing::Values(SyncMode::kEveryWrite, SyncMode::kGroupCommit),
-                         [](const ::testing::TestParamInfo<SyncMode>& info) {
-                           return info.param == SyncMode::kEveryWrite ? "EveryWrite"
-                                                                      : "GroupCommit";
-                         });
+// Closed while the disk is full (a shutdown then): reopened once there is space, the map holds
+// every acknowledged place (the write-ahead log ends in the refused write's partial record).
+TEST_P(DiskFullTest, ClosedWhileFullReopensWithEveryAcknowledgedPlace) {
+  auto vocabulary = testing::DefaultVocabulary();
+  ASSERT_TRUE(vocabulary);
+  const std::string data_dir = mount_point_ + "/data";
+  const std::string filler = mount_point_ + "/filler";
+  StorageOptions storage;
+  storage.sync = GetParam().sync;
+  storage.disk_reserve_bytes = GetParam().reserve;
+  storage.group_commit_delay_ms = 1;
+  std::map<PlaceId, size_t> acknowledged;
+  std::vector<ProcessedFrame> frames;
+  {
+    auto dir = DataDirectory::Open(data_dir, storage);
+    ASSERT_TRUE(dir.ok()) << dir.status().ToString();
+    auto map = (*dir)->CreateMap("full", {}, vocabulary);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    frames = ProcessRtabmap((*map)->database());
+    ASSERT_EQ(frames.size(), size_t(kFrames));
+    const size_t free_mib = FreeMiB(mount_point_);
+    ASSERT_GT(free_mib, kLeftMiB + 8);
+    ASSERT_TRUE(WriteFiller(filler, free_mib - kLeftMiB));
+    Status refused;
+    for (size_t n = 0; n < 5000 && refused.ok(); ++n) {
+      auto added = (*map)->Commit(frames[n % frames.size()], {});
+      if (added.ok()) {
+        acknowledged[added->id] = n % frames.size();
+      } else {
+        refused = added.status();
+      }
+    }
+    ASSERT_EQ(refused.code(), StatusCode::kResourceExhausted) << refused.ToString();
+  }  // closed while full: the flush on close fails too
+  ASSERT_TRUE(fs::remove(filler));
+  auto dir = DataDirectory::Open(data_dir, storage);
+  ASSERT_TRUE(dir.ok()) << dir.status().ToString();
+  auto map = (*dir)->OpenMap("full", vocabulary);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+  for (const auto& [id, frame] : acknowledged) {
+    auto place = (*map)->GetPlace(id);
+    ASSERT_TRUE(place.ok()) << "place " << id << " lost: " << place.status().ToString();
+    EXPECT_EQ(place->payload.features.size(), frames[frame].static_features.size());
+  }
+  auto added = (*map)->Commit(frames[0], {});
+  EXPECT_TRUE(added.ok()) << added.status().ToString();
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    SyncModes, DiskFullTest,
+    ::testing::Values(DiskFullCase{SyncMode::kEveryWrite, StorageOptions().disk_reserve_bytes},
+                      DiskFullCase{SyncMode::kGroupCommit, StorageOptions().disk_reserve_bytes},
+                      DiskFullCase{SyncMode::kEveryWrite, 0},
+                      DiskFullCase{SyncMode::kGroupCommit, 0}),
+    [](const ::testing::TestParamInfo<DiskFullCase>& info) {
+      return std::string(info.param.sync == SyncMode::kEveryWrite ? "EveryWrite" : "GroupCommit") +
+             (info.param.reserve > 0 ? "Reserve" : "NoReserve");
+    });
 
 }  // namespace
 }  // namespace placedb

@@ -29,6 +29,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <deque>
 #include <filesystem>
@@ -71,9 +72,10 @@ struct Options {
   uint32_t seed = 19;
   bool keep = false;
   bool disk_full = false;
-  int tmpfs_mib = 48;
+  int tmpfs_mib = 128;
   int rounds = 2;
   int full_timeout_s = 300;
+  int64_t disk_reserve_bytes = -1;  // storage.disk_reserve_bytes; -1 = the server's default
 };
 
 double SecondsSince(Clock::time_point start) {
@@ -140,8 +142,12 @@ int UnusedLoopbackPort() {
 
 class Server {
  public:
-  Server(const Options& options, std::string data_dir, int port)
-      : options_(options), data_dir_(std::move(data_dir)), port_(port) {}
+  // `metrics_port` 0: no metrics endpoint.
+  Server(const Options& options, std::string data_dir, int port, int metrics_port = 0)
+      : options_(options),
+        data_dir_(std::move(data_dir)),
+        port_(port),
+        metrics_port_(metrics_port) {}
   ~Server() { Kill(); }
 
   std::string address() const { return "127.0.0.1:" + std::to_string(port_); }
@@ -149,21 +155,34 @@ class Server {
   // Forks and execs the server (output appended to server.log in the work directory).
   bool Launch(std::string* error) {
     const std::string log = options_.work_dir + "/server.log";
-    std::vector<std::string> args = {options_.server,
-                                     "--listen",
-                                     address(),
-                                     "--data-dir",
-                                     data_dir_,
-                                     "--metrics-listen",
-                                     "off",
-                                     "--vocabulary",
-                                     "default=" + options_.vocabulary,
-                                     "--threads",
-                                     "2",
-                                     "--log-level",
-                                     "warn",
-                                     "--shutdown-deadline",
-                                     "5"};
+    std::vector<std::string> args = {
+        options_.server,
+        "--listen",
+        address(),
+        "--data-dir",
+        data_dir_,
+        "--metrics-listen",
+        metrics_port_ > 0 ? "127.0.0.1:" + std::to_string(metrics_port_) : "off",
+        "--vocabulary",
+        "default=" + options_.vocabulary,
+        "--threads",
+        "2",
+        "--log-level",
+        "warn",
+        "--shutdown-deadline",
+        "5"};
+    if (options_.disk_reserve_bytes >= 0) {
+      const std::string config = options_.work_dir + "/soak.yaml";
+      std::FILE* file = std::fopen(config.c_str(), "w");
+      if (!file) {
+        *error = "cannot write " + config;
+        return false;
+      }
+      std::fprintf(file, "storage:\n  disk_reserve_bytes: %lld\n",
+                   static_cast<long long>(options_.disk_reserve_bytes));
+      std::fclose(file);
+      args.insert(args.end(), {"--config", config});
+    }
     std::vector<char*> argv;
     for (auto& arg : args) argv.push_back(arg.data());
     argv.push_back(nullptr);
@@ -230,8 +249,40 @@ class Server {
   const Options& options_;
   const std::string data_dir_;
   const int port_;
+  const int metrics_port_;
   pid_t pid_ = -1;
 };
+
+// The sum of the samples of `metric` whose labels contain `label` on the server's /metrics; -1
+// when it cannot be read.
+double ScrapeMetric(int port, const std::string& metric, const std::string& label) {
+  const int fd = socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  address.sin_port = htons(uint16_t(port));
+  std::string text;
+  if (connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof address) == 0) {
+    const std::string request = "GET /metrics HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n";
+    if (write(fd, request.data(), request.size()) == ssize_t(request.size())) {
+      char buffer[65536];
+      ssize_t n;
+      while ((n = read(fd, buffer, sizeof buffer)) > 0) text.append(buffer, size_t(n));
+    }
+  }
+  close(fd);
+  if (text.empty()) return -1;
+  double sum = 0;
+  size_t pos = 0;
+  while ((pos = text.find("\n" + metric + "{", pos)) != std::string::npos) {
+    const size_t end = text.find('\n', pos + 1);
+    const std::string line = text.substr(pos + 1, end - pos - 1);
+    pos = end;
+    if (line.find(label) == std::string::npos) continue;
+    sum += std::atof(line.substr(line.rfind(' ') + 1).c_str());
+  }
+  return sum;
+}
 
 // ---- what agents were told ------------------------------------------------------------------
 
@@ -333,9 +384,6 @@ void RunAgent(const std::string& address, Agent* agent, const std::vector<v1::Fe
   auto connection = Connect(address, 10);
   v1::IngestHeader header;
   header.set_map(agent->map);
-  agent->sent = 0;
-  agent->answered = 0;
-  agent->refused = 0;
   const auto start = Clock::now();
   uint64_t paced = 0;
   while (!*stop) {
@@ -386,6 +434,10 @@ class Agents {
   void Start(const std::string& address) {
     stop_ = false;
     for (Agent& agent : *agents_) {
+      // Here, before the threads start: the caller may read them at once.
+      agent.sent = 0;
+      agent.answered = 0;
+      agent.refused = 0;
       threads_.emplace_back(RunAgent, address, &agent, std::cref(*frames_), fps_, ledger_, &stop_);
     }
   }
@@ -680,7 +732,7 @@ void ReadWhileFull(const Connection& connection, const std::vector<std::string>&
     v1::QueryResponse answer;
     auto query_context = connection.NewContext();
     const grpc::Status status = connection.stub()->Query(query_context.get(), query, &answer);
-    (status.ok() && answer.valid() && answer.matches_size() > 0 ? ok : failed)++;
+    (status.ok() && answer.valid() ? ok : failed)++;
   }
   v1::ListMapsResponse listed;
   auto context = connection.NewContext();
@@ -711,7 +763,8 @@ int RunDiskFull(const Options& options, const std::vector<v1::Features>& frames)
   } unmount{mount_point};
 
   const std::vector<std::string> maps = MapNames(options);
-  Server server(options, mount_point + "/data", UnusedLoopbackPort());
+  const int metrics_port = UnusedLoopbackPort();
+  Server server(options, mount_point + "/data", UnusedLoopbackPort(), metrics_port);
   if (!server.Launch(&error) || !server.AwaitServing(120, &error)) {
     Say(error);
     return 2;
@@ -729,6 +782,7 @@ int RunDiskFull(const Options& options, const std::vector<v1::Features>& frames)
   uint64_t lost_total = 0;
   bool ok = true;
   Observe("tmpfs_size", double(size_mib), "MiB");
+  Observe("disk_reserve", double(options.disk_reserve_bytes), "bytes");
   for (int round = 1; round <= options.rounds; ++round) {
     const std::string p = "round" + std::to_string(round) + "_";
     if (round > 1) {
@@ -754,6 +808,7 @@ int RunDiskFull(const Options& options, const std::vector<v1::Features>& frames)
           return true;
         })) {
       Say("the disk did not fill within " + std::to_string(options.full_timeout_s) + " s");
+      server.Kill();  // first: the agents' streams end with it
       return 1;
     }
     Observe(p + "time_to_full", SecondsSince(fill_start), "s");
@@ -775,6 +830,9 @@ int RunDiskFull(const Options& options, const std::vector<v1::Features>& frames)
     Observe(p + "message_says_disk_full_and_names_map", names_map, "bool");
     Observe(p + "message_has_a_path", has_path, "bool");
     Say("round " + std::to_string(round) + " refusal: " + message);
+    Observe(p + "metric_storage_errors_disk_full",
+            ScrapeMetric(metrics_port, "placedb_storage_errors_total", "kind=\"disk_full\""),
+            "errors");
     ok = ok && exhausted > 0 && other == 0 && names_map && !has_path && ledger.streams_ended() == 0;
     {
       auto connection = Connect(server.address(), 30);
@@ -786,6 +844,7 @@ int RunDiskFull(const Options& options, const std::vector<v1::Features>& frames)
     size_mib += 256;
     if (!MountTmpfs(mount_point, size_mib, true, &error)) {
       Say(error);
+      server.Kill();
       return 2;
     }
     const auto freed = Clock::now();
@@ -851,6 +910,10 @@ int main(int argc, char** argv) {
                "the disk-full run on a tmpfs (root) instead of the kill soak");
   app.add_option("--tmpfs-mib", options.tmpfs_mib, "--disk-full: the tmpfs's first size");
   app.add_option("--rounds", options.rounds, "--disk-full: fill / free / kill rounds");
+  app.add_option("--full-timeout-s", options.full_timeout_s,
+                 "--disk-full: longest wait for a full disk");
+  app.add_option("--disk-reserve-bytes", options.disk_reserve_bytes,
+                 "the server's storage.disk_reserve_bytes (0: RocksDB itself runs out of space)");
   CLI11_PARSE(app, argc, argv);
   if (options.agents < 1 || options.kills < 1 || options.min_run_ms < 0 ||
       options.max_run_ms < options.min_run_ms) {

@@ -9,6 +9,7 @@
 #include <rocksdb/table.h>
 #include <rocksdb/utilities/checkpoint.h>
 #include <rocksdb/write_batch.h>
+#include <sys/statvfs.h>
 
 #include <algorithm>
 #include <atomic>
@@ -303,10 +304,12 @@ struct MapStorage {
   std::atomic<uint64_t> next_invalid_serial{1};
   std::atomic<uint64_t> invalid_stored{0};
   // After a NoSpace error (a write's, or a flush's reported by the listener) RocksDB refuses
-  // writes until DB::Resume() succeeds: the next write tries it, so writes resume as soon as
-  // there is space again.
+  // writes until DB::Resume() succeeds: the next write tries it once there is room, so writes
+  // resume as soon as there is space again.
   std::atomic<bool> resume_needed{false};
   Mutex resume_mutex;
+  std::string path;            // the map's directory: its file system's free space
+  uint64_t reserve_bytes = 0;  // StorageOptions::disk_reserve_bytes
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -327,6 +330,16 @@ struct MapStorage {
                                      "space, then retry)");
   }
 
+  // Free space of the file system beyond what flushing the memtables takes, compared to
+  // `margin`. True when the free space cannot be read.
+  bool HasRoom(uint64_t margin) const {
+    struct statvfs info {};
+    if (statvfs(path.c_str(), &info) != 0) return true;
+    uint64_t memtables = 0;
+    db->GetAggregatedIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables, &memtables);
+    return uint64_t(info.f_bavail) * info.f_frsize >= memtables + margin;
+  }
+
   Status WriteError(const rocksdb::Status& s, const std::string& what) {
     if (s.IsNoSpace()) {
       resume_needed = true;
@@ -335,10 +348,13 @@ struct MapStorage {
     return FromRocks(s, what);
   }
 
-  // `what` names the operation for messages ("storing place 12"). `durable` = false: a write
-  // that may ride on the next synced one (counters).
-  Status Write(rocksdb::WriteBatch* batch, const std::string& what, bool durable = true) {
+  // `what` names the operation for messages ("storing place 12"). `adds` = false for removals,
+  // which the reserve does not hold back. `durable` = false: a write that may ride on the next
+  // synced one (counters).
+  Status Write(rocksdb::WriteBatch* batch, const std::string& what, bool adds,
+               bool durable = true) {
     if (resume_needed) PLACEDB_RETURN_IF_ERROR(Resume(what));
+    if (adds && reserve_bytes > 0 && !HasRoom(reserve_bytes)) return DiskFull(what);
     rocksdb::WriteOptions options;
     options.sync = durable && sync == SyncMode::kEveryWrite;
     if (rocksdb::Status s = db->Write(options, batch); !s.ok()) return WriteError(s, what);
@@ -351,7 +367,10 @@ struct MapStorage {
   Status Resume(const std::string& what) {
     MutexLock lock(resume_mutex);
     if (!resume_needed) return Status::Ok();  // another writer resumed meanwhile
-    // Flushes the memtables (a fresh write-ahead log), so it needs room for them.
+    // Resume flushes the memtables into new files. One that fails for lack of space was seen to
+    // leave the next DB::Resume() of RocksDB 7.8 waiting for good, so it is only tried once the
+    // memtables fit with room to spare.
+    if (!HasRoom(std::max(reserve_bytes, uint64_t(8) << 20))) return DiskFull(what);
     const rocksdb::Status s = db->Resume();
     if (s.ok()) {
       resume_needed = false;
@@ -447,7 +466,7 @@ class RocksPayloadStore final : public PayloadStore {
       if (decoded.ok()) current = *decoded;
     }
     if (id + 1 > current) batch.Put(storage_->cf(kMeta), kIdFloorKey, PlaceKey(id + 1));
-    return storage_->Write(&batch, "removing place " + std::to_string(id));
+    return storage_->Write(&batch, "removing place " + std::to_string(id), /*adds=*/false);
   }
 
   size_t MemoryBytes() const override { return 0; }
@@ -641,12 +660,13 @@ Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,
     observation.reason = frame.rejection;
     batch.Put(storage_->cf(kInvalid), U64Key(observation.serial),
               EncodeInvalidObservation(observation));
-    PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing an invalid observation"));
+    PLACEDB_RETURN_IF_ERROR(
+        storage_->Write(&batch, "storing an invalid observation", /*adds=*/true));
     ++storage_->invalid_stored;
   } else {
     // Only a counter: not worth an fsync of its own; it rides on the next synced write.
     PLACEDB_RETURN_IF_ERROR(
-        storage_->Write(&batch, "counting an invalid frame", /*durable=*/false));
+        storage_->Write(&batch, "counting an invalid frame", /*adds=*/true, /*durable=*/false));
   }
   database_->CountInvalid();
   result.timings.store_ms = store.ElapsedMs();
@@ -690,7 +710,8 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
   batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
-  PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing place " + std::to_string(record.id)));
+  PLACEDB_RETURN_IF_ERROR(
+      storage_->Write(&batch, "storing place " + std::to_string(record.id), /*adds=*/true));
   // Durable: now make it searchable.
   auto id = database_->Insert(frame, metadata, record.id);
   if (!id.ok()) return id.status();
@@ -897,6 +918,8 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, const s
   }
   auto storage = std::make_unique<MapStorage>();
   storage->map_name = name;
+  storage->path = path;
+  storage->reserve_bytes = options.disk_reserve_bytes;
   db_options.listeners.push_back(std::make_shared<DiskFullListener>(storage.get()));
   rocksdb::DB* raw = nullptr;
   rocksdb::Status s = rocksdb::DB::Open(db_options, path, families, &storage->handles, &raw);

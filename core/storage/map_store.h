@@ -42,6 +42,11 @@ struct StorageOptions {
   SyncMode sync = SyncMode::kEveryWrite;
   int group_commit_delay_ms = 5;
   size_t block_cache_bytes = size_t(64) << 20;  // shared by all maps of the directory
+  // New places (and invalid observations) are refused with RESOURCE_EXHAUSTED ("disk full") while
+  // the map's file system has less free space than its memtables plus this: RocksDB then never
+  // runs out of space in the middle of a write or flush. 0 = only when a write actually fails
+  // for lack of space. Removals are not held back.
+  uint64_t disk_reserve_bytes = uint64_t(8) << 20;
 };
 
 struct MapOptions {
