@@ -307,9 +307,9 @@ struct MapStorage {
   // writes until DB::Resume() succeeds: the next write tries it once there is room, so writes
   // resume as soon as there is space again.
   std::atomic<bool> resume_needed{false};
-  Mutex resume_mutex;
-  std::string path;            // the map's directory: its file system's free space
-  uint64_t reserve_bytes = 0;  // StorageOptions::disk_reserve_bytes
+  std::atomic<bool> resuming{false};  // one DB::Resume() at a time
+  std::string path;                   // the map's directory: its file system's free space
+  uint64_t reserve_bytes = 0;         // StorageOptions::disk_reserve_bytes
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -365,7 +365,14 @@ struct MapStorage {
   }
 
   Status Resume(const std::string& what) {
-    MutexLock lock(resume_mutex);
+    // Writers that come while another resumes are refused, not queued: should a Resume never
+    // return, it holds one worker, not every writer of the map.
+    bool idle = false;
+    if (!resuming.compare_exchange_strong(idle, true)) return DiskFull(what);
+    struct Done {
+      std::atomic<bool>& resuming;
+      ~Done() { resuming = false; }
+    } done{resuming};
     if (!resume_needed) return Status::Ok();  // another writer resumed meanwhile
     // Resume flushes the memtables into new files. One that fails for lack of space was seen to
     // leave the next DB::Resume() of RocksDB 7.8 waiting for good, so it is only tried once the
