@@ -14,6 +14,7 @@
 #include <fstream>
 #include <iterator>
 #include <map>
+#include <ostream>
 #include <string>
 
 #include "core/storage/map_store.h"
@@ -61,6 +62,12 @@ struct DiskFullCase {
   SyncMode sync;
   uint64_t reserve;  // StorageOptions::disk_reserve_bytes: 0 = RocksDB runs out of space itself
 };
+
+// Printed in test names instead of the struct's bytes (padding included).
+void PrintTo(const DiskFullCase& c, std::ostream* out) {
+  *out << (c.sync == SyncMode::kEveryWrite ? "every write" : "group commit") << ", reserve "
+       << c.reserve;
+}
 
 class DiskFullTest : public ::testing::TestWithParam<DiskFullCase> {
  protected:
