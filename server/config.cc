@@ -193,7 +193,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
   }
   if (const YAML::Node s = root["storage"]; s) {
     PLACEDB_RETURN_IF_ERROR(
-        r.Check(s, "storage", {"sync", "group_commit_delay_ms", "block_cache_bytes"}));
+        r.Check(s, "storage",
+                {"sync", "group_commit_delay_ms", "block_cache_bytes", "disk_reserve_bytes"}));
     std::string sync;
     PLACEDB_RETURN_IF_ERROR(r.Read(s, "storage", "sync", &sync));
     if (sync == "every_write") {
@@ -207,6 +208,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
         r.Read(s, "storage", "group_commit_delay_ms", &c->storage.group_commit_delay_ms));
     PLACEDB_RETURN_IF_ERROR(
         r.Read(s, "storage", "block_cache_bytes", &c->storage.block_cache_bytes));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(s, "storage", "disk_reserve_bytes", &c->storage.disk_reserve_bytes));
   }
   if (const YAML::Node l = root["limits"]; l) {
     PLACEDB_RETURN_IF_ERROR(
@@ -403,6 +406,7 @@ std::string ConfigToYaml(const ServerConfig& c) {
     << (c.storage.sync == SyncMode::kGroupCommit ? "group_commit" : "every_write");
   e << YAML::Key << "group_commit_delay_ms" << YAML::Value << c.storage.group_commit_delay_ms;
   e << YAML::Key << "block_cache_bytes" << YAML::Value << c.storage.block_cache_bytes;
+  e << YAML::Key << "disk_reserve_bytes" << YAML::Value << c.storage.disk_reserve_bytes;
   e << YAML::EndMap;
   const Limits& l = c.limits;
   e << YAML::Key << "limits" << YAML::Value << YAML::BeginMap;

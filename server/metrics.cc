@@ -83,6 +83,11 @@ Metrics::Metrics()
                           .Help("Loop closures the Bayesian filter accepted that failed geometric "
                                 "verification (not reported as loops)")
                           .Register(*registry_)),
+      storage_errors_(BuildCounter()
+                          .Name("placedb_storage_errors_total")
+                          .Help("Failed storage operations of a map, by kind (disk_full, "
+                                "io_error, corruption)")
+                          .Register(*registry_)),
       places_(
           BuildGauge().Name("placedb_places").Help("Places stored in a map").Register(*registry_)),
       disk_bytes_(BuildGauge()
@@ -194,6 +199,21 @@ void Metrics::LoopRejected(const std::string& map) {
   loops_rejected_.Add({{"map", map}}).Increment();
 }
 
+namespace {
+// The kinds a storage error is counted under (Metrics::StorageError), in one place for
+// ForgetMap.
+constexpr std::pair<StatusCode, const char*> kStorageErrorKinds[] = {
+    {StatusCode::kResourceExhausted, "disk_full"},
+    {StatusCode::kIoError, "io_error"},
+    {StatusCode::kCorruption, "corruption"}};
+}  // namespace
+
+void Metrics::StorageError(const std::string& map, const Status& status) {
+  for (const auto& [code, kind] : kStorageErrorKinds) {
+    if (status.code() == code) storage_errors_.Add({{"map", map}, {"kind", kind}}).Increment();
+  }
+}
+
 void Metrics::SetMapGauges(const std::string& map, double places, double bytes_on_disk) {
   places_.Add({{"map", map}}).Set(places);
   disk_bytes_.Add({{"map", map}}).Set(bytes_on_disk);
@@ -215,6 +235,9 @@ void Metrics::ForgetMap(const std::string& map) {
   merged_.Remove(&merged_.Add({{"map", map}}));
   loops_.Remove(&loops_.Add({{"map", map}}));
   loops_rejected_.Remove(&loops_rejected_.Add({{"map", map}}));
+  for (const auto& [code, kind] : kStorageErrorKinds) {
+    storage_errors_.Remove(&storage_errors_.Add({{"map", map}, {"kind", kind}}));
+  }
   for (const char* cls : {"dynamic", "depth_removed", "static"}) {
     descriptors_.Remove(&descriptors_.Add({{"map", map}, {"class", cls}}));
   }

@@ -61,6 +61,9 @@ class Metrics {
   void FrameMerged(const std::string& map);
   void LoopClosed(const std::string& map);
   void LoopRejected(const std::string& map);  // accepted by the filter, failed verification
+  // A failed write (or storage read) of a map, by kind: disk_full (RESOURCE_EXHAUSTED), io_error,
+  // corruption; other codes are not storage errors and are not counted.
+  void StorageError(const std::string& map, const Status& status);
   void SetMapGauges(const std::string& map, double places, double bytes_on_disk);
   // A map's damage (docs/storage.md, "Damage"): placedb_map_damaged 1 while it is damaged, and
   // placedb_map_places_lost, the acknowledged places found missing (damaged) or accepted as
@@ -84,6 +87,7 @@ class Metrics {
   prometheus::Family<prometheus::Counter>& merged_;
   prometheus::Family<prometheus::Counter>& loops_;
   prometheus::Family<prometheus::Counter>& loops_rejected_;
+  prometheus::Family<prometheus::Counter>& storage_errors_;
   prometheus::Family<prometheus::Gauge>& places_;
   prometheus::Family<prometheus::Gauge>& disk_bytes_;
   prometheus::Family<prometheus::Gauge>& damaged_;

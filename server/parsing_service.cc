@@ -191,6 +191,8 @@ ParsingService::ParsingService(PlaceDbService* service) : service_(service) {
   AddUnary("GetMap", &PlaceDbService::GetMap);
   AddUnary("ListMaps", &PlaceDbService::ListMaps);
   AddUnary("DeleteMap", &PlaceDbService::DeleteMap);
+  AddUnary("RecoverMap", &PlaceDbService::RecoverMap);
+  AddUnary("ScrubMap", &PlaceDbService::ScrubMap);
   AddIngest("Ingest");
   AddUnary("Query", &PlaceDbService::Query);
   AddUnary("GetPlace", &PlaceDbService::GetPlace);

@@ -376,7 +376,9 @@ grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
   if (request->place_id() == 0) {
     return Finish("DeletePlace", context, Invalid("place_id: is required (ids start at 1)"));
   }
-  return Finish("DeletePlace", context, ToGrpc((*entry)->map->RemovePlace(request->place_id())));
+  const Status removed = (*entry)->map->RemovePlace(request->place_id());
+  metrics_->StorageError((*entry)->name, removed);
+  return Finish("DeletePlace", context, ToGrpc(removed));
 }
 
 // ---- Server info --------------------------------------------------------------------------------
@@ -708,14 +710,19 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
         // previous place) the durable write.
         AddResult committed;  // the commit's result and its store_ms (none when merged)
         auto outcome = map.map->CloseLoop(frame, work.metadata, &committed);
-        if (!outcome.ok()) return ToGrpc(outcome.status(), "loop closure");
+        if (!outcome.ok()) {
+          metrics_->StorageError(map.name, outcome.status());
+          return ToGrpc(outcome.status(), "loop closure");
+        }
         work.timings.loop_closure_ms = outcome->update_ms;
         loop = std::move(outcome).value();
         added = std::move(committed);
         return grpc::Status::OK;
       }
       added = map.map->Commit(frame, work.metadata);
-      return added.ok() ? grpc::Status::OK : ToGrpc(added.status(), "storing");
+      if (added.ok()) return grpc::Status::OK;
+      metrics_->StorageError(map.name, added.status());
+      return ToGrpc(added.status(), "storing");
     });
     if (!second_half.ok()) {
       slot->status = second_half;

@@ -208,9 +208,10 @@ class DamageTest : public ::testing::Test {
   }
 
   // RecoverMap accepts the loss; the count is exact: places 1..kept survive, the rest are lost.
-  void ExpectRecovered(DataDirectory& dir, uint64_t expected_lost) {
+  // Closes `dir` (one DataDirectory per directory at a time) to check the restart.
+  void ExpectRecovered(std::unique_ptr<DataDirectory>& dir, uint64_t expected_lost) {
     MapDamage accepted;
-    auto map = dir.RecoverMap("lab", Vocab(), &accepted);
+    auto map = dir->RecoverMap("lab", Vocab(), &accepted);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
     const uint64_t kept = (*map)->Stats().database.places;
     EXPECT_EQ(kept + expected_lost, uint64_t(kPlaces));
@@ -225,8 +226,8 @@ class DamageTest : public ::testing::Test {
     EXPECT_EQ((*map)->damage_history()[0].places_lost, expected_lost);
     // The map works again, and its history survives a restart.
     for (PlaceId id = 1; id <= kept; ++id) EXPECT_NE((*map)->database().Get(id), nullptr) << id;
-    dir.CloseMap("lab");
     map = Result<std::shared_ptr<PlaceMap>>(Status::Internal("released"));
+    dir.reset();
     auto again = OpenDir();
     auto reopened = again->OpenMap("lab", vocabulary_);
     ASSERT_TRUE(reopened.ok()) << reopened.status().ToString();
@@ -281,7 +282,7 @@ TEST_F(DamageTest, TruncatedWalIsDamageNamingTheLog) {
   EXPECT_NE(damage.reason.find("acknowledged"), std::string::npos) << damage.reason;
   // Reading its info does not hide it either, and changes nothing.
   const auto size = fs::file_size(wal);
-  ExpectRecovered(*dir, damage.places_lost);
+  ExpectRecovered(dir, damage.places_lost);
   EXPECT_GT(size, 0u);
 }
 
@@ -291,7 +292,7 @@ TEST_F(DamageTest, GarbledWalIsDamage) {
   auto dir = OpenDir();
   const MapDamage damage = ExpectDamaged(*dir, "maps/lab/" + wal.filename().string());
   EXPECT_GT(damage.places_lost, 0u);
-  ExpectRecovered(*dir, damage.places_lost);
+  ExpectRecovered(dir, damage.places_lost);
 }
 
 TEST_F(DamageTest, DeletedWalIsDamage) {
@@ -300,7 +301,7 @@ TEST_F(DamageTest, DeletedWalIsDamage) {
   // RocksDB opens it without complaint (the log was never closed): ACKED's count tells.
   const MapDamage damage = ExpectDamaged(*dir, "the write-ahead log ends early");
   EXPECT_EQ(damage.places_lost, uint64_t(kPlaces - kFlushed));
-  ExpectRecovered(*dir, kPlaces - kFlushed);
+  ExpectRecovered(dir, kPlaces - kFlushed);
 }
 
 TEST_F(DamageTest, WalEndingEarlyAtARecordBoundaryIsCaughtByAcked) {
@@ -314,14 +315,14 @@ TEST_F(DamageTest, WalEndingEarlyAtARecordBoundaryIsCaughtByAcked) {
   const MapDamage damage = ExpectDamaged(*dir, "write-ahead log ends early");
   EXPECT_EQ(damage.places_lost, uint64_t(kPlaces - kFlushed));
   EXPECT_EQ(damage.first_lost, PlaceId(kFlushed + 1));
-  ExpectRecovered(*dir, kPlaces - kFlushed);
+  ExpectRecovered(dir, kPlaces - kFlushed);
 }
 
 TEST_F(DamageTest, DeletedAckedIsDamage) {
   fs::remove(map_dir_ + "/ACKED");
   auto dir = OpenDir();
   const MapDamage damage = ExpectDamaged(*dir, "maps/lab/ACKED is missing");
-  ExpectRecovered(*dir, 0);
+  ExpectRecovered(dir, 0);
 }
 
 TEST_F(DamageTest, HalfTruncatedManifestIsDamageAndRepairable) {
@@ -339,7 +340,7 @@ TEST_F(DamageTest, HalfTruncatedManifestIsDamageAndRepairable) {
   EXPECT_EQ(info.status().code(), StatusCode::kCorruption) << info.status().ToString();
   ExpectDamaged(*dir, name);
   // RocksDB's repair rebuilds the MANIFEST from the SST and WAL files: nothing is lost.
-  ExpectRecovered(*dir, 0);
+  ExpectRecovered(dir, 0);
 }
 
 TEST_F(DamageTest, DeletedCurrentIsDamage) {
@@ -348,7 +349,7 @@ TEST_F(DamageTest, DeletedCurrentIsDamage) {
   EXPECT_EQ(dir->ReadMapInfo("lab").status().code(), StatusCode::kCorruption);
   const MapDamage damage = ExpectDamaged(*dir, "maps/lab/CURRENT");
   EXPECT_NE(damage.reason.find("missing"), std::string::npos);
-  ExpectRecovered(*dir, 0);
+  ExpectRecovered(dir, 0);
 }
 
 TEST_F(DamageTest, MapDirectoryReplacedByAFileIsListedAsDamage) {

@@ -5,16 +5,22 @@
 #include <rocksdb/convenience.h>
 #include <rocksdb/db.h>
 #include <rocksdb/filter_policy.h>
+#include <rocksdb/listener.h>
 #include <rocksdb/merge_operator.h>
 #include <rocksdb/table.h>
 #include <rocksdb/utilities/checkpoint.h>
 #include <rocksdb/write_batch.h>
+#include <sys/statvfs.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cerrno>
 #include <chrono>
+#include <cstdarg>
+#include <cstdio>
 #include <cstring>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -52,9 +58,10 @@ Status FromRocks(const rocksdb::Status& s, const std::string& context) {
   const std::string message = context + ": " + s.ToString();
   if (s.IsNotFound()) return Status::NotFound(message);
   if (s.IsCorruption()) return Status::Corruption(message);
+  // NoSpace is an IOError with a subcode: checked first.
+  if (s.IsNoSpace() || s.IsMemoryLimit()) return Status::ResourceExhausted(message);
   if (s.IsIOError()) return Status::IoError(message);
   if (s.IsInvalidArgument()) return Status::Corruption(message);  // e.g. missing column family
-  if (s.IsNoSpace() || s.IsMemoryLimit()) return Status::ResourceExhausted(message);
   return Status::Internal(message);
 }
 
@@ -111,8 +118,65 @@ rocksdb::ColumnFamilyOptions FamilyOptions(Cf cf, const std::shared_ptr<rocksdb:
   return options;
 }
 
-rocksdb::DBOptions DatabaseOptions() {
+// RocksDB's info log (`LOG` in the map's directory), written without RocksDB's own file writer:
+// once a write to that one has failed (a full disk), its next line trips an assertion, and
+// Debian's librocksdb 7.8 is built with assertions, so a full disk aborted the process. Lines
+// that cannot be written are dropped; the previous log is kept as LOG.old.
+class InfoLog final : public rocksdb::Logger {
+ public:
+  explicit InfoLog(const std::string& path) {
+    std::error_code ec;
+    fs::rename(path, path + ".old", ec);
+    file_ = std::fopen(path.c_str(), "w");
+  }
+  ~InfoLog() override {
+    if (!closed_) {
+      closed_ = true;
+      (void)CloseImpl();
+    }
+  }
+  using rocksdb::Logger::Logv;
+  void Logv(const char* format, va_list ap) override {
+    if (!file_) return;
+    char line[2048];
+    const auto now = std::chrono::system_clock::now();
+    const std::time_t seconds = std::chrono::system_clock::to_time_t(now);
+    std::tm utc{};
+    gmtime_r(&seconds, &utc);
+    const auto micros =
+        std::chrono::duration_cast<std::chrono::microseconds>(now.time_since_epoch()).count() %
+        1000000;
+    int n = std::snprintf(line, sizeof line, "%04d/%02d/%02d-%02d:%02d:%02d.%06lld ",
+                          utc.tm_year + 1900, utc.tm_mon + 1, utc.tm_mday, utc.tm_hour, utc.tm_min,
+                          utc.tm_sec, static_cast<long long>(micros));
+    const int body = std::vsnprintf(line + n, sizeof line - size_t(n) - 1, format, ap);
+    if (body > 0) n = std::min(n + body, int(sizeof line) - 2);
+    if (line[n - 1] != '\n') line[n++] = '\n';
+    if (std::fwrite(line, 1, size_t(n), file_) != size_t(n) || std::fflush(file_) != 0) {
+      std::clearerr(file_);  // a full disk: drop the line, try again with the next
+    }
+  }
+
+ protected:
+  rocksdb::Status CloseImpl() override {
+    if (file_) std::fclose(file_);
+    file_ = nullptr;
+    return rocksdb::Status::OK();
+  }
+
+ private:
+  std::FILE* file_ = nullptr;
+};
+
+// `directory`: the map's RocksDB directory, created here when missing, for its info log; empty
+// for options that open no database (SST checksum verification).
+rocksdb::DBOptions DatabaseOptions(const std::string& directory) {
   rocksdb::DBOptions options;
+  if (!directory.empty()) {
+    std::error_code ec;
+    fs::create_directories(directory, ec);
+    options.info_log = std::make_shared<InfoLog>((fs::path(directory) / "LOG").string());
+  }
   options.IncreaseParallelism(2);
   options.paranoid_checks = true;
   options.max_open_files = 256;
@@ -212,7 +276,7 @@ class GroupCommitter {
     thread_.join();
   }
 
-  Status WaitDurable() {
+  rocksdb::Status WaitDurable() {
     MutexLock lock(mutex_);
     const uint64_t ticket = ++requested_;
     wake_syncer_.NotifyOne();
@@ -236,7 +300,7 @@ class GroupCommitter {
       lock.Unlock();
       const rocksdb::Status synced = db_->SyncWAL();
       lock.Lock();
-      last_status_ = FromRocks(synced, "syncing the write-ahead log");
+      last_status_ = synced;
       synced_ = target;
       synced_cv_.NotifyAll();
     }
@@ -250,7 +314,7 @@ class GroupCommitter {
   uint64_t requested_ GUARDED_BY(mutex_) = 0;
   uint64_t synced_ GUARDED_BY(mutex_) = 0;
   bool stopping_ GUARDED_BY(mutex_) = false;
-  Status last_status_ GUARDED_BY(mutex_);
+  rocksdb::Status last_status_ GUARDED_BY(mutex_);
   std::thread thread_;
 };
 
@@ -443,9 +507,17 @@ struct MapStorage {
   SyncMode sync = SyncMode::kEveryWrite;
   std::unique_ptr<GroupCommitter> committer;
   std::unique_ptr<AckTracker> acks;  // null only while a map is being created or recovered
+  std::string map_name;              // for messages: never the directory's path
   // Atomics: counters updated under a shared hold by concurrent writers.
   std::atomic<uint64_t> next_invalid_serial{1};
   std::atomic<uint64_t> invalid_stored{0};
+  // After a NoSpace error (a write's, or a flush's reported by the listener) RocksDB refuses
+  // writes until DB::Resume() succeeds: the next write tries it once there is room, so writes
+  // resume as soon as there is space again.
+  std::atomic<bool> resume_needed{false};
+  std::atomic<bool> resuming{false};  // one DB::Resume() at a time
+  std::string path;                   // the map's directory: its file system's free space
+  uint64_t reserve_bytes = 0;         // StorageOptions::disk_reserve_bytes
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -461,22 +533,105 @@ struct MapStorage {
   }
   ~MapStorage() { Close(); }
 
-  // `place`: the id of the place the batch stores, 0 for other writes.
-  Status Write(rocksdb::WriteBatch* batch, PlaceId place = 0) {
+  Status DiskFull(const std::string& what) const {
+    return Status::ResourceExhausted("disk full: map '" + map_name + "': " + what +
+                                     " failed (its data directory has no space left; free "
+                                     "space, then retry)");
+  }
+
+  // Free space of the file system beyond what flushing the memtables takes, compared to
+  // `margin`. True when the free space cannot be read.
+  bool HasRoom(uint64_t margin) const {
+    struct statvfs info {};
+    if (statvfs(path.c_str(), &info) != 0) return true;
+    uint64_t memtables = 0;
+    db->GetAggregatedIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables, &memtables);
+    return uint64_t(info.f_bavail) * info.f_frsize >= memtables + margin;
+  }
+
+  Status WriteError(const rocksdb::Status& s, const std::string& what) {
+    if (s.IsNoSpace()) {
+      resume_needed = true;
+      return DiskFull(what);
+    }
+    return FromRocks(s, what);
+  }
+
+  // What a write is: whether the free-space reserve holds it back, and whether it is synced and
+  // counted as acknowledged (ACKED and the database's own count).
+  enum class Kind {
+    kAddition,  // a new place or invalid observation: held back by the reserve
+    kRemoval,   // never held back by the reserve, so space can be freed
+    kCounter,   // rides on the next synced write: neither synced nor acknowledged
+  };
+
+  // `what` names the operation for messages ("storing place 12"); `place`: the id of the place
+  // the batch stores, 0 for other writes.
+  Status Write(rocksdb::WriteBatch* batch, const std::string& what, Kind kind, PlaceId place = 0) {
+    if (resume_needed) PLACEDB_RETURN_IF_ERROR(Resume(what));
+    if (kind == Kind::kAddition && reserve_bytes > 0 && !HasRoom(reserve_bytes)) {
+      return DiskFull(what);
+    }
+    const bool acknowledged = kind != Kind::kCounter;
     // Counted in the batch itself, so the database holds exactly the writes it kept.
-    batch->Merge(cf(kMeta), kWritesKey, CounterOperand(1));
+    if (acknowledged) batch->Merge(cf(kMeta), kWritesKey, CounterOperand(1));
     rocksdb::WriteOptions options;
-    options.sync = sync == SyncMode::kEveryWrite;
-    PLACEDB_RETURN_IF_ERROR(FromRocks(db->Write(options, batch), "writing to the map"));
-    if (committer) PLACEDB_RETURN_IF_ERROR(committer->WaitDurable());
+    options.sync = acknowledged && sync == SyncMode::kEveryWrite;
+    if (rocksdb::Status s = db->Write(options, batch); !s.ok()) return WriteError(s, what);
+    if (!acknowledged) return Status::Ok();
+    if (committer) {
+      if (rocksdb::Status s = committer->WaitDurable(); !s.ok()) return WriteError(s, what);
+    }
     // Durable in the WAL; ACKED counts it before anyone is told.
-    if (acks) return acks->Acknowledge(place);
+    if (acks) return acks->Acknowledge(place).WithContext(what);
     return Status::Ok();
   }
+
+  Status Resume(const std::string& what) {
+    // Writers that come while another resumes are refused, not queued: should a Resume never
+    // return, it holds one worker, not every writer of the map.
+    bool idle = false;
+    if (!resuming.compare_exchange_strong(idle, true)) return DiskFull(what);
+    struct Done {
+      std::atomic<bool>& resuming;
+      ~Done() { resuming = false; }
+    } done{resuming};
+    if (!resume_needed) return Status::Ok();  // another writer resumed meanwhile
+    // Resume flushes the memtables into new files. One that fails for lack of space was seen to
+    // leave the next DB::Resume() of RocksDB 7.8 waiting for good, so it is only tried once the
+    // memtables fit with room to spare.
+    if (!HasRoom(std::max(reserve_bytes, uint64_t(8) << 20))) return DiskFull(what);
+    const rocksdb::Status s = db->Resume();
+    if (s.ok()) {
+      resume_needed = false;
+      return Status::Ok();
+    }
+    if (s.IsNoSpace() || s.IsBusy()) return DiskFull(what);
+    return FromRocks(s, what + " (resuming after a full disk)");
+  }
+};
+
+// Keeps RocksDB's own NoSpace recovery off: it waits for free space of a whole write buffer
+// (32 MB here), polls every few seconds and meanwhile refuses DB::Resume(). MapStorage::Write
+// resumes on the next write instead.
+class DiskFullListener : public rocksdb::EventListener {
+ public:
+  explicit DiskFullListener(MapStorage* storage) : storage_(storage) {}
+  void OnBackgroundError(rocksdb::BackgroundErrorReason, rocksdb::Status* error) override {
+    if (error->IsNoSpace()) storage_->resume_needed = true;
+  }
+  void OnErrorRecoveryBegin(rocksdb::BackgroundErrorReason, rocksdb::Status,
+                            bool* auto_recovery) override {
+    *auto_recovery = false;
+  }
+
+ private:
+  MapStorage* const storage_;  // outlives the DB: MapStorage::Close() closes it first
 };
 
 }  // namespace detail
 
+using detail::DiskFullListener;
 using detail::MapStorage;
 
 namespace {
@@ -541,7 +696,8 @@ class RocksPayloadStore final : public PayloadStore {
       if (decoded.ok()) current = *decoded;
     }
     if (id + 1 > current) batch.Put(storage_->cf(kMeta), kIdFloorKey, PlaceKey(id + 1));
-    return storage_->Write(&batch).WithContext("removing place " + std::to_string(id));
+    return storage_->Write(&batch, "removing place " + std::to_string(id),
+                           MapStorage::Kind::kRemoval);
   }
 
   size_t MemoryBytes() const override { return 0; }
@@ -737,12 +893,13 @@ Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,
     observation.reason = frame.rejection;
     batch.Put(storage_->cf(kInvalid), U64Key(observation.serial),
               EncodeInvalidObservation(observation));
-    PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch));
+    PLACEDB_RETURN_IF_ERROR(
+        storage_->Write(&batch, "storing an invalid observation", MapStorage::Kind::kAddition));
     ++storage_->invalid_stored;
   } else {
     // Only a counter: not worth an fsync of its own; it rides on the next synced write.
     PLACEDB_RETURN_IF_ERROR(
-        FromRocks(storage_->db->Write(rocksdb::WriteOptions(), &batch), "counting"));
+        storage_->Write(&batch, "counting an invalid frame", MapStorage::Kind::kCounter));
   }
   database_->CountInvalid();
   result.timings.store_ms = store.ElapsedMs();
@@ -786,7 +943,8 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
   batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
-  PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, record.id).WithContext("storing a place"));
+  PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing place " + std::to_string(record.id),
+                                          MapStorage::Kind::kAddition, record.id));
   // Durable: now make it searchable.
   auto id = database_->Insert(frame, metadata, record.id);
   if (!id.ok()) return id.status();
@@ -921,7 +1079,7 @@ Result<ScrubReport> PlaceMap::Scrub() const {
   // Every block of every live SST file, whichever family it belongs to.
   std::vector<rocksdb::LiveFileMetaData> files;
   storage_->db->GetLiveFilesMetaData(&files);
-  const rocksdb::Options options(DatabaseOptions(), rocksdb::ColumnFamilyOptions());
+  const rocksdb::Options options(DatabaseOptions(""), rocksdb::ColumnFamilyOptions());
   rocksdb::ReadOptions verify;
   verify.fill_cache = false;
   verify.verify_checksums = true;
@@ -1071,8 +1229,9 @@ std::vector<rocksdb::ColumnFamilyDescriptor> Families(const std::shared_ptr<void
   return families;
 }
 
-rocksdb::DBOptions RecoveryOptions(Recovery recovery) {
-  rocksdb::DBOptions options = DatabaseOptions();
+// `path`: the map's directory, for its info log; empty for read-only opens (which write none).
+rocksdb::DBOptions RecoveryOptions(Recovery recovery, const std::string& path) {
+  rocksdb::DBOptions options = DatabaseOptions(path);
   if (recovery == Recovery::kStrict) {
     options.wal_recovery_mode = rocksdb::WALRecoveryMode::kAbsoluteConsistency;
   } else {
@@ -1087,11 +1246,15 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
                                                 const std::shared_ptr<void>& cache_void,
                                                 Recovery recovery = Recovery::kStrict,
                                                 bool create_families = false) {
-  rocksdb::DBOptions db_options = RecoveryOptions(recovery);
+  rocksdb::DBOptions db_options = RecoveryOptions(recovery, path);
   db_options.create_if_missing = create;
   db_options.error_if_exists = create;
   db_options.create_missing_column_families = create || create_families;
   auto storage = std::make_unique<MapStorage>();
+  storage->map_name = fs::path(path).filename().string();
+  storage->path = path;
+  storage->reserve_bytes = options.disk_reserve_bytes;
+  db_options.listeners.push_back(std::make_shared<DiskFullListener>(storage.get()));
   rocksdb::DB* raw = nullptr;
   rocksdb::Status s =
       rocksdb::DB::Open(db_options, path, Families(cache_void), &storage->handles, &raw);
@@ -1111,7 +1274,7 @@ Result<std::unique_ptr<MapStorage>> OpenReadOnly(const std::string& path,
                                                  Recovery recovery) {
   auto storage = std::make_unique<MapStorage>();
   rocksdb::DB* raw = nullptr;
-  rocksdb::Status s = rocksdb::DB::OpenForReadOnly(RecoveryOptions(recovery), path,
+  rocksdb::Status s = rocksdb::DB::OpenForReadOnly(RecoveryOptions(recovery, ""), path,
                                                    Families(cache_void), &storage->handles, &raw);
   if (!s.ok()) return FromRocks(s, "opening the map's RocksDB");
   storage->db.reset(raw);
@@ -1527,7 +1690,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& n
     // MANIFEST or CURRENT unusable: rebuild them from the SST and WAL files.
     auto families = Families(block_cache_);
     rocksdb::Status repaired =
-        rocksdb::RepairDB(path, RecoveryOptions(Recovery::kPointInTime), families);
+        rocksdb::RepairDB(path, RecoveryOptions(Recovery::kPointInTime, path), families);
     if (!repaired.ok()) {
       return Status::Corruption("map '" + name + "' cannot be recovered: " +
                                 Relative(FromRocks(repaired, "RocksDB repair").message()));

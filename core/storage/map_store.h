@@ -55,6 +55,11 @@ struct StorageOptions {
   // Count acknowledged writes in ACKED (docs/storage.md, "Damage"). Off only to measure its
   // cost: writes are then not counted and opening a map does not check for lost writes.
   bool acked_file = true;
+  // New places (and invalid observations) are refused with RESOURCE_EXHAUSTED ("disk full") while
+  // the map's file system has less free space than its memtables plus this: RocksDB then never
+  // runs out of space in the middle of a write or flush. 0 = only when a write actually fails
+  // for lack of space. Removals are not held back.
+  uint64_t disk_reserve_bytes = uint64_t(8) << 20;
 };
 
 struct MapOptions {

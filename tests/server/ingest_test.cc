@@ -3,10 +3,15 @@
 // depth frames (Algorithm 1's state per agent), loop-closure mode and server-side detection.
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
+#include <sys/mount.h>
+#include <sys/statvfs.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cstdint>
 #include <cstdio>
+#include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <opencv2/imgcodecs.hpp>
@@ -593,6 +598,96 @@ TEST_F(ServerTest, ServerSideDetectionDropsDescriptorsOnPeopleAndCars) {
   v1::ServerInfo info;
   ASSERT_TRUE(stub_->GetServerInfo(&context, {}, &info).ok());
   EXPECT_NE(info.detector().find("yolox_nano.onnx"), std::string::npos) << info.detector();
+}
+
+// A full disk (the data directory on a small tmpfs; root only): frames the map cannot store are
+// answered RESOURCE_EXHAUSTED ("disk full", naming the map and no path) on a stream that stays
+// open, counted by placedb_storage_errors_total; reads answer; once space returns the next
+// stream's frames are stored.
+TEST_F(ServerTest, FullDiskRefusesFramesOnAnOpenStreamAndIngestResumes) {
+  if (geteuid() != 0) GTEST_SKIP() << "mounting a tmpfs needs root";
+  const std::string mount_point = root_ + "/tmpfs";
+  std::filesystem::create_directories(mount_point);
+  if (mount("tmpfs", mount_point.c_str(), "tmpfs", 0, "size=96m") != 0) {
+    GTEST_SKIP() << "cannot mount a tmpfs: " << std::strerror(errno);
+  }
+  struct Unmount {
+    std::string dir;
+    ~Unmount() { umount2(dir.c_str(), MNT_DETACH); }
+  } unmount{mount_point};
+  ServerConfig config = Config();
+  config.data_dir = mount_point + "/data";
+  config.metrics_listen = "127.0.0.1:0";
+  StartServer(config);
+  CreateMap("full");
+
+  std::vector<v1::Observation> frames;  // precomputed features: the server only stores
+  for (int i = 1; i <= 12; ++i) {
+    v1::Observation observation = RtabmapObservation(i, "agent");
+    *observation.mutable_features() = FeaturesOf(observation);
+    frames.push_back(std::move(observation));
+  }
+  // Leave 12 MB: past the memtables plus the 8 MiB reserve, new places are refused.
+  struct statvfs info {};
+  ASSERT_EQ(statvfs(mount_point.c_str(), &info), 0);
+  const size_t free_mib = size_t(info.f_bavail) * info.f_frsize >> 20;
+  ASSERT_GT(free_mib, 20u);
+  const std::string filler = mount_point + "/filler";
+  {
+    std::ofstream out(filler, std::ios::binary);
+    const std::string block(size_t(1) << 20, 'x');
+    for (size_t i = 0; i + 12 < free_mib; ++i)
+      out.write(block.data(), std::streamsize(block.size()));
+    ASSERT_TRUE(out.good());
+  }
+  std::vector<v1::Observation> observations;
+  for (size_t n = 0; n < 400; ++n) {
+    observations.push_back(frames[n % frames.size()]);
+    observations.back().set_sequence(n);
+  }
+  const IngestOutcome outcome = IngestAll(stub_.get(), "full", observations);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();  // not ended
+  ASSERT_EQ(outcome.responses.size(), observations.size());
+  std::vector<uint32_t> stored;
+  size_t refused = 0;
+  for (const v1::IngestResponse& response : outcome.responses) {
+    if (response.has_error()) {
+      ++refused;
+      EXPECT_EQ(response.error().code(), int(grpc::StatusCode::RESOURCE_EXHAUSTED));
+      EXPECT_EQ(response.error().message().rfind("storing: disk full: map 'full': ", 0), 0u)
+          << response.error().message();
+      EXPECT_EQ(response.error().message().find(mount_point), std::string::npos);
+    } else if (response.stored()) {
+      stored.push_back(response.place_id());
+    }
+  }
+  ASSERT_FALSE(stored.empty());
+  ASSERT_GT(refused, 0u);
+  EXPECT_EQ(MetricValue(Scrape(), "placedb_storage_errors_total",
+                        {{"map", "full"}, {"kind", "disk_full"}}),
+            double(refused));
+  for (uint32_t id : stored) {
+    v1::GetPlaceRequest request;
+    request.set_map("full");
+    request.set_place_id(id);
+    v1::Place place;
+    grpc::ClientContext context;
+    EXPECT_TRUE(stub_->GetPlace(&context, request, &place).ok()) << "place " << id;
+  }
+  v1::QueryResponse found;
+  ASSERT_TRUE(Query("full", frames[0], &found).ok());
+  EXPECT_FALSE(found.matches().empty());
+
+  ASSERT_TRUE(std::filesystem::remove(filler));
+  const IngestOutcome resumed = IngestAll(stub_.get(), "full", frames);
+  ASSERT_TRUE(resumed.status.ok()) << resumed.status.error_message();
+  size_t stored_after = 0;
+  for (const v1::IngestResponse& response : resumed.responses) {
+    EXPECT_FALSE(response.has_error()) << response.error().message();
+    stored_after += response.stored();
+  }
+  EXPECT_GT(stored_after, 0u);
+  EXPECT_EQ(Stats("full").places(), stored.size() + stored_after);
 }
 
 }  // namespace

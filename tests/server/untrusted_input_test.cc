@@ -434,11 +434,15 @@ TEST_F(UntrustedInputTest, NoAbsolutePathInClientVisibleErrors) {
     seen.push_back(maps.maps(0).unavailable_reason());
   }
   {
+    // A damaged map's description is an answer, not an error: its reason is client-visible.
     grpc::ClientContext context;
     v1::GetMapRequest request;
     request.set_name("m");
     v1::MapDescription response;
-    status_of(stub_->GetMap(&context, request, &response));
+    ASSERT_TRUE(stub_->GetMap(&context, request, &response).ok());
+    EXPECT_EQ(response.state(), v1::MAP_STATE_DAMAGED);
+    seen.push_back(response.unavailable_reason());
+    seen.push_back(response.damage().reason());
   }
   status_of(IngestAll(stub_.get(), "m", {}).status);
   {
