@@ -29,6 +29,11 @@ struct Limits {
   uint32_t max_concurrent_unary = 64;               // unary calls being served at once
   uint32_t unary_queue_wait_ms = 2000;              // a unary call waits this long for room
   uint64_t memory_quota_bytes = uint64_t(1) << 30;  // gRPC's ResourceQuota (transport buffers)
+  // The server's memory budget (server/memory_budget.h): fixed caches + every frame and Query
+  // from its read to its answer. Reads wait for it; a frame that still does not fit waits
+  // memory_wait_ms, then is refused (RESOURCE_EXHAUSTED naming this key).
+  uint64_t memory_budget_bytes = uint64_t(1) << 30;
+  uint32_t memory_wait_ms = 2000;
 
   // The ones an observation is checked against when it is decoded.
   wire::FrameLimits frame() const {
@@ -91,7 +96,8 @@ Status ApplyConfigFile(const std::string& path, ServerConfig* config);
 Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config);  // for tests
 
 // Applies PLACEDB_LISTEN, PLACEDB_DATA_DIR, PLACEDB_METRICS_LISTEN, PLACEDB_METRICS_PORT,
-// PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL. `getenv` is injectable for tests.
+// PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL, PLACEDB_MEMORY_BUDGET_BYTES. `getenv`
+// is injectable for tests.
 Status ApplyEnvironment(ServerConfig* config,
                         const std::function<const char*(const char*)>& getenv);
 

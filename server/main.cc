@@ -12,10 +12,12 @@
 #include <cstdlib>
 #include <thread>
 
+#include "server/allocator.h"
 #include "server/config.h"
 #include "server/server.h"
 
 int main(int argc, char** argv) {
+  placedb::server::TuneAllocator();
   // Block the shutdown signals in every thread (threads inherit the mask); one thread waits for
   // them with sigwait.
   sigset_t signals;
@@ -35,6 +37,7 @@ int main(int argc, char** argv) {
   const placedb::server::ServerConfig& config = command_line->config;
   spdlog::set_level(spdlog::level::from_str(config.log_level));
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e%z %^%l%$ %v");
+  spdlog::info("allocator: {}", placedb::server::AllocatorDescription());
 
   auto server = placedb::server::Server::Start(config);
   if (!server.ok()) {

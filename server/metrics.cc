@@ -97,6 +97,11 @@ Metrics::Metrics()
                        .Help("Frames waiting for a worker")
                        .Register(*registry_)
                        .Add({})),
+      memory_budget_(BuildGauge()
+                         .Name("placedb_memory_budget_bytes")
+                         .Help("The memory budget (limits.memory_budget_bytes), by kind: limit, "
+                               "fixed (caches), in_use (fixed + requests in flight)")
+                         .Register(*registry_)),
       detector_seconds_(detector_.Add({}, SecondsBuckets())) {}
 
 Metrics::~Metrics() {
@@ -195,6 +200,12 @@ void Metrics::StreamClosed() {
 }
 void Metrics::SetQueueDepth(size_t depth) {
   queue_depth_.Set(double(depth));
+}
+
+void Metrics::SetMemoryBudget(uint64_t limit, uint64_t fixed, uint64_t in_use) {
+  memory_budget_.Add({{"kind", "limit"}}).Set(double(limit));
+  memory_budget_.Add({{"kind", "fixed"}}).Set(double(fixed));
+  memory_budget_.Add({{"kind", "in_use"}}).Set(double(in_use));
 }
 
 }  // namespace placedb::server

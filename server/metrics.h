@@ -58,6 +58,8 @@ class Metrics {
   void StreamOpened();
   void StreamClosed();
   void SetQueueDepth(size_t depth);
+  // The memory budget (limits.memory_budget_bytes): its limit, fixed part and bytes in use.
+  void SetMemoryBudget(uint64_t limit, uint64_t fixed, uint64_t in_use);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
@@ -74,6 +76,7 @@ class Metrics {
   prometheus::Family<prometheus::Gauge>& disk_bytes_;
   prometheus::Gauge& streams_;
   prometheus::Gauge& queue_depth_;
+  prometheus::Family<prometheus::Gauge>& memory_budget_;
   prometheus::Histogram& detector_seconds_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
   std::unique_ptr<prometheus::Exposer> exposer_;

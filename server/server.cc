@@ -10,6 +10,7 @@
 #include <opencv2/core.hpp>
 
 #include "server/map_registry.h"
+#include "server/memory_budget.h"
 #include "server/metrics.h"
 #include "server/service.h"
 #include "server/worker_pool.h"
@@ -104,6 +105,28 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
 
   auto vocabularies = LoadVocabularies(c, deps.vocabularies);
   if (!vocabularies.ok()) return vocabularies.status();
+  // The memory budget's fixed part: the caches that live as long as the server. What is left is
+  // for requests, and must hold at least a few whole messages (each read is granted one first).
+  server->budget_ = std::make_unique<MemoryBudget>(c.limits.memory_budget_bytes);
+  std::vector<std::pair<std::string, uint64_t>> fixed = {
+      {"storage.block_cache_bytes", c.storage.block_cache_bytes}};
+  for (const VocabularyEntry& entry : vocabularies->loaded) {
+    fixed.emplace_back("vocabulary '" + entry.name + "'", entry.vocabulary.memory_bytes());
+  }
+  for (const auto& [what, bytes] : fixed) {
+    // A configuration error, not a load: INVALID_ARGUMENT.
+    if (Status reserved = server->budget_->ReserveFixed(what, bytes); !reserved.ok()) {
+      return Status::InvalidArgument(reserved.message());
+    }
+  }
+  if (const uint64_t left = c.limits.memory_budget_bytes - server->budget_->fixed();
+      left < 4 * c.limits.max_message_bytes) {
+    return Status::InvalidArgument(
+        "limits.memory_budget_bytes = " + std::to_string(c.limits.memory_budget_bytes) +
+        " leaves " + std::to_string(left) +
+        " bytes beyond its fixed part (block cache, vocabularies): less than 4 x "
+        "limits.max_message_bytes");
+  }
   auto maps = MapRegistry::Open(c.data_dir, c.storage, std::move(vocabularies->loaded),
                                 std::move(vocabularies->missing));
   if (!maps.ok()) return maps.status();
@@ -132,9 +155,9 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   server->pool_ =
       std::make_unique<WorkerPool>(c.worker_threads(), c.limits.max_queued_frames,
                                    [metrics](size_t depth) { metrics->SetQueueDepth(depth); });
-  server->service_ =
-      std::make_unique<PlaceDbService>(server->config_, server->maps_.get(), server->pool_.get(),
-                                       metrics, server->detector_.get(), detector_status);
+  server->service_ = std::make_unique<PlaceDbService>(
+      server->config_, server->maps_.get(), server->pool_.get(), metrics, server->detector_.get(),
+      detector_status, server->budget_.get());
 
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
@@ -144,8 +167,10 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   builder.SetMaxReceiveMessageSize(int(c.limits.max_message_bytes));
   // Transport memory and handler threads are bounded: a flood of calls gets RESOURCE_EXHAUSTED
   // instead of exhausting the machine. Each open stream holds a handler thread.
+  // The transport's buffers are part of the memory budget (a pending read holds a reservation of
+  // a whole message): the quota never exceeds it.
   grpc::ResourceQuota quota("placedb");
-  quota.Resize(size_t(c.limits.memory_quota_bytes));
+  quota.Resize(size_t(std::min(c.limits.memory_quota_bytes, c.limits.memory_budget_bytes)));
   quota.SetMaxThreads(int(c.limits.max_concurrent_streams + c.limits.max_concurrent_unary + 8));
   builder.SetResourceQuota(quota);
   builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS,
@@ -168,8 +193,11 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
 
   if (!c.metrics_listen.empty()) {
     PlaceDbService* service = server->service_.get();
-    Status serving = metrics->Serve(c.metrics_listen, c.metrics_path,
-                                    [service] { service->RefreshMapGauges(); });
+    const MemoryBudget* budget = server->budget_.get();
+    Status serving = metrics->Serve(c.metrics_listen, c.metrics_path, [service, metrics, budget] {
+      service->RefreshMapGauges();
+      metrics->SetMemoryBudget(budget->limit(), budget->fixed(), budget->in_use());
+    });
     if (!serving.ok()) {
       server->Shutdown();
       return serving;

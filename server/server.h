@@ -24,6 +24,7 @@ class Server;
 namespace placedb::server {
 
 class MapRegistry;
+class MemoryBudget;
 class Metrics;
 class PlaceDbService;
 class WorkerPool;
@@ -45,8 +46,9 @@ class Server {
   static Result<std::unique_ptr<Server>> Start(const ServerConfig& config, ServerDeps deps = {});
   ~Server();  // Shutdown()
 
-  int port() const { return port_; }                  // the bound gRPC port
-  int metrics_port() const { return metrics_port_; }  // 0 when metrics are off
+  int port() const { return port_; }                        // the bound gRPC port
+  int metrics_port() const { return metrics_port_; }        // 0 when metrics are off
+  MemoryBudget& memory_budget() const { return *budget_; }  // tests hold part of it as load
   const ServerConfig& config() const { return config_; }
 
   // Graceful shutdown; idempotent and thread-safe (other callers wait for the first).
@@ -59,6 +61,7 @@ class Server {
 
   const ServerConfig config_;
   std::unique_ptr<Metrics> metrics_;
+  std::unique_ptr<MemoryBudget> budget_;  // before the maps and the service that charge it
   std::unique_ptr<MapRegistry> maps_;
   std::shared_ptr<const Detector> detector_;
   std::unique_ptr<WorkerPool> pool_;

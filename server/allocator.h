@@ -1,0 +1,26 @@
+// The malloc placedb-server runs on, chosen at build time (CMake PLACEDB_ALLOCATOR: jemalloc, the
+// default, mimalloc or glibc), and its tuning: memory freed after a load goes back to the OS
+// within seconds instead of staying in the allocator (issue 19; docs/service.md, "Memory").
+//
+// - jemalloc: linked into the executable, configured by the `malloc_conf` it defines
+//   (background purging threads, freed pages returned after 1 s); MALLOC_CONF still overrides.
+// - mimalloc: linked into the executable (it replaces malloc); freed pages decommitted.
+// - glibc: two arenas instead of 8 x cores, large blocks mmapped, and malloc_trim(0) every few
+//   seconds (glibc returns little on its own).
+//
+// Only the executable links this (server/main.cc): tests and sanitizer builds keep the system
+// allocator (ASan and TSan replace malloc themselves).
+#pragma once
+
+#include <string>
+
+namespace placedb::server {
+
+// At the start of main(), before any thread: applies the tuning above.
+void TuneAllocator();
+
+// "jemalloc 5.3.0-0-g54eaed1d8b56b1aa528be3bdd1877e59c56fa90c (...)", "mimalloc 209", "glibc 2.36
+// (...)": for the startup log line.
+std::string AllocatorDescription();
+
+}  // namespace placedb::server
