@@ -100,7 +100,16 @@ bool MemoryBudget::WaitToFitLocked(uint64_t more, Clock::time_point until,
   bool granted = true;
   while (!GrantableLocked(more, growth)) {
     const auto now = Clock::now();
-    if (now >= until || (give_up && give_up())) {
+    bool giving_up = now >= until;
+    if (!giving_up && give_up) {
+      // Outside the lock: `give_up` may take the caller's locks, which may be held around a
+      // release.
+      mutex_.Unlock();
+      giving_up = give_up();
+      mutex_.Lock();
+      if (GrantableLocked(more, growth)) break;
+    }
+    if (giving_up) {
       granted = false;
       break;
     }

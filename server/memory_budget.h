@@ -71,7 +71,8 @@ class MemoryBudget {
 
   // `bytes` now, or RESOURCE_EXHAUSTED (Exhausted()) when it does not fit.
   Result<Reservation> TryReserve(uint64_t bytes, const std::string& what) EXCLUDES(mutex_);
-  // Waits for `bytes` to fit until `until`, polling `give_up` (may be empty) every 50 ms.
+  // Waits for `bytes` to fit until `until`, polling `give_up` (may be empty; called without the
+  // budget's lock, so it may take locks held around a release) every 50 ms.
   // RESOURCE_EXHAUSTED (Exhausted()) when `until` passes or `give_up` said so; at once when
   // `bytes` exceeds what the budget can ever grant (the limit minus the fixed charges).
   Result<Reservation> Reserve(uint64_t bytes, const std::string& what, Clock::time_point until,

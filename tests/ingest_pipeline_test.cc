@@ -371,7 +371,9 @@ TEST(IngestPipelineConcurrency, ReadsWaitForTheMemoryBudgetAndEachReadIsGrantedA
   EXPECT_TRUE(log.WaitFor([&] { return log.submitted == 2; }));
   EXPECT_FALSE(log.WaitFor([&] { return log.submitted > 2; }, 200ms));
   EXPECT_EQ(budget.in_use(), 8 * kMiB);
-  log.Update([&] { held.front().Release(); });
+  MemoryBudget::Reservation first;
+  log.Update([&] { first = std::move(held.front()); });
+  first.Release();
   EXPECT_TRUE(log.WaitFor([&] { return log.submitted == 3; }));
   expired = true;
   reader.join();
@@ -391,9 +393,11 @@ TEST(IngestPipelineTest, ARejectedFrameIsAnsweredInItsPlaceUnprepared) {
   ASSERT_EQ(pipeline.Submit(std::make_unique<TestFrame>(&log, 0, &first)), Admission::kQueued);
   ASSERT_EQ(pipeline.Reject(std::make_unique<TestFrame>(&log, 1)), Admission::kQueued);
   ASSERT_EQ(pipeline.Submit(std::make_unique<TestFrame>(&log, 2)), Admission::kQueued);
+  // Frame 2 is prepared on the other worker; frames 1 and 2 wait for frame 0.
+  EXPECT_TRUE(log.WaitFor([&] { return log.prepared.size() == 1; }));
   {
     std::lock_guard lock(log.mutex);
-    EXPECT_TRUE(log.completed.empty());  // frame 1 waits for frame 0
+    EXPECT_TRUE(log.completed.empty());
   }
   first.Open();
   pipeline.Close();
