@@ -342,6 +342,17 @@ int main(int argc, char** argv) {
       }
     }
     Print(name + "rss_after_" + std::to_string(o.after_s) + "s", last, "MiB");
+    {
+      // What the stored places legitimately keep in memory (index, records): RSS after a round
+      // may exceed the baseline by this much.
+      grpc::ClientContext context;
+      v1::GetMapRequest request;
+      request.set_name("flood");
+      v1::MapDescription map;
+      if (stub->GetMap(&context, request, &map).ok()) {
+        Print(name + "map_bytes_in_memory", double(map.stats().bytes_in_memory()) / 1048576, "MiB");
+      }
+    }
     Print(name + "budget_in_use_after",
           Metric(HttpGet(metrics_port, metrics_path),
                  "placedb_memory_budget_bytes{kind=\"in_use\"}") /

@@ -13,6 +13,7 @@
 #include <thread>
 #include <vector>
 
+#include "server/frame_memory.h"
 #include "server/memory_budget.h"
 #include "tests/server/server_fixture.h"
 #include "tests/test_support.h"
@@ -176,6 +177,27 @@ TEST_F(ServerMemoryTest, ABudgetTheCachesAndVocabularyFillIsRefusedAtStartup) {
                                             "vocabulary 'default' alone takes"),
             std::string::npos)
       << started.status().message();
+}
+
+// What a frame costs the budget, from its message and image headers only.
+TEST(ServerFrameMemoryTest, EstimateIsTheMessagePlusPixelsTimesTheStagesFactors) {
+  v1::Observation observation = LargeFrame(0, "a", 1);
+  const uint64_t pixels = 1600 * 1200;
+  const uint64_t message = observation.ByteSizeLong();
+  EXPECT_EQ(server::EstimateFrameBytes(observation, FeatureType::kOrb, false),
+            message + pixels * (1 + 10));
+  EXPECT_EQ(server::EstimateFrameBytes(observation, FeatureType::kOrb, true),
+            message + pixels * (4 + 10));
+  EXPECT_EQ(server::EstimateFrameBytes(observation, FeatureType::kSift, false),
+            message + pixels * (1 + 240));
+  // A registered 16-bit depth image at half resolution.
+  observation.mutable_depth()->set_png16(EncodePng(cv::Mat(600, 800, CV_16U, cv::Scalar(1000))));
+  EXPECT_EQ(server::EstimateFrameBytes(observation, FeatureType::kOrb, false),
+            observation.ByteSizeLong() + pixels * (1 + 10) + 800 * 600 * 6);
+  // An unreadable header counts as its bytes: decoding refuses it without allocating.
+  v1::Observation broken;
+  broken.mutable_encoded_image()->set_data("not an image");
+  EXPECT_EQ(server::EstimateFrameBytes(broken, FeatureType::kOrb, false), broken.ByteSizeLong());
 }
 
 // limits.memory_budget_bytes: file < PLACEDB_MEMORY_BUDGET_BYTES < --memory-budget-bytes, and a
