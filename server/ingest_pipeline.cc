@@ -38,7 +38,7 @@ IngestPipeline::Room IngestPipeline::AwaitRoom() {
   // The window cannot fill meanwhile (only this thread submits), so it need not be re-checked.
   auto reserved = memory_.budget->Reserve(
       memory_.read_bytes, "reading the next frame", MemoryBudget::Clock::time_point::max(),
-      [&] { return draining() || delivery_failed() || expired(); });
+      [&] { return draining() || delivery_failed() || expired(); }, memory_.keep_free);
   if (reserved.ok()) {
     read_reservation_ = std::move(reserved).value();
     return Room::kReady;

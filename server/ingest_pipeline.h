@@ -105,6 +105,7 @@ class IngestPipeline {
   struct Memory {
     MemoryBudget* budget = nullptr;  // none: reads are not charged
     uint64_t read_bytes = 0;         // what one read may bring in (limits.max_message_bytes)
+    uint64_t keep_free = 0;          // a read leaves this much free (for frames already read)
   };
 
   // Starts the delivery thread. `pool` (and `memory.budget`) must outlive the pipeline;

@@ -81,9 +81,10 @@ Result<MemoryBudget::Reservation> MemoryBudget::TryReserve(uint64_t bytes,
 
 Result<MemoryBudget::Reservation> MemoryBudget::Reserve(uint64_t bytes, const std::string& what,
                                                         Clock::time_point until,
-                                                        const std::function<bool()>& give_up) {
+                                                        const std::function<bool()>& give_up,
+                                                        uint64_t keep_free) {
   MutexLock lock(mutex_);
-  if (!WaitToFitLocked(bytes, until, give_up, /*growth=*/false)) {
+  if (!WaitToFitLocked(bytes, until, give_up, /*growth=*/false, keep_free)) {
     return ExhaustedLocked(bytes, what);
   }
   in_use_ += bytes;
@@ -92,13 +93,14 @@ Result<MemoryBudget::Reservation> MemoryBudget::Reserve(uint64_t bytes, const st
 }
 
 bool MemoryBudget::WaitToFitLocked(uint64_t more, Clock::time_point until,
-                                   const std::function<bool()>& give_up, bool growth) {
+                                   const std::function<bool()>& give_up, bool growth,
+                                   uint64_t keep_free) {
   // Bytes beyond what the fixed charges leave can never be granted: no point waiting.
-  if (more > limit_ - fixed_) return false;
-  if (GrantableLocked(more, growth)) return true;
+  if (more + keep_free > limit_ - fixed_) return false;
+  if (GrantableLocked(more, growth, keep_free)) return true;
   if (growth) ++growing_;
   bool granted = true;
-  while (!GrantableLocked(more, growth)) {
+  while (!GrantableLocked(more, growth, keep_free)) {
     const auto now = Clock::now();
     bool giving_up = now >= until;
     if (!giving_up && give_up) {
@@ -107,7 +109,7 @@ bool MemoryBudget::WaitToFitLocked(uint64_t more, Clock::time_point until,
       mutex_.Unlock();
       giving_up = give_up();
       mutex_.Lock();
-      if (GrantableLocked(more, growth)) break;
+      if (GrantableLocked(more, growth, keep_free)) break;
     }
     if (giving_up) {
       granted = false;

@@ -75,8 +75,11 @@ class MemoryBudget {
   // budget's lock, so it may take locks held around a release) every 50 ms.
   // RESOURCE_EXHAUSTED (Exhausted()) when `until` passes or `give_up` said so; at once when
   // `bytes` exceeds what the budget can ever grant (the limit minus the fixed charges).
+  // `keep_free`: granted only if that much stays free after it (room kept for others, e.g. the
+  // frames already read, which grow their reservations).
   Result<Reservation> Reserve(uint64_t bytes, const std::string& what, Clock::time_point until,
-                              const std::function<bool()>& give_up = {}) EXCLUDES(mutex_);
+                              const std::function<bool()>& give_up = {}, uint64_t keep_free = 0)
+      EXCLUDES(mutex_);
 
   // The refusal for `bytes` wanted by `what` ("this frame"), naming the budget, its use and the
   // number of live reservations: "memory budget exhausted: limits.memory_budget_bytes =
@@ -94,14 +97,14 @@ class MemoryBudget {
   bool FitsLocked(uint64_t more) const REQUIRES(mutex_) { return more <= limit_ - in_use_; }
   // A growing reservation is a request already in memory: it goes before new ones, which would
   // otherwise take every release in smaller pieces and starve it.
-  bool GrantableLocked(uint64_t more, bool growth) const REQUIRES(mutex_) {
-    return FitsLocked(more) && (growth || growing_ == 0);
+  bool GrantableLocked(uint64_t more, bool growth, uint64_t keep_free) const REQUIRES(mutex_) {
+    return FitsLocked(more + keep_free) && (growth || growing_ == 0);
   }
   Status ExhaustedLocked(uint64_t bytes, const std::string& what) const REQUIRES(mutex_);
   // Waits until `more` fits, `until` passes or `give_up` says so; true if it fits. New
   // reservations (not `growth`) also wait while a growing one waits.
   bool WaitToFitLocked(uint64_t more, Clock::time_point until, const std::function<bool()>& give_up,
-                       bool growth) REQUIRES(mutex_);
+                       bool growth, uint64_t keep_free = 0) REQUIRES(mutex_);
   void Give(uint64_t bytes, bool last) EXCLUDES(mutex_);
 
   const uint64_t limit_;

@@ -734,7 +734,11 @@ grpc::Status PlaceDbService::Ingest(
                                   .expired = [context] { return Expired(context); },
                                   // Unblocks a handler waiting in Read().
                                   .interrupt = [context] { context->TryCancel(); }},
-        IngestPipeline::Memory{.budget = budget_, .read_bytes = limits.max_message_bytes});
+        // Reads never take the last quarter of the budget: streams waiting for their next
+        // message would otherwise hold it all, and the frames read could not grow into it.
+        IngestPipeline::Memory{.budget = budget_,
+                               .read_bytes = limits.max_message_bytes,
+                               .keep_free = (budget_->limit() - budget_->fixed()) / 4});
     stream.pipeline = &*admitted;
     streams_.insert(&stream);
   }

@@ -126,6 +126,23 @@ TEST(MemoryBudgetTest, AWaitEndsWhenItsTimeIsUpOrItsCallerGivesUp) {
   EXPECT_EQ(budget.in_use(), 10 * kMiB);
 }
 
+TEST(MemoryBudgetTest, AReservationCanBeAskedToLeaveRoomForOthers) {
+  MemoryBudget budget(100 * kMiB);
+  ASSERT_TRUE(budget.ReserveFixed("cache", 20 * kMiB).ok());
+  auto held = budget.TryReserve(50 * kMiB, "held");
+  ASSERT_TRUE(held.ok());
+  // 30 MiB free: 16 more leave 14, not the 20 asked for.
+  EXPECT_FALSE(budget.Reserve(16 * kMiB, "read", In(50ms), {}, 20 * kMiB).ok());
+  auto read = budget.Reserve(10 * kMiB, "read", In(50ms), {}, 20 * kMiB);
+  ASSERT_TRUE(read.ok());
+  // What is kept free is for others: a plain reservation or a growth may take it.
+  EXPECT_TRUE(held->TryResize(65 * kMiB));
+  EXPECT_EQ(budget.in_use(), 95 * kMiB);
+  // Asking to keep more than the budget can ever leave is refused at once.
+  EXPECT_FALSE(
+      budget.Reserve(1, "read", MemoryBudget::Clock::time_point::max(), {}, 80 * kMiB).ok());
+}
+
 // ---- Waiting for room (also run under TSan) ----------------------------------------------------
 
 TEST(MemoryBudgetConcurrency, AWaiterIsGrantedOnceAReservationIsReturned) {

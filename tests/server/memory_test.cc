@@ -49,11 +49,15 @@ bool NamesTheBudget(const std::string& message) {
 
 class ServerMemoryTest : public ServerTest {
  protected:
-  ServerConfig BudgetConfig(uint32_t wait_ms) const {
+  // The fixed part: the block cache and the vocabulary.
+  uint64_t Fixed() const { return 8 * kMiB + vocabulary_->memory_bytes(); }
+  // A budget with `variable` bytes beyond its fixed part. Reads (4 MiB, the fixture's
+  // max_message_bytes) leave a quarter of that free for the frames already read.
+  ServerConfig BudgetConfig(uint64_t variable, uint32_t wait_ms) const {
     ServerConfig config = Config();
     config.metrics_listen = "127.0.0.1:0";
     config.storage.block_cache_bytes = 8 * kMiB;
-    config.limits.memory_budget_bytes = 256 * kMiB;
+    config.limits.memory_budget_bytes = Fixed() + variable;
     config.limits.memory_wait_ms = wait_ms;
     return config;
   }
@@ -61,16 +65,16 @@ class ServerMemoryTest : public ServerTest {
 };
 
 TEST_F(ServerMemoryTest, FramesThatDoNotFitAreRefusedNamingTheBudgetThenAcceptedOnceThereIsRoom) {
-  ASSERT_NO_FATAL_FAILURE(StartServer(BudgetConfig(/*wait_ms=*/0)));
+  ASSERT_NO_FATAL_FAILURE(StartServer(BudgetConfig(48 * kMiB, /*wait_ms=*/0)));
   CreateMap("m");
   MemoryBudget& budget = Budget();
   const uint64_t fixed = budget.fixed();
-  EXPECT_GE(fixed, 8 * kMiB);  // the block cache and the vocabulary
+  EXPECT_EQ(fixed, Fixed());
   EXPECT_EQ(budget.in_use(), fixed);
 
-  // Other work holds all but 12 MiB: a read (4 MiB, limits.max_message_bytes) is granted, the
-  // frame it brings (~20 MiB decoded and extracted) is not.
-  auto load = budget.TryReserve(budget.limit() - fixed - 12 * kMiB, "the test's load");
+  // Other work holds all but 16 MiB: a read (4 MiB, leaving the 12 MiB kept for frames) is
+  // granted, the frame it brings (~20 MiB decoded and extracted) is not.
+  auto load = budget.TryReserve(budget.limit() - fixed - 16 * kMiB, "the test's load");
   ASSERT_TRUE(load.ok());
   const IngestOutcome refused =
       IngestAll(stub_.get(), "m", {LargeFrame(0, "a", 1), LargeFrame(1, "a", 2)});
@@ -107,7 +111,7 @@ TEST_F(ServerMemoryTest, FramesThatDoNotFitAreRefusedNamingTheBudgetThenAccepted
   EXPECT_EQ(budget.reservations(), 0u);
   const auto metrics = Scrape();
   EXPECT_EQ(MetricValue(metrics, "placedb_memory_budget_bytes", {{"kind", "limit"}}),
-            double(256 * kMiB));
+            double(fixed + 48 * kMiB));
   EXPECT_EQ(MetricValue(metrics, "placedb_memory_budget_bytes", {{"kind", "fixed"}}),
             double(fixed));
   EXPECT_EQ(MetricValue(metrics, "placedb_memory_budget_bytes", {{"kind", "in_use"}}),
@@ -117,15 +121,10 @@ TEST_F(ServerMemoryTest, FramesThatDoNotFitAreRefusedNamingTheBudgetThenAccepted
 // Streams of large frames at once over a budget that holds two: each frame is stored or refused
 // naming the budget, every frame is answered, and the budget returns to its fixed part.
 TEST_F(ServerMemoryTest, ConcurrentStreamsOverASmallBudgetEitherStoreOrRefuseAndReturnIt) {
-  ServerConfig config = BudgetConfig(/*wait_ms=*/100);
-  config.limits.memory_budget_bytes = 160 * kMiB;
-  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  ASSERT_NO_FATAL_FAILURE(StartServer(BudgetConfig(48 * kMiB, /*wait_ms=*/100)));
   CreateMap("m");
   MemoryBudget& budget = Budget();
   const uint64_t fixed = budget.fixed();
-  ASSERT_LT(fixed, 110 * kMiB);
-  auto load = budget.TryReserve(budget.limit() - fixed - 48 * kMiB, "the test's load");
-  ASSERT_TRUE(load.ok());
 
   constexpr int kStreams = 4, kFrames = 3;
   std::vector<IngestOutcome> outcomes(kStreams);
@@ -156,7 +155,6 @@ TEST_F(ServerMemoryTest, ConcurrentStreamsOverASmallBudgetEitherStoreOrRefuseAnd
   }
   EXPECT_GT(stored, 0u);
   EXPECT_EQ(Stats("m").places(), stored);
-  load->Release();
   EXPECT_EQ(budget.in_use(), fixed);
   EXPECT_EQ(budget.reservations(), 0u);
 }
