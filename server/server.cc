@@ -7,6 +7,7 @@
 
 #include <chrono>
 #include <filesystem>
+#include <fstream>
 #include <opencv2/core.hpp>
 
 #include "server/map_registry.h"
@@ -69,6 +70,16 @@ Result<LoadedVocabularies> LoadVocabularies(const ServerConfig& config,
   return out;
 }
 
+// VmRSS of this process, 0 when /proc is not there.
+uint64_t ResidentBytes() {
+  std::ifstream status("/proc/self/status");
+  std::string line;
+  while (std::getline(status, line)) {
+    if (line.rfind("VmRSS:", 0) == 0) return std::stoull(line.substr(6)) * 1024;  // kB
+  }
+  return 0;
+}
+
 }  // namespace
 
 Result<std::shared_ptr<const Detector>> CreateConfiguredDetector(const ServerConfig& config) {
@@ -105,28 +116,6 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
 
   auto vocabularies = LoadVocabularies(c, deps.vocabularies);
   if (!vocabularies.ok()) return vocabularies.status();
-  // The memory budget's fixed part: the caches that live as long as the server. What is left is
-  // for requests, and must hold at least a few whole messages (each read is granted one first).
-  server->budget_ = std::make_unique<MemoryBudget>(c.limits.memory_budget_bytes);
-  std::vector<std::pair<std::string, uint64_t>> fixed = {
-      {"storage.block_cache_bytes", c.storage.block_cache_bytes}};
-  for (const VocabularyEntry& entry : vocabularies->loaded) {
-    fixed.emplace_back("vocabulary '" + entry.name + "'", entry.vocabulary.memory_bytes());
-  }
-  for (const auto& [what, bytes] : fixed) {
-    // A configuration error, not a load: INVALID_ARGUMENT.
-    if (Status reserved = server->budget_->ReserveFixed(what, bytes); !reserved.ok()) {
-      return Status::InvalidArgument(reserved.message());
-    }
-  }
-  if (const uint64_t left = c.limits.memory_budget_bytes - server->budget_->fixed();
-      left < 4 * c.limits.max_message_bytes) {
-    return Status::InvalidArgument(
-        "limits.memory_budget_bytes = " + std::to_string(c.limits.memory_budget_bytes) +
-        " leaves " + std::to_string(left) +
-        " bytes beyond its fixed part (block cache, vocabularies): less than 4 x "
-        "limits.max_message_bytes");
-  }
   auto maps = MapRegistry::Open(c.data_dir, c.storage, std::move(vocabularies->loaded),
                                 std::move(vocabularies->missing));
   if (!maps.ok()) return maps.status();
@@ -149,6 +138,31 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
     }
   }
   spdlog::info("detector: {}", server->detector_ ? server->detector_->Describe() : detector_status);
+
+  // The memory budget's fixed part: the process as it starts serving (code, libraries,
+  // vocabularies, the maps' indexes as opened, the detector: its resident size now) and the block
+  // cache, which fills later. What is left is for requests, and must hold at least a few whole
+  // messages (each read is granted one first).
+  server->budget_ = std::make_unique<MemoryBudget>(c.limits.memory_budget_bytes);
+  for (const auto& [what, bytes] :
+       {std::pair<std::string, uint64_t>{"the process at startup (code, libraries, vocabularies, "
+                                         "maps, detector)",
+                                         ResidentBytes()},
+        std::pair<std::string, uint64_t>{"storage.block_cache_bytes",
+                                         c.storage.block_cache_bytes}}) {
+    // A configuration error, not a load: INVALID_ARGUMENT.
+    if (Status reserved = server->budget_->ReserveFixed(what, bytes); !reserved.ok()) {
+      return Status::InvalidArgument(reserved.message());
+    }
+  }
+  if (const uint64_t left = c.limits.memory_budget_bytes - server->budget_->fixed();
+      left < 4 * c.limits.max_message_bytes) {
+    return Status::InvalidArgument(
+        "limits.memory_budget_bytes = " + std::to_string(c.limits.memory_budget_bytes) +
+        " leaves " + std::to_string(left) +
+        " bytes beyond its fixed part (the process at startup, the block cache): less than 4 x "
+        "limits.max_message_bytes");
+  }
 
   server->metrics_ = std::make_unique<Metrics>();
   Metrics* metrics = server->metrics_.get();
