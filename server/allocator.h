@@ -18,7 +18,8 @@
 
 namespace placedb::server {
 
-// At the start of main(), before any thread: applies the tuning above.
+// Early in main(), before the server starts, after the signal mask is set (it may start a
+// thread, which inherits the mask): applies the tuning above.
 void TuneAllocator();
 
 // "jemalloc 5.3.0-0-g54eaed1d8b56b1aa528be3bdd1877e59c56fa90c (...)", "mimalloc 209", "glibc 2.36

@@ -29,9 +29,10 @@ struct Limits {
   uint32_t max_concurrent_unary = 64;               // unary calls being served at once
   uint32_t unary_queue_wait_ms = 2000;              // a unary call waits this long for room
   uint64_t memory_quota_bytes = uint64_t(1) << 30;  // gRPC's ResourceQuota (transport buffers)
-  // The server's memory budget (server/memory_budget.h): fixed caches + every frame and Query
-  // from its read to its answer. Reads wait for it; a frame that still does not fit waits
-  // memory_wait_ms, then is refused (RESOURCE_EXHAUSTED naming this key).
+  // The server's memory budget (server/memory_budget.h): the process at startup, the block
+  // cache, every pending read, every frame and Query from its read to its answer. Reads wait for
+  // it; a frame that still does not fit waits memory_wait_ms, then is refused
+  // (RESOURCE_EXHAUSTED naming this key).
   uint64_t memory_budget_bytes = uint64_t(1) << 30;
   uint32_t memory_wait_ms = 2000;
 

@@ -17,7 +17,6 @@
 #include "server/server.h"
 
 int main(int argc, char** argv) {
-  placedb::server::TuneAllocator();
   // Block the shutdown signals in every thread (threads inherit the mask); one thread waits for
   // them with sigwait.
   sigset_t signals;
@@ -25,6 +24,9 @@ int main(int argc, char** argv) {
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+  // After the mask: the allocator may start a thread (glibc's trimmer), which must not take the
+  // shutdown signals.
+  placedb::server::TuneAllocator();
   signal(SIGPIPE, SIG_IGN);
 
   auto command_line = placedb::server::ParseCommandLine(

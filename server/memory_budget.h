@@ -4,8 +4,9 @@
 // bound. docs/service.md ("Memory budget") explains what is charged and the arithmetic.
 //
 // Two kinds of charges:
-// - fixed: caches sized at startup (RocksDB's block cache, the vocabularies). Reserved once with
-//   ReserveFixed(), never released; they only shrink what is left for requests.
+// - fixed: what the server holds whatever the load (its resident size at startup, RocksDB's block
+//   cache). Reserved once with ReserveFixed(), never released; they only shrink what is left for
+//   requests.
 // - reservations: RAII handles for one request's bytes (an Ingest stream's pending read, a
 //   frame from the moment it is read until its answer is written, a Query). A reservation can
 //   shrink (always) or grow (only if the growth fits) while it lives, and gives its bytes back
