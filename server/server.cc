@@ -147,7 +147,7 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   for (const auto& [what, bytes] :
        {std::pair<std::string, uint64_t>{"the process at startup (code, libraries, vocabularies, "
                                          "maps, detector)",
-                                         ResidentBytes()},
+                                         deps.resident_bytes.value_or(ResidentBytes())},
         std::pair<std::string, uint64_t>{"storage.block_cache_bytes",
                                          c.storage.block_cache_bytes}}) {
     // A configuration error, not a load: INVALID_ARGUMENT.

@@ -9,6 +9,7 @@
 
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "core/base/status.h"
@@ -36,6 +37,9 @@ struct ServerDeps {
   std::map<std::string, AnyVocabulary> vocabularies;
   // A ready detector; when null one is created from config.detector (if a model is set).
   std::shared_ptr<const Detector> detector;
+  // The resident size the memory budget charges as the process at startup; unset: this process's
+  // VmRSS (a test process's other work would make that vary from one start to the next).
+  std::optional<uint64_t> resident_bytes;
 };
 
 class Server {
