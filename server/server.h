@@ -39,7 +39,7 @@ struct ServerDeps {
   std::shared_ptr<const Detector> detector;
   // The resident size the memory budget charges as the process at startup; unset: this process's
   // VmRSS (a test process's other work would make that vary from one start to the next).
-  std::optional<uint64_t> resident_bytes;
+  std::optional<uint64_t> resident_bytes = std::nullopt;
 };
 
 class Server {
