@@ -337,7 +337,7 @@ int main(int argc, char** argv) {
     for (int second = 1; second <= o.after_s; ++second) {
       std::this_thread::sleep_for(std::chrono::seconds(1));
       last = RssMib(pid);
-      if (second == 5 || second == 15 || second == 30) {
+      if ((second == 5 || second == 15 || second == 30) && second < o.after_s) {
         Print(name + "rss_after_" + std::to_string(second) + "s", last, "MiB");
       }
     }
