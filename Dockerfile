@@ -85,7 +85,8 @@ RUN mkdir -p /out/usr/share/placedb/models /out/etc/placedb \
       echo "Dockerfile: no detector model in '$MODELS': server-side detection will be off"; \
     fi
 
-# The runtime packages: the owners of the libraries the binaries link directly.
+# The runtime packages: the owners of the libraries the binaries link directly (a build with
+# -DPLACEDB_ALLOCATOR=jemalloc or mimalloc gets libjemalloc2 / libmimalloc2.0 this way).
 RUN deploy/docker/runtime-packages.sh /out/usr/local/bin/* > /out/runtime-packages.txt \
  && echo "Dockerfile: runtime packages:" $(cat /out/runtime-packages.txt)
 

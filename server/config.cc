@@ -91,6 +91,15 @@ Status ValidateServerConfig(const ServerConfig& c) {
   if (l.stream_idle_timeout_ms < 100 || l.stream_idle_timeout_ms > 86400000) {
     return Bad("limits.stream_idle_timeout_ms", "must be in [100, 86400000]");
   }
+  // Every read is granted a whole message first (docs/service.md, "Memory budget"): the budget
+  // must hold a few, beside the block cache. The vocabularies are checked when loaded.
+  if (l.memory_budget_bytes < c.storage.block_cache_bytes + 4 * l.max_message_bytes) {
+    return Bad("limits.memory_budget_bytes",
+               "must be at least storage.block_cache_bytes + 4 x limits.max_message_bytes = " +
+                   std::to_string(c.storage.block_cache_bytes + 4 * l.max_message_bytes) +
+                   ", got " + std::to_string(l.memory_budget_bytes));
+  }
+  if (l.memory_wait_ms > 600000) return Bad("limits.memory_wait_ms", "must be in [0, 600000]");
   if (!(c.shutdown_deadline_s >= 0 && c.shutdown_deadline_s <= 3600)) {
     return Bad("shutdown_deadline_s", "must be in [0, 3600]");
   }
@@ -217,7 +226,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
                 {"max_message_bytes", "max_image_pixels", "max_descriptors_per_frame",
                  "max_boxes_per_frame", "max_concurrent_streams", "max_queued_frames",
                  "max_inflight_per_stream", "max_concurrent_unary", "unary_queue_wait_ms",
-                 "memory_quota_bytes", "stream_header_timeout_ms", "stream_idle_timeout_ms"}));
+                 "memory_quota_bytes", "stream_header_timeout_ms", "stream_idle_timeout_ms",
+                 "memory_budget_bytes", "memory_wait_ms"}));
     Limits& x = c->limits;
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_message_bytes", &x.max_message_bytes));
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_image_pixels", &x.max_image_pixels));
@@ -236,6 +246,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
         r.Read(l, "limits", "stream_header_timeout_ms", &x.stream_header_timeout_ms));
     PLACEDB_RETURN_IF_ERROR(
         r.Read(l, "limits", "stream_idle_timeout_ms", &x.stream_idle_timeout_ms));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "memory_budget_bytes", &x.memory_budget_bytes));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "memory_wait_ms", &x.memory_wait_ms));
   }
   if (const YAML::Node d = root["detector"]; d) {
     PLACEDB_RETURN_IF_ERROR(
@@ -304,6 +316,12 @@ Status ApplyEnvironment(ServerConfig* c, const std::function<const char*(const c
   }
   if (auto v = get("PLACEDB_LOG_LEVEL")) c->log_level = *v;
   if (auto v = get("PLACEDB_DETECTOR_MODEL")) c->detector.model = (*v == "off") ? "" : *v;
+  if (auto v = get("PLACEDB_MEMORY_BUDGET_BYTES")) {
+    if (v->find_first_not_of("0123456789") != std::string::npos || v->size() > 19) {
+      return Bad("PLACEDB_MEMORY_BUDGET_BYTES", "'" + *v + "' is not a byte count");
+    }
+    c->limits.memory_budget_bytes = std::stoull(*v);
+  }
   return Status::Ok();
 }
 
@@ -317,7 +335,7 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   int threads = 0;
   double shutdown_deadline = 0;
   std::vector<std::string> vocabularies;
-  uint64_t max_message_bytes = 0, max_image_pixels = 0;
+  uint64_t max_message_bytes = 0, max_image_pixels = 0, memory_budget = 0;
   uint32_t max_descriptors = 0, max_boxes = 0, max_streams = 0, max_queued = 0;
   bool print_config = false;
   auto* o_config = app.add_option("-c,--config", config_path,
@@ -340,6 +358,8 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   auto* o_boxes = app.add_option("--max-boxes", max_boxes, "limit per frame");
   auto* o_streams = app.add_option("--max-streams", max_streams, "concurrent Ingest streams");
   auto* o_queued = app.add_option("--max-queued-frames", max_queued, "frames waiting for a worker");
+  auto* o_budget = app.add_option("--memory-budget-bytes", memory_budget,
+                                  "memory budget: caches + frames in flight (1 GiB)");
   app.add_flag("--print-config", print_config, "print the effective configuration and exit");
 
   CommandLine out;
@@ -377,6 +397,7 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   if (o_boxes->count()) c.limits.max_boxes_per_frame = max_boxes;
   if (o_streams->count()) c.limits.max_concurrent_streams = max_streams;
   if (o_queued->count()) c.limits.max_queued_frames = max_queued;
+  if (o_budget->count()) c.limits.memory_budget_bytes = memory_budget;
   PLACEDB_RETURN_IF_ERROR(ValidateServerConfig(c));
   if (print_config) {
     std::cout << ConfigToYaml(c);
@@ -422,6 +443,8 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "memory_quota_bytes" << YAML::Value << l.memory_quota_bytes;
   e << YAML::Key << "stream_header_timeout_ms" << YAML::Value << l.stream_header_timeout_ms;
   e << YAML::Key << "stream_idle_timeout_ms" << YAML::Value << l.stream_idle_timeout_ms;
+  e << YAML::Key << "memory_budget_bytes" << YAML::Value << l.memory_budget_bytes;
+  e << YAML::Key << "memory_wait_ms" << YAML::Value << l.memory_wait_ms;
   e << YAML::EndMap;
   e << YAML::Key << "shutdown_deadline_s" << YAML::Value << c.shutdown_deadline_s;
   const DetectorSettings& d = c.detector;

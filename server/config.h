@@ -35,6 +35,12 @@ struct Limits {
   // stream_idle_timeout_ms, or whose answer the client has not taken for that long.
   uint32_t stream_header_timeout_ms = 10000;
   uint32_t stream_idle_timeout_ms = 60000;
+  // The server's memory budget (server/memory_budget.h): the process at startup, the block
+  // cache, every pending read, every frame and Query from its read to its answer. Reads wait for
+  // it; a frame that still does not fit waits memory_wait_ms, then is refused
+  // (RESOURCE_EXHAUSTED naming this key).
+  uint64_t memory_budget_bytes = uint64_t(1) << 30;
+  uint32_t memory_wait_ms = 2000;
 
   // The ones an observation is checked against when it is decoded.
   wire::FrameLimits frame() const {
@@ -102,7 +108,8 @@ Status ApplyConfigFile(const std::string& path, ServerConfig* config);
 Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config);  // for tests
 
 // Applies PLACEDB_LISTEN, PLACEDB_DATA_DIR, PLACEDB_METRICS_LISTEN, PLACEDB_METRICS_PORT,
-// PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL. `getenv` is injectable for tests.
+// PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL, PLACEDB_MEMORY_BUDGET_BYTES. `getenv`
+// is injectable for tests.
 Status ApplyEnvironment(ServerConfig* config,
                         const std::function<const char*(const char*)>& getenv);
 

@@ -6,11 +6,16 @@
 
 namespace placedb::server {
 
-IngestPipeline::IngestPipeline(WorkerPool* pool, size_t max_inflight, Callbacks callbacks)
+IngestPipeline::IngestPipeline(WorkerPool* pool, size_t max_inflight, Callbacks callbacks,
+                               Memory memory)
     : pool_(pool),
       max_inflight_(std::max<size_t>(max_inflight, 1)),
       callbacks_(std::move(callbacks)),
+      memory_(memory),
       delivery_([this] { Deliver(); }) {}
+
+IngestPipeline::IngestPipeline(WorkerPool* pool, size_t max_inflight, Callbacks callbacks)
+    : IngestPipeline(pool, max_inflight, std::move(callbacks), Memory{}) {}
 
 IngestPipeline::~IngestPipeline() {
   Close();
@@ -20,13 +25,28 @@ IngestPipeline::Room IngestPipeline::AwaitRoom() {
   // `expired` has no wake-up hook (a cancelled call does not signal us): poll it.
   constexpr auto kPoll = std::chrono::milliseconds(50);
   const auto expired = [this] { return callbacks_.expired && callbacks_.expired(); };
-  MutexLock lock(mutex_);
-  while (unanswered_ >= max_inflight_ && !draining_ && !deliver_failed_ && !expired()) {
-    changed_.WaitFor(mutex_, kPoll);
+  {
+    MutexLock lock(mutex_);
+    while (unanswered_ >= max_inflight_ && !draining_ && !deliver_failed_ && !expired()) {
+      changed_.WaitFor(mutex_, kPoll);
+    }
+    if (draining_) return Room::kDraining;
+    if (deliver_failed_ || expired()) return Room::kClosed;
   }
-  if (draining_) return Room::kDraining;
-  if (deliver_failed_ || expired()) return Room::kClosed;
-  return Room::kReady;
+  if (!memory_.budget || read_reservation_) return Room::kReady;
+  // Backpressure on memory: nothing is read until the budget grants what a read may bring in.
+  // The window cannot fill meanwhile (only this thread submits), so it need not be re-checked.
+  auto reserved = memory_.budget->Reserve(
+      memory_.read_bytes, "reading the next frame", MemoryBudget::Clock::time_point::max(),
+      [&] { return draining() || delivery_failed() || expired(); }, memory_.keep_free);
+  if (reserved.ok()) {
+    read_reservation_ = std::move(reserved).value();
+    return Room::kReady;
+  }
+  if (draining()) return Room::kDraining;
+  // The consumer is gone or the call expired; or `read_bytes` exceeds what the budget can ever
+  // grant (the server refuses such a configuration at startup).
+  return Room::kClosed;
 }
 
 IngestPipeline::Admission IngestPipeline::Submit(std::unique_ptr<Frame> frame) {
@@ -57,6 +77,20 @@ IngestPipeline::Admission IngestPipeline::Submit(std::unique_ptr<Frame> frame) {
   // Complete() runs on the reader thread.
   ReadyAndAdvance(slot);
   return why;
+}
+
+IngestPipeline::Admission IngestPipeline::Reject(std::unique_ptr<Frame> frame) {
+  auto owned = std::make_unique<Slot>();
+  owned->frame = std::move(frame);
+  Slot* const slot = owned.get();
+  {
+    MutexLock lock(mutex_);
+    if (draining_) return Admission::kDraining;
+    pending_.push_back(std::move(owned));
+    ++unanswered_;
+  }
+  ReadyAndAdvance(slot);
+  return Admission::kQueued;
 }
 
 // Marking and checking happen under one lock hold, so exactly one thread completes each frame,
@@ -100,6 +134,7 @@ void IngestPipeline::Deliver() {
 }
 
 void IngestPipeline::Close() {
+  read_reservation_.Release();  // no more reads
   {
     MutexLock lock(mutex_);
     reading_done_ = true;
@@ -121,6 +156,11 @@ void IngestPipeline::Drain() {
 bool IngestPipeline::draining() const {
   MutexLock lock(mutex_);
   return draining_;
+}
+
+bool IngestPipeline::delivery_failed() const {
+  MutexLock lock(mutex_);
+  return deliver_failed_;
 }
 
 }  // namespace placedb::server

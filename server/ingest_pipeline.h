@@ -22,6 +22,10 @@
 // Limits: at most `max_inflight` frames are unanswered (submitted, not yet delivered or skipped);
 // AwaitRoom() blocks the reader until there is room, so a slow consumer stops the reading, and
 // nothing read is dropped. Submit() waits for room in the pool's queue (global backpressure).
+// With a memory budget (Memory), AwaitRoom() also waits until the budget grants the bytes one
+// read may bring in (`read_bytes`, the largest message), so nothing is read that the budget has
+// not granted; the reader takes that reservation over for the frame it read
+// (TakeReadReservation()) and sizes it to the frame, or refuses the frame (Reject()).
 //
 // Errors and ending:
 // - A frame's own failure is its business: Prepare() and Complete() record it in the frame (the
@@ -45,6 +49,7 @@
 #include <thread>
 
 #include "core/base/thread_annotations.h"
+#include "server/memory_budget.h"
 #include "server/worker_pool.h"
 
 namespace placedb::server {
@@ -96,18 +101,35 @@ class IngestPipeline {
     std::function<void()> interrupt = {};
   };
 
-  // Starts the delivery thread. `pool` must outlive the pipeline; `max_inflight` >= 1.
-  IngestPipeline(WorkerPool* pool, size_t max_inflight, Callbacks callbacks);
-  ~IngestPipeline();  // Close()
+  // Optional: reads are charged to a memory budget (see the file comment).
+  struct Memory {
+    MemoryBudget* budget = nullptr;  // none: reads are not charged
+    uint64_t read_bytes = 0;         // what one read may bring in (limits.max_message_bytes)
+    uint64_t keep_free = 0;          // a read leaves this much free (for frames already read)
+  };
+
+  // Starts the delivery thread. `pool` (and `memory.budget`) must outlive the pipeline;
+  // `max_inflight` >= 1.
+  IngestPipeline(WorkerPool* pool, size_t max_inflight, Callbacks callbacks, Memory memory);
+  IngestPipeline(WorkerPool* pool, size_t max_inflight, Callbacks callbacks);  // no budget
+  ~IngestPipeline();                                                           // Close()
   IngestPipeline(const IngestPipeline&) = delete;
   IngestPipeline& operator=(const IngestPipeline&) = delete;
 
-  // Reader: waits until fewer than `max_inflight` frames are unanswered, or until the stream is
-  // draining or closed (checked in that order; `expired` is polled every 50 ms).
+  // Reader: waits until fewer than `max_inflight` frames are unanswered and (with a budget) the
+  // budget has granted `read_bytes` for the next read, or until the stream is draining or closed
+  // (checked in that order; `expired` is polled every 50 ms).
   Room AwaitRoom() EXCLUDES(mutex_);
+  // Reader, after a read: the reservation AwaitRoom() made for it (empty without a budget), for
+  // the frame to hold until its answer is written. The next AwaitRoom() reserves anew.
+  MemoryBudget::Reservation TakeReadReservation() { return std::move(read_reservation_); }
   // Reader: admits `frame` at the back of the stream and queues its Prepare() on the pool,
   // waiting for room there (until `expired`). Not kQueued: see Admission.
   Admission Submit(std::unique_ptr<Frame> frame) EXCLUDES(mutex_);
+  // Reader: admits `frame` at the back of the stream without preparing it: the reader already
+  // decided its answer (e.g. over the memory budget). Only its Complete() runs, in order (at most
+  // its own, on this thread), then it is delivered. kQueued, or kDraining (dropped unanswered).
+  Admission Reject(std::unique_ptr<Frame> frame) EXCLUDES(mutex_);
   // Reader: no more frames. Returns once every submitted frame is completed and delivered (or
   // skipped) and the delivery thread has ended. Idempotent.
   void Close() EXCLUDES(mutex_);
@@ -126,10 +148,13 @@ class IngestPipeline {
   // front of the stream, in order.
   void ReadyAndAdvance(Slot* slot) EXCLUDES(mutex_);
   void Deliver() EXCLUDES(mutex_);  // the delivery thread
+  bool delivery_failed() const EXCLUDES(mutex_);
 
   WorkerPool* const pool_;
   const size_t max_inflight_;
   const Callbacks callbacks_;
+  const Memory memory_;
+  MemoryBudget::Reservation read_reservation_;  // the reader's only
 
   mutable Mutex mutex_;
   CondVar changed_;

@@ -12,6 +12,7 @@
 #include <cstdlib>
 #include <thread>
 
+#include "server/allocator.h"
 #include "server/config.h"
 #include "server/server.h"
 
@@ -23,6 +24,9 @@ int main(int argc, char** argv) {
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+  // After the mask: the allocator may start a thread (glibc's trimmer), which must not take the
+  // shutdown signals.
+  placedb::server::TuneAllocator();
   signal(SIGPIPE, SIG_IGN);
 
   auto command_line = placedb::server::ParseCommandLine(
@@ -35,6 +39,7 @@ int main(int argc, char** argv) {
   const placedb::server::ServerConfig& config = command_line->config;
   spdlog::set_level(spdlog::level::from_str(config.log_level));
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e%z %^%l%$ %v");
+  spdlog::info("allocator: {}", placedb::server::AllocatorDescription());
 
   auto server = placedb::server::Server::Start(config);
   if (!server.ok()) {

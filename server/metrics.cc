@@ -120,6 +120,11 @@ Metrics::Metrics()
                        .Help("Frames waiting for a worker")
                        .Register(*registry_)
                        .Add({})),
+      memory_budget_(BuildGauge()
+                         .Name("placedb_memory_budget_bytes")
+                         .Help("The memory budget (limits.memory_budget_bytes), by kind: limit, "
+                               "fixed (caches), in_use (fixed + requests in flight)")
+                         .Register(*registry_)),
       detector_seconds_(detector_.Add({}, SecondsBuckets())) {
   // Present from the start (at 0), so that a rate over them is defined before the first close.
   for (const char* reason : {"header_timeout", "idle_timeout", "write_timeout"}) {
@@ -261,6 +266,12 @@ void Metrics::StreamReclaimed(const std::string& reason) {
 }
 void Metrics::SetQueueDepth(size_t depth) {
   queue_depth_.Set(double(depth));
+}
+
+void Metrics::SetMemoryBudget(uint64_t limit, uint64_t fixed, uint64_t in_use) {
+  memory_budget_.Add({{"kind", "limit"}}).Set(double(limit));
+  memory_budget_.Add({{"kind", "fixed"}}).Set(double(fixed));
+  memory_budget_.Add({{"kind", "in_use"}}).Set(double(in_use));
 }
 
 }  // namespace placedb::server

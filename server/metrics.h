@@ -75,6 +75,8 @@ class Metrics {
   // The server closed an Ingest stream: "header_timeout", "idle_timeout" or "write_timeout".
   void StreamReclaimed(const std::string& reason);
   void SetQueueDepth(size_t depth);
+  // The memory budget (limits.memory_budget_bytes): its limit, fixed part and bytes in use.
+  void SetMemoryBudget(uint64_t limit, uint64_t fixed, uint64_t in_use);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
@@ -95,6 +97,7 @@ class Metrics {
   prometheus::Gauge& streams_;
   prometheus::Family<prometheus::Counter>& streams_reclaimed_;
   prometheus::Gauge& queue_depth_;
+  prometheus::Family<prometheus::Gauge>& memory_budget_;
   prometheus::Histogram& detector_seconds_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
   std::unique_ptr<prometheus::Exposer> exposer_;

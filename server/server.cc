@@ -7,9 +7,11 @@
 
 #include <chrono>
 #include <filesystem>
+#include <fstream>
 #include <opencv2/core.hpp>
 
 #include "server/map_registry.h"
+#include "server/memory_budget.h"
 #include "server/metrics.h"
 #include "server/parsing_service.h"
 #include "server/service.h"
@@ -67,6 +69,16 @@ Result<LoadedVocabularies> LoadVocabularies(const ServerConfig& config,
     out.loaded.push_back(std::move(entry));
   }
   return out;
+}
+
+// VmRSS of this process, 0 when /proc is not there.
+uint64_t ResidentBytes() {
+  std::ifstream status("/proc/self/status");
+  std::string line;
+  while (std::getline(status, line)) {
+    if (line.rfind("VmRSS:", 0) == 0) return std::stoull(line.substr(6)) * 1024;  // kB
+  }
+  return 0;
 }
 
 }  // namespace
@@ -128,14 +140,39 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   }
   spdlog::info("detector: {}", server->detector_ ? server->detector_->Describe() : detector_status);
 
+  // The memory budget's fixed part: the process as it starts serving (code, libraries,
+  // vocabularies, the maps' indexes as opened, the detector: its resident size now) and the block
+  // cache, which fills later. What is left is for requests, and must hold at least a few whole
+  // messages (each read is granted one first).
+  server->budget_ = std::make_unique<MemoryBudget>(c.limits.memory_budget_bytes);
+  for (const auto& [what, bytes] :
+       {std::pair<std::string, uint64_t>{"the process at startup (code, libraries, vocabularies, "
+                                         "maps, detector)",
+                                         deps.resident_bytes.value_or(ResidentBytes())},
+        std::pair<std::string, uint64_t>{"storage.block_cache_bytes",
+                                         c.storage.block_cache_bytes}}) {
+    // A configuration error, not a load: INVALID_ARGUMENT.
+    if (Status reserved = server->budget_->ReserveFixed(what, bytes); !reserved.ok()) {
+      return Status::InvalidArgument(reserved.message());
+    }
+  }
+  if (const uint64_t left = c.limits.memory_budget_bytes - server->budget_->fixed();
+      left < 4 * c.limits.max_message_bytes) {
+    return Status::InvalidArgument(
+        "limits.memory_budget_bytes = " + std::to_string(c.limits.memory_budget_bytes) +
+        " leaves " + std::to_string(left) +
+        " bytes beyond its fixed part (the process at startup, the block cache): less than 4 x "
+        "limits.max_message_bytes");
+  }
+
   server->metrics_ = std::make_unique<Metrics>();
   Metrics* metrics = server->metrics_.get();
   server->pool_ =
       std::make_unique<WorkerPool>(c.worker_threads(), c.limits.max_queued_frames,
                                    [metrics](size_t depth) { metrics->SetQueueDepth(depth); });
-  server->service_ =
-      std::make_unique<PlaceDbService>(server->config_, server->maps_.get(), server->pool_.get(),
-                                       metrics, server->detector_.get(), detector_status);
+  server->service_ = std::make_unique<PlaceDbService>(
+      server->config_, server->maps_.get(), server->pool_.get(), metrics, server->detector_.get(),
+      detector_status, server->budget_.get());
 
   // Requests are parsed by ParsingService, so malformed ones get INVALID_ARGUMENT with a reason.
   server->parsing_ = std::make_unique<ParsingService>(server->service_.get());
@@ -151,8 +188,10 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   builder.SetMaxReceiveMessageSize(int(c.limits.max_message_bytes));
   // Transport memory and handler threads are bounded: a flood of calls gets RESOURCE_EXHAUSTED
   // instead of exhausting the machine. Each open stream holds a handler thread.
+  // The transport's buffers are part of the memory budget (a pending read holds a reservation of
+  // a whole message): the quota never exceeds it.
   grpc::ResourceQuota quota("placedb");
-  quota.Resize(size_t(c.limits.memory_quota_bytes));
+  quota.Resize(size_t(std::min(c.limits.memory_quota_bytes, c.limits.memory_budget_bytes)));
   quota.SetMaxThreads(int(c.limits.max_concurrent_streams + c.limits.max_concurrent_unary + 8));
   builder.SetResourceQuota(quota);
   builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS,
@@ -175,12 +214,16 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
 
   if (!c.metrics_listen.empty()) {
     PlaceDbService* service = server->service_.get();
-    Status serving =
-        metrics->Serve(Metrics::Endpoint{.listen = c.metrics_listen,
-                                         .path = c.metrics_path,
-                                         .threads = c.metrics_threads,
-                                         .request_timeout_ms = c.metrics_request_timeout_ms},
-                       [service] { service->RefreshMapGauges(); });
+    const MemoryBudget* budget = server->budget_.get();
+    Status serving = metrics->Serve(
+        Metrics::Endpoint{.listen = c.metrics_listen,
+                          .path = c.metrics_path,
+                          .threads = c.metrics_threads,
+                          .request_timeout_ms = c.metrics_request_timeout_ms},
+        [service, metrics, budget] {
+          service->RefreshMapGauges();
+          metrics->SetMemoryBudget(budget->limit(), budget->fixed(), budget->in_use());
+        });
     if (!serving.ok()) {
       server->Shutdown();
       return serving;

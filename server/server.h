@@ -9,6 +9,7 @@
 
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "core/base/status.h"
@@ -24,6 +25,7 @@ class Server;
 namespace placedb::server {
 
 class MapRegistry;
+class MemoryBudget;
 class Metrics;
 class ParsingService;
 class PlaceDbService;
@@ -36,6 +38,9 @@ struct ServerDeps {
   std::map<std::string, AnyVocabulary> vocabularies;
   // A ready detector; when null one is created from config.detector (if a model is set).
   std::shared_ptr<const Detector> detector;
+  // The resident size the memory budget charges as the process at startup; unset: this process's
+  // VmRSS (a test process's other work would make that vary from one start to the next).
+  std::optional<uint64_t> resident_bytes = std::nullopt;
 };
 
 class Server {
@@ -46,8 +51,9 @@ class Server {
   static Result<std::unique_ptr<Server>> Start(const ServerConfig& config, ServerDeps deps = {});
   ~Server();  // Shutdown()
 
-  int port() const { return port_; }                  // the bound gRPC port
-  int metrics_port() const { return metrics_port_; }  // 0 when metrics are off
+  int port() const { return port_; }                        // the bound gRPC port
+  int metrics_port() const { return metrics_port_; }        // 0 when metrics are off
+  MemoryBudget& memory_budget() const { return *budget_; }  // tests hold part of it as load
   const ServerConfig& config() const { return config_; }
 
   // Graceful shutdown; idempotent and thread-safe (other callers wait for the first).
@@ -60,6 +66,7 @@ class Server {
 
   const ServerConfig config_;
   std::unique_ptr<Metrics> metrics_;
+  std::unique_ptr<MemoryBudget> budget_;  // before the maps and the service that charge it
   std::unique_ptr<MapRegistry> maps_;
   std::shared_ptr<const Detector> detector_;
   std::unique_ptr<WorkerPool> pool_;

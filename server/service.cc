@@ -14,6 +14,7 @@
 #include "proto/convert_frame.h"
 #include "proto/convert_result.h"
 #include "proto/status.h"
+#include "server/frame_memory.h"
 #include "server/ingest_pipeline.h"
 
 namespace placedb::server {
@@ -117,13 +118,14 @@ struct PlaceDbService::Work {
 
 PlaceDbService::PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool,
                                Metrics* metrics, const Detector* detector,
-                               std::string detector_status)
+                               std::string detector_status, MemoryBudget* budget)
     : config_(config),
       maps_(maps),
       pool_(pool),
       metrics_(metrics),
       detector_(detector),
       detector_status_(std::move(detector_status)),
+      budget_(budget),
       watchdog_([this] { Watchdog(); }) {}
 
 PlaceDbService::~PlaceDbService() {
@@ -417,6 +419,36 @@ grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
 
 // ---- The frame pipeline -------------------------------------------------------------------------
 
+namespace {
+
+// Colour for the detector, and for GrabCut when the map refines the agent's boxes with it.
+bool DecodesInColor(const MapEntry& map, const v1::Observation& observation) {
+  const ServiceMapSettings& settings = map.settings;
+  const bool server_boxes = settings.detection_enabled && settings.box_source != BoxSource::kAgent;
+  return server_boxes ||
+         (settings.detection_enabled && observation.boxes_size() > 0 &&
+          map.map->database().config().box_refinement.method == BoxRefinement::kGrabCut);
+}
+
+}  // namespace
+
+grpc::Status PlaceDbService::ChargeFrame(grpc::ServerContext* context, const MapEntry& map,
+                                         const v1::Observation& observation, const char* what,
+                                         MemoryBudget::Reservation* reservation) {
+  const uint64_t bytes = EstimateFrameBytes(observation, map.map->database().config().feature_type,
+                                            DecodesInColor(map, observation));
+  const auto until = QueueWaitUntil(context, config_.limits.memory_wait_ms);
+  const auto expired = [context] { return Expired(context); };
+  if (*reservation) {
+    if (reservation->Resize(bytes, until, expired)) return grpc::Status::OK;
+  } else if (auto reserved = budget_->Reserve(bytes, what, until, expired); reserved.ok()) {
+    *reservation = std::move(reserved).value();
+    return grpc::Status::OK;
+  }
+  if (Expired(context)) return Cancelled(context, "while waiting for memory");
+  return ToGrpc(budget_->Exhausted(bytes, what));
+}
+
 grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntry& map,
                                      const v1::Observation& observation, const std::string& field,
                                      FrameRole role, Work* work) {
@@ -435,10 +467,7 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
                             "), which is off on this server (configure detector.model)");
   }
   Stopwatch stage;
-  // Colour for the detector, and for GrabCut when the map refines the agent's boxes with it.
-  const bool color = server_boxes || (settings.detection_enabled && observation.boxes_size() > 0 &&
-                                      map.map->database().config().box_refinement.method ==
-                                          BoxRefinement::kGrabCut);
+  const bool color = DecodesInColor(map, observation);
   auto decoded = DecodeObservation(observation, config_.limits.frame(), color, field);
   if (!decoded.ok()) return ToGrpc(decoded.status());
   work->timings.decode_ms = stage.Lap();
@@ -495,6 +524,13 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
     return Finish("Query", context, Invalid("observation: is required"));
   }
   const MapEntry& map = **entry;
+  // The request is in memory already (gRPC read it before calling us): charged from here on.
+  MemoryBudget::Reservation memory;
+  if (grpc::Status charged =
+          ChargeFrame(context, map, request->observation(), "this query", &memory);
+      !charged.ok()) {
+    return Finish("Query", context, charged);
+  }
   std::promise<grpc::Status> promise;
   std::future<grpc::Status> done = promise.get_future();
   double queue_ms = 0;
@@ -576,6 +612,13 @@ struct PlaceDbService::Watch {
     MutexLock lock(mutex);
     if (--in_flight == 0) quiet_since = Clock::now();  // idle from the last answer on
   }
+  // Around AwaitRoom(): while the server holds the stream back (its frames in flight, the
+  // memory budget), the silence is the server's doing, not the client's.
+  void HeldBack() {
+    MutexLock lock(mutex);
+    ++in_flight;
+  }
+  void Released() { FrameDone(); }
   // Around the delivery thread's Write(), which blocks while the client takes no answers.
   void Writing() {
     MutexLock lock(mutex);
@@ -641,6 +684,7 @@ struct PlaceDbService::Slot final : IngestPipeline::Frame {
                               FrameRole::kStream, &work);
     });
     request.reset();  // the decoded frame is all that is needed now
+    memory.TryResize(std::min(memory.bytes(), kPreparedFrameBytes));  // shrinking never fails
   }
   void Refused(IngestPipeline::Admission why) override {
     status = why == IngestPipeline::Admission::kPoolStopped
@@ -662,6 +706,9 @@ struct PlaceDbService::Slot final : IngestPipeline::Frame {
   std::optional<v1::MatchOptions> matches;
   Work work;                    // freed once completed
   v1::IngestResponse response;  // Complete()'s, for the writer
+  // The frame's share of the memory budget, from its read until its answer is written (the
+  // pipeline destroys the slot after delivering it).
+  MemoryBudget::Reservation memory;
 };
 
 void PlaceDbService::Complete(Stream* stream, Slot* slot) {
@@ -876,20 +923,25 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
   {
     MutexLock lock(streams_mutex_);
     if (draining_) return Finish("Ingest", context, Unavailable());
-    admitted.emplace(pool_, limits.max_inflight_per_stream,
-                     IngestPipeline::Callbacks{.deliver =
-                                                   [io, &watch](IngestPipeline::Frame& frame) {
-                                                     // Timed: a client that takes no answers blocks
-                                                     // here.
-                                                     watch.Writing();
-                                                     const bool written = io->Write(
-                                                         static_cast<Slot&>(frame).response);
-                                                     watch.Written();
-                                                     return written;
-                                                   },
-                                               .expired = [context] { return Expired(context); },
-                                               // Unblocks a handler waiting in Read().
-                                               .interrupt = [context] { context->TryCancel(); }});
+    admitted.emplace(
+        pool_, limits.max_inflight_per_stream,
+        IngestPipeline::Callbacks{.deliver =
+                                      [io, &watch](IngestPipeline::Frame& frame) {
+                                        // Timed: a client that takes no answers blocks here.
+                                        watch.Writing();
+                                        const bool written =
+                                            io->Write(static_cast<Slot&>(frame).response);
+                                        watch.Written();
+                                        return written;
+                                      },
+                                  .expired = [context] { return Expired(context); },
+                                  // Unblocks a handler waiting in Read().
+                                  .interrupt = [context] { context->TryCancel(); }},
+        // Reads never take the last quarter of the budget: streams waiting for their next
+        // message would otherwise hold it all, and the frames read could not grow into it.
+        IngestPipeline::Memory{.budget = budget_,
+                               .read_bytes = limits.max_message_bytes,
+                               .keep_free = (budget_->limit() - budget_->fixed()) / 4});
     stream.pipeline = &*admitted;
     streams_.insert(&stream);
   }
@@ -901,7 +953,10 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
   uint64_t index = 0;
   while (true) {
     // Backpressure, per stream: no more than max_inflight_per_stream unanswered frames.
-    if (const auto room = pipeline.AwaitRoom(); room != IngestPipeline::Room::kReady) {
+    watch.HeldBack();
+    const auto room = pipeline.AwaitRoom();
+    watch.Released();
+    if (room != IngestPipeline::Room::kReady) {
       status = room == IngestPipeline::Room::kDraining ? Unavailable()
                                                        : Cancelled(context, "(stream closed)");
       break;
@@ -930,9 +985,21 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
       slot->matches = stream.header_matches;
     }
     std::string agent = request->observation().agent_id();
-    slot->request = std::move(request);
+    // The read's reservation, sized to the frame; a frame that does not fit is answered with
+    // RESOURCE_EXHAUSTED and the stream goes on.
+    slot->memory = pipeline.TakeReadReservation();
+    slot->status =
+        ChargeFrame(context, *stream.map, request->observation(), "this frame", &slot->memory);
+    const bool charged = slot->status.ok();
+    if (charged) {
+      slot->request = std::move(request);
+    } else {
+      request.reset();
+      slot->memory.Release();
+    }
     // Global backpressure is inside: Submit() waits for room in the pool's queue.
-    const IngestPipeline::Admission admission = pipeline.Submit(std::move(slot));
+    const IngestPipeline::Admission admission =
+        charged ? pipeline.Submit(std::move(slot)) : pipeline.Reject(std::move(slot));
     if (admission == IngestPipeline::Admission::kDraining) {
       status = Unavailable();  // refused unread: the client sees it was never answered
       break;

@@ -36,6 +36,7 @@
 #include "proto/placedb.grpc.pb.h"
 #include "server/config.h"
 #include "server/map_registry.h"
+#include "server/memory_budget.h"
 #include "server/metrics.h"
 #include "server/parsing_service.h"
 #include "server/worker_pool.h"
@@ -47,9 +48,10 @@ namespace placedb::server {
 class PlaceDbService final : public v1::PlaceDb::Service {
  public:
   // `detector` null = server-side detection off; `detector_status` then says why ("off", or
-  // "off: <error>" when a configured model failed to load).
+  // "off: <error>" when a configured model failed to load). Frames and queries are charged to
+  // `budget` (limits.memory_budget_bytes) from their read to their answer.
   PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool, Metrics* metrics,
-                 const Detector* detector, std::string detector_status);
+                 const Detector* detector, std::string detector_status, MemoryBudget* budget);
   ~PlaceDbService() override;
 
   grpc::Status CreateMap(grpc::ServerContext* context, const v1::CreateMapRequest* request,
@@ -105,6 +107,11 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // asked; then store, or loop closure + store in loop-closure mode) and its response. The
   // stream's pipeline runs it in stream order, one frame at a time.
   void Complete(Stream* stream, Slot* slot);
+  // Sizes a frame's reservation (its read's, from the pipeline) to the frame, waiting up to
+  // limits.memory_wait_ms; RESOURCE_EXHAUSTED naming the budget when it does not fit.
+  grpc::Status ChargeFrame(grpc::ServerContext* context, const MapEntry& map,
+                           const v1::Observation& observation, const char* what,
+                           MemoryBudget::Reservation* reservation);
   grpc::Status Finish(const char* method, grpc::ServerContext* context, grpc::Status status);
   grpc::Status Unavailable() const;
   void ObserveStages(const StageTimings& timings);
@@ -118,6 +125,7 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   Metrics* const metrics_;
   const Detector* const detector_;  // null: server-side detection off
   const std::string detector_status_;
+  MemoryBudget* const budget_;
 
   // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
   class CallScope;

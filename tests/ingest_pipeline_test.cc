@@ -343,7 +343,67 @@ TEST(IngestPipelineConcurrency, StreamsSharingThePoolEachKeepTheirOrder) {
   }
 }
 
+TEST(IngestPipelineConcurrency, ReadsWaitForTheMemoryBudgetAndEachReadIsGrantedAWholeMessage) {
+  constexpr uint64_t kMiB = uint64_t(1) << 20;
+  MemoryBudget budget(10 * kMiB);
+  WorkerPool pool(2, 4);
+  StreamLog log;
+  std::vector<MemoryBudget::Reservation> held;  // what the frames read keep (by the test here)
+  std::atomic<bool> expired{false};
+  IngestPipeline pipeline(&pool, 8,
+                          {.deliver = Accept(&log), .expired = [&] { return expired.load(); }},
+                          {.budget = &budget, .read_bytes = 4 * kMiB});
+  std::thread reader([&] {
+    for (int i = 0; i < 3; ++i) {
+      ASSERT_EQ(pipeline.AwaitRoom(), Room::kReady);
+      MemoryBudget::Reservation read = pipeline.TakeReadReservation();
+      EXPECT_EQ(read.bytes(), 4 * kMiB);
+      log.Update([&] {
+        held.push_back(std::move(read));
+        ++log.submitted;
+      });
+      ASSERT_EQ(pipeline.Submit(std::make_unique<TestFrame>(&log, i)), Admission::kQueued);
+    }
+    // Blocked on the budget until the stream expires: nothing more is read.
+    EXPECT_EQ(pipeline.AwaitRoom(), Room::kClosed);
+  });
+  // Two reads of 4 MiB fit in 10; the third waits until a frame gives its share back.
+  EXPECT_TRUE(log.WaitFor([&] { return log.submitted == 2; }));
+  EXPECT_FALSE(log.WaitFor([&] { return log.submitted > 2; }, 200ms));
+  EXPECT_EQ(budget.in_use(), 8 * kMiB);
+  MemoryBudget::Reservation first;
+  log.Update([&] { first = std::move(held.front()); });
+  first.Release();
+  EXPECT_TRUE(log.WaitFor([&] { return log.submitted == 3; }));
+  expired = true;
+  reader.join();
+  pipeline.Close();
+  EXPECT_EQ(log.answers, OkAnswers(3));
+  held.clear();
+  EXPECT_EQ(budget.in_use(), 0u);  // Close() returned the pending read's reservation
+}
+
 // ---- Errors -------------------------------------------------------------------------------------
+
+TEST(IngestPipelineTest, ARejectedFrameIsAnsweredInItsPlaceUnprepared) {
+  WorkerPool pool(2, 4);
+  StreamLog log;
+  Gate first;
+  IngestPipeline pipeline(&pool, 4, {.deliver = Accept(&log)});
+  ASSERT_EQ(pipeline.Submit(std::make_unique<TestFrame>(&log, 0, &first)), Admission::kQueued);
+  ASSERT_EQ(pipeline.Reject(std::make_unique<TestFrame>(&log, 1)), Admission::kQueued);
+  ASSERT_EQ(pipeline.Submit(std::make_unique<TestFrame>(&log, 2)), Admission::kQueued);
+  // Frame 2 is prepared on the other worker; frames 1 and 2 wait for frame 0.
+  EXPECT_TRUE(log.WaitFor([&] { return log.prepared.size() == 1; }));
+  {
+    std::lock_guard lock(log.mutex);
+    EXPECT_TRUE(log.completed.empty());
+  }
+  first.Open();
+  pipeline.Close();
+  EXPECT_EQ(log.answers, (std::vector<std::string>{"0:ok", "1:unprepared", "2:ok"}));
+  EXPECT_EQ(log.prepared, (std::vector<int>{2, 0}));
+}
 
 TEST(IngestPipelineTest, AFailedFrameIsAnsweredInItsPlaceAndTheStreamGoesOn) {
   WorkerPool pool(2, 4);
