@@ -825,34 +825,6 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
   }
 }
 
-namespace {
-
-// gRPC's own reader-writer, which parses before we see a message (unparseable = stream end).
-class GrpcIngestStream final : public IngestStreamIo {
- public:
-  explicit GrpcIngestStream(grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* io)
-      : io_(io) {}
-  void SendInitialMetadata() override { io_->SendInitialMetadata(); }
-  bool NextMessageSize(uint32_t* size) override { return io_->NextMessageSize(size); }
-  bool Read(v1::IngestRequest* message) override { return io_->Read(message); }
-  bool Write(const v1::IngestResponse& message, grpc::WriteOptions options) override {
-    return io_->Write(message, options);
-  }
-  grpc::Status ReadError() const override { return grpc::Status::OK; }
-
- private:
-  grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* const io_;
-};
-
-}  // namespace
-
-grpc::Status PlaceDbService::Ingest(
-    grpc::ServerContext* context,
-    grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* stream) {
-  GrpcIngestStream io(stream);
-  return IngestStream(context, &io);
-}
-
 grpc::Status PlaceDbService::RefuseMalformed(const char* method, grpc::ServerContext* context,
                                              grpc::Status status) {
   CallScope scope(this);

@@ -66,10 +66,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                           v1::RecoverMapResponse* response) override;
   grpc::Status ScrubMap(grpc::ServerContext* context, const v1::ScrubMapRequest* request,
                         v1::ScrubReport* response) override;
-  grpc::Status Ingest(
-      grpc::ServerContext* context,
-      grpc::ServerReaderWriter<v1::IngestResponse, v1::IngestRequest>* stream) override;
-  // Ingest over any reader-writer; a message that fails to parse ends the stream with its error.
+  // Ingest (the generated Ingest is not overridden: ParsingService reads the stream's raw
+  // messages); a message that fails to parse ends the stream with its error.
   grpc::Status IngestStream(grpc::ServerContext* context, IngestStreamIo* io);
   grpc::Status Query(grpc::ServerContext* context, const v1::QueryRequest* request,
                      v1::QueryResponse* response) override;
