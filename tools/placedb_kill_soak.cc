@@ -544,16 +544,26 @@ std::string CheckMaps(const Connection& connection, const std::vector<std::strin
   return "";
 }
 
-bool CreateMaps(const Connection& connection, const std::vector<std::string>& maps,
-                std::string* error) {
+// Starts the server and creates the soak's maps in it. False (said) after an error.
+bool StartWithMaps(Server& server, const std::vector<std::string>& maps) {
+  std::string error;
+  if (!server.Launch(&error) || !server.AwaitServing(120, &error)) {
+    Say(error);
+    return false;
+  }
+  auto connection = Connect(server.address(), 30);
+  if (!connection) {
+    Say("cannot connect to " + server.address());
+    return false;
+  }
   for (const std::string& name : maps) {
     v1::CreateMapRequest request;
     request.set_name(name);
     v1::MapDescription created;
-    auto context = connection.NewContext();
-    const grpc::Status status = connection.stub()->CreateMap(context.get(), request, &created);
+    auto context = connection->NewContext();
+    const grpc::Status status = connection->stub()->CreateMap(context.get(), request, &created);
     if (!status.ok()) {
-      *error = "CreateMap " + name + ": " + client::Describe(status);
+      Say("CreateMap " + name + ": " + client::Describe(status));
       return false;
     }
   }
@@ -583,18 +593,8 @@ int RunKills(const Options& options, const std::vector<v1::Features>& frames) {
   const std::string data_dir = options.work_dir + "/data";
   const std::vector<std::string> maps = MapNames(options);
   Server server(options, data_dir, UnusedLoopbackPort());
+  if (!StartWithMaps(server, maps)) return 2;
   std::string error;
-  if (!server.Launch(&error) || !server.AwaitServing(120, &error)) {
-    Say(error);
-    return 2;
-  }
-  {
-    auto connection = Connect(server.address(), 30);
-    if (!CreateMaps(*connection, maps, &error)) {
-      Say(error);
-      return 2;
-    }
-  }
   std::deque<Agent> agent_state = MakeAgents(options, maps);
   Ledger ledger;
   std::mt19937 rng(options.seed);
@@ -765,17 +765,7 @@ int RunDiskFull(const Options& options, const std::vector<v1::Features>& frames)
   const std::vector<std::string> maps = MapNames(options);
   const int metrics_port = UnusedLoopbackPort();
   Server server(options, mount_point + "/data", UnusedLoopbackPort(), metrics_port);
-  if (!server.Launch(&error) || !server.AwaitServing(120, &error)) {
-    Say(error);
-    return 2;
-  }
-  {
-    auto connection = Connect(server.address(), 30);
-    if (!CreateMaps(*connection, maps, &error)) {
-      Say(error);
-      return 2;
-    }
-  }
+  if (!StartWithMaps(server, maps)) return 2;
   std::deque<Agent> agent_state = MakeAgents(options, maps);
   Ledger ledger;
   uint64_t size_mib = uint64_t(options.tmpfs_mib);

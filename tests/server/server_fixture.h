@@ -7,13 +7,16 @@
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <condition_variable>
 #include <cstdint>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <opencv2/core.hpp>
 #include <string>
 #include <vector>
 
+#include "core/detect/detector.h"
 #include "core/vocabulary/float_vocabulary.h"
 #include "core/vocabulary/vocabulary.h"
 #include "proto/placedb.grpc.pb.h"
@@ -47,6 +50,39 @@ v1::Observation RgbdObservation(const rgbd::RgbdFrame& frame, const std::string&
                                 uint64_t sequence);
 
 // ---- Ingest streams -----------------------------------------------------------------------------
+
+// A server-side detector that blocks until released: holds a frame in the middle of the pipeline.
+class GateDetector final : public Detector {
+ public:
+  Result<std::vector<DynamicBox>> Detect(const cv::Mat& image) const override {
+    std::unique_lock lock(mutex_);
+    entered_ = true;
+    changed_.notify_all();
+    changed_.wait(lock, [&] { return open_; });
+    return std::vector<DynamicBox>{
+        {0, 0.9f, cv::Rect2f(0, 0, image.cols / 4.0f, image.rows / 4.0f)}};
+  }
+  void WaitEntered() const {
+    std::unique_lock lock(mutex_);
+    changed_.wait(lock, [&] { return entered_; });
+  }
+  void Open() const {
+    std::lock_guard lock(mutex_);
+    open_ = true;
+    changed_.notify_all();
+  }
+  std::string model_name() const override { return "gate"; }
+  std::string Describe() const override { return "gate (test)"; }
+  int input_size() const override { return 416; }
+  const DetectorConfig& config() const override { return config_; }
+
+ private:
+  DetectorConfig config_;
+  mutable std::mutex mutex_;
+  mutable std::condition_variable changed_;
+  mutable bool entered_ = false;
+  mutable bool open_ = false;
+};
 
 struct IngestOutcome {
   std::vector<v1::IngestResponse> responses;

@@ -221,39 +221,6 @@ TEST_F(ServerTest, IdleStreamsAreBoundedAndReclaimed) {
   }
 }
 
-// A detector that blocks until released: holds a frame in the middle of the pipeline.
-class GateDetector final : public Detector {
- public:
-  Result<std::vector<DynamicBox>> Detect(const cv::Mat& image) const override {
-    std::unique_lock lock(mutex_);
-    entered_ = true;
-    changed_.notify_all();
-    changed_.wait(lock, [&] { return open_; });
-    return std::vector<DynamicBox>{
-        {0, 0.9f, cv::Rect2f(0, 0, image.cols / 4.0f, image.rows / 4.0f)}};
-  }
-  void WaitEntered() const {
-    std::unique_lock lock(mutex_);
-    changed_.wait(lock, [&] { return entered_; });
-  }
-  void Open() const {
-    std::lock_guard lock(mutex_);
-    open_ = true;
-    changed_.notify_all();
-  }
-  std::string model_name() const override { return "gate"; }
-  std::string Describe() const override { return "gate (test)"; }
-  int input_size() const override { return 416; }
-  const DetectorConfig& config() const override { return config_; }
-
- private:
-  DetectorConfig config_;
-  mutable std::mutex mutex_;
-  mutable std::condition_variable changed_;
-  mutable bool entered_ = false;
-  mutable bool open_ = false;
-};
-
 // A stream that sent its header and then nothing is closed as idle; a stream whose frame is being
 // processed for longer than the idle timeout is not. No timing is assumed: the idle stream opens
 // after the busy stream's frame was read, so by the time the watchdog closes it the busy stream
