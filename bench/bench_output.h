@@ -3,6 +3,7 @@
 #pragma once
 
 #include <algorithm>
+#include <chrono>
 #include <cstdio>
 #include <string>
 #include <vector>
@@ -12,6 +13,13 @@ namespace placedb::bench {
 inline void Print(const std::string& name, double value, const char* unit) {
   std::printf("%s %.4g %s\n", name.c_str(), value, unit);
   std::fflush(stdout);
+}
+
+// Milliseconds on the steady clock, for differences.
+inline double NowMs() {
+  return std::chrono::duration<double, std::milli>(
+             std::chrono::steady_clock::now().time_since_epoch())
+      .count();
 }
 
 inline double Median(std::vector<double> values) {

@@ -27,15 +27,10 @@
 namespace fs = std::filesystem;
 using namespace placedb;
 using bench::Median;
+using bench::NowMs;
 using bench::Print;
 
 namespace {
-
-double NowMs() {
-  return std::chrono::duration<double, std::milli>(
-             std::chrono::steady_clock::now().time_since_epoch())
-      .count();
-}
 
 std::vector<std::string> RgbdFrames() {
   std::vector<std::string> paths;

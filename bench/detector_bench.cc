@@ -30,15 +30,10 @@
 
 namespace fs = std::filesystem;
 using namespace placedb;
+using bench::NowMs;
 using bench::Print;
 
 namespace {
-
-double NowMs() {
-  return std::chrono::duration<double, std::milli>(
-             std::chrono::steady_clock::now().time_since_epoch())
-      .count();
-}
 
 // The image files of `dir` in natural order; none when it is missing.
 std::vector<std::string> ListImages(const std::string& dir) {

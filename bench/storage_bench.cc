@@ -28,15 +28,10 @@
 
 namespace fs = std::filesystem;
 using namespace placedb;
+using bench::NowMs;
 using bench::Print;
 
 namespace {
-
-double NowMs() {
-  return std::chrono::duration<double, std::milli>(
-             std::chrono::steady_clock::now().time_since_epoch())
-      .count();
-}
 
 struct Frame {
   FeatureSet features;
