@@ -1231,12 +1231,17 @@ std::vector<rocksdb::ColumnFamilyDescriptor> Families(const std::shared_ptr<void
 
 // `path`: the map's directory, for its info log; empty for read-only opens (which write none).
 rocksdb::DBOptions RecoveryOptions(Recovery recovery, const std::string& path) {
+  const bool read_only = path.empty();
   rocksdb::DBOptions options = DatabaseOptions(path);
   if (recovery == Recovery::kStrict) {
     options.wal_recovery_mode = rocksdb::WALRecoveryMode::kAbsoluteConsistency;
   } else {
     options.wal_recovery_mode = rocksdb::WALRecoveryMode::kPointInTimeRecovery;
-    options.track_and_verify_wals_in_manifest = false;
+    // A read-write point-in-time open drops the MANIFEST's WAL records, so that a damaged or
+    // missing log does not stop it. A read-only open must keep tracking on: turning it off makes
+    // RocksDB 7.8 clear those records, which it cannot do read-only (Debian's build then fails
+    // an assertion and aborts the process).
+    if (!read_only) options.track_and_verify_wals_in_manifest = false;
   }
   return options;
 }
