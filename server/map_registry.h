@@ -81,15 +81,16 @@ class MapRegistry {
   // Releases every map (RocksDB flushes and closes once the last in-flight holder lets go).
   void CloseAll();
 
+  // The service's per-map settings, kept in the map's own info (MapOptions::service_json).
+  // Damaged or unknown values decode as the defaults (logged). Public for tests/fuzz.
+  static ServiceMapSettings DecodeSettings(const std::string& name, const std::string& text);
+  static std::string EncodeSettings(const ServiceMapSettings& settings);
+
  private:
   MapRegistry(std::unique_ptr<DataDirectory> directory, std::vector<VocabularyEntry> vocabularies,
               std::vector<MissingVocabulary> missing);
   std::string MissingNote() const;  // "; not loaded: sift (path: reason)" or ""
   std::shared_ptr<const MapEntry> Load(const std::string& name) REQUIRES(create_mutex_);
-  // The service's per-map settings, kept in the map's own info (MapOptions::service_json).
-  static ServiceMapSettings DecodeSettings(const std::string& name, const std::string& text);
-  static std::string EncodeSettings(const ServiceMapSettings& settings);
-
   std::unique_ptr<DataDirectory> directory_ GUARDED_BY(create_mutex_);  // null once closed
   const std::vector<VocabularyEntry> vocabularies_;
   const std::vector<MissingVocabulary> missing_;

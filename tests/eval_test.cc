@@ -78,6 +78,36 @@ class EvalTest : public ::testing::Test {
 
 // ---- Dataset format -------------------------------------------------------------------------
 
+// Found by tests/fuzz/fuzz_eval_dataset: a CSV dataset with bytes that are not UTF-8 loaded, and
+// then SaveDataset's JSON writer threw (terminating placedb-eval). Now both refuse it by name.
+TEST_F(EvalTest, DatasetTextMustBeUtf8) {
+  Dataset dataset;
+  dataset.name = "utf8";
+  dataset.directory = testing::MakeTempDir("placedb-eval-utf8");
+  Entry entry;
+  entry.id = "caf\xc3\xa9 \xe2\x82\xac \xf0\x9f\x9a\x97";  // well-formed: accepted
+  entry.image = RtabmapDir() + "/1.jpg";
+  dataset.database.push_back(entry);
+  ASSERT_TRUE(SaveDataset(dataset).ok());
+  ASSERT_TRUE(SaveDatasetCsv(dataset).ok());
+  for (const std::string& broken :
+       {std::string("\xff"), std::string("a\xc3"), std::string("\xc0\xaf"),
+        std::string("\xed\xa0\x80"), std::string("\xf4\x90\x80\x80")}) {
+    Dataset bad = dataset;
+    bad.database[0].agent = broken;
+    const Status status = SaveDataset(bad);
+    EXPECT_EQ(status.code(), StatusCode::kInvalidArgument) << status.ToString();
+    EXPECT_NE(status.message().find("agent is not valid UTF-8"), std::string::npos)
+        << status.message();
+    ASSERT_TRUE(SaveDatasetCsv(dataset).ok());
+    // The same bytes in a CSV file: refused when loading.
+    std::ofstream(dataset.directory + "/database.csv", std::ios::app)
+        << "x," << RtabmapDir() << "/2.jpg,,,robot" << broken << ",0,0,,\n";
+    auto loaded = LoadDataset(dataset.directory);
+    EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << broken;
+  }
+}
+
 TEST_F(EvalTest, DatasetRoundTripsThroughJsonAndCsv) {
   Dataset dataset;
   dataset.name = "tiny";

@@ -240,6 +240,27 @@ TEST(Codec, RecordsCarryDepthRemovedAndVersionOneStillDecodes) {
   EXPECT_EQ(invalid_old->reason, "too few");
 }
 
+// Found by tests/fuzz/fuzz_codec: an empty set decoded through memcpy into an empty vector's
+// null data() (undefined behaviour, reported by the ASan+UBSan stage).
+TEST(Codec, EmptyFeatureSetsRoundTrip) {
+  FloatFeatureSet sift;
+  sift.image_width = 640;
+  sift.image_height = 480;
+  FloatFeatureSet sift_out;
+  DirectIndex direct_out;
+  ASSERT_TRUE(
+      DecodeFloatFeatures(EncodeFloatFeatures(sift, DirectIndex{}), &sift_out, &direct_out).ok());
+  EXPECT_TRUE(sift_out.empty());
+  EXPECT_EQ(sift_out.image_width, 640);
+  FeatureSet orb;
+  orb.image_width = 640;
+  orb.image_height = 480;
+  FeatureSet orb_out;
+  ASSERT_TRUE(DecodeFeatures(EncodeFeatures(orb, DirectIndex{}), &orb_out, &direct_out).ok());
+  EXPECT_TRUE(orb_out.empty());
+  EXPECT_EQ(orb_out.image_height, 480);
+}
+
 TEST(Codec, FloatFeaturesRoundTripAndDamageIsCorruption) {
   ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
   SiftConfig sift;

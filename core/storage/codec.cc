@@ -83,6 +83,7 @@ class Reader {
   }
   bool Raw(void* out, size_t n) {
     if (in_.size() - pos_ < n) return false;
+    if (n == 0) return true;  // `out` may be an empty vector's null data(): memcpy forbids it
     std::memcpy(out, in_.data() + pos_, n);
     pos_ += n;
     return true;
