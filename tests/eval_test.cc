@@ -89,7 +89,12 @@ TEST_F(EvalTest, DatasetTextMustBeUtf8) {
   entry.image = RtabmapDir() + "/1.jpg";
   dataset.database.push_back(entry);
   ASSERT_TRUE(SaveDataset(dataset).ok());
+  ASSERT_TRUE(LoadDataset(dataset.directory).ok());
+  std::filesystem::remove(dataset.directory + "/dataset.json");  // the CSV form from here on
   ASSERT_TRUE(SaveDatasetCsv(dataset).ok());
+  auto loaded = LoadDataset(dataset.directory);
+  ASSERT_TRUE(loaded.ok()) << loaded.status().ToString();
+  EXPECT_EQ(loaded->database[0].id, entry.id);
   for (const std::string& broken :
        {std::string("\xff"), std::string("a\xc3"), std::string("\xc0\xaf"),
         std::string("\xed\xa0\x80"), std::string("\xf4\x90\x80\x80")}) {
@@ -103,8 +108,8 @@ TEST_F(EvalTest, DatasetTextMustBeUtf8) {
     // The same bytes in a CSV file: refused when loading.
     std::ofstream(dataset.directory + "/database.csv", std::ios::app)
         << "x," << RtabmapDir() << "/2.jpg,,,robot" << broken << ",0,0,,\n";
-    auto loaded = LoadDataset(dataset.directory);
-    EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << broken;
+    loaded = LoadDataset(dataset.directory);
+    EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << loaded.status().ToString();
   }
 }
 
