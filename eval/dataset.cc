@@ -324,15 +324,22 @@ Result<Dataset> LoadJson(const std::string& directory, const std::string& path) 
     return Status::InvalidArgument(path + ": not valid JSON: " + e.what());
   }
   if (!j.is_object()) return Status::InvalidArgument(path + ": the top level must be an object");
-  const std::string format = j.value("format", std::string());
-  if (format != kDatasetFormat) {
-    return Status::InvalidArgument(path + ": format is \"" + format + "\", expected \"" +
-                                   kDatasetFormat + "\"");
-  }
   Dataset dataset;
   dataset.directory = directory;
-  dataset.name = j.value("name", fs::path(directory).filename().string());
-  dataset.description = j.value("description", std::string());
+  // value() throws when the key holds another type ("name": [...]; found by
+  // tests/fuzz/fuzz_eval_dataset).
+  try {
+    const std::string format = j.value("format", std::string());
+    if (format != kDatasetFormat) {
+      return Status::InvalidArgument(path + ": format is \"" + format + "\", expected \"" +
+                                     kDatasetFormat + "\"");
+    }
+    dataset.name = j.value("name", fs::path(directory).filename().string());
+    dataset.description = j.value("description", std::string());
+  } catch (const json::exception& e) {
+    return Status::InvalidArgument(path + ": format, name and description must be strings (" +
+                                   e.what() + ")");
+  }
   for (const char* list : {"database", "queries"}) {
     if (!j.contains(list) || !j[list].is_array()) {
       return Status::InvalidArgument(path + ": \"" + list + "\" must be an array");

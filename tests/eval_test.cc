@@ -113,6 +113,22 @@ TEST_F(EvalTest, DatasetTextMustBeUtf8) {
   }
 }
 
+// Found by tests/fuzz/fuzz_eval_dataset: a dataset.json whose format, name or description was
+// not a string threw out of LoadDataset (terminating placedb-eval).
+TEST_F(EvalTest, DatasetJsonWithMistypedHeaderIsRefused) {
+  const std::string directory = testing::MakeTempDir("placedb-eval-mistyped");
+  for (const std::string& header :
+       {std::string(R"("format": 1)"),
+        std::string(R"("format": "placedb-eval-dataset/1", "name": ["x"])"),
+        std::string(R"("format": "placedb-eval-dataset/1", "description": {"a": 1})")}) {
+    std::ofstream(directory + "/dataset.json", std::ios::trunc)
+        << "{" << header << R"(, "database": [{"id": "a", "image": ")" << RtabmapDir()
+        << R"(/1.jpg"}], "queries": []})";
+    auto loaded = LoadDataset(directory);
+    EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << header;
+  }
+}
+
 TEST_F(EvalTest, DatasetRoundTripsThroughJsonAndCsv) {
   Dataset dataset;
   dataset.name = "tiny";
