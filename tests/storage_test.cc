@@ -240,6 +240,24 @@ TEST(Codec, RecordsCarryDepthRemovedAndVersionOneStillDecodes) {
   EXPECT_EQ(invalid_old->reason, "too few");
 }
 
+// Found by tests/fuzz/fuzz_codec: a word-id delta near 2^64 wrapped the running id below the
+// previous one, so a damaged BoW decoded unsorted (and its re-encoding did not decode).
+TEST(Codec, BowWordIdDeltaThatWrapsIsCorruption) {
+  Bytes wrapped;
+  wrapped.Put<uint8_t>(1).Varint(2);
+  wrapped.Varint(5).Put<float>(1.0f);
+  wrapped.Varint(~uint64_t{0} - 2).Put<float>(1.0f);  // 5 + (2^64 - 3) wraps to 2
+  const auto decoded = DecodeBow(wrapped.s);
+  EXPECT_EQ(decoded.status().code(), StatusCode::kCorruption) << decoded.status().ToString();
+  Bytes largest;  // the largest word id still decodes
+  largest.Put<uint8_t>(1).Varint(2).Varint(5).Put<float>(1.0f).Varint(0xFFFFFFFEull - 5);
+  largest.Put<float>(2.0f);
+  auto ok = DecodeBow(largest.s);
+  ASSERT_TRUE(ok.ok()) << ok.status().ToString();
+  EXPECT_EQ(ok->back().word, 0xFFFFFFFEu);
+  EXPECT_EQ(DecodeBow(EncodeBow(*ok)).value(), *ok);
+}
+
 // Found by tests/fuzz/fuzz_codec: an empty set decoded through memcpy into an empty vector's
 // null data() (undefined behaviour, reported by the ASan+UBSan stage).
 TEST(Codec, EmptyFeatureSetsRoundTrip) {

@@ -638,8 +638,10 @@ Result<BowVector> DecodeBow(std::string_view bytes) {
     uint64_t delta = 0;
     if (!r.Varint(&delta) || !r.F32(&bow[i].weight)) return r.Error();
     if (i > 0 && delta == 0) return r.Error("word ids not strictly increasing");
+    // Checked before adding: a 64-bit delta could wrap `word` below the previous id (found by
+    // tests/fuzz/fuzz_codec).
+    if (delta > 0xFFFFFFFEull - word) return r.Error("word id out of range");
     word += delta;
-    if (word > 0xFFFFFFFEull) return r.Error("word id out of range");
     bow[i].word = WordId(word);
   }
   if (!r.Done()) return r.Error("trailing bytes");
