@@ -241,7 +241,8 @@ TEST(Codec, RecordsCarryDepthRemovedAndVersionOneStillDecodes) {
 }
 
 // Found by tests/fuzz/fuzz_codec: a word-id delta near 2^64 wrapped the running id below the
-// previous one, so a damaged BoW decoded unsorted (and its re-encoding did not decode).
+// previous one, so a damaged BoW (or direct index) decoded unsorted (and its re-encoding did not
+// decode).
 TEST(Codec, BowWordIdDeltaThatWrapsIsCorruption) {
   Bytes wrapped;
   wrapped.Put<uint8_t>(1).Varint(2);
@@ -256,6 +257,14 @@ TEST(Codec, BowWordIdDeltaThatWrapsIsCorruption) {
   ASSERT_TRUE(ok.ok()) << ok.status().ToString();
   EXPECT_EQ(ok->back().word, 0xFFFFFFFEu);
   EXPECT_EQ(DecodeBow(EncodeBow(*ok)).value(), *ok);
+
+  // The direct index's node ids are delta-coded the same way.
+  Bytes direct;
+  direct.Put<uint8_t>(1).Put<uint32_t>(640).Put<uint32_t>(480).Varint(0);  // no features
+  direct.Put<uint8_t>(0).Varint(2).Varint(5).Varint(0).Varint(~uint64_t{0} - 2).Varint(0);
+  FeatureSet features;
+  DirectIndex index;
+  EXPECT_EQ(DecodeFeatures(direct.s, &features, &index).code(), StatusCode::kCorruption);
 }
 
 // Found by tests/fuzz/fuzz_codec: an empty set decoded through memcpy into an empty vector's

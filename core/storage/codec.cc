@@ -242,8 +242,9 @@ Status ReadDirect(Reader& r, uint64_t features, DirectIndex* direct) {
   for (size_t i = 0; i < nodes; ++i) {
     uint64_t delta = 0, count = 0;
     if (!r.Varint(&delta) || !r.Count(&count, 1)) return r.Error();
+    // Checked before adding, as for BoW word ids: a 64-bit delta could wrap `node`.
+    if (delta > 0xFFFFFFFFull - node) return r.Error("direct index node id out of range");
     node += delta;
-    if (node > 0xFFFFFFFFull) return r.Error("direct index node id out of range");
     direct->node_ids[i] = NodeId(node);
     for (uint64_t j = 0; j < count; ++j) {
       uint64_t id = 0;
