@@ -1,6 +1,7 @@
 #include "eval/dataset.h"
 
 #include <algorithm>
+#include <climits>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -260,8 +261,33 @@ Result<DynamicBox> BoxFromJson(const json& j, const std::string& where) {
   return box;
 }
 
+// Whether a JSON number converts to an integer in [lo, hi] without undefined behaviour
+// (nlohmann casts a float such as 3e25 unchecked; found by tests/fuzz/fuzz_eval_dataset).
+// Non-numbers pass: the conversion then throws a type error, which the caller reports.
+bool FitsInteger(const json& v, int64_t lo, int64_t hi) {
+  if (v.is_number_unsigned()) return v.get<uint64_t>() <= uint64_t(hi);
+  if (v.is_number_integer()) return v.get<int64_t>() >= lo && v.get<int64_t>() <= hi;
+  if (v.is_number_float()) {
+    const double d = v.get<double>();
+    return std::isfinite(d) && d >= double(lo) && d < double(hi) + 1.0;
+  }
+  return true;
+}
+
 Result<Entry> EntryFromJson(const json& j, const std::string& where, bool query) {
   if (!j.is_object()) return Status::InvalidArgument(where + ": an entry must be an object");
+  for (const char* key : {"sequence", "timestamp_ns"}) {
+    if (j.contains(key) && !FitsInteger(j[key], INT64_MIN, INT64_MAX)) {
+      return Status::InvalidArgument(where + "." + key + ": not a 64-bit integer");
+    }
+  }
+  if (j.contains("mask_values") && j["mask_values"].is_array()) {
+    for (const json& v : j["mask_values"]) {
+      if (!FitsInteger(v, INT_MIN, INT_MAX)) {
+        return Status::InvalidArgument(where + ".mask_values: not a 32-bit integer");
+      }
+    }
+  }
   Entry entry;
   try {
     entry.id = j.at("id").get<std::string>();

@@ -127,6 +127,16 @@ TEST_F(EvalTest, DatasetJsonWithMistypedHeaderIsRefused) {
     auto loaded = LoadDataset(directory);
     EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << header;
   }
+  // Numbers an integer field cannot hold (converting them was undefined behaviour).
+  for (const std::string& field : {std::string(R"("sequence": 3.3e25)"),
+                                   std::string(R"("timestamp_ns": 18446744073709551615)"),
+                                   std::string(R"("mask_values": [1e10])")}) {
+    std::ofstream(directory + "/dataset.json", std::ios::trunc)
+        << R"({"format": "placedb-eval-dataset/1", "database": [{"id": "a", "image": ")"
+        << RtabmapDir() << R"(/1.jpg", )" << field << R"(}], "queries": []})";
+    auto loaded = LoadDataset(directory);
+    EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << field;
+  }
 }
 
 TEST_F(EvalTest, DatasetRoundTripsThroughJsonAndCsv) {
