@@ -1,7 +1,9 @@
 #include "eval/dataset.h"
 
 #include <algorithm>
+#include <climits>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -11,6 +13,8 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 #include <sstream>
+#include <string_view>
+#include <utility>
 
 #include "core/detect/detector.h"
 
@@ -85,10 +89,64 @@ cv::Size ImageSize(const std::string& path) {
   return image.size();
 }
 
+// Well-formed UTF-8 (no overlong forms, surrogates or code points past U+10FFFF): what JSON
+// strings hold. The CSV form must hold the same, or a dataset would load from CSV and then make
+// SaveDataset's JSON writer throw (found by tests/fuzz/fuzz_eval_dataset).
+bool IsUtf8(std::string_view text) {
+  size_t i = 0;
+  while (i < text.size()) {
+    const auto byte = [&](size_t at) { return uint8_t(text[at]); };
+    const uint8_t lead = byte(i);
+    size_t length = 0;
+    uint8_t low = 0x80;
+    uint8_t high = 0xBF;  // the allowed range of the second byte
+    if (lead < 0x80) {
+      ++i;
+      continue;
+    } else if (lead >= 0xC2 && lead <= 0xDF) {
+      length = 2;
+    } else if (lead >= 0xE0 && lead <= 0xEF) {
+      length = 3;
+      if (lead == 0xE0) low = 0xA0;   // overlong
+      if (lead == 0xED) high = 0x9F;  // surrogates
+    } else if (lead >= 0xF0 && lead <= 0xF4) {
+      length = 4;
+      if (lead == 0xF0) low = 0x90;   // overlong
+      if (lead == 0xF4) high = 0x8F;  // past U+10FFFF
+    } else {
+      return false;
+    }
+    if (text.size() - i < length || byte(i + 1) < low || byte(i + 1) > high) return false;
+    for (size_t k = 2; k < length; ++k) {
+      if (byte(i + k) < 0x80 || byte(i + k) > 0xBF) return false;
+    }
+    i += length;
+  }
+  return true;
+}
+
 Status ValidateEntry(const Dataset& dataset, const char* list, size_t i, const Entry& entry,
                      bool check_files) {
   if (entry.id.empty()) {
     return Status::InvalidArgument(std::string(list) + "[" + std::to_string(i) + "]: empty id");
+  }
+  // Before Where(): the message must not quote a broken id.
+  for (const auto& [field, text] : {std::pair<const char*, const std::string*>{"id", &entry.id},
+                                    {"image", &entry.image},
+                                    {"mask", &entry.mask},
+                                    {"agent", &entry.agent},
+                                    {"source", &entry.source}}) {
+    if (!IsUtf8(*text)) {
+      return Status::InvalidArgument(std::string(list) + "[" + std::to_string(i) + "]: " + field +
+                                     " is not valid UTF-8");
+    }
+  }
+  for (const std::string& id : entry.ground_truth) {
+    if (!IsUtf8(id)) {
+      return Status::InvalidArgument(Where(list, i, entry) +
+                                     ": ground_truth has an id that is "
+                                     "not valid UTF-8");
+    }
   }
   if (entry.image.empty()) return Status::InvalidArgument(Where(list, i, entry) + ": no image");
   if (entry.coverage && !(*entry.coverage >= 0.0 && *entry.coverage <= 1.0)) {
@@ -203,8 +261,33 @@ Result<DynamicBox> BoxFromJson(const json& j, const std::string& where) {
   return box;
 }
 
+// Whether a JSON number converts to an integer in [lo, hi] without undefined behaviour
+// (nlohmann casts a float such as 3e25 unchecked; found by tests/fuzz/fuzz_eval_dataset).
+// Non-numbers pass: the conversion then throws a type error, which the caller reports.
+bool FitsInteger(const json& v, int64_t lo, int64_t hi) {
+  if (v.is_number_unsigned()) return v.get<uint64_t>() <= uint64_t(hi);
+  if (v.is_number_integer()) return v.get<int64_t>() >= lo && v.get<int64_t>() <= hi;
+  if (v.is_number_float()) {
+    const double d = v.get<double>();
+    return std::isfinite(d) && d >= double(lo) && d < double(hi) + 1.0;
+  }
+  return true;
+}
+
 Result<Entry> EntryFromJson(const json& j, const std::string& where, bool query) {
   if (!j.is_object()) return Status::InvalidArgument(where + ": an entry must be an object");
+  for (const char* key : {"sequence", "timestamp_ns"}) {
+    if (j.contains(key) && !FitsInteger(j[key], INT64_MIN, INT64_MAX)) {
+      return Status::InvalidArgument(where + "." + key + ": not a 64-bit integer");
+    }
+  }
+  if (j.contains("mask_values") && j["mask_values"].is_array()) {
+    for (const json& v : j["mask_values"]) {
+      if (!FitsInteger(v, INT_MIN, INT_MAX)) {
+        return Status::InvalidArgument(where + ".mask_values: not a 32-bit integer");
+      }
+    }
+  }
   Entry entry;
   try {
     entry.id = j.at("id").get<std::string>();
@@ -267,15 +350,22 @@ Result<Dataset> LoadJson(const std::string& directory, const std::string& path) 
     return Status::InvalidArgument(path + ": not valid JSON: " + e.what());
   }
   if (!j.is_object()) return Status::InvalidArgument(path + ": the top level must be an object");
-  const std::string format = j.value("format", std::string());
-  if (format != kDatasetFormat) {
-    return Status::InvalidArgument(path + ": format is \"" + format + "\", expected \"" +
-                                   kDatasetFormat + "\"");
-  }
   Dataset dataset;
   dataset.directory = directory;
-  dataset.name = j.value("name", fs::path(directory).filename().string());
-  dataset.description = j.value("description", std::string());
+  // value() throws when the key holds another type ("name": [...]; found by
+  // tests/fuzz/fuzz_eval_dataset).
+  try {
+    const std::string format = j.value("format", std::string());
+    if (format != kDatasetFormat) {
+      return Status::InvalidArgument(path + ": format is \"" + format + "\", expected \"" +
+                                     kDatasetFormat + "\"");
+    }
+    dataset.name = j.value("name", fs::path(directory).filename().string());
+    dataset.description = j.value("description", std::string());
+  } catch (const json::exception& e) {
+    return Status::InvalidArgument(path + ": format, name and description must be strings (" +
+                                   e.what() + ")");
+  }
   for (const char* list : {"database", "queries"}) {
     if (!j.contains(list) || !j[list].is_array()) {
       return Status::InvalidArgument(path + ": \"" + list + "\" must be an array");
@@ -438,6 +528,9 @@ std::string CsvNumber(double value) {
 }  // namespace
 
 Status ValidateDataset(const Dataset& dataset, bool check_files) {
+  if (!IsUtf8(dataset.name) || !IsUtf8(dataset.description)) {
+    return Status::InvalidArgument("the dataset's name or description is not valid UTF-8");
+  }
   std::set<std::string> database_ids;
   for (size_t i = 0; i < dataset.database.size(); ++i) {
     const Entry& entry = dataset.database[i];

@@ -53,7 +53,8 @@ struct Dataset {
 // Checks ids (non-empty, unique per list), ground-truth references (every id names a database
 // entry), coverages in [0, 1], boxes with positive size, confidence in [0, 1] and a dynamic
 // class (COCO person 0, bicycle 1, car 2, motorcycle 3, bus 5, truck 7), not entirely left of
-// or above the image; with `check_files`, that every image and mask exists and that no box lies
+// or above the image, and text (ids, paths, agent, source, name, description) in valid UTF-8, as
+// dataset.json requires; with `check_files`, that every image and mask exists and that no box lies
 // entirely right of or below its image. INVALID_ARGUMENT / NOT_FOUND naming the first problem
 // ("queries[3] (id q7): ground_truth names unknown database entry x").
 Status ValidateDataset(const Dataset& dataset, bool check_files);

@@ -7,6 +7,8 @@
 #include <iostream>
 #include <set>
 #include <thread>
+#include <utility>
+#include <vector>
 
 #include "core/base/files.h"
 
@@ -37,9 +39,39 @@ bool ValidListenAddress(const std::string& address) {
   return std::stoi(port) <= 65535;
 }
 
+// A control character in an address, path or name is a mistake (typically a CR from a file with
+// CRLF line endings) that would also not survive --print-config (found by
+// tests/fuzz/fuzz_server_config): refused, naming the key.
+Status CheckNoControlCharacters(const ServerConfig& c) {
+  std::vector<std::pair<std::string, const std::string*>> texts = {
+      {"listen", &c.listen},
+      {"metrics_listen", &c.metrics_listen},
+      {"metrics_path", &c.metrics_path},
+      {"data_dir", &c.data_dir},
+      {"log_level", &c.log_level},
+      {"detector.backend", &c.detector.backend},
+      {"detector.model", &c.detector.model},
+      {"detector.config", &c.detector.config},
+      {"detector.preprocessing", &c.detector.preprocessing}};
+  for (const auto& [name, path] : c.vocabularies) {
+    texts.push_back({"vocabularies", &name});
+    texts.push_back({"vocabularies." + name, &path});
+  }
+  for (const std::string& name : c.detector.classes) texts.push_back({"detector.classes", &name});
+  for (const auto& [key, text] : texts) {
+    for (const char ch : *text) {
+      if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
+        return Bad(key, "contains a control character (a file with CRLF line endings?)");
+      }
+    }
+  }
+  return Status::Ok();
+}
+
 }  // namespace
 
 Status ValidateServerConfig(const ServerConfig& c) {
+  PLACEDB_RETURN_IF_ERROR(CheckNoControlCharacters(c));
   if (!ValidListenAddress(c.listen)) return Bad("listen", "'" + c.listen + "' is not host:port");
   if (!c.metrics_listen.empty()) {
     if (!ValidListenAddress(c.metrics_listen) || c.metrics_listen.rfind("unix:", 0) == 0) {

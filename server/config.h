@@ -100,7 +100,8 @@ struct ServerConfig {
   int worker_threads() const;  // threads, or the hardware concurrency
 };
 
-// Checks values (not files): INVALID_ARGUMENT naming the first bad key.
+// Checks values (not files): INVALID_ARGUMENT naming the first bad key. Text values must not
+// contain control characters.
 Status ValidateServerConfig(const ServerConfig& config);
 
 // Applies a YAML file's keys over `config`. Unknown keys are errors (typos do not pass silently).

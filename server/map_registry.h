@@ -96,6 +96,11 @@ class MapRegistry {
   // Releases every map (RocksDB flushes and closes once the last in-flight holder lets go).
   void CloseAll();
 
+  // The service's per-map settings, kept in the map's own info (MapOptions::service_json).
+  // Damaged or unknown values decode as the defaults (logged). Public for tests/fuzz.
+  static ServiceMapSettings DecodeSettings(const std::string& name, const std::string& text);
+  static std::string EncodeSettings(const ServiceMapSettings& settings);
+
  private:
   MapRegistry(std::unique_ptr<DataDirectory> directory, std::vector<VocabularyEntry> vocabularies,
               std::vector<MissingVocabulary> missing);
@@ -104,10 +109,6 @@ class MapRegistry {
   // The configured vocabulary whose checksum the map recorded; FAILED_PRECONDITION naming the
   // configured ones otherwise.
   Result<const VocabularyEntry*> VocabularyFor(const MapInfo& info) const;
-  // The service's per-map settings, kept in the map's own info (MapOptions::service_json).
-  static ServiceMapSettings DecodeSettings(const std::string& name, const std::string& text);
-  static std::string EncodeSettings(const ServiceMapSettings& settings);
-
   std::unique_ptr<DataDirectory> directory_ GUARDED_BY(create_mutex_);  // null once closed
   const std::vector<VocabularyEntry> vocabularies_;
   const std::vector<MissingVocabulary> missing_;

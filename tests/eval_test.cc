@@ -78,6 +78,67 @@ class EvalTest : public ::testing::Test {
 
 // ---- Dataset format -------------------------------------------------------------------------
 
+// Found by tests/fuzz/fuzz_eval_dataset: a CSV dataset with bytes that are not UTF-8 loaded, and
+// then SaveDataset's JSON writer threw (terminating placedb-eval). Now both refuse it by name.
+TEST_F(EvalTest, DatasetTextMustBeUtf8) {
+  Dataset dataset;
+  dataset.name = "utf8";
+  dataset.directory = testing::MakeTempDir("placedb-eval-utf8");
+  Entry entry;
+  entry.id = "caf\xc3\xa9 \xe2\x82\xac \xf0\x9f\x9a\x97";  // well-formed: accepted
+  entry.image = RtabmapDir() + "/1.jpg";
+  dataset.database.push_back(entry);
+  ASSERT_TRUE(SaveDataset(dataset).ok());
+  ASSERT_TRUE(LoadDataset(dataset.directory).ok());
+  std::filesystem::remove(dataset.directory + "/dataset.json");  // the CSV form from here on
+  ASSERT_TRUE(SaveDatasetCsv(dataset).ok());
+  auto loaded = LoadDataset(dataset.directory);
+  ASSERT_TRUE(loaded.ok()) << loaded.status().ToString();
+  EXPECT_EQ(loaded->database[0].id, entry.id);
+  for (const std::string& broken :
+       {std::string("\xff"), std::string("a\xc3"), std::string("\xc0\xaf"),
+        std::string("\xed\xa0\x80"), std::string("\xf4\x90\x80\x80")}) {
+    Dataset bad = dataset;
+    bad.database[0].agent = broken;
+    const Status status = SaveDataset(bad);
+    EXPECT_EQ(status.code(), StatusCode::kInvalidArgument) << status.ToString();
+    EXPECT_NE(status.message().find("agent is not valid UTF-8"), std::string::npos)
+        << status.message();
+    ASSERT_TRUE(SaveDatasetCsv(dataset).ok());
+    // The same bytes in a CSV file: refused when loading.
+    std::ofstream(dataset.directory + "/database.csv", std::ios::app)
+        << "x," << RtabmapDir() << "/2.jpg,,,robot" << broken << ",0,0,,\n";
+    loaded = LoadDataset(dataset.directory);
+    EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << loaded.status().ToString();
+  }
+}
+
+// Found by tests/fuzz/fuzz_eval_dataset: a dataset.json whose format, name or description was
+// not a string threw out of LoadDataset (terminating placedb-eval).
+TEST_F(EvalTest, DatasetJsonWithMistypedHeaderIsRefused) {
+  const std::string directory = testing::MakeTempDir("placedb-eval-mistyped");
+  for (const std::string& header :
+       {std::string(R"("format": 1)"),
+        std::string(R"("format": "placedb-eval-dataset/1", "name": ["x"])"),
+        std::string(R"("format": "placedb-eval-dataset/1", "description": {"a": 1})")}) {
+    std::ofstream(directory + "/dataset.json", std::ios::trunc)
+        << "{" << header << R"(, "database": [{"id": "a", "image": ")" << RtabmapDir()
+        << R"(/1.jpg"}], "queries": []})";
+    auto loaded = LoadDataset(directory);
+    EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << header;
+  }
+  // Numbers an integer field cannot hold (converting them was undefined behaviour).
+  for (const std::string& field : {std::string(R"("sequence": 3.3e25)"),
+                                   std::string(R"("timestamp_ns": 18446744073709551615)"),
+                                   std::string(R"("mask_values": [1e10])")}) {
+    std::ofstream(directory + "/dataset.json", std::ios::trunc)
+        << R"({"format": "placedb-eval-dataset/1", "database": [{"id": "a", "image": ")"
+        << RtabmapDir() << R"(/1.jpg", )" << field << R"(}], "queries": []})";
+    auto loaded = LoadDataset(directory);
+    EXPECT_EQ(loaded.status().code(), StatusCode::kInvalidArgument) << field;
+  }
+}
+
 TEST_F(EvalTest, DatasetRoundTripsThroughJsonAndCsv) {
   Dataset dataset;
   dataset.name = "tiny";

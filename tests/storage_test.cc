@@ -243,6 +243,54 @@ TEST(Codec, RecordsCarryDepthRemovedAndVersionOneStillDecodes) {
   EXPECT_EQ(invalid_old->reason, "too few");
 }
 
+// Found by tests/fuzz/fuzz_codec: a word-id delta near 2^64 wrapped the running id below the
+// previous one, so a damaged BoW (or direct index) decoded unsorted (and its re-encoding did not
+// decode).
+TEST(Codec, BowWordIdDeltaThatWrapsIsCorruption) {
+  Bytes wrapped;
+  wrapped.Put<uint8_t>(1).Varint(2);
+  wrapped.Varint(5).Put<float>(1.0f);
+  wrapped.Varint(~uint64_t{0} - 2).Put<float>(1.0f);  // 5 + (2^64 - 3) wraps to 2
+  const auto decoded = DecodeBow(wrapped.s);
+  EXPECT_EQ(decoded.status().code(), StatusCode::kCorruption) << decoded.status().ToString();
+  Bytes largest;  // the largest word id still decodes
+  largest.Put<uint8_t>(1).Varint(2).Varint(5).Put<float>(1.0f).Varint(0xFFFFFFFEull - 5);
+  largest.Put<float>(2.0f);
+  auto ok = DecodeBow(largest.s);
+  ASSERT_TRUE(ok.ok()) << ok.status().ToString();
+  EXPECT_EQ(ok->back().word, 0xFFFFFFFEu);
+  EXPECT_EQ(DecodeBow(EncodeBow(*ok)).value(), *ok);
+
+  // The direct index's node ids are delta-coded the same way.
+  Bytes direct;
+  direct.Put<uint8_t>(1).Put<uint32_t>(640).Put<uint32_t>(480).Varint(0);  // no features
+  direct.Put<uint8_t>(0).Varint(2).Varint(5).Varint(0).Varint(~uint64_t{0} - 2).Varint(0);
+  FeatureSet features;
+  DirectIndex index;
+  EXPECT_EQ(DecodeFeatures(direct.s, &features, &index).code(), StatusCode::kCorruption);
+}
+
+// Found by tests/fuzz/fuzz_codec: an empty set decoded through memcpy into an empty vector's
+// null data() (undefined behaviour, reported by the ASan+UBSan stage).
+TEST(Codec, EmptyFeatureSetsRoundTrip) {
+  FloatFeatureSet sift;
+  sift.image_width = 640;
+  sift.image_height = 480;
+  FloatFeatureSet sift_out;
+  DirectIndex direct_out;
+  ASSERT_TRUE(
+      DecodeFloatFeatures(EncodeFloatFeatures(sift, DirectIndex{}), &sift_out, &direct_out).ok());
+  EXPECT_TRUE(sift_out.empty());
+  EXPECT_EQ(sift_out.image_width, 640);
+  FeatureSet orb;
+  orb.image_width = 640;
+  orb.image_height = 480;
+  FeatureSet orb_out;
+  ASSERT_TRUE(DecodeFeatures(EncodeFeatures(orb, DirectIndex{}), &orb_out, &direct_out).ok());
+  EXPECT_TRUE(orb_out.empty());
+  EXPECT_EQ(orb_out.image_height, 480);
+}
+
 TEST(Codec, FloatFeaturesRoundTripAndDamageIsCorruption) {
   ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
   SiftConfig sift;

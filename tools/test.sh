@@ -5,7 +5,9 @@
 #   3. the unit tests again under AddressSanitizer + UndefinedBehaviorSanitizer,
 #   4. the concurrency tests under ThreadSanitizer,
 #   5. a clang build with -Wthread-safety -Werror: the lock annotations (core/base/
-#      thread_annotations.h) checked by the compiler.
+#      thread_annotations.h) checked by the compiler,
+#   6. short libFuzzer runs of every tests/fuzz target (tools/fuzz.sh, docs/fuzzing.md): any
+#      crash, sanitizer report, leak or timeout fails the run.
 # Benchmarks are not tests: run them with tools/bench.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -48,5 +50,12 @@ cmake -S . -B build-clang -G Ninja -DCMAKE_BUILD_TYPE=Debug -DCMAKE_CXX_FLAGS_DE
   -DPLACEDB_THREAD_SAFETY=ON -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_DEFAULT_VOCABULARY="$vocabulary"
 cmake --build build-clang -j "$jobs" --target placedb-server placedb placedb-load placedb-eval \
   placedb-vocab placedb-sift-vocab placedb-recognize
+
+step "Fuzzing (short runs)"
+# 60 s per target (PLACEDB_FUZZ_SECONDS), two targets at a time: ~5 minutes plus the build. The
+# long runs (tools/fuzz.sh --long) are not part of CI.
+fuzz_start=$SECONDS
+tools/fuzz.sh --seconds "${PLACEDB_FUZZ_SECONDS:-60}"
+echo "fuzzing stage: $((SECONDS - fuzz_start)) s"
 
 step "All test stages passed"

@@ -83,6 +83,7 @@ class Reader {
   }
   bool Raw(void* out, size_t n) {
     if (in_.size() - pos_ < n) return false;
+    if (n == 0) return true;  // `out` may be an empty vector's null data(): memcpy forbids it
     std::memcpy(out, in_.data() + pos_, n);
     pos_ += n;
     return true;
@@ -241,8 +242,9 @@ Status ReadDirect(Reader& r, uint64_t features, DirectIndex* direct) {
   for (size_t i = 0; i < nodes; ++i) {
     uint64_t delta = 0, count = 0;
     if (!r.Varint(&delta) || !r.Count(&count, 1)) return r.Error();
+    // Checked before adding, as for BoW word ids: a 64-bit delta could wrap `node`.
+    if (delta > 0xFFFFFFFFull - node) return r.Error("direct index node id out of range");
     node += delta;
-    if (node > 0xFFFFFFFFull) return r.Error("direct index node id out of range");
     direct->node_ids[i] = NodeId(node);
     for (uint64_t j = 0; j < count; ++j) {
       uint64_t id = 0;
@@ -637,8 +639,10 @@ Result<BowVector> DecodeBow(std::string_view bytes) {
     uint64_t delta = 0;
     if (!r.Varint(&delta) || !r.F32(&bow[i].weight)) return r.Error();
     if (i > 0 && delta == 0) return r.Error("word ids not strictly increasing");
+    // Checked before adding: a 64-bit delta could wrap `word` below the previous id (found by
+    // tests/fuzz/fuzz_codec).
+    if (delta > 0xFFFFFFFEull - word) return r.Error("word id out of range");
     word += delta;
-    if (word > 0xFFFFFFFEull) return r.Error("word id out of range");
     bow[i].word = WordId(word);
   }
   if (!r.Done()) return r.Error("trailing bytes");

@@ -172,5 +172,35 @@ TEST(ServerConfigTest, FileThenEnvironmentThenFlags) {
   EXPECT_EQ(example.limits.stream_idle_timeout_ms, defaults.limits.stream_idle_timeout_ms);
 }
 
+// Found by tests/fuzz/fuzz_server_config: a value with a CR (an environment or YAML file with CRLF
+// line endings) was accepted, and --print-config printed it as a YAML line the CR ends, so the
+// printed configuration was not the one in use. Control characters are now refused by key.
+TEST(ServerConfigTest, ControlCharactersAreRefused) {
+  const std::map<std::string, std::string> environment = {{"PLACEDB_DATA_DIR", "/srv/placedb\r"}};
+  ServerConfig c;
+  ASSERT_TRUE(server::ApplyEnvironment(&c, [&](const char* name) -> const char* {
+                auto it = environment.find(name);
+                return it == environment.end() ? nullptr : it->second.c_str();
+              }).ok());
+  Status status = server::ValidateServerConfig(c);
+  EXPECT_EQ(status.code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(status.message().find("data_dir: contains a control character"), std::string::npos)
+      << status.message();
+
+  ServerConfig yaml;
+  ASSERT_TRUE(server::ApplyConfigYaml("vocabularies:\n  indoor: \"in\\tdoor.pdbv\"\n", &yaml).ok());
+  status = server::ValidateServerConfig(yaml);
+  EXPECT_NE(status.message().find("vocabularies.indoor: contains a control character"),
+            std::string::npos)
+      << status.message();
+  // Everything else still prints and loads back unchanged.
+  ServerConfig plain;
+  plain.data_dir = "/srv/place db/ü";
+  ASSERT_TRUE(server::ValidateServerConfig(plain).ok());
+  ServerConfig again;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(plain), &again).ok());
+  EXPECT_EQ(again.data_dir, plain.data_dir);
+}
+
 }  // namespace
 }  // namespace placedb::server_testing
