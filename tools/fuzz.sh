@@ -9,7 +9,7 @@
 # Options:
 #   --build-dir DIR   default build-fuzz
 #   --jobs J          targets run at once (default: the number of cores, at most 2)
-#   --log-dir DIR     where --long writes its logs (default /work/fuzz-long, else build-fuzz/fuzz-long)
+#   --log-dir DIR     where --long writes its logs (default build-fuzz/fuzz-long)
 #   --runs N          --long: executions per target (default 10000000)
 #   --max-seconds N   --long: seconds per target (default 3600)
 #   --no-build        use the targets already built
@@ -122,9 +122,7 @@ summary() {
 }
 
 if ((long)); then
-  if [[ -z $log_dir ]]; then
-    if [[ -d /work && -w /work ]]; then log_dir=/work/fuzz-long; else log_dir=$build/fuzz-long; fi
-  fi
+  [[ -n $log_dir ]] || log_dir=$build/fuzz-long
 else
   log_dir=$build/fuzz-logs
 fi
