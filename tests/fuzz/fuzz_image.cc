@@ -1,14 +1,15 @@
 // Image bytes through the decode path the service uses for them (wire::DecodeObservation, which
-// reads the PNG/JPEG header, checks the pixel limit, then decodes). The first byte picks the
-// field: the frame (encoded_image, grayscale or colour for server-side detection), the dynamic
-// mask PNG, or the 16-bit depth PNG; for the last two the frame is an empty feature set of the
-// size the image's header states, so size checks pass and the decoder runs. Invariants: no crash;
-// errors name the field or limit; decoded images respect the limits and the header's pixel count
-// (the limit is checked on the header before decoding, so the two must agree).
+// reads the PNG/JPEG header (core/decode), checks the pixel limit, then decodes). The first byte
+// picks the field: the frame (encoded_image, grayscale or colour for server-side detection), the
+// dynamic mask PNG, or the 16-bit depth PNG; for the last two the frame is an empty feature set of
+// the size the image's header states, so size checks pass and the decoder runs. Invariants: no
+// crash; errors name the field or limit; decoded images respect the limits and the header's pixel
+// count (the limit is checked on the header before decoding, so the two must agree).
 #include <cstddef>
 #include <cstdint>
 #include <string>
 
+#include "core/decode/image_decoder.h"
 #include "proto/convert_frame.h"
 #include "proto/placedb.pb.h"
 #include "tests/fuzz/fuzz_support.h"
@@ -18,7 +19,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   using namespace placedb;
   if (size == 0) return 0;
   const std::string bytes(reinterpret_cast<const char*>(data) + 1, size - 1);
-  const auto header = wire::ReadImageHeader(bytes);
+  const auto header = ReadImageInfo({data + 1, size - 1});
   wire::v1::Observation observation;
   const int mode = data[0] % 4;
   bool color = false;
