@@ -48,6 +48,19 @@ std::unique_ptr<grpc::ClientContext> Connection::NewContext(bool unary) const {
   return context;
 }
 
+grpc::Status MapServingStatus(const v1::MapDescription& map) {
+  switch (map.state()) {
+    case v1::MAP_STATE_DAMAGED:
+      return grpc::Status(grpc::StatusCode::DATA_LOSS,
+                          "map '" + map.name() + "' is damaged: " + map.unavailable_reason());
+    case v1::MAP_STATE_UNAVAILABLE:
+      return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                          "map '" + map.name() + "' is unavailable: " + map.unavailable_reason());
+    default:
+      return grpc::Status::OK;
+  }
+}
+
 std::string Describe(const grpc::Status& status) {
   std::string text = wire::GrpcCodeName(int(status.error_code()));
   if (!status.error_message().empty()) text += ": " + status.error_message();

@@ -59,6 +59,11 @@ class Connection {
 // "NOT_FOUND: map 'x' not found".
 std::string Describe(const grpc::Status& status);
 
+// OK when the map GetMap described is served (AVAILABLE or RECOVERED); else why not, as the
+// calls on it would answer: DATA_LOSS (DAMAGED) or FAILED_PRECONDITION (UNAVAILABLE), with the
+// reason. GetMap describes such maps instead of failing.
+grpc::Status MapServingStatus(const v1::MapDescription& map);
+
 // grpc.health.v1.Health/Check. Returns the RPC status; on OK, *serving_status is the
 // HealthCheckResponse.ServingStatus name ("SERVING", "NOT_SERVING", "UNKNOWN", "SERVICE_UNKNOWN").
 grpc::Status CheckHealth(const Connection& connection, const std::string& service,

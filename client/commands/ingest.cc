@@ -91,16 +91,8 @@ int CheckMap(const Connection& connection, const std::string& name, CliIo& io) {
   v1::MapDescription map;
   const grpc::Status status = connection.stub()->GetMap(context.get(), request, &map);
   if (!status.ok()) return RpcFailed(io, status);
-  // GetMap describes a damaged or unavailable map rather than refusing it: refuse it here.
-  if (map.state() == v1::MAP_STATE_DAMAGED) {
-    return RpcFailed(io,
-                     grpc::Status(grpc::StatusCode::DATA_LOSS,
-                                  "map '" + name + "' is damaged: " + map.unavailable_reason()));
-  }
-  if (map.state() == v1::MAP_STATE_UNAVAILABLE) {
-    return RpcFailed(
-        io, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                         "map '" + name + "' is unavailable: " + map.unavailable_reason()));
+  if (const grpc::Status served = MapServingStatus(map); !served.ok()) {
+    return RpcFailed(io, served);
   }
   return kExitOk;
 }

@@ -146,14 +146,7 @@ bool OpenMap(const Connection& connection, const LoadOptions& options, LoadMap* 
     create.set_name(map->name);
     status = connection.stub()->CreateMap(create_context.get(), create, &map->description);
   }
-  // GetMap describes a damaged or unavailable map rather than refusing it.
-  if (status.ok() && (map->description.state() == v1::MAP_STATE_DAMAGED ||
-                      map->description.state() == v1::MAP_STATE_UNAVAILABLE)) {
-    status = grpc::Status(map->description.state() == v1::MAP_STATE_DAMAGED
-                              ? grpc::StatusCode::DATA_LOSS
-                              : grpc::StatusCode::FAILED_PRECONDITION,
-                          "not served: " + map->description.unavailable_reason());
-  }
+  if (status.ok()) status = MapServingStatus(map->description);
   if (!status.ok()) {
     io.err << "error: map '" << map->name << "': " << Describe(status) << '\n';
     return false;
