@@ -56,7 +56,10 @@ void FixChecksum(std::string* file) {
   std::memcpy(params, file->data() + kDimensionsAt, sizeof(params));
   uint64_t h = placedb::Checksum64(params, sizeof(params), 0x70646266766f6331ull);
   const char* at = file->data() + kHeaderBytes;
+  const char* const end = file->data() + file->size();
   for (const uint64_t count : {nodes, nodes, nodes, words, words, nodes * dims}) {
+    // Payload() wraps for huge counts, so a size that "matches" can still be short of them.
+    if (count > uint64_t(end - at) / 4) return;
     h = placedb::Checksum64(at, count * 4, h ^ (count << 1));
     at += count * 4;
   }
