@@ -2,12 +2,14 @@
 
 #include <arpa/inet.h>
 #include <grpc/grpc.h>
+#include <grpcpp/generic/generic_stub.h>
 #include <netinet/in.h>
 #include <spdlog/spdlog.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <cmath>
+#include <future>
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
 #include <thread>
@@ -18,6 +20,23 @@
 #include "tests/test_support.h"
 
 namespace placedb::server_testing {
+
+grpc::Status HealthCheck(const std::shared_ptr<grpc::Channel>& channel, std::string* serving) {
+  grpc::GenericStub generic(channel);
+  grpc::Slice empty("");  // an empty HealthCheckRequest: the whole server
+  grpc::ByteBuffer request(&empty, 1), response;
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+  std::promise<grpc::Status> done;
+  generic.UnaryCall(&context, "/grpc.health.v1.Health/Check", grpc::StubOptions(), &request,
+                    &response, [&](grpc::Status s) { done.set_value(s); });
+  const grpc::Status result = done.get_future().get();
+  std::vector<grpc::Slice> slices;
+  (void)response.Dump(&slices);
+  serving->clear();
+  for (const auto& s : slices) serving->append(reinterpret_cast<const char*>(s.begin()), s.size());
+  return result;
+}
 namespace {
 
 // gRPC stays initialised for the whole process. Otherwise every test's teardown runs gRPC's

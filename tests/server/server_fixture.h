@@ -84,6 +84,10 @@ class GateDetector final : public Detector {
   mutable bool open_ = false;
 };
 
+// grpc.health.v1.Health/Check of the whole server, through the generic stub (no health stubs
+// are generated here). *serving = the response's raw bytes.
+grpc::Status HealthCheck(const std::shared_ptr<grpc::Channel>& channel, std::string* serving);
+
 struct IngestOutcome {
   std::vector<v1::IngestResponse> responses;
   grpc::Status status;

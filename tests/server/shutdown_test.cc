@@ -117,22 +117,6 @@ TEST_F(ServerTest, ShutdownWithOpenStreamsLosesNoAcknowledgedPlace) {
       shutdown_s, acked.size(), (*map)->Stats().database.places);
 }
 
-grpc::Status HealthCheck(const std::shared_ptr<grpc::Channel>& channel, std::string* status) {
-  grpc::GenericStub generic(channel);
-  grpc::Slice empty("");  // an empty HealthCheckRequest: the whole server
-  grpc::ByteBuffer request(&empty, 1), response;
-  grpc::ClientContext context;
-  std::promise<grpc::Status> done;
-  generic.UnaryCall(&context, "/grpc.health.v1.Health/Check", grpc::StubOptions(), &request,
-                    &response, [&](grpc::Status s) { done.set_value(s); });
-  const grpc::Status result = done.get_future().get();
-  std::vector<grpc::Slice> slices;
-  (void)response.Dump(&slices);
-  status->clear();
-  for (const auto& s : slices) status->append(reinterpret_cast<const char*>(s.begin()), s.size());
-  return result;
-}
-
 // A frame in the middle of the pipeline when shutdown starts is still stored and answered; while
 // it finishes, health says NOT_SERVING and new calls are refused.
 TEST_F(ServerTest, ShutdownFinishesInFlightFramesAndReportsNotServing) {

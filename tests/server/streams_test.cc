@@ -49,23 +49,6 @@ double AwaitMetric(int port, const std::string& name, const Labels& labels, doub
   return seen;
 }
 
-grpc::Status HealthCheck(const std::shared_ptr<grpc::Channel>& channel, std::string* serving) {
-  grpc::GenericStub generic(channel);
-  grpc::Slice empty("");  // an empty HealthCheckRequest: the whole server
-  grpc::ByteBuffer request(&empty, 1), response;
-  grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
-  std::promise<grpc::Status> done;
-  generic.UnaryCall(&context, "/grpc.health.v1.Health/Check", grpc::StubOptions(), &request,
-                    &response, [&](grpc::Status s) { done.set_value(s); });
-  const grpc::Status result = done.get_future().get();
-  std::vector<grpc::Slice> slices;
-  (void)response.Dump(&slices);
-  serving->clear();
-  for (const auto& s : slices) serving->append(reinterpret_cast<const char*>(s.begin()), s.size());
-  return result;
-}
-
 // A channel with its own TCP connection: a distinct argument keeps gRPC from sharing subchannels.
 std::shared_ptr<grpc::Channel> OwnConnection(int port, int index) {
   grpc::ChannelArguments arguments;
