@@ -48,6 +48,10 @@ Status CheckNoControlCharacters(const ServerConfig& c) {
       {"metrics_listen", &c.metrics_listen},
       {"metrics_path", &c.metrics_path},
       {"data_dir", &c.data_dir},
+      {"tls.cert_file", &c.tls.cert_file},
+      {"tls.key_file", &c.tls.key_file},
+      {"tls.client_ca_file", &c.tls.client_ca_file},
+      {"security.tokens_file", &c.security.tokens_file},
       {"log_level", &c.log_level},
       {"detector.backend", &c.detector.backend},
       {"detector.model", &c.detector.model},
@@ -86,6 +90,16 @@ Status ValidateServerConfig(const ServerConfig& c) {
     if (c.metrics_request_timeout_ms < 100 || c.metrics_request_timeout_ms > 600000) {
       return Bad("metrics_request_timeout_ms", "must be in [100, 600000]");
     }
+  }
+  if (c.tls.cert_file.empty() != c.tls.key_file.empty()) {
+    return Bad(c.tls.cert_file.empty() ? "tls.cert_file" : "tls.key_file",
+               "TLS needs both tls.cert_file and tls.key_file");
+  }
+  if (c.tls.mutual() && !c.tls.enabled()) {
+    return Bad("tls.client_ca_file", "mutual TLS needs tls.cert_file and tls.key_file too");
+  }
+  if (c.metrics_tls && !c.tls.enabled()) {
+    return Bad("metrics_tls", "needs tls.cert_file and tls.key_file");
   }
   if (c.data_dir.empty()) return Bad("data_dir", "must not be empty");
   if (c.threads < 0 || c.threads > 1024) return Bad("threads", "must be in [0, 1024]");
@@ -195,14 +209,15 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
   PLACEDB_RETURN_IF_ERROR(r.Check(
       root, "",
       {"listen", "metrics_listen", "metrics_path", "metrics_threads", "metrics_request_timeout_ms",
-       "data_dir", "threads", "opencv_threads", "vocabularies", "storage", "limits",
-       "shutdown_deadline_s", "detector", "log_level"}));
+       "metrics_tls", "tls", "security", "data_dir", "threads", "opencv_threads", "vocabularies",
+       "storage", "limits", "shutdown_deadline_s", "detector", "log_level"}));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "listen", &c->listen));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_listen", &c->metrics_listen));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_path", &c->metrics_path));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_threads", &c->metrics_threads));
   PLACEDB_RETURN_IF_ERROR(
       r.Read(root, "", "metrics_request_timeout_ms", &c->metrics_request_timeout_ms));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_tls", &c->metrics_tls));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "data_dir", &c->data_dir));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "threads", &c->threads));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "opencv_threads", &c->opencv_threads));
@@ -231,6 +246,20 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
       }
     }
     c->optional_vocabularies = std::move(optional);
+  }
+  if (const YAML::Node t = root["tls"]; t) {
+    PLACEDB_RETURN_IF_ERROR(r.Check(t, "tls", {"cert_file", "key_file", "client_ca_file"}));
+    PLACEDB_RETURN_IF_ERROR(r.Read(t, "tls", "cert_file", &c->tls.cert_file));
+    PLACEDB_RETURN_IF_ERROR(r.Read(t, "tls", "key_file", &c->tls.key_file));
+    PLACEDB_RETURN_IF_ERROR(r.Read(t, "tls", "client_ca_file", &c->tls.client_ca_file));
+  }
+  if (const YAML::Node s = root["security"]; s) {
+    PLACEDB_RETURN_IF_ERROR(
+        r.Check(s, "security", {"tokens_file", "reflection", "allow_unauthenticated_remote"}));
+    PLACEDB_RETURN_IF_ERROR(r.Read(s, "security", "tokens_file", &c->security.tokens_file));
+    PLACEDB_RETURN_IF_ERROR(r.Read(s, "security", "reflection", &c->security.reflection));
+    PLACEDB_RETURN_IF_ERROR(r.Read(s, "security", "allow_unauthenticated_remote",
+                                   &c->security.allow_unauthenticated_remote));
   }
   if (const YAML::Node s = root["storage"]; s) {
     PLACEDB_RETURN_IF_ERROR(
@@ -340,6 +369,25 @@ Status ApplyEnvironment(ServerConfig* c, const std::function<const char*(const c
     }
     c->metrics_listen = host + ":" + *v;
   }
+  auto get_bool = [&](const char* name, bool* out) -> Status {
+    const auto v = get(name);
+    if (!v) return Status::Ok();
+    if (*v == "1" || *v == "true" || *v == "yes") {
+      *out = true;
+    } else if (*v == "0" || *v == "false" || *v == "no") {
+      *out = false;
+    } else {
+      return Bad(name, "'" + *v + "' is not true/false/1/0/yes/no");
+    }
+    return Status::Ok();
+  };
+  PLACEDB_RETURN_IF_ERROR(get_bool("PLACEDB_METRICS_TLS", &c->metrics_tls));
+  if (auto v = get("PLACEDB_TLS_CERT_FILE")) c->tls.cert_file = *v;
+  if (auto v = get("PLACEDB_TLS_KEY_FILE")) c->tls.key_file = *v;
+  if (auto v = get("PLACEDB_TLS_CLIENT_CA_FILE")) c->tls.client_ca_file = *v;
+  if (auto v = get("PLACEDB_TOKENS_FILE")) c->security.tokens_file = *v;
+  PLACEDB_RETURN_IF_ERROR(
+      get_bool("PLACEDB_ALLOW_UNAUTHENTICATED_REMOTE", &c->security.allow_unauthenticated_remote));
   if (auto v = get("PLACEDB_THREADS")) {
     if (v->find_first_not_of("0123456789") != std::string::npos || v->size() > 4) {
       return Bad("PLACEDB_THREADS", "'" + *v + "' is not a thread count");
@@ -364,6 +412,8 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   CLI::App app{"placedb-server: the placedb gRPC service (docs/service.md)", "placedb-server"};
   app.set_version_flag("--version", std::string("placedb-server ") + PLACEDB_VERSION);
   std::string config_path, listen, data_dir, metrics_listen, log_level, detector_model;
+  std::string tls_cert, tls_key, tls_client_ca, tokens_file;
+  bool metrics_tls = false, no_reflection = false, allow_unauthenticated_remote = false;
   int threads = 0;
   double shutdown_deadline = 0;
   std::vector<std::string> vocabularies;
@@ -372,7 +422,20 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   bool print_config = false;
   auto* o_config = app.add_option("-c,--config", config_path,
                                   "YAML configuration file (default: $PLACEDB_CONFIG)");
-  auto* o_listen = app.add_option("--listen", listen, "gRPC address host:port (0.0.0.0:50051)");
+  auto* o_listen = app.add_option("--listen", listen, "gRPC address host:port (127.0.0.1:50051)");
+  auto* o_tls_cert = app.add_option("--tls-cert", tls_cert, "server certificate (PEM): TLS");
+  auto* o_tls_key = app.add_option("--tls-key", tls_key, "the certificate's private key (PEM)");
+  auto* o_tls_ca = app.add_option("--tls-client-ca", tls_client_ca,
+                                  "client CA bundle (PEM): mutual TLS, clients need a certificate");
+  auto* o_metrics_tls =
+      app.add_flag("--metrics-tls", metrics_tls, "serve metrics over HTTPS with the TLS files");
+  auto* o_tokens = app.add_option("--tokens-file", tokens_file,
+                                  "principals, token hashes and rights (placedb-server tokens)");
+  auto* o_no_reflection =
+      app.add_flag("--no-reflection", no_reflection, "turn gRPC server reflection off");
+  auto* o_unauth_remote = app.add_flag(
+      "--allow-unauthenticated-remote", allow_unauthenticated_remote,
+      "listen beyond loopback with neither tokens nor mutual TLS: anyone may do anything");
   auto* o_data = app.add_option("--data-dir", data_dir, "data directory (./var/data)");
   auto* o_metrics = app.add_option("--metrics-listen", metrics_listen,
                                    "Prometheus endpoint host:port (127.0.0.1:9464), 'off' = none");
@@ -408,6 +471,15 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   if (!config_path.empty()) PLACEDB_RETURN_IF_ERROR(ApplyConfigFile(config_path, &c));
   PLACEDB_RETURN_IF_ERROR(ApplyEnvironment(&c, getenv));
   if (o_listen->count()) c.listen = listen;
+  if (o_tls_cert->count()) c.tls.cert_file = tls_cert;
+  if (o_tls_key->count()) c.tls.key_file = tls_key;
+  if (o_tls_ca->count()) c.tls.client_ca_file = tls_client_ca;
+  if (o_metrics_tls->count()) c.metrics_tls = metrics_tls;
+  if (o_tokens->count()) c.security.tokens_file = tokens_file;
+  if (o_no_reflection->count()) c.security.reflection = !no_reflection;
+  if (o_unauth_remote->count()) {
+    c.security.allow_unauthenticated_remote = allow_unauthenticated_remote;
+  }
   if (o_data->count()) c.data_dir = data_dir;
   if (o_metrics->count()) c.metrics_listen = metrics_listen == "off" ? "" : metrics_listen;
   if (o_threads->count()) c.threads = threads;
@@ -448,6 +520,18 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "metrics_path" << YAML::Value << c.metrics_path;
   e << YAML::Key << "metrics_threads" << YAML::Value << c.metrics_threads;
   e << YAML::Key << "metrics_request_timeout_ms" << YAML::Value << c.metrics_request_timeout_ms;
+  e << YAML::Key << "metrics_tls" << YAML::Value << c.metrics_tls;
+  e << YAML::Key << "tls" << YAML::Value << YAML::BeginMap;
+  e << YAML::Key << "cert_file" << YAML::Value << c.tls.cert_file;
+  e << YAML::Key << "key_file" << YAML::Value << c.tls.key_file;
+  e << YAML::Key << "client_ca_file" << YAML::Value << c.tls.client_ca_file;
+  e << YAML::EndMap;
+  e << YAML::Key << "security" << YAML::Value << YAML::BeginMap;
+  e << YAML::Key << "tokens_file" << YAML::Value << c.security.tokens_file;
+  e << YAML::Key << "reflection" << YAML::Value << c.security.reflection;
+  e << YAML::Key << "allow_unauthenticated_remote" << YAML::Value
+    << c.security.allow_unauthenticated_remote;
+  e << YAML::EndMap;
   e << YAML::Key << "data_dir" << YAML::Value << c.data_dir;
   e << YAML::Key << "threads" << YAML::Value << c.threads;
   e << YAML::Key << "opencv_threads" << YAML::Value << c.opencv_threads;

@@ -71,11 +71,43 @@ struct DetectorSettings {
 // var/vocabulary/sift-debian.pdbfv); tools/setup.sh builds both.
 std::map<std::string, std::string> EmbeddedVocabularies();
 
+// Transport security (docs/security.md). cert_file + key_file (PEM) = TLS 1.2 or later on the
+// gRPC port; client_ca_file (a PEM bundle) as well = mutual TLS: a client without a certificate
+// signed by one of these CAs is refused at the handshake, and the certificate's CN or a SAN can
+// name the caller's principal (tokens file, `certificate_names`).
+struct TlsSettings {
+  std::string cert_file;
+  std::string key_file;
+  std::string client_ca_file;
+
+  bool enabled() const { return !cert_file.empty(); }
+  bool mutual() const { return !client_ca_file.empty(); }
+};
+
+// Who may call what (docs/security.md).
+struct SecuritySettings {
+  // Principals, their token hashes and rights (server/auth); reloaded on SIGHUP and when the file
+  // changes. Empty = no tokens: every caller may do everything.
+  std::string tokens_file;
+  bool reflection = true;  // gRPC server reflection (the schema only; open to every caller)
+  // Without tokens or mutual TLS anyone who reaches the port may do anything, so the server
+  // refuses to listen (gRPC or metrics) beyond loopback unless this is set; when it is, every
+  // start logs a warning saying so.
+  bool allow_unauthenticated_remote = false;
+};
+
 struct ServerConfig {
-  std::string listen = "0.0.0.0:50051";
+  // Loopback by default: a server reachable from other hosts needs tokens or mutual TLS, or
+  // security.allow_unauthenticated_remote.
+  std::string listen = "127.0.0.1:50051";
+  TlsSettings tls;
+  SecuritySettings security;
   // Loopback by default: deployments that are scraped from elsewhere set 0.0.0.0:9464.
   std::string metrics_listen = "127.0.0.1:9464";  // empty = no metrics endpoint
   std::string metrics_path = "/metrics";
+  // Serve the metrics over HTTPS with tls.cert_file/key_file (and, with tls.client_ca_file,
+  // require a client certificate from a scraper).
+  bool metrics_tls = false;
   // The endpoint's worker threads (each open HTTP connection holds one) and how long a request
   // may take to arrive and be answered before its connection is closed.
   int metrics_threads = 4;
@@ -97,6 +129,8 @@ struct ServerConfig {
   std::string log_level = "info";   // trace | debug | info | warn | error | off
 
   bool detector_enabled() const { return !detector.model.empty(); }
+  // Callers must prove who they are: a tokens file, or mutual TLS.
+  bool authenticates_callers() const { return !security.tokens_file.empty() || tls.mutual(); }
   int worker_threads() const;  // threads, or the hardware concurrency
 };
 
@@ -109,7 +143,9 @@ Status ApplyConfigFile(const std::string& path, ServerConfig* config);
 Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config);  // for tests
 
 // Applies PLACEDB_LISTEN, PLACEDB_DATA_DIR, PLACEDB_METRICS_LISTEN, PLACEDB_METRICS_PORT,
-// PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL, PLACEDB_MEMORY_BUDGET_BYTES. `getenv`
+// PLACEDB_METRICS_TLS, PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL,
+// PLACEDB_MEMORY_BUDGET_BYTES, PLACEDB_TLS_CERT_FILE, PLACEDB_TLS_KEY_FILE,
+// PLACEDB_TLS_CLIENT_CA_FILE, PLACEDB_TOKENS_FILE, PLACEDB_ALLOW_UNAUTHENTICATED_REMOTE. `getenv`
 // is injectable for tests.
 Status ApplyEnvironment(ServerConfig* config,
                         const std::function<const char*(const char*)>& getenv);

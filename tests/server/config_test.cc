@@ -59,7 +59,8 @@ TEST_F(ServerTest, MissingEmbeddedSiftVocabularyIsAWarningUnlessConfigured) {
   ASSERT_TRUE(flag.ok());
   EXPECT_FALSE(flag->config.optional_vocabularies.count("sift"));
   ServerConfig from_file;
-  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(ServerConfig{}), &from_file).ok());
+  const ServerConfig embedded;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(embedded), &from_file).ok());
   EXPECT_TRUE(from_file.optional_vocabularies.count("sift"));
   ASSERT_TRUE(server::ApplyConfigYaml(
                   "vocabularies:\n  default: a.pdbv\n  sift: /data/sift.pdbfv\n", &from_file)
