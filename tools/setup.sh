@@ -18,7 +18,8 @@ PACKAGES=(
   libjemalloc-dev    # PLACEDB_ALLOCATOR=jemalloc (measured against glibc, tuned: the default)
   libgtest-dev libgmock-dev libbenchmark-dev
   libspdlog-dev libfmt-dev libcli11-dev libyaml-cpp-dev nlohmann-json3-dev
-  clang-format
+  libssl-dev openssl  # tokens (SHA-256, random), TLS on /metrics; tests make certificates
+  clang-format ccache
   clang-14 libclang-rt-14-dev  # CI's -Wthread-safety and libFuzzer stages (tools/test.sh)
   # Debian's sample images: the default vocabulary is trained on these (never on eval data).
   opencv-doc darknet
