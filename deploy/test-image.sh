@@ -13,7 +13,7 @@
 #  3. secrets: the image's placedb-init-secrets (what Compose's one-shot placedb-secrets service
 #     runs) makes the CA, the server certificate and the tokens file (admin + prometheus) under
 #     the rootfs' /run/secrets, printing the admin token once; a second run changes nothing; a
-#     `reader` principal (read on every map) is added to the tokens file;
+#     `reader` principal (read on every map) is added with `placedb-server tokens add`;
 #  4. run: the image's root filesystem (podman create + export) runs placedb-server with chroot,
 #     as the image's user, entrypoint, working directory and environment (TLS and tokens from
 #     /run/secrets/placedb, as the image's ENV says), as PID 1 of its own PID namespace (as in a
@@ -34,8 +34,7 @@
 #
 # Needs root (debootstrap, chroot, mounts, podman) and reaches only the host's apt mirrors (packages)
 # and 127.0.0.1. Installs podman, debootstrap, prometheus, python3-grpcio, python3-protobuf,
-# python3-yaml, protobuf-compiler, curl and opencv-doc (the test images) with apt-get when
-# missing. Everything
+# protobuf-compiler, curl and opencv-doc (the test images) with apt-get when missing. Everything
 # it makes lives in one temporary directory, removed at exit (--keep keeps it).
 #
 #   --cache DIR      keep the debootstrapped base (DIR/base-bookworm.tar) and podman's layer
@@ -93,8 +92,8 @@ fi
 
 # ---- packages ----------------------------------------------------------------------------------
 need=()
-for pkg in podman debootstrap prometheus python3-grpcio python3-protobuf python3-yaml \
-  protobuf-compiler curl opencv-doc; do
+for pkg in podman debootstrap prometheus python3-grpcio python3-protobuf protobuf-compiler curl \
+  opencv-doc; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || need+=("$pkg")
 done
 if ((${#need[@]})); then
@@ -394,25 +393,17 @@ if grep -q "$admin_token" "$secrets_dir/placedb/tokens.yaml"; then
   die "the tokens file holds the admin token in clear"
 fi
 metrics_password="$(cat "$secrets_dir/prometheus/metrics.password")"
-# A principal that may read every map (and nothing else), written as the tokens file's format
-# says: only the SHA-256 of its token.
-reader_token="$(/usr/bin/python3 - "$secrets_dir/placedb/tokens.yaml" <<'PY'
-import base64, hashlib, secrets, sys, yaml
-path = sys.argv[1]
-token = "pdb_" + base64.urlsafe_b64encode(secrets.token_bytes(32)).rstrip(b"=").decode()
-with open(path) as f:
-    tokens = yaml.safe_load(f)
-tokens["principals"].append({"name": "reader",
-                             "token_sha256": hashlib.sha256(token.encode()).hexdigest(),
-                             "maps": {"*": ["read"]}})
-with open(path, "w") as f:
-    yaml.safe_dump(tokens, f, sort_keys=False)
-print(token)
-PY
-)" || die "adding the reader principal"
-chown "$uid:$gid" "$secrets_dir/placedb/tokens.yaml"
-chmod 600 "$secrets_dir/placedb/tokens.yaml"
-say "principals: $(/usr/bin/python3 -c 'import sys, yaml; print(", ".join(p["name"] for p in yaml.safe_load(open(sys.argv[1]))["principals"]))' "$secrets_dir/placedb/tokens.yaml")"
+# A principal that may read every map (and nothing else), added with the image's
+# `placedb-server tokens add` as the server's user (as deploy/README.md tells operators to).
+reader_token="$(chroot --userspec="$uid:$gid" "$rootfs" /usr/local/bin/placedb-server tokens add \
+  reader --tokens-file /run/secrets/placedb/tokens.yaml --read '*' 2>"$work/tokens-add.log")" ||
+  { cat "$work/tokens-add.log" >&2; die "placedb-server tokens add reader"; }
+[[ "$reader_token" =~ ^pdb_[A-Za-z0-9_-]{43}$ ]] || die "tokens add printed '$reader_token', not a token"
+[[ "$(stat -c '%u %a' "$secrets_dir/placedb/tokens.yaml")" == "$uid 600" ]] ||
+  die "tokens.yaml: $(stat -c '%u %a' "$secrets_dir/placedb/tokens.yaml"), expected $uid 600"
+chroot --userspec="$uid:$gid" "$rootfs" /usr/local/bin/placedb-server tokens list \
+  --tokens-file /run/secrets/placedb/tokens.yaml | sed 's/^/  tokens list: /' ||
+  die "placedb-server tokens list"
 openssl verify -CAfile "$secrets_dir/placedb/ca.crt" "$secrets_dir/placedb/tls.crt" >/dev/null ||
   die "the server certificate does not verify against ca.crt"
 say "server certificate: $(openssl x509 -in "$secrets_dir/placedb/tls.crt" -noout -ext subjectAltName | tail -n 1 | sed 's/^ *//')"
