@@ -3,7 +3,15 @@
 #   docker build -t placedb .                          # detector model from var/models if there
 #   docker build --build-arg MODELS= -t placedb .      # no detector model: detection off
 #   docker build --build-arg MODELS=models -t placedb .    # models from ./models in the context
-#   docker run -p 50051:50051 -p 9464:9464 -v placedb-data:/var/lib/placedb placedb
+#   docker run --rm --user 0 -v placedb-secrets:/run/secrets --entrypoint placedb-init-secrets \
+#       placedb                                       # once: CA, certificate, tokens; prints the
+#                                                     # admin token
+#   docker run -p 50051:50051 -p 9464:9464 -v placedb-secrets:/run/secrets:ro \
+#       -v placedb-data:/var/lib/placedb placedb
+#
+# The server runs with TLS (gRPC and /metrics) and a tokens file, read from /run/secrets/placedb
+# (PLACEDB_TLS_CERT_FILE, PLACEDB_TLS_KEY_FILE, PLACEDB_TOKENS_FILE below; a mounted Secret or the
+# volume placedb-init-secrets fills): without them it refuses to start. deploy/README.md.
 #
 # Stage 1 ("build") installs the Debian packages tools/setup.sh lists, builds Release, trains the
 # default vocabulary on Debian's sample images (opencv-doc, darknet) and lists the runtime
@@ -94,14 +102,19 @@ RUN deploy/docker/runtime-packages.sh /out/usr/local/bin/* > /out/runtime-packag
 FROM ${BASE_IMAGE} AS runtime
 ARG DEBIAN_FRONTEND=noninteractive
 COPY --from=build /out/runtime-packages.txt /tmp/runtime-packages.txt
+# openssl: placedb-init-secrets makes the CA and the server certificate with it.
 RUN apt-get update -q \
- && xargs -a /tmp/runtime-packages.txt apt-get install -y -q --no-install-recommends \
+ && xargs -a /tmp/runtime-packages.txt apt-get install -y -q --no-install-recommends openssl \
  && rm -rf /var/lib/apt/lists/* /tmp/runtime-packages.txt
 
 COPY --from=build /out/usr /usr
 COPY --from=build /out/etc/placedb /etc/placedb
+# The secrets' one-shot maker (Compose's placedb-secrets service) and the health check.
+COPY deploy/docker/init-secrets.sh /usr/local/bin/placedb-init-secrets
+COPY deploy/docker/healthcheck.sh /usr/local/bin/placedb-healthcheck
 # Every binary resolves every library (a missing runtime package fails the build, not a pod).
-RUN for b in /usr/local/bin/placedb*; do \
+RUN chmod 755 /usr/local/bin/placedb-init-secrets /usr/local/bin/placedb-healthcheck \
+ && for b in /usr/local/bin/placedb*; do \
       if ldd "$b" | grep 'not found'; then echo "Dockerfile: $b misses libraries" >&2; exit 1; fi; \
     done \
  && groupadd --system --gid 10001 placedb \
@@ -116,15 +129,24 @@ ENV PLACEDB_CONFIG=/etc/placedb/placedb.yaml
 # loopback). An environment variable rather than only the config file's key, so that a mounted
 # config without metrics_listen still exposes them.
 ENV PLACEDB_METRICS_LISTEN=0.0.0.0:9464
+# TLS on gRPC and /metrics, and the tokens file, from mounted secrets (a Kubernetes Secret, or
+# the volume placedb-init-secrets fills). The server refuses to start without them; it listens
+# on 0.0.0.0 (the config file) because it authenticates callers. Mutual TLS: also set
+# PLACEDB_TLS_CLIENT_CA_FILE. Point these elsewhere to use other files.
+ENV PLACEDB_TLS_CERT_FILE=/run/secrets/placedb/tls.crt \
+    PLACEDB_TLS_KEY_FILE=/run/secrets/placedb/tls.key \
+    PLACEDB_TOKENS_FILE=/run/secrets/placedb/tokens.yaml \
+    PLACEDB_METRICS_TLS=true
 USER placedb:placedb
 WORKDIR /var/lib/placedb
 VOLUME ["/var/lib/placedb"]
 EXPOSE 50051 9464
-# The standard gRPC health service (`placedb health`: 0 SERVING, 1 NOT_SERVING, 2 unreachable;
-# Docker reserves 2, hence `|| exit 1`). The port follows PLACEDB_LISTEN (default 50051): a
-# server moved to another port by the config file or --listen needs PLACEDB_LISTEN to match.
+# The standard gRPC health service over TLS (placedb-healthcheck: `placedb --tls health` on
+# 127.0.0.1, trusting ca.crt beside the certificate; 0 SERVING, else 1). The port follows
+# PLACEDB_LISTEN (default 50051): a server moved to another port by the config file or --listen
+# needs PLACEDB_LISTEN to match.
 HEALTHCHECK --interval=15s --timeout=5s --start-period=60s --retries=3 \
-  CMD ["/bin/sh", "-c", "p=\"${PLACEDB_LISTEN:-:50051}\"; /usr/local/bin/placedb --timeout 3 health --address \"127.0.0.1:${p##*:}\" || exit 1"]
+  CMD ["/usr/local/bin/placedb-healthcheck"]
 STOPSIGNAL SIGTERM
 ENTRYPOINT ["/usr/local/bin/placedb-server"]
 CMD []

@@ -10,17 +10,27 @@
 #     podman as localhost/debian:bookworm-slim;
 #  2. build: `podman build --isolation chroot --format docker` of the Dockerfile with
 #     BASE_IMAGE=localhost/debian:bookworm-slim (no registry is asked: --pull=never);
-#  3. run: the image's root filesystem (podman create + export) runs placedb-server with chroot,
-#     as the image's user, entrypoint, working directory and environment, as PID 1 of its own PID
-#     namespace (as in a container), on loopback ports;
-#  4. checks: the image's HEALTHCHECK command turns healthy (it runs `placedb health`); one Ingest
-#     stream and one Query with the image's `placedb` CLI find the right place (without a CLI in
-#     the image: deploy/testing/grpc_probe.py, python3-grpcio, and the report says FALLBACK);
+#  3. secrets: the image's placedb-init-secrets (what Compose's one-shot placedb-secrets service
+#     runs) makes the CA, the server certificate and the tokens file (admin + prometheus) under
+#     the rootfs' /run/secrets, printing the admin token once; a second run changes nothing; a
+#     `reader` principal (read on every map) is added with `placedb-server tokens add`;
+#  4. run: the image's root filesystem (podman create + export) runs placedb-server with chroot,
+#     as the image's user, entrypoint, working directory and environment (TLS and tokens from
+#     /run/secrets/placedb, as the image's ENV says), as PID 1 of its own PID namespace (as in a
+#     container), on loopback ports;
+#  5. checks: the image's HEALTHCHECK command turns healthy (placedb-healthcheck: `placedb --tls
+#     health`); security: a plaintext client fails, no token and a wrong token are
+#     UNAUTHENTICATED, /metrics answers 401 without or with wrong credentials and 200 with
+#     Prometheus' (plain HTTP fails); the admin token creates a map, one Ingest stream and one
+#     Query with the image's `placedb` CLI (TLS + token) find the right place (without a CLI in
+#     the image: deploy/testing/grpc_probe.py, python3-grpcio, and the report says FALLBACK); the
+#     reader token reads the map but DeleteMap is PERMISSION_DENIED and the map keeps its places;
 #     the metrics endpoint counts them; Debian's prometheus with deploy/prometheus.yml (target
-#     pointed at the loopback port) has up{job="placedb"} == 1 and the placedb_ series; after a
-#     second, small load every query of the Grafana dashboard evaluates and the ingest rate is
-#     non-zero; SIGTERM shuts down cleanly (exit 0); a restart on the same data directory (the
-#     VOLUME) finds every place; the data belongs to the image's non-root user.
+#     and secret files pointed at the test's; HTTPS + basic auth) has up{job="placedb"} == 1 and
+#     the placedb_ series; after a second, small load every query of the Grafana dashboard
+#     evaluates and the ingest rate is non-zero; SIGTERM shuts down cleanly (exit 0); a restart on
+#     the same data directory (the VOLUME) finds every place; the data belongs to the image's
+#     non-root user.
 #
 # Needs root (debootstrap, chroot, mounts, podman) and reaches only the host's apt mirrors (packages)
 # and 127.0.0.1. Installs podman, debootstrap, prometheus, python3-grpcio, python3-protobuf,
@@ -63,7 +73,7 @@ while (($#)); do
     --context) context="$(cd "$2" && pwd)"; shift 2 ;;
     --keep) keep=1; shift ;;
     --timeout) timeout_s="$2"; shift 2 ;;
-    -h | --help) sed -n '2,38p' "$0"; exit 0 ;;
+    -h | --help) sed -n '2,52p' "$0"; exit 0 ;;
     *) echo "test-image: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -351,6 +361,53 @@ mkdir -p "$rootfs/proc" "$rootfs/dev"
 mount -t proc proc "$rootfs/proc"
 mount --bind /dev "$rootfs/dev"
 
+# ---- 4. secrets ----------------------------------------------------------------------------------
+phase "secrets (placedb-init-secrets, as Compose's one-shot service)"
+# The image's own script, as root in the image's filesystem: /run/secrets stands for the
+# placedb-secrets volume. Its log holds the admin token, printed once.
+secrets_dir="$rootfs/run/secrets"
+init_secrets() {
+  env -i PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin \
+    chroot "$rootfs" /usr/local/bin/placedb-init-secrets /run/secrets
+}
+[[ -x "$rootfs/usr/local/bin/placedb-init-secrets" ]] || die "the image has no placedb-init-secrets"
+init_secrets >"$work/init-secrets.log" 2>&1 || { cat "$work/init-secrets.log" >&2; die "placedb-init-secrets"; }
+sed 's/pdb_[A-Za-z0-9_-]\{43\}/pdb_<redacted>/' "$work/init-secrets.log" | sed 's/^/  /'
+admin_token="$(grep -oE '^pdb_[A-Za-z0-9_-]{43}$' "$work/init-secrets.log" | tail -n 1)"
+[[ -n "$admin_token" ]] || die "placedb-init-secrets printed no admin token"
+init_secrets >"$work/init-secrets2.log" 2>&1 || { cat "$work/init-secrets2.log" >&2; die "placedb-init-secrets (second run)"; }
+if grep -qE 'pdb_[A-Za-z0-9_-]{43}' "$work/init-secrets2.log" || ! grep -q 'nothing changed' "$work/init-secrets2.log"; then
+  cat "$work/init-secrets2.log" >&2
+  die "a second placedb-init-secrets run must change nothing and print no token"
+fi
+for f in placedb/tls.crt placedb/tls.key placedb/ca.crt placedb/tokens.yaml prometheus/ca.crt \
+  prometheus/metrics.password ca/ca.key; do
+  [[ -s "$secrets_dir/$f" ]] || die "placedb-init-secrets did not write $f"
+done
+[[ "$(stat -c '%u %a' "$secrets_dir/placedb")" == "$uid 700" ]] ||
+  die "$secrets_dir/placedb: $(stat -c '%u %a' "$secrets_dir/placedb"), expected $uid 700"
+[[ "$(stat -c '%u %a' "$secrets_dir/placedb/tls.key")" == "$uid 600" ]] ||
+  die "tls.key: $(stat -c '%u %a' "$secrets_dir/placedb/tls.key"), expected $uid 600"
+[[ "$(stat -c '%u %a' "$secrets_dir/ca/ca.key")" == "0 600" ]] || die "ca/ca.key is not root's, 0600"
+if grep -q "$admin_token" "$secrets_dir/placedb/tokens.yaml"; then
+  die "the tokens file holds the admin token in clear"
+fi
+metrics_password="$(cat "$secrets_dir/prometheus/metrics.password")"
+# A principal that may read every map (and nothing else), added with the image's
+# `placedb-server tokens add` as the server's user (as deploy/README.md tells operators to).
+reader_token="$(chroot --userspec="$uid:$gid" "$rootfs" /usr/local/bin/placedb-server tokens add \
+  reader --tokens-file /run/secrets/placedb/tokens.yaml --read '*' 2>"$work/tokens-add.log")" ||
+  { cat "$work/tokens-add.log" >&2; die "placedb-server tokens add reader"; }
+[[ "$reader_token" =~ ^pdb_[A-Za-z0-9_-]{43}$ ]] || die "tokens add printed '$reader_token', not a token"
+[[ "$(stat -c '%u %a' "$secrets_dir/placedb/tokens.yaml")" == "$uid 600" ]] ||
+  die "tokens.yaml: $(stat -c '%u %a' "$secrets_dir/placedb/tokens.yaml"), expected $uid 600"
+chroot --userspec="$uid:$gid" "$rootfs" /usr/local/bin/placedb-server tokens list \
+  --tokens-file /run/secrets/placedb/tokens.yaml | sed 's/^/  tokens list: /' ||
+  die "placedb-server tokens list"
+openssl verify -CAfile "$secrets_dir/placedb/ca.crt" "$secrets_dir/placedb/tls.crt" >/dev/null ||
+  die "the server certificate does not verify against ca.crt"
+say "server certificate: $(openssl x509 -in "$secrets_dir/placedb/tls.crt" -noout -ext subjectAltName | tail -n 1 | sed 's/^ *//')"
+
 grpc_port="$(free_port)"
 metrics_port="$(free_port)"
 prom_port="$(free_port)"
@@ -395,7 +452,8 @@ wait_healthy() {
         echo "$out"
         return 0
       fi
-    elif out="$(/usr/bin/python3 "$here/testing/grpc_probe.py" health "127.0.0.1:$grpc_port" 2>&1)"; then
+    elif out="$(/usr/bin/python3 "$here/testing/grpc_probe.py" health "127.0.0.1:$grpc_port" \
+      --ca-cert "$secrets_dir/placedb/ca.crt" 2>&1)"; then
       echo "$out"
       return 0
     fi
@@ -422,23 +480,44 @@ else
   say "NOTE: the image has no placedb CLI: its HEALTHCHECK cannot pass; checking health with" \
     "deploy/testing/grpc_probe.py instead (FALLBACK)"
 fi
+cli_token="$admin_token"
 
-# The image's CLI, chrooted, as the image's user, against the test server.
+# The image's CLI, chrooted, as the image's user, against the test server: TLS with the CA of the
+# secrets, and the token in $cli_token (the admin's unless a check sets another).
+cli_token=""
 cli() {
-  env -i "${run_env[@]}" "PLACEDB_ADDRESS=127.0.0.1:$grpc_port" \
+  env -i "${run_env[@]}" "PLACEDB_ADDRESS=127.0.0.1:$grpc_port" "PLACEDB_TOKEN=$cli_token" \
+    chroot --userspec="$uid:$gid" "$rootfs" /usr/local/bin/placedb \
+    --tls --ca-cert /run/secrets/placedb/ca.crt "$@"
+}
+# The same without TLS (must fail against this server).
+cli_plaintext() {
+  env -i "${run_env[@]}" "PLACEDB_ADDRESS=127.0.0.1:$grpc_port" "PLACEDB_TOKEN=$cli_token" \
     chroot --userspec="$uid:$gid" "$rootfs" /usr/local/bin/placedb "$@"
+}
+# The Python probe with TLS (FALLBACK and the checks' second opinion); token: $cli_token.
+probe() {
+  local command="$1"
+  shift
+  PLACEDB_TOKEN="$cli_token" /usr/bin/python3 "$here/testing/grpc_probe.py" "$command" \
+    "127.0.0.1:$grpc_port" --ca-cert "$secrets_dir/placedb/ca.crt" "$@"
 }
 count_places() {
   if ((have_cli)); then
     cli maps show imagetest --json | /usr/bin/python3 -c \
       'import json, sys; print(json.load(sys.stdin)["stats"]["places"])'
   else
-    /usr/bin/python3 "$here/testing/grpc_probe.py" places "127.0.0.1:$grpc_port" \
-      --proto-root "$context" --map imagetest
+    probe places --proto-root "$context" --map imagetest
   fi
 }
+# GET /metrics over HTTPS with the CA of the secrets; extra curl arguments (credentials) follow.
+# Prints the HTTP status code, the body goes to $work/metrics.txt.
+metrics_status() {
+  curl -sS --max-time 10 --cacert "$secrets_dir/placedb/ca.crt" -o "$work/metrics.txt" \
+    -w '%{http_code}' "$@" "https://127.0.0.1:$metrics_port/metrics" || true
+}
 
-# ---- 4. run and check --------------------------------------------------------------------------
+# ---- 5. run and check --------------------------------------------------------------------------
 phase "start placedb-server (chroot, PID 1)"
 start_server "$work/server.log"
 pid="$(server_host_pid)" || { cat "$work/server.log" >&2; die "the server did not start"; }
@@ -458,21 +537,68 @@ else
 fi
 # What the k8s readiness probe asks.
 if ((have_cli)); then
-  echo "  placedb health --service placedb.v1.PlaceDb: $(cli health --service placedb.v1.PlaceDb)"
+  echo "  placedb-healthcheck placedb.v1.PlaceDb: $(env -i "${run_env[@]}" \
+    chroot --userspec="$uid:$gid" "$rootfs" /usr/local/bin/placedb-healthcheck placedb.v1.PlaceDb)"
 else
-  /usr/bin/python3 "$here/testing/grpc_probe.py" health "127.0.0.1:$grpc_port" \
-    --service placedb.v1.PlaceDb | sed 's/^/  /'
+  probe health --service placedb.v1.PlaceDb | sed 's/^/  /'
 fi
 sed 's/^/  server: /' "$work/server.log"
 say "server RSS when healthy: $(rss_mib "$pid" VmRSS) MiB"
 
+phase "security: TLS, tokens, metrics credentials"
+# A plaintext client cannot talk to the TLS port (health is open to any TLS client).
+if ((have_cli)); then
+  if out="$(cli_plaintext --timeout 5 health 2>&1)"; then
+    die "a plaintext client got an answer: $out"
+  fi
+  say "plaintext client (placedb health without --tls): refused: $(tail -n 1 <<<"$out")"
+fi
+if out="$(/usr/bin/python3 "$here/testing/grpc_probe.py" health "127.0.0.1:$grpc_port" 2>&1)"; then
+  die "a plaintext client got an answer: $out"
+fi
+say "plaintext client (grpc_probe.py without TLS): refused: $(tail -n 1 <<<"$out")"
+# No token, a wrong token: UNAUTHENTICATED.
+for token in "" "pdb_not-a-token-at-all"; do
+  cli_token="$token"
+  if ((have_cli)); then
+    out="$(cli maps list 2>&1)" && die "maps list with token '$token' succeeded: $out"
+    grep -q UNAUTHENTICATED <<<"$out" || die "maps list with token '$token': $out (expected UNAUTHENTICATED)"
+  else
+    out="$(probe call --proto-root "$context" ListMaps --expect UNAUTHENTICATED 2>&1)" || die "$out"
+  fi
+  if grep -qF -- "${token:-no token at all}" <<<"$out"; then die "the message shows the token: $out"; fi
+  say "token '${token:-<none>}': $(tail -n 1 <<<"$out")"
+done
+cli_token="$admin_token"
+# /metrics: HTTPS with basic auth (user = principal name, password = token).
+code="$(metrics_status)"
+[[ "$code" == 401 ]] || die "GET /metrics without credentials: HTTP $code (expected 401)"
+code="$(metrics_status -u "prometheus:pdb_wrong")"
+[[ "$code" == 401 ]] || die "GET /metrics with a wrong password: HTTP $code (expected 401)"
+code="$(metrics_status -u "reader:$reader_token")"
+[[ "$code" == 401 || "$code" == 403 ]] ||
+  die "GET /metrics as reader (no metrics right): HTTP $code (expected 401 or 403)"
+code="$(metrics_status -u "prometheus:$metrics_password")"
+[[ "$code" == 200 ]] || die "GET /metrics with Prometheus' credentials: HTTP $code (expected 200)"
+grep -q '^placedb_' "$work/metrics.txt" || die "GET /metrics (200) has no placedb_ series"
+if curl -fsS --max-time 5 -u "prometheus:$metrics_password" -o /dev/null \
+  "http://127.0.0.1:$metrics_port/metrics" 2>/dev/null; then
+  die "/metrics answers plain HTTP"
+fi
+say "/metrics: 401 without credentials or with a wrong password, $(metrics_status -u "reader:$reader_token") as reader, 200 as prometheus, plain HTTP refused"
+
 phase "prometheus scrape (deploy/prometheus.yml)"
+# The secret files of the placedb-secrets volume (mounted at /etc/prometheus/secrets in Compose)
+# are the rootfs' /run/secrets here; the server_name stays (the certificate names placedb).
 sed -e "s|\"placedb:9464\"|\"127.0.0.1:$metrics_port\"|" \
   -e "s|\"localhost:9090\"|\"127.0.0.1:$prom_port\"|" \
+  -e "s|/etc/prometheus/secrets/|$secrets_dir/|g" \
   -e 's|scrape_interval: 5s|scrape_interval: 1s|' \
   "$here/prometheus.yml" >"$work/prometheus.yml"
 grep -q "127.0.0.1:$metrics_port" "$work/prometheus.yml" ||
   die "deploy/prometheus.yml has no \"placedb:9464\" target to point at the test server"
+grep -q "password_file: $secrets_dir/prometheus/metrics.password" "$work/prometheus.yml" ||
+  die "deploy/prometheus.yml does not read the password from the placedb-secrets volume"
 promtool check config "$work/prometheus.yml" >/dev/null || die "promtool check config"
 prometheus --config.file="$work/prometheus.yml" --storage.tsdb.path="$work/prometheus-data" \
   --web.listen-address="127.0.0.1:$prom_port" >"$work/prometheus.log" 2>&1 &
@@ -535,14 +661,32 @@ print(f"  placedb maps show: {show['stats']['places']} places, "
       f"{show['stats']['bytes_on_disk']} bytes on disk")
 PY
 else
-  /usr/bin/python3 "$here/testing/grpc_probe.py" smoke "127.0.0.1:$grpc_port" \
-    --proto-root "$context" --map imagetest \
+  probe smoke --proto-root "$context" --map imagetest \
     --ingest "$samples/aloeL.jpg" "$samples/building.jpg" "$samples/graf1.png" \
     "$samples/box_in_scene.png" "$samples/home.jpg" \
     --query "$samples/aloeR.jpg" --expect "$samples/aloeL.jpg" | sed 's/^/  /' ||
     die "ingest/query smoke test (FALLBACK probe)"
 fi
-metrics="$(curl -fsS --max-time 10 "http://127.0.0.1:$metrics_port/metrics")" ||
+# The reader may read the map but not delete it; the map is unchanged.
+cli_token="$reader_token"
+if ((have_cli)); then
+  cli maps show imagetest --json >/dev/null || die "the reader cannot read map imagetest"
+  out="$(cli maps delete imagetest --yes 2>&1)" && die "the reader deleted map imagetest: $out"
+  grep -q PERMISSION_DENIED <<<"$out" || die "reader's maps delete: $out (expected PERMISSION_DENIED)"
+  out2="$(cli maps create readers-map 2>&1)" && die "the reader created a map: $out2"
+  grep -q PERMISSION_DENIED <<<"$out2" || die "reader's maps create: $out2 (expected PERMISSION_DENIED)"
+else
+  probe call --proto-root "$context" GetMap --map imagetest --expect OK >/dev/null ||
+    die "the reader cannot read map imagetest"
+  out="$(probe call --proto-root "$context" DeleteMap --map imagetest --expect PERMISSION_DENIED 2>&1)" ||
+    die "$out"
+fi
+grep -qF "$reader_token" <<<"$out" && die "the message shows the token: $out"
+say "reader token: reads imagetest; DeleteMap: $(tail -n 1 <<<"$out")"
+cli_token="$admin_token"
+[[ "$(count_places)" == 5 ]] || die "map imagetest changed after the reader's calls"
+metrics="$(curl -fsS --max-time 10 --cacert "$secrets_dir/placedb/ca.crt" \
+  -u "prometheus:$metrics_password" "https://127.0.0.1:$metrics_port/metrics")" ||
   die "GET /metrics on 127.0.0.1:$metrics_port"
 grep -qx 'placedb_frames_ingested_total{map="imagetest"} 5' <<<"$metrics" ||
   die "/metrics does not count the 5 ingested frames"
@@ -576,8 +720,7 @@ sys.exit(0 if stored >= 20 and not stream_errors else 1)' "$work/more.json" ||
     die "the second ingest (its summary: $work/more.json)"
   for f in "$frames"/more/*.jpg; do cli query imagetest "${f#"$rootfs"}" >/dev/null; done
 else
-  /usr/bin/python3 "$here/testing/grpc_probe.py" load "127.0.0.1:$grpc_port" \
-    --proto-root "$context" --map imagetest --images "$samples" --frames 40 --streams 2 \
+  probe load --proto-root "$context" --map imagetest --images "$samples" --frames 40 --streams 2 \
     --queries 20 | sed 's/^/  /' || die "the second load"
 fi
 sleep 4  # a few more scrapes

@@ -4,6 +4,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "core/base/map_name.h"
+
 namespace placedb::server {
 
 namespace {
@@ -179,9 +181,7 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Get(const std::string& name
 
 Result<std::shared_ptr<const MapEntry>> MapRegistry::Find(const std::string& name,
                                                           const std::string& field) const {
-  if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
-    return Status::InvalidArgument(field + ": " + valid.message());
-  }
+  PLACEDB_RETURN_IF_ERROR(ValidateMapName(name).WithContext(field));
   MutexLock lock(mutex_);
   auto it = maps_.find(name);
   if (it == maps_.end()) return Status::NotFound("map '" + name + "' not found");
@@ -238,9 +238,7 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Create(const std::string& n
                                                             const MapOptions& options,
                                                             const std::string& vocabulary_name,
                                                             const ServiceMapSettings& settings) {
-  if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
-    return Status::InvalidArgument("name: " + valid.message());
-  }
+  PLACEDB_RETURN_IF_ERROR(ValidateMapName(name).WithContext("name"));
   auto resolved = ResolveVocabulary(vocabulary_name);
   if (!resolved.ok()) return resolved.status();
   const VocabularyEntry* vocabulary = *resolved;
@@ -266,9 +264,7 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Create(const std::string& n
 }
 
 Status MapRegistry::Delete(const std::string& name) {
-  if (Status valid = DataDirectory::ValidateMapName(name); !valid.ok()) {
-    return Status::InvalidArgument("name: " + valid.message());
-  }
+  PLACEDB_RETURN_IF_ERROR(ValidateMapName(name).WithContext("name"));
   MutexLock create_lock(create_mutex_);
   if (!directory_) return Status::IoError("the data directory is closed (shutting down)");
   {

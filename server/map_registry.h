@@ -13,6 +13,10 @@
 // are stored as JSON in the map's own info (MapOptions::service_json): written atomically with
 // the map, carried by checkpoints, deleted with it. Missing means the defaults.
 //
+// Every method taking a map name checks it first (ValidateMapName, core/base/map_name.h):
+// INVALID_ARGUMENT prefixed with the request field ("name: map name ... is invalid ..."), before
+// any lookup or storage access.
+//
 // Thread safety: all methods may be called concurrently; create/delete are serialised.
 #pragma once
 

@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "core/base/map_name.h"
 #include "core/base/timing.h"
 #include "proto/convert_config.h"
 #include "proto/convert_frame.h"
@@ -228,7 +229,11 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
                                        v1::MapDescription* response) {
   CallScope scope(this);
   if (draining_flag_) return Finish("CreateMap", context, Unavailable());
-  // The vocabulary first: its kind is the map's feature type.
+  // The name before anything else: a bad one is the caller's first problem to hear about.
+  if (Status valid = ValidateMapName(request->name()); !valid.ok()) {
+    return Finish("CreateMap", context, ToGrpc(valid.WithContext("name")));
+  }
+  // The vocabulary next: its kind is the map's feature type.
   auto vocabulary = maps_->ResolveVocabulary(request->config().vocabulary());
   if (!vocabulary.ok()) return Finish("CreateMap", context, ToGrpc(vocabulary.status()));
   ServiceMapSettings settings;

@@ -27,6 +27,7 @@
 #include <thread>
 
 #include "core/base/files.h"
+#include "core/base/map_name.h"
 
 namespace fs = std::filesystem;
 
@@ -1189,23 +1190,6 @@ Result<std::unique_ptr<DataDirectory>> DataDirectory::Open(const std::string& pa
   fs::create_directories(root / "maps", ec);
   if (ec) return Status::IoError("creating " + (root / "maps").string() + ": " + ec.message());
   return std::unique_ptr<DataDirectory>(new DataDirectory(path, options, std::move(lock).value()));
-}
-
-Status DataDirectory::ValidateMapName(const std::string& name) {
-  if (name.empty() || name.size() > 64) {
-    return Status::InvalidArgument("map name must be 1-64 characters, got " +
-                                   std::to_string(name.size()));
-  }
-  if (!std::isalnum(static_cast<unsigned char>(name[0]))) {
-    return Status::InvalidArgument("map name '" + name + "' must start with a letter or digit");
-  }
-  for (char c : name) {
-    if (!std::isalnum(static_cast<unsigned char>(c)) && c != '_' && c != '.' && c != '-') {
-      return Status::InvalidArgument("map name '" + name +
-                                     "' may only hold letters, digits, '_', '.' and '-'");
-    }
-  }
-  return Status::Ok();
 }
 
 std::string DataDirectory::MapPath(const std::string& name) const {

@@ -217,9 +217,8 @@ class DataDirectory {
   const std::string& path() const { return path_; }
   const StorageOptions& options() const { return options_; }
 
-  // Names: 1-64 characters of [A-Za-z0-9_.-], starting with a letter or digit.
-  static Status ValidateMapName(const std::string& name);
-
+  // Every method below that takes a map name refuses an invalid one (ValidateMapName,
+  // core/base/map_name.h) with INVALID_ARGUMENT before touching the disk.
   Result<std::shared_ptr<PlaceMap>> CreateMap(const std::string& name, const MapOptions& options,
                                               AnyVocabulary vocabulary);
   // Reads a map's stored info without opening it for writing (e.g. to pick its vocabulary).

@@ -10,6 +10,14 @@
       exit 0 when every frame was stored and the query's best match is the --expect image.
   grpc_probe.py places ADDRESS --proto-root DIR --map NAME
       prints the number of places of a map.
+  grpc_probe.py call ADDRESS --proto-root DIR METHOD [--map NAME] --expect CODE
+      one unary call (CreateMap, GetMap, DeleteMap, ListMaps, GetServerInfo) naming --map;
+      exit 0 when it ends with the gRPC status CODE (OK, UNAUTHENTICATED, PERMISSION_DENIED...).
+
+Every command takes the connection options: --tls (implied by --ca-cert) with --ca-cert PEM
+(default: the system's roots), --cert/--key (a client certificate, for mutual TLS),
+--server-name (the name the server certificate must carry, default the host of ADDRESS) and
+--token (sent as `authorization: Bearer TOKEN`; default $PLACEDB_TOKEN).
 
 The health check needs no generated code (the request and response are hand-encoded: both are
 a single proto field). The other commands compile proto/placedb.proto with protoc into a
@@ -32,6 +40,31 @@ SERVING = 1
 STATUS_NAMES = {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}
 
 
+def open_channel(args) -> grpc.Channel:
+    """Plaintext, or TLS when --tls/--ca-cert/--cert is given."""
+    if not (args.tls or args.ca_cert or args.cert):
+        return grpc.insecure_channel(args.address)
+
+    def read(path):
+        if not path:
+            return None
+        with open(path, "rb") as f:
+            return f.read()
+
+    credentials = grpc.ssl_channel_credentials(root_certificates=read(args.ca_cert),
+                                               private_key=read(args.key),
+                                               certificate_chain=read(args.cert))
+    options = []
+    if args.server_name:
+        options.append(("grpc.ssl_target_name_override", args.server_name))
+    return grpc.secure_channel(args.address, credentials, options=options)
+
+
+def call_metadata(args):
+    """The bearer token of --token / $PLACEDB_TOKEN, as gRPC metadata (or none)."""
+    return [("authorization", f"Bearer {args.token}")] if args.token else None
+
+
 def encode_health_request(service: str) -> bytes:
     data = service.encode()
     if not data:
@@ -52,7 +85,7 @@ def health(args) -> int:
     last = "no answer"
     while True:
         # A fresh channel per attempt: a channel that failed to connect backs off for seconds.
-        with grpc.insecure_channel(args.address) as channel:
+        with open_channel(args) as channel:
             check = channel.unary_unary(
                 "/grpc.health.v1.Health/Check",
                 request_serializer=lambda b: b,
@@ -86,11 +119,13 @@ def load_proto(proto_root: str):
 def smoke(args) -> int:
     pb = load_proto(args.proto_root)
     service = "/placedb.v1.PlaceDb/"
-    with grpc.insecure_channel(args.address) as channel:
+    metadata = call_metadata(args)
+    with open_channel(args) as channel:
         def unary(method, response_type):
-            return channel.unary_unary(service + method,
+            call = channel.unary_unary(service + method,
                                        request_serializer=lambda m: m.SerializeToString(),
                                        response_deserializer=response_type.FromString)
+            return lambda request, timeout: call(request, timeout=timeout, metadata=metadata)
 
         info = unary("GetServerInfo", pb.ServerInfo)(pb.GetServerInfoRequest(), timeout=10)
         print(f"server {info.version}: vocabularies "
@@ -117,7 +152,7 @@ def smoke(args) -> int:
                                        response_deserializer=pb.IngestResponse.FromString)
         place_of = {}
         failures = 0
-        for response in ingest(requests(), timeout=120):
+        for response in ingest(requests(), timeout=120, metadata=metadata):
             path = args.ingest[response.index]
             if response.stored:
                 place_of[response.place_id] = path
@@ -156,11 +191,39 @@ def smoke(args) -> int:
 def places(args) -> int:
     """Prints the number of places of a map (after a restart: durability)."""
     pb = load_proto(args.proto_root)
-    with grpc.insecure_channel(args.address) as channel:
+    with open_channel(args) as channel:
         get = channel.unary_unary("/placedb.v1.PlaceDb/GetMap",
                                   request_serializer=lambda m: m.SerializeToString(),
                                   response_deserializer=pb.MapDescription.FromString)
-        print(get(pb.GetMapRequest(name=args.map), timeout=10).stats.places)
+        print(get(pb.GetMapRequest(name=args.map), timeout=10,
+                  metadata=call_metadata(args)).stats.places)
+    return 0
+
+
+def call(args) -> int:
+    """One unary call; exit 0 when its status code is --expect."""
+    pb = load_proto(args.proto_root)
+    requests = {
+        "CreateMap": (pb.CreateMapRequest(name=args.map), pb.MapDescription),
+        "GetMap": (pb.GetMapRequest(name=args.map), pb.MapDescription),
+        "DeleteMap": (pb.DeleteMapRequest(name=args.map), pb.DeleteMapResponse),
+        "ListMaps": (pb.ListMapsRequest(), pb.ListMapsResponse),
+        "GetServerInfo": (pb.GetServerInfoRequest(), pb.ServerInfo),
+    }
+    request, response_type = requests[args.method]
+    with open_channel(args) as channel:
+        unary = channel.unary_unary("/placedb.v1.PlaceDb/" + args.method,
+                                    request_serializer=lambda m: m.SerializeToString(),
+                                    response_deserializer=response_type.FromString)
+        try:
+            unary(request, timeout=30, metadata=call_metadata(args))
+            code, details = "OK", ""
+        except grpc.RpcError as e:
+            code, details = e.code().name, e.details()
+    print(f"{args.method} {args.map}: {code}{': ' + details if details else ''}")
+    if code != args.expect:
+        print(f"call: expected {args.expect}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -174,12 +237,13 @@ def load(args) -> int:
     data = [open(p, "rb").read() for p in images]
     service = "/placedb.v1.PlaceDb/"
     stored = [0] * args.streams
-    with grpc.insecure_channel(args.address) as channel:
+    metadata = call_metadata(args)
+    with open_channel(args) as channel:
         create = channel.unary_unary(service + "CreateMap",
                                      request_serializer=lambda m: m.SerializeToString(),
                                      response_deserializer=pb.MapDescription.FromString)
         try:
-            create(pb.CreateMapRequest(name=args.map), timeout=30)
+            create(pb.CreateMapRequest(name=args.map), timeout=30, metadata=metadata)
         except grpc.RpcError as e:
             if e.code() != grpc.StatusCode.ALREADY_EXISTS:
                 raise
@@ -194,7 +258,7 @@ def load(args) -> int:
             ingest = channel.stream_stream(service + "Ingest",
                                            request_serializer=lambda m: m.SerializeToString(),
                                            response_deserializer=pb.IngestResponse.FromString)
-            for response in ingest(requests(), timeout=args.timeout):
+            for response in ingest(requests(), timeout=args.timeout, metadata=metadata):
                 stored[k] += response.stored
 
         start = time.monotonic()
@@ -211,7 +275,7 @@ def load(args) -> int:
         for i in range(args.queries):
             query(pb.QueryRequest(map=args.map, observation=pb.Observation(
                 encoded_image=pb.EncodedImage(data=data[(i * 7) % len(data)])),
-                options=pb.MatchOptions(top_k=5)), timeout=30)
+                options=pb.MatchOptions(top_k=5)), timeout=30, metadata=metadata)
         query_s = time.monotonic() - start
     print(f"load: {sum(stored)}/{len(data)} frames stored by {args.streams} streams in "
           f"{ingest_s:.1f} s ({len(data) / ingest_s:.1f} frames/s); {args.queries} queries in "
@@ -246,8 +310,24 @@ def main() -> int:
     lo.add_argument("--streams", type=int, default=2)
     lo.add_argument("--queries", type=int, default=50)
     lo.add_argument("--timeout", type=float, default=600)
+    c = sub.add_parser("call")
+    c.add_argument("address")
+    c.add_argument("--proto-root", required=True)
+    c.add_argument("method", choices=["CreateMap", "GetMap", "DeleteMap", "ListMaps",
+                                      "GetServerInfo"])
+    c.add_argument("--map", default="")
+    c.add_argument("--expect", required=True, help="a gRPC status code name, e.g. OK")
+    for command in (h, s, p, lo, c):
+        command.add_argument("--tls", action="store_true", help="connect with TLS")
+        command.add_argument("--ca-cert", help="PEM roots for TLS (implies --tls)")
+        command.add_argument("--cert", help="PEM client certificate (mutual TLS)")
+        command.add_argument("--key", help="PEM key of --cert")
+        command.add_argument("--server-name", help="the name the server certificate must carry")
+        command.add_argument("--token", default=os.environ.get("PLACEDB_TOKEN", ""),
+                             help="bearer token (default: $PLACEDB_TOKEN)")
     args = parser.parse_args()
-    return {"health": health, "smoke": smoke, "places": places, "load": load}[args.command](args)
+    return {"health": health, "smoke": smoke, "places": places, "load": load,
+            "call": call}[args.command](args)
 
 
 if __name__ == "__main__":
