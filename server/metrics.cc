@@ -7,6 +7,8 @@
 #include <string>
 #include <vector>
 
+#include "server/tls_relay.h"
+
 namespace placedb::server {
 
 namespace {
@@ -142,8 +144,10 @@ Status Metrics::Serve(const Endpoint& endpoint, std::function<void()> before_scr
   // request_timeout_ms bounds every read and write of a request, so a client that never finishes
   // its request header loses its connection instead of holding a worker for good. No keep-alive:
   // a scraper's idle connection would hold a worker too.
+  // HTTPS: civetweb serves plaintext on loopback behind a TLS relay (server/tls_relay.h says why).
+  const std::string http_listen = endpoint.tls ? "127.0.0.1:0" : endpoint.listen;
   std::vector<std::string> options = {
-      "listening_ports",    endpoint.listen,
+      "listening_ports",    http_listen,
       "num_threads",        std::to_string(endpoint.threads),
       "request_timeout_ms", std::to_string(endpoint.request_timeout_ms),
       "enable_keep_alive",  "no",
@@ -151,16 +155,29 @@ Status Metrics::Serve(const Endpoint& endpoint, std::function<void()> before_scr
   try {
     exposer_ = std::make_unique<prometheus::Exposer>(std::move(options));
   } catch (const std::exception& e) {
-    return Status::IoError("metrics endpoint: cannot listen on " + endpoint.listen + ": " +
-                           e.what());
+    return Status::IoError("metrics endpoint: cannot listen on " + http_listen + ": " + e.what());
   }
   exposer_->RegisterCollectable(collectable_, endpoint.path);
   const std::vector<int> ports = exposer_->GetListeningPorts();
   port_ = ports.empty() ? 0 : ports.front();
+  if (endpoint.tls) {
+    auto relay = TlsRelay::Start({.listen = endpoint.listen,
+                                  .backend_port = port_,
+                                  .tls = *endpoint.tls,
+                                  .threads = endpoint.threads,
+                                  .timeout_ms = endpoint.request_timeout_ms});
+    if (!relay.ok()) {
+      StopServing();
+      return relay.status().WithContext("metrics endpoint (HTTPS)");
+    }
+    tls_relay_ = std::move(relay).value();
+    port_ = tls_relay_->port();
+  }
   return Status::Ok();
 }
 
 void Metrics::StopServing() {
+  tls_relay_.reset();
   exposer_.reset();
   port_ = 0;
 }

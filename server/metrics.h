@@ -12,15 +12,19 @@
 
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "core/base/status.h"
+#include "server/config.h"
 
 namespace prometheus {
 class Exposer;
 }
 
 namespace placedb::server {
+
+class TlsRelay;
 
 class Metrics {
  public:
@@ -35,11 +39,15 @@ class Metrics {
     std::string path;
     int threads = 4;
     uint32_t request_timeout_ms = 5000;
+    // Set: HTTPS only, TLS 1.2 or later with these files, and with tls->mutual() a client
+    // certificate signed by one of its CAs is required at the handshake.
+    std::optional<TlsSettings> tls;
   };
   // Serves the metrics. `before_scrape` runs before each collection (to refresh the per-map
-  // gauges). IO_ERROR when the address cannot be bound.
+  // gauges). IO_ERROR when the address cannot be bound; with TLS, the errors of LoadTlsFiles
+  // (server/transport_security.h) for bad files.
   Status Serve(const Endpoint& endpoint, std::function<void()> before_scrape);
-  int port() const { return port_; }  // 0 when not serving
+  int port() const { return port_; }  // 0 when not serving; with TLS, the HTTPS port
   void StopServing();
 
   const std::shared_ptr<prometheus::Registry>& registry() const { return registry_; }
@@ -101,6 +109,7 @@ class Metrics {
   prometheus::Histogram& detector_seconds_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
   std::unique_ptr<prometheus::Exposer> exposer_;
+  std::unique_ptr<TlsRelay> tls_relay_;  // HTTPS in front of exposer_ (Endpoint::tls)
   int port_ = 0;
 };
 

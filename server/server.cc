@@ -15,6 +15,7 @@
 #include "server/metrics.h"
 #include "server/parsing_service.h"
 #include "server/service.h"
+#include "server/transport_security.h"
 #include "server/worker_pool.h"
 
 namespace placedb::server {
@@ -111,6 +112,10 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {}
 
 Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, ServerDeps deps) {
   PLACEDB_RETURN_IF_ERROR(ValidateServerConfig(config));
+  // Before anything slow: the safe default, and the TLS files (a bad one fails at once).
+  PLACEDB_RETURN_IF_ERROR(CheckExposure(config));
+  auto credentials = MakeServerCredentials(config.tls);
+  if (!credentials.ok()) return credentials.status();
   std::unique_ptr<Server> server(new Server(config));
   const ServerConfig& c = server->config_;
   if (c.opencv_threads >= 0) cv::setNumThreads(c.opencv_threads);
@@ -183,7 +188,7 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
-  builder.AddListeningPort(c.listen, grpc::InsecureServerCredentials(), &server->port_);
+  builder.AddListeningPort(c.listen, *credentials, &server->port_);
   builder.RegisterService(server->parsing_.get());
   builder.SetMaxReceiveMessageSize(int(c.limits.max_message_bytes));
   // Transport memory and handler threads are bounded: a flood of calls gets RESOURCE_EXHAUSTED
@@ -219,7 +224,8 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
         Metrics::Endpoint{.listen = c.metrics_listen,
                           .path = c.metrics_path,
                           .threads = c.metrics_threads,
-                          .request_timeout_ms = c.metrics_request_timeout_ms},
+                          .request_timeout_ms = c.metrics_request_timeout_ms,
+                          .tls = c.metrics_tls ? std::optional<TlsSettings>(c.tls) : std::nullopt},
         [service, metrics, budget] {
           service->RefreshMapGauges();
           metrics->SetMemoryBudget(budget->limit(), budget->fixed(), budget->in_use());
@@ -230,6 +236,10 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
     }
     server->metrics_port_ = metrics->port();
   }
+  spdlog::info("gRPC transport: {}; metrics: {}", DescribeTransport(c.tls),
+               c.metrics_listen.empty() ? "off"
+               : c.metrics_tls          ? "HTTPS with the same files"
+                                        : "plaintext HTTP");
   spdlog::info("placedb-server {} listening on {} (port {}), metrics {}, data {}, {} workers",
                PLACEDB_VERSION, c.listen, server->port_,
                c.metrics_listen.empty() ? std::string("off")
