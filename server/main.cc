@@ -1,6 +1,6 @@
 // placedb-server: the gRPC service (docs/service.md).
 //
-//   placedb-server [--config placedb.yaml] [--listen 0.0.0.0:50051] [--data-dir ./var/data] ...
+//   placedb-server [--config placedb.yaml] [--listen 127.0.0.1:50051] [--data-dir ./var/data] ...
 //
 // SIGTERM / SIGINT start a graceful shutdown (a sigwait thread does the work, never a signal
 // handler); a second signal during it exits at once with status 1 (acknowledged places are
