@@ -2,9 +2,13 @@
 // certificate names of a mutual-TLS caller, the clients' --cert/--key, and the loopback-only
 // default of a server that does not authenticate its callers. Certificates are made at test time
 // with the openssl CLI (tests/tls_certificates.h); the openssl CLI is also the TLS 1.1 client.
+#include <arpa/inet.h>
 #include <grpcpp/generic/async_generic_service.h>
 #include <grpcpp/generic/generic_stub.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
 
 #include <fstream>
 #include <future>
@@ -241,6 +245,31 @@ TEST_F(TlsTest, MetricsOverHttps) {
                     "GET /metrics HTTP/1.0\r\n\r\n", &output),
             0);
   EXPECT_EQ(output.find("placedb_queue_depth"), std::string::npos) << output;
+}
+
+// Connections that never start their handshake hold the relay's workers for at most
+// metrics_request_timeout_ms: a scrape behind them is still answered.
+TEST_F(TlsTest, IdleConnectionsDoNotBlockHttpsMetrics) {
+  ServerConfig config = Config();
+  config.tls = ServerTls(/*mutual=*/false);
+  config.metrics_listen = "127.0.0.1:0";
+  config.metrics_tls = true;
+  config.metrics_threads = 2;
+  config.metrics_request_timeout_ms = 300;
+  StartServer(config);
+  const int port = server_->metrics_port();
+  std::vector<int> idle;
+  for (int i = 0; i < config.metrics_threads + 1; ++i) {
+    const int fd = socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in address{};
+    address.sin_family = AF_INET;
+    address.sin_port = htons(uint16_t(port));
+    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    ASSERT_EQ(connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
+    idle.push_back(fd);
+  }
+  EXPECT_NE(HttpsGet(port, "").find("placedb_queue_depth"), std::string::npos);
+  for (const int fd : idle) close(fd);
 }
 
 TEST_F(TlsTest, MutualTlsMetricsRequireAClientCertificate) {
