@@ -243,6 +243,11 @@ Status CheckExposure(const ServerConfig& config) {
   std::string where;
   for (const std::string& e : exposed) where += (where.empty() ? "" : ", ") + e;
   if (exposed.empty()) {
+    if (config.security.allow_unauthenticated_remote && !grpc_authenticated) {
+      spdlog::warn(
+          "SECURITY WARNING: security.allow_unauthenticated_remote is set: this server would "
+          "accept unauthenticated callers from other hosts (it listens on loopback only now)");
+    }
     if (!grpc_authenticated) {
       spdlog::info(
           "callers are not authenticated (no security.tokens_file, no tls.client_ca_file): "

@@ -58,11 +58,13 @@ std::vector<std::string> PeerCertificateNames(const grpc::AuthContext& context);
 // a comma-separated list (civetweb's listening_ports) is loopback when every entry is.
 bool IsLoopbackAddress(const std::string& address);
 
-// The safe default: a server that does not authenticate its callers (no tokens file, no mutual
-// TLS) listens (gRPC and metrics) on loopback only. Otherwise INVALID_ARGUMENT naming the address
-// and security.allow_unauthenticated_remote / --allow-unauthenticated-remote, unless that option
-// is set: then a warning is logged (every start). Logs one info line when the server stays on
-// loopback for this reason.
+// The safe default (docs/security.md, "Safe defaults"): a server that does not authenticate its
+// callers (no tokens file, no mutual TLS) listens on loopback only; so do plaintext metrics
+// without a tokens file (mutual TLS on the gRPC port does not cover them, metrics_tls with a
+// client CA does). Otherwise INVALID_ARGUMENT naming the address and
+// security.allow_unauthenticated_remote / --allow-unauthenticated-remote, unless that option is
+// set: then a warning is logged (every start with the option set and no authentication). Logs
+// one info line when the server stays on loopback for this reason.
 Status CheckExposure(const ServerConfig& config);
 
 }  // namespace placedb::server
