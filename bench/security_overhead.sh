@@ -5,8 +5,8 @@
 # token (only its SHA-256, computed with sha256sum), and runs the load tester with precomputed
 # features (--mode features: the server only searches and stores, so transport and auth costs
 # show most) against each, alternating A/B/A/B for a few rounds. Prints `name value unit` lines:
-# frames/s and ingest p50/p99 latency per mode (median over the rounds) and the relative loss of
-# B against A (goal: <= 5 % of throughput). Use an odd number of rounds; expect a few % of noise
+# frames/s, ingest p50/p99 latency and the server's CPU time per frame per mode (median over the
+# rounds) and the relative loss of B against A (goal: <= 5 % of throughput). Use an odd number of rounds; expect a few % of noise
 # between rounds on a shared machine.
 #
 #   bench/security_overhead.sh [--rounds 3] [--duration 15] [--agents 2] [--threads 2]
@@ -118,9 +118,18 @@ PLACEDB_TOKEN="$token" wait_serving tls_tokens "${flags_b[@]}"
 echo "# $(uptime)"
 echo "# $(nproc) cores; $rounds rounds x ${duration} s per mode, $agents agents, --mode features," \
   "server --threads $threads; frames $frames"
+# The server's CPU time (user + system, clock ticks): its cost per frame does not depend on what
+# else the machine runs, unlike frames/s.
+cpu_ticks() { awk '{ print $14 + $15 }' "/proc/$1/stat"; }
+declare -A pid_of=([plaintext]="${pids[0]}" [tls_tokens]="${pids[1]}")
+hz="$(getconf CLK_TCK)"
 for round in $(seq "$rounds"); do
-  for mode in plaintext tls_tokens; do
+  # A B, then B A: a drift in the machine's load does not favour one mode.
+  order=(plaintext tls_tokens)
+  if ((round % 2 == 0)); then order=(tls_tokens plaintext); fi
+  for mode in "${order[@]}"; do
     if [[ "$mode" == plaintext ]]; then flags=("${flags_a[@]}"); else flags=("${flags_b[@]}"); fi
+    ticks0="$(cpu_ticks "${pid_of[$mode]}")"
     PLACEDB_TOKEN="$token" "$load" "${flags[@]}" --mode features --agents "$agents" \
       --duration "$duration" --glob '*.jpg' --json-out "$work/$mode-$round.json" "$frames" \
       >"$work/$mode-$round.txt" 2>&1 || {
@@ -128,13 +137,18 @@ for round in $(seq "$rounds"); do
       cat "$work/$mode-$round.txt" >&2
       exit 1
     }
+    ticks1="$(cpu_ticks "${pid_of[$mode]}")"
+    # The report gains the server's CPU milliseconds per answered frame.
+    jq --argjson ticks "$((ticks1 - ticks0))" --argjson hz "$hz" \
+      '. + {server_cpu_ms_per_frame: ($ticks / $hz * 1000 / .frames)}' \
+      "$work/$mode-$round.json" >"$work/$mode-$round.tmp" && mv "$work/$mode-$round.tmp" "$work/$mode-$round.json"
     errors="$(jq '.rpc.ingest.errors' "$work/$mode-$round.json")"
     if [[ "$errors" != 0 ]]; then
       echo "security_overhead.sh: $errors ingest errors against $mode" >&2
       jq '.errors' "$work/$mode-$round.json" >&2
       exit 1
     fi
-    echo "# round $round $mode: $(jq -r '"\(.throughput_fps | . * 10 | round / 10) frames/s, p50 \(.rpc.ingest.latency_ms.p50) ms, p99 \(.rpc.ingest.latency_ms.p99) ms"' "$work/$mode-$round.json")"
+    echo "# round $round $mode: $(jq -r '"\(.throughput_fps | . * 10 | round / 10) frames/s, p50 \(.rpc.ingest.latency_ms.p50) ms, p99 \(.rpc.ingest.latency_ms.p99) ms, server CPU \(.server_cpu_ms_per_frame | . * 1000 | round / 1000) ms/frame"' "$work/$mode-$round.json")"
   done
 done
 
@@ -150,6 +164,7 @@ for mode in plaintext tls_tokens; do
   echo "${mode}_frames_per_s $(median "$mode" .throughput_fps) frames/s"
   echo "${mode}_ingest_p50 $(median "$mode" .rpc.ingest.latency_ms.p50) ms"
   echo "${mode}_ingest_p99 $(median "$mode" .rpc.ingest.latency_ms.p99) ms"
+  echo "${mode}_server_cpu_per_frame $(median "$mode" '.server_cpu_ms_per_frame * 1000') us"
 done
 a="$(median plaintext .throughput_fps)"
 b="$(median tls_tokens .throughput_fps)"
@@ -157,4 +172,7 @@ awk -v a="$a" -v b="$b" 'BEGIN { printf "throughput_loss %.1f %%\n", (a - b) / a
 a50="$(median plaintext .rpc.ingest.latency_ms.p50)"
 b50="$(median tls_tokens .rpc.ingest.latency_ms.p50)"
 awk -v a="$a50" -v b="$b50" 'BEGIN { printf "ingest_p50_increase %.1f %%\n", (b - a) / a * 100 }'
+c_a="$(median plaintext '.server_cpu_ms_per_frame * 1000')"
+c_b="$(median tls_tokens '.server_cpu_ms_per_frame * 1000')"
+awk -v a="$c_a" -v b="$c_b" 'BEGIN { printf "server_cpu_per_frame_increase %.1f %%\n", (b - a) / a * 100 }'
 echo "# $(uptime)"
