@@ -6,6 +6,7 @@
 #include <openssl/err.h>
 #include <openssl/ssl.h>
 #include <signal.h>
+#include <spdlog/spdlog.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
@@ -162,6 +163,11 @@ void TlsRelay::Serve(int client_fd) {
   SSL* ssl = SSL_new(static_cast<SSL_CTX*>(ssl_ctx_));
   bool ok = ssl && SSL_set_fd(ssl, client_fd) == 1 && LimitTo(client_fd, deadline) &&
             SSL_accept(ssl) == 1;  // mutual TLS: no or a bad client certificate fails here
+  if (!ok) {
+    // Debug only: anything that connects (a port scan) would fill the log.
+    const char* reason = ERR_reason_error_string(ERR_peek_error());
+    spdlog::debug("metrics HTTPS: handshake failed: {}", reason ? reason : "connection closed");
+  }
   std::string request;
   char buffer[16 << 10];
   while (ok && request.find("\r\n\r\n") == std::string::npos) {
