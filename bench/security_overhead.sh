@@ -169,6 +169,14 @@ done
 a="$(median plaintext .throughput_fps)"
 b="$(median tls_tokens .throughput_fps)"
 awk -v a="$a" -v b="$b" 'BEGIN { printf "throughput_loss %.1f %%\n", (a - b) / a * 100 }'
+# Paired: each round's two runs are adjacent in time; the median of the rounds' own losses is
+# less moved by a load that changes between rounds.
+for round in $(seq "$rounds"); do
+  jq -n --slurpfile a "$work/plaintext-$round.json" --slurpfile b "$work/tls_tokens-$round.json" \
+    '($a[0].throughput_fps - $b[0].throughput_fps) / $a[0].throughput_fps * 100'
+done | sort -g | awk '{ v[NR] = $1 } END {
+  m = NR % 2 ? v[(NR + 1) / 2] : (v[NR / 2] + v[NR / 2 + 1]) / 2
+  printf "throughput_loss_paired %.1f %%\n", m }'
 a50="$(median plaintext .rpc.ingest.latency_ms.p50)"
 b50="$(median tls_tokens .rpc.ingest.latency_ms.p50)"
 awk -v a="$a50" -v b="$b50" 'BEGIN { printf "ingest_p50_increase %.1f %%\n", (b - a) / a * 100 }'
