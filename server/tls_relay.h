@@ -6,7 +6,8 @@
 // OpenSSL is linked normally: each connection's handshake (TLS 1.2+, and with mutual TLS a
 // client certificate verified against the client CAs) happens in this relay, which then passes
 // one HTTP request to the backend (civetweb on 127.0.0.1, keep-alive off) and its whole answer
-// back. The backend sees the relay as its client (peer 127.0.0.1).
+// back. The backend sees the relay as its client (peer 127.0.0.1); its port is plaintext and
+// reachable by other users of this machine (never from the network).
 //
 //   auto relay = TlsRelay::Start({.listen = "0.0.0.0:9464", .backend_port = 41234, .tls = tls});
 //   relay->port();   // the bound port (listen may say 0)
