@@ -90,6 +90,9 @@ void TokenStore::StopWatching() {
 }
 
 void TokenStore::Watch(std::chrono::milliseconds interval) {
+  // A change is loaded once the file looked the same on two checks in a row: an editor writing
+  // in place is not caught half-way (an empty file is a valid one: nobody may call).
+  FileStamp pending;  // exists == false: none
   while (true) {
     {
       MutexLock lock(watch_mutex_);
@@ -105,7 +108,14 @@ void TokenStore::Watch(std::chrono::milliseconds interval) {
       changed = !(now == loaded_stamp_);
     }
     // A file that vanished (mid-swap, or deleted) is not loaded: the next stamp decides.
-    if (changed && now.exists) (void)Reload();
+    if (!changed || !now.exists) {
+      pending = FileStamp();
+    } else if (pending == now) {
+      pending = FileStamp();
+      (void)Reload();
+    } else {
+      pending = now;
+    }
   }
 }
 

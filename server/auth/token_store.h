@@ -46,7 +46,8 @@ class TokenStore {
   Status Reload() EXCLUDES(mutex_);
 
   // Starts a thread that checks the file (stat, following symlinks: mtime, size, inode) every
-  // `interval` and reloads it when one of them changed. Idempotent.
+  // `interval` and reloads it when one of them changed and then stayed the same for one more
+  // check (so within about two intervals). Idempotent.
   void StartWatching(std::chrono::milliseconds interval) EXCLUDES(watch_mutex_);
   void StopWatching() EXCLUDES(watch_mutex_);
 
