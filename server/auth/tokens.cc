@@ -252,10 +252,6 @@ const Principal* TokensFile::Find(const std::string& name) const {
   return nullptr;
 }
 
-Principal* TokensFile::FindMutable(const std::string& name) {
-  return const_cast<Principal*>(Find(name));
-}
-
 const Principal* TokensFile::FindByToken(const std::string& token) const {
   const std::array<uint8_t, 32> digest = Sha256(token);
   // Every entry is compared, whatever matched before: the time does not depend on where (or

@@ -84,7 +84,6 @@ class TokensFile {
   Status Remove(const std::string& name);
   // The principal named `name`, or null.
   const Principal* Find(const std::string& name) const;
-  Principal* FindMutable(const std::string& name);
 
   // The principal whose token_sha256 is the token's SHA-256, or null. Constant time in the
   // matching entry's position: the digest is compared (CRYPTO_memcmp) with every entry's.

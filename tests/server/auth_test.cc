@@ -6,6 +6,7 @@
 #include <google/protobuf/descriptor.h>
 #include <grpcpp/generic/generic_stub.h>
 #include <gtest/gtest.h>
+#include <sys/wait.h>
 
 #include <chrono>
 #include <filesystem>
@@ -730,6 +731,104 @@ TEST_F(AuthTest, AStreamOutlivesAReloadThatKeepsItsRight) {
   ASSERT_TRUE(stream.Send(RtabmapObservation(2, "w"), &response));
   EXPECT_TRUE(response.stored());
   EXPECT_TRUE(stream.Finish().ok());
+}
+
+// ---- placedb-server tokens ---------------------------------------------------------------------
+
+struct Finished {
+  int status = -1;
+  std::string out, err;
+};
+
+// Runs the placedb-server binary with `args` (shell words, quoted by the caller).
+Finished RunServerBinary(const std::string& args, const std::string& dir) {
+  Finished run;
+  const std::string err_path = dir + "/stderr.txt";
+  const std::string command = std::string(PLACEDB_SERVER_BINARY) + " " + args + " 2>" + err_path;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (!pipe) return run;
+  char buffer[4096];
+  size_t n;
+  while ((n = fread(buffer, 1, sizeof buffer, pipe)) > 0) run.out.append(buffer, n);
+  const int status = pclose(pipe);
+  run.status = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  std::ifstream err(err_path);
+  run.err.assign(std::istreambuf_iterator<char>(err), std::istreambuf_iterator<char>());
+  return run;
+}
+
+TEST_F(AuthTest, TokensCommandWritesHashesAndPrintsTheTokenOnce) {
+  const std::string dir = root_ + "/cli";
+  fs::create_directories(dir);
+  const std::string file = dir + "/tokens.yaml";
+  const std::string flag = " --tokens-file " + file;
+
+  Finished ops = RunServerBinary("tokens add ops --role admin" + flag, dir);
+  ASSERT_EQ(ops.status, 0) << ops.err;
+  // stdout is the token and nothing else.
+  ASSERT_EQ(ops.out.size(), 4u + 43u + 1u) << ops.out;
+  const std::string ops_token = ops.out.substr(0, ops.out.size() - 1);
+  EXPECT_EQ(ops_token.rfind("pdb_", 0), 0u);
+  EXPECT_NE(ops.err.find("added principal 'ops' (admin)"), std::string::npos) << ops.err;
+  EXPECT_EQ((fs::status(file).permissions() & fs::perms::all),
+            fs::perms::owner_read | fs::perms::owner_write);
+
+  Finished robot = RunServerBinary(
+      "tokens add robot-7 --read 'warehouse-*' --write 'warehouse-*' --read campus" + flag, dir);
+  ASSERT_EQ(robot.status, 0) << robot.err;
+  const std::string robot_token = robot.out.substr(0, robot.out.size() - 1);
+  Finished scraper = RunServerBinary("tokens add prometheus --role metrics" + flag, dir);
+  ASSERT_EQ(scraper.status, 0) << scraper.err;
+
+  // The file holds hashes, never a token.
+  const std::string text = testing::ReadFileBytes(file);
+  EXPECT_EQ(text.find(ops_token), std::string::npos);
+  EXPECT_EQ(text.find(robot_token), std::string::npos);
+  EXPECT_NE(text.find(HashToken(ops_token)), std::string::npos);
+
+  Finished duplicate = RunServerBinary("tokens add ops" + flag, dir);
+  EXPECT_EQ(duplicate.status, 1);
+  EXPECT_TRUE(duplicate.out.empty());
+  EXPECT_NE(duplicate.err.find("principal 'ops' exists"), std::string::npos) << duplicate.err;
+  EXPECT_EQ(RunServerBinary("tokens add 'bad name'" + flag, dir).status, 1);
+  EXPECT_EQ(RunServerBinary("tokens add x --role root" + flag, dir).status, 2);
+
+  Finished list = RunServerBinary("tokens list" + flag, dir);
+  ASSERT_EQ(list.status, 0) << list.err;
+  EXPECT_NE(list.out.find("robot-7\tread warehouse-*, write warehouse-*, read campus"),
+            std::string::npos)
+      << list.out;
+  EXPECT_EQ(list.out.find(HashToken(ops_token)), std::string::npos);  // never a whole hash
+
+  // The server takes the tokens.
+  tokens_path_ = file;
+  StartWithTokens(Config());
+  ASSERT_TRUE(CreateMapAs(Bearer(ops_token), "warehouse-3").ok());
+  ASSERT_TRUE(CreateMapAs(Bearer(ops_token), "campus").ok());
+  EXPECT_EQ(QueryAs(Bearer(robot_token), "warehouse-3").error_code(), Code::OK);
+  EXPECT_EQ(DeleteMapAs(Bearer(robot_token), "campus").error_code(), Code::PERMISSION_DENIED);
+
+  // Rotate: same rights, new token; the old one stops at the reload.
+  Finished rotated = RunServerBinary("tokens rotate robot-7" + flag, dir);
+  ASSERT_EQ(rotated.status, 0) << rotated.err;
+  const std::string new_token = rotated.out.substr(0, rotated.out.size() - 1);
+  EXPECT_NE(new_token, robot_token);
+  ASSERT_TRUE(server_->ReloadTokens().ok());
+  EXPECT_EQ(QueryAs(Bearer(robot_token), "warehouse-3").error_code(), Code::UNAUTHENTICATED);
+  EXPECT_EQ(QueryAs(Bearer(new_token), "warehouse-3").error_code(), Code::OK);
+  EXPECT_EQ(QueryAs(Bearer(new_token), "campus").error_code(), Code::OK);
+  // The file's order is kept: robot-7 is still the second entry.
+  list = RunServerBinary("tokens list" + flag, dir);
+  EXPECT_EQ(list.out.find("robot-7"), list.out.find('\n') + 1) << list.out;
+
+  // Revoke.
+  Finished revoked = RunServerBinary("tokens revoke robot-7" + flag, dir);
+  ASSERT_EQ(revoked.status, 0) << revoked.err;
+  EXPECT_TRUE(revoked.out.empty());
+  ASSERT_TRUE(server_->ReloadTokens().ok());
+  EXPECT_EQ(QueryAs(Bearer(new_token), "warehouse-3").error_code(), Code::UNAUTHENTICATED);
+  EXPECT_EQ(RunServerBinary("tokens revoke robot-7" + flag, dir).status, 1);
+  EXPECT_EQ(RunServerBinary("tokens list --tokens-file " + dir + "/missing.yaml", dir).status, 1);
 }
 
 }  // namespace
