@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <cctype>
 
 namespace placedb::server::auth {
@@ -31,14 +32,19 @@ std::optional<std::string> BearerToken(std::string_view value) {
   return std::string(value);
 }
 
-// The verified client certificate's names: CN first, then the SANs (empty without one).
+// The verified client certificate's names: CN first, then its SANs (empty without one).
 std::vector<std::string> CertificateNames(const grpc::ServerContext& context) {
   std::vector<std::string> names;
   const std::shared_ptr<const grpc::AuthContext> auth = context.auth_context();
   if (!auth || !auth->IsPeerAuthenticated()) return names;
+  auto add = [&names](std::string name) {
+    if (std::find(names.begin(), names.end(), name) == names.end()) {
+      names.push_back(std::move(name));
+    }
+  };
   for (const char* property : {"x509_common_name", "x509_subject_alternative_name"}) {
     for (const grpc::string_ref& value : auth->FindPropertyValues(property)) {
-      names.emplace_back(value.data(), value.size());
+      add(std::string(value.data(), value.size()));
     }
   }
   return names;

@@ -5,6 +5,10 @@
 // the file), the audit counters and the /metrics basic-auth check.
 #include <google/protobuf/descriptor.h>
 #include <grpcpp/generic/generic_stub.h>
+#include <grpcpp/impl/rpc_service_method.h>
+#include <grpcpp/security/credentials.h>
+#include <grpcpp/security/server_credentials.h>
+#include <grpcpp/support/method_handler.h>
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
@@ -19,6 +23,8 @@
 #include <thread>
 #include <vector>
 
+#include "server/auth/call_auth.h"
+#include "server/auth/token_store.h"
 #include "server/auth/tokens.h"
 #include "tests/server/server_fixture.h"
 
@@ -829,6 +835,174 @@ TEST_F(AuthTest, TokensCommandWritesHashesAndPrintsTheTokenOnce) {
   EXPECT_EQ(QueryAs(Bearer(new_token), "warehouse-3").error_code(), Code::UNAUTHENTICATED);
   EXPECT_EQ(RunServerBinary("tokens revoke robot-7" + flag, dir).status, 1);
   EXPECT_EQ(RunServerBinary("tokens list --tokens-file " + dir + "/missing.yaml", dir).status, 1);
+}
+
+// ---- Client certificates (mutual TLS) ----------------------------------------------------------
+//
+// The principal from a verified client certificate, through a real TLS handshake on loopback
+// (certificates made with the openssl CLI): a small gRPC service whose one method answers the
+// name CallAuthorizer::Authenticate found ("*" appended when the caller has every right).
+
+class WhoAmIService final : public grpc::Service {
+ public:
+  explicit WhoAmIService(const server::auth::CallAuthorizer* authorizer) : authorizer_(authorizer) {
+    AddMethod(new grpc::internal::RpcServiceMethod(
+        "/test.WhoAmI/Get", grpc::internal::RpcMethod::NORMAL_RPC,
+        new grpc::internal::RpcMethodHandler<WhoAmIService, grpc::ByteBuffer, grpc::ByteBuffer>(
+            [](WhoAmIService* self, grpc::ServerContext* context, const grpc::ByteBuffer*,
+               grpc::ByteBuffer* out) {
+              auto caller = self->authorizer_->Authenticate("WhoAmI", *context);
+              if (auto* denied = std::get_if<grpc::Status>(&caller)) return *denied;
+              const auto& who = std::get<server::auth::Caller>(caller);
+              grpc::Slice slice(who.name + (who.everything ? "*" : ""));
+              *out = grpc::ByteBuffer(&slice, 1);
+              return grpc::Status::OK;
+            },
+            this)));
+  }
+
+ private:
+  const server::auth::CallAuthorizer* const authorizer_;
+};
+
+class MutualTlsTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = testing::MakeTempDir("placedb-auth-mtls");
+    const std::string ec = " -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes";
+    ASSERT_EQ(
+        Sh("openssl req -x509" + ec + " -keyout ca.key -out ca.pem -days 2 -subj /CN=test-ca"), 0);
+    ASSERT_EQ(Sh("openssl req -x509" + ec +
+                 " -keyout rogue-ca.key -out rogue-ca.pem -days 2 -subj /CN=rogue-ca"),
+              0);
+    Issue("server", "localhost", "DNS:localhost,IP:127.0.0.1", "ca");
+    Issue("robot8", "robot-8.fleet.internal", "DNS:robot-8.alias,URI:spiffe://fleet/robot-8", "ca");
+    Issue("stranger", "stranger", "DNS:stranger.fleet.internal", "ca");
+    Issue("rogue", "robot-8.fleet.internal", "DNS:robot-8.alias", "rogue-ca");
+  }
+  void TearDown() override {
+    if (server_) server_->Shutdown(std::chrono::system_clock::now());
+    server_.reset();
+    fs::remove_all(dir_);
+  }
+  int Sh(const std::string& command) {
+    return std::system(("cd " + dir_ + " && " + command + " >/dev/null 2>&1").c_str());
+  }
+  void Issue(const std::string& file, const std::string& cn, const std::string& san,
+             const std::string& ca) {
+    ASSERT_EQ(Sh("openssl req -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes -keyout " +
+                 file + ".key -out " + file + ".csr -subj /CN=" + cn),
+              0);
+    std::ofstream(dir_ + "/" + file + ".ext") << "subjectAltName=" << san << "\n";
+    ASSERT_EQ(Sh("openssl x509 -req -in " + file + ".csr -CA " + ca + ".pem -CAkey " + ca +
+                 ".key -CAcreateserial -out " + file + ".pem -days 2 -extfile " + file + ".ext"),
+              0);
+  }
+  std::string Read(const std::string& name) { return testing::ReadFileBytes(dir_ + "/" + name); }
+
+  void Start(const server::auth::TokenStore* store) {
+    authorizer_ = std::make_unique<server::auth::CallAuthorizer>(store, true, nullptr);
+    service_ = std::make_unique<WhoAmIService>(authorizer_.get());
+    grpc::SslServerCredentialsOptions options(
+        GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY);
+    options.pem_root_certs = Read("ca.pem");
+    options.pem_key_cert_pairs.push_back({Read("server.key"), Read("server.pem")});
+    grpc::ServerBuilder builder;
+    builder.AddListeningPort("127.0.0.1:0", grpc::SslServerCredentials(options), &port_);
+    builder.RegisterService(service_.get());
+    server_ = builder.BuildAndStart();
+    ASSERT_TRUE(server_);
+  }
+  // Calls WhoAmI with the client certificate `client` (and an authorization header, if given).
+  grpc::Status WhoAmI(const std::string& client, const std::string& authorization,
+                      std::string* who) {
+    grpc::SslCredentialsOptions options;
+    options.pem_root_certs = Read("ca.pem");
+    options.pem_private_key = Read(client + ".key");
+    options.pem_cert_chain = Read(client + ".pem");
+    grpc::ChannelArguments args;
+    args.SetSslTargetNameOverride("localhost");
+    auto channel = grpc::CreateCustomChannel("127.0.0.1:" + std::to_string(port_),
+                                             grpc::SslCredentials(options), args);
+    grpc::GenericStub generic(channel);
+    grpc::Slice empty("");
+    grpc::ByteBuffer request(&empty, 1), response;
+    grpc::ClientContext context;
+    if (!authorization.empty()) context.AddMetadata("authorization", authorization);
+    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+    std::promise<grpc::Status> done;
+    generic.UnaryCall(&context, "/test.WhoAmI/Get", grpc::StubOptions(), &request, &response,
+                      [&](grpc::Status s) { done.set_value(s); });
+    const grpc::Status status = done.get_future().get();
+    std::vector<grpc::Slice> slices;
+    (void)response.Dump(&slices);
+    who->clear();
+    for (const auto& s : slices) who->append(reinterpret_cast<const char*>(s.begin()), s.size());
+    return status;
+  }
+
+  std::string dir_;
+  std::unique_ptr<server::auth::CallAuthorizer> authorizer_;
+  std::unique_ptr<WhoAmIService> service_;
+  std::unique_ptr<grpc::Server> server_;
+  int port_ = 0;
+};
+
+TEST_F(MutualTlsTest, WithoutATokensFileEveryVerifiedCertificateMayDoEverything) {
+  Start(nullptr);
+  std::string who;
+  grpc::Status status = WhoAmI("robot8", "", &who);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(who, "robot-8.fleet.internal*");
+  status = WhoAmI("stranger", "", &who);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(who, "stranger*");
+  // A certificate from another CA never gets past the handshake.
+  EXPECT_EQ(WhoAmI("rogue", "", &who).error_code(), Code::UNAVAILABLE);
+}
+
+TEST_F(MutualTlsTest, WithATokensFileCertificatesNamePrincipals) {
+  const std::string token = NewToken();
+  TokensFile file;
+  Principal by_cn;
+  by_cn.name = "robot-8-cert";
+  by_cn.certificate_names = {"robot-8.fleet.internal"};
+  by_cn.maps = {{"*", true, false}};
+  ASSERT_TRUE(file.Add(by_cn).ok());
+  Principal by_san;
+  by_san.name = "stranger-by-san";
+  by_san.certificate_names = {"stranger.fleet.internal"};
+  ASSERT_TRUE(file.Add(by_san).ok());
+  Principal ops;
+  ops.name = "ops";
+  ops.token_sha256 = HashToken(token);
+  ops.admin = true;
+  ASSERT_TRUE(file.Add(ops).ok());
+  ASSERT_TRUE(file.Save(dir_ + "/tokens.yaml").ok());
+  auto store = server::auth::TokenStore::Open(dir_ + "/tokens.yaml");
+  ASSERT_TRUE(store.ok());
+  Start(store->get());
+
+  std::string who;
+  grpc::Status status = WhoAmI("robot8", "", &who);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(who, "robot-8-cert");  // by its CN
+  status = WhoAmI("stranger", "", &who);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(who, "stranger-by-san");  // by its DNS SAN
+  // A bearer token wins over the certificate.
+  status = WhoAmI("robot8", Bearer(token), &who);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(who, "ops");
+  EXPECT_EQ(WhoAmI("robot8", Bearer(NewToken()), &who).error_code(), Code::UNAUTHENTICATED);
+
+  // Revoked: the certificate no longer names a principal.
+  ASSERT_TRUE(file.Remove("stranger-by-san").ok());
+  ASSERT_TRUE(file.Save(dir_ + "/tokens.yaml").ok());
+  ASSERT_TRUE((*store)->Reload().ok());
+  status = WhoAmI("stranger", "", &who);
+  EXPECT_EQ(status.error_code(), Code::UNAUTHENTICATED);
+  EXPECT_EQ(status.error_message(), "WhoAmI: client certificate 'stranger' names no principal");
 }
 
 }  // namespace
