@@ -3,6 +3,8 @@
 // the open health service, reflection on/off, messages that never hold a token, reloads (a token
 // added, changed, revoked while Ingest streams are open: by Server::ReloadTokens() and by editing
 // the file), the audit counters and the /metrics basic-auth check.
+#include <arpa/inet.h>
+#include <fcntl.h>
 #include <google/protobuf/descriptor.h>
 #include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/impl/rpc_service_method.h>
@@ -10,7 +12,11 @@
 #include <grpcpp/security/server_credentials.h>
 #include <grpcpp/support/method_handler.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <chrono>
 #include <filesystem>
@@ -835,6 +841,65 @@ TEST_F(AuthTest, TokensCommandWritesHashesAndPrintsTheTokenOnce) {
   EXPECT_EQ(QueryAs(Bearer(new_token), "warehouse-3").error_code(), Code::UNAUTHENTICATED);
   EXPECT_EQ(RunServerBinary("tokens revoke robot-7" + flag, dir).status, 1);
   EXPECT_EQ(RunServerBinary("tokens list --tokens-file " + dir + "/missing.yaml", dir).status, 1);
+}
+
+// The real binary: SIGHUP reloads the tokens file (and does not end the process); SIGTERM still
+// shuts it down cleanly.
+TEST_F(AuthTest, SighupReloadsTheTokensFileOfTheServerBinary) {
+  // A free loopback port (bound, read, closed: the server binds it next).
+  int port = 0;
+  {
+    const int fd = socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in address{};
+    address.sin_family = AF_INET;
+    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    ASSERT_EQ(bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
+    socklen_t length = sizeof address;
+    ASSERT_EQ(getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length), 0);
+    port = ntohs(address.sin_port);
+    close(fd);
+  }
+  const std::string log = root_ + "/server.log";
+  const std::string listen = "127.0.0.1:" + std::to_string(port);
+  // Everything the child needs is made before fork: it only calls async-signal-safe functions.
+  const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
+  const std::string data = root_ + "/data";
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    const int out = open(log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    dup2(out, 1);
+    dup2(out, 2);
+    execl(PLACEDB_SERVER_BINARY, PLACEDB_SERVER_BINARY, "--listen", listen.c_str(), "--data-dir",
+          data.c_str(), "--tokens-file", tokens_path_.c_str(), "--metrics-listen", "off",
+          "--vocabulary", vocabulary.c_str(), "--threads", "1", static_cast<char*>(nullptr));
+    _exit(127);
+  }
+  auto channel = grpc::CreateChannel(listen, grpc::InsecureChannelCredentials());
+  auto stub = v1::PlaceDb::NewStub(channel);
+  auto list_as = [&](const std::string& who) {
+    v1::ListMapsResponse response;
+    return stub->ListMaps(Context(who).get(), v1::ListMapsRequest(), &response).error_code();
+  };
+  ASSERT_TRUE(Eventually([&] { return list_as(As("reader")) == Code::OK; }))
+      << testing::ReadFileBytes(log);
+
+  tokens_["late"] = NewToken();
+  principals_.push_back(Make("late", false, {}));
+  SaveTokens();
+  ASSERT_EQ(kill(pid, SIGHUP), 0);
+  ASSERT_TRUE(Eventually([&] { return list_as(As("late")) == Code::OK; }));
+  EXPECT_TRUE(Eventually([&] {
+    return testing::ReadFileBytes(log).find("received SIGHUP: reloading the tokens file") !=
+           std::string::npos;
+  })) << testing::ReadFileBytes(log);
+  EXPECT_EQ(list_as(As("reader")), Code::OK);  // the process is alive and serving
+
+  ASSERT_EQ(kill(pid, SIGTERM), 0);
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  EXPECT_TRUE(WIFEXITED(status));
+  EXPECT_EQ(WEXITSTATUS(status), 0) << testing::ReadFileBytes(log);
 }
 
 // ---- Client certificates (mutual TLS) ----------------------------------------------------------
