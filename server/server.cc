@@ -87,8 +87,9 @@ class ReflectionOption final : public grpc::ServerBuilderOption {
     plugins->erase(std::remove_if(plugins->begin(), plugins->end(),
                                   [&](const auto& plugin) { return plugin->name() == kName; }),
                    plugins->end());
-    if (enabled_)
+    if (enabled_) {
       plugins->push_back(std::make_unique<grpc::reflection::ProtoServerReflectionPlugin>());
+    }
   }
 
  private:
@@ -259,23 +260,22 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   if (!c.metrics_listen.empty()) {
     PlaceDbService* service = server->service_.get();
     const MemoryBudget* budget = server->budget_.get();
-    Status serving = metrics->Serve(
-        Metrics::Endpoint{
-            .listen = c.metrics_listen,
-            .path = c.metrics_path,
-            .threads = c.metrics_threads,
-            .request_timeout_ms = c.metrics_request_timeout_ms,
-            .authorize = server->tokens_
-                             ? std::function<bool(const std::string&, const std::string&)>(
-                                   [authorizer = server->authorizer_.get()](
-                                       const std::string& user, const std::string& password) {
-                                     return authorizer->AuthorizeScrape(user, password);
-                                   })
-                             : nullptr},
-        [service, metrics, budget] {
-          service->RefreshMapGauges();
-          metrics->SetMemoryBudget(budget->limit(), budget->fixed(), budget->in_use());
-        });
+    Metrics::Endpoint endpoint;
+    endpoint.listen = c.metrics_listen;
+    endpoint.path = c.metrics_path;
+    endpoint.threads = c.metrics_threads;
+    endpoint.request_timeout_ms = c.metrics_request_timeout_ms;
+    if (server->tokens_) {
+      // Scrapes need basic auth of a principal with `metrics` or `admin` (docs/security.md).
+      const auth::CallAuthorizer* authorizer = server->authorizer_.get();
+      endpoint.authorize = [authorizer](const std::string& user, const std::string& password) {
+        return authorizer->AuthorizeScrape(user, password);
+      };
+    }
+    Status serving = metrics->Serve(endpoint, [service, metrics, budget] {
+      service->RefreshMapGauges();
+      metrics->SetMemoryBudget(budget->limit(), budget->fixed(), budget->in_use());
+    });
     if (!serving.ok()) {
       server->Shutdown();
       return serving;
