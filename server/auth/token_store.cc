@@ -30,11 +30,6 @@ std::shared_ptr<const TokensFile> TokenStore::snapshot() const {
   return current_;
 }
 
-uint64_t TokenStore::generation() const {
-  MutexLock lock(mutex_);
-  return generation_;
-}
-
 TokenStore::FileStamp TokenStore::Stamp() const {
   struct stat st {};
   FileStamp stamp;
@@ -61,7 +56,7 @@ Status TokenStore::Reload() {
   {
     MutexLock lock(mutex_);
     current_ = std::make_shared<const TokensFile>(std::move(file).value());
-    generation = ++generation_;
+    generation = generation_.fetch_add(1, std::memory_order_acq_rel) + 1;
   }
   spdlog::info("tokens file {}: reloaded, {} principals (generation {})", path_, principals,
                generation);

@@ -12,6 +12,7 @@
 
 #include <sys/types.h>
 
+#include <atomic>
 #include <chrono>
 #include <ctime>
 #include <functional>
@@ -38,8 +39,9 @@ class TokenStore {
 
   const std::string& path() const { return path_; }
   std::shared_ptr<const TokensFile> snapshot() const EXCLUDES(mutex_);
-  // Advances by one on each successful reload.
-  uint64_t generation() const EXCLUDES(mutex_);
+  // Advances by one on each successful reload (after the new snapshot is in place). Lock-free:
+  // an open Ingest stream asks at every message.
+  uint64_t generation() const { return generation_.load(std::memory_order_acquire); }
 
   // Loads the file again. On success the new snapshot is current; on failure the previous one
   // stays and the error is returned (and logged).
@@ -71,7 +73,7 @@ class TokenStore {
 
   mutable Mutex mutex_;
   std::shared_ptr<const TokensFile> current_ GUARDED_BY(mutex_);
-  uint64_t generation_ GUARDED_BY(mutex_) = 0;
+  std::atomic<uint64_t> generation_{0};  // written under mutex_
 
   Mutex reload_mutex_;  // one reload at a time (SIGHUP and the watcher may race)
   FileStamp loaded_stamp_ GUARDED_BY(reload_mutex_);  // what the last attempt read

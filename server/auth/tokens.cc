@@ -290,9 +290,8 @@ Result<TokensFile> TokensFile::Parse(const std::string& text, const std::string&
   if (!root || root.IsNull()) return file;  // an empty file: no principals
   if (!root.IsMap()) return fail("must be a mapping with a 'principals' list");
   for (const auto& key : root) {
-    if (key.first.as<std::string>() != "principals") {
-      return fail("unknown key '" + key.first.as<std::string>() + "' (expected 'principals')");
-    }
+    const std::string name = key.first.IsScalar() ? key.first.Scalar() : "(not a string)";
+    if (name != "principals") return fail("unknown key '" + name + "' (expected 'principals')");
   }
   const YAML::Node list = root["principals"];
   if (!list || list.IsNull()) return file;
