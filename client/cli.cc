@@ -40,7 +40,7 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
                  "PEM root certificates for --tls (default: the system's)")
       ->check(CLI::ExistingFile);
   app.add_option("--token", connection_options.token,
-                 "sent as 'authorization: Bearer TOKEN' (the server does not check it yet)")
+                 "sent as 'authorization: Bearer TOKEN' (servers with a tokens file need one)")
       ->envname("PLACEDB_TOKEN");
 
   // The commands, in the order --help lists them.
