@@ -289,6 +289,18 @@ ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthoriz
       +[](const v1::GetServerInfoRequest&) { return std::string(); });
 }
 
+grpc::Status ParsingService::Authenticate(const char* method, const grpc::ServerContext& context,
+                                          auth::Caller* caller) const {
+  if (!authorizer_) {
+    *caller = auth::Caller::Everything("anonymous");
+    return grpc::Status::OK;
+  }
+  auto authenticated = authorizer_->Authenticate(method, context);
+  if (auto* denied = std::get_if<grpc::Status>(&authenticated)) return *denied;
+  *caller = std::move(std::get<auth::Caller>(authenticated));
+  return grpc::Status::OK;
+}
+
 const char* ParsingService::Path(const char* method) {
   registered_.push_back(method);
   paths_.push_back(std::string("/") + kServiceName + "/" + method);
@@ -304,13 +316,9 @@ void ParsingService::AddUnary(const char* method,
                             ParsingService* self, grpc::ServerContext* context,
                             const grpc::ByteBuffer* in, grpc::ByteBuffer* out) {
     // Who is calling, before anything of the request is looked at.
-    auth::Caller caller = auth::Caller::Everything("anonymous");
-    if (self->authorizer_) {
-      auto authenticated = self->authorizer_->Authenticate(method, *context);
-      if (auto* denied = std::get_if<grpc::Status>(&authenticated)) {
-        return self->service_->RefuseMalformed(method, context, *denied);
-      }
-      caller = std::move(std::get<auth::Caller>(authenticated));
+    auth::Caller caller;
+    if (grpc::Status denied = self->Authenticate(method, *context, &caller); !denied.ok()) {
+      return self->service_->RefuseMalformed(method, context, denied);
     }
     Request request;
     if (std::string problem = ParseMessage(*in, &request); !problem.empty()) {
@@ -328,8 +336,9 @@ void ParsingService::AddUnary(const char* method,
               ? grpc::Status::OK
               : ValidateMapName(
                     method, std::string(Request::descriptor()->FindFieldByNumber(1)->name()), map);
-      if (allowed.ok())
+      if (allowed.ok()) {
         allowed = self->authorizer_->Authorize(method, *context, caller, right, map);
+      }
       if (!allowed.ok()) return self->service_->RefuseMalformed(method, context, allowed);
     }
     Response response;
@@ -353,13 +362,9 @@ void ParsingService::AddIngest(const char* method) {
   auto stream = [method](ParsingService* self, grpc::ServerContext* context,
                          grpc::ServerReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>* raw) {
     // Authenticated before the stream is admitted: an unknown caller never holds a stream slot.
-    auth::Caller caller = auth::Caller::Everything("anonymous");
-    if (self->authorizer_) {
-      auto authenticated = self->authorizer_->Authenticate(method, *context);
-      if (auto* denied = std::get_if<grpc::Status>(&authenticated)) {
-        return self->service_->RefuseMalformed(method, context, *denied);
-      }
-      caller = std::move(std::get<auth::Caller>(authenticated));
+    auth::Caller caller;
+    if (grpc::Status denied = self->Authenticate(method, *context, &caller); !denied.ok()) {
+      return self->service_->RefuseMalformed(method, context, denied);
     }
     ParsingIngestStream io(raw, self->authorizer_, context, std::move(caller));
     return self->service_->IngestStream(context, &io);

@@ -76,6 +76,9 @@ class ParsingService final : public grpc::Service {
                                                         Response*),
                 auth::Right right, std::string (*map_of)(const Request&));
   void AddIngest(const char* method);
+  // Sets *caller (every right when there is no authorizer); else the denial (logged, counted).
+  grpc::Status Authenticate(const char* method, const grpc::ServerContext& context,
+                            auth::Caller* caller) const;
   const char* Path(const char* method);  // "/placedb.v1.PlaceDb/<method>", stable storage
 
   PlaceDbService* const service_;
