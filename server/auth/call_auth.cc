@@ -142,7 +142,6 @@ std::variant<Caller, grpc::Status> CallAuthorizer::Authenticate(
   const std::string peer = context.peer();
   const auto headers = context.client_metadata().equal_range("authorization");
   const size_t header_count = size_t(std::distance(headers.first, headers.second));
-  std::vector<std::string> names = CertificateNames(context);
 
   if (store_ && header_count > 0) {
     if (header_count > 1) {
@@ -157,6 +156,8 @@ std::variant<Caller, grpc::Status> CallAuthorizer::Authenticate(
     }
     return Resolve(method, peer, std::move(*token), {}, true);
   }
+  // Only without a bearer header: a token always wins over the certificate.
+  std::vector<std::string> names = CertificateNames(context);
   if (!names.empty()) {
     if (store_) return Resolve(method, peer, "", std::move(names), false);
     // Mutual TLS without a tokens file: the client CA vouches for every certificate holder.
