@@ -214,7 +214,7 @@ class ParsingIngestStream final : public IngestStreamIo {
   // After a reload: is the caller still a principal, with write on the stream's map?
   grpc::Status Recheck() {
     const uint64_t generation = caller_.generation;
-    grpc::Status still = authorizer_->Refresh("Ingest", *context_, &caller_);
+    grpc::Status still = authorizer_->Refresh("Ingest", *context_, map_, &caller_);
     if (still.ok() && caller_.generation != generation) {
       still = authorizer_->Authorize("Ingest", *context_, caller_, auth::Right::kWrite, map_);
     }

@@ -111,8 +111,9 @@ grpc::Status CallAuthorizer::Deny(const char* method, const std::string& peer,
 }
 
 std::variant<Caller, grpc::Status> CallAuthorizer::Resolve(
-    const char* method, const std::string& peer, std::string token,
-    std::vector<std::string> certificate_names, bool by_token) const {
+    const char* method, const std::string& peer, const std::string& previous,
+    const std::string& map, std::string token, std::vector<std::string> certificate_names,
+    bool by_token) const {
   Caller caller;
   // The generation before the snapshot: if a reload comes between them, the caller looks older
   // than its snapshot and is merely resolved again.
@@ -121,12 +122,12 @@ std::variant<Caller, grpc::Status> CallAuthorizer::Resolve(
   if (by_token) {
     caller.principal = caller.tokens->FindByToken(token);
     if (!caller.principal) {
-      return Deny(method, peer, "", "", DenyReason::kUnknownToken, "unknown token");
+      return Deny(method, peer, previous, map, DenyReason::kUnknownToken, "unknown token");
     }
   } else {
     caller.principal = caller.tokens->FindByCertificateNames(certificate_names);
     if (!caller.principal) {
-      return Deny(method, peer, "", "", DenyReason::kUnknownCertificate,
+      return Deny(method, peer, previous, map, DenyReason::kUnknownCertificate,
                   "client certificate '" + certificate_names.front() + "' names no principal");
     }
   }
@@ -154,12 +155,12 @@ std::variant<Caller, grpc::Status> CallAuthorizer::Authenticate(
       return Deny(method, peer, "", "", DenyReason::kMalformedCredentials,
                   "malformed authorization header (expected 'Bearer <token>')");
     }
-    return Resolve(method, peer, std::move(*token), {}, true);
+    return Resolve(method, peer, "", "", std::move(*token), {}, true);
   }
   // Only without a bearer header: a token always wins over the certificate.
   std::vector<std::string> names = CertificateNames(context);
   if (!names.empty()) {
-    if (store_) return Resolve(method, peer, "", std::move(names), false);
+    if (store_) return Resolve(method, peer, "", "", "", std::move(names), false);
     // Mutual TLS without a tokens file: the client CA vouches for every certificate holder.
     Caller caller = Caller::Everything(names.front());
     caller.certificate_names = std::move(names);
@@ -183,13 +184,13 @@ grpc::Status CallAuthorizer::Authorize(const char* method, const grpc::ServerCon
 }
 
 grpc::Status CallAuthorizer::Refresh(const char* method, const grpc::ServerContext& context,
-                                     Caller* caller) const {
+                                     const std::string& map, Caller* caller) const {
   if (!store_ || caller->everything || store_->generation() == caller->generation) {
     return grpc::Status::OK;
   }
   const bool by_token = !caller->token.empty();
-  auto resolved =
-      Resolve(method, context.peer(), caller->token, caller->certificate_names, by_token);
+  auto resolved = Resolve(method, context.peer(), caller->name, map, caller->token,
+                          caller->certificate_names, by_token);
   if (auto* status = std::get_if<grpc::Status>(&resolved)) return *status;
   *caller = std::move(std::get<Caller>(resolved));
   return grpc::Status::OK;

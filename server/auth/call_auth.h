@@ -90,8 +90,9 @@ class CallAuthorizer {
   // For long calls (an Ingest stream): when the tokens file was reloaded since `caller` was
   // resolved, resolves it again from the credentials it came with (updating *caller). OK when it
   // is still a principal; UNAUTHENTICATED when its token or certificate name no longer is one.
+  // `map` is for the audit line.
   grpc::Status Refresh(const char* method, const grpc::ServerContext& context,
-                       Caller* caller) const;
+                       const std::string& map, Caller* caller) const;
 
   // HTTP basic auth of a /metrics scrape: `user` must be the name of the principal whose token
   // is `password`, and that principal must have `metrics` or `admin`. Denials are logged and
@@ -101,8 +102,10 @@ class CallAuthorizer {
  private:
   grpc::Status Deny(const char* method, const std::string& peer, const std::string& principal,
                     const std::string& map, DenyReason reason, const std::string& message) const;
-  // Resolves credentials against the current snapshot; `method` words the errors.
+  // Resolves credentials against the current snapshot; `method` words the errors. `previous`
+  // (the principal the credentials named before a reload) and `map` are for the audit line.
   std::variant<Caller, grpc::Status> Resolve(const char* method, const std::string& peer,
+                                             const std::string& previous, const std::string& map,
                                              std::string token,
                                              std::vector<std::string> certificate_names,
                                              bool by_token) const;
