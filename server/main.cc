@@ -13,8 +13,8 @@
 #include <spdlog/spdlog.h>
 
 #include <cstdlib>
-#include <string>
 #include <iostream>
+#include <string>
 #include <thread>
 
 #include "server/allocator.h"
