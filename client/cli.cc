@@ -49,7 +49,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
       ->envname("PLACEDB_KEY")
       ->check(CLI::ExistingFile);
   app.add_option("--token", connection_options.token,
-                 "sent as 'authorization: Bearer TOKEN' (prefer the environment variable)")
+                 "sent as 'authorization: Bearer TOKEN' (servers with a tokens file need one; "
+                 "prefer the environment variable)")
       ->envname("PLACEDB_TOKEN");
 
   // The commands, in the order --help lists them.

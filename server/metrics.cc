@@ -127,7 +127,17 @@ Metrics::Metrics()
                          .Help("The memory budget (limits.memory_budget_bytes), by kind: limit, "
                                "fixed (caches), in_use (fixed + requests in flight)")
                          .Register(*registry_)),
-      detector_seconds_(detector_.Add({}, SecondsBuckets())) {
+      detector_seconds_(detector_.Add({}, SecondsBuckets())),
+      auth_denied_(BuildCounter()
+                       .Name("placedb_auth_denied_total")
+                       .Help("Calls and scrapes refused by authentication or authorization, by "
+                             "reason and method (an RPC's name, or metrics)")
+                       .Register(*registry_)),
+      tokens_reloads_(BuildCounter()
+                          .Name("placedb_tokens_reloads_total")
+                          .Help("Reloads of the tokens file, by result (ok, or error: the "
+                                "previous principals were kept)")
+                          .Register(*registry_)) {
   // Present from the start (at 0), so that a rate over them is defined before the first close.
   for (const char* reason : {"header_timeout", "idle_timeout", "write_timeout"}) {
     streams_reclaimed_.Add({{"reason", reason}});
@@ -158,6 +168,7 @@ Status Metrics::Serve(const Endpoint& endpoint, std::function<void()> before_scr
     return Status::IoError("metrics endpoint: cannot listen on " + http_listen + ": " + e.what());
   }
   exposer_->RegisterCollectable(collectable_, endpoint.path);
+  if (endpoint.authorize) exposer_->RegisterAuth(endpoint.authorize, "placedb", endpoint.path);
   const std::vector<int> ports = exposer_->GetListeningPorts();
   port_ = ports.empty() ? 0 : ports.front();
   if (endpoint.tls) {
@@ -289,6 +300,14 @@ void Metrics::SetMemoryBudget(uint64_t limit, uint64_t fixed, uint64_t in_use) {
   memory_budget_.Add({{"kind", "limit"}}).Set(double(limit));
   memory_budget_.Add({{"kind", "fixed"}}).Set(double(fixed));
   memory_budget_.Add({{"kind", "in_use"}}).Set(double(in_use));
+}
+
+void Metrics::AuthDenied(const std::string& reason, const std::string& method) {
+  auth_denied_.Add({{"reason", reason}, {"method", method}}).Increment();
+}
+
+void Metrics::TokensReloaded(bool ok) {
+  tokens_reloads_.Add({{"result", ok ? "ok" : "error"}}).Increment();
 }
 
 }  // namespace placedb::server

@@ -42,6 +42,9 @@ class Metrics {
     // Set: HTTPS only, TLS 1.2 or later with these files, and with tls->mutual() a client
     // certificate signed by one of its CAs is required at the handshake.
     std::optional<TlsSettings> tls;
+    // When set, every scrape needs HTTP basic auth that this accepts (user, password); a refused
+    // one gets 401 (server/auth/call_auth.h, AuthorizeScrape).
+    std::function<bool(const std::string& user, const std::string& password)> authorize;
   };
   // Serves the metrics. `before_scrape` runs before each collection (to refresh the per-map
   // gauges). IO_ERROR when the address cannot be bound; with TLS, the errors of LoadTlsFiles
@@ -85,6 +88,11 @@ class Metrics {
   void SetQueueDepth(size_t depth);
   // The memory budget (limits.memory_budget_bytes): its limit, fixed part and bytes in use.
   void SetMemoryBudget(uint64_t limit, uint64_t fixed, uint64_t in_use);
+  // A call or scrape refused by authentication/authorization (docs/security.md, "Audit"):
+  // placedb_auth_denied_total{reason,method}; `method` is the RPC's name or "metrics".
+  void AuthDenied(const std::string& reason, const std::string& method);
+  // A reload of the tokens file: placedb_tokens_reloads_total{result="ok"|"error"}.
+  void TokensReloaded(bool ok);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
@@ -107,6 +115,8 @@ class Metrics {
   prometheus::Gauge& queue_depth_;
   prometheus::Family<prometheus::Gauge>& memory_budget_;
   prometheus::Histogram& detector_seconds_;
+  prometheus::Family<prometheus::Counter>& auth_denied_;
+  prometheus::Family<prometheus::Counter>& tokens_reloads_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
   std::unique_ptr<prometheus::Exposer> exposer_;
   std::unique_ptr<TlsRelay> tls_relay_;  // HTTPS in front of exposer_ (Endpoint::tls)
