@@ -274,8 +274,9 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
     if (server->tokens_) {
       // Scrapes need basic auth of a principal with `metrics` or `admin` (docs/security.md).
       const auth::CallAuthorizer* authorizer = server->authorizer_.get();
-      endpoint.authorize = [authorizer](const std::string& user, const std::string& password) {
-        return authorizer->AuthorizeScrape(user, password);
+      endpoint.authorize = [authorizer](const std::string& peer, const std::string& user,
+                                        const std::string& password) {
+        return authorizer->AuthorizeScrape(peer, user, password);
       };
     }
     Status serving = metrics->Serve(endpoint, [service, metrics, budget] {

@@ -196,7 +196,8 @@ grpc::Status CallAuthorizer::Refresh(const char* method, const grpc::ServerConte
   return grpc::Status::OK;
 }
 
-bool CallAuthorizer::AuthorizeScrape(const std::string& user, const std::string& password) const {
+bool CallAuthorizer::AuthorizeScrape(const std::string& peer, const std::string& user,
+                                     const std::string& password) const {
   if (!store_) return true;
   const std::shared_ptr<const TokensFile> tokens = store_->snapshot();
   const Principal* principal = password.empty() ? nullptr : tokens->FindByToken(password);
@@ -209,7 +210,7 @@ bool CallAuthorizer::AuthorizeScrape(const std::string& user, const std::string&
     return true;
   }
   // The user name is the client's claim: logged only when it matched the token.
-  (void)Deny("metrics", "http", principal && principal->name == user ? user : "", "", reason,
+  (void)Deny("metrics", peer, principal && principal->name == user ? user : "", "", reason,
              "not allowed");
   return false;
 }

@@ -94,10 +94,12 @@ class CallAuthorizer {
   grpc::Status Refresh(const char* method, const grpc::ServerContext& context,
                        const std::string& map, Caller* caller) const;
 
-  // HTTP basic auth of a /metrics scrape: `user` must be the name of the principal whose token
-  // is `password`, and that principal must have `metrics` or `admin`. Denials are logged and
-  // counted with method "metrics". Always true when there is no tokens file.
-  bool AuthorizeScrape(const std::string& user, const std::string& password) const;
+  // HTTP basic auth of a /metrics scrape from `peer` (the scraper's address, for the audit
+  // line): `user` must be the name of the principal whose token is `password`, and that
+  // principal must have `metrics` or `admin`. Denials are logged and counted with method
+  // "metrics". Always true when there is no tokens file.
+  bool AuthorizeScrape(const std::string& peer, const std::string& user,
+                       const std::string& password) const;
 
  private:
   grpc::Status Deny(const char* method, const std::string& peer, const std::string& principal,

@@ -577,7 +577,7 @@ TEST_F(AuthTest, MetricsNeedBasicAuthOfAPrincipalWithMetricsOrAdmin) {
   EXPECT_EQ(MetricValue(metrics, "placedb_auth_denied_total",
                         {{"method", "metrics"}, {"reason", "permission_denied"}}),
             1);
-  // No Authorization header at all: civetweb answers 401 before the check (not counted).
+  // No Authorization header at all: the endpoint answers 401 before the check (not counted).
   EXPECT_TRUE(std::isnan(MetricValue(metrics, "placedb_auth_denied_total",
                                      {{"method", "metrics"}, {"reason", "missing_credentials"}})));
 }

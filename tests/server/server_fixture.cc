@@ -247,7 +247,7 @@ void ServerTest::TearDown() {
 ServerConfig ServerTest::Config() const {
   ServerConfig config;
   config.listen = "127.0.0.1:0";
-  config.metrics_listen = "";  // on only where scraped: stopping civetweb takes up to 2 s
+  config.metrics_listen = "";  // on only where scraped
   config.data_dir = root_ + "/data";
   config.threads = 2;
   config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};

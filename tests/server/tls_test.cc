@@ -247,7 +247,7 @@ TEST_F(TlsTest, MetricsOverHttps) {
   EXPECT_EQ(output.find("placedb_queue_depth"), std::string::npos) << output;
 }
 
-// Connections that never start their handshake hold the relay's workers for at most
+// Connections that never start their handshake hold the endpoint's workers for at most
 // metrics_request_timeout_ms: a scrape behind them is still answered.
 TEST_F(TlsTest, IdleConnectionsDoNotBlockHttpsMetrics) {
   ServerConfig config = Config();
