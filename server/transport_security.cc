@@ -93,7 +93,7 @@ bool IsLoopbackEntry(const std::string& address) {
     return close != std::string::npos && IsLoopbackHost(address.substr(1, close - 1));
   }
   const auto colon = address.rfind(':');
-  // A bare port (civetweb's "9464", "+9464") binds every interface.
+  // A bare port ("9464", "+9464") binds every interface.
   if (colon == std::string::npos) return false;
   return IsLoopbackHost(address.substr(0, colon));
 }
@@ -185,6 +185,12 @@ Status ConfigureSslContext(void* ssl_ctx, const TlsSettings& tls) {
     }
     // No certificate, or one that does not verify: the handshake fails.
     SSL_CTX_set_verify(ctx, SSL_VERIFY_PEER | SSL_VERIFY_FAIL_IF_NO_PEER_CERT, nullptr);
+    // A client resuming a session (curl does) is refused with an internal-error alert unless
+    // the sessions carry a context when client certificates are verified.
+    static constexpr unsigned char kSessionContext[] = "placedb-metrics";
+    if (SSL_CTX_set_session_id_context(ctx, kSessionContext, sizeof kSessionContext - 1) != 1) {
+      return failed("cannot set the session context");
+    }
   }
   return Status::Ok();
 }

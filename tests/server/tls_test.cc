@@ -10,6 +10,7 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <filesystem>
 #include <fstream>
 #include <future>
 #include <sstream>
@@ -287,6 +288,30 @@ TEST_F(TlsTest, MutualTlsMetricsRequireAClientCertificate) {
   EXPECT_NE(HttpsGet(port, "-cert '" + c.client_cert + "' -key '" + c.client_key + "'")
                 .find("placedb_queue_depth"),
             std::string::npos);
+}
+
+// A scraper that resumes its TLS session (as curl does for a second URL) is answered: the
+// resumed session keeps its verified client certificate.
+TEST_F(TlsTest, MutualTlsMetricsAnswerAResumedSession) {
+  const TestCertificates& c = SharedTestCertificates();
+  ServerConfig config = Config();
+  config.tls = ServerTls(/*mutual=*/true);
+  config.metrics_listen = "127.0.0.1:0";
+  config.metrics_tls = true;
+  StartServer(config);
+  const int port = server_->metrics_port();
+  const std::string session = root_ + "/tls-session.pem";
+  const std::string client = "-cert '" + c.client_cert + "' -key '" + c.client_key + "' ";
+  ASSERT_NE(HttpsGet(port, client + "-sess_out '" + session + "'").find("placedb_queue_depth"),
+            std::string::npos);
+  ASSERT_TRUE(std::filesystem::exists(session));
+  std::string output;
+  SClient(port,
+          "-ign_eof -verify_return_error -CAfile '" + c.ca_cert + "' " + client + "-sess_in '" +
+              session + "'",
+          "GET /metrics HTTP/1.0\r\nHost: localhost\r\n\r\n", &output);
+  EXPECT_NE(output.find("Reused, TLS"), std::string::npos) << output;
+  EXPECT_NE(output.find("placedb_queue_depth"), std::string::npos) << output;
 }
 
 TEST_F(TlsTest, BadTlsFilesAreClearStartupErrors) {
