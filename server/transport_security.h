@@ -55,7 +55,7 @@ std::vector<std::string> PeerCertificateNames(const grpc::AuthContext& context);
 // True when a listen address only accepts connections from this machine: an IPv4 address in
 // 127.0.0.0/8, ::1 (or ::ffff:127.x.y.z), "localhost", or a unix: socket. Anything else (0.0.0.0,
 // [::], a bare port, another host name) is not. `address` is host:port, [v6]:port or unix:path;
-// a comma-separated list (civetweb's listening_ports) is loopback when every entry is.
+// a comma-separated list is loopback when every entry is.
 bool IsLoopbackAddress(const std::string& address);
 
 // The safe default (docs/security.md, "Safe defaults"): a server that does not authenticate its
