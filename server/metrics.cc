@@ -112,6 +112,16 @@ class EndpointWorkers final : public httplib::TaskQueue {
   std::vector<std::thread> workers_;
 };
 
+// httplib's Server or SSLServer, with its listening socket (a protected member) reachable: httplib
+// listens with a backlog of 5, raised after the bind so that connections beyond the workers wait
+// for one instead of having their SYNs dropped (their clients would retry only after seconds).
+template <class Base>
+class HttpServer final : public Base {
+ public:
+  using Base::Base;
+  void RaiseBacklog() { ::listen(this->svr_sock_, SOMAXCONN); }
+};
+
 // "host:port" or "[v6]:port" -> (host, port); nullopt otherwise.
 std::optional<std::pair<std::string, int>> SplitListenAddress(const std::string& listen) {
   std::string host, port;
@@ -292,19 +302,25 @@ Status Metrics::Serve(const Endpoint& endpoint, std::function<void()> before_scr
                                    "' is not host:port or [v6]:port");
   }
   std::unique_ptr<httplib::Server> http;
+  std::function<void()> raise_backlog;
   if (endpoint.tls) {
     Status tls_status;
     const TlsSettings tls = *endpoint.tls;
-    http = std::make_unique<httplib::SSLServer>([&tls_status, &tls](SSL_CTX& context) {
-      tls_status = ConfigureSslContext(&context, tls);
-      return tls_status.ok();
-    });
+    auto https =
+        std::make_unique<HttpServer<httplib::SSLServer>>([&tls_status, &tls](SSL_CTX& context) {
+          tls_status = ConfigureSslContext(&context, tls);
+          return tls_status.ok();
+        });
+    raise_backlog = [server = https.get()] { server->RaiseBacklog(); };
+    http = std::move(https);
     if (!http->is_valid()) {
       if (tls_status.ok()) tls_status = Status::Internal("cannot create an SSL context");
       return tls_status.WithContext("metrics endpoint (HTTPS)");
     }
   } else {
-    http = std::make_unique<httplib::Server>();
+    auto plain = std::make_unique<HttpServer<httplib::Server>>();
+    raise_backlog = [server = plain.get()] { server->RaiseBacklog(); };
+    http = std::move(plain);
   }
 
   const int threads = endpoint.threads;
@@ -374,6 +390,7 @@ Status Metrics::Serve(const Endpoint& endpoint, std::function<void()> before_scr
     return Status::IoError("metrics endpoint: cannot listen on " + endpoint.listen +
                            " (address in use, or not a local address?)");
   }
+  raise_backlog();
   // Listening since the bind: connections made before the loop starts wait in the backlog.
   httplib::Server* server = http.get();
   http_thread_ = std::thread([server] { server->listen_after_bind(); });
