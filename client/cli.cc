@@ -34,13 +34,23 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
   app.add_flag("--json", json, "machine-readable output (JSON on stdout)");
-  app.add_flag("--tls", connection_options.tls,
-               "connect with TLS (the server does not offer it yet)");
+  app.add_flag("--tls", connection_options.tls, "connect with TLS (TLS 1.2+)")
+      ->envname("PLACEDB_TLS");
   app.add_option("--ca-cert", connection_options.ca_cert,
                  "PEM root certificates for --tls (default: the system's)")
+      ->envname("PLACEDB_CA_CERT")
+      ->check(CLI::ExistingFile);
+  app.add_option("--cert", connection_options.cert,
+                 "PEM client certificate for mutual TLS (with --tls and --key)")
+      ->envname("PLACEDB_CERT")
+      ->check(CLI::ExistingFile);
+  app.add_option("--key", connection_options.key,
+                 "the client certificate's PEM private key (unencrypted)")
+      ->envname("PLACEDB_KEY")
       ->check(CLI::ExistingFile);
   app.add_option("--token", connection_options.token,
-                 "sent as 'authorization: Bearer TOKEN' (the server does not check it yet)")
+                 "sent as 'authorization: Bearer TOKEN' (servers with a tokens file need one; "
+                 "prefer the environment variable)")
       ->envname("PLACEDB_TOKEN");
 
   // The commands, in the order --help lists them.

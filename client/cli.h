@@ -1,7 +1,8 @@
 // The `placedb` command line (docs/cli.md): maps, ingest, query, places, info, health and the load
 // tester, all through the placedb.v1 API.
 //
-//   placedb [--address HOST:PORT] [--timeout S] [--json] [--tls [--ca-cert PEM]] [--token T]
+//   placedb [--address HOST:PORT] [--timeout S] [--json] [--token T]
+//           [--tls [--ca-cert PEM] [--cert PEM --key PEM]]
 //           COMMAND ...
 //
 // Exit codes: 0 ok, 1 an RPC failed (printed with its gRPC code name), 2 usage (bad arguments,

@@ -4,6 +4,7 @@
 #include <grpcpp/generic/generic_stub.h>
 
 #include <future>
+#include <tuple>
 #include <vector>
 
 #include "core/base/files.h"
@@ -11,24 +12,40 @@
 
 namespace placedb::client {
 
+std::shared_ptr<grpc::ChannelCredentials> MakeChannelCredentials(const ConnectionOptions& options,
+                                                                 std::string* error) {
+  if (options.cert.empty() != options.key.empty()) {
+    *error = options.cert.empty() ? "--key needs --cert" : "--cert needs --key";
+    return nullptr;
+  }
+  if (!options.tls) {
+    if (!options.cert.empty() || !options.ca_cert.empty()) {
+      *error = std::string(options.cert.empty() ? "--ca-cert" : "--cert") + " needs --tls";
+      return nullptr;
+    }
+    return grpc::InsecureChannelCredentials();
+  }
+  grpc::SslCredentialsOptions ssl;
+  for (const auto& [flag, path, out] : {std::tuple<const char*, const std::string*, std::string*>{
+                                            "--ca-cert", &options.ca_cert, &ssl.pem_root_certs},
+                                        {"--cert", &options.cert, &ssl.pem_cert_chain},
+                                        {"--key", &options.key, &ssl.pem_private_key}}) {
+    if (path->empty()) continue;
+    auto pem = ReadWholeFile(*path);
+    if (!pem.ok()) {
+      *error = std::string(flag) + ": " + pem.status().message();
+      return nullptr;
+    }
+    *out = std::move(*pem);
+  }
+  return grpc::SslCredentials(ssl);
+}
+
 std::optional<Connection> Connection::Open(const ConnectionOptions& options, std::string* error) {
   Connection connection;
   connection.options_ = options;
-  std::shared_ptr<grpc::ChannelCredentials> credentials;
-  if (options.tls) {
-    grpc::SslCredentialsOptions ssl;
-    if (!options.ca_cert.empty()) {
-      auto pem = ReadWholeFile(options.ca_cert);
-      if (!pem.ok()) {
-        *error = "--ca-cert: " + pem.status().message();
-        return std::nullopt;
-      }
-      ssl.pem_root_certs = std::move(*pem);
-    }
-    credentials = grpc::SslCredentials(ssl);
-  } else {
-    credentials = grpc::InsecureChannelCredentials();
-  }
+  std::shared_ptr<grpc::ChannelCredentials> credentials = MakeChannelCredentials(options, error);
+  if (!credentials) return std::nullopt;
   grpc::ChannelArguments arguments;
   // Frames are up to a few MiB; the server's limit (limits.max_message_bytes) is what counts.
   arguments.SetMaxSendMessageSize(-1);

@@ -1,5 +1,6 @@
-// A connection to a placedb server: the channel (plaintext, or TLS with --tls), the PlaceDb stub,
-// and call contexts carrying the deadline and the bearer token.
+// A connection to a placedb server: the channel (plaintext, or TLS with --tls, presenting a client
+// certificate with --cert/--key for mutual TLS), the PlaceDb stub, and call contexts carrying the
+// deadline and the bearer token.
 //
 //   ConnectionOptions options{.address = "localhost:50051"};
 //   auto connection = Connection::Open(options);       // nullopt + error: unreadable CA file
@@ -34,12 +35,22 @@ struct ConnectionOptions {
   double timeout_s = 30;                    // deadline of each unary RPC; 0 = none
   bool tls = false;                         // grpc::SslCredentials instead of plaintext
   std::string ca_cert;                      // PEM roots for TLS; empty = the system's
+  std::string cert;                         // PEM client certificate (chain) for mutual TLS
+  std::string key;                          // its PEM private key (unencrypted)
   std::string token;                        // sent as "authorization: Bearer <token>"
 };
 
+// The channel credentials `options` describe: plaintext without tls; otherwise TLS trusting
+// ca_cert (or the system's roots) and presenting cert + key when both are set. cert or key alone,
+// or cert/key without tls, is a usage error. Reads the files; on failure returns null and sets
+// *error, naming the flag (--ca-cert, --cert, --key) and the problem. Every client (CLI, load
+// tester, evaluation harness) connects through this.
+std::shared_ptr<grpc::ChannelCredentials> MakeChannelCredentials(const ConnectionOptions& options,
+                                                                 std::string* error);
+
 class Connection {
  public:
-  // Reads the CA file when TLS is on; on failure returns nullopt and sets *error.
+  // Reads the TLS files (MakeChannelCredentials); on failure returns nullopt and sets *error.
   static std::optional<Connection> Open(const ConnectionOptions& options, std::string* error);
 
   // A context for one call: the bearer token, and the deadline for unary calls (streams get none:

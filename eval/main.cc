@@ -3,7 +3,8 @@
 //   placedb-eval prepare camvid|camvid-stops|rtabmap|folder|revisits|revisits-hard ... --out DIR
 //   placedb-eval run --dataset DIR --out RESULTS_DIR [--features 300,500,...] [--geom none,0,1,2,6]
 //       [--boxes oracle|detector|none] [--masks oracle|none] [--confidence 0.2]
-//       [--filter keypoint_in_box|exact_coverage --sensitivity 0.25] [--server ADDRESS]
+//       [--filter keypoint_in_box|exact_coverage --sensitivity 0.25] [--server ADDRESS
+//       [--tls [--ca-cert PEM] [--cert PEM --key PEM]] [--token T]]
 //
 // See docs/evaluation.md for the dataset format, the metrics and the figures.
 #include <CLI/CLI.hpp>
@@ -13,6 +14,7 @@
 #include <iostream>
 #include <opencv2/core.hpp>
 
+#include "client/connection.h"
 #include "core/base/stats.h"
 #include "core/detect/detector.h"
 #include "core/vocabulary/vocabulary.h"
@@ -270,6 +272,7 @@ struct RunFlags {
   std::string refinement = "shape", short_term = "on", static_budget = "on";
   double short_term_horizon_s = 60;
   RunOptions options;
+  client::ConnectionOptions connection;  // --server's TLS files and token (address = --server)
 };
 
 // The flags of the configuration grid, the filter and the detector.
@@ -339,6 +342,18 @@ void RegisterRun(CLI::App& app, RunFlags* f) {
       ->capture_default_str();
   run->add_option("--threads", options.threads, "worker threads")->capture_default_str();
   run->add_option("--server", f->server, "run against a live placedb-server at ADDRESS");
+  // The CLI's connection flags (docs/cli.md), for --server.
+  run->add_flag("--tls", f->connection.tls, "--server: connect with TLS (TLS 1.2+)");
+  run->add_option("--ca-cert", f->connection.ca_cert, "--server: PEM root certificates for --tls")
+      ->check(CLI::ExistingFile);
+  run->add_option("--cert", f->connection.cert,
+                  "--server: PEM client certificate for mutual TLS (with --key)")
+      ->check(CLI::ExistingFile);
+  run->add_option("--key", f->connection.key, "--server: the client certificate's PEM key")
+      ->check(CLI::ExistingFile);
+  run->add_option("--token", f->connection.token,
+                  "--server: sent as 'authorization: Bearer TOKEN' (prefer PLACEDB_TOKEN)")
+      ->envname("PLACEDB_TOKEN");
   run->add_option("--title", f->title, "report title");
 }
 
@@ -455,7 +470,9 @@ int Run(RunFlags& f) {
   if (f.server.empty()) {
     backend = MakeInProcessBackend(*vocabulary, options.threads);
   } else {
-    auto remote = MakeServerBackend(f.server, *vocabulary, Log);
+    client::ConnectionOptions connection = f.connection;
+    connection.address = f.server;
+    auto remote = MakeServerBackend(std::move(connection), *vocabulary, Log);
     if (!remote.ok()) return Fail(remote.status());
     backend = std::move(remote).value();
   }

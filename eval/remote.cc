@@ -205,10 +205,17 @@ class ServerBackend final : public Backend {
 Result<std::unique_ptr<Backend>> MakeServerBackend(
     const std::string& address, std::shared_ptr<const Vocabulary> local_vocabulary,
     const std::function<void(const std::string&)>& log) {
-  // No deadline on the backend's calls (a query takes what it takes); only the first call waits
-  // at most 10 s for the server to come up.
   client::ConnectionOptions options;
   options.address = address;
+  return MakeServerBackend(std::move(options), std::move(local_vocabulary), log);
+}
+
+Result<std::unique_ptr<Backend>> MakeServerBackend(
+    client::ConnectionOptions options, std::shared_ptr<const Vocabulary> local_vocabulary,
+    const std::function<void(const std::string&)>& log) {
+  // No deadline on the backend's calls (a query takes what it takes); only the first call waits
+  // at most 10 s for the server to come up.
+  const std::string address = options.address;
   options.timeout_s = 0;
   std::string error;
   std::optional<client::Connection> connection = client::Connection::Open(options, &error);

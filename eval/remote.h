@@ -13,6 +13,7 @@
 #include <memory>
 #include <string>
 
+#include "client/connection.h"
 #include "core/base/status.h"
 #include "core/vocabulary/vocabulary.h"
 #include "eval/runner.h"
@@ -26,6 +27,12 @@ namespace placedb::eval {
 // (proto/status.h).
 Result<std::unique_ptr<Backend>> MakeServerBackend(
     const std::string& address, std::shared_ptr<const Vocabulary> local_vocabulary,
+    const std::function<void(const std::string&)>& log);
+// The same with the connection's TLS files and token (client/connection.h; its timeout_s is
+// ignored: the backend's calls have no deadline). Unreadable TLS files: FAILED_PRECONDITION naming
+// the flag.
+Result<std::unique_ptr<Backend>> MakeServerBackend(
+    client::ConnectionOptions connection, std::shared_ptr<const Vocabulary> local_vocabulary,
     const std::function<void(const std::string&)>& log);
 
 }  // namespace placedb::eval

@@ -363,7 +363,7 @@ Status ApplyEnvironment(ServerConfig* c, const std::function<const char*(const c
     if (v->find_first_not_of("0123456789") != std::string::npos || v->size() > 5) {
       return Bad("PLACEDB_METRICS_PORT", "'" + *v + "' is not a port number");
     }
-    std::string host = "0.0.0.0";
+    std::string host = "127.0.0.1";  // metrics were off: the default host (loopback)
     if (const auto colon = c->metrics_listen.rfind(':'); colon != std::string::npos) {
       host = c->metrics_listen.substr(0, colon);
     }

@@ -1,7 +1,10 @@
 // placedb-server: the gRPC service (docs/service.md).
 //
-//   placedb-server [--config placedb.yaml] [--listen 0.0.0.0:50051] [--data-dir ./var/data] ...
+//   placedb-server [--config placedb.yaml] [--listen 127.0.0.1:50051] [--data-dir ./var/data] ...
 //
+//   placedb-server tokens add|list|revoke|rotate ...   (server/auth/tokens_command.h)
+//
+// SIGHUP reloads the tokens file (security.tokens_file; a bad file keeps the previous principals).
 // SIGTERM / SIGINT start a graceful shutdown (a sigwait thread does the work, never a signal
 // handler); a second signal during it exits at once with status 1 (acknowledged places are
 // durable either way). Exit status 0 after a clean shutdown, 2 for a bad configuration, 1 when
@@ -10,20 +13,33 @@
 #include <spdlog/spdlog.h>
 
 #include <cstdlib>
+#include <iostream>
+#include <string>
 #include <thread>
 
 #include "server/allocator.h"
+#include "server/auth/tokens_command.h"
 #include "server/config.h"
 #include "server/server.h"
 
 int main(int argc, char** argv) {
+  // Its own command group, before the server's flags are parsed (those stay as they are).
+  if (argc >= 2 && std::string(argv[1]) == "tokens") {
+    return placedb::server::auth::RunTokensCommand(
+        argc - 1, argv + 1, std::cout, std::cerr,
+        [](const char* name) { return std::getenv(name); });
+  }
   // Block the shutdown signals in every thread (threads inherit the mask); one thread waits for
   // them with sigwait.
   sigset_t signals;
   sigemptyset(&signals);
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
-  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+  // SIGHUP too, taken by the same thread: a reload, not a shutdown (and never the default
+  // action, which would end the process).
+  sigset_t with_reload = signals;
+  sigaddset(&with_reload, SIGHUP);
+  pthread_sigmask(SIG_BLOCK, &with_reload, nullptr);
   // After the mask: the allocator may start a thread (glibc's trimmer), which must not take the
   // shutdown signals.
   placedb::server::TuneAllocator();
@@ -47,9 +63,16 @@ int main(int argc, char** argv) {
     return 1;
   }
 
-  std::thread signal_thread([&server, signals] {
+  std::thread signal_thread([&server, &config, signals, with_reload] {
     int received = 0;
-    sigwait(&signals, &received);
+    while (sigwait(&with_reload, &received) == 0 && received == SIGHUP) {
+      if (config.security.tokens_file.empty()) {
+        spdlog::info("received SIGHUP: no tokens file to reload");
+        continue;
+      }
+      spdlog::info("received SIGHUP: reloading the tokens file {}", config.security.tokens_file);
+      (void)(*server)->ReloadTokens();  // logs its own outcome
+    }
     spdlog::info("received {}, shutting down gracefully", strsignal(received));
     std::thread second([signals] {
       int again = 0;

@@ -12,12 +12,15 @@
 
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
+#include <thread>
 
 #include "core/base/status.h"
+#include "server/config.h"
 
-namespace prometheus {
-class Exposer;
+namespace httplib {
+class Server;
 }
 
 namespace placedb::server {
@@ -27,19 +30,35 @@ class Metrics {
   Metrics();
   ~Metrics();
 
-  // How the endpoint serves HTTP: `threads` workers (each open connection holds one, so a slow
-  // client takes one worker, never the endpoint), and a connection whose request has not
-  // arrived and been answered within `request_timeout_ms` is closed.
+  // How the endpoint serves HTTP (cpp-httplib, plaintext or HTTPS): `threads` workers, each
+  // serving one connection and one request at a time (no keep-alive: the answer closes the
+  // connection); more connections wait in the listen backlog, so a slow client takes one worker,
+  // never the endpoint. `request_timeout_ms` bounds each read and write of a connection (a TLS
+  // handshake's too), and the wait for its request's first byte (in whole seconds, at least 1).
   struct Endpoint {
-    std::string listen;  // host:port; port 0 picks one
-    std::string path;
+    std::string listen;  // host:port or [v6]:port; port 0 picks one
+    std::string path;    // the only path served (GET); other paths 404, other methods 405
     int threads = 4;
     uint32_t request_timeout_ms = 5000;
+    // Set: HTTPS only, TLS 1.2 or later with these files, and with tls->mutual() a client
+    // certificate signed by one of its CAs is required at the handshake.
+    std::optional<TlsSettings> tls;
+    // When set, every scrape needs HTTP basic auth that this accepts (`peer`: the scraper's
+    // address as "ipv4:a.b.c.d:port" or "ipv6:[...]:port", for the audit line). Without an
+    // `Authorization: Basic` header, or with one that does not decode to user:password, the
+    // answer is 401 without asking (server/auth/call_auth.h, AuthorizeScrape).
+    std::function<bool(const std::string& peer, const std::string& user,
+                       const std::string& password)>
+        authorize;
   };
-  // Serves the metrics. `before_scrape` runs before each collection (to refresh the per-map
-  // gauges). IO_ERROR when the address cannot be bound.
+  // Serves the metrics: each scrape runs `before_scrape` (to refresh the per-map gauges), then
+  // answers the registry in Prometheus' text format. INVALID_ARGUMENT for a listen address that
+  // is not host:port; IO_ERROR when it cannot be bound (in use: SO_REUSEPORT is not set, so a
+  // second server cannot share the port); with TLS, the errors of LoadTlsFiles
+  // (server/transport_security.h) for bad files. On failure nothing is served.
   Status Serve(const Endpoint& endpoint, std::function<void()> before_scrape);
-  int port() const { return port_; }  // 0 when not serving
+  int port() const { return port_; }  // the bound port; 0 when not serving
+  // Stops accepting and waits for the connections being served (each ends within its timeouts).
   void StopServing();
 
   const std::shared_ptr<prometheus::Registry>& registry() const { return registry_; }
@@ -77,6 +96,11 @@ class Metrics {
   void SetQueueDepth(size_t depth);
   // The memory budget (limits.memory_budget_bytes): its limit, fixed part and bytes in use.
   void SetMemoryBudget(uint64_t limit, uint64_t fixed, uint64_t in_use);
+  // A call or scrape refused by authentication/authorization (docs/security.md, "Audit"):
+  // placedb_auth_denied_total{reason,method}; `method` is the RPC's name or "metrics".
+  void AuthDenied(const std::string& reason, const std::string& method);
+  // A reload of the tokens file: placedb_tokens_reloads_total{result="ok"|"error"}.
+  void TokensReloaded(bool ok);
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
@@ -99,8 +123,11 @@ class Metrics {
   prometheus::Gauge& queue_depth_;
   prometheus::Family<prometheus::Gauge>& memory_budget_;
   prometheus::Histogram& detector_seconds_;
+  prometheus::Family<prometheus::Counter>& auth_denied_;
+  prometheus::Family<prometheus::Counter>& tokens_reloads_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
-  std::unique_ptr<prometheus::Exposer> exposer_;
+  std::unique_ptr<httplib::Server> http_;  // an httplib::SSLServer with Endpoint::tls
+  std::thread http_thread_;                // http_'s accept loop
   int port_ = 0;
 };
 

@@ -6,10 +6,13 @@
 #include <grpcpp/impl/rpc_service_method.h>
 #include <grpcpp/support/method_handler.h>
 #include <grpcpp/support/proto_buffer_reader.h>
+#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <map>
 
+#include "core/base/map_name.h"
+#include "proto/status.h"
 #include "server/service.h"
 
 namespace placedb::server {
@@ -126,22 +129,72 @@ std::string StreamPosition(uint64_t message) {
          ")";
 }
 
-// Ingest's reader-writer over raw bytes: reads parse, writes serialise.
+// The shared map-name rule (core/base/map_name.h), checked after authentication and before
+// rights, so that a bad name is INVALID_ARGUMENT for every caller.
+grpc::Status CheckRequestMapName(const char* method, const std::string& field,
+                                 const std::string& map) {
+  if (Status valid = ValidateMapName(map); !valid.ok()) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        std::string(method) + ": " + field + ": " + valid.message());
+  }
+  return grpc::Status::OK;
+}
+
+// What a caller that is not admin is not shown of the server: its files, memory and machine.
+template <typename Response>
+void RestrictResponse(const auth::Caller&, Response*) {}
+void RestrictResponse(const auth::Caller& caller, v1::ListMapsResponse* response) {
+  if (caller.everything) return;
+  auto* maps = response->mutable_maps();
+  maps->erase(std::remove_if(maps->begin(), maps->end(),
+                             [&caller](const v1::MapSummary& map) {
+                               return !caller.Has(auth::Right::kRead, map.name());
+                             }),
+              maps->end());
+}
+void RestrictResponse(const auth::Caller& caller, v1::ServerInfo* response) {
+  if (caller.admin()) return;
+  for (v1::VocabularyInfo& vocabulary : *response->mutable_vocabularies()) {
+    vocabulary.clear_path();
+    vocabulary.clear_memory_bytes();
+  }
+  response->clear_detector();
+  response->mutable_limits()->clear_worker_threads();
+}
+
+// Ingest's reader-writer over raw bytes: reads parse, writes serialise. With an authorizer, the
+// header needs write on its map, and each later message checks the caller again after a reload
+// of the tokens file.
 class ParsingIngestStream final : public IngestStreamIo {
  public:
-  explicit ParsingIngestStream(grpc::ServerReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>* raw)
-      : raw_(raw) {}
+  ParsingIngestStream(grpc::ServerReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>* raw,
+                      const auth::CallAuthorizer* authorizer, const grpc::ServerContext* context,
+                      auth::Caller caller)
+      : raw_(raw), authorizer_(authorizer), context_(context), caller_(std::move(caller)) {}
 
   void SendInitialMetadata() override { raw_->SendInitialMetadata(); }
   bool NextMessageSize(uint32_t* size) override { return raw_->NextMessageSize(size); }
   bool Read(v1::IngestRequest* message) override {
     grpc::ByteBuffer bytes;
     if (!raw_->Read(&bytes)) return false;
+    if (authorizer_ && read_ > 0) {
+      // Frames already acknowledged stay; this one and the rest are refused.
+      error_ = Recheck();
+      if (!error_.ok()) return false;
+    }
     if (std::string problem = ParseMessage(bytes, message); !problem.empty()) {
       error_ = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                             StreamPosition(read_) + " is not a valid " +
                                 v1::IngestRequest::descriptor()->full_name() + ": " + problem);
       return false;
+    }
+    if (authorizer_ && read_ == 0 && message->has_header()) {
+      map_ = message->header().map();
+      error_ = CheckRequestMapName("Ingest", "header.map", map_);
+      if (error_.ok()) {
+        error_ = authorizer_->Authorize("Ingest", *context_, caller_, auth::Right::kWrite, map_);
+      }
+      if (!error_.ok()) return false;
     }
     ++read_;
     return true;
@@ -159,7 +212,21 @@ class ParsingIngestStream final : public IngestStreamIo {
   grpc::Status ReadError() const override { return error_; }
 
  private:
+  // After a reload: is the caller still a principal, with write on the stream's map?
+  grpc::Status Recheck() {
+    const uint64_t generation = caller_.generation;
+    grpc::Status still = authorizer_->Refresh("Ingest", *context_, map_, &caller_);
+    if (still.ok() && caller_.generation != generation) {
+      still = authorizer_->Authorize("Ingest", *context_, caller_, auth::Right::kWrite, map_);
+    }
+    return still;
+  }
+
   grpc::ServerReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>* const raw_;
+  const auth::CallAuthorizer* const authorizer_;  // null: no checks
+  const grpc::ServerContext* const context_;
+  auth::Caller caller_;
+  std::string map_;    // the header's
   uint64_t read_ = 0;  // messages parsed so far
   grpc::Status error_;
 };
@@ -186,18 +253,53 @@ std::string ParseMessage(const grpc::ByteBuffer& bytes, google::protobuf::Messag
   return DiagnoseMessage(flat, *message);
 }
 
-ParsingService::ParsingService(PlaceDbService* service) : service_(service) {
-  AddUnary("CreateMap", &PlaceDbService::CreateMap);
-  AddUnary("GetMap", &PlaceDbService::GetMap);
-  AddUnary("ListMaps", &PlaceDbService::ListMaps);
-  AddUnary("DeleteMap", &PlaceDbService::DeleteMap);
-  AddUnary("RecoverMap", &PlaceDbService::RecoverMap);
-  AddUnary("ScrubMap", &PlaceDbService::ScrubMap);
-  AddIngest("Ingest");
-  AddUnary("Query", &PlaceDbService::Query);
-  AddUnary("GetPlace", &PlaceDbService::GetPlace);
-  AddUnary("DeletePlace", &PlaceDbService::DeletePlace);
-  AddUnary("GetServerInfo", &PlaceDbService::GetServerInfo);
+ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthorizer* authorizer)
+    : service_(service), authorizer_(authorizer && authorizer->enabled() ? authorizer : nullptr) {
+  using auth::Right;
+  // The rights per method (docs/security.md): the map each request names, and what it needs.
+  AddUnary(
+      "CreateMap", &PlaceDbService::CreateMap, Right::kAdmin,
+      +[](const v1::CreateMapRequest& r) { return r.name(); });
+  AddUnary(
+      "GetMap", &PlaceDbService::GetMap, Right::kRead,
+      +[](const v1::GetMapRequest& r) { return r.name(); });
+  AddUnary(
+      "ListMaps", &PlaceDbService::ListMaps, Right::kAny,
+      +[](const v1::ListMapsRequest&) { return std::string(); });
+  AddUnary(
+      "DeleteMap", &PlaceDbService::DeleteMap, Right::kAdmin,
+      +[](const v1::DeleteMapRequest& r) { return r.name(); });
+  AddUnary(
+      "RecoverMap", &PlaceDbService::RecoverMap, Right::kAdmin,
+      +[](const v1::RecoverMapRequest& r) { return r.name(); });
+  AddUnary(
+      "ScrubMap", &PlaceDbService::ScrubMap, Right::kAdmin,
+      +[](const v1::ScrubMapRequest& r) { return r.name(); });
+  AddIngest("Ingest");  // write on header.map (ParsingIngestStream)
+  AddUnary(
+      "Query", &PlaceDbService::Query, Right::kRead,
+      +[](const v1::QueryRequest& r) { return r.map(); });
+  AddUnary(
+      "GetPlace", &PlaceDbService::GetPlace, Right::kRead,
+      +[](const v1::GetPlaceRequest& r) { return r.map(); });
+  AddUnary(
+      "DeletePlace", &PlaceDbService::DeletePlace, Right::kWrite,
+      +[](const v1::DeletePlaceRequest& r) { return r.map(); });
+  AddUnary(
+      "GetServerInfo", &PlaceDbService::GetServerInfo, Right::kAny,
+      +[](const v1::GetServerInfoRequest&) { return std::string(); });
+}
+
+grpc::Status ParsingService::Authenticate(const char* method, const grpc::ServerContext& context,
+                                          auth::Caller* caller) const {
+  if (!authorizer_) {
+    *caller = auth::Caller::Everything("anonymous");
+    return grpc::Status::OK;
+  }
+  auto authenticated = authorizer_->Authenticate(method, context);
+  if (auto* denied = std::get_if<grpc::Status>(&authenticated)) return *denied;
+  *caller = std::move(std::get<auth::Caller>(authenticated));
+  return grpc::Status::OK;
 }
 
 const char* ParsingService::Path(const char* method) {
@@ -209,9 +311,16 @@ const char* ParsingService::Path(const char* method) {
 template <typename Request, typename Response>
 void ParsingService::AddUnary(const char* method,
                               grpc::Status (PlaceDbService::*handler)(grpc::ServerContext*,
-                                                                      const Request*, Response*)) {
-  auto parse_and_call = [method, handler](ParsingService* self, grpc::ServerContext* context,
-                                          const grpc::ByteBuffer* in, grpc::ByteBuffer* out) {
+                                                                      const Request*, Response*),
+                              auth::Right right, std::string (*map_of)(const Request&)) {
+  auto parse_and_call = [method, handler, right, map_of](
+                            ParsingService* self, grpc::ServerContext* context,
+                            const grpc::ByteBuffer* in, grpc::ByteBuffer* out) {
+    // Who is calling, before anything of the request is looked at.
+    auth::Caller caller;
+    if (grpc::Status denied = self->Authenticate(method, *context, &caller); !denied.ok()) {
+      return self->service_->RefuseMalformed(method, context, denied);
+    }
     Request request;
     if (std::string problem = ParseMessage(*in, &request); !problem.empty()) {
       return self->service_->RefuseMalformed(
@@ -220,9 +329,27 @@ void ParsingService::AddUnary(const char* method,
               grpc::StatusCode::INVALID_ARGUMENT,
               "request is not a valid " + Request::descriptor()->full_name() + ": " + problem));
     }
+    const std::string map = map_of(request);
+    if (self->authorizer_) {
+      // Every request on a map names it in field 1 ("name" or "map").
+      grpc::Status allowed =
+          right == auth::Right::kAny
+              ? grpc::Status::OK
+              : CheckRequestMapName(
+                    method, std::string(Request::descriptor()->FindFieldByNumber(1)->name()), map);
+      if (allowed.ok()) {
+        allowed = self->authorizer_->Authorize(method, *context, caller, right, map);
+      }
+      if (!allowed.ok()) return self->service_->RefuseMalformed(method, context, allowed);
+    }
     Response response;
     grpc::Status status = (self->service_->*handler)(context, &request, &response);
+    if (right == auth::Right::kAdmin) {
+      spdlog::info("auth admin method={} principal={} peer={} map={} result={}", method,
+                   caller.name, context->peer(), map, wire::GrpcCodeName(status.error_code()));
+    }
     if (!status.ok()) return status;
+    RestrictResponse(caller, &response);
     bool own = false;
     return grpc::SerializationTraits<Response>::Serialize(response, out, &own);
   };
@@ -233,9 +360,14 @@ void ParsingService::AddUnary(const char* method,
 }
 
 void ParsingService::AddIngest(const char* method) {
-  auto stream = [](ParsingService* self, grpc::ServerContext* context,
-                   grpc::ServerReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>* raw) {
-    ParsingIngestStream io(raw);
+  auto stream = [method](ParsingService* self, grpc::ServerContext* context,
+                         grpc::ServerReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>* raw) {
+    // Authenticated before the stream is admitted: an unknown caller never holds a stream slot.
+    auth::Caller caller;
+    if (grpc::Status denied = self->Authenticate(method, *context, &caller); !denied.ok()) {
+      return self->service_->RefuseMalformed(method, context, denied);
+    }
+    ParsingIngestStream io(raw, self->authorizer_, context, std::move(caller));
     return self->service_->IngestStream(context, &io);
   };
   AddMethod(new grpc::internal::RpcServiceMethod(

@@ -11,6 +11,14 @@
 // like the client's half-close (the stream would end OK). Parsed requests go to PlaceDbService's
 // handlers unchanged; responses are serialised as gRPC's own handlers do. Reflection and the
 // health service are unaffected (the service name comes from the method paths).
+//
+// Every call is authenticated and authorized here first (server/auth/call_auth.h), before its
+// request is parsed: UNAUTHENTICATED, then INVALID_ARGUMENT for a bad map name, then
+// PERMISSION_DENIED; the rule per method is in the constructor. ListMaps answers only the maps
+// the caller may read; GetServerInfo leaves out the server's details (vocabulary paths and
+// memory, detector, worker threads) for callers that are not admin. An Ingest stream's header
+// needs write on its map, and every later message is refused (ending the stream) once a reload
+// of the tokens file revoked the caller (UNAUTHENTICATED) or its right (PERMISSION_DENIED).
 #pragma once
 
 #include <grpcpp/grpcpp.h>
@@ -21,6 +29,7 @@
 #include <vector>
 
 #include "proto/placedb.grpc.pb.h"
+#include "server/auth/call_auth.h"
 
 namespace google::protobuf {
 class Message;
@@ -49,8 +58,10 @@ std::string DiagnoseMessage(const std::string& bytes, const google::protobuf::Me
 
 class ParsingService final : public grpc::Service {
  public:
-  // `service` answers every parsed request; it must outlive this.
-  explicit ParsingService(PlaceDbService* service);
+  // `service` answers every parsed request; `authorizer` (null: no checks) decides who may call
+  // what. Both must outlive this.
+  explicit ParsingService(PlaceDbService* service,
+                          const auth::CallAuthorizer* authorizer = nullptr);
 
   // Methods of placedb.v1.PlaceDb (from the proto's descriptor) with no registration here: an RPC
   // added to placedb.proto needs one line in parsing_service.cc. Server::Start refuses to start
@@ -58,14 +69,20 @@ class ParsingService final : public grpc::Service {
   std::vector<std::string> Unregistered() const;
 
  private:
+  // `map_of` names the request's map (for `right`; "" for methods on no map).
   template <typename Request, typename Response>
   void AddUnary(const char* method,
                 grpc::Status (PlaceDbService::*handler)(grpc::ServerContext*, const Request*,
-                                                        Response*));
+                                                        Response*),
+                auth::Right right, std::string (*map_of)(const Request&));
   void AddIngest(const char* method);
+  // Sets *caller (every right when there is no authorizer); else the denial (logged, counted).
+  grpc::Status Authenticate(const char* method, const grpc::ServerContext& context,
+                            auth::Caller* caller) const;
   const char* Path(const char* method);  // "/placedb.v1.PlaceDb/<method>", stable storage
 
   PlaceDbService* const service_;
+  const auth::CallAuthorizer* const authorizer_;
   std::deque<std::string> paths_;  // RpcServiceMethod keeps a pointer to its name
   std::vector<std::string> registered_;
 };

@@ -3,18 +3,23 @@
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/impl/server_builder_option.h>
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <opencv2/core.hpp>
 
+#include "server/auth/call_auth.h"
+#include "server/auth/token_store.h"
 #include "server/map_registry.h"
 #include "server/memory_budget.h"
 #include "server/metrics.h"
 #include "server/parsing_service.h"
 #include "server/service.h"
+#include "server/transport_security.h"
 #include "server/worker_pool.h"
 
 namespace placedb::server {
@@ -71,6 +76,27 @@ Result<LoadedVocabularies> LoadVocabularies(const ServerConfig& config,
   return out;
 }
 
+// Server reflection for this server only, on or off: InitProtoReflectionServerBuilderPlugin()
+// would turn it on for every server the process builds after it.
+class ReflectionOption final : public grpc::ServerBuilderOption {
+ public:
+  explicit ReflectionOption(bool enabled) : enabled_(enabled) {}
+  void UpdateArguments(grpc::ChannelArguments*) override {}
+  void UpdatePlugins(std::vector<std::unique_ptr<grpc::ServerBuilderPlugin>>* plugins) override {
+    constexpr char kName[] = "proto_server_reflection";
+    // One registered globally (by other code in the process) is removed or kept, as configured.
+    plugins->erase(std::remove_if(plugins->begin(), plugins->end(),
+                                  [&](const auto& plugin) { return plugin->name() == kName; }),
+                   plugins->end());
+    if (enabled_) {
+      plugins->push_back(std::make_unique<grpc::reflection::ProtoServerReflectionPlugin>());
+    }
+  }
+
+ private:
+  const bool enabled_;
+};
+
 // VmRSS of this process, 0 when /proc is not there.
 uint64_t ResidentBytes() {
   std::ifstream status("/proc/self/status");
@@ -111,6 +137,10 @@ Server::Server(ServerConfig config) : config_(std::move(config)) {}
 
 Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, ServerDeps deps) {
   PLACEDB_RETURN_IF_ERROR(ValidateServerConfig(config));
+  // Before anything slow: the safe default, and the TLS files (a bad one fails at once).
+  PLACEDB_RETURN_IF_ERROR(CheckExposure(config));
+  auto credentials = MakeServerCredentials(config.tls);
+  if (!credentials.ok()) return credentials.status();
   std::unique_ptr<Server> server(new Server(config));
   const ServerConfig& c = server->config_;
   if (c.opencv_threads >= 0) cv::setNumThreads(c.opencv_threads);
@@ -167,6 +197,25 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
 
   server->metrics_ = std::make_unique<Metrics>();
   Metrics* metrics = server->metrics_.get();
+  if (!c.security.tokens_file.empty()) {
+    auto tokens = auth::TokenStore::Open(c.security.tokens_file,
+                                         [metrics](bool ok) { metrics->TokensReloaded(ok); });
+    if (!tokens.ok()) return tokens.status();
+    server->tokens_ = std::move(tokens).value();
+    server->tokens_->StartWatching(std::chrono::seconds(1));
+    spdlog::info("tokens file {}: {} principals; every call needs a token{}",
+                 c.security.tokens_file, server->tokens_->snapshot()->principals().size(),
+                 c.tls.mutual() ? " or a client certificate a principal lists" : "");
+  } else if (c.tls.mutual()) {
+    spdlog::info(
+        "no tokens file: every holder of a client certificate the client CA verifies may "
+        "do everything");
+  }
+  server->authorizer_ = std::make_unique<auth::CallAuthorizer>(
+      server->tokens_.get(), c.tls.mutual(),
+      [metrics](auth::DenyReason reason, const std::string& method) {
+        metrics->AuthDenied(auth::DenyReasonLabel(reason), method);
+      });
   server->pool_ =
       std::make_unique<WorkerPool>(c.worker_threads(), c.limits.max_queued_frames,
                                    [metrics](size_t depth) { metrics->SetQueueDepth(depth); });
@@ -175,15 +224,16 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
       detector_status, server->budget_.get());
 
   // Requests are parsed by ParsingService, so malformed ones get INVALID_ARGUMENT with a reason.
-  server->parsing_ = std::make_unique<ParsingService>(server->service_.get());
+  server->parsing_ =
+      std::make_unique<ParsingService>(server->service_.get(), server->authorizer_.get());
   if (const auto missing = server->parsing_->Unregistered(); !missing.empty()) {
     return Status::Internal("server/parsing_service.cc does not register " + missing.front());
   }
 
   grpc::EnableDefaultHealthCheckService(true);
-  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
-  builder.AddListeningPort(c.listen, grpc::InsecureServerCredentials(), &server->port_);
+  builder.SetOption(std::make_unique<ReflectionOption>(c.security.reflection));
+  builder.AddListeningPort(c.listen, *credentials, &server->port_);
   builder.RegisterService(server->parsing_.get());
   builder.SetMaxReceiveMessageSize(int(c.limits.max_message_bytes));
   // Transport memory and handler threads are bounded: a flood of calls gets RESOURCE_EXHAUSTED
@@ -215,21 +265,34 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   if (!c.metrics_listen.empty()) {
     PlaceDbService* service = server->service_.get();
     const MemoryBudget* budget = server->budget_.get();
-    Status serving = metrics->Serve(
-        Metrics::Endpoint{.listen = c.metrics_listen,
-                          .path = c.metrics_path,
-                          .threads = c.metrics_threads,
-                          .request_timeout_ms = c.metrics_request_timeout_ms},
-        [service, metrics, budget] {
-          service->RefreshMapGauges();
-          metrics->SetMemoryBudget(budget->limit(), budget->fixed(), budget->in_use());
-        });
+    Metrics::Endpoint endpoint;
+    endpoint.listen = c.metrics_listen;
+    endpoint.path = c.metrics_path;
+    endpoint.threads = c.metrics_threads;
+    endpoint.request_timeout_ms = c.metrics_request_timeout_ms;
+    if (c.metrics_tls) endpoint.tls = c.tls;
+    if (server->tokens_) {
+      // Scrapes need basic auth of a principal with `metrics` or `admin` (docs/security.md).
+      const auth::CallAuthorizer* authorizer = server->authorizer_.get();
+      endpoint.authorize = [authorizer](const std::string& peer, const std::string& user,
+                                        const std::string& password) {
+        return authorizer->AuthorizeScrape(peer, user, password);
+      };
+    }
+    Status serving = metrics->Serve(endpoint, [service, metrics, budget] {
+      service->RefreshMapGauges();
+      metrics->SetMemoryBudget(budget->limit(), budget->fixed(), budget->in_use());
+    });
     if (!serving.ok()) {
       server->Shutdown();
       return serving;
     }
     server->metrics_port_ = metrics->port();
   }
+  spdlog::info("gRPC transport: {}; metrics: {}", DescribeTransport(c.tls),
+               c.metrics_listen.empty() ? "off"
+               : c.metrics_tls          ? "HTTPS with the same files"
+                                        : "plaintext HTTP");
   spdlog::info("placedb-server {} listening on {} (port {}), metrics {}, data {}, {} workers",
                PLACEDB_VERSION, c.listen, server->port_,
                c.metrics_listen.empty() ? std::string("off")
@@ -241,6 +304,11 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
 
 Server::~Server() {
   Shutdown();
+}
+
+Status Server::ReloadTokens() {
+  if (!tokens_) return Status::FailedPrecondition("no tokens file is configured");
+  return tokens_->Reload();
 }
 
 void Server::Shutdown() {
@@ -274,6 +342,7 @@ void Server::Shutdown() {
   }
   if (pool_) pool_->Stop();
   if (metrics_) metrics_->StopServing();
+  if (tokens_) tokens_->StopWatching();
   if (maps_) maps_->CloseAll();  // flushes and closes RocksDB
   spdlog::info("shutdown complete in {:.3f} s",
                std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());

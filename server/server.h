@@ -24,6 +24,10 @@ class Server;
 
 namespace placedb::server {
 
+namespace auth {
+class CallAuthorizer;
+class TokenStore;
+}  // namespace auth
 class MapRegistry;
 class MemoryBudget;
 class Metrics;
@@ -56,6 +60,11 @@ class Server {
   MemoryBudget& memory_budget() const { return *budget_; }  // tests hold part of it as load
   const ServerConfig& config() const { return config_; }
 
+  // Loads security.tokens_file again (SIGHUP): OK and the new principals apply to the next
+  // call (and to open Ingest streams at their next message); on error the previous principals
+  // stay. FAILED_PRECONDITION when no tokens file is configured.
+  Status ReloadTokens();
+
   // Graceful shutdown; idempotent and thread-safe (other callers wait for the first).
   void Shutdown();
   // Blocks until Shutdown() has completed.
@@ -71,6 +80,8 @@ class Server {
   std::shared_ptr<const Detector> detector_;
   std::unique_ptr<WorkerPool> pool_;
   std::unique_ptr<PlaceDbService> service_;
+  std::unique_ptr<auth::TokenStore> tokens_;  // null without security.tokens_file
+  std::unique_ptr<auth::CallAuthorizer> authorizer_;
   std::unique_ptr<ParsingService> parsing_;  // what gRPC calls: parses, then calls service_
   std::unique_ptr<grpc::Server> server_;
   int port_ = 0;

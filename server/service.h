@@ -86,7 +86,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   bool WaitIdle(std::chrono::steady_clock::time_point deadline);
   // Sets the per-map gauges (places, bytes on disk, damage); run before each metrics scrape.
   void RefreshMapGauges();
-  // A request that is not a valid message (ParsingService): counted and logged as every answer.
+  // A request refused before its handler (ParsingService: not a valid message, or denied by
+  // authentication/authorization): counted and logged as every answer.
   grpc::Status RefuseMalformed(const char* method, grpc::ServerContext* context,
                                grpc::Status status);
 

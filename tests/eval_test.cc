@@ -23,6 +23,7 @@
 #include "eval/runner.h"
 #include "server/server.h"
 #include "tests/test_support.h"
+#include "tests/tls_certificates.h"
 
 namespace fs = std::filesystem;
 
@@ -878,6 +879,37 @@ TEST_F(EvalTest, ServerBackendAgreesWithInProcess) {
     }
   }
   (*started)->Shutdown();
+}
+
+// --server against a mutual-TLS server: the harness presents its client certificate (the CLI's
+// connection code, --tls --ca-cert --cert --key).
+TEST_F(EvalTest, ServerBackendPresentsItsClientCertificate) {
+  spdlog::set_level(spdlog::level::warn);
+  const testing::TestCertificates& certs = testing::SharedTestCertificates();
+  server::ServerConfig config;
+  config.listen = "127.0.0.1:0";
+  config.metrics_listen = "";
+  config.data_dir = testing::MakeTempDir("placedb-eval-server") + "/data";
+  config.threads = 2;
+  config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};
+  config.tls = {.cert_file = certs.server_cert,
+                .key_file = certs.server_key,
+                .client_ca_file = certs.ca_cert};
+  server::ServerDeps deps;
+  deps.vocabularies.emplace("default", testing::DefaultVocabulary());
+  auto started = server::Server::Start(config, deps);
+  ASSERT_TRUE(started.ok()) << started.status().ToString();
+  client::ConnectionOptions connection;
+  connection.address = "localhost:" + std::to_string((*started)->port());
+  connection.tls = true;
+  connection.ca_cert = certs.ca_cert;
+  auto refused = MakeServerBackend(connection, testing::DefaultVocabulary(), nullptr);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), StatusCode::kFailedPrecondition);
+  connection.cert = certs.client_cert;
+  connection.key = certs.client_key;
+  auto backend = MakeServerBackend(connection, testing::DefaultVocabulary(), nullptr);
+  EXPECT_TRUE(backend.ok()) << backend.status().ToString();
 }
 
 }  // namespace

@@ -14,6 +14,8 @@ PACKAGES=(
   libopencv-dev libeigen3-dev libtbb-dev
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   librocksdb-dev prometheus-cpp-dev
+  libcpp-httplib-dev  # the metrics endpoint (HTTP and HTTPS)
+  libssl-dev openssl  # TLS (server/transport_security); the tests make certificates with openssl
   libturbojpeg0-dev  # strict JPEG decoding (core/decode)
   libjemalloc-dev    # PLACEDB_ALLOCATOR=jemalloc (measured against glibc, tuned: the default)
   libgtest-dev libgmock-dev libbenchmark-dev

@@ -1,5 +1,8 @@
 // The /metrics endpoint (Prometheus text over HTTP): what was sent, counted by method, code,
-// map and stage; a deleted map's series go away; slow HTTP clients cannot block it.
+// map and stage; a deleted map's series go away; slow HTTP clients cannot block it; only its
+// path and GET are served; basic auth headers are parsed strictly; a port in use is an error.
+#include "server/metrics.h"
+
 #include <arpa/inet.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
@@ -12,6 +15,7 @@
 #include <cmath>
 #include <map>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "tests/server/server_fixture.h"
@@ -201,6 +205,120 @@ TEST_F(ServerTest, MetricsEndpointClosesSlowConnections) {
   close(fd);
   EXPECT_EQ(reply.find("placedb_"), std::string::npos) << reply;  // never served
   EXPECT_FALSE(Scrape().empty());                                 // and the endpoint goes on
+}
+
+// Sends `request` on a new connection and reads the whole answer.
+std::string Exchange(int port, const std::string& request) {
+  const int fd = Connect(port, 30);
+  EXPECT_GE(fd, 0);
+  if (fd < 0) return "";
+  EXPECT_EQ(send(fd, request.data(), request.size(), 0), ssize_t(request.size()));
+  std::string reply;
+  EXPECT_TRUE(ReadUntilClosed(fd, &reply));
+  close(fd);
+  return reply;
+}
+
+// The status code of an HTTP answer ("200"); empty when there is none.
+std::string HttpCode(const std::string& reply) {
+  return reply.rfind("HTTP/1.", 0) == 0 && reply.size() > 12 ? reply.substr(9, 3) : "";
+}
+
+// A plaintext endpoint on `listen` serving /metrics.
+server::Metrics::Endpoint PlainEndpoint(const std::string& listen) {
+  server::Metrics::Endpoint endpoint;
+  endpoint.listen = listen;
+  endpoint.path = "/metrics";
+  return endpoint;
+}
+
+// Only the configured path, and only GET; the scrape refreshes first.
+TEST(MetricsEndpointTest, ServesItsPathToGetOnly) {
+  server::Metrics metrics;
+  int refreshes = 0;
+  ASSERT_TRUE(metrics.Serve(PlainEndpoint("127.0.0.1:0"), [&refreshes] { ++refreshes; }).ok());
+  const int port = metrics.port();
+  ASSERT_GT(port, 0);
+  const std::string scrape = Exchange(port, "GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n");
+  EXPECT_EQ(HttpCode(scrape), "200");
+  EXPECT_NE(scrape.find("# TYPE placedb_queue_depth gauge"), std::string::npos) << scrape;
+  EXPECT_NE(scrape.find("Connection: close"), std::string::npos) << scrape;  // no keep-alive
+  EXPECT_EQ(refreshes, 1);
+  EXPECT_EQ(HttpCode(Exchange(port, "GET /metrics?x=1 HTTP/1.0\r\n\r\n")), "200");
+  EXPECT_EQ(HttpCode(Exchange(port, "GET /other HTTP/1.0\r\n\r\n")), "404");
+  EXPECT_EQ(HttpCode(Exchange(port, "GET /metrics/x HTTP/1.0\r\n\r\n")), "404");
+  const std::string post = Exchange(port, "POST /metrics HTTP/1.0\r\nContent-Length: 3\r\n\r\nabc");
+  EXPECT_EQ(HttpCode(post), "405");
+  EXPECT_NE(post.find("Allow: GET"), std::string::npos) << post;
+  EXPECT_EQ(refreshes, 2);  // the refused requests did not collect
+  metrics.StopServing();
+  EXPECT_EQ(metrics.port(), 0);
+}
+
+// A port another endpoint holds is IO_ERROR (not shared), and the first one goes on serving.
+TEST(MetricsEndpointTest, APortInUseIsAnIoError) {
+  server::Metrics first;
+  ASSERT_TRUE(first.Serve(PlainEndpoint("127.0.0.1:0"), nullptr).ok());
+  server::Metrics second;
+  const std::string listen = "127.0.0.1:" + std::to_string(first.port());
+  const Status status = second.Serve(PlainEndpoint(listen), nullptr);
+  EXPECT_EQ(status.code(), StatusCode::kIoError) << status.ToString();
+  EXPECT_NE(status.message().find(listen), std::string::npos) << status.ToString();
+  EXPECT_EQ(second.port(), 0);
+  EXPECT_EQ(HttpCode(Exchange(first.port(), "GET /metrics HTTP/1.0\r\n\r\n")), "200");
+  EXPECT_EQ(second.Serve(PlainEndpoint("127.0.0.1"), nullptr).code(), StatusCode::kInvalidArgument);
+}
+
+// Basic auth: only a well-formed "Basic base64(user:password)" reaches the check, with the
+// scraper's address; everything else is 401 with the challenge.
+TEST(MetricsEndpointTest, BasicAuthIsParsedStrictly) {
+  server::Metrics metrics;
+  std::vector<std::tuple<std::string, std::string, std::string>> asked;
+  server::Metrics::Endpoint endpoint = PlainEndpoint("127.0.0.1:0");
+  endpoint.authorize = [&asked](const std::string& peer, const std::string& user,
+                                const std::string& password) {
+    asked.emplace_back(peer, user, password);
+    return password == "secret" || user == "a";
+  };
+  ASSERT_TRUE(metrics.Serve(endpoint, nullptr).ok());
+  const int port = metrics.port();
+  auto status = [port](const std::string& authorization) {
+    const std::string reply = Exchange(port, "GET /metrics HTTP/1.0\r\n" + authorization + "\r\n");
+    const std::string code = HttpCode(reply);
+    if (code == "401") {
+      EXPECT_NE(reply.find("WWW-Authenticate: Basic realm=\"placedb\""), std::string::npos)
+          << reply;
+    }
+    return code;
+  };
+  EXPECT_EQ(status(""), "401");
+  EXPECT_EQ(status("Authorization: Bearer cHJvbTpzZWNyZXQ=\r\n"), "401");
+  EXPECT_EQ(status("Authorization: Basic\r\n"), "401");
+  EXPECT_EQ(status("Authorization: Basic !!!!\r\n"), "401");
+  EXPECT_EQ(status("Authorization: Basic cHJvbTpzZWNyZXQ\r\n"), "401");   // length not 4n
+  EXPECT_EQ(status("Authorization: Basic cHJv=TpzZWNyZXQ=\r\n"), "401");  // '=' inside
+  EXPECT_EQ(status("Authorization: Basic cHJvbTpzZWNyZXQ===\r\n"), "401");
+  EXPECT_EQ(status("Authorization: Basic cHJvbXNlY3JldA==\r\n"), "401");  // "promsecret": no ':'
+  EXPECT_TRUE(asked.empty());  // none of those reached the check
+  EXPECT_EQ(status("Authorization: Basic cHJvbTp3cm9uZw==\r\n"), "401");  // prom:wrong
+  EXPECT_EQ(status("Authorization: Basic cHJvbTpzZWNyZXQ=\r\n"), "200");  // prom:secret
+  EXPECT_EQ(status("Authorization: basic  cHJvbTpzZWNyZXQ=\r\n"), "200");
+  EXPECT_EQ(status("Authorization: Basic cHJvbTpzZTpjcmV0\r\n"), "401");  // prom:se:cret
+  // No padding, two and one padding characters: the password has no trailing bytes.
+  EXPECT_EQ(status("Authorization: Basic YTpi\r\n"), "200");      // a:b
+  EXPECT_EQ(status("Authorization: Basic YTpiYw==\r\n"), "200");  // a:bc
+  EXPECT_EQ(status("Authorization: Basic YTpiY2Q=\r\n"), "200");  // a:bcd
+  using Asked = std::tuple<std::string, std::string, std::string>;
+  ASSERT_EQ(asked.size(), 7u);
+  EXPECT_EQ(std::get<0>(asked[0]).rfind("ipv4:127.0.0.1:", 0), 0u) << std::get<0>(asked[0]);
+  auto without_peer = [](const Asked& a) { return std::make_pair(std::get<1>(a), std::get<2>(a)); };
+  EXPECT_EQ(without_peer(asked[0]), std::make_pair(std::string("prom"), std::string("wrong")));
+  EXPECT_EQ(without_peer(asked[1]), std::make_pair(std::string("prom"), std::string("secret")));
+  EXPECT_EQ(without_peer(asked[2]), std::make_pair(std::string("prom"), std::string("secret")));
+  EXPECT_EQ(without_peer(asked[3]), std::make_pair(std::string("prom"), std::string("se:cret")));
+  EXPECT_EQ(without_peer(asked[4]), std::make_pair(std::string("a"), std::string("b")));
+  EXPECT_EQ(without_peer(asked[5]), std::make_pair(std::string("a"), std::string("bc")));
+  EXPECT_EQ(without_peer(asked[6]), std::make_pair(std::string("a"), std::string("bcd")));
 }
 
 }  // namespace

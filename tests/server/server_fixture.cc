@@ -162,7 +162,7 @@ v1::MapConfig SiftMapConfig() {
   return config;
 }
 
-std::string HttpGet(int port, const std::string& path) {
+std::string HttpGet(int port, const std::string& path, const std::string& headers) {
   const int fd = socket(AF_INET, SOCK_STREAM, 0);
   EXPECT_GE(fd, 0);
   sockaddr_in address{};
@@ -174,7 +174,7 @@ std::string HttpGet(int port, const std::string& path) {
     close(fd);
     return "";
   }
-  const std::string request = "GET " + path + " HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n";
+  const std::string request = "GET " + path + " HTTP/1.0\r\nHost: 127.0.0.1\r\n" + headers + "\r\n";
   EXPECT_EQ(send(fd, request.data(), request.size(), 0), ssize_t(request.size()));
   std::string reply;
   char buffer[4096];
@@ -247,7 +247,7 @@ void ServerTest::TearDown() {
 ServerConfig ServerTest::Config() const {
   ServerConfig config;
   config.listen = "127.0.0.1:0";
-  config.metrics_listen = "";  // on only where scraped: stopping civetweb takes up to 2 s
+  config.metrics_listen = "";  // on only where scraped
   config.data_dir = root_ + "/data";
   config.threads = 2;
   config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};

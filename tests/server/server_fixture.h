@@ -113,7 +113,8 @@ v1::MapConfig SiftMapConfig();  // a map on "sift" with SIFT features
 
 // ---- Metrics scraping ---------------------------------------------------------------------------
 
-std::string HttpGet(int port, const std::string& path);
+// `headers`: extra header lines, each ending in "\r\n".
+std::string HttpGet(int port, const std::string& path, const std::string& headers = "");
 // Prometheus text format -> "name{k=v,...}" (labels sorted) -> value.
 std::map<std::string, double> ParseMetrics(const std::string& reply);
 // The value of one series, NaN if absent.
