@@ -2,15 +2,13 @@
 // of every placedb.v1.PlaceDb RPC x every kind of caller, ListMaps filtering, wildcard patterns,
 // the open health service, reflection on/off, messages that never hold a token, reloads (a token
 // added, changed, revoked while Ingest streams are open: by Server::ReloadTokens() and by editing
-// the file), the audit counters and the /metrics basic-auth check.
+// the file), the audit counters, the /metrics basic-auth check, and the principals that mutual-TLS
+// client certificates name.
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <google/protobuf/descriptor.h>
 #include <grpcpp/generic/generic_stub.h>
-#include <grpcpp/impl/rpc_service_method.h>
 #include <grpcpp/security/credentials.h>
-#include <grpcpp/security/server_credentials.h>
-#include <grpcpp/support/method_handler.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
 #include <signal.h>
@@ -30,10 +28,12 @@
 #include <thread>
 #include <vector>
 
+#include "client/connection.h"
 #include "server/auth/call_auth.h"
 #include "server/auth/token_store.h"
 #include "server/auth/tokens.h"
 #include "tests/server/server_fixture.h"
+#include "tests/tls_certificates.h"
 
 namespace placedb::server_testing {
 namespace {
@@ -908,170 +908,139 @@ TEST_F(AuthTest, SighupReloadsTheTokensFileOfTheServerBinary) {
 
 // ---- Client certificates (mutual TLS) ----------------------------------------------------------
 //
-// The principal from a verified client certificate, through a real TLS handshake on loopback
-// (certificates made with the openssl CLI): a small gRPC service whose one method answers the
-// name CallAuthorizer::Authenticate found ("*" appended when the caller has every right).
+// The principal a verified client certificate names, through the real server over a real mutual
+// TLS handshake on loopback (certificates from tests/tls_certificates.h), with the CLI's own
+// connection code presenting the certificate (and a bearer token, when given).
 
-class WhoAmIService final : public grpc::Service {
- public:
-  explicit WhoAmIService(const server::auth::CallAuthorizer* authorizer) : authorizer_(authorizer) {
-    AddMethod(new grpc::internal::RpcServiceMethod(
-        "/test.WhoAmI/Get", grpc::internal::RpcMethod::NORMAL_RPC,
-        new grpc::internal::RpcMethodHandler<WhoAmIService, grpc::ByteBuffer, grpc::ByteBuffer>(
-            [](WhoAmIService* self, grpc::ServerContext* context, const grpc::ByteBuffer*,
-               grpc::ByteBuffer* out) {
-              auto caller = self->authorizer_->Authenticate("WhoAmI", *context);
-              if (auto* denied = std::get_if<grpc::Status>(&caller)) return *denied;
-              const auto& who = std::get<server::auth::Caller>(caller);
-              grpc::Slice slice(who.name + (who.everything ? "*" : ""));
-              *out = grpc::ByteBuffer(&slice, 1);
-              return grpc::Status::OK;
-            },
-            this)));
-  }
-
- private:
-  const server::auth::CallAuthorizer* const authorizer_;
-};
-
-class MutualTlsTest : public ::testing::Test {
+class MutualTlsAuthTest : public ServerTest {
  protected:
   void SetUp() override {
-    dir_ = testing::MakeTempDir("placedb-auth-mtls");
-    const std::string ec = " -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes";
-    ASSERT_EQ(
-        Sh("openssl req -x509" + ec + " -keyout ca.key -out ca.pem -days 2 -subj /CN=test-ca"), 0);
-    ASSERT_EQ(Sh("openssl req -x509" + ec +
-                 " -keyout rogue-ca.key -out rogue-ca.pem -days 2 -subj /CN=rogue-ca"),
-              0);
-    Issue("server", "localhost", "DNS:localhost,IP:127.0.0.1", "ca");
-    Issue("robot8", "robot-8.fleet.internal", "DNS:robot-8.alias,URI:spiffe://fleet/robot-8", "ca");
-    Issue("stranger", "stranger", "DNS:stranger.fleet.internal", "ca");
-    Issue("rogue", "robot-8.fleet.internal", "DNS:robot-8.alias", "rogue-ca");
+    ServerTest::SetUp();
+    const testing::TestCertificates& c = testing::SharedTestCertificates();
+    stranger_ =
+        testing::IssueClientCertificate(c, "stranger", "stranger", {"stranger.fleet.internal"});
   }
-  void TearDown() override {
-    if (server_) server_->Shutdown(std::chrono::system_clock::now());
-    server_.reset();
-    fs::remove_all(dir_);
+  // A server requiring client certificates from the test CA; `tokens_file` "" = none.
+  void StartMutualTls(const std::string& tokens_file) {
+    const testing::TestCertificates& c = testing::SharedTestCertificates();
+    ServerConfig config = Config();
+    config.tls = {
+        .cert_file = c.server_cert, .key_file = c.server_key, .client_ca_file = c.ca_cert};
+    config.security.tokens_file = tokens_file;
+    StartServer(config);
   }
-  int Sh(const std::string& command) {
-    return std::system(("cd " + dir_ + " && " + command + " >/dev/null 2>&1").c_str());
+  // A connection presenting `certificate` ({cert, key}) and sending `token` ("" = none).
+  std::optional<client::Connection> Connect(const std::pair<std::string, std::string>& certificate,
+                                            const std::string& token = "") {
+    client::ConnectionOptions options;
+    options.address = "localhost:" + std::to_string(server_->port());
+    options.tls = true;
+    options.ca_cert = testing::SharedTestCertificates().ca_cert;
+    options.cert = certificate.first;
+    options.key = certificate.second;
+    options.token = token;
+    options.timeout_s = 30;
+    std::string error;
+    std::optional<client::Connection> connection = client::Connection::Open(options, &error);
+    EXPECT_TRUE(connection) << error;
+    return connection;
   }
-  void Issue(const std::string& file, const std::string& cn, const std::string& san,
-             const std::string& ca) {
-    ASSERT_EQ(Sh("openssl req -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes -keyout " +
-                 file + ".key -out " + file + ".csr -subj /CN=" + cn),
-              0);
-    std::ofstream(dir_ + "/" + file + ".ext") << "subjectAltName=" << san << "\n";
-    ASSERT_EQ(Sh("openssl x509 -req -in " + file + ".csr -CA " + ca + ".pem -CAkey " + ca +
-                 ".key -CAcreateserial -out " + file + ".pem -days 2 -extfile " + file + ".ext"),
-              0);
+  static grpc::Status CreateMapOver(client::Connection& connection, const std::string& map) {
+    v1::CreateMapRequest request;
+    request.set_name(map);
+    v1::MapDescription description;
+    auto context = connection.NewContext();
+    return connection.stub()->CreateMap(context.get(), request, &description);
   }
-  std::string Read(const std::string& name) { return testing::ReadFileBytes(dir_ + "/" + name); }
-
-  void Start(const server::auth::TokenStore* store) {
-    authorizer_ = std::make_unique<server::auth::CallAuthorizer>(store, true, nullptr);
-    service_ = std::make_unique<WhoAmIService>(authorizer_.get());
-    grpc::SslServerCredentialsOptions options(
-        GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY);
-    options.pem_root_certs = Read("ca.pem");
-    options.pem_key_cert_pairs.push_back({Read("server.key"), Read("server.pem")});
-    grpc::ServerBuilder builder;
-    builder.AddListeningPort("127.0.0.1:0", grpc::SslServerCredentials(options), &port_);
-    builder.RegisterService(service_.get());
-    server_ = builder.BuildAndStart();
-    ASSERT_TRUE(server_);
+  static grpc::Status GetMapOver(client::Connection& connection, const std::string& map) {
+    v1::GetMapRequest request;
+    request.set_name(map);
+    v1::MapDescription description;
+    auto context = connection.NewContext();
+    return connection.stub()->GetMap(context.get(), request, &description);
   }
-  // Calls WhoAmI with the client certificate `client` (and an authorization header, if given).
-  grpc::Status WhoAmI(const std::string& client, const std::string& authorization,
-                      std::string* who) {
-    grpc::SslCredentialsOptions options;
-    options.pem_root_certs = Read("ca.pem");
-    options.pem_private_key = Read(client + ".key");
-    options.pem_cert_chain = Read(client + ".pem");
-    grpc::ChannelArguments args;
-    args.SetSslTargetNameOverride("localhost");
-    auto channel = grpc::CreateCustomChannel("127.0.0.1:" + std::to_string(port_),
-                                             grpc::SslCredentials(options), args);
-    grpc::GenericStub generic(channel);
-    grpc::Slice empty("");
-    grpc::ByteBuffer request(&empty, 1), response;
-    grpc::ClientContext context;
-    if (!authorization.empty()) context.AddMetadata("authorization", authorization);
-    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
-    std::promise<grpc::Status> done;
-    generic.UnaryCall(&context, "/test.WhoAmI/Get", grpc::StubOptions(), &request, &response,
-                      [&](grpc::Status s) { done.set_value(s); });
-    const grpc::Status status = done.get_future().get();
-    std::vector<grpc::Slice> slices;
-    (void)response.Dump(&slices);
-    who->clear();
-    for (const auto& s : slices) who->append(reinterpret_cast<const char*>(s.begin()), s.size());
-    return status;
+  static std::pair<std::string, std::string> Robot8() {
+    const testing::TestCertificates& c = testing::SharedTestCertificates();
+    return {c.client_cert, c.client_key};  // CN robot-8.fleet.internal
+  }
+  static std::pair<std::string, std::string> Rogue() {
+    const testing::TestCertificates& c = testing::SharedTestCertificates();
+    return {c.other_client_cert, c.other_client_key};  // the same CN from another CA
   }
 
-  std::string dir_;
-  std::unique_ptr<server::auth::CallAuthorizer> authorizer_;
-  std::unique_ptr<WhoAmIService> service_;
-  std::unique_ptr<grpc::Server> server_;
-  int port_ = 0;
+  std::pair<std::string, std::string> stranger_;  // CN stranger, DNS SAN stranger.fleet.internal
 };
 
-TEST_F(MutualTlsTest, WithoutATokensFileEveryVerifiedCertificateMayDoEverything) {
-  Start(nullptr);
-  std::string who;
-  grpc::Status status = WhoAmI("robot8", "", &who);
-  ASSERT_TRUE(status.ok()) << status.error_message();
-  EXPECT_EQ(who, "robot-8.fleet.internal*");
-  status = WhoAmI("stranger", "", &who);
-  ASSERT_TRUE(status.ok()) << status.error_message();
-  EXPECT_EQ(who, "stranger*");
+TEST_F(MutualTlsAuthTest, WithoutATokensFileEveryVerifiedCertificateMayDoEverything) {
+  StartMutualTls("");
+  auto robot8 = Connect(Robot8());
+  ASSERT_TRUE(robot8);
+  EXPECT_TRUE(CreateMapOver(*robot8, "campus").ok());
+  auto stranger = Connect(stranger_);
+  ASSERT_TRUE(stranger);
+  EXPECT_TRUE(GetMapOver(*stranger, "campus").ok());
   // A certificate from another CA never gets past the handshake.
-  EXPECT_EQ(WhoAmI("rogue", "", &who).error_code(), Code::UNAVAILABLE);
+  auto rogue = Connect(Rogue());
+  ASSERT_TRUE(rogue);
+  EXPECT_EQ(GetMapOver(*rogue, "campus").error_code(), Code::UNAVAILABLE);
 }
 
-TEST_F(MutualTlsTest, WithATokensFileCertificatesNamePrincipals) {
-  const std::string token = NewToken();
+TEST_F(MutualTlsAuthTest, WithATokensFileCertificatesNamePrincipals) {
+  const std::string ops_token = NewToken();
   TokensFile file;
   Principal by_cn;
   by_cn.name = "robot-8-cert";
   by_cn.certificate_names = {"robot-8.fleet.internal"};
-  by_cn.maps = {{"*", true, false}};
+  by_cn.maps = {{"camp*", true, false}};
   ASSERT_TRUE(file.Add(by_cn).ok());
   Principal by_san;
   by_san.name = "stranger-by-san";
   by_san.certificate_names = {"stranger.fleet.internal"};
+  by_san.maps = {{"yard", true, false}};
   ASSERT_TRUE(file.Add(by_san).ok());
   Principal ops;
   ops.name = "ops";
-  ops.token_sha256 = HashToken(token);
+  ops.token_sha256 = HashToken(ops_token);
   ops.admin = true;
   ASSERT_TRUE(file.Add(ops).ok());
-  ASSERT_TRUE(file.Save(dir_ + "/tokens.yaml").ok());
-  auto store = server::auth::TokenStore::Open(dir_ + "/tokens.yaml");
-  ASSERT_TRUE(store.ok());
-  Start(store->get());
+  const std::string tokens_path = root_ + "/tokens.yaml";
+  ASSERT_TRUE(file.Save(tokens_path).ok());
+  StartMutualTls(tokens_path);
 
-  std::string who;
-  grpc::Status status = WhoAmI("robot8", "", &who);
-  ASSERT_TRUE(status.ok()) << status.error_message();
-  EXPECT_EQ(who, "robot-8-cert");  // by its CN
-  status = WhoAmI("stranger", "", &who);
-  ASSERT_TRUE(status.ok()) << status.error_message();
-  EXPECT_EQ(who, "stranger-by-san");  // by its DNS SAN
-  // A bearer token wins over the certificate.
-  status = WhoAmI("robot8", Bearer(token), &who);
-  ASSERT_TRUE(status.ok()) << status.error_message();
-  EXPECT_EQ(who, "ops");
-  EXPECT_EQ(WhoAmI("robot8", Bearer(NewToken()), &who).error_code(), Code::UNAUTHENTICATED);
+  // A bearer token wins over the certificate: the admin creates the maps over mutual TLS.
+  auto as_ops = Connect(Robot8(), ops_token);
+  ASSERT_TRUE(as_ops);
+  ASSERT_TRUE(CreateMapOver(*as_ops, "campus").ok());
+  ASSERT_TRUE(CreateMapOver(*as_ops, "yard").ok());
+  auto unknown = Connect(Robot8(), NewToken());
+  ASSERT_TRUE(unknown);
+  EXPECT_EQ(GetMapOver(*unknown, "campus").error_code(), Code::UNAUTHENTICATED);
+
+  // The certificate alone: its CN names robot-8-cert, which may read camp* only.
+  auto robot8 = Connect(Robot8());
+  ASSERT_TRUE(robot8);
+  EXPECT_TRUE(GetMapOver(*robot8, "campus").ok());
+  grpc::Status status = GetMapOver(*robot8, "yard");
+  EXPECT_EQ(status.error_code(), Code::PERMISSION_DENIED);
+  EXPECT_NE(status.error_message().find("'robot-8-cert'"), std::string::npos)
+      << status.error_message();
+  EXPECT_EQ(CreateMapOver(*robot8, "campus-2").error_code(), Code::PERMISSION_DENIED);
+  // A DNS SAN names stranger-by-san.
+  auto stranger = Connect(stranger_);
+  ASSERT_TRUE(stranger);
+  EXPECT_TRUE(GetMapOver(*stranger, "yard").ok());
+  status = GetMapOver(*stranger, "campus");
+  EXPECT_EQ(status.error_code(), Code::PERMISSION_DENIED);
+  EXPECT_NE(status.error_message().find("'stranger-by-san'"), std::string::npos)
+      << status.error_message();
 
   // Revoked: the certificate no longer names a principal.
   ASSERT_TRUE(file.Remove("stranger-by-san").ok());
-  ASSERT_TRUE(file.Save(dir_ + "/tokens.yaml").ok());
-  ASSERT_TRUE((*store)->Reload().ok());
-  status = WhoAmI("stranger", "", &who);
+  ASSERT_TRUE(file.Save(tokens_path).ok());
+  ASSERT_TRUE(server_->ReloadTokens().ok());
+  status = GetMapOver(*stranger, "yard");
   EXPECT_EQ(status.error_code(), Code::UNAUTHENTICATED);
-  EXPECT_EQ(status.error_message(), "WhoAmI: client certificate 'stranger' names no principal");
+  EXPECT_EQ(status.error_message(), "GetMap: client certificate 'stranger' names no principal");
 }
 
 }  // namespace
