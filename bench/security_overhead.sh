@@ -114,6 +114,12 @@ flags_a=(--address "127.0.0.1:$port_a")
 flags_b=(--address "localhost:$port_b" --tls --ca-cert "$work/ca.pem")
 wait_serving plaintext "${flags_a[@]}"
 PLACEDB_TOKEN="$token" wait_serving tls_tokens "${flags_b[@]}"
+# B really checks tokens: a call without one is refused (else B would measure nothing).
+if denied="$(env -u PLACEDB_TOKEN "$cli" --timeout 10 "${flags_b[@]}" maps list 2>&1)" ||
+  [[ "$denied" != *UNAUTHENTICATED* ]]; then
+  echo "security_overhead.sh: the tls_tokens server answered a call without a token: $denied" >&2
+  exit 1
+fi
 
 echo "# $(uptime)"
 echo "# $(nproc) cores; $rounds rounds x ${duration} s per mode, $agents agents, --mode features," \
