@@ -362,7 +362,7 @@ mount -t proc proc "$rootfs/proc"
 mount --bind /dev "$rootfs/dev"
 
 # ---- 4. secrets ----------------------------------------------------------------------------------
-phase "secrets (placedb-init-secrets, as Compose's one-shot service)"
+phase "secrets (placedb-init-secrets)"
 # The image's own script, as root in the image's filesystem: /run/secrets stands for the
 # placedb-secrets volume. Its log holds the admin token, printed once.
 secrets_dir="$rootfs/run/secrets"
