@@ -169,25 +169,9 @@ class AuthTest : public ServerTest {
   }
   IngestOutcome IngestAs(const std::string& who, const std::string& map,
                          const std::vector<v1::Observation>& observations) {
-    auto context = Context(who);
-    auto stream = stub_->Ingest(context.get());
-    std::thread writer([&] {
-      v1::IngestRequest first;
-      first.mutable_header()->set_map(map);
-      if (!stream->Write(first)) return;
-      for (const v1::Observation& observation : observations) {
-        v1::IngestRequest request;
-        *request.mutable_observation() = observation;
-        if (!stream->Write(request)) return;
-      }
-      stream->WritesDone();
-    });
-    IngestOutcome out;
-    v1::IngestResponse response;
-    while (stream->Read(&response)) out.responses.push_back(response);
-    writer.join();
-    out.status = stream->Finish();
-    return out;
+    v1::IngestHeader header;
+    header.set_map(map);
+    return IngestWithHeader(stub_.get(), header, observations, who);
   }
 
   // Everything a denied call must leave as it was: every map's statistics (through the admin)
@@ -850,19 +834,7 @@ TEST_F(AuthTest, TokensCommandWritesHashesAndPrintsTheTokenOnce) {
 // The real binary: SIGHUP reloads the tokens file (and does not end the process); SIGTERM still
 // shuts it down cleanly.
 TEST_F(AuthTest, SighupReloadsTheTokensFileOfTheServerBinary) {
-  // A free loopback port (bound, read, closed: the server binds it next).
-  int port = 0;
-  {
-    const int fd = socket(AF_INET, SOCK_STREAM, 0);
-    sockaddr_in address{};
-    address.sin_family = AF_INET;
-    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    ASSERT_EQ(bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
-    socklen_t length = sizeof address;
-    ASSERT_EQ(getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length), 0);
-    port = ntohs(address.sin_port);
-    close(fd);
-  }
+  const int port = testing::UnusedLoopbackPort();  // the server binds it next
   const std::string log = root_ + "/server.log";
   const std::string listen = "127.0.0.1:" + std::to_string(port);
   // Everything the child needs is made before fork: it only calls async-signal-safe functions.

@@ -113,8 +113,10 @@ v1::Observation RgbdObservation(const rgbd::RgbdFrame& frame, const std::string&
 }
 
 IngestOutcome IngestWithHeader(v1::PlaceDb::Stub* stub, const v1::IngestHeader& header,
-                               const std::vector<v1::Observation>& observations) {
+                               const std::vector<v1::Observation>& observations,
+                               const std::string& authorization) {
   grpc::ClientContext context;
+  if (!authorization.empty()) context.AddMetadata("authorization", authorization);
   auto stream = stub->Ingest(&context);
   std::thread writer([&] {
     v1::IngestRequest first;

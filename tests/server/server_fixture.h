@@ -94,9 +94,10 @@ struct IngestOutcome {
 };
 
 // One Ingest stream: writes the header and every observation from one thread while reading
-// responses on this one, as a real agent does.
+// responses on this one, as a real agent does; `authorization` ("" = none) is sent as metadata.
 IngestOutcome IngestWithHeader(v1::PlaceDb::Stub* stub, const v1::IngestHeader& header,
-                               const std::vector<v1::Observation>& observations);
+                               const std::vector<v1::Observation>& observations,
+                               const std::string& authorization = "");
 // The same with a header naming only `map` (and `matches` if given).
 IngestOutcome IngestAll(v1::PlaceDb::Stub* stub, const std::string& map,
                         const std::vector<v1::Observation>& observations,

@@ -65,6 +65,14 @@ ConnectionOptions Presenting(const std::string& ca, const std::string& cert,
 
 class TlsTest : public ServerTest {
  protected:
+  // TLS (mutual or not) on the gRPC port, and metrics over HTTPS on a free loopback port.
+  ServerConfig HttpsMetricsConfig(bool mutual) const {
+    ServerConfig config = Config();
+    config.tls = ServerTls(mutual);
+    config.metrics_listen = "127.0.0.1:0";
+    config.metrics_tls = true;
+    return config;
+  }
   // `openssl s_client` to 127.0.0.1:port with `arguments`, sending `input`; its exit status.
   int SClient(int port, const std::string& arguments, const std::string& input,
               std::string* output) {
@@ -195,10 +203,7 @@ TEST_F(TlsTest, TheServerSeesAMutualTlsCallersCertificateNames) {
 
 TEST_F(TlsTest, Tls11IsRefused) {
   const TestCertificates& c = SharedTestCertificates();
-  ServerConfig config = Config();
-  config.tls = ServerTls(/*mutual=*/false);
-  config.metrics_listen = "127.0.0.1:0";
-  config.metrics_tls = true;
+  ServerConfig config = HttpsMetricsConfig(/*mutual=*/false);
   StartServer(config);
   // The client allows TLS 1.1 whatever the system's OpenSSL policy (Debian's requires 1.2).
   const std::string legacy = "OPENSSL_CONF=/dev/null ";
@@ -230,10 +235,7 @@ TEST_F(TlsTest, Tls11IsRefused) {
 
 TEST_F(TlsTest, MetricsOverHttps) {
   const TestCertificates& c = SharedTestCertificates();
-  ServerConfig config = Config();
-  config.tls = ServerTls(/*mutual=*/false);
-  config.metrics_listen = "127.0.0.1:0";
-  config.metrics_tls = true;
+  ServerConfig config = HttpsMetricsConfig(/*mutual=*/false);
   StartServer(config);
   const int port = server_->metrics_port();
   ASSERT_GT(port, 0);
@@ -251,10 +253,7 @@ TEST_F(TlsTest, MetricsOverHttps) {
 // Connections that never start their handshake hold the endpoint's workers for at most
 // metrics_request_timeout_ms: a scrape behind them is still answered.
 TEST_F(TlsTest, IdleConnectionsDoNotBlockHttpsMetrics) {
-  ServerConfig config = Config();
-  config.tls = ServerTls(/*mutual=*/false);
-  config.metrics_listen = "127.0.0.1:0";
-  config.metrics_tls = true;
+  ServerConfig config = HttpsMetricsConfig(/*mutual=*/false);
   config.metrics_threads = 2;
   config.metrics_request_timeout_ms = 300;
   StartServer(config);
@@ -275,10 +274,7 @@ TEST_F(TlsTest, IdleConnectionsDoNotBlockHttpsMetrics) {
 
 TEST_F(TlsTest, MutualTlsMetricsRequireAClientCertificate) {
   const TestCertificates& c = SharedTestCertificates();
-  ServerConfig config = Config();
-  config.tls = ServerTls(/*mutual=*/true);
-  config.metrics_listen = "127.0.0.1:0";
-  config.metrics_tls = true;
+  ServerConfig config = HttpsMetricsConfig(/*mutual=*/true);
   StartServer(config);
   const int port = server_->metrics_port();
   EXPECT_EQ(HttpsGet(port, "").find("placedb_queue_depth"), std::string::npos);
@@ -294,10 +290,7 @@ TEST_F(TlsTest, MutualTlsMetricsRequireAClientCertificate) {
 // resumed session keeps its verified client certificate.
 TEST_F(TlsTest, MutualTlsMetricsAnswerAResumedSession) {
   const TestCertificates& c = SharedTestCertificates();
-  ServerConfig config = Config();
-  config.tls = ServerTls(/*mutual=*/true);
-  config.metrics_listen = "127.0.0.1:0";
-  config.metrics_tls = true;
+  ServerConfig config = HttpsMetricsConfig(/*mutual=*/true);
   StartServer(config);
   const int port = server_->metrics_port();
   const std::string session = root_ + "/tls-session.pem";
