@@ -15,6 +15,7 @@
 #include <thread>
 
 #include "core/storage/map_store.h"
+#include "tests/rtabmap_frames.h"
 #include "tests/test_support.h"
 
 namespace placedb {
@@ -22,19 +23,6 @@ namespace {
 
 constexpr int kFrames = 20;
 constexpr char kChildEnv[] = "PLACEDB_CRASH_CHILD";
-
-// The first kFrames valid RTAB-Map frames (a few bare corridor views are invalid places).
-std::vector<ProcessedFrame> ProcessRtabmap(const PlaceDatabase& db) {
-  std::vector<ProcessedFrame> frames;
-  for (int i = 1; i <= 84 && frames.size() < size_t(kFrames); ++i) {
-    Observation observation;
-    observation.image = testing::ReadGray(testing::RtabmapFramePath(i));
-    auto frame = db.Process(observation);
-    EXPECT_TRUE(frame.ok());
-    if (frame.ok() && frame->valid) frames.push_back(*frame);
-  }
-  return frames;
-}
 
 void Say(const char* format, unsigned id, int frame) {
   char line[64];
@@ -50,7 +38,8 @@ void Say(const char* format, unsigned id, int frame) {
   if (!dir.ok()) std::_Exit(3);
   auto map = (*dir)->OpenMap("crash", testing::DefaultVocabulary());
   if (!map.ok()) std::_Exit(4);
-  const std::vector<ProcessedFrame> frames = ProcessRtabmap((*map)->database());
+  const std::vector<ProcessedFrame> frames =
+      testing::ProcessRtabmapFrames((*map)->database(), kFrames);
   std::mt19937 rng{uint32_t(getpid())};
   for (uint64_t n = 0;; ++n) {
     const int frame = int(rng() % kFrames);
@@ -109,7 +98,7 @@ TEST(CrashSafety, AcknowledgedPlacesSurviveSigkill) {
     ASSERT_TRUE(dir.ok());
     auto map = (*dir)->CreateMap("crash", {}, vocabulary);
     ASSERT_TRUE(map.ok());
-    frames = ProcessRtabmap((*map)->database());
+    frames = testing::ProcessRtabmapFrames((*map)->database(), kFrames);
   }
   std::mt19937 rng(2026);
   ChildReport report;

@@ -13,6 +13,7 @@
 #include <fstream>
 
 #include "core/storage/map_store.h"
+#include "tests/rtabmap_frames.h"
 #include "tests/test_support.h"
 
 namespace fs = std::filesystem;
@@ -23,18 +24,6 @@ namespace {
 constexpr char kChildEnv[] = "PLACEDB_DAMAGE_CHILD";
 constexpr int kFlushed = 40;  // places the child flushes to SST files (a clean close)
 constexpr int kPlaces = 82;   // acknowledged places in all; the last 42 only in the WAL
-
-// The valid RTAB-Map frames, processed once per process (cycled to reach kPlaces).
-std::vector<ProcessedFrame> Frames(const PlaceDatabase& db) {
-  std::vector<ProcessedFrame> frames;
-  for (int i = 1; i <= 84; ++i) {
-    Observation observation;
-    observation.image = testing::ReadGray(testing::RtabmapFramePath(i));
-    auto frame = db.Process(observation);
-    if (frame.ok() && frame->valid) frames.push_back(*frame);
-  }
-  return frames;
-}
 
 // The child: creates map "lab", stores kFlushed places, closes it cleanly (RocksDB flushes them
 // to SST files), reopens it, stores the rest and exits without closing anything, as a SIGKILL
@@ -47,7 +36,7 @@ std::vector<ProcessedFrame> Frames(const PlaceDatabase& db) {
   {
     auto map = (*dir)->CreateMap("lab", {}, vocabulary);
     if (!map.ok()) std::_Exit(4);
-    frames = Frames((*map)->database());
+    frames = testing::ProcessRtabmapFrames((*map)->database());
     if (frames.empty()) std::_Exit(5);
     for (int n = 0; n < kFlushed; ++n) {
       PlaceMetadata metadata{"robot", uint64_t(n), 0, std::nullopt};

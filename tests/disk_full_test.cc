@@ -18,6 +18,7 @@
 #include <string>
 
 #include "core/storage/map_store.h"
+#include "tests/rtabmap_frames.h"
 #include "tests/test_support.h"
 
 namespace placedb {
@@ -31,18 +32,6 @@ constexpr size_t kTmpfsMiB = 96;
 // quickly, and deleting the filler leaves room for RocksDB to flush its memtables (all that was
 // written since the last flush) when it resumes.
 constexpr size_t kLeftMiB = 12;
-
-std::vector<ProcessedFrame> ProcessRtabmap(const PlaceDatabase& db) {
-  std::vector<ProcessedFrame> frames;
-  for (int i = 1; i <= 84 && frames.size() < size_t(kFrames); ++i) {
-    Observation observation;
-    observation.image = testing::ReadGray(testing::RtabmapFramePath(i));
-    auto frame = db.Process(observation);
-    EXPECT_TRUE(frame.ok());
-    if (frame.ok() && frame->valid) frames.push_back(*frame);
-  }
-  return frames;
-}
 
 size_t FreeMiB(const std::string& path) {
   struct statvfs info {};
@@ -109,7 +98,7 @@ TEST_P(DiskFullTest, FullDiskRefusesWritesKeepsReadsAndResumes) {
     options.database.verification.mode = VerificationMode::kDirectIndex;  // reads features
     auto map = (*dir)->CreateMap("full", options, vocabulary);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
-    frames = ProcessRtabmap((*map)->database());
+    frames = testing::ProcessRtabmapFrames((*map)->database(), kFrames);
     ASSERT_EQ(frames.size(), size_t(kFrames));
     // A first place before the filler: RocksDB preallocates the write-ahead log at its first
     // write (about 35 MB, which a tmpfs counts as used), and CreateMap's flush started a new one.
@@ -221,7 +210,7 @@ TEST_P(DiskFullTest, ClosedWhileFullReopensWithEveryAcknowledgedPlace) {
     ASSERT_TRUE(dir.ok()) << dir.status().ToString();
     auto map = (*dir)->CreateMap("full", {}, vocabulary);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
-    frames = ProcessRtabmap((*map)->database());
+    frames = testing::ProcessRtabmapFrames((*map)->database(), kFrames);
     ASSERT_EQ(frames.size(), size_t(kFrames));
     const size_t free_mib = FreeMiB(mount_point_);
     ASSERT_GT(free_mib, kLeftMiB + 8);
