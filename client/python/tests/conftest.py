@@ -35,9 +35,12 @@ def unused_loopback_port() -> int:
 
 
 class ServerProcess:
-    """placedb-server with a temp data directory; ``address`` once it answers health checks."""
+    """placedb-server with a temp data directory; ``address`` once it answers health checks
+    (over ``tls`` when the server's ``extra_args`` ask for TLS)."""
 
-    def __init__(self, extra_args: Optional[List[str]] = None) -> None:
+    def __init__(
+        self, extra_args: Optional[List[str]] = None, tls: Optional[placedb.TLS] = None
+    ) -> None:
         self.binary = _env("PLACEDB_SERVER_BINARY")
         self.root = tempfile.TemporaryDirectory(prefix="placedb-sdk-")
         self.address = f"127.0.0.1:{unused_loopback_port()}"
@@ -61,7 +64,7 @@ class ServerProcess:
                 raise RuntimeError(f"placedb-server exited with {self.process.returncode}")
             try:
                 # A new channel per probe: a failed one backs off for longer and longer.
-                with placedb.Client(self.address, timeout=1) as probe:
+                with placedb.Client(self.address, tls=tls, timeout=1) as probe:
                     if probe.health() == "serving":
                         break
             except placedb.Error:
