@@ -1,8 +1,9 @@
 """Fixtures of the SDK's tests: a real placedb-server process on a loopback port.
 
-ctest (client/python/CMakeLists.txt) sets PLACEDB_SERVER_BINARY, PLACEDB_DEFAULT_VOCABULARY,
-PLACEDB_SHARED_DIR and PYTHONPATH (the build tree's package); the server gets a fresh temp data
-directory per fixture and is stopped with SIGTERM.
+ctest (tests/CMakeLists.txt, python_sdk_test) sets PLACEDB_SERVER_BINARY, PLACEDB_TEST_CERTS,
+PLACEDB_DEFAULT_VOCABULARY, PLACEDB_SIFT_VOCABULARY, PLACEDB_SHARED_DIR and PYTHONPATH (the
+build tree's package). Every server gets a fresh temp data directory (vocabularies "default" and
+"sift") and is stopped with SIGTERM.
 """
 
 from __future__ import annotations
@@ -54,6 +55,8 @@ class ServerProcess:
             "off",
             "--vocabulary",
             "default=" + _env("PLACEDB_DEFAULT_VOCABULARY"),
+            "--vocabulary",
+            "sift=" + _env("PLACEDB_SIFT_VOCABULARY"),
             "--log-level",
             "warn",
         ] + (extra_args or [])
