@@ -66,7 +66,8 @@ class MapSettings:
     vocabulary: str = ""
     #: "orb" or "sift"; must agree with the vocabulary (None: the vocabulary's kind).
     feature_type: Optional[str] = None
-    #: Features extracted per frame (ORB or SIFT, whichever the map uses).
+    #: Features extracted per frame: orb.max_features, or sift.max_features when feature_type
+    #: is "sift" (with a SIFT vocabulary but no feature_type, set config.sift instead).
     max_features: Optional[int] = None
     #: "l1", "l2", "chi2", "kl", "bhattacharyya" or "dot".
     scoring: Optional[str] = None
