@@ -407,19 +407,25 @@ def test_ingest_stops_reading_frames_at_the_window(client: placedb.Client) -> No
 # ---- Two agents ---------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("shared_channel", [False, True])
 def test_two_agents_ingest_concurrently(
-    client: placedb.Client, server, rtabmap_frames: List[Path]
+    client: placedb.Client, server, rtabmap_frames: List[Path], shared_channel: bool
 ) -> None:
-    client.create_map("fleet")
+    """Two agents stream at once, each with its own Client or both on one (channels are
+    thread-safe)."""
+    fleet = f"fleet-{int(shared_channel)}"
+    client.create_map(fleet)
     halves = {"agent-a": rtabmap_frames[50:62], "agent-b": rtabmap_frames[62:74]}
     outcome: Dict[str, list] = {}
     errors: List[BaseException] = []
 
     def run(agent: str) -> None:
         try:
-            with placedb.Client(server.address) as own:
-                outcome[agent] = list(own.ingest("fleet", halves[agent], agent_id=agent,
-                                                 max_in_flight=4))
+            own = client if shared_channel else placedb.Client(server.address)
+            outcome[agent] = list(own.ingest(fleet, halves[agent], agent_id=agent,
+                                             max_in_flight=4))
+            if own is not client:
+                own.close()
         except BaseException as e:  # reported below
             errors.append(e)
 
@@ -435,12 +441,12 @@ def test_two_agents_ingest_concurrently(
         assert stored[agent]
     ids = stored["agent-a"] + stored["agent-b"]
     assert len(set(ids)) == len(ids)
-    assert client.get_map("fleet").places == len(ids)
+    assert client.get_map(fleet).places == len(ids)
     for agent, places in stored.items():
         for place_id in places:
-            assert client.get_place("fleet", place_id).agent_id == agent
+            assert client.get_place(fleet, place_id).agent_id == agent
     # agent-a's own frame, excluding agent-a's places: only agent-b's places come back.
-    answer = client.query("fleet", halves["agent-a"][0], top_k=10, agent_id="agent-a",
+    answer = client.query(fleet, halves["agent-a"][0], top_k=10, agent_id="agent-a",
                           exclude_same_agent=True)
     assert answer.matches
     assert {m.agent_id for m in answer.matches} == {"agent-b"}
