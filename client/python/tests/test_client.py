@@ -206,6 +206,24 @@ def test_ingest_with_matches_against_the_map_before_each_frame(
         assert len(again.matches) <= 3
 
 
+def test_ingest_with_loop_closure_finds_the_revisit(
+    client: placedb.Client, rtabmap_frames: List[Path]
+) -> None:
+    """The RTAB-Map loop's second half revisits its first: loops point back to early places."""
+    client.create_map("loops")
+    results = list(client.ingest("loops", rtabmap_frames, agent_id="r", loop_closure=True))
+    valid = [r for r in results if r.stored]
+    assert valid and all(r.loop_closure is not None for r in valid)
+    loops = [r for r in valid if r.loop_closure.loop_found]
+    assert len(loops) >= 10
+    for r in loops:
+        assert r.index >= len(rtabmap_frames) // 2
+        # A place seen about a lap earlier, not one of the frames just before.
+        assert r.loop_closure.loop_place_id + 30 < r.place_id
+        assert r.loop_closure.place_id == r.place_id
+    assert client.get_map("loops").stats["loops_accepted"] == len(loops)
+
+
 def test_get_place_features_and_query_with_them(
     client: placedb.Client, loop_map: Dict[int, int]
 ) -> None:
