@@ -79,7 +79,10 @@ class Client:
     ``target``: ``host:port`` (e.g. ``"127.0.0.1:50051"``). ``token``: a bearer token from
     ``placedb-server tokens add`` (sent as ``authorization: Bearer <token>``). ``tls``: ``None``
     for plaintext, ``True`` for TLS with the system roots, or a :class:`TLS` with PEM paths.
-    ``timeout``: seconds per unary call (None: no deadline).
+    ``timeout``: seconds per unary call (None: no deadline). ``wait_for_ready``: calls made while
+    the server is unreachable wait for it (up to their deadline: :class:`DeadlineExceeded`)
+    instead of failing at once with :class:`Unavailable`; for agents that start before the
+    server.
 
     Usable as a context manager; :meth:`close` closes the channel.
     """
@@ -90,6 +93,7 @@ class Client:
         token: Optional[str] = None,
         tls: Union[None, bool, TLS] = None,
         timeout: Optional[float] = 30.0,
+        wait_for_ready: bool = False,
     ) -> None:
         options = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
         if tls:
@@ -100,6 +104,7 @@ class Client:
             (("authorization", f"Bearer {token}"),) if token else ()
         )
         self._timeout = timeout
+        self._wait_for_ready = wait_for_ready
         self._stub = pb_grpc.PlaceDbStub(self._channel)
         self._health = health_pb2_grpc.HealthStub(self._channel)
 
@@ -115,7 +120,12 @@ class Client:
 
     def _call(self, method: Any, request: Any) -> Any:
         try:
-            return method(request, timeout=self._timeout, metadata=self._metadata)
+            return method(
+                request,
+                timeout=self._timeout,
+                metadata=self._metadata,
+                wait_for_ready=self._wait_for_ready,
+            )
         except grpc.RpcError as e:
             raise from_rpc_error(e) from None
 
@@ -247,7 +257,9 @@ class Client:
             except Exception as e:  # reported to the caller after the answered frames
                 failure.append(e)
 
-        call = self._stub.Ingest(requests(), metadata=self._metadata)
+        call = self._stub.Ingest(
+            requests(), metadata=self._metadata, wait_for_ready=self._wait_for_ready
+        )
         try:
             for response in call:
                 window.release()

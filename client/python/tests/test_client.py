@@ -9,12 +9,22 @@ from typing import Dict, List
 
 import numpy as np
 import pytest
-from conftest import textured_image
+from conftest import textured_image, unused_loopback_port
 
 import placedb
 from placedb._pb import placedb_pb2 as pb
 
 # ---- Server, maps -------------------------------------------------------------------------------
+
+
+def test_unreachable_server_fails_fast_or_waits_for_its_deadline() -> None:
+    address = f"127.0.0.1:{unused_loopback_port()}"  # nothing listens there
+    with placedb.Client(address, timeout=5) as client:
+        with pytest.raises(placedb.Unavailable):
+            client.list_maps()
+    with placedb.Client(address, timeout=0.3, wait_for_ready=True) as client:
+        with pytest.raises(placedb.DeadlineExceeded):
+            client.list_maps()
 
 
 def test_health_and_server_info(client: placedb.Client) -> None:
