@@ -161,7 +161,10 @@ def _keypoints(keypoints: Any, sift: bool, path: str) -> list:
 def _features(frame: Frame, observation: pb.Observation, path: str) -> None:
     descriptors = frame.descriptors
     if descriptors is None or frame.keypoints is None:
-        raise InvalidArgument(f"{path}: keypoints and descriptors go together")
+        raise InvalidArgument(
+            f"{path}: keypoints and descriptors go together (OpenCV's detectAndCompute returns "
+            "None descriptors when it finds no keypoints)"
+        )
     descriptors = np.asarray(descriptors)
     if descriptors.dtype == np.uint8 and descriptors.ndim == 2 and descriptors.shape[1] == 32:
         sift = False
