@@ -21,6 +21,8 @@ PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev
   libspdlog-dev libfmt-dev libcli11-dev libyaml-cpp-dev nlohmann-json3-dev
   libssl-dev openssl  # tokens (SHA-256, random), TLS on /metrics; tests make certificates
+  python3 python3-grpcio python3-protobuf python3-numpy  # the Python SDK (client/python)
+  python3-pytest python3-opencv  # its tests and examples
   clang-format ccache
   clang-14 libclang-rt-14-dev  # CI's -Wthread-safety and libFuzzer stages (tools/test.sh)
   # Debian's sample images: the default vocabulary is trained on these (never on eval data).

@@ -1,0 +1,408 @@
+"""What the SDK's calls return: plain dataclasses built from the API's messages.
+
+Enum values are given by their API names (:func:`placedb.settings.enum_name`): map states
+``"available"``, ``"unavailable"``, ``"damaged"``, ``"recovered"``; feature types ``"orb"``,
+``"sift"``. Messages with many rarely used fields (a map's configuration, Algorithm 1's depth
+state, a loop-closure outcome) are handed over as the ``placedb.v1`` message itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from placedb._pb import placedb_pb2 as pb
+from placedb.errors import Error, error_from_status_number
+from placedb.settings import enum_name
+
+
+def _fields(message) -> Dict[str, object]:
+    return {f.name: getattr(message, f.name) for f in message.DESCRIPTOR.fields}
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Position and orientation quaternion (all-zero quaternion = identity)."""
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    qx: float = 0.0
+    qy: float = 0.0
+    qz: float = 0.0
+    qw: float = 0.0
+
+    @staticmethod
+    def from_proto(message: pb.Pose) -> "Pose":
+        return Pose(**_fields(message))
+
+    def to_proto(self) -> pb.Pose:
+        return pb.Pose(
+            x=self.x, y=self.y, z=self.z, qx=self.qx, qy=self.qy, qz=self.qz, qw=self.qw
+        )
+
+
+@dataclass(frozen=True)
+class Counts:
+    """A frame's descriptors: ``total = dynamic + depth_removed + kept``."""
+
+    total: int = 0
+    dynamic: int = 0
+    kept: int = 0
+    depth_removed: int = 0
+    #: Fraction of the image's pixels on dynamic objects.
+    dynamic_coverage: float = 0.0
+
+    @staticmethod
+    def from_proto(message: pb.FrameCounts) -> "Counts":
+        return Counts(**_fields(message))
+
+
+@dataclass(frozen=True)
+class Timings:
+    """Server-side time per pipeline stage, in milliseconds (``total_ms``: arrival to answer)."""
+
+    queue_ms: float = 0.0
+    decode_ms: float = 0.0
+    detect_ms: float = 0.0
+    extract_ms: float = 0.0
+    filter_ms: float = 0.0
+    depth_ms: float = 0.0
+    transform_ms: float = 0.0
+    search_ms: float = 0.0
+    verify_ms: float = 0.0
+    store_ms: float = 0.0
+    loop_closure_ms: float = 0.0
+    refine_ms: float = 0.0
+    total_ms: float = 0.0
+
+    @staticmethod
+    def from_proto(message: pb.StageTimings) -> "Timings":
+        return Timings(**_fields(message))
+
+
+@dataclass(frozen=True)
+class UsedBox:
+    """A dynamic-object box as the filter used it: class, confidence, rect (x, y, w, h)."""
+
+    class_id: int
+    class_name: str
+    confidence: float
+    rect: Tuple[float, float, float, float]
+
+    @staticmethod
+    def from_proto(message: pb.UsedBox) -> "UsedBox":
+        r = message.rect
+        return UsedBox(
+            message.class_id, message.class_name, message.confidence, (r.x, r.y, r.width, r.height)
+        )
+
+
+@dataclass(frozen=True)
+class Match:
+    """A stored place that matches an observation (best first in every list)."""
+
+    place_id: int
+    #: Higher is more similar (the map's scoring).
+    score: float
+    #: Geometric-verification inliers (0 when not verified).
+    inliers: int
+    #: ``inliers >= `` the map's ``min_inliers``.
+    verified: bool
+    agent_id: str
+    sequence: int
+    timestamp_ns: int
+    pose: Optional[Pose]
+
+    @staticmethod
+    def from_proto(message: pb.Match) -> "Match":
+        m = message.metadata
+        return Match(
+            place_id=message.place_id,
+            score=message.score,
+            inliers=message.inliers,
+            verified=message.verified,
+            agent_id=m.agent_id,
+            sequence=m.sequence,
+            timestamp_ns=m.timestamp_ns,
+            pose=Pose.from_proto(m.pose) if m.HasField("pose") else None,
+        )
+
+
+@dataclass(frozen=True)
+class QueryResult:
+    """:meth:`placedb.Client.query`'s answer. Nothing is stored by a query."""
+
+    #: The observation had enough static features to be a place.
+    valid: bool
+    #: Why it is not valid.
+    rejection: str
+    matches: List[Match]
+    counts: Counts
+    timings: Timings
+    boxes_used: List[UsedBox]
+    #: The agent's Algorithm 1 state applied to the frame (docs/rgbd.md), when it has one.
+    depth: Optional[pb.DepthState]
+
+    @staticmethod
+    def from_proto(message: pb.QueryResponse) -> "QueryResult":
+        return QueryResult(
+            valid=message.valid,
+            rejection=message.rejection,
+            matches=[Match.from_proto(m) for m in message.matches],
+            counts=Counts.from_proto(message.counts),
+            timings=Timings.from_proto(message.timings),
+            boxes_used=[UsedBox.from_proto(b) for b in message.boxes_used],
+            depth=message.depth if message.HasField("depth") else None,
+        )
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    """One ingested frame's answer (:meth:`placedb.Client.ingest` yields them in frame order)."""
+
+    #: 0-based position of the frame in this call's frames.
+    index: int
+    #: The frame's sequence number, echoed.
+    sequence: int
+    stored: bool
+    #: The new place's id, when stored.
+    place_id: int
+    #: Why a (well-formed) frame was not a valid place.
+    rejection: str
+    counts: Counts
+    timings: Timings
+    boxes_used: List[UsedBox]
+    #: When matches were asked for: the map as it was before this frame.
+    matches: List[Match]
+    #: Set when the server refused the frame (nothing stored); the stream goes on.
+    error: Optional[Error]
+    depth: Optional[pb.DepthState]
+    loop_closure: Optional[pb.LoopClosure]
+
+    @staticmethod
+    def from_proto(message: pb.IngestResponse) -> "IngestResult":
+        error = None
+        if message.HasField("error") and message.error.code != 0:
+            error = error_from_status_number(message.error.code, message.error.message)
+        return IngestResult(
+            index=message.index,
+            sequence=message.sequence,
+            stored=message.stored,
+            place_id=message.place_id,
+            rejection=message.rejection,
+            counts=Counts.from_proto(message.counts),
+            timings=Timings.from_proto(message.timings),
+            boxes_used=[UsedBox.from_proto(b) for b in message.boxes_used],
+            matches=[Match.from_proto(m) for m in message.matches],
+            error=error,
+            depth=message.depth if message.HasField("depth") else None,
+            loop_closure=message.loop_closure if message.HasField("loop_closure") else None,
+        )
+
+
+@dataclass(frozen=True)
+class MapDamage:
+    """Acknowledged writes a map lost (``first..last_lost_place``: an upper bound of the ids)."""
+
+    reason: str
+    writes_lost: int
+    places_lost: int
+    first_lost_place: int
+    last_lost_place: int
+    recovered_unix_ms: int
+
+    @staticmethod
+    def from_proto(message: pb.MapDamage) -> "MapDamage":
+        return MapDamage(**_fields(message))
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    """A map's state, effective configuration and statistics (:meth:`~placedb.Client.get_map`).
+
+    For a map that is not available (state ``"damaged"`` or ``"unavailable"``) only ``name``,
+    ``state``, ``unavailable_reason`` and ``damage`` are meaningful.
+    """
+
+    name: str
+    state: str
+    #: ``"orb"`` or ``"sift"``.
+    feature_type: str
+    vocabulary: str
+    #: 16 hex digits.
+    vocabulary_checksum: str
+    created_unix_ms: int
+    places: int
+    #: Every ``placedb.v1.MapStats`` field by name (places, descriptors_kept, bytes_on_disk, ...).
+    stats: Dict[str, int]
+    #: The effective ``placedb.v1.MapConfig`` (defaults filled in).
+    config: pb.MapConfig
+    unavailable_reason: str
+    damage: Optional[MapDamage]
+    damage_history: List[MapDamage]
+    places_lost: int
+
+    @staticmethod
+    def from_proto(message: pb.MapDescription) -> "MapInfo":
+        return MapInfo(
+            name=message.name,
+            state=enum_name(pb.MapState.DESCRIPTOR, message.state),
+            feature_type=enum_name(pb.FeatureType.DESCRIPTOR, message.config.feature_type),
+            vocabulary=message.config.vocabulary,
+            vocabulary_checksum=message.vocabulary_checksum,
+            created_unix_ms=message.created_unix_ms,
+            places=message.stats.places,
+            stats={k: int(v) for k, v in _fields(message.stats).items()},
+            config=message.config,
+            unavailable_reason=message.unavailable_reason,
+            damage=MapDamage.from_proto(message.damage) if message.HasField("damage") else None,
+            damage_history=[MapDamage.from_proto(d) for d in message.damage_history],
+            places_lost=message.places_lost,
+        )
+
+
+@dataclass(frozen=True)
+class MapSummary:
+    """One entry of :meth:`placedb.Client.list_maps`."""
+
+    name: str
+    #: State ``"available"`` or ``"recovered"``.
+    available: bool
+    state: str
+    vocabulary: str
+    places: int
+    feature_type: str
+    unavailable_reason: str
+    places_lost: int
+
+    @staticmethod
+    def from_proto(message: pb.MapSummary) -> "MapSummary":
+        return MapSummary(
+            name=message.name,
+            available=message.available,
+            state=enum_name(pb.MapState.DESCRIPTOR, message.state),
+            vocabulary=message.vocabulary,
+            places=message.places,
+            feature_type=enum_name(pb.FeatureType.DESCRIPTOR, message.feature_type),
+            unavailable_reason=message.unavailable_reason,
+            places_lost=message.places_lost,
+        )
+
+
+def _keypoints_array(keypoints) -> np.ndarray:
+    rows = [(k.x, k.y, k.size, k.angle, k.response, k.octave) for k in keypoints]
+    return np.array(rows, dtype=np.float32).reshape(len(rows), 6)
+
+
+@dataclass(frozen=True)
+class Place:
+    """A stored place (:meth:`placedb.Client.get_place`)."""
+
+    place_id: int
+    agent_id: str
+    sequence: int
+    timestamp_ns: int
+    pose: Optional[Pose]
+    counts: Counts
+    boxes_used: List[UsedBox]
+    #: With ``include_features``: the image size (width, height) the keypoints refer to.
+    image_size: Optional[Tuple[int, int]] = None
+    #: With ``include_features``: N x 6 float32 rows (x, y, size, angle, response, octave).
+    keypoints: Optional[np.ndarray] = None
+    #: With ``include_features``: N x 32 uint8 (ORB) or N x 128 float32 (SIFT), static only.
+    descriptors: Optional[np.ndarray] = None
+
+    @staticmethod
+    def from_proto(message: pb.Place) -> "Place":
+        m = message.metadata
+        image_size = keypoints = descriptors = None
+        if message.HasField("features"):
+            f = message.features
+            image_size = (f.image_width, f.image_height)
+            keypoints = _keypoints_array(f.keypoints)
+            descriptors = np.frombuffer(f.descriptors, np.uint8).reshape(-1, 32)
+        elif message.HasField("sift_features"):
+            f = message.sift_features
+            image_size = (f.image_width, f.image_height)
+            keypoints = _keypoints_array(f.keypoints)
+            descriptors = np.frombuffer(f.descriptors, "<f4").astype(np.float32).reshape(-1, 128)
+        return Place(
+            place_id=message.place_id,
+            agent_id=m.agent_id,
+            sequence=m.sequence,
+            timestamp_ns=m.timestamp_ns,
+            pose=Pose.from_proto(m.pose) if m.HasField("pose") else None,
+            counts=Counts.from_proto(message.counts),
+            boxes_used=[UsedBox.from_proto(b) for b in message.boxes_used],
+            image_size=image_size,
+            keypoints=keypoints,
+            descriptors=descriptors,
+        )
+
+
+@dataclass(frozen=True)
+class VocabularyInfo:
+    """A vocabulary the server serves (``path`` and ``memory_bytes``: admins only)."""
+
+    name: str
+    path: str
+    checksum: str
+    words: int
+    nodes: int
+    branching: int
+    depth: int
+    memory_bytes: int
+    feature_type: str
+
+    @staticmethod
+    def from_proto(message: pb.VocabularyInfo) -> "VocabularyInfo":
+        values = _fields(message)
+        values["feature_type"] = enum_name(pb.FeatureType.DESCRIPTOR, message.feature_type)
+        return VocabularyInfo(**values)
+
+
+@dataclass(frozen=True)
+class ServerInfo:
+    """:meth:`placedb.Client.server_info`: version, vocabularies, detector and limits."""
+
+    version: str
+    vocabularies: List[VocabularyInfo]
+    #: ``"off"`` or the model's description (admins only).
+    detector: str
+    #: Every ``placedb.v1.Limits`` field by name (max_message_bytes, max_image_pixels, ...).
+    limits: Dict[str, int] = field(default_factory=dict)
+
+    @staticmethod
+    def from_proto(message: pb.ServerInfo) -> "ServerInfo":
+        return ServerInfo(
+            version=message.version,
+            vocabularies=[VocabularyInfo.from_proto(v) for v in message.vocabularies],
+            detector=message.detector,
+            limits={k: int(v) for k, v in _fields(message.limits).items()},
+        )
+
+
+@dataclass(frozen=True)
+class ScrubReport:
+    """:meth:`placedb.Client.scrub_map`: what a full read of a map found (nothing changes)."""
+
+    places_checked: int
+    files_checked: int
+    #: (place id, reason) per damaged place.
+    damaged_places: List[Tuple[int, str]]
+    #: (file relative to the data directory, reason) per damaged file.
+    damaged_files: List[Tuple[str, str]]
+    clean: bool
+
+    @staticmethod
+    def from_proto(message: pb.ScrubReport) -> "ScrubReport":
+        return ScrubReport(
+            places_checked=message.places_checked,
+            files_checked=message.files_checked,
+            damaged_places=[(p.place_id, p.reason) for p in message.damaged_places],
+            damaged_files=[(f.file, f.reason) for f in message.damaged_files],
+            clean=message.clean,
+        )

@@ -1,0 +1,138 @@
+"""Typed map settings (:class:`MapSettings`) and the API's enum names.
+
+Enum values are named as in the CLI and the server's reports (proto/names.h): the lowercase value
+name without the enum's prefix (``"keypoint_in_box"`` for ``FILTER_METHOD_KEYPOINT_IN_BOX``), or
+the value's ``(name)`` option where the proto gives one (``"chi2"``, ``"dot"``, ``"direct"``).
+Both spellings are accepted when parsing. The names come from the generated descriptors, so they
+follow the proto.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import List, Optional, Sequence
+
+from google.protobuf.descriptor import EnumDescriptor
+
+from placedb._pb import placedb_pb2 as pb
+from placedb.errors import InvalidArgument
+
+
+def _prefix(enum: EnumDescriptor) -> str:
+    return enum.values[0].name[: -len("UNSPECIFIED")]
+
+
+def _option_name(value) -> str:
+    return value.GetOptions().Extensions[pb.name]
+
+
+def enum_name(enum: EnumDescriptor, number: int) -> str:
+    """The API name of an enum value (``""`` for UNSPECIFIED values without a ``(name)``)."""
+    value = enum.values_by_number.get(number)
+    if value is None:
+        return str(number)
+    if _option_name(value):
+        return _option_name(value)
+    if value.name.endswith("_UNSPECIFIED"):
+        return ""
+    return value.name[len(_prefix(enum)) :].lower()
+
+
+def enum_value(enum: EnumDescriptor, text: str, path: str) -> int:
+    """Parses an API enum name; :class:`InvalidArgument` naming ``path`` and the choices."""
+    wanted = text.strip().lower()
+    choices: List[str] = []
+    for value in enum.values:
+        if value.name.endswith("_UNSPECIFIED"):
+            continue
+        suffix = value.name[len(_prefix(enum)) :].lower()
+        names = [n for n in (_option_name(value), suffix) if n]
+        if wanted in names:
+            return value.number
+        choices.append(names[0])
+    raise InvalidArgument(f"{path}: unknown value '{text}' (expected one of {', '.join(choices)})")
+
+
+@dataclass
+class MapSettings:
+    """A map's configuration at :meth:`placedb.Client.create_map`. ``None`` = the server default.
+
+    The common settings are fields here; anything else (depth, loop closure, the short-term tier,
+    SIFT and ORB details) goes into ``config``, a ``placedb.v1.MapConfig`` these fields are laid
+    over. The server fills in and reports the effective configuration (:attr:`MapInfo.config`).
+    """
+
+    #: A vocabulary name from the server's configuration ("" = "default").
+    vocabulary: str = ""
+    #: "orb" or "sift"; must agree with the vocabulary (None: the vocabulary's kind).
+    feature_type: Optional[str] = None
+    #: Features extracted per frame: orb.max_features, or sift.max_features when feature_type
+    #: is "sift" (with a SIFT vocabulary but no feature_type, set config.sift instead).
+    max_features: Optional[int] = None
+    #: "l1", "l2", "chi2", "kl", "bhattacharyya" or "dot".
+    scoring: Optional[str] = None
+    #: Geometric verification: "disabled", "direct" or "exhaustive".
+    verification: Optional[str] = None
+    #: Inliers a verified match needs (>= 8).
+    min_inliers: Optional[int] = None
+    #: Dynamic-object filter: "none", "keypoint_in_box", "corner_distance", "exact_coverage".
+    filter_method: Optional[str] = None
+    #: A frame is a valid place iff its static descriptors exceed this.
+    place_threshold: Optional[int] = None
+    #: Box refinement without depth: "none", "shape" or "grabcut".
+    box_refinement: Optional[str] = None
+    #: COCO names of the dynamic classes (empty: the server's default list).
+    dynamic_classes: Sequence[str] = field(default_factory=list)
+    #: Boxes below this confidence are ignored.
+    min_confidence: Optional[float] = None
+    #: Where boxes come from: "agent", "server" or "both".
+    box_source: Optional[str] = None
+    #: Keep invalid observations as metadata.
+    store_invalid: bool = False
+    #: The base configuration the fields above are laid over.
+    config: Optional[pb.MapConfig] = None
+
+    def to_proto(self) -> pb.MapConfig:
+        """The ``placedb.v1.MapConfig`` these settings describe."""
+        config = pb.MapConfig()
+        if self.config is not None:
+            config.CopyFrom(self.config)
+        if self.vocabulary:
+            config.vocabulary = self.vocabulary
+        if self.feature_type is not None:
+            config.feature_type = enum_value(
+                pb.FeatureType.DESCRIPTOR, self.feature_type, "config.feature_type"
+            )
+        if self.max_features is not None:
+            sift = config.feature_type == pb.FEATURE_TYPE_SIFT
+            (config.sift if sift else config.orb).max_features = self.max_features
+        if self.scoring is not None:
+            config.scoring = enum_value(pb.Scoring.DESCRIPTOR, self.scoring, "config.scoring")
+        if self.verification is not None:
+            config.verification.mode = enum_value(
+                pb.VerificationMode.DESCRIPTOR, self.verification, "config.verification.mode"
+            )
+        if self.min_inliers is not None:
+            config.verification.min_inliers = self.min_inliers
+        if self.filter_method is not None:
+            config.filter.method = enum_value(
+                pb.FilterMethod.DESCRIPTOR, self.filter_method, "config.filter.method"
+            )
+        if self.place_threshold is not None:
+            config.filter.place_threshold = self.place_threshold
+        if self.box_refinement is not None:
+            config.filter.box_refinement = enum_value(
+                pb.BoxRefinement.DESCRIPTOR, self.box_refinement, "config.filter.box_refinement"
+            )
+        if self.dynamic_classes:
+            del config.detection.classes[:]
+            config.detection.classes.extend(self.dynamic_classes)
+        if self.min_confidence is not None:
+            config.detection.min_confidence = self.min_confidence
+        if self.box_source is not None:
+            config.detection.box_source = enum_value(
+                pb.BoxSource.DESCRIPTOR, self.box_source, "config.detection.box_source"
+            )
+        if self.store_invalid:
+            config.store_invalid = True
+        return config
