@@ -285,6 +285,37 @@ TEST_F(SnapshotsTest, BadArchivesAreRefusedAndLeaveNothingBehind) {
   EXPECT_TRUE((*other_store)->Import(WriteFile("good.pdbsnap", good), Resolver(ours)).ok());
 }
 
+TEST_F(SnapshotsTest, ADeleteDuringADownloadDoesNotCutItShort) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  const SnapshotInfo info = MakeSnapshot(dir.get(), store->get(), "lab", 10);
+  ASSERT_FALSE(info.id.empty());
+  std::string bytes;
+  bool deleted = false;
+  // The sink deletes the snapshot at the first chunk: the store's lock is not held while
+  // streaming (this would deadlock otherwise), and the files already open stay readable.
+  Status written = (*store)->WriteArchive(info.id, 4096, [&](std::string_view chunk) {
+    if (!deleted) {
+      deleted = true;
+      EXPECT_TRUE((*store)->Delete(info.id).ok());
+    }
+    bytes.append(chunk);
+    return Status::Ok();
+  });
+  ASSERT_TRUE(written.ok()) << written.ToString();
+  EXPECT_TRUE((*store)->List().empty());
+  auto imported = (*store)->Import(WriteFile("lab.pdbsnap", bytes), Resolver(vocabulary_));
+  ASSERT_TRUE(imported.ok()) << imported.status().ToString();
+  EXPECT_EQ(imported->places, info.places);
+  // A sink error stops the stream and is returned.
+  EXPECT_EQ((*store)
+                ->WriteArchive(imported->id, 4096,
+                               [](std::string_view) { return Status::Cancelled("client gone"); })
+                .code(),
+            StatusCode::kCancelled);
+}
+
 TEST_F(SnapshotsTest, ListDeleteAndRetention) {
   auto dir = OpenDir("data");
   auto store = SnapshotStore::Open(dir.get(), SnapshotOptions{.keep_per_map = 2});

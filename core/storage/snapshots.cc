@@ -384,12 +384,27 @@ Result<uint64_t> SnapshotStore::ArchiveBytes(const std::string& id) const {
 
 Status SnapshotStore::WriteArchive(const std::string& id, size_t chunk_bytes,
                                    const std::function<Status(std::string_view)>& sink) const {
-  MutexLock lock(mutex_);
-  PLACEDB_RETURN_IF_ERROR(GetLocked(id).status());
   chunk_bytes = std::max<size_t>(chunk_bytes, 4096);
   const fs::path dir = fs::path(path_) / id;
-  auto paths = EntryPaths(dir.string());
-  if (!paths.ok()) return paths.status();
+  // Every file is opened under the lock, then streamed without it: a slow client holds up no
+  // other snapshot operation, and a Delete meanwhile does not cut the download short (the open
+  // files stay readable).
+  std::vector<std::string> paths;
+  std::vector<std::unique_ptr<std::ifstream>> files;
+  std::vector<uint64_t> sizes;
+  {
+    MutexLock lock(mutex_);
+    PLACEDB_RETURN_IF_ERROR(GetLocked(id).status());
+    auto listed = EntryPaths(dir.string());
+    if (!listed.ok()) return listed.status();
+    paths = std::move(listed).value();
+    for (const std::string& p : paths) {
+      std::error_code ec;
+      sizes.push_back(fs::file_size(dir / p, ec));
+      files.push_back(std::make_unique<std::ifstream>(dir / p, std::ios::binary));
+      if (!*files.back() || ec) return Status::IoError("reading " + p + " of snapshot " + id);
+    }
+  }
   Sha256 sha;
   std::string pending;
   auto emit = [&](std::string_view bytes, bool hash = true) -> Status {
@@ -407,11 +422,10 @@ Status SnapshotStore::WriteArchive(const std::string& id, size_t chunk_bytes,
   PLACEDB_RETURN_IF_ERROR(emit(header));
   uint64_t total = 0;
   std::string buffer(std::min<size_t>(chunk_bytes, size_t(1) << 20), '\0');
-  for (const std::string& p : *paths) {
-    std::ifstream in(dir / p, std::ios::binary);
-    std::error_code ec;
-    const uint64_t size = fs::file_size(dir / p, ec);
-    if (!in || ec) return Status::IoError("reading " + (dir / p).string());
+  for (size_t f = 0; f < paths.size(); ++f) {
+    const std::string& p = paths[f];
+    std::ifstream& in = *files[f];
+    const uint64_t size = sizes[f];
     std::string entry;
     PutLe<uint8_t>(&entry, 1);
     PutLe<uint16_t>(&entry, uint16_t(p.size()));
@@ -422,7 +436,7 @@ Status SnapshotStore::WriteArchive(const std::string& id, size_t chunk_bytes,
     while (left > 0) {
       const size_t n = size_t(std::min<uint64_t>(left, buffer.size()));
       if (!in.read(buffer.data(), std::streamsize(n))) {
-        return Status::IoError("reading " + (dir / p).string() + ": shorter than its size");
+        return Status::IoError("reading " + p + " of snapshot " + id + ": shorter than its size");
       }
       PLACEDB_RETURN_IF_ERROR(emit(std::string_view(buffer.data(), n)));
       left -= n;
@@ -431,7 +445,7 @@ Status SnapshotStore::WriteArchive(const std::string& id, size_t chunk_bytes,
   }
   std::string end;
   PutLe<uint8_t>(&end, 0);
-  PutLe<uint64_t>(&end, uint64_t(paths->size()));
+  PutLe<uint64_t>(&end, uint64_t(paths.size()));
   PutLe<uint64_t>(&end, total);
   PLACEDB_RETURN_IF_ERROR(emit(end));
   PLACEDB_RETURN_IF_ERROR(emit(sha.Final(), /*hash=*/false));

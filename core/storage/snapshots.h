@@ -23,8 +23,10 @@
 // inside: INVALID_ARGUMENT. A vocabulary this server does not have: FAILED_PRECONDITION. In every
 // failure nothing is left behind.
 //
-// Thread safety: a SnapshotStore serialises its own operations; Create takes an online
-// checkpoint, so writers of the map are not held up beyond RocksDB's memtable flush.
+// Thread safety: a SnapshotStore serialises its own operations, except that WriteArchive holds
+// the lock only to open the snapshot's files (a slow reader blocks nothing; a Delete meanwhile
+// does not cut it short). Create takes an online checkpoint, so writers of the map are not held
+// up beyond RocksDB's memtable flush; Create and Import hold the lock while they verify.
 #pragma once
 
 #include <cstdint>
