@@ -1102,7 +1102,7 @@ void SnapshotToProto(const SnapshotInfo& info, v1::Snapshot* out) {
   out->set_bytes(info.bytes);
 }
 
-constexpr size_t kSnapshotChunkBytes = size_t(1) << 20;
+constexpr size_t kSnapshotChunkBytes = size_t(256) << 10;  // well under any max_message_bytes
 
 }  // namespace
 
@@ -1179,9 +1179,14 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
     return Finish("DownloadSnapshot", context, HidePaths(ToGrpc(size.status()), config_.data_dir));
   }
   bool first = true;
+  bool drained = false;
   Status written = store->WriteArchive(
       request->id(), kSnapshotChunkBytes, [&](std::string_view bytes) -> Status {
         if (context->IsCancelled()) return Status::Cancelled("the client cancelled the download");
+        if (draining_flag_) {  // shutting down: the client downloads again from the start
+          drained = true;
+          return Status::Cancelled("the server is shutting down");
+        }
         v1::SnapshotChunk chunk;
         if (first) {
           SnapshotToProto(*info, chunk.mutable_snapshot());
@@ -1192,6 +1197,7 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
         if (!write(chunk)) return Status::Cancelled("the client went away during the download");
         return Status::Ok();
       });
+  if (drained) return Finish("DownloadSnapshot", context, Unavailable());
   if (!written.ok()) {
     return Finish("DownloadSnapshot", context, HidePaths(ToGrpc(written), config_.data_dir));
   }

@@ -4,6 +4,7 @@
 
 #include <filesystem>
 #include <set>
+#include <thread>
 
 #include "tests/server/server_fixture.h"
 
@@ -207,6 +208,79 @@ TEST_F(SnapshotsServerTest, BadUploadsAreRefusedAndLeaveNothingBehind) {
   restore.set_id("../maps");
   EXPECT_EQ(stub_->RestoreSnapshot(Context().get(), restore, &restored).error_code(),
             Code::INVALID_ARGUMENT);
+}
+
+TEST_F(SnapshotsServerTest, AServerRestartDuringADownloadEndsItAndTheSnapshotStaysWhole) {
+  StartServer(Config());
+  CreateMap("lab");
+  std::vector<v1::Observation> frames;
+  for (int i = 1; i <= 84; ++i) frames.push_back(RtabmapObservation(i, "robot"));
+  ASSERT_TRUE(IngestAll(stub_.get(), "lab", frames).status.ok());
+  const std::vector<std::string> expected = Answers("lab");
+  v1::CreateSnapshotRequest create;
+  create.set_map("lab");
+  v1::Snapshot created;
+  ASSERT_TRUE(stub_->CreateSnapshot(Context().get(), create, &created).ok());
+
+  // Read the first chunk, then stop the server while the download is open. The download's
+  // channel has a small, fixed HTTP/2 window (no BDP growth), so the server cannot have pushed
+  // the whole archive into buffers before it drains.
+  const std::string address = "127.0.0.1:" + std::to_string(server_->port());
+  grpc::ChannelArguments small_window;
+  small_window.SetInt(GRPC_ARG_HTTP2_STREAM_LOOKAHEAD_BYTES, 64 << 10);
+  small_window.SetInt(GRPC_ARG_HTTP2_BDP_PROBE, 0);
+  auto downloader = v1::PlaceDb::NewStub(
+      grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), small_window));
+  v1::DownloadSnapshotRequest request;
+  request.set_id(created.id());
+  grpc::ClientContext context;
+  auto reader = downloader->DownloadSnapshot(&context, request);
+  v1::SnapshotChunk chunk;
+  ASSERT_TRUE(reader->Read(&chunk));
+  const uint64_t total = chunk.archive_bytes();
+  uint64_t received = chunk.data().size();
+  ASSERT_GT(total, 4 * received) << "the archive must span several chunks";
+  std::thread stop([this] { StopServer(); });
+  // Until the server is draining (new calls refused), then read on: the stream ends early.
+  auto probe =
+      v1::PlaceDb::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  v1::DeleteSnapshotRequest absent;
+  absent.set_id("absent-1");
+  for (;;) {  // NOT_FOUND while serving; UNAVAILABLE (or no connection) once draining
+    v1::DeleteSnapshotResponse response;
+    if (probe->DeleteSnapshot(Context().get(), absent, &response).error_code() !=
+        grpc::StatusCode::NOT_FOUND) {
+      break;
+    }
+    std::this_thread::yield();
+  }
+  while (reader->Read(&chunk)) received += chunk.data().size();
+  const grpc::Status ended = reader->Finish();
+  stop.join();
+  EXPECT_FALSE(ended.ok());
+  EXPECT_LT(received, total);
+
+  // After the restart the snapshot downloads whole and restores to the same answers.
+  StartServer(Config());
+  std::string archive;
+  v1::Snapshot described;
+  ASSERT_TRUE(Download(created.id(), &archive, &described).ok());
+  EXPECT_EQ(archive.size(), total);
+  v1::DeleteSnapshotRequest del;
+  del.set_id(created.id());
+  v1::DeleteSnapshotResponse deleted;
+  ASSERT_TRUE(stub_->DeleteSnapshot(Context().get(), del, &deleted).ok());
+  v1::Snapshot uploaded;
+  ASSERT_TRUE(Upload(archive, archive.size(), &uploaded).ok());
+  v1::RestoreSnapshotRequest restore;
+  restore.set_id(uploaded.id());
+  restore.set_new_map("lab-copy");
+  v1::MapDescription restored;
+  ASSERT_TRUE(stub_->RestoreSnapshot(Context().get(), restore, &restored).ok());
+  EXPECT_EQ(Answers("lab-copy"), expected);
+  for (const auto& entry : fs::directory_iterator(root_ + "/data/snapshots")) {
+    EXPECT_NE(entry.path().filename().string().front(), '.') << entry.path();
+  }
 }
 
 }  // namespace
