@@ -502,8 +502,9 @@ Result<SnapshotInfo> SnapshotStore::Import(const std::string& archive_path,
       const uint64_t size = GetLe<uint64_t>(bytes.data());
       const fs::path target = fs::path(staging) / path;
       fs::create_directories(target.parent_path(), ec);
-      if (fs::exists(target)) {
-        return Status::InvalidArgument("archive entry '" + path + "' appears twice");
+      if (ec || fs::exists(target)) {
+        return Status::InvalidArgument("archive entry '" + path +
+                                       "' appears twice or clashes with another entry's folder");
       }
       std::ofstream out(target, std::ios::binary);
       if (!out) return Status::IoError("writing " + target.string());
