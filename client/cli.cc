@@ -13,6 +13,7 @@
 #include "client/commands/places.h"
 #include "client/commands/query.h"
 #include "client/commands/server.h"
+#include "client/commands/snapshots.h"
 #include "client/connection.h"
 
 namespace placedb::client {
@@ -62,6 +63,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   CLI::App* query = RegisterQuery(app, &query_flags);
   PlaceFlags place_flags;
   const PlaceCommands place = RegisterPlace(app, &place_flags);
+  SnapshotsFlags snapshots_flags;
+  const SnapshotsCommands snapshots = RegisterSnapshots(app, &snapshots_flags);
   HealthFlags health_flags;
   const ServerCommands server = RegisterServer(app, &health_flags);
   LoadOptions load_options;
@@ -97,6 +100,14 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
     return PlaceGet(c, place_flags.map, place_flags.id, place_flags.features, json, io);
   }
   if (place.remove->parsed()) return PlaceDelete(c, place_flags.map, place_flags.id, json, io);
+  if (snapshots.create->parsed()) return SnapshotsCreate(c, snapshots_flags.map, json, io);
+  if (snapshots.list->parsed()) return SnapshotsList(c, json, io);
+  if (snapshots.download->parsed()) return SnapshotsDownload(c, snapshots_flags, json, io);
+  if (snapshots.upload->parsed()) return SnapshotsUpload(c, snapshots_flags, json, io);
+  if (snapshots.restore->parsed()) {
+    return SnapshotsRestore(c, snapshots_flags.id, snapshots_flags.new_map, json, io);
+  }
+  if (snapshots.remove->parsed()) return SnapshotsDelete(c, snapshots_flags.id, json, io);
   if (server.info->parsed()) return RunInfo(c, json, io);
   if (server.health->parsed()) return RunHealth(c, health_flags.service, json, io);
   return UsageError(io, "no command given (see --help)");

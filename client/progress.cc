@@ -6,13 +6,23 @@
 
 namespace placedb::client {
 
-Progress::Progress(std::ostream& err, bool tty, std::optional<size_t> total, double line_interval_s)
-    : err_(err), tty_(tty), total_(total), line_interval_s_(line_interval_s) {
+Progress::Progress(std::ostream& err, bool tty, std::optional<size_t> total, double line_interval_s,
+                   Unit unit)
+    : err_(err), tty_(tty), total_(total), line_interval_s_(line_interval_s), unit_(unit) {
   thread_ = std::thread([this] { Loop(); });
 }
 
 Progress::~Progress() {
   Stop();
+}
+
+std::string Progress::Amount(size_t n) const {
+  return unit_ == Unit::kBytes ? FormatBytes(n) : std::to_string(n) + " frames";
+}
+
+std::string Progress::Rate(double per_second) const {
+  return unit_ == Unit::kBytes ? FormatBytes(uint64_t(per_second)) + "/s"
+                               : FormatDouble(per_second, 1) + " frames/s";
 }
 
 std::string Progress::Render(bool final) const {
@@ -30,13 +40,15 @@ std::string Progress::Render(bool final) const {
       text.append(size_t(width - filled), '-');
       text.append("] ");
     }
-    text += std::to_string(done) + "/" + std::to_string(*total_) + " frames (" +
-            FormatDouble(fraction * 100, 0) + "%), " + FormatDouble(rate, 1) + " frames/s";
+    text +=
+        (unit_ == Unit::kBytes ? FormatBytes(done) + "/" + FormatBytes(*total_)
+                               : std::to_string(done) + "/" + std::to_string(*total_) + " frames") +
+        " (" + FormatDouble(fraction * 100, 0) + "%), " + Rate(rate);
     if (!final && rate > 0 && done < *total_) {
       text += ", ETA " + FormatDuration(double(*total_ - done) / rate);
     }
   } else {
-    text += std::to_string(done) + " frames, " + FormatDouble(rate, 1) + " frames/s";
+    text += Amount(done) + ", " + Rate(rate);
   }
   text += ", " + FormatDuration(elapsed) + " elapsed";
   return text;

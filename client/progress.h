@@ -15,8 +15,10 @@ namespace placedb::client {
 
 class Progress {
  public:
-  // `total` (frames) enables the percentage and the ETA.
-  Progress(std::ostream& err, bool tty, std::optional<size_t> total, double line_interval_s = 2.0);
+  enum class Unit { kFrames, kBytes };  // what Add() counts ("12 frames", "1.5 MiB")
+  // `total` (in `unit`) enables the percentage and the ETA.
+  Progress(std::ostream& err, bool tty, std::optional<size_t> total, double line_interval_s = 2.0,
+           Unit unit = Unit::kFrames);
   ~Progress();
 
   void Add(size_t n = 1) { done_.fetch_add(n, std::memory_order_relaxed); }
@@ -28,11 +30,14 @@ class Progress {
  private:
   void Loop() EXCLUDES(mutex_);
   std::string Render(bool final) const;
+  std::string Amount(size_t n) const;  // "12 frames", "1.5 MiB"
+  std::string Rate(double per_second) const;
 
   std::ostream& err_ GUARDED_BY(mutex_);
   const bool tty_;
   const std::optional<size_t> total_;
   const double line_interval_s_;
+  const Unit unit_;
   const Clock::time_point start_ = Clock::now();
   std::atomic<size_t> done_{0};  // atomic: Add() takes no lock
   Mutex mutex_;

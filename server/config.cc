@@ -262,9 +262,9 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
                                    &c->security.allow_unauthenticated_remote));
   }
   if (const YAML::Node s = root["storage"]; s) {
-    PLACEDB_RETURN_IF_ERROR(
-        r.Check(s, "storage",
-                {"sync", "group_commit_delay_ms", "block_cache_bytes", "disk_reserve_bytes"}));
+    PLACEDB_RETURN_IF_ERROR(r.Check(s, "storage",
+                                    {"sync", "group_commit_delay_ms", "block_cache_bytes",
+                                     "disk_reserve_bytes", "snapshots_keep_per_map"}));
     std::string sync;
     PLACEDB_RETURN_IF_ERROR(r.Read(s, "storage", "sync", &sync));
     if (sync == "every_write") {
@@ -280,6 +280,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
         r.Read(s, "storage", "block_cache_bytes", &c->storage.block_cache_bytes));
     PLACEDB_RETURN_IF_ERROR(
         r.Read(s, "storage", "disk_reserve_bytes", &c->storage.disk_reserve_bytes));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(s, "storage", "snapshots_keep_per_map", &c->snapshots.keep_per_map));
   }
   if (const YAML::Node l = root["limits"]; l) {
     PLACEDB_RETURN_IF_ERROR(
@@ -544,6 +546,7 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "group_commit_delay_ms" << YAML::Value << c.storage.group_commit_delay_ms;
   e << YAML::Key << "block_cache_bytes" << YAML::Value << c.storage.block_cache_bytes;
   e << YAML::Key << "disk_reserve_bytes" << YAML::Value << c.storage.disk_reserve_bytes;
+  e << YAML::Key << "snapshots_keep_per_map" << YAML::Value << c.snapshots.keep_per_map;
   e << YAML::EndMap;
   const Limits& l = c.limits;
   e << YAML::Key << "limits" << YAML::Value << YAML::BeginMap;

@@ -13,6 +13,7 @@
 
 #include "core/base/status.h"
 #include "core/storage/map_store.h"
+#include "core/storage/snapshots.h"
 #include "proto/convert_frame.h"
 
 namespace placedb::server {
@@ -123,6 +124,7 @@ struct ServerConfig {
   // long as they keep their embedded path. A vocabulary named by a flag is always required.
   std::set<std::string> optional_vocabularies = {"sift"};
   StorageOptions storage;
+  SnapshotOptions snapshots;  // YAML storage.snapshots_keep_per_map
   Limits limits;
   double shutdown_deadline_s = 30;  // in-flight calls get this long on SIGTERM/SIGINT
   DetectorSettings detector;        // used when detector.model is set

@@ -32,13 +32,20 @@ MapRegistry::~MapRegistry() {
 Result<std::unique_ptr<MapRegistry>> MapRegistry::Open(const std::string& data_dir,
                                                        const StorageOptions& storage,
                                                        std::vector<VocabularyEntry> vocabularies,
-                                                       std::vector<MissingVocabulary> missing) {
+                                                       std::vector<MissingVocabulary> missing,
+                                                       SnapshotOptions snapshots) {
   auto directory = DataDirectory::Open(data_dir, storage);
   if (!directory.ok()) return directory.status().WithContext("data directory " + data_dir);
   std::unique_ptr<MapRegistry> registry(
       new MapRegistry(std::move(directory).value(), std::move(vocabularies), std::move(missing)));
   // Not shared yet, so uncontended; held because Load() and maps_ require them.
   MutexLock create_lock(registry->create_mutex_);
+  auto store = SnapshotStore::Open(registry->directory_.get(), snapshots);
+  if (!store.ok()) return store.status().WithContext("snapshots of " + data_dir);
+  {
+    MutexLock lock(registry->mutex_);
+    registry->snapshots_ = std::move(store).value();
+  }
   for (const std::string& name : registry->directory_->ListMaps()) {
     auto entry = registry->Load(name);
     if (entry->map) {
@@ -291,12 +298,65 @@ std::vector<std::shared_ptr<const MapEntry>> MapRegistry::List() const {
 void MapRegistry::CloseAll() {
   MutexLock create_lock(create_mutex_);
   std::map<std::string, std::shared_ptr<const MapEntry>> maps;
+  std::shared_ptr<SnapshotStore> snapshots;
   {
     MutexLock lock(mutex_);
     maps.swap(maps_);
+    snapshots.swap(snapshots_);
   }
-  maps.clear();  // the last holder of each map flushes and closes its RocksDB
+  snapshots.reset();  // a download in flight keeps the store (it reads only its own files)
+  maps.clear();       // the last holder of each map flushes and closes its RocksDB
   directory_.reset();
+}
+
+DataDirectory::VocabularyFor MapRegistry::AnyVocabularyFor() const {
+  return [this](const MapInfo& info) -> Result<AnyVocabulary> {
+    auto vocabulary = VocabularyFor(info);
+    if (!vocabulary.ok()) return vocabulary.status();
+    return (*vocabulary)->vocabulary;
+  };
+}
+
+std::shared_ptr<SnapshotStore> MapRegistry::snapshots() const {
+  MutexLock lock(mutex_);
+  return snapshots_;
+}
+
+Result<SnapshotInfo> MapRegistry::CreateSnapshot(const std::string& map) {
+  auto entry = Get(map, "map");
+  if (!entry.ok()) return entry.status();
+  MutexLock create_lock(create_mutex_);
+  auto store = snapshots();
+  if (!directory_ || !store) return Status::IoError("the data directory is closed (shutting down)");
+  return store->Create(*(*entry)->map, AnyVocabularyFor());
+}
+
+Result<SnapshotInfo> MapRegistry::ImportSnapshot(const std::string& archive_path) {
+  MutexLock create_lock(create_mutex_);
+  auto store = snapshots();
+  if (!directory_ || !store) return Status::IoError("the data directory is closed (shutting down)");
+  return store->Import(archive_path, AnyVocabularyFor());
+}
+
+Result<std::shared_ptr<const MapEntry>> MapRegistry::RestoreSnapshot(const std::string& id,
+                                                                     const std::string& new_map) {
+  PLACEDB_RETURN_IF_ERROR(ValidateMapName(new_map).WithContext("new_map"));
+  MutexLock create_lock(create_mutex_);
+  auto store = snapshots();
+  if (!directory_ || !store) return Status::IoError("the data directory is closed (shutting down)");
+  {
+    MutexLock lock(mutex_);
+    if (maps_.count(new_map)) return Status::AlreadyExists("map '" + new_map + "' already exists");
+  }
+  PLACEDB_RETURN_IF_ERROR(store->Restore(id, new_map));
+  auto entry = Load(new_map);
+  MutexLock lock(mutex_);
+  maps_[new_map] = entry;
+  if (!entry->map) {
+    return Status::Internal("restored map '" + new_map +
+                            "' does not open: " + entry->unavailable_reason);
+  }
+  return std::shared_ptr<const MapEntry>(entry);
 }
 
 ServiceMapSettings MapRegistry::DecodeSettings(const std::string& name, const std::string& text) {

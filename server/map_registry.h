@@ -27,6 +27,7 @@
 
 #include "core/base/thread_annotations.h"
 #include "core/storage/map_store.h"
+#include "core/storage/snapshots.h"
 #include "core/vocabulary/any_vocabulary.h"
 #include "proto/convert_config.h"
 
@@ -67,7 +68,8 @@ class MapRegistry {
   static Result<std::unique_ptr<MapRegistry>> Open(const std::string& data_dir,
                                                    const StorageOptions& storage,
                                                    std::vector<VocabularyEntry> vocabularies,
-                                                   std::vector<MissingVocabulary> missing = {});
+                                                   std::vector<MissingVocabulary> missing = {},
+                                                   SnapshotOptions snapshots = {});
   ~MapRegistry();
 
   // NOT_FOUND when the map does not exist; FAILED_PRECONDITION (with the reason) when it exists
@@ -89,6 +91,16 @@ class MapRegistry {
                                                  const ServiceMapSettings& settings);
   Status Delete(const std::string& name);
   std::vector<std::shared_ptr<const MapEntry>> List() const;  // sorted by name
+
+  // Snapshots (core/storage/snapshots.h) of the served maps, verified with the configured
+  // vocabularies. Create, Import and Restore are serialised with Create/Delete of maps; a
+  // restored map is served at once. IO_ERROR once closed (shutting down).
+  Result<SnapshotInfo> CreateSnapshot(const std::string& map);
+  Result<SnapshotInfo> ImportSnapshot(const std::string& archive_path);
+  Result<std::shared_ptr<const MapEntry>> RestoreSnapshot(const std::string& id,
+                                                          const std::string& new_map);
+  // The store itself for List/Get/Delete/WriteArchive (null once closed); holders keep it.
+  std::shared_ptr<SnapshotStore> snapshots() const;
 
   const std::vector<VocabularyEntry>& vocabularies() const { return vocabularies_; }
   const VocabularyEntry* FindVocabulary(const std::string& name) const;
@@ -113,12 +125,15 @@ class MapRegistry {
   // The configured vocabulary whose checksum the map recorded; FAILED_PRECONDITION naming the
   // configured ones otherwise.
   Result<const VocabularyEntry*> VocabularyFor(const MapInfo& info) const;
+  // The configured vocabulary for a map's info, as core's VocabularyFor wants it.
+  DataDirectory::VocabularyFor AnyVocabularyFor() const;
   std::unique_ptr<DataDirectory> directory_ GUARDED_BY(create_mutex_);  // null once closed
   const std::vector<VocabularyEntry> vocabularies_;
   const std::vector<MissingVocabulary> missing_;
   Mutex create_mutex_;  // serialises Create/Delete
   mutable Mutex mutex_ ACQUIRED_AFTER(create_mutex_);
   std::map<std::string, std::shared_ptr<const MapEntry>> maps_ GUARDED_BY(mutex_);
+  std::shared_ptr<SnapshotStore> snapshots_ GUARDED_BY(mutex_);  // null once closed
 };
 
 }  // namespace placedb::server

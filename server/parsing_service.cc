@@ -288,6 +288,21 @@ ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthoriz
   AddUnary(
       "GetServerInfo", &PlaceDbService::GetServerInfo, Right::kAny,
       +[](const v1::GetServerInfoRequest&) { return std::string(); });
+  // Snapshots: admin. Only CreateSnapshot names a map in field 1; RestoreSnapshot's new_map is
+  // checked by the registry (field new_map).
+  AddUnary(
+      "CreateSnapshot", &PlaceDbService::CreateSnapshot, Right::kAdmin,
+      +[](const v1::CreateSnapshotRequest& r) { return r.map(); });
+  AddUnary<v1::ListSnapshotsRequest, v1::ListSnapshotsResponse>(
+      "ListSnapshots", &PlaceDbService::ListSnapshots, Right::kAdmin, nullptr);
+  AddUnary<v1::DeleteSnapshotRequest, v1::DeleteSnapshotResponse>(
+      "DeleteSnapshot", &PlaceDbService::DeleteSnapshot, Right::kAdmin, nullptr);
+  AddUnary<v1::RestoreSnapshotRequest, v1::MapDescription>(
+      "RestoreSnapshot", &PlaceDbService::RestoreSnapshot, Right::kAdmin, nullptr);
+  AddServerStream<v1::DownloadSnapshotRequest, v1::SnapshotChunk>(
+      "DownloadSnapshot", &PlaceDbService::DownloadSnapshotStream, Right::kAdmin, nullptr);
+  AddClientStream<v1::SnapshotChunk, v1::Snapshot>(
+      "UploadSnapshot", &PlaceDbService::UploadSnapshotStream, Right::kAdmin);
 }
 
 grpc::Status ParsingService::Authenticate(const char* method, const grpc::ServerContext& context,
@@ -308,6 +323,36 @@ const char* ParsingService::Path(const char* method) {
   return paths_.back().c_str();
 }
 
+template <typename Request>
+grpc::Status ParsingService::Admit(const char* method, grpc::ServerContext* context,
+                                   const grpc::ByteBuffer& in, auth::Right right,
+                                   std::string (*map_of)(const Request&), Request* request,
+                                   auth::Caller* caller, std::string* map) {
+  // Who is calling, before anything of the request is looked at.
+  if (grpc::Status denied = Authenticate(method, *context, caller); !denied.ok()) {
+    return service_->RefuseMalformed(method, context, denied);
+  }
+  if (std::string problem = ParseMessage(in, request); !problem.empty()) {
+    return service_->RefuseMalformed(
+        method, context,
+        grpc::Status(
+            grpc::StatusCode::INVALID_ARGUMENT,
+            "request is not a valid " + Request::descriptor()->full_name() + ": " + problem));
+  }
+  *map = map_of ? map_of(*request) : std::string();
+  if (authorizer_) {
+    // Every request on a map names it in field 1 ("name" or "map").
+    grpc::Status allowed =
+        right == auth::Right::kAny || !map_of
+            ? grpc::Status::OK
+            : CheckRequestMapName(
+                  method, std::string(Request::descriptor()->FindFieldByNumber(1)->name()), *map);
+    if (allowed.ok()) allowed = authorizer_->Authorize(method, *context, *caller, right, *map);
+    if (!allowed.ok()) return service_->RefuseMalformed(method, context, allowed);
+  }
+  return grpc::Status::OK;
+}
+
 template <typename Request, typename Response>
 void ParsingService::AddUnary(const char* method,
                               grpc::Status (PlaceDbService::*handler)(grpc::ServerContext*,
@@ -316,31 +361,13 @@ void ParsingService::AddUnary(const char* method,
   auto parse_and_call = [method, handler, right, map_of](
                             ParsingService* self, grpc::ServerContext* context,
                             const grpc::ByteBuffer* in, grpc::ByteBuffer* out) {
-    // Who is calling, before anything of the request is looked at.
     auth::Caller caller;
-    if (grpc::Status denied = self->Authenticate(method, *context, &caller); !denied.ok()) {
-      return self->service_->RefuseMalformed(method, context, denied);
-    }
     Request request;
-    if (std::string problem = ParseMessage(*in, &request); !problem.empty()) {
-      return self->service_->RefuseMalformed(
-          method, context,
-          grpc::Status(
-              grpc::StatusCode::INVALID_ARGUMENT,
-              "request is not a valid " + Request::descriptor()->full_name() + ": " + problem));
-    }
-    const std::string map = map_of(request);
-    if (self->authorizer_) {
-      // Every request on a map names it in field 1 ("name" or "map").
-      grpc::Status allowed =
-          right == auth::Right::kAny
-              ? grpc::Status::OK
-              : CheckRequestMapName(
-                    method, std::string(Request::descriptor()->FindFieldByNumber(1)->name()), map);
-      if (allowed.ok()) {
-        allowed = self->authorizer_->Authorize(method, *context, caller, right, map);
-      }
-      if (!allowed.ok()) return self->service_->RefuseMalformed(method, context, allowed);
+    std::string map;
+    if (grpc::Status admitted =
+            self->Admit(method, context, *in, right, map_of, &request, &caller, &map);
+        !admitted.ok()) {
+      return admitted;
     }
     Response response;
     grpc::Status status = (self->service_->*handler)(context, &request, &response);
@@ -374,6 +401,94 @@ void ParsingService::AddIngest(const char* method) {
       Path(method), grpc::internal::RpcMethod::BIDI_STREAMING,
       new grpc::internal::BidiStreamingHandler<ParsingService, grpc::ByteBuffer, grpc::ByteBuffer>(
           stream, this)));
+}
+
+template <typename Request, typename Response>
+void ParsingService::AddServerStream(
+    const char* method,
+    grpc::Status (PlaceDbService::*handler)(grpc::ServerContext*, const Request*,
+                                            const std::function<bool(const Response&)>&),
+    auth::Right right, std::string (*map_of)(const Request&)) {
+  auto stream = [method, handler, right, map_of](ParsingService* self, grpc::ServerContext* context,
+                                                 const grpc::ByteBuffer* in,
+                                                 grpc::ServerWriter<grpc::ByteBuffer>* writer) {
+    auth::Caller caller;
+    Request request;
+    std::string map;
+    if (grpc::Status admitted =
+            self->Admit(method, context, *in, right, map_of, &request, &caller, &map);
+        !admitted.ok()) {
+      return admitted;
+    }
+    auto write = [writer](const Response& response) {
+      grpc::ByteBuffer bytes;
+      bool own = false;
+      if (!grpc::SerializationTraits<Response>::Serialize(response, &bytes, &own).ok()) {
+        return false;
+      }
+      return writer->Write(bytes);
+    };
+    grpc::Status status = (self->service_->*handler)(context, &request, write);
+    if (right == auth::Right::kAdmin) {
+      spdlog::info("auth admin method={} principal={} peer={} map={} result={}", method,
+                   caller.name, context->peer(), map, wire::GrpcCodeName(status.error_code()));
+    }
+    return status;
+  };
+  AddMethod(new grpc::internal::RpcServiceMethod(
+      Path(method), grpc::internal::RpcMethod::SERVER_STREAMING,
+      new grpc::internal::ServerStreamingHandler<ParsingService, grpc::ByteBuffer,
+                                                 grpc::ByteBuffer>(stream, this)));
+}
+
+template <typename Request, typename Response>
+void ParsingService::AddClientStream(const char* method,
+                                     grpc::Status (PlaceDbService::*handler)(
+                                         grpc::ServerContext*,
+                                         const std::function<grpc::Status(Request*, bool* done)>&,
+                                         Response*),
+                                     auth::Right right) {
+  auto stream = [method, handler, right](ParsingService* self, grpc::ServerContext* context,
+                                         grpc::ServerReader<grpc::ByteBuffer>* reader,
+                                         grpc::ByteBuffer* out) {
+    auth::Caller caller;
+    if (grpc::Status denied = self->Authenticate(method, *context, &caller); !denied.ok()) {
+      return self->service_->RefuseMalformed(method, context, denied);
+    }
+    if (self->authorizer_) {
+      if (grpc::Status allowed = self->authorizer_->Authorize(method, *context, caller, right, "");
+          !allowed.ok()) {
+        return self->service_->RefuseMalformed(method, context, allowed);
+      }
+    }
+    size_t messages = 0;
+    auto read = [&](Request* request, bool* done) {
+      grpc::ByteBuffer bytes;
+      *done = !reader->Read(&bytes);
+      if (*done) return grpc::Status::OK;
+      ++messages;
+      if (std::string problem = ParseMessage(bytes, request); !problem.empty()) {
+        return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                            "message " + std::to_string(messages) + " of the " + method +
+                                " stream is not a valid " + Request::descriptor()->full_name() +
+                                ": " + problem);
+      }
+      return grpc::Status::OK;
+    };
+    Response response;
+    grpc::Status status = (self->service_->*handler)(context, read, &response);
+    if (right == auth::Right::kAdmin) {
+      spdlog::info("auth admin method={} principal={} peer={} map= result={}", method, caller.name,
+                   context->peer(), wire::GrpcCodeName(status.error_code()));
+    }
+    if (!status.ok()) return status;
+    bool own = false;
+    return grpc::SerializationTraits<Response>::Serialize(response, out, &own);
+  };
+  AddMethod(new grpc::internal::RpcServiceMethod(
+      Path(method), grpc::internal::RpcMethod::CLIENT_STREAMING,
+      new grpc::internal::ClientStreamingHandler<ParsingService, grpc::ByteBuffer,
+                                                 grpc::ByteBuffer>(stream, this)));
 }
 
 std::vector<std::string> ParsingService::Unregistered() const {

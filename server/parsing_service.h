@@ -25,6 +25,7 @@
 #include <grpcpp/impl/service_type.h>
 
 #include <deque>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -69,13 +70,37 @@ class ParsingService final : public grpc::Service {
   std::vector<std::string> Unregistered() const;
 
  private:
-  // `map_of` names the request's map (for `right`; "" for methods on no map).
+  // `map_of` names the request's map (for `right`; "" for methods on no map, whose field 1 is
+  // then not checked as a map name; null: the request names no map at all, for admin methods on
+  // snapshots).
   template <typename Request, typename Response>
   void AddUnary(const char* method,
                 grpc::Status (PlaceDbService::*handler)(grpc::ServerContext*, const Request*,
                                                         Response*),
                 auth::Right right, std::string (*map_of)(const Request&));
   void AddIngest(const char* method);
+  // A server stream: `handler` writes each response through the callback it is given (false once
+  // the client is gone). Checked as AddUnary.
+  template <typename Request, typename Response>
+  void AddServerStream(
+      const char* method,
+      grpc::Status (PlaceDbService::*handler)(grpc::ServerContext*, const Request*,
+                                              const std::function<bool(const Response&)>&),
+      auth::Right right, std::string (*map_of)(const Request&));
+  // A client stream on no map: `right` must be kAdmin or kAny (it is checked before the first
+  // message is read); `handler` reads each request through the callback it is given.
+  template <typename Request, typename Response>
+  void AddClientStream(const char* method,
+                       grpc::Status (PlaceDbService::*handler)(
+                           grpc::ServerContext*,
+                           const std::function<grpc::Status(Request*, bool* done)>&, Response*),
+                       auth::Right right);
+  // Authenticates, parses and authorizes a request (the shared first half of AddUnary and
+  // AddServerStream); `caller` receives who is calling.
+  template <typename Request>
+  grpc::Status Admit(const char* method, grpc::ServerContext* context, const grpc::ByteBuffer& in,
+                     auth::Right right, std::string (*map_of)(const Request&), Request* request,
+                     auth::Caller* caller, std::string* map);
   // Sets *caller (every right when there is no authorizer); else the denial (logged, counted).
   grpc::Status Authenticate(const char* method, const grpc::ServerContext& context,
                             auth::Caller* caller) const;

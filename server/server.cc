@@ -148,7 +148,7 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   auto vocabularies = LoadVocabularies(c, deps.vocabularies);
   if (!vocabularies.ok()) return vocabularies.status();
   auto maps = MapRegistry::Open(c.data_dir, c.storage, std::move(vocabularies->loaded),
-                                std::move(vocabularies->missing));
+                                std::move(vocabularies->missing), c.snapshots);
   if (!maps.ok()) return maps.status();
   server->maps_ = std::move(maps).value();
 

@@ -1,9 +1,13 @@
 #include "server/service.h"
 
 #include <spdlog/spdlog.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
+#include <cstdio>
+#include <fstream>
 #include <future>
 #include <optional>
 #include <string>
@@ -1082,6 +1086,179 @@ void PlaceDbService::RefreshMapGauges() {
     const MapStats stats = entry->map->Stats();
     metrics_->SetMapGauges(entry->name, double(stats.database.places), double(stats.bytes_on_disk));
   }
+}
+
+// ---- Snapshots ----------------------------------------------------------------------------------
+
+namespace {
+
+void SnapshotToProto(const SnapshotInfo& info, v1::Snapshot* out) {
+  out->set_id(info.id);
+  out->set_map(info.map);
+  out->set_created_unix_ms(info.created_unix_ms);
+  out->set_feature_type(info.feature_type);
+  out->set_vocabulary_checksum(info.vocabulary_checksum);
+  out->set_places(info.places);
+  out->set_bytes(info.bytes);
+}
+
+constexpr size_t kSnapshotChunkBytes = size_t(256) << 10;  // well under any max_message_bytes
+
+}  // namespace
+
+grpc::Status PlaceDbService::CreateSnapshot(grpc::ServerContext* context,
+                                            const v1::CreateSnapshotRequest* request,
+                                            v1::Snapshot* response) {
+  CallScope scope(this);
+  if (draining_flag_) return Finish("CreateSnapshot", context, Unavailable());
+  auto info = maps_->CreateSnapshot(request->map());
+  if (!info.ok()) {
+    return Finish("CreateSnapshot", context, HidePaths(ToGrpc(info.status()), config_.data_dir));
+  }
+  SnapshotToProto(*info, response);
+  spdlog::info("snapshot '{}' of map '{}' created: {} places, {} bytes, peer={}", info->id,
+               info->map, info->places, info->bytes, Peer(context));
+  return Finish("CreateSnapshot", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::ListSnapshots(grpc::ServerContext* context,
+                                           const v1::ListSnapshotsRequest*,
+                                           v1::ListSnapshotsResponse* response) {
+  CallScope scope(this);
+  auto store = maps_->snapshots();
+  if (!store) return Finish("ListSnapshots", context, Unavailable());
+  for (const SnapshotInfo& info : store->List()) SnapshotToProto(info, response->add_snapshots());
+  return Finish("ListSnapshots", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::DeleteSnapshot(grpc::ServerContext* context,
+                                            const v1::DeleteSnapshotRequest* request,
+                                            v1::DeleteSnapshotResponse*) {
+  CallScope scope(this);
+  auto store = maps_->snapshots();
+  if (!store || draining_flag_) return Finish("DeleteSnapshot", context, Unavailable());
+  if (Status deleted = store->Delete(request->id()); !deleted.ok()) {
+    return Finish("DeleteSnapshot", context,
+                  HidePaths(ToGrpc(deleted.WithContext("id")), config_.data_dir));
+  }
+  spdlog::info("snapshot '{}' deleted, peer={}", request->id(), Peer(context));
+  return Finish("DeleteSnapshot", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::RestoreSnapshot(grpc::ServerContext* context,
+                                             const v1::RestoreSnapshotRequest* request,
+                                             v1::MapDescription* response) {
+  CallScope scope(this);
+  if (draining_flag_) return Finish("RestoreSnapshot", context, Unavailable());
+  if (Status valid = ValidateSnapshotId(request->id()); !valid.ok()) {
+    return Finish("RestoreSnapshot", context, ToGrpc(valid.WithContext("id")));
+  }
+  auto entry = maps_->RestoreSnapshot(request->id(), request->new_map());
+  if (!entry.ok()) {
+    return Finish("RestoreSnapshot", context, HidePaths(ToGrpc(entry.status()), config_.data_dir));
+  }
+  Describe(**entry, response);
+  spdlog::info("snapshot '{}' restored as map '{}', peer={}", request->id(), request->new_map(),
+               Peer(context));
+  return Finish("RestoreSnapshot", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::DownloadSnapshotStream(
+    grpc::ServerContext* context, const v1::DownloadSnapshotRequest* request,
+    const std::function<bool(const v1::SnapshotChunk&)>& write) {
+  CallScope scope(this);
+  auto store = maps_->snapshots();
+  if (!store || draining_flag_) return Finish("DownloadSnapshot", context, Unavailable());
+  auto info = store->Get(request->id());
+  if (!info.ok()) {
+    return Finish("DownloadSnapshot", context,
+                  HidePaths(ToGrpc(info.status().WithContext("id")), config_.data_dir));
+  }
+  auto size = store->ArchiveBytes(request->id());
+  if (!size.ok()) {
+    return Finish("DownloadSnapshot", context, HidePaths(ToGrpc(size.status()), config_.data_dir));
+  }
+  bool first = true;
+  bool drained = false;
+  Status written = store->WriteArchive(
+      request->id(), kSnapshotChunkBytes, [&](std::string_view bytes) -> Status {
+        if (context->IsCancelled()) return Status::Cancelled("the client cancelled the download");
+        if (draining_flag_) {  // shutting down: the client downloads again from the start
+          drained = true;
+          return Status::Cancelled("the server is shutting down");
+        }
+        v1::SnapshotChunk chunk;
+        if (first) {
+          SnapshotToProto(*info, chunk.mutable_snapshot());
+          chunk.set_archive_bytes(*size);
+          first = false;
+        }
+        chunk.set_data(std::string(bytes));
+        if (!write(chunk)) return Status::Cancelled("the client went away during the download");
+        return Status::Ok();
+      });
+  if (drained) return Finish("DownloadSnapshot", context, Unavailable());
+  if (!written.ok()) {
+    return Finish("DownloadSnapshot", context, HidePaths(ToGrpc(written), config_.data_dir));
+  }
+  spdlog::info("snapshot '{}' downloaded: {} bytes, peer={}", request->id(), *size, Peer(context));
+  return Finish("DownloadSnapshot", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::UploadSnapshotStream(
+    grpc::ServerContext* context,
+    const std::function<grpc::Status(v1::SnapshotChunk*, bool* done)>& read,
+    v1::Snapshot* response) {
+  CallScope scope(this);
+  auto store = maps_->snapshots();
+  if (!store || draining_flag_) return Finish("UploadSnapshot", context, Unavailable());
+  // The archive is spooled into a dot-file of the snapshots folder (removed on every path, and by
+  // SnapshotStore::Open after a crash), then imported.
+  static std::atomic<uint64_t> uploads{0};
+  const std::string spool =
+      store->path() + "/.upload-" + std::to_string(::getpid()) + "-" + std::to_string(++uploads);
+  struct Spool {
+    std::string path;
+    ~Spool() { std::remove(path.c_str()); }
+  } cleanup{spool};
+  std::ofstream out(spool, std::ios::binary | std::ios::trunc);
+  if (!out) return Finish("UploadSnapshot", context, ToGrpc(Status::IoError("cannot spool")));
+  uint64_t expected = 0;
+  uint64_t received = 0;
+  for (size_t n = 0;; ++n) {
+    v1::SnapshotChunk chunk;
+    bool done = false;
+    if (grpc::Status status = read(&chunk, &done); !status.ok()) {
+      return Finish("UploadSnapshot", context, status);
+    }
+    if (done) break;
+    if (n == 0) expected = chunk.archive_bytes();
+    received += chunk.data().size();
+    if (expected && received > expected) {
+      return Finish("UploadSnapshot", context,
+                    ToGrpc(Status::InvalidArgument("archive_bytes: the upload is longer than the " +
+                                                   std::to_string(expected) + " bytes announced")));
+    }
+    out.write(chunk.data().data(), std::streamsize(chunk.data().size()));
+    if (!out) {
+      return Finish("UploadSnapshot", context, ToGrpc(Status::IoError("spooling the upload")));
+    }
+  }
+  out.close();
+  if (expected && received != expected) {
+    return Finish(
+        "UploadSnapshot", context,
+        ToGrpc(Status::Corruption("the upload is truncated: " + std::to_string(received) + " of " +
+                                  std::to_string(expected) + " bytes announced")));
+  }
+  auto info = maps_->ImportSnapshot(spool);
+  if (!info.ok()) {
+    return Finish("UploadSnapshot", context, HidePaths(ToGrpc(info.status()), config_.data_dir));
+  }
+  SnapshotToProto(*info, response);
+  spdlog::info("snapshot '{}' of map '{}' uploaded: {} places, {} bytes, peer={}", info->id,
+               info->map, info->places, received, Peer(context));
+  return Finish("UploadSnapshot", context, grpc::Status::OK);
 }
 
 }  // namespace placedb::server

@@ -25,6 +25,7 @@
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <set>
@@ -77,6 +78,29 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                            v1::DeletePlaceResponse* response) override;
   grpc::Status GetServerInfo(grpc::ServerContext* context, const v1::GetServerInfoRequest* request,
                              v1::ServerInfo* response) override;
+
+  // Snapshots (MapRegistry's SnapshotStore). The streaming two are reached through
+  // ParsingService, which parses and serialises the chunks: `write` returns false once the
+  // client is gone; `read` fills the next chunk and sets *done at the stream's end, or returns
+  // INVALID_ARGUMENT for a message that is not a valid SnapshotChunk.
+  grpc::Status CreateSnapshot(grpc::ServerContext* context,
+                              const v1::CreateSnapshotRequest* request,
+                              v1::Snapshot* response) override;
+  grpc::Status ListSnapshots(grpc::ServerContext* context, const v1::ListSnapshotsRequest* request,
+                             v1::ListSnapshotsResponse* response) override;
+  grpc::Status DeleteSnapshot(grpc::ServerContext* context,
+                              const v1::DeleteSnapshotRequest* request,
+                              v1::DeleteSnapshotResponse* response) override;
+  grpc::Status RestoreSnapshot(grpc::ServerContext* context,
+                               const v1::RestoreSnapshotRequest* request,
+                               v1::MapDescription* response) override;
+  grpc::Status DownloadSnapshotStream(grpc::ServerContext* context,
+                                      const v1::DownloadSnapshotRequest* request,
+                                      const std::function<bool(const v1::SnapshotChunk&)>& write);
+  grpc::Status UploadSnapshotStream(
+      grpc::ServerContext* context,
+      const std::function<grpc::Status(v1::SnapshotChunk*, bool* done)>& read,
+      v1::Snapshot* response);
 
   // Shutdown, first step: new streams and calls are refused with UNAVAILABLE, streams stop
   // reading; every frame already read is still processed, stored and answered, then its stream

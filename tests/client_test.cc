@@ -228,6 +228,57 @@ TEST_F(ClientTest, MapsCreateListShowDelete) {
 // A damaged map (its ACKED file deleted) is listed as DAMAGED; `maps scrub` on it fails with
 // DATA_LOSS; `maps recover` refuses without --accept-data-loss, recovers with it, and `maps
 // scrub` then finds nothing (exit 0; exit 3 is for damage found, covered by the service tests).
+// ---- snapshots ----------------------------------------------------------------------------------
+
+TEST_F(ClientTest, SnapshotsCreateDownloadUploadRestoreDelete) {
+  ASSERT_EQ(Cli({"maps", "create", "lab"}).code, 0);
+  ASSERT_EQ(Cli({"ingest", "lab", FramesDir(1, 10), "--json"}).code, 0);
+  const std::string places = ParseJson(Cli({"maps", "show", "lab", "--json"}))["stats"]["places"];
+
+  CliRun created = Cli({"snapshots", "create", "lab", "--json"});
+  ASSERT_EQ(created.code, 0) << created.err;
+  const json snapshot = ParseJson(created);
+  const std::string id = snapshot["id"];
+  EXPECT_EQ(snapshot["map"], "lab");
+  EXPECT_EQ(snapshot["places"], places);
+  CliRun listed = Cli({"snapshots", "list"});
+  ASSERT_EQ(listed.code, 0);
+  EXPECT_NE(listed.out.find(id), std::string::npos) << listed.out;
+
+  const std::string file = root_ + "/lab.pdbsnap";
+  CliRun downloaded = Cli({"snapshots", "download", id, file});
+  ASSERT_EQ(downloaded.code, 0) << downloaded.err;
+  EXPECT_NE(downloaded.err.find("progress: "), std::string::npos) << downloaded.err;
+  EXPECT_GT(fs::file_size(file), 0u);
+  EXPECT_EQ(Cli({"snapshots", "download", id, file}).code, 2);  // never overwrites
+  // A download of an unknown snapshot leaves no file.
+  EXPECT_NE(Cli({"snapshots", "download", "nope", root_ + "/nope.pdbsnap"}).code, 0);
+  EXPECT_FALSE(fs::exists(root_ + "/nope.pdbsnap"));
+
+  ASSERT_EQ(Cli({"snapshots", "delete", id}).code, 0);
+  EXPECT_EQ(ParseJson(Cli({"snapshots", "list", "--json"})).value("snapshots", json::array()),
+            json::array());
+  CliRun uploaded = Cli({"snapshots", "upload", file, "--json"});
+  ASSERT_EQ(uploaded.code, 0) << uploaded.err;
+  EXPECT_EQ(ParseJson(uploaded)["id"], id);
+  CliRun restored = Cli({"snapshots", "restore", id, "lab-copy"});
+  ASSERT_EQ(restored.code, 0) << restored.err;
+  EXPECT_EQ(ParseJson(Cli({"maps", "show", "lab-copy", "--json"}))["stats"]["places"], places);
+  EXPECT_NE(Cli({"snapshots", "restore", id, "lab-copy"}).code, 0);  // exists
+
+  // A damaged archive is refused with DATA_LOSS's message.
+  std::string bytes;
+  {
+    std::ifstream in(file, std::ios::binary);
+    bytes.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  bytes.resize(bytes.size() / 2);
+  std::ofstream(root_ + "/half.pdbsnap", std::ios::binary) << bytes;
+  CliRun refused = Cli({"snapshots", "upload", root_ + "/half.pdbsnap"});
+  EXPECT_NE(refused.code, 0);
+  EXPECT_NE(refused.err.find("DATA_LOSS"), std::string::npos) << refused.err;
+}
+
 TEST_F(ClientTest, MapsRecoverAndScrub) {
   ASSERT_EQ(Cli({"maps", "create", "lab"}).code, 0);
   CliRun ingested = Cli({"ingest", "lab", FramesDir(1, 6)});

@@ -272,7 +272,54 @@ TEST_F(AuthTest, EveryRpcTimesEveryCallerGetsTheExactCode) {
   delete_place.set_map("campus");
   delete_place.set_place_id(999999);  // none: the allowed caller's answer names it, nothing changes
 
+  // Snapshots: admin only; a snapshot of campus to download and restore.
+  v1::CreateSnapshotRequest create_snapshot;
+  create_snapshot.set_map("campus");
+  v1::Snapshot snapshot;
+  ASSERT_TRUE(stub_->CreateSnapshot(Context(As("admin")).get(), create_snapshot, &snapshot).ok());
+  v1::DeleteSnapshotRequest delete_snapshot;
+  delete_snapshot.set_id("none-1");  // absent: the allowed caller gets NOT_FOUND, nothing changes
+  v1::RestoreSnapshotRequest restore;
+  restore.set_id(snapshot.id());
+  restore.set_new_map("campus");  // taken: the allowed caller gets ALREADY_EXISTS
+  auto download = [this, id = snapshot.id()](const std::string& authorization) {
+    v1::DownloadSnapshotRequest request;
+    request.set_id(id);
+    auto context = Context(authorization);
+    auto reader = stub_->DownloadSnapshot(context.get(), request);
+    v1::SnapshotChunk chunk;
+    while (reader->Read(&chunk)) {
+    }
+    return reader->Finish();
+  };
+  auto upload = [this](const std::string& authorization) {
+    auto context = Context(authorization);
+    v1::Snapshot response;
+    auto writer = stub_->UploadSnapshot(context.get(), &response);
+    v1::SnapshotChunk chunk;
+    chunk.set_data("not an archive");
+    writer->Write(chunk);
+    writer->WritesDone();
+    return writer->Finish();
+  };
+
   std::map<std::string, Row> rows;
+  rows["CreateSnapshot"] = {
+      unary(&v1::PlaceDb::Stub::CreateSnapshot, create_snapshot, v1::Snapshot()),
+      {{"read", P}, {"write", P}, {"admin", K}, {"other_map", P}}};
+  rows["ListSnapshots"] = {unary(&v1::PlaceDb::Stub::ListSnapshots, v1::ListSnapshotsRequest(),
+                                 v1::ListSnapshotsResponse()),
+                           {{"read", P}, {"write", P}, {"admin", K}, {"other_map", P}}};
+  rows["DeleteSnapshot"] = {
+      unary(&v1::PlaceDb::Stub::DeleteSnapshot, delete_snapshot, v1::DeleteSnapshotResponse()),
+      {{"read", P}, {"write", P}, {"admin", Code::NOT_FOUND}, {"other_map", P}}};
+  rows["RestoreSnapshot"] = {
+      unary(&v1::PlaceDb::Stub::RestoreSnapshot, restore, v1::MapDescription()),
+      {{"read", P}, {"write", P}, {"admin", Code::ALREADY_EXISTS}, {"other_map", P}}};
+  rows["DownloadSnapshot"] = {download,
+                              {{"read", P}, {"write", P}, {"admin", K}, {"other_map", P}}};
+  rows["UploadSnapshot"] = {
+      upload, {{"read", P}, {"write", P}, {"admin", Code::INVALID_ARGUMENT}, {"other_map", P}}};
   rows["CreateMap"] = {unary(&v1::PlaceDb::Stub::CreateMap, create, v1::MapDescription()),
                        {{"read", P}, {"write", P}, {"admin", K}, {"other_map", P}}};
   rows["GetMap"] = {unary(&v1::PlaceDb::Stub::GetMap, get, v1::MapDescription()),

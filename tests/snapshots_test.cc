@@ -1,0 +1,360 @@
+// Snapshots (core/storage/snapshots.h) on real RocksDB maps in temp directories, with real frames:
+// online consistency under a 2-agent ingest, archive round trips between data directories, and
+// refused archives that leave nothing behind.
+#include "core/storage/snapshots.h"
+
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <set>
+#include <thread>
+#include <tuple>
+
+#include "core/base/files.h"
+#include "tests/test_support.h"
+
+namespace fs = std::filesystem;
+
+namespace placedb {
+namespace {
+
+Observation Frame(int index, const std::string& agent) {
+  Observation observation;
+  observation.image = testing::ReadGray(testing::RtabmapFramePath(index));
+  observation.metadata.agent_id = agent;
+  observation.metadata.sequence = uint64_t(index);
+  observation.metadata.timestamp_ns = int64_t(index) * 500'000'000;
+  return observation;
+}
+
+// A query's ranked answer, by the matched places' (agent, sequence): place ids differ between a
+// map and its rebuilt reference, the frames they hold do not.
+struct Answer {
+  std::vector<std::tuple<std::string, uint64_t, double, int>> matches;
+  bool operator==(const Answer&) const = default;
+};
+
+std::vector<Answer> AskAll(const PlaceMap& map, const std::vector<Observation>& queries) {
+  std::vector<Answer> out;
+  for (const Observation& query : queries) {
+    auto result = map.Query(query, {});
+    EXPECT_TRUE(result.ok()) << result.status().ToString();
+    Answer answer;
+    if (result.ok()) {
+      for (const Match& m : result->matches) {
+        answer.matches.emplace_back(m.metadata.agent_id, m.metadata.sequence, m.score, m.inliers);
+      }
+    }
+    out.push_back(answer);
+  }
+  return out;
+}
+
+// Every file and folder under `path`, relative, to show that a refused operation left nothing.
+std::set<std::string> Tree(const std::string& path) {
+  std::set<std::string> out;
+  for (const auto& entry : fs::recursive_directory_iterator(path)) {
+    out.insert(fs::relative(entry.path(), path).generic_string());
+  }
+  return out;
+}
+
+class SnapshotsTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+    vocabulary_ = testing::DefaultVocabulary();
+    ASSERT_TRUE(vocabulary_);
+    root_ = testing::MakeTempDir("placedb-snapshots");
+    for (int i = 40; i <= 70; i += 3) queries_.push_back(Frame(i, "query"));
+  }
+
+  std::unique_ptr<DataDirectory> OpenDir(const std::string& name) {
+    auto dir = DataDirectory::Open(root_ + "/" + name);
+    EXPECT_TRUE(dir.ok()) << dir.status().ToString();
+    return dir.ok() ? std::move(dir).value() : nullptr;
+  }
+
+  // What the server does: the vocabulary whose identity the map's info names, or
+  // FAILED_PRECONDITION when this "server" does not have it.
+  DataDirectory::VocabularyFor Resolver(AnyVocabulary known) {
+    return [known](const MapInfo& info) -> Result<AnyVocabulary> {
+      if (info.vocabulary_checksum != known.checksum()) {
+        return Status::FailedPrecondition("no vocabulary with checksum " +
+                                          std::to_string(info.vocabulary_checksum));
+      }
+      return known;
+    };
+  }
+
+  // A map of `count` frames from one agent, and a snapshot of it.
+  SnapshotInfo MakeSnapshot(DataDirectory* dir, SnapshotStore* store, const std::string& name,
+                            int count) {
+    auto map = dir->CreateMap(name, {}, vocabulary_);
+    EXPECT_TRUE(map.ok()) << map.status().ToString();
+    if (!map.ok()) return {};
+    for (int i = 1; i <= count; ++i) EXPECT_TRUE((*map)->Add(Frame(i, "robot")).ok());
+    auto info = store->Create(**map, Resolver(vocabulary_));
+    EXPECT_TRUE(info.ok()) << info.status().ToString();
+    return info.ok() ? *info : SnapshotInfo{};
+  }
+
+  std::string Archive(const SnapshotStore& store, const std::string& id) {
+    std::string bytes;
+    Status s = store.WriteArchive(id, 4096, [&](std::string_view chunk) {
+      EXPECT_LE(chunk.size(), 4096u);
+      bytes.append(chunk);
+      return Status::Ok();
+    });
+    EXPECT_TRUE(s.ok()) << s.ToString();
+    auto size = store.ArchiveBytes(id);
+    EXPECT_TRUE(size.ok());
+    if (size.ok()) {
+      EXPECT_EQ(*size, bytes.size());
+    }
+    return bytes;
+  }
+
+  std::string WriteFile(const std::string& name, const std::string& bytes) {
+    const std::string path = root_ + "/" + name;
+    std::ofstream(path, std::ios::binary) << bytes;
+    return path;
+  }
+
+  std::shared_ptr<const Vocabulary> vocabulary_;
+  std::string root_;
+  std::vector<Observation> queries_;
+};
+
+TEST_F(SnapshotsTest, SnapshotDuringTwoAgentIngestRestoresThatState) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  auto source = dir->CreateMap("source", {}, vocabulary_);
+  ASSERT_TRUE(source.ok());
+
+  // Two agents ingest their own frames in order; a snapshot is taken once both have started.
+  constexpr int kPerAgent = 14;
+  std::atomic<int> added{0};
+  auto ingest = [&](const std::string& agent, int first) {
+    for (int i = first; i < first + kPerAgent; ++i) {
+      auto result = (*source)->Add(Frame(i, agent));
+      EXPECT_TRUE(result.ok()) << result.status().ToString();
+      ++added;
+    }
+  };
+  std::thread a(ingest, "agent-a", 1);
+  std::thread b(ingest, "agent-b", 1 + kPerAgent);
+  while (added < 6) std::this_thread::yield();
+  auto snapshot = (*store)->Create(**source, Resolver(vocabulary_));
+  a.join();
+  b.join();
+  ASSERT_TRUE(snapshot.ok()) << snapshot.status().ToString();
+  EXPECT_EQ(snapshot->map, "source");
+  EXPECT_EQ(snapshot->vocabulary_checksum, AnyVocabulary(vocabulary_).checksum());
+  EXPECT_GE(snapshot->places, 1u);
+
+  ASSERT_TRUE((*store)->Restore(snapshot->id, "restored").ok());
+  auto restored = dir->OpenMap("restored", vocabulary_);
+  ASSERT_TRUE(restored.ok()) << restored.status().ToString();
+  EXPECT_EQ((*restored)->Stats().database.places, snapshot->places);
+
+  // The snapshot holds what each agent's stream stored up to some frame (each agent writes in
+  // order; a frame may be merged or invalid and store nothing). Rebuild the source's state at
+  // the snapshot: each agent's frames up to the last one held, ingested into a new map.
+  std::map<std::string, std::vector<uint64_t>> held;
+  for (PlaceId id : (*restored)->database().ListPlaces()) {
+    auto place = (*restored)->GetPlace(id);
+    ASSERT_TRUE(place.ok());
+    held[place->record.metadata.agent_id].push_back(place->record.metadata.sequence);
+  }
+  auto reference = dir->CreateMap("reference", {}, vocabulary_);
+  ASSERT_TRUE(reference.ok());
+  for (const auto& [agent, first] :
+       std::vector<std::pair<std::string, int>>{{"agent-a", 1}, {"agent-b", 1 + kPerAgent}}) {
+    std::vector<uint64_t>& sequences = held[agent];
+    std::sort(sequences.begin(), sequences.end());
+    const int last = sequences.empty() ? first - 1 : int(sequences.back());
+    std::vector<uint64_t> stored;
+    for (int i = first; i <= last; ++i) {
+      auto added = (*reference)->Add(Frame(i, agent));
+      ASSERT_TRUE(added.ok()) << added.status().ToString();
+      if (added->stored) stored.push_back(uint64_t(i));
+    }
+    EXPECT_EQ(sequences, stored) << agent << ": the snapshot is not a prefix of its stream";
+  }
+  const auto expected = AskAll(**reference, queries_);
+  EXPECT_EQ(AskAll(**restored, queries_), expected);
+  size_t answered = 0;
+  for (const Answer& answer : expected) answered += answer.matches.empty() ? 0 : 1;
+  EXPECT_GT(answered, 0u) << "the queries must match something for the comparison to count";
+}
+
+TEST_F(SnapshotsTest, ArchiveMovesASnapshotToAnotherDataDirectory) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  const SnapshotInfo info = MakeSnapshot(dir.get(), store->get(), "lab", 20);
+  ASSERT_FALSE(info.id.empty());
+  auto source = dir->OpenMap("lab", vocabulary_);
+  ASSERT_TRUE(source.ok());
+  const auto expected = AskAll(**source, queries_);
+  const std::string path = WriteFile("lab.pdbsnap", Archive(**store, info.id));
+
+  auto other = OpenDir("other");
+  auto other_store = SnapshotStore::Open(other.get());
+  ASSERT_TRUE(other_store.ok());
+  auto imported = (*other_store)->Import(path, Resolver(vocabulary_));
+  ASSERT_TRUE(imported.ok()) << imported.status().ToString();
+  EXPECT_EQ(imported->id, info.id);
+  EXPECT_EQ(imported->map, "lab");
+  EXPECT_EQ(imported->places, info.places);
+  EXPECT_EQ(imported->places, (*source)->Stats().database.places);
+  EXPECT_EQ(imported->created_unix_ms, info.created_unix_ms);
+  ASSERT_EQ((*other_store)->List().size(), 1u);
+
+  ASSERT_TRUE((*other_store)->Restore(imported->id, "copy").ok());
+  EXPECT_EQ((*other_store)->Restore(imported->id, "copy").code(), StatusCode::kAlreadyExists);
+  auto copy = other->OpenMap("copy", vocabulary_);
+  ASSERT_TRUE(copy.ok()) << copy.status().ToString();
+  EXPECT_EQ((*copy)->info().name, "copy");
+  EXPECT_EQ(AskAll(**copy, queries_), expected);
+
+  // Importing the same archive again keeps both, under a new id.
+  auto again = (*other_store)->Import(path, Resolver(vocabulary_));
+  ASSERT_TRUE(again.ok()) << again.status().ToString();
+  EXPECT_NE(again->id, info.id);
+  EXPECT_EQ((*other_store)->List().size(), 2u);
+}
+
+TEST_F(SnapshotsTest, BadArchivesAreRefusedAndLeaveNothingBehind) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  const SnapshotInfo info = MakeSnapshot(dir.get(), store->get(), "lab", 8);
+  ASSERT_FALSE(info.id.empty());
+  const std::string good = Archive(**store, info.id);
+
+  auto other = OpenDir("other");
+  auto other_store = SnapshotStore::Open(other.get());
+  ASSERT_TRUE(other_store.ok());
+  const auto before = Tree(root_ + "/other");
+
+  auto refused = [&](const std::string& what, const std::string& bytes,
+                     std::vector<StatusCode> codes, AnyVocabulary known) {
+    SCOPED_TRACE(what);
+    auto result = (*other_store)->Import(WriteFile("bad.pdbsnap", bytes), Resolver(known));
+    ASSERT_FALSE(result.ok());
+    EXPECT_TRUE(std::find(codes.begin(), codes.end(), result.status().code()) != codes.end())
+        << result.status().ToString();
+    EXPECT_EQ(Tree(root_ + "/other"), before);
+    EXPECT_TRUE((*other_store)->List().empty());
+    EXPECT_TRUE(other->ListMaps().empty());
+  };
+  const AnyVocabulary ours(vocabulary_);
+  const std::vector<StatusCode> bad = {StatusCode::kInvalidArgument, StatusCode::kCorruption};
+
+  // Truncated anywhere: in the header, an entry's header, a file's bytes, the trailer.
+  for (size_t keep : {size_t(0), size_t(5), size_t(20), good.size() / 2, good.size() - 1}) {
+    refused("truncated to " + std::to_string(keep), good.substr(0, keep), bad, ours);
+  }
+  refused("truncated mid-file", good.substr(0, good.size() - 100), {StatusCode::kCorruption}, ours);
+  // One byte flipped in the middle (file data): the digest catches it.
+  std::string flipped = good;
+  flipped[flipped.size() / 2] ^= 0x40;
+  refused("one byte flipped", flipped, {StatusCode::kCorruption}, ours);
+  // The digest itself damaged.
+  std::string digest = good;
+  digest.back() ^= 0x01;
+  refused("digest flipped", digest, {StatusCode::kCorruption}, ours);
+  // Foreign files: text, another format's header, an archive with bytes appended.
+  refused("text", "hello, this is not a snapshot\n", {StatusCode::kInvalidArgument}, ours);
+  refused("tar-like", std::string(512, '\0') + "ustar", {StatusCode::kInvalidArgument}, ours);
+  refused("trailing bytes", good + "x", {StatusCode::kInvalidArgument}, ours);
+  std::string version = good;
+  version[8] = 9;
+  refused("unknown version", version, {StatusCode::kInvalidArgument}, ours);
+  // A sound archive of a map built with a vocabulary this server does not have.
+  refused("foreign vocabulary", good, {StatusCode::kFailedPrecondition},
+          AnyVocabulary(testing::OtherVocabulary()));
+
+  // And the sound one still imports.
+  EXPECT_TRUE((*other_store)->Import(WriteFile("good.pdbsnap", good), Resolver(ours)).ok());
+}
+
+TEST_F(SnapshotsTest, ADeleteDuringADownloadDoesNotCutItShort) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  const SnapshotInfo info = MakeSnapshot(dir.get(), store->get(), "lab", 10);
+  ASSERT_FALSE(info.id.empty());
+  std::string bytes;
+  bool deleted = false;
+  // The sink deletes the snapshot at the first chunk: the store's lock is not held while
+  // streaming (this would deadlock otherwise), and the files already open stay readable.
+  Status written = (*store)->WriteArchive(info.id, 4096, [&](std::string_view chunk) {
+    if (!deleted) {
+      deleted = true;
+      EXPECT_TRUE((*store)->Delete(info.id).ok());
+    }
+    bytes.append(chunk);
+    return Status::Ok();
+  });
+  ASSERT_TRUE(written.ok()) << written.ToString();
+  EXPECT_TRUE((*store)->List().empty());
+  auto imported = (*store)->Import(WriteFile("lab.pdbsnap", bytes), Resolver(vocabulary_));
+  ASSERT_TRUE(imported.ok()) << imported.status().ToString();
+  EXPECT_EQ(imported->places, info.places);
+  // A sink error stops the stream and is returned.
+  EXPECT_EQ((*store)
+                ->WriteArchive(imported->id, 4096,
+                               [](std::string_view) { return Status::Cancelled("client gone"); })
+                .code(),
+            StatusCode::kCancelled);
+}
+
+TEST_F(SnapshotsTest, ListDeleteAndRetention) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get(), SnapshotOptions{.keep_per_map = 2});
+  ASSERT_TRUE(store.ok());
+  auto map = dir->CreateMap("lab", {}, vocabulary_);
+  ASSERT_TRUE(map.ok());
+  std::vector<std::string> ids;
+  for (int i = 1; i <= 3; ++i) {
+    ASSERT_TRUE((*map)->Add(Frame(i, "robot")).ok());
+    auto info = (*store)->Create(**map, Resolver(vocabulary_));
+    ASSERT_TRUE(info.ok()) << info.status().ToString();
+    EXPECT_EQ(info->places, uint64_t(i));
+    ids.push_back(info->id);
+  }
+  // The oldest went; newest first.
+  auto list = (*store)->List();
+  ASSERT_EQ(list.size(), 2u);
+  EXPECT_EQ(list[0].id, ids[2]);
+  EXPECT_EQ(list[1].id, ids[1]);
+  EXPECT_EQ(list[0].places, 3u);
+  EXPECT_GT(list[0].bytes, 0u);
+  EXPECT_EQ((*store)->Get(ids[0]).status().code(), StatusCode::kNotFound);
+
+  EXPECT_EQ((*store)->Delete("../maps").code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ((*store)->Delete("nope").code(), StatusCode::kNotFound);
+  EXPECT_EQ((*store)->Restore(ids[2], "bad/name").code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ((*store)->Restore("nope", "fine").code(), StatusCode::kNotFound);
+  ASSERT_TRUE((*store)->Delete(ids[1]).ok());
+  ASSERT_EQ((*store)->List().size(), 1u);
+  // Deleting a snapshot leaves the map alone.
+  EXPECT_EQ((*map)->Stats().database.places, 3u);
+
+  // Leftovers of an interrupted operation are cleared when the store opens.
+  fs::create_directories((*store)->path() + "/.importing-1-1/checkpoint");
+  store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  EXPECT_FALSE(fs::exists((*store)->path() + "/.importing-1-1"));
+  EXPECT_EQ((*store)->List().size(), 1u);
+}
+
+}  // namespace
+}  // namespace placedb
