@@ -7,6 +7,14 @@
 // Reopening a map rebuilds the inverted index from the stored BoW vectors; features stay on disk
 // and are read only for the candidates being verified.
 //
+// Dynamic-object statistics (issue 16, core/dynamics/place_dynamics.h) live in the map's
+// "dynamics" column family, one value per place plus the map's aggregate, kept by a merge
+// operator: a stored frame's statistics are merge operands in the place's own batch, a frame
+// loop-closure rehearsal merges into a place is one more acknowledged batch of operands. No
+// read-modify-write, so concurrent writers never lose an update, and what is acknowledged is
+// counted. They are read on demand from RocksDB (nothing in memory) and never reach the
+// PlaceDatabase: descriptors and ranking are the same with or without them.
+//
 // Damage is never silent (docs/storage.md, "Damage"): every acknowledged write is counted twice,
 // in the map's RocksDB (a merge counter inside the write's own batch) and in a small checksummed
 // file beside it (ACKED, fdatasync'ed before the write is acknowledged). Opening a map compares
@@ -30,6 +38,7 @@
 
 #include "core/base/status.h"
 #include "core/base/thread_annotations.h"
+#include "core/dynamics/place_dynamics.h"
 #include "core/pipeline/place_database.h"
 #include "core/storage/codec.h"
 #include "core/storage/directory_lock.h"
@@ -165,6 +174,18 @@ class PlaceMap {
   Result<StoredPlace> GetPlace(PlaceId id) const;  // NOT_FOUND if absent
   Status RemovePlace(PlaceId id);                  // durable before it returns
   std::vector<InvalidObservation> InvalidObservations(size_t limit) const;
+
+  // The place's dynamic-object statistics: every frame stored at it or merged into it. Empty
+  // for a place stored before the map kept statistics. NOT_FOUND when the place does not exist;
+  // CORRUPTION (naming the place) when the stored value does not decode.
+  Result<PlaceDynamics> GetDynamics(PlaceId id) const;
+  // The map's aggregate: every acknowledged frame stored or merged, also at places removed since
+  // (the map's history: a removal cannot subtract a maximum).
+  Result<PlaceDynamics> MapDynamics() const;
+  // Calls `visit` with every existing place that has statistics, ascending id, until it returns
+  // false; one place at a time in memory (rankings keep only their top entries).
+  Status ForEachPlaceDynamics(
+      const std::function<bool(PlaceId, const PlaceDynamics&)>& visit) const;
   MapStats Stats() const;
 
   // An online, consistent copy of the map into `directory` (which must not exist), made with
