@@ -562,6 +562,7 @@ struct MapStorage {
   std::atomic<bool> resuming{false};  // one DB::Resume() at a time
   std::string path;                   // the map's directory: its file system's free space
   uint64_t reserve_bytes = 0;         // StorageOptions::disk_reserve_bytes
+  bool dynamics = true;               // StorageOptions::dynamics
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -613,6 +614,7 @@ struct MapStorage {
 
   // Adds one frame's statistics to its place's and to the map's (merge operands: no read).
   void AddDynamics(rocksdb::WriteBatch* batch, PlaceId place, const PlaceDynamics& delta) {
+    if (!dynamics) return;
     const std::string operand = EncodeDynamics(delta);
     if (place != 0) batch->Merge(cf(kDynamics), PlaceKey(place), operand);
     batch->Merge(cf(kDynamics), kMapDynamicsKey, operand);
@@ -919,7 +921,7 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
   };
   auto outcome = database_->CloseLoop(frame, metadata, store);
   if (!outcome.ok()) return outcome.status();
-  if (!committed && outcome->merged) {
+  if (!committed && outcome->merged && storage_->dynamics) {
     // Merged into the previous place by rehearsal: only its statistics are written, durably
     // (acknowledged means counted). A place removed meanwhile keeps none (the map's aggregate
     // still counts the frame); a removal racing this write may leave an entry without a place,
@@ -1015,7 +1017,7 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
   batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
-  storage_->AddDynamics(&batch, record.id, FrameDynamics(frame, metadata));
+  if (storage_->dynamics) storage_->AddDynamics(&batch, record.id, FrameDynamics(frame, metadata));
   PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing place " + std::to_string(record.id),
                                           MapStorage::Kind::kAddition, record.id));
   // Durable: now make it searchable.
@@ -1403,6 +1405,7 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
   storage->map_name = fs::path(path).filename().string();
   storage->path = path;
   storage->reserve_bytes = options.disk_reserve_bytes;
+  storage->dynamics = options.dynamics;
   db_options.listeners.push_back(std::make_shared<DiskFullListener>(storage.get()));
   rocksdb::DB* raw = nullptr;
   rocksdb::Status s =

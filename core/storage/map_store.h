@@ -64,6 +64,9 @@ struct StorageOptions {
   // Count acknowledged writes in ACKED (docs/storage.md, "Damage"). Off only to measure its
   // cost: writes are then not counted and opening a map does not check for lost writes.
   bool acked_file = true;
+  // Keep dynamic-object statistics (issue 16). Off only to measure their cost: frames are then
+  // not counted, and a map's statistics stay behind what it stored.
+  bool dynamics = true;
   // New places (and invalid observations) are refused with RESOURCE_EXHAUSTED ("disk full") while
   // the map's file system has less free space than its memtables plus this: RocksDB then never
   // runs out of space in the middle of a write or flush. 0 = only when a write actually fails
