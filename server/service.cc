@@ -409,6 +409,9 @@ grpc::Status PlaceDbService::GetDynamics(grpc::ServerContext* context,
   auto aggregate = map.MapDynamics();
   if (!aggregate.ok()) return Finish("GetDynamics", context, ToGrpc(aggregate.status()));
   DynamicsToProto(*aggregate, response->mutable_map());
+  auto invalid = map.InvalidDynamics();
+  if (!invalid.ok()) return Finish("GetDynamics", context, ToGrpc(invalid.status()));
+  DynamicsToProto(*invalid, response->mutable_invalid());
   // One pass over the map's places; the ranking keeps offset + limit entries.
   DynamicsRanking ranking(*options);
   const Status scanned = map.ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {

@@ -1309,6 +1309,44 @@ TEST_F(StorageTest, DynamicsAreCountedPerPlaceAndSurviveReopenAndCheckpoint) {
   EXPECT_TRUE(scrub->clean());
 }
 
+// A frame refused as invalid (here: a person box over the whole view, so every descriptor is
+// DC) has no place; its statistics go to the invalid frames' aggregate, not the map's. Both
+// with the frame kept as metadata (a synced write) and only counted (rides on the next write).
+TEST_F(StorageTest, InvalidFramesHaveTheirOwnDynamics) {
+  for (bool store_invalid : {true, false}) {
+    SCOPED_TRACE(store_invalid ? "store_invalid" : "counted only");
+    MapOptions options;
+    options.store_invalid = store_invalid;
+    auto dir = OpenDir();
+    const std::string name = store_invalid ? "kept" : "counted";
+    auto map = dir->CreateMap(name, options, vocabulary_);
+    ASSERT_TRUE(map.ok());
+    Observation covered = FrameWithObjects(5);
+    covered.dynamic.boxes.resize(1);
+    covered.dynamic.boxes[0].rect =
+        cv::Rect2f(0, 0, float(covered.image.cols), float(covered.image.rows));
+    auto refused = (*map)->Add(covered);
+    ASSERT_TRUE(refused.ok()) << refused.status().ToString();
+    ASSERT_FALSE(refused->stored);
+    auto added = (*map)->Add(FrameWithObjects(6));  // a valid frame: synced, counted as a place
+    ASSERT_TRUE(added.ok() && added->stored);
+    auto invalid = (*map)->InvalidDynamics();
+    ASSERT_TRUE(invalid.ok()) << invalid.status().ToString();
+    EXPECT_EQ(invalid->observations, 1u);
+    // What the pipeline measured (box refinement narrows the box to the object's pixels).
+    EXPECT_NEAR(invalid->max_coverage(), refused->counts.dynamic_coverage, 1e-6);
+    EXPECT_GT(invalid->max_coverage(), 0.5);
+    EXPECT_EQ(invalid->classes.at(0).frames, 1u);
+    EXPECT_EQ((*map)->MapDynamics()->observations, 1u) << "the invalid frame is not a place's";
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+    map->reset();
+    dir->CloseMap(name);
+    auto reopened = dir->OpenMap(name, vocabulary_);
+    ASSERT_TRUE(reopened.ok());
+    EXPECT_EQ((*reopened)->InvalidDynamics()->observations, 1u);
+  }
+}
+
 // Concurrent writers all add to the map's aggregate (one key): a merge operator loses none,
 // where a read-modify-write would.
 TEST_F(StorageTest, ConcurrentCommitsLoseNoDynamics) {

@@ -59,6 +59,13 @@ enum Cf { kMeta = 0, kPlaces, kBow, kFeatures, kInvalid, kDynamics, kCfCount };
 // In kDynamics: the map's aggregate (every acknowledged observation, also of places removed
 // since). Place keys are 4 bytes, so this 3-byte key is never one.
 constexpr char kMapDynamicsKey[] = "map";
+// In kDynamics: the aggregate of the frames refused as invalid (no place: too few static
+// features, often because objects covered the view). Not part of the map's aggregate.
+constexpr char kInvalidDynamicsKey[] = "invalid";
+
+bool IsAggregateKey(const rocksdb::Slice& key) {
+  return key == kMapDynamicsKey || key == kInvalidDynamicsKey;
+}
 
 Status FromRocks(const rocksdb::Status& s, const std::string& context) {
   if (s.ok()) return Status::Ok();
@@ -619,6 +626,10 @@ struct MapStorage {
     if (place != 0) batch->Merge(cf(kDynamics), PlaceKey(place), operand);
     batch->Merge(cf(kDynamics), kMapDynamicsKey, operand);
   }
+  // An invalid frame's statistics, to the invalid frames' aggregate only.
+  void AddInvalidDynamics(rocksdb::WriteBatch* batch, const PlaceDynamics& delta) {
+    if (dynamics) batch->Merge(cf(kDynamics), kInvalidDynamicsKey, EncodeDynamics(delta));
+  }
 
   // `what` names the operation for messages ("storing place 12"); `place`: the id of the place
   // the batch stores, 0 for other writes.
@@ -958,6 +969,7 @@ Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,
   Stopwatch store;
   rocksdb::WriteBatch batch;
   batch.Merge(storage_->cf(kMeta), kInvalidCountKey, CounterOperand(1));
+  if (storage_->dynamics) storage_->AddInvalidDynamics(&batch, FrameDynamics(frame, metadata));
   if (info_.options.store_invalid) {
     InvalidObservation observation;
     observation.serial = storage_->next_invalid_serial.fetch_add(1);
@@ -1086,16 +1098,24 @@ Result<PlaceDynamics> PlaceMap::GetDynamics(PlaceId id) const {
   return decoded;
 }
 
-Result<PlaceDynamics> PlaceMap::MapDynamics() const {
+Result<PlaceDynamics> PlaceMap::ReadAggregate(const char* key, const std::string& what) const {
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
   std::string value;
-  auto s = storage_->db->Get({}, storage_->cf(kDynamics), kMapDynamicsKey, &value);
+  auto s = storage_->db->Get({}, storage_->cf(kDynamics), key, &value);
   if (s.IsNotFound()) return PlaceDynamics();
-  PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading the map's statistics"));
+  PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading " + what));
   auto decoded = DecodeDynamics(value);
-  if (!decoded.ok()) return decoded.status().WithContext("map '" + info_.name + "' statistics");
+  if (!decoded.ok()) return decoded.status().WithContext("map '" + info_.name + "': " + what);
   return decoded;
+}
+
+Result<PlaceDynamics> PlaceMap::MapDynamics() const {
+  return ReadAggregate(kMapDynamicsKey, "the map's statistics");
+}
+
+Result<PlaceDynamics> PlaceMap::InvalidDynamics() const {
+  return ReadAggregate(kInvalidDynamicsKey, "the invalid frames' statistics");
 }
 
 Status PlaceMap::ForEachPlaceDynamics(
@@ -1107,7 +1127,7 @@ Status PlaceMap::ForEachPlaceDynamics(
   std::unique_ptr<rocksdb::Iterator> it(
       storage_->db->NewIterator(options, storage_->cf(kDynamics)));
   for (it->SeekToFirst(); it->Valid(); it->Next()) {
-    if (it->key() == kMapDynamicsKey) continue;
+    if (IsAggregateKey(it->key())) continue;
     auto id = DecodePlaceKey(it->key().ToStringView());
     if (!id.ok()) return id.status().WithContext("statistics key");
     if (!database_->Get(*id)) continue;  // removed while a merged frame was being counted
@@ -1191,15 +1211,13 @@ Status PlaceMap::VerifyIntegrity() const {
     return Status::Corruption("index holds " + std::to_string(database_->Stats().places) +
                               " places, disk " + std::to_string(count));
   }
-  // Statistics: the map's aggregate and place keys, each value decoding. A place's entry may
+  // Statistics: the aggregates and place keys, each value decoding. A place's entry may
   // outlive the place only by a removal racing a merged frame's count (see CloseLoop).
   std::unique_ptr<rocksdb::Iterator> dynamics(
       storage_->db->NewIterator(options, storage_->cf(kDynamics)));
   for (dynamics->SeekToFirst(); dynamics->Valid(); dynamics->Next()) {
-    const std::string where = dynamics->key() == kMapDynamicsKey
-                                  ? std::string("the map's statistics")
-                                  : "statistics of key " + dynamics->key().ToString(true);
-    if (dynamics->key() != kMapDynamicsKey) {
+    const std::string where = "statistics of key " + dynamics->key().ToString(true);
+    if (!IsAggregateKey(dynamics->key())) {
       PLACEDB_RETURN_IF_ERROR(DecodePlaceKey(dynamics->key().ToStringView()).status());
     }
     PLACEDB_RETURN_IF_ERROR(

@@ -185,6 +185,10 @@ class PlaceMap {
   // The map's aggregate: every acknowledged frame stored or merged, also at places removed since
   // (the map's history: a removal cannot subtract a maximum).
   Result<PlaceDynamics> MapDynamics() const;
+  // The frames refused as invalid (no place; often too covered by objects): their own
+  // aggregate, not in MapDynamics(). Counted like the invalid-frame counter: in a batch that
+  // is synced only when the map stores invalid observations (MapOptions::store_invalid).
+  Result<PlaceDynamics> InvalidDynamics() const;
   // Calls `visit` with every existing place that has statistics, ascending id, until it returns
   // false; one place at a time in memory (rankings keep only their top entries).
   Status ForEachPlaceDynamics(
@@ -214,6 +218,8 @@ class PlaceMap {
       REQUIRES_SHARED(lifecycle_);
   Result<AddResult> StoreInvalid(const ProcessedFrame& frame, const PlaceMetadata& metadata);
   Status Deleted() const;
+  // An aggregate of the dynamics family (MapDynamics, InvalidDynamics); `what` for messages.
+  Result<PlaceDynamics> ReadAggregate(const char* key, const std::string& what) const;
 
   MapInfo info_;
   std::vector<MapDamage> damage_history_;

@@ -65,6 +65,8 @@ TEST_F(DynamicsTest, IngestedFramesAreCountedRankedAndPaged) {
   EXPECT_EQ(page.map().observations(), stored.size());
   EXPECT_GT(page.map().mean_coverage(), 0.0);
   EXPECT_EQ(page.ranked(), stored.size());
+  // Frames refused as invalid have their own aggregate.
+  EXPECT_EQ(page.invalid().observations(), frames.size() - stored.size());
   ASSERT_EQ(page.places_size(), 5);
   EXPECT_EQ(page.next_offset(), 5u);
   for (int i = 1; i < page.places_size(); ++i) {
