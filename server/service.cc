@@ -1130,6 +1130,10 @@ void PlaceDbService::RefreshMapGauges() {
     if (!entry->map) continue;
     const MapStats stats = entry->map->Stats();
     metrics_->SetMapGauges(entry->name, double(stats.database.places), double(stats.bytes_on_disk));
+    // A read error leaves the gauge as it was; the map's RPCs report it.
+    if (auto dynamics = entry->map->MapDynamics(); dynamics.ok()) {
+      metrics_->SetMapDynamicCoverage(entry->name, dynamics->mean_coverage());
+    }
   }
 }
 

@@ -42,7 +42,9 @@ class DynamicsTest : public ServerTest {
 };
 
 TEST_F(DynamicsTest, IngestedFramesAreCountedRankedAndPaged) {
-  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  ServerConfig config = Config();
+  config.metrics_listen = "127.0.0.1:0";
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
   CreateMap("street");
   std::vector<v1::Observation> frames;
   for (int frame = 1; frame <= 24; ++frame) frames.push_back(WithObjects(frame));
@@ -65,6 +67,9 @@ TEST_F(DynamicsTest, IngestedFramesAreCountedRankedAndPaged) {
   EXPECT_EQ(page.map().observations(), stored.size());
   EXPECT_GT(page.map().mean_coverage(), 0.0);
   EXPECT_EQ(page.ranked(), stored.size());
+  // The map's mean coverage is also a gauge.
+  EXPECT_NEAR(MetricValue(Scrape(), "placedb_map_dynamic_coverage", {{"map", "street"}}),
+              page.map().mean_coverage(), 1e-6);
   // Frames refused as invalid have their own aggregate.
   EXPECT_EQ(page.invalid().observations(), frames.size() - stored.size());
   ASSERT_EQ(page.places_size(), 5);
