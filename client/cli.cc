@@ -7,6 +7,7 @@
 #include <optional>
 
 #include "client/commands/common.h"
+#include "client/commands/dynamics.h"
 #include "client/commands/ingest.h"
 #include "client/commands/load.h"
 #include "client/commands/maps.h"
@@ -62,6 +63,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   CLI::App* query = RegisterQuery(app, &query_flags);
   PlaceFlags place_flags;
   const PlaceCommands place = RegisterPlace(app, &place_flags);
+  DynamicsFlags dynamics_flags;
+  CLI::App* dynamics = RegisterDynamics(app, &dynamics_flags);
   HealthFlags health_flags;
   const ServerCommands server = RegisterServer(app, &health_flags);
   LoadOptions load_options;
@@ -97,6 +100,7 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
     return PlaceGet(c, place_flags.map, place_flags.id, place_flags.features, json, io);
   }
   if (place.remove->parsed()) return PlaceDelete(c, place_flags.map, place_flags.id, json, io);
+  if (dynamics->parsed()) return RunDynamics(c, dynamics_flags, json, io);
   if (server.info->parsed()) return RunInfo(c, json, io);
   if (server.health->parsed()) return RunHealth(c, health_flags.service, json, io);
   return UsageError(io, "no command given (see --help)");
