@@ -4,6 +4,8 @@
 #include <string>
 #include <utility>
 
+#include "core/detect/detector.h"
+
 namespace placedb::wire {
 
 void DynamicsToProto(const PlaceDynamics& d, v1::DynamicStatistics* out) {
@@ -51,6 +53,18 @@ Result<DynamicsRankOptions> RankOptionsFromProto(const v1::GetDynamicsRequest& r
                                      std::to_string(int(request.measure())));
   }
   options.class_id = request.class_id();
+  if (!request.class_name().empty()) {
+    auto named = CocoClassId(request.class_name());
+    if (!named.ok()) {
+      return Status::InvalidArgument("class_name: '" + request.class_name() +
+                                     "' is not a COCO class name");
+    }
+    if (request.class_id() != 0 && request.class_id() != *named) {
+      return Status::InvalidArgument("class_id " + std::to_string(request.class_id()) +
+                                     " and class_name '" + request.class_name() + "' disagree");
+    }
+    options.class_id = *named;
+  }
   if (options.measure == DynamicsMeasure::kHourWindow) {
     for (const auto& [field, hour] : {std::pair{"first_hour", request.first_hour()},
                                       std::pair{"last_hour", request.last_hour()}}) {

@@ -116,6 +116,17 @@ TEST_F(DynamicsTest, IngestedFramesAreCountedRankedAndPaged) {
     EXPECT_EQ(statistics.classes(0).class_id(), 0);  // the person, in every frame
   }
 
+  // The class by its COCO name: the same ranking.
+  request.set_class_id(0);
+  request.set_class_name("car");
+  v1::GetDynamicsResponse named;
+  ASSERT_TRUE(Get(request, &named).ok());
+  ASSERT_EQ(named.places_size(), cars.places_size());
+  for (int i = 0; i < named.places_size(); ++i) {
+    EXPECT_EQ(named.places(i).place_id(), cars.places(i).place_id());
+  }
+  request.clear_class_name();
+
   // Place.dynamics: the place's own statistics. The fixture's timestamps (sequence x 100 ms
   // after the epoch) fall on Thursday 1970-01-01 00:00 UTC.
   grpc::ClientContext context;
@@ -169,6 +180,13 @@ TEST_F(DynamicsTest, BadRequestsNameTheirField) {
   cases.push_back({"weekdays", request});
   cases.back().request.set_measure(v1::DYNAMICS_MEASURE_HOUR_WINDOW);
   cases.back().request.set_weekdays(0x100);
+  cases.push_back({"class_name", request});
+  cases.back().request.set_measure(v1::DYNAMICS_MEASURE_CLASS_SHARE);
+  cases.back().request.set_class_name("unicorn");
+  cases.push_back({"disagree", request});
+  cases.back().request.set_measure(v1::DYNAMICS_MEASURE_CLASS_SHARE);
+  cases.back().request.set_class_id(2);
+  cases.back().request.set_class_name("person");
   cases.push_back({"measure", request});
   cases.back().request.set_measure(v1::DynamicsMeasure(42));
   for (const Case& c : cases) {
