@@ -6,12 +6,15 @@
 //     on disk after a flush, the reduction, bytes per place, and ingest rates.
 //  2. Persist rate (durable commit + index) by sync policy with 1, 2 and 8 concurrent writers,
 //     each with and without the ACKED high-water mark (StorageOptions::acked_file), same run.
+//  2b. The cost of dynamic-object statistics (issue 16, StorageOptions::dynamics): the 701
+//     CamVid frames with their boxes ingested one by one (Add: process + durable commit + index)
+//     with and without, same run; goal < 2 % of ingest time.
 //  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
 //     places), committed by 2 writers, then the map is closed and reopened.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
-//                              [--only persist]
+//                              [--only persist|dynamics]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -129,6 +132,7 @@ struct Options {
   std::string vocabulary_path, work_dir, shared = PLACEDB_SHARED_DIR;
   std::vector<size_t> reopen_sizes = {10000, 100000};
   bool persist_only = false;
+  bool dynamics_only = false;  // --only dynamics: section 2b alone
 };
 
 // The command line; an exit code when the program must stop (usage error).
@@ -138,7 +142,7 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
     if (i + 1 >= argc) {
       std::fprintf(stderr,
                    "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-                   "[--reopen 10000,100000] [--shared DIR] [--only persist]\n");
+                   "[--reopen 10000,100000] [--shared DIR] [--only persist|dynamics]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -155,6 +159,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
         options->reopen_sizes.push_back(std::stoul(item));
     } else if (arg == "--only" && value == "persist") {
       options->persist_only = true;
+    } else if (arg == "--only" && value == "dynamics") {
+      options->dynamics_only = true;
     } else {
       std::fprintf(stderr, "unknown option %s\n", arg.c_str());
       return 2;
@@ -223,6 +229,30 @@ double BenchPersist(const std::string& work_dir, const std::vector<Frame>& frame
   }
   for (auto& thread : threads) thread.join();
   return double(processed.size()) / ((NowMs() - start) / 1000.0);
+}
+
+// 2b. Mean ingest time per frame (ms): every frame Add()ed (processing, durable commit, index)
+// by one writer, with or without dynamic-object statistics. Negative after an error.
+double BenchIngestDynamics(const std::string& work_dir, const std::vector<Frame>& frames,
+                           const std::shared_ptr<const Vocabulary>& vocabulary, bool dynamics) {
+  StorageOptions storage;
+  storage.dynamics = dynamics;
+  static int run = 0;
+  auto dir = DataDirectory::Open(
+      work_dir + "/dynamics-" + std::to_string(dynamics) + "-" + std::to_string(run++), storage);
+  if (!dir.ok()) return -1;
+  auto map = (*dir)->CreateMap("m", MapOptions(), vocabulary);
+  if (!map.ok()) return -1;
+  const double start = NowMs();
+  int64_t timestamp = int64_t(1704067200) * 1'000'000'000;
+  for (const Frame& frame : frames) {
+    Observation observation;
+    observation.features = frame.features;
+    observation.dynamic.boxes = frame.boxes;
+    observation.metadata.timestamp_ns = (timestamp += 33'000'000);
+    if (!(*map)->Add(observation).ok()) return -1;
+  }
+  return (NowMs() - start) / double(frames.size());
 }
 
 // Places `first` .. `target` - 1 added by 2 writers: CamVid feature sets with a random 90 % of
@@ -314,11 +344,13 @@ int main(int argc, char** argv) {
       "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",
       frames.size(), (*vocabulary)->word_count());
 
-  if (!options.persist_only && !BenchFiltering(work_dir, frames, *vocabulary)) return 1;
+  const bool everything = !options.persist_only && !options.dynamics_only;
+  if (everything && !BenchFiltering(work_dir, frames, *vocabulary)) return 1;
   // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads; with the
   // ACKED high-water mark (the default) and without it, in the order with, without, without,
   // with (drift in the machine's load then weighs on both alike); the mean of the two runs.
   for (SyncMode mode : {SyncMode::kEveryWrite, SyncMode::kGroupCommit}) {
+    if (options.dynamics_only) break;
     for (int writers : {1, 2, 8}) {
       double rate[2] = {0, 0};  // [acked_file]
       for (bool acked_file : {true, false, false, true}) {
@@ -334,7 +366,19 @@ int main(int argc, char** argv) {
       Print("acked_cost_" + label, 100.0 * (1.0 - rate[1] / rate[0]), "%");
     }
   }
-  if (!options.persist_only && !BenchReopen(work_dir, frames, *vocabulary, options.reopen_sizes)) {
+  // 2b. Statistics on and off, in the order on, off, off, on; the mean of the two runs.
+  if (!options.persist_only) {
+    double ms[2] = {0, 0};  // [dynamics]
+    for (bool dynamics : {true, false, false, true}) {
+      const double m = BenchIngestDynamics(work_dir, frames, *vocabulary, dynamics);
+      if (m < 0) return 1;
+      ms[dynamics] += m / 2;
+    }
+    Print("ingest_with_dynamics", ms[1], "ms/frame");
+    Print("ingest_without_dynamics", ms[0], "ms/frame");
+    Print("dynamics_cost", 100.0 * (ms[1] / ms[0] - 1.0), "%");
+  }
+  if (everything && !BenchReopen(work_dir, frames, *vocabulary, options.reopen_sizes)) {
     return 1;
   }
   fs::remove_all(work_dir);

@@ -7,6 +7,7 @@
 #include <optional>
 
 #include "client/commands/common.h"
+#include "client/commands/dynamics.h"
 #include "client/commands/ingest.h"
 #include "client/commands/load.h"
 #include "client/commands/maps.h"
@@ -65,6 +66,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   const PlaceCommands place = RegisterPlace(app, &place_flags);
   SnapshotsFlags snapshots_flags;
   const SnapshotsCommands snapshots = RegisterSnapshots(app, &snapshots_flags);
+  DynamicsFlags dynamics_flags;
+  CLI::App* dynamics = RegisterDynamics(app, &dynamics_flags);
   HealthFlags health_flags;
   const ServerCommands server = RegisterServer(app, &health_flags);
   LoadOptions load_options;
@@ -108,6 +111,7 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
     return SnapshotsRestore(c, snapshots_flags.id, snapshots_flags.new_map, json, io);
   }
   if (snapshots.remove->parsed()) return SnapshotsDelete(c, snapshots_flags.id, json, io);
+  if (dynamics->parsed()) return RunDynamics(c, dynamics_flags, json, io);
   if (server.info->parsed()) return RunInfo(c, json, io);
   if (server.health->parsed()) return RunHealth(c, health_flags.service, json, io);
   return UsageError(io, "no command given (see --help)");

@@ -241,6 +241,11 @@ Metrics::Metrics()
                       .Name("placedb_map_on_disk_bytes")
                       .Help("Bytes of a map's files on disk")
                       .Register(*registry_)),
+      dynamic_coverage_(BuildGauge()
+                            .Name("placedb_map_dynamic_coverage")
+                            .Help("Mean share of the view covered by dynamic objects over the "
+                                  "frames a map stored or merged (0..1)")
+                            .Register(*registry_)),
       damaged_(BuildGauge()
                    .Name("placedb_map_damaged")
                    .Help("1 while a map is damaged (not served until recovered), else 0")
@@ -465,6 +470,10 @@ void Metrics::SetMapGauges(const std::string& map, double places, double bytes_o
   disk_bytes_.Add({{"map", map}}).Set(bytes_on_disk);
 }
 
+void Metrics::SetMapDynamicCoverage(const std::string& map, double mean_coverage) {
+  dynamic_coverage_.Add({{"map", map}}).Set(mean_coverage);
+}
+
 void Metrics::SetMapDamage(const std::string& map, bool damaged, double places_lost) {
   damaged_.Add({{"map", map}}).Set(damaged ? 1 : 0);
   places_lost_.Add({{"map", map}}).Set(places_lost);
@@ -475,6 +484,7 @@ void Metrics::ForgetMap(const std::string& map) {
   // Only the label sets this class creates are removed (rejection reasons are a closed set).
   places_.Remove(&places_.Add({{"map", map}}));
   disk_bytes_.Remove(&disk_bytes_.Add({{"map", map}}));
+  dynamic_coverage_.Remove(&dynamic_coverage_.Add({{"map", map}}));
   damaged_.Remove(&damaged_.Add({{"map", map}}));
   places_lost_.Remove(&places_lost_.Add({{"map", map}}));
   ingested_.Remove(&ingested_.Add({{"map", map}}));

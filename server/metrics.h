@@ -84,6 +84,9 @@ class Metrics {
   // corruption; other codes are not storage errors and are not counted.
   void StorageError(const std::string& map, const Status& status);
   void SetMapGauges(const std::string& map, double places, double bytes_on_disk);
+  // placedb_map_dynamic_coverage: the mean share of the view dynamic objects covered, over
+  // every frame the map stored or merged (its dynamic-object statistics, issue 16).
+  void SetMapDynamicCoverage(const std::string& map, double mean_coverage);
   // A map's damage (docs/storage.md, "Damage"): placedb_map_damaged 1 while it is damaged, and
   // placedb_map_places_lost, the acknowledged places found missing (damaged) or accepted as
   // lost (recovered).
@@ -116,6 +119,7 @@ class Metrics {
   prometheus::Family<prometheus::Counter>& storage_errors_;
   prometheus::Family<prometheus::Gauge>& places_;
   prometheus::Family<prometheus::Gauge>& disk_bytes_;
+  prometheus::Family<prometheus::Gauge>& dynamic_coverage_;
   prometheus::Family<prometheus::Gauge>& damaged_;
   prometheus::Family<prometheus::Gauge>& places_lost_;
   prometheus::Gauge& streams_;

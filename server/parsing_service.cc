@@ -286,6 +286,9 @@ ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthoriz
       "DeletePlace", &PlaceDbService::DeletePlace, Right::kWrite,
       +[](const v1::DeletePlaceRequest& r) { return r.map(); });
   AddUnary(
+      "GetDynamics", &PlaceDbService::GetDynamics, Right::kRead,
+      +[](const v1::GetDynamicsRequest& r) { return r.map(); });
+  AddUnary(
       "GetServerInfo", &PlaceDbService::GetServerInfo, Right::kAny,
       +[](const v1::GetServerInfoRequest&) { return std::string(); });
   // Snapshots: admin. Only CreateSnapshot names a map in field 1; RestoreSnapshot's new_map is

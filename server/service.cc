@@ -16,6 +16,7 @@
 #include "core/base/map_name.h"
 #include "core/base/timing.h"
 #include "proto/convert_config.h"
+#include "proto/convert_dynamics.h"
 #include "proto/convert_frame.h"
 #include "proto/convert_result.h"
 #include "proto/status.h"
@@ -30,12 +31,14 @@ using wire::GrpcCodeName;
 using wire::HidePaths;
 using wire::ToGrpc;
 
+using wire::DynamicsToProto;
 using wire::FeatureTypeToProto;
 using wire::MapConfigToProto;
 using wire::MapOptionsFromProto;
 using wire::MapStatsToProto;
 using wire::MapVocabulary;
 using wire::QueryOptionsFromProto;
+using wire::RankOptionsFromProto;
 
 using wire::CheckFeatureType;
 using wire::DecodeObservation;
@@ -374,6 +377,9 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   if (request->include_features()) {
     PlaceFeaturesToProto(place->payload.features, response);
   }
+  auto dynamics = (*entry)->map->GetDynamics(request->place_id());
+  if (!dynamics.ok()) return Finish("GetPlace", context, ToGrpc(dynamics.status()));
+  DynamicsToProto(*dynamics, response->mutable_dynamics());
   return Finish("GetPlace", context, grpc::Status::OK);
 }
 
@@ -390,6 +396,49 @@ grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
   const Status removed = (*entry)->map->RemovePlace(request->place_id());
   metrics_->StorageError((*entry)->name, removed);
   return Finish("DeletePlace", context, ToGrpc(removed));
+}
+
+// ---- Dynamic-object statistics
+// -------------------------------------------------------------------
+
+grpc::Status PlaceDbService::GetDynamics(grpc::ServerContext* context,
+                                         const v1::GetDynamicsRequest* request,
+                                         v1::GetDynamicsResponse* response) {
+  CallScope scope(this);
+  auto entry = maps_->Get(request->map(), "map");
+  if (!entry.ok()) return Finish("GetDynamics", context, ToGrpc(entry.status()));
+  auto options = RankOptionsFromProto(*request);
+  if (!options.ok()) return Finish("GetDynamics", context, ToGrpc(options.status()));
+  const PlaceMap& map = *(*entry)->map;
+  auto aggregate = map.MapDynamics();
+  if (!aggregate.ok()) return Finish("GetDynamics", context, ToGrpc(aggregate.status()));
+  DynamicsToProto(*aggregate, response->mutable_map());
+  auto invalid = map.InvalidDynamics();
+  if (!invalid.ok()) return Finish("GetDynamics", context, ToGrpc(invalid.status()));
+  DynamicsToProto(*invalid, response->mutable_invalid());
+  // One pass over the map's places; the ranking keeps offset + limit entries.
+  DynamicsRanking ranking(*options);
+  const Status scanned = map.ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {
+    ranking.Add(id, d);
+    return true;
+  });
+  if (!scanned.ok()) return Finish("GetDynamics", context, ToGrpc(scanned));
+  for (const RankedPlace& ranked : ranking.Page()) {
+    v1::RankedPlace* out = response->add_places();
+    out->set_place_id(ranked.place);
+    out->set_score(ranked.score);
+    out->set_support(ranked.support);
+    if (request->include_statistics()) {
+      auto d = map.GetDynamics(ranked.place);
+      if (d.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
+      if (!d.ok()) return Finish("GetDynamics", context, ToGrpc(d.status()));
+      DynamicsToProto(*d, out->mutable_statistics());
+    }
+  }
+  response->set_ranked(ranking.ranked());
+  const uint64_t end = uint64_t(options->offset) + options->limit;
+  response->set_next_offset(end < ranking.ranked() ? uint32_t(end) : 0);
+  return Finish("GetDynamics", context, grpc::Status::OK);
 }
 
 // ---- Server info --------------------------------------------------------------------------------
@@ -1085,6 +1134,10 @@ void PlaceDbService::RefreshMapGauges() {
     if (!entry->map) continue;
     const MapStats stats = entry->map->Stats();
     metrics_->SetMapGauges(entry->name, double(stats.database.places), double(stats.bytes_on_disk));
+    // A read error leaves the gauge as it was; the map's RPCs report it.
+    if (auto dynamics = entry->map->MapDynamics(); dynamics.ok()) {
+      metrics_->SetMapDynamicCoverage(entry->name, dynamics->mean_coverage());
+    }
   }
 }
 

@@ -76,6 +76,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                         v1::Place* response) override;
   grpc::Status DeletePlace(grpc::ServerContext* context, const v1::DeletePlaceRequest* request,
                            v1::DeletePlaceResponse* response) override;
+  grpc::Status GetDynamics(grpc::ServerContext* context, const v1::GetDynamicsRequest* request,
+                           v1::GetDynamicsResponse* response) override;
   grpc::Status GetServerInfo(grpc::ServerContext* context, const v1::GetServerInfoRequest* request,
                              v1::ServerInfo* response) override;
 

@@ -413,6 +413,35 @@ TEST_F(ClientTest, IngestFolderAsTwoAgentsThenQueryFindsTheRevisit) {
 
 // The human summary, per-frame matches, progress lines when stderr is not a terminal, a list
 // file and a video as sources, and a stream refused for an unknown map.
+// `placedb dynamics`: the map's statistics and a ranked page, as a table or JSON; bad flags are
+// usage errors, an unknown map an RPC error.
+TEST_F(ClientTest, DynamicsShowsTheMapAndRanksItsPlaces) {
+  ASSERT_EQ(Cli({"maps", "create", "dyn"}).code, 0);
+  CliRun ingested = Cli({"ingest", "dyn", FramesDir(1, 8), "--json"});
+  ASSERT_EQ(ingested.code, 0) << ingested.err;
+  const int stored = ParseJson(ingested)["stored"].get<int>();
+  ASSERT_GT(stored, 3);
+  CliRun got = Cli({"dynamics", "dyn", "--limit", "3", "--json"});
+  ASSERT_EQ(got.code, 0) << got.err;
+  const json page = ParseJson(got);
+  EXPECT_EQ(page["map"]["observations"], std::to_string(stored));  // 64-bit: a JSON string
+  EXPECT_EQ(page["ranked"], std::to_string(stored));
+  EXPECT_EQ(page["places"].size(), 3u);
+  EXPECT_EQ(page["next_offset"], 3);
+  CliRun table = Cli({"dynamics", "dyn", "--hours", "0-23"});  // every frame is in the window
+  ASSERT_EQ(table.code, 0) << table.err;
+  for (const char* text : {"frames", "coverage", "RANK", "PLACE", "SCORE", "LAST SEEN"}) {
+    EXPECT_NE(table.out.find(text), std::string::npos) << text << " missing from\n" << table.out;
+  }
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--class", "car"}).code, 0);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--hours", "22-2", "--weekdays", "sat,sun"}).code, 0);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--hours", "8-25"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--class", "unicorn"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--weekdays", "mon"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--class", "car", "--hours", "1-2"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "nowhere"}).code, 1);
+}
+
 TEST_F(ClientTest, IngestSummaryListsAndVideos) {
   ASSERT_EQ(Cli({"maps", "create", "m"}).code, 0);
   CliRun run = Cli({"ingest", "m", FramesDir(1, 4), "--matches", "--agent-id", "robot"});

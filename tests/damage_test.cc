@@ -8,6 +8,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -149,7 +150,7 @@ class DamageTest : public ::testing::Test {
   // The SST files of one column family, read from the map's MANIFEST (RocksDB read-only).
   std::vector<std::string> SstFilesOf(const std::string& family) const {
     std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name : {"default", "places", "bow", "features", "invalid"}) {
+    for (const char* name : {"default", "places", "bow", "features", "invalid", "dynamics"}) {
       families.emplace_back(name, rocksdb::ColumnFamilyOptions());
     }
     std::vector<rocksdb::ColumnFamilyHandle*> handles;
@@ -239,6 +240,17 @@ TEST_F(DamageTest, KilledAndCleanReopensKeepEveryAcknowledgedPlace) {
     auto map = dir->OpenMap("lab", vocabulary_);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
     EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
+    // Acknowledged means counted: the statistics of the places only in the WAL survived too
+    // (the child's frames carry no timestamp: untimed).
+    auto dynamics = (*map)->MapDynamics();
+    ASSERT_TRUE(dynamics.ok()) << dynamics.status().ToString();
+    EXPECT_EQ(dynamics->observations, uint64_t(kPlaces));
+    EXPECT_EQ(dynamics->untimed, uint64_t(kPlaces));
+    for (PlaceId id = 1; id <= PlaceId(kPlaces); ++id) {
+      auto place = (*map)->GetDynamics(id);
+      ASSERT_TRUE(place.ok()) << place.status().ToString();
+      EXPECT_EQ(place->observations, 1u) << "place " << id;
+    }
     EXPECT_TRUE((*map)->open_note().empty()) << (*map)->open_note();
     EXPECT_TRUE((*map)->damage_history().empty());
     EXPECT_TRUE((*map)->VerifyIntegrity().ok());
@@ -367,7 +379,7 @@ TEST_F(DamageTest, MissingMapInfoRecordIsDamage) {
   }
   {
     std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name : {"default", "places", "bow", "features", "invalid"}) {
+    for (const char* name : {"default", "places", "bow", "features", "invalid", "dynamics"}) {
       families.emplace_back(name, rocksdb::ColumnFamilyOptions());
     }
     std::vector<rocksdb::ColumnFamilyHandle*> handles;
@@ -388,6 +400,48 @@ TEST_F(DamageTest, MissingMapInfoRecordIsDamage) {
   auto recovered = dir->RecoverMap("lab", Vocab());
   ASSERT_FALSE(recovered.ok());
   EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
+}
+
+// A map made before issue 16 has no "dynamics" column family: it is read without one
+// (ReadMapInfo opens read-only), gets an empty one when opened for writing, and counts from then.
+TEST_F(DamageTest, MapWithoutTheDynamicsFamilyOpensAndStartsCounting) {
+  {
+    auto dir = OpenDir();
+    ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
+    dir->CloseMap("lab");
+  }
+  {
+    std::vector<rocksdb::ColumnFamilyDescriptor> families;
+    for (const char* name : {"default", "places", "bow", "features", "invalid", "dynamics"}) {
+      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
+    }
+    std::vector<rocksdb::ColumnFamilyHandle*> handles;
+    rocksdb::DB* raw = nullptr;
+    ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir_, families, &handles, &raw).ok());
+    EXPECT_TRUE(raw->DropColumnFamily(handles[5]).ok());
+    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
+    delete raw;
+  }
+  std::vector<std::string> present;
+  ASSERT_TRUE(rocksdb::DB::ListColumnFamilies(rocksdb::DBOptions(), map_dir_, &present).ok());
+  ASSERT_EQ(std::count(present.begin(), present.end(), "dynamics"), 0);
+  auto dir = OpenDir();
+  auto info = dir->ReadMapInfo("lab");
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  auto map = dir->OpenMap("lab", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
+  auto before = (*map)->GetDynamics(1);
+  ASSERT_TRUE(before.ok()) << before.status().ToString();
+  EXPECT_TRUE(before->empty());
+  EXPECT_TRUE((*map)->MapDynamics()->empty());
+  auto frames = testing::ProcessRtabmapFrames((*map)->database(), 1);
+  ASSERT_FALSE(frames.empty());
+  auto added = (*map)->Commit(frames[0], PlaceMetadata{"robot", 1, 0, std::nullopt});
+  ASSERT_TRUE(added.ok() && added->stored) << added.status().ToString();
+  EXPECT_EQ((*map)->GetDynamics(added->id)->observations, 1u);
+  EXPECT_EQ((*map)->MapDynamics()->observations, 1u);
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
 }
 
 TEST_F(DamageTest, CorruptBowBlockIsDamageAtOpen) {

@@ -1205,5 +1205,272 @@ TEST(CodecFormat3, BoxRefinementShortTermAndReRankingRoundTrip) {
   EXPECT_TRUE(defaults->static_feature_budget);
 }
 
+// ---- Dynamic-object statistics (issue 16) ---------------------------------------------------
+
+constexpr int64_t kHourNs = int64_t(3600) * 1'000'000'000;
+// 2024-01-01 00:00:00 UTC, a Monday.
+constexpr int64_t kMonday2024Ns = int64_t(1704067200) * 1'000'000'000;
+
+// An RTAB-Map frame with a person box (and a car box on every third frame) and a timestamp one
+// hour after the previous frame's, starting on a Monday at midnight UTC.
+Observation FrameWithObjects(int index) {
+  Observation observation = RtabmapFrame(index);
+  observation.metadata.timestamp_ns = kMonday2024Ns + int64_t(index) * kHourNs;
+  const int width = observation.image.cols, height = observation.image.rows;
+  DynamicBox person;
+  person.class_id = 0;
+  person.confidence = 0.9f;
+  person.rect = cv::Rect2f(0, 0, float(width) * 0.1f * float(1 + index % 3), float(height) * 0.5f);
+  observation.dynamic.boxes.push_back(person);
+  if (index % 3 == 0) {
+    DynamicBox car = person;
+    car.class_id = 2;
+    car.rect = cv::Rect2f(float(width) * 0.7f, float(height) * 0.6f, float(width) * 0.3f,
+                          float(height) * 0.4f);
+    observation.dynamic.boxes.push_back(car);
+  }
+  return observation;
+}
+
+// Each stored frame's statistics are its place's; the map's aggregate sums them; both survive
+// reopening and a checkpoint, and a removed place's go while the map's history keeps them.
+TEST_F(StorageTest, DynamicsAreCountedPerPlaceAndSurviveReopenAndCheckpoint) {
+  std::map<PlaceId, PlaceDynamics> expected;
+  PlaceDynamics all;
+  const std::string backup = root_ + "/dynamics-backup";
+  {
+    auto dir = OpenDir();
+    auto map = dir->CreateMap("moving", {}, vocabulary_);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    for (int i = 1; i <= 30; ++i) {
+      const Observation observation = FrameWithObjects(i);
+      auto added = (*map)->Add(observation);
+      ASSERT_TRUE(added.ok()) << added.status().ToString();
+      if (!added->stored) continue;
+      // What the pipeline measured for this frame, at its timestamp.
+      expected[added->id] =
+          MakeObservation(added->counts.dynamic_coverage, added->boxes_used,
+                          observation.metadata.timestamp_ns, std::numeric_limits<int64_t>::max());
+      Merge(&all, expected[added->id]);
+      auto stored = (*map)->GetDynamics(added->id);
+      ASSERT_TRUE(stored.ok()) << stored.status().ToString();
+      EXPECT_EQ(stored->observations, 1u);
+      EXPECT_GT(stored->coverage_ppm_max, 0u) << "frame " << i << ": no coverage counted";
+      EXPECT_EQ(stored->classes.at(0).boxes, 1u);
+      EXPECT_EQ(stored->last_timestamp_ns, observation.metadata.timestamp_ns);
+      EXPECT_EQ(stored->hours[size_t(HourBinOf(observation.metadata.timestamp_ns))].observations,
+                1u);
+    }
+    ASSERT_GT(expected.size(), 20u);
+    auto aggregate = (*map)->MapDynamics();
+    ASSERT_TRUE(aggregate.ok()) << aggregate.status().ToString();
+    EXPECT_EQ(*aggregate, all);
+    EXPECT_EQ(aggregate->observations, expected.size());
+    EXPECT_GT(aggregate->classes.at(2).frames, 0u);
+    ASSERT_TRUE((*map)->Checkpoint(backup).ok());
+    ASSERT_TRUE((*map)->RemovePlace(expected.begin()->first).ok());
+    ASSERT_TRUE((*map)->VerifyIntegrity().ok());
+  }
+  const PlaceId removed = expected.begin()->first;
+  auto dir = OpenDir();
+  auto map = dir->OpenMap("moving", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  ASSERT_TRUE((*map)->VerifyIntegrity().ok());
+  EXPECT_EQ((*map)->GetDynamics(removed).status().code(), StatusCode::kNotFound);
+  auto aggregate = (*map)->MapDynamics();
+  ASSERT_TRUE(aggregate.ok());
+  EXPECT_EQ(*aggregate, all) << "the map's history lost the removed place's frames";
+  std::map<PlaceId, PlaceDynamics> visited;
+  ASSERT_TRUE((*map)
+                  ->ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {
+                    visited[id] = d;
+                    return true;
+                  })
+                  .ok());
+  std::map<PlaceId, PlaceDynamics> remaining = expected;
+  remaining.erase(removed);
+  EXPECT_EQ(visited, remaining);
+  size_t seen = 0;
+  ASSERT_TRUE(
+      (*map)->ForEachPlaceDynamics([&](PlaceId, const PlaceDynamics&) { return ++seen < 3; }).ok());
+  EXPECT_EQ(seen, 3u) << "the visitor's false must stop the scan";
+
+  ASSERT_TRUE(dir->RestoreMap("moving-restored", backup).ok());
+  auto restored = dir->OpenMap("moving-restored", vocabulary_);
+  ASSERT_TRUE(restored.ok()) << restored.status().ToString();
+  for (const auto& [id, d] : expected) {
+    auto stored = (*restored)->GetDynamics(id);
+    ASSERT_TRUE(stored.ok()) << stored.status().ToString();
+    EXPECT_EQ(*stored, d) << "place " << id;
+  }
+  EXPECT_EQ(*(*restored)->MapDynamics(), all);
+  auto scrub = (*restored)->Scrub();
+  ASSERT_TRUE(scrub.ok());
+  EXPECT_TRUE(scrub->clean());
+}
+
+// A frame refused as invalid (here: a person box over the whole view, so every descriptor is
+// DC) has no place; its statistics go to the invalid frames' aggregate, not the map's. Both
+// with the frame kept as metadata (a synced write) and only counted (rides on the next write).
+TEST_F(StorageTest, InvalidFramesHaveTheirOwnDynamics) {
+  for (bool store_invalid : {true, false}) {
+    SCOPED_TRACE(store_invalid ? "store_invalid" : "counted only");
+    MapOptions options;
+    options.store_invalid = store_invalid;
+    auto dir = OpenDir();
+    const std::string name = store_invalid ? "kept" : "counted";
+    auto map = dir->CreateMap(name, options, vocabulary_);
+    ASSERT_TRUE(map.ok());
+    Observation covered = FrameWithObjects(5);
+    covered.dynamic.boxes.resize(1);
+    covered.dynamic.boxes[0].rect =
+        cv::Rect2f(0, 0, float(covered.image.cols), float(covered.image.rows));
+    auto refused = (*map)->Add(covered);
+    ASSERT_TRUE(refused.ok()) << refused.status().ToString();
+    ASSERT_FALSE(refused->stored);
+    auto added = (*map)->Add(FrameWithObjects(6));  // a valid frame: synced, counted as a place
+    ASSERT_TRUE(added.ok() && added->stored);
+    auto invalid = (*map)->InvalidDynamics();
+    ASSERT_TRUE(invalid.ok()) << invalid.status().ToString();
+    EXPECT_EQ(invalid->observations, 1u);
+    // What the pipeline measured (box refinement narrows the box to the object's pixels).
+    EXPECT_NEAR(invalid->max_coverage(), refused->counts.dynamic_coverage, 1e-6);
+    EXPECT_GT(invalid->max_coverage(), 0.5);
+    EXPECT_EQ(invalid->classes.at(0).frames, 1u);
+    EXPECT_EQ((*map)->MapDynamics()->observations, 1u) << "the invalid frame is not a place's";
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+    map->reset();
+    dir->CloseMap(name);
+    auto reopened = dir->OpenMap(name, vocabulary_);
+    ASSERT_TRUE(reopened.ok());
+    EXPECT_EQ((*reopened)->InvalidDynamics()->observations, 1u);
+  }
+}
+
+// Concurrent writers all add to the map's aggregate (one key): a merge operator loses none,
+// where a read-modify-write would.
+TEST_F(StorageTest, ConcurrentCommitsLoseNoDynamics) {
+  auto dir = OpenDir();
+  auto map = dir->CreateMap("crowd", {}, vocabulary_);
+  ASSERT_TRUE(map.ok());
+  std::vector<ProcessedFrame> frames;
+  std::vector<PlaceMetadata> metadata;
+  for (int i = 1; i <= 24; ++i) {
+    const Observation observation = FrameWithObjects(i);
+    auto frame = (*map)->Process(observation);
+    ASSERT_TRUE(frame.ok());
+    if (!frame->valid) continue;
+    frames.push_back(*frame);
+    metadata.push_back(observation.metadata);
+  }
+  ASSERT_GT(frames.size(), 12u);
+  std::atomic<int> failures{0};
+  std::vector<std::thread> threads;
+  for (size_t t = 0; t < 4; ++t) {
+    threads.emplace_back([&, t] {
+      for (size_t i = t; i < frames.size(); i += 4) {
+        auto added = (*map)->Commit(frames[i], metadata[i]);
+        if (!added.ok() || !added->stored) failures.fetch_add(1);
+      }
+    });
+  }
+  for (auto& thread : threads) thread.join();
+  EXPECT_EQ(failures.load(), 0);
+  auto aggregate = (*map)->MapDynamics();
+  ASSERT_TRUE(aggregate.ok());
+  EXPECT_EQ(aggregate->observations, frames.size());
+  uint64_t people = 0;
+  for (const ProcessedFrame& frame : frames) {
+    for (const DynamicBox& box : frame.boxes_used) people += box.class_id == 0;
+  }
+  EXPECT_EQ(aggregate->classes.at(0).boxes, people);
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+}
+
+// A frame loop-closure rehearsal merges into a place is counted at that place: every valid
+// frame is counted once, stored or merged.
+TEST_F(StorageTest, DynamicsCountFramesMergedByRehearsal) {
+  MapOptions options;
+  options.database.loop_closure.max_working_memory = 5;
+  options.database.loop_closure.short_term_memory = 2;
+  options.database.loop_closure.min_candidates = 2;
+  auto dir = OpenDir();
+  auto map = dir->CreateMap("rehearsed", options, vocabulary_);
+  ASSERT_TRUE(map.ok());
+  const std::vector<int> sequence = RevisitSequence();
+  size_t valid = 0, merged = 0;
+  std::map<PlaceId, uint64_t> frames_at;
+  for (size_t n = 0; n < sequence.size(); ++n) {
+    Observation observation = FrameWithObjects(sequence[n]);
+    observation.metadata.agent_id = "rover";
+    observation.metadata.sequence = n + 1;
+    auto frame = (*map)->Process(observation, FrameRole::kStream);
+    ASSERT_TRUE(frame.ok());
+    ASSERT_TRUE((*map)->AdvanceStream(&*frame, "rover").ok());
+    if (!frame->valid) {
+      ASSERT_TRUE((*map)->Commit(*frame, observation.metadata).ok());
+      continue;
+    }
+    ++valid;
+    AddResult added;
+    auto outcome = (*map)->CloseLoop(*frame, observation.metadata, &added);
+    ASSERT_TRUE(outcome.ok()) << outcome.status().ToString();
+    merged += outcome->merged;
+    ++frames_at[outcome->place];
+  }
+  ASSERT_GT(merged, 0u) << "the sequence no longer exercises rehearsal";
+  auto aggregate = (*map)->MapDynamics();
+  ASSERT_TRUE(aggregate.ok());
+  EXPECT_EQ(aggregate->observations, valid) << "invalid frames are not counted; valid ones are";
+  for (const auto& [id, count] : frames_at) {
+    auto stored = (*map)->GetDynamics(id);
+    ASSERT_TRUE(stored.ok()) << stored.status().ToString();
+    EXPECT_EQ(stored->observations, count) << "place " << id;
+  }
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+}
+
+// Statistics never reach the serving index: a persistent map (which keeps them) and an
+// in-memory PlaceDatabase (which has none) keep the same descriptors and rank identically.
+TEST_F(StorageTest, DynamicsNeverChangeDescriptorsOrRanking) {
+  MapOptions options;
+  options.database.verification.mode = VerificationMode::kExhaustive;
+  auto dir = OpenDir();
+  auto map = dir->CreateMap("ranked", options, vocabulary_);
+  ASSERT_TRUE(map.ok());
+  auto memory = PlaceDatabase::Create(vocabulary_, options.database);
+  ASSERT_TRUE(memory.ok());
+  std::vector<Observation> frames;
+  for (int i = 1; i <= 40; ++i) frames.push_back(FrameWithObjects(i));
+  for (size_t i = 0; i < frames.size(); i += 2) {
+    auto stored = (*map)->Add(frames[i]);
+    auto kept = (*memory)->Add(frames[i]);
+    ASSERT_TRUE(stored.ok() && kept.ok());
+    ASSERT_EQ(stored->stored, kept->stored);
+    ASSERT_EQ(stored->id, kept->id);
+    EXPECT_EQ(stored->counts.static_, kept->counts.static_);
+    EXPECT_EQ(stored->counts.dynamic, kept->counts.dynamic);
+  }
+  auto aggregate = (*map)->MapDynamics();
+  ASSERT_TRUE(aggregate.ok());
+  ASSERT_GT(aggregate->observations, 0u);
+  for (const Observation& query : frames) {
+    auto a = (*map)->Query(query, {});
+    auto b = (*memory)->Query(query, {});
+    ASSERT_TRUE(a.ok() && b.ok());
+    ASSERT_EQ(a->matches.size(), b->matches.size());
+    for (size_t m = 0; m < a->matches.size(); ++m) {
+      EXPECT_EQ(a->matches[m].place, b->matches[m].place);
+      EXPECT_EQ(a->matches[m].score, b->matches[m].score);
+      EXPECT_EQ(a->matches[m].inliers, b->matches[m].inliers);
+    }
+  }
+  for (PlaceId id : (*map)->database().ListPlaces()) {
+    auto place = (*map)->GetPlace(id);
+    ASSERT_TRUE(place.ok());
+    EXPECT_EQ(place->payload.features.size(), (*memory)->Get(id)->counts.static_);
+  }
+}
+
 }  // namespace
 }  // namespace placedb

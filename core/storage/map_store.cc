@@ -50,9 +50,22 @@ constexpr char kWritesKey[] = "acked_writes";
 constexpr char kDamageHistoryKey[] = "damage_history";  // JSON array of accepted losses
 constexpr char kAckedFile[] = "ACKED";
 
-const char* const kColumnFamilies[] = {rocksdb::kDefaultColumnFamilyName.c_str(), "places", "bow",
-                                       "features", "invalid"};
-enum Cf { kMeta = 0, kPlaces, kBow, kFeatures, kInvalid, kCfCount };
+const char* const kColumnFamilies[] = {
+    rocksdb::kDefaultColumnFamilyName.c_str(), "places", "bow", "features", "invalid", "dynamics"};
+// kDynamics was added by issue 16: maps made before it lack the family, which a read-write
+// open creates (empty) and a read-only open does without (its handle is null).
+enum Cf { kMeta = 0, kPlaces, kBow, kFeatures, kInvalid, kDynamics, kCfCount };
+
+// In kDynamics: the map's aggregate (every acknowledged observation, also of places removed
+// since). Place keys are 4 bytes, so this 3-byte key is never one.
+constexpr char kMapDynamicsKey[] = "map";
+// In kDynamics: the aggregate of the frames refused as invalid (no place: too few static
+// features, often because objects covered the view). Not part of the map's aggregate.
+constexpr char kInvalidDynamicsKey[] = "invalid";
+
+bool IsAggregateKey(const rocksdb::Slice& key) {
+  return key == kMapDynamicsKey || key == kInvalidDynamicsKey;
+}
 
 Status FromRocks(const rocksdb::Status& s, const std::string& context) {
   if (s.ok()) return Status::Ok();
@@ -81,6 +94,36 @@ class CounterMergeOperator : public rocksdb::AssociativeMergeOperator {
     if (slice && slice->size() == sizeof v) std::memcpy(&v, slice->data(), sizeof v);
     return v;
   }
+};
+
+// Merges PlaceDynamics (core/dynamics): each acknowledged frame adds its own statistics to its
+// place's and to the map's in the frame's batch. The merge is exact, associative and commutative,
+// so RocksDB may combine operands in any grouping (partial merges in compactions). A value that
+// does not decode fails the merge: RocksDB then reports Corruption (reads) or a background error
+// (compaction) instead of silently dropping statistics.
+class DynamicsMergeOperator : public rocksdb::AssociativeMergeOperator {
+ public:
+  bool Merge(const rocksdb::Slice&, const rocksdb::Slice* existing, const rocksdb::Slice& value,
+             std::string* new_value, rocksdb::Logger* logger) const override {
+    auto operand = DecodeDynamics(value.ToStringView());
+    if (!operand.ok()) {
+      rocksdb::Log(logger, "dynamics merge: %s", operand.status().ToString().c_str());
+      return false;
+    }
+    if (!existing) {
+      new_value->assign(value.data(), value.size());
+      return true;
+    }
+    auto total = DecodeDynamics(existing->ToStringView());
+    if (!total.ok()) {
+      rocksdb::Log(logger, "dynamics merge: %s", total.status().ToString().c_str());
+      return false;
+    }
+    placedb::Merge(&*total, *operand);
+    *new_value = EncodeDynamics(*total);
+    return true;
+  }
+  const char* Name() const override { return "placedb.DynamicsMerge"; }
 };
 
 std::string CounterOperand(uint64_t v) {
@@ -116,6 +159,7 @@ rocksdb::ColumnFamilyOptions FamilyOptions(Cf cf, const std::shared_ptr<rocksdb:
   options.level_compaction_dynamic_level_bytes = true;
   options.table_factory.reset(rocksdb::NewBlockBasedTableFactory(table));
   if (cf == kMeta) options.merge_operator = std::make_shared<CounterMergeOperator>();
+  if (cf == kDynamics) options.merge_operator = std::make_shared<DynamicsMergeOperator>();
   return options;
 }
 
@@ -218,6 +262,12 @@ uint64_t DirectoryBytes(const std::string& path) {
     }
   }
   return total;
+}
+
+int64_t NowUnixNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
 }
 
 int64_t NowUnixMs() {
@@ -519,6 +569,7 @@ struct MapStorage {
   std::atomic<bool> resuming{false};  // one DB::Resume() at a time
   std::string path;                   // the map's directory: its file system's free space
   uint64_t reserve_bytes = 0;         // StorageOptions::disk_reserve_bytes
+  bool dynamics = true;               // StorageOptions::dynamics
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -526,7 +577,9 @@ struct MapStorage {
     committer.reset();
     acks.reset();
     if (db) {
-      for (auto* handle : handles) (void)db->DestroyColumnFamilyHandle(handle);
+      for (auto* handle : handles) {
+        if (handle) (void)db->DestroyColumnFamilyHandle(handle);
+      }
       handles.clear();
       (void)db->Close();
       db.reset();
@@ -565,6 +618,18 @@ struct MapStorage {
     kRemoval,   // never held back by the reserve, so space can be freed
     kCounter,   // rides on the next synced write: neither synced nor acknowledged
   };
+
+  // Adds one frame's statistics to its place's and to the map's (merge operands: no read).
+  void AddDynamics(rocksdb::WriteBatch* batch, PlaceId place, const PlaceDynamics& delta) {
+    if (!dynamics) return;
+    const std::string operand = EncodeDynamics(delta);
+    if (place != 0) batch->Merge(cf(kDynamics), PlaceKey(place), operand);
+    batch->Merge(cf(kDynamics), kMapDynamicsKey, operand);
+  }
+  // An invalid frame's statistics, to the invalid frames' aggregate only.
+  void AddInvalidDynamics(rocksdb::WriteBatch* batch, const PlaceDynamics& delta) {
+    if (dynamics) batch->Merge(cf(kDynamics), kInvalidDynamicsKey, EncodeDynamics(delta));
+  }
 
   // `what` names the operation for messages ("storing place 12"); `place`: the id of the place
   // the batch stores, 0 for other writes.
@@ -689,6 +754,7 @@ class RocksPayloadStore final : public PayloadStore {
     batch.Delete(storage_->cf(kPlaces), key);
     batch.Delete(storage_->cf(kBow), key);
     batch.Delete(storage_->cf(kFeatures), key);
+    batch.Delete(storage_->cf(kDynamics), key);  // the map's aggregate keeps its history
     std::string floor;
     auto s = storage_->db->Get({}, storage_->cf(kMeta), kIdFloorKey, &floor);
     PlaceId current = 0;
@@ -707,6 +773,12 @@ class RocksPayloadStore final : public PayloadStore {
   MapStorage* storage_;
   const FeatureType type_;
 };
+
+// A frame's statistics: what the pipeline measured (coverage, the boxes it used) and when.
+PlaceDynamics FrameDynamics(const ProcessedFrame& frame, const PlaceMetadata& metadata) {
+  return MakeObservation(frame.counts.dynamic_coverage, frame.boxes_used, metadata.timestamp_ns,
+                         NowUnixNs());
+}
 
 }  // namespace
 
@@ -860,8 +932,20 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
   };
   auto outcome = database_->CloseLoop(frame, metadata, store);
   if (!outcome.ok()) return outcome.status();
+  if (!committed && outcome->merged && storage_->dynamics) {
+    // Merged into the previous place by rehearsal: only its statistics are written, durably
+    // (acknowledged means counted). A place removed meanwhile keeps none (the map's aggregate
+    // still counts the frame); a removal racing this write may leave an entry without a place,
+    // which readers skip.
+    rocksdb::WriteBatch batch;
+    storage_->AddDynamics(&batch, database_->Get(outcome->place) ? outcome->place : 0,
+                          FrameDynamics(frame, metadata));
+    PLACEDB_RETURN_IF_ERROR(storage_->Write(
+        &batch, "counting a frame merged into place " + std::to_string(outcome->place),
+        MapStorage::Kind::kAddition));
+  }
   if (!committed) {
-    // Merged into the previous place by rehearsal: nothing written.
+    // Merged into the previous place by rehearsal: no place written.
     result.stored = false;
     result.id = 0;
     result.counts = frame.counts;
@@ -885,6 +969,7 @@ Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,
   Stopwatch store;
   rocksdb::WriteBatch batch;
   batch.Merge(storage_->cf(kMeta), kInvalidCountKey, CounterOperand(1));
+  if (storage_->dynamics) storage_->AddInvalidDynamics(&batch, FrameDynamics(frame, metadata));
   if (info_.options.store_invalid) {
     InvalidObservation observation;
     observation.serial = storage_->next_invalid_serial.fetch_add(1);
@@ -944,6 +1029,7 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
   batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
+  if (storage_->dynamics) storage_->AddDynamics(&batch, record.id, FrameDynamics(frame, metadata));
   PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing place " + std::to_string(record.id),
                                           MapStorage::Kind::kAddition, record.id));
   // Durable: now make it searchable.
@@ -994,6 +1080,62 @@ std::vector<InvalidObservation> PlaceMap::InvalidObservations(size_t limit) cons
     if (decoded.ok()) out.push_back(std::move(decoded).value());
   }
   return out;
+}
+
+Result<PlaceDynamics> PlaceMap::GetDynamics(PlaceId id) const {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  if (!database_->Get(id)) {
+    return Status::NotFound("place " + std::to_string(id) + " not found in map '" + info_.name +
+                            "'");
+  }
+  std::string value;
+  auto s = storage_->db->Get({}, storage_->cf(kDynamics), PlaceKey(id), &value);
+  if (s.IsNotFound()) return PlaceDynamics();
+  PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading the statistics of place " + std::to_string(id)));
+  auto decoded = DecodeDynamics(value);
+  if (!decoded.ok()) return decoded.status().WithContext("place " + std::to_string(id));
+  return decoded;
+}
+
+Result<PlaceDynamics> PlaceMap::ReadAggregate(const char* key, const std::string& what) const {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  std::string value;
+  auto s = storage_->db->Get({}, storage_->cf(kDynamics), key, &value);
+  if (s.IsNotFound()) return PlaceDynamics();
+  PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading " + what));
+  auto decoded = DecodeDynamics(value);
+  if (!decoded.ok()) return decoded.status().WithContext("map '" + info_.name + "': " + what);
+  return decoded;
+}
+
+Result<PlaceDynamics> PlaceMap::MapDynamics() const {
+  return ReadAggregate(kMapDynamicsKey, "the map's statistics");
+}
+
+Result<PlaceDynamics> PlaceMap::InvalidDynamics() const {
+  return ReadAggregate(kInvalidDynamicsKey, "the invalid frames' statistics");
+}
+
+Status PlaceMap::ForEachPlaceDynamics(
+    const std::function<bool(PlaceId, const PlaceDynamics&)>& visit) const {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  rocksdb::ReadOptions options;
+  options.fill_cache = false;
+  std::unique_ptr<rocksdb::Iterator> it(
+      storage_->db->NewIterator(options, storage_->cf(kDynamics)));
+  for (it->SeekToFirst(); it->Valid(); it->Next()) {
+    if (IsAggregateKey(it->key())) continue;
+    auto id = DecodePlaceKey(it->key().ToStringView());
+    if (!id.ok()) return id.status().WithContext("statistics key");
+    if (!database_->Get(*id)) continue;  // removed while a merged frame was being counted
+    auto decoded = DecodeDynamics(it->value().ToStringView());
+    if (!decoded.ok()) return decoded.status().WithContext("place " + std::to_string(*id));
+    if (!visit(*id, *decoded)) return Status::Ok();
+  }
+  return FromRocks(it->status(), "scanning statistics");
 }
 
 MapStats PlaceMap::Stats() const {
@@ -1069,7 +1211,19 @@ Status PlaceMap::VerifyIntegrity() const {
     return Status::Corruption("index holds " + std::to_string(database_->Stats().places) +
                               " places, disk " + std::to_string(count));
   }
-  return Status::Ok();
+  // Statistics: the aggregates and place keys, each value decoding. A place's entry may
+  // outlive the place only by a removal racing a merged frame's count (see CloseLoop).
+  std::unique_ptr<rocksdb::Iterator> dynamics(
+      storage_->db->NewIterator(options, storage_->cf(kDynamics)));
+  for (dynamics->SeekToFirst(); dynamics->Valid(); dynamics->Next()) {
+    const std::string where = "statistics of key " + dynamics->key().ToString(true);
+    if (!IsAggregateKey(dynamics->key())) {
+      PLACEDB_RETURN_IF_ERROR(DecodePlaceKey(dynamics->key().ToStringView()).status());
+    }
+    PLACEDB_RETURN_IF_ERROR(
+        DecodeDynamics(dynamics->value().ToStringView()).status().WithContext(where));
+  }
+  return FromRocks(dynamics->status(), "scanning statistics");
 }
 
 Result<ScrubReport> PlaceMap::Scrub() const {
@@ -1137,6 +1291,17 @@ Result<ScrubReport> PlaceMap::Scrub() const {
     if (payload.features.size() != record->counts.static_) {
       fail("features: " + std::to_string(payload.features.size()) + " stored, the record counts " +
            std::to_string(record->counts.static_));
+      continue;
+    }
+    std::string dynamics_bytes;  // absent for places stored before the map kept statistics
+    rocksdb::Status got = storage_->db->Get(verify, storage_->cf(kDynamics), key, &dynamics_bytes);
+    if (!got.IsNotFound()) {
+      read = FromRocks(got, "statistics");
+      if (!read.ok()) {
+        fail(read.ToString());
+      } else if (auto d = DecodeDynamics(dynamics_bytes); !d.ok()) {
+        fail("statistics: " + d.status().ToString());
+      }
     }
   }
   return report;
@@ -1213,6 +1378,19 @@ std::vector<rocksdb::ColumnFamilyDescriptor> Families(const std::shared_ptr<void
   return families;
 }
 
+// True when the map at `path` has every column family but kDynamics (made before issue 16).
+// Any other family missing is damage, left for the open to report.
+bool LacksOnlyDynamics(const std::string& path) {
+  std::vector<std::string> present;
+  if (!rocksdb::DB::ListColumnFamilies(rocksdb::DBOptions(), path, &present).ok()) return false;
+  for (int cf = 0; cf < kCfCount; ++cf) {
+    const bool found =
+        std::find(present.begin(), present.end(), kColumnFamilies[cf]) != present.end();
+    if (found != (cf != kDynamics)) return false;
+  }
+  return true;
+}
+
 // `path`: the map's directory, for its info log; empty for read-only opens (which write none).
 rocksdb::DBOptions RecoveryOptions(Recovery recovery, const std::string& path) {
   const bool read_only = path.empty();
@@ -1238,11 +1416,14 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
   rocksdb::DBOptions db_options = RecoveryOptions(recovery, path);
   db_options.create_if_missing = create;
   db_options.error_if_exists = create;
-  db_options.create_missing_column_families = create || create_families;
+  // A map made before issue 16 gets its (empty) dynamics family; no other family is ever
+  // created on an existing map unless the caller says so (recovery).
+  db_options.create_missing_column_families = create || create_families || LacksOnlyDynamics(path);
   auto storage = std::make_unique<MapStorage>();
   storage->map_name = fs::path(path).filename().string();
   storage->path = path;
   storage->reserve_bytes = options.disk_reserve_bytes;
+  storage->dynamics = options.dynamics;
   db_options.listeners.push_back(std::make_shared<DiskFullListener>(storage.get()));
   rocksdb::DB* raw = nullptr;
   rocksdb::Status s =
@@ -1263,10 +1444,16 @@ Result<std::unique_ptr<MapStorage>> OpenReadOnly(const std::string& path,
                                                  Recovery recovery) {
   auto storage = std::make_unique<MapStorage>();
   rocksdb::DB* raw = nullptr;
-  rocksdb::Status s = rocksdb::DB::OpenForReadOnly(RecoveryOptions(recovery, ""), path,
-                                                   Families(cache_void), &storage->handles, &raw);
+  // A map made before issue 16 is read without its dynamics family (null handle; read-only
+  // users never touch it).
+  const bool without_dynamics = LacksOnlyDynamics(path);
+  std::vector<rocksdb::ColumnFamilyDescriptor> families = Families(cache_void);
+  if (without_dynamics) families.erase(families.begin() + kDynamics);
+  rocksdb::Status s = rocksdb::DB::OpenForReadOnly(RecoveryOptions(recovery, ""), path, families,
+                                                   &storage->handles, &raw);
   if (!s.ok()) return FromRocks(s, "opening the map's RocksDB");
   storage->db.reset(raw);
+  if (without_dynamics) storage->handles.insert(storage->handles.begin() + kDynamics, nullptr);
   return storage;
 }
 

@@ -7,6 +7,14 @@
 // Reopening a map rebuilds the inverted index from the stored BoW vectors; features stay on disk
 // and are read only for the candidates being verified.
 //
+// Dynamic-object statistics (issue 16, core/dynamics/place_dynamics.h) live in the map's
+// "dynamics" column family, one value per place plus the map's aggregate, kept by a merge
+// operator: a stored frame's statistics are merge operands in the place's own batch, a frame
+// loop-closure rehearsal merges into a place is one more acknowledged batch of operands. No
+// read-modify-write, so concurrent writers never lose an update, and what is acknowledged is
+// counted. They are read on demand from RocksDB (nothing in memory) and never reach the
+// PlaceDatabase: descriptors and ranking are the same with or without them.
+//
 // Damage is never silent (docs/storage.md, "Damage"): every acknowledged write is counted twice,
 // in the map's RocksDB (a merge counter inside the write's own batch) and in a small checksummed
 // file beside it (ACKED, fdatasync'ed before the write is acknowledged). Opening a map compares
@@ -30,6 +38,7 @@
 
 #include "core/base/status.h"
 #include "core/base/thread_annotations.h"
+#include "core/dynamics/place_dynamics.h"
 #include "core/pipeline/place_database.h"
 #include "core/storage/codec.h"
 #include "core/storage/directory_lock.h"
@@ -55,6 +64,9 @@ struct StorageOptions {
   // Count acknowledged writes in ACKED (docs/storage.md, "Damage"). Off only to measure its
   // cost: writes are then not counted and opening a map does not check for lost writes.
   bool acked_file = true;
+  // Keep dynamic-object statistics (issue 16). Off only to measure their cost: frames are then
+  // not counted, and a map's statistics stay behind what it stored.
+  bool dynamics = true;
   // New places (and invalid observations) are refused with RESOURCE_EXHAUSTED ("disk full") while
   // the map's file system has less free space than its memtables plus this: RocksDB then never
   // runs out of space in the middle of a write or flush. 0 = only when a write actually fails
@@ -165,6 +177,22 @@ class PlaceMap {
   Result<StoredPlace> GetPlace(PlaceId id) const;  // NOT_FOUND if absent
   Status RemovePlace(PlaceId id);                  // durable before it returns
   std::vector<InvalidObservation> InvalidObservations(size_t limit) const;
+
+  // The place's dynamic-object statistics: every frame stored at it or merged into it. Empty
+  // for a place stored before the map kept statistics. NOT_FOUND when the place does not exist;
+  // CORRUPTION (naming the place) when the stored value does not decode.
+  Result<PlaceDynamics> GetDynamics(PlaceId id) const;
+  // The map's aggregate: every acknowledged frame stored or merged, also at places removed since
+  // (the map's history: a removal cannot subtract a maximum).
+  Result<PlaceDynamics> MapDynamics() const;
+  // The frames refused as invalid (no place; often too covered by objects): their own
+  // aggregate, not in MapDynamics(). Counted like the invalid-frame counter: in a batch that
+  // is synced only when the map stores invalid observations (MapOptions::store_invalid).
+  Result<PlaceDynamics> InvalidDynamics() const;
+  // Calls `visit` with every existing place that has statistics, ascending id, until it returns
+  // false; one place at a time in memory (rankings keep only their top entries).
+  Status ForEachPlaceDynamics(
+      const std::function<bool(PlaceId, const PlaceDynamics&)>& visit) const;
   MapStats Stats() const;
 
   // An online, consistent copy of the map into `directory` (which must not exist), made with
@@ -190,6 +218,8 @@ class PlaceMap {
       REQUIRES_SHARED(lifecycle_);
   Result<AddResult> StoreInvalid(const ProcessedFrame& frame, const PlaceMetadata& metadata);
   Status Deleted() const;
+  // An aggregate of the dynamics family (MapDynamics, InvalidDynamics); `what` for messages.
+  Result<PlaceDynamics> ReadAggregate(const char* key, const std::string& what) const;
 
   MapInfo info_;
   std::vector<MapDamage> damage_history_;

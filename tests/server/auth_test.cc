@@ -271,6 +271,8 @@ TEST_F(AuthTest, EveryRpcTimesEveryCallerGetsTheExactCode) {
   v1::DeletePlaceRequest delete_place;
   delete_place.set_map("campus");
   delete_place.set_place_id(999999);  // none: the allowed caller's answer names it, nothing changes
+  v1::GetDynamicsRequest dynamics;
+  dynamics.set_map("campus");
 
   // Snapshots: admin only; a snapshot of campus to download and restore.
   v1::CreateSnapshotRequest create_snapshot;
@@ -346,6 +348,9 @@ TEST_F(AuthTest, EveryRpcTimesEveryCallerGetsTheExactCode) {
   rows["DeletePlace"] = {
       unary(&v1::PlaceDb::Stub::DeletePlace, delete_place, v1::DeletePlaceResponse()),
       {{"read", P}, {"write", Code::NOT_FOUND}, {"admin", Code::NOT_FOUND}, {"other_map", P}}};
+  rows["GetDynamics"] = {
+      unary(&v1::PlaceDb::Stub::GetDynamics, dynamics, v1::GetDynamicsResponse()),
+      {{"read", K}, {"write", P}, {"admin", K}, {"other_map", P}}};
   rows["GetServerInfo"] = {
       unary(&v1::PlaceDb::Stub::GetServerInfo, v1::GetServerInfoRequest(), v1::ServerInfo()),
       {{"read", K}, {"write", K}, {"admin", K}, {"other_map", K}}};

@@ -130,6 +130,14 @@ TEST_F(ServerTest, EveryRpcRefusesBadMapNamesBeforeStorage) {
          v1::DeletePlaceResponse response;
          return stub->DeletePlace(&context, request, &response);
        }},
+      {"GetDynamics", "map",
+       [&](const std::string& name) {
+         grpc::ClientContext context;
+         v1::GetDynamicsRequest request;
+         request.set_map(name);
+         v1::GetDynamicsResponse response;
+         return stub->GetDynamics(&context, request, &response);
+       }},
       {"Ingest", "header.map",
        [&](const std::string& name) { return IngestAll(stub, name, {observation}).status; }},
   };

@@ -1,0 +1,166 @@
+#include "client/commands/dynamics.h"
+
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <sstream>
+#include <vector>
+
+#include "client/commands/common.h"
+#include "client/format.h"
+#include "core/detect/detector.h"
+
+namespace placedb::client {
+
+namespace {
+
+constexpr const char* kWeekdayNames[] = {"mon", "tue", "wed", "thu", "fri", "sat", "sun"};
+
+// "8-10" -> (8, 10); false when not two hours 0..23.
+bool ParseHours(const std::string& text, uint32_t* first, uint32_t* last) {
+  const size_t dash = text.find('-');
+  if (dash == std::string::npos) return false;
+  try {
+    size_t used = 0;
+    const int a = std::stoi(text.substr(0, dash), &used);
+    if (used != dash) return false;
+    const std::string rest = text.substr(dash + 1);
+    const int b = std::stoi(rest, &used);
+    if (used != rest.size() || a < 0 || a > 23 || b < 0 || b > 23) return false;
+    *first = uint32_t(a);
+    *last = uint32_t(b);
+    return true;
+  } catch (const std::exception&) {
+    return false;
+  }
+}
+
+// "mon,fri" -> bits; 0 when a name is unknown.
+uint32_t ParseWeekdays(const std::string& text) {
+  uint32_t bits = 0;
+  std::stringstream list(text);
+  for (std::string day; std::getline(list, day, ',');) {
+    const auto* found = std::find(std::begin(kWeekdayNames), std::end(kWeekdayNames), day);
+    if (found == std::end(kWeekdayNames)) return 0;
+    bits |= 1u << (found - std::begin(kWeekdayNames));
+  }
+  return bits;
+}
+
+std::string ClassLabel(int class_id) {
+  const char* name =
+      class_id >= 0 && class_id < kCocoClassCount ? CocoClassName(class_id) : nullptr;
+  return name ? std::string(name) : std::to_string(class_id);
+}
+
+// "person 12, car 4": each class with the frames it was seen in.
+std::string FormatClasses(const v1::DynamicStatistics& statistics) {
+  std::string text;
+  for (const v1::DynamicClassCount& c : statistics.classes()) {
+    text +=
+        (text.empty() ? "" : ", ") + ClassLabel(c.class_id()) + " " + std::to_string(c.frames());
+  }
+  return text.empty() ? "-" : text;
+}
+
+std::string Percent(double share) {
+  return FormatDouble(100.0 * share, 1) + "%";
+}
+
+}  // namespace
+
+CLI::App* RegisterDynamics(CLI::App& app, DynamicsFlags* flags) {
+  CLI::App* command = app.add_subcommand(
+      "dynamics", "a map's dynamic-object statistics and its places ranked by coverage");
+  command->add_option("MAP", flags->map, "map name")->required();
+  command->add_option("--class", flags->class_label,
+                      "rank by the share of frames with this class (COCO name or id)");
+  command->add_option("--hours", flags->hours,
+                      "rank by mean coverage in these UTC hours, FIRST-LAST (22-2 wraps midnight)");
+  command->add_option("--weekdays", flags->weekdays, "with --hours: mon,tue,... (default: all)");
+  command->add_option("--limit", flags->limit, "places per page (1..1000)");
+  command->add_option("--offset", flags->offset, "first place of the page");
+  command->add_option("--min-observations", flags->min_observations,
+                      "leave out places observed fewer times (in the window)");
+  return command;
+}
+
+int RunDynamics(const Connection& connection, const DynamicsFlags& flags, bool json, CliIo& io) {
+  v1::GetDynamicsRequest request;
+  request.set_map(flags.map);
+  request.set_limit(flags.limit);
+  request.set_offset(flags.offset);
+  request.set_min_observations(flags.min_observations);
+  request.set_include_statistics(true);
+  if (!flags.class_label.empty() && !flags.hours.empty()) {
+    return UsageError(io, "--class and --hours rank differently: give one");
+  }
+  if (!flags.class_label.empty()) {
+    request.set_measure(v1::DYNAMICS_MEASURE_CLASS_SHARE);
+    auto id = CocoClassId(flags.class_label);
+    if (id.ok()) {
+      request.set_class_id(*id);
+    } else {
+      try {
+        size_t used = 0;
+        request.set_class_id(std::stoi(flags.class_label, &used));
+        if (used != flags.class_label.size()) throw std::invalid_argument("trailing");
+      } catch (const std::exception&) {
+        return UsageError(io, "--class: '" + flags.class_label + "' is not a COCO class");
+      }
+    }
+  } else if (!flags.hours.empty()) {
+    request.set_measure(v1::DYNAMICS_MEASURE_HOUR_WINDOW);
+    uint32_t first = 0, last = 0;
+    if (!ParseHours(flags.hours, &first, &last)) {
+      return UsageError(io, "--hours: expected FIRST-LAST with hours 0..23, e.g. 8-10");
+    }
+    request.set_first_hour(first);
+    request.set_last_hour(last);
+    if (!flags.weekdays.empty()) {
+      const uint32_t bits = ParseWeekdays(flags.weekdays);
+      if (bits == 0) return UsageError(io, "--weekdays: expected names among mon,...,sun");
+      request.set_weekdays(bits);
+    }
+  } else if (!flags.weekdays.empty()) {
+    return UsageError(io, "--weekdays needs --hours");
+  }
+  auto context = connection.NewContext();
+  v1::GetDynamicsResponse response;
+  const grpc::Status status = connection.stub()->GetDynamics(context.get(), request, &response);
+  if (!status.ok()) return RpcFailed(io, status);
+  if (json) {
+    io.out << ProtoJson(response) << '\n';
+    return kExitOk;
+  }
+  const v1::DynamicStatistics& map = response.map();
+  PrintKeyValues(
+      io.out, "dynamic objects in map '" + flags.map + "'",
+      {{"frames", std::to_string(map.observations())},
+       {"coverage",
+        "mean " + Percent(map.mean_coverage()) + ", max " + Percent(map.max_coverage())},
+       {"classes (frames)", FormatClasses(map)},
+       {"untimed / future", std::to_string(map.untimed()) + " / " + std::to_string(map.future())},
+       {"invalid frames", std::to_string(response.invalid().observations()) + ", mean coverage " +
+                              Percent(response.invalid().mean_coverage())}});
+  Table table({">RANK", ">PLACE", ">SCORE", ">FRAMES", ">MEAN", ">MAX", "LAST SEEN", "CLASSES"});
+  uint64_t rank = flags.offset;
+  for (const v1::RankedPlace& place : response.places()) {
+    const v1::DynamicStatistics& s = place.statistics();
+    table.Add({std::to_string(++rank), std::to_string(place.place_id()),
+               FormatDouble(place.score(), 3), std::to_string(place.support()),
+               Percent(s.mean_coverage()), Percent(s.max_coverage()),
+               FormatUnixNs(s.last_timestamp_ns()), FormatClasses(s)});
+  }
+  io.out << '\n';
+  if (table.empty()) {
+    io.out << "no place ranked on this page (" << response.ranked() << " ranked in all)\n";
+  } else {
+    table.Print(io.out);
+    io.out << response.ranked() << " places ranked";
+    if (response.next_offset()) io.out << "; next page: --offset " << response.next_offset();
+    io.out << '\n';
+  }
+  return kExitOk;
+}
+
+}  // namespace placedb::client
