@@ -124,10 +124,9 @@ class Client:
     ``placedb-server tokens add`` (sent as ``authorization: Bearer <token>``). ``tls``: ``None``
     for plaintext, ``True`` for TLS with the system roots, or a :class:`TLS` with PEM paths.
     ``timeout``: seconds per unary call (None: no deadline; each call's ``timeout=`` overrides
-    it). ``wait_for_ready``: calls made while
-    the server is unreachable wait for it (up to their deadline: :class:`DeadlineExceeded`)
-    instead of failing at once with :class:`Unavailable`; for agents that start before the
-    server.
+    it). ``wait_for_ready``: calls made while the server is unreachable wait for it (up to their
+    deadline: :class:`DeadlineExceeded`) instead of failing at once with :class:`Unavailable`;
+    for agents that start before the server.
 
     Usable as a context manager; :meth:`close` closes the channel.
     """
@@ -140,6 +139,7 @@ class Client:
         timeout: Optional[float] = 30.0,
         wait_for_ready: bool = False,
     ) -> None:
+        self._timeout = self._check_timeout(timeout)  # before the channel: nothing to close
         options = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
         if tls:
             self._channel = grpc.secure_channel(target, _credentials(tls), options=options)
@@ -148,7 +148,6 @@ class Client:
         self._metadata: Sequence[Tuple[str, str]] = (
             (("authorization", f"Bearer {token}"),) if token else ()
         )
-        self._timeout = self._check_timeout(timeout)
         self._wait_for_ready = wait_for_ready
         self._stub = pb_grpc.PlaceDbStub(self._channel)
         self._health = health_pb2_grpc.HealthStub(self._channel)
