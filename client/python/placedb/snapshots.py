@@ -41,10 +41,16 @@ class _TrailingDigest:
         self._tail = b""
 
     def update(self, data: bytes) -> None:
+        if len(data) >= _DIGEST_BYTES:  # the usual chunk: no copy of it
+            self._hash.update(self._tail)
+            self._hash.update(memoryview(data)[:-_DIGEST_BYTES])
+            self._tail = bytes(data[-_DIGEST_BYTES:])
+            return
         tail = self._tail + data
-        if len(tail) > _DIGEST_BYTES:
-            self._hash.update(memoryview(tail)[:-_DIGEST_BYTES])
-            tail = tail[-_DIGEST_BYTES:]
+        cut = len(tail) - _DIGEST_BYTES
+        if cut > 0:
+            self._hash.update(tail[:cut])
+            tail = tail[cut:]
         self._tail = tail
 
     @property
@@ -200,17 +206,17 @@ def upload(
                 stop.wait()  # keep the stream open until the caller has cancelled it
 
         call = start(requests())
+        # Every chunk's event is queued before the stream half-closes, so "done" comes last.
+        call.add_done_callback(lambda _: events.put(("done", None)))
         sent = 0
         try:
             while True:
                 try:
-                    kind, value = events.get(timeout=0.05)
-                except queue.Empty:
-                    # Every chunk's event is queued before the stream half-closes, so a call
-                    # that is done has nothing more to report.
-                    if call.done() and events.empty():
-                        break
+                    kind, value = events.get(timeout=1)
+                except queue.Empty:  # only so that a signal is handled while waiting
                     continue
+                if kind == "done":
+                    break
                 if kind == "error":
                     if isinstance(value, OSError):
                         raise InvalidArgument(

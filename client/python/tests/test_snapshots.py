@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import io
 import os
+import random
 import subprocess
 import threading
 from concurrent import futures
@@ -434,6 +435,31 @@ def test_a_bad_download_raises_and_leaves_nothing(
         whole = client.download_snapshot("whole", dest)
         assert whole.archive_bytes == dest.stat().st_size
         assert _leftovers(str(tmp_path)) == ["backup.pdbsnap"]
+
+
+def test_the_trailing_digest_check_does_not_depend_on_chunking() -> None:
+    """Any split of an archive-like stream verifies; one flipped bit anywhere does not."""
+    from placedb.snapshots import _TrailingDigest
+
+    rng = random.Random(15)
+    for _ in range(300):
+        body = rng.randbytes(rng.randint(0, 300))
+        data = body + hashlib.sha256(body).digest()
+        cuts = sorted(rng.sample(range(len(data) + 1), rng.randint(0, 6)))
+        bounds = list(zip([0] + cuts, cuts + [len(data)]))
+        flipped = bytearray(data)
+        flipped[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+        good, bad = _TrailingDigest(), _TrailingDigest()
+        for a, b in bounds:
+            good.update(data[a:b])
+            bad.update(bytes(flipped[a:b]))
+        assert good.verify("t") == data[-32:].hex()
+        with pytest.raises(placedb.DataLoss, match="SHA-256 does not match"):
+            bad.verify("t")
+    short = _TrailingDigest()
+    short.update(b"PDBSNAP\n")
+    with pytest.raises(placedb.DataLoss, match="too short"):
+        short.verify("t")
 
 
 def test_a_progress_callback_that_raises_stops_the_download(misbehaving, tmp_path: Path) -> None:
