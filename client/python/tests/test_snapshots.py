@@ -11,13 +11,16 @@ import hashlib
 import io
 import os
 import random
+import signal
 import subprocess
 import threading
+import time
 from concurrent import futures
 from pathlib import Path
 from typing import Dict, Iterator, List, Tuple
 
 import grpc
+import numpy as np
 import pytest
 from conftest import ServerProcess, unused_loopback_port
 
@@ -259,6 +262,82 @@ def test_snapshot_during_a_two_agent_ingest_restores_and_answers(server) -> None
         expected = ranked("snap-live-reference")
         assert any(expected)
         assert ranked("snap-live-restored") == expected
+
+
+# ---- A server restart in the middle of a download ------------------------------------------------
+
+
+def _sift_frames(count: int, keypoints: int) -> Iterator[placedb.Frame]:
+    """Precomputed SIFT features (512 bytes a descriptor): a large archive from few frames."""
+    rng = np.random.default_rng(7)
+    for _ in range(count):
+        rows = np.zeros((keypoints, 6), np.float32)
+        rows[:, 0] = rng.uniform(0, 639, keypoints)
+        rows[:, 1] = rng.uniform(0, 479, keypoints)
+        rows[:, 2] = 8.0
+        rows[:, 4] = 0.05
+        rows[:, 5] = 1
+        descriptors = rng.uniform(0, 0.2, (keypoints, 128)).astype(np.float32)
+        yield placedb.Frame(keypoints=rows, descriptors=descriptors, image_size=(640, 480))
+
+
+def test_a_server_restart_during_a_download_leaves_nothing_and_it_downloads_after(
+    tmp_path: Path,
+) -> None:
+    """The server stops after the first chunk (its drain ends the stream): Unavailable, no
+    file; restarted on the same data directory, the snapshot downloads whole and restores."""
+    first = ServerProcess()
+    data_dir = first.data_dir
+    restarted = None
+    try:
+        with placedb.Client(first.address) as client:
+            client.create_map("restart", placedb.MapSettings(vocabulary="sift"))
+            results = list(client.ingest("restart", _sift_frames(16, 2000)))
+            assert all(r.stored for r in results), results[0]
+            snapshot = client.create_snapshot("restart")
+            dest = tmp_path / "restart.pdbsnap"
+            seen: List[Tuple[int, int]] = []
+
+            def stop_the_server(done: int, total: int) -> None:
+                seen.append((done, total))
+                if len(seen) == 1:
+                    # SIGTERM, and back to reading once the server drains (health goes
+                    # not_serving just before the download's next chunk sees the drain). Not
+                    # waiting for the exit: the handler is blocked writing to this reader.
+                    first.process.send_signal(signal.SIGTERM)
+                    with placedb.Client(first.address, timeout=5) as probe:
+                        try:
+                            while probe.health() == "serving":
+                                time.sleep(0.01)
+                        except placedb.Unavailable:  # no longer listening: draining too
+                            pass
+
+            # The drain's UNAVAILABLE, or CANCELLED when the server's final cancel overtakes
+            # the status queued behind chunks this reader has not read yet.
+            with pytest.raises((placedb.Unavailable, placedb.Cancelled)):
+                client.download_snapshot(snapshot.id, dest, progress=stop_the_server)
+            # gRPC buffers a few MB ahead of the reader: far less than this archive.
+            assert seen[-1][0] < seen[-1][1]
+            assert _leftovers(str(tmp_path)) == []
+        assert first.process.wait(timeout=60) == 0
+
+        restarted = ServerProcess(data_dir=data_dir)
+        with placedb.Client(restarted.address) as client:
+            assert [s.id for s in client.list_snapshots()] == [snapshot.id]
+            whole = client.download_snapshot(snapshot.id, dest)
+            assert whole.archive_bytes == dest.stat().st_size == seen[-1][1]
+            client.delete_snapshot(snapshot.id)
+            kept = client.upload_snapshot(dest)
+            restored = client.restore_snapshot(kept.id, "restart-copy")
+            assert restored.places == snapshot.places == len(results)
+            probe = next(_sift_frames(1, 2000))
+            assert client.query("restart-copy", probe).matches == client.query(
+                "restart", probe
+            ).matches
+    finally:
+        if restarted is not None:
+            restarted.stop()  # before `first` removes the data directory
+        first.stop()
 
 
 # ---- Bad archives -------------------------------------------------------------------------------
