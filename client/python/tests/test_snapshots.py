@@ -1,9 +1,9 @@
 """Snapshots through the SDK: create, list, download, upload to a second server, restore.
 
 Two real servers (each its own data directory), and one stopped and restarted in the middle of
-a download; the download's own checks (announced size,
-trailing SHA-256, nothing left behind) are also driven by a small in-process gRPC server that
-serves a real archive cut short, altered or broken off, which a correct server never does.
+a download. The download's own checks (announced size, trailing SHA-256, nothing left behind)
+are also driven by a small in-process gRPC server that serves a real archive cut short, altered
+or broken off, which a correct server never does.
 """
 
 from __future__ import annotations
