@@ -52,7 +52,13 @@ from placedb.results import (
     UsedBox,
     VocabularyInfo,
 )
-from placedb.settings import MapSettings
+from placedb.settings import (
+    DepthSettings,
+    LoopClosureSettings,
+    MapSettings,
+    ShortTermSettings,
+    SiftSettings,
+)
 
 __all__ = [
     "AlreadyExists",
@@ -65,6 +71,7 @@ __all__ = [
     "DataLoss",
     "DeadlineExceeded",
     "Depth",
+    "DepthSettings",
     "DepthState",
     "DynamicStatistics",
     "Dynamics",
@@ -76,6 +83,7 @@ __all__ = [
     "Internal",
     "InvalidArgument",
     "LoopClosure",
+    "LoopClosureSettings",
     "MapDamage",
     "MapInfo",
     "MapSettings",
@@ -91,6 +99,8 @@ __all__ = [
     "ResourceExhausted",
     "ScrubReport",
     "ServerInfo",
+    "ShortTermSettings",
+    "SiftSettings",
     "Snapshot",
     "TLS",
     "Timings",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 from concurrent import futures
@@ -156,6 +157,47 @@ def test_bad_map_settings(client: placedb.Client) -> None:
     with pytest.raises(placedb.InvalidArgument, match="nope"):
         client.create_map("bad-vocabulary", placedb.MapSettings(vocabulary="nope"))
     assert not {"bad-settings", "bad-vocabulary"} & {m.name for m in client.list_maps()}
+
+
+def test_typed_setting_groups(client: placedb.Client) -> None:
+    settings = placedb.MapSettings(
+        depth=placedb.DepthSettings(stream_filter=False, threshold_m=0.3, band_policy="fixed",
+                                    rise_band=(1.5, 4.0)),
+        loop_closure=placedb.LoopClosureSettings(loop_threshold=0.2, verify=False),
+        short_term=placedb.ShortTermSettings(horizon_s=30, max_places=100),
+    )
+    config = client.create_map("groups", settings).config
+    assert not config.depth.stream_filter
+    assert config.depth.threshold_m == pytest.approx(0.3)
+    assert config.depth.band_policy == pb.BAND_POLICY_FIXED
+    assert (config.depth.rise_band.near_m, config.depth.rise_band.far_m) == (1.5, 4.0)
+    assert config.loop_closure.loop_threshold == pytest.approx(0.2)
+    assert not config.loop_closure.verify
+    assert (config.filter.short_term.horizon_s, config.filter.short_term.max_places) == (30, 100)
+    sift = placedb.MapSettings(vocabulary="sift", sift=placedb.SiftSettings(max_features=300))
+    assert client.create_map("groups-sift", sift).config.sift.max_features == 300
+
+    # Each group has exactly its message's fields, so the two cannot drift apart.
+    groups = {
+        placedb.DepthSettings: pb.DepthSettings,
+        placedb.LoopClosureSettings: pb.LoopClosureSettings,
+        placedb.ShortTermSettings: pb.ShortTermSettings,
+        placedb.SiftSettings: pb.SiftSettings,
+    }
+    for group, message in groups.items():
+        assert {f.name for f in dataclasses.fields(group)} == {
+            f.name for f in message.DESCRIPTOR.fields
+        }, group.__name__
+
+    bad = [
+        (placedb.DepthSettings(band_policy="sideways"), "config.depth.band_policy"),
+        (placedb.DepthSettings(rise_band=(1.0,)), "config.depth.rise_band"),
+        (placedb.DepthSettings(persistence="often"), "config.depth.persistence"),
+    ]
+    for depth, field in bad:
+        with pytest.raises(placedb.InvalidArgument, match=field.replace(".", r"\.")):
+            client.create_map("groups-bad", placedb.MapSettings(depth=depth))
+    assert "groups-bad" not in [m.name for m in client.list_maps()]
 
 
 def test_scrub_and_recover(client: placedb.Client, rtabmap_frames: List[Path]) -> None:
