@@ -159,7 +159,8 @@ class MapSettings:
 
     The common settings are fields here, with typed groups for depth, loop closure, the
     short-term tier and SIFT; anything else (ORB details, verification levels, ...) goes into
-    ``config``, a ``placedb.v1.MapConfig`` these fields are laid over. The server fills in and reports the effective configuration (:attr:`MapInfo.config`).
+    ``config``, a ``placedb.v1.MapConfig`` these fields are laid over. The server fills in and
+    reports the effective configuration (:attr:`MapInfo.config`).
     """
 
     #: A vocabulary name from the server's configuration ("" = "default").
