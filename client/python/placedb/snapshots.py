@@ -3,9 +3,9 @@
 An archive (format v1, core/storage/snapshots.h) ends with the SHA-256 of every byte before that
 digest, so a download is checked end to end without a second request: the size the server
 announces in the first message, then the trailing digest over what arrived. A download to a path
-is written to ``<dest>.partial`` and renamed only once both checks pass; on any failure (a broken
-stream, a mismatch, an exception from the progress callback) the partial file is removed, so a
-file at ``dest`` is always a whole, checked archive.
+is written to ``<dest>.partial`` and moved to ``dest`` only once both checks pass; on any
+failure (a broken stream, a mismatch, an exception from the progress callback) the partial file
+is removed, so a file at ``dest`` is always a whole, checked archive.
 """
 
 from __future__ import annotations
@@ -52,11 +52,6 @@ class _TrailingDigest:
             self._hash.update(tail[:cut])
             tail = tail[cut:]
         self._tail = tail
-
-    @property
-    def trailer(self) -> str:
-        """The last 32 bytes seen, in hex."""
-        return self._tail.hex()
 
     def verify(self, what: str) -> str:
         """The digest in hex; :class:`DataLoss` unless it is the SHA-256 of what preceded it."""
@@ -180,7 +175,7 @@ def upload(
             total = 0
         events: "queue.Queue[tuple]" = queue.Queue()
         stop = threading.Event()
-        tail = _TrailingDigest()  # only its trailer is used: the server checks the digest
+        trailer = bytearray()  # the last 32 bytes sent: the digest the server checked
 
         def requests() -> Iterator[pb.SnapshotChunk]:
             # Runs in gRPC's request thread; reports to the caller's thread through `events`.
@@ -197,7 +192,7 @@ def upload(
                         first = False
                     yield chunk
                     sent += len(data)
-                    tail.update(data)
+                    trailer[:] = (trailer + data[-_DIGEST_BYTES:])[-_DIGEST_BYTES:]
                     events.put(("sent", sent))
                     if not data:
                         return
@@ -233,7 +228,7 @@ def upload(
             call.cancel()
             stop.set()
         return dataclasses.replace(
-            Snapshot.from_proto(response), archive_bytes=sent, archive_sha256=tail.trailer
+            Snapshot.from_proto(response), archive_bytes=sent, archive_sha256=trailer.hex()
         )
     finally:
         if owned:
