@@ -11,7 +11,7 @@ See client/python/README.md. The generated messages and stubs are in ``placedb._
 (``placedb._pb.placedb_pb2``): the SDK's own types are the dataclasses below.
 """
 
-from placedb.client import TLS, Client
+from placedb.client import CLIENT_TIMEOUT, TLS, Client
 from placedb.errors import (
     AlreadyExists,
     Cancelled,
@@ -27,10 +27,16 @@ from placedb.errors import (
     Unauthenticated,
     Unavailable,
 )
-from placedb.frames import Box, Depth, Frame
+from placedb.frames import Box, Depth, Frame, MatchOptions
 from placedb.results import (
+    ClassCount,
     Counts,
+    DepthState,
+    Dynamics,
+    DynamicStatistics,
+    HourCoverage,
     IngestResult,
+    LoopClosure,
     MapDamage,
     MapInfo,
     MapSummary,
@@ -38,42 +44,64 @@ from placedb.results import (
     Place,
     Pose,
     QueryResult,
+    RankedPlace,
     ScrubReport,
     ServerInfo,
+    Snapshot,
     Timings,
     UsedBox,
     VocabularyInfo,
 )
-from placedb.settings import MapSettings
+from placedb.settings import (
+    DepthSettings,
+    LoopClosureSettings,
+    MapSettings,
+    ShortTermSettings,
+    SiftSettings,
+)
 
 __all__ = [
     "AlreadyExists",
     "Box",
+    "CLIENT_TIMEOUT",
     "Cancelled",
+    "ClassCount",
     "Client",
     "Counts",
     "DataLoss",
     "DeadlineExceeded",
     "Depth",
+    "DepthSettings",
+    "DepthState",
+    "DynamicStatistics",
+    "Dynamics",
     "Error",
     "FailedPrecondition",
     "Frame",
+    "HourCoverage",
     "IngestResult",
     "Internal",
     "InvalidArgument",
+    "LoopClosure",
+    "LoopClosureSettings",
     "MapDamage",
     "MapInfo",
     "MapSettings",
     "MapSummary",
     "Match",
+    "MatchOptions",
     "NotFound",
     "PermissionDenied",
     "Place",
     "Pose",
     "QueryResult",
+    "RankedPlace",
     "ResourceExhausted",
     "ScrubReport",
     "ServerInfo",
+    "ShortTermSettings",
+    "SiftSettings",
+    "Snapshot",
     "TLS",
     "Timings",
     "Unauthenticated",

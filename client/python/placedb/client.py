@@ -1,8 +1,10 @@
 """The placedb client: one gRPC channel to a placedb server and a method per operation.
 
 Every call raises a :class:`placedb.Error` subclass on failure (the gRPC code and the server's
-message). Unary calls have a deadline (``Client(timeout=...)``, default 30 s); ingest streams
-have none (the server closes idle streams, see docs/service.md).
+message). Every call takes ``timeout=``: seconds, or None for no deadline. By default unary calls
+use the client's (``Client(timeout=...)``, default 30 s); ingest streams, snapshot creation,
+restore and transfers have none, because their duration grows with the data (the server closes
+idle ingest streams, see docs/service.md).
 """
 
 from __future__ import annotations
@@ -17,8 +19,10 @@ from placedb._pb import health_pb2, health_pb2_grpc
 from placedb._pb import placedb_pb2 as pb
 from placedb._pb import placedb_pb2_grpc as pb_grpc
 from placedb.errors import Error, InvalidArgument, from_rpc_error
-from placedb.frames import Frame, ImageLike, to_observation
+from placedb import snapshots
+from placedb.frames import Frame, ImageLike, MatchOptions, as_frame, to_observation
 from placedb.results import (
+    Dynamics,
     IngestResult,
     MapDamage,
     MapInfo,
@@ -27,8 +31,9 @@ from placedb.results import (
     QueryResult,
     ScrubReport,
     ServerInfo,
+    Snapshot,
 )
-from placedb.settings import MapSettings
+from placedb.settings import MapSettings, enum_value
 
 
 @dataclass
@@ -67,10 +72,49 @@ def _credentials(tls: Union[bool, TLS]) -> grpc.ChannelCredentials:
     )
 
 
-def _match_options(top_k: int, verify: bool, exclude_same_agent: bool) -> pb.MatchOptions:
-    if top_k < 0:
-        raise InvalidArgument(f"top_k: {top_k} is negative")
-    return pb.MatchOptions(top_k=top_k, verified_only=verify, exclude_same_agent=exclude_same_agent)
+class _ClientTimeout:
+    """The default ``timeout`` of unary calls: the client's (``Client(timeout=...)``)."""
+
+    def __repr__(self) -> str:
+        return "CLIENT_TIMEOUT"
+
+
+#: A call's ``timeout=`` default that means "the client's timeout".
+CLIENT_TIMEOUT: Any = _ClientTimeout()
+#: Seconds, None (no deadline) or :data:`CLIENT_TIMEOUT`.
+Timeout = Union[None, float, _ClientTimeout]
+
+_WEEKDAYS = ("monday", "tuesday", "wednesday", "thursday", "friday", "saturday", "sunday")
+
+
+def _set(request: Any, name: str, value: Any) -> None:
+    """Sets a request field; :class:`InvalidArgument` naming it for a value of the wrong type or
+    out of its range (e.g. a negative limit)."""
+    try:
+        setattr(request, name, value)
+    except (TypeError, ValueError) as e:
+        raise InvalidArgument(f"{name}: {value!r} ({e})") from None
+
+
+def _weekday_bits(weekdays: Iterable[Union[str, int]]) -> int:
+    """Bit 0 = Monday .. bit 6 = Sunday from names (``"mon"``, ``"Monday"``) or 0..6."""
+    if isinstance(weekdays, (str, bytes)):
+        weekdays = [weekdays] if isinstance(weekdays, str) else [weekdays.decode()]
+    names = {name: i for i, name in enumerate(_WEEKDAYS)}
+    names.update({name[:3]: i for i, name in enumerate(_WEEKDAYS)})
+    bits = 0
+    for day in weekdays:
+        if isinstance(day, str) and day.strip().lower() in names:
+            bits |= 1 << names[day.strip().lower()]
+        elif isinstance(day, int) and not isinstance(day, bool) and 0 <= day <= 6:
+            bits |= 1 << day
+        else:
+            raise InvalidArgument(
+                f"weekdays: {day!r} is not a day (expected mon..sun or 0 = Monday .. 6 = Sunday)"
+            )
+    if bits == 0:
+        raise InvalidArgument("weekdays: empty (None means every day)")
+    return bits
 
 
 class Client:
@@ -79,10 +123,10 @@ class Client:
     ``target``: ``host:port`` (e.g. ``"127.0.0.1:50051"``). ``token``: a bearer token from
     ``placedb-server tokens add`` (sent as ``authorization: Bearer <token>``). ``tls``: ``None``
     for plaintext, ``True`` for TLS with the system roots, or a :class:`TLS` with PEM paths.
-    ``timeout``: seconds per unary call (None: no deadline). ``wait_for_ready``: calls made while
-    the server is unreachable wait for it (up to their deadline: :class:`DeadlineExceeded`)
-    instead of failing at once with :class:`Unavailable`; for agents that start before the
-    server.
+    ``timeout``: seconds per unary call (None: no deadline; each call's ``timeout=`` overrides
+    it). ``wait_for_ready``: calls made while the server is unreachable wait for it (up to their
+    deadline: :class:`DeadlineExceeded`) instead of failing at once with :class:`Unavailable`;
+    for agents that start before the server.
 
     Usable as a context manager; :meth:`close` closes the channel.
     """
@@ -95,6 +139,7 @@ class Client:
         timeout: Optional[float] = 30.0,
         wait_for_ready: bool = False,
     ) -> None:
+        self._timeout = self._check_timeout(timeout)  # before the channel: nothing to close
         options = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
         if tls:
             self._channel = grpc.secure_channel(target, _credentials(tls), options=options)
@@ -103,7 +148,6 @@ class Client:
         self._metadata: Sequence[Tuple[str, str]] = (
             (("authorization", f"Bearer {token}"),) if token else ()
         )
-        self._timeout = timeout
         self._wait_for_ready = wait_for_ready
         self._stub = pb_grpc.PlaceDbStub(self._channel)
         self._health = health_pb2_grpc.HealthStub(self._channel)
@@ -118,21 +162,39 @@ class Client:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def _call(self, method: Any, request: Any) -> Any:
+    @staticmethod
+    def _check_timeout(timeout: Optional[float]) -> Optional[float]:
+        if timeout is not None and not timeout > 0:
+            raise InvalidArgument(f"timeout: {timeout}, expected seconds > 0 or None")
+        return timeout
+
+    def _deadline(self, timeout: Timeout) -> Optional[float]:
+        if isinstance(timeout, _ClientTimeout):
+            return self._timeout
+        return self._check_timeout(timeout)
+
+    def _options(self, timeout: Timeout) -> dict:
+        """The keyword arguments of a stub call: deadline, token, wait_for_ready."""
+        return {
+            "timeout": self._deadline(timeout),
+            "metadata": self._metadata,
+            "wait_for_ready": self._wait_for_ready,
+        }
+
+    def _call(self, method: Any, request: Any, timeout: Timeout = CLIENT_TIMEOUT) -> Any:
+        options = self._options(timeout)
         try:
-            return method(
-                request,
-                timeout=self._timeout,
-                metadata=self._metadata,
-                wait_for_ready=self._wait_for_ready,
-            )
+            return method(request, **options)
         except grpc.RpcError as e:
             raise from_rpc_error(e) from None
 
     # ---- Maps ----------------------------------------------------------------------------------
 
     def create_map(
-        self, name: str, settings: Union[None, MapSettings, pb.MapConfig] = None
+        self,
+        name: str,
+        settings: Union[None, MapSettings, pb.MapConfig] = None,
+        timeout: Timeout = CLIENT_TIMEOUT,
     ) -> MapInfo:
         """Creates a durable map; returns it with its effective configuration.
 
@@ -145,23 +207,29 @@ class Client:
             config = settings.to_proto()
         else:
             config = settings if settings is not None else pb.MapConfig()
-        response = self._call(self._stub.CreateMap, pb.CreateMapRequest(name=name, config=config))
+        response = self._call(
+            self._stub.CreateMap, pb.CreateMapRequest(name=name, config=config), timeout
+        )
         return MapInfo.from_proto(response)
 
-    def get_map(self, name: str) -> MapInfo:
+    def get_map(self, name: str, timeout: Timeout = CLIENT_TIMEOUT) -> MapInfo:
         """A map's state, configuration and statistics (:class:`NotFound` if absent)."""
-        return MapInfo.from_proto(self._call(self._stub.GetMap, pb.GetMapRequest(name=name)))
+        return MapInfo.from_proto(
+            self._call(self._stub.GetMap, pb.GetMapRequest(name=name), timeout)
+        )
 
-    def list_maps(self) -> List[MapSummary]:
+    def list_maps(self, timeout: Timeout = CLIENT_TIMEOUT) -> List[MapSummary]:
         """Every map the caller may read, including those that could not be opened (and why)."""
-        response = self._call(self._stub.ListMaps, pb.ListMapsRequest())
+        response = self._call(self._stub.ListMaps, pb.ListMapsRequest(), timeout)
         return [MapSummary.from_proto(m) for m in response.maps]
 
-    def delete_map(self, name: str) -> None:
+    def delete_map(self, name: str, timeout: Timeout = CLIENT_TIMEOUT) -> None:
         """Deletes a map and all its places, durably (:class:`NotFound` if absent)."""
-        self._call(self._stub.DeleteMap, pb.DeleteMapRequest(name=name))
+        self._call(self._stub.DeleteMap, pb.DeleteMapRequest(name=name), timeout)
 
-    def recover_map(self, name: str, accept_data_loss: bool) -> Tuple[MapInfo, MapDamage]:
+    def recover_map(
+        self, name: str, accept_data_loss: bool, timeout: Timeout = CLIENT_TIMEOUT
+    ) -> Tuple[MapInfo, MapDamage]:
         """Reopens a damaged map, accepting what was lost (docs/storage.md, "Damage").
 
         Returns the map and what this recovery accepted as lost. :class:`InvalidArgument`
@@ -171,13 +239,14 @@ class Client:
         response = self._call(
             self._stub.RecoverMap,
             pb.RecoverMapRequest(name=name, accept_data_loss=accept_data_loss),
+            timeout,
         )
         return MapInfo.from_proto(response.map), MapDamage.from_proto(response.accepted)
 
-    def scrub_map(self, name: str) -> ScrubReport:
+    def scrub_map(self, name: str, timeout: Timeout = CLIENT_TIMEOUT) -> ScrubReport:
         """Reads and checks every place and SST block of a map; damage is reported, not raised."""
         return ScrubReport.from_proto(
-            self._call(self._stub.ScrubMap, pb.ScrubMapRequest(name=name))
+            self._call(self._stub.ScrubMap, pb.ScrubMapRequest(name=name), timeout)
         )
 
     # ---- Query and ingest ----------------------------------------------------------------------
@@ -190,6 +259,7 @@ class Client:
         verify: bool = False,
         exclude_same_agent: bool = False,
         agent_id: str = "",
+        timeout: Timeout = CLIENT_TIMEOUT,
     ) -> QueryResult:
         """Ranked matches of one frame against a map; nothing is stored.
 
@@ -197,14 +267,19 @@ class Client:
         matches (0 = the server's 10). ``verify``: keep only candidates that pass geometric
         verification (the map's verification mode). ``exclude_same_agent``: skip places stored by
         ``agent_id``. Raises :class:`NotFound` for an unknown map, :class:`InvalidArgument` for
-        a frame the server or the SDK refuses.
+        a frame the server or the SDK refuses (also a :class:`Frame` with ``matches``, which is
+        for ingest: a query's options are these arguments).
         """
+        if as_frame(image).matches is not None:
+            raise InvalidArgument(
+                "observation.matches: ingest only; give a query's options as its arguments"
+            )
         request = pb.QueryRequest(
             map=map,
             observation=to_observation(image, agent_id, 0),
-            options=_match_options(top_k, verify, exclude_same_agent),
+            options=MatchOptions(top_k, verify, exclude_same_agent).to_proto("options"),
         )
-        return QueryResult.from_proto(self._call(self._stub.Query, request))
+        return QueryResult.from_proto(self._call(self._stub.Query, request, timeout))
 
     def ingest(
         self,
@@ -216,6 +291,7 @@ class Client:
         exclude_same_agent: bool = False,
         loop_closure: bool = False,
         max_in_flight: int = 8,
+        timeout: Timeout = None,
     ) -> Iterator[IngestResult]:
         """Streams frames into a map; yields one :class:`IngestResult` per frame, in order.
 
@@ -224,7 +300,8 @@ class Client:
         a video) is never held in memory. Each frame's sequence defaults to its 0-based position.
 
         ``top_k`` > 0: every result carries its frame's matches against the map as it was before
-        the frame (``verify`` and ``exclude_same_agent`` as for :meth:`query`). ``loop_closure``:
+        the frame (``verify`` and ``exclude_same_agent`` as for :meth:`query`); a
+        :class:`Frame`'s ``matches`` overrides these for that frame. ``loop_closure``:
         the map's Bayesian loop closure per agent (:attr:`IngestResult.loop_closure`).
 
         A frame the server refuses is answered with :attr:`IngestResult.error` set and the stream
@@ -232,13 +309,16 @@ class Client:
         ``frames`` itself, ends the stream: the results of the frames before it are yielded,
         then it is raised. Stream-level failures (unknown map: :class:`NotFound`; too many
         streams: :class:`ResourceExhausted`) raise when iterated. Breaking out of the loop
-        cancels the stream (frames in flight may or may not have been stored).
+        cancels the stream (frames in flight may or may not have been stored). ``timeout``: a
+        deadline for the whole stream (default: none).
         """
         if max_in_flight < 1:
             raise InvalidArgument(f"max_in_flight: {max_in_flight}, expected >= 1")
         header = pb.IngestHeader(map=map, loop_closure=loop_closure)
         if top_k:
-            header.matches.CopyFrom(_match_options(top_k, verify, exclude_same_agent))
+            header.matches.CopyFrom(
+                MatchOptions(top_k, verify, exclude_same_agent).to_proto("header.matches")
+            )
         window = threading.Semaphore(max_in_flight)
         finished = threading.Event()
         failure: List[BaseException] = []
@@ -257,9 +337,7 @@ class Client:
             except Exception as e:  # reported to the caller after the answered frames
                 failure.append(e)
 
-        call = self._stub.Ingest(
-            requests(), metadata=self._metadata, wait_for_ready=self._wait_for_ready
-        )
+        call = self._stub.Ingest(requests(), **self._options(timeout))
         try:
             for response in call:
                 window.release()
@@ -276,34 +354,198 @@ class Client:
 
     # ---- Places --------------------------------------------------------------------------------
 
-    def get_place(self, map: str, place_id: int, include_features: bool = False) -> Place:
-        """One stored place; ``include_features`` adds its static keypoints and descriptors.
+    def get_place(
+        self,
+        map: str,
+        place_id: int,
+        include_features: bool = False,
+        timeout: Timeout = CLIENT_TIMEOUT,
+    ) -> Place:
+        """One stored place with its dynamic-object statistics; ``include_features`` adds its
+        static keypoints and descriptors.
 
         :class:`NotFound` if the map or the place does not exist.
         """
         request = pb.GetPlaceRequest(map=map, place_id=place_id, include_features=include_features)
-        return Place.from_proto(self._call(self._stub.GetPlace, request))
+        return Place.from_proto(self._call(self._stub.GetPlace, request, timeout))
 
-    def delete_place(self, map: str, place_id: int) -> None:
+    def delete_place(self, map: str, place_id: int, timeout: Timeout = CLIENT_TIMEOUT) -> None:
         """Removes a place durably; its id is never reused (:class:`NotFound` if absent)."""
-        self._call(self._stub.DeletePlace, pb.DeletePlaceRequest(map=map, place_id=place_id))
+        self._call(
+            self._stub.DeletePlace, pb.DeletePlaceRequest(map=map, place_id=place_id), timeout
+        )
+
+    def get_dynamics(
+        self,
+        map: str,
+        measure: Optional[str] = None,
+        class_name: Optional[str] = None,
+        class_id: Optional[int] = None,
+        hours: Optional[Tuple[int, int]] = None,
+        weekdays: Optional[Iterable[Union[str, int]]] = None,
+        limit: int = 50,
+        offset: int = 0,
+        min_observations: int = 0,
+        include_statistics: bool = False,
+        timeout: Timeout = CLIENT_TIMEOUT,
+    ) -> Dynamics:
+        """Dynamic-object statistics (issue 16): the map's and a page of its places, ranked.
+
+        ``measure``: ``"mean_coverage"`` (share of the image on dynamic objects),
+        ``"class_share"`` (share of observations that saw a class: ``class_name``, a COCO name
+        such as ``"person"``, or ``class_id``) or ``"hour_window"`` (mean coverage in
+        ``hours=(first, last)``, UTC, inclusive, wrapping midnight when first > last, on
+        ``weekdays``: names ``"mon"``..``"sun"`` or 0 = Monday .. 6 = Sunday; None = every
+        day). None: ``"class_share"`` when a class is given, ``"hour_window"`` when hours are,
+        else ``"mean_coverage"``. ``min_observations``: places with fewer (in the window) are
+        not ranked. Pages: ``limit`` (1..1000) entries from ``offset``; pass
+        :attr:`Dynamics.next_offset` for the next one (0: this was the last). A page past the
+        end is empty. ``include_statistics``: each entry's full statistics.
+
+        :class:`NotFound` for an unknown map; :class:`InvalidArgument` naming the field for a
+        bad class, hours, weekdays, limit or measure.
+        """
+        request = pb.GetDynamicsRequest(map=map, include_statistics=include_statistics)
+        _set(request, "limit", limit)
+        _set(request, "offset", offset)
+        _set(request, "min_observations", min_observations)
+        if measure is None:
+            if class_name is not None or class_id is not None:
+                measure = "class_share"
+            elif hours is not None:
+                measure = "hour_window"
+            else:
+                measure = "mean_coverage"
+        request.measure = enum_value(pb.DynamicsMeasure.DESCRIPTOR, measure, "measure")
+        if class_name is not None:
+            _set(request, "class_name", class_name)
+        if class_id is not None:
+            _set(request, "class_id", class_id)
+        if hours is not None:
+            try:
+                first, last = (int(h) for h in hours)
+                request.first_hour, request.last_hour = first, last
+            except (TypeError, ValueError):
+                raise InvalidArgument(
+                    f"hours: {hours!r}, expected (first, last) hours 0..23"
+                ) from None
+        if weekdays is not None:
+            request.weekdays = _weekday_bits(weekdays)
+        return Dynamics.from_proto(self._call(self._stub.GetDynamics, request, timeout))
+
+    # ---- Snapshots (admin) ---------------------------------------------------------------------
+
+    def create_snapshot(self, map: str, timeout: Timeout = None) -> Snapshot:
+        """A consistent, verified copy of ``map``, kept by the server; ingest may go on.
+
+        The server keeps ``storage.snapshots_keep_per_map`` snapshots per map (the oldest
+        beyond go). Takes as long as flushing, copying and verifying the map (``timeout``:
+        default none). :class:`NotFound` for an unknown map; :class:`PermissionDenied` unless
+        the caller is an admin.
+        """
+        response = self._call(
+            self._stub.CreateSnapshot, pb.CreateSnapshotRequest(map=map), timeout
+        )
+        return Snapshot.from_proto(response)
+
+    def list_snapshots(
+        self, map: Optional[str] = None, timeout: Timeout = CLIENT_TIMEOUT
+    ) -> List[Snapshot]:
+        """Every snapshot (of ``map``, when given; by its source map's name), newest first."""
+        response = self._call(self._stub.ListSnapshots, pb.ListSnapshotsRequest(), timeout)
+        found = [Snapshot.from_proto(s) for s in response.snapshots]
+        return [s for s in found if map is None or s.map == map]
+
+    def delete_snapshot(self, snapshot_id: str, timeout: Timeout = CLIENT_TIMEOUT) -> None:
+        """Deletes a snapshot (:class:`NotFound` if absent); its map is not touched."""
+        self._call(self._stub.DeleteSnapshot, pb.DeleteSnapshotRequest(id=snapshot_id), timeout)
+
+    def download_snapshot(
+        self,
+        snapshot_id: str,
+        dest: snapshots.PathOrFile,
+        progress: Optional[snapshots.Progress] = None,
+        overwrite: bool = False,
+        timeout: Timeout = None,
+    ) -> Snapshot:
+        """Downloads a snapshot's archive into ``dest`` (a path or a binary file object).
+
+        A path is written as ``<dest>.partial`` and renamed once the size the server announced
+        and the archive's trailing SHA-256 both check out; an existing ``dest`` is never
+        replaced unless ``overwrite`` (else :class:`AlreadyExists`, before anything is sent).
+        A mismatch raises :class:`DataLoss`, a broken stream its error (e.g.
+        :class:`Unavailable` when the server shuts down); in every failure nothing is left at
+        ``dest`` or ``<dest>.partial``. A file object gets the bytes as they arrive (the checks
+        still raise, but what arrived stays written). ``progress(done, total)`` is called after
+        every chunk, in this thread. Returns the snapshot with ``archive_bytes`` and
+        ``archive_sha256``.
+        """
+        options = self._options(timeout)
+        return snapshots.download(
+            lambda: self._stub.DownloadSnapshot(
+                pb.DownloadSnapshotRequest(id=snapshot_id), **options
+            ),
+            dest,
+            progress,
+            overwrite,
+        )
+
+    def upload_snapshot(
+        self,
+        src: snapshots.PathOrFile,
+        progress: Optional[snapshots.Progress] = None,
+        timeout: Timeout = None,
+    ) -> Snapshot:
+        """Uploads an archive (from :meth:`download_snapshot`) as a new snapshot of this server.
+
+        ``src``: a path or a binary file object (read from its position). The size is announced
+        when known, and the archive streamed in 256 KiB chunks; ``progress(done, total)`` is
+        called in this thread as they go (``total`` 0: unknown). The server checks the format,
+        the SHA-256, the vocabulary and that it opens and scrubs clean as a map before keeping
+        it: a truncated or corrupted archive raises :class:`DataLoss`, a foreign one
+        :class:`InvalidArgument`, an unknown vocabulary :class:`FailedPrecondition`, and
+        nothing is kept. The snapshot keeps the archive's id unless that is taken.
+        """
+        options = self._options(timeout)
+        return snapshots.upload(
+            lambda requests: self._stub.UploadSnapshot.future(requests, **options),
+            src,
+            progress,
+        )
+
+    def restore_snapshot(
+        self, snapshot_id: str, new_map: str, timeout: Timeout = None
+    ) -> MapInfo:
+        """The snapshot as a new map ``new_map``, served at once.
+
+        :class:`AlreadyExists` when the name is taken, :class:`NotFound` for an unknown
+        snapshot. Copies the snapshot's files (``timeout``: default none).
+        """
+        response = self._call(
+            self._stub.RestoreSnapshot,
+            pb.RestoreSnapshotRequest(id=snapshot_id, new_map=new_map),
+            timeout,
+        )
+        return MapInfo.from_proto(response)
 
     # ---- Server --------------------------------------------------------------------------------
 
-    def server_info(self) -> ServerInfo:
+    def server_info(self, timeout: Timeout = CLIENT_TIMEOUT) -> ServerInfo:
         """The server's version, vocabularies, detector and limits."""
         return ServerInfo.from_proto(
-            self._call(self._stub.GetServerInfo, pb.GetServerInfoRequest())
+            self._call(self._stub.GetServerInfo, pb.GetServerInfoRequest(), timeout)
         )
 
-    def health(self, service: str = "") -> str:
+    def health(self, service: str = "", timeout: Timeout = CLIENT_TIMEOUT) -> str:
         """The grpc.health.v1 status: ``"serving"``, ``"not_serving"``, ``"service_unknown"``
         or ``"unknown"`` (``service``: "" = the whole server, or ``"placedb.v1.PlaceDb"``).
 
         :class:`Unavailable` when the server cannot be reached.
         """
-        response = self._call(self._health.Check, health_pb2.HealthCheckRequest(service=service))
+        response = self._call(
+            self._health.Check, health_pb2.HealthCheckRequest(service=service), timeout
+        )
         return health_pb2.HealthCheckResponse.ServingStatus.Name(response.status).lower()
 
 
-__all__ = ["Client", "TLS", "Error"]
+__all__ = ["CLIENT_TIMEOUT", "Client", "TLS", "Error"]

@@ -72,7 +72,8 @@ class FailedPrecondition(Error):
 
 
 class DataLoss(Error):
-    """The map is damaged (see :meth:`placedb.Client.recover_map`)."""
+    """The map is damaged (see :meth:`placedb.Client.recover_map`), or a snapshot archive is
+    truncated or corrupted (a download's size or SHA-256 does not match; an upload's)."""
 
     code = grpc.StatusCode.DATA_LOSS
 

@@ -57,6 +57,31 @@ class Depth:
 
 
 @dataclass
+class MatchOptions:
+    """What an ingested frame's result reports about the map's existing places.
+
+    ``top_k``: at most this many matches (0 = the server's 10). ``verify``: keep only candidates
+    that pass geometric verification. ``exclude_same_agent``: skip places stored by the frame's
+    own agent.
+    """
+
+    top_k: int = 10
+    verify: bool = False
+    exclude_same_agent: bool = False
+
+    def to_proto(self, path: str = "matches") -> pb.MatchOptions:
+        """The ``placedb.v1.MatchOptions``; :class:`placedb.InvalidArgument` for a negative
+        ``top_k``."""
+        if self.top_k < 0:
+            raise InvalidArgument(f"{path}.top_k: {self.top_k} is negative")
+        return pb.MatchOptions(
+            top_k=self.top_k,
+            verified_only=self.verify,
+            exclude_same_agent=self.exclude_same_agent,
+        )
+
+
+@dataclass
 class Frame:
     """One observation: an image, or keypoints + descriptors, and optional metadata.
 
@@ -86,6 +111,9 @@ class Frame:
     depth: Optional[Union[Depth, np.ndarray, bytes]] = None
     #: Overrides the ingest call's agent_id for this frame.
     agent_id: Optional[str] = None
+    #: Ingest only: this frame's result carries its matches against the map as it was before
+    #: the frame, with these options (overrides the ingest call's ``top_k``, ``verify``, ...).
+    matches: Optional[MatchOptions] = None
 
 
 def as_frame(item: Union[Frame, ImageLike]) -> Frame:
@@ -280,4 +308,6 @@ def to_observation(
         observation.dynamic_mask_png = _mask(frame.mask, f"{path}.dynamic_mask_png")
     if frame.depth is not None:
         _depth(frame.depth, observation.depth, f"{path}.depth")
+    if frame.matches is not None:
+        observation.matches.CopyFrom(frame.matches.to_proto(f"{path}.matches"))
     return observation

@@ -2,8 +2,8 @@
 
 Enum values are given by their API names (:func:`placedb.settings.enum_name`): map states
 ``"available"``, ``"unavailable"``, ``"damaged"``, ``"recovered"``; feature types ``"orb"``,
-``"sift"``. Messages with many rarely used fields (a map's configuration, Algorithm 1's depth
-state, a loop-closure outcome) are handed over as the ``placedb.v1`` message itself.
+``"sift"``. A map's configuration, a message with many rarely used fields, is handed over as the
+``placedb.v1.MapConfig`` itself.
 """
 
 from __future__ import annotations
@@ -101,6 +101,71 @@ class UsedBox:
 
 
 @dataclass(frozen=True)
+class DepthState:
+    """Algorithm 1's decision for one frame of an agent's stream (docs/rgbd.md)."""
+
+    #: 0-based index in the agent's stream.
+    frame: int
+    #: V_current.
+    mean_depth_m: float
+    #: V_static (0 while warming up).
+    static_level_m: float
+    #: V_current - V_static.
+    difference_m: float
+    #: Consecutive deviating frames (COUNT).
+    count: int
+    warming_up: bool
+    deviating: bool
+    #: Features in [band_near_m, band_far_m] were removed.
+    removing: bool
+    band_near_m: float
+    band_far_m: float
+    #: ``"rise"``, ``"fall"``, ``"nearest_layer"``, ``"appeared_layer"`` or ``""``.
+    band_source: str
+    #: Of the depth image's pixels.
+    valid_fraction: float
+
+    @staticmethod
+    def from_proto(message: pb.DepthState) -> "DepthState":
+        return DepthState(**_fields(message))
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    """The loop-closure answer for one ingested frame (``ingest(..., loop_closure=True)``)."""
+
+    #: Rehearsal merged the frame into ``place_id``: nothing new was stored.
+    merged: bool
+    #: The place the frame became or was merged into.
+    place_id: int
+    #: An accepted loop closure.
+    loop_found: bool
+    #: The revisited place, when ``loop_found``.
+    loop_place_id: int
+    loop_posterior: float
+    #: The best hypothesis, accepted or not (0: none).
+    best_place_id: int
+    best_posterior: float
+    #: Places in the agent's working memory searched.
+    candidates: int
+    #: Long-term -> working memory in this update.
+    retrieved: int
+    #: Working -> long-term memory in this update.
+    transferred: int
+    #: The agent's earlier places loaded into its new detector by this frame, else 0.
+    replayed: int
+    #: With the map's loop-closure verification: the accepted loop's inliers.
+    loop_inliers: int
+    #: A loop the filter accepted failed verification (``rejected_place_id`` names the place).
+    loop_rejected: bool
+    rejected_place_id: int
+
+    @staticmethod
+    def from_proto(message: pb.LoopClosure) -> "LoopClosure":
+        return LoopClosure(**_fields(message))
+
+
+@dataclass(frozen=True)
 class Match:
     """A stored place that matches an observation (best first in every list)."""
 
@@ -144,7 +209,7 @@ class QueryResult:
     timings: Timings
     boxes_used: List[UsedBox]
     #: The agent's Algorithm 1 state applied to the frame (docs/rgbd.md), when it has one.
-    depth: Optional[pb.DepthState]
+    depth: Optional[DepthState]
 
     @staticmethod
     def from_proto(message: pb.QueryResponse) -> "QueryResult":
@@ -155,7 +220,7 @@ class QueryResult:
             counts=Counts.from_proto(message.counts),
             timings=Timings.from_proto(message.timings),
             boxes_used=[UsedBox.from_proto(b) for b in message.boxes_used],
-            depth=message.depth if message.HasField("depth") else None,
+            depth=DepthState.from_proto(message.depth) if message.HasField("depth") else None,
         )
 
 
@@ -179,8 +244,8 @@ class IngestResult:
     matches: List[Match]
     #: Set when the server refused the frame (nothing stored); the stream goes on.
     error: Optional[Error]
-    depth: Optional[pb.DepthState]
-    loop_closure: Optional[pb.LoopClosure]
+    depth: Optional[DepthState]
+    loop_closure: Optional[LoopClosure]
 
     @staticmethod
     def from_proto(message: pb.IngestResponse) -> "IngestResult":
@@ -198,8 +263,12 @@ class IngestResult:
             boxes_used=[UsedBox.from_proto(b) for b in message.boxes_used],
             matches=[Match.from_proto(m) for m in message.matches],
             error=error,
-            depth=message.depth if message.HasField("depth") else None,
-            loop_closure=message.loop_closure if message.HasField("loop_closure") else None,
+            depth=DepthState.from_proto(message.depth) if message.HasField("depth") else None,
+            loop_closure=(
+                LoopClosure.from_proto(message.loop_closure)
+                if message.HasField("loop_closure")
+                else None
+            ),
         )
 
 
@@ -292,6 +361,150 @@ class MapSummary:
         )
 
 
+@dataclass(frozen=True)
+class ClassCount:
+    """How often one COCO class (contiguous id: person 0, car 2, ...) was seen."""
+
+    class_id: int
+    #: Observations in which the class was seen.
+    frames: int
+    #: Its boxes over all observations.
+    boxes: int
+
+
+@dataclass(frozen=True)
+class HourCoverage:
+    """One bin of the hour-of-day x day-of-week histogram (UTC)."""
+
+    #: 0 = Monday .. 6 = Sunday.
+    weekday: int
+    #: 0..23.
+    hour: int
+    observations: int
+    mean_coverage: float
+
+
+@dataclass(frozen=True)
+class DynamicStatistics:
+    """Dynamic-object statistics of a place, a map or its invalid frames (issue 16).
+
+    Coverage is the share of an image's pixels on dynamic objects, 0..1.
+    """
+
+    observations: int = 0
+    mean_coverage: float = 0.0
+    max_coverage: float = 0.0
+    #: Of the newest timed observation.
+    last_coverage: float = 0.0
+    #: 0 when no observation had a usable timestamp.
+    last_timestamp_ns: int = 0
+    #: Observations with a zero or negative timestamp (not in ``hours``).
+    untimed: int = 0
+    #: Observations with a timestamp over a day past the server's clock (not in ``hours``).
+    future: int = 0
+    unknown_class_boxes: int = 0
+    #: Ascending class id.
+    classes: List[ClassCount] = field(default_factory=list)
+    #: Non-empty bins only, by weekday then hour.
+    hours: List[HourCoverage] = field(default_factory=list)
+
+    @staticmethod
+    def from_proto(message: pb.DynamicStatistics) -> "DynamicStatistics":
+        values = _fields(message)
+        values["classes"] = [ClassCount(**_fields(c)) for c in message.classes]
+        values["hours"] = [HourCoverage(**_fields(h)) for h in message.hours]
+        return DynamicStatistics(**values)
+
+
+@dataclass(frozen=True)
+class RankedPlace:
+    """One place of a :meth:`placedb.Client.get_dynamics` page."""
+
+    place_id: int
+    #: The measure's value.
+    score: float
+    #: Observations the score rests on.
+    support: int
+    #: With ``include_statistics``.
+    statistics: Optional[DynamicStatistics]
+
+    @staticmethod
+    def from_proto(message: pb.RankedPlace) -> "RankedPlace":
+        return RankedPlace(
+            place_id=message.place_id,
+            score=message.score,
+            support=message.support,
+            statistics=(
+                DynamicStatistics.from_proto(message.statistics)
+                if message.HasField("statistics")
+                else None
+            ),
+        )
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    """:meth:`placedb.Client.get_dynamics`: the map's statistics and a ranked page of places."""
+
+    #: Every acknowledged frame of the map, also of places removed since.
+    map: DynamicStatistics
+    #: Best first; ties by ascending place id.
+    places: List[RankedPlace]
+    #: Places ranked in all (for paging).
+    ranked: int
+    #: The next page's ``offset``; 0 when this is the last page.
+    next_offset: int
+    #: The frames refused as invalid (no place; often objects covered the view); not in ``map``.
+    invalid: DynamicStatistics
+
+    @staticmethod
+    def from_proto(message: pb.GetDynamicsResponse) -> "Dynamics":
+        return Dynamics(
+            map=DynamicStatistics.from_proto(message.map),
+            places=[RankedPlace.from_proto(p) for p in message.places],
+            ranked=message.ranked,
+            next_offset=message.next_offset,
+            invalid=DynamicStatistics.from_proto(message.invalid),
+        )
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A snapshot: a consistent, verified copy of a map kept by the server (admin calls).
+
+    ``archive_bytes`` and ``archive_sha256`` describe the archive a
+    :meth:`~placedb.Client.download_snapshot` or :meth:`~placedb.Client.upload_snapshot`
+    moved (its size and its trailing SHA-256, checked); they are 0 and ``""`` otherwise.
+    """
+
+    #: ``"<map>-<unix ms>[-n]"``, assigned by the server.
+    id: str
+    #: The map it was taken of.
+    map: str
+    created_unix_ms: int
+    #: ``"orb"`` or ``"sift"``.
+    feature_type: str
+    #: 16 hex digits, as :attr:`MapInfo.vocabulary_checksum`.
+    vocabulary_checksum: str
+    places: int
+    #: On the server's disk.
+    bytes: int
+    archive_bytes: int = 0
+    archive_sha256: str = ""
+
+    @staticmethod
+    def from_proto(message: pb.Snapshot) -> "Snapshot":
+        return Snapshot(
+            id=message.id,
+            map=message.map,
+            created_unix_ms=message.created_unix_ms,
+            feature_type=message.feature_type,
+            vocabulary_checksum=f"{message.vocabulary_checksum:016x}",
+            places=message.places,
+            bytes=message.bytes,
+        )
+
+
 def _keypoints_array(keypoints) -> np.ndarray:
     rows = [(k.x, k.y, k.size, k.angle, k.response, k.octave) for k in keypoints]
     return np.array(rows, dtype=np.float32).reshape(len(rows), 6)
@@ -314,6 +527,9 @@ class Place:
     keypoints: Optional[np.ndarray] = None
     #: With ``include_features``: N x 32 uint8 (ORB) or N x 128 float32 (SIFT), static only.
     descriptors: Optional[np.ndarray] = None
+    #: Every frame stored at or merged into the place (None for places stored before the map
+    #: kept statistics).
+    dynamics: Optional[DynamicStatistics] = None
 
     @staticmethod
     def from_proto(message: pb.Place) -> "Place":
@@ -340,6 +556,11 @@ class Place:
             image_size=image_size,
             keypoints=keypoints,
             descriptors=descriptors,
+            dynamics=(
+                DynamicStatistics.from_proto(message.dynamics)
+                if message.HasField("dynamics")
+                else None
+            ),
         )
 
 

@@ -9,8 +9,8 @@ follow the proto.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import List, Optional, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any, List, Optional, Sequence, Tuple
 
 from google.protobuf.descriptor import EnumDescriptor
 
@@ -53,13 +53,114 @@ def enum_value(enum: EnumDescriptor, text: str, path: str) -> int:
     raise InvalidArgument(f"{path}: unknown value '{text}' (expected one of {', '.join(choices)})")
 
 
+def _apply(settings: Any, message: Any, path: str) -> None:
+    """Sets every field of ``settings`` that is not None on ``message`` (same field names): enum
+    fields from their API names, (near, far) tuples into band messages."""
+    for f in fields(settings):
+        value = getattr(settings, f.name)
+        if value is None:
+            continue
+        descriptor = message.DESCRIPTOR.fields_by_name[f.name]
+        where = f"{path}.{f.name}"
+        if descriptor.enum_type is not None:
+            setattr(message, f.name, enum_value(descriptor.enum_type, value, where))
+        elif descriptor.message_type is not None:
+            try:
+                near, far = value
+            except (TypeError, ValueError):
+                raise InvalidArgument(f"{where}: {value!r}, expected (near_m, far_m)") from None
+            band = getattr(message, f.name)
+            band.near_m, band.far_m = float(near), float(far)
+        else:
+            try:
+                setattr(message, f.name, value)
+            except (TypeError, ValueError) as e:
+                raise InvalidArgument(f"{where}: {value!r} ({e})") from None
+
+
+@dataclass
+class DepthSettings:
+    """Depth handling (docs/rgbd.md, ``placedb.v1.DepthSettings``). None = the server default."""
+
+    #: Only an object's own depth layer is dynamic (True).
+    refine_boxes: Optional[bool] = None
+    #: Algorithm 1 on ingest streams with depth (True).
+    stream_filter: Optional[bool] = None
+    #: Metres per png16 unit (0.001).
+    scale: Optional[float] = None
+    min_depth_m: Optional[float] = None
+    max_depth_m: Optional[float] = None
+    #: Mean over all pixels, as the paper (False: over valid pixels).
+    mean_all_pixels: Optional[bool] = None
+    threshold_m: Optional[float] = None
+    #: Deviating frames before removal starts (5).
+    persistence: Optional[int] = None
+    #: Frames of the static level (10).
+    static_window: Optional[int] = None
+    #: "fixed", "nearest_layer" or "appeared_layer".
+    band_policy: Optional[str] = None
+    #: (near_m, far_m) of the rise band (1.8, 4.5).
+    rise_band: Optional[Tuple[float, float]] = None
+    #: (near_m, far_m) of the fall band (0, 0.8).
+    fall_band: Optional[Tuple[float, float]] = None
+    remove_features_without_depth: Optional[bool] = None
+    #: Range instead of depth (needs intrinsics on every frame).
+    use_range: Optional[bool] = None
+    #: Frames after which the static level is re-learnt (0 = never).
+    rebaseline_after: Optional[int] = None
+
+
+@dataclass
+class LoopClosureSettings:
+    """The Bayesian loop closure of ingest streams that ask for it (``ingest(loop_closure=True)``,
+    ``placedb.v1.LoopClosureSettings``). None = the server default."""
+
+    #: T_loop (0.12).
+    loop_threshold: Optional[float] = None
+    #: T_rehearsal (0.20; > 1 disables rehearsal).
+    rehearsal_threshold: Optional[float] = None
+    #: Places (30).
+    short_term_memory: Optional[int] = None
+    #: Places (0 = unbounded).
+    max_working_memory: Optional[int] = None
+    #: Per update (0 = none).
+    time_budget_ms: Optional[float] = None
+    min_candidates: Optional[int] = None
+    #: A loop is kept only if it verifies geometrically (True).
+    verify: Optional[bool] = None
+
+
+@dataclass
+class ShortTermSettings:
+    """The short-term tier (``placedb.v1.ShortTermSettings``): recent places' dynamic words stay
+    in memory for ``horizon_s``. None = the server default."""
+
+    enabled: Optional[bool] = None
+    horizon_s: Optional[float] = None
+    max_places: Optional[int] = None
+    weight: Optional[float] = None
+
+
+@dataclass
+class SiftSettings:
+    """SIFT extraction on SIFT maps (``placedb.v1.SiftSettings``). None = the server default."""
+
+    #: 1000 (0 = all).
+    max_features: Optional[int] = None
+    octave_layers: Optional[int] = None
+    contrast_threshold: Optional[float] = None
+    edge_threshold: Optional[float] = None
+    sigma: Optional[float] = None
+
+
 @dataclass
 class MapSettings:
     """A map's configuration at :meth:`placedb.Client.create_map`. ``None`` = the server default.
 
-    The common settings are fields here; anything else (depth, loop closure, the short-term tier,
-    SIFT and ORB details) goes into ``config``, a ``placedb.v1.MapConfig`` these fields are laid
-    over. The server fills in and reports the effective configuration (:attr:`MapInfo.config`).
+    The common settings are fields here, with typed groups for depth, loop closure, the
+    short-term tier and SIFT; anything else (ORB details, verification levels, ...) goes into
+    ``config``, a ``placedb.v1.MapConfig`` these fields are laid over. The server fills in and
+    reports the effective configuration (:attr:`MapInfo.config`).
     """
 
     #: A vocabulary name from the server's configuration ("" = "default").
@@ -89,6 +190,14 @@ class MapSettings:
     box_source: Optional[str] = None
     #: Keep invalid observations as metadata.
     store_invalid: bool = False
+    #: Depth handling and Algorithm 1.
+    depth: Optional[DepthSettings] = None
+    #: Loop closure of the streams that ask for it.
+    loop_closure: Optional[LoopClosureSettings] = None
+    #: The short-term tier of dynamic words.
+    short_term: Optional[ShortTermSettings] = None
+    #: SIFT extraction (SIFT maps).
+    sift: Optional[SiftSettings] = None
     #: The base configuration the fields above are laid over.
     config: Optional[pb.MapConfig] = None
 
@@ -135,4 +244,12 @@ class MapSettings:
             )
         if self.store_invalid:
             config.store_invalid = True
+        if self.depth is not None:
+            _apply(self.depth, config.depth, "config.depth")
+        if self.loop_closure is not None:
+            _apply(self.loop_closure, config.loop_closure, "config.loop_closure")
+        if self.short_term is not None:
+            _apply(self.short_term, config.filter.short_term, "config.filter.short_term")
+        if self.sift is not None:
+            _apply(self.sift, config.sift, "config.sift")
         return config

@@ -36,21 +36,26 @@ def unused_loopback_port() -> int:
 
 
 class ServerProcess:
-    """placedb-server with a temp data directory; ``address`` once it answers health checks
-    (over ``tls`` when the server's ``extra_args`` ask for TLS)."""
+    """placedb-server with a temp data directory (or ``data_dir``, e.g. a stopped server's, which
+    is then left in place); ``address`` once it answers health checks (over ``tls`` when the
+    server's ``extra_args`` ask for TLS)."""
 
     def __init__(
-        self, extra_args: Optional[List[str]] = None, tls: Optional[placedb.TLS] = None
+        self,
+        extra_args: Optional[List[str]] = None,
+        tls: Optional[placedb.TLS] = None,
+        data_dir: Optional[str] = None,
     ) -> None:
         self.binary = _env("PLACEDB_SERVER_BINARY")
-        self.root = tempfile.TemporaryDirectory(prefix="placedb-sdk-")
+        self.root = None if data_dir else tempfile.TemporaryDirectory(prefix="placedb-sdk-")
+        self.data_dir = data_dir or os.path.join(self.root.name, "data")
         self.address = f"127.0.0.1:{unused_loopback_port()}"
         args = [
             self.binary,
             "--listen",
             self.address,
             "--data-dir",
-            os.path.join(self.root.name, "data"),
+            self.data_dir,
             "--metrics-listen",
             "off",
             "--vocabulary",
@@ -77,7 +82,8 @@ class ServerProcess:
                 raise RuntimeError(f"placedb-server did not serve on {self.address}")
             time.sleep(0.1)
 
-    def stop(self) -> None:
+    def terminate(self) -> None:
+        """SIGTERM (the server drains), and waits for the process; the data directory stays."""
         if self.process.poll() is None:
             self.process.terminate()
             try:
@@ -85,7 +91,11 @@ class ServerProcess:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
-        self.root.cleanup()
+
+    def stop(self) -> None:
+        self.terminate()
+        if self.root is not None:
+            self.root.cleanup()
 
 
 @pytest.fixture(scope="module")

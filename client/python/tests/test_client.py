@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
+from concurrent import futures
 from pathlib import Path
 from typing import Dict, List
 
+import grpc
 import numpy as np
 import pytest
 from conftest import textured_image, unused_loopback_port
 
 import placedb
 from placedb._pb import placedb_pb2 as pb
+from placedb._pb import placedb_pb2_grpc as pb_grpc
 
 # ---- Server, maps -------------------------------------------------------------------------------
 
@@ -25,6 +29,65 @@ def test_unreachable_server_fails_fast_or_waits_for_its_deadline() -> None:
     with placedb.Client(address, timeout=0.3, wait_for_ready=True) as client:
         with pytest.raises(placedb.DeadlineExceeded):
             client.list_maps()
+
+
+class _Stalling(pb_grpc.PlaceDbServicer):
+    """Answers nothing until its caller's deadline has passed (or 20 s: ABORTED, so an ignored
+    deadline fails the test instead of hanging it)."""
+
+    def __init__(self) -> None:
+        self.released = threading.Event()
+
+    def _stall(self, context) -> None:
+        self.released.wait(timeout=20)
+        context.abort(grpc.StatusCode.ABORTED, "no deadline came")
+
+    def ListMaps(self, request, context):
+        self._stall(context)
+
+    def Ingest(self, requests, context):
+        self._stall(context)
+        yield pb.IngestResponse()
+
+    def DownloadSnapshot(self, request, context):
+        self._stall(context)
+        yield pb.SnapshotChunk()
+
+
+def test_per_call_timeout_overrides_the_clients(server, tmp_path: Path) -> None:
+    stalling = _Stalling()
+    fake = grpc.server(futures.ThreadPoolExecutor(max_workers=4))
+    pb_grpc.add_PlaceDbServicer_to_server(stalling, fake)
+    address = f"127.0.0.1:{unused_loopback_port()}"
+    fake.add_insecure_port(address)
+    fake.start()
+    try:
+        with placedb.Client(address, timeout=None) as client:
+            with pytest.raises(placedb.DeadlineExceeded):
+                client.list_maps(timeout=0.2)
+            with pytest.raises(placedb.DeadlineExceeded):
+                list(client.ingest("m", [textured_image(seed=1)], timeout=0.2))
+            dest = tmp_path / "s.pdbsnap"
+            with pytest.raises(placedb.DeadlineExceeded):
+                client.download_snapshot("s", dest, timeout=0.2)
+            assert list(tmp_path.iterdir()) == []
+        with placedb.Client(address, timeout=0.2) as client:
+            with pytest.raises(placedb.DeadlineExceeded):
+                client.list_maps()  # the client's timeout
+    finally:
+        stalling.released.set()
+        fake.stop(None)
+
+    # A longer per-call timeout on a client whose own would expire before any answer.
+    with placedb.Client(server.address, timeout=1e-9) as client:
+        client.create_map("timeouts", timeout=30)
+        assert client.get_map("timeouts", timeout=30).name == "timeouts"
+        assert client.health(timeout=None) == "serving"
+        for bad in (0, -1.0):
+            with pytest.raises(placedb.InvalidArgument, match="timeout"):
+                client.get_map("timeouts", timeout=bad)
+    with pytest.raises(placedb.InvalidArgument, match="timeout"):
+        placedb.Client(server.address, timeout=0)
 
 
 def test_health_and_server_info(client: placedb.Client) -> None:
@@ -94,6 +157,47 @@ def test_bad_map_settings(client: placedb.Client) -> None:
     with pytest.raises(placedb.InvalidArgument, match="nope"):
         client.create_map("bad-vocabulary", placedb.MapSettings(vocabulary="nope"))
     assert not {"bad-settings", "bad-vocabulary"} & {m.name for m in client.list_maps()}
+
+
+def test_typed_setting_groups(client: placedb.Client) -> None:
+    settings = placedb.MapSettings(
+        depth=placedb.DepthSettings(stream_filter=False, threshold_m=0.3, band_policy="fixed",
+                                    rise_band=(1.5, 4.0)),
+        loop_closure=placedb.LoopClosureSettings(loop_threshold=0.2, verify=False),
+        short_term=placedb.ShortTermSettings(horizon_s=30, max_places=100),
+    )
+    config = client.create_map("groups", settings).config
+    assert not config.depth.stream_filter
+    assert config.depth.threshold_m == pytest.approx(0.3)
+    assert config.depth.band_policy == pb.BAND_POLICY_FIXED
+    assert (config.depth.rise_band.near_m, config.depth.rise_band.far_m) == (1.5, 4.0)
+    assert config.loop_closure.loop_threshold == pytest.approx(0.2)
+    assert not config.loop_closure.verify
+    assert (config.filter.short_term.horizon_s, config.filter.short_term.max_places) == (30, 100)
+    sift = placedb.MapSettings(vocabulary="sift", sift=placedb.SiftSettings(max_features=300))
+    assert client.create_map("groups-sift", sift).config.sift.max_features == 300
+
+    # Each group has exactly its message's fields, so the two cannot drift apart.
+    groups = {
+        placedb.DepthSettings: pb.DepthSettings,
+        placedb.LoopClosureSettings: pb.LoopClosureSettings,
+        placedb.ShortTermSettings: pb.ShortTermSettings,
+        placedb.SiftSettings: pb.SiftSettings,
+    }
+    for group, message in groups.items():
+        assert {f.name for f in dataclasses.fields(group)} == {
+            f.name for f in message.DESCRIPTOR.fields
+        }, group.__name__
+
+    bad = [
+        (placedb.DepthSettings(band_policy="sideways"), "config.depth.band_policy"),
+        (placedb.DepthSettings(rise_band=(1.0,)), "config.depth.rise_band"),
+        (placedb.DepthSettings(persistence="often"), "config.depth.persistence"),
+    ]
+    for depth, field in bad:
+        with pytest.raises(placedb.InvalidArgument, match=field.replace(".", r"\.")):
+            client.create_map("groups-bad", placedb.MapSettings(depth=depth))
+    assert "groups-bad" not in [m.name for m in client.list_maps()]
 
 
 def test_scrub_and_recover(client: placedb.Client, rtabmap_frames: List[Path]) -> None:
@@ -214,6 +318,63 @@ def test_ingest_with_matches_against_the_map_before_each_frame(
         assert again.matches, "a revisited frame matches its earlier place"
         assert again.matches[0].place_id == before.place_id
         assert len(again.matches) <= 3
+
+
+def test_per_frame_match_options_override_the_streams(
+    client: placedb.Client, loop_map: Dict[int, int], rtabmap_frames: List[Path]
+) -> None:
+    client.create_map("per-frame")
+    indices = sorted(loop_map)[:6]
+    first = list(client.ingest("per-frame", [rtabmap_frames[i] for i in indices], agent_id="a"))
+    places = [r.place_id for r in first]
+    frames = [
+        placedb.Frame(image=rtabmap_frames[indices[0]]),
+        placedb.Frame(image=rtabmap_frames[indices[1]], matches=placedb.MatchOptions(top_k=2)),
+    ]
+    plain, asked = client.ingest("per-frame", frames, agent_id="a")
+    assert plain.matches == []  # the stream asked for none
+    assert 1 <= len(asked.matches) <= 2 and asked.matches[0].place_id == places[1]
+    frames = [
+        placedb.Frame(image=rtabmap_frames[indices[2]]),
+        placedb.Frame(image=rtabmap_frames[indices[3]], matches=placedb.MatchOptions(top_k=1)),
+        placedb.Frame(
+            image=rtabmap_frames[indices[4]],
+            matches=placedb.MatchOptions(top_k=5, exclude_same_agent=True),
+        ),
+    ]
+    wide, narrow, others = client.ingest("per-frame", frames, agent_id="a", top_k=5)
+    assert len(wide.matches) > 1 and wide.matches[0].place_id == places[2]
+    assert [m.place_id for m in narrow.matches] == [places[3]]
+    assert others.matches == []  # every place is agent a's
+    bad = [placedb.Frame(image=rtabmap_frames[0], matches=placedb.MatchOptions(top_k=-1))]
+    with pytest.raises(placedb.InvalidArgument, match=r"frames\[0\]\.matches\.top_k"):
+        list(client.ingest("per-frame", bad))
+    with pytest.raises(placedb.InvalidArgument, match="ingest only"):
+        client.query("per-frame", placedb.Frame(image=rtabmap_frames[0],
+                                                matches=placedb.MatchOptions()))
+
+
+def test_depth_state_and_loop_closure_are_dataclasses(client: placedb.Client) -> None:
+    config = pb.MapConfig()
+    config.depth.stream_filter = True  # Algorithm 1 on ingest streams with depth
+    client.create_map("depth-stream", placedb.MapSettings(config=config))
+    frames = [
+        placedb.Frame(image=textured_image(seed=40 + i),
+                      depth=np.full((120, 160), 2000, dtype=np.uint16))
+        for i in range(3)
+    ]
+    results = list(client.ingest("depth-stream", frames, agent_id="d", loop_closure=True))
+    for i, r in enumerate(results):
+        assert r.stored, r.rejection
+        assert isinstance(r.depth, placedb.DepthState)
+        assert r.depth.frame == i
+        assert r.depth.mean_depth_m == pytest.approx(2.0, abs=0.01)
+        assert r.depth.warming_up and not r.depth.removing
+        assert r.depth.valid_fraction == pytest.approx(1.0)
+        assert isinstance(r.loop_closure, placedb.LoopClosure)
+        assert r.loop_closure.place_id == r.place_id and not r.loop_closure.merged
+    answer = client.query("depth-stream", frames[0])
+    assert answer.depth is None  # a query has no stream state
 
 
 def test_ingest_with_loop_closure_finds_the_revisit(
