@@ -279,6 +279,15 @@ grpc::Status PlaceDbService::GetMap(grpc::ServerContext* context, const v1::GetM
   auto entry = maps_->Find(request->name(), "name");
   if (!entry.ok()) return Finish("GetMap", context, ToGrpc(entry.status()));
   Describe(**entry, response);
+  for (const AgentActivitySnapshot& agent : activity_.Of(request->name(), Clock::now())) {
+    v1::AgentActivity* out = response->add_agents();
+    out->set_agent_id(agent.agent_id);
+    out->set_frames(agent.frames);
+    out->set_places(agent.places);
+    out->set_frames_per_second(agent.frames_per_second);
+    out->set_last_place_id(agent.last_place_id);
+    out->set_last_frame_unix_ms(agent.last_frame_unix_ms);
+  }
   return Finish("GetMap", context, grpc::Status::OK);
 }
 
@@ -310,6 +319,7 @@ grpc::Status PlaceDbService::DeleteMap(grpc::ServerContext* context,
     return Finish("DeleteMap", context, ToGrpc(deleted));
   }
   metrics_->ForgetMap(request->name());
+  activity_.Forget(request->name());
   spdlog::info("map '{}' deleted, peer={}", request->name(), Peer(context));
   return Finish("DeleteMap", context, grpc::Status::OK);
 }
@@ -780,6 +790,7 @@ struct PlaceDbService::Slot final : IngestPipeline::Frame {
   Stream* const stream;
   uint64_t index = 0;
   uint64_t sequence = 0;
+  std::string agent_id;  // the observation's, for the agent's activity
   Clock::time_point arrived;
   double queue_ms = 0;
   std::unique_ptr<v1::IngestRequest> request;  // freed once decoded
@@ -895,15 +906,24 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
     }
   }
   slot->work = Work();  // the response may wait for a slow reader; the frame's data need not
+  FrameOutcome outcome = FrameOutcome::kInvalid;
   if (!slot->status.ok()) {
     ++stream->errors;
+    outcome = FrameOutcome::kRefused;
   } else if (response.stored()) {
     ++stream->stored;
+    outcome = FrameOutcome::kStored;
   } else if (response.loop_closure().merged()) {
     ++stream->merged;
+    outcome = FrameOutcome::kMerged;
   } else {
     ++stream->rejected;
   }
+  activity_.Record(stream->map->name, slot->agent_id, outcome,
+                   slot->status.ok() ? response.place_id() : 0, Clock::now(),
+                   std::chrono::duration_cast<std::chrono::milliseconds>(
+                       std::chrono::system_clock::now().time_since_epoch())
+                       .count());
 }
 
 grpc::Status PlaceDbService::RefuseMalformed(const char* method, grpc::ServerContext* context,
@@ -1032,6 +1052,7 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
     slot->index = index++;
     slot->arrived = Clock::now();
     slot->sequence = request->observation().sequence();
+    slot->agent_id = request->observation().agent_id();
     if (request->observation().has_matches()) {
       slot->matches = request->observation().matches();
     } else {

@@ -35,6 +35,7 @@
 #include "core/base/thread_annotations.h"
 #include "core/detect/detector.h"
 #include "proto/placedb.grpc.pb.h"
+#include "server/agent_activity.h"
 #include "server/config.h"
 #include "server/map_registry.h"
 #include "server/memory_budget.h"
@@ -155,6 +156,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   const Detector* const detector_;  // null: server-side detection off
   const std::string detector_status_;
   MemoryBudget* const budget_;
+  // Per map and agent, every Ingest frame Complete() answers; GetMap's MapDescription.agents.
+  AgentActivity activity_;
 
   // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
   class CallScope;

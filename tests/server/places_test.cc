@@ -1,14 +1,19 @@
 // ListPlaces on a real server holding RTAB-Map frames from two agents: paging visits every place
 // once, newest first; the agent and time filters; deleted places are skipped; bad paging is
-// INVALID_ARGUMENT naming the field and changes nothing.
+// INVALID_ARGUMENT naming the field and changes nothing. And GetMap's per-agent activity while
+// two agents ingest at once.
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <cstdint>
+#include <opencv2/core.hpp>
 #include <set>
 #include <string>
+#include <thread>
 #include <vector>
 
+#include "server/agent_activity.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {
@@ -242,6 +247,119 @@ TEST_F(PlacesTest, BadPagingIsInvalidArgumentNamingTheField) {
   ASSERT_TRUE(List(edge, &response).ok());
   EXPECT_EQ(response.places_size(), 2);
   EXPECT_EQ(Stats("m").places(), before.places());
+}
+
+int64_t UnixMsNow() {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+// Two agents ingest at once, each on its own stream; agent "a" also sends a frame that is refused
+// (not an image) and one that is invalid (all dynamic). GetMap counts every answered frame.
+TEST_F(PlacesTest, AgentActivityCountsEveryAnsweredFrame) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("m");
+  std::vector<v1::Observation> frames_a, frames_b;
+  for (int frame = 1; frame <= 12; ++frame) {
+    (frame % 2 ? frames_a : frames_b).push_back(RtabmapObservation(frame, AgentOf(frame)));
+  }
+  v1::Observation refused = RtabmapObservation(20, "a");
+  refused.mutable_encoded_image()->set_data("not an image");
+  frames_a.insert(frames_a.begin() + 2, refused);
+  v1::Observation invalid = RtabmapObservation(21, "a");
+  invalid.set_dynamic_mask_png(EncodePng(cv::Mat(384, 512, CV_8U, cv::Scalar(255))));
+  frames_a.insert(frames_a.begin() + 4, invalid);
+
+  const int64_t started_ms = UnixMsNow();
+  IngestOutcome outcome_a, outcome_b;
+  {
+    std::thread a([&] { outcome_a = IngestAll(stub_.get(), "m", frames_a); });
+    std::thread b([&] { outcome_b = IngestAll(stub_.get(), "m", frames_b); });
+    a.join();
+    b.join();
+  }
+  const int64_t ended_ms = UnixMsNow();
+  ASSERT_TRUE(outcome_a.status.ok()) << outcome_a.status.error_message();
+  ASSERT_TRUE(outcome_b.status.ok()) << outcome_b.status.error_message();
+  ASSERT_EQ(outcome_a.responses.size(), frames_a.size());
+  ASSERT_EQ(outcome_b.responses.size(), frames_b.size());
+  EXPECT_TRUE(outcome_a.responses[2].has_error());
+  EXPECT_FALSE(outcome_a.responses[4].stored());
+  EXPECT_FALSE(outcome_a.responses[4].has_error());
+
+  grpc::ClientContext context;
+  v1::GetMapRequest request;
+  request.set_name("m");
+  v1::MapDescription map;
+  ASSERT_TRUE(stub_->GetMap(&context, request, &map).ok());
+  ASSERT_EQ(map.agents_size(), 2);
+  const v1::AgentActivity& a = map.agents(0);
+  const v1::AgentActivity& b = map.agents(1);
+  EXPECT_EQ(a.agent_id(), "a");
+  EXPECT_EQ(b.agent_id(), "b");
+  EXPECT_EQ(a.frames(), 8u);
+  EXPECT_EQ(a.places(), 6u);
+  EXPECT_EQ(b.frames(), 6u);
+  EXPECT_EQ(b.places(), 6u);
+  EXPECT_EQ(a.last_place_id(), outcome_a.responses.back().place_id());
+  EXPECT_EQ(b.last_place_id(), outcome_b.responses.back().place_id());
+  for (const v1::AgentActivity* agent : {&a, &b}) {
+    EXPECT_GE(agent->last_frame_unix_ms(), started_ms) << agent->agent_id();
+    EXPECT_LE(agent->last_frame_unix_ms(), ended_ms) << agent->agent_id();
+    // Every frame is in the window unless the run took over 9 s: never more than them all.
+    EXPECT_GT(agent->frames_per_second(), 0) << agent->agent_id();
+    EXPECT_LE(agent->frames_per_second(), double(agent->frames()) / 10) << agent->agent_id();
+  }
+
+  // A deleted map's agents go with it.
+  grpc::ClientContext delete_context;
+  v1::DeleteMapRequest remove;
+  remove.set_name("m");
+  v1::DeleteMapResponse removed;
+  ASSERT_TRUE(stub_->DeleteMap(&delete_context, remove, &removed).ok());
+  CreateMap("m");
+  grpc::ClientContext again_context;
+  v1::MapDescription fresh;
+  ASSERT_TRUE(stub_->GetMap(&again_context, request, &fresh).ok());
+  EXPECT_EQ(fresh.agents_size(), 0);
+}
+
+// The tracker alone, on a clock the test sets: the 10 s window and the per-map agent bound.
+TEST(AgentActivityTest, WindowAndEvictionFollowTheClock) {
+  using server::AgentActivity;
+  using server::FrameOutcome;
+  AgentActivity activity(/*max_agents_per_map=*/2);
+  const AgentActivity::Clock::time_point t0{std::chrono::hours(1)};
+  const auto at = [&](double seconds) {
+    return t0 + std::chrono::duration_cast<AgentActivity::Clock::duration>(
+                    std::chrono::duration<double>(seconds));
+  };
+  for (int i = 0; i < 20; ++i) {
+    activity.Record("m", "a", FrameOutcome::kStored, uint32_t(i + 1), at(i * 0.5), 1000 + i);
+  }
+  activity.Record("m", "b", FrameOutcome::kRefused, 0, at(9.5), 2000);
+  auto agents = activity.Of("m", at(9.9));
+  ASSERT_EQ(agents.size(), 2u);
+  EXPECT_EQ(agents[0].frames, 20u);
+  EXPECT_DOUBLE_EQ(agents[0].frames_per_second, 2.0);  // 20 frames in seconds 0-9
+  EXPECT_EQ(agents[0].last_place_id, 20u);
+  EXPECT_EQ(agents[1].places, 0u);
+  EXPECT_EQ(agents[1].last_place_id, 0u);
+  // Second 12: seconds 0-2 have left the window (6 of a's frames).
+  agents = activity.Of("m", at(12.1));
+  EXPECT_DOUBLE_EQ(agents[0].frames_per_second, 1.4);
+  EXPECT_EQ(agents[0].frames, 20u);  // totals never leave
+  EXPECT_TRUE(activity.Of("other", at(12)).empty());
+
+  // A third agent evicts the one whose last frame is oldest ("a", at 1019 ms).
+  activity.Record("m", "c", FrameOutcome::kInvalid, 0, at(13), 3000);
+  agents = activity.Of("m", at(13));
+  ASSERT_EQ(agents.size(), 2u);
+  EXPECT_EQ(agents[0].agent_id, "b");
+  EXPECT_EQ(agents[1].agent_id, "c");
+  activity.Forget("m");
+  EXPECT_TRUE(activity.Of("m", at(13)).empty());
 }
 
 }  // namespace
