@@ -518,6 +518,27 @@ TEST_F(ServerTest, CorrespondencesAreTheInliersOfTheTopMatch) {
   // few keypoints with a twin elsewhere, never many.
   EXPECT_GE(coincide * 100, top.correspondences_size() * 95)
       << coincide << " of " << top.correspondences_size() << " coincide";
+
+  // Through Ingest: the pairs' query side indexes the frame's own new place.
+  v1::MatchOptions matches;
+  matches.set_top_k(1);
+  matches.set_include_correspondences(true);
+  const IngestOutcome again = IngestAll(stub_.get(), "m", {RtabmapObservation(6, "b")}, &matches);
+  ASSERT_TRUE(again.status.ok()) << again.status.error_message();
+  ASSERT_EQ(again.responses.size(), 1u);
+  const v1::IngestResponse& ingested = again.responses[0];
+  ASSERT_TRUE(ingested.stored());
+  ASSERT_EQ(ingested.matches_size(), 1);
+  EXPECT_EQ(ingested.matches(0).place_id(), place);
+  EXPECT_EQ(ingested.matches(0).correspondences_size(), ingested.matches(0).inliers());
+  grpc::ClientContext new_context;
+  get.set_place_id(ingested.place_id());
+  v1::Place fresh;
+  ASSERT_TRUE(stub_->GetPlace(&new_context, get, &fresh).ok());
+  for (const v1::Correspondence& c : ingested.matches(0).correspondences()) {
+    ASSERT_LT(c.query_keypoint(), uint32_t(fresh.features().keypoints_size()));
+    ASSERT_LT(c.place_keypoint(), uint32_t(place_keypoints.size()));
+  }
 }
 
 // A CamVid frame with boxes around its labelled cars, pedestrians and cyclists: the query's
