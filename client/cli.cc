@@ -102,6 +102,7 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   if (place.get->parsed()) {
     return PlaceGet(c, place_flags.map, place_flags.id, place_flags.features, json, io);
   }
+  if (place.list->parsed()) return PlaceList(c, place_flags, json, io);
   if (place.remove->parsed()) return PlaceDelete(c, place_flags.map, place_flags.id, json, io);
   if (snapshots.create->parsed()) return SnapshotsCreate(c, snapshots_flags.map, json, io);
   if (snapshots.list->parsed()) return SnapshotsList(c, json, io);

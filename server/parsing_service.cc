@@ -283,6 +283,9 @@ ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthoriz
       "GetPlace", &PlaceDbService::GetPlace, Right::kRead,
       +[](const v1::GetPlaceRequest& r) { return r.map(); });
   AddUnary(
+      "ListPlaces", &PlaceDbService::ListPlaces, Right::kRead,
+      +[](const v1::ListPlacesRequest& r) { return r.map(); });
+  AddUnary(
       "DeletePlace", &PlaceDbService::DeletePlace, Right::kWrite,
       +[](const v1::DeletePlaceRequest& r) { return r.map(); });
   AddUnary(

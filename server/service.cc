@@ -279,6 +279,15 @@ grpc::Status PlaceDbService::GetMap(grpc::ServerContext* context, const v1::GetM
   auto entry = maps_->Find(request->name(), "name");
   if (!entry.ok()) return Finish("GetMap", context, ToGrpc(entry.status()));
   Describe(**entry, response);
+  for (const AgentActivitySnapshot& agent : activity_.Of(request->name(), Clock::now())) {
+    v1::AgentActivity* out = response->add_agents();
+    out->set_agent_id(agent.agent_id);
+    out->set_frames(agent.frames);
+    out->set_places(agent.places);
+    out->set_frames_per_second(agent.frames_per_second);
+    out->set_last_place_id(agent.last_place_id);
+    out->set_last_frame_unix_ms(agent.last_frame_unix_ms);
+  }
   return Finish("GetMap", context, grpc::Status::OK);
 }
 
@@ -310,6 +319,7 @@ grpc::Status PlaceDbService::DeleteMap(grpc::ServerContext* context,
     return Finish("DeleteMap", context, ToGrpc(deleted));
   }
   metrics_->ForgetMap(request->name());
+  activity_.Forget(request->name());
   spdlog::info("map '{}' deleted, peer={}", request->name(), Peer(context));
   return Finish("DeleteMap", context, grpc::Status::OK);
 }
@@ -370,10 +380,7 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   }
   auto place = (*entry)->map->GetPlace(request->place_id());
   if (!place.ok()) return Finish("GetPlace", context, ToGrpc(place.status()));
-  response->set_place_id(place->record.id);
-  MetadataToProto(place->record.metadata, response->mutable_metadata());
-  CountsToProto(place->record.counts, response->mutable_counts());
-  BoxesToProto(place->record.boxes_used, response->mutable_boxes_used());
+  wire::PlaceRecordToProto(place->record, response);
   if (request->include_features()) {
     PlaceFeaturesToProto(place->payload.features, response);
   }
@@ -381,6 +388,22 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   if (!dynamics.ok()) return Finish("GetPlace", context, ToGrpc(dynamics.status()));
   DynamicsToProto(*dynamics, response->mutable_dynamics());
   return Finish("GetPlace", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::ListPlaces(grpc::ServerContext* context,
+                                        const v1::ListPlacesRequest* request,
+                                        v1::ListPlacesResponse* response) {
+  CallScope scope(this);
+  auto entry = maps_->Get(request->map(), "map");
+  if (!entry.ok()) return Finish("ListPlaces", context, ToGrpc(entry.status()));
+  auto listing = wire::PlaceListingFromProto(*request);
+  if (!listing.ok()) return Finish("ListPlaces", context, ToGrpc(listing.status()));
+  const PlacePage page = (*entry)->map->database().ListPlacesBefore(
+      listing->before, listing->limit, listing->filter, listing->max_examined);
+  response->mutable_places()->Reserve(int(page.places.size()));
+  for (const auto& record : page.places) wire::PlaceRecordToProto(*record, response->add_places());
+  response->set_next_before_place_id(page.next_before);
+  return Finish("ListPlaces", context, grpc::Status::OK);
 }
 
 grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
@@ -509,7 +532,7 @@ grpc::Status PlaceDbService::ChargeFrame(grpc::ServerContext* context, const Map
 
 grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntry& map,
                                      const v1::Observation& observation, const std::string& field,
-                                     FrameRole role, Work* work) {
+                                     FrameRole role, Work* work, bool keep_dropped_keypoints) {
   if (Expired(context)) return Cancelled(context, "before decoding");
   const ServiceMapSettings& settings = map.settings;
   if (Status typed =
@@ -557,7 +580,7 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
   }
 
   if (Expired(context)) return Cancelled(context, "before feature extraction");
-  auto processed = map.map->Process(frame, role);
+  auto processed = map.map->Process(frame, role, keep_dropped_keypoints);
   if (!processed.ok()) return ToGrpc(processed.status(), field);
   work->frame = std::move(processed).value();
   work->timings.extract_ms = work->frame.timings.extract_ms;
@@ -596,7 +619,8 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
     queue_ms = MsSince(arrived);
     Work work;
     grpc::Status status = Guarded("processing the observation", [&] {
-      return Prepare(context, map, request->observation(), "observation", FrameRole::kQuery, &work);
+      return Prepare(context, map, request->observation(), "observation", FrameRole::kQuery, &work,
+                     request->options().include_correspondences());
     });
     if (status.ok() && Expired(context)) status = Cancelled(context, "before searching");
     if (status.ok())
@@ -612,6 +636,15 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
         CountsToProto(result.counts, response->mutable_counts());
         BoxesToProto(result.boxes_used, response->mutable_boxes_used());
         MatchesToProto(result.matches, response->mutable_matches());
+        if (options.include_correspondences) {
+          // What the correspondences index, and what to draw them on.
+          wire::KeypointListToProto(work.frame.static_features.keypoints(),
+                                    response->mutable_query_keypoints());
+          wire::KeypointListToProto(work.frame.dropped_keypoints,
+                                    response->mutable_query_dropped_keypoints());
+          response->set_image_width(uint32_t(work.frame.static_features.image_width()));
+          response->set_image_height(uint32_t(work.frame.static_features.image_height()));
+        }
         // The agent's current Algorithm 1 decision, when it applied to this frame.
         if (work.frame.depth_state) {
           DepthStateToProto(*work.frame.depth_state, response->mutable_depth());
@@ -757,6 +790,7 @@ struct PlaceDbService::Slot final : IngestPipeline::Frame {
   Stream* const stream;
   uint64_t index = 0;
   uint64_t sequence = 0;
+  std::string agent_id;  // the observation's, for the agent's activity
   Clock::time_point arrived;
   double queue_ms = 0;
   std::unique_ptr<v1::IngestRequest> request;  // freed once decoded
@@ -872,15 +906,24 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
     }
   }
   slot->work = Work();  // the response may wait for a slow reader; the frame's data need not
+  FrameOutcome outcome = FrameOutcome::kInvalid;
   if (!slot->status.ok()) {
     ++stream->errors;
+    outcome = FrameOutcome::kRefused;
   } else if (response.stored()) {
     ++stream->stored;
+    outcome = FrameOutcome::kStored;
   } else if (response.loop_closure().merged()) {
     ++stream->merged;
+    outcome = FrameOutcome::kMerged;
   } else {
     ++stream->rejected;
   }
+  activity_.Record(stream->map->name, slot->agent_id, outcome,
+                   slot->status.ok() ? response.place_id() : 0, Clock::now(),
+                   std::chrono::duration_cast<std::chrono::milliseconds>(
+                       std::chrono::system_clock::now().time_since_epoch())
+                       .count());
 }
 
 grpc::Status PlaceDbService::RefuseMalformed(const char* method, grpc::ServerContext* context,
@@ -1009,6 +1052,7 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
     slot->index = index++;
     slot->arrived = Clock::now();
     slot->sequence = request->observation().sequence();
+    slot->agent_id = request->observation().agent_id();
     if (request->observation().has_matches()) {
       slot->matches = request->observation().matches();
     } else {

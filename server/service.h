@@ -35,6 +35,7 @@
 #include "core/base/thread_annotations.h"
 #include "core/detect/detector.h"
 #include "proto/placedb.grpc.pb.h"
+#include "server/agent_activity.h"
 #include "server/config.h"
 #include "server/map_registry.h"
 #include "server/memory_budget.h"
@@ -74,6 +75,9 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                      v1::QueryResponse* response) override;
   grpc::Status GetPlace(grpc::ServerContext* context, const v1::GetPlaceRequest* request,
                         v1::Place* response) override;
+  // Newest first, PlaceDatabase::ListPlacesBefore's bounded walk (wire::PlaceListing).
+  grpc::Status ListPlaces(grpc::ServerContext* context, const v1::ListPlacesRequest* request,
+                          v1::ListPlacesResponse* response) override;
   grpc::Status DeletePlace(grpc::ServerContext* context, const v1::DeletePlaceRequest* request,
                            v1::DeletePlaceResponse* response) override;
   grpc::Status GetDynamics(grpc::ServerContext* context, const v1::GetDynamicsRequest* request,
@@ -125,9 +129,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
  private:
   // Decode, detect, extract, [depth], filter, transform: the first half of a frame, on a worker.
   // `role`: kStream (Ingest: the agent's stream state is advanced later, in order) or kQuery.
+  // `keep_dropped_keypoints`: the frame keeps its DC keypoints (to answer with them).
   grpc::Status Prepare(grpc::ServerContext* context, const MapEntry& map,
                        const v1::Observation& observation, const std::string& field, FrameRole role,
-                       Work* work);
+                       Work* work, bool keep_dropped_keypoints = false);
   // The second half of an Ingest frame (the agent's stream state: Algorithm 1; search when
   // asked; then store, or loop closure + store in loop-closure mode) and its response. The
   // stream's pipeline runs it in stream order, one frame at a time.
@@ -151,6 +156,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   const Detector* const detector_;  // null: server-side detection off
   const std::string detector_status_;
   MemoryBudget* const budget_;
+  // Per map and agent, every Ingest frame Complete() answers; GetMap's MapDescription.agents.
+  AgentActivity activity_;
 
   // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
   class CallScope;

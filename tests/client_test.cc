@@ -10,6 +10,7 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -22,6 +23,7 @@
 #include <sstream>
 
 #include "client/cli.h"
+#include "client/commands/places.h"
 #include "client/format.h"
 #include "client/frame_source.h"
 #include "client/loopback.h"
@@ -409,6 +411,91 @@ TEST_F(ClientTest, IngestFolderAsTwoAgentsThenQueryFindsTheRevisit) {
   EXPECT_EQ(Cli({"place", "delete", "loop", id}).code, 1);
   EXPECT_EQ(ParseJson(Cli({"maps", "show", "loop", "--json"}))["stats"]["places"],
             std::to_string(stored - 1));
+}
+
+// `places list` pages newest first (JSON and table), filters by agent, refuses bad paging;
+// `maps get` shows the agents' activity; `query --correspondences` carries the inliers.
+TEST_F(ClientTest, PlacesListAgentsAndCorrespondences) {
+  ASSERT_EQ(Cli({"maps", "create", "loop", "--verify", "exhaustive"}).code, 0);
+  CliRun ingested = Cli({"ingest", "loop", FramesDir(1, 10), "--agents", "2", "--json"});
+  ASSERT_EQ(ingested.code, 0) << ingested.err;
+  const int stored = ParseJson(ingested)["stored"].get<int>();
+  ASSERT_GE(stored, 8);
+
+  // Every page until no next: each place once, ids descending.
+  std::vector<int> ids;
+  std::string before;
+  for (int page = 0; page < 20; ++page) {
+    std::vector<std::string> args = {"places", "list", "loop", "--limit", "3", "--json"};
+    if (!before.empty()) args.insert(args.end(), {"--before", before});
+    CliRun listed = Cli(args);
+    ASSERT_EQ(listed.code, 0) << listed.err;
+    const json response = ParseJson(listed);
+    for (const json& place : response["places"]) ids.push_back(place["place_id"].get<int>());
+    const int next = response["next_before_place_id"].get<int>();
+    if (next == 0) break;
+    before = std::to_string(next);
+  }
+  ASSERT_EQ(int(ids.size()), stored);
+  EXPECT_TRUE(std::is_sorted(ids.rbegin(), ids.rend()));
+  EXPECT_EQ(std::adjacent_find(ids.begin(), ids.end()), ids.end());
+
+  const json second = ParseJson(Cli({"place", "list", "loop", "--agent", "cli-2", "--json"}));
+  ASSERT_FALSE(second["places"].empty());
+  for (const json& place : second["places"]) EXPECT_EQ(place["metadata"]["agent_id"], "cli-2");
+
+  CliRun table = Cli({"places", "list", "loop", "--limit", "2"});
+  ASSERT_EQ(table.code, 0) << table.err;
+  for (const char* text : {"ID", "AGENT", "OBSERVED", "KEPT", "DROPPED", "next page: --before"}) {
+    EXPECT_NE(table.out.find(text), std::string::npos) << text << " missing from\n" << table.out;
+  }
+  CliRun too_many = Cli({"places", "list", "loop", "--limit", "1001"});
+  EXPECT_EQ(too_many.code, 1);
+  EXPECT_NE(too_many.err.find("limit"), std::string::npos) << too_many.err;
+  CliRun bad_time = Cli({"places", "list", "loop", "--from", "yesterday"});
+  EXPECT_EQ(bad_time.code, 2);
+  EXPECT_NE(bad_time.err.find("--from"), std::string::npos) << bad_time.err;
+  // An ISO window that ends before any frame was taken holds nothing.
+  const json empty = ParseJson(
+      Cli({"places", "list", "loop", "--to", "1970-01-01T00:00:00.000000001Z", "--json"}));
+  EXPECT_TRUE(empty["places"].empty()) << empty.dump();
+
+  const json map = ParseJson(Cli({"maps", "get", "loop", "--json"}));
+  ASSERT_EQ(map["agents"].size(), 2u);
+  EXPECT_EQ(map["agents"][0]["agent_id"], "cli-1");
+  EXPECT_EQ(map["agents"][0]["frames"], "5");  // uint64 as a string (proto3 JSON)
+  EXPECT_EQ(map["agents"][1]["frames"], "5");
+  CliRun shown = Cli({"maps", "show", "loop"});
+  ASSERT_EQ(shown.code, 0) << shown.err;
+  for (const char* text : {"agents (since the server started)", "FRAMES/S", "cli-1", "cli-2"}) {
+    EXPECT_NE(shown.out.find(text), std::string::npos) << text << " missing from\n" << shown.out;
+  }
+
+  CliRun queried = Cli({"query", "loop", testing::RtabmapFramePath(5), "--top-k", "2",
+                        "--correspondences", "--json"});
+  ASSERT_EQ(queried.code, 0) << queried.err;
+  const json result = ParseJson(queried);
+  ASSERT_FALSE(result["matches"].empty());
+  const json& top = result["matches"][0];
+  ASSERT_EQ(top["verified"], true);
+  EXPECT_EQ(int(top["correspondences"].size()), top["inliers"].get<int>());
+  EXPECT_EQ(result["query_keypoints"].size(), size_t(result["counts"]["kept"].get<int>()));
+  EXPECT_EQ(result["image_width"], 512);
+  const json plain = ParseJson(Cli({"query", "loop", testing::RtabmapFramePath(5), "--json"}));
+  EXPECT_TRUE(plain["matches"][0]["correspondences"].empty());
+  EXPECT_TRUE(plain["query_keypoints"].empty());
+}
+
+TEST(ClientFlagsTest, TimeFlagsAreNanosecondsOrUtcIso) {
+  EXPECT_EQ(*client::ParseTimeFlag("1732400000000000000", "--from"), 1732400000000000000);
+  EXPECT_EQ(*client::ParseTimeFlag("2024-11-23T22:13:20Z", "--from"), 1732400000000000000);
+  EXPECT_EQ(*client::ParseTimeFlag("2024-11-23T22:13:20.25Z", "--to"), 1732400000250000000);
+  for (const char* bad : {"", "yesterday", "2024-11-23", "2024-11-23T22:13:20", "-5",
+                          "2024-11-23T22:13:20.Z", "99999999999999999999"}) {
+    auto parsed = client::ParseTimeFlag(bad, "--to");
+    ASSERT_FALSE(parsed.ok()) << bad;
+    EXPECT_NE(parsed.status().message().find("--to"), std::string::npos);
+  }
 }
 
 // The human summary, per-frame matches, progress lines when stderr is not a terminal, a list

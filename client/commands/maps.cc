@@ -188,6 +188,19 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
     }
     PrintKeyValues(io.out, "damage history (losses accepted)", history);
   }
+  if (map.agents_size() > 0) {
+    // What each agent ingested since the server started (GetMap's in-memory activity).
+    io.out << "agents (since the server started)\n";
+    Table agents({"AGENT", ">FRAMES", ">PLACES", ">FRAMES/S", ">LAST PLACE", "LAST FRAME"});
+    for (const v1::AgentActivity& agent : map.agents()) {
+      agents.Add({agent.agent_id().empty() ? "(none)" : agent.agent_id(),
+                  std::to_string(agent.frames()), std::to_string(agent.places()),
+                  FormatDouble(agent.frames_per_second(), 1),
+                  agent.last_place_id() == 0 ? "-" : std::to_string(agent.last_place_id()),
+                  FormatUnixMs(agent.last_frame_unix_ms())});
+    }
+    agents.Print(io.out, "  ");
+  }
 }
 
 // Only the options given are set; the server fills in the rest.
@@ -390,7 +403,9 @@ MapsCommands RegisterMaps(CLI::App& app, MapsFlags* flags) {
   maps->require_subcommand(1);
   commands.create = RegisterCreate(maps, &flags->create);
   commands.list = maps->add_subcommand("list", "list the maps");
-  commands.show = maps->add_subcommand("show", "a map's configuration and statistics");
+  commands.show = maps->add_subcommand(
+      "show", "a map's configuration, statistics and agents' activity (alias: get)");
+  commands.show->alias("get");
   commands.show->add_option("NAME", flags->show_name, "map name")->required();
   commands.remove = maps->add_subcommand("delete", "delete a map and all its places");
   commands.remove->add_option("NAME", flags->delete_name, "map name")->required();

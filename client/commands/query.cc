@@ -120,6 +120,8 @@ CLI::App* RegisterQuery(CLI::App& app, QueryFlags* flags) {
   query->add_option("--agent-id", flags->agent_id, "the querying agent")->capture_default_str();
   query->add_flag("--exclude-same-agent", flags->exclude_same_agent,
                   "skip places stored by --agent-id");
+  query->add_flag("--correspondences", flags->correspondences,
+                  "verified matches' inlier keypoint pairs and the query's keypoints (--json)");
   query->add_option("--depth", flags->depth.file,
                     "depth image registered to IMAGE (16-bit PNG/PGM/TIFF or float32 TIFF)");
   query
@@ -147,6 +149,7 @@ int RunQuery(const Connection& connection, const QueryFlags& flags, bool json, C
   request.mutable_options()->set_top_k(uint32_t(flags.top_k));
   request.mutable_options()->set_verified_only(flags.verified_only);
   request.mutable_options()->set_exclude_same_agent(flags.exclude_same_agent);
+  request.mutable_options()->set_include_correspondences(flags.correspondences);
 
   auto context = connection.NewContext();
   v1::QueryResponse response;
@@ -183,6 +186,12 @@ int RunQuery(const Connection& connection, const QueryFlags& flags, bool json, C
                  match.verified() ? "yes" : "no"});
     }
     table.Print(io.out);
+  }
+  if (flags.correspondences) {
+    io.out << "keypoints: " << response.query_keypoints_size() << " kept, "
+           << response.query_dropped_keypoints_size() << " dropped, image "
+           << response.image_width() << "x" << response.image_height()
+           << " (--json for the correspondences)\n";
   }
   for (const v1::UsedBox& box : response.boxes_used()) {
     io.out << "box used: " << FormatBox(box) << '\n';

@@ -28,6 +28,9 @@ struct QueryFlags {
   bool verified_only = false;
   std::string agent_id = "cli";
   bool exclude_same_agent = false;
+  // Verified matches' inlier correspondences and the query's kept/dropped keypoints (in --json;
+  // the table says how many).
+  bool correspondences = false;
   DepthFlags depth;
 };
 

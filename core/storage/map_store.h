@@ -158,9 +158,9 @@ class PlaceMap {
   Result<AddResult> Add(const Observation& observation);
   // Stores an already processed frame (ingest-with-matches searches first, then commits).
   Result<AddResult> Commit(const ProcessedFrame& frame, const PlaceMetadata& metadata);
-  Result<ProcessedFrame> Process(const Observation& observation,
-                                 FrameRole role = FrameRole::kQuery) const {
-    return database_->Process(observation, role);
+  Result<ProcessedFrame> Process(const Observation& observation, FrameRole role = FrameRole::kQuery,
+                                 bool keep_dropped_keypoints = false) const {
+    return database_->Process(observation, role, keep_dropped_keypoints);
   }
   // See PlaceDatabase::AdvanceStream: the agent's frames in order.
   Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);
