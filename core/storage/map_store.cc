@@ -1975,6 +1975,36 @@ Status DataDirectory::DeleteMap(const std::string& name) {
   return Status::Ok();
 }
 
+namespace {
+
+// `from` (a checkpoint) into the new folder `to`: SST files hard-linked when `link` (copied
+// when the file system refuses the link), the rest copied.
+Status LinkOrCopyCheckpoint(const std::string& from, const std::string& to, bool link) {
+  std::error_code ec;
+  fs::create_directories(to, ec);
+  if (ec) return Status::IoError("creating " + to + ": " + ec.message());
+  for (auto it = fs::recursive_directory_iterator(from, ec); !ec && it != fs::end(it);
+       it.increment(ec)) {
+    const fs::path target = fs::path(to) / fs::relative(it->path(), from);
+    if (it->is_directory()) {
+      fs::create_directories(target, ec);
+    } else if (link && it->path().extension() == ".sst") {
+      fs::create_hard_link(it->path(), target, ec);
+      if (ec == std::errc::cross_device_link || ec == std::errc::operation_not_permitted) {
+        ec.clear();
+        fs::copy_file(it->path(), target, ec);
+      }
+    } else {
+      fs::copy_file(it->path(), target, ec);
+    }
+    if (ec) return Status::IoError("copying " + it->path().string() + ": " + ec.message());
+  }
+  if (ec) return Status::IoError("listing " + from + ": " + ec.message());
+  return Status::Ok();
+}
+
+}  // namespace
+
 Status DataDirectory::RestoreMap(const std::string& name, const std::string& checkpoint) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   if (!fs::exists(fs::path(checkpoint) / "CURRENT")) {
@@ -1986,8 +2016,11 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
   const std::string staging = (fs::path(path_) / "maps" / (".restoring-" + name)).string();
   std::error_code ec;
   fs::remove_all(staging, ec);
-  fs::copy(checkpoint, staging, fs::copy_options::recursive, ec);
-  if (ec) return Status::IoError("copying " + checkpoint + ": " + ec.message());
+  if (Status copied = LinkOrCopyCheckpoint(checkpoint, staging, options_.restore_hard_links);
+      !copied.ok()) {
+    fs::remove_all(staging, ec);
+    return copied;
+  }
   Status valid;
   {
     // Validate before it becomes visible: it must open as a placedb map; rename it inside.
