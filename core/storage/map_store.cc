@@ -35,6 +35,14 @@ namespace placedb {
 
 namespace {
 
+// Bytes an unprivileged writer may still use on the file system holding `path`; none when it
+// cannot be read.
+std::optional<uint64_t> AvailableBytes(const std::string& path) {
+  struct statvfs info {};
+  if (statvfs(path.c_str(), &info) != 0) return std::nullopt;
+  return uint64_t(info.f_bavail) * info.f_frsize;
+}
+
 constexpr char kMarkerFile[] = "PLACEDB_DATA_DIR";
 constexpr char kMarkerText[] = "placedb data directory, format 1\n";
 constexpr char kMapFormat[] = "placedb-map-1";
@@ -596,11 +604,11 @@ struct MapStorage {
   // Free space of the file system beyond what flushing the memtables takes, compared to
   // `margin`. True when the free space cannot be read.
   bool HasRoom(uint64_t margin) const {
-    struct statvfs info {};
-    if (statvfs(path.c_str(), &info) != 0) return true;
+    const std::optional<uint64_t> available = AvailableBytes(path);
+    if (!available) return true;
     uint64_t memtables = 0;
     db->GetAggregatedIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables, &memtables);
-    return uint64_t(info.f_bavail) * info.f_frsize >= memtables + margin;
+    return *available >= memtables + margin;
   }
 
   Status WriteError(const rocksdb::Status& s, const std::string& what) {
@@ -2057,6 +2065,15 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
   fs::rename(staging, path, ec);
   if (ec) return Status::IoError("restoring map '" + name + "': " + ec.message());
   return Status::Ok();
+}
+
+Status DataDirectory::CheckRoomFor(uint64_t bytes, const std::string& what) const {
+  const std::optional<uint64_t> available = AvailableBytes(path_);
+  if (!available || *available >= bytes + options_.disk_reserve_bytes) return Status::Ok();
+  return Status::ResourceExhausted("disk full: " + what + " needs " + std::to_string(bytes) +
+                                   " bytes; the data directory has " + std::to_string(*available) +
+                                   " free, " + std::to_string(options_.disk_reserve_bytes) +
+                                   " of them reserved (storage.disk_reserve_bytes)");
 }
 
 void DataDirectory::CloseMap(const std::string& name) {

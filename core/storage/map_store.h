@@ -293,6 +293,9 @@ class DataDirectory {
   // names only, so the checkpoint stays whole), copied when the link fails (another file system:
   // EXDEV, or EPERM); every other file is copied. On failure nothing is left under maps/.
   Status RestoreMap(const std::string& name, const std::string& checkpoint_directory);
+  // RESOURCE_EXHAUSTED ("disk full", naming `what`) unless the data directory's file system has
+  // `bytes` free beyond StorageOptions::disk_reserve_bytes; OK when its free space cannot be read.
+  Status CheckRoomFor(uint64_t bytes, const std::string& what) const;
   // Closes a map (it stays on disk); holders of the shared_ptr keep it until they let go.
   void CloseMap(const std::string& name);
 

@@ -370,6 +370,14 @@ Status SnapshotStore::Restore(const std::string& id, const std::string& new_map)
   return directory_->RestoreMap(new_map, (fs::path(path_) / id / kCheckpoint).string());
 }
 
+Status SnapshotStore::CheckRoomForImport(uint64_t archive_bytes) const {
+  const uint64_t needed = archive_bytes > UINT64_MAX / 2
+                              ? UINT64_MAX - directory_->options().disk_reserve_bytes
+                              : 2 * archive_bytes;
+  return directory_->CheckRoomFor(
+      needed, "importing a snapshot archive of " + std::to_string(archive_bytes) + " bytes");
+}
+
 Result<uint64_t> SnapshotStore::ArchiveBytes(const std::string& id) const {
   MutexLock lock(mutex_);
   PLACEDB_RETURN_IF_ERROR(GetLocked(id).status());

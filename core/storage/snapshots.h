@@ -85,6 +85,11 @@ class SnapshotStore {
   Result<SnapshotInfo> Import(const std::string& archive_path,
                               const DataDirectory::VocabularyFor& vocabulary);
 
+  // RESOURCE_EXHAUSTED ("disk full") unless the data directory has room for importing an archive
+  // of `archive_bytes`: the archive spooled before Import and the copy Import unpacks from it,
+  // beyond StorageOptions::disk_reserve_bytes (DataDirectory::CheckRoomFor).
+  Status CheckRoomForImport(uint64_t archive_bytes) const;
+
   const std::string& path() const { return path_; }
 
  private:
