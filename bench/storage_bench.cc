@@ -19,6 +19,7 @@
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
 //                              [--only persist|dynamics|snapshots] [--snapshot-places 10000]
+//                              [--keep 1]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -141,6 +142,7 @@ struct Options {
   bool dynamics_only = false;   // --only dynamics: section 2b alone
   bool snapshots_only = false;  // --only snapshots: section 4 alone
   size_t snapshot_places = 10000;
+  bool keep = false;  // --keep 1: the work directory stays (bench/snapshots_wire.sh serves it)
 };
 
 // The command line; an exit code when the program must stop (usage error).
@@ -151,7 +153,7 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       std::fprintf(stderr,
                    "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
                    "[--reopen 10000,100000] [--shared DIR] [--only persist|dynamics|snapshots] "
-                   "[--snapshot-places N]\n");
+                   "[--snapshot-places N] [--keep 1]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -172,6 +174,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       options->dynamics_only = true;
     } else if (arg == "--only" && value == "snapshots") {
       options->snapshots_only = true;
+    } else if (arg == "--keep") {
+      options->keep = value == "1";
     } else if (arg == "--snapshot-places") {
       options->snapshot_places = std::stoul(value);
     } else {
@@ -472,7 +476,7 @@ int main(int argc, char** argv) {
       !options.persist_only && !options.dynamics_only && !options.snapshots_only;
   if (options.snapshots_only) {
     if (!BenchSnapshots(work_dir, frames, *vocabulary, options.snapshot_places)) return 1;
-    fs::remove_all(work_dir);
+    if (!options.keep) fs::remove_all(work_dir);
     return 0;
   }
   if (everything && !BenchFiltering(work_dir, frames, *vocabulary)) return 1;
