@@ -508,3 +508,46 @@ TEST_F(SnapshotsTest, RestoreHardLinksTheSnapshotsTablesAndLeavesTheSnapshotWhol
 
 }  // namespace
 }  // namespace placedb
+
+namespace placedb {
+namespace {
+
+// Verification runs without the store's lock: the vocabulary resolver, called in the middle of
+// it, lists, reads and deletes other snapshots (this would deadlock if the lock were held), for
+// Create and Import alike; the snapshot made then is whole.
+TEST_F(SnapshotsTest, OtherOperationsGoOnDuringAVerification) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  const SnapshotInfo first = MakeSnapshot(dir.get(), store->get(), "lab", 8);
+  ASSERT_FALSE(first.id.empty());
+  const std::string archive = WriteFile("lab.pdbsnap", Archive(**store, first.id));
+  auto map = dir->OpenMap("lab", vocabulary_);
+  ASSERT_TRUE(map.ok());
+  std::vector<std::string> seen;
+  auto meanwhile = [&](const std::string& victim) {
+    return [&, victim, resolve = Resolver(vocabulary_)](const MapInfo& info) {
+      for (const SnapshotInfo& s : (*store)->List()) seen.push_back(s.id);
+      EXPECT_TRUE((*store)->Get(victim).ok());
+      EXPECT_TRUE((*store)->Delete(victim).ok());
+      return resolve(info);
+    };
+  };
+  auto second = (*store)->Create(**map, meanwhile(first.id));
+  ASSERT_TRUE(second.ok()) << second.status().ToString();
+  EXPECT_EQ(seen, std::vector<std::string>{first.id});  // the one being made is not listed
+  seen.clear();
+  auto imported = (*store)->Import(archive, meanwhile(second->id));
+  ASSERT_TRUE(imported.ok()) << imported.status().ToString();
+  EXPECT_EQ(seen, std::vector<std::string>{second->id});
+  ASSERT_EQ((*store)->List().size(), 1u);
+  EXPECT_EQ((*store)->List().front().id, imported->id);
+  EXPECT_EQ(imported->places, first.places);
+  ASSERT_TRUE((*store)->Restore(imported->id, "copy").ok());
+  auto copy = dir->OpenMap("copy", vocabulary_);
+  ASSERT_TRUE(copy.ok()) << copy.status().ToString();
+  EXPECT_EQ(AskAll(**copy, queries_), AskAll(**map, queries_));
+}
+
+}  // namespace
+}  // namespace placedb

@@ -2067,12 +2067,13 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
   return Status::Ok();
 }
 
-Status DataDirectory::CheckRoomFor(uint64_t bytes, const std::string& what) const {
-  const std::optional<uint64_t> available = AvailableBytes(path_);
-  if (!available || *available >= bytes + options_.disk_reserve_bytes) return Status::Ok();
+Status CheckRoomFor(const std::string& path, uint64_t bytes, uint64_t reserve_bytes,
+                    const std::string& what) {
+  const std::optional<uint64_t> available = AvailableBytes(path);
+  if (!available || *available >= bytes + reserve_bytes) return Status::Ok();
   return Status::ResourceExhausted("disk full: " + what + " needs " + std::to_string(bytes) +
                                    " bytes; the data directory has " + std::to_string(*available) +
-                                   " free, " + std::to_string(options_.disk_reserve_bytes) +
+                                   " free, " + std::to_string(reserve_bytes) +
                                    " of them reserved (storage.disk_reserve_bytes)");
 }
 

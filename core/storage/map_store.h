@@ -237,6 +237,12 @@ class PlaceMap {
   bool closed_ GUARDED_BY(lifecycle_) = false;
 };
 
+// RESOURCE_EXHAUSTED ("disk full", naming `what`) unless the file system holding `path` has
+// `bytes` free beyond `reserve_bytes` (StorageOptions::disk_reserve_bytes); OK when its free space
+// cannot be read.
+Status CheckRoomFor(const std::string& path, uint64_t bytes, uint64_t reserve_bytes,
+                    const std::string& what);
+
 class DataDirectory {
  public:
   // Creates the directory when missing. A non-empty directory without placedb's marker file,
@@ -293,9 +299,6 @@ class DataDirectory {
   // names only, so the checkpoint stays whole), copied when the link fails (another file system:
   // EXDEV, or EPERM); every other file is copied. On failure nothing is left under maps/.
   Status RestoreMap(const std::string& name, const std::string& checkpoint_directory);
-  // RESOURCE_EXHAUSTED ("disk full", naming `what`) unless the data directory's file system has
-  // `bytes` free beyond StorageOptions::disk_reserve_bytes; OK when its free space cannot be read.
-  Status CheckRoomFor(uint64_t bytes, const std::string& what) const;
   // Closes a map (it stays on disk); holders of the shared_ptr keep it until they let go.
   void CloseMap(const std::string& name);
 
