@@ -1369,13 +1369,13 @@ grpc::Status PlaceDbService::UploadSnapshotStream(
       }
     }
     received += chunk.data().size();
+    metrics_->SnapshotBytesReceived(chunk.data().size());
     if (received > limit) {
       return Finish("UploadSnapshot", context,
                     grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
                                  "the upload is longer than limits.max_snapshot_bytes = " +
                                      std::to_string(limit)));
     }
-    metrics_->SnapshotBytesReceived(chunk.data().size());
     if (expected && received > expected) {
       return Finish("UploadSnapshot", context,
                     ToGrpc(Status::InvalidArgument("archive_bytes: the upload is longer than the " +
