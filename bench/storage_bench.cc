@@ -12,13 +12,19 @@
 //  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
 //     places), committed by 2 writers, then the map is closed and reopened.
+//  4. Snapshots (issue 15, --only snapshots): a map of --snapshot-places (10k) places built as in
+//     3; SnapshotStore::Create (checkpoint + verification), WriteArchive to a sink that only
+//     counts bytes and to a file, Import of that file into a second data directory, Restore
+//     there; times, bytes on disk and archive bytes.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
-//                              [--only persist|dynamics]
+//                              [--only persist|dynamics|snapshots] [--snapshot-places 10000]
+//                              [--keep 1]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <optional>
@@ -28,6 +34,7 @@
 
 #include "bench/bench_output.h"
 #include "core/storage/map_store.h"
+#include "core/storage/snapshots.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;
@@ -132,7 +139,10 @@ struct Options {
   std::string vocabulary_path, work_dir, shared = PLACEDB_SHARED_DIR;
   std::vector<size_t> reopen_sizes = {10000, 100000};
   bool persist_only = false;
-  bool dynamics_only = false;  // --only dynamics: section 2b alone
+  bool dynamics_only = false;   // --only dynamics: section 2b alone
+  bool snapshots_only = false;  // --only snapshots: section 4 alone
+  size_t snapshot_places = 10000;
+  bool keep = false;  // --keep 1: the work directory stays (bench/snapshots_wire.sh serves it)
 };
 
 // The command line; an exit code when the program must stop (usage error).
@@ -142,7 +152,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
     if (i + 1 >= argc) {
       std::fprintf(stderr,
                    "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-                   "[--reopen 10000,100000] [--shared DIR] [--only persist|dynamics]\n");
+                   "[--reopen 10000,100000] [--shared DIR] [--only persist|dynamics|snapshots] "
+                   "[--snapshot-places N] [--keep 1]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -161,6 +172,12 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       options->persist_only = true;
     } else if (arg == "--only" && value == "dynamics") {
       options->dynamics_only = true;
+    } else if (arg == "--only" && value == "snapshots") {
+      options->snapshots_only = true;
+    } else if (arg == "--keep") {
+      options->keep = value == "1";
+    } else if (arg == "--snapshot-places") {
+      options->snapshot_places = std::stoul(value);
     } else {
       std::fprintf(stderr, "unknown option %s\n", arg.c_str());
       return 2;
@@ -326,6 +343,117 @@ bool BenchReopen(const std::string& work_dir, const std::vector<Frame>& frames,
   return true;
 }
 
+// Bytes of the regular files under `path`; with `unshared_only`, of those with one link only.
+uint64_t TreeBytes(const std::string& path, bool unshared_only = false) {
+  uint64_t bytes = 0;
+  for (const auto& entry : fs::recursive_directory_iterator(path)) {
+    if (!entry.is_regular_file()) continue;
+    if (unshared_only && entry.hard_link_count() > 1) continue;
+    bytes += entry.file_size();
+  }
+  return bytes;
+}
+
+// 4. A snapshot's life at `places` places: create (checkpoint + verification), archive, import
+// into another data directory, restore. False after an error (printed).
+bool BenchSnapshots(const std::string& work_dir, const std::vector<Frame>& frames,
+                    const std::shared_ptr<const Vocabulary>& vocabulary, size_t places) {
+  std::printf("# snapshot workload: %zu places as in the reopen workload\n", places);
+  auto fail = [](const Status& status) {
+    std::fprintf(stderr, "%s\n", status.ToString().c_str());
+    return false;
+  };
+  const DataDirectory::VocabularyFor resolve = [&](const MapInfo&) -> Result<AnyVocabulary> {
+    return AnyVocabulary(vocabulary);
+  };
+  const std::string n = std::to_string(places);
+  auto source_dir = DataDirectory::Open(work_dir + "/snapshot-source");
+  if (!source_dir.ok()) return fail(source_dir.status());
+  auto map = (*source_dir)->CreateMap("m", MapOptions(), vocabulary);
+  if (!map.ok()) return fail(map.status());
+  AddNoisyPlaces(**map, frames, 0, places);
+  Print("map_bytes_on_disk_at_" + n + "_places", double((*map)->Stats().bytes_on_disk), "bytes");
+  auto source = SnapshotStore::Open(source_dir->get());
+  if (!source.ok()) return fail(source.status());
+
+  double start = NowMs();
+  auto snapshot = (*source)->Create(**map, resolve);
+  if (!snapshot.ok()) return fail(snapshot.status());
+  Print("snapshot_create_at_" + n + "_places", (NowMs() - start) / 1000.0, "s");
+  Print("snapshot_bytes_at_" + n + "_places", double(snapshot->bytes), "bytes");
+  auto announced = (*source)->ArchiveBytes(snapshot->id);
+  if (!announced.ok()) return fail(announced.status());
+
+  // The archive as a download reads it (files + SHA-256), then as a client stores it.
+  uint64_t counted = 0;
+  start = NowMs();
+  Status written = (*source)->WriteArchive(snapshot->id, size_t(256) << 10,
+                                           [&](std::string_view bytes) -> Status {
+                                             counted += bytes.size();
+                                             return Status::Ok();
+                                           });
+  if (!written.ok()) return fail(written);
+  Print("snapshot_archive_to_counter_at_" + n + "_places", (NowMs() - start) / 1000.0, "s");
+  Print("snapshot_archive_bytes_at_" + n + "_places", double(counted), "bytes");
+  if (counted != *announced)
+    return fail(Status::Internal("ArchiveBytes disagrees with the archive"));
+  const std::string archive = work_dir + "/snapshot.pdbsnap";
+  {
+    std::ofstream out(archive, std::ios::binary | std::ios::trunc);
+    start = NowMs();
+    written = (*source)->WriteArchive(snapshot->id, size_t(256) << 10,
+                                      [&](std::string_view bytes) -> Status {
+                                        out.write(bytes.data(), std::streamsize(bytes.size()));
+                                        return out ? Status::Ok() : Status::IoError("writing");
+                                      });
+    out.close();
+    if (!written.ok()) return fail(written);
+    Print("snapshot_archive_to_file_at_" + n + "_places", (NowMs() - start) / 1000.0, "s");
+  }
+
+  auto target_dir = DataDirectory::Open(work_dir + "/snapshot-target");
+  if (!target_dir.ok()) return fail(target_dir.status());
+  auto target = SnapshotStore::Open(target_dir->get());
+  if (!target.ok()) return fail(target.status());
+  start = NowMs();
+  auto imported = (*target)->Import(archive, resolve);
+  if (!imported.ok()) return fail(imported.status());
+  Print("snapshot_import_at_" + n + "_places", (NowMs() - start) / 1000.0, "s");
+  // Restore with every file copied (the baseline: StorageOptions::restore_hard_links off, same
+  // file system, same checkpoint), then as the server does it (tables hard-linked).
+  {
+    StorageOptions copying;
+    copying.restore_hard_links = false;
+    auto copy_dir = DataDirectory::Open(work_dir + "/snapshot-copy", copying);
+    if (!copy_dir.ok()) return fail(copy_dir.status());
+    start = NowMs();
+    Status copied =
+        (*copy_dir)->RestoreMap("restored", (*target)->path() + "/" + imported->id + "/checkpoint");
+    if (!copied.ok()) return fail(copied);
+    Print("snapshot_restore_copying_at_" + n + "_places", (NowMs() - start) / 1000.0, "s");
+    Print("snapshot_restore_copying_new_bytes_at_" + n + "_places",
+          double(TreeBytes(work_dir + "/snapshot-copy/maps/restored", /*unshared_only=*/true)),
+          "bytes");
+  }
+  start = NowMs();
+  Status restored = (*target)->Restore(imported->id, "restored");
+  if (!restored.ok()) return fail(restored);
+  Print("snapshot_restore_at_" + n + "_places", (NowMs() - start) / 1000.0, "s");
+  Print("snapshot_restored_map_bytes_at_" + n + "_places",
+        double(TreeBytes(work_dir + "/snapshot-target/maps/restored")), "bytes");
+  // What the restore added to the disk: files shared with the snapshot (hard links) are not new.
+  Print("snapshot_restore_new_bytes_at_" + n + "_places",
+        double(TreeBytes(work_dir + "/snapshot-target/maps/restored", /*unshared_only=*/true)),
+        "bytes");
+  start = NowMs();
+  auto reopened = (*target_dir)->OpenMap("restored", vocabulary);
+  if (!reopened.ok()) return fail(reopened.status());
+  Print("snapshot_restored_open_at_" + n + "_places", (NowMs() - start) / 1000.0, "s");
+  if ((*reopened)->Stats().database.places != snapshot->places) {
+    return fail(Status::Internal("the restored map does not hold the snapshot's places"));
+  }
+  return true;
+}
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -344,7 +472,13 @@ int main(int argc, char** argv) {
       "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",
       frames.size(), (*vocabulary)->word_count());
 
-  const bool everything = !options.persist_only && !options.dynamics_only;
+  const bool everything =
+      !options.persist_only && !options.dynamics_only && !options.snapshots_only;
+  if (options.snapshots_only) {
+    if (!BenchSnapshots(work_dir, frames, *vocabulary, options.snapshot_places)) return 1;
+    if (!options.keep) fs::remove_all(work_dir);
+    return 0;
+  }
   if (everything && !BenchFiltering(work_dir, frames, *vocabulary)) return 1;
   // 2. Sync policies under concurrent writers: the same 701 frames, N writer threads; with the
   // ACKED high-water mark (the default) and without it, in the order with, without, without,
@@ -379,6 +513,9 @@ int main(int argc, char** argv) {
     Print("dynamics_cost", 100.0 * (ms[1] / ms[0] - 1.0), "%");
   }
   if (everything && !BenchReopen(work_dir, frames, *vocabulary, options.reopen_sizes)) {
+    return 1;
+  }
+  if (everything && !BenchSnapshots(work_dir, frames, *vocabulary, options.snapshot_places)) {
     return 1;
   }
   fs::remove_all(work_dir);

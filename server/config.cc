@@ -137,6 +137,7 @@ Status ValidateServerConfig(const ServerConfig& c) {
   if (l.stream_idle_timeout_ms < 100 || l.stream_idle_timeout_ms > 86400000) {
     return Bad("limits.stream_idle_timeout_ms", "must be in [100, 86400000]");
   }
+  if (l.max_snapshot_bytes < 1024) return Bad("limits.max_snapshot_bytes", "must be >= 1 KiB");
   // Every read is granted a whole message first (docs/service.md, "Memory budget"): the budget
   // must hold a few, beside the block cache. The vocabularies are checked when loaded.
   if (l.memory_budget_bytes < c.storage.block_cache_bytes + 4 * l.max_message_bytes) {
@@ -290,7 +291,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
                  "max_boxes_per_frame", "max_concurrent_streams", "max_queued_frames",
                  "max_inflight_per_stream", "max_concurrent_unary", "unary_queue_wait_ms",
                  "memory_quota_bytes", "stream_header_timeout_ms", "stream_idle_timeout_ms",
-                 "memory_budget_bytes", "memory_wait_ms"}));
+                 "memory_budget_bytes", "memory_wait_ms", "max_snapshot_bytes"}));
     Limits& x = c->limits;
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_message_bytes", &x.max_message_bytes));
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_image_pixels", &x.max_image_pixels));
@@ -311,6 +312,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
         r.Read(l, "limits", "stream_idle_timeout_ms", &x.stream_idle_timeout_ms));
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "memory_budget_bytes", &x.memory_budget_bytes));
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "memory_wait_ms", &x.memory_wait_ms));
+    PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_snapshot_bytes", &x.max_snapshot_bytes));
   }
   if (const YAML::Node d = root["detector"]; d) {
     PLACEDB_RETURN_IF_ERROR(
@@ -403,6 +405,12 @@ Status ApplyEnvironment(ServerConfig* c, const std::function<const char*(const c
       return Bad("PLACEDB_MEMORY_BUDGET_BYTES", "'" + *v + "' is not a byte count");
     }
     c->limits.memory_budget_bytes = std::stoull(*v);
+  }
+  if (auto v = get("PLACEDB_MAX_SNAPSHOT_BYTES")) {
+    if (v->find_first_not_of("0123456789") != std::string::npos || v->size() > 19) {
+      return Bad("PLACEDB_MAX_SNAPSHOT_BYTES", "'" + *v + "' is not a byte count");
+    }
+    c->limits.max_snapshot_bytes = std::stoull(*v);
   }
   return Status::Ok();
 }
@@ -564,6 +572,7 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "stream_idle_timeout_ms" << YAML::Value << l.stream_idle_timeout_ms;
   e << YAML::Key << "memory_budget_bytes" << YAML::Value << l.memory_budget_bytes;
   e << YAML::Key << "memory_wait_ms" << YAML::Value << l.memory_wait_ms;
+  e << YAML::Key << "max_snapshot_bytes" << YAML::Value << l.max_snapshot_bytes;
   e << YAML::EndMap;
   e << YAML::Key << "shutdown_deadline_s" << YAML::Value << c.shutdown_deadline_s;
   const DetectorSettings& d = c.detector;

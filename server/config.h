@@ -24,7 +24,7 @@ struct Limits {
   uint64_t max_image_pixels = 4096 * 4096;          // width * height of any image, mask, depth
   uint32_t max_descriptors_per_frame = 10000;       // keypoints sent, or a map's ORB/SIFT budget
   uint32_t max_boxes_per_frame = 256;               // agent boxes of one observation
-  uint32_t max_concurrent_streams = 32;             // open Ingest streams
+  uint32_t max_concurrent_streams = 32;             // Ingest streams, snapshot transfers
   uint32_t max_queued_frames = 32;                  // frames waiting for a worker (all calls)
   uint32_t max_inflight_per_stream = 8;             // frames read but not yet answered, per stream
   uint32_t max_concurrent_unary = 64;               // unary calls being served at once
@@ -42,6 +42,10 @@ struct Limits {
   // (RESOURCE_EXHAUSTED naming this key).
   uint64_t memory_budget_bytes = uint64_t(1) << 30;
   uint32_t memory_wait_ms = 2000;
+  // The largest snapshot archive an UploadSnapshot may bring (announced or received). An
+  // announced size must also fit the data directory's free space minus
+  // storage.disk_reserve_bytes.
+  uint64_t max_snapshot_bytes = uint64_t(64) << 30;
 
   // The ones an observation is checked against when it is decoded.
   wire::FrameLimits frame() const {
@@ -148,7 +152,7 @@ Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config);  // 
 // PLACEDB_METRICS_TLS, PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL,
 // PLACEDB_MEMORY_BUDGET_BYTES, PLACEDB_TLS_CERT_FILE, PLACEDB_TLS_KEY_FILE,
 // PLACEDB_TLS_CLIENT_CA_FILE, PLACEDB_TOKENS_FILE, PLACEDB_ALLOW_UNAUTHENTICATED_REMOTE. `getenv`
-// is injectable for tests.
+// is injectable for tests. Also PLACEDB_MAX_SNAPSHOT_BYTES (limits.max_snapshot_bytes).
 Status ApplyEnvironment(ServerConfig* config,
                         const std::function<const char*(const char*)>& getenv);
 

@@ -93,8 +93,9 @@ class MapRegistry {
   std::vector<std::shared_ptr<const MapEntry>> List() const;  // sorted by name
 
   // Snapshots (core/storage/snapshots.h) of the served maps, verified with the configured
-  // vocabularies. Create, Import and Restore are serialised with Create/Delete of maps; a
-  // restored map is served at once. IO_ERROR once closed (shutting down).
+  // vocabularies. Restore is serialised with Create/Delete of maps and the restored map is served
+  // at once; CreateSnapshot and ImportSnapshot (checkpoint, verification) hold up neither.
+  // IO_ERROR once closed (shutting down).
   Result<SnapshotInfo> CreateSnapshot(const std::string& map);
   Result<SnapshotInfo> ImportSnapshot(const std::string& archive_path);
   Result<std::shared_ptr<const MapEntry>> RestoreSnapshot(const std::string& id,

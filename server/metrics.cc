@@ -257,15 +257,16 @@ Metrics::Metrics()
                        .Register(*registry_)),
       streams_(BuildGauge()
                    .Name("placedb_streams_in_flight")
-                   .Help("Open Ingest streams")
+                   .Help("Open streams: Ingest, snapshot downloads and uploads")
                    .Register(*registry_)
                    .Add({})),
       streams_reclaimed_(BuildCounter()
                              .Name("placedb_ingest_streams_closed_total")
-                             .Help("Ingest streams the server closed, by reason (header_timeout: "
-                                   "no IngestHeader in time, idle_timeout: nothing received for "
-                                   "too long with no frame in flight, write_timeout: the client "
-                                   "did not take an answer for too long)")
+                             .Help("Ingest streams and snapshot transfers the server closed, by "
+                                   "reason (header_timeout: no IngestHeader in time, "
+                                   "idle_timeout: nothing received for too long with no frame in "
+                                   "flight, write_timeout: the client did not take an answer or "
+                                   "chunk for too long)")
                              .Register(*registry_)),
       queue_depth_(BuildGauge()
                        .Name("placedb_queue_depth")
@@ -287,10 +288,27 @@ Metrics::Metrics()
                           .Name("placedb_tokens_reloads_total")
                           .Help("Reloads of the tokens file, by result (ok, or error: the "
                                 "previous principals were kept)")
-                          .Register(*registry_)) {
+                          .Register(*registry_)),
+      snapshots_(BuildGauge()
+                     .Name("placedb_snapshots")
+                     .Help("Snapshots kept in the data directory, by kind (count; bytes: their "
+                           "checkpoints' files)")
+                     .Register(*registry_)),
+      snapshot_transfer_(BuildCounter()
+                             .Name("placedb_snapshot_transfer_bytes_total")
+                             .Help("Snapshot archive bytes sent (download) and received (upload)")
+                             .Register(*registry_)),
+      snapshot_seconds_(BuildHistogram()
+                            .Name("placedb_snapshot_seconds")
+                            .Help("Time of successful snapshot operations, by operation (create, "
+                                  "import: both with verification; restore)")
+                            .Register(*registry_)) {
   // Present from the start (at 0), so that a rate over them is defined before the first close.
   for (const char* reason : {"header_timeout", "idle_timeout", "write_timeout"}) {
     streams_reclaimed_.Add({{"reason", reason}});
+  }
+  for (const char* direction : {"download", "upload"}) {
+    snapshot_transfer_.Add({{"direction", direction}});
   }
 }
 
@@ -514,6 +532,19 @@ void Metrics::StreamClosed() {
 }
 void Metrics::StreamReclaimed(const std::string& reason) {
   streams_reclaimed_.Add({{"reason", reason}}).Increment();
+}
+void Metrics::SetSnapshotGauges(double count, double bytes) {
+  snapshots_.Add({{"kind", "count"}}).Set(count);
+  snapshots_.Add({{"kind", "bytes"}}).Set(bytes);
+}
+void Metrics::SnapshotBytesSent(uint64_t bytes) {
+  snapshot_transfer_.Add({{"direction", "download"}}).Increment(double(bytes));
+}
+void Metrics::SnapshotBytesReceived(uint64_t bytes) {
+  snapshot_transfer_.Add({{"direction", "upload"}}).Increment(double(bytes));
+}
+void Metrics::ObserveSnapshot(const std::string& operation, double seconds) {
+  snapshot_seconds_.Add({{"operation", operation}}, SecondsBuckets()).Observe(seconds);
 }
 void Metrics::SetQueueDepth(size_t depth) {
   queue_depth_.Set(double(depth));

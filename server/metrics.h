@@ -94,8 +94,17 @@ class Metrics {
   void ForgetMap(const std::string& map);  // a deleted map's series go away
   void StreamOpened();
   void StreamClosed();
-  // The server closed an Ingest stream: "header_timeout", "idle_timeout" or "write_timeout".
+  // The server closed an Ingest stream or a snapshot transfer: "header_timeout" (Ingest only),
+  // "idle_timeout" or "write_timeout".
   void StreamReclaimed(const std::string& reason);
+  // Snapshots: placedb_snapshots{kind="count"|"bytes"} (the snapshot store, set before each
+  // scrape), placedb_snapshot_transfer_bytes_total{direction="download"|"upload"} (archive bytes
+  // sent and received) and placedb_snapshot_seconds{operation="create"|"import"|"restore"}
+  // (successful operations, verification included).
+  void SetSnapshotGauges(double count, double bytes);
+  void SnapshotBytesSent(uint64_t bytes);
+  void SnapshotBytesReceived(uint64_t bytes);
+  void ObserveSnapshot(const std::string& operation, double seconds);
   void SetQueueDepth(size_t depth);
   // The memory budget (limits.memory_budget_bytes): its limit, fixed part and bytes in use.
   void SetMemoryBudget(uint64_t limit, uint64_t fixed, uint64_t in_use);
@@ -129,6 +138,9 @@ class Metrics {
   prometheus::Histogram& detector_seconds_;
   prometheus::Family<prometheus::Counter>& auth_denied_;
   prometheus::Family<prometheus::Counter>& tokens_reloads_;
+  prometheus::Family<prometheus::Gauge>& snapshots_;
+  prometheus::Family<prometheus::Counter>& snapshot_transfer_;
+  prometheus::Family<prometheus::Histogram>& snapshot_seconds_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
   std::unique_ptr<httplib::Server> http_;  // an httplib::SSLServer with Endpoint::tls
   std::thread http_thread_;                // http_'s accept loop

@@ -681,12 +681,12 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
 
 // ---- Ingest -------------------------------------------------------------------------------------
 
-// One Ingest call as the watchdog sees it: listed in watches_ from the handler's start to its end.
-// The handler thread, the stream's frames (on workers and the delivery thread) and the watchdog
-// share it under its own mutex.
+// One Ingest call (or snapshot transfer) as the watchdog sees it: listed in watches_ from the
+// handler's start to its end. The handler thread, the stream's frames (on workers and the
+// delivery thread) and the watchdog share it under its own mutex.
 struct PlaceDbService::Watch {
-  explicit Watch(grpc::ServerContext* context)
-      : context(context), peer(context->peer()), opened(Clock::now()) {}
+  Watch(grpc::ServerContext* context, const char* method)
+      : context(context), method(method), peer(context->peer()), opened(Clock::now()) {}
 
   void HeaderArrived() {
     MutexLock lock(mutex);
@@ -710,6 +710,11 @@ struct PlaceDbService::Watch {
     ++in_flight;
   }
   void Released() { FrameDone(); }
+  // An upload's chunk arrived.
+  void Received() {
+    MutexLock lock(mutex);
+    quiet_since = Clock::now();
+  }
   // Around the delivery thread's Write(), which blocks while the client takes no answers.
   void Writing() {
     MutexLock lock(mutex);
@@ -728,6 +733,7 @@ struct PlaceDbService::Watch {
   }
 
   grpc::ServerContext* const context;
+  const char* const method;  // "Ingest", "DownloadSnapshot", "UploadSnapshot"
   const std::string peer;
   const Clock::time_point opened;
   Mutex mutex;
@@ -739,6 +745,48 @@ struct PlaceDbService::Watch {
   std::optional<Clock::time_point> writing_since GUARDED_BY(mutex);  // an answer being written
   const char* closed_reason GUARDED_BY(mutex) = nullptr;             // the metric's label
   std::string closed_why GUARDED_BY(mutex);
+};
+
+// Lists a Watch for the scope's life (max_concurrent_streams, the watchdog, the streams gauge);
+// not listed, with status() UNAVAILABLE while draining or RESOURCE_EXHAUSTED over the limit.
+class PlaceDbService::WatchScope {
+ public:
+  WatchScope(PlaceDbService* service, Watch* watch) : service_(service), watch_(watch) {
+    const size_t limit = service_->config_.limits.max_concurrent_streams;
+    {
+      MutexLock lock(service_->streams_mutex_);
+      if (service_->draining_) {
+        status_ = service_->Unavailable();
+        return;
+      }
+      if (service_->watches_.size() >= limit) {
+        status_ = grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                               "limits.max_concurrent_streams = " + std::to_string(limit) +
+                                   " streams (Ingest, snapshot downloads and uploads) are open; "
+                                   "retry later");
+        return;
+      }
+      service_->watches_.insert(watch_);
+    }
+    service_->metrics_->StreamOpened();
+  }
+  // Unlisted before the Watch goes: the watchdog reaches it only through the set.
+  ~WatchScope() {
+    if (!status_.ok()) return;
+    {
+      MutexLock lock(service_->streams_mutex_);
+      service_->watches_.erase(watch_);
+    }
+    service_->metrics_->StreamClosed();
+  }
+  WatchScope(const WatchScope&) = delete;
+  WatchScope& operator=(const WatchScope&) = delete;
+  const grpc::Status& status() const { return status_; }
+
+ private:
+  PlaceDbService* const service_;
+  Watch* const watch_;
+  grpc::Status status_;
 };
 
 // One open Ingest call: the handler thread reads, the pipeline does the rest.
@@ -939,32 +987,9 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
 
   // Admission first: a stream holds a handler thread from now on, header or not, so it counts
   // against the limit from now on; over it, the thread is freed at once.
-  Watch watch(context);
-  {
-    MutexLock lock(streams_mutex_);
-    if (draining_) return Finish("Ingest", context, Unavailable());
-    if (watches_.size() >= limits.max_concurrent_streams) {
-      return Finish("Ingest", context,
-                    grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                                 "limits.max_concurrent_streams = " +
-                                     std::to_string(limits.max_concurrent_streams) +
-                                     " Ingest streams are open; retry later"));
-    }
-    watches_.insert(&watch);
-  }
-  metrics_->StreamOpened();
-  // Unlisted on every way out, before `watch` goes: the watchdog reaches it only through the set.
-  struct Unlist {
-    PlaceDbService* service;
-    Watch* watch;
-    ~Unlist() {
-      {
-        MutexLock lock(service->streams_mutex_);
-        service->watches_.erase(watch);
-      }
-      service->metrics_->StreamClosed();
-    }
-  } unlist{this, &watch};
+  Watch watch(context, "Ingest");
+  const WatchScope listed(this, &watch);
+  if (!listed.status().ok()) return Finish("Ingest", context, listed.status());
 
   // The header names the map. The watchdog cancels the call if it does not come in time.
   v1::IngestRequest first;
@@ -1116,6 +1141,10 @@ void PlaceDbService::BeginDrain() {
   for (Watch* watch : watches_) {
     MutexLock watch_lock(watch->mutex);
     if (!watch->header) watch->context->TryCancel();  // blocked reading its header
+    // An upload still reading (not importing): the client sends it again to another server.
+    if (std::string_view(watch->method) == "UploadSnapshot" && watch->in_flight == 0) {
+      watch->context->TryCancel();
+    }
   }
   // An idle stream's handler is blocked in Read() and is cancelled now; a busy one once its last
   // frame is answered (IngestPipeline::Drain).
@@ -1143,6 +1172,7 @@ void PlaceDbService::ReclaimExpired(Clock::time_point now) {
   for (Watch* watch : watches_) {
     MutexLock lock(watch->mutex);
     if (watch->closed_reason) continue;  // already cancelled; its handler is on its way out
+    const bool ingest = std::string_view(watch->method) == "Ingest";
     if (!watch->header) {
       if (now - watch->opened < header_timeout) continue;
       watch->closed_reason = "header_timeout";
@@ -1152,12 +1182,14 @@ void PlaceDbService::ReclaimExpired(Clock::time_point now) {
       // Not idle (an answer is pending), but the client stopped reading: flow control holds the
       // write and, through it, the stream's thread and slot.
       watch->closed_reason = "write_timeout";
-      watch->closed_why = "the client took no answer within limits.stream_idle_timeout_ms = " +
+      watch->closed_why = std::string("the client took no ") + (ingest ? "answer" : "chunk") +
+                          " within limits.stream_idle_timeout_ms = " +
                           std::to_string(limits.stream_idle_timeout_ms) + " ms";
     } else if (watch->in_flight == 0 && now - watch->quiet_since >= idle_timeout) {
       watch->closed_reason = "idle_timeout";
       watch->closed_why =
-          "no frame in flight and nothing received within limits.stream_idle_timeout_ms = " +
+          std::string(ingest ? "no frame in flight and nothing received" : "nothing received") +
+          " within limits.stream_idle_timeout_ms = " +
           std::to_string(limits.stream_idle_timeout_ms) + " ms";
     } else {
       continue;
@@ -1166,13 +1198,19 @@ void PlaceDbService::ReclaimExpired(Clock::time_point now) {
     // Write() but to cancel it: the client sees CANCELLED; this log line and the metric say why.
     metrics_->StreamReclaimed(watch->closed_reason);  // counted before the client can see it
     watch->context->TryCancel();
-    spdlog::warn("ingest stream closed by the server peer={} reason={}: {} (open {:.3f}s)",
-                 watch->peer, watch->closed_reason, watch->closed_why,
+    spdlog::warn("{} stream closed by the server peer={} reason={}: {} (open {:.3f}s)",
+                 watch->method, watch->peer, watch->closed_reason, watch->closed_why,
                  std::chrono::duration<double>(now - watch->opened).count());
   }
 }
 
 void PlaceDbService::RefreshMapGauges() {
+  if (auto store = maps_->snapshots()) {
+    double bytes = 0;
+    const auto snapshots = store->List();
+    for (const SnapshotInfo& info : snapshots) bytes += double(info.bytes);
+    metrics_->SetSnapshotGauges(double(snapshots.size()), bytes);
+  }
   for (const auto& entry : maps_->List()) {
     metrics_->SetMapDamage(entry->name, entry->damaged, double(entry->places_lost()));
     if (!entry->map) continue;
@@ -1208,10 +1246,12 @@ grpc::Status PlaceDbService::CreateSnapshot(grpc::ServerContext* context,
                                             v1::Snapshot* response) {
   CallScope scope(this);
   if (draining_flag_) return Finish("CreateSnapshot", context, Unavailable());
+  const Clock::time_point start = Clock::now();
   auto info = maps_->CreateSnapshot(request->map());
   if (!info.ok()) {
     return Finish("CreateSnapshot", context, HidePaths(ToGrpc(info.status()), config_.data_dir));
   }
+  metrics_->ObserveSnapshot("create", MsSince(start) / 1000.0);
   SnapshotToProto(*info, response);
   spdlog::info("snapshot '{}' of map '{}' created: {} places, {} bytes, peer={}", info->id,
                info->map, info->places, info->bytes, Peer(context));
@@ -1250,10 +1290,12 @@ grpc::Status PlaceDbService::RestoreSnapshot(grpc::ServerContext* context,
   if (Status valid = ValidateSnapshotId(request->id()); !valid.ok()) {
     return Finish("RestoreSnapshot", context, ToGrpc(valid.WithContext("id")));
   }
+  const Clock::time_point start = Clock::now();
   auto entry = maps_->RestoreSnapshot(request->id(), request->new_map());
   if (!entry.ok()) {
     return Finish("RestoreSnapshot", context, HidePaths(ToGrpc(entry.status()), config_.data_dir));
   }
+  metrics_->ObserveSnapshot("restore", MsSince(start) / 1000.0);
   Describe(**entry, response);
   spdlog::info("snapshot '{}' restored as map '{}', peer={}", request->id(), request->new_map(),
                Peer(context));
@@ -1266,6 +1308,14 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
   CallScope scope(this);
   auto store = maps_->snapshots();
   if (!store || draining_flag_) return Finish("DownloadSnapshot", context, Unavailable());
+  // A stream like Ingest's: counted against max_concurrent_streams, and cancelled by the watchdog
+  // when the client takes no chunk for stream_idle_timeout_ms. Never idle otherwise: every pause
+  // between writes is the server reading its files.
+  Watch watch(context, "DownloadSnapshot");
+  const WatchScope listed(this, &watch);
+  if (!listed.status().ok()) return Finish("DownloadSnapshot", context, listed.status());
+  watch.HeaderArrived();  // the request is the whole header
+  watch.HeldBack();
   auto info = store->Get(request->id());
   if (!info.ok()) {
     return Finish("DownloadSnapshot", context,
@@ -1291,9 +1341,14 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
           first = false;
         }
         chunk.set_data(std::string(bytes));
-        if (!write(chunk)) return Status::Cancelled("the client went away during the download");
+        watch.Writing();
+        const bool sent = write(chunk);
+        watch.Written();
+        if (!sent) return Status::Cancelled("the client went away during the download");
+        metrics_->SnapshotBytesSent(bytes.size());
         return Status::Ok();
       });
+  if (auto closed = watch.Closed()) return Finish("DownloadSnapshot", context, *closed);
   if (drained) return Finish("DownloadSnapshot", context, Unavailable());
   if (!written.ok()) {
     return Finish("DownloadSnapshot", context, HidePaths(ToGrpc(written), config_.data_dir));
@@ -1309,6 +1364,13 @@ grpc::Status PlaceDbService::UploadSnapshotStream(
   CallScope scope(this);
   auto store = maps_->snapshots();
   if (!store || draining_flag_) return Finish("UploadSnapshot", context, Unavailable());
+  // A stream like Ingest's: counted against max_concurrent_streams, and cancelled by the watchdog
+  // when no chunk arrives for stream_idle_timeout_ms (the import after the last one is the
+  // server's work: not idle).
+  Watch watch(context, "UploadSnapshot");
+  const WatchScope listed(this, &watch);
+  if (!listed.status().ok()) return Finish("UploadSnapshot", context, listed.status());
+  watch.HeaderArrived();
   // The archive is spooled into a dot-file of the snapshots folder (removed on every path, and by
   // SnapshotStore::Open after a crash), then imported.
   static std::atomic<uint64_t> uploads{0};
@@ -1328,9 +1390,36 @@ grpc::Status PlaceDbService::UploadSnapshotStream(
     if (grpc::Status status = read(&chunk, &done); !status.ok()) {
       return Finish("UploadSnapshot", context, status);
     }
+    if (auto closed = watch.Closed()) return Finish("UploadSnapshot", context, *closed);
+    if (context->IsCancelled()) {
+      return Finish("UploadSnapshot", context,
+                    draining_flag_ ? Unavailable() : Cancelled(context, "during the upload"));
+    }
     if (done) break;
-    if (n == 0) expected = chunk.archive_bytes();
+    watch.Received();
+    const uint64_t limit = config_.limits.max_snapshot_bytes;
+    if (n == 0 && chunk.archive_bytes() > 0) {
+      expected = chunk.archive_bytes();
+      // Refused before any byte is spooled: over the limit, or more than the disk can take.
+      if (expected > limit) {
+        return Finish("UploadSnapshot", context,
+                      grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                                   "archive_bytes: " + std::to_string(expected) +
+                                       " bytes announced, over limits.max_snapshot_bytes = " +
+                                       std::to_string(limit)));
+      }
+      if (Status room = store->CheckRoomForImport(expected); !room.ok()) {
+        return Finish("UploadSnapshot", context, ToGrpc(room.WithContext("archive_bytes")));
+      }
+    }
     received += chunk.data().size();
+    metrics_->SnapshotBytesReceived(chunk.data().size());
+    if (received > limit) {
+      return Finish("UploadSnapshot", context,
+                    grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                                 "the upload is longer than limits.max_snapshot_bytes = " +
+                                     std::to_string(limit)));
+    }
     if (expected && received > expected) {
       return Finish("UploadSnapshot", context,
                     ToGrpc(Status::InvalidArgument("archive_bytes: the upload is longer than the " +
@@ -1348,10 +1437,13 @@ grpc::Status PlaceDbService::UploadSnapshotStream(
         ToGrpc(Status::Corruption("the upload is truncated: " + std::to_string(received) + " of " +
                                   std::to_string(expected) + " bytes announced")));
   }
+  watch.HeldBack();  // verifying: the server's work, not the client's silence
+  const Clock::time_point start = Clock::now();
   auto info = maps_->ImportSnapshot(spool);
   if (!info.ok()) {
     return Finish("UploadSnapshot", context, HidePaths(ToGrpc(info.status()), config_.data_dir));
   }
+  metrics_->ObserveSnapshot("import", MsSince(start) / 1000.0);
   SnapshotToProto(*info, response);
   spdlog::info("snapshot '{}' of map '{}' uploaded: {} places, {} bytes, peer={}", info->id,
                info->map, info->places, received, Peer(context));

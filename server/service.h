@@ -12,7 +12,9 @@
 //
 // Cancellation and deadlines are checked between stages; a cancelled frame is never stored.
 //
-// Open streams are bounded and reclaimed: an Ingest call counts against
+// Open streams are bounded and reclaimed (snapshot downloads and uploads too, with the same
+// limit, timeouts and metric reasons: a download whose client takes no chunk, an upload whose
+// client sends none, for stream_idle_timeout_ms): an Ingest call counts against
 // limits.max_concurrent_streams from the moment its handler runs (over the limit it is refused
 // at once with RESOURCE_EXHAUSTED, freeing the thread), and the service's watchdog thread
 // cancels a stream whose header is late (stream_header_timeout_ms), one that is idle (no frame
@@ -121,7 +123,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   grpc::Status RefuseMalformed(const char* method, grpc::ServerContext* context,
                                grpc::Status status);
 
-  struct Watch;   // one Ingest call as the watchdog sees it, from its handler's start (service.cc)
+  // One Ingest call or snapshot transfer as the watchdog sees it, from its handler's start
+  // (service.cc); WatchScope lists it (admission against max_concurrent_streams).
+  struct Watch;
+  class WatchScope;
   struct Stream;  // one open Ingest call past its header (service.cc)
   struct Slot;    // one observation of a stream (service.cc)
   struct Work;    // one frame's processing state (service.cc)

@@ -4,6 +4,7 @@
 #include "core/storage/snapshots.h"
 
 #include <gtest/gtest.h>
+#include <openssl/evp.h>
 
 #include <atomic>
 #include <filesystem>
@@ -58,6 +59,52 @@ std::set<std::string> Tree(const std::string& path) {
   std::set<std::string> out;
   for (const auto& entry : fs::recursive_directory_iterator(path)) {
     out.insert(fs::relative(entry.path(), path).generic_string());
+  }
+  return out;
+}
+
+// An archive in format version 1 (core/storage/snapshots.h) of `entries` (path, bytes), in that
+// order, with a correct count, size and SHA-256: what a careless or hostile writer could send.
+std::string HandBuiltArchive(const std::vector<std::pair<std::string, std::string>>& entries) {
+  auto put = [](std::string* out, uint64_t value, int bytes) {
+    for (int i = 0; i < bytes; ++i) out->push_back(char((value >> (8 * i)) & 0xff));
+  };
+  std::string out = "PDBSNAP\n";
+  put(&out, 1, 4);
+  put(&out, 0, 4);
+  uint64_t total = 0;
+  for (const auto& [path, bytes] : entries) {
+    put(&out, 1, 1);
+    put(&out, path.size(), 2);
+    out += path;
+    put(&out, bytes.size(), 8);
+    out += bytes;
+    total += bytes.size();
+  }
+  put(&out, 0, 1);
+  put(&out, entries.size(), 8);
+  put(&out, total, 8);
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int length = 0;
+  EVP_Digest(out.data(), out.size(), digest, &length, EVP_sha256(), nullptr);
+  return out + std::string(reinterpret_cast<const char*>(digest), length);
+}
+
+// The entries of a well-formed archive (no checks: the archive comes from WriteArchive).
+std::vector<std::pair<std::string, std::string>> Entries(const std::string& archive) {
+  auto get = [&](size_t at, int bytes) {
+    uint64_t value = 0;
+    for (int i = 0; i < bytes; ++i) value |= uint64_t(uint8_t(archive[at + size_t(i)])) << (8 * i);
+    return value;
+  };
+  std::vector<std::pair<std::string, std::string>> out;
+  size_t at = 16;
+  while (archive[at] == 1) {
+    const size_t length = get(at + 1, 2);
+    std::string path = archive.substr(at + 3, length);
+    const size_t size = get(at + 3 + length, 8);
+    out.emplace_back(std::move(path), archive.substr(at + 11 + length, size));
+    at += 11 + length + size;
   }
   return out;
 }
@@ -354,6 +401,152 @@ TEST_F(SnapshotsTest, ListDeleteAndRetention) {
   ASSERT_TRUE(store.ok());
   EXPECT_FALSE(fs::exists((*store)->path() + "/.importing-1-1"));
   EXPECT_EQ((*store)->List().size(), 1u);
+}
+
+}  // namespace
+}  // namespace placedb
+
+namespace placedb {
+namespace {
+
+TEST_F(SnapshotsTest, EntriesThatClashAreRefusedEvenWithAValidDigest) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  const SnapshotInfo info = MakeSnapshot(dir.get(), store->get(), "lab", 6);
+  ASSERT_FALSE(info.id.empty());
+  const auto entries = Entries(Archive(**store, info.id));
+  ASSERT_GE(entries.size(), 3u);
+  ASSERT_EQ(entries.front().first, "SNAPSHOT.json");
+  // The hand-built writer is right: the same entries rebuilt import.
+  auto other = OpenDir("other");
+  auto other_store = SnapshotStore::Open(other.get());
+  ASSERT_TRUE(other_store.ok());
+  {
+    auto rebuilt = (*other_store)
+                       ->Import(WriteFile("rebuilt.pdbsnap", HandBuiltArchive(entries)),
+                                Resolver(vocabulary_));
+    ASSERT_TRUE(rebuilt.ok()) << rebuilt.status().ToString();
+    ASSERT_TRUE((*other_store)->Delete(rebuilt->id).ok());
+  }
+  const auto before = Tree(root_ + "/other");
+  // A file then a folder of the same name, the reverse, and the same file twice.
+  const std::vector<std::vector<std::pair<std::string, std::string>>> clashes = {
+      {{"checkpoint/a", "x"}, {"checkpoint/a/b", "y"}},
+      {{"checkpoint/a/b", "y"}, {"checkpoint/a", "x"}},
+      {{"checkpoint/CURRENT", "x"}, {"checkpoint/CURRENT", "y"}},
+  };
+  for (const auto& clash : clashes) {
+    auto bad = entries;
+    bad.insert(bad.begin() + 1, clash.begin(), clash.end());
+    auto imported =
+        (*other_store)
+            ->Import(WriteFile("clash.pdbsnap", HandBuiltArchive(bad)), Resolver(vocabulary_));
+    ASSERT_FALSE(imported.ok()) << clash.front().first;
+    EXPECT_EQ(imported.status().code(), StatusCode::kInvalidArgument)
+        << imported.status().ToString();
+    EXPECT_NE(imported.status().message().find("clashes"), std::string::npos)
+        << imported.status().ToString();
+    EXPECT_EQ(Tree(root_ + "/other"), before) << clash.front().first;
+  }
+  EXPECT_TRUE((*other_store)->List().empty());
+}
+
+TEST_F(SnapshotsTest, RestoreHardLinksTheSnapshotsTablesAndLeavesTheSnapshotWhole) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  const SnapshotInfo info = MakeSnapshot(dir.get(), store->get(), "lab", 20);
+  ASSERT_FALSE(info.id.empty());
+  const std::string checkpoint = (*store)->path() + "/" + info.id + "/checkpoint";
+  // The checkpoint's tables that are the same file (inode) in `restored`, and how many it has.
+  auto shared_tables = [&](const std::string& restored) {
+    size_t shared = 0, total = 0;
+    for (const auto& entry : fs::directory_iterator(checkpoint)) {
+      if (entry.path().extension() != ".sst") continue;
+      ++total;
+      std::error_code ec;
+      if (fs::equivalent(entry.path(), fs::path(restored) / entry.path().filename(), ec)) ++shared;
+    }
+    return std::pair(shared, total);
+  };
+  ASSERT_TRUE((*store)->Restore(info.id, "first").ok());
+  {
+    auto first = dir->OpenMap("first", vocabulary_);
+    ASSERT_TRUE(first.ok()) << first.status().ToString();
+    const auto [shared, total] = shared_tables(dir->path() + "/maps/first");
+    EXPECT_GT(total, 0u);
+    EXPECT_EQ(shared, total);  // every table of the snapshot is linked, not copied
+    // The restored map lives its own life: new places (written, flushed at close), then it is
+    // deleted (its names unlinked).
+    for (int i = 30; i <= 40; ++i) ASSERT_TRUE((*first)->Add(Frame(i, "later")).ok());
+  }
+  dir->CloseMap("first");
+  ASSERT_TRUE(dir->DeleteMap("first").ok());
+  // The snapshot is untouched: it still restores to the map it was.
+  ASSERT_TRUE((*store)->Restore(info.id, "second").ok());
+  auto second = dir->OpenMap("second", vocabulary_);
+  ASSERT_TRUE(second.ok()) << second.status().ToString();
+  auto lab = dir->OpenMap("lab", vocabulary_);
+  ASSERT_TRUE(lab.ok());
+  EXPECT_EQ((*second)->Stats().database.places, info.places);
+  EXPECT_EQ(AskAll(**second, queries_), AskAll(**lab, queries_));
+  auto scrub = (*second)->Scrub();
+  ASSERT_TRUE(scrub.ok());
+  EXPECT_TRUE(scrub->clean());
+
+  // With links off (the benchmark's baseline) every file is copied.
+  StorageOptions copying;
+  copying.restore_hard_links = false;
+  auto plain = DataDirectory::Open(root_ + "/plain", copying);
+  ASSERT_TRUE(plain.ok());
+  ASSERT_TRUE((*plain)->RestoreMap("copied", checkpoint).ok());
+  const auto [shared, total] = shared_tables(root_ + "/plain/maps/copied");
+  EXPECT_GT(total, 0u);
+  EXPECT_EQ(shared, 0u);
+}
+
+}  // namespace
+}  // namespace placedb
+
+namespace placedb {
+namespace {
+
+// Verification runs without the store's lock: the vocabulary resolver, called in the middle of
+// it, lists, reads and deletes other snapshots (this would deadlock if the lock were held), for
+// Create and Import alike; the snapshot made then is whole.
+TEST_F(SnapshotsTest, OtherOperationsGoOnDuringAVerification) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  const SnapshotInfo first = MakeSnapshot(dir.get(), store->get(), "lab", 8);
+  ASSERT_FALSE(first.id.empty());
+  const std::string archive = WriteFile("lab.pdbsnap", Archive(**store, first.id));
+  auto map = dir->OpenMap("lab", vocabulary_);
+  ASSERT_TRUE(map.ok());
+  std::vector<std::string> seen;
+  auto meanwhile = [&](const std::string& victim) {
+    return [&, victim, resolve = Resolver(vocabulary_)](const MapInfo& info) {
+      for (const SnapshotInfo& s : (*store)->List()) seen.push_back(s.id);
+      EXPECT_TRUE((*store)->Get(victim).ok());
+      EXPECT_TRUE((*store)->Delete(victim).ok());
+      return resolve(info);
+    };
+  };
+  auto second = (*store)->Create(**map, meanwhile(first.id));
+  ASSERT_TRUE(second.ok()) << second.status().ToString();
+  EXPECT_EQ(seen, std::vector<std::string>{first.id});  // the one being made is not listed
+  seen.clear();
+  auto imported = (*store)->Import(archive, meanwhile(second->id));
+  ASSERT_TRUE(imported.ok()) << imported.status().ToString();
+  EXPECT_EQ(seen, std::vector<std::string>{second->id});
+  ASSERT_EQ((*store)->List().size(), 1u);
+  EXPECT_EQ((*store)->List().front().id, imported->id);
+  EXPECT_EQ(imported->places, first.places);
+  ASSERT_TRUE((*store)->Restore(imported->id, "copy").ok());
+  auto copy = dir->OpenMap("copy", vocabulary_);
+  ASSERT_TRUE(copy.ok()) << copy.status().ToString();
+  EXPECT_EQ(AskAll(**copy, queries_), AskAll(**map, queries_));
 }
 
 }  // namespace

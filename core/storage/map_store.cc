@@ -35,6 +35,14 @@ namespace placedb {
 
 namespace {
 
+// Bytes an unprivileged writer may still use on the file system holding `path`; none when it
+// cannot be read.
+std::optional<uint64_t> AvailableBytes(const std::string& path) {
+  struct statvfs info {};
+  if (statvfs(path.c_str(), &info) != 0) return std::nullopt;
+  return uint64_t(info.f_bavail) * info.f_frsize;
+}
+
 constexpr char kMarkerFile[] = "PLACEDB_DATA_DIR";
 constexpr char kMarkerText[] = "placedb data directory, format 1\n";
 constexpr char kMapFormat[] = "placedb-map-1";
@@ -596,11 +604,11 @@ struct MapStorage {
   // Free space of the file system beyond what flushing the memtables takes, compared to
   // `margin`. True when the free space cannot be read.
   bool HasRoom(uint64_t margin) const {
-    struct statvfs info {};
-    if (statvfs(path.c_str(), &info) != 0) return true;
+    const std::optional<uint64_t> available = AvailableBytes(path);
+    if (!available) return true;
     uint64_t memtables = 0;
     db->GetAggregatedIntProperty(rocksdb::DB::Properties::kCurSizeAllMemTables, &memtables);
-    return uint64_t(info.f_bavail) * info.f_frsize >= memtables + margin;
+    return *available >= memtables + margin;
   }
 
   Status WriteError(const rocksdb::Status& s, const std::string& what) {
@@ -1975,6 +1983,36 @@ Status DataDirectory::DeleteMap(const std::string& name) {
   return Status::Ok();
 }
 
+namespace {
+
+// `from` (a checkpoint) into the new folder `to`: SST files hard-linked when `link` (copied
+// when the file system refuses the link), the rest copied.
+Status LinkOrCopyCheckpoint(const std::string& from, const std::string& to, bool link) {
+  std::error_code ec;
+  fs::create_directories(to, ec);
+  if (ec) return Status::IoError("creating " + to + ": " + ec.message());
+  for (auto it = fs::recursive_directory_iterator(from, ec); !ec && it != fs::end(it);
+       it.increment(ec)) {
+    const fs::path target = fs::path(to) / fs::relative(it->path(), from);
+    if (it->is_directory()) {
+      fs::create_directories(target, ec);
+    } else if (link && it->path().extension() == ".sst") {
+      fs::create_hard_link(it->path(), target, ec);
+      if (ec == std::errc::cross_device_link || ec == std::errc::operation_not_permitted) {
+        ec.clear();
+        fs::copy_file(it->path(), target, ec);
+      }
+    } else {
+      fs::copy_file(it->path(), target, ec);
+    }
+    if (ec) return Status::IoError("copying " + it->path().string() + ": " + ec.message());
+  }
+  if (ec) return Status::IoError("listing " + from + ": " + ec.message());
+  return Status::Ok();
+}
+
+}  // namespace
+
 Status DataDirectory::RestoreMap(const std::string& name, const std::string& checkpoint) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   if (!fs::exists(fs::path(checkpoint) / "CURRENT")) {
@@ -1986,8 +2024,11 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
   const std::string staging = (fs::path(path_) / "maps" / (".restoring-" + name)).string();
   std::error_code ec;
   fs::remove_all(staging, ec);
-  fs::copy(checkpoint, staging, fs::copy_options::recursive, ec);
-  if (ec) return Status::IoError("copying " + checkpoint + ": " + ec.message());
+  if (Status copied = LinkOrCopyCheckpoint(checkpoint, staging, options_.restore_hard_links);
+      !copied.ok()) {
+    fs::remove_all(staging, ec);
+    return copied;
+  }
   Status valid;
   {
     // Validate before it becomes visible: it must open as a placedb map; rename it inside.
@@ -2024,6 +2065,16 @@ Status DataDirectory::RestoreMap(const std::string& name, const std::string& che
   fs::rename(staging, path, ec);
   if (ec) return Status::IoError("restoring map '" + name + "': " + ec.message());
   return Status::Ok();
+}
+
+Status CheckRoomFor(const std::string& path, uint64_t bytes, uint64_t reserve_bytes,
+                    const std::string& what) {
+  const std::optional<uint64_t> available = AvailableBytes(path);
+  if (!available || *available >= bytes + reserve_bytes) return Status::Ok();
+  return Status::ResourceExhausted("disk full: " + what + " needs " + std::to_string(bytes) +
+                                   " bytes; the data directory has " + std::to_string(*available) +
+                                   " free, " + std::to_string(reserve_bytes) +
+                                   " of them reserved (storage.disk_reserve_bytes)");
 }
 
 void DataDirectory::CloseMap(const std::string& name) {

@@ -72,6 +72,9 @@ struct StorageOptions {
   // runs out of space in the middle of a write or flush. 0 = only when a write actually fails
   // for lack of space. Removals are not held back.
   uint64_t disk_reserve_bytes = uint64_t(8) << 20;
+  // RestoreMap hard-links a checkpoint's SST files (immutable in RocksDB) instead of copying
+  // them. Off only to measure the difference: restore then copies every file.
+  bool restore_hard_links = true;
 };
 
 struct MapOptions {
@@ -234,6 +237,12 @@ class PlaceMap {
   bool closed_ GUARDED_BY(lifecycle_) = false;
 };
 
+// RESOURCE_EXHAUSTED ("disk full", naming `what`) unless the file system holding `path` has
+// `bytes` free beyond `reserve_bytes` (StorageOptions::disk_reserve_bytes); OK when its free space
+// cannot be read.
+Status CheckRoomFor(const std::string& path, uint64_t bytes, uint64_t reserve_bytes,
+                    const std::string& what);
+
 class DataDirectory {
  public:
   // Creates the directory when missing. A non-empty directory without placedb's marker file,
@@ -285,7 +294,10 @@ class DataDirectory {
   std::vector<std::string> ListMaps() const;
   // Also a damaged map, and a file in place of a map's directory.
   Status DeleteMap(const std::string& name);
-  // Copies a checkpoint made by PlaceMap::Checkpoint in as map `name` (which must not exist).
+  // A checkpoint made by PlaceMap::Checkpoint in as map `name` (which must not exist): its SST
+  // files are hard-linked (RocksDB never changes an SST; the map's compactions unlink its own
+  // names only, so the checkpoint stays whole), copied when the link fails (another file system:
+  // EXDEV, or EPERM); every other file is copied. On failure nothing is left under maps/.
   Status RestoreMap(const std::string& name, const std::string& checkpoint_directory);
   // Closes a map (it stays on disk); holders of the shared_ptr keep it until they let go.
   void CloseMap(const std::string& name);

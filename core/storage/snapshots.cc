@@ -188,7 +188,10 @@ Status ValidateSnapshotId(std::string_view id) {
 }
 
 SnapshotStore::SnapshotStore(DataDirectory* directory, SnapshotOptions options, std::string path)
-    : directory_(directory), options_(options), path_(std::move(path)) {}
+    : directory_(directory),
+      storage_(directory->options()),
+      options_(options),
+      path_(std::move(path)) {}
 
 Result<std::unique_ptr<SnapshotStore>> SnapshotStore::Open(DataDirectory* directory,
                                                            SnapshotOptions options) {
@@ -216,12 +219,12 @@ std::string SnapshotStore::UniqueId(const std::string& map, int64_t unix_ms) con
   return id;
 }
 
-Status SnapshotStore::Verify(const std::string& checkpoint,
-                             const DataDirectory::VocabularyFor& vocabulary, SnapshotInfo* info) {
-  const std::string scratch = Scratch("verify");
+Status SnapshotStore::Verify(const std::string& checkpoint, const std::string& scratch,
+                             const DataDirectory::VocabularyFor& vocabulary,
+                             SnapshotInfo* info) const {
   Status status;
   {
-    StorageOptions storage = directory_->options();
+    StorageOptions storage = storage_;
     storage.block_cache_bytes = size_t(8) << 20;
     storage.disk_reserve_bytes = 0;
     auto scratch_dir = DataDirectory::Open(scratch, storage);
@@ -265,35 +268,48 @@ Status SnapshotStore::Verify(const std::string& checkpoint,
 
 Result<SnapshotInfo> SnapshotStore::Create(const PlaceMap& map,
                                            const DataDirectory::VocabularyFor& vocabulary) {
-  MutexLock lock(mutex_);
   SnapshotInfo info;
   info.map = map.info().name;
   info.created_unix_ms = NowUnixMs();
-  info.id = UniqueId(info.map, info.created_unix_ms);
-  const std::string staging = Scratch("creating");
+  std::string staging, scratch;
+  {
+    MutexLock lock(mutex_);
+    staging = Scratch("creating");
+    scratch = Scratch("verify");
+  }
+  // The checkpoint and its verification need no lock: they use their own dot-folders only, so
+  // List, Get, Delete and downloads go on meanwhile.
   std::error_code ec;
   fs::create_directories(staging, ec);
   if (ec) return Status::IoError("creating " + staging + ": " + ec.message());
   const std::string checkpoint = (fs::path(staging) / kCheckpoint).string();
   Status status = map.Checkpoint(checkpoint);
-  if (status.ok()) status = Verify(checkpoint, vocabulary, &info);
+  if (status.ok()) status = Verify(checkpoint, scratch, vocabulary, &info);
   if (status.ok()) {
     info.bytes = DirectoryBytes(checkpoint);
-    std::ofstream out(fs::path(staging) / kManifest, std::ios::binary | std::ios::trunc);
-    out << EncodeManifest(info);
-    out.flush();
-    if (!out) status = Status::IoError("writing the snapshot's manifest");
-  }
-  if (status.ok()) {
-    fs::rename(staging, fs::path(path_) / info.id, ec);
-    if (ec) status = Status::IoError("storing snapshot " + info.id + ": " + ec.message());
+    MutexLock lock(mutex_);
+    info.id = UniqueId(info.map, info.created_unix_ms);
+    status = StoreLocked(staging, info);
+    if (status.ok()) ApplyRetention(info.map);
   }
   if (!status.ok()) {
     fs::remove_all(staging, ec);
     return status.WithContext("snapshot of map '" + info.map + "'");
   }
-  ApplyRetention(info.map);
   return info;
+}
+
+Status SnapshotStore::StoreLocked(const std::string& staging, const SnapshotInfo& info) {
+  {
+    std::ofstream out(fs::path(staging) / kManifest, std::ios::binary | std::ios::trunc);
+    out << EncodeManifest(info);
+    out.flush();
+    if (!out) return Status::IoError("writing the snapshot's manifest");
+  }
+  std::error_code ec;
+  fs::rename(staging, fs::path(path_) / info.id, ec);
+  if (ec) return Status::IoError("storing snapshot " + info.id + ": " + ec.message());
+  return Status::Ok();
 }
 
 void SnapshotStore::ApplyRetention(const std::string& map) {
@@ -368,6 +384,13 @@ Status SnapshotStore::Restore(const std::string& id, const std::string& new_map)
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(new_map).WithContext("new map"));
   PLACEDB_RETURN_IF_ERROR(GetLocked(id).status());
   return directory_->RestoreMap(new_map, (fs::path(path_) / id / kCheckpoint).string());
+}
+
+Status SnapshotStore::CheckRoomForImport(uint64_t archive_bytes) const {
+  const uint64_t needed = archive_bytes > UINT64_MAX / 4 ? UINT64_MAX / 2 : 2 * archive_bytes;
+  return CheckRoomFor(
+      path_, needed, storage_.disk_reserve_bytes,
+      "importing a snapshot archive of " + std::to_string(archive_bytes) + " bytes");
 }
 
 Result<uint64_t> SnapshotStore::ArchiveBytes(const std::string& id) const {
@@ -455,10 +478,15 @@ Status SnapshotStore::WriteArchive(const std::string& id, size_t chunk_bytes,
 
 Result<SnapshotInfo> SnapshotStore::Import(const std::string& archive_path,
                                            const DataDirectory::VocabularyFor& vocabulary) {
-  MutexLock lock(mutex_);
   ArchiveReader reader(archive_path);
   if (!reader.is_open()) return Status::NotFound("cannot open archive " + archive_path);
-  const std::string staging = Scratch("importing");
+  std::string staging, scratch;
+  {
+    MutexLock lock(mutex_);
+    staging = Scratch("importing");
+    scratch = Scratch("verify");
+  }
+  // Unpacking and verification need no lock (own dot-folders), as in Create.
   std::error_code ec;
   fs::create_directories(fs::path(staging) / kCheckpoint, ec);
   if (ec) return Status::IoError("creating " + staging + ": " + ec.message());
@@ -538,7 +566,8 @@ Result<SnapshotInfo> SnapshotStore::Import(const std::string& archive_path,
     if (!manifest.ok()) return manifest.status();
     info = *manifest;
     const SnapshotInfo stated = info;
-    PLACEDB_RETURN_IF_ERROR(Verify((fs::path(staging) / kCheckpoint).string(), vocabulary, &info));
+    PLACEDB_RETURN_IF_ERROR(
+        Verify((fs::path(staging) / kCheckpoint).string(), scratch, vocabulary, &info));
     if (info.places != stated.places || info.vocabulary_checksum != stated.vocabulary_checksum ||
         info.feature_type != stated.feature_type) {
       return Status::InvalidArgument(
@@ -549,15 +578,9 @@ Result<SnapshotInfo> SnapshotStore::Import(const std::string& archive_path,
   };
   Status status = extract();
   if (status.ok()) {
+    MutexLock lock(mutex_);
     if (fs::exists(fs::path(path_) / info.id)) info.id = UniqueId(info.map, info.created_unix_ms);
-    std::ofstream out(fs::path(staging) / kManifest, std::ios::binary | std::ios::trunc);
-    out << EncodeManifest(info);
-    out.flush();
-    if (!out) status = Status::IoError("writing the snapshot's manifest");
-  }
-  if (status.ok()) {
-    fs::rename(staging, fs::path(path_) / info.id, ec);
-    if (ec) status = Status::IoError("storing snapshot " + info.id + ": " + ec.message());
+    status = StoreLocked(staging, info);
   }
   if (!status.ok()) {
     fs::remove_all(staging, ec);

@@ -25,8 +25,11 @@
 //
 // Thread safety: a SnapshotStore serialises its own operations, except that WriteArchive holds
 // the lock only to open the snapshot's files (a slow reader blocks nothing; a Delete meanwhile
-// does not cut it short). Create takes an online checkpoint, so writers of the map are not held
-// up beyond RocksDB's memtable flush; Create and Import hold the lock while they verify.
+// does not cut it short), and Create and Import hold it only to name their dot-folders and to
+// store the verified result: the checkpoint, unpacking and verification run without it, so List,
+// Get, Delete and downloads do not wait for them. Create takes an online checkpoint, so writers
+// of the map are not held up beyond RocksDB's memtable flush. Only Restore uses the
+// DataDirectory; the rest may run while it closes.
 #pragma once
 
 #include <cstdint>
@@ -61,7 +64,7 @@ Status ValidateSnapshotId(std::string_view id);
 
 class SnapshotStore {
  public:
-  // `directory` must outlive the store. Creates DATA_DIR/snapshots/ and removes leftovers of
+  // `directory` must outlive Restore calls. Creates DATA_DIR/snapshots/ and removes leftovers of
   // interrupted operations (dot-folders) found there.
   static Result<std::unique_ptr<SnapshotStore>> Open(DataDirectory* directory,
                                                      SnapshotOptions options = {});
@@ -85,19 +88,28 @@ class SnapshotStore {
   Result<SnapshotInfo> Import(const std::string& archive_path,
                               const DataDirectory::VocabularyFor& vocabulary);
 
+  // RESOURCE_EXHAUSTED ("disk full") unless the data directory has room for importing an archive
+  // of `archive_bytes`: the archive spooled before Import and the copy Import unpacks from it,
+  // beyond StorageOptions::disk_reserve_bytes (DataDirectory::CheckRoomFor).
+  Status CheckRoomForImport(uint64_t archive_bytes) const;
+
   const std::string& path() const { return path_; }
 
  private:
   SnapshotStore(DataDirectory* directory, SnapshotOptions options, std::string path);
-  // Restores `checkpoint` into a scratch data directory, opens and scrubs it; fills places.
-  Status Verify(const std::string& checkpoint, const DataDirectory::VocabularyFor& vocabulary,
-                SnapshotInfo* info) REQUIRES(mutex_);
+  // Restores `checkpoint` into the scratch data directory `scratch` (removed after), opens and
+  // scrubs it; fills places, feature type and vocabulary checksum.
+  Status Verify(const std::string& checkpoint, const std::string& scratch,
+                const DataDirectory::VocabularyFor& vocabulary, SnapshotInfo* info) const;
+  // Writes info's manifest into `staging` and renames it to info.id.
+  Status StoreLocked(const std::string& staging, const SnapshotInfo& info) REQUIRES(mutex_);
   std::string UniqueId(const std::string& map, int64_t unix_ms) const REQUIRES(mutex_);
   Result<SnapshotInfo> GetLocked(const std::string& id) const REQUIRES(mutex_);
   void ApplyRetention(const std::string& map) REQUIRES(mutex_);
   std::string Scratch(const std::string& what) REQUIRES(mutex_);
 
-  DataDirectory* const directory_;
+  DataDirectory* const directory_;  // Restore only
+  const StorageOptions storage_;    // the directory's, for verification and CheckRoomForImport
   const SnapshotOptions options_;
   const std::string path_;
   mutable Mutex mutex_;

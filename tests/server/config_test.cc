@@ -173,6 +173,35 @@ TEST(ServerConfigTest, FileThenEnvironmentThenFlags) {
   EXPECT_EQ(example.limits.stream_idle_timeout_ms, defaults.limits.stream_idle_timeout_ms);
 }
 
+// limits.max_snapshot_bytes: default 64 GiB, from the file, overridden by the environment,
+// printed and read back, refused below 1 KiB or when the environment holds no byte count.
+TEST(ServerConfigTest, MaxSnapshotBytesFromFileAndEnvironment) {
+  EXPECT_EQ(ServerConfig().limits.max_snapshot_bytes, uint64_t(64) << 30);
+  ServerConfig c;
+  ASSERT_TRUE(server::ApplyConfigYaml("limits:\n  max_snapshot_bytes: 5000\n", &c).ok());
+  EXPECT_EQ(c.limits.max_snapshot_bytes, 5000u);
+  std::map<std::string, std::string> env = {{"PLACEDB_MAX_SNAPSHOT_BYTES", "1099511627776"}};
+  auto getenv = [&](const char* name) -> const char* {
+    auto it = env.find(name);
+    return it == env.end() ? nullptr : it->second.c_str();
+  };
+  ASSERT_TRUE(server::ApplyEnvironment(&c, getenv).ok());
+  EXPECT_EQ(c.limits.max_snapshot_bytes, uint64_t(1) << 40);
+  ServerConfig again;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(c), &again).ok());
+  EXPECT_EQ(again.limits.max_snapshot_bytes, uint64_t(1) << 40);
+
+  env["PLACEDB_MAX_SNAPSHOT_BYTES"] = "64G";
+  Status status = server::ApplyEnvironment(&c, getenv);
+  EXPECT_EQ(status.code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(status.message().find("PLACEDB_MAX_SNAPSHOT_BYTES"), std::string::npos)
+      << status.message();
+  c.limits.max_snapshot_bytes = 100;
+  status = server::ValidateServerConfig(c);
+  EXPECT_NE(status.message().find("limits.max_snapshot_bytes"), std::string::npos)
+      << status.message();
+}
+
 // Found by tests/fuzz/fuzz_server_config: a value with a CR (an environment or YAML file with CRLF
 // line endings) was accepted, and --print-config printed it as a YAML line the CR ends, so the
 // printed configuration was not the one in use. Control characters are now refused by key.

@@ -8,7 +8,9 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cmath>
+#include <filesystem>
 #include <future>
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
@@ -232,6 +234,26 @@ double MetricValue(const std::map<std::string, double>& metrics, const std::stri
   key += "}";
   auto it = metrics.find(key);
   return it == metrics.end() ? std::nan("") : it->second;
+}
+
+double AwaitMetric(int port, const std::string& name,
+                   const std::map<std::string, std::string>& labels, double value) {
+  double seen = 0;
+  for (int attempt = 0; attempt < 3000; ++attempt) {
+    seen = MetricValue(ParseMetrics(HttpGet(port, "/metrics")), name, labels);
+    if (seen == value) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  return seen;
+}
+
+size_t ThreadCount() {
+  size_t n = 0;
+  for ([[maybe_unused]] const auto& entry :
+       std::filesystem::directory_iterator("/proc/self/task")) {
+    ++n;
+  }
+  return n;
 }
 
 void ServerTest::SetUp() {

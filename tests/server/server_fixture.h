@@ -122,6 +122,13 @@ std::map<std::string, double> ParseMetrics(const std::string& reply);
 double MetricValue(const std::map<std::string, double>& metrics, const std::string& name,
                    const std::map<std::string, std::string>& labels = {});
 
+// Polls /metrics until `name{labels}` equals `value` (a call's end reaches the client a moment
+// before its handler has unlisted it); the last value seen. 30 s at most: a hang, not a timing.
+double AwaitMetric(int port, const std::string& name,
+                   const std::map<std::string, std::string>& labels, double value);
+// Threads of this process (the server runs in it).
+size_t ThreadCount();
+
 // ---- Fixture ------------------------------------------------------------------------------------
 
 class ServerTest : public ::testing::Test {

@@ -1,8 +1,10 @@
 // The snapshot RPCs on a real server over loopback: create, list, download, upload to a second
-// server (another data directory), restore, delete; bad uploads refused with nothing left behind.
+// server (another data directory), restore, delete; bad uploads refused with nothing left behind;
+// stalled transfers reclaimed like Ingest streams; upload limits; the snapshot metrics.
 #include <gtest/gtest.h>
 
 #include <filesystem>
+#include <map>
 #include <set>
 #include <thread>
 
@@ -12,6 +14,8 @@ namespace fs = std::filesystem;
 
 namespace placedb::server_testing {
 namespace {
+
+using Labels = std::map<std::string, std::string>;
 
 class SnapshotsServerTest : public ServerTest {
  protected:
@@ -78,6 +82,40 @@ class SnapshotsServerTest : public ServerTest {
 
   static std::unique_ptr<grpc::ClientContext> Context() {
     return std::make_unique<grpc::ClientContext>();
+  }
+
+  // A map `name` of `frames` RTAB-Map frames and a snapshot of it.
+  v1::Snapshot MapAndSnapshot(const std::string& name, int frames) {
+    CreateMap(name);
+    std::vector<v1::Observation> observations;
+    for (int i = 1; i <= frames; ++i) observations.push_back(RtabmapObservation(i, "robot"));
+    EXPECT_TRUE(IngestAll(stub_.get(), name, observations).status.ok());
+    v1::CreateSnapshotRequest create;
+    create.set_map(name);
+    v1::Snapshot created;
+    EXPECT_TRUE(stub_->CreateSnapshot(Context().get(), create, &created).ok());
+    return created;
+  }
+
+  // A stub on its own connection with a small, fixed HTTP/2 window (no BDP growth): a client
+  // that stops reading stops the server's writes after a few chunks.
+  std::unique_ptr<v1::PlaceDb::Stub> SmallWindowStub() {
+    grpc::ChannelArguments small_window;
+    small_window.SetInt(GRPC_ARG_HTTP2_STREAM_LOOKAHEAD_BYTES, 64 << 10);
+    small_window.SetInt(GRPC_ARG_HTTP2_BDP_PROBE, 0);
+    small_window.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
+    return v1::PlaceDb::NewStub(
+        grpc::CreateCustomChannel("127.0.0.1:" + std::to_string(server_->port()),
+                                  grpc::InsecureChannelCredentials(), small_window));
+  }
+
+  // Dot-entries (work in progress) in the snapshots folder.
+  std::vector<std::string> Leftovers() {
+    std::vector<std::string> out;
+    for (const auto& entry : fs::directory_iterator(root_ + "/data/snapshots")) {
+      if (entry.path().filename().string().front() == '.') out.push_back(entry.path());
+    }
+    return out;
   }
 
   std::set<std::string> Tree(const std::string& dir) {
@@ -281,6 +319,195 @@ TEST_F(SnapshotsServerTest, AServerRestartDuringADownloadEndsItAndTheSnapshotSta
   for (const auto& entry : fs::directory_iterator(root_ + "/data/snapshots")) {
     EXPECT_NE(entry.path().filename().string().front(), '.') << entry.path();
   }
+}
+
+// A download whose client stops reading and an upload whose client stops sending each hold a
+// max_concurrent_streams slot (a third transfer is refused), then the watchdog closes them at
+// stream_idle_timeout_ms (write_timeout, idle_timeout), their threads and slots come back, nothing
+// is left in snapshots/, and the server serves on.
+TEST_F(SnapshotsServerTest, StalledTransfersAreBoundedAndReclaimed) {
+  ServerConfig config = Config();
+  config.metrics_listen = "127.0.0.1:0";
+  config.limits.max_concurrent_streams = 2;
+  // Long enough for the checks made while both are held (the test asserts they were held).
+  config.limits.stream_idle_timeout_ms = 3000;
+  StartServer(config);
+  const v1::Snapshot created = MapAndSnapshot("lab", 84);
+  std::string archive;
+  v1::Snapshot described;
+  ASSERT_TRUE(Download(created.id(), &archive, &described).ok());
+  const std::vector<std::string> expected = Answers("lab");
+  const size_t threads_before = ThreadCount();
+
+  // The download: one chunk read, then nothing.
+  auto downloader = SmallWindowStub();
+  v1::DownloadSnapshotRequest request;
+  request.set_id(created.id());
+  grpc::ClientContext download_context;
+  auto reader = downloader->DownloadSnapshot(&download_context, request);
+  v1::SnapshotChunk chunk;
+  ASSERT_TRUE(reader->Read(&chunk));
+  ASSERT_GT(chunk.archive_bytes(), 4 * chunk.data().size()) << "the archive must be large";
+  // The upload: one chunk announcing the whole archive, then nothing.
+  grpc::ClientContext upload_context;
+  v1::Snapshot upload_response;
+  auto writer = stub_->UploadSnapshot(&upload_context, &upload_response);
+  v1::SnapshotChunk first;
+  first.set_archive_bytes(archive.size());
+  first.set_data(archive.substr(0, 64 << 10));
+  ASSERT_TRUE(writer->Write(first));
+  ASSERT_EQ(AwaitMetric(server_->metrics_port(), "placedb_streams_in_flight", {}, 2), 2);
+
+  // Both slots are taken: a third transfer (and an Ingest) is refused at once.
+  {
+    grpc::ClientContext context;
+    auto third = stub_->DownloadSnapshot(&context, request);
+    v1::SnapshotChunk ignored;
+    EXPECT_FALSE(third->Read(&ignored));
+    const grpc::Status refused = third->Finish();
+    EXPECT_EQ(refused.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+    EXPECT_NE(refused.error_message().find("limits.max_concurrent_streams = 2"), std::string::npos)
+        << refused.error_message();
+  }
+  EXPECT_EQ(IngestAll(stub_.get(), "lab", {RtabmapObservation(1, "x")}).status.error_code(),
+            grpc::StatusCode::RESOURCE_EXHAUSTED);
+  auto metrics = Scrape();
+  EXPECT_EQ(MetricValue(metrics, "placedb_streams_in_flight"), 2) << "not held during the checks";
+  const size_t threads_during = ThreadCount();
+
+  // Both are closed by the server.
+  const Labels write_timeout{{"reason", "write_timeout"}}, idle_timeout{{"reason", "idle_timeout"}};
+  EXPECT_EQ(
+      AwaitMetric(server_->metrics_port(), "placedb_ingest_streams_closed_total", write_timeout, 1),
+      1);
+  EXPECT_EQ(
+      AwaitMetric(server_->metrics_port(), "placedb_ingest_streams_closed_total", idle_timeout, 1),
+      1);
+  uint64_t received = chunk.data().size();
+  while (reader->Read(&chunk)) received += chunk.data().size();
+  EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::CANCELLED);
+  EXPECT_LT(received, archive.size());
+  EXPECT_EQ(writer->Finish().error_code(), grpc::StatusCode::CANCELLED);
+  EXPECT_EQ(AwaitMetric(server_->metrics_port(), "placedb_streams_in_flight", {}, 0), 0);
+  EXPECT_TRUE(Leftovers().empty());
+  EXPECT_EQ(SnapshotIds(), std::vector<std::string>{created.id()});
+  // The two handler threads are free again (gRPC keeps a few idle pollers).
+  const size_t threads_after = ThreadCount();
+  EXPECT_LE(threads_after, threads_before + 2) << "before " << threads_before << ", during "
+                                               << threads_during << ", after " << threads_after;
+  std::printf("[server] stalled transfers: threads %zu before, %zu while held, %zu after\n",
+              threads_before, threads_during, threads_after);
+
+  // Healthy: a whole download, an upload and a restore work again.
+  std::string again;
+  ASSERT_TRUE(Download(created.id(), &again, &described).ok());
+  EXPECT_EQ(again, archive);
+  v1::Snapshot uploaded;
+  ASSERT_TRUE(Upload(archive, archive.size(), &uploaded).ok());
+  v1::RestoreSnapshotRequest restore;
+  restore.set_id(uploaded.id());
+  restore.set_new_map("lab-copy");
+  v1::MapDescription restored;
+  ASSERT_TRUE(stub_->RestoreSnapshot(Context().get(), restore, &restored).ok());
+  EXPECT_EQ(Answers("lab-copy"), expected);
+}
+
+// limits.max_snapshot_bytes and the free space: an announced size over either is refused before
+// a byte is spooled, an unannounced upload once it passes the limit; RESOURCE_EXHAUSTED naming
+// what, nothing left behind, and an archive within the limits still uploads.
+TEST_F(SnapshotsServerTest, UploadsOverTheLimitsAreRefused) {
+  ServerConfig config = Config();
+  StartServer(config);
+  const v1::Snapshot created = MapAndSnapshot("lab", 12);
+  std::string archive;
+  v1::Snapshot described;
+  ASSERT_TRUE(Download(created.id(), &archive, &described).ok());
+  StopServer();
+
+  config.limits.max_snapshot_bytes = archive.size() - 1;
+  StartServer(config);
+  v1::Snapshot response;
+  grpc::Status status = Upload(archive, archive.size(), &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+  EXPECT_NE(status.error_message().find("limits.max_snapshot_bytes = " +
+                                        std::to_string(archive.size() - 1)),
+            std::string::npos)
+      << status.error_message();
+  EXPECT_NE(status.error_message().find("announced"), std::string::npos) << status.error_message();
+  status = Upload(archive, /*announce=*/0, &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+  EXPECT_NE(status.error_message().find("longer than limits.max_snapshot_bytes"), std::string::npos)
+      << status.error_message();
+  EXPECT_EQ(SnapshotIds(), std::vector<std::string>{created.id()});
+  EXPECT_TRUE(Leftovers().empty());
+  StopServer();
+
+  // Announced: more than the disk holds (the limit raised out of the way).
+  config.limits.max_snapshot_bytes = uint64_t(1) << 60;
+  StartServer(config);
+  const uint64_t free_bytes = fs::space(root_).available;
+  status = Upload(archive, free_bytes, &response);  // the spool and its unpacked copy: 2x
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+  EXPECT_NE(status.error_message().find("disk full"), std::string::npos) << status.error_message();
+  EXPECT_NE(status.error_message().find("storage.disk_reserve_bytes"), std::string::npos)
+      << status.error_message();
+  EXPECT_EQ(status.error_message().find(root_), std::string::npos) << status.error_message();
+  EXPECT_TRUE(Leftovers().empty());
+  EXPECT_EQ(SnapshotIds(), std::vector<std::string>{created.id()});
+
+  // Within both, the same archive uploads.
+  ASSERT_TRUE(Upload(archive, archive.size(), &response).ok());
+  EXPECT_EQ(SnapshotIds().size(), 2u);
+}
+
+// The snapshot metrics: count and bytes of the store, bytes transferred each way, and the
+// create, import and restore durations.
+TEST_F(SnapshotsServerTest, MetricsCountSnapshotsTransfersAndDurations) {
+  ServerConfig config = Config();
+  config.metrics_listen = "127.0.0.1:0";
+  StartServer(config);
+  auto metrics = Scrape();
+  EXPECT_EQ(MetricValue(metrics, "placedb_snapshots", {{"kind", "count"}}), 0);
+  EXPECT_EQ(MetricValue(metrics, "placedb_snapshots", {{"kind", "bytes"}}), 0);
+  EXPECT_EQ(
+      MetricValue(metrics, "placedb_snapshot_transfer_bytes_total", {{"direction", "download"}}),
+      0);
+  const v1::Snapshot created = MapAndSnapshot("lab", 12);
+  std::string archive;
+  v1::Snapshot described;
+  ASSERT_TRUE(Download(created.id(), &archive, &described).ok());
+  v1::Snapshot uploaded;
+  ASSERT_TRUE(Upload(archive, archive.size(), &uploaded).ok());
+  v1::RestoreSnapshotRequest restore;
+  restore.set_id(uploaded.id());
+  restore.set_new_map("copy");
+  v1::MapDescription restored;
+  ASSERT_TRUE(stub_->RestoreSnapshot(Context().get(), restore, &restored).ok());
+
+  metrics = Scrape();
+  EXPECT_EQ(MetricValue(metrics, "placedb_snapshots", {{"kind", "count"}}), 2);
+  EXPECT_EQ(MetricValue(metrics, "placedb_snapshots", {{"kind", "bytes"}}),
+            double(created.bytes() + uploaded.bytes()));
+  EXPECT_EQ(
+      MetricValue(metrics, "placedb_snapshot_transfer_bytes_total", {{"direction", "download"}}),
+      double(archive.size()));
+  EXPECT_EQ(
+      MetricValue(metrics, "placedb_snapshot_transfer_bytes_total", {{"direction", "upload"}}),
+      double(archive.size()));
+  for (const char* operation : {"create", "import", "restore"}) {
+    EXPECT_EQ(MetricValue(metrics, "placedb_snapshot_seconds_count", {{"operation", operation}}), 1)
+        << operation;
+    EXPECT_GT(MetricValue(metrics, "placedb_snapshot_seconds_sum", {{"operation", operation}}), 0)
+        << operation;
+  }
+  // A refused upload moves no duration; its bytes were received.
+  v1::Snapshot refused;
+  EXPECT_FALSE(Upload("not an archive", 0, &refused).ok());
+  metrics = Scrape();
+  EXPECT_EQ(MetricValue(metrics, "placedb_snapshot_seconds_count", {{"operation", "import"}}), 1);
+  EXPECT_EQ(
+      MetricValue(metrics, "placedb_snapshot_transfer_bytes_total", {{"direction", "upload"}}),
+      double(archive.size() + 14));
 }
 
 }  // namespace

@@ -27,28 +27,6 @@ namespace {
 
 using Labels = std::map<std::string, std::string>;
 
-// Threads of this process (the server runs in it).
-size_t ThreadCount() {
-  size_t n = 0;
-  for ([[maybe_unused]] const auto& entry :
-       std::filesystem::directory_iterator("/proc/self/task")) {
-    ++n;
-  }
-  return n;
-}
-
-// Polls /metrics until `name{labels}` equals `value` (a call's end reaches the client a moment
-// before its handler has unlisted it); the last value seen.
-double AwaitMetric(int port, const std::string& name, const Labels& labels, double value) {
-  double seen = 0;
-  for (int attempt = 0; attempt < 3000; ++attempt) {  // 30 s at most: a hang, not a timing
-    seen = MetricValue(ParseMetrics(HttpGet(port, "/metrics")), name, labels);
-    if (seen == value) break;
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  }
-  return seen;
-}
-
 // A channel with its own TCP connection: a distinct argument keeps gRPC from sharing subchannels.
 std::shared_ptr<grpc::Channel> OwnConnection(int port, int index) {
   grpc::ChannelArguments arguments;
