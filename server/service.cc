@@ -462,6 +462,7 @@ grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
   }
   response->set_detector(
       HidePaths(detector_ ? detector_->Describe() : detector_status_, config_.data_dir));
+  response->set_console_url(console_url_);
   const Limits& l = config_.limits;
   v1::Limits* limits = response->mutable_limits();
   limits->set_max_message_bytes(l.max_message_bytes);

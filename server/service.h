@@ -110,6 +110,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   void BeginDrain();
   // Waits until no call is being served (after BeginDrain), or until `deadline`. True if idle.
   bool WaitIdle(std::chrono::steady_clock::time_point deadline);
+  // GetServerInfo's console_url (server/console): set once, before the server serves calls.
+  void SetConsoleUrl(std::string url) { console_url_ = std::move(url); }
   // Sets the per-map gauges (places, bytes on disk, damage); run before each metrics scrape.
   void RefreshMapGauges();
   // A request refused before its handler (ParsingService: not a valid message, or denied by
@@ -151,6 +153,7 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   const Detector* const detector_;  // null: server-side detection off
   const std::string detector_status_;
   MemoryBudget* const budget_;
+  std::string console_url_;  // written before serving, read-only after
 
   // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
   class CallScope;
