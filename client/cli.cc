@@ -113,6 +113,7 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   if (snapshots.remove->parsed()) return SnapshotsDelete(c, snapshots_flags.id, json, io);
   if (dynamics->parsed()) return RunDynamics(c, dynamics_flags, json, io);
   if (server.info->parsed()) return RunInfo(c, json, io);
+  if (server.console->parsed()) return RunConsole(c, json, io);
   if (server.health->parsed()) return RunHealth(c, health_flags.service, json, io);
   return UsageError(io, "no command given (see --help)");
 }

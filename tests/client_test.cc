@@ -77,6 +77,7 @@ class ClientTest : public ::testing::Test {
     server::ServerConfig config;
     config.listen = "127.0.0.1:0";
     config.metrics_listen = "";
+    config.console_listen = "";
     config.data_dir = root_ + "/data";
     config.threads = 2;
     config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};
@@ -289,6 +290,7 @@ TEST_F(ClientTest, MapsRecoverAndScrub) {
     server::ServerConfig config;
     config.listen = "127.0.0.1:0";
     config.metrics_listen = "";
+    config.console_listen = "";
     config.data_dir = root_ + "/data";
     config.threads = 2;
     config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};

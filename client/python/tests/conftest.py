@@ -53,6 +53,8 @@ class ServerProcess:
             os.path.join(self.root.name, "data"),
             "--metrics-listen",
             "off",
+            "--console-listen",
+            "off",
             "--vocabulary",
             "default=" + _env("PLACEDB_DEFAULT_VOCABULARY"),
             "--vocabulary",
