@@ -328,6 +328,13 @@ async function matchCanvas(queryImage, queryWidth, response, map, match) {
   if (placeImage) context.drawImage(placeImage, qWidth + 16, 0, pWidth, height);
   const queryKeypoints = response.query_keypoints || [];
   const placeKeypoints = features.keypoints || [];
+  if (!placeImage) {
+    // No thumbnail kept: the place's stored keypoints alone show its structure.
+    drawKeypoints(context, placeKeypoints, pScale, COLORS.kept, qWidth + 16, 0);
+    context.fillStyle = "#aab2bd";
+    context.font = "11px sans-serif";
+    context.fillText("place " + match.place_id + ": no thumbnail kept", qWidth + 24, height - 8);
+  }
   drawKeypoints(context, queryKeypoints, qScale, COLORS.kept);
   drawKeypoints(context, response.query_dropped_keypoints, qScale, COLORS.dropped);
   drawBoxes(context, response.boxes_used, qScale);
