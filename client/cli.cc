@@ -100,7 +100,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   if (ingest->parsed()) return RunIngest(c, ingest_options, json, io);
   if (query->parsed()) return RunQuery(c, query_flags, json, io);
   if (place.get->parsed()) {
-    return PlaceGet(c, place_flags.map, place_flags.id, place_flags.features, json, io);
+    return PlaceGet(c, place_flags.map, place_flags.id, place_flags.features, json, io,
+                    place_flags.thumbnail);
   }
   if (place.remove->parsed()) return PlaceDelete(c, place_flags.map, place_flags.id, json, io);
   if (snapshots.create->parsed()) return SnapshotsCreate(c, snapshots_flags.map, json, io);

@@ -380,6 +380,11 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   auto dynamics = (*entry)->map->GetDynamics(request->place_id());
   if (!dynamics.ok()) return Finish("GetPlace", context, ToGrpc(dynamics.status()));
   DynamicsToProto(*dynamics, response->mutable_dynamics());
+  if (request->include_thumbnail()) {
+    auto thumbnail = (*entry)->map->GetThumbnail(request->place_id());
+    if (!thumbnail.ok()) return Finish("GetPlace", context, ToGrpc(thumbnail.status()));
+    if (thumbnail->has_value()) wire::ThumbnailToProto(**thumbnail, response->mutable_thumbnail());
+  }
   return Finish("GetPlace", context, grpc::Status::OK);
 }
 
@@ -484,7 +489,8 @@ namespace {
 bool DecodesInColor(const MapEntry& map, const v1::Observation& observation) {
   const ServiceMapSettings& settings = map.settings;
   const bool server_boxes = settings.detection_enabled && settings.box_source != BoxSource::kAgent;
-  return server_boxes ||
+  // A map that keeps thumbnails keeps them in colour.
+  return server_boxes || map.map->info().options.thumbnails.enabled ||
          (settings.detection_enabled && observation.boxes_size() > 0 &&
           map.map->database().config().box_refinement.method == BoxRefinement::kGrabCut);
 }

@@ -215,8 +215,8 @@ Result<LocalFeatures> PlaceDatabase::ExtractFromPixels(
   return LocalFeatures::Concat(*extracted, whole->Select(on_objects));
 }
 
-Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
-                                              FrameRole role) const {
+Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, FrameRole role,
+                                              const ThumbnailSettings* thumbnail) const {
   ProcessedFrame frame;
   Stopwatch total;
   Stopwatch stage;
@@ -315,6 +315,18 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation,
   frame.static_features =
       filtered->dynamic_indices.empty() ? *features : features->Select(filtered->static_indices);
   frame.timings.filter_ms = stage.Lap();
+
+  // ---- The thumbnail: the reduced frame with boxes_used blurred, and the DC keypoints.
+  if (thumbnail && thumbnail->enabled && !observation.features.has_value() &&
+      !observation.image.empty()) {
+    std::vector<Keypoint> dropped;
+    dropped.reserve(filtered->dynamic_indices.size());
+    for (uint32_t i : filtered->dynamic_indices) dropped.push_back(features->keypoints()[i]);
+    auto made = MakeThumbnail(observation.image, frame.boxes_used, std::move(dropped), *thumbnail);
+    if (!made.ok()) return made.status().WithContext("thumbnail");
+    frame.thumbnail = std::move(made).value();
+    stage.Lap();  // counted in total_ms only
+  }
 
   // ---- The short-term tier keeps the DC words (in memory, for recent places).
   if (config_.short_term.enabled && !filtered->dynamic_indices.empty()) {
