@@ -158,14 +158,27 @@ TEST_F(ConsoleTest, EveryEndpointAnswersAsGrpcDoes) {
     EXPECT_EQ(places.Json()["code"], "UNIMPLEMENTED");
   }
 
-  // The thumbnail route: a map that keeps none answers 404 with the reason.
-  Reply thumbnail = Send("GET", "/api/v1/maps/office/places/3/thumbnail.jpg", "");
-  if (thumbnail.status == 200) {
-    EXPECT_EQ(thumbnail.content_type, "image/jpeg");
-  } else {
-    EXPECT_EQ(thumbnail.status, 404) << thumbnail.body;
-    EXPECT_EQ(thumbnail.Json()["code"], "NOT_FOUND");
-  }
+  // The thumbnail route: a map that keeps none answers 404 with the reason; one that keeps them
+  // answers the JPEG GetPlace returns.
+  Reply none = Send("GET", "/api/v1/maps/office/places/3/thumbnail.jpg", "");
+  EXPECT_EQ(none.status, 404) << none.body;
+  EXPECT_EQ(none.Json()["code"], "NOT_FOUND");
+  v1::MapConfig with_thumbnails;
+  with_thumbnails.mutable_thumbnails()->set_enabled(true);
+  CreateMap("lobby", with_thumbnails);
+  ASSERT_TRUE(IngestAll(stub_.get(), "lobby", {RtabmapObservation(9, "b")}).status.ok());
+  Reply jpeg = Send("GET", "/api/v1/maps/lobby/places/1/thumbnail.jpg", "");
+  ASSERT_EQ(jpeg.status, 200) << jpeg.body;
+  EXPECT_EQ(jpeg.content_type, "image/jpeg");
+  grpc::ClientContext context;
+  v1::GetPlaceRequest get;
+  get.set_map("lobby");
+  get.set_place_id(1);
+  get.set_include_thumbnail(true);
+  v1::Place stored;
+  ASSERT_TRUE(stub_->GetPlace(&context, get, &stored).ok());
+  EXPECT_EQ(jpeg.body, stored.thumbnail().jpeg());
+  EXPECT_EQ(jpeg.body.substr(0, 2), "\xFF\xD8");
 
   // The pages, embedded, with a policy that loads nothing from elsewhere.
   Reply index = Send("GET", "/", "");

@@ -268,8 +268,8 @@ async function placesView(view, map) {
     } catch (e) {
       if (e.status !== 501) throw e;
       // A server without ListPlaces: the newest ids one by one (no filters).
-      info.textContent = "This server does not list places (ListPlaces: " + e.message +
-          "); showing the newest ids without filters.";
+      info.textContent = "This server does not list places yet (ListPlaces: " +
+          (e.message || e.code) + "): showing the newest ids, without filters.";
       const newest = before || Number((description.stats || {}).places || 0);
       const count = Math.min(Number(limit.value) || 24, newest);
       for (let id = newest; id > newest - count; id--) places.push({ place_id: id });
@@ -289,10 +289,11 @@ async function placesView(view, map) {
   more.addEventListener("click", () => page(false).catch(showError));
   const thumbnails = description.config && description.config.thumbnails &&
       description.config.thumbnails.enabled;
-  view.append(form, legend(), info,
-              thumbnails ? null : el("p", { class: "muted" },
-                                     "This map keeps no thumbnails: places show a placeholder."),
-              cards, el("p", {}, more));
+  view.append(form, legend(), info);
+  if (!thumbnails) {
+    view.append(el("p", { class: "muted" }, "This map keeps no thumbnails: places show a placeholder."));
+  }
+  view.append(cards, el("p", {}, more));
   await page(true);
 }
 
