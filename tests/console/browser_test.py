@@ -152,13 +152,19 @@ def main():
     for i in range(1, FRAMES + 1):
         os.symlink(os.path.join(frames_dir, "%d.jpg" % i), os.path.join(frames, "%d.jpg" % i))
     address = "127.0.0.1:%d" % free_port()
+    # With the YOLOX-Nano model (tools/install_models.sh), a second map of CamVid street frames
+    # with server-side detection shows dynamic-object boxes and dropped keypoints.
+    model = os.path.join(os.environ.get("PLACEDB_MODELS_DIR", ""), "yolox_nano.onnx")
+    street = os.path.join(env("PLACEDB_SHARED_DIR"), "data", "camvid", "images")
+    detector = (["--detector-model", model] if os.path.isfile(model) and os.path.isdir(street)
+                else [])
     processes = []
     try:
         server = subprocess.Popen(
             [server_binary, "--listen", address, "--data-dir", os.path.join(work, "data"),
              "--metrics-listen", "off", "--console-listen", "127.0.0.1:0",
              "--vocabulary", "default=" + env("PLACEDB_DEFAULT_VOCABULARY"), "--threads", "2",
-             "--log-level", "warn"],
+             "--log-level", "warn"] + detector,
             stdout=subprocess.DEVNULL, stderr=open(os.path.join(work, "server.log"), "w"))
         processes.append(server)
 
@@ -175,6 +181,15 @@ def main():
         placedb("maps", "create", "office", "--thumbnails")
         placedb("ingest", "office", frames, "--glob", "*.jpg", "--agents", "2",
                 "--agent-id", "robot", "--sequence-start", "1")
+        if detector:
+            street_frames = os.path.join(work, "street")
+            os.makedirs(street_frames)
+            for name in sorted(os.listdir(street))[:12]:
+                os.symlink(os.path.join(street, name), os.path.join(street_frames, name))
+            placedb("maps", "create", "street", "--thumbnails", "--box-source", "server")
+            placedb("ingest", "street", street_frames, "--glob", "*.jpg", "--agent-id", "car-1")
+        else:
+            print("no detector model in PLACEDB_MODELS_DIR: the street map is left out")
         description = console_api(url, "GetMap", {"name": "office"})
         places = int(description["stats"]["places"])
         if places < FRAMES // 2:
@@ -237,6 +252,14 @@ def main():
             fail("the map keeps thumbnails but some places show none: %s" % cards)
         print("places page: %d cards with thumbnails" % len(cards))
         devtools.screenshot(os.path.join(screenshots, "places.png"))
+        if detector:
+            devtools.show("#/places/street")
+            dropped = devtools.evaluate(
+                "document.querySelectorAll('#places .place-card canvas[data-thumbnail=\"yes\"]')"
+                ".length")
+            if not dropped:
+                fail("the street map's places show no thumbnails")
+            devtools.screenshot(os.path.join(screenshots, "places-street.png"))
 
         # Query: upload a stored frame; its own place ranks first.
         devtools.show("#/query")
