@@ -8,8 +8,12 @@
 #include <gtest/gtest.h>
 #include <httplib.h>
 
+#include <atomic>
+#include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -105,6 +109,64 @@ TEST(ConsoleStatusTest, GrpcCodesMapToHttpStatuses) {
   for (const auto& [code, status] : expected) {
     EXPECT_EQ(server::HttpStatusOf(code), status) << int(code);
   }
+}
+
+TEST(ConsoleConfigTest, FileEnvironmentFlagsAndTheExample) {
+  const std::string dir = testing::MakeTempDir("placedb-console-config");
+  const std::string path = dir + "/placedb.yaml";
+  std::ofstream(path) << "console_listen: 127.0.0.1:7000\n"
+                         "console_threads: 3\n"
+                         "console_request_timeout_ms: 900\n"
+                         "console_max_request_bytes: 2048\n";
+  std::map<std::string, std::string> env = {{"PLACEDB_CONSOLE_LISTEN", "127.0.0.1:7100"}};
+  auto getenv = [&](const char* name) -> const char* {
+    auto it = env.find(name);
+    return it == env.end() ? nullptr : it->second.c_str();
+  };
+  const char* argv[] = {"placedb-server", "--config", path.c_str()};
+  auto parsed = server::ParseCommandLine(3, argv, getenv);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->config.console_listen, "127.0.0.1:7100");  // environment over file
+  EXPECT_EQ(parsed->config.console_threads, 3);
+  EXPECT_EQ(parsed->config.console_request_timeout_ms, 900u);
+  EXPECT_EQ(parsed->config.console_max_request_bytes, 2048u);
+  ServerConfig again;  // --print-config round trip
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(parsed->config), &again).ok());
+  EXPECT_EQ(server::ConfigToYaml(again), server::ConfigToYaml(parsed->config));
+
+  const char* off[] = {"placedb-server", "--console-listen", "off"};
+  parsed = server::ParseCommandLine(3, off, getenv);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->config.console_listen, "");  // flag over environment
+  env = {{"PLACEDB_CONSOLE_LISTEN", "off"}};
+  const char* plain[] = {"placedb-server"};
+  parsed = server::ParseCommandLine(1, plain, getenv);
+  ASSERT_TRUE(parsed.ok());
+  EXPECT_EQ(parsed->config.console_listen, "");
+
+  for (const auto& [yaml, key] : std::vector<std::pair<std::string, std::string>>{
+           {"console_listen: nowhere\n", "console_listen"},
+           {"console_threads: 1\n", "console_threads"},
+           {"console_request_timeout_ms: 5\n", "console_request_timeout_ms"},
+           {"console_max_request_bytes: 10\n", "console_max_request_bytes"},
+           {"console_tls: true\n", "console_tls"}}) {
+    ServerConfig bad;
+    ASSERT_TRUE(server::ApplyConfigYaml(yaml, &bad).ok()) << yaml;
+    const Status invalid = server::ValidateServerConfig(bad);
+    EXPECT_EQ(invalid.code(), StatusCode::kInvalidArgument) << yaml;
+    EXPECT_NE(invalid.message().find(key), std::string::npos) << invalid.message();
+  }
+  // The example config shows the defaults.
+  ServerConfig example;
+  ASSERT_TRUE(
+      server::ApplyConfigFile(std::string(PLACEDB_SOURCE_DIR) + "/server/placedb.yaml", &example)
+          .ok());
+  const ServerConfig defaults;
+  EXPECT_EQ(example.console_listen, defaults.console_listen);
+  EXPECT_EQ(example.console_tls, defaults.console_tls);
+  EXPECT_EQ(example.console_threads, defaults.console_threads);
+  EXPECT_EQ(example.console_request_timeout_ms, defaults.console_request_timeout_ms);
+  EXPECT_EQ(example.console_max_request_bytes, defaults.console_max_request_bytes);
 }
 
 TEST_F(ConsoleTest, EveryEndpointAnswersAsGrpcDoes) {
@@ -313,6 +375,40 @@ TEST_F(ConsoleTest, TokensApplyAsOnGrpc) {
   EXPECT_EQ(info["vocabularies"][0]["path"], "");
   // The pages themselves are public (they hold no data); a host name is fine with tokens.
   EXPECT_EQ(Send("GET", "/", "", {{"Host", "console.example"}}).status, 200);
+}
+
+// HTTP workers and gRPC handlers call the same service at once: every answer is the serial one.
+TEST_F(ConsoleTest, ConcurrentHttpAndGrpcQueriesAgree) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(ConsoleConfig()));
+  ASSERT_NO_FATAL_FAILURE(Populate("office", 6));
+  const std::string request = ToJson(QueryOf("office", 4));
+  auto top_of = [](const std::string& body) {
+    const json answer = json::parse(body, nullptr, false);
+    if (answer.is_discarded() || answer["matches"].empty()) return std::string("none");
+    return answer["matches"][0]["place_id"].dump();
+  };
+  const Reply serial = Call("Query", request);
+  ASSERT_EQ(serial.status, 200) << serial.body;
+  const std::string expected = top_of(serial.body);
+  std::atomic<int> http_agree{0}, grpc_agree{0};
+  std::vector<std::thread> threads;
+  for (int t = 0; t < 4; ++t) {
+    threads.emplace_back([&] {
+      for (int i = 0; i < 3; ++i) {
+        const Reply reply = Call("Query", request);
+        if (reply.status == 200 && top_of(reply.body) == expected) ++http_agree;
+        v1::QueryResponse response;
+        if (Query("office", RtabmapObservation(4, "probe"), &response, 3).ok() &&
+            response.matches_size() > 0 &&
+            std::to_string(response.matches(0).place_id()) == expected) {
+          ++grpc_agree;
+        }
+      }
+    });
+  }
+  for (std::thread& thread : threads) thread.join();
+  EXPECT_EQ(http_agree.load(), 12);
+  EXPECT_EQ(grpc_agree.load(), 12);
 }
 
 TEST_F(ConsoleTest, UnauthenticatedConsoleAnswersOnlyByAddress) {
