@@ -11,6 +11,7 @@
 #include <atomic>
 #include <fstream>
 #include <map>
+#include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <thread>
@@ -18,7 +19,9 @@
 #include <vector>
 
 #include "server/auth/tokens.h"
+#include "server/transport_security.h"
 #include "tests/server/server_fixture.h"
+#include "tests/tls_certificates.h"
 
 namespace placedb::server_testing {
 namespace {
@@ -409,6 +412,62 @@ TEST_F(ConsoleTest, ConcurrentHttpAndGrpcQueriesAgree) {
   for (std::thread& thread : threads) thread.join();
   EXPECT_EQ(http_agree.load(), 12);
   EXPECT_EQ(grpc_agree.load(), 12);
+}
+
+// console_tls with a client CA and a tokens file: the browser's certificate names its principal
+// (here by its URI SAN), as on the gRPC port; without a certificate there is no connection.
+TEST_F(ConsoleTest, HttpsClientCertificateNamesThePrincipal) {
+  const testing::TestCertificates& certs = testing::SharedTestCertificates();
+  using server::auth::Principal;
+  const std::string admin_token = *server::auth::GenerateToken();
+  Principal admin;
+  admin.name = "admin";
+  admin.token_sha256 = server::auth::HashToken(admin_token);
+  admin.admin = true;
+  Principal robot;
+  robot.name = "robot";
+  robot.certificate_names = {"spiffe://fleet/robot-8"};
+  robot.maps = {{"office", true, false}};
+  server::auth::TokensFile file;
+  ASSERT_TRUE(file.Add(admin).ok());
+  ASSERT_TRUE(file.Add(robot).ok());
+  ASSERT_TRUE(file.Save(root_ + "/tokens.yaml").ok());
+
+  ServerConfig config = ConsoleConfig();
+  config.tls = {certs.server_cert, certs.server_key, certs.ca_cert};
+  config.console_tls = true;
+  config.security.tokens_file = root_ + "/tokens.yaml";
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  ASSERT_GT(server_->console_port(), 0);
+
+  auto get_map = [&](const std::string& name, bool with_certificate) {
+    auto client = with_certificate
+                      ? std::make_unique<httplib::SSLClient>("127.0.0.1", server_->console_port(),
+                                                             certs.client_cert, certs.client_key)
+                      : std::make_unique<httplib::SSLClient>("127.0.0.1", server_->console_port());
+    client->set_ca_cert_path(certs.ca_cert);
+    client->enable_server_certificate_verification(true);
+    client->set_read_timeout(std::chrono::seconds(30));
+    auto result =
+        client->Post("/api/v1/GetMap", R"({"name": ")" + name + R"("})", "application/json");
+    Reply reply;
+    if (result) {
+      reply.status = result->status;
+      reply.body = result->body;
+    }
+    return reply;
+  };
+  // No map exists: an admitted call reaches the handler (404), a refused one stops at
+  // authorization (403).
+  Reply allowed = get_map("office", true);
+  EXPECT_EQ(allowed.status, 404) << allowed.body;  // admitted: the handler says it is not there
+  EXPECT_EQ(allowed.Json()["code"], "NOT_FOUND");
+  Reply denied = get_map("yard", true);
+  EXPECT_EQ(denied.status, 403) << denied.body;
+  EXPECT_NE(denied.body.find("principal 'robot' may not read map 'yard'"), std::string::npos)
+      << denied.body;
+  EXPECT_EQ(get_map("office", false).status, 0);  // the handshake needs a client certificate
+  EXPECT_EQ(server::PeerCertificateNames(static_cast<const void*>(nullptr)).size(), 0u);
 }
 
 TEST_F(ConsoleTest, UnauthenticatedConsoleAnswersOnlyByAddress) {
