@@ -605,12 +605,41 @@ QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::s
   QueryOptions out;
   out.top_k = options.top_k() == 0 ? 10 : std::min<size_t>(options.top_k(), 1000);
   out.verified_only = options.verified_only();
+  out.include_correspondences = options.include_correspondences();
   if (options.exclude_same_agent()) {
     out.accept = [agent_id](const PlaceRecord& record) {
       return record.metadata.agent_id != agent_id;
     };
   }
   return out;
+}
+
+Result<PlaceListing> PlaceListingFromProto(const v1::ListPlacesRequest& request) {
+  constexpr uint32_t kMaxLimit = 1000;
+  PlaceListing listing;
+  if (request.limit() > kMaxLimit) {
+    return Status::InvalidArgument("limit: must be 1-" + std::to_string(kMaxLimit) +
+                                   " (0 = 100), got " + std::to_string(request.limit()));
+  }
+  if (request.from_timestamp_ns() < 0) {
+    return Status::InvalidArgument("from_timestamp_ns: must not be negative, got " +
+                                   std::to_string(request.from_timestamp_ns()));
+  }
+  if (request.to_timestamp_ns() < 0) {
+    return Status::InvalidArgument("to_timestamp_ns: must not be negative, got " +
+                                   std::to_string(request.to_timestamp_ns()));
+  }
+  if (request.to_timestamp_ns() != 0 && request.to_timestamp_ns() <= request.from_timestamp_ns()) {
+    return Status::InvalidArgument("to_timestamp_ns: must be after from_timestamp_ns (" +
+                                   std::to_string(request.from_timestamp_ns()) + "), got " +
+                                   std::to_string(request.to_timestamp_ns()));
+  }
+  listing.filter.agent_id = request.agent_id();
+  listing.filter.from_timestamp_ns = request.from_timestamp_ns();
+  listing.filter.to_timestamp_ns = request.to_timestamp_ns();
+  listing.before = request.before_place_id();
+  if (request.limit() != 0) listing.limit = request.limit();
+  return listing;
 }
 
 }  // namespace placedb::wire

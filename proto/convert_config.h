@@ -67,7 +67,22 @@ Result<BoxSource> BoxSourceFromProto(v1::BoxSource source, const std::string& fi
 v1::BandPolicy BandPolicyToProto(BandPolicy policy);
 Result<BandPolicy> BandPolicyFromProto(v1::BandPolicy policy, const std::string& field);
 
-// top_k 0 -> 10, capped at 1000; exclude_same_agent skips `agent_id`'s places.
+// top_k 0 -> 10, capped at 1000; exclude_same_agent skips `agent_id`'s places;
+// include_correspondences as given.
 QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id);
+
+// A ListPlaces request as PlaceDatabase::ListPlacesBefore takes it.
+struct PlaceListing {
+  PlaceFilter filter;
+  PlaceId before = 0;
+  size_t limit = 100;
+  // Ids examined per call, whatever the filter: the bound on one call's work (10 000 reader-lock
+  // lookups take well under a millisecond), and why a page may be short with a next id.
+  size_t max_examined = 10000;
+};
+
+// limit 0 -> 100. INVALID_ARGUMENT naming the field: limit over 1000, a negative timestamp, or
+// to_timestamp_ns not after from_timestamp_ns when both are set.
+Result<PlaceListing> PlaceListingFromProto(const v1::ListPlacesRequest& request);
 
 }  // namespace placedb::wire

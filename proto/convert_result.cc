@@ -12,9 +12,16 @@ namespace {
 // The keypoints of either family's message (both carry v1::Keypoint).
 template <typename Out>
 void KeypointsToProto(const std::vector<Keypoint>& keypoints, Out* out) {
-  out->mutable_keypoints()->Reserve(int(keypoints.size()));
+  KeypointListToProto(keypoints, out->mutable_keypoints());
+}
+
+}  // namespace
+
+void KeypointListToProto(const std::vector<Keypoint>& keypoints,
+                         google::protobuf::RepeatedPtrField<v1::Keypoint>* out) {
+  out->Reserve(out->size() + int(keypoints.size()));
   for (const Keypoint& k : keypoints) {
-    v1::Keypoint* kp = out->add_keypoints();
+    v1::Keypoint* kp = out->Add();
     kp->set_x(k.x);
     kp->set_y(k.y);
     kp->set_size(k.size);
@@ -23,8 +30,6 @@ void KeypointsToProto(const std::vector<Keypoint>& keypoints, Out* out) {
     kp->set_octave(k.octave);
   }
 }
-
-}  // namespace
 
 void CountsToProto(const FrameCounts& counts, v1::FrameCounts* out) {
   out->set_total(counts.total);
@@ -75,6 +80,12 @@ void MatchesToProto(const std::vector<Match>& matches,
     m->set_inliers(match.inliers);
     m->set_verified(match.verified);
     MetadataToProto(match.metadata, m->mutable_metadata());
+    m->mutable_correspondences()->Reserve(int(match.correspondences.size()));
+    for (const InlierPair& pair : match.correspondences) {
+      v1::Correspondence* c = m->add_correspondences();
+      c->set_query_keypoint(pair.query);
+      c->set_place_keypoint(pair.candidate);
+    }
   }
 }
 
@@ -104,6 +115,13 @@ void FeaturesToProto(const FeatureSet& features, v1::Features* out) {
     features.descriptors[i].ToBytes(reinterpret_cast<uint8_t*>(bytes->data()) +
                                     i * size_t(Descriptor256::kBytes));
   }
+}
+
+void PlaceRecordToProto(const PlaceRecord& record, v1::Place* out) {
+  out->set_place_id(record.id);
+  MetadataToProto(record.metadata, out->mutable_metadata());
+  CountsToProto(record.counts, out->mutable_counts());
+  BoxesToProto(record.boxes_used, out->mutable_boxes_used());
 }
 
 void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out) {

@@ -23,6 +23,9 @@ void CountsToProto(const FrameCounts& counts, v1::FrameCounts* out);
 void BoxesToProto(const std::vector<DynamicBox>& boxes,
                   google::protobuf::RepeatedPtrField<v1::UsedBox>* out);
 void MetadataToProto(const PlaceMetadata& metadata, v1::PlaceMetadata* out);
+void KeypointListToProto(const std::vector<Keypoint>& keypoints,
+                         google::protobuf::RepeatedPtrField<v1::Keypoint>* out);  // appends
+// Each match with its correspondences when the core filled them.
 void MatchesToProto(const std::vector<Match>& matches,
                     google::protobuf::RepeatedPtrField<v1::Match>* out);
 void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimings* out);
@@ -30,6 +33,8 @@ void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimin
 // float32 per SIFT keypoint.
 void FeaturesToProto(const FeatureSet& features, v1::Features* out);
 void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out);
+// A place's record: id, metadata, counts and boxes used (no features, no dynamics).
+void PlaceRecordToProto(const PlaceRecord& record, v1::Place* out);
 // A place's features into the field of their family: `features` (ORB) or `sift_features`.
 void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out);
 void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out);

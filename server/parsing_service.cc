@@ -282,7 +282,7 @@ ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthoriz
   AddUnary(
       "GetPlace", &PlaceDbService::GetPlace, Right::kRead,
       +[](const v1::GetPlaceRequest& r) { return r.map(); });
-  AddUnary<v1::ListPlacesRequest, v1::ListPlacesResponse>(
+  AddUnary(
       "ListPlaces", &PlaceDbService::ListPlaces, Right::kRead,
       +[](const v1::ListPlacesRequest& r) { return r.map(); });
   AddUnary(

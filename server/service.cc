@@ -370,10 +370,7 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   }
   auto place = (*entry)->map->GetPlace(request->place_id());
   if (!place.ok()) return Finish("GetPlace", context, ToGrpc(place.status()));
-  response->set_place_id(place->record.id);
-  MetadataToProto(place->record.metadata, response->mutable_metadata());
-  CountsToProto(place->record.counts, response->mutable_counts());
-  BoxesToProto(place->record.boxes_used, response->mutable_boxes_used());
+  wire::PlaceRecordToProto(place->record, response);
   if (request->include_features()) {
     PlaceFeaturesToProto(place->payload.features, response);
   }
@@ -386,6 +383,22 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
     if (thumbnail->has_value()) wire::ThumbnailToProto(**thumbnail, response->mutable_thumbnail());
   }
   return Finish("GetPlace", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::ListPlaces(grpc::ServerContext* context,
+                                        const v1::ListPlacesRequest* request,
+                                        v1::ListPlacesResponse* response) {
+  CallScope scope(this);
+  auto entry = maps_->Get(request->map(), "map");
+  if (!entry.ok()) return Finish("ListPlaces", context, ToGrpc(entry.status()));
+  auto listing = wire::PlaceListingFromProto(*request);
+  if (!listing.ok()) return Finish("ListPlaces", context, ToGrpc(listing.status()));
+  const PlacePage page = (*entry)->map->database().ListPlacesBefore(
+      listing->before, listing->limit, listing->filter, listing->max_examined);
+  response->mutable_places()->Reserve(int(page.places.size()));
+  for (const auto& record : page.places) wire::PlaceRecordToProto(*record, response->add_places());
+  response->set_next_before_place_id(page.next_before);
+  return Finish("ListPlaces", context, grpc::Status::OK);
 }
 
 grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
@@ -516,7 +529,7 @@ grpc::Status PlaceDbService::ChargeFrame(grpc::ServerContext* context, const Map
 
 grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntry& map,
                                      const v1::Observation& observation, const std::string& field,
-                                     FrameRole role, Work* work) {
+                                     FrameRole role, Work* work, bool keep_dropped_keypoints) {
   if (Expired(context)) return Cancelled(context, "before decoding");
   const ServiceMapSettings& settings = map.settings;
   if (Status typed =
@@ -564,7 +577,7 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
   }
 
   if (Expired(context)) return Cancelled(context, "before feature extraction");
-  auto processed = map.map->Process(frame, role);
+  auto processed = map.map->Process(frame, role, keep_dropped_keypoints);
   if (!processed.ok()) return ToGrpc(processed.status(), field);
   work->frame = std::move(processed).value();
   work->timings.extract_ms = work->frame.timings.extract_ms;
@@ -603,7 +616,8 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
     queue_ms = MsSince(arrived);
     Work work;
     grpc::Status status = Guarded("processing the observation", [&] {
-      return Prepare(context, map, request->observation(), "observation", FrameRole::kQuery, &work);
+      return Prepare(context, map, request->observation(), "observation", FrameRole::kQuery, &work,
+                     request->options().include_correspondences());
     });
     if (status.ok() && Expired(context)) status = Cancelled(context, "before searching");
     if (status.ok())
@@ -619,6 +633,15 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
         CountsToProto(result.counts, response->mutable_counts());
         BoxesToProto(result.boxes_used, response->mutable_boxes_used());
         MatchesToProto(result.matches, response->mutable_matches());
+        if (options.include_correspondences) {
+          // What the correspondences index, and what to draw them on.
+          wire::KeypointListToProto(work.frame.static_features.keypoints(),
+                                    response->mutable_query_keypoints());
+          wire::KeypointListToProto(work.frame.dropped_keypoints,
+                                    response->mutable_query_dropped_keypoints());
+          response->set_image_width(uint32_t(work.frame.static_features.image_width()));
+          response->set_image_height(uint32_t(work.frame.static_features.image_height()));
+        }
         // The agent's current Algorithm 1 decision, when it applied to this frame.
         if (work.frame.depth_state) {
           DepthStateToProto(*work.frame.depth_state, response->mutable_depth());

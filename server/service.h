@@ -74,6 +74,9 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                      v1::QueryResponse* response) override;
   grpc::Status GetPlace(grpc::ServerContext* context, const v1::GetPlaceRequest* request,
                         v1::Place* response) override;
+  // Newest first, PlaceDatabase::ListPlacesBefore's bounded walk (wire::PlaceListing).
+  grpc::Status ListPlaces(grpc::ServerContext* context, const v1::ListPlacesRequest* request,
+                          v1::ListPlacesResponse* response) override;
   grpc::Status DeletePlace(grpc::ServerContext* context, const v1::DeletePlaceRequest* request,
                            v1::DeletePlaceResponse* response) override;
   grpc::Status GetDynamics(grpc::ServerContext* context, const v1::GetDynamicsRequest* request,
@@ -127,9 +130,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
  private:
   // Decode, detect, extract, [depth], filter, transform: the first half of a frame, on a worker.
   // `role`: kStream (Ingest: the agent's stream state is advanced later, in order) or kQuery.
+  // `keep_dropped_keypoints`: the frame keeps its DC keypoints (to answer with them).
   grpc::Status Prepare(grpc::ServerContext* context, const MapEntry& map,
                        const v1::Observation& observation, const std::string& field, FrameRole role,
-                       Work* work);
+                       Work* work, bool keep_dropped_keypoints = false);
   // The second half of an Ingest frame (the agent's stream state: Algorithm 1; search when
   // asked; then store, or loop closure + store in loop-closure mode) and its response. The
   // stream's pipeline runs it in stream order, one frame at a time.

@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <numeric>
 #include <opencv2/imgproc.hpp>
+#include <set>
 
 #include "core/features/sift_features.h"
 #include "tests/test_support.h"
@@ -109,6 +110,27 @@ TEST(GeometricVerifierTest, ConsecutiveFramesVerify) {
               result.inliers);
   EXPECT_TRUE(result.verified);
   EXPECT_GE(result.inliers, 50);
+}
+
+// The inlier pairs, when asked for: as many as the count, each feature once, and (a warped copy)
+// each pair maps the query keypoint onto the candidate's by the warp.
+TEST(GeometricVerifierTest, CollectedInliersAreTheCountedOnes) {
+  REQUIRE_FILES(testing::RtabmapFramePath(1), testing::RtabmapFramePath(2));
+  const FeatureSet first = ExtractFile(testing::RtabmapFramePath(1));
+  const FeatureSet second = ExtractFile(testing::RtabmapFramePath(2));
+  auto counted = VerifyGeometry(first, {}, second, {}, Exhaustive());
+  auto collected = VerifyGeometry(first, {}, second, {}, Exhaustive(), /*collect_inliers=*/true);
+  ASSERT_TRUE(counted.ok() && collected.ok());
+  EXPECT_TRUE(counted->inlier_pairs.empty());
+  EXPECT_EQ(collected->inliers, counted->inliers);
+  ASSERT_EQ(int(collected->inlier_pairs.size()), collected->inliers);
+  std::set<uint32_t> queries, candidates;
+  for (const InlierPair& pair : collected->inlier_pairs) {
+    ASSERT_LT(pair.query, first.size());
+    ASSERT_LT(pair.candidate, second.size());
+    EXPECT_TRUE(queries.insert(pair.query).second);
+    EXPECT_TRUE(candidates.insert(pair.candidate).second);
+  }
 }
 
 TEST(GeometricVerifierTest, WarpedCopyVerifies) {

@@ -251,6 +251,45 @@ TEST_F(PlaceDatabaseTest, RemoveTakesThePlaceOutOfResults) {
   EXPECT_EQ(again->id, 11u);
 }
 
+// The newest-first walk: filters, gaps, and the bound on ids examined per call.
+TEST_F(PlaceDatabaseTest, ListPlacesBeforeWalksNewestFirstWithBoundedWork) {
+  auto db = MakeDatabase();
+  for (int i = 1; i <= 12; ++i) ASSERT_TRUE(db->Add(Frame(i, i <= 10 ? "a" : "b")).ok());
+  ASSERT_TRUE(db->Remove(11).ok());
+  const auto ids = [](const PlacePage& page) {
+    std::vector<PlaceId> out;
+    for (const auto& record : page.places) out.push_back(record->id);
+    return out;
+  };
+  PlacePage page = db->ListPlacesBefore(0, 5, {}, 1000);
+  EXPECT_EQ(ids(page), (std::vector<PlaceId>{12, 10, 9, 8, 7}));
+  EXPECT_EQ(page.next_before, 7u);
+  page = db->ListPlacesBefore(7, 100, {}, 1000);
+  EXPECT_EQ(ids(page), (std::vector<PlaceId>{6, 5, 4, 3, 2, 1}));
+  EXPECT_EQ(page.next_before, 0u);
+  EXPECT_EQ(ids(db->ListPlacesBefore(99, 2, {}, 1000)), (std::vector<PlaceId>{12, 10}));
+
+  // A filter that matches only the oldest place: each call examines at most 4 ids and says
+  // where to go on, with an empty page, until the place turns up.
+  const PlaceFilter oldest{
+      .agent_id = "a", .from_timestamp_ns = 0, .to_timestamp_ns = 2'000'000'000};
+  page = db->ListPlacesBefore(0, 10, oldest, 4);
+  EXPECT_TRUE(page.places.empty());
+  EXPECT_EQ(page.next_before, 9u);  // examined 12, 11, 10, 9
+  page = db->ListPlacesBefore(page.next_before, 10, oldest, 4);
+  EXPECT_TRUE(page.places.empty());
+  EXPECT_EQ(page.next_before, 5u);
+  page = db->ListPlacesBefore(page.next_before, 10, oldest, 4);
+  EXPECT_EQ(ids(page), (std::vector<PlaceId>{1}));
+  EXPECT_EQ(page.next_before, 0u);
+
+  const PlaceFilter agent_b{.agent_id = "b", .from_timestamp_ns = 0, .to_timestamp_ns = 0};
+  EXPECT_EQ(ids(db->ListPlacesBefore(0, 10, agent_b, 1000)), (std::vector<PlaceId>{12}));
+  const PlaceFilter window{
+      .agent_id = "", .from_timestamp_ns = 3'000'000'000, .to_timestamp_ns = 5'000'000'000};
+  EXPECT_EQ(ids(db->ListPlacesBefore(0, 10, window, 1000)), (std::vector<PlaceId>{4, 3}));
+}
+
 TEST_F(PlaceDatabaseTest, InsertWithExplicitIdRestoresAndRefusesDuplicates) {
   auto db = MakeDatabase();
   auto frame = db->Process(Frame(2));

@@ -68,21 +68,29 @@ std::string FeatureTypeLabel(FeatureType type) {
 }
 
 // Verification against a place the short-term tier holds: both frames' SC + DC features, so
-// the objects both saw are evidence.
+// the objects both saw are evidence. Collected inlier pairs keep only SC-to-SC ones (the indices
+// the frame's static_features and the place's stored features give).
 Result<VerificationResult> VerifyWithObjects(
     const ProcessedFrame& frame, const PlacePayload& place,
-    const std::pair<LocalFeatures, DirectIndex>& place_objects, const VerificationConfig& config) {
+    const std::pair<LocalFeatures, DirectIndex>& place_objects, const VerificationConfig& config,
+    bool collect_inliers) {
   const auto& [objects, objects_direct] = place_objects;
   auto query = LocalFeatures::Concat(frame.static_features, frame.dynamic_features);
   if (!query.ok()) return query.status();
   auto candidate = LocalFeatures::Concat(place.features, objects);
   if (!candidate.ok()) return candidate.status();
-  return VerifyGeometry(
+  auto verified = VerifyGeometry(
       *query,
       MergeDirectIndices(frame.direct, frame.dynamic_direct,
                          uint32_t(frame.static_features.size())),
       *candidate, MergeDirectIndices(place.direct, objects_direct, uint32_t(place.features.size())),
-      config);
+      config, collect_inliers);
+  if (verified.ok() && collect_inliers) {
+    std::erase_if(verified->inlier_pairs, [&](const InlierPair& pair) {
+      return pair.query >= frame.static_features.size() || pair.candidate >= place.features.size();
+    });
+  }
+  return verified;
 }
 
 std::string InvalidReason(const FrameCounts& counts, int place_threshold) {
@@ -216,7 +224,8 @@ Result<LocalFeatures> PlaceDatabase::ExtractFromPixels(
 }
 
 Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, FrameRole role,
-                                              const ThumbnailSettings* thumbnail) const {
+                                              const ThumbnailSettings* thumbnail,
+                                              bool keep_dropped_keypoints) const {
   ProcessedFrame frame;
   Stopwatch total;
   Stopwatch stage;
@@ -314,6 +323,12 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, Fr
   frame.counts.dynamic_coverage = filtered->frame_dynamic_coverage;
   frame.static_features =
       filtered->dynamic_indices.empty() ? *features : features->Select(filtered->static_indices);
+  if (keep_dropped_keypoints) {
+    frame.dropped_keypoints.reserve(filtered->dynamic_indices.size());
+    for (const uint32_t i : filtered->dynamic_indices) {
+      frame.dropped_keypoints.push_back(features->keypoints()[i]);
+    }
+  }
   frame.timings.filter_ms = stage.Lap();
 
   // ---- The thumbnail: the reduced frame with boxes_used blurred, and the DC keypoints.
@@ -748,14 +763,16 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
     if (i < to_verify) {
       auto payload = payloads_->Get(scored.place);
       if (!payload.ok()) continue;  // removed while we searched
-      const Result<VerificationResult> verified =
+      Result<VerificationResult> verified =
           i < recent_dynamic.size() && recent_dynamic[i]
-              ? VerifyWithObjects(frame, **payload, *recent_dynamic[i], verification)
+              ? VerifyWithObjects(frame, **payload, *recent_dynamic[i], verification,
+                                  options.include_correspondences)
               : VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                               (*payload)->direct, verification);
+                               (*payload)->direct, verification, options.include_correspondences);
       if (verified.ok()) {
         match.inliers = verified->inliers;
         match.verified = verified->verified;
+        if (match.verified) match.correspondences = std::move(verified->inlier_pairs);
       }
     }
     if (options.verified_only && !match.verified) continue;
@@ -789,6 +806,36 @@ std::vector<PlaceId> PlaceDatabase::ListPlaces() const {
   }
   std::sort(ids.begin(), ids.end());
   return ids;
+}
+
+PlacePage PlaceDatabase::ListPlacesBefore(PlaceId before, size_t limit, const PlaceFilter& filter,
+                                          size_t max_examined) const {
+  const auto passes = [&filter](const PlaceRecord& record) {
+    const PlaceMetadata& metadata = record.metadata;
+    if (!filter.agent_id.empty() && metadata.agent_id != filter.agent_id) return false;
+    if (filter.from_timestamp_ns != 0 && metadata.timestamp_ns < filter.from_timestamp_ns) {
+      return false;
+    }
+    return filter.to_timestamp_ns == 0 || metadata.timestamp_ns < filter.to_timestamp_ns;
+  };
+  PlacePage page;
+  if (limit == 0 || max_examined == 0) {
+    page.next_before = before;
+    return page;
+  }
+  ReaderLock lock(mutex_);
+  // Ids are handed out ascending and never reused: the walk goes down the id range, so the order
+  // is stable while places are added (above) or removed.
+  PlaceId id = before == 0 || before > next_id_ ? next_id_ : before;
+  size_t examined = 0;
+  while (id > 1 && page.places.size() < limit && examined < max_examined) {
+    --id;
+    ++examined;
+    auto it = records_.find(id);
+    if (it != records_.end() && passes(*it->second)) page.places.push_back(it->second);
+  }
+  page.next_before = id > 1 ? id : 0;
+  return page;
 }
 
 DatabaseStats PlaceDatabase::Stats() const {

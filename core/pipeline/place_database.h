@@ -166,8 +166,10 @@ struct ProcessedFrame {
   bool valid = false;
   std::string rejection;          // why the frame is invalid; empty when valid
   LocalFeatures static_features;  // SC only, of the map's feature type
-  BowVector bow;                  // SC only, normalised for the database's scoring
-  DirectIndex direct;             // SC only, at verification.levels_up
+  // The DC keypoints (the filter's dropped split), only when Process() was asked to keep them.
+  std::vector<Keypoint> dropped_keypoints;
+  BowVector bow;       // SC only, normalised for the database's scoring
+  DirectIndex direct;  // SC only, at verification.levels_up
   std::vector<DynamicBox> boxes_used;
   StageTimings timings;
   // The short-term tier (config.short_term.enabled): the DC descriptors' BoW vector, normalised
@@ -256,6 +258,8 @@ struct QueryOptions {
   int64_t timestamp_ns = 0;
   // Optional extra filter on candidates (e.g. exclude the agent's own recent places).
   std::function<bool(const PlaceRecord&)> accept;
+  // Fill Match::correspondences for verified matches (costs a copy of their inliers).
+  bool include_correspondences = false;
 };
 
 struct Match {
@@ -264,6 +268,11 @@ struct Match {
   int inliers = 0;        // 0 when verification is disabled or not reached
   bool verified = false;  // true when inliers >= min_inliers (always false when disabled)
   PlaceMetadata metadata;
+  // With QueryOptions::include_correspondences, verified matches only: the geometric inliers as
+  // (index into the frame's static_features, index into the place's stored features). Against
+  // a place in the short-term tier the inliers on both frames' objects (DC features) are left
+  // out: neither side keeps them, so there may be fewer pairs than `inliers`.
+  std::vector<InlierPair> correspondences;
 };
 
 struct QueryResult {
@@ -316,6 +325,19 @@ struct DatabaseStats {
   uint64_t loops_rejected = 0;  // accepted by the filter, failed geometric verification
 };
 
+// Which places PlaceDatabase::ListPlacesBefore returns.
+struct PlaceFilter {
+  std::string agent_id;           // only this agent's places; empty = every agent's
+  int64_t from_timestamp_ns = 0;  // observed at or after this; 0 = no lower bound
+  int64_t to_timestamp_ns = 0;    // observed before this; 0 = no upper bound
+};
+
+// One page of a newest-first walk over a map's places.
+struct PlacePage {
+  std::vector<std::shared_ptr<const PlaceRecord>> places;  // highest id first
+  PlaceId next_before = 0;  // pass as `before` for the next page; 0 = nothing left below
+};
+
 class AgentStreams;
 class PayloadLongTermMemory;
 
@@ -337,8 +359,10 @@ class PlaceDatabase {
   // AdvanceStream() (`stream_pending`). With `thumbnail` enabled and an observation that carries
   // pixels, the frame's thumbnail is made too (core/thumbnail: boxes_used blurred, the DC
   // keypoints kept); precomputed features have no pixels, hence no thumbnail.
+  // `keep_dropped_keypoints` fills `dropped_keypoints`.
   Result<ProcessedFrame> Process(const Observation& observation, FrameRole role = FrameRole::kQuery,
-                                 const ThumbnailSettings* thumbnail = nullptr) const;
+                                 const ThumbnailSettings* thumbnail = nullptr,
+                                 bool keep_dropped_keypoints = false) const;
   // Finishes a kStream frame: Algorithm 1 with the agent's stream state (frames of one agent
   // must arrive here in order), then validity and transform. No-op unless `stream_pending`.
   Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);
@@ -381,6 +405,14 @@ class PlaceDatabase {
 
   std::shared_ptr<const PlaceRecord> Get(PlaceId id) const;  // nullptr if absent
   std::vector<PlaceId> ListPlaces() const;                   // ascending
+  // The places with ids below `before` (0, or past the newest id: from the newest) that pass
+  // `filter`, highest id first, at most `limit`. Bounded work: the walk examines at most
+  // `max_examined` ids (stored, deleted or never used alike) and stops there, so a filter that
+  // matches rarely costs a bounded call; the page may then hold fewer than `limit` places (even
+  // none) while next_before != 0. Walking every page from before = 0 until next_before == 0
+  // visits every place that existed throughout, exactly once. Takes the reader lock only.
+  PlacePage ListPlacesBefore(PlaceId before, size_t limit, const PlaceFilter& filter,
+                             size_t max_examined) const;
   DatabaseStats Stats() const;
   PlaceId next_id() const;
 

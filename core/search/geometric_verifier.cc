@@ -112,9 +112,11 @@ std::vector<Match> SelectMatches(const std::vector<NearestTwo<Distance>>& neares
   return matches;
 }
 
+// The inlier count; `pairs` (optional) receives the inliers themselves.
 int CountFundamentalInliers(const std::vector<Keypoint>& query,
                             const std::vector<Keypoint>& candidate,
-                            const std::vector<Match>& matches, const VerificationConfig& config) {
+                            const std::vector<Match>& matches, const VerificationConfig& config,
+                            std::vector<InlierPair>* pairs) {
   if (int(matches.size()) < kMinPointsForFundamental) return 0;
   std::vector<cv::Point2f> query_points;
   std::vector<cv::Point2f> candidate_points;
@@ -130,7 +132,15 @@ int CountFundamentalInliers(const std::vector<Keypoint>& query,
         query_points, candidate_points, cv::FM_RANSAC, config.ransac_threshold_px,
         config.ransac_confidence, config.ransac_max_iterations, mask);
     if (fundamental.empty() || mask.empty()) return 0;
-    return cv::countNonZero(mask);
+    const int inliers = cv::countNonZero(mask);
+    if (pairs) {
+      pairs->reserve(size_t(inliers));
+      const uint8_t* inlier = mask.ptr<uint8_t>();
+      for (size_t i = 0; i < matches.size(); ++i) {
+        if (inlier[i]) pairs->push_back({matches[i].query, matches[i].candidate});
+      }
+    }
+    return inliers;
   } catch (const cv::Exception&) {
     return 0;  // degenerate configuration (e.g. all points coincide): nothing verified
   }
@@ -143,8 +153,8 @@ Result<VerificationResult> Verify(const std::vector<Keypoint>& query,
                                   const DirectIndex& query_direct,
                                   const std::vector<Keypoint>& candidate,
                                   const DirectIndex& candidate_direct,
-                                  const VerificationConfig& config, Distance max_distance,
-                                  const DistanceFn& distance) {
+                                  const VerificationConfig& config, bool collect_inliers,
+                                  Distance max_distance, const DistanceFn& distance) {
   std::vector<NearestTwo<Distance>> nearest(query.size());
   if (config.mode == VerificationMode::kExhaustive) {
     for (uint32_t q = 0; q < query.size(); ++q) {
@@ -183,7 +193,8 @@ Result<VerificationResult> Verify(const std::vector<Keypoint>& query,
       SelectMatches(nearest, config.ratio, max_distance, candidate.size());
   VerificationResult result;
   result.putative_matches = int(matches.size());
-  result.inliers = CountFundamentalInliers(query, candidate, matches, config);
+  result.inliers = CountFundamentalInliers(query, candidate, matches, config,
+                                           collect_inliers ? &result.inlier_pairs : nullptr);
   result.verified = result.inliers >= config.min_inliers;
   return result;
 }
@@ -253,7 +264,7 @@ namespace {
 Result<VerificationResult> VerifyBinary(const FeatureSet& query, const DirectIndex& query_direct,
                                         const FeatureSet& candidate,
                                         const DirectIndex& candidate_direct,
-                                        const VerificationConfig& config) {
+                                        const VerificationConfig& config, bool collect_inliers) {
   if (query.descriptors.size() != query.keypoints.size()) {
     return Status::InvalidArgument("query features: " + std::to_string(query.descriptors.size()) +
                                    " descriptors for " + std::to_string(query.keypoints.size()) +
@@ -266,7 +277,7 @@ Result<VerificationResult> VerifyBinary(const FeatureSet& query, const DirectInd
   }
 
   return Verify<int>(query.keypoints, query_direct, candidate.keypoints, candidate_direct, config,
-                     config.max_hamming, [&](uint32_t q, uint32_t c) {
+                     collect_inliers, config.max_hamming, [&](uint32_t q, uint32_t c) {
                        return HammingDistance(query.descriptors[q], candidate.descriptors[c]);
                      });
 }
@@ -276,7 +287,7 @@ Result<VerificationResult> VerifyFloat(const FloatFeatureSet& query,
                                        const DirectIndex& query_direct,
                                        const FloatFeatureSet& candidate,
                                        const DirectIndex& candidate_direct,
-                                       const VerificationConfig& config) {
+                                       const VerificationConfig& config, bool collect_inliers) {
   const auto check = [](const FloatFeatureSet& set, const char* which) {
     if (set.descriptors.size() != set.keypoints.size() * size_t(kSiftDimensions)) {
       return Status::InvalidArgument(
@@ -290,7 +301,8 @@ Result<VerificationResult> VerifyFloat(const FloatFeatureSet& query,
   // L2 distance, Lowe's ratio test on it; no absolute cap (SIFT distances depend on the scale
   // of the descriptors, the ratio does not).
   return Verify<float>(query.keypoints, query_direct, candidate.keypoints, candidate_direct, config,
-                       std::numeric_limits<float>::infinity(), [&](uint32_t q, uint32_t c) {
+                       collect_inliers, std::numeric_limits<float>::infinity(),
+                       [&](uint32_t q, uint32_t c) {
                          const float* a = query.descriptor(q).data();
                          const float* b = candidate.descriptor(c).data();
                          float sum = 0;
@@ -306,14 +318,16 @@ Result<VerificationResult> VerifyGeometry(const LocalFeatures& query,
                                           const DirectIndex& query_direct,
                                           const LocalFeatures& candidate,
                                           const DirectIndex& candidate_direct,
-                                          const VerificationConfig& config) {
+                                          const VerificationConfig& config, bool collect_inliers) {
   PLACEDB_RETURN_IF_ERROR(ValidateVerificationConfig(config));
   if (config.mode == VerificationMode::kDisabled) return VerificationResult{};
   if (query.orb() && candidate.orb()) {
-    return VerifyBinary(*query.orb(), query_direct, *candidate.orb(), candidate_direct, config);
+    return VerifyBinary(*query.orb(), query_direct, *candidate.orb(), candidate_direct, config,
+                        collect_inliers);
   }
   if (query.sift() && candidate.sift()) {
-    return VerifyFloat(*query.sift(), query_direct, *candidate.sift(), candidate_direct, config);
+    return VerifyFloat(*query.sift(), query_direct, *candidate.sift(), candidate_direct, config,
+                       collect_inliers);
   }
   return Status::InvalidArgument(std::string("cannot verify ") + FeatureTypeName(query.type()) +
                                  " features against " + FeatureTypeName(candidate.type()) +

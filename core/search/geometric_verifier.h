@@ -8,7 +8,9 @@
 // reaches `min_inliers`.
 #pragma once
 
+#include <cstdint>
 #include <string>
+#include <vector>
 
 #include "core/base/status.h"
 #include "core/features/local_features.h"
@@ -42,21 +44,32 @@ struct VerificationConfig {
 
 Status ValidateVerificationConfig(const VerificationConfig& config);
 
+// One RANSAC inlier: a query feature index and a candidate feature index.
+struct InlierPair {
+  uint32_t query = 0;
+  uint32_t candidate = 0;
+  bool operator==(const InlierPair&) const = default;
+};
+
 struct VerificationResult {
   int putative_matches = 0;
   int inliers = 0;
   bool verified = false;
+  // With `collect_inliers`: the `inliers` pairs, each index used once (else empty).
+  std::vector<InlierPair> inlier_pairs;
 };
 
 // Verifies `candidate` against `query` (features of one family: INVALID_ARGUMENT otherwise).
 // Putative matches: ORB by Hamming distance (at most max_hamming), SIFT by L2 distance; both
 // with the ratio test. For kDirectIndex both direct indices must have been built at
 // config.levels_up (INVALID_ARGUMENT otherwise); kExhaustive ignores them. Fewer than 8
-// putative matches means 0 inliers (a fundamental matrix needs 8 points).
+// putative matches means 0 inliers (a fundamental matrix needs 8 points). `collect_inliers`
+// also returns the inlier pairs (to draw them); the count is the same either way.
 Result<VerificationResult> VerifyGeometry(const LocalFeatures& query,
                                           const DirectIndex& query_direct,
                                           const LocalFeatures& candidate,
                                           const DirectIndex& candidate_direct,
-                                          const VerificationConfig& config);
+                                          const VerificationConfig& config,
+                                          bool collect_inliers = false);
 
 }  // namespace placedb

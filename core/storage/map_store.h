@@ -169,9 +169,10 @@ class PlaceMap {
   Result<AddResult> Commit(const ProcessedFrame& frame, const PlaceMetadata& metadata);
   // Stream frames (kStream) of a map that keeps thumbnails get theirs here (on the caller's
   // thread, outside any lock of the map); Commit() stores it with the place.
-  Result<ProcessedFrame> Process(const Observation& observation,
-                                 FrameRole role = FrameRole::kQuery) const {
-    return database_->Process(observation, role, ThumbnailsFor(role));
+  // `keep_dropped_keypoints` fills `dropped_keypoints`.
+  Result<ProcessedFrame> Process(const Observation& observation, FrameRole role = FrameRole::kQuery,
+                                 bool keep_dropped_keypoints = false) const {
+    return database_->Process(observation, role, ThumbnailsFor(role), keep_dropped_keypoints);
   }
   // See PlaceDatabase::AdvanceStream: the agent's frames in order.
   Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);

@@ -268,6 +268,8 @@ TEST_F(AuthTest, EveryRpcTimesEveryCallerGetsTheExactCode) {
   v1::GetPlaceRequest get_place;
   get_place.set_map("campus");
   get_place.set_place_id(place);
+  v1::ListPlacesRequest list_places;
+  list_places.set_map("campus");
   v1::DeletePlaceRequest delete_place;
   delete_place.set_map("campus");
   delete_place.set_place_id(999999);  // none: the allowed caller's answer names it, nothing changes
@@ -345,16 +347,9 @@ TEST_F(AuthTest, EveryRpcTimesEveryCallerGetsTheExactCode) {
                    {{"read", K}, {"write", P}, {"admin", K}, {"other_map", P}}};
   rows["GetPlace"] = {unary(&v1::PlaceDb::Stub::GetPlace, get_place, v1::Place()),
                       {{"read", K}, {"write", P}, {"admin", K}, {"other_map", P}}};
-  // Checked before the handler: the generated handler's UNIMPLEMENTED until i20-places
-  // implements ListPlaces (then K for the allowed callers).
-  v1::ListPlacesRequest list_places;
-  list_places.set_map("campus");
   rows["ListPlaces"] = {
       unary(&v1::PlaceDb::Stub::ListPlaces, list_places, v1::ListPlacesResponse()),
-      {{"read", Code::UNIMPLEMENTED},
-       {"write", P},
-       {"admin", Code::UNIMPLEMENTED},
-       {"other_map", P}}};
+      {{"read", K}, {"write", P}, {"admin", K}, {"other_map", P}}};
   rows["DeletePlace"] = {
       unary(&v1::PlaceDb::Stub::DeletePlace, delete_place, v1::DeletePlaceResponse()),
       {{"read", P}, {"write", Code::NOT_FOUND}, {"admin", Code::NOT_FOUND}, {"other_map", P}}};

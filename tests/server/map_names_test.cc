@@ -121,6 +121,14 @@ TEST_F(ServerTest, EveryRpcRefusesBadMapNamesBeforeStorage) {
          v1::Place response;
          return stub->GetPlace(&context, request, &response);
        }},
+      {"ListPlaces", "map",
+       [&](const std::string& name) {
+         grpc::ClientContext context;
+         v1::ListPlacesRequest request;
+         request.set_map(name);
+         v1::ListPlacesResponse response;
+         return stub->ListPlaces(&context, request, &response);
+       }},
       {"DeletePlace", "map",
        [&](const std::string& name) {
          grpc::ClientContext context;

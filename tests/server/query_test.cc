@@ -1,6 +1,7 @@
 // Query (and the same frames through Ingest): every bad input gets its code and names the field
 // while the map stays as it was; a SIFT map finds its own frames verified, from images and from
-// precomputed SIFT alike.
+// precomputed SIFT alike; correspondences (inlier index pairs and the query's keypoints) only
+// when asked, consistent with the inliers and the stored place's keypoints.
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
@@ -8,6 +9,8 @@
 #include <cstddef>
 #include <functional>
 #include <map>
+#include <opencv2/imgproc.hpp>
+#include <set>
 #include <string>
 #include <utility>
 #include <vector>
@@ -440,6 +443,132 @@ TEST_F(ServerTest, BadSiftFeaturesAndDepthAreRefused) {
   ASSERT_EQ(fine.responses.size(), 1u);
   EXPECT_TRUE(fine.responses[0].stored())
       << fine.responses[0].rejection() << fine.responses[0].error().message();
+}
+
+// Query RTAB-Map frame 6 against a map holding frames 1..10: the top match is frame 6's place,
+// its correspondences are its inliers, index both keypoint lists, and (a frame against itself)
+// join keypoints at the same positions. Off by default.
+TEST_F(ServerTest, CorrespondencesAreTheInliersOfTheTopMatch) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  v1::MapConfig config;
+  config.mutable_verification()->set_mode(v1::VERIFICATION_MODE_EXHAUSTIVE);
+  CreateMap("m", config);
+  std::vector<v1::Observation> frames;
+  for (int frame = 1; frame <= 10; ++frame) frames.push_back(RtabmapObservation(frame, "a"));
+  const IngestOutcome outcome = IngestAll(stub_.get(), "m", frames);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();
+  ASSERT_EQ(outcome.responses.size(), frames.size());
+  const uint32_t place = outcome.responses[5].place_id();
+  ASSERT_TRUE(outcome.responses[5].stored());
+
+  v1::QueryRequest request;
+  request.set_map("m");
+  *request.mutable_observation() = RtabmapObservation(6, "probe");
+  request.mutable_options()->set_top_k(3);
+  {
+    grpc::ClientContext context;
+    v1::QueryResponse plain;
+    ASSERT_TRUE(stub_->Query(&context, request, &plain).ok());
+    ASSERT_GT(plain.matches_size(), 0);
+    EXPECT_TRUE(plain.matches(0).verified());
+    EXPECT_EQ(plain.matches(0).correspondences_size(), 0) << "off by default";
+    EXPECT_EQ(plain.query_keypoints_size(), 0);
+    EXPECT_EQ(plain.query_dropped_keypoints_size(), 0);
+    EXPECT_EQ(plain.image_width(), 0u);
+  }
+  request.mutable_options()->set_include_correspondences(true);
+  grpc::ClientContext context;
+  v1::QueryResponse response;
+  ASSERT_TRUE(stub_->Query(&context, request, &response).ok());
+  ASSERT_GT(response.matches_size(), 0);
+  const v1::Match& top = response.matches(0);
+  EXPECT_EQ(top.place_id(), place);
+  ASSERT_TRUE(top.verified());
+  EXPECT_EQ(top.correspondences_size(), top.inliers());
+  EXPECT_EQ(response.query_keypoints_size(), int(response.counts().kept()));
+  EXPECT_EQ(response.query_dropped_keypoints_size(), 0);  // no dynamic objects
+  EXPECT_EQ(response.image_width(), 512u);
+  EXPECT_EQ(response.image_height(), 384u);
+  for (const v1::Match& match : response.matches()) {
+    EXPECT_EQ(match.correspondences_size(), match.verified() ? match.inliers() : 0)
+        << "place " << match.place_id();
+  }
+
+  grpc::ClientContext get_context;
+  v1::GetPlaceRequest get;
+  get.set_map("m");
+  get.set_place_id(place);
+  get.set_include_features(true);
+  v1::Place stored;
+  ASSERT_TRUE(stub_->GetPlace(&get_context, get, &stored).ok());
+  const auto& place_keypoints = stored.features().keypoints();
+  ASSERT_GT(place_keypoints.size(), 0);
+  int coincide = 0;
+  std::set<uint32_t> query_used, place_used;
+  for (const v1::Correspondence& c : top.correspondences()) {
+    ASSERT_LT(c.query_keypoint(), uint32_t(response.query_keypoints_size()));
+    ASSERT_LT(c.place_keypoint(), uint32_t(place_keypoints.size()));
+    EXPECT_TRUE(query_used.insert(c.query_keypoint()).second) << "query keypoint used twice";
+    EXPECT_TRUE(place_used.insert(c.place_keypoint()).second) << "place keypoint used twice";
+    const v1::Keypoint& q = response.query_keypoints(int(c.query_keypoint()));
+    const v1::Keypoint& p = place_keypoints[int(c.place_keypoint())];
+    if (std::abs(q.x() - p.x()) < 0.01f && std::abs(q.y() - p.y()) < 0.01f) ++coincide;
+  }
+  // The same image: identical descriptors at identical positions. Repeated texture may pair a
+  // few keypoints with a twin elsewhere, never many.
+  EXPECT_GE(coincide * 100, top.correspondences_size() * 95)
+      << coincide << " of " << top.correspondences_size() << " coincide";
+}
+
+// A CamVid frame with boxes around its labelled cars, pedestrians and cyclists: the query's
+// dropped keypoints are the filter's DC split and lie on the boxes.
+TEST_F(ServerTest, DroppedKeypointsLieInsideTheBoxes) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("street");
+  const auto camvid = testing::CamVidFrames();
+  ASSERT_GT(camvid.size(), 10u);
+  ASSERT_TRUE(IngestAll(stub_.get(), "street", {RtabmapObservation(1, "a")}).status.ok());
+  const testing::CamVidFrame& frame = camvid[camvid.size() / 2];
+  v1::QueryRequest request;
+  request.set_map("street");
+  *request.mutable_observation() = JpegObservation(frame.image_path, "c", 1);
+  cv::Mat labels, stats, centroids;
+  const int n =
+      cv::connectedComponentsWithStats(testing::CamVidDynamicMask(frame), labels, stats, centroids);
+  std::vector<cv::Rect2f> boxes;
+  for (int k = 1; k < n; ++k) {
+    if (stats.at<int>(k, cv::CC_STAT_AREA) < 400) continue;
+    const cv::Rect2f rect(
+        float(stats.at<int>(k, cv::CC_STAT_LEFT)), float(stats.at<int>(k, cv::CC_STAT_TOP)),
+        float(stats.at<int>(k, cv::CC_STAT_WIDTH)), float(stats.at<int>(k, cv::CC_STAT_HEIGHT)));
+    boxes.push_back(rect);
+    v1::Box* box = request.mutable_observation()->add_boxes();
+    box->set_class_name("car");
+    box->set_confidence(0.9f);
+    box->mutable_rect()->set_x(rect.x);
+    box->mutable_rect()->set_y(rect.y);
+    box->mutable_rect()->set_width(rect.width);
+    box->mutable_rect()->set_height(rect.height);
+  }
+  ASSERT_FALSE(boxes.empty()) << frame.image_path << " has no labelled dynamic objects";
+  request.mutable_options()->set_include_correspondences(true);
+  grpc::ClientContext context;
+  v1::QueryResponse response;
+  ASSERT_TRUE(stub_->Query(&context, request, &response).ok());
+  ASSERT_GT(response.counts().dynamic(), 0u);
+  EXPECT_EQ(response.query_dropped_keypoints_size(), int(response.counts().dynamic()));
+  EXPECT_EQ(response.query_keypoints_size(), int(response.counts().kept()));
+  // A keypoint is dropped when enough of its patch is on an object: its centre is within the
+  // box grown by half the patch.
+  for (const v1::Keypoint& k : response.query_dropped_keypoints()) {
+    bool inside = false;
+    for (const cv::Rect2f& box : boxes) {
+      const float grow = k.size() / 2;
+      inside |= k.x() >= box.x - grow && k.x() <= box.x + box.width + grow &&
+                k.y() >= box.y - grow && k.y() <= box.y + box.height + grow;
+    }
+    EXPECT_TRUE(inside) << "dropped keypoint at (" << k.x() << ", " << k.y() << ")";
+  }
 }
 
 }  // namespace
