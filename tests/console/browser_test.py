@@ -7,7 +7,8 @@ over the DevTools protocol (python3-websocket) through every page:
 
   maps    the map's row shows its places;
   places  place cards with their thumbnails drawn (the map keeps them);
-  query   a frame uploaded with DOM.setFileInputFiles: the top match is that frame's place;
+  query   a frame uploaded with DOM.setFileInputFiles: the top match is that frame's place,
+          verified, with its inlier correspondences drawn;
   live    agents and latest places, refreshed without reloading.
 
 Screenshots go to PLACEDB_CONSOLE_SCREENSHOTS (the build dir's console-screenshots/). A page
@@ -178,7 +179,7 @@ def main():
         url = placedb("console").stdout.strip()
         if not re.fullmatch(r"http://127\.0\.0\.1:\d+/", url):
             fail("placedb console printed %r" % url)
-        placedb("maps", "create", "office", "--thumbnails")
+        placedb("maps", "create", "office", "--thumbnails", "--verify", "direct")
         placedb("ingest", "office", frames, "--glob", "*.jpg", "--agents", "2",
                 "--agent-id", "robot", "--sequence-start", "1")
         if detector:
@@ -251,6 +252,16 @@ def main():
         if any(thumbnail != "yes" for _, thumbnail in cards):
             fail("the map keeps thumbnails but some places show none: %s" % cards)
         print("places page: %d cards with thumbnails" % len(cards))
+        # Filtered by agent: only robot-2's places.
+        devtools.evaluate("document.getElementById('filter-agent').value = 'robot-2';"
+                          "document.querySelector('#view form.bar button[type=submit]').click()")
+        wait_for("robot-2's places", lambda: devtools.evaluate(
+            "document.getElementById('places').dataset.loaded === 'yes'"))
+        agents = devtools.evaluate(
+            "Array.from(document.querySelectorAll('#places .place-card .meta'))"
+            ".map((m) => m.textContent)")
+        if not agents or any("robot-2" not in text for text in agents):
+            fail("filtering by agent robot-2 shows %s" % agents)
         devtools.screenshot(os.path.join(screenshots, "places.png"))
         if detector:
             devtools.show("#/places/street")
@@ -280,7 +291,11 @@ def main():
         sequence = re.search(r"#(\d+)$", top.strip())
         if not sequence or int(sequence.group(1)) != QUERY_FRAME:
             fail("top match %r is not frame %d's place" % (top, QUERY_FRAME))
-        print("query: top match " + top.strip())
+        lines = devtools.evaluate(
+            "Number(document.querySelector('#query-results .match canvas').dataset.lines)")
+        if "verified" not in top or " not verified" in top or not lines:
+            fail("the top match is not drawn verified with its inliers (%s lines): %r" % (lines, top))
+        print("query: top match %s, %d inlier lines drawn" % (top.strip(), lines))
         devtools.screenshot(os.path.join(screenshots, "query.png"))
 
         # Live: agents (when the server reports them) and the latest places, refreshed in place.

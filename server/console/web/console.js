@@ -240,8 +240,9 @@ async function placesView(view, map) {
   view.append(el("h2", {}, "Places of ", el("span", { id: "places-map" }, map)));
   const description = await api("GetMap", { name: map });
   const agents = (description.agents || []).map((a) => a.agent_id);
-  const agent = el("select", { id: "filter-agent" }, el("option", { value: "" }, "every agent"),
-                   agents.map((a) => el("option", { value: a }, a)));
+  // Any agent id may be typed; the ones GetMap reports are offered.
+  const agent = el("input", { id: "filter-agent", list: "agent-ids", placeholder: "every agent" });
+  const agentIds = el("datalist", { id: "agent-ids" }, agents.map((a) => el("option", { value: a })));
   const from = el("input", { type: "datetime-local", id: "filter-from" });
   const to = el("input", { type: "datetime-local", id: "filter-to" });
   const limit = el("input", { type: "number", id: "filter-limit", value: "24", min: "1", max: "1000" });
@@ -252,6 +253,7 @@ async function placesView(view, map) {
   const ns = (input) => (input.value ? String(new Date(input.value).getTime() * 1e6) : "0");
 
   async function page(reset) {
+    cards.dataset.loaded = "";
     if (reset) {
       before = 0;
       cards.replaceChildren();
@@ -278,12 +280,13 @@ async function placesView(view, map) {
     for (const place of places) cards.append(await placeCard(map, place));
     if (!cards.children.length) cards.append(el("p", { class: "muted" }, "No places match."));
     more.disabled = before === 0;
+    cards.dataset.loaded = "yes";  // for the browser test
   }
   const form = el("form", { class: "bar", onsubmit: (event) => {
     event.preventDefault();
     page(true).catch(showError);
   } },
-                  el("label", {}, "agent", agent), el("label", {}, "from", from),
+                  el("label", {}, "agent", agent, agentIds), el("label", {}, "from", from),
                   el("label", {}, "to", to), el("label", {}, "per page", limit),
                   el("button", { type: "submit" }, "Show"));
   more.addEventListener("click", () => page(false).catch(showError));
@@ -342,15 +345,18 @@ async function matchCanvas(queryImage, queryWidth, response, map, match) {
   drawBoxes(context, place.boxes_used, pScale, qWidth + 16, 0);
   context.strokeStyle = COLORS.line;
   context.lineWidth = 1;
+  let lines = 0;
   for (const c of match.correspondences || []) {
     const q = queryKeypoints[c.query_keypoint || 0];
     const p = placeKeypoints[c.place_keypoint || 0];
     if (!q || !p) continue;
     context.beginPath();
-    context.moveTo(q.x * qScale, q.y * qScale);
-    context.lineTo(qWidth + 16 + p.x * pScale, p.y * pScale);
+    context.moveTo((q.x || 0) * qScale, (q.y || 0) * qScale);
+    context.lineTo(qWidth + 16 + (p.x || 0) * pScale, (p.y || 0) * pScale);
     context.stroke();
+    lines++;
   }
+  canvas.dataset.lines = String(lines);
   return canvas;
 }
 
