@@ -524,8 +524,9 @@ grpc::Status ParsingService::CallUnary(const std::string& method,
   grpc::Status status = found->second(&context, &credentials, in, &out);
   if (!status.ok()) return status;
   std::vector<grpc::Slice> slices;
-  if (!out.Dump(&slices).ok())
+  if (!out.Dump(&slices).ok()) {
     return grpc::Status(grpc::StatusCode::INTERNAL, "cannot read the answer");
+  }
   response->clear();
   response->reserve(out.Length());
   for (const grpc::Slice& piece : slices) {
