@@ -236,6 +236,8 @@ int main(int argc, char** argv) {
                                    listen,
                                    "--metrics-listen",
                                    "127.0.0.1:" + std::to_string(metrics_port),
+                                   "--console-listen",
+                                   "off",
                                    "--data-dir",
                                    data_dir,
                                    "--vocabulary",

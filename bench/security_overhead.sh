@@ -88,7 +88,7 @@ start() {
   local name="$1" port="$2"
   shift 2
   mkdir -p "$work/$name"
-  "$server" --listen "127.0.0.1:$port" --metrics-listen off --data-dir "$work/$name/data" \
+  "$server" --listen "127.0.0.1:$port" --metrics-listen off --console-listen off --data-dir "$work/$name/data" \
     --vocabulary "default=$vocabulary" --threads "$threads" --log-level warn "$@" \
     >"$work/$name/server.log" 2>&1 &
   pids+=($!)

@@ -100,7 +100,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   if (ingest->parsed()) return RunIngest(c, ingest_options, json, io);
   if (query->parsed()) return RunQuery(c, query_flags, json, io);
   if (place.get->parsed()) {
-    return PlaceGet(c, place_flags.map, place_flags.id, place_flags.features, json, io);
+    return PlaceGet(c, place_flags.map, place_flags.id, place_flags.features, json, io,
+                    place_flags.thumbnail);
   }
   if (place.list->parsed()) return PlaceList(c, place_flags, json, io);
   if (place.remove->parsed()) return PlaceDelete(c, place_flags.map, place_flags.id, json, io);
@@ -114,6 +115,7 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   if (snapshots.remove->parsed()) return SnapshotsDelete(c, snapshots_flags.id, json, io);
   if (dynamics->parsed()) return RunDynamics(c, dynamics_flags, json, io);
   if (server.info->parsed()) return RunInfo(c, json, io);
+  if (server.console->parsed()) return RunConsole(c, json, io);
   if (server.health->parsed()) return RunHealth(c, health_flags.service, json, io);
   return UsageError(io, "no command given (see --help)");
 }

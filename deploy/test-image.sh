@@ -417,7 +417,7 @@ while [[ "$prom_port" == "$grpc_port" || "$prom_port" == "$metrics_port" ]]; do
   prom_port="$(free_port)"
 done
 run_env=("${image_env[@]}" "HOME=$image_workdir" "PLACEDB_LISTEN=127.0.0.1:$grpc_port"
-  "PLACEDB_METRICS_LISTEN=127.0.0.1:$metrics_port" "PLACEDB_THREADS=2")
+  "PLACEDB_METRICS_LISTEN=127.0.0.1:$metrics_port" "PLACEDB_CONSOLE_LISTEN=off" "PLACEDB_THREADS=2")
 
 # Starts the image's entrypoint as PID 1 of a new PID namespace, chrooted, as the image's user.
 start_server() {

@@ -453,6 +453,16 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, uint32_t max_desc
     return Invalid("config.verification.candidates", "must be >= 0");
   }
   options.store_invalid = c.store_invalid();
+  // Thumbnails: 0 takes the default; the settings are validated even when off, so that turning
+  // them on later needs no other change.
+  const v1::ThumbnailSettings& t = c.thumbnails();
+  options.thumbnails.enabled = t.enabled();
+  options.thumbnails.max_side = t.max_side() == 0 ? kDefaultThumbnailSide : t.max_side();
+  options.thumbnails.jpeg_quality =
+      t.jpeg_quality() == 0 ? kDefaultThumbnailQuality : t.jpeg_quality();
+  if (Status valid = ValidateThumbnailSettings(options.thumbnails); !valid.ok()) {
+    return Status::InvalidArgument("config." + valid.message());
+  }
 
   // The core's messages name fields relative to the DatabaseConfig ("orb.max_features ...").
   if (Status valid = ValidateDatabaseConfig(d); !valid.ok()) {
@@ -544,6 +554,10 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
   v->set_candidates(d.verification.candidates);
   v->set_rerank(d.verification.rerank);
   out->set_store_invalid(options.store_invalid);
+  v1::ThumbnailSettings* thumbnails = out->mutable_thumbnails();
+  thumbnails->set_enabled(options.thumbnails.enabled);
+  thumbnails->set_max_side(options.thumbnails.max_side);
+  thumbnails->set_jpeg_quality(options.thumbnails.jpeg_quality);
 }
 
 void MapStatsToProto(const MapStats& stats, v1::MapStats* out) {

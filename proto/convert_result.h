@@ -39,5 +39,7 @@ void PlaceRecordToProto(const PlaceRecord& record, v1::Place* out);
 void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out);
 void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out);
 void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out);
+// A place's thumbnail: the JPEG, its and its source frame's sizes, the dropped keypoints.
+void ThumbnailToProto(const Thumbnail& thumbnail, v1::Thumbnail* out);
 
 }  // namespace placedb::wire

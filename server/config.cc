@@ -47,6 +47,7 @@ Status CheckNoControlCharacters(const ServerConfig& c) {
       {"listen", &c.listen},
       {"metrics_listen", &c.metrics_listen},
       {"metrics_path", &c.metrics_path},
+      {"console_listen", &c.console_listen},
       {"data_dir", &c.data_dir},
       {"tls.cert_file", &c.tls.cert_file},
       {"tls.key_file", &c.tls.key_file},
@@ -90,6 +91,23 @@ Status ValidateServerConfig(const ServerConfig& c) {
     if (c.metrics_request_timeout_ms < 100 || c.metrics_request_timeout_ms > 600000) {
       return Bad("metrics_request_timeout_ms", "must be in [100, 600000]");
     }
+  }
+  if (!c.console_listen.empty()) {
+    if (!ValidListenAddress(c.console_listen) || c.console_listen.rfind("unix:", 0) == 0) {
+      return Bad("console_listen", "'" + c.console_listen + "' is not host:port");
+    }
+    if (c.console_threads < 2 || c.console_threads > 64) {
+      return Bad("console_threads", "must be in [2, 64]");
+    }
+    if (c.console_request_timeout_ms < 100 || c.console_request_timeout_ms > 600000) {
+      return Bad("console_request_timeout_ms", "must be in [100, 600000]");
+    }
+    if (c.console_max_request_bytes < 1024 || c.console_max_request_bytes > (uint64_t(1) << 30)) {
+      return Bad("console_max_request_bytes", "must be in [1024, 1073741824]");
+    }
+  }
+  if (c.console_tls && !c.tls.enabled()) {
+    return Bad("console_tls", "needs tls.cert_file and tls.key_file");
   }
   if (c.tls.cert_file.empty() != c.tls.key_file.empty()) {
     return Bad(c.tls.cert_file.empty() ? "tls.cert_file" : "tls.key_file",
@@ -207,11 +225,29 @@ class YamlReader {
 Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
   if (!root || root.IsNull()) return Status::Ok();  // an empty file changes nothing
   YamlReader r;
-  PLACEDB_RETURN_IF_ERROR(r.Check(
-      root, "",
-      {"listen", "metrics_listen", "metrics_path", "metrics_threads", "metrics_request_timeout_ms",
-       "metrics_tls", "tls", "security", "data_dir", "threads", "opencv_threads", "vocabularies",
-       "storage", "limits", "shutdown_deadline_s", "detector", "log_level"}));
+  PLACEDB_RETURN_IF_ERROR(r.Check(root, "",
+                                  {"listen",
+                                   "metrics_listen",
+                                   "metrics_path",
+                                   "metrics_threads",
+                                   "metrics_request_timeout_ms",
+                                   "metrics_tls",
+                                   "console_listen",
+                                   "console_tls",
+                                   "console_threads",
+                                   "console_request_timeout_ms",
+                                   "console_max_request_bytes",
+                                   "tls",
+                                   "security",
+                                   "data_dir",
+                                   "threads",
+                                   "opencv_threads",
+                                   "vocabularies",
+                                   "storage",
+                                   "limits",
+                                   "shutdown_deadline_s",
+                                   "detector",
+                                   "log_level"}));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "listen", &c->listen));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_listen", &c->metrics_listen));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_path", &c->metrics_path));
@@ -219,6 +255,13 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
   PLACEDB_RETURN_IF_ERROR(
       r.Read(root, "", "metrics_request_timeout_ms", &c->metrics_request_timeout_ms));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_tls", &c->metrics_tls));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "console_listen", &c->console_listen));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "console_tls", &c->console_tls));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "console_threads", &c->console_threads));
+  PLACEDB_RETURN_IF_ERROR(
+      r.Read(root, "", "console_request_timeout_ms", &c->console_request_timeout_ms));
+  PLACEDB_RETURN_IF_ERROR(
+      r.Read(root, "", "console_max_request_bytes", &c->console_max_request_bytes));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "data_dir", &c->data_dir));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "threads", &c->threads));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "opencv_threads", &c->opencv_threads));
@@ -386,6 +429,8 @@ Status ApplyEnvironment(ServerConfig* c, const std::function<const char*(const c
     return Status::Ok();
   };
   PLACEDB_RETURN_IF_ERROR(get_bool("PLACEDB_METRICS_TLS", &c->metrics_tls));
+  if (auto v = get("PLACEDB_CONSOLE_LISTEN")) c->console_listen = (*v == "off") ? "" : *v;
+  PLACEDB_RETURN_IF_ERROR(get_bool("PLACEDB_CONSOLE_TLS", &c->console_tls));
   if (auto v = get("PLACEDB_TLS_CERT_FILE")) c->tls.cert_file = *v;
   if (auto v = get("PLACEDB_TLS_KEY_FILE")) c->tls.key_file = *v;
   if (auto v = get("PLACEDB_TLS_CLIENT_CA_FILE")) c->tls.client_ca_file = *v;
@@ -421,9 +466,11 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
                                      const std::function<const char*(const char*)>& getenv) {
   CLI::App app{"placedb-server: the placedb gRPC service (docs/service.md)", "placedb-server"};
   app.set_version_flag("--version", std::string("placedb-server ") + PLACEDB_VERSION);
-  std::string config_path, listen, data_dir, metrics_listen, log_level, detector_model;
+  std::string config_path, listen, data_dir, metrics_listen, console_listen, log_level,
+      detector_model;
   std::string tls_cert, tls_key, tls_client_ca, tokens_file;
-  bool metrics_tls = false, no_reflection = false, allow_unauthenticated_remote = false;
+  bool metrics_tls = false, console_tls = false, no_reflection = false,
+       allow_unauthenticated_remote = false;
   int threads = 0;
   double shutdown_deadline = 0;
   std::vector<std::string> vocabularies;
@@ -449,6 +496,10 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   auto* o_data = app.add_option("--data-dir", data_dir, "data directory (./var/data)");
   auto* o_metrics = app.add_option("--metrics-listen", metrics_listen,
                                    "Prometheus endpoint host:port (127.0.0.1:9464), 'off' = none");
+  auto* o_console = app.add_option("--console-listen", console_listen,
+                                   "web console host:port (127.0.0.1:9465), 'off' = none");
+  auto* o_console_tls =
+      app.add_flag("--console-tls", console_tls, "serve the console over HTTPS with the TLS files");
   auto* o_threads = app.add_option("--threads", threads, "worker threads (0 = every core)");
   auto* o_vocab = app.add_option("--vocabulary", vocabularies,
                                  "NAME=PATH, repeatable; adds or replaces a named vocabulary");
@@ -492,6 +543,8 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   }
   if (o_data->count()) c.data_dir = data_dir;
   if (o_metrics->count()) c.metrics_listen = metrics_listen == "off" ? "" : metrics_listen;
+  if (o_console->count()) c.console_listen = console_listen == "off" ? "" : console_listen;
+  if (o_console_tls->count()) c.console_tls = console_tls;
   if (o_threads->count()) c.threads = threads;
   if (o_deadline->count()) c.shutdown_deadline_s = shutdown_deadline;
   if (o_log->count()) c.log_level = log_level;
@@ -531,6 +584,11 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "metrics_threads" << YAML::Value << c.metrics_threads;
   e << YAML::Key << "metrics_request_timeout_ms" << YAML::Value << c.metrics_request_timeout_ms;
   e << YAML::Key << "metrics_tls" << YAML::Value << c.metrics_tls;
+  e << YAML::Key << "console_listen" << YAML::Value << c.console_listen;
+  e << YAML::Key << "console_tls" << YAML::Value << c.console_tls;
+  e << YAML::Key << "console_threads" << YAML::Value << c.console_threads;
+  e << YAML::Key << "console_request_timeout_ms" << YAML::Value << c.console_request_timeout_ms;
+  e << YAML::Key << "console_max_request_bytes" << YAML::Value << c.console_max_request_bytes;
   e << YAML::Key << "tls" << YAML::Value << YAML::BeginMap;
   e << YAML::Key << "cert_file" << YAML::Value << c.tls.cert_file;
   e << YAML::Key << "key_file" << YAML::Value << c.tls.key_file;

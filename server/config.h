@@ -117,6 +117,15 @@ struct ServerConfig {
   // may take to arrive and be answered before its connection is closed.
   int metrics_threads = 4;
   uint32_t metrics_request_timeout_ms = 5000;
+  // The web console (docs/console.md): its pages and JSON API on their own HTTP listener.
+  // Loopback by default; beyond it the same rule as the gRPC port (tokens or mutual TLS).
+  std::string console_listen = "127.0.0.1:9465";  // empty = no console
+  // Serve the console over HTTPS with tls.cert_file/key_file (and, with tls.client_ca_file,
+  // require a client certificate from the browser).
+  bool console_tls = false;
+  int console_threads = 4;                                  // each open connection holds one
+  uint32_t console_request_timeout_ms = 30000;              // per read and write of a connection
+  uint64_t console_max_request_bytes = uint64_t(16) << 20;  // larger bodies: 413
   std::string data_dir = "./var/data";
   int threads = 0;         // worker threads; 0 = hardware concurrency
   int opencv_threads = 1;  // cv::setNumThreads; frames are parallel already. -1 = leave alone
@@ -149,10 +158,10 @@ Status ApplyConfigFile(const std::string& path, ServerConfig* config);
 Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config);  // for tests
 
 // Applies PLACEDB_LISTEN, PLACEDB_DATA_DIR, PLACEDB_METRICS_LISTEN, PLACEDB_METRICS_PORT,
-// PLACEDB_METRICS_TLS, PLACEDB_THREADS, PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL,
-// PLACEDB_MEMORY_BUDGET_BYTES, PLACEDB_TLS_CERT_FILE, PLACEDB_TLS_KEY_FILE,
-// PLACEDB_TLS_CLIENT_CA_FILE, PLACEDB_TOKENS_FILE, PLACEDB_ALLOW_UNAUTHENTICATED_REMOTE. `getenv`
-// is injectable for tests. Also PLACEDB_MAX_SNAPSHOT_BYTES (limits.max_snapshot_bytes).
+// PLACEDB_METRICS_TLS, PLACEDB_CONSOLE_LISTEN, PLACEDB_CONSOLE_TLS, PLACEDB_THREADS,
+// PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL, PLACEDB_MEMORY_BUDGET_BYTES, PLACEDB_TLS_CERT_FILE,
+// PLACEDB_TLS_KEY_FILE, PLACEDB_TLS_CLIENT_CA_FILE, PLACEDB_TOKENS_FILE,
+// PLACEDB_ALLOW_UNAUTHENTICATED_REMOTE. `getenv` is injectable for tests. Also PLACEDB_MAX_SNAPSHOT_BYTES (limits.max_snapshot_bytes).
 Status ApplyEnvironment(ServerConfig* config,
                         const std::function<const char*(const char*)>& getenv);
 

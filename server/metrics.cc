@@ -4,21 +4,15 @@
 #include <openssl/evp.h>
 #include <prometheus/collectable.h>
 #include <prometheus/text_serializer.h>
-#include <pthread.h>
-#include <signal.h>
 #include <spdlog/spdlog.h>
-#include <sys/socket.h>
 
 #include <algorithm>
 #include <cctype>
-#include <deque>
-#include <exception>
 #include <string>
 #include <utility>
 #include <vector>
 
-#include "core/base/thread_annotations.h"
-#include "server/transport_security.h"
+#include "server/http_endpoint.h"
 
 namespace placedb::server {
 
@@ -51,98 +45,6 @@ class RefreshingCollectable final : public prometheus::Collectable {
   std::function<void()> before_;
 };
 
-// httplib's task queue for the endpoint: `threads` workers, and enqueue (called by httplib's
-// accepting thread with each accepted connection) waits until one of them is free. Connections
-// beyond the workers therefore wait in the kernel's listen backlog instead of piling up accepted
-// (each holding a descriptor) in an unbounded queue, as httplib's own ThreadPool would.
-class EndpointWorkers final : public httplib::TaskQueue {
- public:
-  explicit EndpointWorkers(int threads) : free_(std::max(threads, 1)) {
-    for (int i = 0; i < free_; ++i) workers_.emplace_back([this] { Work(); });
-  }
-  ~EndpointWorkers() override { shutdown(); }
-
-  void enqueue(std::function<void()> job) override {
-    MutexLock lock(mutex_);
-    while (free_ == 0) changed_.Wait(mutex_);  // a worker frees up within the request timeout
-    --free_;
-    jobs_.push_back(std::move(job));
-    changed_.NotifyAll();
-  }
-
-  // Runs the queued jobs, then joins the workers (httplib calls it once its accept loop ended).
-  void shutdown() override {
-    {
-      MutexLock lock(mutex_);
-      stopping_ = true;
-      changed_.NotifyAll();
-    }
-    for (std::thread& worker : workers_) {
-      if (worker.joinable()) worker.join();
-    }
-  }
-
- private:
-  void Work() {
-    // A scraper that closes early makes a write (SSL_write has no MSG_NOSIGNAL) raise SIGPIPE in
-    // this thread: an error return instead.
-    sigset_t pipe;
-    sigemptyset(&pipe);
-    sigaddset(&pipe, SIGPIPE);
-    pthread_sigmask(SIG_BLOCK, &pipe, nullptr);
-    MutexLock lock(mutex_);
-    while (true) {
-      while (jobs_.empty() && !stopping_) changed_.Wait(mutex_);
-      if (jobs_.empty()) return;  // stopping_
-      std::function<void()> job = std::move(jobs_.front());
-      jobs_.pop_front();
-      lock.Unlock();
-      job();  // serves one connection and closes it
-      lock.Lock();
-      ++free_;
-      changed_.NotifyAll();
-    }
-  }
-
-  Mutex mutex_;
-  CondVar changed_;
-  int free_ GUARDED_BY(mutex_);  // workers neither busy nor promised to a queued job
-  std::deque<std::function<void()>> jobs_ GUARDED_BY(mutex_);
-  bool stopping_ GUARDED_BY(mutex_) = false;
-  std::vector<std::thread> workers_;
-};
-
-// httplib's Server or SSLServer, with its listening socket (a protected member) reachable: httplib
-// listens with a backlog of 5, raised after the bind so that connections beyond the workers wait
-// for one instead of having their SYNs dropped (their clients would retry only after seconds).
-template <class Base>
-class HttpServer final : public Base {
- public:
-  using Base::Base;
-  void RaiseBacklog() { ::listen(this->svr_sock_, SOMAXCONN); }
-};
-
-// "host:port" or "[v6]:port" -> (host, port); nullopt otherwise.
-std::optional<std::pair<std::string, int>> SplitListenAddress(const std::string& listen) {
-  std::string host, port;
-  if (!listen.empty() && listen[0] == '[') {
-    const auto close = listen.find("]:");
-    if (close == std::string::npos) return std::nullopt;
-    host = listen.substr(1, close - 1);
-    port = listen.substr(close + 2);
-  } else {
-    const auto colon = listen.rfind(':');
-    if (colon == std::string::npos) return std::nullopt;
-    host = listen.substr(0, colon);
-    port = listen.substr(colon + 1);
-  }
-  if (host.empty() || port.empty() || port.size() > 5 ||
-      port.find_first_not_of("0123456789") != std::string::npos || std::stoi(port) > 65535) {
-    return std::nullopt;
-  }
-  return std::make_pair(host, std::stoi(port));
-}
-
 // The credentials of an `Authorization: Basic <base64 of user:password>` header (RFC 7617; the
 // scheme is case-insensitive); nullopt for another scheme, base64 that is not canonical
 // (alphabet, length a multiple of 4, padding only at the end) or a decoded text without ':'.
@@ -174,15 +76,6 @@ std::optional<std::pair<std::string, std::string>> ParseBasicAuth(const std::str
   const auto colon = decoded.find(':');
   if (colon == std::string::npos) return std::nullopt;
   return std::make_pair(decoded.substr(0, colon), decoded.substr(colon + 1));
-}
-
-// A scraper's address as gRPC writes a peer ("ipv4:10.0.0.7:53122", "ipv6:[::1]:40112"), so
-// that audit lines read the same for RPCs and scrapes.
-std::string PeerName(const httplib::Request& request) {
-  const std::string& address = request.remote_addr;
-  const std::string port = std::to_string(request.remote_port);
-  if (address.find(':') != std::string::npos) return "ipv6:[" + address + "]:" + port;
-  return "ipv4:" + address + ":" + port;
 }
 
 }  // namespace
@@ -319,112 +212,51 @@ Metrics::~Metrics() {
 Status Metrics::Serve(const Endpoint& endpoint, std::function<void()> before_scrape) {
   StopServing();
   collectable_ = std::make_shared<RefreshingCollectable>(registry_, std::move(before_scrape));
-  const auto address = SplitListenAddress(endpoint.listen);
-  if (!address) {
-    return Status::InvalidArgument("metrics endpoint: '" + endpoint.listen +
-                                   "' is not host:port or [v6]:port");
-  }
-  std::unique_ptr<httplib::Server> http;
-  std::function<void()> raise_backlog;
-  if (endpoint.tls) {
-    Status tls_status;
-    const TlsSettings tls = *endpoint.tls;
-    auto https =
-        std::make_unique<HttpServer<httplib::SSLServer>>([&tls_status, &tls](SSL_CTX& context) {
-          tls_status = ConfigureSslContext(&context, tls);
-          return tls_status.ok();
-        });
-    raise_backlog = [server = https.get()] { server->RaiseBacklog(); };
-    http = std::move(https);
-    if (!http->is_valid()) {
-      if (tls_status.ok()) tls_status = Status::Internal("cannot create an SSL context");
-      return tls_status.WithContext("metrics endpoint (HTTPS)");
-    }
-  } else {
-    auto plain = std::make_unique<HttpServer<httplib::Server>>();
-    raise_backlog = [server = plain.get()] { server->RaiseBacklog(); };
-    http = std::move(plain);
-  }
-
-  const int threads = endpoint.threads;
-  http->new_task_queue = [threads] { return new EndpointWorkers(threads); };
-  // One request per connection ("Connection: close"): an idle kept-alive connection would hold a
-  // worker. The wait for a request's first byte is in whole seconds (httplib's keep-alive
-  // timeout); every read and write after it is bounded by request_timeout_ms.
-  http->set_keep_alive_max_count(1);
-  http->set_keep_alive_timeout(std::max<time_t>(1, (endpoint.request_timeout_ms + 999) / 1000));
-  const auto timeout = std::chrono::milliseconds(endpoint.request_timeout_ms);
-  http->set_read_timeout(timeout);
-  http->set_write_timeout(timeout);
-  // SO_REUSEADDR only: httplib's default also sets SO_REUSEPORT, with which a second server of
-  // the same user would share the port instead of failing to bind it.
-  http->set_socket_options([](socket_t socket) {
-    const int yes = 1;
-    setsockopt(socket, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
-  });
-  // Exceptions from a scrape are logged, and answered 500 without their text (httplib's default
-  // would put it in a header).
-  http->set_exception_handler(
-      [](const httplib::Request&, httplib::Response& response, std::exception_ptr error) {
-        try {
-          if (error) std::rethrow_exception(error);
-        } catch (const std::exception& e) {
-          spdlog::error("metrics endpoint: scrape failed: {}", e.what());
-        } catch (...) {
-          spdlog::error("metrics endpoint: scrape failed");
-        }
-        response.status = 500;
-      });
-
+  HttpEndpointSettings settings;
+  settings.name = "metrics endpoint";
+  settings.listen = endpoint.listen;
+  settings.threads = endpoint.threads;
+  settings.request_timeout_ms = endpoint.request_timeout_ms;
+  settings.tls = endpoint.tls;
   // Everything is answered here, before httplib's routing (which would read a body first).
   const std::string path = endpoint.path;
   const auto authorize = endpoint.authorize;
   const std::shared_ptr<prometheus::Collectable> collectable = collectable_;
-  http->set_pre_routing_handler([path, authorize, collectable](const httplib::Request& request,
-                                                               httplib::Response& response) {
-    if (request.path != path) {
-      response.status = 404;
-    } else if (request.method != "GET") {
-      response.status = 405;
-      response.set_header("Allow", "GET");
-    } else {
-      std::optional<std::pair<std::string, std::string>> credentials;
-      if (authorize && request.has_header("Authorization")) {
-        credentials = ParseBasicAuth(request.get_header_value("Authorization"));
-      }
-      if (authorize && (!credentials ||
-                        !authorize(PeerName(request), credentials->first, credentials->second))) {
-        response.status = 401;
-        response.set_header("WWW-Authenticate", "Basic realm=\"placedb\"");
+  auto routes = [path, authorize, collectable](httplib::Server& http) {
+    http.set_pre_routing_handler([path, authorize, collectable](const httplib::Request& request,
+                                                                httplib::Response& response) {
+      if (request.path != path) {
+        response.status = 404;
+      } else if (request.method != "GET") {
+        response.status = 405;
+        response.set_header("Allow", "GET");
       } else {
-        response.status = 200;
-        response.set_content(prometheus::TextSerializer().Serialize(collectable->Collect()),
-                             "text/plain; version=0.0.4; charset=utf-8");
+        std::optional<std::pair<std::string, std::string>> credentials;
+        if (authorize && request.has_header("Authorization")) {
+          credentials = ParseBasicAuth(request.get_header_value("Authorization"));
+        }
+        if (authorize && (!credentials || !authorize(HttpPeerName(request), credentials->first,
+                                                     credentials->second))) {
+          response.status = 401;
+          response.set_header("WWW-Authenticate", "Basic realm=\"placedb\"");
+        } else {
+          response.status = 200;
+          response.set_content(prometheus::TextSerializer().Serialize(collectable->Collect()),
+                               "text/plain; version=0.0.4; charset=utf-8");
+        }
       }
-    }
-    return httplib::Server::HandlerResponse::Handled;
-  });
-
-  const int port =
-      address->second == 0
-          ? http->bind_to_any_port(address->first)
-          : (http->bind_to_port(address->first, address->second) ? address->second : -1);
-  if (port <= 0) {
-    return Status::IoError("metrics endpoint: cannot listen on " + endpoint.listen +
-                           " (address in use, or not a local address?)");
-  }
-  raise_backlog();
-  // Listening since the bind: connections made before the loop starts wait in the backlog.
-  httplib::Server* server = http.get();
-  http_thread_ = std::thread([server] { server->listen_after_bind(); });
+      return httplib::Server::HandlerResponse::Handled;
+    });
+  };
+  auto http = std::make_unique<HttpEndpoint>();
+  PLACEDB_RETURN_IF_ERROR(http->Serve(settings, routes));
   http_ = std::move(http);
-  port_ = port;
+  port_ = http_->port();
   return Status::Ok();
 }
 
 void Metrics::StopServing() {
-  if (http_) http_->stop();
-  if (http_thread_.joinable()) http_thread_.join();
+  if (http_) http_->Stop();
   http_.reset();
   port_ = 0;
 }

@@ -14,27 +14,21 @@
 #include <memory>
 #include <optional>
 #include <string>
-#include <thread>
 
 #include "core/base/status.h"
 #include "server/config.h"
 
-namespace httplib {
-class Server;
-}
-
 namespace placedb::server {
+
+class HttpEndpoint;
 
 class Metrics {
  public:
   Metrics();
   ~Metrics();
 
-  // How the endpoint serves HTTP (cpp-httplib, plaintext or HTTPS): `threads` workers, each
-  // serving one connection and one request at a time (no keep-alive: the answer closes the
-  // connection); more connections wait in the listen backlog, so a slow client takes one worker,
-  // never the endpoint. `request_timeout_ms` bounds each read and write of a connection (a TLS
-  // handshake's too), and the wait for its request's first byte (in whole seconds, at least 1).
+  // How the endpoint serves HTTP (server/http_endpoint.h: cpp-httplib, plaintext or HTTPS,
+  // `threads` workers, one request per connection, `request_timeout_ms` per read and write).
   struct Endpoint {
     std::string listen;  // host:port or [v6]:port; port 0 picks one
     std::string path;    // the only path served (GET); other paths 404, other methods 405
@@ -142,8 +136,7 @@ class Metrics {
   prometheus::Family<prometheus::Counter>& snapshot_transfer_;
   prometheus::Family<prometheus::Histogram>& snapshot_seconds_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
-  std::unique_ptr<httplib::Server> http_;  // an httplib::SSLServer with Endpoint::tls
-  std::thread http_thread_;                // http_'s accept loop
+  std::unique_ptr<HttpEndpoint> http_;                    // server/http_endpoint.h
   int port_ = 0;
 };
 

@@ -312,12 +312,14 @@ ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthoriz
 }
 
 grpc::Status ParsingService::Authenticate(const char* method, const grpc::ServerContext& context,
-                                          auth::Caller* caller) const {
+                                          auth::Caller* caller,
+                                          const auth::Credentials* credentials) const {
   if (!authorizer_) {
     *caller = auth::Caller::Everything("anonymous");
     return grpc::Status::OK;
   }
-  auto authenticated = authorizer_->Authenticate(method, context);
+  auto authenticated = credentials ? authorizer_->Authenticate(method, *credentials)
+                                   : authorizer_->Authenticate(method, context);
   if (auto* denied = std::get_if<grpc::Status>(&authenticated)) return *denied;
   *caller = std::move(std::get<auth::Caller>(authenticated));
   return grpc::Status::OK;
@@ -331,11 +333,11 @@ const char* ParsingService::Path(const char* method) {
 
 template <typename Request>
 grpc::Status ParsingService::Admit(const char* method, grpc::ServerContext* context,
-                                   const grpc::ByteBuffer& in, auth::Right right,
-                                   std::string (*map_of)(const Request&), Request* request,
-                                   auth::Caller* caller, std::string* map) {
+                                   const auth::Credentials* credentials, const grpc::ByteBuffer& in,
+                                   auth::Right right, std::string (*map_of)(const Request&),
+                                   Request* request, auth::Caller* caller, std::string* map) {
   // Who is calling, before anything of the request is looked at.
-  if (grpc::Status denied = Authenticate(method, *context, caller); !denied.ok()) {
+  if (grpc::Status denied = Authenticate(method, *context, caller, credentials); !denied.ok()) {
     return service_->RefuseMalformed(method, context, denied);
   }
   if (std::string problem = ParseMessage(in, request); !problem.empty()) {
@@ -353,7 +355,11 @@ grpc::Status ParsingService::Admit(const char* method, grpc::ServerContext* cont
             ? grpc::Status::OK
             : CheckRequestMapName(
                   method, std::string(Request::descriptor()->FindFieldByNumber(1)->name()), *map);
-    if (allowed.ok()) allowed = authorizer_->Authorize(method, *context, *caller, right, *map);
+    if (allowed.ok()) {
+      allowed = credentials
+                    ? authorizer_->Authorize(method, credentials->peer, *caller, right, *map)
+                    : authorizer_->Authorize(method, *context, *caller, right, *map);
+    }
     if (!allowed.ok()) return service_->RefuseMalformed(method, context, allowed);
   }
   return grpc::Status::OK;
@@ -364,28 +370,33 @@ void ParsingService::AddUnary(const char* method,
                               grpc::Status (PlaceDbService::*handler)(grpc::ServerContext*,
                                                                       const Request*, Response*),
                               auth::Right right, std::string (*map_of)(const Request&)) {
-  auto parse_and_call = [method, handler, right, map_of](
-                            ParsingService* self, grpc::ServerContext* context,
-                            const grpc::ByteBuffer* in, grpc::ByteBuffer* out) {
+  UnaryCall call = [this, method, handler, right, map_of](
+                       grpc::ServerContext* context, const auth::Credentials* credentials,
+                       const grpc::ByteBuffer& in, grpc::ByteBuffer* out) {
     auth::Caller caller;
     Request request;
     std::string map;
     if (grpc::Status admitted =
-            self->Admit(method, context, *in, right, map_of, &request, &caller, &map);
+            Admit(method, context, credentials, in, right, map_of, &request, &caller, &map);
         !admitted.ok()) {
       return admitted;
     }
     Response response;
-    grpc::Status status = (self->service_->*handler)(context, &request, &response);
+    grpc::Status status = (service_->*handler)(context, &request, &response);
     if (right == auth::Right::kAdmin) {
       spdlog::info("auth admin method={} principal={} peer={} map={} result={}", method,
-                   caller.name, context->peer(), map, wire::GrpcCodeName(status.error_code()));
+                   caller.name, credentials ? credentials->peer : context->peer(), map,
+                   wire::GrpcCodeName(status.error_code()));
     }
     if (!status.ok()) return status;
     RestrictResponse(caller, &response);
     bool own = false;
     return grpc::SerializationTraits<Response>::Serialize(response, out, &own);
   };
+  unary_[method] = call;
+  auto parse_and_call = [call](ParsingService*, grpc::ServerContext* context,
+                               const grpc::ByteBuffer* in,
+                               grpc::ByteBuffer* out) { return call(context, nullptr, *in, out); };
   AddMethod(new grpc::internal::RpcServiceMethod(
       Path(method), grpc::internal::RpcMethod::NORMAL_RPC,
       new grpc::internal::RpcMethodHandler<ParsingService, grpc::ByteBuffer, grpc::ByteBuffer>(
@@ -422,7 +433,7 @@ void ParsingService::AddServerStream(
     Request request;
     std::string map;
     if (grpc::Status admitted =
-            self->Admit(method, context, *in, right, map_of, &request, &caller, &map);
+            self->Admit(method, context, nullptr, *in, right, map_of, &request, &caller, &map);
         !admitted.ok()) {
       return admitted;
     }
@@ -495,6 +506,33 @@ void ParsingService::AddClientStream(const char* method,
       Path(method), grpc::internal::RpcMethod::CLIENT_STREAMING,
       new grpc::internal::ClientStreamingHandler<ParsingService, grpc::ByteBuffer,
                                                  grpc::ByteBuffer>(stream, this)));
+}
+
+grpc::Status ParsingService::CallUnary(const std::string& method,
+                                       const auth::Credentials& credentials,
+                                       const std::string& request, std::string* response) {
+  const auto found = unary_.find(method);
+  if (found == unary_.end()) {
+    return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                        "'" + method + "' is not a unary method of " + kServiceName);
+  }
+  grpc::Slice slice(request);
+  const grpc::ByteBuffer in(&slice, 1);
+  grpc::ByteBuffer out;
+  // A context of no gRPC call: no deadline, never cancelled, no peer (credentials name it).
+  grpc::ServerContext context;
+  grpc::Status status = found->second(&context, &credentials, in, &out);
+  if (!status.ok()) return status;
+  std::vector<grpc::Slice> slices;
+  if (!out.Dump(&slices).ok()) {
+    return grpc::Status(grpc::StatusCode::INTERNAL, "cannot read the answer");
+  }
+  response->clear();
+  response->reserve(out.Length());
+  for (const grpc::Slice& piece : slices) {
+    response->append(reinterpret_cast<const char*>(piece.begin()), piece.size());
+  }
+  return grpc::Status::OK;
 }
 
 std::vector<std::string> ParsingService::Unregistered() const {

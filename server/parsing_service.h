@@ -26,6 +26,7 @@
 
 #include <deque>
 #include <functional>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -69,7 +70,20 @@ class ParsingService final : public grpc::Service {
   // while this is not empty.
   std::vector<std::string> Unregistered() const;
 
+  // One unary call from another transport (the console's JSON gateway, server/console): the same
+  // path as a gRPC call of `method` (authenticate `credentials`, parse `request` as the method's
+  // request message, check its map name, authorize, the handler, restrict the answer to what the
+  // caller may see) with the same errors; on OK *response holds the serialised answer. There is
+  // no deadline and no cancellation (the HTTP request's timeouts bound its reads and writes).
+  // UNIMPLEMENTED for a method that is not a registered unary method. Thread-safe.
+  grpc::Status CallUnary(const std::string& method, const auth::Credentials& credentials,
+                         const std::string& request, std::string* response);
+
  private:
+  // A registered unary method: `credentials` null = the gRPC call's own (from `context`).
+  using UnaryCall =
+      std::function<grpc::Status(grpc::ServerContext* context, const auth::Credentials* credentials,
+                                 const grpc::ByteBuffer& in, grpc::ByteBuffer* out)>;
   // `map_of` names the request's map (for `right`; "" for methods on no map, whose field 1 is
   // then not checked as a map name; null: the request names no map at all, for admin methods on
   // snapshots).
@@ -97,19 +111,24 @@ class ParsingService final : public grpc::Service {
                        auth::Right right);
   // Authenticates, parses and authorizes a request (the shared first half of AddUnary and
   // AddServerStream); `caller` receives who is calling.
+  // `credentials` null = the gRPC call's own (from `context`).
   template <typename Request>
-  grpc::Status Admit(const char* method, grpc::ServerContext* context, const grpc::ByteBuffer& in,
+  grpc::Status Admit(const char* method, grpc::ServerContext* context,
+                     const auth::Credentials* credentials, const grpc::ByteBuffer& in,
                      auth::Right right, std::string (*map_of)(const Request&), Request* request,
                      auth::Caller* caller, std::string* map);
   // Sets *caller (every right when there is no authorizer); else the denial (logged, counted).
+  // `credentials` null = the gRPC call's own (from `context`).
   grpc::Status Authenticate(const char* method, const grpc::ServerContext& context,
-                            auth::Caller* caller) const;
+                            auth::Caller* caller,
+                            const auth::Credentials* credentials = nullptr) const;
   const char* Path(const char* method);  // "/placedb.v1.PlaceDb/<method>", stable storage
 
   PlaceDbService* const service_;
   const auth::CallAuthorizer* const authorizer_;
   std::deque<std::string> paths_;  // RpcServiceMethod keeps a pointer to its name
   std::vector<std::string> registered_;
+  std::map<std::string, UnaryCall> unary_;  // filled by the constructor, read-only after
 };
 
 }  // namespace placedb::server

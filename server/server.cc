@@ -14,6 +14,8 @@
 
 #include "server/auth/call_auth.h"
 #include "server/auth/token_store.h"
+#include "server/console/console.h"
+#include "server/http_endpoint.h"
 #include "server/map_registry.h"
 #include "server/memory_budget.h"
 #include "server/metrics.h"
@@ -229,6 +231,22 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   if (const auto missing = server->parsing_->Unregistered(); !missing.empty()) {
     return Status::Internal("server/parsing_service.cc does not register " + missing.front());
   }
+  // The console before gRPC starts: GetServerInfo reports its bound address from the first call.
+  if (!c.console_listen.empty()) {
+    const bool certificates = c.console_tls && c.tls.mutual();
+    server->console_ = std::make_unique<Console>(server->parsing_.get(),
+                                                 !c.security.tokens_file.empty() || certificates);
+    HttpEndpointSettings console;
+    console.name = "console";
+    console.listen = c.console_listen;
+    console.threads = c.console_threads;
+    console.request_timeout_ms = c.console_request_timeout_ms;
+    console.max_request_bytes = c.console_max_request_bytes;
+    if (c.console_tls) console.tls = c.tls;
+    PLACEDB_RETURN_IF_ERROR(server->console_->Serve(console));
+    server->console_port_ = server->console_->port();
+    server->service_->SetConsoleUrl(server->console_->url());
+  }
 
   grpc::EnableDefaultHealthCheckService(true);
   grpc::ServerBuilder builder;
@@ -299,6 +317,7 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
                                         : c.metrics_listen + c.metrics_path + " (port " +
                                               std::to_string(server->metrics_port_) + ")",
                c.data_dir, server->pool_->threads());
+  spdlog::info("console: {}", server->console_ ? server->console_->url() : std::string("off"));
   return server;
 }
 
@@ -340,6 +359,7 @@ void Server::Shutdown() {
     server_->Shutdown(std::chrono::system_clock::now());  // returns once every handler returned
     server_->Wait();
   }
+  if (console_) console_->Stop();  // its calls go through service_: stopped with gRPC's
   if (pool_) pool_->Stop();
   if (metrics_) metrics_->StopServing();
   if (tokens_) tokens_->StopWatching();

@@ -28,6 +28,7 @@ namespace auth {
 class CallAuthorizer;
 class TokenStore;
 }  // namespace auth
+class Console;
 class MapRegistry;
 class MemoryBudget;
 class Metrics;
@@ -57,6 +58,7 @@ class Server {
 
   int port() const { return port_; }                        // the bound gRPC port
   int metrics_port() const { return metrics_port_; }        // 0 when metrics are off
+  int console_port() const { return console_port_; }        // 0 when the console is off
   MemoryBudget& memory_budget() const { return *budget_; }  // tests hold part of it as load
   const ServerConfig& config() const { return config_; }
 
@@ -83,9 +85,11 @@ class Server {
   std::unique_ptr<auth::TokenStore> tokens_;  // null without security.tokens_file
   std::unique_ptr<auth::CallAuthorizer> authorizer_;
   std::unique_ptr<ParsingService> parsing_;  // what gRPC calls: parses, then calls service_
+  std::unique_ptr<Console> console_;         // the web console over parsing_ (server/console)
   std::unique_ptr<grpc::Server> server_;
   int port_ = 0;
   int metrics_port_ = 0;
+  int console_port_ = 0;
 
   Mutex shutdown_mutex_;
   CondVar shutdown_done_;

@@ -387,6 +387,11 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   auto dynamics = (*entry)->map->GetDynamics(request->place_id());
   if (!dynamics.ok()) return Finish("GetPlace", context, ToGrpc(dynamics.status()));
   DynamicsToProto(*dynamics, response->mutable_dynamics());
+  if (request->include_thumbnail()) {
+    auto thumbnail = (*entry)->map->GetThumbnail(request->place_id());
+    if (!thumbnail.ok()) return Finish("GetPlace", context, ToGrpc(thumbnail.status()));
+    if (thumbnail->has_value()) wire::ThumbnailToProto(**thumbnail, response->mutable_thumbnail());
+  }
   return Finish("GetPlace", context, grpc::Status::OK);
 }
 
@@ -485,6 +490,7 @@ grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
   }
   response->set_detector(
       HidePaths(detector_ ? detector_->Describe() : detector_status_, config_.data_dir));
+  response->set_console_url(console_url_);
   const Limits& l = config_.limits;
   v1::Limits* limits = response->mutable_limits();
   limits->set_max_message_bytes(l.max_message_bytes);
@@ -506,7 +512,8 @@ namespace {
 bool DecodesInColor(const MapEntry& map, const v1::Observation& observation) {
   const ServiceMapSettings& settings = map.settings;
   const bool server_boxes = settings.detection_enabled && settings.box_source != BoxSource::kAgent;
-  return server_boxes ||
+  // A map that keeps thumbnails keeps them in colour.
+  return server_boxes || map.map->info().options.thumbnails.enabled ||
          (settings.detection_enabled && observation.boxes_size() > 0 &&
           map.map->database().config().box_refinement.method == BoxRefinement::kGrabCut);
 }

@@ -116,6 +116,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   void BeginDrain();
   // Waits until no call is being served (after BeginDrain), or until `deadline`. True if idle.
   bool WaitIdle(std::chrono::steady_clock::time_point deadline);
+  // GetServerInfo's console_url (server/console): set once, before the server serves calls.
+  void SetConsoleUrl(std::string url) { console_url_ = std::move(url); }
   // Sets the per-map gauges (places, bytes on disk, damage); run before each metrics scrape.
   void RefreshMapGauges();
   // A request refused before its handler (ParsingService: not a valid message, or denied by
@@ -163,6 +165,7 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   MemoryBudget* const budget_;
   // Per map and agent, every Ingest frame Complete() answers; GetMap's MapDescription.agents.
   AgentActivity activity_;
+  std::string console_url_;  // written before serving, read-only after
 
   // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
   class CallScope;

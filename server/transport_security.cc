@@ -8,6 +8,7 @@
 #include <openssl/pem.h>
 #include <openssl/ssl.h>
 #include <openssl/x509.h>
+#include <openssl/x509v3.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -218,6 +219,39 @@ std::vector<std::string> PeerCertificateNames(const grpc::AuthContext& context) 
   return names;
 }
 
+std::vector<std::string> PeerCertificateNames(const void* ssl_connection) {
+  const SSL* ssl = static_cast<const SSL*>(ssl_connection);
+  std::vector<std::string> names;
+  if (!ssl || SSL_get_verify_result(ssl) != X509_V_OK) return names;
+  const X509Ptr certificate(SSL_get1_peer_certificate(ssl));
+  if (!certificate) return names;
+  auto add = [&names](const unsigned char* data, int length) {
+    if (!data || length <= 0) return;
+    std::string name(reinterpret_cast<const char*>(data), size_t(length));
+    if (std::find(names.begin(), names.end(), name) == names.end())
+      names.push_back(std::move(name));
+  };
+  // The subject's CN, then DNS and URI SANs: the order gRPC's auth context reports them in.
+  const X509_NAME* subject = X509_get_subject_name(certificate.get());
+  for (int i = -1; (i = X509_NAME_get_index_by_NID(subject, NID_commonName, i)) >= 0;) {
+    const ASN1_STRING* cn = X509_NAME_ENTRY_get_data(X509_NAME_get_entry(subject, i));
+    add(ASN1_STRING_get0_data(cn), ASN1_STRING_length(cn));
+  }
+  auto* sans = static_cast<GENERAL_NAMES*>(
+      X509_get_ext_d2i(certificate.get(), NID_subject_alt_name, nullptr, nullptr));
+  for (int type : {GEN_DNS, GEN_URI}) {
+    for (int i = 0; sans && i < sk_GENERAL_NAME_num(sans); ++i) {
+      const GENERAL_NAME* san = sk_GENERAL_NAME_value(sans, i);
+      if (san->type != type) continue;
+      const ASN1_IA5STRING* text =
+          type == GEN_DNS ? san->d.dNSName : san->d.uniformResourceIdentifier;
+      add(ASN1_STRING_get0_data(text), ASN1_STRING_length(text));
+    }
+  }
+  GENERAL_NAMES_free(sans);
+  return names;
+}
+
 bool IsLoopbackAddress(const std::string& address) {
   if (address.empty()) return false;
   size_t start = 0;
@@ -245,6 +279,15 @@ Status CheckExposure(const ServerConfig& config) {
       !IsLoopbackAddress(config.metrics_listen)) {
     exposed.push_back("metrics_listen = " + config.metrics_listen);
     if (risk.empty()) risk = "read the metrics (map names, sizes, traffic)";
+  }
+  // The console is the gRPC API's read side over HTTP: the same callers may use it, so the same
+  // rule (tokens, or client certificates required by console_tls with a client CA).
+  const bool console_authenticated =
+      !config.security.tokens_file.empty() || (config.console_tls && config.tls.mutual());
+  if (!config.console_listen.empty() && !console_authenticated &&
+      !IsLoopbackAddress(config.console_listen)) {
+    exposed.push_back("console_listen = " + config.console_listen);
+    if (risk.empty()) risk = "read and query every map";
   }
   std::string where;
   for (const std::string& e : exposed) where += (where.empty() ? "" : ", ") + e;

@@ -51,6 +51,9 @@ std::string DescribeTransport(const TlsSettings& tls);
 // SANs, as gRPC's auth context reports them (no duplicates; empty for a plaintext or
 // certificate-less caller). The tokens file's `certificate_names` match against these.
 std::vector<std::string> PeerCertificateNames(const grpc::AuthContext& context);
+// The same names of an HTTPS connection's verified client certificate (`ssl`: its OpenSSL SSL*,
+// as void* so that this header needs no OpenSSL; null or no verified certificate: empty).
+std::vector<std::string> PeerCertificateNames(const void* ssl);
 
 // True when a listen address only accepts connections from this machine: an IPv4 address in
 // 127.0.0.0/8, ::1 (or ::ffff:127.x.y.z), "localhost", or a unix: socket. Anything else (0.0.0.0,

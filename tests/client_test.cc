@@ -79,6 +79,7 @@ class ClientTest : public ::testing::Test {
     server::ServerConfig config;
     config.listen = "127.0.0.1:0";
     config.metrics_listen = "";
+    config.console_listen = "";
     config.data_dir = root_ + "/data";
     config.threads = 2;
     config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};
@@ -291,6 +292,7 @@ TEST_F(ClientTest, MapsRecoverAndScrub) {
     server::ServerConfig config;
     config.listen = "127.0.0.1:0";
     config.metrics_listen = "";
+    config.console_listen = "";
     config.data_dir = root_ + "/data";
     config.threads = 2;
     config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};
@@ -496,6 +498,37 @@ TEST(ClientFlagsTest, TimeFlagsAreNanosecondsOrUtcIso) {
     ASSERT_FALSE(parsed.ok()) << bad;
     EXPECT_NE(parsed.status().message().find("--to"), std::string::npos);
   }
+// `maps create --thumbnails --thumbnail-size N` and `place get MAP ID --thumbnail FILE`: the map
+// keeps thumbnails of that size and the CLI writes a place's JPEG; a map without thumbnails has
+// none to write (exit 1), and a size without --thumbnails or out of range is refused.
+TEST_F(ClientTest, PlaceGetWritesTheThumbnail) {
+  CliRun created = Cli({"maps", "create", "pics", "--thumbnails", "--thumbnail-size", "160"});
+  ASSERT_EQ(created.code, 0) << created.err;
+  const json config = ParseJson(Cli({"maps", "show", "pics", "--json"}))["config"];
+  EXPECT_EQ(config["thumbnails"]["enabled"], true);
+  EXPECT_EQ(config["thumbnails"]["max_side"], 160);
+  CliRun shown = Cli({"maps", "show", "pics"});
+  EXPECT_NE(shown.out.find("on, 160 px, quality 75"), std::string::npos) << shown.out;
+  CliRun ingested = Cli({"ingest", "pics", FramesDir(1, 4), "--json"});
+  ASSERT_EQ(ingested.code, 0) << ingested.err;
+  const std::string file = root_ + "/place.jpg";
+  CliRun got = Cli({"place", "get", "pics", "1", "--thumbnail", file});
+  ASSERT_EQ(got.code, 0) << got.err;
+  EXPECT_NE(got.out.find("160x120 of 512x384"), std::string::npos) << got.out;
+  const cv::Mat written = cv::imread(file, cv::IMREAD_UNCHANGED);
+  ASSERT_FALSE(written.empty());
+  EXPECT_EQ(written.size(), cv::Size(160, 120));
+
+  ASSERT_EQ(Cli({"maps", "create", "plain"}).code, 0);
+  ASSERT_EQ(Cli({"ingest", "plain", FramesDir(5, 6)}).code, 0);
+  CliRun none = Cli({"place", "get", "plain", "1", "--thumbnail", root_ + "/none.jpg"});
+  EXPECT_EQ(none.code, 1);
+  EXPECT_NE(none.err.find("has no thumbnail"), std::string::npos) << none.err;
+  EXPECT_FALSE(fs::exists(root_ + "/none.jpg"));
+  EXPECT_EQ(Cli({"maps", "create", "x", "--thumbnail-size", "100"}).code, 2);
+  CliRun too_big = Cli({"maps", "create", "x", "--thumbnails", "--thumbnail-size", "4096"});
+  EXPECT_EQ(too_big.code, 1);
+  EXPECT_NE(too_big.err.find("config.thumbnails.max_side"), std::string::npos) << too_big.err;
 }
 
 // The human summary, per-frame matches, progress lines when stderr is not a terminal, a list

@@ -150,7 +150,8 @@ class DamageTest : public ::testing::Test {
   // The SST files of one column family, read from the map's MANIFEST (RocksDB read-only).
   std::vector<std::string> SstFilesOf(const std::string& family) const {
     std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name : {"default", "places", "bow", "features", "invalid", "dynamics"}) {
+    for (const char* name :
+         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
       families.emplace_back(name, rocksdb::ColumnFamilyOptions());
     }
     std::vector<rocksdb::ColumnFamilyHandle*> handles;
@@ -379,7 +380,8 @@ TEST_F(DamageTest, MissingMapInfoRecordIsDamage) {
   }
   {
     std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name : {"default", "places", "bow", "features", "invalid", "dynamics"}) {
+    for (const char* name :
+         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
       families.emplace_back(name, rocksdb::ColumnFamilyOptions());
     }
     std::vector<rocksdb::ColumnFamilyHandle*> handles;
@@ -402,29 +404,41 @@ TEST_F(DamageTest, MissingMapInfoRecordIsDamage) {
   EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
 }
 
-// A map made before issue 16 has no "dynamics" column family: it is read without one
-// (ReadMapInfo opens read-only), gets an empty one when opened for writing, and counts from then.
+// Drops column families of the (closed) map at `map_dir`, as maps made before they existed lack
+// them.
+void DropFamilies(const std::string& map_dir, const std::vector<std::string>& drop) {
+  std::vector<rocksdb::ColumnFamilyDescriptor> families;
+  for (const char* name :
+       {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
+    families.emplace_back(name, rocksdb::ColumnFamilyOptions());
+  }
+  std::vector<rocksdb::ColumnFamilyHandle*> handles;
+  rocksdb::DB* raw = nullptr;
+  ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir, families, &handles, &raw).ok());
+  for (auto* handle : handles) {
+    if (std::find(drop.begin(), drop.end(), handle->GetName()) != drop.end()) {
+      EXPECT_TRUE(raw->DropColumnFamily(handle).ok());
+    }
+  }
+  for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
+  delete raw;
+  std::vector<std::string> present;
+  ASSERT_TRUE(rocksdb::DB::ListColumnFamilies(rocksdb::DBOptions(), map_dir, &present).ok());
+  for (const std::string& name : drop) {
+    ASSERT_EQ(std::count(present.begin(), present.end(), name), 0) << name;
+  }
+}
+
+// A map made before issue 16 has no "dynamics" (nor "thumbnails") column family: it is read
+// without them (ReadMapInfo opens read-only), gets empty ones when opened for writing, and counts
+// from then.
 TEST_F(DamageTest, MapWithoutTheDynamicsFamilyOpensAndStartsCounting) {
   {
     auto dir = OpenDir();
     ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
     dir->CloseMap("lab");
   }
-  {
-    std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name : {"default", "places", "bow", "features", "invalid", "dynamics"}) {
-      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
-    }
-    std::vector<rocksdb::ColumnFamilyHandle*> handles;
-    rocksdb::DB* raw = nullptr;
-    ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir_, families, &handles, &raw).ok());
-    EXPECT_TRUE(raw->DropColumnFamily(handles[5]).ok());
-    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
-    delete raw;
-  }
-  std::vector<std::string> present;
-  ASSERT_TRUE(rocksdb::DB::ListColumnFamilies(rocksdb::DBOptions(), map_dir_, &present).ok());
-  ASSERT_EQ(std::count(present.begin(), present.end(), "dynamics"), 0);
+  ASSERT_NO_FATAL_FAILURE(DropFamilies(map_dir_, {"dynamics", "thumbnails"}));
   auto dir = OpenDir();
   auto info = dir->ReadMapInfo("lab");
   ASSERT_TRUE(info.ok()) << info.status().ToString();
@@ -442,6 +456,48 @@ TEST_F(DamageTest, MapWithoutTheDynamicsFamilyOpensAndStartsCounting) {
   EXPECT_EQ((*map)->GetDynamics(added->id)->observations, 1u);
   EXPECT_EQ((*map)->MapDynamics()->observations, 1u);
   EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+}
+
+// A map made before issue 20 has no "thumbnails" family: it opens (read-only without it), gets an
+// empty one when opened for writing, and keeps thumbnails from then when its settings say so.
+// (Settings cannot change after creation: here a map made with thumbnails loses its family.)
+TEST_F(DamageTest, MapWithoutTheThumbnailsFamilyOpensAndStartsKeepingThem) {
+  MapOptions options;
+  options.thumbnails.enabled = true;
+  Observation frame;
+  frame.image = testing::ReadGray(testing::RtabmapFramePath(20));
+  frame.dynamic.boxes.push_back({0, 0.9f, cv::Rect2f(0, 0, 150, 300)});
+  {
+    auto dir = OpenDir();
+    auto map = dir->CreateMap("kept", options, vocabulary_);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    auto added = (*map)->Add(frame);
+    ASSERT_TRUE(added.ok() && added->stored) << added.status().ToString();
+    ASSERT_TRUE((*(*map)->GetThumbnail(added->id)).has_value());
+    dir->CloseMap("kept");
+  }
+  ASSERT_NO_FATAL_FAILURE(DropFamilies(root_ + "/data/maps/kept", {"thumbnails"}));
+  auto dir = OpenDir();
+  auto info = dir->ReadMapInfo("kept");
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  EXPECT_TRUE(info->options.thumbnails.enabled);
+  auto map = dir->OpenMap("kept", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  auto lost = (*map)->GetThumbnail(1);
+  ASSERT_TRUE(lost.ok()) << lost.status().ToString();
+  EXPECT_FALSE(lost->has_value());
+  auto added = (*map)->Add(frame);
+  ASSERT_TRUE(added.ok() && added->stored) << added.status().ToString();
+  auto kept = (*map)->GetThumbnail(added->id);
+  ASSERT_TRUE(kept.ok()) << kept.status().ToString();
+  ASSERT_TRUE(kept->has_value());
+  EXPECT_EQ((*kept)->width, 320u);
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+  // Any other family missing is still damage.
+  *map = nullptr;
+  dir->CloseMap("kept");
+  ASSERT_NO_FATAL_FAILURE(DropFamilies(root_ + "/data/maps/kept", {"bow"}));
+  EXPECT_FALSE(dir->OpenMap("kept", vocabulary_).ok());
 }
 
 TEST_F(DamageTest, CorruptBowBlockIsDamageAtOpen) {

@@ -836,6 +836,7 @@ TEST_F(EvalTest, ServerBackendAgreesWithInProcess) {
   server::ServerConfig config;
   config.listen = "127.0.0.1:0";
   config.metrics_listen = "";
+  config.console_listen = "";
   config.data_dir = testing::MakeTempDir("placedb-eval-server") + "/data";
   config.threads = 2;
   config.log_level = "warn";
@@ -889,6 +890,7 @@ TEST_F(EvalTest, ServerBackendPresentsItsClientCertificate) {
   server::ServerConfig config;
   config.listen = "127.0.0.1:0";
   config.metrics_listen = "";
+  config.console_listen = "";
   config.data_dir = testing::MakeTempDir("placedb-eval-server") + "/data";
   config.threads = 2;
   config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};

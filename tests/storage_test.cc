@@ -1309,6 +1309,94 @@ TEST_F(StorageTest, DynamicsAreCountedPerPlaceAndSurviveReopenAndCheckpoint) {
   EXPECT_TRUE(scrub->clean());
 }
 
+// A map with thumbnails keeps one per place with pixels, in the place's own batch: it survives
+// reopening and a checkpoint, goes with the place, is absent for precomputed features and in a map
+// without thumbnails, and Scrub and VerifyIntegrity decode it.
+TEST_F(StorageTest, ThumbnailsAreStoredWithThePlaceAndGoWithIt) {
+  MapOptions options;
+  options.thumbnails.enabled = true;
+  options.thumbnails.max_side = 200;
+  options.thumbnails.jpeg_quality = 60;
+  std::map<PlaceId, Thumbnail> expected;
+  PlaceId without_pixels = 0;
+  const std::string backup = root_ + "/thumbnails-backup";
+  {
+    auto dir = OpenDir();
+    auto map = dir->CreateMap("pictures", options, vocabulary_);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    EXPECT_EQ((*map)->info().options.thumbnails, options.thumbnails);
+    for (int i = 1; i <= 20; ++i) {
+      auto added = (*map)->Add(FrameWithObjects(i));
+      ASSERT_TRUE(added.ok()) << added.status().ToString();
+      if (!added->stored) continue;
+      auto thumbnail = (*map)->GetThumbnail(added->id);
+      ASSERT_TRUE(thumbnail.ok()) << thumbnail.status().ToString();
+      ASSERT_TRUE(thumbnail->has_value()) << "place " << added->id;
+      EXPECT_EQ((*thumbnail)->width, 200u);
+      EXPECT_EQ((*thumbnail)->height, 150u);
+      EXPECT_GT((*thumbnail)->jpeg.size(), 1000u);
+      EXPECT_EQ((*thumbnail)->source_width, 512u);  // RTAB-Map frames are 512x384
+      EXPECT_EQ((*thumbnail)->source_height, 384u);
+      EXPECT_EQ((*thumbnail)->dropped_keypoints.size(), added->counts.dynamic);
+      expected[added->id] = **thumbnail;
+    }
+    ASSERT_GT(expected.size(), 10u);
+    // Precomputed features carry no pixels: the place has no thumbnail, and that is no error.
+    Observation features;
+    features.features = LocalFeatures(testing::ExtractFile(testing::RtabmapFramePath(40)));
+    auto added = (*map)->Add(features);
+    ASSERT_TRUE(added.ok() && added->stored) << added.status().ToString();
+    without_pixels = added->id;
+    EXPECT_FALSE((*(*map)->GetThumbnail(without_pixels)).has_value());
+    ASSERT_TRUE((*map)->Checkpoint(backup).ok());
+    ASSERT_TRUE((*map)->RemovePlace(expected.begin()->first).ok());
+    EXPECT_EQ((*map)->GetThumbnail(expected.begin()->first).status().code(), StatusCode::kNotFound);
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+    EXPECT_EQ((*map)->GetThumbnail(9999).status().code(), StatusCode::kNotFound);
+
+    // A map without thumbnails keeps none (and its default settings are off).
+    auto plain = dir->CreateMap("plain", {}, vocabulary_);
+    ASSERT_TRUE(plain.ok());
+    EXPECT_FALSE((*plain)->info().options.thumbnails.enabled);
+    auto stored = (*plain)->Add(FrameWithObjects(3));
+    ASSERT_TRUE(stored.ok() && stored->stored);
+    EXPECT_FALSE((*(*plain)->GetThumbnail(stored->id)).has_value());
+    // Bad settings are refused before anything is created.
+    MapOptions bad = options;
+    bad.thumbnails.max_side = 2000;
+    auto refused = dir->CreateMap("bad", bad, vocabulary_);
+    ASSERT_FALSE(refused.ok());
+    EXPECT_EQ(refused.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_NE(refused.status().message().find("thumbnails.max_side"), std::string::npos);
+  }
+  const PlaceId removed = expected.begin()->first;
+  auto dir = OpenDir();
+  auto map = dir->OpenMap("pictures", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_EQ((*map)->info().options.thumbnails, options.thumbnails);
+  EXPECT_EQ((*map)->GetThumbnail(removed).status().code(), StatusCode::kNotFound);
+  for (const auto& [id, thumbnail] : expected) {
+    if (id == removed) continue;
+    auto reread = (*map)->GetThumbnail(id);
+    ASSERT_TRUE(reread.ok() && reread->has_value()) << "place " << id;
+    EXPECT_EQ(**reread, thumbnail) << "place " << id;
+  }
+  ASSERT_TRUE((*map)->VerifyIntegrity().ok());
+  ASSERT_TRUE(dir->RestoreMap("pictures-restored", backup).ok());
+  auto restored = dir->OpenMap("pictures-restored", vocabulary_);
+  ASSERT_TRUE(restored.ok()) << restored.status().ToString();
+  for (const auto& [id, thumbnail] : expected) {
+    auto reread = (*restored)->GetThumbnail(id);
+    ASSERT_TRUE(reread.ok() && reread->has_value()) << "place " << id;
+    EXPECT_EQ(**reread, thumbnail) << "place " << id;
+  }
+  EXPECT_FALSE((*(*restored)->GetThumbnail(without_pixels)).has_value());
+  auto scrub = (*restored)->Scrub();
+  ASSERT_TRUE(scrub.ok());
+  EXPECT_TRUE(scrub->clean());
+  EXPECT_TRUE((*restored)->VerifyIntegrity().ok());
+}
+
 // A frame refused as invalid (here: a person box over the whole view, so every descriptor is
 // DC) has no place; its statistics go to the invalid frames' aggregate, not the map's. Both
 // with the frame kept as metadata (a synced write) and only counted (rides on the next write).

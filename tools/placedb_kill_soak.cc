@@ -163,6 +163,8 @@ class Server {
         data_dir_,
         "--metrics-listen",
         metrics_port_ > 0 ? "127.0.0.1:" + std::to_string(metrics_port_) : "off",
+        "--console-listen",
+        "off",
         "--vocabulary",
         "default=" + options_.vocabulary,
         "--threads",

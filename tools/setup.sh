@@ -23,6 +23,7 @@ PACKAGES=(
   libssl-dev openssl  # tokens (SHA-256, random), TLS on /metrics; tests make certificates
   python3 python3-grpcio python3-protobuf python3-numpy  # the Python SDK (client/python)
   python3-pytest python3-opencv  # its tests and examples
+  chromium python3-websocket  # the web console's browser test (tests/console/browser_test.py)
   clang-format ccache
   clang-14 libclang-rt-14-dev  # CI's -Wthread-safety and libFuzzer stages (tools/test.sh)
   # Debian's sample images: the default vocabulary is trained on these (never on eval data).
@@ -70,5 +71,7 @@ PLACEDB_BUILD_DIR="$BUILD_DIR" tools/install_models.sh var/models
 echo "setup: done. Binaries in $BUILD_DIR/, vocabularies var/vocabulary/default.pdbv (ORB) and" \
   "var/vocabulary/sift-debian.pdbfv (SIFT)"
 if ((run)); then
+  # The server's embedded default console_listen; `build/client/placedb console` asks the server.
+  echo "setup: starting placedb; its web console: http://127.0.0.1:9465/ (docs/console.md)"
   exec tools/run.sh
 fi

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs the whole placedb test suite, exactly as CI does (.ci/run calls this):
 #   1. packages (idempotent, as tools/setup.sh --deps),
-#   2. a -Werror Release build and every test through ctest (unit, recognition on real images),
+#   2. a -Werror Release build and every test through ctest (unit, recognition on real images,
+#      the web console in headless chromium: console_browser_test, label browser),
 #   3. the unit tests again under AddressSanitizer + UndefinedBehaviorSanitizer,
 #   4. the concurrency tests under ThreadSanitizer,
 #   5. a clang build with -Wthread-safety -Werror: the lock annotations (core/base/

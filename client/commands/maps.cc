@@ -84,6 +84,11 @@ Rows ConfigRows(const v1::MapDescription& map) {
            (v.candidates() == 0 ? std::string("all") : std::to_string(v.candidates())) +
            ", rerank " + (v.rerank() ? "on" : "off")});
   config.push_back({"store_invalid", c.store_invalid() ? "yes" : "no"});
+  config.push_back({"thumbnails", c.thumbnails().enabled()
+                                      ? "on, " + std::to_string(c.thumbnails().max_side()) +
+                                            " px, quality " +
+                                            std::to_string(c.thumbnails().jpeg_quality())
+                                      : std::string("off")});
   const v1::DepthSettings& depth = c.depth();
   auto on_off = [](bool has, bool value) { return has ? (value ? "on" : "off") : "-"; };
   config.push_back({"depth", std::string("refine_boxes ") +
@@ -275,6 +280,8 @@ v1::CreateMapRequest CreateRequest(const CreateFlags& flags) {
   if (flags.candidates_option->count()) verification->set_candidates(flags.candidates);
   if (!flags.rerank.empty()) verification->set_rerank(flags.rerank == "on");
   config->set_store_invalid(flags.store_invalid);
+  config->mutable_thumbnails()->set_enabled(flags.thumbnails);
+  config->mutable_thumbnails()->set_max_side(flags.thumbnail_size);
   return request;
 }
 
@@ -334,6 +341,12 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
                                                 "candidates to verify (default 0 = all)");
   create->add_flag("--store-invalid", flags->store_invalid,
                    "keep invalid observations as metadata");
+  create->add_flag("--thumbnails", flags->thumbnails,
+                   "keep a small JPEG per place, dynamic objects blurred (for the console)");
+  create
+      ->add_option("--thumbnail-size", flags->thumbnail_size,
+                   "longest side of the thumbnails in pixels, 16-1024 (default 320)")
+      ->needs("--thumbnails");
   create
       ->add_option("--feature-type", flags->feature_type,
                    "orb or sift; must agree with the vocabulary (default: the vocabulary's kind)")

@@ -32,6 +32,8 @@ struct CreateFlags {
   int min_inliers = 0;
   int candidates = 0;
   bool store_invalid = false;
+  bool thumbnails = false;      // keep a thumbnail per place
+  uint32_t thumbnail_size = 0;  // their longest side; 0 = the server's default
   // Feature type (SIFT maps need a float vocabulary) and SIFT.
   std::string feature_type;
   int sift_features = 0;

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstring>
 #include <ctime>
+#include <fstream>
 #include <iomanip>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -95,6 +96,8 @@ PlaceCommands RegisterPlace(CLI::App& app, PlaceFlags* flags) {
   commands.get->add_option("MAP", flags->map, "map name")->required();
   commands.get->add_option("ID", flags->id, "place id")->required();
   commands.get->add_flag("--features", flags->features, "include the stored static features");
+  commands.get->add_option("--thumbnail", flags->thumbnail,
+                           "write the place's thumbnail (JPEG, dynamic objects blurred) to FILE");
   commands.remove = place->add_subcommand("delete", "remove a place durably");
   commands.remove->add_option("MAP", flags->map, "map name")->required();
   commands.remove->add_option("ID", flags->id, "place id")->required();
@@ -102,15 +105,27 @@ PlaceCommands RegisterPlace(CLI::App& app, PlaceFlags* flags) {
 }
 
 int PlaceGet(const Connection& connection, const std::string& map, uint32_t id, bool features,
-             bool json, CliIo& io) {
+             bool json, CliIo& io, const std::string& thumbnail_file) {
   auto context = connection.NewContext();
   v1::GetPlaceRequest request;
   request.set_map(map);
   request.set_place_id(id);
   request.set_include_features(features);
+  request.set_include_thumbnail(!thumbnail_file.empty());
   v1::Place place;
   const grpc::Status status = connection.stub()->GetPlace(context.get(), request, &place);
   if (!status.ok()) return RpcFailed(io, status);
+  if (!thumbnail_file.empty()) {
+    if (!place.has_thumbnail()) {
+      io.err << "error: place " << id << " in map '" << map
+             << "' has no thumbnail (the map keeps none, or its frame had no pixels)\n";
+      return kExitRpcError;
+    }
+    std::ofstream out(thumbnail_file, std::ios::binary | std::ios::trunc);
+    out.write(place.thumbnail().jpeg().data(), std::streamsize(place.thumbnail().jpeg().size()));
+    out.close();
+    if (!out) return UsageError(io, "cannot write " + thumbnail_file);
+  }
   if (json) {
     io.out << ProtoJson(place) << '\n';
     return kExitOk;
@@ -131,6 +146,15 @@ int PlaceGet(const Connection& connection, const std::string& map, uint32_t id, 
                                      " descriptor bytes, image " +
                                      std::to_string(place.features().image_width()) + "x" +
                                      std::to_string(place.features().image_height())});
+  }
+  if (place.has_thumbnail()) {
+    const v1::Thumbnail& t = place.thumbnail();
+    table.push_back({"thumbnail", std::to_string(t.width()) + "x" + std::to_string(t.height()) +
+                                      " of " + std::to_string(t.source_width()) + "x" +
+                                      std::to_string(t.source_height()) + ", " +
+                                      std::to_string(t.jpeg().size()) + " bytes, " +
+                                      std::to_string(t.dropped_keypoints_size()) +
+                                      " dropped keypoints, written to " + thumbnail_file});
   }
   PrintKeyValues(io.out, "place " + std::to_string(place.place_id()) + " in map '" + map + "'",
                  table);

@@ -1,6 +1,7 @@
 // `placedb place get|delete MAP ID` (docs/cli.md, "place"): one stored place's metadata, counts,
-// boxes and (--features) static features, or its durable removal. `placedb place list MAP`
-// (alias `places list`): a page of the map's places, newest first (ListPlaces).
+// boxes, (--features) static features and (--thumbnail FILE) thumbnail, or its durable removal.
+// `placedb place list MAP` (alias `places list`): a page of the map's places, newest first
+// (ListPlaces).
 #pragma once
 
 #include <cstdint>
@@ -26,6 +27,7 @@ struct PlaceFlags {
   std::string to;
   uint32_t limit = 0;
   uint32_t before = 0;
+  std::string thumbnail;  // get: write the place's thumbnail JPEG to this file
 };
 
 // A --from/--to value: unix nanoseconds ("1732400000000000000") or UTC ISO 8601
@@ -42,8 +44,10 @@ struct PlaceCommands {
 // Adds `place` and its subcommands to `app`, their options bound to *flags.
 PlaceCommands RegisterPlace(CLI::App& app, PlaceFlags* flags);
 
+// With `thumbnail_file` set, the place's thumbnail is asked for and its JPEG written there
+// (exit 1 when the place has none).
 int PlaceGet(const Connection& connection, const std::string& map, uint32_t id, bool features,
-             bool json, CliIo& io);
+             bool json, CliIo& io, const std::string& thumbnail_file = "");
 int PlaceList(const Connection& connection, const PlaceFlags& flags, bool json, CliIo& io);
 int PlaceDelete(const Connection& connection, const std::string& map, uint32_t id, bool json,
                 CliIo& io);

@@ -15,6 +15,7 @@ ServerCommands RegisterServer(CLI::App& app, HealthFlags* flags) {
   commands.info = app.add_subcommand("info", "server version, vocabularies, detector, limits");
   commands.health = app.add_subcommand(
       "health", "grpc.health.v1 Check: exit 0 SERVING, 1 otherwise, 2 unreachable");
+  commands.console = app.add_subcommand("console", "print the URL of the server's web console");
   commands.health->add_option("--service", flags->service,
                               "service to check (default \"\": the whole server)");
   return commands;
@@ -55,6 +56,22 @@ int RunInfo(const Connection& connection, bool json, CliIo& io) {
   io.out << '\n';
   PrintKeyValues(io.out, "limits", limits);
   return kExitOk;
+}
+
+int RunConsole(const Connection& connection, bool json, CliIo& io) {
+  auto context = connection.NewContext();
+  v1::ServerInfo info;
+  const grpc::Status status = connection.stub()->GetServerInfo(context.get(), {}, &info);
+  if (!status.ok()) return RpcFailed(io, status);
+  if (json) {
+    io.out << nlohmann::json{{"console_url", info.console_url()}}.dump() << '\n';
+  } else if (!info.console_url().empty()) {
+    io.out << info.console_url() << '\n';
+  } else {
+    io.err << "placedb: the server at " << connection.options().address
+           << " runs no console (console_listen is off; docs/console.md)\n";
+  }
+  return info.console_url().empty() ? 1 : kExitOk;
 }
 
 int RunHealth(const Connection& connection, const std::string& service, bool json, CliIo& io) {

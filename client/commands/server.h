@@ -1,5 +1,6 @@
-// `placedb info` and `placedb health` (docs/cli.md): what the server runs (version, vocabularies,
-// detector, limits), and whether it serves (grpc.health.v1; the exit code says it to scripts).
+// `placedb info`, `placedb health` and `placedb console` (docs/cli.md): what the server runs
+// (version, vocabularies, detector, limits), whether it serves (grpc.health.v1; the exit code
+// says it to scripts), and where its web console is.
 #pragma once
 
 #include <string>
@@ -20,12 +21,15 @@ struct HealthFlags {
 struct ServerCommands {
   CLI::App* info = nullptr;
   CLI::App* health = nullptr;
+  CLI::App* console = nullptr;
 };
 
-// Adds `info` and `health` to `app`, health's options bound to *flags.
+// Adds `info`, `health` and `console` to `app`, health's options bound to *flags.
 ServerCommands RegisterServer(CLI::App& app, HealthFlags* flags);
 
 int RunInfo(const Connection& connection, bool json, CliIo& io);
+// Prints the console's URL (ServerInfo.console_url); exit 1 when the server runs none.
+int RunConsole(const Connection& connection, bool json, CliIo& io);
 // 0 SERVING, 1 anything else the server says, 2 unreachable.
 int RunHealth(const Connection& connection, const std::string& service, bool json, CliIo& io);
 

@@ -224,6 +224,7 @@ Result<LocalFeatures> PlaceDatabase::ExtractFromPixels(
 }
 
 Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, FrameRole role,
+                                              const ThumbnailSettings* thumbnail,
                                               bool keep_dropped_keypoints) const {
   ProcessedFrame frame;
   Stopwatch total;
@@ -329,6 +330,18 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, Fr
     }
   }
   frame.timings.filter_ms = stage.Lap();
+
+  // ---- The thumbnail: the reduced frame with boxes_used blurred, and the DC keypoints.
+  if (thumbnail && thumbnail->enabled && !observation.features.has_value() &&
+      !observation.image.empty()) {
+    std::vector<Keypoint> dropped;
+    dropped.reserve(filtered->dynamic_indices.size());
+    for (uint32_t i : filtered->dynamic_indices) dropped.push_back(features->keypoints()[i]);
+    auto made = MakeThumbnail(observation.image, frame.boxes_used, std::move(dropped), *thumbnail);
+    if (!made.ok()) return made.status().WithContext("thumbnail");
+    frame.thumbnail = std::move(made).value();
+    stage.Lap();  // counted in total_ms only
+  }
 
   // ---- The short-term tier keeps the DC words (in memory, for recent places).
   if (config_.short_term.enabled && !filtered->dynamic_indices.empty()) {

@@ -40,6 +40,7 @@
 #include "core/search/loop_closure.h"
 #include "core/search/place_index.h"
 #include "core/search/scoring.h"
+#include "core/thumbnail/thumbnail.h"
 #include "core/vocabulary/any_vocabulary.h"
 #include "core/vocabulary/bow.h"
 #include "core/vocabulary/vocabulary.h"
@@ -185,6 +186,10 @@ struct ProcessedFrame {
   std::vector<float> static_depth_m;  // per SC feature while Algorithm 1 is pending
   bool stream_pending = false;        // Process(kStream) left Algorithm 1 to AdvanceStream()
   std::optional<DepthFrameState> depth_state;  // Algorithm 1's decision for this frame
+
+  // The frame's thumbnail (Process() with thumbnail settings, a frame with pixels): the reduced
+  // JPEG only, never the full image, travels on to the commit.
+  std::optional<Thumbnail> thumbnail;
 };
 
 // What the database keeps in memory per place: small, immutable once stored.
@@ -351,8 +356,12 @@ class PlaceDatabase {
 
   // Extract, filter, validate and transform without touching the database. With kStream and
   // depth (and config.depth.stream_filter), Algorithm 1, validity and transform are left to
-  // AdvanceStream() (`stream_pending`). `keep_dropped_keypoints` fills `dropped_keypoints`.
+  // AdvanceStream() (`stream_pending`). With `thumbnail` enabled and an observation that carries
+  // pixels, the frame's thumbnail is made too (core/thumbnail: boxes_used blurred, the DC
+  // keypoints kept); precomputed features have no pixels, hence no thumbnail.
+  // `keep_dropped_keypoints` fills `dropped_keypoints`.
   Result<ProcessedFrame> Process(const Observation& observation, FrameRole role = FrameRole::kQuery,
+                                 const ThumbnailSettings* thumbnail = nullptr,
                                  bool keep_dropped_keypoints = false) const;
   // Finishes a kStream frame: Algorithm 1 with the agent's stream state (frames of one agent
   // must arrive here in order), then validity and transform. No-op unless `stream_pending`.

@@ -6,6 +6,8 @@
 #include <cstring>
 #include <nlohmann/json.hpp>
 
+#include "core/decode/image_decoder.h"
+
 namespace placedb {
 
 namespace {
@@ -898,6 +900,54 @@ Result<InvalidObservation> DecodeInvalidObservation(std::string_view bytes) {
     return r.Error();
   }
   return o;
+}
+
+std::string EncodeThumbnail(const Thumbnail& t) {
+  Writer w;
+  w.U8(kFormatV1);
+  w.Varint(t.width);
+  w.Varint(t.height);
+  w.Varint(t.source_width);
+  w.Varint(t.source_height);
+  w.Varint(t.dropped_keypoints.size());
+  WriteKeypoints(w, t.dropped_keypoints);
+  w.String(t.jpeg);
+  return w.Take();
+}
+
+Result<Thumbnail> DecodeThumbnail(std::string_view bytes) {
+  Reader r(bytes, "thumbnail");
+  PLACEDB_RETURN_IF_ERROR(r.Version());
+  Thumbnail t;
+  uint64_t width = 0, height = 0, source_width = 0, source_height = 0, dropped = 0;
+  if (!r.Varint(&width) || !r.Varint(&height) || !r.Varint(&source_width) ||
+      !r.Varint(&source_height) || !r.Count(&dropped, kKeypointBytes)) {
+    return r.Error();
+  }
+  t.dropped_keypoints.resize(dropped);
+  if (!ReadKeypoints(r, &t.dropped_keypoints) || !r.String(&t.jpeg) || !r.Done()) {
+    return r.Error();
+  }
+  if (width < 1 || height < 1 || width > kMaxThumbnailSide || height > kMaxThumbnailSide ||
+      source_width < width || source_height < height || source_width > (1u << 20) ||
+      source_height > (1u << 20)) {
+    return Status::Corruption("thumbnail: sizes " + std::to_string(width) + "x" +
+                              std::to_string(height) + " of " + std::to_string(source_width) + "x" +
+                              std::to_string(source_height) + " are not a thumbnail's");
+  }
+  t.width = uint32_t(width);
+  t.height = uint32_t(height);
+  t.source_width = uint32_t(source_width);
+  t.source_height = uint32_t(source_height);
+  auto info =
+      ReadImageInfo(std::span(reinterpret_cast<const uint8_t*>(t.jpeg.data()), t.jpeg.size()));
+  if (!info.ok() || info->format != ImageFormat::kJpeg || info->width != t.width ||
+      info->height != t.height) {
+    return Status::Corruption("thumbnail: the JPEG's header does not describe a " +
+                              std::to_string(width) + "x" + std::to_string(height) + " JPEG" +
+                              (info.ok() ? "" : " (" + info.status().message() + ")"));
+  }
+  return t;
 }
 
 }  // namespace placedb

@@ -10,6 +10,7 @@
 #include "core/base/status.h"
 #include "core/features/local_features.h"
 #include "core/pipeline/place_database.h"
+#include "core/thumbnail/thumbnail.h"
 #include "core/vocabulary/bow.h"
 
 namespace placedb {
@@ -64,5 +65,13 @@ struct InvalidObservation {
 };
 std::string EncodeInvalidObservation(const InvalidObservation& observation);
 Result<InvalidObservation> DecodeInvalidObservation(std::string_view bytes);
+
+// A place's thumbnail (version 1): width, height, source width and height (varints), the dropped
+// keypoints (count, then 21 bytes each as in the features value), the JPEG (length, bytes). The
+// decoder checks every length, that nothing follows, that the sizes are sane (1..1024, within
+// the source, source sides up to 2^20) and that the JPEG's header says width x height: CORRUPTION
+// otherwise.
+std::string EncodeThumbnail(const Thumbnail& thumbnail);
+Result<Thumbnail> DecodeThumbnail(std::string_view bytes);
 
 }  // namespace placedb

@@ -58,11 +58,18 @@ constexpr char kWritesKey[] = "acked_writes";
 constexpr char kDamageHistoryKey[] = "damage_history";  // JSON array of accepted losses
 constexpr char kAckedFile[] = "ACKED";
 
-const char* const kColumnFamilies[] = {
-    rocksdb::kDefaultColumnFamilyName.c_str(), "places", "bow", "features", "invalid", "dynamics"};
-// kDynamics was added by issue 16: maps made before it lack the family, which a read-write
-// open creates (empty) and a read-only open does without (its handle is null).
-enum Cf { kMeta = 0, kPlaces, kBow, kFeatures, kInvalid, kDynamics, kCfCount };
+const char* const kColumnFamilies[] = {rocksdb::kDefaultColumnFamilyName.c_str(),
+                                       "places",
+                                       "bow",
+                                       "features",
+                                       "invalid",
+                                       "dynamics",
+                                       "thumbnails"};
+// kDynamics was added by issue 16, kThumbnails by issue 20: maps made before lack the family,
+// which a read-write open creates (empty) and a read-only open does without (its handle is
+// null). Only these "late" families are ever created on an existing map (LateFamiliesMissing).
+enum Cf { kMeta = 0, kPlaces, kBow, kFeatures, kInvalid, kDynamics, kThumbnails, kCfCount };
+constexpr Cf kLateFamilies[] = {kDynamics, kThumbnails};
 
 // In kDynamics: the map's aggregate (every acknowledged observation, also of places removed
 // since). Place keys are 4 bytes, so this 3-byte key is never one.
@@ -152,6 +159,11 @@ rocksdb::ColumnFamilyOptions FamilyOptions(Cf cf, const std::shared_ptr<rocksdb:
       options.compression = rocksdb::kNoCompression;
       options.write_buffer_size = size_t(32) << 20;
       table.block_size = 16 * 1024;  // one place's features is ~50 KB: fewer, larger blocks
+      break;
+    case kThumbnails:
+      // JPEG is compressed already.
+      options.compression = rocksdb::kNoCompression;
+      options.write_buffer_size = size_t(4) << 20;
       break;
     case kBow:
       // Already compact (delta varints + float32); read sequentially only on open.
@@ -289,6 +301,10 @@ std::string EncodeInfo(const MapInfo& info) {
   j["name"] = info.name;
   j["database"] = nlohmann::json::parse(EncodeDatabaseConfig(info.options.database));
   j["store_invalid"] = info.options.store_invalid;
+  const ThumbnailSettings& thumbnails = info.options.thumbnails;
+  j["thumbnails"] = {{"enabled", thumbnails.enabled},
+                     {"max_side", thumbnails.max_side},
+                     {"jpeg_quality", thumbnails.jpeg_quality}};
   j["service"] = info.options.service_json;
   j["vocabulary_checksum"] = info.vocabulary_checksum;
   j["created_unix_ms"] = info.created_unix_ms;
@@ -306,6 +322,15 @@ Result<MapInfo> DecodeInfo(const std::string& text) {
     info.options.database = *config;
     info.options.store_invalid = j.at("store_invalid").get<bool>();
     info.options.service_json = j.value("service", std::string());
+    // Maps made before issue 20 have no thumbnail settings: off.
+    if (j.contains("thumbnails")) {
+      const nlohmann::json& t = j.at("thumbnails");
+      ThumbnailSettings& thumbnails = info.options.thumbnails;
+      thumbnails.enabled = t.at("enabled").get<bool>();
+      thumbnails.max_side = t.at("max_side").get<uint32_t>();
+      thumbnails.jpeg_quality = t.at("jpeg_quality").get<uint32_t>();
+      PLACEDB_RETURN_IF_ERROR(ValidateThumbnailSettings(thumbnails).WithContext("map info"));
+    }
     info.vocabulary_checksum = j.at("vocabulary_checksum").get<uint64_t>();
     info.created_unix_ms = j.at("created_unix_ms").get<int64_t>();
   } catch (const nlohmann::json::exception& e) {
@@ -763,6 +788,7 @@ class RocksPayloadStore final : public PayloadStore {
     batch.Delete(storage_->cf(kBow), key);
     batch.Delete(storage_->cf(kFeatures), key);
     batch.Delete(storage_->cf(kDynamics), key);  // the map's aggregate keeps its history
+    batch.Delete(storage_->cf(kThumbnails), key);
     std::string floor;
     auto s = storage_->db->Get({}, storage_->cf(kMeta), kIdFloorKey, &floor);
     PlaceId current = 0;
@@ -901,7 +927,8 @@ Status PlaceMap::Load() {
 Result<AddResult> PlaceMap::Add(const Observation& observation) {
   // Extraction runs outside the lifecycle lock (it touches no storage), so deleting the map
   // does not wait for it.
-  auto frame = database_->Process(observation, FrameRole::kStream);
+  auto frame =
+      database_->Process(observation, FrameRole::kStream, ThumbnailsFor(FrameRole::kStream));
   if (!frame.ok()) return frame.status();
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
@@ -1038,6 +1065,9 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
   batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
   if (storage_->dynamics) storage_->AddDynamics(&batch, record.id, FrameDynamics(frame, metadata));
+  if (frame.thumbnail && info_.options.thumbnails.enabled) {
+    batch.Put(storage_->cf(kThumbnails), key, EncodeThumbnail(*frame.thumbnail));
+  }
   PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing place " + std::to_string(record.id),
                                           MapStorage::Kind::kAddition, record.id));
   // Durable: now make it searchable.
@@ -1104,6 +1134,25 @@ Result<PlaceDynamics> PlaceMap::GetDynamics(PlaceId id) const {
   auto decoded = DecodeDynamics(value);
   if (!decoded.ok()) return decoded.status().WithContext("place " + std::to_string(id));
   return decoded;
+}
+
+Result<std::optional<Thumbnail>> PlaceMap::GetThumbnail(PlaceId id) const {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  if (!database_->Get(id)) {
+    return Status::NotFound("place " + std::to_string(id) + " not found in map '" + info_.name +
+                            "'");
+  }
+  std::string value;
+  auto s = storage_->db->Get({}, storage_->cf(kThumbnails), PlaceKey(id), &value);
+  if (s.IsNotFound()) return std::optional<Thumbnail>();
+  if (Status read = FromRocks(s, "reading the thumbnail of place " + std::to_string(id));
+      !read.ok()) {
+    return Status(read.code(), RelativeTo(read.message(), path_, info_.name));
+  }
+  auto decoded = DecodeThumbnail(value);
+  if (!decoded.ok()) return decoded.status().WithContext("place " + std::to_string(id));
+  return std::optional<Thumbnail>(std::move(decoded).value());
 }
 
 Result<PlaceDynamics> PlaceMap::ReadAggregate(const char* key, const std::string& what) const {
@@ -1231,7 +1280,22 @@ Status PlaceMap::VerifyIntegrity() const {
     PLACEDB_RETURN_IF_ERROR(
         DecodeDynamics(dynamics->value().ToStringView()).status().WithContext(where));
   }
-  return FromRocks(dynamics->status(), "scanning statistics");
+  PLACEDB_RETURN_IF_ERROR(FromRocks(dynamics->status(), "scanning statistics"));
+  // Thumbnails: written and deleted in the place's own batches, so each belongs to a place.
+  std::unique_ptr<rocksdb::Iterator> thumbnails(
+      storage_->db->NewIterator(options, storage_->cf(kThumbnails)));
+  for (thumbnails->SeekToFirst(); thumbnails->Valid(); thumbnails->Next()) {
+    auto id = DecodePlaceKey(thumbnails->key().ToStringView());
+    if (!id.ok()) return id.status().WithContext("thumbnail key");
+    if (!database_->Get(*id)) {
+      return Status::Corruption("a thumbnail of place " + std::to_string(*id) +
+                                ", which does not exist");
+    }
+    PLACEDB_RETURN_IF_ERROR(DecodeThumbnail(thumbnails->value().ToStringView())
+                                .status()
+                                .WithContext("place " + std::to_string(*id)));
+  }
+  return FromRocks(thumbnails->status(), "scanning thumbnails");
 }
 
 Result<ScrubReport> PlaceMap::Scrub() const {
@@ -1311,6 +1375,16 @@ Result<ScrubReport> PlaceMap::Scrub() const {
         fail("statistics: " + d.status().ToString());
       }
     }
+    std::string thumbnail_bytes;  // absent when the map kept none for the place
+    got = storage_->db->Get(verify, storage_->cf(kThumbnails), key, &thumbnail_bytes);
+    if (!got.IsNotFound()) {
+      read = FromRocks(got, "thumbnail");
+      if (!read.ok()) {
+        fail(read.ToString());
+      } else if (auto t = DecodeThumbnail(thumbnail_bytes); !t.ok()) {
+        fail("thumbnail: " + t.status().ToString());
+      }
+    }
   }
   return report;
 }
@@ -1386,17 +1460,22 @@ std::vector<rocksdb::ColumnFamilyDescriptor> Families(const std::shared_ptr<void
   return families;
 }
 
-// True when the map at `path` has every column family but kDynamics (made before issue 16).
-// Any other family missing is damage, left for the open to report.
-bool LacksOnlyDynamics(const std::string& path) {
+// The late families (kLateFamilies: added by later issues) the map at `path` lacks, when every
+// other family is there (a map made before them); empty otherwise. Any other family missing is
+// damage, left for the open to report.
+std::vector<Cf> LateFamiliesMissing(const std::string& path) {
   std::vector<std::string> present;
-  if (!rocksdb::DB::ListColumnFamilies(rocksdb::DBOptions(), path, &present).ok()) return false;
+  if (!rocksdb::DB::ListColumnFamilies(rocksdb::DBOptions(), path, &present).ok()) return {};
+  std::vector<Cf> missing;
   for (int cf = 0; cf < kCfCount; ++cf) {
-    const bool found =
-        std::find(present.begin(), present.end(), kColumnFamilies[cf]) != present.end();
-    if (found != (cf != kDynamics)) return false;
+    if (std::find(present.begin(), present.end(), kColumnFamilies[cf]) != present.end()) continue;
+    if (std::find(std::begin(kLateFamilies), std::end(kLateFamilies), Cf(cf)) ==
+        std::end(kLateFamilies)) {
+      return {};
+    }
+    missing.push_back(Cf(cf));
   }
-  return true;
+  return missing;
 }
 
 // `path`: the map's directory, for its info log; empty for read-only opens (which write none).
@@ -1424,9 +1503,10 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
   rocksdb::DBOptions db_options = RecoveryOptions(recovery, path);
   db_options.create_if_missing = create;
   db_options.error_if_exists = create;
-  // A map made before issue 16 gets its (empty) dynamics family; no other family is ever
-  // created on an existing map unless the caller says so (recovery).
-  db_options.create_missing_column_families = create || create_families || LacksOnlyDynamics(path);
+  // A map made before issue 16 (20) gets its (empty) dynamics (thumbnails) family; no other
+  // family is ever created on an existing map unless the caller says so (recovery).
+  db_options.create_missing_column_families =
+      create || create_families || !LateFamiliesMissing(path).empty();
   auto storage = std::make_unique<MapStorage>();
   storage->map_name = fs::path(path).filename().string();
   storage->path = path;
@@ -1452,16 +1532,18 @@ Result<std::unique_ptr<MapStorage>> OpenReadOnly(const std::string& path,
                                                  Recovery recovery) {
   auto storage = std::make_unique<MapStorage>();
   rocksdb::DB* raw = nullptr;
-  // A map made before issue 16 is read without its dynamics family (null handle; read-only
-  // users never touch it).
-  const bool without_dynamics = LacksOnlyDynamics(path);
+  // A map made before issue 16 (20) is read without its dynamics (thumbnails) family (null
+  // handle; read-only users never touch it).
+  const std::vector<Cf> missing = LateFamiliesMissing(path);
   std::vector<rocksdb::ColumnFamilyDescriptor> families = Families(cache_void);
-  if (without_dynamics) families.erase(families.begin() + kDynamics);
+  for (auto cf = missing.rbegin(); cf != missing.rend(); ++cf) {
+    families.erase(families.begin() + *cf);
+  }
   rocksdb::Status s = rocksdb::DB::OpenForReadOnly(RecoveryOptions(recovery, ""), path, families,
                                                    &storage->handles, &raw);
   if (!s.ok()) return FromRocks(s, "opening the map's RocksDB");
   storage->db.reset(raw);
-  if (without_dynamics) storage->handles.insert(storage->handles.begin() + kDynamics, nullptr);
+  for (Cf cf : missing) storage->handles.insert(storage->handles.begin() + cf, nullptr);
   return storage;
 }
 
@@ -1613,6 +1695,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::CreateMap(const std::string& na
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
   if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
   PLACEDB_RETURN_IF_ERROR(ValidateDatabaseConfig(options.database));
+  PLACEDB_RETURN_IF_ERROR(ValidateThumbnailSettings(options.thumbnails));
   const FeatureType type = options.database.feature_type;
   if (vocabulary.feature_type() != type) {
     return Status::InvalidArgument("map '" + name + "': feature_type " + FeatureTypeName(type) +

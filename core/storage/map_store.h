@@ -15,6 +15,11 @@
 // counted. They are read on demand from RocksDB (nothing in memory) and never reach the
 // PlaceDatabase: descriptors and ranking are the same with or without them.
 //
+// Thumbnails (issue 20, core/thumbnail/thumbnail.h), when the map keeps them, live in the
+// "thumbnails" column family: one value per place, made by Process() on the caller's thread,
+// written in the place's own batch (acknowledged = stored), deleted with the place, read on
+// demand (GetThumbnail).
+//
 // Damage is never silent (docs/storage.md, "Damage"): every acknowledged write is counted twice,
 // in the map's RocksDB (a merge counter inside the write's own batch) and in a small checksummed
 // file beside it (ACKED, fdatasync'ed before the write is acknowledged). Opening a map compares
@@ -82,6 +87,10 @@ struct MapOptions {
   // Keep invalid observations as metadata only (no descriptors), to see where the robot saw
   // nothing usable. Off by default: invalid observations are counted, not stored.
   bool store_invalid = false;
+  // Keep a small JPEG per place (its frame reduced, dynamic objects blurred; core/thumbnail), in
+  // the "thumbnails" column family, written in the place's own batch. Only frames with pixels
+  // have one. Validated by CreateMap (ValidateThumbnailSettings).
+  ThumbnailSettings thumbnails;
   // Settings of the layer above (the service's detection policy), stored with the map's info so
   // they are written atomically with it and travel with checkpoints. Opaque to storage.
   std::string service_json;
@@ -161,9 +170,12 @@ class PlaceMap {
   Result<AddResult> Add(const Observation& observation);
   // Stores an already processed frame (ingest-with-matches searches first, then commits).
   Result<AddResult> Commit(const ProcessedFrame& frame, const PlaceMetadata& metadata);
+  // Stream frames (kStream) of a map that keeps thumbnails get theirs here (on the caller's
+  // thread, outside any lock of the map); Commit() stores it with the place.
+  // `keep_dropped_keypoints` fills `dropped_keypoints`.
   Result<ProcessedFrame> Process(const Observation& observation, FrameRole role = FrameRole::kQuery,
                                  bool keep_dropped_keypoints = false) const {
-    return database_->Process(observation, role, keep_dropped_keypoints);
+    return database_->Process(observation, role, ThumbnailsFor(role), keep_dropped_keypoints);
   }
   // See PlaceDatabase::AdvanceStream: the agent's frames in order.
   Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);
@@ -196,6 +208,10 @@ class PlaceMap {
   // false; one place at a time in memory (rankings keep only their top entries).
   Status ForEachPlaceDynamics(
       const std::function<bool(PlaceId, const PlaceDynamics&)>& visit) const;
+  // The place's thumbnail, read from disk (nothing is kept in memory); nullopt when the place has
+  // none (thumbnails off when it was stored, or a frame without pixels). NOT_FOUND when the place
+  // does not exist; CORRUPTION (naming the place) when the stored value does not decode.
+  Result<std::optional<Thumbnail>> GetThumbnail(PlaceId id) const;
   MapStats Stats() const;
 
   // An online, consistent copy of the map into `directory` (which must not exist), made with
@@ -221,6 +237,12 @@ class PlaceMap {
       REQUIRES_SHARED(lifecycle_);
   Result<AddResult> StoreInvalid(const ProcessedFrame& frame, const PlaceMetadata& metadata);
   Status Deleted() const;
+  // The settings Process() makes thumbnails with: the map's, for stream frames, when enabled.
+  const ThumbnailSettings* ThumbnailsFor(FrameRole role) const {
+    return role == FrameRole::kStream && info_.options.thumbnails.enabled
+               ? &info_.options.thumbnails
+               : nullptr;
+  }
   // An aggregate of the dynamics family (MapDynamics, InvalidDynamics); `what` for messages.
   Result<PlaceDynamics> ReadAggregate(const char* key, const std::string& what) const;
 

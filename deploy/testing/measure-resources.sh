@@ -49,6 +49,7 @@ port() { /usr/bin/python3 -c 'import socket; s = socket.socket(); s.bind(("127.0
 grpc="$(port)"
 metrics="$(port)"
 "$server" --listen "127.0.0.1:$grpc" --metrics-listen "127.0.0.1:$metrics" \
+  --console-listen off \
   --data-dir "$work/data" --vocabulary "default=$vocabulary" --threads 2 --log-level warn \
   "${server_flags[@]}" >"$work/server.log" 2>&1 &
 pid=$!

@@ -54,6 +54,17 @@ const char* Verb(Right right) {
 
 }  // namespace
 
+Credentials CredentialsOf(const grpc::ServerContext& context) {
+  Credentials credentials;
+  credentials.peer = context.peer();
+  const auto headers = context.client_metadata().equal_range("authorization");
+  for (auto header = headers.first; header != headers.second; ++header) {
+    credentials.authorization.emplace_back(header->second.data(), header->second.size());
+  }
+  credentials.certificate_names = CertificateNames(context);
+  return credentials;
+}
+
 const char* DenyReasonLabel(DenyReason reason) {
   switch (reason) {
     case DenyReason::kMissingCredentials:
@@ -131,17 +142,21 @@ std::variant<Caller, grpc::Status> CallAuthorizer::Resolve(
 std::variant<Caller, grpc::Status> CallAuthorizer::Authenticate(
     const char* method, const grpc::ServerContext& context) const {
   if (!enabled()) return Caller::Everything(kAnonymous);
-  const std::string peer = context.peer();
-  const auto headers = context.client_metadata().equal_range("authorization");
-  const size_t header_count = size_t(std::distance(headers.first, headers.second));
+  return Authenticate(method, CredentialsOf(context));
+}
+
+std::variant<Caller, grpc::Status> CallAuthorizer::Authenticate(
+    const char* method, const Credentials& credentials) const {
+  if (!enabled()) return Caller::Everything(kAnonymous);
+  const std::string& peer = credentials.peer;
+  const size_t header_count = credentials.authorization.size();
 
   if (store_ && header_count > 0) {
     if (header_count > 1) {
       return Deny(method, peer, "", "", DenyReason::kMalformedCredentials,
                   "more than one authorization header");
     }
-    std::optional<std::string> token =
-        BearerToken(std::string_view(headers.first->second.data(), headers.first->second.size()));
+    std::optional<std::string> token = BearerToken(credentials.authorization.front());
     if (!token) {
       return Deny(method, peer, "", "", DenyReason::kMalformedCredentials,
                   "malformed authorization header (expected 'Bearer <token>')");
@@ -149,7 +164,7 @@ std::variant<Caller, grpc::Status> CallAuthorizer::Authenticate(
     return Resolve(method, peer, "", "", std::move(*token), {}, true);
   }
   // Only without a bearer header: a token always wins over the certificate.
-  std::vector<std::string> names = CertificateNames(context);
+  std::vector<std::string> names = credentials.certificate_names;
   if (!names.empty()) {
     if (store_) return Resolve(method, peer, "", "", "", std::move(names), false);
     // Mutual TLS without a tokens file: the client CA vouches for every certificate holder.
@@ -165,13 +180,20 @@ std::variant<Caller, grpc::Status> CallAuthorizer::Authenticate(
 grpc::Status CallAuthorizer::Authorize(const char* method, const grpc::ServerContext& context,
                                        const Caller& caller, Right right,
                                        const std::string& map) const {
+  if (caller.Has(right, map)) return grpc::Status::OK;  // no peer() for the common case
+  return Authorize(method, context.peer(), caller, right, map);
+}
+
+grpc::Status CallAuthorizer::Authorize(const char* method, const std::string& peer,
+                                       const Caller& caller, Right right,
+                                       const std::string& map) const {
   if (caller.Has(right, map)) return grpc::Status::OK;
   const std::string message =
       right == Right::kAdmin
           ? "principal '" + caller.name + "' is not an admin" +
                 (map.empty() ? std::string() : " (map '" + map + "')")
           : "principal '" + caller.name + "' may not " + Verb(right) + " map '" + map + "'";
-  return Deny(method, context.peer(), caller.name, map, DenyReason::kPermissionDenied, message);
+  return Deny(method, peer, caller.name, map, DenyReason::kPermissionDenied, message);
 }
 
 grpc::Status CallAuthorizer::Refresh(const char* method, const grpc::ServerContext& context,

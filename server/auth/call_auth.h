@@ -68,6 +68,16 @@ struct Caller {
   bool admin() const { return everything || (principal && principal->admin); }
 };
 
+// What a call presents to prove who it is, whatever the transport (gRPC metadata and TLS, or the
+// console's HTTP headers and TLS).
+struct Credentials {
+  std::string peer;                        // "ipv4:a.b.c.d:port" / "ipv6:[...]:port", for the audit
+  std::vector<std::string> authorization;  // every `authorization` header's value
+  std::vector<std::string> certificate_names;  // the verified client certificate's names
+};
+// A gRPC call's credentials.
+Credentials CredentialsOf(const grpc::ServerContext& context);
+
 class CallAuthorizer {
  public:
   // Counts a denial: (reason, method) -> placedb_auth_denied_total.
@@ -83,10 +93,14 @@ class CallAuthorizer {
   // counted.
   std::variant<Caller, grpc::Status> Authenticate(const char* method,
                                                   const grpc::ServerContext& context) const;
+  std::variant<Caller, grpc::Status> Authenticate(const char* method,
+                                                  const Credentials& credentials) const;
   // OK when `caller` has `right` on `map` (Right::kAny: always); else PERMISSION_DENIED naming
   // the method, principal and map, logged and counted.
   grpc::Status Authorize(const char* method, const grpc::ServerContext& context,
                          const Caller& caller, Right right, const std::string& map) const;
+  grpc::Status Authorize(const char* method, const std::string& peer, const Caller& caller,
+                         Right right, const std::string& map) const;
   // For long calls (an Ingest stream): when the tokens file was reloaded since `caller` was
   // resolved, resolves it again from the credentials it came with (updating *caller). OK when it
   // is still a principal; UNAUTHENTICATED when its token or certificate name no longer is one.

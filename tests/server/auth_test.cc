@@ -905,7 +905,8 @@ TEST_F(AuthTest, SighupReloadsTheTokensFileOfTheServerBinary) {
     dup2(out, 2);
     execl(PLACEDB_SERVER_BINARY, PLACEDB_SERVER_BINARY, "--listen", listen.c_str(), "--data-dir",
           data.c_str(), "--tokens-file", tokens_path_.c_str(), "--metrics-listen", "off",
-          "--vocabulary", vocabulary.c_str(), "--threads", "1", static_cast<char*>(nullptr));
+          "--console-listen", "off", "--vocabulary", vocabulary.c_str(), "--threads", "1",
+          static_cast<char*>(nullptr));
     _exit(127);
   }
   auto channel = grpc::CreateChannel(listen, grpc::InsecureChannelCredentials());

@@ -272,6 +272,7 @@ ServerConfig ServerTest::Config() const {
   ServerConfig config;
   config.listen = "127.0.0.1:0";
   config.metrics_listen = "";  // on only where scraped
+  config.console_listen = "";  // on only where browsed
   config.data_dir = root_ + "/data";
   config.threads = 2;
   config.vocabularies = {{"default", testing::DefaultVocabularyPath()}};

@@ -177,9 +177,10 @@ TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
   const std::string address = "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
   const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
   const std::string data = root + "/data";
-  std::vector<std::string> args = {binary,     "--listen",         address, "--data-dir",
-                                   data,       "--metrics-listen", "off",   "--vocabulary",
-                                   vocabulary, "--log-level",      "warn"};
+  std::vector<std::string> args = {binary, "--listen",         address,    "--data-dir",
+                                   data,   "--metrics-listen", "off",      "--console-listen",
+                                   "off",  "--vocabulary",     vocabulary, "--log-level",
+                                   "warn"};
   std::vector<char*> argv;
   for (std::string& arg : args) argv.push_back(arg.data());
   argv.push_back(nullptr);
@@ -256,9 +257,10 @@ TEST(ServerBinaryTest, SecondServerOnTheSameDataDirectoryRefusesToStart) {
   auto start = [&](int stderr_fd) {
     const std::string address =
         "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
-    std::vector<std::string> args = {binary,     "--listen",         address, "--data-dir",
-                                     data,       "--metrics-listen", "off",   "--vocabulary",
-                                     vocabulary, "--log-level",      "warn"};
+    std::vector<std::string> args = {binary, "--listen",         address,    "--data-dir",
+                                     data,   "--metrics-listen", "off",      "--console-listen",
+                                     "off",  "--vocabulary",     vocabulary, "--log-level",
+                                     "warn"};
     std::vector<char*> argv;
     for (std::string& arg : args) argv.push_back(arg.data());
     argv.push_back(nullptr);

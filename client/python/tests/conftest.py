@@ -58,6 +58,8 @@ class ServerProcess:
             self.data_dir,
             "--metrics-listen",
             "off",
+            "--console-listen",
+            "off",
             "--vocabulary",
             "default=" + _env("PLACEDB_DEFAULT_VOCABULARY"),
             "--vocabulary",

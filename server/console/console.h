@@ -1,0 +1,74 @@
+// The web console of placedb-server (docs/console.md): its pages and a JSON API on their own
+// HTTP listener (server/http_endpoint.h), over the same calls as gRPC.
+//
+//   POST /api/v1/<Method>   the request as protobuf JSON (the proto's field names) -> the answer
+//                           as protobuf JSON; only the read and query methods of kConsoleMethods.
+//                           Each call goes through ParsingService::CallUnary: the same
+//                           authentication (`Authorization: Bearer <token>`, or the HTTPS client
+//                           certificate's names), map-name check, authorization, handler and
+//                           restrictions as the gRPC call. Errors: the gRPC code as an HTTP
+//                           status (HttpStatusOf) with {"code":"NOT_FOUND","message":"..."}.
+//   GET /api/v1/maps/<map>/places/<id>/thumbnail.jpg   the place's thumbnail (GetPlace
+//                           include_thumbnail); 404 when the map keeps none for it.
+//   GET /, /<file>          the pages (server/console/web, embedded into the binary at build).
+//
+// Requests with a body larger than max_request_bytes are refused with 413 before it is read.
+// POSTs must say `Content-Type: application/json` (a browser then asks before a cross-site page
+// may send one, and the console never says yes). A console that does not authenticate (no tokens
+// file, no client certificates) answers only requests whose Host is an IP address or localhost:
+// another site's name resolved to 127.0.0.1 (DNS rebinding) cannot read the maps.
+#pragma once
+
+#include <grpcpp/grpcpp.h>
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/base/status.h"
+#include "server/http_endpoint.h"
+
+namespace placedb::server {
+
+class ParsingService;
+
+// The methods the JSON API serves: reads and queries, no administration or writes.
+extern const std::vector<std::string> kConsoleMethods;
+
+// The HTTP status a gRPC code is answered with (INVALID_ARGUMENT 400, UNAUTHENTICATED 401,
+// PERMISSION_DENIED 403, NOT_FOUND 404, ALREADY_EXISTS / FAILED_PRECONDITION / ABORTED 409,
+// RESOURCE_EXHAUSTED 429, UNIMPLEMENTED 501, UNAVAILABLE 503, DEADLINE_EXCEEDED 504,
+// CANCELLED 499, OUT_OF_RANGE 400, anything else 500).
+int HttpStatusOf(grpc::StatusCode code);
+
+// One embedded page file (generated from server/console/web by CMake).
+struct ConsoleFile {
+  const char* path;  // "/index.html"
+  const unsigned char* data;
+  size_t size;
+};
+// The file served at `path` ("/" is "/index.html"); null when there is none.
+const ConsoleFile* FindConsoleFile(const std::string& path);
+
+class Console {
+ public:
+  // `calls` must outlive this. `authenticated`: whether callers must prove who they are (tokens
+  // or client certificates); without it the Host rule above applies.
+  Console(ParsingService* calls, bool authenticated);
+  ~Console();  // Stop()
+
+  // Serves on settings.listen; errors as HttpEndpoint::Serve.
+  Status Serve(const HttpEndpointSettings& settings);
+  int port() const { return http_.port(); }
+  // "http://host:port/" (https with TLS) as bound; "" when not serving.
+  std::string url() const { return url_; }
+  void Stop();
+
+ private:
+  ParsingService* const calls_;
+  const bool authenticated_;
+  HttpEndpoint http_;
+  std::string url_;
+};
+
+}  // namespace placedb::server

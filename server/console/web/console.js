@@ -1,0 +1,573 @@
+// The placedb console: four views over the server's JSON API (POST /api/v1/<Method>, protobuf
+// JSON with the proto's field names; docs/console.md). No framework, no external requests.
+"use strict";
+
+const TOKEN_KEY = "placedb.token";
+const COLORS = { kept: "#43d17a", dropped: "#ff5252", box: "#ffb300", line: "#4fc3f7" };
+let refreshTimer = null;  // the live view's
+
+// ---- API ----------------------------------------------------------------------------------------
+
+class ApiError extends Error {
+  constructor(status, code, message) {
+    super(message);
+    this.status = status;
+    this.code = code;
+  }
+}
+
+function authHeaders() {
+  const token = sessionStorage.getItem(TOKEN_KEY);
+  return token ? { Authorization: "Bearer " + token } : {};
+}
+
+async function api(method, request) {
+  const response = await fetch("/api/v1/" + method, {
+    method: "POST",
+    headers: Object.assign({ "Content-Type": "application/json" }, authHeaders()),
+    body: JSON.stringify(request || {}),
+  });
+  let body = null;
+  try {
+    body = await response.json();
+  } catch (e) {
+    body = { code: "HTTP_" + response.status, message: response.statusText };
+  }
+  if (!response.ok) throw new ApiError(response.status, body.code, body.message);
+  return body;
+}
+
+function showError(error) {
+  const status = document.getElementById("status");
+  status.className = "status";
+  if (error.status === 401) {
+    status.textContent = "The server needs a token (" + error.message + "). Paste one in the " +
+        "Token field above: it is kept for this tab only.";
+  } else if (error.status === 403) {
+    status.textContent = "Not allowed: " + error.message;
+  } else {
+    status.textContent = (error.code || "error") + ": " + error.message;
+  }
+}
+
+function showInfo(text) {
+  const status = document.getElementById("status");
+  status.className = text ? "status info" : "status hidden";
+  status.textContent = text || "";
+}
+
+function clearStatus() {
+  showInfo("");
+}
+
+// ---- DOM helpers --------------------------------------------------------------------------------
+
+function el(tag, attributes, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attributes || {})) {
+    if (key === "class") node.className = value;
+    else if (key.startsWith("on")) node.addEventListener(key.slice(2), value);
+    else if (key === "dataset") Object.assign(node.dataset, value);
+    else node.setAttribute(key, value);
+  }
+  for (const child of children.flat()) {
+    if (child === null || child === undefined) continue;
+    node.append(child instanceof Node ? child : document.createTextNode(String(child)));
+  }
+  return node;
+}
+
+function bytes(n) {
+  n = Number(n || 0);
+  const units = ["B", "KiB", "MiB", "GiB", "TiB"];
+  let i = 0;
+  while (n >= 1024 && i < units.length - 1) {
+    n /= 1024;
+    i++;
+  }
+  return (i ? n.toFixed(1) : n) + " " + units[i];
+}
+
+function time(ns) {
+  const ms = Number(ns || 0) / 1e6;
+  return ms > 0 ? new Date(ms).toISOString().replace("T", " ").slice(0, 19) : "-";
+}
+
+function enumName(value, prefix) {
+  return String(value || "-").replace(prefix, "").toLowerCase();
+}
+
+function loadImage(src) {
+  return new Promise((resolve, reject) => {
+    const image = new Image();
+    image.onload = () => resolve(image);
+    image.onerror = () => reject(new Error("cannot load the image"));
+    image.src = src;
+  });
+}
+
+function jpegUrl(base64) {
+  return "data:image/jpeg;base64," + base64;
+}
+
+// ---- Drawing ------------------------------------------------------------------------------------
+
+function drawKeypoints(context, keypoints, scale, color, ox = 0, oy = 0) {
+  context.fillStyle = color;
+  for (const k of keypoints || []) {
+    context.fillRect(ox + (k.x || 0) * scale - 1.5, oy + (k.y || 0) * scale - 1.5, 3, 3);
+  }
+}
+
+function drawBoxes(context, boxes, scale, ox = 0, oy = 0) {
+  context.strokeStyle = COLORS.box;
+  context.lineWidth = 2;
+  context.font = "11px sans-serif";
+  context.fillStyle = COLORS.box;
+  for (const box of boxes || []) {
+    const r = box.rect || {};
+    context.strokeRect(ox + (r.x || 0) * scale, oy + (r.y || 0) * scale, (r.width || 0) * scale,
+                       (r.height || 0) * scale);
+    context.fillText(box.class_name || "", ox + (r.x || 0) * scale + 2, oy + (r.y || 0) * scale + 12);
+  }
+}
+
+// The place's frame as the console shows it: its thumbnail (when the map keeps them) with the
+// dynamic-object boxes, the kept (green) and dropped (red) keypoints; else a placeholder.
+async function placeCanvas(map, place) {
+  const canvas = el("canvas", { width: 320, height: 240, class: "place-canvas" });
+  const context = canvas.getContext("2d");
+  const thumbnail = place.thumbnail;
+  if (thumbnail && thumbnail.jpeg) {
+    const image = await loadImage(jpegUrl(thumbnail.jpeg));
+    canvas.width = image.width;
+    canvas.height = image.height;
+    context.drawImage(image, 0, 0);
+    const scale = image.width / Math.max(1, thumbnail.source_width || image.width);
+    drawBoxes(context, place.boxes_used, scale);
+    const features = place.features || place.sift_features || {};
+    drawKeypoints(context, features.keypoints, scale, COLORS.kept);
+    drawKeypoints(context, thumbnail.dropped_keypoints, scale, COLORS.dropped);
+    canvas.dataset.thumbnail = "yes";
+  } else {
+    context.fillStyle = "#2b3036";
+    context.fillRect(0, 0, canvas.width, canvas.height);
+    context.fillStyle = "#aab2bd";
+    context.font = "14px sans-serif";
+    context.textAlign = "center";
+    context.fillText("no thumbnail", 160, 112);
+    context.font = "11px sans-serif";
+    context.fillText("(this map keeps none: MapConfig.thumbnails)", 160, 132);
+    canvas.dataset.thumbnail = "no";
+  }
+  return canvas;
+}
+
+function legend() {
+  const item = (color, text) => {
+    const swatch = el("span", { class: "swatch" });
+    swatch.style.background = color;
+    return el("span", {}, swatch, text);
+  };
+  return el("div", { class: "legend" }, item(COLORS.kept, "kept (static) keypoints"),
+            item(COLORS.dropped, "dropped (dynamic) keypoints"),
+            item(COLORS.box, "dynamic-object boxes"));
+}
+
+async function placeCard(map, place) {
+  const id = place.place_id;
+  let full = place;
+  try {
+    full = await api("GetPlace", { map, place_id: id, include_thumbnail: true, include_features: true });
+  } catch (e) {
+    // The listing's metadata is still worth showing.
+  }
+  const counts = full.counts || {};
+  const metadata = full.metadata || {};
+  return el("div", { class: "card place-card", dataset: { placeId: String(id) } },
+            await placeCanvas(map, full),
+            el("div", { class: "meta" },
+               el("strong", {}, "place " + id), " · ", metadata.agent_id || "-", " #",
+               metadata.sequence || 0, el("br"), time(metadata.timestamp_ns), el("br"),
+               "kept ", counts.kept || 0, " · dropped ", counts.dynamic || 0,
+               " · coverage ", ((counts.dynamic_coverage || 0) * 100).toFixed(1), "%"));
+}
+
+// ---- Views --------------------------------------------------------------------------------------
+
+async function mapsView(view) {
+  view.append(el("h2", {}, "Maps"));
+  const list = await api("ListMaps", {});
+  const maps = list.maps || [];
+  if (!maps.length) {
+    view.append(el("p", { class: "muted" }, "No maps yet (placedb maps create NAME)."));
+    return;
+  }
+  const table = el("table", { id: "maps-table" },
+                   el("tr", {}, ["map", "state", "features", "places", "descriptors kept",
+                                 "dropped", "on disk", "detector", "thumbnails", "settings"]
+                                    .map((h) => el("th", {}, h))));
+  view.append(table);
+  for (const summary of maps) {
+    let description = null;
+    try {
+      description = await api("GetMap", { name: summary.name });
+    } catch (e) {
+      // An unavailable map still gets its row.
+    }
+    const stats = (description && description.stats) || {};
+    const config = (description && description.config) || {};
+    const detection = config.detection || {};
+    const link = el("a", { href: "#/places/" + encodeURIComponent(summary.name) }, summary.name);
+    table.append(el("tr", { class: "map-row", dataset: { map: summary.name } },
+                    el("td", {}, link),
+                    el("td", {}, enumName(summary.state, "MAP_STATE_"),
+                       summary.unavailable_reason ? el("div", { class: "muted" }, summary.unavailable_reason) : null),
+                    el("td", {}, enumName(summary.feature_type, "FEATURE_TYPE_")),
+                    el("td", { class: "num" }, Number(summary.places || 0)),
+                    el("td", { class: "num" }, Number(stats.descriptors_kept || 0)),
+                    el("td", { class: "num" }, Number(stats.descriptors_dropped || 0)),
+                    el("td", { class: "num" }, bytes(stats.bytes_on_disk)),
+                    el("td", {}, detection.enabled === false ? "off" : "on",
+                       " (", enumName(detection.box_source, "BOX_SOURCE_"), ")"),
+                    el("td", {}, config.thumbnails && config.thumbnails.enabled ? "kept" : "off"),
+                    el("td", {}, el("details", {}, el("summary", {}, "config"),
+                                    el("pre", {}, JSON.stringify(config, null, 1))))));
+  }
+}
+
+async function placesView(view, map) {
+  view.append(el("h2", {}, "Places of ", el("span", { id: "places-map" }, map)));
+  const description = await api("GetMap", { name: map });
+  const agents = (description.agents || []).map((a) => a.agent_id);
+  // Any agent id may be typed; the ones GetMap reports are offered.
+  const agent = el("input", { id: "filter-agent", list: "agent-ids", placeholder: "every agent" });
+  const agentIds = el("datalist", { id: "agent-ids" }, agents.map((a) => el("option", { value: a })));
+  const from = el("input", { type: "datetime-local", id: "filter-from" });
+  const to = el("input", { type: "datetime-local", id: "filter-to" });
+  const limit = el("input", { type: "number", id: "filter-limit", value: "24", min: "1", max: "1000" });
+  const cards = el("div", { class: "cards", id: "places" });
+  const more = el("button", { class: "plain", id: "places-next" }, "Older");
+  const info = el("p", { class: "muted", id: "places-info" });
+  let before = 0;
+  const ns = (input) => (input.value ? String(new Date(input.value).getTime() * 1e6) : "0");
+
+  async function page(reset) {
+    cards.dataset.loaded = "";
+    if (reset) {
+      before = 0;
+      cards.replaceChildren();
+    }
+    more.disabled = true;
+    let places = [];
+    try {
+      const response = await api("ListPlaces", {
+        map, agent_id: agent.value, from_timestamp_ns: ns(from), to_timestamp_ns: ns(to),
+        limit: Number(limit.value) || 24, before_place_id: before,
+      });
+      places = response.places || [];
+      before = response.next_before_place_id || 0;
+    } catch (e) {
+      if (e.status !== 501) throw e;
+      // A server without ListPlaces: the newest ids one by one (no filters).
+      info.textContent = "This server does not list places yet (ListPlaces: " +
+          (e.message || e.code) + "): showing the newest ids, without filters.";
+      const newest = before || Number((description.stats || {}).places || 0);
+      const count = Math.min(Number(limit.value) || 24, newest);
+      for (let id = newest; id > newest - count; id--) places.push({ place_id: id });
+      before = newest - count;
+    }
+    for (const place of places) cards.append(await placeCard(map, place));
+    if (!cards.children.length) cards.append(el("p", { class: "muted" }, "No places match."));
+    more.disabled = before === 0;
+    cards.dataset.loaded = "yes";  // for the browser test
+  }
+  const form = el("form", { class: "bar", onsubmit: (event) => {
+    event.preventDefault();
+    page(true).catch(showError);
+  } },
+                  el("label", {}, "agent", agent, agentIds), el("label", {}, "from", from),
+                  el("label", {}, "to", to), el("label", {}, "per page", limit),
+                  el("button", { type: "submit" }, "Show"));
+  more.addEventListener("click", () => page(false).catch(showError));
+  const thumbnails = description.config && description.config.thumbnails &&
+      description.config.thumbnails.enabled;
+  view.append(form, legend(), info);
+  if (!thumbnails) {
+    view.append(el("p", { class: "muted" }, "This map keeps no thumbnails: places show a placeholder."));
+  }
+  view.append(cards, el("p", {}, more));
+  await page(true);
+}
+
+function fileToBase64(file) {
+  return new Promise((resolve, reject) => {
+    const reader = new FileReader();
+    reader.onload = () => resolve(String(reader.result).split(",", 2)[1]);
+    reader.onerror = () => reject(new Error("cannot read " + file.name));
+    reader.readAsDataURL(file);
+  });
+}
+
+// The query image and one match side by side, inlier correspondences joined by lines.
+async function matchCanvas(queryImage, queryWidth, response, map, match) {
+  const place = await api("GetPlace", { map, place_id: match.place_id, include_thumbnail: true,
+                                        include_features: true });
+  const height = 240;
+  const qScale = queryImage ? height / queryImage.height : height / Math.max(1, response.image_height);
+  const qWidth = Math.round((queryImage ? queryImage.width : queryWidth) * qScale) || 320;
+  const thumbnail = place.thumbnail;
+  let placeImage = null;
+  if (thumbnail && thumbnail.jpeg) placeImage = await loadImage(jpegUrl(thumbnail.jpeg));
+  const features = place.features || place.sift_features || {};
+  const sourceWidth = (thumbnail && thumbnail.source_width) || features.image_width || 640;
+  const sourceHeight = (thumbnail && thumbnail.source_height) || features.image_height || 480;
+  const pScale = height / sourceHeight;
+  const pWidth = Math.round(sourceWidth * pScale);
+  const canvas = el("canvas", { width: qWidth + 16 + pWidth, height });
+  const context = canvas.getContext("2d");
+  context.fillStyle = "#2b3036";
+  context.fillRect(0, 0, canvas.width, height);
+  if (queryImage) context.drawImage(queryImage, 0, 0, qWidth, height);
+  if (placeImage) context.drawImage(placeImage, qWidth + 16, 0, pWidth, height);
+  const queryKeypoints = response.query_keypoints || [];
+  const placeKeypoints = features.keypoints || [];
+  if (!placeImage) {
+    // No thumbnail kept: the place's stored keypoints alone show its structure.
+    drawKeypoints(context, placeKeypoints, pScale, COLORS.kept, qWidth + 16, 0);
+    context.fillStyle = "#aab2bd";
+    context.font = "11px sans-serif";
+    context.fillText("place " + match.place_id + ": no thumbnail kept", qWidth + 24, height - 8);
+  }
+  drawKeypoints(context, queryKeypoints, qScale, COLORS.kept);
+  drawKeypoints(context, response.query_dropped_keypoints, qScale, COLORS.dropped);
+  drawBoxes(context, response.boxes_used, qScale);
+  drawBoxes(context, place.boxes_used, pScale, qWidth + 16, 0);
+  context.strokeStyle = COLORS.line;
+  context.lineWidth = 1;
+  let lines = 0;
+  for (const c of match.correspondences || []) {
+    const q = queryKeypoints[c.query_keypoint || 0];
+    const p = placeKeypoints[c.place_keypoint || 0];
+    if (!q || !p) continue;
+    context.beginPath();
+    context.moveTo((q.x || 0) * qScale, (q.y || 0) * qScale);
+    context.lineTo(qWidth + 16 + (p.x || 0) * pScale, (p.y || 0) * pScale);
+    context.stroke();
+    lines++;
+  }
+  canvas.dataset.lines = String(lines);
+  return canvas;
+}
+
+function timingsTable(timings) {
+  const stages = ["queue", "decode", "detect", "refine", "extract", "depth", "filter", "transform",
+                  "search", "verify", "total"];
+  return el("table", { id: "query-timings" },
+            el("tr", {}, stages.map((s) => el("th", {}, s))),
+            el("tr", {}, stages.map((s) => el("td", { class: "num" },
+                                              Number((timings || {})[s + "_ms"] || 0).toFixed(1)))));
+}
+
+function splitChart(counts) {
+  const kept = Number(counts.kept || 0);
+  const dropped = Number(counts.dynamic || 0) + Number(counts.depth_removed || 0);
+  const total = Math.max(1, kept + dropped);
+  const keptBar = el("div", { class: "kept" });
+  keptBar.style.width = (100 * kept / total) + "%";
+  const droppedBar = el("div", { class: "dropped" });
+  droppedBar.style.width = (100 * dropped / total) + "%";
+  return el("div", { id: "query-split" },
+            el("div", { class: "bar-chart" }, keptBar, droppedBar),
+            el("div", { class: "muted" }, "SC (kept) ", kept, " · DC (dropped) ", dropped, " of ",
+               Number(counts.total || 0), " · dynamic coverage ",
+               ((counts.dynamic_coverage || 0) * 100).toFixed(1), "%"));
+}
+
+async function queryView(view) {
+  view.append(el("h2", {}, "Query"));
+  const list = await api("ListMaps", {});
+  const maps = (list.maps || []).filter((m) => m.available);
+  const map = el("select", { id: "query-map" }, maps.map((m) => el("option", { value: m.name }, m.name)));
+  const file = el("input", { type: "file", id: "query-file", accept: "image/jpeg,image/png" });
+  const placeId = el("input", { type: "number", id: "query-place", min: "1", placeholder: "or a stored place id" });
+  const topK = el("input", { type: "number", id: "query-top-k", value: "5", min: "1", max: "100" });
+  const verifiedOnly = el("input", { type: "checkbox", id: "query-verified-only" });
+  const excludeAgent = el("input", { type: "checkbox", id: "query-exclude-agent" });
+  const drop = el("div", { class: "drop", id: "query-drop" }, "Drop an image here, or ", file);
+  const results = el("div", { id: "query-results" });
+  let dropped = null;
+  drop.addEventListener("dragover", (event) => {
+    event.preventDefault();
+    drop.classList.add("over");
+  });
+  drop.addEventListener("dragleave", () => drop.classList.remove("over"));
+  drop.addEventListener("drop", (event) => {
+    event.preventDefault();
+    drop.classList.remove("over");
+    dropped = event.dataTransfer.files[0] || null;
+    if (dropped) run().catch(showError);
+  });
+  file.addEventListener("change", () => {
+    dropped = null;
+    if (file.files.length) run().catch(showError);
+  });
+
+  async function run() {
+    clearStatus();
+    results.replaceChildren(el("p", { class: "muted" }, "Querying…"));
+    const chosen = dropped || file.files[0] || null;
+    const observation = { agent_id: "console" };
+    let queryImage = null;
+    let queryWidth = 0;
+    if (chosen) {
+      observation.encoded_image = { data: await fileToBase64(chosen) };
+      queryImage = await loadImage(URL.createObjectURL(chosen));
+    } else if (placeId.value) {
+      // A stored place queries with its own stored features.
+      const place = await api("GetPlace", { map: map.value, place_id: Number(placeId.value),
+                                            include_features: true, include_thumbnail: true });
+      if (place.features) observation.features = place.features;
+      else if (place.sift_features) observation.sift_features = place.sift_features;
+      if (place.thumbnail && place.thumbnail.jpeg) queryImage = await loadImage(jpegUrl(place.thumbnail.jpeg));
+      queryWidth = ((place.features || place.sift_features || {}).image_width) || 640;
+    } else {
+      results.replaceChildren(el("p", { class: "muted" }, "Choose an image or a place first."));
+      return;
+    }
+    const response = await api("Query", {
+      map: map.value, observation,
+      options: { top_k: Number(topK.value) || 5, verified_only: verifiedOnly.checked,
+                 exclude_same_agent: excludeAgent.checked, include_correspondences: true },
+    });
+    const matches = response.matches || [];
+    results.replaceChildren(
+        el("div", { class: "split" },
+           el("div", {}, el("h3", {}, "DC/SC split"), splitChart(response.counts || {}),
+              response.valid ? null : el("p", { class: "status" }, "invalid query: ", response.rejection)),
+           el("div", {}, el("h3", {}, "Stage timings (ms)"), timingsTable(response.timings))),
+        el("h3", {}, matches.length + " match" + (matches.length === 1 ? "" : "es")));
+    for (const [rank, match] of matches.entries()) {
+      const card = el("div", { class: "match" + (rank === 0 ? " top" : ""),
+                               dataset: { placeId: String(match.place_id), rank: String(rank + 1) } },
+                      el("div", {}, el("strong", {}, "#" + (rank + 1) + " place " + match.place_id),
+                         " · score ", Number(match.score || 0).toFixed(4), " · inliers ",
+                         match.inliers || 0, match.verified ? " · verified" : " · not verified",
+                         " · ", (match.metadata || {}).agent_id || "-", " #",
+                         (match.metadata || {}).sequence || 0));
+      results.append(card);
+      try {
+        card.append(await matchCanvas(queryImage, queryWidth, response, map.value, match));
+      } catch (e) {
+        card.append(el("p", { class: "muted" }, "cannot draw: " + e.message));
+      }
+    }
+    results.dataset.done = "yes";
+  }
+
+  const form = el("form", { class: "bar", onsubmit: (event) => {
+    event.preventDefault();
+    run().catch(showError);
+  } },
+                  el("label", {}, "map", map), drop, el("label", {}, "stored place", placeId),
+                  el("label", {}, "top-k", topK),
+                  el("label", {}, "verified only", verifiedOnly),
+                  el("label", {}, "exclude own agent", excludeAgent),
+                  el("button", { type: "submit", id: "query-run" }, "Query"));
+  view.append(form, legend(), results);
+}
+
+async function liveView(view) {
+  view.append(el("h2", {}, "Live"));
+  const list = await api("ListMaps", {});
+  const maps = (list.maps || []).filter((m) => m.available);
+  const map = el("select", { id: "live-map" }, maps.map((m) => el("option", { value: m.name }, m.name)));
+  const agents = el("div", { id: "live-agents" });
+  const latest = el("div", { class: "cards", id: "live-places" });
+  const stamp = el("span", { class: "muted", id: "live-updated" });
+  view.append(el("div", { class: "bar" }, el("label", {}, "map", map), stamp),
+              el("h3", {}, "Agents (ingest rate over the last 10 s)"), agents,
+              el("h3", {}, "Latest places"), latest);
+  let shown = "";  // the place ids on screen: redraw only when they change
+  async function refresh() {
+    if (!map.value) return;
+    const description = await api("GetMap", { name: map.value });
+    const rows = (description.agents || []).map((a) => el("tr", { dataset: { agent: a.agent_id } },
+        el("td", {}, a.agent_id), el("td", { class: "num" }, Number(a.frames_per_second || 0).toFixed(2)),
+        el("td", { class: "num" }, Number(a.frames || 0)), el("td", { class: "num" }, Number(a.places || 0)),
+        el("td", { class: "num" }, a.last_place_id || "-"),
+        el("td", {}, a.last_frame_unix_ms ? new Date(Number(a.last_frame_unix_ms)).toISOString().slice(11, 19) : "-")));
+    agents.replaceChildren(rows.length
+        ? el("table", {}, el("tr", {}, ["agent", "frames/s", "frames", "places", "last place", "last frame (UTC)"]
+                                          .map((h) => el("th", {}, h))), rows)
+        : el("p", { class: "muted" }, "No agent has ingested into this map since the server started."));
+    let places = [];
+    try {
+      places = (await api("ListPlaces", { map: map.value, limit: 8 })).places || [];
+    } catch (e) {
+      if (e.status !== 501) throw e;
+      const newest = Number((description.stats || {}).places || 0);
+      for (let id = newest; id > Math.max(0, newest - 8); id--) places.push({ place_id: id });
+    }
+    const ids = places.map((p) => p.place_id).join(",");
+    if (ids !== shown) {
+      shown = ids;
+      const cards = [];
+      for (const place of places) cards.push(await placeCard(map.value, place));
+      latest.replaceChildren(...cards);
+    }
+    stamp.textContent = "updated " + new Date().toISOString().slice(11, 19) + " UTC";
+  }
+  map.addEventListener("change", () => {
+    shown = "";
+    refresh().catch(showError);
+  });
+  await refresh();
+  refreshTimer = setInterval(() => refresh().then(clearStatus, showError), 2000);
+}
+
+// ---- Routing ------------------------------------------------------------------------------------
+
+async function route() {
+  if (refreshTimer) clearInterval(refreshTimer);
+  refreshTimer = null;
+  clearStatus();
+  const hash = location.hash || "#/maps";
+  const view = document.getElementById("view");
+  view.replaceChildren();
+  view.dataset.ready = "";
+  for (const link of document.querySelectorAll("nav a")) {
+    link.classList.toggle("active", hash.startsWith(link.getAttribute("href")));
+  }
+  try {
+    if (hash.startsWith("#/places/")) {
+      await placesView(view, decodeURIComponent(hash.slice("#/places/".length)));
+    } else if (hash.startsWith("#/query")) {
+      await queryView(view);
+    } else if (hash.startsWith("#/live")) {
+      await liveView(view);
+    } else {
+      await mapsView(view);
+    }
+  } catch (error) {
+    showError(error);
+  }
+  view.dataset.ready = "yes";  // for the browser test: the view finished loading
+}
+
+function start() {
+  const token = document.getElementById("token");
+  token.value = sessionStorage.getItem(TOKEN_KEY) || "";
+  token.addEventListener("change", () => {
+    if (token.value) sessionStorage.setItem(TOKEN_KEY, token.value.trim());
+    else sessionStorage.removeItem(TOKEN_KEY);
+    route();
+  });
+  api("GetServerInfo", {}).then(
+      (info) => (document.getElementById("server-version").textContent = "server " + info.version),
+      () => {});
+  window.addEventListener("hashchange", route);
+  route();
+}
+
+start();

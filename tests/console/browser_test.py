@@ -1,0 +1,331 @@
+#!/usr/bin/env python3
+"""The web console in a real browser (docs/console.md, "Tests").
+
+Starts placedb-server (console on a free loopback port, found with `placedb console`), ingests
+RTAB-Map frames with the placedb CLI from two agents, then drives Debian's headless chromium
+over the DevTools protocol (python3-websocket) through every page:
+
+  maps    the map's row shows its places;
+  places  place cards with their thumbnails drawn (the map keeps them);
+  query   a frame uploaded with DOM.setFileInputFiles: the top match is that frame's place,
+          verified, with its inlier correspondences drawn;
+  live    agents and latest places, refreshed without reloading.
+
+Screenshots go to PLACEDB_CONSOLE_SCREENSHOTS (the build dir's console-screenshots/). A page
+error (a JavaScript exception) fails the test. Without chromium the test fails with a clear
+message; PLACEDB_SKIP_BROWSER_TEST=1 turns that into a skip (exit 77) for local runs only.
+
+Environment: PLACEDB_SERVER_BINARY, PLACEDB_CLI_BINARY, PLACEDB_DEFAULT_VOCABULARY,
+PLACEDB_SHARED_DIR, PLACEDB_CONSOLE_SCREENSHOTS; PLACEDB_CHROMIUM (default: chromium on PATH).
+"""
+
+import base64
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+
+SKIP = 77
+FRAMES = 40      # RTAB-Map loop frames 1..40 make the map
+QUERY_FRAME = 23  # a stored frame: its own place must be the top match
+
+
+def fail(message):
+    print("FAIL: " + message, file=sys.stderr)
+    sys.exit(1)
+
+
+def env(name):
+    value = os.environ.get(name)
+    if not value:
+        fail(name + " is not set (ctest sets it: tests/CMakeLists.txt, console_browser_test)")
+    return value
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(what, predicate, timeout=60.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.1)
+    fail("timed out waiting for " + what)
+
+
+class DevTools:
+    """One page target of chromium's DevTools protocol over its websocket."""
+
+    def __init__(self, url):
+        import websocket  # python3-websocket
+
+        self.ws = websocket.create_connection(url, timeout=120, suppress_origin=True)
+        self.next_id = 0
+        self.errors = []
+
+    def call(self, method, **params):
+        self.next_id += 1
+        self.ws.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        while True:
+            message = json.loads(self.ws.recv())
+            if message.get("method") == "Runtime.exceptionThrown":
+                details = message["params"]["exceptionDetails"]
+                self.errors.append(details.get("exception", {}).get("description")
+                                   or details.get("text"))
+            if message.get("id") == self.next_id:
+                if "error" in message:
+                    fail(method + ": " + json.dumps(message["error"]))
+                return message["result"]
+
+    def evaluate(self, expression):
+        result = self.call("Runtime.evaluate", expression=expression, returnByValue=True,
+                           awaitPromise=True)
+        if "exceptionDetails" in result:
+            fail("evaluating " + expression + ": " + json.dumps(result["exceptionDetails"]))
+        return result["result"].get("value")
+
+    def show(self, hash_route):
+        """Switches the console to a view and waits until it has loaded."""
+        self.evaluate("document.getElementById('view').dataset.ready = 'stale';"
+                      "location.hash = %s;" % json.dumps(hash_route))
+        wait_for(hash_route + " to load", lambda: self.evaluate(
+            "document.getElementById('view').dataset.ready === 'yes'"))
+        status = self.evaluate(
+            "(() => { const s = document.getElementById('status');"
+            " return s.classList.contains('hidden') || s.classList.contains('info') ? '' :"
+            " s.textContent; })()")
+        if status:
+            fail(hash_route + " shows an error: " + status)
+        if self.errors:
+            fail(hash_route + ": page error: " + "; ".join(self.errors))
+
+    def screenshot(self, path):
+        # 1280x900 at 0.625: 800x562 PNGs, small enough to keep in docs/console/.
+        shot = self.call("Page.captureScreenshot", format="png",
+                         clip={"x": 0, "y": 0, "width": 1280, "height": 900, "scale": 0.625})
+        with open(path, "wb") as out:
+            out.write(base64.b64decode(shot["data"]))
+        print("screenshot " + path)
+
+
+def console_api(url, method, request):
+    call = urllib.request.Request(url + "api/v1/" + method, data=json.dumps(request).encode(),
+                                  headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(call, timeout=60) as response:
+        return json.loads(response.read())
+
+
+def main():
+    chromium = os.environ.get("PLACEDB_CHROMIUM") or shutil.which("chromium")
+    if not chromium:
+        if os.environ.get("PLACEDB_SKIP_BROWSER_TEST") == "1":
+            print("SKIPPED: chromium is not installed (PLACEDB_SKIP_BROWSER_TEST=1)")
+            return SKIP
+        fail("chromium is not installed: the console's browser test needs Debian's chromium "
+             "(tools/setup.sh --deps installs it; PLACEDB_SKIP_BROWSER_TEST=1 skips locally)")
+    try:
+        import websocket  # noqa: F401
+    except ImportError:
+        fail("python3-websocket is not installed (tools/setup.sh --deps installs it)")
+
+    server_binary = env("PLACEDB_SERVER_BINARY")
+    cli = env("PLACEDB_CLI_BINARY")
+    frames_dir = os.path.join(env("PLACEDB_SHARED_DIR"), "data", "rtabmap-loop")
+    if not os.path.isfile(os.path.join(frames_dir, "%d.jpg" % FRAMES)):
+        fail("RTAB-Map frames missing in " + frames_dir)
+    screenshots = env("PLACEDB_CONSOLE_SCREENSHOTS")
+    os.makedirs(screenshots, exist_ok=True)
+
+    work = tempfile.mkdtemp(prefix="placedb-console-browser-")
+    frames = os.path.join(work, "frames")
+    os.makedirs(frames)
+    for i in range(1, FRAMES + 1):
+        os.symlink(os.path.join(frames_dir, "%d.jpg" % i), os.path.join(frames, "%d.jpg" % i))
+    address = "127.0.0.1:%d" % free_port()
+    # With the YOLOX-Nano model (tools/install_models.sh), a second map of CamVid street frames
+    # with server-side detection shows dynamic-object boxes and dropped keypoints.
+    model = os.path.join(os.environ.get("PLACEDB_MODELS_DIR", ""), "yolox_nano.onnx")
+    street = os.path.join(env("PLACEDB_SHARED_DIR"), "data", "camvid", "images")
+    detector = (["--detector-model", model] if os.path.isfile(model) and os.path.isdir(street)
+                else [])
+    processes = []
+    try:
+        server = subprocess.Popen(
+            [server_binary, "--listen", address, "--data-dir", os.path.join(work, "data"),
+             "--metrics-listen", "off", "--console-listen", "127.0.0.1:0",
+             "--vocabulary", "default=" + env("PLACEDB_DEFAULT_VOCABULARY"), "--threads", "2",
+             "--log-level", "warn"] + detector,
+            stdout=subprocess.DEVNULL, stderr=open(os.path.join(work, "server.log"), "w"))
+        processes.append(server)
+
+        def placedb(*args, check=True):
+            return subprocess.run([cli, "--address", address] + list(args), check=check,
+                                  capture_output=True, text=True)
+
+        wait_for("placedb-server to serve",
+                 lambda: server.poll() is None and placedb("health", check=False).returncode == 0,
+                 timeout=120)
+        url = placedb("console").stdout.strip()
+        if not re.fullmatch(r"http://127\.0\.0\.1:\d+/", url):
+            fail("placedb console printed %r" % url)
+        placedb("maps", "create", "office", "--thumbnails", "--verify", "direct")
+        placedb("ingest", "office", frames, "--glob", "*.jpg", "--agents", "2",
+                "--agent-id", "robot", "--sequence-start", "1")
+        if detector:
+            street_frames = os.path.join(work, "street")
+            os.makedirs(street_frames)
+            for name in sorted(os.listdir(street))[:12]:
+                os.symlink(os.path.join(street, name), os.path.join(street_frames, name))
+            placedb("maps", "create", "street", "--thumbnails", "--box-source", "server")
+            placedb("ingest", "street", street_frames, "--glob", "*.jpg", "--agent-id", "car-1")
+        else:
+            print("no detector model in PLACEDB_MODELS_DIR: the street map is left out")
+        description = console_api(url, "GetMap", {"name": "office"})
+        places = int(description["stats"]["places"])
+        if places < FRAMES // 2:
+            fail("only %d of %d frames were stored" % (places, FRAMES))
+        if not description["config"].get("thumbnails", {}).get("enabled"):
+            fail("maps create --thumbnails made a map without thumbnails")
+
+        devtools_port = free_port()
+        profile = os.path.join(work, "chromium")
+        browser = subprocess.Popen(
+            [chromium, "--headless=new", "--no-sandbox", "--disable-gpu",
+             "--disable-dev-shm-usage", "--no-first-run", "--disable-extensions",
+             "--disable-background-networking", "--disable-sync",
+             "--remote-debugging-address=127.0.0.1", "--remote-debugging-port=%d" % devtools_port,
+             "--remote-allow-origins=*", "--user-data-dir=" + profile, "about:blank"],
+            stdout=subprocess.DEVNULL, stderr=open(os.path.join(work, "chromium.log"), "w"))
+        processes.append(browser)
+
+        def page_target():
+            try:
+                with urllib.request.urlopen("http://127.0.0.1:%d/json/list" % devtools_port,
+                                            timeout=5) as response:
+                    targets = json.loads(response.read())
+            except OSError:
+                return None
+            pages = [t for t in targets if t.get("type") == "page"]
+            return pages[0]["webSocketDebuggerUrl"] if pages else None
+
+        devtools = DevTools(wait_for("chromium's DevTools endpoint", page_target, timeout=60))
+        devtools.call("Runtime.enable")
+        devtools.call("Page.enable")
+        devtools.call("Emulation.setDeviceMetricsOverride", width=1280, height=900,
+                      deviceScaleFactor=1, mobile=False)
+        devtools.call("Page.navigate", url=url)  # the maps view by default; show() changes the hash
+        wait_for("the console to load", lambda: devtools.evaluate(
+            "document.getElementById('view') !== null && "
+            "document.getElementById('view').dataset.ready === 'yes'"))
+
+        # Maps: the map is listed with its places.
+        devtools.show("#/maps")
+        row = devtools.evaluate(
+            "(() => { const r = document.querySelector('tr.map-row[data-map=\"office\"]');"
+            " return r ? Array.from(r.cells).map((c) => c.textContent) : null; })()")
+        if not row:
+            fail("the maps page does not list 'office'")
+        if row[3] != str(places):
+            fail("the maps page shows %s places for 'office', the map has %d" % (row[3], places))
+        devtools.screenshot(os.path.join(screenshots, "maps.png"))
+
+        # Places: a page of cards, each with its frame drawn (or the placeholder).
+        devtools.show("#/places/office")
+        cards = devtools.evaluate(
+            "Array.from(document.querySelectorAll('#places .place-card')).map((c) =>"
+            " [c.dataset.placeId, c.querySelector('canvas').dataset.thumbnail])")
+        if not cards:
+            fail("the places page shows no places")
+        if int(cards[0][0]) != places:
+            fail("the places page starts at place %s, not the newest (%d)" % (cards[0][0], places))
+        if any(thumbnail != "yes" for _, thumbnail in cards):
+            fail("the map keeps thumbnails but some places show none: %s" % cards)
+        print("places page: %d cards with thumbnails" % len(cards))
+        # Filtered by agent: only robot-2's places.
+        devtools.evaluate("document.getElementById('filter-agent').value = 'robot-2';"
+                          "document.querySelector('#view form.bar button[type=submit]').click()")
+        wait_for("robot-2's places", lambda: devtools.evaluate(
+            "document.getElementById('places').dataset.loaded === 'yes'"))
+        agents = devtools.evaluate(
+            "Array.from(document.querySelectorAll('#places .place-card .meta'))"
+            ".map((m) => m.textContent)")
+        if not agents or any("robot-2" not in text for text in agents):
+            fail("filtering by agent robot-2 shows %s" % agents)
+        devtools.screenshot(os.path.join(screenshots, "places.png"))
+        if detector:
+            devtools.show("#/places/street")
+            dropped = devtools.evaluate(
+                "document.querySelectorAll('#places .place-card canvas[data-thumbnail=\"yes\"]')"
+                ".length")
+            if not dropped:
+                fail("the street map's places show no thumbnails")
+            devtools.screenshot(os.path.join(screenshots, "places-street.png"))
+
+        # Query: upload a stored frame; its own place ranks first.
+        devtools.show("#/query")
+        document = devtools.call("DOM.getDocument", depth=-1)
+        node = devtools.call("DOM.querySelector", nodeId=document["root"]["nodeId"],
+                             selector="#query-file")
+        query_path = os.path.join(frames_dir, "%d.jpg" % QUERY_FRAME)
+        devtools.call("DOM.setFileInputFiles", files=[query_path], nodeId=node["nodeId"])
+        wait_for("the query's results", lambda: devtools.evaluate(
+            "document.getElementById('query-results').dataset.done === 'yes'"), timeout=120)
+        if devtools.errors:
+            fail("query page error: " + "; ".join(devtools.errors))
+        top = devtools.evaluate(
+            "(() => { const m = document.querySelector('#query-results .match');"
+            " return m ? m.firstElementChild.textContent : null; })()")
+        if not top:
+            fail("the query shows no match")
+        sequence = re.search(r"#(\d+)$", top.strip())
+        if not sequence or int(sequence.group(1)) != QUERY_FRAME:
+            fail("top match %r is not frame %d's place" % (top, QUERY_FRAME))
+        lines = devtools.evaluate(
+            "Number(document.querySelector('#query-results .match canvas').dataset.lines)")
+        if "verified" not in top or " not verified" in top or not lines:
+            fail("the top match is not drawn verified with its inliers (%s lines): %r" % (lines, top))
+        print("query: top match %s, %d inlier lines drawn" % (top.strip(), lines))
+        devtools.screenshot(os.path.join(screenshots, "query.png"))
+
+        # Live: agents (when the server reports them) and the latest places, refreshed in place.
+        devtools.show("#/live")
+        latest = devtools.evaluate("document.querySelectorAll('#live-places .place-card').length")
+        if not latest:
+            fail("the live page shows no places")
+        if description.get("agents"):
+            rows = devtools.evaluate("document.querySelectorAll('#live-agents tr[data-agent]').length")
+            if rows != len(description["agents"]):
+                fail("the live page shows %s agents, GetMap reports %d" % (
+                    rows, len(description["agents"])))
+        first = devtools.evaluate("document.getElementById('live-updated').textContent")
+        devtools.evaluate("window.placedbNotReloaded = true")
+        wait_for("the live page to refresh", lambda: devtools.evaluate(
+            "document.getElementById('live-updated').textContent") != first, timeout=15)
+        if not devtools.evaluate("window.placedbNotReloaded === true"):
+            fail("the live page reloaded instead of refreshing")
+        devtools.screenshot(os.path.join(screenshots, "live.png"))
+        print("PASS: maps, places, query and live pages in chromium; screenshots in " + screenshots)
+        return 0
+    finally:
+        for process in reversed(processes):
+            process.terminate()
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
