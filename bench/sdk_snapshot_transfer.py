@@ -48,7 +48,7 @@ def start_server(binary: str, vocabulary: str, data_dir: str) -> "tuple[subproce
         address = f"127.0.0.1:{s.getsockname()[1]}"
     process = subprocess.Popen(
         [binary, "--listen", address, "--data-dir", data_dir, "--metrics-listen", "off",
-         "--vocabulary", "default=" + vocabulary, "--log-level", "warn"]
+         "--console-listen", "off", "--vocabulary", "default=" + vocabulary, "--log-level", "warn"]
     )
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:

@@ -60,7 +60,7 @@ free_port() {
 # start NAME PORT DATA_DIR: a server on loopback; waits until it answers.
 start() {
   local name="$1" port="$2" data="$3"
-  "$server" --listen "127.0.0.1:$port" --metrics-listen off --data-dir "$data" \
+  "$server" --listen "127.0.0.1:$port" --metrics-listen off --console-listen off --data-dir "$data" \
     --vocabulary "default=$vocabulary" --log-level warn >"$work/$name.log" 2>&1 &
   pids+=($!)
   for _ in $(seq 240); do
