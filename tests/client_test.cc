@@ -498,6 +498,8 @@ TEST(ClientFlagsTest, TimeFlagsAreNanosecondsOrUtcIso) {
     ASSERT_FALSE(parsed.ok()) << bad;
     EXPECT_NE(parsed.status().message().find("--to"), std::string::npos);
   }
+}
+
 // `maps create --thumbnails --thumbnail-size N` and `place get MAP ID --thumbnail FILE`: the map
 // keeps thumbnails of that size and the CLI writes a place's JPEG; a map without thumbnails has
 // none to write (exit 1), and a size without --thumbnails or out of range is refused.
@@ -531,8 +533,6 @@ TEST_F(ClientTest, PlaceGetWritesTheThumbnail) {
   EXPECT_NE(too_big.err.find("config.thumbnails.max_side"), std::string::npos) << too_big.err;
 }
 
-// The human summary, per-frame matches, progress lines when stderr is not a terminal, a list
-// file and a video as sources, and a stream refused for an unknown map.
 // `placedb dynamics`: the map's statistics and a ranked page, as a table or JSON; bad flags are
 // usage errors, an unknown map an RPC error.
 TEST_F(ClientTest, DynamicsShowsTheMapAndRanksItsPlaces) {
@@ -562,6 +562,8 @@ TEST_F(ClientTest, DynamicsShowsTheMapAndRanksItsPlaces) {
   EXPECT_EQ(Cli({"dynamics", "nowhere"}).code, 1);
 }
 
+// The human summary, per-frame matches, progress lines when stderr is not a terminal, a list
+// file and a video as sources, and a stream refused for an unknown map.
 TEST_F(ClientTest, IngestSummaryListsAndVideos) {
   ASSERT_EQ(Cli({"maps", "create", "m"}).code, 0);
   CliRun run = Cli({"ingest", "m", FramesDir(1, 4), "--matches", "--agent-id", "robot"});
