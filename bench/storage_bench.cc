@@ -9,6 +9,11 @@
 //  2b. The cost of dynamic-object statistics (issue 16, StorageOptions::dynamics): the 701
 //     CamVid frames with their boxes ingested one by one (Add: process + durable commit + index)
 //     with and without, same run; goal < 2 % of ingest time.
+//  2c. The cost of thumbnails (issue 20, MapOptions::thumbnails): every 5th CamVid frame as JPEG
+//     bytes with its label boxes, decoded as the service decodes it (colour when the map keeps
+//     thumbnails, else gray) and Add()ed (ORB from pixels, box refinement, filter, thumbnail,
+//     durable commit, index), with and without thumbnails, alternated 3 times in the same run;
+//     the thumbnail's own time, its stored size and the map's bytes per place on disk.
 //  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
 //     places), committed by 2 writers, then the map is closed and reopened.
@@ -18,8 +23,8 @@
 //     there; times, bytes on disk and archive bytes.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
-//                              [--only persist|dynamics|snapshots] [--snapshot-places 10000]
-//                              [--keep 1]
+//                              [--only persist|dynamics|thumbnails|snapshots]
+//                              [--snapshot-places 10000] [--keep 1]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -33,6 +38,8 @@
 #include <thread>
 
 #include "bench/bench_output.h"
+#include "core/base/files.h"
+#include "core/decode/image_decoder.h"
 #include "core/storage/map_store.h"
 #include "core/storage/snapshots.h"
 
@@ -139,8 +146,9 @@ struct Options {
   std::string vocabulary_path, work_dir, shared = PLACEDB_SHARED_DIR;
   std::vector<size_t> reopen_sizes = {10000, 100000};
   bool persist_only = false;
-  bool dynamics_only = false;   // --only dynamics: section 2b alone
-  bool snapshots_only = false;  // --only snapshots: section 4 alone
+  bool dynamics_only = false;    // --only dynamics: section 2b alone
+  bool thumbnails_only = false;  // --only thumbnails: section 2c alone
+  bool snapshots_only = false;   // --only snapshots: section 4 alone
   size_t snapshot_places = 10000;
   bool keep = false;  // --keep 1: the work directory stays (bench/snapshots_wire.sh serves it)
 };
@@ -152,8 +160,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
     if (i + 1 >= argc) {
       std::fprintf(stderr,
                    "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-                   "[--reopen 10000,100000] [--shared DIR] [--only persist|dynamics|snapshots] "
-                   "[--snapshot-places N] [--keep 1]\n");
+                   "[--reopen 10000,100000] [--shared DIR] "
+                   "[--only persist|dynamics|thumbnails|snapshots] [--snapshot-places N] [--keep 1]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -172,6 +180,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       options->persist_only = true;
     } else if (arg == "--only" && value == "dynamics") {
       options->dynamics_only = true;
+    } else if (arg == "--only" && value == "thumbnails") {
+      options->thumbnails_only = true;
     } else if (arg == "--only" && value == "snapshots") {
       options->snapshots_only = true;
     } else if (arg == "--keep") {
@@ -270,6 +280,164 @@ double BenchIngestDynamics(const std::string& work_dir, const std::vector<Frame>
     if (!(*map)->Add(observation).ok()) return -1;
   }
   return (NowMs() - start) / double(frames.size());
+}
+
+// A CamVid frame as the service receives it: JPEG bytes and the agent's boxes.
+struct JpegFrame {
+  std::string jpeg;
+  std::vector<DynamicBox> boxes;
+};
+
+std::vector<JpegFrame> LoadCamVidJpegs(const std::string& shared, size_t every) {
+  std::vector<std::string> images;
+  for (const auto& entry : fs::directory_iterator(shared + "/data/camvid/images")) {
+    images.push_back(entry.path().string());
+  }
+  std::sort(images.begin(), images.end());
+  std::vector<JpegFrame> frames;
+  for (size_t i = 0; i < images.size(); i += every) {
+    const std::string stem = fs::path(images[i]).stem().string();
+    cv::Mat labels =
+        cv::imread(shared + "/data/camvid/labels/" + stem + ".png", cv::IMREAD_GRAYSCALE);
+    auto bytes = ReadWholeFile(images[i]);
+    if (labels.empty() || !bytes.ok()) continue;
+    frames.push_back({std::move(bytes).value(), BoxesFromLabels(labels)});
+  }
+  return frames;
+}
+
+struct ThumbnailRun {
+  double ms_per_frame = -1;  // decode + Add; negative after an error
+  double median_ms = 0;      // the median frame's (less sensitive to the machine's load spikes)
+  double bytes_per_place = 0;
+  double thumbnail_bytes = 0;  // mean stored thumbnail value per place
+  size_t places = 0;
+};
+
+// 2c. One map, one writer: every frame decoded (colour with thumbnails, as the service decodes
+// for such maps) and Add()ed; then the map is closed and its files counted.
+ThumbnailRun BenchIngestThumbnails(const std::string& work_dir,
+                                   const std::vector<JpegFrame>& frames,
+                                   const std::shared_ptr<const Vocabulary>& vocabulary,
+                                   bool thumbnails) {
+  ThumbnailRun run;
+  static int runs = 0;
+  const std::string path =
+      work_dir + "/thumbnails-" + std::to_string(thumbnails) + "-" + std::to_string(runs++);
+  auto dir = DataDirectory::Open(path);
+  if (!dir.ok()) return run;
+  MapOptions options;
+  options.thumbnails.enabled = thumbnails;
+  std::vector<PlaceId> ids;
+  {
+    auto map = (*dir)->CreateMap("m", options, vocabulary);
+    if (!map.ok()) return run;
+    DecodeOptions decode;
+    decode.mode = thumbnails ? ColorMode::kColor : ColorMode::kGray;
+    const double start = NowMs();
+    uint64_t sequence = 0;
+    std::vector<double> frame_ms;
+    for (const JpegFrame& frame : frames) {
+      const double frame_start = NowMs();
+      auto image = DecodeImage(
+          std::span(reinterpret_cast<const uint8_t*>(frame.jpeg.data()), frame.jpeg.size()),
+          decode);
+      if (!image.ok()) return run;
+      Observation observation;
+      observation.image = std::move(image).value();
+      observation.dynamic.boxes = frame.boxes;
+      observation.metadata.sequence = ++sequence;
+      auto added = (*map)->Add(observation);
+      if (!added.ok()) return run;
+      if (added->stored) ids.push_back(added->id);
+      frame_ms.push_back(NowMs() - frame_start);
+    }
+    run.ms_per_frame = (NowMs() - start) / double(frames.size());
+    run.median_ms = bench::Median(frame_ms);
+    for (PlaceId id : ids) {
+      auto thumbnail = (*map)->GetThumbnail(id);
+      if (thumbnail.ok() && thumbnail->has_value()) {
+        run.thumbnail_bytes += double(EncodeThumbnail(**thumbnail).size());
+      }
+    }
+    (*dir)->CloseMap("m");
+  }
+  uint64_t bytes = 0;
+  for (const auto& entry : fs::recursive_directory_iterator(path + "/maps/m")) {
+    if (entry.is_regular_file()) bytes += entry.file_size();
+  }
+  run.places = ids.size();
+  if (!ids.empty()) {
+    run.bytes_per_place = double(bytes) / double(ids.size());
+    run.thumbnail_bytes /= double(ids.size());
+  }
+  return run;
+}
+
+// The thumbnail's own time per frame (reduce, blur the boxes, encode), on decoded colour frames.
+double BenchMakeThumbnail(const std::vector<JpegFrame>& frames) {
+  std::vector<cv::Mat> images;
+  for (const JpegFrame& frame : frames) {
+    auto image = DecodeImage(
+        std::span(reinterpret_cast<const uint8_t*>(frame.jpeg.data()), frame.jpeg.size()), {});
+    if (image.ok()) images.push_back(std::move(image).value());
+  }
+  ThumbnailSettings settings;
+  settings.enabled = true;
+  const double start = NowMs();
+  for (size_t i = 0; i < images.size(); ++i) {
+    if (!MakeThumbnail(images[i], frames[i].boxes, {}, settings).ok()) return -1;
+  }
+  return (NowMs() - start) / double(std::max<size_t>(images.size(), 1));
+}
+
+bool BenchThumbnails(const std::string& work_dir, const std::string& shared,
+                     const std::shared_ptr<const Vocabulary>& vocabulary) {
+  const std::vector<JpegFrame> frames = LoadCamVidJpegs(shared, 5);
+  std::printf("# thumbnails: %zu CamVid JPEG frames (every 5th), label boxes, ORB 1000\n",
+              frames.size());
+  double ms[2] = {0, 0};      // [thumbnails]
+  double median[2] = {0, 0};  // [thumbnails]
+  ThumbnailRun last[2];
+  const bool order[] = {true, false, false, true, true, false};  // 3 alternations
+  for (bool thumbnails : order) {
+    const ThumbnailRun run = BenchIngestThumbnails(work_dir, frames, vocabulary, thumbnails);
+    if (run.ms_per_frame < 0) return false;
+    ms[thumbnails] += run.ms_per_frame / 3;
+    median[thumbnails] += run.median_ms / 3;
+    last[thumbnails] = run;
+  }
+  Print("ingest_jpeg_thumbnails_on", ms[1], "ms/frame");
+  Print("ingest_jpeg_thumbnails_off", ms[0], "ms/frame");
+  Print("thumbnails_cost", 100.0 * (ms[1] / ms[0] - 1.0), "%");
+  Print("ingest_jpeg_thumbnails_on_median", median[1], "ms/frame");
+  Print("ingest_jpeg_thumbnails_off_median", median[0], "ms/frame");
+  Print("thumbnails_cost_median", 100.0 * (median[1] / median[0] - 1.0), "%");
+  // Where the difference goes besides the thumbnail: maps that keep thumbnails decode in colour.
+  double decode_ms[2] = {0, 0};  // [colour]
+  for (bool colour : {true, false, false, true}) {
+    DecodeOptions decode;
+    decode.mode = colour ? ColorMode::kColor : ColorMode::kGray;
+    const double start = NowMs();
+    for (const JpegFrame& frame : frames) {
+      auto image = DecodeImage(
+          std::span(reinterpret_cast<const uint8_t*>(frame.jpeg.data()), frame.jpeg.size()),
+          decode);
+      if (!image.ok()) return false;
+    }
+    decode_ms[colour] += (NowMs() - start) / double(frames.size()) / 2;
+  }
+  Print("decode_jpeg_colour", decode_ms[1], "ms/frame");
+  Print("decode_jpeg_gray", decode_ms[0], "ms/frame");
+  const double make = BenchMakeThumbnail(frames);
+  if (make < 0) return false;
+  Print("thumbnail_make", make, "ms/frame");
+  Print("thumbnail_bytes_per_place", last[1].thumbnail_bytes, "bytes");
+  Print("bytes_per_place_thumbnails_on", last[1].bytes_per_place, "bytes");
+  Print("bytes_per_place_thumbnails_off", last[0].bytes_per_place, "bytes");
+  Print("places_thumbnails_on", double(last[1].places), "places");
+  Print("places_thumbnails_off", double(last[0].places), "places");
+  return true;
 }
 
 // Places `first` .. `target` - 1 added by 2 writers: CamVid feature sets with a random 90 % of
@@ -467,6 +635,11 @@ int main(int argc, char** argv) {
   std::string work_dir = options.work_dir;
   if (work_dir.empty()) work_dir = (fs::temp_directory_path() / "placedb-bench-storage").string();
   fs::remove_all(work_dir);
+  if (options.thumbnails_only) {
+    if (!BenchThumbnails(work_dir, options.shared, *vocabulary)) return 1;
+    fs::remove_all(work_dir);
+    return 0;
+  }
   const std::vector<Frame> frames = LoadCamVid(options.shared);
   std::printf(
       "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",

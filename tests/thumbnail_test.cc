@@ -132,6 +132,37 @@ TEST(Thumbnail, CamVidBoxesAreBlurredAndTheRestIsTheReducedFrame) {
       worst_ratio, worst_outside, worst_outside_100);
 }
 
+// An agent's dynamic mask (here CamVid's own label mask, without boxes) is blurred too: each of
+// its regions' bounding rectangles in the thumbnail is smooth.
+TEST(Thumbnail, CamVidMaskRegionsAreBlurred) {
+  ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+  const auto frames = testing::CamVidFrames();
+  size_t regions = 0;
+  for (size_t f = 0; f < frames.size(); f += 70) {
+    const cv::Mat mask = testing::CamVidDynamicMask(frames[f]);
+    const cv::Mat image = cv::imread(frames[f].image_path, cv::IMREAD_COLOR);
+    auto thumbnail = MakeThumbnail(image, {}, {}, On(), mask);
+    ASSERT_TRUE(thumbnail.ok()) << thumbnail.status().ToString();
+    const cv::Mat decoded = DecodeJpeg(thumbnail->jpeg);
+    const cv::Mat reduced = ReduceFrame(image, kDefaultThumbnailSide);
+    for (const DynamicBox& box : CamVidBoxes(frames[f])) {
+      const cv::Rect rect = ThumbnailBoxRect(box.rect, image.size(), decoded.size());
+      const cv::Rect inner(rect.x + 2, rect.y + 2, rect.width - 4, rect.height - 4);
+      if (inner.width < 6 || inner.height < 6) continue;
+      const double before = LaplacianVariance(reduced(inner));
+      if (before < 30) continue;
+      EXPECT_LT(LaplacianVariance(decoded(inner)), 0.2 * before) << frames[f].image_path;
+      ++regions;
+    }
+  }
+  EXPECT_GT(regions, 5u);
+  EXPECT_EQ(MakeThumbnail(cv::Mat(100, 100, CV_8UC3, cv::Scalar::all(9)), {}, {}, On(),
+                          cv::Mat(50, 50, CV_8U))
+                .status()
+                .code(),
+            StatusCode::kInvalidArgument);
+}
+
 TEST(Thumbnail, SizesGrayFramesAndSmallFrames) {
   const cv::Mat gray = testing::ReadGray(testing::RtabmapFramePath(1));
   auto thumbnail = MakeThumbnail(gray, {}, {}, On(100));

@@ -7,6 +7,7 @@
 #include <functional>
 #include <set>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "core/detect/detector.h"
@@ -451,6 +452,10 @@ std::vector<FieldCase> FieldCases() {
       {"verification.rerank",
        [](v1::MapConfig* c) { c->mutable_verification()->set_rerank(false); }},
       {"store_invalid", [](v1::MapConfig* c) { c->set_store_invalid(true); }},
+      {"thumbnails.enabled", [](v1::MapConfig* c) { c->mutable_thumbnails()->set_enabled(true); }},
+      {"thumbnails.max_side", [](v1::MapConfig* c) { c->mutable_thumbnails()->set_max_side(640); }},
+      {"thumbnails.jpeg_quality",
+       [](v1::MapConfig* c) { c->mutable_thumbnails()->set_jpeg_quality(90); }},
   };
   // Every specified value of the enum fields (the defaults come back as themselves).
   auto each = [&](const EnumDescriptor* type, const std::string& path,
@@ -550,6 +555,29 @@ TEST(MapConfigConversion, FeatureBudgetIsTheServersLimit) {
       MapOptionsFromProto(config, 1000, MapVocabulary{"sift", FeatureType::kSift}, &settings);
   ASSERT_TRUE(all.ok()) << all.status().ToString();
   EXPECT_EQ(all->database.sift.max_features, 1000);
+}
+
+TEST(MapConfigConversion, ThumbnailSettingsOutOfRangeNameTheirField) {
+  ServiceMapSettings settings;
+  for (const auto& [side, quality, field] :
+       std::vector<std::tuple<uint32_t, uint32_t, std::string>>{
+           {15, 0, "config.thumbnails.max_side"},
+           {1025, 0, "config.thumbnails.max_side"},
+           {0, 101, "config.thumbnails.jpeg_quality"}}) {
+    v1::MapConfig config;
+    config.mutable_thumbnails()->set_max_side(side);
+    config.mutable_thumbnails()->set_jpeg_quality(quality);
+    auto refused =
+        MapOptionsFromProto(config, kMaxDescriptors, MapVocabulary{"default"}, &settings);
+    ASSERT_FALSE(refused.ok()) << field;
+    EXPECT_EQ(refused.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_EQ(refused.status().message().rfind(field, 0), 0u) << refused.status().message();
+  }
+  v1::MapConfig config;
+  config.mutable_thumbnails()->set_enabled(true);
+  auto options = MapOptionsFromProto(config, kMaxDescriptors, MapVocabulary{"default"}, &settings);
+  ASSERT_TRUE(options.ok());
+  EXPECT_EQ(options->thumbnails, (ThumbnailSettings{true, 320, 75}));
 }
 
 TEST(MatchOptionsConversion, DefaultsAndCap) {

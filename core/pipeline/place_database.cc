@@ -337,7 +337,8 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, Fr
     std::vector<Keypoint> dropped;
     dropped.reserve(filtered->dynamic_indices.size());
     for (uint32_t i : filtered->dynamic_indices) dropped.push_back(features->keypoints()[i]);
-    auto made = MakeThumbnail(observation.image, frame.boxes_used, std::move(dropped), *thumbnail);
+    auto made = MakeThumbnail(observation.image, frame.boxes_used, std::move(dropped), *thumbnail,
+                              observation.dynamic.mask);
     if (!made.ok()) return made.status().WithContext("thumbnail");
     frame.thumbnail = std::move(made).value();
     stage.Lap();  // counted in total_ms only

@@ -100,16 +100,40 @@ Result<std::string> EncodeJpeg(const cv::Mat& image, int quality) {
 }
 
 Result<Thumbnail> MakeThumbnail(const cv::Mat& image, const std::vector<DynamicBox>& boxes,
-                                std::vector<Keypoint> dropped, const ThumbnailSettings& settings) {
+                                std::vector<Keypoint> dropped, const ThumbnailSettings& settings,
+                                const cv::Mat& mask) {
   PLACEDB_RETURN_IF_ERROR(ValidateThumbnailSettings(settings));
   if (image.empty() || image.depth() != CV_8U ||
       (image.channels() != 1 && image.channels() != 3 && image.channels() != 4)) {
     return Status::InvalidArgument("a thumbnail needs a non-empty 8-bit gray, BGR or BGRA image");
   }
+  if (!mask.empty() && (mask.type() != CV_8UC1 || mask.size() != image.size())) {
+    return Status::InvalidArgument("a thumbnail's dynamic mask must be CV_8U and image-sized");
+  }
   cv::Mat reduced = ReduceFrame(image, settings.max_side);
   if (reduced.channels() == 4) cv::cvtColor(reduced, reduced, cv::COLOR_BGRA2BGR);
   for (const DynamicBox& box : boxes) {
     BlurBox(&reduced, ThumbnailBoxRect(box.rect, image.size(), reduced.size()));
+  }
+  if (!mask.empty() && cv::countNonZero(mask) > 0) {
+    // Any dynamic pixel marks its reduced pixel (a maximum, not an average, so thin parts stay).
+    cv::Mat marked;
+    if (mask.size() == reduced.size()) {
+      marked = mask != 0;
+    } else {
+      cv::Mat dynamic = mask != 0;
+      cv::Mat grown;
+      const int step = int(std::ceil(double(mask.cols) / reduced.cols));
+      cv::dilate(dynamic, grown, cv::Mat::ones(step, step, CV_8U));
+      cv::resize(grown, marked, reduced.size(), 0, 0, cv::INTER_NEAREST);
+    }
+    cv::Mat components, stats, centroids;
+    const int count = cv::connectedComponentsWithStats(marked, components, stats, centroids, 8);
+    for (int c = 1; c < count; ++c) {
+      const int* s = stats.ptr<int>(c);
+      BlurBox(&reduced, cv::Rect(s[cv::CC_STAT_LEFT] - 1, s[cv::CC_STAT_TOP] - 1,
+                                 s[cv::CC_STAT_WIDTH] + 2, s[cv::CC_STAT_HEIGHT] + 2));
+    }
   }
   auto jpeg = EncodeJpeg(reduced, int(settings.jpeg_quality));
   if (!jpeg.ok()) return jpeg.status();

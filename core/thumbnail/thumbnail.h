@@ -1,8 +1,9 @@
 // Per-place thumbnails (issue 20): a small JPEG of a stored place's frame, for the web console.
 //
 // The frame is reduced so that its longest side is `max_side` (never enlarged), each dynamic-object
-// box the filter used is blurred in the reduced image so that nobody in it can be recognised
-// (fleets film people), and the result is JPEG-encoded with TurboJPEG. The keypoints the filter
+// box the filter used (and each region of an agent's dynamic mask) is blurred in the reduced image
+// so that nobody in it can be recognised (fleets film people), and the result is JPEG-encoded
+// with TurboJPEG. The keypoints the filter
 // dropped as dynamic are kept beside the JPEG, in the source frame's pixels, so a viewer can draw
 // them scaled by width / source_width.
 //
@@ -71,9 +72,13 @@ void BlurBox(cv::Mat* image, const cv::Rect& rect);
 Result<std::string> EncodeJpeg(const cv::Mat& image, int quality);
 
 // The thumbnail of `image` (8-bit gray, BGR or BGRA; non-empty) with every box of `boxes` (the
-// boxes the filter used, source pixels) blurred, and `dropped` kept as they are. INVALID_ARGUMENT
-// for an empty image or one of another type, or bad settings.
+// boxes the filter used, source pixels) blurred, and `dropped` kept as they are. A dynamic-object
+// `mask` (CV_8U, image-sized, non-zero = dynamic; an agent may send one instead of boxes) is
+// blurred too: the bounding rectangle of each of its connected regions in the reduced image.
+// INVALID_ARGUMENT for an empty image or one of another type, a mask of another type or size,
+// or bad settings.
 Result<Thumbnail> MakeThumbnail(const cv::Mat& image, const std::vector<DynamicBox>& boxes,
-                                std::vector<Keypoint> dropped, const ThumbnailSettings& settings);
+                                std::vector<Keypoint> dropped, const ThumbnailSettings& settings,
+                                const cv::Mat& mask = cv::Mat());
 
 }  // namespace placedb

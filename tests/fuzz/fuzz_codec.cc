@@ -109,6 +109,17 @@ void FuzzInvalidObservation(std::string_view bytes) {
                  [](const InvalidObservation& o) { return EncodeInvalidObservation(o); });
 }
 
+void FuzzThumbnail(std::string_view bytes) {
+  auto thumbnail = DecodeThumbnail(bytes);
+  if (!thumbnail.ok()) {
+    PLACEDB_FUZZ_CHECK(thumbnail.status().code() == StatusCode::kCorruption,
+                       "Thumbnail: a value that does not decode must be CORRUPTION");
+    return;
+  }
+  CheckRoundTrip("Thumbnail", EncodeThumbnail(*thumbnail), DecodeThumbnail,
+                 [](const Thumbnail& t) { return EncodeThumbnail(t); });
+}
+
 }  // namespace
 }  // namespace placedb
 
@@ -117,7 +128,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (size == 0) return 0;
   // A view of libFuzzer's exactly sized buffer: ASan sees any read past its end.
   const std::string_view payload(reinterpret_cast<const char*>(data) + 1, size - 1);
-  switch (data[0] % 9) {
+  switch (data[0] % 10) {
     case 0:
       FuzzKeys(payload);
       break;
@@ -144,6 +155,9 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
       break;
     case 8:
       FuzzInvalidObservation(payload);
+      break;
+    case 9:
+      FuzzThumbnail(payload);
       break;
   }
   return 0;

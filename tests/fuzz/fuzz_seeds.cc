@@ -240,6 +240,14 @@ void CodecSeeds(const RealData& data, const Vocabulary& vocabulary,
   invalid.reason = "3 static descriptors <= placeThreshold 10";
   Seed(t, "invalid-observation", 8, EncodeInvalidObservation(invalid));
 
+  ThumbnailSettings thumbnails;
+  thumbnails.enabled = true;
+  thumbnails.max_side = 64;
+  const std::vector<Keypoint> dropped = {orb.keypoints.begin(), orb.keypoints.begin() + 3};
+  auto thumbnail = MakeThumbnail(data.frames[0], record.boxes_used, dropped, thumbnails);
+  if (!thumbnail.ok()) Die("thumbnail: " + thumbnail.status().ToString());
+  Seed(t, "thumbnail", 9, EncodeThumbnail(*thumbnail));
+
   std::set<std::string> keys;
   JsonKeys(nlohmann::json::parse(EncodeDatabaseConfig(config)), &keys);
   Dictionary(t, keys);
