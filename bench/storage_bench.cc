@@ -158,10 +158,11 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     if (i + 1 >= argc) {
-      std::fprintf(stderr,
-                   "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-                   "[--reopen 10000,100000] [--shared DIR] "
-                   "[--only persist|dynamics|thumbnails|snapshots] [--snapshot-places N] [--keep 1]\n");
+      std::fprintf(
+          stderr,
+          "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
+          "[--reopen 10000,100000] [--shared DIR] "
+          "[--only persist|dynamics|thumbnails|snapshots] [--snapshot-places N] [--keep 1]\n");
       return 2;
     }
     const std::string value = argv[++i];
