@@ -442,6 +442,33 @@ TEST_F(ClientTest, DynamicsShowsTheMapAndRanksItsPlaces) {
   EXPECT_EQ(Cli({"dynamics", "nowhere"}).code, 1);
 }
 
+// `placedb dynamics --png`: the chart is written with its fixed size, after the table; a file
+// that cannot be written is a usage error naming it.
+TEST_F(ClientTest, DynamicsWritesAChartPng) {
+  ASSERT_EQ(Cli({"maps", "create", "dyn"}).code, 0);
+  ASSERT_EQ(Cli({"ingest", "dyn", FramesDir(1, 6)}).code, 0);
+  const std::string png = root_ + "/dynamics.png";
+  CliRun drawn = Cli({"dynamics", "dyn", "--png", png});
+  ASSERT_EQ(drawn.code, 0) << drawn.err;
+  EXPECT_NE(drawn.out.find("RANK"), std::string::npos) << "the table is still printed";
+  const cv::Mat chart = cv::imread(png, cv::IMREAD_UNCHANGED);
+  ASSERT_FALSE(chart.empty()) << png << " does not decode";
+  EXPECT_EQ(chart.cols, 960);
+  EXPECT_EQ(chart.rows, 960);
+  EXPECT_EQ(chart.channels(), 3);
+  // Not a blank image: the bars and heat map are drawn.
+  cv::Scalar mean, deviation;
+  cv::meanStdDev(chart, mean, deviation);
+  EXPECT_GT(deviation[0], 10.0);
+  // By class and as JSON too.
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--class", "person", "--json", "--png", png}).code, 0);
+  const std::string nowhere = root_ + "/no/such/dir/dynamics.png";
+  CliRun bad = Cli({"dynamics", "dyn", "--png", nowhere});
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_NE(bad.err.find("cannot write " + nowhere), std::string::npos) << bad.err;
+  EXPECT_FALSE(std::filesystem::exists(nowhere));
+}
+
 TEST_F(ClientTest, IngestSummaryListsAndVideos) {
   ASSERT_EQ(Cli({"maps", "create", "m"}).code, 0);
   CliRun run = Cli({"ingest", "m", FramesDir(1, 4), "--matches", "--agent-id", "robot"});

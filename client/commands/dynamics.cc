@@ -2,10 +2,13 @@
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <map>
+#include <opencv2/imgcodecs.hpp>
 #include <sstream>
 #include <vector>
 
 #include "client/commands/common.h"
+#include "client/dynamics_chart.h"
 #include "client/format.h"
 #include "core/detect/detector.h"
 
@@ -66,6 +69,60 @@ std::string Percent(double share) {
   return FormatDouble(100.0 * share, 1) + "%";
 }
 
+// The page's places' thumbnails (GetPlace include_thumbnail), decoded; places without one (maps
+// that keep none, places removed meanwhile) are left out and drawn as placeholders.
+grpc::Status FetchThumbnails(const Connection& connection, const std::string& map,
+                             const v1::GetDynamicsResponse& page,
+                             std::map<uint32_t, cv::Mat>* thumbnails) {
+  for (int i = 0; i < page.places_size() && i < kDynamicsChartMaxBars; ++i) {
+    v1::GetPlaceRequest request;
+    request.set_map(map);
+    request.set_place_id(page.places(i).place_id());
+    request.set_include_thumbnail(true);
+    auto context = connection.NewContext();
+    v1::Place place;
+    const grpc::Status status = connection.stub()->GetPlace(context.get(), request, &place);
+    if (status.error_code() == grpc::StatusCode::NOT_FOUND) continue;
+    if (!status.ok()) return status;
+    const std::string& jpeg = place.thumbnail().jpeg();
+    if (jpeg.empty()) continue;
+    cv::Mat decoded =
+        cv::imdecode(cv::Mat(1, int(jpeg.size()), CV_8U, (void*)jpeg.data()), cv::IMREAD_COLOR);
+    if (!decoded.empty()) (*thumbnails)[place.place_id()] = decoded;
+  }
+  return grpc::Status::OK;
+}
+
+std::string MeasureName(const v1::GetDynamicsRequest& request) {
+  switch (request.measure()) {
+    case v1::DYNAMICS_MEASURE_CLASS_SHARE:
+      return "share of frames with " + ClassLabel(request.class_id());
+    case v1::DYNAMICS_MEASURE_HOUR_WINDOW:
+      return "mean coverage " + std::to_string(request.first_hour()) + "-" +
+             std::to_string(request.last_hour()) + " h UTC";
+    default:
+      return "mean coverage";
+  }
+}
+
+int WriteChart(const Connection& connection, const DynamicsFlags& flags,
+               const v1::GetDynamicsRequest& request, const v1::GetDynamicsResponse& response,
+               CliIo& io) {
+  std::map<uint32_t, cv::Mat> thumbnails;
+  const grpc::Status fetched = FetchThumbnails(connection, flags.map, response, &thumbnails);
+  if (!fetched.ok()) return RpcFailed(io, fetched);
+  const cv::Mat chart =
+      DrawDynamicsChart("map '" + flags.map + "'", MeasureName(request), response, thumbnails);
+  bool written = false;
+  try {
+    written = cv::imwrite(flags.png, chart);
+  } catch (const cv::Exception&) {  // e.g. an extension OpenCV has no encoder for
+    written = false;
+  }
+  if (!written) return UsageError(io, "--png: cannot write " + flags.png);
+  return kExitOk;
+}
+
 }  // namespace
 
 CLI::App* RegisterDynamics(CLI::App& app, DynamicsFlags* flags) {
@@ -81,6 +138,9 @@ CLI::App* RegisterDynamics(CLI::App& app, DynamicsFlags* flags) {
   command->add_option("--offset", flags->offset, "first place of the page");
   command->add_option("--min-observations", flags->min_observations,
                       "leave out places observed fewer times (in the window)");
+  command->add_option("--png", flags->png,
+                      "also draw coverage by hour, weekday x hour, and the page's top places "
+                      "(with thumbnails) into this PNG file");
   return command;
 }
 
@@ -130,6 +190,7 @@ int RunDynamics(const Connection& connection, const DynamicsFlags& flags, bool j
   if (!status.ok()) return RpcFailed(io, status);
   if (json) {
     io.out << ProtoJson(response) << '\n';
+    if (!flags.png.empty()) return WriteChart(connection, flags, request, response, io);
     return kExitOk;
   }
   const v1::DynamicStatistics& map = response.map();
@@ -160,6 +221,7 @@ int RunDynamics(const Connection& connection, const DynamicsFlags& flags, bool j
     if (response.next_offset()) io.out << "; next page: --offset " << response.next_offset();
     io.out << '\n';
   }
+  if (!flags.png.empty()) return WriteChart(connection, flags, request, response, io);
   return kExitOk;
 }
 
