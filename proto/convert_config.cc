@@ -453,6 +453,12 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, uint32_t max_desc
     return Invalid("config.verification.candidates", "must be >= 0");
   }
   options.store_invalid = c.store_invalid();
+  const double hits_above = c.dynamics().count_query_hits_above();
+  if (!std::isfinite(hits_above) || hits_above < 0) {
+    return Invalid("config.dynamics.count_query_hits_above",
+                   "must be a finite score >= 0 (0 = off)");
+  }
+  options.count_query_hits_above = hits_above;
 
   // The core's messages name fields relative to the DatabaseConfig ("orb.max_features ...").
   if (Status valid = ValidateDatabaseConfig(d); !valid.ok()) {
@@ -544,6 +550,7 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
   v->set_candidates(d.verification.candidates);
   v->set_rerank(d.verification.rerank);
   out->set_store_invalid(options.store_invalid);
+  out->mutable_dynamics()->set_count_query_hits_above(options.count_query_hits_above);
 }
 
 void MapStatsToProto(const MapStats& stats, v1::MapStats* out) {

@@ -605,6 +605,12 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
             QueryOptionsFromProto(request->options(), request->observation().agent_id());
         options.timestamp_ns = request->observation().timestamp_ns();
         QueryResult result = map.map->Search(work.frame, options);
+        // A map that counts query hits (MapConfig.dynamics): durable before the answer.
+        if (auto counted = map.map->CountQueryHit(work.frame, work.metadata, result);
+            !counted.ok()) {
+          metrics_->StorageError(map.name, counted.status());
+          return ToGrpc(counted.status());
+        }
         work.timings.search_ms = result.timings.search_ms;
         work.timings.verify_ms = result.timings.verify_ms;
         response->set_valid(result.valid);
