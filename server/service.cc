@@ -419,6 +419,13 @@ grpc::Status PlaceDbService::GetDynamics(grpc::ServerContext* context,
   // One pass over the map's places; the ranking keeps offset + limit entries.
   DynamicsRanking ranking(*options);
   const Status scanned = map.ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {
+    if (options->near.active()) {  // the poses are in the places' records (memory)
+      const auto record = map.database().Get(id);
+      if (!record || !record->metadata.pose ||
+          !options->near.Contains(record->metadata.pose->position)) {
+        return true;
+      }
+    }
     ranking.Add(id, d);
     return true;
   });

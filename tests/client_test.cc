@@ -440,6 +440,15 @@ TEST_F(ClientTest, DynamicsShowsTheMapAndRanksItsPlaces) {
   EXPECT_EQ(Cli({"dynamics", "dyn", "--weekdays", "mon"}).code, 2);
   EXPECT_EQ(Cli({"dynamics", "dyn", "--class", "car", "--hours", "1-2"}).code, 2);
   EXPECT_EQ(Cli({"dynamics", "nowhere"}).code, 1);
+  // Near a point far from every frame: nothing is ranked.
+  CliRun near = Cli({"dynamics", "dyn", "--near", "1e6,1e6,0", "--radius", "5", "--json"});
+  ASSERT_EQ(near.code, 0) << near.err;
+  EXPECT_TRUE(ParseJson(near)["places"].empty());
+  EXPECT_EQ(ParseJson(near)["ranked"], "0");
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--near", "1", "--radius", "5"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--radius", "5"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--near", "1,2"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--near", "1,2", "--radius", "-1"}).code, 1);
 }
 
 // `placedb dynamics --png`: the chart is written with its fixed size, after the table; a file

@@ -49,6 +49,26 @@ uint32_t ParseWeekdays(const std::string& text) {
   return bits;
 }
 
+// "1.5,2[,0]" -> the point; false unless two or three numbers.
+bool ParsePoint(const std::string& text, v1::Pose* point) {
+  std::vector<double> values;
+  std::stringstream list(text);
+  for (std::string part; std::getline(list, part, ',');) {
+    try {
+      size_t used = 0;
+      values.push_back(std::stod(part, &used));
+      if (used != part.size()) return false;
+    } catch (const std::exception&) {
+      return false;
+    }
+  }
+  if (values.size() < 2 || values.size() > 3) return false;
+  point->set_x(values[0]);
+  point->set_y(values[1]);
+  point->set_z(values.size() == 3 ? values[2] : 0);
+  return true;
+}
+
 std::string ClassLabel(int class_id) {
   const char* name =
       class_id >= 0 && class_id < kCocoClassCount ? CocoClassName(class_id) : nullptr;
@@ -138,6 +158,9 @@ CLI::App* RegisterDynamics(CLI::App& app, DynamicsFlags* flags) {
   command->add_option("--offset", flags->offset, "first place of the page");
   command->add_option("--min-observations", flags->min_observations,
                       "leave out places observed fewer times (in the window)");
+  command->add_option("--near", flags->near,
+                      "only places whose pose lies within --radius of X,Y[,Z] (the poses' units)");
+  command->add_option("--radius", flags->radius, "with --near: the distance");
   command->add_option("--png", flags->png,
                       "also draw coverage by hour, weekday x hour, and the page's top places "
                       "(with thumbnails) into this PNG file");
@@ -183,6 +206,15 @@ int RunDynamics(const Connection& connection, const DynamicsFlags& flags, bool j
     }
   } else if (!flags.weekdays.empty()) {
     return UsageError(io, "--weekdays needs --hours");
+  }
+  if (flags.near.empty() != (flags.radius == 0)) {
+    return UsageError(io, "--near X,Y[,Z] and --radius R go together");
+  }
+  if (!flags.near.empty()) {
+    if (!ParsePoint(flags.near, request.mutable_near())) {
+      return UsageError(io, "--near: expected X,Y or X,Y,Z, e.g. 12.5,-3");
+    }
+    request.set_near_radius(flags.radius);
   }
   auto context = connection.NewContext();
   v1::GetDynamicsResponse response;

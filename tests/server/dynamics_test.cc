@@ -3,6 +3,7 @@
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <set>
 #include <string>
@@ -288,6 +289,86 @@ TEST_F(DynamicsTest, QueryHitsAboveTheMapsScoreAreCounted) {
     EXPECT_NE(refused.error_message().find("config.dynamics.count_query_hits_above"),
               std::string::npos)
         << refused.error_message();
+  }
+}
+
+// GetDynamics near a pose: RTAB-Map frames on a synthetic straight path (x = frame number), some
+// without a pose; only the places within the radius are ranked, and the filter's bad requests
+// name their field.
+TEST_F(DynamicsTest, PlacesNearAPoseAreRankedAlone) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("path");
+  std::vector<v1::Observation> frames;
+  for (int frame = 1; frame <= 24; ++frame) {
+    v1::Observation observation = WithObjects(frame);
+    observation.clear_pose();
+    if (frame % 6 != 0) {  // every sixth frame has no pose
+      observation.mutable_pose()->set_x(frame);
+      observation.mutable_pose()->set_y(0.5);
+      observation.mutable_pose()->set_z(0);
+      observation.mutable_pose()->set_qw(1);
+    }
+    frames.push_back(observation);
+  }
+  const IngestOutcome ingest = IngestAll(stub_.get(), "path", frames);
+  ASSERT_TRUE(ingest.status.ok()) << ingest.status.error_message();
+  // Near (10, 0.5, 0) within 3.5: frames 7..13 that were stored and have a pose (not 12).
+  std::set<uint32_t> expected;
+  for (size_t i = 0; i < ingest.responses.size(); ++i) {
+    const int frame = int(i) + 1;
+    if (ingest.responses[i].stored() && frame >= 7 && frame <= 13 && frame % 6 != 0) {
+      expected.insert(ingest.responses[i].place_id());
+    }
+  }
+  ASSERT_GE(expected.size(), 3u);
+
+  v1::GetDynamicsRequest request;
+  request.set_map("path");
+  request.mutable_near()->set_x(10);
+  request.mutable_near()->set_y(0.5);
+  request.set_near_radius(3.5);
+  v1::GetDynamicsResponse near;
+  ASSERT_TRUE(Get(request, &near).ok());
+  std::set<uint32_t> ranked;
+  for (const v1::RankedPlace& place : near.places()) ranked.insert(place.place_id());
+  EXPECT_EQ(ranked, expected);
+  EXPECT_EQ(near.ranked(), expected.size());
+  // The map aggregate is the whole map's, whatever the filter.
+  EXPECT_EQ(near.map().observations(),
+            uint64_t(std::count_if(ingest.responses.begin(), ingest.responses.end(),
+                                   [](const auto& r) { return r.stored(); })));
+  // Far from the path: nothing.
+  request.mutable_near()->set_y(100);
+  v1::GetDynamicsResponse far;
+  ASSERT_TRUE(Get(request, &far).ok());
+  EXPECT_EQ(far.places_size(), 0);
+  EXPECT_EQ(far.ranked(), 0u);
+
+  struct Case {
+    std::string field;
+    v1::GetDynamicsRequest request;
+  };
+  v1::GetDynamicsRequest base;
+  base.set_map("path");
+  std::vector<Case> cases;
+  cases.push_back({"near_radius: must be > 0 with near", base});
+  cases.back().request.mutable_near()->set_x(1);
+  cases.push_back({"near: is required with near_radius", base});
+  cases.back().request.set_near_radius(2);
+  cases.push_back({"near_radius", base});
+  cases.back().request.mutable_near()->set_x(1);
+  cases.back().request.set_near_radius(-2);
+  cases.push_back({"near_radius", base});
+  cases.back().request.mutable_near()->set_x(1);
+  cases.back().request.set_near_radius(std::nan(""));
+  cases.push_back({"near: the position must be finite", base});
+  cases.back().request.mutable_near()->set_x(std::nan(""));
+  cases.back().request.set_near_radius(2);
+  for (const Case& c : cases) {
+    v1::GetDynamicsResponse response;
+    const grpc::Status s = Get(c.request, &response);
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << c.field;
+    EXPECT_NE(s.error_message().find(c.field), std::string::npos) << s.error_message();
   }
 }
 
