@@ -9,24 +9,34 @@
 //  2b. The cost of dynamic-object statistics (issue 16, StorageOptions::dynamics): the 701
 //     CamVid frames with their boxes ingested one by one (Add: process + durable commit + index)
 //     with and without, same run; goal < 2 % of ingest time.
+//  2c. The same cost on a real ingest (--only ingest): JPEG bytes decoded (core/decode), ORB
+//     extracted by the map's pipeline, boxes from the label maps, durable commit + index; a
+//     third of the CamVid frames per run, 6 pairs of runs with and without in alternating order;
+//     the median and range of the pairs' costs; then 3 passes feeding each frame to a map with
+//     and one without, alternating which goes first (load drift cancels frame by frame).
 //  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
 //     places), committed by 2 writers, then the map is closed and reopened.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
-//                              [--only persist|dynamics]
+//                              [--only persist|dynamics|ingest]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <memory>
 #include <optional>
 #include <random>
+#include <span>
 #include <sstream>
 #include <thread>
 
 #include "bench/bench_output.h"
+#include "core/decode/image_decoder.h"
 #include "core/storage/map_store.h"
 
 namespace fs = std::filesystem;
@@ -133,6 +143,7 @@ struct Options {
   std::vector<size_t> reopen_sizes = {10000, 100000};
   bool persist_only = false;
   bool dynamics_only = false;  // --only dynamics: section 2b alone
+  bool ingest_only = false;    // --only ingest: section 2c alone
 };
 
 // The command line; an exit code when the program must stop (usage error).
@@ -142,7 +153,7 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
     if (i + 1 >= argc) {
       std::fprintf(stderr,
                    "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-                   "[--reopen 10000,100000] [--shared DIR] [--only persist|dynamics]\n");
+                   "[--reopen 10000,100000] [--shared DIR] [--only persist|dynamics|ingest]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -161,6 +172,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       options->persist_only = true;
     } else if (arg == "--only" && value == "dynamics") {
       options->dynamics_only = true;
+    } else if (arg == "--only" && value == "ingest") {
+      options->ingest_only = true;
     } else {
       std::fprintf(stderr, "unknown option %s\n", arg.c_str());
       return 2;
@@ -255,6 +268,160 @@ double BenchIngestDynamics(const std::string& work_dir, const std::vector<Frame>
   return (NowMs() - start) / double(frames.size());
 }
 
+// 2c. A frame as an agent sends it: the JPEG's bytes and the label maps' boxes.
+struct JpegFrame {
+  std::string jpeg;
+  std::vector<DynamicBox> boxes;
+};
+
+// Every third CamVid frame (a third of each sequence, in order).
+std::vector<JpegFrame> LoadCamVidJpegs(const std::string& shared) {
+  std::vector<std::string> images;
+  for (const auto& entry : fs::directory_iterator(shared + "/data/camvid/images")) {
+    images.push_back(entry.path().string());
+  }
+  std::sort(images.begin(), images.end());
+  std::vector<JpegFrame> frames;
+  for (size_t i = 0; i < images.size(); i += 3) {
+    const std::string stem = fs::path(images[i]).stem().string();
+    const cv::Mat labels =
+        cv::imread(shared + "/data/camvid/labels/" + stem + ".png", cv::IMREAD_GRAYSCALE);
+    std::ifstream in(images[i], std::ios::binary);
+    JpegFrame frame;
+    frame.jpeg.assign(std::istreambuf_iterator<char>(in), {});
+    if (labels.empty() || frame.jpeg.empty()) continue;
+    frame.boxes = BoxesFromLabels(labels);
+    frames.push_back(std::move(frame));
+  }
+  return frames;
+}
+
+// Mean real ingest time per frame (ms): decode + Add (ORB, filter, BoW, durable commit, index),
+// one writer, with or without statistics. Negative after an error.
+double BenchRealIngest(const std::string& work_dir, const std::vector<JpegFrame>& frames,
+                       const std::shared_ptr<const Vocabulary>& vocabulary, bool dynamics) {
+  StorageOptions storage;
+  storage.dynamics = dynamics;
+  static int run = 0;
+  auto dir = DataDirectory::Open(
+      work_dir + "/ingest-" + std::to_string(dynamics) + "-" + std::to_string(run++), storage);
+  if (!dir.ok()) return -1;
+  auto map = (*dir)->CreateMap("m", MapOptions(), vocabulary);
+  if (!map.ok()) return -1;
+  const double start = NowMs();
+  int64_t timestamp = int64_t(1704067200) * 1'000'000'000;
+  for (const JpegFrame& frame : frames) {
+    auto image = DecodeImage(
+        std::span(reinterpret_cast<const uint8_t*>(frame.jpeg.data()), frame.jpeg.size()),
+        DecodeOptions{});
+    if (!image.ok()) return -1;
+    Observation observation;
+    observation.image = std::move(image).value();
+    observation.dynamic.boxes = frame.boxes;
+    observation.metadata.timestamp_ns = (timestamp += 33'000'000);
+    if (!(*map)->Add(observation).ok()) return -1;
+  }
+  return (NowMs() - start) / double(frames.size());
+}
+
+// 2c, interleaved: two maps, one with and one without statistics, fed the same frame one after
+// the other (alternating which goes first), so the machine's load drifts on both alike at the
+// scale of one frame. Appends each frame's times (ms: decode + Add) to *with / *without. False
+// after an error.
+bool BenchRealIngestInterleaved(const std::string& work_dir, const std::vector<JpegFrame>& frames,
+                                const std::shared_ptr<const Vocabulary>& vocabulary,
+                                std::vector<double>* with, std::vector<double>* without) {
+  static int run = 0;
+  std::unique_ptr<DataDirectory> dirs[2];
+  std::shared_ptr<PlaceMap> maps[2];
+  for (int dynamics = 0; dynamics < 2; ++dynamics) {
+    StorageOptions storage;
+    storage.dynamics = dynamics == 1;
+    auto dir = DataDirectory::Open(
+        work_dir + "/interleaved-" + std::to_string(dynamics) + "-" + std::to_string(run), storage);
+    if (!dir.ok()) return false;
+    dirs[dynamics] = std::move(dir).value();
+    auto map = dirs[dynamics]->CreateMap("m", MapOptions(), vocabulary);
+    if (!map.ok()) return false;
+    maps[dynamics] = *map;
+  }
+  ++run;
+  int64_t timestamp = int64_t(1704067200) * 1'000'000'000;
+  for (size_t i = 0; i < frames.size(); ++i) {
+    timestamp += 33'000'000;
+    for (int k = 0; k < 2; ++k) {
+      const int dynamics = (int(i) + k) % 2;
+      const double start = NowMs();
+      auto image = DecodeImage(
+          std::span(reinterpret_cast<const uint8_t*>(frames[i].jpeg.data()), frames[i].jpeg.size()),
+          DecodeOptions{});
+      if (!image.ok()) return false;
+      Observation observation;
+      observation.image = std::move(image).value();
+      observation.dynamic.boxes = frames[i].boxes;
+      observation.metadata.timestamp_ns = timestamp;
+      if (!maps[dynamics]->Add(observation).ok()) return false;
+      (dynamics ? with : without)->push_back(NowMs() - start);
+    }
+  }
+  return true;
+}
+
+double Median(std::vector<double> values) {
+  std::sort(values.begin(), values.end());
+  const size_t n = values.size();
+  return n == 0 ? 0 : n % 2 ? values[n / 2] : (values[n / 2 - 1] + values[n / 2]) / 2;
+}
+
+// 2c: 6 pairs, on/off then off/on alternately, so drift in the machine's load weighs on both.
+bool BenchRealIngestCost(const std::string& work_dir, const std::string& shared,
+                         const std::shared_ptr<const Vocabulary>& vocabulary) {
+  const std::vector<JpegFrame> frames = LoadCamVidJpegs(shared);
+  if (frames.empty()) return false;
+  std::printf("# real ingest: %zu CamVid JPEGs per run (decode + ORB 1000 + filter + commit)\n",
+              frames.size());
+  std::vector<double> with, without, cost;
+  for (int pair = 0; pair < 6; ++pair) {
+    double ms[2] = {0, 0};  // [dynamics]
+    for (bool dynamics : {pair % 2 == 0, pair % 2 != 0}) {
+      ms[dynamics] = BenchRealIngest(work_dir, frames, vocabulary, dynamics);
+      if (ms[dynamics] < 0) return false;
+    }
+    with.push_back(ms[1]);
+    without.push_back(ms[0]);
+    cost.push_back(100.0 * (ms[1] / ms[0] - 1.0));
+    Print("real_ingest_pair_" + std::to_string(pair + 1) + "_cost", cost.back(), "%");
+  }
+  Print("real_ingest_with_dynamics_median", Median(with), "ms/frame");
+  Print("real_ingest_without_dynamics_median", Median(without), "ms/frame");
+  Print("real_ingest_dynamics_cost_median", Median(cost), "%");
+  Print("real_ingest_dynamics_cost_min", *std::min_element(cost.begin(), cost.end()), "%");
+  Print("real_ingest_dynamics_cost_max", *std::max_element(cost.begin(), cost.end()), "%");
+  // Interleaved frame by frame: 3 passes, the totals' ratio and the median per-frame difference.
+  std::vector<double> frame_with, frame_without;
+  for (int pass = 0; pass < 3; ++pass) {
+    if (!BenchRealIngestInterleaved(work_dir, frames, vocabulary, &frame_with, &frame_without)) {
+      return false;
+    }
+  }
+  double sum_with = 0, sum_without = 0;
+  std::vector<double> difference;
+  for (size_t i = 0; i < frame_with.size(); ++i) {
+    sum_with += frame_with[i];
+    sum_without += frame_without[i];
+    difference.push_back(frame_with[i] - frame_without[i]);
+  }
+  Print("interleaved_frames", double(frame_with.size()), "frames");
+  Print("interleaved_with_dynamics_mean", sum_with / double(frame_with.size()), "ms/frame");
+  Print("interleaved_without_dynamics_mean", sum_without / double(frame_without.size()),
+        "ms/frame");
+  Print("interleaved_dynamics_cost", 100.0 * (sum_with / sum_without - 1.0), "%");
+  Print("interleaved_median_frame_difference", Median(difference), "ms");
+  Print("interleaved_dynamics_cost_by_median", 100.0 * Median(difference) / Median(frame_without),
+        "%");
+  return true;
+}
+
 // Places `first` .. `target` - 1 added by 2 writers: CamVid feature sets with a random 90 % of
 // their descriptors kept and 4 bits flipped in each, so that places stay distinct.
 void AddNoisyPlaces(PlaceMap& map, const std::vector<Frame>& frames, size_t first, size_t target) {
@@ -339,6 +506,11 @@ int main(int argc, char** argv) {
   std::string work_dir = options.work_dir;
   if (work_dir.empty()) work_dir = (fs::temp_directory_path() / "placedb-bench-storage").string();
   fs::remove_all(work_dir);
+  if (options.ingest_only) {
+    if (!BenchRealIngestCost(work_dir, options.shared, *vocabulary)) return 1;
+    fs::remove_all(work_dir);
+    return 0;
+  }
   const std::vector<Frame> frames = LoadCamVid(options.shared);
   std::printf(
       "# workload: %zu CamVid frames, ORB 1000, boxes from label maps; vocabulary %u words\n",
