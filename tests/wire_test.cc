@@ -451,6 +451,8 @@ std::vector<FieldCase> FieldCases() {
       {"verification.rerank",
        [](v1::MapConfig* c) { c->mutable_verification()->set_rerank(false); }},
       {"store_invalid", [](v1::MapConfig* c) { c->set_store_invalid(true); }},
+      {"dynamics.count_query_hits_above",
+       [](v1::MapConfig* c) { c->mutable_dynamics()->set_count_query_hits_above(0.25); }},
   };
   // Every specified value of the enum fields (the defaults come back as themselves).
   auto each = [&](const EnumDescriptor* type, const std::string& path,
