@@ -22,6 +22,7 @@
 #include <sstream>
 
 #include "client/cli.h"
+#include "client/dynamics_chart.h"
 #include "client/format.h"
 #include "client/frame_source.h"
 #include "client/loopback.h"
@@ -476,6 +477,38 @@ TEST_F(ClientTest, DynamicsWritesAChartPng) {
   EXPECT_EQ(bad.code, 2);
   EXPECT_NE(bad.err.find("cannot write " + nowhere), std::string::npos) << bad.err;
   EXPECT_FALSE(std::filesystem::exists(nowhere));
+}
+
+// The chart itself (no server): a place with a thumbnail gets it beside its bar, the others a
+// grey placeholder; hours without frames stay grey, the hour with frames is coloured.
+TEST(DynamicsChart, ThumbnailsBesideTheirBarsAndEmptyHoursGrey) {
+  v1::GetDynamicsResponse page;
+  page.mutable_map()->set_observations(3);
+  page.mutable_map()->set_mean_coverage(0.2);
+  v1::HourCoverage* bin = page.mutable_map()->add_hours();
+  bin->set_weekday(2);
+  bin->set_hour(9);
+  bin->set_observations(3);
+  bin->set_mean_coverage(0.2);
+  for (uint32_t id : {7u, 8u}) {
+    v1::RankedPlace* place = page.add_places();
+    place->set_place_id(id);
+    place->set_score(id == 7 ? 0.3 : 0.1);
+    place->set_support(1);
+  }
+  const cv::Mat red(48, 64, CV_8UC3, cv::Scalar(0, 0, 255));
+  const cv::Mat chart = client::DrawDynamicsChart("m", "mean coverage", page, {{7u, red}});
+  ASSERT_EQ(chart.cols, client::kDynamicsChartWidth);
+  ASSERT_EQ(chart.rows, client::kDynamicsChartHeight);
+  // The first bar's slot (its top left is 4 px below the bars' area, 20 px from the left).
+  auto pixel = [&](int x, int y) { return chart.at<cv::Vec3b>(y, x); };
+  EXPECT_EQ(pixel(40, 580), cv::Vec3b(0, 0, 255)) << "place 7's thumbnail";
+  const int row = (client::kDynamicsChartHeight - 580) / client::kDynamicsChartMaxBars;
+  EXPECT_EQ(pixel(30, 580 + row + 10), cv::Vec3b(200, 200, 200)) << "place 8's placeholder";
+  // Heat map: Wednesday (row 2) at 09 h coloured, 10 h grey (cells of 860/24 x 22 px from 70, 340).
+  const double cell = (client::kDynamicsChartWidth - 30 - 70) / 24.0;
+  EXPECT_NE(pixel(70 + int(9.5 * cell), 340 + 2 * 22 + 10), cv::Vec3b(200, 200, 200));
+  EXPECT_EQ(pixel(70 + int(10.5 * cell), 340 + 2 * 22 + 10), cv::Vec3b(200, 200, 200));
 }
 
 TEST_F(ClientTest, IngestSummaryListsAndVideos) {

@@ -106,8 +106,8 @@ grpc::Status FetchThumbnails(const Connection& connection, const std::string& ma
     if (!status.ok()) return status;
     const std::string& jpeg = place.thumbnail().jpeg();
     if (jpeg.empty()) continue;
-    cv::Mat decoded =
-        cv::imdecode(cv::Mat(1, int(jpeg.size()), CV_8U, (void*)jpeg.data()), cv::IMREAD_COLOR);
+    cv::Mat decoded = cv::imdecode(
+        cv::Mat(1, int(jpeg.size()), CV_8U, const_cast<char*>(jpeg.data())), cv::IMREAD_COLOR);
     if (!decoded.empty()) (*thumbnails)[place.place_id()] = decoded;
   }
   return grpc::Status::OK;
