@@ -14,6 +14,11 @@
 //     thumbnails, else gray) and Add()ed (ORB from pixels, box refinement, filter, thumbnail,
 //     durable commit, index), with and without thumbnails, alternated 3 times in the same run;
 //     the thumbnail's own time, its stored size and the map's bytes per place on disk.
+//  2d. The statistics' cost on a real ingest (--only ingest): JPEG bytes decoded (core/decode), ORB
+//     extracted by the map's pipeline, boxes from the label maps, durable commit + index; a
+//     third of the CamVid frames per run, 6 pairs of runs with and without in alternating order;
+//     the median and range of the pairs' costs; then 3 passes feeding each frame to a map with
+//     and one without, alternating which goes first (load drift cancels frame by frame).
 //  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
 //     places), committed by 2 writers, then the map is closed and reopened.
@@ -23,17 +28,19 @@
 //     there; times, bytes on disk and archive bytes.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
-//                              [--only persist|dynamics|thumbnails|snapshots]
+//                              [--only persist|dynamics|ingest|thumbnails|snapshots]
 //                              [--snapshot-places 10000] [--keep 1]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <memory>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <optional>
 #include <random>
+#include <span>
 #include <sstream>
 #include <thread>
 
@@ -147,6 +154,7 @@ struct Options {
   std::vector<size_t> reopen_sizes = {10000, 100000};
   bool persist_only = false;
   bool dynamics_only = false;    // --only dynamics: section 2b alone
+  bool ingest_only = false;      // --only ingest: section 2d alone
   bool thumbnails_only = false;  // --only thumbnails: section 2c alone
   bool snapshots_only = false;   // --only snapshots: section 4 alone
   size_t snapshot_places = 10000;
@@ -158,11 +166,11 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     if (i + 1 >= argc) {
-      std::fprintf(
-          stderr,
-          "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-          "[--reopen 10000,100000] [--shared DIR] "
-          "[--only persist|dynamics|thumbnails|snapshots] [--snapshot-places N] [--keep 1]\n");
+      std::fprintf(stderr,
+                   "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
+                   "[--reopen 10000,100000] [--shared DIR] "
+                   "[--only persist|dynamics|ingest|thumbnails|snapshots] [--snapshot-places N] "
+                   "[--keep 1]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -181,6 +189,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       options->persist_only = true;
     } else if (arg == "--only" && value == "dynamics") {
       options->dynamics_only = true;
+    } else if (arg == "--only" && value == "ingest") {
+      options->ingest_only = true;
     } else if (arg == "--only" && value == "thumbnails") {
       options->thumbnails_only = true;
     } else if (arg == "--only" && value == "snapshots") {
@@ -283,12 +293,13 @@ double BenchIngestDynamics(const std::string& work_dir, const std::vector<Frame>
   return (NowMs() - start) / double(frames.size());
 }
 
-// A CamVid frame as the service receives it: JPEG bytes and the agent's boxes.
+// A CamVid frame as an agent sends it: the JPEG's bytes and the label maps' boxes.
 struct JpegFrame {
   std::string jpeg;
   std::vector<DynamicBox> boxes;
 };
 
+// Every `every`-th CamVid frame, in order.
 std::vector<JpegFrame> LoadCamVidJpegs(const std::string& shared, size_t every) {
   std::vector<std::string> images;
   for (const auto& entry : fs::directory_iterator(shared + "/data/camvid/images")) {
@@ -438,6 +449,132 @@ bool BenchThumbnails(const std::string& work_dir, const std::string& shared,
   Print("bytes_per_place_thumbnails_off", last[0].bytes_per_place, "bytes");
   Print("places_thumbnails_on", double(last[1].places), "places");
   Print("places_thumbnails_off", double(last[0].places), "places");
+  return true;
+}
+
+// Mean real ingest time per frame (ms): decode + Add (ORB, filter, BoW, durable commit, index),
+// one writer, with or without statistics. Negative after an error.
+double BenchRealIngest(const std::string& work_dir, const std::vector<JpegFrame>& frames,
+                       const std::shared_ptr<const Vocabulary>& vocabulary, bool dynamics) {
+  StorageOptions storage;
+  storage.dynamics = dynamics;
+  static int run = 0;
+  auto dir = DataDirectory::Open(
+      work_dir + "/ingest-" + std::to_string(dynamics) + "-" + std::to_string(run++), storage);
+  if (!dir.ok()) return -1;
+  auto map = (*dir)->CreateMap("m", MapOptions(), vocabulary);
+  if (!map.ok()) return -1;
+  const double start = NowMs();
+  int64_t timestamp = int64_t(1704067200) * 1'000'000'000;
+  for (const JpegFrame& frame : frames) {
+    auto image = DecodeImage(
+        std::span(reinterpret_cast<const uint8_t*>(frame.jpeg.data()), frame.jpeg.size()),
+        DecodeOptions{});
+    if (!image.ok()) return -1;
+    Observation observation;
+    observation.image = std::move(image).value();
+    observation.dynamic.boxes = frame.boxes;
+    observation.metadata.timestamp_ns = (timestamp += 33'000'000);
+    if (!(*map)->Add(observation).ok()) return -1;
+  }
+  return (NowMs() - start) / double(frames.size());
+}
+
+// 2d, interleaved: two maps, one with and one without statistics, fed the same frame one after
+// the other (alternating which goes first), so the machine's load drifts on both alike at the
+// scale of one frame. Appends each frame's times (ms: decode + Add) to *with / *without. False
+// after an error.
+bool BenchRealIngestInterleaved(const std::string& work_dir, const std::vector<JpegFrame>& frames,
+                                const std::shared_ptr<const Vocabulary>& vocabulary,
+                                std::vector<double>* with, std::vector<double>* without) {
+  static int run = 0;
+  std::unique_ptr<DataDirectory> dirs[2];
+  std::shared_ptr<PlaceMap> maps[2];
+  for (int dynamics = 0; dynamics < 2; ++dynamics) {
+    StorageOptions storage;
+    storage.dynamics = dynamics == 1;
+    auto dir = DataDirectory::Open(
+        work_dir + "/interleaved-" + std::to_string(dynamics) + "-" + std::to_string(run), storage);
+    if (!dir.ok()) return false;
+    dirs[dynamics] = std::move(dir).value();
+    auto map = dirs[dynamics]->CreateMap("m", MapOptions(), vocabulary);
+    if (!map.ok()) return false;
+    maps[dynamics] = *map;
+  }
+  ++run;
+  int64_t timestamp = int64_t(1704067200) * 1'000'000'000;
+  for (size_t i = 0; i < frames.size(); ++i) {
+    timestamp += 33'000'000;
+    for (int k = 0; k < 2; ++k) {
+      const int dynamics = (int(i) + k) % 2;
+      const double start = NowMs();
+      auto image = DecodeImage(
+          std::span(reinterpret_cast<const uint8_t*>(frames[i].jpeg.data()), frames[i].jpeg.size()),
+          DecodeOptions{});
+      if (!image.ok()) return false;
+      Observation observation;
+      observation.image = std::move(image).value();
+      observation.dynamic.boxes = frames[i].boxes;
+      observation.metadata.timestamp_ns = timestamp;
+      if (!maps[dynamics]->Add(observation).ok()) return false;
+      (dynamics ? with : without)->push_back(NowMs() - start);
+    }
+  }
+  return true;
+}
+
+double Median(std::vector<double> values) {
+  std::sort(values.begin(), values.end());
+  const size_t n = values.size();
+  return n == 0 ? 0 : n % 2 ? values[n / 2] : (values[n / 2 - 1] + values[n / 2]) / 2;
+}
+
+// 2d: 6 pairs, on/off then off/on alternately, so drift in the machine's load weighs on both.
+bool BenchRealIngestCost(const std::string& work_dir, const std::string& shared,
+                         const std::shared_ptr<const Vocabulary>& vocabulary) {
+  const std::vector<JpegFrame> frames = LoadCamVidJpegs(shared, 3);
+  if (frames.empty()) return false;
+  std::printf("# real ingest: %zu CamVid JPEGs per run (decode + ORB 1000 + filter + commit)\n",
+              frames.size());
+  std::vector<double> with, without, cost;
+  for (int pair = 0; pair < 6; ++pair) {
+    double ms[2] = {0, 0};  // [dynamics]
+    for (bool dynamics : {pair % 2 == 0, pair % 2 != 0}) {
+      ms[dynamics] = BenchRealIngest(work_dir, frames, vocabulary, dynamics);
+      if (ms[dynamics] < 0) return false;
+    }
+    with.push_back(ms[1]);
+    without.push_back(ms[0]);
+    cost.push_back(100.0 * (ms[1] / ms[0] - 1.0));
+    Print("real_ingest_pair_" + std::to_string(pair + 1) + "_cost", cost.back(), "%");
+  }
+  Print("real_ingest_with_dynamics_median", Median(with), "ms/frame");
+  Print("real_ingest_without_dynamics_median", Median(without), "ms/frame");
+  Print("real_ingest_dynamics_cost_median", Median(cost), "%");
+  Print("real_ingest_dynamics_cost_min", *std::min_element(cost.begin(), cost.end()), "%");
+  Print("real_ingest_dynamics_cost_max", *std::max_element(cost.begin(), cost.end()), "%");
+  // Interleaved frame by frame: 3 passes, the totals' ratio and the median per-frame difference.
+  std::vector<double> frame_with, frame_without;
+  for (int pass = 0; pass < 3; ++pass) {
+    if (!BenchRealIngestInterleaved(work_dir, frames, vocabulary, &frame_with, &frame_without)) {
+      return false;
+    }
+  }
+  double sum_with = 0, sum_without = 0;
+  std::vector<double> difference;
+  for (size_t i = 0; i < frame_with.size(); ++i) {
+    sum_with += frame_with[i];
+    sum_without += frame_without[i];
+    difference.push_back(frame_with[i] - frame_without[i]);
+  }
+  Print("interleaved_frames", double(frame_with.size()), "frames");
+  Print("interleaved_with_dynamics_mean", sum_with / double(frame_with.size()), "ms/frame");
+  Print("interleaved_without_dynamics_mean", sum_without / double(frame_without.size()),
+        "ms/frame");
+  Print("interleaved_dynamics_cost", 100.0 * (sum_with / sum_without - 1.0), "%");
+  Print("interleaved_median_frame_difference", Median(difference), "ms");
+  Print("interleaved_dynamics_cost_by_median", 100.0 * Median(difference) / Median(frame_without),
+        "%");
   return true;
 }
 
@@ -638,6 +775,11 @@ int main(int argc, char** argv) {
   fs::remove_all(work_dir);
   if (options.thumbnails_only) {
     if (!BenchThumbnails(work_dir, options.shared, *vocabulary)) return 1;
+    fs::remove_all(work_dir);
+    return 0;
+  }
+  if (options.ingest_only) {
+    if (!BenchRealIngestCost(work_dir, options.shared, *vocabulary)) return 1;
     fs::remove_all(work_dir);
     return 0;
   }

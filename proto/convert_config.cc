@@ -463,6 +463,12 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, uint32_t max_desc
   if (Status valid = ValidateThumbnailSettings(options.thumbnails); !valid.ok()) {
     return Status::InvalidArgument("config." + valid.message());
   }
+  const double hits_above = c.dynamics().count_query_hits_above();
+  if (!std::isfinite(hits_above) || hits_above < 0) {
+    return Invalid("config.dynamics.count_query_hits_above",
+                   "must be a finite score >= 0 (0 = off)");
+  }
+  options.count_query_hits_above = hits_above;
 
   // The core's messages name fields relative to the DatabaseConfig ("orb.max_features ...").
   if (Status valid = ValidateDatabaseConfig(d); !valid.ok()) {
@@ -558,6 +564,7 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
   thumbnails->set_enabled(options.thumbnails.enabled);
   thumbnails->set_max_side(options.thumbnails.max_side);
   thumbnails->set_jpeg_quality(options.thumbnails.jpeg_quality);
+  out->mutable_dynamics()->set_count_query_hits_above(options.count_query_hits_above);
 }
 
 void MapStatsToProto(const MapStats& stats, v1::MapStats* out) {

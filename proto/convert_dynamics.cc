@@ -83,6 +83,17 @@ Result<DynamicsRankOptions> RankOptionsFromProto(const v1::GetDynamicsRequest& r
   options.min_observations = std::max<uint64_t>(1, request.min_observations());
   options.offset = request.offset();
   options.limit = request.limit() == 0 ? 50 : request.limit();
+  if (request.has_near() != (request.near_radius() != 0)) {
+    return Status::InvalidArgument(request.has_near() ? "near_radius: must be > 0 with near"
+                                                      : "near: is required with near_radius");
+  }
+  if (request.has_near()) {
+    options.near.centre = {request.near().x(), request.near().y(), request.near().z()};
+    options.near.radius = request.near_radius();
+    if (!(options.near.radius > 0)) {
+      return Status::InvalidArgument("near_radius: must be a finite distance > 0");
+    }
+  }
   PLACEDB_RETURN_IF_ERROR(ValidateDynamicsRankOptions(options));
   return options;
 }

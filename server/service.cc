@@ -447,6 +447,13 @@ grpc::Status PlaceDbService::GetDynamics(grpc::ServerContext* context,
   // One pass over the map's places; the ranking keeps offset + limit entries.
   DynamicsRanking ranking(*options);
   const Status scanned = map.ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {
+    if (options->near.active()) {  // the poses are in the places' records (memory)
+      const auto record = map.database().Get(id);
+      if (!record || !record->metadata.pose ||
+          !options->near.Contains(record->metadata.pose->position)) {
+        return true;
+      }
+    }
     ranking.Add(id, d);
     return true;
   });
@@ -636,6 +643,12 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
             QueryOptionsFromProto(request->options(), request->observation().agent_id());
         options.timestamp_ns = request->observation().timestamp_ns();
         QueryResult result = map.map->Search(work.frame, options);
+        // A map that counts query hits (MapConfig.dynamics): durable before the answer.
+        if (auto counted = map.map->CountQueryHit(work.frame, work.metadata, result);
+            !counted.ok()) {
+          metrics_->StorageError(map.name, counted.status());
+          return ToGrpc(counted.status());
+        }
         work.timings.search_ms = result.timings.search_ms;
         work.timings.verify_ms = result.timings.verify_ms;
         response->set_valid(result.valid);

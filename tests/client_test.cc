@@ -24,6 +24,7 @@
 
 #include "client/cli.h"
 #include "client/commands/places.h"
+#include "client/dynamics_chart.h"
 #include "client/format.h"
 #include "client/frame_source.h"
 #include "client/loopback.h"
@@ -560,6 +561,74 @@ TEST_F(ClientTest, DynamicsShowsTheMapAndRanksItsPlaces) {
   EXPECT_EQ(Cli({"dynamics", "dyn", "--weekdays", "mon"}).code, 2);
   EXPECT_EQ(Cli({"dynamics", "dyn", "--class", "car", "--hours", "1-2"}).code, 2);
   EXPECT_EQ(Cli({"dynamics", "nowhere"}).code, 1);
+  // Near a point far from every frame: nothing is ranked.
+  CliRun near = Cli({"dynamics", "dyn", "--near", "1e6,1e6,0", "--radius", "5", "--json"});
+  ASSERT_EQ(near.code, 0) << near.err;
+  EXPECT_TRUE(ParseJson(near)["places"].empty());
+  EXPECT_EQ(ParseJson(near)["ranked"], "0");
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--near", "1", "--radius", "5"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--radius", "5"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--near", "1,2"}).code, 2);
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--near", "1,2", "--radius", "-1"}).code, 1);
+}
+
+// `placedb dynamics --png`: the chart is written with its fixed size, after the table; a file
+// that cannot be written is a usage error naming it.
+TEST_F(ClientTest, DynamicsWritesAChartPng) {
+  ASSERT_EQ(Cli({"maps", "create", "dyn"}).code, 0);
+  ASSERT_EQ(Cli({"ingest", "dyn", FramesDir(1, 6)}).code, 0);
+  const std::string png = root_ + "/dynamics.png";
+  CliRun drawn = Cli({"dynamics", "dyn", "--png", png});
+  ASSERT_EQ(drawn.code, 0) << drawn.err;
+  EXPECT_NE(drawn.out.find("RANK"), std::string::npos) << "the table is still printed";
+  const cv::Mat chart = cv::imread(png, cv::IMREAD_UNCHANGED);
+  ASSERT_FALSE(chart.empty()) << png << " does not decode";
+  EXPECT_EQ(chart.cols, 960);
+  EXPECT_EQ(chart.rows, 960);
+  EXPECT_EQ(chart.channels(), 3);
+  // Not a blank image: the bars and heat map are drawn.
+  cv::Scalar mean, deviation;
+  cv::meanStdDev(chart, mean, deviation);
+  EXPECT_GT(deviation[0], 10.0);
+  // By class and as JSON too.
+  EXPECT_EQ(Cli({"dynamics", "dyn", "--class", "person", "--json", "--png", png}).code, 0);
+  const std::string nowhere = root_ + "/no/such/dir/dynamics.png";
+  CliRun bad = Cli({"dynamics", "dyn", "--png", nowhere});
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_NE(bad.err.find("cannot write " + nowhere), std::string::npos) << bad.err;
+  EXPECT_FALSE(std::filesystem::exists(nowhere));
+}
+
+// The chart itself (no server): a place with a thumbnail gets it beside its bar, the others a
+// grey placeholder; hours without frames stay grey, the hour with frames is coloured.
+TEST(DynamicsChart, ThumbnailsBesideTheirBarsAndEmptyHoursGrey) {
+  v1::GetDynamicsResponse page;
+  page.mutable_map()->set_observations(3);
+  page.mutable_map()->set_mean_coverage(0.2);
+  v1::HourCoverage* bin = page.mutable_map()->add_hours();
+  bin->set_weekday(2);
+  bin->set_hour(9);
+  bin->set_observations(3);
+  bin->set_mean_coverage(0.2);
+  for (uint32_t id : {7u, 8u}) {
+    v1::RankedPlace* place = page.add_places();
+    place->set_place_id(id);
+    place->set_score(id == 7 ? 0.3 : 0.1);
+    place->set_support(1);
+  }
+  const cv::Mat red(48, 64, CV_8UC3, cv::Scalar(0, 0, 255));
+  const cv::Mat chart = client::DrawDynamicsChart("m", "mean coverage", page, {{7u, red}});
+  ASSERT_EQ(chart.cols, client::kDynamicsChartWidth);
+  ASSERT_EQ(chart.rows, client::kDynamicsChartHeight);
+  // The first bar's slot (its top left is 4 px below the bars' area, 20 px from the left).
+  auto pixel = [&](int x, int y) { return chart.at<cv::Vec3b>(y, x); };
+  EXPECT_EQ(pixel(40, 580), cv::Vec3b(0, 0, 255)) << "place 7's thumbnail";
+  const int row = (client::kDynamicsChartHeight - 580) / client::kDynamicsChartMaxBars;
+  EXPECT_EQ(pixel(30, 580 + row + 10), cv::Vec3b(200, 200, 200)) << "place 8's placeholder";
+  // Heat map: Wednesday (row 2) at 09 h coloured, 10 h grey (cells of 860/24 x 22 px from 70, 340).
+  const double cell = (client::kDynamicsChartWidth - 30 - 70) / 24.0;
+  EXPECT_NE(pixel(70 + int(9.5 * cell), 340 + 2 * 22 + 10), cv::Vec3b(200, 200, 200));
+  EXPECT_EQ(pixel(70 + int(10.5 * cell), 340 + 2 * 22 + 10), cv::Vec3b(200, 200, 200));
 }
 
 // The human summary, per-frame matches, progress lines when stderr is not a terminal, a list

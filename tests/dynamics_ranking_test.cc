@@ -4,6 +4,8 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cmath>
+#include <limits>
 #include <random>
 
 namespace placedb {
@@ -181,6 +183,30 @@ TEST(DynamicsRankingTest, BadOptionsAreInvalidArgument) {
   options.last_hour = 10;
   options.weekdays = 0;
   EXPECT_EQ(code(options), StatusCode::kInvalidArgument);
+}
+
+// Places near a point: a ball (inclusive), in all three coordinates; bad centres and radii
+// are INVALID_ARGUMENT naming the field.
+TEST(DynamicsRankingTest, NearIsABallAroundThePoint) {
+  DynamicsNear near;
+  EXPECT_FALSE(near.active());
+  near.centre = {1, 2, 3};
+  near.radius = 5;
+  EXPECT_TRUE(near.active());
+  EXPECT_TRUE(near.Contains({1, 2, 3}));
+  EXPECT_TRUE(near.Contains({4, 6, 3}));   // exactly 5 away
+  EXPECT_FALSE(near.Contains({4, 6, 4}));  // sqrt(26) away
+  EXPECT_FALSE(near.Contains({1, 2, 8.01}));
+  DynamicsRankOptions options;
+  options.near = near;
+  EXPECT_TRUE(ValidateDynamicsRankOptions(options).ok());
+  options.near.radius = -1;
+  EXPECT_NE(ValidateDynamicsRankOptions(options).message().find("near_radius"), std::string::npos);
+  options.near.radius = std::numeric_limits<double>::infinity();
+  EXPECT_EQ(ValidateDynamicsRankOptions(options).code(), StatusCode::kInvalidArgument);
+  options.near.radius = 1;
+  options.near.centre[1] = std::nan("");
+  EXPECT_NE(ValidateDynamicsRankOptions(options).message().find("near"), std::string::npos);
 }
 
 }  // namespace

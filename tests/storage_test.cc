@@ -11,6 +11,7 @@
 #include <fstream>
 #include <limits>
 #include <map>
+#include <mutex>
 #include <thread>
 
 #include "core/storage/codec.h"
@@ -1473,6 +1474,94 @@ TEST_F(StorageTest, ConcurrentCommitsLoseNoDynamics) {
   }
   EXPECT_EQ(aggregate->classes.at(0).boxes, people);
   EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+}
+
+// MapOptions::count_query_hits_above (issue 16): queries that hit a place above the score,
+// counted from 3 threads while a writer stores the rest of the frames, are each counted once at
+// their place and in the aggregate; off, or below the score, nothing is written. Survives reopen.
+TEST_F(StorageTest, ConcurrentQueryHitsAreCountedOnce) {
+  MapOptions options;
+  options.count_query_hits_above = 0.3;
+  auto dir = OpenDir();
+  auto map = dir->CreateMap("hits", options, vocabulary_);
+  ASSERT_TRUE(map.ok());
+  std::vector<ProcessedFrame> frames;
+  std::vector<PlaceMetadata> metadata;
+  for (int i = 1; i <= 24; ++i) {
+    const Observation observation = FrameWithObjects(i);
+    auto frame = (*map)->Process(observation);
+    ASSERT_TRUE(frame.ok());
+    if (!frame->valid) continue;
+    frames.push_back(*frame);
+    metadata.push_back(observation.metadata);
+  }
+  ASSERT_GT(frames.size(), 12u);
+  const size_t first_half = frames.size() / 2;
+  for (size_t i = 0; i < first_half; ++i) ASSERT_TRUE((*map)->Commit(frames[i], metadata[i]).ok());
+
+  std::atomic<int> failures{0};
+  std::mutex mutex;
+  std::map<PlaceId, uint64_t> hits;  // place -> hits counted
+  std::vector<std::thread> threads;
+  threads.emplace_back([&] {  // the writer: the second half
+    for (size_t i = first_half; i < frames.size(); ++i) {
+      if (!(*map)->Commit(frames[i], metadata[i]).ok()) failures.fetch_add(1);
+    }
+  });
+  for (size_t t = 0; t < 3; ++t) {
+    threads.emplace_back([&, t] {
+      for (size_t i = t; i < first_half; i += 3) {
+        const QueryResult result = (*map)->Search(frames[i], QueryOptions{});
+        auto counted = (*map)->CountQueryHit(frames[i], metadata[i], result);
+        if (!counted.ok()) failures.fetch_add(1);
+        if (counted.ok() && *counted) {
+          std::lock_guard lock(mutex);
+          ++hits[result.matches.front().place];
+        }
+      }
+    });
+  }
+  for (auto& thread : threads) thread.join();
+  EXPECT_EQ(failures.load(), 0);
+  ASSERT_GE(hits.size(), first_half / 2) << "the stored frames should match themselves";
+  uint64_t counted = 0;
+  for (const auto& [place, n] : hits) {
+    counted += n;
+    auto d = (*map)->GetDynamics(place);
+    ASSERT_TRUE(d.ok());
+    EXPECT_EQ(d->observations, 1 + n) << place;
+  }
+  auto aggregate = (*map)->MapDynamics();
+  ASSERT_TRUE(aggregate.ok());
+  EXPECT_EQ(aggregate->observations, frames.size() + counted);
+
+  // Below the score, or invalid: false, nothing written.
+  QueryResult weak = (*map)->Search(frames[0], QueryOptions{});
+  ASSERT_FALSE(weak.matches.empty());
+  weak.matches.front().score = 0.3;  // not above
+  auto below = (*map)->CountQueryHit(frames[0], metadata[0], weak);
+  ASSERT_TRUE(below.ok());
+  EXPECT_FALSE(*below);
+  weak.valid = false;
+  weak.matches.front().score = 0.9;
+  EXPECT_FALSE(*(*map)->CountQueryHit(frames[0], metadata[0], weak));
+  EXPECT_EQ((*map)->MapDynamics()->observations, frames.size() + counted);
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+
+  // The setting is the map's: it survives a reopen, and a map without it counts nothing.
+  map->reset();
+  dir.reset();
+  dir = OpenDir();
+  auto reopened = dir->OpenMap("hits", vocabulary_);
+  ASSERT_TRUE(reopened.ok()) << reopened.status().ToString();
+  EXPECT_EQ((*reopened)->info().options.count_query_hits_above, 0.3);
+  EXPECT_EQ((*reopened)->MapDynamics()->observations, frames.size() + counted);
+  auto plain = dir->CreateMap("plain", {}, vocabulary_);
+  ASSERT_TRUE(plain.ok());
+  ASSERT_TRUE((*plain)->Commit(frames[0], metadata[0]).ok());
+  const QueryResult strong = (*plain)->Search(frames[0], QueryOptions{});
+  EXPECT_FALSE(*(*plain)->CountQueryHit(frames[0], metadata[0], strong));
+  EXPECT_EQ((*plain)->MapDynamics()->observations, 1u);
 }
 
 // A frame loop-closure rehearsal merges into a place is counted at that place: every valid

@@ -456,6 +456,8 @@ std::vector<FieldCase> FieldCases() {
       {"thumbnails.max_side", [](v1::MapConfig* c) { c->mutable_thumbnails()->set_max_side(640); }},
       {"thumbnails.jpeg_quality",
        [](v1::MapConfig* c) { c->mutable_thumbnails()->set_jpeg_quality(90); }},
+      {"dynamics.count_query_hits_above",
+       [](v1::MapConfig* c) { c->mutable_dynamics()->set_count_query_hits_above(0.25); }},
   };
   // Every specified value of the enum fields (the defaults come back as themselves).
   auto each = [&](const EnumDescriptor* type, const std::string& path,

@@ -2,10 +2,13 @@
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <map>
+#include <opencv2/imgcodecs.hpp>
 #include <sstream>
 #include <vector>
 
 #include "client/commands/common.h"
+#include "client/dynamics_chart.h"
 #include "client/format.h"
 #include "core/detect/detector.h"
 
@@ -46,6 +49,26 @@ uint32_t ParseWeekdays(const std::string& text) {
   return bits;
 }
 
+// "1.5,2[,0]" -> the point; false unless two or three numbers.
+bool ParsePoint(const std::string& text, v1::Pose* point) {
+  std::vector<double> values;
+  std::stringstream list(text);
+  for (std::string part; std::getline(list, part, ',');) {
+    try {
+      size_t used = 0;
+      values.push_back(std::stod(part, &used));
+      if (used != part.size()) return false;
+    } catch (const std::exception&) {
+      return false;
+    }
+  }
+  if (values.size() < 2 || values.size() > 3) return false;
+  point->set_x(values[0]);
+  point->set_y(values[1]);
+  point->set_z(values.size() == 3 ? values[2] : 0);
+  return true;
+}
+
 std::string ClassLabel(int class_id) {
   const char* name =
       class_id >= 0 && class_id < kCocoClassCount ? CocoClassName(class_id) : nullptr;
@@ -66,6 +89,60 @@ std::string Percent(double share) {
   return FormatDouble(100.0 * share, 1) + "%";
 }
 
+// The page's places' thumbnails (GetPlace include_thumbnail), decoded; places without one (maps
+// that keep none, places removed meanwhile) are left out and drawn as placeholders.
+grpc::Status FetchThumbnails(const Connection& connection, const std::string& map,
+                             const v1::GetDynamicsResponse& page,
+                             std::map<uint32_t, cv::Mat>* thumbnails) {
+  for (int i = 0; i < page.places_size() && i < kDynamicsChartMaxBars; ++i) {
+    v1::GetPlaceRequest request;
+    request.set_map(map);
+    request.set_place_id(page.places(i).place_id());
+    request.set_include_thumbnail(true);
+    auto context = connection.NewContext();
+    v1::Place place;
+    const grpc::Status status = connection.stub()->GetPlace(context.get(), request, &place);
+    if (status.error_code() == grpc::StatusCode::NOT_FOUND) continue;
+    if (!status.ok()) return status;
+    const std::string& jpeg = place.thumbnail().jpeg();
+    if (jpeg.empty()) continue;
+    cv::Mat decoded = cv::imdecode(
+        cv::Mat(1, int(jpeg.size()), CV_8U, const_cast<char*>(jpeg.data())), cv::IMREAD_COLOR);
+    if (!decoded.empty()) (*thumbnails)[place.place_id()] = decoded;
+  }
+  return grpc::Status::OK;
+}
+
+std::string MeasureName(const v1::GetDynamicsRequest& request) {
+  switch (request.measure()) {
+    case v1::DYNAMICS_MEASURE_CLASS_SHARE:
+      return "share of frames with " + ClassLabel(request.class_id());
+    case v1::DYNAMICS_MEASURE_HOUR_WINDOW:
+      return "mean coverage " + std::to_string(request.first_hour()) + "-" +
+             std::to_string(request.last_hour()) + " h UTC";
+    default:
+      return "mean coverage";
+  }
+}
+
+int WriteChart(const Connection& connection, const DynamicsFlags& flags,
+               const v1::GetDynamicsRequest& request, const v1::GetDynamicsResponse& response,
+               CliIo& io) {
+  std::map<uint32_t, cv::Mat> thumbnails;
+  const grpc::Status fetched = FetchThumbnails(connection, flags.map, response, &thumbnails);
+  if (!fetched.ok()) return RpcFailed(io, fetched);
+  const cv::Mat chart =
+      DrawDynamicsChart("map '" + flags.map + "'", MeasureName(request), response, thumbnails);
+  bool written = false;
+  try {
+    written = cv::imwrite(flags.png, chart);
+  } catch (const cv::Exception&) {  // e.g. an extension OpenCV has no encoder for
+    written = false;
+  }
+  if (!written) return UsageError(io, "--png: cannot write " + flags.png);
+  return kExitOk;
+}
+
 }  // namespace
 
 CLI::App* RegisterDynamics(CLI::App& app, DynamicsFlags* flags) {
@@ -81,6 +158,12 @@ CLI::App* RegisterDynamics(CLI::App& app, DynamicsFlags* flags) {
   command->add_option("--offset", flags->offset, "first place of the page");
   command->add_option("--min-observations", flags->min_observations,
                       "leave out places observed fewer times (in the window)");
+  command->add_option("--near", flags->near,
+                      "only places whose pose lies within --radius of X,Y[,Z] (the poses' units)");
+  command->add_option("--radius", flags->radius, "with --near: the distance");
+  command->add_option("--png", flags->png,
+                      "also draw coverage by hour, weekday x hour, and the page's top places "
+                      "(with thumbnails) into this PNG file");
   return command;
 }
 
@@ -124,12 +207,22 @@ int RunDynamics(const Connection& connection, const DynamicsFlags& flags, bool j
   } else if (!flags.weekdays.empty()) {
     return UsageError(io, "--weekdays needs --hours");
   }
+  if (flags.near.empty() != (flags.radius == 0)) {
+    return UsageError(io, "--near X,Y[,Z] and --radius R go together");
+  }
+  if (!flags.near.empty()) {
+    if (!ParsePoint(flags.near, request.mutable_near())) {
+      return UsageError(io, "--near: expected X,Y or X,Y,Z, e.g. 12.5,-3");
+    }
+    request.set_near_radius(flags.radius);
+  }
   auto context = connection.NewContext();
   v1::GetDynamicsResponse response;
   const grpc::Status status = connection.stub()->GetDynamics(context.get(), request, &response);
   if (!status.ok()) return RpcFailed(io, status);
   if (json) {
     io.out << ProtoJson(response) << '\n';
+    if (!flags.png.empty()) return WriteChart(connection, flags, request, response, io);
     return kExitOk;
   }
   const v1::DynamicStatistics& map = response.map();
@@ -160,6 +253,7 @@ int RunDynamics(const Connection& connection, const DynamicsFlags& flags, bool j
     if (response.next_offset()) io.out << "; next page: --offset " << response.next_offset();
     io.out << '\n';
   }
+  if (!flags.png.empty()) return WriteChart(connection, flags, request, response, io);
   return kExitOk;
 }
 

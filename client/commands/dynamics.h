@@ -1,7 +1,9 @@
 // `placedb dynamics MAP [--class NAME|ID] [--hours FIRST-LAST] [--weekdays mon,...] [--limit N]
-// [--offset N] [--min-observations N]` (issue 16): a map's dynamic-object statistics and its
-// places ranked by mean coverage, by how often a class is seen, or by coverage in an hour window
-// (UTC), one page at a time (GetDynamics).
+// [--offset N] [--min-observations N] [--near X,Y[,Z] --radius R] [--png FILE]` (issue 16): a map's
+// dynamic-object statistics and its places ranked by mean coverage, by how often a class is seen,
+// or by coverage in an hour window (UTC), one page at a time (GetDynamics). --png also draws the
+// page (client/dynamics_chart.h), with each place's thumbnail when the map keeps one; a file that
+// cannot be written is a usage error (exit 2) after the table is printed.
 #pragma once
 
 #include <cstdint>
@@ -24,6 +26,9 @@ struct DynamicsFlags {
   uint32_t limit = 20;
   uint32_t offset = 0;
   uint64_t min_observations = 1;
+  std::string png;   // write the chart here too ("" = no chart)
+  std::string near;  // "X,Y[,Z]": only places whose pose lies within `radius` of it
+  double radius = 0;
 };
 
 CLI::App* RegisterDynamics(CLI::App& app, DynamicsFlags* flags);

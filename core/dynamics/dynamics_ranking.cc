@@ -1,6 +1,7 @@
 #include "core/dynamics/dynamics_ranking.h"
 
 #include <algorithm>
+#include <cmath>
 
 namespace placedb {
 
@@ -34,10 +35,24 @@ Status ValidateDynamicsRankOptions(const DynamicsRankOptions& options) {
       return Status::InvalidArgument("weekdays: choose one or more of the 7 days (bits 0..6)");
     }
   }
+  const auto& c = options.near.centre;
+  if (!std::isfinite(c[0]) || !std::isfinite(c[1]) || !std::isfinite(c[2])) {
+    return Status::InvalidArgument("near: the position must be finite");
+  }
+  if (!std::isfinite(options.near.radius) || options.near.radius < 0) {
+    return Status::InvalidArgument("near_radius: must be a finite distance >= 0");
+  }
   if (options.limit == 0 || options.limit > kMaxDynamicsPage) {
     return Status::InvalidArgument("limit: must be in 1.." + std::to_string(kMaxDynamicsPage));
   }
   return Status::Ok();
+}
+
+bool DynamicsNear::Contains(const std::array<double, 3>& position) const {
+  const double dx = position[0] - centre[0];
+  const double dy = position[1] - centre[1];
+  const double dz = position[2] - centre[2];
+  return dx * dx + dy * dy + dz * dz <= radius * radius;
 }
 
 double DynamicsScore(const PlaceDynamics& d, const DynamicsRankOptions& options,

@@ -12,10 +12,15 @@
 // places with no support, or less than `min_observations`, are left out. Order: score descending,
 // ties by ascending place id, so pages are stable while the map does not change.
 //
+// `near` (optional) keeps only places whose position lies within a radius of a point; the
+// ranking does not see positions (they are the places' metadata), so its caller applies
+// DynamicsNear::Contains before Add().
+//
 // DynamicsRanking keeps only offset + limit entries however many places it is shown (a bounded
 // heap), so ranking a large map needs no list of every place. Not thread-safe.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -29,6 +34,15 @@ enum class DynamicsMeasure { kMeanCoverage, kClassShare, kHourWindow };
 
 inline constexpr uint32_t kMaxDynamicsPage = 1000;
 
+// Places near a point: Euclidean distance of positions (x y z, in the poses' own units) at most
+// `radius`. Inactive when radius is 0.
+struct DynamicsNear {
+  std::array<double, 3> centre{};
+  double radius = 0;
+  bool active() const { return radius > 0; }
+  bool Contains(const std::array<double, 3>& position) const;
+};
+
 struct DynamicsRankOptions {
   DynamicsMeasure measure = DynamicsMeasure::kMeanCoverage;
   int class_id = -1;   // kClassShare: required, in [0, kMaxClassId]
@@ -38,6 +52,7 @@ struct DynamicsRankOptions {
   uint64_t min_observations = 1;
   uint32_t offset = 0;
   uint32_t limit = 50;  // 1..kMaxDynamicsPage
+  DynamicsNear near;    // radius finite and >= 0, centre finite
 };
 
 // INVALID_ARGUMENT naming the field.

@@ -305,6 +305,10 @@ std::string EncodeInfo(const MapInfo& info) {
   j["thumbnails"] = {{"enabled", thumbnails.enabled},
                      {"max_side", thumbnails.max_side},
                      {"jpeg_quality", thumbnails.jpeg_quality}};
+  // Only when set, so a map that never counted query hits has the same info as before.
+  if (info.options.count_query_hits_above > 0) {
+    j["count_query_hits_above"] = info.options.count_query_hits_above;
+  }
   j["service"] = info.options.service_json;
   j["vocabulary_checksum"] = info.vocabulary_checksum;
   j["created_unix_ms"] = info.created_unix_ms;
@@ -321,6 +325,7 @@ Result<MapInfo> DecodeInfo(const std::string& text) {
     if (!config.ok()) return config.status();
     info.options.database = *config;
     info.options.store_invalid = j.at("store_invalid").get<bool>();
+    info.options.count_query_hits_above = j.value("count_query_hits_above", 0.0);
     info.options.service_json = j.value("service", std::string());
     // Maps made before issue 20 have no thumbnail settings: off.
     if (j.contains("thumbnails")) {
@@ -967,17 +972,12 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
   };
   auto outcome = database_->CloseLoop(frame, metadata, store);
   if (!outcome.ok()) return outcome.status();
-  if (!committed && outcome->merged && storage_->dynamics) {
+  if (!committed && outcome->merged) {
     // Merged into the previous place by rehearsal: only its statistics are written, durably
-    // (acknowledged means counted). A place removed meanwhile keeps none (the map's aggregate
-    // still counts the frame); a removal racing this write may leave an entry without a place,
-    // which readers skip.
-    rocksdb::WriteBatch batch;
-    storage_->AddDynamics(&batch, database_->Get(outcome->place) ? outcome->place : 0,
-                          FrameDynamics(frame, metadata));
-    PLACEDB_RETURN_IF_ERROR(storage_->Write(
-        &batch, "counting a frame merged into place " + std::to_string(outcome->place),
-        MapStorage::Kind::kAddition));
+    // (acknowledged means counted).
+    PLACEDB_RETURN_IF_ERROR(
+        CountObservationAt(outcome->place, frame, metadata,
+                           "counting a frame merged into place " + std::to_string(outcome->place)));
   }
   if (!committed) {
     // Merged into the previous place by rehearsal: no place written.
@@ -991,6 +991,29 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
   result.timings.loop_closure_ms = outcome->update_ms;
   result.timings.total_ms += outcome->update_ms;
   return outcome;
+}
+
+Status PlaceMap::CountObservationAt(PlaceId place, const ProcessedFrame& frame,
+                                    const PlaceMetadata& metadata, const std::string& what) {
+  if (!storage_->dynamics) return Status::Ok();
+  // A place removed meanwhile keeps none (the map's aggregate still counts the frame); a removal
+  // racing this write may leave an entry without a place, which readers skip.
+  rocksdb::WriteBatch batch;
+  storage_->AddDynamics(&batch, database_->Get(place) ? place : 0, FrameDynamics(frame, metadata));
+  return storage_->Write(&batch, what, MapStorage::Kind::kAddition);
+}
+
+Result<bool> PlaceMap::CountQueryHit(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                     const QueryResult& result) {
+  const double above = info_.options.count_query_hits_above;
+  if (above <= 0 || !result.valid || result.matches.empty()) return false;
+  const Match& best = result.matches.front();
+  if (!(best.score > above)) return false;
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  PLACEDB_RETURN_IF_ERROR(CountObservationAt(
+      best.place, frame, metadata, "counting a query hit at place " + std::to_string(best.place)));
+  return true;
 }
 
 Result<AddResult> PlaceMap::StoreInvalid(const ProcessedFrame& frame,

@@ -91,6 +91,10 @@ struct MapOptions {
   // the "thumbnails" column family, written in the place's own batch. Only frames with pixels
   // have one. Validated by CreateMap (ValidateThumbnailSettings).
   ThumbnailSettings thumbnails;
+  // A query whose best match scores above this (Match::score, the map's scoring) counts as one
+  // more observation of that place's dynamic objects (CountQueryHit); 0 = off, the default.
+  // Queries then write: the map's creator chose it.
+  double count_query_hits_above = 0;
   // Settings of the layer above (the service's detection policy), stored with the map's info so
   // they are written atomically with it and travel with checkpoints. Opaque to storage.
   std::string service_json;
@@ -186,6 +190,15 @@ class PlaceMap {
   Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                                        AddResult* added);
   Result<QueryResult> Query(const Observation& observation, const QueryOptions& options) const;
+  // A query's best match as one more observation of its place (issue 16): when the map counts
+  // query hits (MapOptions::count_query_hits_above > 0) and `result` is valid with its best
+  // match scoring above the setting, `frame`'s statistics (timestamp from `metadata`) are added
+  // to that place and the map's aggregate in one acknowledged write, as a frame merged by
+  // rehearsal is. True when counted; false (nothing written) when off, invalid, without a match
+  // or not above. A place removed meanwhile: only the aggregate counts the frame. Errors are the
+  // write's (RESOURCE_EXHAUSTED when the disk is full, IO_ERROR); nothing is counted then.
+  Result<bool> CountQueryHit(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                             const QueryResult& result);
   // An invalid result with the reason when the map was deleted meanwhile.
   QueryResult Search(const ProcessedFrame& frame, const QueryOptions& options) const;
 
@@ -236,6 +249,11 @@ class PlaceMap {
   Result<AddResult> CommitLocked(const ProcessedFrame& frame, const PlaceMetadata& metadata)
       REQUIRES_SHARED(lifecycle_);
   Result<AddResult> StoreInvalid(const ProcessedFrame& frame, const PlaceMetadata& metadata);
+  // One acknowledged write adding `frame`'s statistics to `place` (0 or removed: the map's
+  // aggregate only) and to the aggregate: frames merged by rehearsal, counted query hits.
+  Status CountObservationAt(PlaceId place, const ProcessedFrame& frame,
+                            const PlaceMetadata& metadata, const std::string& what)
+      REQUIRES_SHARED(lifecycle_);
   Status Deleted() const;
   // The settings Process() makes thumbnails with: the map's, for stream frames, when enabled.
   const ThumbnailSettings* ThumbnailsFor(FrameRole role) const {

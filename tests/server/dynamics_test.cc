@@ -3,6 +3,8 @@
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
 #include <set>
 #include <string>
 #include <vector>
@@ -191,6 +193,180 @@ TEST_F(DynamicsTest, BadRequestsNameTheirField) {
   cases.back().request.set_measure(v1::DynamicsMeasure(42));
   for (const Case& c : cases) {
     const grpc::Status s = status(c.request);
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << c.field;
+    EXPECT_NE(s.error_message().find(c.field), std::string::npos) << s.error_message();
+  }
+}
+
+// MapConfig.dynamics.count_query_hits_above: a query whose best match scores above it is one
+// more observation of that place, durably (it survives a restart); below it, or on a map that
+// does not count hits, a query changes nothing.
+TEST_F(DynamicsTest, QueryHitsAboveTheMapsScoreAreCounted) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  v1::MapConfig counting;
+  counting.mutable_dynamics()->set_count_query_hits_above(0.3);
+  EXPECT_EQ(CreateMap("counted", counting).config().dynamics().count_query_hits_above(), 0.3);
+  CreateMap("plain");
+  std::vector<v1::Observation> frames;
+  for (int frame = 1; frame <= 20; ++frame) frames.push_back(WithObjects(frame));
+  for (const char* map : {"counted", "plain"}) {
+    const IngestOutcome ingest = IngestAll(stub_.get(), map, frames);
+    ASSERT_TRUE(ingest.status.ok()) << ingest.status.error_message();
+  }
+  auto place_dynamics = [&](const std::string& map, uint32_t id) {
+    grpc::ClientContext context;
+    v1::GetPlaceRequest get;
+    get.set_map(map);
+    get.set_place_id(id);
+    v1::Place place;
+    EXPECT_TRUE(stub_->GetPlace(&context, get, &place).ok());
+    return place.dynamics();
+  };
+  auto map_observations = [&](const std::string& map) {
+    v1::GetDynamicsRequest request;
+    request.set_map(map);
+    v1::GetDynamicsResponse response;
+    EXPECT_TRUE(Get(request, &response).ok());
+    return response.map().observations();
+  };
+  const uint64_t counted_before = map_observations("counted");
+  const uint64_t plain_before = map_observations("plain");
+
+  // The same view again, a day later (Friday 1970-01-02 09:00 UTC), with a bigger person.
+  v1::Observation again = WithObjects(12);
+  again.set_timestamp_ns(int64_t(33) * 3600 * 1'000'000'000LL);
+  again.mutable_boxes(0)->mutable_rect()->set_width(300);
+  v1::QueryResponse hit;
+  ASSERT_TRUE(Query("counted", again, &hit).ok());
+  ASSERT_TRUE(hit.valid());
+  ASSERT_GT(hit.matches_size(), 0);
+  ASSERT_GT(hit.matches(0).score(), 0.3) << "the same image should match its place well";
+  const uint32_t place = hit.matches(0).place_id();
+  const v1::DynamicStatistics counted = place_dynamics("counted", place);
+  EXPECT_EQ(counted.observations(), 2u);
+  EXPECT_NEAR(counted.max_coverage(), hit.counts().dynamic_coverage(), 1e-6);
+  EXPECT_EQ(counted.last_timestamp_ns(), again.timestamp_ns());
+  ASSERT_EQ(counted.hours_size(), 2);
+  EXPECT_EQ(counted.hours(1).weekday(), 4u);
+  EXPECT_EQ(counted.hours(1).hour(), 9u);
+  EXPECT_EQ(map_observations("counted"), counted_before + 1);
+
+  // A map that does not count hits: the same query changes nothing.
+  v1::QueryResponse plain_hit;
+  ASSERT_TRUE(Query("plain", again, &plain_hit).ok());
+  ASSERT_GT(plain_hit.matches_size(), 0);
+  EXPECT_EQ(place_dynamics("plain", plain_hit.matches(0).place_id()).observations(), 1u);
+  EXPECT_EQ(map_observations("plain"), plain_before);
+
+  // A view the map has not seen (a CamVid street): its best match scores below 0.3.
+  const v1::Observation street =
+      JpegObservation(testing::CamVidFrames().front().image_path, "rover", 99);
+  v1::QueryResponse miss;
+  ASSERT_TRUE(Query("counted", street, &miss).ok());
+  if (miss.matches_size() > 0) {
+    EXPECT_LE(miss.matches(0).score(), 0.3);
+  }
+  EXPECT_EQ(map_observations("counted"), counted_before + 1);
+
+  // Acknowledged means counted: after a restart the hit is still there.
+  const ServerConfig config = Config();
+  StopServer();
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  EXPECT_EQ(place_dynamics("counted", place).observations(), 2u);
+  v1::GetMapRequest get_map;
+  get_map.set_name("counted");
+  grpc::ClientContext context;
+  v1::MapDescription description;
+  ASSERT_TRUE(stub_->GetMap(&context, get_map, &description).ok());
+  EXPECT_EQ(description.config().dynamics().count_query_hits_above(), 0.3);
+
+  // The setting must be a finite score >= 0.
+  for (double bad : {-0.5, std::nan("")}) {
+    v1::MapConfig config_bad;
+    config_bad.mutable_dynamics()->set_count_query_hits_above(bad);
+    const grpc::Status refused = CreateMapStatus("bad", config_bad);
+    EXPECT_EQ(refused.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << bad;
+    EXPECT_NE(refused.error_message().find("config.dynamics.count_query_hits_above"),
+              std::string::npos)
+        << refused.error_message();
+  }
+}
+
+// GetDynamics near a pose: RTAB-Map frames on a synthetic straight path (x = frame number), some
+// without a pose; only the places within the radius are ranked, and the filter's bad requests
+// name their field.
+TEST_F(DynamicsTest, PlacesNearAPoseAreRankedAlone) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("path");
+  std::vector<v1::Observation> frames;
+  for (int frame = 1; frame <= 24; ++frame) {
+    v1::Observation observation = WithObjects(frame);
+    observation.clear_pose();
+    if (frame % 6 != 0) {  // every sixth frame has no pose
+      observation.mutable_pose()->set_x(frame);
+      observation.mutable_pose()->set_y(0.5);
+      observation.mutable_pose()->set_z(0);
+      observation.mutable_pose()->set_qw(1);
+    }
+    frames.push_back(observation);
+  }
+  const IngestOutcome ingest = IngestAll(stub_.get(), "path", frames);
+  ASSERT_TRUE(ingest.status.ok()) << ingest.status.error_message();
+  // Near (10, 0.5, 0) within 3.5: frames 7..13 that were stored and have a pose (not 12).
+  std::set<uint32_t> expected;
+  for (size_t i = 0; i < ingest.responses.size(); ++i) {
+    const int frame = int(i) + 1;
+    if (ingest.responses[i].stored() && frame >= 7 && frame <= 13 && frame % 6 != 0) {
+      expected.insert(ingest.responses[i].place_id());
+    }
+  }
+  ASSERT_GE(expected.size(), 3u);
+
+  v1::GetDynamicsRequest request;
+  request.set_map("path");
+  request.mutable_near()->set_x(10);
+  request.mutable_near()->set_y(0.5);
+  request.set_near_radius(3.5);
+  v1::GetDynamicsResponse near;
+  ASSERT_TRUE(Get(request, &near).ok());
+  std::set<uint32_t> ranked;
+  for (const v1::RankedPlace& place : near.places()) ranked.insert(place.place_id());
+  EXPECT_EQ(ranked, expected);
+  EXPECT_EQ(near.ranked(), expected.size());
+  // The map aggregate is the whole map's, whatever the filter.
+  EXPECT_EQ(near.map().observations(),
+            uint64_t(std::count_if(ingest.responses.begin(), ingest.responses.end(),
+                                   [](const auto& r) { return r.stored(); })));
+  // Far from the path: nothing.
+  request.mutable_near()->set_y(100);
+  v1::GetDynamicsResponse far;
+  ASSERT_TRUE(Get(request, &far).ok());
+  EXPECT_EQ(far.places_size(), 0);
+  EXPECT_EQ(far.ranked(), 0u);
+
+  struct Case {
+    std::string field;
+    v1::GetDynamicsRequest request;
+  };
+  v1::GetDynamicsRequest base;
+  base.set_map("path");
+  std::vector<Case> cases;
+  cases.push_back({"near_radius: must be > 0 with near", base});
+  cases.back().request.mutable_near()->set_x(1);
+  cases.push_back({"near: is required with near_radius", base});
+  cases.back().request.set_near_radius(2);
+  cases.push_back({"near_radius", base});
+  cases.back().request.mutable_near()->set_x(1);
+  cases.back().request.set_near_radius(-2);
+  cases.push_back({"near_radius", base});
+  cases.back().request.mutable_near()->set_x(1);
+  cases.back().request.set_near_radius(std::nan(""));
+  cases.push_back({"near: the position must be finite", base});
+  cases.back().request.mutable_near()->set_x(std::nan(""));
+  cases.back().request.set_near_radius(2);
+  for (const Case& c : cases) {
+    v1::GetDynamicsResponse response;
+    const grpc::Status s = Get(c.request, &response);
     EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << c.field;
     EXPECT_NE(s.error_message().find(c.field), std::string::npos) << s.error_message();
   }
