@@ -141,7 +141,9 @@ def main():
 
     server_binary = env("PLACEDB_SERVER_BINARY")
     cli = env("PLACEDB_CLI_BINARY")
-    frames_dir = os.path.join(env("PLACEDB_SHARED_DIR"), "data", "rtabmap-loop")
+    # Resolved: chromium refuses to read an uploaded file whose path has a ".." part (the
+    # default shared directory is <source>/../shared).
+    frames_dir = os.path.realpath(os.path.join(env("PLACEDB_SHARED_DIR"), "data", "rtabmap-loop"))
     if not os.path.isfile(os.path.join(frames_dir, "%d.jpg" % FRAMES)):
         fail("RTAB-Map frames missing in " + frames_dir)
     screenshots = env("PLACEDB_CONSOLE_SCREENSHOTS")
@@ -279,10 +281,15 @@ def main():
                              selector="#query-file")
         query_path = os.path.join(frames_dir, "%d.jpg" % QUERY_FRAME)
         devtools.call("DOM.setFileInputFiles", files=[query_path], nodeId=node["nodeId"])
-        wait_for("the query's results", lambda: devtools.evaluate(
-            "document.getElementById('query-results').dataset.done === 'yes'"), timeout=120)
+        # Done, or an error on the page (an exception, or the message the page shows).
+        wait_for("the query's results", lambda: devtools.errors or devtools.evaluate(
+            "document.getElementById('query-results').dataset.done === 'yes'"
+            " || document.getElementById('status').textContent !== ''"), timeout=120)
         if devtools.errors:
             fail("query page error: " + "; ".join(devtools.errors))
+        shown = devtools.evaluate("document.getElementById('status').textContent")
+        if shown:
+            fail("the query page shows an error: " + shown)
         top = devtools.evaluate(
             "(() => { const m = document.querySelector('#query-results .match');"
             " return m ? m.firstElementChild.textContent : null; })()")
