@@ -1,5 +1,5 @@
 // Snapshots: named, verified, online copies of one map, kept in the data directory, with an
-// archive format to move them between servers (docs/wip/15-snapshots.md has the design).
+// archive format to move them between servers (docs/storage.md, "Snapshots": design, figures).
 //
 // Layout: DATA_DIR/snapshots/<id>/ holds SNAPSHOT.json (the manifest: format version, source
 // map, creation time, vocabulary kind and checksum, places) and checkpoint/ (a RocksDB checkpoint
