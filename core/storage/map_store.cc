@@ -1143,7 +1143,8 @@ std::vector<InvalidObservation> PlaceMap::InvalidObservations(size_t limit) cons
   return out;
 }
 
-Result<PlaceDynamics> PlaceMap::GetDynamics(PlaceId id) const {
+Result<std::optional<std::string>> PlaceMap::ReadPlaceValue(PlaceId id, size_t family,
+                                                            const std::string& what) const {
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
   if (!database_->Get(id)) {
@@ -1151,29 +1152,29 @@ Result<PlaceDynamics> PlaceMap::GetDynamics(PlaceId id) const {
                             "'");
   }
   std::string value;
-  auto s = storage_->db->Get({}, storage_->cf(kDynamics), PlaceKey(id), &value);
-  if (s.IsNotFound()) return PlaceDynamics();
-  PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading the statistics of place " + std::to_string(id)));
-  auto decoded = DecodeDynamics(value);
+  auto s = storage_->db->Get({}, storage_->cf(Cf(family)), PlaceKey(id), &value);
+  if (s.IsNotFound()) return std::optional<std::string>();
+  if (Status read = FromRocks(s, "reading the " + what + " of place " + std::to_string(id));
+      !read.ok()) {
+    return Status(read.code(), RelativeTo(read.message(), path_, info_.name));
+  }
+  return std::optional<std::string>(std::move(value));
+}
+
+Result<PlaceDynamics> PlaceMap::GetDynamics(PlaceId id) const {
+  auto value = ReadPlaceValue(id, kDynamics, "statistics");
+  if (!value.ok()) return value.status();
+  if (!*value) return PlaceDynamics();
+  auto decoded = DecodeDynamics(**value);
   if (!decoded.ok()) return decoded.status().WithContext("place " + std::to_string(id));
   return decoded;
 }
 
 Result<std::optional<Thumbnail>> PlaceMap::GetThumbnail(PlaceId id) const {
-  ReaderLock alive(lifecycle_);
-  if (closed_) return Deleted();
-  if (!database_->Get(id)) {
-    return Status::NotFound("place " + std::to_string(id) + " not found in map '" + info_.name +
-                            "'");
-  }
-  std::string value;
-  auto s = storage_->db->Get({}, storage_->cf(kThumbnails), PlaceKey(id), &value);
-  if (s.IsNotFound()) return std::optional<Thumbnail>();
-  if (Status read = FromRocks(s, "reading the thumbnail of place " + std::to_string(id));
-      !read.ok()) {
-    return Status(read.code(), RelativeTo(read.message(), path_, info_.name));
-  }
-  auto decoded = DecodeThumbnail(value);
+  auto value = ReadPlaceValue(id, kThumbnails, "thumbnail");
+  if (!value.ok()) return value.status();
+  if (!*value) return std::optional<Thumbnail>();
+  auto decoded = DecodeThumbnail(**value);
   if (!decoded.ok()) return decoded.status().WithContext("place " + std::to_string(id));
   return std::optional<Thumbnail>(std::move(decoded).value());
 }

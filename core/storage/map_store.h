@@ -263,6 +263,10 @@ class PlaceMap {
   }
   // An aggregate of the dynamics family (MapDynamics, InvalidDynamics); `what` for messages.
   Result<PlaceDynamics> ReadAggregate(const char* key, const std::string& what) const;
+  // Place `id`'s value in a per-place column family (`family`: its index in map_store.cc's
+  // list); nullopt when the place has none. NOT_FOUND for an absent place; `what` for messages.
+  Result<std::optional<std::string>> ReadPlaceValue(PlaceId id, size_t family,
+                                                    const std::string& what) const;
 
   MapInfo info_;
   std::vector<MapDamage> damage_history_;
