@@ -47,18 +47,8 @@ for binary in "$server" "$load" "$cli"; do
   [[ -x "$binary" ]] || { echo "security_overhead.sh: $binary is not built" >&2; exit 2; }
 done
 
-work="$(mktemp -d)"
-pids=()
-cleanup() {
-  for pid in "${pids[@]}"; do
-    if kill -0 "$pid" 2>/dev/null; then
-      kill -TERM "$pid"
-      wait "$pid" || true
-    fi
-  done
-  rm -rf "$work"
-}
-trap cleanup EXIT
+# shellcheck source=bench/servers_cleanup.sh
+source "$(dirname "${BASH_SOURCE[0]}")/servers_cleanup.sh"
 
 # A CA and a certificate for localhost / 127.0.0.1; an admin token and its hash.
 key_options=(-newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes)

@@ -36,18 +36,8 @@ for binary in "$server" "$cli" "$bench"; do
   [[ -x "$binary" ]] || { echo "snapshots_wire.sh: $binary is not built" >&2; exit 2; }
 done
 
-work="$(mktemp -d)"
-pids=()
-cleanup() {
-  for pid in "${pids[@]}"; do
-    if kill -0 "$pid" 2>/dev/null; then
-      kill -TERM "$pid"
-      wait "$pid" || true
-    fi
-  done
-  rm -rf "$work"
-}
-trap cleanup EXIT
+# shellcheck source=bench/servers_cleanup.sh
+source "$(dirname "${BASH_SOURCE[0]}")/servers_cleanup.sh"
 
 echo "# $(uptime)"
 echo "# $(nproc) cores; $places places"
