@@ -29,6 +29,7 @@ from placedb.errors import (
 )
 from placedb.frames import Box, Depth, Frame, MatchOptions
 from placedb.results import (
+    AgentActivity,
     ClassCount,
     Counts,
     DepthState,
@@ -42,12 +43,14 @@ from placedb.results import (
     MapSummary,
     Match,
     Place,
+    PlacePage,
     Pose,
     QueryResult,
     RankedPlace,
     ScrubReport,
     ServerInfo,
     Snapshot,
+    Thumbnail,
     Timings,
     UsedBox,
     VocabularyInfo,
@@ -58,9 +61,11 @@ from placedb.settings import (
     MapSettings,
     ShortTermSettings,
     SiftSettings,
+    ThumbnailSettings,
 )
 
 __all__ = [
+    "AgentActivity",
     "AlreadyExists",
     "Box",
     "CLIENT_TIMEOUT",
@@ -93,6 +98,7 @@ __all__ = [
     "NotFound",
     "PermissionDenied",
     "Place",
+    "PlacePage",
     "Pose",
     "QueryResult",
     "RankedPlace",
@@ -103,6 +109,8 @@ __all__ = [
     "SiftSettings",
     "Snapshot",
     "TLS",
+    "Thumbnail",
+    "ThumbnailSettings",
     "Timings",
     "Unauthenticated",
     "Unavailable",

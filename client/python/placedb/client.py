@@ -28,6 +28,7 @@ from placedb.results import (
     MapInfo,
     MapSummary,
     Place,
+    PlacePage,
     QueryResult,
     ScrubReport,
     ServerInfo,
@@ -259,6 +260,7 @@ class Client:
         verify: bool = False,
         exclude_same_agent: bool = False,
         agent_id: str = "",
+        correspondences: bool = False,
         timeout: Timeout = CLIENT_TIMEOUT,
     ) -> QueryResult:
         """Ranked matches of one frame against a map; nothing is stored.
@@ -266,9 +268,13 @@ class Client:
         ``image``: any frame form (see :mod:`placedb.frames`). ``top_k``: at most this many
         matches (0 = the server's 10). ``verify``: keep only candidates that pass geometric
         verification (the map's verification mode). ``exclude_same_agent``: skip places stored by
-        ``agent_id``. Raises :class:`NotFound` for an unknown map, :class:`InvalidArgument` for
-        a frame the server or the SDK refuses (also a :class:`Frame` with ``matches``, which is
-        for ingest: a query's options are these arguments).
+        ``agent_id``. ``correspondences``: each verified match's inliers
+        (:attr:`Match.correspondences`, indices into :attr:`QueryResult.query_keypoints` and
+        the place's keypoints), with the query's kept and dropped keypoints and image size
+        (costs the keypoints' bytes in the answer). Raises :class:`NotFound` for an unknown
+        map, :class:`InvalidArgument` for a frame the server or the SDK refuses (also a
+        :class:`Frame` with ``matches``, which is for ingest: a query's options are these
+        arguments).
         """
         if as_frame(image).matches is not None:
             raise InvalidArgument(
@@ -277,7 +283,9 @@ class Client:
         request = pb.QueryRequest(
             map=map,
             observation=to_observation(image, agent_id, 0),
-            options=MatchOptions(top_k, verify, exclude_same_agent).to_proto("options"),
+            options=MatchOptions(top_k, verify, exclude_same_agent, correspondences).to_proto(
+                "options"
+            ),
         )
         return QueryResult.from_proto(self._call(self._stub.Query, request, timeout))
 
@@ -359,15 +367,84 @@ class Client:
         map: str,
         place_id: int,
         include_features: bool = False,
+        thumbnail: bool = False,
         timeout: Timeout = CLIENT_TIMEOUT,
     ) -> Place:
         """One stored place with its dynamic-object statistics; ``include_features`` adds its
-        static keypoints and descriptors.
+        static keypoints and descriptors, ``thumbnail`` its :class:`Thumbnail` (when the map was
+        created with ``MapSettings(thumbnails=ThumbnailSettings(enabled=True))`` and kept one
+        for this place; else :attr:`Place.thumbnail` is None).
 
         :class:`NotFound` if the map or the place does not exist.
         """
-        request = pb.GetPlaceRequest(map=map, place_id=place_id, include_features=include_features)
+        request = pb.GetPlaceRequest(
+            map=map,
+            place_id=place_id,
+            include_features=include_features,
+            include_thumbnail=thumbnail,
+        )
         return Place.from_proto(self._call(self._stub.GetPlace, request, timeout))
+
+    def list_places(
+        self,
+        map: str,
+        agent_id: Optional[str] = None,
+        from_ns: Optional[int] = None,
+        to_ns: Optional[int] = None,
+        limit: int = 100,
+        before: Optional[int] = None,
+        timeout: Timeout = CLIENT_TIMEOUT,
+    ) -> PlacePage:
+        """One page of the map's places, newest (highest id) first, with metadata, counts and
+        boxes (no features, statistics or thumbnails: :meth:`get_place` has them).
+
+        ``agent_id``: only this agent's places. ``from_ns`` / ``to_ns``: only places observed at
+        or after / before these Unix nanoseconds. ``limit``: at most this many places (1..1000).
+        ``before``: resume below this place id (the previous page's
+        :attr:`PlacePage.next_before`; None = from the newest). A page may be short or even
+        empty while ``next_before`` is not 0: keep paging until it is 0, or use
+        :meth:`iter_places`.
+
+        :class:`NotFound` for an unknown map; :class:`InvalidArgument` naming the field for a
+        bad limit or paging value.
+        """
+        if limit is None or isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+            # 0 would mean the server's default, not "no places": refuse it here.
+            raise InvalidArgument(f"limit: {limit!r}, expected 1..1000")
+        request = pb.ListPlacesRequest(map=map)
+        _set(request, "limit", limit)
+        if agent_id is not None:
+            _set(request, "agent_id", agent_id)
+        if from_ns is not None:
+            _set(request, "from_timestamp_ns", from_ns)
+        if to_ns is not None:
+            _set(request, "to_timestamp_ns", to_ns)
+        if before is not None:
+            _set(request, "before_place_id", before)
+        return PlacePage.from_proto(self._call(self._stub.ListPlaces, request, timeout))
+
+    def iter_places(
+        self,
+        map: str,
+        agent_id: Optional[str] = None,
+        from_ns: Optional[int] = None,
+        to_ns: Optional[int] = None,
+        limit: int = 100,
+        timeout: Timeout = CLIENT_TIMEOUT,
+    ) -> Iterator[Place]:
+        """Every place of the map (filtered as :meth:`list_places`), newest first, each once.
+
+        A generator calling :meth:`list_places` page by page (``limit`` per call, ``timeout``
+        per call) until the server's ``next_before`` is 0, across short and empty pages.
+        Places stored meanwhile have higher ids and are not visited.
+        """
+        before: Optional[int] = None
+        while True:
+            page = self.list_places(map, agent_id, from_ns, to_ns, limit, before, timeout)
+            yield from page.places
+            if page.next_before == 0:
+                return
+            before = page.next_before
 
     def delete_place(self, map: str, place_id: int, timeout: Timeout = CLIENT_TIMEOUT) -> None:
         """Removes a place durably; its id is never reused (:class:`NotFound` if absent)."""

@@ -62,12 +62,15 @@ class MatchOptions:
 
     ``top_k``: at most this many matches (0 = the server's 10). ``verify``: keep only candidates
     that pass geometric verification. ``exclude_same_agent``: skip places stored by the frame's
-    own agent.
+    own agent. ``correspondences``: each verified match's inliers; in an ingest stream their
+    query indices are those of the frame's own stored place (``get_place(include_features=True)``).
     """
 
     top_k: int = 10
     verify: bool = False
     exclude_same_agent: bool = False
+    #: Each verified match's inlier correspondences (:attr:`placedb.Match.correspondences`).
+    correspondences: bool = False
 
     def to_proto(self, path: str = "matches") -> pb.MatchOptions:
         """The ``placedb.v1.MatchOptions``; :class:`placedb.InvalidArgument` for a negative
@@ -78,6 +81,7 @@ class MatchOptions:
             top_k=self.top_k,
             verified_only=self.verify,
             exclude_same_agent=self.exclude_same_agent,
+            include_correspondences=self.correspondences,
         )
 
 

@@ -8,7 +8,7 @@ Enum values are given by their API names (:func:`placedb.settings.enum_name`): m
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
@@ -20,6 +20,23 @@ from placedb.settings import enum_name
 
 def _fields(message) -> Dict[str, object]:
     return {f.name: getattr(message, f.name) for f in message.DESCRIPTOR.fields}
+
+
+def _equal_with_arrays(self, other) -> bool:
+    """``__eq__`` of the dataclasses with numpy array fields: arrays compare by shape and
+    values (the generated ``__eq__`` would ask an array for its truth value)."""
+    if other.__class__ is not self.__class__:
+        return NotImplemented
+    for f in fields(self):
+        a, b = getattr(self, f.name), getattr(other, f.name)
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
+                return False
+            if not np.array_equal(a, b):
+                return False
+        elif a != b:
+            return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -180,6 +197,18 @@ class Match:
     sequence: int
     timestamp_ns: int
     pose: Optional[Pose]
+    #: With ``correspondences=True``, for verified matches: the geometric inliers as an N x 2
+    #: int64 array of (query keypoint index, place keypoint index) rows; the first indexes
+    #: :attr:`QueryResult.query_keypoints`, the second the place's keypoints
+    #: (``get_place(..., include_features=True)``). Empty (0 x 2) otherwise. Against a recent
+    #: place the short-term tier verified on dynamic features too, those inliers are left out,
+    #: so there may be fewer rows than ``inliers``.
+    #: (Not part of the hash; compared by value.)
+    correspondences: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 2), np.int64), compare=False
+    )
+
+    __eq__ = _equal_with_arrays
 
     @staticmethod
     def from_proto(message: pb.Match) -> "Match":
@@ -193,6 +222,7 @@ class Match:
             sequence=m.sequence,
             timestamp_ns=m.timestamp_ns,
             pose=Pose.from_proto(m.pose) if m.HasField("pose") else None,
+            correspondences=_correspondences_array(message.correspondences),
         )
 
 
@@ -210,9 +240,20 @@ class QueryResult:
     boxes_used: List[UsedBox]
     #: The agent's Algorithm 1 state applied to the frame (docs/rgbd.md), when it has one.
     depth: Optional[DepthState]
+    #: With ``correspondences=True``: the query's static (kept) keypoints as N x 6 float32 rows
+    #: (x, y, size, angle, response, octave), in the order :attr:`Match.correspondences`
+    #: indexes them. None otherwise.
+    query_keypoints: Optional[np.ndarray] = None
+    #: With ``correspondences=True``: the query's dynamic (dropped) keypoints, N x 6 as above.
+    query_dropped_keypoints: Optional[np.ndarray] = None
+    #: With ``correspondences=True``: (width, height) of the query image the keypoints refer to.
+    image_size: Optional[Tuple[int, int]] = None
+
+    __eq__ = _equal_with_arrays
 
     @staticmethod
     def from_proto(message: pb.QueryResponse) -> "QueryResult":
+        with_keypoints = message.image_width > 0 or len(message.query_keypoints) > 0
         return QueryResult(
             valid=message.valid,
             rejection=message.rejection,
@@ -221,6 +262,15 @@ class QueryResult:
             timings=Timings.from_proto(message.timings),
             boxes_used=[UsedBox.from_proto(b) for b in message.boxes_used],
             depth=DepthState.from_proto(message.depth) if message.HasField("depth") else None,
+            query_keypoints=(
+                _keypoints_array(message.query_keypoints) if with_keypoints else None
+            ),
+            query_dropped_keypoints=(
+                _keypoints_array(message.query_dropped_keypoints) if with_keypoints else None
+            ),
+            image_size=(
+                (message.image_width, message.image_height) if with_keypoints else None
+            ),
         )
 
 
@@ -313,6 +363,9 @@ class MapInfo:
     damage: Optional[MapDamage]
     damage_history: List[MapDamage]
     places_lost: int
+    #: :meth:`~placedb.Client.get_map` only: the agents whose ingest frames this server answered
+    #: since it started (in memory, at most 64 per map).
+    agents: List["AgentActivity"] = field(default_factory=list)
 
     @staticmethod
     def from_proto(message: pb.MapDescription) -> "MapInfo":
@@ -330,7 +383,30 @@ class MapInfo:
             damage=MapDamage.from_proto(message.damage) if message.HasField("damage") else None,
             damage_history=[MapDamage.from_proto(d) for d in message.damage_history],
             places_lost=message.places_lost,
+            agents=[AgentActivity.from_proto(a) for a in message.agents],
         )
+
+
+@dataclass(frozen=True)
+class AgentActivity:
+    """What one agent did to a map since the server started (:attr:`MapInfo.agents`; not
+    persisted, forgotten when the map is deleted)."""
+
+    agent_id: str
+    #: Ingested frames answered (stored, merged, invalid or refused).
+    frames: int
+    #: Of those, stored as places.
+    places: int
+    #: Frames answered in the last 10 s / 10.
+    frames_per_second: float
+    #: The last place stored or merged into; 0 = none yet.
+    last_place_id: int
+    #: Server clock.
+    last_frame_unix_ms: int
+
+    @staticmethod
+    def from_proto(message: pb.AgentActivity) -> "AgentActivity":
+        return AgentActivity(**_fields(message))
 
 
 @dataclass(frozen=True)
@@ -510,6 +586,43 @@ def _keypoints_array(keypoints) -> np.ndarray:
     return np.array(rows, dtype=np.float32).reshape(len(rows), 6)
 
 
+def _correspondences_array(correspondences) -> np.ndarray:
+    rows = [(c.query_keypoint, c.place_keypoint) for c in correspondences]
+    return np.array(rows, dtype=np.int64).reshape(len(rows), 2)
+
+
+@dataclass(frozen=True)
+class Thumbnail:
+    """A place's frame, reduced, with its dynamic-object boxes blurred
+    (``get_place(..., thumbnail=True)`` on a map created with thumbnails enabled).
+
+    Keypoints and boxes stay in the source frame's pixels: scale them by
+    ``width / source_width`` (and ``height / source_height``) to draw on the thumbnail.
+    """
+
+    #: The JPEG file's bytes (``cv2.imdecode(np.frombuffer(jpeg, np.uint8), ...)``).
+    jpeg: bytes
+    width: int
+    height: int
+    source_width: int
+    source_height: int
+    #: Keypoints the filter dropped as dynamic: N x 6 float32 rows as :attr:`Place.keypoints`.
+    dropped_keypoints: np.ndarray
+
+    __eq__ = _equal_with_arrays
+
+    @staticmethod
+    def from_proto(message: pb.Thumbnail) -> "Thumbnail":
+        return Thumbnail(
+            jpeg=bytes(message.jpeg),
+            width=message.width,
+            height=message.height,
+            source_width=message.source_width,
+            source_height=message.source_height,
+            dropped_keypoints=_keypoints_array(message.dropped_keypoints),
+        )
+
+
 @dataclass(frozen=True)
 class Place:
     """A stored place (:meth:`placedb.Client.get_place`)."""
@@ -530,6 +643,10 @@ class Place:
     #: Every frame stored at or merged into the place (None for places stored before the map
     #: kept statistics).
     dynamics: Optional[DynamicStatistics] = None
+    #: With ``thumbnail=True``, when the map kept one for this place.
+    thumbnail: Optional[Thumbnail] = None
+
+    __eq__ = _equal_with_arrays
 
     @staticmethod
     def from_proto(message: pb.Place) -> "Place":
@@ -561,6 +678,33 @@ class Place:
                 if message.HasField("dynamics")
                 else None
             ),
+            thumbnail=(
+                Thumbnail.from_proto(message.thumbnail)
+                if message.HasField("thumbnail")
+                else None
+            ),
+        )
+
+
+@dataclass(frozen=True)
+class PlacePage:
+    """One page of :meth:`placedb.Client.list_places`: places newest (highest id) first, with
+    metadata, counts and boxes (no features, statistics or thumbnail: ``get_place`` has them).
+
+    A page may hold fewer places than asked for, even none, while ``next_before`` is not 0 (one
+    call examines at most 10 000 place ids): keep paging until it is 0
+    (:meth:`placedb.Client.iter_places` does).
+    """
+
+    places: List[Place]
+    #: Pass as ``before=`` for the next page; 0 when this is the last page.
+    next_before: int
+
+    @staticmethod
+    def from_proto(message: pb.ListPlacesResponse) -> "PlacePage":
+        return PlacePage(
+            places=[Place.from_proto(p) for p in message.places],
+            next_before=message.next_before_place_id,
         )
 
 

@@ -154,6 +154,19 @@ class SiftSettings:
 
 
 @dataclass
+class ThumbnailSettings:
+    """Per-place thumbnails (issue 20, ``placedb.v1.ThumbnailSettings``): a small JPEG of each
+    place's frame, dynamic objects blurred, for ``get_place(..., thumbnail=True)`` and the
+    console. None = the server default (off; 320 px; quality 75)."""
+
+    enabled: Optional[bool] = None
+    #: Longest side in pixels (0 = the server's default, 320).
+    max_side: Optional[int] = None
+    #: 1-100 (0 = the server's default, 75).
+    jpeg_quality: Optional[int] = None
+
+
+@dataclass
 class MapSettings:
     """A map's configuration at :meth:`placedb.Client.create_map`. ``None`` = the server default.
 
@@ -198,6 +211,11 @@ class MapSettings:
     short_term: Optional[ShortTermSettings] = None
     #: SIFT extraction (SIFT maps).
     sift: Optional[SiftSettings] = None
+    #: Per-place thumbnails (off by default).
+    thumbnails: Optional[ThumbnailSettings] = None
+    #: A query whose best match scores above this counts as one more observation of that place
+    #: in its dynamic-object statistics (dynamics.count_query_hits_above; 0 = off, the default).
+    count_query_hits_above: Optional[float] = None
     #: The base configuration the fields above are laid over.
     config: Optional[pb.MapConfig] = None
 
@@ -252,4 +270,13 @@ class MapSettings:
             _apply(self.short_term, config.filter.short_term, "config.filter.short_term")
         if self.sift is not None:
             _apply(self.sift, config.sift, "config.sift")
+        if self.thumbnails is not None:
+            _apply(self.thumbnails, config.thumbnails, "config.thumbnails")
+        if self.count_query_hits_above is not None:
+            try:
+                config.dynamics.count_query_hits_above = self.count_query_hits_above
+            except (TypeError, ValueError) as e:
+                raise InvalidArgument(
+                    f"config.dynamics.count_query_hits_above: {self.count_query_hits_above!r} ({e})"
+                ) from None
         return config

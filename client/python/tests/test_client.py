@@ -183,6 +183,7 @@ def test_typed_setting_groups(client: placedb.Client) -> None:
         placedb.LoopClosureSettings: pb.LoopClosureSettings,
         placedb.ShortTermSettings: pb.ShortTermSettings,
         placedb.SiftSettings: pb.SiftSettings,
+        placedb.ThumbnailSettings: pb.ThumbnailSettings,
     }
     for group, message in groups.items():
         assert {f.name for f in dataclasses.fields(group)} == {
