@@ -174,16 +174,7 @@ void ThumbnailToProto(const Thumbnail& thumbnail, v1::Thumbnail* out) {
   out->set_height(thumbnail.height);
   out->set_source_width(thumbnail.source_width);
   out->set_source_height(thumbnail.source_height);
-  out->mutable_dropped_keypoints()->Reserve(int(thumbnail.dropped_keypoints.size()));
-  for (const Keypoint& k : thumbnail.dropped_keypoints) {
-    v1::Keypoint* kp = out->add_dropped_keypoints();
-    kp->set_x(k.x);
-    kp->set_y(k.y);
-    kp->set_size(k.size);
-    kp->set_angle(k.angle);
-    kp->set_response(k.response);
-    kp->set_octave(k.octave);
-  }
+  KeypointListToProto(thumbnail.dropped_keypoints, out->mutable_dropped_keypoints());
 }
 
 void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out) {

@@ -1233,6 +1233,21 @@ Observation FrameWithObjects(int index) {
   return observation;
 }
 
+// The valid frames among FrameWithObjects(1..count), processed by `map` and not committed, with
+// their metadata.
+void ProcessValidFramesWithObjects(const PlaceMap& map, int count,
+                                   std::vector<ProcessedFrame>* frames,
+                                   std::vector<PlaceMetadata>* metadata) {
+  for (int i = 1; i <= count; ++i) {
+    const Observation observation = FrameWithObjects(i);
+    auto frame = map.Process(observation);
+    ASSERT_TRUE(frame.ok()) << frame.status().ToString();
+    if (!frame->valid) continue;
+    frames->push_back(*frame);
+    metadata->push_back(observation.metadata);
+  }
+}
+
 // Each stored frame's statistics are its place's; the map's aggregate sums them; both survive
 // reopening and a checkpoint, and a removed place's go while the map's history keeps them.
 TEST_F(StorageTest, DynamicsAreCountedPerPlaceAndSurviveReopenAndCheckpoint) {
@@ -1444,14 +1459,7 @@ TEST_F(StorageTest, ConcurrentCommitsLoseNoDynamics) {
   ASSERT_TRUE(map.ok());
   std::vector<ProcessedFrame> frames;
   std::vector<PlaceMetadata> metadata;
-  for (int i = 1; i <= 24; ++i) {
-    const Observation observation = FrameWithObjects(i);
-    auto frame = (*map)->Process(observation);
-    ASSERT_TRUE(frame.ok());
-    if (!frame->valid) continue;
-    frames.push_back(*frame);
-    metadata.push_back(observation.metadata);
-  }
+  ProcessValidFramesWithObjects(**map, 24, &frames, &metadata);
   ASSERT_GT(frames.size(), 12u);
   std::atomic<int> failures{0};
   std::vector<std::thread> threads;
@@ -1487,14 +1495,7 @@ TEST_F(StorageTest, ConcurrentQueryHitsAreCountedOnce) {
   ASSERT_TRUE(map.ok());
   std::vector<ProcessedFrame> frames;
   std::vector<PlaceMetadata> metadata;
-  for (int i = 1; i <= 24; ++i) {
-    const Observation observation = FrameWithObjects(i);
-    auto frame = (*map)->Process(observation);
-    ASSERT_TRUE(frame.ok());
-    if (!frame->valid) continue;
-    frames.push_back(*frame);
-    metadata.push_back(observation.metadata);
-  }
+  ProcessValidFramesWithObjects(**map, 24, &frames, &metadata);
   ASSERT_GT(frames.size(), 12u);
   const size_t first_half = frames.size() / 2;
   for (size_t i = 0; i < first_half; ++i) ASSERT_TRUE((*map)->Commit(frames[i], metadata[i]).ok());
