@@ -12,7 +12,7 @@ median with its min-max and the load average before and after every run: a diffe
 than the spread, or measured under a changing load, is noise. Nothing here judges a timing; the
 exit code only says whether every run that was started completed (1 if one failed, 2 for a usage
 error). Benchmarks whose binary, data, model or vocabulary is missing are skipped with a line
-saying why. docs/evaluation.md ("Comparing a change with main") describes it.
+saying why. docs/benchmarks.md describes it.
 """
 
 import argparse
