@@ -3,6 +3,7 @@
 
     bench/compare.py [--change build] [--base DIR | --base-rev REV] [--full] [--repeat 3]
                      [--only NAME,...] [--markdown FILE] [--json FILE] [--build] [--list]
+                     [--dry-run] [--keep-base] [--timeout SECONDS]
     bench/compare.py --self-test
 
 Every benchmark prints `name value unit` lines (bench/bench_output.h). Machine load drifts over
@@ -180,8 +181,12 @@ def summarise(results, sides):
     for row in rows:
         row["stats"] = {s: median_and_range(row["values"][s]) for s in sides}
         base, change = row["stats"].get("base"), row["stats"].get("change")
-        row["change_percent"] = None
-        if base and change and base["median"] != 0:
+        row["change_percent"] = row["change_points"] = None
+        if base and change and row["unit"] == "%":
+            # A percentage (an overhead, a cost) changes in points: a relative change of a value
+            # near zero says nothing.
+            row["change_points"] = change["median"] - base["median"]
+        elif base and change and base["median"] != 0:
             row["change_percent"] = 100.0 * (change["median"] - base["median"]) / abs(base["median"])
     return rows
 
@@ -193,13 +198,13 @@ def fmt(value):
 def markdown(report):
     sides = report["sides"]
     lines = [f"# placedb benchmarks ({report['set']} set, {report['repeat']} repeat(s))", ""]
-    lines.append(f"- date (UTC): {report['date']}; host: {report['host']}; nproc: {report['nproc']}")
+    lines.append(f"- finished (UTC): {report['date']}; host: {report['host']}; nproc: {report['nproc']}")
     lines.append(f"- load average (1, 5, 15 min) at start: {report['load_start']}; "
                  f"at end: {report['load_end']}")
     for side in sides:
         lines.append(f"- {side}: {report['builds'][side]}")
     lines.append("- base and change alternate run by run; medians of the repeats, min-max beside "
-                 "them; change % = (change - base) / base. No figure is judged here.")
+                 "them; change % = (change - base) / base (in points for % metrics). No figure is judged here.")
     lines.append("")
     if len(sides) == 2:
         lines.append("| benchmark | metric | unit | base median | base min-max | change median "
@@ -214,8 +219,9 @@ def markdown(report):
             s = row["stats"][side]
             cells += ["-", "-"] if s is None else [fmt(s["median"]), f"{fmt(s['min'])}-{fmt(s['max'])}"]
         if len(sides) == 2:
-            pct = row["change_percent"]
-            cells.append("-" if pct is None else f"{pct:+.1f}")
+            pct, points = row["change_percent"], row["change_points"]
+            cells.append(f"{points:+.3g} points" if points is not None else
+                         "-" if pct is None else f"{pct:+.1f}")
         else:
             s = row["stats"][sides[0]]
             cells.append(str(s["n"]) if s else "0")
@@ -382,7 +388,7 @@ def self_test():
             with open(script, "w", encoding="ascii") as f:
                 extra = "echo new_metric 3 ms\n" if side == "change" else ""
                 f.write(f"#!/bin/sh\necho '# comment'\necho query_ms {value} ms\n"
-                        f"echo places 1000 places\n{extra}")
+                        f"echo places 1000 places\necho overhead {value} %\n{extra}")
             os.chmod(script, 0o755)
             builds[side] = os.path.join(tmp, side)
         selected = [{"name": "fake", "binary": "fake-bench", "args": [], "needs": []},
@@ -407,6 +413,7 @@ def self_test():
         assert "| fake | query_ms | ms | 10 | 10-10 | 8 | 8-8 | -20.0 |" in text, text
         assert "| fake | new_metric | ms | - | - | 3 | 3-3 | - |" in text, text
         assert "- skipped: needs-data: missing" in text, text
+        assert "| fake | overhead | % | 10 | 10-10 | 8 | 8-8 | -2 points |" in text, text
         json.dumps(report)
         # One build only: median, range, count.
         one = {"change": builds["change"]}
@@ -444,6 +451,8 @@ def main(argv):
     parser.add_argument("--markdown", help="also write the table to this file")
     parser.add_argument("--json", help="write the whole report (every value) as JSON")
     parser.add_argument("--list", action="store_true", help="list the benchmarks and exit")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="print the commands that would run (and what is skipped), run none")
     parser.add_argument("--self-test", action="store_true", help=argparse.SUPPRESS)
     options = parser.parse_args(argv)
     if options.self_test:
@@ -481,7 +490,9 @@ def main(argv):
     cleanup, base_note = (lambda: None), ""
     try:
         base_dir = options.base
-        if options.base_rev:
+        if options.base_rev and options.dry_run:
+            base_dir = options.change  # only the commands are printed; nothing is built
+        elif options.base_rev:
             base_dir, cleanup, _, base_note = build_base(options.base_rev, options.change,
                                                          targets, options.keep_base)
         builds = {}
@@ -491,6 +502,11 @@ def main(argv):
         dirs = {"change": options.change}
         if base_dir:
             dirs = {"base": base_dir, "change": options.change}
+        if options.dry_run:
+            for bench in selected:
+                print(f"{bench['name']}: {bench['binary']} {' '.join(fill(bench['args'], inputs))}"
+                      f" (needs {', '.join(fill(bench['needs'], inputs))})")
+            return 0
         load_start = load_average()
         results, runs, skipped, failed = run_all(selected, dirs, inputs, options.repeat,
                                                  options.timeout)
