@@ -187,7 +187,8 @@ def summarise(results, sides):
             # near zero says nothing.
             row["change_points"] = change["median"] - base["median"]
         elif base and change and base["median"] != 0:
-            row["change_percent"] = 100.0 * (change["median"] - base["median"]) / abs(base["median"])
+            difference = change["median"] - base["median"]
+            row["change_percent"] = 100.0 * difference / abs(base["median"])
     return rows
 
 
@@ -198,13 +199,15 @@ def fmt(value):
 def markdown(report):
     sides = report["sides"]
     lines = [f"# placedb benchmarks ({report['set']} set, {report['repeat']} repeat(s))", ""]
-    lines.append(f"- finished (UTC): {report['date']}; host: {report['host']}; nproc: {report['nproc']}")
+    lines.append(f"- finished (UTC): {report['date']}; host: {report['host']}; "
+                 f"nproc: {report['nproc']}")
     lines.append(f"- load average (1, 5, 15 min) at start: {report['load_start']}; "
                  f"at end: {report['load_end']}")
     for side in sides:
         lines.append(f"- {side}: {report['builds'][side]}")
     lines.append("- base and change alternate run by run; medians of the repeats, min-max beside "
-                 "them; change % = (change - base) / base (in points for % metrics). No figure is judged here.")
+                 "them; change % = (change - base) / base (in points for % metrics). "
+                 "No figure is judged here.")
     lines.append("")
     if len(sides) == 2:
         lines.append("| benchmark | metric | unit | base median | base min-max | change median "
@@ -217,7 +220,8 @@ def markdown(report):
         cells = [row["benchmark"], row["metric"], row["unit"]]
         for side in sides:
             s = row["stats"][side]
-            cells += ["-", "-"] if s is None else [fmt(s["median"]), f"{fmt(s['min'])}-{fmt(s['max'])}"]
+            cells += (["-", "-"] if s is None else
+                      [fmt(s["median"]), f"{fmt(s['min'])}-{fmt(s['max'])}"])
         if len(sides) == 2:
             pct, points = row["change_percent"], row["change_points"]
             cells.append(f"{points:+.3g} points" if points is not None else
@@ -231,7 +235,8 @@ def markdown(report):
     lines.append("|---|---|---:|---|---:|---|---|")
     for run in report["runs"]:
         lines.append(f"| {run['benchmark']} | {run['side']} | {run['repeat']} | {run['exit']} | "
-                     f"{run['seconds']} | {run['load_before'][0]:.2f} | {run['load_after'][0]:.2f} |")
+                     f"{run['seconds']} | {run['load_before'][0]:.2f} | "
+                     f"{run['load_after'][0]:.2f} |")
     if report["skipped"] or report["failed"]:
         lines += ["", "## Skipped and failed", ""]
         for line in report["skipped"]:
@@ -321,6 +326,10 @@ def build_base(rev, change_dir, targets, keep):
             cleanup()
             raise RuntimeError(f"configuring base {rev} failed; see {log_path}")
         built = build_targets(build, targets, log)
+    if set(built) != set(targets):
+        # Their benchmarks are skipped; the log goes with the worktree unless --keep-base.
+        print(f"# not built at {rev}: {', '.join(sorted(set(targets) - set(built)))} "
+              f"(--keep-base keeps {log_path})", file=sys.stderr)
     sha = subprocess.run(["git", "-C", tree, "rev-parse", "--short", "HEAD"],
                          capture_output=True, text=True, check=False).stdout.strip()
     return build, cleanup, built, f", --base-rev {rev} = {sha}"
@@ -334,7 +343,8 @@ def run_all(selected, builds, inputs, repeat, timeout, progress=True):
         name = bench["name"]
         missing = [p for p in fill(bench["needs"], inputs) if not p or not os.path.exists(p)]
         if missing:
-            skipped.append(f"{name}: missing {', '.join(m or '(path not configured)' for m in missing)}")
+            what = ", ".join(m or "(path not configured)" for m in missing)
+            skipped.append(f"{name}: missing {what}")
             continue
         binaries = {s: os.path.join(builds[s], "bench", bench["binary"]) for s in sides}
         absent = [f"{s} ({binaries[s]})" for s in sides if not os.access(binaries[s], os.X_OK)]
