@@ -345,11 +345,15 @@ def run_all(selected, builds, inputs, repeat, timeout, progress=True):
         if missing:
             what = ", ".join(m or "(path not configured)" for m in missing)
             skipped.append(f"{name}: missing {what}")
+            if progress:
+                print(f"# skipped: {skipped[-1]}", file=sys.stderr, flush=True)
             continue
         binaries = {s: os.path.join(builds[s], "bench", bench["binary"]) for s in sides}
         absent = [f"{s} ({binaries[s]})" for s in sides if not os.access(binaries[s], os.X_OK)]
         if absent:
             skipped.append(f"{name}: no {bench['binary']} in {', '.join(absent)}")
+            if progress:
+                print(f"# skipped: {skipped[-1]}", file=sys.stderr, flush=True)
             continue
         results[name] = {s: [] for s in sides}
         args = fill(bench["args"], inputs)
