@@ -77,18 +77,67 @@ std::vector<ScoredPlace> BruteForce(const std::map<PlaceId, BowVector>& places,
   return all;
 }
 
-// Same ranking as the reference: equal scores rank by rank (up to float rounding), and every
-// returned place carries its true score. Places may only swap within a rounding-level tie.
+// How far Query's score of `candidate` may be from Score(): the index stores candidate weights
+// with a relative error of at most e = kWeightRelativeError (place_index.h), which moves each
+// scoring's shared-word sum by at most the bound below, plus float rounding (1e-6 relative).
+double QuantisationTolerance(const BowVector& query, const BowVector& candidate, ScoringType type) {
+  const double e = InvertedIndex::kWeightRelativeError;
+  double sum_c = 0, sum_q = 0, sum_qc = 0, sum_sqrt_qc = 0;  // over the shared words
+  auto ic = candidate.begin();
+  for (const BowEntry& q : query) {
+    while (ic != candidate.end() && ic->word < q.word) ++ic;
+    if (ic == candidate.end() || ic->word != q.word) continue;
+    sum_c += std::fabs(ic->weight);
+    sum_q += std::fabs(q.weight);
+    sum_qc += std::fabs(double(q.weight) * ic->weight);
+    sum_sqrt_qc += std::sqrt(std::fabs(double(q.weight) * ic->weight));
+  }
+  double bound = 0;
+  switch (type) {
+    case ScoringType::kL1:  // |q - c| - |q| - |c| is 2-Lipschitz in c; score = -sum / 2
+      bound = e * sum_c;
+      break;
+    case ScoringType::kChiSquare:  // d/dc qc / (q + c) = q^2 / (q + c)^2 <= 1; score = 2 sum
+      bound = 2 * e * sum_c;
+      break;
+    case ScoringType::kKL:  // q (ln eps - ln c) moves by q |ln(1 + d)| <= q (-ln(1 - e))
+      bound = -std::log1p(-e) * sum_q;
+      break;
+    case ScoringType::kBhattacharyya:  // sqrt(q c) moves by at most sqrt(q c) (1 - sqrt(1 - e))
+      bound = (1 - std::sqrt(1 - e)) * sum_sqrt_qc;
+      break;
+    case ScoringType::kDotProduct:
+      bound = e * sum_qc;
+      break;
+    case ScoringType::kL2: {        // the sum x moves by d <= e sum_qc; 1 - sqrt(1 - x) by
+      const double d = e * sum_qc;  // <= sqrt(d) (1/2-Hölder) and <= d / sqrt(1 - x)
+      const double slack = 1 - std::min(1.0, sum_qc + d);
+      bound = slack > 0 ? std::min(std::sqrt(d), d / std::sqrt(slack)) : std::sqrt(d);
+      break;
+    }
+  }
+  return bound + 1e-6 * std::max(1.0, std::fabs(Score(query, candidate, type)));
+}
+
+// Same ranking as the reference up to the quantisation of stored weights: the i-th score is
+// within the largest tolerance of any candidate (an order statistic moves no more than the
+// values it ranks), every returned place carries its true score within its own tolerance, and
+// scores never increase down the list.
 void ExpectSameRanking(const std::vector<ScoredPlace>& got,
                        const std::vector<ScoredPlace>& expected,
                        const std::map<PlaceId, BowVector>& places, const BowVector& query,
                        ScoringType type) {
   ASSERT_EQ(got.size(), expected.size()) << ScoringName(type);
+  double rank_tolerance = 0;
+  for (const auto& [place, bow] : places) {
+    rank_tolerance = std::max(rank_tolerance, QuantisationTolerance(query, bow, type));
+  }
   for (size_t i = 0; i < got.size(); ++i) {
-    const double tolerance = 1e-6 * std::max(1.0, std::fabs(expected[i].score));
-    EXPECT_NEAR(got[i].score, expected[i].score, tolerance) << ScoringName(type) << " rank " << i;
+    EXPECT_NEAR(got[i].score, expected[i].score, rank_tolerance)
+        << ScoringName(type) << " rank " << i;
     ASSERT_TRUE(places.count(got[i].place)) << "returned unknown place " << got[i].place;
-    EXPECT_NEAR(got[i].score, Score(query, places.at(got[i].place), type), tolerance)
+    const BowVector& bow = places.at(got[i].place);
+    EXPECT_NEAR(got[i].score, Score(query, bow, type), QuantisationTolerance(query, bow, type))
         << ScoringName(type) << " place " << got[i].place;
     if (i > 0) {
       EXPECT_GE(got[i - 1].score, got[i].score);
