@@ -11,6 +11,7 @@
 #include <mutex>
 #include <numeric>
 #include <random>
+#include <set>
 #include <shared_mutex>
 #include <thread>
 
@@ -388,6 +389,209 @@ TEST(InvertedIndexTest, RemovingPlacesReturnsTheirMemory) {
     ExpectSameRanking(index.Query(query, 10), BruteForce(kept, query, ScoringType::kL1, 10), kept,
                       query, ScoringType::kL1);
   }
+}
+
+TEST(InvertedIndexTest, QuantisedWeightsStayWithinTheStatedBound) {
+  const double e = InvertedIndex::kWeightRelativeError;
+  // Exactly representable values come back unchanged.
+  for (float w : {0.5f, 1.0f, 0.25f, 0.75f, -0.5f, 3.0f, 1.0f / 1024}) {
+    EXPECT_EQ(InvertedIndex::QuantizedWeight(w), w) << w;
+  }
+  EXPECT_EQ(InvertedIndex::QuantizedWeight(0.0f), 0.0f);
+  EXPECT_EQ(InvertedIndex::EncodeWeight(0.0f), 0u);
+  // Over the whole range, log-uniform, both signs: within e relative, and order is kept.
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> exponent(std::log2(InvertedIndex::kMinWeight),
+                                                  std::log2(InvertedIndex::kMaxWeight));
+  double worst = 0;
+  for (int i = 0; i < 200000; ++i) {
+    const float w = float(std::exp2(exponent(rng))) * (i % 2 == 0 ? 1.0f : -1.0f);
+    if (std::fabs(w) >= InvertedIndex::kMaxWeight) continue;
+    const float q = InvertedIndex::QuantizedWeight(w);
+    worst = std::max(worst, std::fabs(double(q) - w) / std::fabs(w));
+    ASSERT_LE(std::fabs(double(q) - w), e * std::fabs(w)) << w;
+    const float next = std::nextafter(w, 2 * w);
+    ASSERT_LE(std::fabs(q), std::fabs(InvertedIndex::QuantizedWeight(next))) << w;
+  }
+  std::printf("[ quantisation ] worst relative error %.3g (bound %.3g)\n", worst, e);
+  EXPECT_GT(worst, e / 2);  // the bound is tight: rounding to 10 bits costs up to half a step
+  // Below the smallest step: zero (an absolute error under kMinWeight).
+  EXPECT_EQ(InvertedIndex::QuantizedWeight(InvertedIndex::kMinWeight / 4), 0.0f);
+  EXPECT_LT(std::fabs(InvertedIndex::QuantizedWeight(InvertedIndex::kMinWeight / 2 * 0.99f)),
+            InvertedIndex::kMinWeight);
+  // The largest accepted magnitude is still representable.
+  const float largest = std::nextafter(InvertedIndex::kMaxWeight, 0.0f);
+  EXPECT_LE(std::fabs(InvertedIndex::QuantizedWeight(largest) - largest), e * largest);
+
+  // Add refuses what it cannot store and changes nothing.
+  InvertedIndex index(10, ScoringType::kDotProduct);
+  const Status too_big = index.Add(1, {{2, 0.5f}, {3, InvertedIndex::kMaxWeight}});
+  EXPECT_EQ(too_big.code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(too_big.message().find("bow[1].weight"), std::string::npos) << too_big.message();
+  EXPECT_EQ(index.Add(1, {{2, -InvertedIndex::kMaxWeight}}).code(), StatusCode::kInvalidArgument);
+  EXPECT_FALSE(index.Contains(1));
+  EXPECT_EQ(index.posting_count(), 0u);
+  ASSERT_TRUE(index.Add(1, {{2, 40.0f}}).ok());
+  EXPECT_EQ(index.Query({{2, 1.0f}}, 1)[0].score, 40.0);
+}
+
+TEST(InvertedIndexTest, SegmentBoundariesGapsAndOutOfOrderIds) {
+  // Ids on both sides of the 2^16 boundaries, a far segment with empty ones between, added out
+  // of order; every query must agree with brute force and Remove must find each place.
+  constexpr uint32_t kWords = 300;
+  const std::vector<PlaceId> ids = {65536, 65535,  0, 131072, 1,      131071, 65537,
+                                    65534, 700000, 2, 196607, 196608, 999999, 3};
+  for (ScoringType type : {ScoringType::kL1, ScoringType::kL2}) {
+    SCOPED_TRACE(ScoringName(type));
+    InvertedIndex index(kWords, type);
+    std::map<PlaceId, BowVector> places;
+    std::mt19937 rng(11);
+    for (PlaceId id : ids) {
+      BowVector bow = RandomBow(rng, kWords, 25, type);
+      ASSERT_TRUE(index.Add(id, bow).ok()) << id;
+      places[id] = std::move(bow);
+    }
+    for (PlaceId id : ids) EXPECT_TRUE(index.Contains(id)) << id;
+    for (PlaceId id : {65533u, 65538u, 131070u, 131073u, 700001u, 1000000u}) {
+      EXPECT_FALSE(index.Contains(id)) << id;
+    }
+    for (const auto& [id, bow] : places) {
+      const auto got = index.Query(bow, 20);
+      ASSERT_FALSE(got.empty());
+      EXPECT_EQ(got[0].place, id);  // its own vector wins
+      ExpectSameRanking(got, BruteForce(places, bow, type, 20), places, bow, type);
+    }
+    // Remove both sides of a boundary, query, and re-add one with another vector.
+    for (PlaceId id : {65535u, 65536u}) {
+      ASSERT_TRUE(index.Remove(id, places[id]).ok());
+      places.erase(id);
+    }
+    BowVector changed = RandomBow(rng, kWords, 25, type);
+    ASSERT_TRUE(index.Add(65536, changed).ok());
+    places[65536] = changed;
+    for (int i = 0; i < 10; ++i) {
+      const BowVector query = RandomBow(rng, kWords, 30, type);
+      const auto got = index.Query(query, 20);
+      for (const ScoredPlace& s : got) EXPECT_NE(s.place, 65535u);
+      ExpectSameRanking(got, BruteForce(places, query, type, 20), places, query, type);
+    }
+    EXPECT_EQ(index.Query(changed, 1)[0].place, 65536u);
+  }
+}
+
+TEST(InvertedIndexTest, EmptiedSegmentGivesBackItsMemory) {
+  constexpr uint32_t kWords = 20000;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  std::mt19937 rng(4);
+  const BowVector first = RandomBow(rng, kWords, 50, ScoringType::kL1);
+  ASSERT_TRUE(index.Add(7, first).ok());
+  const size_t one_segment = index.MemoryBytes();
+  std::map<PlaceId, BowVector> far;
+  for (PlaceId id = 500000; id < 500100; ++id) {
+    far[id] = RandomBow(rng, kWords, 50, ScoringType::kL1);
+    ASSERT_TRUE(index.Add(id, far[id]).ok());
+  }
+  const size_t two_segments = index.MemoryBytes();
+  EXPECT_GT(two_segments, one_segment + kWords * 8);  // a word table per used segment
+  for (const auto& [id, bow] : far) ASSERT_TRUE(index.Remove(id, bow).ok());
+  // The far segment's word table and postings are gone; the place table (1 byte per id) stays.
+  const size_t drained = index.MemoryBytes();
+  EXPECT_LE(drained + kWords * 8 + 100 * 50 * 4, two_segments);
+  EXPECT_EQ(Places(index.Query(first, 10)), (std::vector<PlaceId>{7}));
+  ASSERT_TRUE(index.Add(500001, far[500001]).ok());  // and the segment comes back
+  EXPECT_EQ(index.Query(far[500001], 1)[0].place, 500001u);
+}
+
+TEST(InvertedIndexTest, RemovedPlacesAreNeverReturnedOnAnyThreadCount) {
+  constexpr uint32_t kWords = 400;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  std::mt19937 rng(8);
+  std::map<PlaceId, BowVector> places;
+  for (PlaceId n = 0; n < 600; ++n) {
+    const PlaceId id = n * 409;  // ids across four segments
+    places[id] = RandomBow(rng, kWords, 30, ScoringType::kL1);
+    ASSERT_TRUE(index.Add(id, places[id]).ok());
+  }
+  std::set<PlaceId> removed;
+  for (auto it = places.begin(); it != places.end();) {
+    if (it->first % 3 == 0) {
+      ASSERT_TRUE(index.Remove(it->first, it->second).ok());
+      removed.insert(it->first);
+      it = places.erase(it);
+    } else {
+      ++it;
+    }
+  }
+  for (int threads : {1, 2, 4}) {
+    for (int i = 0; i < 20; ++i) {
+      const BowVector query = RandomBow(rng, kWords, 60, ScoringType::kL1);
+      const auto got = index.Query(query, 1000, {}, {}, threads);
+      EXPECT_EQ(got.size(), BruteForce(places, query, ScoringType::kL1, 1000).size());
+      for (const ScoredPlace& s : got) EXPECT_FALSE(removed.count(s.place)) << s.place;
+    }
+    // A removed place in the bonus list is not brought back either.
+    const std::vector<ScoredPlace> bonus = {{*removed.begin(), 5.0}};
+    for (const ScoredPlace& s : index.Query({{1, 1.0f}}, 1000, {}, bonus, threads)) {
+      EXPECT_FALSE(removed.count(s.place)) << s.place;
+    }
+  }
+}
+
+TEST(InvertedIndexTest, TwoThreadQueryEqualsOneThreadQueryExactly) {
+  for (ScoringType type : kAllScorings) {
+    SCOPED_TRACE(ScoringName(type));
+    constexpr uint32_t kWords = 1000;
+    InvertedIndex index(kWords, type);
+    std::mt19937 rng(31 + int(type));
+    std::map<PlaceId, BowVector> places;
+    for (PlaceId n = 0; n < 1500; ++n) {
+      const PlaceId id = n * 211 + n % 7;  // about five segments, unevenly filled
+      places[id] = RandomBow(rng, kWords, 40, type);
+      ASSERT_TRUE(index.Add(id, places[id]).ok());
+    }
+    for (int i = 0; i < 20; ++i) {
+      const BowVector query =
+          i % 2 == 0 ? std::next(places.begin(), i * 53)->second : RandomBow(rng, kWords, 60, type);
+      std::vector<ScoredPlace> bonus;
+      if (i % 4 == 1) bonus = {{211 * 3 + 3, 0.25}, {999999, 1.0}, {211 * 700, 0.5}};
+      std::function<bool(PlaceId)> accept;
+      if (i % 3 == 2) accept = [](PlaceId p) { return p % 5 != 1; };
+      for (size_t k : {size_t(1), size_t(10), size_t(200)}) {
+        const auto one = index.Query(query, k, accept, bonus, 1);
+        for (int threads : {2, 3, 8}) {
+          const auto many = index.Query(query, k, accept, bonus, threads);
+          ASSERT_EQ(many.size(), one.size()) << threads << " threads, k " << k;
+          for (size_t r = 0; r < one.size(); ++r) {
+            EXPECT_EQ(many[r].place, one[r].place) << threads << " threads, rank " << r;
+            EXPECT_EQ(many[r].score, one[r].score) << threads << " threads, rank " << r;
+          }
+        }
+      }
+    }
+  }
+}
+
+TEST(InvertedIndexTest, AcceptIsNeverCalledConcurrently) {
+  constexpr uint32_t kWords = 50;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  for (PlaceId n = 0; n < 400; ++n) {
+    ASSERT_TRUE(index.Add(n * 1000, {{1, 0.5f}, {WordId(2 + n % 40), 0.5f}}).ok());
+  }
+  std::atomic<int> inside{0};
+  std::atomic<bool> overlapped{false};
+  std::atomic<int> calls{0};
+  auto accept = [&](PlaceId p) {
+    if (inside.fetch_add(1) != 0) overlapped = true;
+    ++calls;
+    std::this_thread::yield();
+    inside.fetch_sub(1);
+    return p % 2000 == 0;
+  };
+  const auto got = index.Query({{1, 1.0f}}, 400, accept, {}, 4);
+  EXPECT_FALSE(overlapped.load());
+  EXPECT_GT(calls.load(), 0);
+  EXPECT_EQ(got.size(), 200u);
+  for (const ScoredPlace& s : got) EXPECT_EQ(s.place % 2000, 0u);
 }
 
 TEST(InvertedIndexTest, CopiesAreIndependent) {
