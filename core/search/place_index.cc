@@ -513,8 +513,24 @@ void InvertedIndex::ScoreSegment(uint32_t segment_index, const QueryContext& que
     const Posting* postings = runs[r].postings;
     const uint32_t size = runs[r].size;
     const Accumulator q = runs[r].query_weight;
-    for (uint32_t i = 0; i < size; ++i) {
-      score[postings[i].offset] += Term<kType, Accumulator>(q, DecodeWeight(postings[i].weight));
+    if constexpr (kType == ScoringType::kL1) {
+      // |q - c| - |q| - |c| is -2 min(q, c) when both are >= 0 and 0 when their signs differ:
+      // one min per posting instead of three absolute values (the hot loop of the paper's score).
+      if (q >= 0) {
+        for (uint32_t i = 0; i < size; ++i) {
+          const float c = std::max(DecodeWeight(postings[i].weight), 0.0f);
+          score[postings[i].offset] += -2.0f * std::min(q, c);
+        }
+      } else {
+        for (uint32_t i = 0; i < size; ++i) {
+          const float c = std::min(DecodeWeight(postings[i].weight), 0.0f);
+          score[postings[i].offset] += 2.0f * std::max(q, c);
+        }
+      }
+    } else {
+      for (uint32_t i = 0; i < size; ++i) {
+        score[postings[i].offset] += Term<kType, Accumulator>(q, DecodeWeight(postings[i].weight));
+      }
     }
   }
 
