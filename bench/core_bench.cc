@@ -336,6 +336,7 @@ struct Agreement {
   double top1 = 0;
   double top10 = 0;
   size_t rescored = 0;
+  std::vector<PlaceId> exact_top10;  // best first
 };
 bool AgreeWithExact(const BowVector& query, const Vocabulary& vocabulary,
                     const std::vector<FeatureSet>& views, const SweepMap& map,
@@ -363,6 +364,7 @@ bool AgreeWithExact(const BowVector& query, const Vocabulary& vocabulary,
   }
   agreement->top10 = double(shared) / 10;
   agreement->rescored = exact.size();
+  for (size_t i = 0; i < 10; ++i) agreement->exact_top10.push_back(exact[i].place);
   return true;
 }
 
@@ -373,6 +375,11 @@ bool BenchQueries(size_t target, const Vocabulary& vocabulary, const std::vector
                   const SweepMap& map) {
   // Queries: fresh random views of the sources (not stored).
   std::vector<double> query_ms, query_cpu_ms, query2_ms, brute_ms;
+  // Skipping the words held by more than this share of the places (InvertedIndex::Query's
+  // max_word_share): query time and agreement with the exact ranking, against the lines above.
+  constexpr double kSkipShares[] = {0.10, 0.03};
+  std::vector<double> skip_ms[std::size(kSkipShares)];
+  double skip_top1[std::size(kSkipShares)] = {}, skip_top10[std::size(kSkipShares)] = {};
   double top1 = 0, top10 = 0, rescored = 0;
   int agreement_queries = 0, incomplete = 0;
   for (int q = 0; q < 60; ++q) {
@@ -402,6 +409,12 @@ bool BenchQueries(size_t target, const Vocabulary& vocabulary, const std::vector
                         scores.end(), std::greater<>());
       brute_ms.push_back(NowMs() - start);
     }
+    std::vector<std::vector<ScoredPlace>> skipping_tops;
+    for (size_t v = 0; v < std::size(kSkipShares); ++v) {
+      start = NowMs();
+      skipping_tops.push_back(map.index.Query(query, 10, {}, {}, 1, kSkipShares[v]));
+      skip_ms[v].push_back(NowMs() - start);
+    }
     if (q < 20) {
       Agreement agreement;
       if (AgreeWithExact(query, vocabulary, views, map, &agreement)) {
@@ -409,6 +422,15 @@ bool BenchQueries(size_t target, const Vocabulary& vocabulary, const std::vector
         top10 += agreement.top10;
         rescored += double(agreement.rescored);
         ++agreement_queries;
+        for (size_t v = 0; v < std::size(kSkipShares); ++v) {
+          const std::vector<ScoredPlace>& got = skipping_tops[v];
+          if (!got.empty() && got[0].place == agreement.exact_top10[0]) skip_top1[v] += 1;
+          for (const ScoredPlace& s : got) {
+            skip_top10[v] +=
+                std::count(agreement.exact_top10.begin(), agreement.exact_top10.end(), s.place) /
+                10.0;
+          }
+        }
       } else {
         ++incomplete;
       }
@@ -429,6 +451,15 @@ bool BenchQueries(size_t target, const Vocabulary& vocabulary, const std::vector
         n.c_str(), agreement_queries, rescored / agreement_queries, incomplete);
     Print("top1_agreement_with_exact_at_" + n + "_places", top1 / agreement_queries, "ratio");
     Print("top10_agreement_with_exact_at_" + n + "_places", top10 / agreement_queries, "ratio");
+  }
+  for (size_t v = 0; v < std::size(kSkipShares); ++v) {
+    const std::string variant =
+        "skip_words_over_" + std::to_string(int(kSkipShares[v] * 100 + 0.5)) + "pct_at_" + n;
+    Print("query_top10_" + variant + "_places", Median(skip_ms[v]), "ms");
+    if (agreement_queries > 0) {
+      Print("top1_agreement_" + variant + "_places", skip_top1[v] / agreement_queries, "ratio");
+      Print("top10_agreement_" + variant + "_places", skip_top10[v] / agreement_queries, "ratio");
+    }
   }
   Print("index_bytes_per_descriptor_at_" + n + "_places",
         double(map.index.MemoryBytes()) / double(map.stored_descriptors), "bytes");

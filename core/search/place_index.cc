@@ -150,7 +150,7 @@ InvertedIndex::Segment::Segment(uint32_t word_count)
       bump(kSlabCapacities.size(), kNoSlot) {}
 
 InvertedIndex::InvertedIndex(uint32_t word_count, ScoringType scoring)
-    : scoring_(scoring), word_count_(word_count) {
+    : scoring_(scoring), word_count_(word_count), word_places_(word_count, 0) {
   static_assert(sizeof(WordList) == 8 && sizeof(Posting) == 4);
 }
 
@@ -431,6 +431,7 @@ Status InvertedIndex::Add(PlaceId place, const BowVector& bow) {
     if (segment.InsertPosting(&segment.lists[bow[i].word],
                               Posting{offset, EncodeWeight(bow[i].weight)})) {
       ++posting_count_;
+      ++word_places_[bow[i].word];
     }
   }
   present_[place] = 1;
@@ -469,6 +470,7 @@ Status InvertedIndex::Remove(PlaceId place, const BowVector& bow) {
     WordList& list = segment.lists[entry.word];
     segment.ErasePosting(&list, find(list));
     --posting_count_;
+    --word_places_[entry.word];
   }
   present_[place] = 0;
   --place_count_;
@@ -572,8 +574,8 @@ void InvertedIndex::ScoreSegment(uint32_t segment_index, const QueryContext& que
 
 std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k,
                                               const std::function<bool(PlaceId)>& accept,
-                                              std::span<const ScoredPlace> bonus,
-                                              int threads) const {
+                                              std::span<const ScoredPlace> bonus, int threads,
+                                              double max_word_share) const {
   std::vector<ScoredPlace> result;
   if (top_k == 0 || place_count_ == 0) return result;
 
@@ -615,9 +617,21 @@ std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k
                   [](const ScoredPlace& a, const ScoredPlace& b) { return a.place == b.place; }),
       sorted_bonus.end());
 
+  // The words scored: all of them, or those held by at most max_word_share of the places.
+  BowVector kept_words;
+  const BowVector* scored_words = &bow;
+  if (max_word_share < 1.0) {
+    const double most_places = max_word_share * double(place_count_);
+    for (const BowEntry& entry : bow) {
+      if (entry.word < word_count_ && double(word_places_[entry.word]) <= most_places) {
+        kept_words.push_back(entry);
+      }
+    }
+    scored_words = &kept_words;
+  }
   QueryContext context{
-      &bow,        top_k, accept ? &accept : nullptr, sorted_bonus, QueryConstant(scoring_, bow),
-      workers > 1, {}};
+      scored_words, top_k, accept ? &accept : nullptr, sorted_bonus, QueryConstant(scoring_, bow),
+      workers > 1,  {}};
   auto score_segment = [&](size_t task, int worker) {
     QueryScratch* worker_scratch = &scratch[size_t(worker)];
     const uint32_t segment = live_segments[task];
@@ -664,7 +678,8 @@ std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k
 }
 
 size_t InvertedIndex::MemoryBytes() const {
-  size_t bytes = segments_.capacity() * sizeof(Segment);
+  size_t bytes =
+      segments_.capacity() * sizeof(Segment) + word_places_.capacity() * sizeof(uint32_t);
   for (const Segment& segment : segments_) bytes += segment.MemoryBytes();
   bytes += present_.capacity();
   return bytes;

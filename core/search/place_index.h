@@ -86,10 +86,15 @@ class InvertedIndex {
   // once), also of places that share no word with `bow`: the short-term tier's dynamic-word
   // similarity (core/place_database.h). `threads` > 1 lets this one query score segments on up
   // to that many threads (only an index of more than one segment, i.e. ids >= 65536, uses
-  // them); the result is identical for every value.
+  // them); the result is identical for every value. `max_word_share` < 1 skips the query's
+  // words held by more than that share of the indexed places (DBoW's idf log(N / n_i) makes
+  // them nearly worthless, and their long runs are most of a query's work); a skipped word
+  // scores as if no place shared it, so an L1 score drops by at most the sum of the skipped
+  // words' query weights. 1 (the default) skips nothing.
   std::vector<ScoredPlace> Query(const BowVector& bow, size_t top_k,
                                  const std::function<bool(PlaceId)>& accept = {},
-                                 std::span<const ScoredPlace> bonus = {}, int threads = 1) const;
+                                 std::span<const ScoredPlace> bonus = {}, int threads = 1,
+                                 double max_word_share = 1.0) const;
 
   size_t place_count() const { return place_count_; }
   size_t posting_count() const { return posting_count_; }
@@ -152,8 +157,9 @@ class InvertedIndex {
 
   ScoringType scoring_;
   uint32_t word_count_;
-  std::vector<Segment> segments_;  // by place id >> kSegmentBits
-  std::vector<uint8_t> present_;   // by place id
+  std::vector<Segment> segments_;      // by place id >> kSegmentBits
+  std::vector<uint32_t> word_places_;  // by word id: places holding the word (all segments)
+  std::vector<uint8_t> present_;       // by place id
   size_t place_count_ = 0;
   size_t posting_count_ = 0;
 };
