@@ -594,6 +594,57 @@ TEST(InvertedIndexTest, AcceptIsNeverCalledConcurrently) {
   for (const ScoredPlace& s : got) EXPECT_EQ(s.place % 2000, 0u);
 }
 
+TEST(InvertedIndexTest, SkippingFrequentWordsDropsOnlyTheirShare) {
+  // Word 0 is in every place, word 1 in half, the rest rare. max_word_share 0.6 skips word 0
+  // only: each L1 score drops by at most the query's weight on it, and the same on any thread
+  // count; 1.0 is the exact query.
+  constexpr uint32_t kWords = 200;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  std::mt19937 rng(12);
+  std::map<PlaceId, BowVector> places;
+  for (PlaceId n = 0; n < 300; ++n) {
+    const PlaceId id = n * 500;  // three segments
+    BowVector bow = {{0, 0.2f}};
+    if (n % 2 == 0) bow.push_back({1, 0.2f});
+    for (const BowEntry& e : RandomBow(rng, kWords - 2, 10, ScoringType::kL1)) {
+      bow.push_back({e.word + 2, e.weight});
+    }
+    NormalizeForScoring(&bow, ScoringType::kL1);
+    ASSERT_TRUE(index.Add(id, bow).ok());
+    places[id] = bow;
+  }
+  for (int i = 0; i < 10; ++i) {
+    BowVector query = {{0, 0.3f}, {1, 0.1f}};
+    for (const BowEntry& e : RandomBow(rng, kWords - 2, 12, ScoringType::kL1)) {
+      query.push_back({e.word + 2, e.weight});
+    }
+    NormalizeForScoring(&query, ScoringType::kL1);
+    const auto exact = index.Query(query, 300, {}, {}, 1, 1.0);
+    EXPECT_EQ(Places(exact), Places(index.Query(query, 300)));
+    const auto skipping = index.Query(query, 300, {}, {}, 1, 0.6);
+    std::map<PlaceId, double> exact_score;
+    for (const ScoredPlace& s : exact) exact_score[s.place] = s.score;
+    for (const ScoredPlace& s : skipping) {
+      ASSERT_TRUE(exact_score.count(s.place));
+      EXPECT_LE(s.score, exact_score[s.place] + 1e-6);
+      EXPECT_GE(s.score, exact_score[s.place] - query[0].weight - 1e-6);
+    }
+    // Word 0 shared by all: only places sharing another word remain candidates.
+    EXPECT_LT(skipping.size(), exact.size());
+    const auto skipping_2threads = index.Query(query, 300, {}, {}, 2, 0.6);
+    ASSERT_EQ(skipping_2threads.size(), skipping.size());
+    for (size_t r = 0; r < skipping.size(); ++r) {
+      EXPECT_EQ(skipping_2threads[r].place, skipping[r].place);
+      EXPECT_EQ(skipping_2threads[r].score, skipping[r].score);
+    }
+  }
+  // The counts follow removals: with half the places gone word 1 is still in about half.
+  for (PlaceId n = 0; n < 300; n += 2) ASSERT_TRUE(index.Remove(n * 500, places[n * 500]).ok());
+  EXPECT_TRUE(index.Query({{1, 1.0f}}, 10, {}, {}, 1, 0.6).empty());  // none of the rest has it
+  EXPECT_TRUE(index.Query({{0, 1.0f}}, 10, {}, {}, 1, 0.6).empty());  // all of the rest have it
+  EXPECT_EQ(index.Query({{0, 1.0f}}, 10, {}, {}, 1, 1.0).size(), 10u);
+}
+
 TEST(InvertedIndexTest, CopiesAreIndependent) {
   InvertedIndex index(10, ScoringType::kL1);
   ASSERT_TRUE(index.Add(0, {{1, 1.0f}}).ok());
