@@ -37,7 +37,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BENCHMARKS = [
     {"name": "core", "binary": "placedb-bench-core",
      "quick": ["--vocabulary", "{vocabulary}", "--places", "1000,10000"],
-     "full": ["--vocabulary", "{vocabulary}", "--places", "1000,10000,100000"],
+     "full": ["--vocabulary", "{vocabulary}", "--places", "1000,10000,100000,1000000"],
      "needs": ["{vocabulary}", "{shared}/data/camvid"]},
     {"name": "decode", "binary": "placedb-bench-decode",
      "quick": ["--rounds", "5"], "full": [],

@@ -8,13 +8,17 @@
 //  - size sweep: each place is one real view's descriptor set, multiplied by keeping a random
 //    90 % of its descriptors and flipping 4 random bits in each (a cheap stand-in for re-imaging
 //    that keeps real descriptor statistics), transformed by the vocabulary, L1-normalised.
-//  - one thread for every timed figure; medians over repeated runs.
+//  - one thread for every timed figure except the `_2threads` query; medians over repeated runs.
+//  - index figures: top-10 query on 1 and 2 threads, index bytes per stored descriptor, the top-1
+//    and top-10 agreement of the (quantised) index with the exact ranking, build time and the
+//    process's peak memory (VmHWM) at each size; places are added in id order.
 //
-// Usage: placedb-bench-core --vocabulary FILE [--places 1000,10000,100000] [--views N]
+// Usage: placedb-bench-core --vocabulary FILE [--places 1000,10000,100000,1000000] [--views N]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -27,6 +31,7 @@
 
 #include "bench/bench_output.h"
 #include "core/base/files.h"
+#include "core/base/parallel.h"
 #include "core/features/orb_features.h"
 #include "core/search/place_index.h"
 #include "core/search/scoring.h"
@@ -237,59 +242,164 @@ struct SweepMap {
   explicit SweepMap(uint32_t word_count) : index(word_count, ScoringType::kL1) {}
   InvertedIndex index;
   std::vector<BowVector> stored;  // kept only while small, for the brute-force baseline
-  std::mt19937_64 rng{12345};
   size_t places = 0;
   uint64_t stored_descriptors = 0;
-  BowVector bow;
+  double build_ms = 0;  // wall time of GrowTo so far (views to BoW vectors, index adds)
+  double add_ms = 0;    // of which InvertedIndex::Add
 };
 
-// Adds places up to `target`: after one pass over the real views, noisy copies of them (90 %
-// of the descriptors, 4 bit flips each) so that places stay distinct. False after an error.
+// The BoW vector of place `place` (ids from 1): its view for the first pass over the views, then
+// a noisy copy of it (90 % of the descriptors, 4 bit flips each) so that places stay distinct.
+// Seeded by the place id, so any place can be rebuilt exactly (the exact-ranking check) without
+// keeping a second copy of the map. Returns the number of descriptors.
+size_t PlaceBow(PlaceId place, const Vocabulary& vocabulary, const std::vector<FeatureSet>& views,
+                BowVector* bow) {
+  const size_t index = size_t(place) - 1;
+  const FeatureSet& view = views[index % views.size()];
+  const bool copy = index >= views.size();
+  std::mt19937_64 rng(place);
+  std::vector<Descriptor256> noisy;
+  noisy.reserve(view.size());
+  std::uniform_int_distribution<int> bit(0, 255);
+  std::uniform_real_distribution<double> keep(0, 1);
+  for (const auto& d : view.descriptors) {
+    if (copy && keep(rng) > 0.9) continue;
+    Descriptor256 changed = d;
+    if (copy) {
+      for (int f = 0; f < 4; ++f) {
+        const int b = bit(rng);
+        changed.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
+      }
+    }
+    noisy.push_back(changed);
+  }
+  vocabulary.Transform(noisy, bow, nullptr, 0);
+  NormalizeForScoring(bow, ScoringType::kL1);
+  return noisy.size();
+}
+
+// Adds places up to `target`, their vectors built on 2 threads in batches and added in id order
+// (as ingest and reopen add). False after an error.
 bool GrowTo(size_t target, const Vocabulary& vocabulary, const std::vector<FeatureSet>& views,
             SweepMap* map) {
+  const double start = NowMs();
+  constexpr size_t kBatch = 512;
+  std::vector<BowVector> batch(kBatch);
+  std::vector<size_t> descriptors(kBatch);
   while (map->places < target) {
-    const size_t places = map->places;
-    const FeatureSet& view = views[places % views.size()];
-    std::vector<Descriptor256> noisy;
-    noisy.reserve(view.size());
-    std::uniform_int_distribution<int> bit(0, 255);
-    std::uniform_real_distribution<double> keep(0, 1);
-    for (const auto& d : view.descriptors) {
-      if (places >= views.size() && keep(map->rng) > 0.9) continue;
-      Descriptor256 copy = d;
-      if (places >= views.size()) {
-        for (int f = 0; f < 4; ++f) {
-          const int b = bit(map->rng);
-          copy.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
-        }
-      }
-      noisy.push_back(copy);
+    const size_t count = std::min(kBatch, target - map->places);
+    const PlaceId first = PlaceId(map->places + 1);
+    ParallelFor(count, 2, [&](size_t i, int) {
+      descriptors[i] = PlaceBow(PlaceId(first + i), vocabulary, views, &batch[i]);
+    });
+    for (size_t i = 0; i < count; ++i) {
+      map->stored_descriptors += descriptors[i];
+      const double add_start = NowMs();
+      if (!map->index.Add(PlaceId(first + i), batch[i]).ok()) return false;
+      map->add_ms += NowMs() - add_start;
+      if (target <= 10000) map->stored.push_back(batch[i]);
     }
-    vocabulary.Transform(noisy, &map->bow, nullptr, 0);
-    NormalizeForScoring(&map->bow, ScoringType::kL1);
-    map->stored_descriptors += noisy.size();
-    if (!map->index.Add(PlaceId(places + 1), map->bow).ok()) return false;
-    if (target <= 10000) map->stored.push_back(map->bow);
-    ++map->places;
+    map->places += count;
   }
+  map->build_ms += NowMs() - start;
   return true;
 }
 
-// Top-10 query time at this size (60 queries; the linear scan on 10 of them while the map is
-// small) and the index's memory per descriptor. False when a query finds nothing.
+// CPU time of this thread, in ms.
+double ThreadCpuMs() {
+  timespec ts;
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return double(ts.tv_sec) * 1e3 + double(ts.tv_nsec) / 1e6;
+}
+
+// The process's peak resident memory (VmHWM), in MB; 0 when unknown.
+double PeakRssMb() {
+  std::FILE* status = std::fopen("/proc/self/status", "r");
+  if (status == nullptr) return 0;
+  char line[256];
+  double kb = 0;
+  while (std::fgets(line, sizeof line, status) != nullptr) {
+    if (std::sscanf(line, "VmHWM: %lf kB", &kb) == 1) break;
+  }
+  std::fclose(status);
+  return kb / 1024;
+}
+
+// Agreement of the index's top 1 / top 10 with the exact ranking (unquantised weights, double
+// sums: Score()) on one query, without a second copy of the map: a stored weight is within a
+// relative kWeightRelativeError of the exact one, so with L1-normalised places a score is within
+// kWeightRelativeError (plus float rounding of the sum) of the exact one, and the exact top 10
+// can only hold places whose index score is within twice that of the index's 10th. Those are
+// rebuilt (PlaceBow) and scored exactly. False when the window reaches past the index's top 200
+// (the check would be incomplete).
+struct Agreement {
+  double top1 = 0;
+  double top10 = 0;
+  size_t rescored = 0;
+  std::vector<PlaceId> exact_top10;  // best first
+};
+bool AgreeWithExact(const BowVector& query, const Vocabulary& vocabulary,
+                    const std::vector<FeatureSet>& views, const SweepMap& map,
+                    Agreement* agreement) {
+  constexpr double kSumRounding = 1e-4;  // float sums of ~1000 terms <= 1 each, generously
+  const double margin = 2 * (InvertedIndex::kWeightRelativeError + kSumRounding);
+  const std::vector<ScoredPlace> wide = map.index.Query(query, 200);
+  if (wide.size() < 10) return false;
+  const double floor = wide[9].score - margin;
+  if (wide.size() == 200 && wide.back().score >= floor) return false;
+  std::vector<ScoredPlace> exact;
+  BowVector bow;
+  for (const ScoredPlace& candidate : wide) {
+    if (candidate.score < floor) break;
+    PlaceBow(candidate.place, vocabulary, views, &bow);
+    exact.push_back({candidate.place, Score(query, bow, ScoringType::kL1)});
+  }
+  std::sort(exact.begin(), exact.end(), [](const ScoredPlace& a, const ScoredPlace& b) {
+    return a.score != b.score ? a.score > b.score : a.place < b.place;
+  });
+  agreement->top1 = exact[0].place == wide[0].place ? 1 : 0;
+  size_t shared = 0;
+  for (size_t i = 0; i < 10; ++i) {
+    for (size_t j = 0; j < 10; ++j) shared += exact[i].place == wide[j].place ? 1 : 0;
+  }
+  agreement->top10 = double(shared) / 10;
+  agreement->rescored = exact.size();
+  for (size_t i = 0; i < 10; ++i) agreement->exact_top10.push_back(exact[i].place);
+  return true;
+}
+
+// Top-10 query time at this size on 1 and 2 threads (60 queries; the linear scan on 10 of them
+// while the map is small), agreement with the exact ranking (20 queries), the index's memory and
+// the process's peak memory. False when a query finds nothing.
 bool BenchQueries(size_t target, const Vocabulary& vocabulary, const std::vector<FeatureSet>& views,
                   const SweepMap& map) {
   // Queries: fresh random views of the sources (not stored).
-  std::vector<double> query_ms, brute_ms;
+  std::vector<double> query_ms, query_cpu_ms, query2_ms, brute_ms;
+  // Skipping the words held by more than this share of the places (InvertedIndex::Query's
+  // max_word_share): query time and agreement with the exact ranking, against the lines above.
+  constexpr double kSkipShares[] = {0.10, 0.03};
+  std::vector<double> skip_ms[std::size(kSkipShares)];
+  double skip_top1[std::size(kSkipShares)] = {}, skip_top10[std::size(kSkipShares)] = {};
+  double top1 = 0, top10 = 0, rescored = 0;
+  int agreement_queries = 0, incomplete = 0;
   for (int q = 0; q < 60; ++q) {
     const FeatureSet& view = views[size_t(q * 7919) % views.size()];
     BowVector query;
     vocabulary.Transform(view.descriptors, &query, nullptr, 0);
     NormalizeForScoring(&query, ScoringType::kL1);
+    const double cpu_start = ThreadCpuMs();
     double start = NowMs();
     auto top = map.index.Query(query, 10);
     query_ms.push_back(NowMs() - start);
+    query_cpu_ms.push_back(ThreadCpuMs() - cpu_start);
     if (top.empty()) return false;
+    start = NowMs();
+    auto top_2threads = map.index.Query(query, 10, {}, {}, 2);
+    query2_ms.push_back(NowMs() - start);
+    if (top_2threads.size() != top.size() || top_2threads[0].place != top[0].place) {
+      std::fprintf(stderr, "2-thread query disagrees with 1-thread query\n");
+      return false;
+    }
     if (target <= 10000 && q < 10) {
       start = NowMs();
       std::vector<double> scores(map.stored.size());
@@ -299,16 +409,66 @@ bool BenchQueries(size_t target, const Vocabulary& vocabulary, const std::vector
                         scores.end(), std::greater<>());
       brute_ms.push_back(NowMs() - start);
     }
+    std::vector<std::vector<ScoredPlace>> skipping_tops;
+    for (size_t v = 0; v < std::size(kSkipShares); ++v) {
+      start = NowMs();
+      skipping_tops.push_back(map.index.Query(query, 10, {}, {}, 1, kSkipShares[v]));
+      skip_ms[v].push_back(NowMs() - start);
+    }
+    if (q < 20) {
+      Agreement agreement;
+      if (AgreeWithExact(query, vocabulary, views, map, &agreement)) {
+        top1 += agreement.top1;
+        top10 += agreement.top10;
+        rescored += double(agreement.rescored);
+        ++agreement_queries;
+        for (size_t v = 0; v < std::size(kSkipShares); ++v) {
+          const std::vector<ScoredPlace>& got = skipping_tops[v];
+          if (!got.empty() && got[0].place == agreement.exact_top10[0]) skip_top1[v] += 1;
+          for (const ScoredPlace& s : got) {
+            skip_top10[v] +=
+                std::count(agreement.exact_top10.begin(), agreement.exact_top10.end(), s.place) /
+                10.0;
+          }
+        }
+      } else {
+        ++incomplete;
+      }
+    }
   }
   const std::string n = std::to_string(target);
   Print("query_top10_at_" + n + "_places", Median(query_ms), "ms");
+  // The same query's CPU time: on a shared machine, wall time also counts waiting for a core.
+  Print("query_top10_cpu_at_" + n + "_places", Median(query_cpu_ms), "ms");
+  Print("query_top10_2threads_at_" + n + "_places", Median(query2_ms), "ms");
   if (!brute_ms.empty()) {
     Print("baseline_query_top10_linear_scan_at_" + n + "_places", Median(brute_ms), "ms");
+  }
+  if (agreement_queries > 0) {
+    std::printf(
+        "# exact ranking at %s places: %d queries, %.1f places rescored per query, %d "
+        "skipped (window past the top 200)\n",
+        n.c_str(), agreement_queries, rescored / agreement_queries, incomplete);
+    Print("top1_agreement_with_exact_at_" + n + "_places", top1 / agreement_queries, "ratio");
+    Print("top10_agreement_with_exact_at_" + n + "_places", top10 / agreement_queries, "ratio");
+  }
+  for (size_t v = 0; v < std::size(kSkipShares); ++v) {
+    const std::string variant =
+        "skip_words_over_" + std::to_string(int(kSkipShares[v] * 100 + 0.5)) + "pct_at_" + n;
+    Print("query_top10_" + variant + "_places", Median(skip_ms[v]), "ms");
+    if (agreement_queries > 0) {
+      Print("top1_agreement_" + variant + "_places", skip_top1[v] / agreement_queries, "ratio");
+      Print("top10_agreement_" + variant + "_places", skip_top10[v] / agreement_queries, "ratio");
+    }
   }
   Print("index_bytes_per_descriptor_at_" + n + "_places",
         double(map.index.MemoryBytes()) / double(map.stored_descriptors), "bytes");
   Print("postings_per_descriptor_at_" + n + "_places",
         double(map.index.posting_count()) / double(map.stored_descriptors), "ratio");
+  Print("index_memory_at_" + n + "_places", double(map.index.MemoryBytes()) / 1e6, "MB");
+  Print("build_seconds_at_" + n + "_places", map.build_ms / 1e3, "s");
+  Print("index_add_per_place_at_" + n + "_places", 1e3 * map.add_ms / double(map.places), "us");
+  Print("peak_rss_at_" + n + "_places", PeakRssMb(), "MB");
   return true;
 }
 

@@ -11,6 +11,7 @@
 #include <mutex>
 #include <numeric>
 #include <random>
+#include <set>
 #include <shared_mutex>
 #include <thread>
 
@@ -77,18 +78,67 @@ std::vector<ScoredPlace> BruteForce(const std::map<PlaceId, BowVector>& places,
   return all;
 }
 
-// Same ranking as the reference: equal scores rank by rank (up to float rounding), and every
-// returned place carries its true score. Places may only swap within a rounding-level tie.
+// How far Query's score of `candidate` may be from Score(): the index stores candidate weights
+// with a relative error of at most e = kWeightRelativeError (place_index.h), which moves each
+// scoring's shared-word sum by at most the bound below, plus float rounding (1e-6 relative).
+double QuantisationTolerance(const BowVector& query, const BowVector& candidate, ScoringType type) {
+  const double e = InvertedIndex::kWeightRelativeError;
+  double sum_c = 0, sum_q = 0, sum_qc = 0, sum_sqrt_qc = 0;  // over the shared words
+  auto ic = candidate.begin();
+  for (const BowEntry& q : query) {
+    while (ic != candidate.end() && ic->word < q.word) ++ic;
+    if (ic == candidate.end() || ic->word != q.word) continue;
+    sum_c += std::fabs(ic->weight);
+    sum_q += std::fabs(q.weight);
+    sum_qc += std::fabs(double(q.weight) * ic->weight);
+    sum_sqrt_qc += std::sqrt(std::fabs(double(q.weight) * ic->weight));
+  }
+  double bound = 0;
+  switch (type) {
+    case ScoringType::kL1:  // |q - c| - |q| - |c| is 2-Lipschitz in c; score = -sum / 2
+      bound = e * sum_c;
+      break;
+    case ScoringType::kChiSquare:  // d/dc qc / (q + c) = q^2 / (q + c)^2 <= 1; score = 2 sum
+      bound = 2 * e * sum_c;
+      break;
+    case ScoringType::kKL:  // q (ln eps - ln c) moves by q |ln(1 + d)| <= q (-ln(1 - e))
+      bound = -std::log1p(-e) * sum_q;
+      break;
+    case ScoringType::kBhattacharyya:  // sqrt(q c) moves by at most sqrt(q c) (1 - sqrt(1 - e))
+      bound = (1 - std::sqrt(1 - e)) * sum_sqrt_qc;
+      break;
+    case ScoringType::kDotProduct:
+      bound = e * sum_qc;
+      break;
+    case ScoringType::kL2: {        // the sum x moves by d <= e sum_qc; 1 - sqrt(1 - x) by
+      const double d = e * sum_qc;  // <= sqrt(d) (1/2-Hölder) and <= d / sqrt(1 - x)
+      const double slack = 1 - std::min(1.0, sum_qc + d);
+      bound = slack > 0 ? std::min(std::sqrt(d), d / std::sqrt(slack)) : std::sqrt(d);
+      break;
+    }
+  }
+  return bound + 1e-6 * std::max(1.0, std::fabs(Score(query, candidate, type)));
+}
+
+// Same ranking as the reference up to the quantisation of stored weights: the i-th score is
+// within the largest tolerance of any candidate (an order statistic moves no more than the
+// values it ranks), every returned place carries its true score within its own tolerance, and
+// scores never increase down the list.
 void ExpectSameRanking(const std::vector<ScoredPlace>& got,
                        const std::vector<ScoredPlace>& expected,
                        const std::map<PlaceId, BowVector>& places, const BowVector& query,
                        ScoringType type) {
   ASSERT_EQ(got.size(), expected.size()) << ScoringName(type);
+  double rank_tolerance = 0;
+  for (const auto& [place, bow] : places) {
+    rank_tolerance = std::max(rank_tolerance, QuantisationTolerance(query, bow, type));
+  }
   for (size_t i = 0; i < got.size(); ++i) {
-    const double tolerance = 1e-6 * std::max(1.0, std::fabs(expected[i].score));
-    EXPECT_NEAR(got[i].score, expected[i].score, tolerance) << ScoringName(type) << " rank " << i;
+    EXPECT_NEAR(got[i].score, expected[i].score, rank_tolerance)
+        << ScoringName(type) << " rank " << i;
     ASSERT_TRUE(places.count(got[i].place)) << "returned unknown place " << got[i].place;
-    EXPECT_NEAR(got[i].score, Score(query, places.at(got[i].place), type), tolerance)
+    const BowVector& bow = places.at(got[i].place);
+    EXPECT_NEAR(got[i].score, Score(query, bow, type), QuantisationTolerance(query, bow, type))
         << ScoringName(type) << " place " << got[i].place;
     if (i > 0) {
       EXPECT_GE(got[i - 1].score, got[i].score);
@@ -339,6 +389,260 @@ TEST(InvertedIndexTest, RemovingPlacesReturnsTheirMemory) {
     ExpectSameRanking(index.Query(query, 10), BruteForce(kept, query, ScoringType::kL1, 10), kept,
                       query, ScoringType::kL1);
   }
+}
+
+TEST(InvertedIndexTest, QuantisedWeightsStayWithinTheStatedBound) {
+  const double e = InvertedIndex::kWeightRelativeError;
+  // Exactly representable values come back unchanged.
+  for (float w : {0.5f, 1.0f, 0.25f, 0.75f, -0.5f, 3.0f, 1.0f / 1024}) {
+    EXPECT_EQ(InvertedIndex::QuantizedWeight(w), w) << w;
+  }
+  EXPECT_EQ(InvertedIndex::QuantizedWeight(0.0f), 0.0f);
+  EXPECT_EQ(InvertedIndex::EncodeWeight(0.0f), 0u);
+  // Over the whole range, log-uniform, both signs: within e relative, and order is kept.
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> exponent(std::log2(InvertedIndex::kMinWeight),
+                                                  std::log2(InvertedIndex::kMaxWeight));
+  double worst = 0;
+  for (int i = 0; i < 200000; ++i) {
+    const float w = float(std::exp2(exponent(rng))) * (i % 2 == 0 ? 1.0f : -1.0f);
+    if (std::fabs(w) >= InvertedIndex::kMaxWeight) continue;
+    const float q = InvertedIndex::QuantizedWeight(w);
+    worst = std::max(worst, std::fabs(double(q) - w) / std::fabs(w));
+    ASSERT_LE(std::fabs(double(q) - w), e * std::fabs(w)) << w;
+    const float next = std::nextafter(w, 2 * w);
+    ASSERT_LE(std::fabs(q), std::fabs(InvertedIndex::QuantizedWeight(next))) << w;
+  }
+  std::printf("[ quantisation ] worst relative error %.3g (bound %.3g)\n", worst, e);
+  EXPECT_GT(worst, e / 2);  // the bound is tight: rounding to 10 bits costs up to half a step
+  // Below the smallest step: zero (an absolute error under kMinWeight).
+  EXPECT_EQ(InvertedIndex::QuantizedWeight(InvertedIndex::kMinWeight / 4), 0.0f);
+  EXPECT_LT(std::fabs(InvertedIndex::QuantizedWeight(InvertedIndex::kMinWeight / 2 * 0.99f)),
+            InvertedIndex::kMinWeight);
+  // The largest accepted magnitude is still representable.
+  const float largest = std::nextafter(InvertedIndex::kMaxWeight, 0.0f);
+  EXPECT_LE(std::fabs(InvertedIndex::QuantizedWeight(largest) - largest), e * largest);
+
+  // Add refuses what it cannot store and changes nothing.
+  InvertedIndex index(10, ScoringType::kDotProduct);
+  const Status too_big = index.Add(1, {{2, 0.5f}, {3, InvertedIndex::kMaxWeight}});
+  EXPECT_EQ(too_big.code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(too_big.message().find("bow[1].weight"), std::string::npos) << too_big.message();
+  EXPECT_EQ(index.Add(1, {{2, -InvertedIndex::kMaxWeight}}).code(), StatusCode::kInvalidArgument);
+  EXPECT_FALSE(index.Contains(1));
+  EXPECT_EQ(index.posting_count(), 0u);
+  ASSERT_TRUE(index.Add(1, {{2, 40.0f}}).ok());
+  EXPECT_EQ(index.Query({{2, 1.0f}}, 1)[0].score, 40.0);
+}
+
+TEST(InvertedIndexTest, SegmentBoundariesGapsAndOutOfOrderIds) {
+  // Ids on both sides of the 2^16 boundaries, a far segment with empty ones between, added out
+  // of order; every query must agree with brute force and Remove must find each place.
+  constexpr uint32_t kWords = 300;
+  const std::vector<PlaceId> ids = {65536, 65535,  0, 131072, 1,      131071, 65537,
+                                    65534, 700000, 2, 196607, 196608, 999999, 3};
+  for (ScoringType type : {ScoringType::kL1, ScoringType::kL2}) {
+    SCOPED_TRACE(ScoringName(type));
+    InvertedIndex index(kWords, type);
+    std::map<PlaceId, BowVector> places;
+    std::mt19937 rng(11);
+    for (PlaceId id : ids) {
+      BowVector bow = RandomBow(rng, kWords, 25, type);
+      ASSERT_TRUE(index.Add(id, bow).ok()) << id;
+      places[id] = std::move(bow);
+    }
+    for (PlaceId id : ids) EXPECT_TRUE(index.Contains(id)) << id;
+    for (PlaceId id : {65533u, 65538u, 131070u, 131073u, 700001u, 1000000u}) {
+      EXPECT_FALSE(index.Contains(id)) << id;
+    }
+    for (const auto& [id, bow] : places) {
+      const auto got = index.Query(bow, 20);
+      ASSERT_FALSE(got.empty());
+      EXPECT_EQ(got[0].place, id);  // its own vector wins
+      ExpectSameRanking(got, BruteForce(places, bow, type, 20), places, bow, type);
+    }
+    // Remove both sides of a boundary, query, and re-add one with another vector.
+    for (PlaceId id : {65535u, 65536u}) {
+      ASSERT_TRUE(index.Remove(id, places[id]).ok());
+      places.erase(id);
+    }
+    BowVector changed = RandomBow(rng, kWords, 25, type);
+    ASSERT_TRUE(index.Add(65536, changed).ok());
+    places[65536] = changed;
+    for (int i = 0; i < 10; ++i) {
+      const BowVector query = RandomBow(rng, kWords, 30, type);
+      const auto got = index.Query(query, 20);
+      for (const ScoredPlace& s : got) EXPECT_NE(s.place, 65535u);
+      ExpectSameRanking(got, BruteForce(places, query, type, 20), places, query, type);
+    }
+    EXPECT_EQ(index.Query(changed, 1)[0].place, 65536u);
+  }
+}
+
+TEST(InvertedIndexTest, EmptiedSegmentGivesBackItsMemory) {
+  constexpr uint32_t kWords = 20000;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  std::mt19937 rng(4);
+  const BowVector first = RandomBow(rng, kWords, 50, ScoringType::kL1);
+  ASSERT_TRUE(index.Add(7, first).ok());
+  const size_t one_segment = index.MemoryBytes();
+  std::map<PlaceId, BowVector> far;
+  for (PlaceId id = 500000; id < 500100; ++id) {
+    far[id] = RandomBow(rng, kWords, 50, ScoringType::kL1);
+    ASSERT_TRUE(index.Add(id, far[id]).ok());
+  }
+  const size_t two_segments = index.MemoryBytes();
+  EXPECT_GT(two_segments, one_segment + kWords * 8);  // a word table per used segment
+  for (const auto& [id, bow] : far) ASSERT_TRUE(index.Remove(id, bow).ok());
+  // The far segment's word table and postings are gone; the place table (1 byte per id) stays.
+  const size_t drained = index.MemoryBytes();
+  EXPECT_LE(drained + kWords * 8 + 100 * 50 * 4, two_segments);
+  EXPECT_EQ(Places(index.Query(first, 10)), (std::vector<PlaceId>{7}));
+  ASSERT_TRUE(index.Add(500001, far[500001]).ok());  // and the segment comes back
+  EXPECT_EQ(index.Query(far[500001], 1)[0].place, 500001u);
+}
+
+TEST(InvertedIndexTest, RemovedPlacesAreNeverReturnedOnAnyThreadCount) {
+  constexpr uint32_t kWords = 400;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  std::mt19937 rng(8);
+  std::map<PlaceId, BowVector> places;
+  for (PlaceId n = 0; n < 600; ++n) {
+    const PlaceId id = n * 409;  // ids across four segments
+    places[id] = RandomBow(rng, kWords, 30, ScoringType::kL1);
+    ASSERT_TRUE(index.Add(id, places[id]).ok());
+  }
+  std::set<PlaceId> removed;
+  for (auto it = places.begin(); it != places.end();) {
+    if (it->first % 3 == 0) {
+      ASSERT_TRUE(index.Remove(it->first, it->second).ok());
+      removed.insert(it->first);
+      it = places.erase(it);
+    } else {
+      ++it;
+    }
+  }
+  for (int threads : {1, 2, 4}) {
+    for (int i = 0; i < 20; ++i) {
+      const BowVector query = RandomBow(rng, kWords, 60, ScoringType::kL1);
+      const auto got = index.Query(query, 1000, {}, {}, threads);
+      EXPECT_EQ(got.size(), BruteForce(places, query, ScoringType::kL1, 1000).size());
+      for (const ScoredPlace& s : got) EXPECT_FALSE(removed.count(s.place)) << s.place;
+    }
+    // A removed place in the bonus list is not brought back either.
+    const std::vector<ScoredPlace> bonus = {{*removed.begin(), 5.0}};
+    for (const ScoredPlace& s : index.Query({{1, 1.0f}}, 1000, {}, bonus, threads)) {
+      EXPECT_FALSE(removed.count(s.place)) << s.place;
+    }
+  }
+}
+
+TEST(InvertedIndexTest, TwoThreadQueryEqualsOneThreadQueryExactly) {
+  for (ScoringType type : kAllScorings) {
+    SCOPED_TRACE(ScoringName(type));
+    constexpr uint32_t kWords = 1000;
+    InvertedIndex index(kWords, type);
+    std::mt19937 rng(31 + int(type));
+    std::map<PlaceId, BowVector> places;
+    for (PlaceId n = 0; n < 1500; ++n) {
+      const PlaceId id = n * 211 + n % 7;  // about five segments, unevenly filled
+      places[id] = RandomBow(rng, kWords, 40, type);
+      ASSERT_TRUE(index.Add(id, places[id]).ok());
+    }
+    for (int i = 0; i < 20; ++i) {
+      const BowVector query =
+          i % 2 == 0 ? std::next(places.begin(), i * 53)->second : RandomBow(rng, kWords, 60, type);
+      std::vector<ScoredPlace> bonus;
+      if (i % 4 == 1) bonus = {{211 * 3 + 3, 0.25}, {999999, 1.0}, {211 * 700, 0.5}};
+      std::function<bool(PlaceId)> accept;
+      if (i % 3 == 2) accept = [](PlaceId p) { return p % 5 != 1; };
+      for (size_t k : {size_t(1), size_t(10), size_t(200)}) {
+        const auto one = index.Query(query, k, accept, bonus, 1);
+        for (int threads : {2, 3, 8}) {
+          const auto many = index.Query(query, k, accept, bonus, threads);
+          ASSERT_EQ(many.size(), one.size()) << threads << " threads, k " << k;
+          for (size_t r = 0; r < one.size(); ++r) {
+            EXPECT_EQ(many[r].place, one[r].place) << threads << " threads, rank " << r;
+            EXPECT_EQ(many[r].score, one[r].score) << threads << " threads, rank " << r;
+          }
+        }
+      }
+    }
+  }
+}
+
+TEST(InvertedIndexTest, AcceptIsNeverCalledConcurrently) {
+  constexpr uint32_t kWords = 50;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  for (PlaceId n = 0; n < 400; ++n) {
+    ASSERT_TRUE(index.Add(n * 1000, {{1, 0.5f}, {WordId(2 + n % 40), 0.5f}}).ok());
+  }
+  std::atomic<int> inside{0};
+  std::atomic<bool> overlapped{false};
+  std::atomic<int> calls{0};
+  auto accept = [&](PlaceId p) {
+    if (inside.fetch_add(1) != 0) overlapped = true;
+    ++calls;
+    std::this_thread::yield();
+    inside.fetch_sub(1);
+    return p % 2000 == 0;
+  };
+  const auto got = index.Query({{1, 1.0f}}, 400, accept, {}, 4);
+  EXPECT_FALSE(overlapped.load());
+  EXPECT_GT(calls.load(), 0);
+  EXPECT_EQ(got.size(), 200u);
+  for (const ScoredPlace& s : got) EXPECT_EQ(s.place % 2000, 0u);
+}
+
+TEST(InvertedIndexTest, SkippingFrequentWordsDropsOnlyTheirShare) {
+  // Word 0 is in every place, word 1 in half, the rest rare. max_word_share 0.6 skips word 0
+  // only: each L1 score drops by at most the query's weight on it, and the same on any thread
+  // count; 1.0 is the exact query.
+  constexpr uint32_t kWords = 200;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  std::mt19937 rng(12);
+  std::map<PlaceId, BowVector> places;
+  for (PlaceId n = 0; n < 300; ++n) {
+    const PlaceId id = n * 500;  // three segments
+    BowVector bow = {{0, 0.2f}};
+    if (n % 2 == 0) bow.push_back({1, 0.2f});
+    for (const BowEntry& e : RandomBow(rng, kWords - 2, 10, ScoringType::kL1)) {
+      bow.push_back({e.word + 2, e.weight});
+    }
+    NormalizeForScoring(&bow, ScoringType::kL1);
+    ASSERT_TRUE(index.Add(id, bow).ok());
+    places[id] = bow;
+  }
+  for (int i = 0; i < 10; ++i) {
+    BowVector query = {{0, 0.3f}, {1, 0.1f}};
+    for (const BowEntry& e : RandomBow(rng, kWords - 2, 12, ScoringType::kL1)) {
+      query.push_back({e.word + 2, e.weight});
+    }
+    NormalizeForScoring(&query, ScoringType::kL1);
+    const auto exact = index.Query(query, 300, {}, {}, 1, 1.0);
+    EXPECT_EQ(Places(exact), Places(index.Query(query, 300)));
+    const auto skipping = index.Query(query, 300, {}, {}, 1, 0.6);
+    std::map<PlaceId, double> exact_score;
+    for (const ScoredPlace& s : exact) exact_score[s.place] = s.score;
+    for (const ScoredPlace& s : skipping) {
+      ASSERT_TRUE(exact_score.count(s.place));
+      EXPECT_LE(s.score, exact_score[s.place] + 1e-6);
+      EXPECT_GE(s.score, exact_score[s.place] - query[0].weight - 1e-6);
+    }
+    // Word 0 shared by all: only places sharing another word remain candidates.
+    EXPECT_LT(skipping.size(), exact.size());
+    const auto skipping_2threads = index.Query(query, 300, {}, {}, 2, 0.6);
+    ASSERT_EQ(skipping_2threads.size(), skipping.size());
+    for (size_t r = 0; r < skipping.size(); ++r) {
+      EXPECT_EQ(skipping_2threads[r].place, skipping[r].place);
+      EXPECT_EQ(skipping_2threads[r].score, skipping[r].score);
+    }
+  }
+  // The counts follow removals: with half the places gone word 1 is still in about half.
+  for (PlaceId n = 0; n < 300; n += 2) ASSERT_TRUE(index.Remove(n * 500, places[n * 500]).ok());
+  EXPECT_TRUE(index.Query({{1, 1.0f}}, 10, {}, {}, 1, 0.6).empty());  // none of the rest has it
+  EXPECT_TRUE(index.Query({{0, 1.0f}}, 10, {}, {}, 1, 0.6).empty());  // all of the rest have it
+  EXPECT_EQ(index.Query({{0, 1.0f}}, 10, {}, {}, 1, 1.0).size(), 10u);
 }
 
 TEST(InvertedIndexTest, CopiesAreIndependent) {

@@ -731,7 +731,8 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
     const std::vector<ScoredPlace> bonus = config_.short_term.enabled && !frame.dynamic_bow.empty()
                                                ? ShortTermBonusLocked(frame, options.timestamp_ns)
                                                : std::vector<ScoredPlace>();
-    const std::vector<ScoredPlace> ranked = index_.Query(frame.bow, options.top_k, accept, bonus);
+    const std::vector<ScoredPlace> ranked = index_.Query(
+        frame.bow, options.top_k, accept, bonus, options.search_threads, options.max_word_share);
     candidates.reserve(ranked.size());
     for (const ScoredPlace& scored : ranked) {
       candidates.emplace_back(scored, records_.at(scored.place));

@@ -260,6 +260,16 @@ struct QueryOptions {
   std::function<bool(const PlaceRecord&)> accept;
   // Fill Match::correspondences for verified matches (costs a copy of their inliers).
   bool include_correspondences = false;
+  // Threads this one query may use to search the inverted index (it splits the work by
+  // segments of 65536 place ids, so only maps past that use more than one; the result is the
+  // same for every value). 1 by default: a server answers concurrent queries and ingests on a
+  // few cores, where a second thread per query only queues behind other work; 2 roughly halves
+  // a large map's search time on an otherwise idle machine.
+  int search_threads = 1;
+  // < 1: skip the query's words held by more than this share of the map's places (see
+  // InvertedIndex::Query): faster on large maps, no longer the exact ranking (docs/index.md has
+  // the measured agreement; on small maps it changes the top 1 often). 1: exact, the default.
+  double max_word_share = 1.0;
 };
 
 struct Match {

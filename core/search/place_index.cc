@@ -4,10 +4,12 @@
 #include <array>
 #include <cmath>
 #include <cstring>
+#include <mutex>
 #include <string>
 #include <type_traits>
-#include <unordered_map>
 #include <utility>
+
+#include "core/base/parallel.h"
 
 namespace placedb {
 
@@ -19,7 +21,7 @@ constexpr std::array<uint32_t, 36> kSlabCapacities = {
     1,  2,  3,  4,  5,   6,   7,   8,   10,  12,  14,  16,  20,  24,  28,  32,  40,  48,
     56, 64, 80, 96, 112, 128, 160, 192, 224, 256, 320, 384, 448, 512, 640, 768, 896, 1024};
 constexpr uint32_t kNoSlot = 0xFFFFFFFFu;
-constexpr uint32_t kPagePostings = 8192;  // 64 KiB pages
+constexpr uint32_t kPagePostings = 8192;  // 32 KiB pages of 4-byte postings
 constexpr uint32_t kMaxSlabCapacity = kSlabCapacities.back();
 constexpr uint32_t kBigListBit = 0x80000000u;  // WordList::location of a list that owns a vector
 constexpr uint8_t kFreePage = 0xFF;            // page_class_ of a released page
@@ -54,144 +56,197 @@ inline T Term(T q, T c) {
   }
 }
 
-// Float halves the accumulator's cache footprint (at 100k places 400 KB instead of 800 KB fits a
-// core's L2 with room to spare) and is ample for the scores that are plain sums. L2 needs double:
+// Float halves the accumulator's cache footprint (a segment's 2^16 entries: 256 KB instead of
+// 512 KB, which fits a core's L2 with room to spare) and is ample for the scores that are plain
+// sums. L2 needs double:
 // 1 - sqrt(1 - x) turns float rounding of x ~ 1 (6e-8) into an error of 2.4e-4. So does KL,
 // whose result is a difference of two sums of ~25.
 template <ScoringType kType>
 using AccumulatorOf =
     std::conditional_t<kType == ScoringType::kL2 || kType == ScoringType::kKL, double, float>;
 
-bool NeedsDoubleAccumulator(ScoringType type) {
-  return type == ScoringType::kL2 || type == ScoringType::kKL;
+}  // namespace
+
+namespace {
+
+// Score order of an accumulated sum: the scorings whose FinalizeScore decreases with the sum
+// (L1, KL) rank by its negation, so a larger key is always a better place and the candidates
+// can be compared before finalising (which only the top k need).
+constexpr bool SumDecreasesScore(ScoringType type) {
+  return type == ScoringType::kL1 || type == ScoringType::kKL;
+}
+
+// A candidate in a worker's top k: the order key of its sum (SumDecreasesScore) and its place.
+struct KeyedPlace {
+  double key;
+  PlaceId place;
+};
+
+// Heap order: "less" is "better", so a heap's front is the worst of the kept candidates.
+inline bool Better(const KeyedPlace& a, const KeyedPlace& b) {
+  return a.key != b.key ? a.key > b.key : a.place < b.place;
 }
 
 }  // namespace
 
-// Per-thread query scratch: a dense accumulator by place id and the places it touched. Reused
+// One worker's scratch: a segment's dense accumulator (2^16 entries, zero between segments), the
+// runs of the segment being scored, and the worker's candidates over all its segments. Reused
 // across queries so a steady-state query allocates only its result.
 struct InvertedIndex::QueryScratch {
-  std::vector<float> float_score;    // by place id, zero when untouched
-  std::vector<double> double_score;  // the same, for the scorings that need double
-  std::vector<PlaceId> touched;      // places whose score went from zero (may repeat)
-  std::vector<uint8_t> listed;       // by place id: dedups `touched` while finalising
+  std::vector<float> float_score;
+  std::vector<double> double_score;  // for the scorings that need double
   std::vector<PostingRun> runs;
-  std::vector<ScoredPlace> candidates;
-  bool in_use = false;  // a nested Query (from inside `accept`) must not share this scratch
+  std::vector<KeyedPlace> top;                // heap of at most top_k, worst first
+  std::vector<ScoredPlace> bonus_candidates;  // places of the bonus list, finalised
 
   template <typename T>
-  std::vector<T>& score() {
+  T* score() {
+    std::vector<T>* scores;
     if constexpr (std::is_same_v<T, float>) {
-      return float_score;
+      scores = &float_score;
     } else {
-      return double_score;
+      scores = &double_score;
     }
+    if (scores->empty()) scores->resize(size_t(1) << kSegmentBits, T(0));
+    return scores->data();
   }
 };
 
+struct InvertedIndex::QueryContext {
+  const BowVector* bow;
+  size_t top_k;
+  const std::function<bool(PlaceId)>* accept;  // never empty here: null when absent
+  std::span<const ScoredPlace> bonus;          // sorted by place, each once, indexed places only
+  double query_constant;
+  bool serialise_accept;  // several workers: one accept call at a time
+  mutable std::mutex accept_mutex;
+
+  bool Accept(PlaceId place) const {
+    if (accept == nullptr) return true;
+    if (!serialise_accept) return (*accept)(place);
+    std::lock_guard lock(accept_mutex);
+    return (*accept)(place);
+  }
+};
+
+uint16_t InvertedIndex::EncodeWeight(float weight) {
+  uint32_t bits;
+  std::memcpy(&bits, &weight, sizeof bits);
+  const uint32_t sign = (bits >> 16) & 0x8000u;
+  // Adding half a unit of the 10-bit mantissa rounds to nearest; a carry bumps the exponent,
+  // which is still the right value.
+  const uint32_t rounded = (bits & 0x7FFFFFFFu) + 0x1000u;
+  const uint32_t biased_exponent = rounded >> 23;
+  if (biased_exponent < 103) return 0;                         // below 2^-24: stored as zero
+  if (biased_exponent > 133) return uint16_t(sign | 0x7FFFu);  // Add rejects these first
+  return uint16_t(sign | ((rounded >> 13) - (102u << 10)));
+}
+
+InvertedIndex::Segment::Segment(uint32_t word_count)
+    : lists(word_count),
+      class_pages(kSlabCapacities.size(), 0),
+      class_live_slots(kSlabCapacities.size(), 0),
+      free_slots(kSlabCapacities.size()),
+      bump(kSlabCapacities.size(), kNoSlot) {}
+
 InvertedIndex::InvertedIndex(uint32_t word_count, ScoringType scoring)
-    : scoring_(scoring),
-      lists_(word_count),
-      class_pages_(kSlabCapacities.size(), 0),
-      class_live_slots_(kSlabCapacities.size(), 0),
-      free_slots_(kSlabCapacities.size()),
-      bump_(kSlabCapacities.size(), kNoSlot) {
-  static_assert(sizeof(WordList) == 8 && sizeof(Posting) == 8);
+    : scoring_(scoring), word_count_(word_count), word_places_(word_count, 0) {
+  static_assert(sizeof(WordList) == 8 && sizeof(Posting) == 4);
 }
 
-InvertedIndex::Posting* InvertedIndex::Data(const WordList& list) {
-  if (list.location & kBigListBit) return big_lists_[list.location & ~kBigListBit].data();
-  return pages_[list.location / kPagePostings].data() + list.location % kPagePostings;
+InvertedIndex::Posting* InvertedIndex::Segment::Data(const WordList& list) {
+  if (list.location & kBigListBit) return big_lists[list.location & ~kBigListBit].data();
+  return pages[list.location / kPagePostings].data() + list.location % kPagePostings;
 }
 
-const InvertedIndex::Posting* InvertedIndex::Data(const WordList& list) const {
-  if (list.location & kBigListBit) return big_lists_[list.location & ~kBigListBit].data();
-  return pages_[list.location / kPagePostings].data() + list.location % kPagePostings;
+const InvertedIndex::Posting* InvertedIndex::Segment::Data(const WordList& list) const {
+  if (list.location & kBigListBit) return big_lists[list.location & ~kBigListBit].data();
+  return pages[list.location / kPagePostings].data() + list.location % kPagePostings;
 }
 
-uint32_t InvertedIndex::Capacity(const WordList& list) const {
+uint32_t InvertedIndex::Segment::Capacity(const WordList& list) const {
   if (list.size == 0) return 0;
   if (list.location & kBigListBit) {
-    return uint32_t(big_lists_[list.location & ~kBigListBit].size());
+    return uint32_t(big_lists[list.location & ~kBigListBit].size());
   }
-  return kSlabCapacities[page_class_[list.location / kPagePostings]];
+  return kSlabCapacities[page_class[list.location / kPagePostings]];
 }
 
-uint32_t InvertedIndex::AllocateSlot(int size_class) {
-  ++class_live_slots_[size_t(size_class)];
-  std::vector<uint32_t>& free_slots = free_slots_[size_t(size_class)];
-  if (!free_slots.empty()) {
-    const uint32_t slot = free_slots.back();
-    free_slots.pop_back();
+uint32_t InvertedIndex::Segment::AllocateSlot(int size_class) {
+  ++class_live_slots[size_t(size_class)];
+  std::vector<uint32_t>& class_free_slots = free_slots[size_t(size_class)];
+  if (!class_free_slots.empty()) {
+    const uint32_t slot = class_free_slots.back();
+    class_free_slots.pop_back();
     return slot;
   }
   const uint32_t capacity = kSlabCapacities[size_t(size_class)];
-  uint32_t& bump = bump_[size_t(size_class)];
-  if (bump == kNoSlot) {
+  uint32_t& next_slot = bump[size_t(size_class)];
+  if (next_slot == kNoSlot) {
     uint32_t page;
-    if (!free_pages_.empty()) {
-      page = free_pages_.back();
-      free_pages_.pop_back();
-      pages_[page].resize(kPagePostings);
-      page_class_[page] = uint8_t(size_class);
+    if (!free_pages.empty()) {
+      page = free_pages.back();
+      free_pages.pop_back();
+      pages[page].resize(kPagePostings);
+      page_class[page] = uint8_t(size_class);
     } else {
-      page = uint32_t(pages_.size());
-      pages_.emplace_back(kPagePostings);
-      page_class_.push_back(uint8_t(size_class));
+      page = uint32_t(pages.size());
+      pages.emplace_back(kPagePostings);
+      page_class.push_back(uint8_t(size_class));
     }
-    ++class_pages_[size_t(size_class)];
-    bump = page * kPagePostings;
+    ++class_pages[size_t(size_class)];
+    next_slot = page * kPagePostings;
   }
-  const uint32_t slot = bump;
+  const uint32_t slot = next_slot;
   const uint32_t next_offset = slot % kPagePostings + capacity;
-  bump = next_offset + capacity <= kPagePostings ? slot + capacity : kNoSlot;
+  next_slot = next_offset + capacity <= kPagePostings ? slot + capacity : kNoSlot;
   return slot;
 }
 
-void InvertedIndex::Release(WordList* list) {
+void InvertedIndex::Segment::Release(WordList* list) {
   if (list->location & kBigListBit) {
     const uint32_t index = list->location & ~kBigListBit;
-    std::vector<Posting>().swap(big_lists_[index]);  // frees the block
-    free_big_lists_.push_back(index);
+    std::vector<Posting>().swap(big_lists[index]);  // frees the block
+    free_big_lists.push_back(index);
   } else {
-    const uint8_t size_class = page_class_[list->location / kPagePostings];
-    free_slots_[size_class].push_back(list->location);
-    --class_live_slots_[size_class];
+    const uint8_t size_class = page_class[list->location / kPagePostings];
+    free_slots[size_class].push_back(list->location);
+    --class_live_slots[size_class];
   }
   list->location = 0;
 }
 
-void InvertedIndex::CompactIfFragmented() {
+void InvertedIndex::Segment::CompactIfFragmented() {
   for (size_t c = 0; c < kSlabCapacities.size(); ++c) {
-    if (class_pages_[c] == 0) continue;
-    const size_t garbage = free_slots_[c].size() * kSlabCapacities[c];
+    if (class_pages[c] == 0) continue;
+    const size_t garbage = free_slots[c].size() * kSlabCapacities[c];
     // An unused class gives its pages back at once (no list to move). Otherwise wait for at least
     // two pages to gain, and an eighth of the class: rare, and amortised by the relocations that
     // created the garbage.
-    if (class_live_slots_[c] == 0 ||
-        (garbage >= 2 * kPagePostings && garbage * 8 >= size_t(class_pages_[c]) * kPagePostings)) {
+    if (class_live_slots[c] == 0 ||
+        (garbage >= 2 * kPagePostings && garbage * 8 >= size_t(class_pages[c]) * kPagePostings)) {
       CompactSizeClass(int(c));
     }
   }
 }
 
-void InvertedIndex::CompactSizeClass(int size_class) {
+void InvertedIndex::Segment::CompactSizeClass(int size_class) {
   const size_t c = size_t(size_class);
   const uint32_t capacity = kSlabCapacities[c];
   // The class's live slots in address order. Slots sit at multiples of the capacity within a
   // page, so packing them forward never overlaps a slot not yet moved.
   std::vector<std::pair<uint32_t, WordId>> live;
-  for (WordId word = 0; class_live_slots_[c] > 0 && word < lists_.size(); ++word) {
-    const WordList& list = lists_[word];
+  for (WordId word = 0; class_live_slots[c] > 0 && word < lists.size(); ++word) {
+    const WordList& list = lists[word];
     if (list.size > 0 && !(list.location & kBigListBit) &&
-        page_class_[list.location / kPagePostings] == size_class) {
+        page_class[list.location / kPagePostings] == size_class) {
       live.emplace_back(list.location, word);
     }
   }
   std::sort(live.begin(), live.end());
-  std::vector<uint32_t> pages;
-  for (uint32_t page = 0; page < page_class_.size(); ++page) {
-    if (page_class_[page] == size_class) pages.push_back(page);
+  std::vector<uint32_t> class_page_list;
+  for (uint32_t page = 0; page < page_class.size(); ++page) {
+    if (page_class[page] == size_class) class_page_list.push_back(page);
   }
   size_t page_index = 0;
   uint32_t offset = 0;
@@ -200,29 +255,29 @@ void InvertedIndex::CompactSizeClass(int size_class) {
       ++page_index;
       offset = 0;
     }
-    const uint32_t destination = pages[page_index] * kPagePostings + offset;
+    const uint32_t destination = class_page_list[page_index] * kPagePostings + offset;
     if (destination != location) {
-      std::memmove(pages_[pages[page_index]].data() + offset,
-                   pages_[location / kPagePostings].data() + location % kPagePostings,
-                   lists_[word].size * sizeof(Posting));
-      lists_[word].location = destination;
+      std::memmove(pages[class_page_list[page_index]].data() + offset,
+                   pages[location / kPagePostings].data() + location % kPagePostings,
+                   lists[word].size * sizeof(Posting));
+      lists[word].location = destination;
     }
     offset += capacity;
   }
   const size_t used_pages = live.empty() ? 0 : page_index + 1;
-  for (size_t i = used_pages; i < pages.size(); ++i) {
-    std::vector<Posting>().swap(pages_[pages[i]]);
-    page_class_[pages[i]] = kFreePage;
-    free_pages_.push_back(pages[i]);
+  for (size_t i = used_pages; i < class_page_list.size(); ++i) {
+    std::vector<Posting>().swap(pages[class_page_list[i]]);
+    page_class[class_page_list[i]] = kFreePage;
+    free_pages.push_back(class_page_list[i]);
   }
-  class_pages_[c] = uint32_t(used_pages);
-  bump_[c] = used_pages > 0 && offset + capacity <= kPagePostings
-                 ? pages[page_index] * kPagePostings + offset
-                 : kNoSlot;
-  std::vector<uint32_t>().swap(free_slots_[c]);
+  class_pages[c] = uint32_t(used_pages);
+  bump[c] = used_pages > 0 && offset + capacity <= kPagePostings
+                ? class_page_list[page_index] * kPagePostings + offset
+                : kNoSlot;
+  std::vector<uint32_t>().swap(free_slots[c]);
 }
 
-void InvertedIndex::Relocate(WordList* list, uint32_t capacity) {
+void InvertedIndex::Segment::Relocate(WordList* list, uint32_t capacity) {
   const bool had_storage = Capacity(*list) > 0;
   const bool was_big = had_storage && (list->location & kBigListBit);
   uint32_t location;
@@ -230,7 +285,7 @@ void InvertedIndex::Relocate(WordList* list, uint32_t capacity) {
   std::vector<Posting> big;
   if (capacity <= kMaxSlabCapacity) {
     location = AllocateSlot(SizeClassFor(capacity));
-    destination = pages_[location / kPagePostings].data() + location % kPagePostings;
+    destination = pages[location / kPagePostings].data() + location % kPagePostings;
   } else {
     big.resize(capacity);  // the vector's size is the list's capacity
     destination = big.data();
@@ -244,34 +299,34 @@ void InvertedIndex::Relocate(WordList* list, uint32_t capacity) {
     return;
   }
   if (was_big) {  // keep the list's big-list index, swap in the resized block
-    big_lists_[list->location & ~kBigListBit] = std::move(big);
+    big_lists[list->location & ~kBigListBit] = std::move(big);
     return;
   }
   if (had_storage) Release(list);
   uint32_t index;
-  if (!free_big_lists_.empty()) {
-    index = free_big_lists_.back();
-    free_big_lists_.pop_back();
-    big_lists_[index] = std::move(big);
+  if (!free_big_lists.empty()) {
+    index = free_big_lists.back();
+    free_big_lists.pop_back();
+    big_lists[index] = std::move(big);
   } else {
-    index = uint32_t(big_lists_.size());
-    big_lists_.push_back(std::move(big));
+    index = uint32_t(big_lists.size());
+    big_lists.push_back(std::move(big));
   }
   list->location = kBigListBit | index;
 }
 
-// Inserts keeping the list sorted by place. Returns false when a posting for the place was
+// Inserts keeping the list sorted by offset. Returns false when a posting for the place was
 // already there (left behind by a Remove with a mismatched vector) and was overwritten.
-bool InvertedIndex::InsertPosting(WordList* list, Posting posting) {
+bool InvertedIndex::Segment::InsertPosting(WordList* list, Posting posting) {
   uint32_t index = list->size;
   if (list->size > 0) {
     const Posting* data = Data(*list);
-    if (data[list->size - 1].place >= posting.place) {  // not the usual append
+    if (data[list->size - 1].offset >= posting.offset) {  // not the usual append
       const Posting* at =
-          std::lower_bound(data, data + list->size, posting.place,
-                           [](const Posting& p, PlaceId place) { return p.place < place; });
+          std::lower_bound(data, data + list->size, posting.offset,
+                           [](const Posting& p, uint32_t offset) { return p.offset < offset; });
       index = uint32_t(at - data);
-      if (at->place == posting.place) {
+      if (at->offset == posting.offset) {
         Data(*list)[index].weight = posting.weight;
         return false;
       }
@@ -285,7 +340,7 @@ bool InvertedIndex::InsertPosting(WordList* list, Posting posting) {
   return true;
 }
 
-void InvertedIndex::ErasePosting(WordList* list, uint32_t index) {
+void InvertedIndex::Segment::ErasePosting(WordList* list, uint32_t index) {
   Posting* data = Data(*list);
   std::memmove(data + index, data + index + 1, (list->size - index - 1) * sizeof(Posting));
   --list->size;
@@ -297,6 +352,23 @@ void InvertedIndex::ErasePosting(WordList* list, uint32_t index) {
   if (list->size <= Capacity(*list) / 2) {
     Relocate(list, CapacityFor(list->size));
   }
+}
+
+size_t InvertedIndex::Segment::MemoryBytes() const {
+  // Everything the segment holds on the heap, at capacity: list headers, pages (released ones
+  // hold nothing), big lists and the allocator's bookkeeping.
+  size_t bytes = lists.capacity() * sizeof(WordList);
+  bytes += pages.capacity() * sizeof(std::vector<Posting>);
+  for (const auto& page : pages) bytes += page.capacity() * sizeof(Posting);
+  bytes += big_lists.capacity() * sizeof(std::vector<Posting>);
+  for (const auto& list : big_lists) bytes += list.capacity() * sizeof(Posting);
+  bytes += free_slots.capacity() * sizeof(std::vector<uint32_t>);
+  for (const auto& slots : free_slots) bytes += slots.capacity() * sizeof(uint32_t);
+  bytes += page_class.capacity() + free_pages.capacity() * sizeof(uint32_t) +
+           (class_pages.capacity() + class_live_slots.capacity() + bump.capacity() +
+            free_big_lists.capacity()) *
+               sizeof(uint32_t);
+  return bytes;
 }
 
 namespace {
@@ -317,6 +389,12 @@ Status ValidateBow(const BowVector& bow, size_t word_count) {
     if (!std::isfinite(bow[i].weight)) {
       return Status::InvalidArgument(field(i) + ".weight is not finite");
     }
+    if (std::fabs(bow[i].weight) >= InvertedIndex::kMaxWeight) {
+      return Status::InvalidArgument(field(i) + ".weight = " + std::to_string(bow[i].weight) +
+                                     " is outside the index's range (magnitude below " +
+                                     std::to_string(InvertedIndex::kMaxWeight) +
+                                     "): normalise the vector for its scoring");
+    }
   }
   return Status::Ok();
 }
@@ -327,26 +405,40 @@ Status InvertedIndex::Add(PlaceId place, const BowVector& bow) {
   if (Contains(place)) {
     return Status::AlreadyExists("place " + std::to_string(place) + " is already indexed");
   }
-  PLACEDB_RETURN_IF_ERROR(ValidateBow(bow, lists_.size()));
-  // Slab locations are 31-bit; each new posting needs at most one new page.
-  if (pages_.size() + bow.size() > kBigListBit / kPagePostings) {
-    return Status::ResourceExhausted("inverted index: posting storage is full (" +
-                                     std::to_string(posting_count_) + " postings)");
+  PLACEDB_RETURN_IF_ERROR(ValidateBow(bow, word_count_));
+  const size_t segment_index = place >> kSegmentBits;
+  const uint16_t offset = uint16_t(place & ((1u << kSegmentBits) - 1));
+  if (segment_index < segments_.size()) {
+    // Slab locations are 31-bit; each new posting needs at most one new page.
+    const Segment& segment = segments_[segment_index];
+    if (segment.pages.size() + bow.size() > kBigListBit / kPagePostings) {
+      return Status::ResourceExhausted("inverted index: posting storage of segment " +
+                                       std::to_string(segment_index) + " is full");
+    }
   }
+  if (segment_index >= segments_.size()) segments_.resize(segment_index + 1);
+  Segment& segment = segments_[segment_index];
+  if (segment.lists.empty()) segment = Segment(word_count_);
   if (place >= present_.size()) present_.resize(size_t(place) + 1, 0);
   // Each word's list is a likely cache miss twice (header, then its tail): prefetch ahead.
   constexpr size_t kAhead = 8;
   for (size_t i = 0; i < bow.size(); ++i) {
-    if (i + 2 * kAhead < bow.size()) __builtin_prefetch(&lists_[bow[i + 2 * kAhead].word]);
+    if (i + 2 * kAhead < bow.size()) __builtin_prefetch(&segment.lists[bow[i + 2 * kAhead].word]);
     if (i + kAhead < bow.size()) {
-      const WordList& ahead = lists_[bow[i + kAhead].word];
-      if (ahead.size > 0) __builtin_prefetch(Data(ahead) + ahead.size - 1, 1);
+      const WordList& ahead = segment.lists[bow[i + kAhead].word];
+      if (ahead.size > 0) __builtin_prefetch(segment.Data(ahead) + ahead.size - 1, 1);
     }
-    if (InsertPosting(&lists_[bow[i].word], Posting{place, bow[i].weight})) ++posting_count_;
+    if (segment.InsertPosting(&segment.lists[bow[i].word],
+                              Posting{offset, EncodeWeight(bow[i].weight)})) {
+      ++posting_count_;
+      ++word_places_[bow[i].word];
+    }
   }
   present_[place] = 1;
   ++place_count_;
-  CompactIfFragmented();
+  ++segment.place_count;
+  segment.scan_limit = std::max(segment.scan_limit, uint32_t(offset) + 1);
+  segment.CompactIfFragmented();
   return Status::Ok();
 }
 
@@ -354,17 +446,20 @@ Status InvertedIndex::Remove(PlaceId place, const BowVector& bow) {
   if (!Contains(place)) {
     return Status::NotFound("place " + std::to_string(place) + " is not indexed");
   }
-  PLACEDB_RETURN_IF_ERROR(ValidateBow(bow, lists_.size()));
+  PLACEDB_RETURN_IF_ERROR(ValidateBow(bow, word_count_));
+  Segment& segment = segments_[place >> kSegmentBits];
+  const uint32_t offset = place & ((1u << kSegmentBits) - 1);
   // Find every posting first so that a mismatched vector changes nothing.
   auto find = [&](const WordList& list) -> uint32_t {
     if (list.size == 0) return kNoSlot;
-    const Posting* data = Data(list);
-    const Posting* at = std::lower_bound(data, data + list.size, place,
-                                         [](const Posting& p, PlaceId id) { return p.place < id; });
-    return at != data + list.size && at->place == place ? uint32_t(at - data) : kNoSlot;
+    const Posting* data = segment.Data(list);
+    const Posting* at =
+        std::lower_bound(data, data + list.size, offset,
+                         [](const Posting& p, uint32_t wanted) { return p.offset < wanted; });
+    return at != data + list.size && at->offset == offset ? uint32_t(at - data) : kNoSlot;
   };
   for (size_t i = 0; i < bow.size(); ++i) {
-    if (find(lists_[bow[i].word]) == kNoSlot) {
+    if (find(segment.lists[bow[i].word]) == kNoSlot) {
       return Status::InvalidArgument("bow[" + std::to_string(i) +
                                      "].word = " + std::to_string(bow[i].word) +
                                      " has no posting for place " + std::to_string(place) +
@@ -372,13 +467,20 @@ Status InvertedIndex::Remove(PlaceId place, const BowVector& bow) {
     }
   }
   for (const BowEntry& entry : bow) {
-    WordList& list = lists_[entry.word];
-    ErasePosting(&list, find(list));
+    WordList& list = segment.lists[entry.word];
+    segment.ErasePosting(&list, find(list));
     --posting_count_;
+    --word_places_[entry.word];
   }
   present_[place] = 0;
   --place_count_;
-  CompactIfFragmented();
+  if (--segment.place_count == 0) {
+    // An emptied segment gives back its word table too (8 bytes per word). Postings left by a
+    // Remove with a mismatched vector cannot exist: Remove checks every word first.
+    segment = Segment();
+  } else {
+    segment.CompactIfFragmented();
+  }
   return Status::Ok();
 }
 
@@ -387,10 +489,23 @@ bool InvertedIndex::Contains(PlaceId place) const {
 }
 
 template <ScoringType kType>
-void InvertedIndex::Accumulate(const std::vector<PostingRun>& runs, QueryScratch* scratch) {
+void InvertedIndex::ScoreSegment(uint32_t segment_index, const QueryContext& query,
+                                 QueryScratch* scratch) const {
   using Accumulator = AccumulatorOf<kType>;
-  Accumulator* score = scratch->score<Accumulator>().data();
-  std::vector<PlaceId>& touched = scratch->touched;
+  const Segment& segment = segments_[segment_index];
+  Accumulator* score = scratch->score<Accumulator>();
+  std::vector<PostingRun>& runs = scratch->runs;
+  runs.clear();
+  const BowVector& bow = *query.bow;
+  constexpr size_t kAhead = 16;
+  for (size_t i = 0; i < bow.size(); ++i) {
+    if (i + kAhead < bow.size() && bow[i + kAhead].word < word_count_) {
+      __builtin_prefetch(&segment.lists[bow[i + kAhead].word]);
+    }
+    if (bow[i].word >= word_count_) continue;  // not a word of this vocabulary: shares nothing
+    const WordList& list = segment.lists[bow[i].word];
+    if (list.size > 0) runs.push_back({segment.Data(list), list.size, bow[i].weight});
+  }
   // Prefetch a few runs ahead: most runs are short, so each would otherwise start with a miss.
   constexpr size_t kPrefetchDistance = 8;
   for (size_t r = 0; r < runs.size(); ++r) {
@@ -400,137 +515,172 @@ void InvertedIndex::Accumulate(const std::vector<PostingRun>& runs, QueryScratch
     const Posting* postings = runs[r].postings;
     const uint32_t size = runs[r].size;
     const Accumulator q = runs[r].query_weight;
-    for (uint32_t i = 0; i < size; ++i) {
-      // A zero accumulator marks an untouched place: no separate flag to load in this loop.
-      // (A sum that returns to exactly 0 re-lists its place; Query drops the duplicate, and a
-      // place whose terms sum to 0 scores exactly like one sharing no word.)
-      Accumulator& accumulated = score[postings[i].place];
-      if (accumulated == 0) touched.push_back(postings[i].place);
-      accumulated += Term<kType, Accumulator>(q, postings[i].weight);
+    if constexpr (kType == ScoringType::kL1) {
+      // |q - c| - |q| - |c| is -2 min(q, c) when both are >= 0 and 0 when their signs differ:
+      // one min per posting instead of three absolute values (the hot loop of the paper's score).
+      if (q >= 0) {
+        for (uint32_t i = 0; i < size; ++i) {
+          const float c = std::max(DecodeWeight(postings[i].weight), 0.0f);
+          score[postings[i].offset] += -2.0f * std::min(q, c);
+        }
+      } else {
+        for (uint32_t i = 0; i < size; ++i) {
+          const float c = std::min(DecodeWeight(postings[i].weight), 0.0f);
+          score[postings[i].offset] += 2.0f * std::max(q, c);
+        }
+      }
+    } else {
+      for (uint32_t i = 0; i < size; ++i) {
+        score[postings[i].offset] += Term<kType, Accumulator>(q, DecodeWeight(postings[i].weight));
+      }
     }
+  }
+
+  const PlaceId base = segment_index << kSegmentBits;
+  // The bonus list's places of this segment: finalised apart (their bonus is added after
+  // FinalizeScore), and taken out of the accumulator so the scan below skips them.
+  auto bonus_begin =
+      std::lower_bound(query.bonus.begin(), query.bonus.end(), base,
+                       [](const ScoredPlace& b, PlaceId place) { return b.place < place; });
+  for (auto it = bonus_begin;
+       it != query.bonus.end() && (it->place >> kSegmentBits) == segment_index; ++it) {
+    const Accumulator accumulated = std::exchange(score[it->place - base], Accumulator(0));
+    if (!query.Accept(it->place)) continue;
+    const double shared =
+        accumulated != 0 ? FinalizeScore(kType, double(accumulated), query.query_constant) : 0;
+    scratch->bonus_candidates.push_back({it->place, shared + it->score});
+  }
+
+  // A zero sum marks a place that shares no word (a sum of terms that is exactly zero scores
+  // like one). Only candidates that beat the worker's current k-th reach present_ and accept.
+  std::vector<KeyedPlace>& top = scratch->top;
+  const size_t k = query.top_k;
+  for (uint32_t offset = 0; offset < segment.scan_limit; ++offset) {
+    const Accumulator accumulated = score[offset];
+    if (accumulated == 0) continue;
+    score[offset] = 0;
+    const KeyedPlace candidate{
+        SumDecreasesScore(kType) ? -double(accumulated) : double(accumulated), base + offset};
+    if (top.size() == k && !Better(candidate, top.front())) continue;
+    if (!present_[candidate.place] || !query.Accept(candidate.place)) continue;
+    if (top.size() == k) {
+      std::pop_heap(top.begin(), top.end(), Better);
+      top.pop_back();
+    }
+    top.push_back(candidate);
+    std::push_heap(top.begin(), top.end(), Better);
   }
 }
 
 std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k,
                                               const std::function<bool(PlaceId)>& accept,
-                                              std::span<const ScoredPlace> bonus) const {
+                                              std::span<const ScoredPlace> bonus, int threads,
+                                              double max_word_share) const {
   std::vector<ScoredPlace> result;
   if (top_k == 0 || place_count_ == 0) return result;
 
-  thread_local QueryScratch thread_scratch;
-  QueryScratch nested_scratch;
-  QueryScratch& scratch = thread_scratch.in_use ? nested_scratch : thread_scratch;
-  scratch.in_use = true;
+  std::vector<uint32_t> live_segments;
+  for (uint32_t s = 0; s < segments_.size(); ++s) {
+    if (segments_[s].place_count > 0) live_segments.push_back(s);
+  }
+  const int workers = int(std::min<size_t>(size_t(std::max(threads, 1)), live_segments.size()));
+
+  // Per calling thread, one scratch per worker; a nested Query (from inside `accept`) must not
+  // share them, so it gets its own.
+  thread_local std::vector<QueryScratch> thread_scratch;
+  thread_local bool thread_scratch_in_use = false;
+  std::vector<QueryScratch> nested_scratch;
+  const bool nested = thread_scratch_in_use;
+  std::vector<QueryScratch>& scratch = nested ? nested_scratch : thread_scratch;
+  if (scratch.size() < size_t(workers)) scratch.resize(size_t(workers));
   struct ScratchGuard {
-    QueryScratch* scratch;
-    ~ScratchGuard() { scratch->in_use = false; }
-  } guard{&scratch};
-  // Every place id in a posting is below present_.size().
-  const bool wide = NeedsDoubleAccumulator(scoring_);
-  if (wide && scratch.double_score.size() < present_.size()) {
-    scratch.double_score.resize(present_.size(), 0.0);
-  }
-  if (!wide && scratch.float_score.size() < present_.size()) {
-    scratch.float_score.resize(present_.size(), 0.0f);
-  }
-  if (scratch.listed.size() < present_.size()) {
-    scratch.listed.resize(present_.size(), 0);
-  }
-  scratch.touched.clear();
-  scratch.runs.clear();
-  for (const BowEntry& entry : bow) {
-    if (entry.word >= lists_.size()) continue;  // not a word of this vocabulary: shares nothing
-    const WordList& list = lists_[entry.word];
-    if (list.size > 0) scratch.runs.push_back({Data(list), list.size, entry.weight});
-  }
-  switch (scoring_) {
-    case ScoringType::kL1:
-      Accumulate<ScoringType::kL1>(scratch.runs, &scratch);
-      break;
-    case ScoringType::kL2:
-      Accumulate<ScoringType::kL2>(scratch.runs, &scratch);
-      break;
-    case ScoringType::kChiSquare:
-      Accumulate<ScoringType::kChiSquare>(scratch.runs, &scratch);
-      break;
-    case ScoringType::kKL:
-      Accumulate<ScoringType::kKL>(scratch.runs, &scratch);
-      break;
-    case ScoringType::kBhattacharyya:
-      Accumulate<ScoringType::kBhattacharyya>(scratch.runs, &scratch);
-      break;
-    case ScoringType::kDotProduct:
-      Accumulate<ScoringType::kDotProduct>(scratch.runs, &scratch);
-      break;
+    bool nested;
+    ~ScratchGuard() {
+      if (!nested) thread_scratch_in_use = false;
+    }
+  } guard{nested};
+  thread_scratch_in_use = true;
+  for (int w = 0; w < workers; ++w) {
+    scratch[size_t(w)].top.clear();
+    scratch[size_t(w)].bonus_candidates.clear();
   }
 
-  // Finalise and leave the accumulator zeroed for the next query, before any user callback.
-  const double query_constant = QueryConstant(scoring_, bow);
-  std::vector<ScoredPlace>& candidates = scratch.candidates;
-  candidates.clear();
-  for (const PlaceId place : scratch.touched) {
-    if (scratch.listed[place]) continue;
-    scratch.listed[place] = 1;
-    double accumulated;
-    if (wide) {
-      accumulated = std::exchange(scratch.double_score[place], 0.0);
-    } else {
-      accumulated = std::exchange(scratch.float_score[place], 0.0f);
-    }
-    // Postings of a removed place can only survive a Remove given the wrong vector; never
-    // return such a place.
-    if (present_[place]) {
-      candidates.push_back({place, FinalizeScore(scoring_, accumulated, query_constant)});
-    }
+  // The bonus list sorted by place, each place once (the first entry wins), indexed places only.
+  std::vector<ScoredPlace> sorted_bonus;
+  for (const ScoredPlace& b : bonus) {
+    if (Contains(b.place)) sorted_bonus.push_back(b);
   }
-  if (!bonus.empty()) {
-    // The bonus list is short (the short-term tier): index it, not the candidates.
-    std::unordered_map<PlaceId, double> extra;
-    for (const ScoredPlace& b : bonus) {
-      if (b.place < present_.size() && present_[b.place]) extra.emplace(b.place, b.score);
-    }
-    for (ScoredPlace& candidate : candidates) {
-      auto it = extra.find(candidate.place);
-      if (it == extra.end()) continue;
-      candidate.score += it->second;
-      extra.erase(it);
-    }
-    for (const ScoredPlace& b : bonus) {  // places that share no word with `bow`
-      if (extra.count(b.place)) candidates.push_back(b);
-    }
-  }
-  for (const PlaceId place : scratch.touched) scratch.listed[place] = 0;
-  if (accept) {
-    std::erase_if(candidates, [&](const ScoredPlace& c) { return !accept(c.place); });
-  }
+  std::stable_sort(sorted_bonus.begin(), sorted_bonus.end(),
+                   [](const ScoredPlace& a, const ScoredPlace& b) { return a.place < b.place; });
+  sorted_bonus.erase(
+      std::unique(sorted_bonus.begin(), sorted_bonus.end(),
+                  [](const ScoredPlace& a, const ScoredPlace& b) { return a.place == b.place; }),
+      sorted_bonus.end());
 
+  // The words scored: all of them, or those held by at most max_word_share of the places.
+  BowVector kept_words;
+  const BowVector* scored_words = &bow;
+  if (max_word_share < 1.0) {
+    const double most_places = max_word_share * double(place_count_);
+    for (const BowEntry& entry : bow) {
+      if (entry.word < word_count_ && double(word_places_[entry.word]) <= most_places) {
+        kept_words.push_back(entry);
+      }
+    }
+    scored_words = &kept_words;
+  }
+  QueryContext context{
+      scored_words, top_k, accept ? &accept : nullptr, sorted_bonus, QueryConstant(scoring_, bow),
+      workers > 1,  {}};
+  auto score_segment = [&](size_t task, int worker) {
+    QueryScratch* worker_scratch = &scratch[size_t(worker)];
+    const uint32_t segment = live_segments[task];
+    switch (scoring_) {
+      case ScoringType::kL1:
+        ScoreSegment<ScoringType::kL1>(segment, context, worker_scratch);
+        break;
+      case ScoringType::kL2:
+        ScoreSegment<ScoringType::kL2>(segment, context, worker_scratch);
+        break;
+      case ScoringType::kChiSquare:
+        ScoreSegment<ScoringType::kChiSquare>(segment, context, worker_scratch);
+        break;
+      case ScoringType::kKL:
+        ScoreSegment<ScoringType::kKL>(segment, context, worker_scratch);
+        break;
+      case ScoringType::kBhattacharyya:
+        ScoreSegment<ScoringType::kBhattacharyya>(segment, context, worker_scratch);
+        break;
+      case ScoringType::kDotProduct:
+        ScoreSegment<ScoringType::kDotProduct>(segment, context, worker_scratch);
+        break;
+    }
+  };
+  ParallelFor(live_segments.size(), workers, score_segment);
+
+  // Each worker kept its own top k (and all bonus places): the answer is the best k of their
+  // union, whatever segments each worker happened to score.
+  const bool decreasing = SumDecreasesScore(scoring_);
+  for (int w = 0; w < workers; ++w) {
+    for (const KeyedPlace& kept : scratch[size_t(w)].top) {
+      const double accumulated = decreasing ? -kept.key : kept.key;
+      result.push_back({kept.place, FinalizeScore(scoring_, accumulated, context.query_constant)});
+    }
+    const auto& from_bonus = scratch[size_t(w)].bonus_candidates;
+    result.insert(result.end(), from_bonus.begin(), from_bonus.end());
+  }
   auto better = [](const ScoredPlace& a, const ScoredPlace& b) {
     return a.score != b.score ? a.score > b.score : a.place < b.place;
   };
-  const size_t k = std::min(top_k, candidates.size());
-  if (k < candidates.size()) {
-    std::nth_element(candidates.begin(), candidates.begin() + ptrdiff_t(k), candidates.end(),
-                     better);
-  }
-  std::sort(candidates.begin(), candidates.begin() + ptrdiff_t(k), better);
-  result.assign(candidates.begin(), candidates.begin() + ptrdiff_t(k));
+  std::sort(result.begin(), result.end(), better);
+  if (result.size() > top_k) result.resize(top_k);
   return result;
 }
 
 size_t InvertedIndex::MemoryBytes() const {
-  // Everything the index holds on the heap, at capacity: list headers, pages (released ones
-  // hold nothing), big lists, the allocator's bookkeeping and the place table.
-  size_t bytes = lists_.capacity() * sizeof(WordList);
-  bytes += pages_.capacity() * sizeof(std::vector<Posting>);
-  for (const auto& page : pages_) bytes += page.capacity() * sizeof(Posting);
-  bytes += big_lists_.capacity() * sizeof(std::vector<Posting>);
-  for (const auto& list : big_lists_) bytes += list.capacity() * sizeof(Posting);
-  bytes += free_slots_.capacity() * sizeof(std::vector<uint32_t>);
-  for (const auto& slots : free_slots_) bytes += slots.capacity() * sizeof(uint32_t);
-  bytes += page_class_.capacity() + free_pages_.capacity() * sizeof(uint32_t) +
-           (class_pages_.capacity() + class_live_slots_.capacity() + bump_.capacity() +
-            free_big_lists_.capacity()) *
-               sizeof(uint32_t);
+  size_t bytes =
+      segments_.capacity() * sizeof(Segment) + word_places_.capacity() * sizeof(uint32_t);
+  for (const Segment& segment : segments_) bytes += segment.MemoryBytes();
   bytes += present_.capacity();
   return bytes;
 }
