@@ -8,7 +8,9 @@
 //    --rounds passes, then the median (and p90) over the frames.
 //  - throughput: 2 worker threads sharing one detector (two Nets in its pool), each call with
 //    OpenCV threads = 1; frames/s over all frames, median (and best) of --rounds rounds.
-// For YOLOX-Nano at 416 and Yolo-Fastest 1.1 XL at 416 and 320.
+// For YOLOX-Nano at 416 (the default: rectangular letterbox and fused SiLU; `416_square`: fused
+// SiLU on the square input; `416_baseline`: the square input and the graph as exported, i.e. the
+// detector before issue 17, as a same-run baseline) and Yolo-Fastest 1.1 XL at 416 and 320.
 //
 // Usage: placedb-bench-detector [--models DIR] [--frames N] [--rounds N]
 #include <algorithm>
@@ -156,6 +158,11 @@ int main(int argc, char** argv) {
   };
   std::vector<Case> cases;
   cases.push_back({"detector.yolox_nano.416", YoloxNanoConfig(models)});
+  cases.push_back({"detector.yolox_nano.416_square", YoloxNanoConfig(models)});
+  cases.back().config.rectangular_letterbox = false;
+  cases.push_back({"detector.yolox_nano.416_baseline", YoloxNanoConfig(models)});
+  cases.back().config.rectangular_letterbox = false;
+  cases.back().config.fuse_silu = false;
   cases.push_back({"detector.yolo_fastest_xl.416", YoloFastestConfig(models)});
   cases.push_back({"detector.yolo_fastest_xl.320", YoloFastestConfig(models)});
   cases.back().config.input_size = 320;

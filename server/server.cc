@@ -124,6 +124,7 @@ Result<std::shared_ptr<const Detector>> CreateConfiguredDetector(const ServerCon
   auto preprocessing = ParsePreprocessing(s.preprocessing);
   if (!preprocessing.ok()) return preprocessing.status().WithContext("detector.preprocessing");
   d.preprocessing = *preprocessing;
+  d.rectangular_letterbox = s.rectangular_letterbox;
   d.confidence_threshold = s.confidence;
   d.nms_iou_threshold = s.nms_iou;
   if (!s.classes.empty()) d.dynamic_classes = s.classes;
