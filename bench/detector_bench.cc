@@ -12,15 +12,27 @@
 // SiLU on the square input; `416_baseline`: the square input and the graph as exported, i.e. the
 // detector before issue 17, as a same-run baseline) and Yolo-Fastest 1.1 XL at 416 and 320.
 //
-// Usage: placedb-bench-detector [--models DIR] [--frames N] [--rounds N]
+// Then YOLOX-Nano's network alone (cv::dnn::Net on one frame, OpenCV threads = 1, fastest of 5
+// forward() calls after a warm-up), for the issue 17 profile:
+//  - detector.yolox_nano.<variant>.forward: ms per forward, and .layer.<OpenCV layer type>: ms
+//    per layer type from Net::getPerfProfile, for 416x416 with the graph as exported (the
+//    baseline), 416x416 and 416x320 with SiLU fused (onnx_silu.h);
+//  - detector.yolox_nano.<variant>.batch<N>.per_frame: forward() of N frames in one blob, ms per
+//    frame, N = 1, 2, 4 (416x320, fused), to show what batched inference buys on this CPU.
+//
+// Usage: placedb-bench-detector [--models DIR] [--frames N] [--rounds N] [--no-network]
 #include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
+#include <map>
 #include <opencv2/core/utility.hpp>
+#include <opencv2/dnn.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <string>
 #include <thread>
 #include <vector>
@@ -29,6 +41,7 @@
 #include "core/base/files.h"
 #include "core/base/stats.h"
 #include "core/detect/detector.h"
+#include "core/detect/onnx_silu.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;
@@ -118,6 +131,48 @@ void BenchThroughput(const std::string& prefix, const DetectorConfig& config,
   Print(name + ".throughput_best", *std::max_element(fps.begin(), fps.end()), "frames/s");
 }
 
+// YOLOX's network alone on `frame` letterboxed into `width` x `height`, `batch` copies per blob.
+void BenchNetwork(const std::string& prefix, const std::vector<unsigned char>& model,
+                  const cv::Mat& frame, int width, int height, bool profile,
+                  const std::vector<int>& batches) {
+  cv::dnn::Net net = cv::dnn::readNetFromONNX(model);
+  net.setPreferableBackend(cv::dnn::DNN_BACKEND_OPENCV);
+  net.setPreferableTarget(cv::dnn::DNN_TARGET_CPU);
+  const double scale = std::min(double(width) / frame.cols, double(height) / frame.rows);
+  cv::Mat input(height, width, CV_8UC3, cv::Scalar::all(114));
+  const cv::Rect picture(0, 0, int(std::lround(frame.cols * scale)),
+                         int(std::lround(frame.rows * scale)));
+  cv::Mat roi = input(picture);
+  cv::resize(frame, roi, picture.size());
+  for (int batch : batches) {
+    const cv::Mat blob = cv::dnn::blobFromImages(std::vector<cv::Mat>(size_t(batch), input), 1.0,
+                                                 cv::Size(), cv::Scalar(), false, false);
+    std::vector<cv::Mat> outputs;
+    double best = 1e30;
+    for (int pass = 0; pass < 6; ++pass) {  // pass 0 warms up (allocations)
+      const double start = NowMs();
+      net.setInput(blob);
+      net.forward(outputs, net.getUnconnectedOutLayersNames());
+      if (pass > 0) best = std::min(best, NowMs() - start);
+    }
+    if (batches.size() > 1) {
+      Print(prefix + ".batch" + std::to_string(batch) + ".per_frame", best / batch, "ms");
+      continue;
+    }
+    Print(prefix + ".forward", best, "ms");
+    if (!profile) continue;
+    std::vector<double> layer_ticks;
+    net.getPerfProfile(layer_ticks);  // the last forward()
+    std::map<std::string, double> by_type;
+    for (size_t i = 0; i < layer_ticks.size(); ++i) {
+      by_type[net.getLayer(int(i) + 1)->type] += layer_ticks[i] * 1000.0 / cv::getTickFrequency();
+    }
+    for (const auto& [type, ms] : by_type) {
+      if (ms >= 0.01) Print(prefix + ".layer." + type, ms, "ms");
+    }
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -127,15 +182,19 @@ int main(int argc, char** argv) {
   if (!fs::exists(models + "/yolox_nano.onnx")) models = shared + "/models";
   size_t frame_count = 40;
   int rounds = 3;
+  bool network = true;
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
-    if ((arg == "--models" || arg == "--frames" || arg == "--rounds") && i + 1 < argc) {
+    if (arg == "--no-network") {
+      network = false;
+    } else if ((arg == "--models" || arg == "--frames" || arg == "--rounds") && i + 1 < argc) {
       const std::string value = argv[++i];
       if (arg == "--models") models = value;
       if (arg == "--frames") frame_count = size_t(std::max(1, std::atoi(value.c_str())));
       if (arg == "--rounds") rounds = std::max(1, std::atoi(value.c_str()));
     } else {
-      std::fprintf(stderr, "usage: %s [--models DIR] [--frames N] [--rounds N]\n", argv[0]);
+      std::fprintf(stderr, "usage: %s [--models DIR] [--frames N] [--rounds N] [--no-network]\n",
+                   argv[0]);
       return 2;
     }
   }
@@ -172,6 +231,22 @@ int main(int argc, char** argv) {
     BenchLatency(c.name, c.config, frames, 1, rounds);
     BenchLatency(c.name, c.config, frames, 2, rounds);
     BenchThroughput(c.name, c.config, frames, 2, rounds);
+  }
+
+  if (network) {
+    cv::setNumThreads(1);
+    std::ifstream file(models + "/yolox_nano.onnx", std::ios::binary);
+    const std::vector<unsigned char> exported((std::istreambuf_iterator<char>(file)), {});
+    int fused_pairs = 0;
+    RegisterSiluLayer();
+    const std::vector<unsigned char> fused = FuseSiluNodes(exported, &fused_pairs);
+    std::printf("# YOLOX-Nano network alone, frame 0, OpenCV threads 1; %d SiLU pairs fused\n",
+                fused_pairs);
+    const std::string p = "detector.yolox_nano.";
+    BenchNetwork(p + "416x416_graph", exported, frames[0], 416, 416, true, {1});
+    BenchNetwork(p + "416x416_fused", fused, frames[0], 416, 416, true, {1});
+    BenchNetwork(p + "416x320_fused", fused, frames[0], 416, 320, true, {1});
+    BenchNetwork(p + "416x320_fused", fused, frames[0], 416, 320, false, {1, 2, 4});
   }
   return 0;
 }

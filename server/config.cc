@@ -358,10 +358,11 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(l, "limits", "max_snapshot_bytes", &x.max_snapshot_bytes));
   }
   if (const YAML::Node d = root["detector"]; d) {
-    PLACEDB_RETURN_IF_ERROR(r.Check(
-        d, "detector",
-        {"backend", "model", "config", "input_size", "preprocessing", "confidence", "nms_iou",
-         "classes", "max_concurrent_calls", "merge_iou", "required", "rectangular_letterbox"}));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Check(d, "detector",
+                {"backend", "model", "config", "input_size", "preprocessing", "confidence",
+                 "nms_iou", "classes", "max_concurrent_calls", "merge_iou", "required",
+                 "rectangular_letterbox", "fuse_silu"}));
     DetectorSettings& x = c->detector;
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "backend", &x.backend));
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "model", &x.model));
@@ -376,6 +377,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "required", &x.required));
     PLACEDB_RETURN_IF_ERROR(
         r.Read(d, "detector", "rectangular_letterbox", &x.rectangular_letterbox));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "fuse_silu", &x.fuse_silu));
   }
   return Status::Ok();
 }
@@ -649,6 +651,7 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "merge_iou" << YAML::Value << d.merge_iou;
   e << YAML::Key << "required" << YAML::Value << d.required;
   e << YAML::Key << "rectangular_letterbox" << YAML::Value << d.rectangular_letterbox;
+  e << YAML::Key << "fuse_silu" << YAML::Value << d.fuse_silu;
   e << YAML::EndMap;
   e << YAML::Key << "log_level" << YAML::Value << c.log_level;
   e << YAML::EndMap;
