@@ -12,13 +12,14 @@
 // SiLU on the square input; `416_baseline`: the square input and the graph as exported, i.e. the
 // detector before issue 17, as a same-run baseline) and Yolo-Fastest 1.1 XL at 416 and 320.
 //
-// Then YOLOX-Nano's network alone (cv::dnn::Net on one frame, OpenCV threads = 1, fastest of 5
-// forward() calls after a warm-up), for the issue 17 profile:
+// Then YOLOX-Nano's network alone (cv::dnn::Net on one frame, OpenCV threads = 1, fastest pass
+// after a warm-up), for the issue 17 profile:
 //  - detector.yolox_nano.<variant>.forward: ms per forward, and .layer.<OpenCV layer type>: ms
-//    per layer type from Net::getPerfProfile, for 416x416 with the graph as exported (the
-//    baseline), 416x416 and 416x320 with SiLU fused (onnx_silu.h);
-//  - detector.yolox_nano.<variant>.batch<N>.per_frame: forward() of N frames in one blob, ms per
-//    frame, N = 1, 2, 4 (416x320, fused), to show what batched inference buys on this CPU.
+//    per layer type from Net::getPerfProfile (of the fastest pass), for 416x416 with the graph
+//    as exported (the baseline), 416x416 and 416x320 with SiLU fused (onnx_silu.h);
+//  - detector.yolox_nano.416x320_fused.batch<N>.per_frame: forward() of N frames in one blob, ms
+//    per frame, N = 2, 4 (N = 1 is 416x320_fused.forward): what batched inference buys here.
+// The variants run in turn within each of 3 x --rounds + 2 passes, fastest pass kept.
 //
 // Usage: placedb-bench-detector [--models DIR] [--frames N] [--rounds N] [--no-network]
 #include <algorithm>
@@ -131,44 +132,56 @@ void BenchThroughput(const std::string& prefix, const DetectorConfig& config,
   Print(name + ".throughput_best", *std::max_element(fps.begin(), fps.end()), "frames/s");
 }
 
-// YOLOX's network alone on `frame` letterboxed into `width` x `height`, `batch` copies per blob.
-void BenchNetwork(const std::string& prefix, const std::vector<unsigned char>& model,
-                  const cv::Mat& frame, int width, int height, bool profile,
-                  const std::vector<int>& batches) {
-  cv::dnn::Net net = cv::dnn::readNetFromONNX(model);
-  net.setPreferableBackend(cv::dnn::DNN_BACKEND_OPENCV);
-  net.setPreferableTarget(cv::dnn::DNN_TARGET_CPU);
+// One variant of YOLOX's network alone: a Net, its input blob (`batch` copies of the frame
+// letterboxed into width x height), the fastest forward() seen and that pass's per-layer-type
+// times (Net::getPerfProfile).
+struct NetworkCase {
+  std::string name;
+  int batch;
+  cv::dnn::Net net;
+  cv::Mat blob;
+  double best_ms = 1e30;
+  std::map<std::string, double> layers_ms;
+};
+
+NetworkCase MakeNetworkCase(const std::string& name, const std::vector<unsigned char>& model,
+                            const cv::Mat& frame, int width, int height, int batch) {
+  NetworkCase c;
+  c.name = name;
+  c.batch = batch;
+  c.net = cv::dnn::readNetFromONNX(model);
+  c.net.setPreferableBackend(cv::dnn::DNN_BACKEND_OPENCV);
+  c.net.setPreferableTarget(cv::dnn::DNN_TARGET_CPU);
   const double scale = std::min(double(width) / frame.cols, double(height) / frame.rows);
   cv::Mat input(height, width, CV_8UC3, cv::Scalar::all(114));
   const cv::Rect picture(0, 0, int(std::lround(frame.cols * scale)),
                          int(std::lround(frame.rows * scale)));
   cv::Mat roi = input(picture);
   cv::resize(frame, roi, picture.size());
-  for (int batch : batches) {
-    const cv::Mat blob = cv::dnn::blobFromImages(std::vector<cv::Mat>(size_t(batch), input), 1.0,
-                                                 cv::Size(), cv::Scalar(), false, false);
-    std::vector<cv::Mat> outputs;
-    double best = 1e30;
-    for (int pass = 0; pass < 6; ++pass) {  // pass 0 warms up (allocations)
+  c.blob = cv::dnn::blobFromImages(std::vector<cv::Mat>(size_t(batch), input), 1.0, cv::Size(),
+                                   cv::Scalar(), false, false);
+  return c;
+}
+
+// Every case once per pass, `passes` passes after a warm-up: under a varying load each case
+// gets its share of the quiet moments.
+void BenchNetworks(std::vector<NetworkCase>& cases, int passes) {
+  for (int pass = -1; pass < passes; ++pass) {
+    for (NetworkCase& c : cases) {
+      std::vector<cv::Mat> outputs;
       const double start = NowMs();
-      net.setInput(blob);
-      net.forward(outputs, net.getUnconnectedOutLayersNames());
-      if (pass > 0) best = std::min(best, NowMs() - start);
-    }
-    if (batches.size() > 1) {
-      Print(prefix + ".batch" + std::to_string(batch) + ".per_frame", best / batch, "ms");
-      continue;
-    }
-    Print(prefix + ".forward", best, "ms");
-    if (!profile) continue;
-    std::vector<double> layer_ticks;
-    net.getPerfProfile(layer_ticks);  // the last forward()
-    std::map<std::string, double> by_type;
-    for (size_t i = 0; i < layer_ticks.size(); ++i) {
-      by_type[net.getLayer(int(i) + 1)->type] += layer_ticks[i] * 1000.0 / cv::getTickFrequency();
-    }
-    for (const auto& [type, ms] : by_type) {
-      if (ms >= 0.01) Print(prefix + ".layer." + type, ms, "ms");
+      c.net.setInput(c.blob);
+      c.net.forward(outputs, c.net.getUnconnectedOutLayersNames());
+      const double ms = NowMs() - start;
+      if (pass < 0 || ms >= c.best_ms) continue;
+      c.best_ms = ms;
+      std::vector<double> layer_ticks;
+      c.net.getPerfProfile(layer_ticks);
+      c.layers_ms.clear();
+      for (size_t i = 0; i < layer_ticks.size(); ++i) {
+        c.layers_ms[c.net.getLayer(int(i) + 1)->type] +=
+            layer_ticks[i] * 1000.0 / cv::getTickFrequency();
+      }
     }
   }
 }
@@ -243,10 +256,25 @@ int main(int argc, char** argv) {
     std::printf("# YOLOX-Nano network alone, frame 0, OpenCV threads 1; %d SiLU pairs fused\n",
                 fused_pairs);
     const std::string p = "detector.yolox_nano.";
-    BenchNetwork(p + "416x416_graph", exported, frames[0], 416, 416, true, {1});
-    BenchNetwork(p + "416x416_fused", fused, frames[0], 416, 416, true, {1});
-    BenchNetwork(p + "416x320_fused", fused, frames[0], 416, 320, true, {1});
-    BenchNetwork(p + "416x320_fused", fused, frames[0], 416, 320, false, {1, 2, 4});
+    std::vector<NetworkCase> cases;
+    cases.push_back(MakeNetworkCase(p + "416x416_graph", exported, frames[0], 416, 416, 1));
+    cases.push_back(MakeNetworkCase(p + "416x416_fused", fused, frames[0], 416, 416, 1));
+    cases.push_back(MakeNetworkCase(p + "416x320_fused", fused, frames[0], 416, 320, 1));
+    for (int batch : {2, 4}) {
+      cases.push_back(MakeNetworkCase(p + "416x320_fused.batch" + std::to_string(batch), fused,
+                                      frames[0], 416, 320, batch));
+    }
+    BenchNetworks(cases, 3 * rounds + 2);
+    for (const NetworkCase& c : cases) {
+      if (c.batch > 1) {
+        Print(c.name + ".per_frame", c.best_ms / c.batch, "ms");
+        continue;
+      }
+      Print(c.name + ".forward", c.best_ms, "ms");
+      for (const auto& [type, ms] : c.layers_ms) {
+        if (ms >= 0.01) Print(c.name + ".layer." + type, ms, "ms");
+      }
+    }
   }
   return 0;
 }
