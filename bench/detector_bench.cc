@@ -16,7 +16,9 @@
 // after a warm-up), for the issue 17 profile:
 //  - detector.yolox_nano.<variant>.forward: ms per forward, and .layer.<OpenCV layer type>: ms
 //    per layer type from Net::getPerfProfile (of the fastest pass), for 416x416 with the graph
-//    as exported (the baseline), 416x416 and 416x320 with SiLU fused (onnx_silu.h);
+//    as exported (the baseline), 416x416 and 416x320 with SiLU fused (onnx_graph.h), and
+//    416x320_rewritten: SiLU fused and the Focus stem cut (the detector's default; its blob
+//    made by SpaceToDepthBlob, outside the timing like blobFromImage's);
 //  - detector.yolox_nano.416x320_fused.batch<N>.per_frame: forward() of N frames in one blob, ms
 //    per frame, N = 2, 4 (N = 1 is 416x320_fused.forward): what batched inference buys here.
 // The variants run in turn within each of 3 x --rounds + 2 passes, fastest pass kept.
@@ -42,7 +44,7 @@
 #include "core/base/files.h"
 #include "core/base/stats.h"
 #include "core/detect/detector.h"
-#include "core/detect/onnx_silu.h"
+#include "core/detect/onnx_graph.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;
@@ -145,7 +147,8 @@ struct NetworkCase {
 };
 
 NetworkCase MakeNetworkCase(const std::string& name, const std::vector<unsigned char>& model,
-                            const cv::Mat& frame, int width, int height, int batch) {
+                            const cv::Mat& frame, int width, int height, int batch,
+                            const FocusStem* stem = nullptr) {
   NetworkCase c;
   c.name = name;
   c.batch = batch;
@@ -158,8 +161,9 @@ NetworkCase MakeNetworkCase(const std::string& name, const std::vector<unsigned 
                          int(std::lround(frame.rows * scale)));
   cv::Mat roi = input(picture);
   cv::resize(frame, roi, picture.size());
-  c.blob = cv::dnn::blobFromImages(std::vector<cv::Mat>(size_t(batch), input), 1.0, cv::Size(),
-                                   cv::Scalar(), false, false);
+  c.blob = stem ? SpaceToDepthBlob(input, *stem)
+                : cv::dnn::blobFromImages(std::vector<cv::Mat>(size_t(batch), input), 1.0,
+                                          cv::Size(), cv::Scalar(), false, false);
   return c;
 }
 
@@ -234,7 +238,7 @@ int main(int argc, char** argv) {
   cases.back().config.rectangular_letterbox = false;
   cases.push_back({"detector.yolox_nano.416_baseline", YoloxNanoConfig(models)});
   cases.back().config.rectangular_letterbox = false;
-  cases.back().config.fuse_silu = false;
+  cases.back().config.rewrite_graph = false;
   cases.push_back({"detector.yolo_fastest_xl.416", YoloFastestConfig(models)});
   cases.push_back({"detector.yolo_fastest_xl.320", YoloFastestConfig(models)});
   cases.back().config.input_size = 320;
@@ -253,13 +257,22 @@ int main(int argc, char** argv) {
     int fused_pairs = 0;
     RegisterSiluLayer();
     const std::vector<unsigned char> fused = FuseSiluNodes(exported, &fused_pairs);
-    std::printf("# YOLOX-Nano network alone, frame 0, OpenCV threads 1; %d SiLU pairs fused\n",
-                fused_pairs);
+    FocusStem stem;
+    bool cut = false;
+    const std::vector<unsigned char> rewritten = CutFocusStem(fused, &stem, &cut);
+    std::printf(
+        "# YOLOX-Nano network alone, frame 0, OpenCV threads 1; %d SiLU pairs fused, "
+        "Focus stem %s\n",
+        fused_pairs, cut ? "cut" : "not found");
     const std::string p = "detector.yolox_nano.";
     std::vector<NetworkCase> cases;
     cases.push_back(MakeNetworkCase(p + "416x416_graph", exported, frames[0], 416, 416, 1));
     cases.push_back(MakeNetworkCase(p + "416x416_fused", fused, frames[0], 416, 416, 1));
     cases.push_back(MakeNetworkCase(p + "416x320_fused", fused, frames[0], 416, 320, 1));
+    if (cut) {
+      cases.push_back(
+          MakeNetworkCase(p + "416x320_rewritten", rewritten, frames[0], 416, 320, 1, &stem));
+    }
     for (int batch : {2, 4}) {
       cases.push_back(MakeNetworkCase(p + "416x320_fused.batch" + std::to_string(batch), fused,
                                       frames[0], 416, 320, batch));

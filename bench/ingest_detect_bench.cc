@@ -6,7 +6,7 @@
 // map created with detection on (box source server); placedb-load with --agents encoded-image
 // Ingest streams, unpaced (as fast as the server takes them), for --seconds. Two server setups,
 // alternating round by round (which goes first alternates too):
-//  - baseline: detector.rectangular_letterbox false, detector.fuse_silu false (the detector as it
+//  - baseline: detector.rectangular_letterbox false, detector.rewrite_graph false (the detector as it
 //    was before issue 17: square 416x416 input, the ONNX graph as exported);
 //  - change: the defaults (416x320 input for 4:3 frames, SiLU fused).
 // Figures per setup, the median over --rounds:
@@ -130,7 +130,7 @@ size_t MakeFrames(const std::string& shared, size_t count, const std::string& di
 struct Setup {
   std::string name;
   bool rectangular_letterbox;
-  bool fuse_silu;
+  bool rewrite_graph;
 };
 
 struct RunResult {
@@ -147,11 +147,11 @@ RunResult RunSetup(const Options& o, const Setup& setup, const std::string& fram
     std::ofstream yaml(config);
     yaml << "detector:\n  model: " << o.models << "/yolox_nano.onnx\n  rectangular_letterbox: "
          << (setup.rectangular_letterbox ? "true" : "false")
-         << "\n  fuse_silu: " << (setup.fuse_silu ? "true" : "false") << "\n  required: true\n";
+         << "\n  rewrite_graph: " << (setup.rewrite_graph ? "true" : "false") << "\n  required: true\n";
   }
   // A port from the pid and round: two benchmark processes do not collide in practice.
   const std::string address =
-      "127.0.0.1:" + std::to_string(20000 + (getpid() * 7 + round * 2 + setup.fuse_silu) % 30000);
+      "127.0.0.1:" + std::to_string(20000 + (getpid() * 7 + round * 2 + setup.rewrite_graph) % 30000);
   const pid_t server =
       Spawn({PLACEDB_SERVER_BINARY, "--config", config, "--listen", address, "--metrics-listen",
              "off", "--console-listen", "off", "--data-dir", base + "-data", "--vocabulary",

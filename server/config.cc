@@ -362,7 +362,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
         r.Check(d, "detector",
                 {"backend", "model", "config", "input_size", "preprocessing", "confidence",
                  "nms_iou", "classes", "max_concurrent_calls", "merge_iou", "required",
-                 "rectangular_letterbox", "fuse_silu"}));
+                 "rectangular_letterbox", "rewrite_graph"}));
     DetectorSettings& x = c->detector;
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "backend", &x.backend));
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "model", &x.model));
@@ -377,7 +377,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "required", &x.required));
     PLACEDB_RETURN_IF_ERROR(
         r.Read(d, "detector", "rectangular_letterbox", &x.rectangular_letterbox));
-    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "fuse_silu", &x.fuse_silu));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "rewrite_graph", &x.rewrite_graph));
   }
   return Status::Ok();
 }
@@ -651,7 +651,7 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "merge_iou" << YAML::Value << d.merge_iou;
   e << YAML::Key << "required" << YAML::Value << d.required;
   e << YAML::Key << "rectangular_letterbox" << YAML::Value << d.rectangular_letterbox;
-  e << YAML::Key << "fuse_silu" << YAML::Value << d.fuse_silu;
+  e << YAML::Key << "rewrite_graph" << YAML::Value << d.rewrite_graph;
   e << YAML::EndMap;
   e << YAML::Key << "log_level" << YAML::Value << c.log_level;
   e << YAML::EndMap;

@@ -63,7 +63,7 @@ struct DetectorSettings {
   int input_size = 416;
   std::string preprocessing = "letterbox";  // letterbox | centre_crop | stretch
   bool rectangular_letterbox = true;  // YOLOX letterbox: input of the frame's aspect (detector.h)
-  bool fuse_silu = true;              // YOLOX: SiLU fused into its convolutions (detector.h)
+  bool rewrite_graph = true;          // YOLOX: graph rewritten for OpenCV (detector.h)
   float confidence = 0.2f;
   float nms_iou = 0.45f;
   std::vector<std::string> classes;  // COCO names reported; empty = the paper's six

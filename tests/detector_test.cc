@@ -18,7 +18,7 @@
 #include <thread>
 #include <vector>
 
-#include "core/detect/onnx_silu.h"
+#include "core/detect/onnx_graph.h"
 #include "core/filter/box_masks.h"
 #include "tests/test_support.h"
 
@@ -66,17 +66,17 @@ DetectorConfig BaseConfig(DetectorBackend backend) {
 }
 
 // One detector per distinct configuration, built once per process (loading costs ~0.1 s).
-// `rectangular` and `fuse_silu`: DetectorConfig's (false, false: YOLOX before issue 17).
+// `rectangular` and `rewrite_graph`: DetectorConfig's (false, false: YOLOX before issue 17).
 const Detector* CachedDetector(DetectorBackend backend,
                                Preprocessing preprocessing = Preprocessing::kLetterbox,
                                float confidence = 0.2f, int input_size = 416,
-                               bool rectangular = true, bool fuse_silu = true) {
+                               bool rectangular = true, bool rewrite_graph = true) {
   static std::mutex mutex;
   static std::map<std::string, std::unique_ptr<Detector>> cache;
   const std::string key = std::string(DetectorBackendName(backend)) + "/" +
                           PreprocessingName(preprocessing) + "/" + std::to_string(confidence) +
                           "/" + std::to_string(input_size) + "/" + std::to_string(rectangular) +
-                          "/" + std::to_string(fuse_silu);
+                          "/" + std::to_string(rewrite_graph);
   std::lock_guard lock(mutex);
   auto it = cache.find(key);
   if (it != cache.end()) return it->second.get();
@@ -85,7 +85,7 @@ const Detector* CachedDetector(DetectorBackend backend,
   config.confidence_threshold = confidence;
   config.input_size = input_size;
   config.rectangular_letterbox = rectangular;
-  config.fuse_silu = fuse_silu;
+  config.rewrite_graph = rewrite_graph;
   auto created = CreateDetector(config);
   if (!created.ok()) {
     ADD_FAILURE() << "CreateDetector(" << key << "): " << created.status().ToString();
@@ -702,13 +702,13 @@ struct CamVidFloor {
   double people_recall, people_precision, vehicle_recall, vehicle_precision;
   double people_on_object, vehicle_on_object;
   // YOLOX's input shape and graph (DetectorConfig); false, false = as before issue 17.
-  bool rectangular = true, fuse_silu = true;
+  bool rectangular = true, rewrite_graph = true;
 };
 
 // "fused, rect": YOLOX's graph (SiLU fused or as exported) and, for letterbox, its input shape.
 std::string Variant(const CamVidFloor& floor) {
   if (floor.backend != DetectorBackend::kYoloxOnnx) return "";
-  std::string variant = floor.fuse_silu ? "fused" : "graph";
+  std::string variant = floor.rewrite_graph ? "fused" : "graph";
   if (floor.preprocessing == Preprocessing::kLetterbox) {
     variant += floor.rectangular ? ", rect" : ", square";
   }
@@ -731,7 +731,7 @@ TEST(DetectorCamVid, RecallAndPrecisionAgainstTheLabelMaps) {
       {DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox, 416,  //
        0.55, 0.30, 0.60, 0.27, 0.55, 0.85},
       {DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox, 416,  //
-       0.55, 0.30, 0.60, 0.27, 0.55, 0.85, /*rectangular=*/false, /*fuse_silu=*/false},
+       0.55, 0.30, 0.60, 0.27, 0.55, 0.85, /*rectangular=*/false, /*rewrite_graph=*/false},
       {DetectorBackend::kYoloxOnnx, Preprocessing::kCentreCrop, 416,  //
        0.45, 0.22, 0.46, 0.21, 0.53, 0.84},
       {DetectorBackend::kDarknet, Preprocessing::kLetterbox, 416,  //
@@ -742,8 +742,9 @@ TEST(DetectorCamVid, RecallAndPrecisionAgainstTheLabelMaps) {
   std::printf("  CamVid, %zu frames, confidence 0.2, IoU 0.5; recall / precision / on-object\n",
               frames.size());
   for (const CamVidFloor& floor : floors) {
-    const Detector* detector = CachedDetector(floor.backend, floor.preprocessing, 0.2f,
-                                              floor.input_size, floor.rectangular, floor.fuse_silu);
+    const Detector* detector =
+        CachedDetector(floor.backend, floor.preprocessing, 0.2f, floor.input_size,
+                       floor.rectangular, floor.rewrite_graph);
     ASSERT_NE(detector, nullptr);
     Counts counts[2];
     for (const LabelledFrame& frame : labelled) {
@@ -819,6 +820,49 @@ TEST(DetectorSilu, FusesEveryPairOfYoloxAndLeavesOtherBytesAlone) {
   EXPECT_EQ(fused, 0);
 }
 
+TEST(DetectorFocusStem, CutsYoloxStemAndBuildsItsInputBlob) {
+  REQUIRE_MODELS();
+  std::ifstream file(ModelsDir() + "/yolox_nano.onnx", std::ios::binary);
+  const std::vector<unsigned char> model((std::istreambuf_iterator<char>(file)), {});
+  ASSERT_FALSE(model.empty());
+  FocusStem stem;
+  bool cut = false;
+  const std::vector<unsigned char> rewritten = CutFocusStem(model, &stem, &cut);
+  ASSERT_TRUE(cut);
+  // YOLOX's order: top-left, bottom-left, top-right, bottom-right.
+  EXPECT_EQ(stem.row, (std::array<int, 4>{0, 1, 0, 1}));
+  EXPECT_EQ(stem.col, (std::array<int, 4>{0, 0, 1, 1}));
+  bool again = true;
+  EXPECT_EQ(CutFocusStem(rewritten, &stem, &again), rewritten);  // no stem left
+  EXPECT_FALSE(again);
+  const std::string text = "this is not an ONNX model";
+  const std::vector<unsigned char> bytes(text.begin(), text.end());
+  EXPECT_EQ(CutFocusStem(bytes, &stem, &cut), bytes);
+  EXPECT_FALSE(cut);
+
+  // The blob against the definition, on an image whose every byte differs.
+  cv::Mat image(6, 8, CV_8UC3);
+  for (int i = 0; i < int(image.total() * 3); ++i) image.data[i] = static_cast<uchar>(i);
+  const FocusStem yolox{{0, 1, 0, 1}, {0, 0, 1, 1}};
+  const cv::Mat blob = SpaceToDepthBlob(image, yolox);
+  ASSERT_EQ(blob.dims, 4);
+  EXPECT_EQ(blob.size[1], 12);
+  EXPECT_EQ(blob.size[2], 3);
+  EXPECT_EQ(blob.size[3], 4);
+  for (int g = 0; g < 4; ++g) {
+    for (int c = 0; c < 3; ++c) {
+      for (int y = 0; y < 3; ++y) {
+        for (int x = 0; x < 4; ++x) {
+          const float expected =
+              image.at<cv::Vec3b>(2 * y + yolox.row[size_t(g)], 2 * x + yolox.col[size_t(g)])[c];
+          ASSERT_EQ(blob.ptr<float>(0, 3 * g + c)[y * 4 + x], expected)
+              << "group " << g << " channel " << c << " at " << x << "," << y;
+        }
+      }
+    }
+  }
+}
+
 // Every box of `expected` has a same-class box in `got` within `pixels` on every side and
 // `confidence` in score, and both have as many boxes.
 void ExpectSameBoxes(const std::vector<DynamicBox>& expected, const std::vector<DynamicBox>& got,
@@ -842,16 +886,19 @@ void ExpectSameBoxes(const std::vector<DynamicBox>& expected, const std::vector<
   }
 }
 
-// The fused graph computes the same function: on the same input shape, the same boxes.
+// The rewritten graph (SiLU fused, Focus stem cut) computes the same function: on the same input
+// shape, the same boxes.
 TEST(DetectorSilu, FusedGraphFindsTheSameBoxesAsTheExportedOne) {
   REQUIRE_MODELS();
   const Detector* fused = CachedDetector(DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox,
-                                         0.2f, 416, /*rectangular=*/false, /*fuse_silu=*/true);
+                                         0.2f, 416, /*rectangular=*/false, /*rewrite_graph=*/true);
   const Detector* graph = CachedDetector(DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox,
-                                         0.2f, 416, /*rectangular=*/false, /*fuse_silu=*/false);
+                                         0.2f, 416, /*rectangular=*/false, /*rewrite_graph=*/false);
   ASSERT_NE(fused, nullptr);
   ASSERT_NE(graph, nullptr);
-  EXPECT_NE(fused->Describe().find("104 SiLU fused"), std::string::npos) << fused->Describe();
+  EXPECT_NE(fused->Describe().find("104 SiLU fused, Focus stem in preprocessing"),
+            std::string::npos)
+      << fused->Describe();
   EXPECT_EQ(graph->Describe().find("fused"), std::string::npos) << graph->Describe();
   std::vector<std::string> paths = {std::string(kDarknetSamples) + "/person.jpg",
                                     std::string(kDarknetSamples) + "/dog.jpg"};

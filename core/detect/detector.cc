@@ -14,13 +14,14 @@
 #include <opencv2/core/utility.hpp>
 #include <opencv2/dnn.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <sstream>
 #include <thread>
 #include <utility>
 
 #include "core/base/files.h"
 #include "core/base/thread_annotations.h"
-#include "core/detect/onnx_silu.h"
+#include "core/detect/onnx_graph.h"
 
 namespace placedb {
 
@@ -390,14 +391,17 @@ class NetPool {
 
 class DnnDetector final : public Detector {
  public:
-  // `silu_fused`: how many SiLU pairs FuseSiluNodes replaced in `model_bytes` (0: none).
+  // `silu_fused`: how many SiLU pairs FuseSiluNodes replaced in `model_bytes` (0: none);
+  // `stem`: set when CutFocusStem cut YOLOX's Focus stem from them.
   DnnDetector(DetectorConfig config, std::vector<int> dynamic_ids, std::vector<uchar> model_bytes,
-              std::vector<uchar> cfg_bytes, int pool_capacity, int silu_fused)
+              std::vector<uchar> cfg_bytes, int pool_capacity, int silu_fused,
+              std::optional<FocusStem> stem)
       : config_(std::move(config)),
         dynamic_ids_(std::move(dynamic_ids)),
         model_bytes_(std::move(model_bytes)),
         cfg_bytes_(std::move(cfg_bytes)),
         silu_fused_(silu_fused),
+        stem_(stem),
         pool_([this] { return BuildNet(); }, pool_capacity) {}
 
   // Builds the first Net and checks the model's output layout on a blank frame.
@@ -448,6 +452,7 @@ class DnnDetector final : public Detector {
            std::to_string(config_.input_size) + "x" + std::to_string(config_.input_size) + " " +
            PreprocessingName(config_.preprocessing) + (rectangular() ? " (rectangular)" : "") +
            (silu_fused_ > 0 ? ", " + std::to_string(silu_fused_) + " SiLU fused" : "") +
+           (stem_ ? ", Focus stem in preprocessing" : "") +
            ", confidence >= " + FormatFloat(config_.confidence_threshold, 2) + ", NMS IoU " +
            FormatFloat(config_.nms_iou_threshold, 2) + ", classes " + classes;
   }
@@ -558,11 +563,13 @@ class DnnDetector final : public Detector {
   }
 
   void RunNet(cv::dnn::Net& net, const cv::Mat& input, std::vector<cv::Mat>* outputs) const {
-    // YOLOX: BGR 0..255 as is. darknet: RGB scaled to 0..1.
-    const cv::Mat blob = is_yolox() ? cv::dnn::blobFromImage(input, 1.0, cv::Size(), cv::Scalar(),
-                                                             /*swapRB=*/false, /*crop=*/false)
-                                    : cv::dnn::blobFromImage(input, 1.0 / 255, cv::Size(),
-                                                             cv::Scalar(), true, false);
+    // YOLOX: BGR 0..255 as is (with the stem cut: its 12 phase channels). darknet: RGB scaled to
+    // 0..1.
+    const cv::Mat blob = stem_        ? SpaceToDepthBlob(input, *stem_)
+                         : is_yolox() ? cv::dnn::blobFromImage(input, 1.0, cv::Size(), cv::Scalar(),
+                                                               /*swapRB=*/false, /*crop=*/false)
+                                      : cv::dnn::blobFromImage(input, 1.0 / 255, cv::Size(),
+                                                               cv::Scalar(), true, false);
     net.setInput(blob);
     net.forward(*outputs, net.getUnconnectedOutLayersNames());
   }
@@ -616,6 +623,7 @@ class DnnDetector final : public Detector {
   const std::vector<uchar> model_bytes_;  // the .onnx or .weights file, kept to build more Nets
   const std::vector<uchar> cfg_bytes_;    // darknet: the prepared .cfg
   const int silu_fused_;                  // YOLOX: SiLU pairs fused in model_bytes_
+  const std::optional<FocusStem> stem_;   // YOLOX: the Focus stem cut from model_bytes_
   mutable NetPool pool_;
 };
 
@@ -793,12 +801,17 @@ Result<std::unique_ptr<Detector>> CreateDetector(const DetectorConfig& config) {
   if (capacity == 0) capacity = int(std::max(1u, std::thread::hardware_concurrency()));
 
   int silu_fused = 0;
-  if (config.backend == DetectorBackend::kYoloxOnnx && config.fuse_silu) {
+  std::optional<FocusStem> stem;
+  if (config.backend == DetectorBackend::kYoloxOnnx && config.rewrite_graph) {
     RegisterSiluLayer();
     *model = FuseSiluNodes(*model, &silu_fused);
+    FocusStem found;
+    bool cut = false;
+    *model = CutFocusStem(*model, &found, &cut);
+    if (cut) stem = found;
   }
   auto detector = std::make_unique<DnnDetector>(config, std::move(*ids), std::move(*model),
-                                                std::move(cfg), capacity, silu_fused);
+                                                std::move(cfg), capacity, silu_fused, stem);
   try {
     PLACEDB_RETURN_IF_ERROR(detector->Initialise());
   } catch (const std::exception& e) {  // e.g. bad_alloc from a hostile file: never escapes
