@@ -708,7 +708,7 @@ struct CamVidFloor {
 // "fused, rect": YOLOX's graph (SiLU fused or as exported) and, for letterbox, its input shape.
 std::string Variant(const CamVidFloor& floor) {
   if (floor.backend != DetectorBackend::kYoloxOnnx) return "";
-  std::string variant = floor.rewrite_graph ? "fused" : "graph";
+  std::string variant = floor.rewrite_graph ? "rewritten" : "graph";
   if (floor.preprocessing == Preprocessing::kLetterbox) {
     variant += floor.rectangular ? ", rect" : ", square";
   }
@@ -753,7 +753,7 @@ TEST(DetectorCamVid, RecallAndPrecisionAgainstTheLabelMaps) {
     const Counts& p = counts[kPeople];
     const Counts& v = counts[kVehicles];
     std::printf(
-        "  %-10s %3d %-11s %-15s people %.3f / %.3f / %.3f (%d objects, %d boxes) | "
+        "  %-10s %3d %-11s %-17s people %.3f / %.3f / %.3f (%d objects, %d boxes) | "
         "vehicles %.3f / %.3f / %.3f (%d objects, %d boxes)\n",
         DetectorBackendName(floor.backend), floor.input_size,
         PreprocessingName(floor.preprocessing), Variant(floor).c_str(), p.recall(), p.precision(),
