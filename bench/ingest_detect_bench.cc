@@ -6,9 +6,9 @@
 // map created with detection on (box source server); placedb-load with --agents encoded-image
 // Ingest streams, unpaced (as fast as the server takes them), for --seconds. Two server setups,
 // alternating round by round (which goes first alternates too):
-//  - baseline: detector.rectangular_letterbox false, detector.rewrite_graph false (the detector as it
-//    was before issue 17: square 416x416 input, the ONNX graph as exported);
-//  - change: the defaults (416x320 input for 4:3 frames, SiLU fused).
+//  - baseline: detector.rectangular_letterbox false, detector.rewrite_graph false (the detector
+//    as it was before issue 17: square 416x416 input, the ONNX graph as exported);
+//  - change: the defaults (416x320 input for 4:3 frames, SiLU fused, Focus stem cut).
 // Figures per setup, the median over --rounds:
 //  - ingest_detect.<setup>.throughput: frames/s acknowledged;
 //  - ingest_detect.<setup>.server_cpu_per_frame: the server process's user + system CPU time
@@ -147,11 +147,13 @@ RunResult RunSetup(const Options& o, const Setup& setup, const std::string& fram
     std::ofstream yaml(config);
     yaml << "detector:\n  model: " << o.models << "/yolox_nano.onnx\n  rectangular_letterbox: "
          << (setup.rectangular_letterbox ? "true" : "false")
-         << "\n  rewrite_graph: " << (setup.rewrite_graph ? "true" : "false") << "\n  required: true\n";
+         << "\n  rewrite_graph: " << (setup.rewrite_graph ? "true" : "false")
+         << "\n  required: true\n";
   }
   // A port from the pid and round: two benchmark processes do not collide in practice.
   const std::string address =
-      "127.0.0.1:" + std::to_string(20000 + (getpid() * 7 + round * 2 + setup.rewrite_graph) % 30000);
+      "127.0.0.1:" +
+      std::to_string(20000 + (getpid() * 7 + round * 2 + setup.rewrite_graph) % 30000);
   const pid_t server =
       Spawn({PLACEDB_SERVER_BINARY, "--config", config, "--listen", address, "--metrics-listen",
              "off", "--console-listen", "off", "--data-dir", base + "-data", "--vocabulary",
