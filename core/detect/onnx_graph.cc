@@ -321,9 +321,8 @@ using Int8 = int32_t __attribute__((vector_size(32)));
 
 // exp(-x) by Cephes' expf: -x = k ln 2 + r with |r| <= ln 2 / 2, e^r by a degree-6 polynomial,
 // 2^k by building the float's exponent; -x is clamped to +-87 so 2^k stays a normal float. Plain
-// vector arithmetic, so each clone below compiles to that target's instructions.
-__attribute__((target_clones("avx2", "default"))) void SiluKernel(const float* src, float* dst,
-                                                                  size_t count) {
+// vector arithmetic, inlined into each kernel below, so it compiles to that target's instructions.
+__attribute__((always_inline)) inline void SiluLoop(const float* src, float* dst, size_t count) {
   size_t i = 0;
   for (; i + 8 <= count; i += 8) {
     Float8 x;
@@ -621,8 +620,19 @@ void RegisterSiluLayer() {
                  [] { cv::dnn::LayerFactory::registerLayer(kSiluLayerType, SiluLayer::Create); });
 }
 
+// Chosen at run time by Silu(), not by target_clones: an ifunc resolver runs before the
+// sanitizers' runtimes are initialised, and crashes ThreadSanitizer builds at load time.
+static __attribute__((target("avx2"))) void SiluAvx2(const float* src, float* dst, size_t count) {
+  SiluLoop(src, dst, count);
+}
+
+static void SiluBaseline(const float* src, float* dst, size_t count) {
+  SiluLoop(src, dst, count);
+}
+
 void Silu(const float* src, float* dst, size_t count) {
-  SiluKernel(src, dst, count);
+  static const bool avx2 = __builtin_cpu_supports("avx2");
+  (avx2 ? SiluAvx2 : SiluBaseline)(src, dst, count);
 }
 
 }  // namespace placedb
