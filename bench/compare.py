@@ -50,6 +50,14 @@ BENCHMARKS = [
      "full": ["--models", "{models}"],
      "needs": ["{models}/yolox_nano.onnx", "{models}/yolo-fastest-1.1-xl.weights",
                "{shared}/data/camvid"]},
+    # Issue 17: end to end through the real server and placedb-load; its own same-run baseline
+    # (the detector before issue 17), so it is worth running with one build too.
+    {"name": "ingest-detect", "binary": "placedb-bench-ingest-detect",
+     "quick": ["--models", "{models}", "--vocabulary", "{vocabulary}", "--dir", "{workdir}",
+               "--seconds", "8", "--rounds", "1"],
+     "full": ["--models", "{models}", "--vocabulary", "{vocabulary}", "--dir", "{workdir}",
+              "--seconds", "20", "--rounds", "3"],
+     "needs": ["{models}/yolox_nano.onnx", "{vocabulary}", "{shared}/data/camvid"]},
     {"name": "filtering", "binary": "placedb-bench-filtering",
      "quick": ["--vocabulary", "{vocabulary}", "--model", "{models}/yolox_nano.onnx",
                "--frames", "8", "--rounds", "1"],

@@ -8,17 +8,34 @@
 //    --rounds passes, then the median (and p90) over the frames.
 //  - throughput: 2 worker threads sharing one detector (two Nets in its pool), each call with
 //    OpenCV threads = 1; frames/s over all frames, median (and best) of --rounds rounds.
-// For YOLOX-Nano at 416 and Yolo-Fastest 1.1 XL at 416 and 320.
+// For YOLOX-Nano at 416 (the default: rectangular letterbox and fused SiLU; `416_square`: fused
+// SiLU on the square input; `416_baseline`: the square input and the graph as exported, i.e. the
+// detector before issue 17, as a same-run baseline) and Yolo-Fastest 1.1 XL at 416 and 320.
 //
-// Usage: placedb-bench-detector [--models DIR] [--frames N] [--rounds N]
+// Then YOLOX-Nano's network alone (cv::dnn::Net on one frame, OpenCV threads = 1, fastest pass
+// after a warm-up), for the issue 17 profile:
+//  - detector.yolox_nano.<variant>.forward: ms per forward, and .layer.<OpenCV layer type>: ms
+//    per layer type from Net::getPerfProfile (of the fastest pass), for 416x416 with the graph
+//    as exported (the baseline), 416x416 and 416x320 with SiLU fused (onnx_graph.h), and
+//    416x320_rewritten: SiLU fused and the Focus stem cut (the detector's default; its blob
+//    made by SpaceToDepthBlob, outside the timing like blobFromImage's);
+//  - detector.yolox_nano.416x320_fused.batch<N>.per_frame: forward() of N frames in one blob, ms
+//    per frame, N = 2, 4 (N = 1 is 416x320_fused.forward): what batched inference buys here.
+// The variants run in turn within each of 3 x --rounds + 2 passes, fastest pass kept.
+//
+// Usage: placedb-bench-detector [--models DIR] [--frames N] [--rounds N] [--no-network]
 #include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
+#include <map>
 #include <opencv2/core/utility.hpp>
+#include <opencv2/dnn.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <string>
 #include <thread>
 #include <vector>
@@ -27,6 +44,7 @@
 #include "core/base/files.h"
 #include "core/base/stats.h"
 #include "core/detect/detector.h"
+#include "core/detect/onnx_graph.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;
@@ -116,6 +134,62 @@ void BenchThroughput(const std::string& prefix, const DetectorConfig& config,
   Print(name + ".throughput_best", *std::max_element(fps.begin(), fps.end()), "frames/s");
 }
 
+// One variant of YOLOX's network alone: a Net, its input blob (`batch` copies of the frame
+// letterboxed into width x height), the fastest forward() seen and that pass's per-layer-type
+// times (Net::getPerfProfile).
+struct NetworkCase {
+  std::string name;
+  int batch;
+  cv::dnn::Net net;
+  cv::Mat blob;
+  double best_ms = 1e30;
+  std::map<std::string, double> layers_ms;
+};
+
+NetworkCase MakeNetworkCase(const std::string& name, const std::vector<unsigned char>& model,
+                            const cv::Mat& frame, int width, int height, int batch,
+                            const FocusStem* stem = nullptr) {
+  NetworkCase c;
+  c.name = name;
+  c.batch = batch;
+  c.net = cv::dnn::readNetFromONNX(model);
+  c.net.setPreferableBackend(cv::dnn::DNN_BACKEND_OPENCV);
+  c.net.setPreferableTarget(cv::dnn::DNN_TARGET_CPU);
+  const double scale = std::min(double(width) / frame.cols, double(height) / frame.rows);
+  cv::Mat input(height, width, CV_8UC3, cv::Scalar::all(114));
+  const cv::Rect picture(0, 0, int(std::lround(frame.cols * scale)),
+                         int(std::lround(frame.rows * scale)));
+  cv::Mat roi = input(picture);
+  cv::resize(frame, roi, picture.size());
+  c.blob = stem ? SpaceToDepthBlob(input, *stem)
+                : cv::dnn::blobFromImages(std::vector<cv::Mat>(size_t(batch), input), 1.0,
+                                          cv::Size(), cv::Scalar(), false, false);
+  return c;
+}
+
+// Every case once per pass, `passes` passes after a warm-up: under a varying load each case
+// gets its share of the quiet moments.
+void BenchNetworks(std::vector<NetworkCase>& cases, int passes) {
+  for (int pass = -1; pass < passes; ++pass) {
+    for (NetworkCase& c : cases) {
+      std::vector<cv::Mat> outputs;
+      const double start = NowMs();
+      c.net.setInput(c.blob);
+      c.net.forward(outputs, c.net.getUnconnectedOutLayersNames());
+      const double ms = NowMs() - start;
+      if (pass < 0 || ms >= c.best_ms) continue;
+      c.best_ms = ms;
+      std::vector<double> layer_ticks;
+      c.net.getPerfProfile(layer_ticks);
+      c.layers_ms.clear();
+      for (size_t i = 0; i < layer_ticks.size(); ++i) {
+        c.layers_ms[c.net.getLayer(int(i) + 1)->type] +=
+            layer_ticks[i] * 1000.0 / cv::getTickFrequency();
+      }
+    }
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -125,15 +199,19 @@ int main(int argc, char** argv) {
   if (!fs::exists(models + "/yolox_nano.onnx")) models = shared + "/models";
   size_t frame_count = 40;
   int rounds = 3;
+  bool network = true;
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
-    if ((arg == "--models" || arg == "--frames" || arg == "--rounds") && i + 1 < argc) {
+    if (arg == "--no-network") {
+      network = false;
+    } else if ((arg == "--models" || arg == "--frames" || arg == "--rounds") && i + 1 < argc) {
       const std::string value = argv[++i];
       if (arg == "--models") models = value;
       if (arg == "--frames") frame_count = size_t(std::max(1, std::atoi(value.c_str())));
       if (arg == "--rounds") rounds = std::max(1, std::atoi(value.c_str()));
     } else {
-      std::fprintf(stderr, "usage: %s [--models DIR] [--frames N] [--rounds N]\n", argv[0]);
+      std::fprintf(stderr, "usage: %s [--models DIR] [--frames N] [--rounds N] [--no-network]\n",
+                   argv[0]);
       return 2;
     }
   }
@@ -156,6 +234,11 @@ int main(int argc, char** argv) {
   };
   std::vector<Case> cases;
   cases.push_back({"detector.yolox_nano.416", YoloxNanoConfig(models)});
+  cases.push_back({"detector.yolox_nano.416_square", YoloxNanoConfig(models)});
+  cases.back().config.rectangular_letterbox = false;
+  cases.push_back({"detector.yolox_nano.416_baseline", YoloxNanoConfig(models)});
+  cases.back().config.rectangular_letterbox = false;
+  cases.back().config.rewrite_graph = false;
   cases.push_back({"detector.yolo_fastest_xl.416", YoloFastestConfig(models)});
   cases.push_back({"detector.yolo_fastest_xl.320", YoloFastestConfig(models)});
   cases.back().config.input_size = 320;
@@ -165,6 +248,46 @@ int main(int argc, char** argv) {
     BenchLatency(c.name, c.config, frames, 1, rounds);
     BenchLatency(c.name, c.config, frames, 2, rounds);
     BenchThroughput(c.name, c.config, frames, 2, rounds);
+  }
+
+  if (network) {
+    cv::setNumThreads(1);
+    std::ifstream file(models + "/yolox_nano.onnx", std::ios::binary);
+    const std::vector<unsigned char> exported((std::istreambuf_iterator<char>(file)), {});
+    int fused_pairs = 0;
+    RegisterSiluLayer();
+    const std::vector<unsigned char> fused = FuseSiluNodes(exported, &fused_pairs);
+    FocusStem stem;
+    bool cut = false;
+    const std::vector<unsigned char> rewritten = CutFocusStem(fused, &stem, &cut);
+    std::printf(
+        "# YOLOX-Nano network alone, frame 0, OpenCV threads 1; %d SiLU pairs fused, "
+        "Focus stem %s\n",
+        fused_pairs, cut ? "cut" : "not found");
+    const std::string p = "detector.yolox_nano.";
+    std::vector<NetworkCase> cases;
+    cases.push_back(MakeNetworkCase(p + "416x416_graph", exported, frames[0], 416, 416, 1));
+    cases.push_back(MakeNetworkCase(p + "416x416_fused", fused, frames[0], 416, 416, 1));
+    cases.push_back(MakeNetworkCase(p + "416x320_fused", fused, frames[0], 416, 320, 1));
+    if (cut) {
+      cases.push_back(
+          MakeNetworkCase(p + "416x320_rewritten", rewritten, frames[0], 416, 320, 1, &stem));
+    }
+    for (int batch : {2, 4}) {
+      cases.push_back(MakeNetworkCase(p + "416x320_fused.batch" + std::to_string(batch), fused,
+                                      frames[0], 416, 320, batch));
+    }
+    BenchNetworks(cases, 3 * rounds + 2);
+    for (const NetworkCase& c : cases) {
+      if (c.batch > 1) {
+        Print(c.name + ".per_frame", c.best_ms / c.batch, "ms");
+        continue;
+      }
+      Print(c.name + ".forward", c.best_ms, "ms");
+      for (const auto& [type, ms] : c.layers_ms) {
+        if (ms >= 0.01) Print(c.name + ".layer." + type, ms, "ms");
+      }
+    }
   }
   return 0;
 }

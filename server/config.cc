@@ -361,7 +361,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(
         r.Check(d, "detector",
                 {"backend", "model", "config", "input_size", "preprocessing", "confidence",
-                 "nms_iou", "classes", "max_concurrent_calls", "merge_iou", "required"}));
+                 "nms_iou", "classes", "max_concurrent_calls", "merge_iou", "required",
+                 "rectangular_letterbox", "rewrite_graph"}));
     DetectorSettings& x = c->detector;
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "backend", &x.backend));
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "model", &x.model));
@@ -374,6 +375,9 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "max_concurrent_calls", &x.max_concurrent_calls));
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "merge_iou", &x.merge_iou));
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "required", &x.required));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(d, "detector", "rectangular_letterbox", &x.rectangular_letterbox));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "rewrite_graph", &x.rewrite_graph));
   }
   return Status::Ok();
 }
@@ -646,6 +650,8 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "max_concurrent_calls" << YAML::Value << d.max_concurrent_calls;
   e << YAML::Key << "merge_iou" << YAML::Value << d.merge_iou;
   e << YAML::Key << "required" << YAML::Value << d.required;
+  e << YAML::Key << "rectangular_letterbox" << YAML::Value << d.rectangular_letterbox;
+  e << YAML::Key << "rewrite_graph" << YAML::Value << d.rewrite_graph;
   e << YAML::EndMap;
   e << YAML::Key << "log_level" << YAML::Value << c.log_level;
   e << YAML::EndMap;

@@ -62,6 +62,8 @@ struct DetectorSettings {
   std::string config;                  // darknet .cfg
   int input_size = 416;
   std::string preprocessing = "letterbox";  // letterbox | centre_crop | stretch
+  bool rectangular_letterbox = true;  // YOLOX letterbox: input of the frame's aspect (detector.h)
+  bool rewrite_graph = true;          // YOLOX: graph rewritten for OpenCV (detector.h)
   float confidence = 0.2f;
   float nms_iou = 0.45f;
   std::vector<std::string> classes;  // COCO names reported; empty = the paper's six

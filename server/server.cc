@@ -124,6 +124,8 @@ Result<std::shared_ptr<const Detector>> CreateConfiguredDetector(const ServerCon
   auto preprocessing = ParsePreprocessing(s.preprocessing);
   if (!preprocessing.ok()) return preprocessing.status().WithContext("detector.preprocessing");
   d.preprocessing = *preprocessing;
+  d.rectangular_letterbox = s.rectangular_letterbox;
+  d.rewrite_graph = s.rewrite_graph;
   d.confidence_threshold = s.confidence;
   d.nms_iou_threshold = s.nms_iou;
   if (!s.classes.empty()) d.dynamic_classes = s.classes;

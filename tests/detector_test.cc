@@ -18,6 +18,7 @@
 #include <thread>
 #include <vector>
 
+#include "core/detect/onnx_graph.h"
 #include "core/filter/box_masks.h"
 #include "tests/test_support.h"
 
@@ -65,14 +66,17 @@ DetectorConfig BaseConfig(DetectorBackend backend) {
 }
 
 // One detector per distinct configuration, built once per process (loading costs ~0.1 s).
+// `rectangular` and `rewrite_graph`: DetectorConfig's (false, false: YOLOX before issue 17).
 const Detector* CachedDetector(DetectorBackend backend,
                                Preprocessing preprocessing = Preprocessing::kLetterbox,
-                               float confidence = 0.2f, int input_size = 416) {
+                               float confidence = 0.2f, int input_size = 416,
+                               bool rectangular = true, bool rewrite_graph = true) {
   static std::mutex mutex;
   static std::map<std::string, std::unique_ptr<Detector>> cache;
   const std::string key = std::string(DetectorBackendName(backend)) + "/" +
                           PreprocessingName(preprocessing) + "/" + std::to_string(confidence) +
-                          "/" + std::to_string(input_size);
+                          "/" + std::to_string(input_size) + "/" + std::to_string(rectangular) +
+                          "/" + std::to_string(rewrite_graph);
   std::lock_guard lock(mutex);
   auto it = cache.find(key);
   if (it != cache.end()) return it->second.get();
@@ -80,6 +84,8 @@ const Detector* CachedDetector(DetectorBackend backend,
   config.preprocessing = preprocessing;
   config.confidence_threshold = confidence;
   config.input_size = input_size;
+  config.rectangular_letterbox = rectangular;
+  config.rewrite_graph = rewrite_graph;
   auto created = CreateDetector(config);
   if (!created.ok()) {
     ADD_FAILURE() << "CreateDetector(" << key << "): " << created.status().ToString();
@@ -450,10 +456,12 @@ TEST(DetectorBackends, AgreeOnTheBigObjectsOfTheSampleImages) {
           if (ClassGroup(o.class_id) == ClassGroup(box.class_id))
             best = std::max(best, BoxIoU(box.rect, o.rect));
         }
-        EXPECT_GT(best, 0.5f) << name << ": " << from_name << "'s " << CocoClassName(box.class_id)
-                              << " has no counterpart\nyolox:\n"
-                              << BoxesToString(from_yolox) << "darknet:\n"
-                              << BoxesToString(from_darknet);
+        // 0.45: dog.jpg's bicycle, the least alike pair, is at IoU 0.50 with YOLOX's square input
+        // and 0.499 with the rectangular one (its box 2 px wider); both see the same bicycle.
+        EXPECT_GT(best, 0.45f) << name << ": " << from_name << "'s " << CocoClassName(box.class_id)
+                               << " has no counterpart\nyolox:\n"
+                               << BoxesToString(from_yolox) << "darknet:\n"
+                               << BoxesToString(from_darknet);
       }
     };
     check(from_yolox, from_darknet, "yolox");
@@ -693,7 +701,19 @@ struct CamVidFloor {
   // Recall and precision at IoU 0.5, people then vehicles; then on-object precision.
   double people_recall, people_precision, vehicle_recall, vehicle_precision;
   double people_on_object, vehicle_on_object;
+  // YOLOX's input shape and graph (DetectorConfig); false, false = as before issue 17.
+  bool rectangular = true, rewrite_graph = true;
 };
+
+// "fused, rect": YOLOX's graph (SiLU fused or as exported) and, for letterbox, its input shape.
+std::string Variant(const CamVidFloor& floor) {
+  if (floor.backend != DetectorBackend::kYoloxOnnx) return "";
+  std::string variant = floor.rewrite_graph ? "rewritten" : "graph";
+  if (floor.preprocessing == Preprocessing::kLetterbox) {
+    variant += floor.rectangular ? ", rect" : ", square";
+  }
+  return variant;
+}
 
 // Strict IoU precision is held down by CamVid itself: parked bicycles and far-away people are
 // not labelled, and a row of parked cars is one connected component. The on-object precision
@@ -710,6 +730,8 @@ TEST(DetectorCamVid, RecallAndPrecisionAgainstTheLabelMaps) {
   const CamVidFloor floors[] = {
       {DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox, 416,  //
        0.55, 0.30, 0.60, 0.27, 0.55, 0.85},
+      {DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox, 416,  //
+       0.55, 0.30, 0.60, 0.27, 0.55, 0.85, /*rectangular=*/false, /*rewrite_graph=*/false},
       {DetectorBackend::kYoloxOnnx, Preprocessing::kCentreCrop, 416,  //
        0.45, 0.22, 0.46, 0.21, 0.53, 0.84},
       {DetectorBackend::kDarknet, Preprocessing::kLetterbox, 416,  //
@@ -721,7 +743,8 @@ TEST(DetectorCamVid, RecallAndPrecisionAgainstTheLabelMaps) {
               frames.size());
   for (const CamVidFloor& floor : floors) {
     const Detector* detector =
-        CachedDetector(floor.backend, floor.preprocessing, 0.2f, floor.input_size);
+        CachedDetector(floor.backend, floor.preprocessing, 0.2f, floor.input_size,
+                       floor.rectangular, floor.rewrite_graph);
     ASSERT_NE(detector, nullptr);
     Counts counts[2];
     for (const LabelledFrame& frame : labelled) {
@@ -730,12 +753,12 @@ TEST(DetectorCamVid, RecallAndPrecisionAgainstTheLabelMaps) {
     const Counts& p = counts[kPeople];
     const Counts& v = counts[kVehicles];
     std::printf(
-        "  %-10s %3d %-11s people %.3f / %.3f / %.3f (%d objects, %d boxes) | "
+        "  %-10s %3d %-11s %-17s people %.3f / %.3f / %.3f (%d objects, %d boxes) | "
         "vehicles %.3f / %.3f / %.3f (%d objects, %d boxes)\n",
         DetectorBackendName(floor.backend), floor.input_size,
-        PreprocessingName(floor.preprocessing), p.recall(), p.precision(), p.on_object_precision(),
-        p.objects, p.all_detections, v.recall(), v.precision(), v.on_object_precision(), v.objects,
-        v.all_detections);
+        PreprocessingName(floor.preprocessing), Variant(floor).c_str(), p.recall(), p.precision(),
+        p.on_object_precision(), p.objects, p.all_detections, v.recall(), v.precision(),
+        v.on_object_precision(), v.objects, v.all_detections);
     EXPECT_GE(p.recall(), floor.people_recall);
     EXPECT_GE(p.precision(), floor.people_precision);
     EXPECT_GE(v.recall(), floor.vehicle_recall);
@@ -743,6 +766,189 @@ TEST(DetectorCamVid, RecallAndPrecisionAgainstTheLabelMaps) {
     EXPECT_GE(p.on_object_precision(), floor.people_on_object);
     EXPECT_GE(v.on_object_precision(), floor.vehicle_on_object);
   }
+}
+
+// ---- Issue 17: fused SiLU, rectangular letterbox ----------------------------------------------
+
+TEST(DetectorSilu, KernelMatchesTheFormula) {
+  std::vector<float> x;
+  for (float v = -87.0f; v <= 87.0f; v += 0.0137f) x.push_back(v);
+  for (float v : {0.0f, -0.0f, 1e-30f, -1e-30f, 0.5f, -0.5f, 20.0f, -20.0f, 87.0f, -87.0f})
+    x.push_back(v);
+  x.push_back(3.0f);  // an odd count: the scalar tail runs too
+  std::vector<float> y(x.size());
+  Silu(x.data(), y.data(), x.size());
+  double worst = 0;
+  for (size_t i = 0; i < x.size(); ++i) {
+    const double expected = double(x[i]) / (1.0 + std::exp(-double(x[i])));
+    const double error = std::abs(double(y[i]) - expected) / std::max(std::abs(expected), 1e-30);
+    worst = std::max(worst, error);
+    ASSERT_LT(error, 1e-6) << "x = " << x[i] << ": " << y[i] << " vs " << expected;
+  }
+  std::printf("  SiLU kernel: %zu values, worst relative error %.3g\n", x.size(), worst);
+  // In place, and far below the clamp: a finite value near zero, never NaN.
+  std::vector<float> z = {-1000.0f, -100.0f, 1000.0f, 1.0f, 2.0f, 3.0f, 4.0f, 5.0f, 6.0f};
+  Silu(z.data(), z.data(), z.size());
+  EXPECT_LE(std::abs(z[0]), 1e-30f);
+  EXPECT_LE(std::abs(z[1]), 1e-30f);
+  EXPECT_FLOAT_EQ(z[2], 1000.0f);
+  EXPECT_NEAR(z[3], 1.0 / (1.0 + std::exp(-1.0)), 1e-6);
+}
+
+TEST(DetectorSilu, FusesEveryPairOfYoloxAndLeavesOtherBytesAlone) {
+  REQUIRE_MODELS();
+  std::ifstream file(ModelsDir() + "/yolox_nano.onnx", std::ios::binary);
+  const std::vector<unsigned char> model((std::istreambuf_iterator<char>(file)), {});
+  ASSERT_FALSE(model.empty());
+  int fused = 0;
+  const std::vector<unsigned char> rewritten = FuseSiluNodes(model, &fused);
+  // YOLOX-Nano: a SiLU after each of its 104 convolutions with activation.
+  EXPECT_EQ(fused, 104);
+  EXPECT_LT(rewritten.size(), model.size());
+  int again = -1;
+  EXPECT_EQ(FuseSiluNodes(rewritten, &again), rewritten);  // nothing left to fuse
+  EXPECT_EQ(again, 0);
+  // Not the protobuf wire format, or a prefix of the model: unchanged, nothing fused.
+  const std::string text = "this is not an ONNX model";
+  const std::vector<unsigned char> bytes(text.begin(), text.end());
+  EXPECT_EQ(FuseSiluNodes(bytes, &fused), bytes);
+  EXPECT_EQ(fused, 0);
+  const std::vector<unsigned char> prefix(model.begin(), model.begin() + 1000);
+  EXPECT_EQ(FuseSiluNodes(prefix, &fused), prefix);
+  EXPECT_EQ(fused, 0);
+  EXPECT_EQ(FuseSiluNodes({}, &fused), std::vector<unsigned char>());
+  EXPECT_EQ(fused, 0);
+}
+
+TEST(DetectorFocusStem, CutsYoloxStemAndBuildsItsInputBlob) {
+  REQUIRE_MODELS();
+  std::ifstream file(ModelsDir() + "/yolox_nano.onnx", std::ios::binary);
+  const std::vector<unsigned char> model((std::istreambuf_iterator<char>(file)), {});
+  ASSERT_FALSE(model.empty());
+  FocusStem stem;
+  bool cut = false;
+  const std::vector<unsigned char> rewritten = CutFocusStem(model, &stem, &cut);
+  ASSERT_TRUE(cut);
+  // YOLOX's order: top-left, bottom-left, top-right, bottom-right.
+  EXPECT_EQ(stem.row, (std::array<int, 4>{0, 1, 0, 1}));
+  EXPECT_EQ(stem.col, (std::array<int, 4>{0, 0, 1, 1}));
+  bool again = true;
+  EXPECT_EQ(CutFocusStem(rewritten, &stem, &again), rewritten);  // no stem left
+  EXPECT_FALSE(again);
+  const std::string text = "this is not an ONNX model";
+  const std::vector<unsigned char> bytes(text.begin(), text.end());
+  EXPECT_EQ(CutFocusStem(bytes, &stem, &cut), bytes);
+  EXPECT_FALSE(cut);
+
+  // The blob against the definition, on an image whose every byte differs.
+  cv::Mat image(6, 8, CV_8UC3);
+  for (int i = 0; i < int(image.total() * 3); ++i) image.data[i] = static_cast<uchar>(i);
+  const FocusStem yolox{{0, 1, 0, 1}, {0, 0, 1, 1}};
+  const cv::Mat blob = SpaceToDepthBlob(image, yolox);
+  ASSERT_EQ(blob.dims, 4);
+  EXPECT_EQ(blob.size[1], 12);
+  EXPECT_EQ(blob.size[2], 3);
+  EXPECT_EQ(blob.size[3], 4);
+  for (int g = 0; g < 4; ++g) {
+    for (int c = 0; c < 3; ++c) {
+      for (int y = 0; y < 3; ++y) {
+        for (int x = 0; x < 4; ++x) {
+          const float expected =
+              image.at<cv::Vec3b>(2 * y + yolox.row[size_t(g)], 2 * x + yolox.col[size_t(g)])[c];
+          ASSERT_EQ(blob.ptr<float>(0, 3 * g + c)[y * 4 + x], expected)
+              << "group " << g << " channel " << c << " at " << x << "," << y;
+        }
+      }
+    }
+  }
+}
+
+// Every box of `expected` has a same-class box in `got` within `pixels` on every side and
+// `confidence` in score, and both have as many boxes.
+void ExpectSameBoxes(const std::vector<DynamicBox>& expected, const std::vector<DynamicBox>& got,
+                     float pixels, float confidence, const std::string& what) {
+  EXPECT_EQ(got.size(), expected.size()) << what << "\nexpected\n"
+                                         << BoxesToString(expected) << "got\n"
+                                         << BoxesToString(got);
+  for (const DynamicBox& e : expected) {
+    float best = 1e9f;
+    const DynamicBox* match = nullptr;
+    for (const DynamicBox& g : got) {
+      if (g.class_id != e.class_id) continue;
+      const float d = std::max({std::abs(g.rect.x - e.rect.x), std::abs(g.rect.y - e.rect.y),
+                                std::abs(g.rect.br().x - e.rect.br().x),
+                                std::abs(g.rect.br().y - e.rect.br().y)});
+      if (d < best) best = d, match = &g;
+    }
+    ASSERT_NE(match, nullptr) << what << ": no " << CocoClassName(e.class_id);
+    EXPECT_LE(best, pixels) << what << " " << CocoClassName(e.class_id);
+    EXPECT_NEAR(match->confidence, e.confidence, confidence) << what;
+  }
+}
+
+// The rewritten graph (SiLU fused, Focus stem cut) computes the same function: on the same input
+// shape, the same boxes.
+TEST(DetectorSilu, FusedGraphFindsTheSameBoxesAsTheExportedOne) {
+  REQUIRE_MODELS();
+  const Detector* fused = CachedDetector(DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox,
+                                         0.2f, 416, /*rectangular=*/false, /*rewrite_graph=*/true);
+  const Detector* graph = CachedDetector(DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox,
+                                         0.2f, 416, /*rectangular=*/false, /*rewrite_graph=*/false);
+  ASSERT_NE(fused, nullptr);
+  ASSERT_NE(graph, nullptr);
+  EXPECT_NE(fused->Describe().find("104 SiLU fused, Focus stem in preprocessing"),
+            std::string::npos)
+      << fused->Describe();
+  EXPECT_EQ(graph->Describe().find("fused"), std::string::npos) << graph->Describe();
+  std::vector<std::string> paths = {std::string(kDarknetSamples) + "/person.jpg",
+                                    std::string(kDarknetSamples) + "/dog.jpg"};
+  for (const auto& f : EvaluationFrames()) {
+    if (paths.size() < 14) paths.push_back(f.image_path);
+  }
+  for (const std::string& path : paths) {
+    const cv::Mat image = ReadColour(path);
+    ExpectSameBoxes(DetectOrFail(*graph, image), DetectOrFail(*fused, image), 0.05f, 1e-4f, path);
+  }
+}
+
+// The rectangular input holds the same pixels as the square one with less padding, but the
+// network sees a different border below (or beside) them, so the outputs are not identical: the
+// confident boxes (>= 0.75) agree at IoU > 0.85, landscape and portrait. Weaker ones (small cars
+// at 0.6) may move or cross the threshold: the CamVid recall test measures what that does.
+TEST(DetectorPreprocessing, RectangularLetterboxFindsTheSquaresConfidentBoxes) {
+  REQUIRE_MODELS();
+  const Detector* rectangular = CachedDetector(DetectorBackend::kYoloxOnnx);
+  const Detector* square = CachedDetector(DetectorBackend::kYoloxOnnx, Preprocessing::kLetterbox,
+                                          0.2f, 416, /*rectangular=*/false);
+  ASSERT_NE(rectangular, nullptr);
+  ASSERT_NE(square, nullptr);
+  std::vector<std::string> paths = {std::string(kDarknetSamples) + "/person.jpg",
+                                    std::string(kDarknetSamples) + "/dog.jpg"};
+  for (const auto& f : EvaluationFrames()) {
+    if (paths.size() < 8) paths.push_back(f.image_path);
+  }
+  int compared = 0;
+  for (const std::string& path : paths) {
+    cv::Mat landscape = ReadColour(path), portrait;
+    cv::rotate(landscape, portrait, cv::ROTATE_90_CLOCKWISE);
+    for (const cv::Mat& image : {landscape, portrait}) {
+      const auto got = DetectOrFail(*rectangular, image);
+      for (const DynamicBox& s : DetectOrFail(*square, image)) {
+        if (s.confidence < 0.75f) continue;
+        float best = 0;
+        for (const DynamicBox& r : got) {
+          if (r.class_id == s.class_id) best = std::max(best, BoxIoU(r.rect, s.rect));
+        }
+        EXPECT_GT(best, 0.85f) << path << " " << image.cols << "x" << image.rows << " "
+                               << BoxesToString({s}) << "rectangular:\n"
+                               << CocoClassName(s.class_id) << "\n"
+                               << BoxesToString(got);
+        ++compared;
+      }
+    }
+  }
+  std::printf("  %d confident boxes compared\n", compared);
+  EXPECT_GT(compared, 10);
 }
 
 // ---- Concurrency ---------------------------------------------------------------------------

@@ -14,12 +14,14 @@
 #include <opencv2/core/utility.hpp>
 #include <opencv2/dnn.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <sstream>
 #include <thread>
 #include <utility>
 
 #include "core/base/files.h"
 #include "core/base/thread_annotations.h"
+#include "core/detect/onnx_graph.h"
 
 namespace placedb {
 
@@ -191,10 +193,26 @@ struct InputMapping {
   double offset_x = 0, offset_y = 0;
 };
 
-// The square network input for `bgr`, and its mapping. `pad` fills the letterbox margin.
-cv::Mat MakeNetworkInput(const cv::Mat& bgr, int size, Preprocessing preprocessing,
+// The network input's size for a `frame_size` frame: the square, or with `rectangular` (letterbox
+// only) the frame's aspect ratio with each side rounded up to a multiple of 32 (the network's
+// largest stride) and at most `size`.
+cv::Size NetworkInputSize(cv::Size frame_size, int size, Preprocessing preprocessing,
+                          bool rectangular) {
+  if (!rectangular || preprocessing != Preprocessing::kLetterbox) return {size, size};
+  const double scale = std::min(double(size) / frame_size.width, double(size) / frame_size.height);
+  auto side = [&](int length) {
+    const int scaled = std::clamp(int(std::lround(length * scale)), 1, size);
+    return std::min(size, (scaled + 31) / 32 * 32);
+  };
+  return {side(frame_size.width), side(frame_size.height)};
+}
+
+// The network input (`target` pixels, see NetworkInputSize) for `bgr`, and its mapping. `pad`
+// fills the letterbox margin. The letterbox resizes straight into the input, with no
+// intermediate image.
+cv::Mat MakeNetworkInput(const cv::Mat& bgr, cv::Size target, Preprocessing preprocessing,
                          const cv::Scalar& pad, InputMapping* mapping) {
-  const cv::Size target(size, size);
+  const int size = std::max(target.width, target.height);
   auto resize_to = [](const cv::Mat& src, cv::Size dsize) {
     if (src.size() == dsize) return src;
     cv::Mat dst;
@@ -204,10 +222,15 @@ cv::Mat MakeNetworkInput(const cv::Mat& bgr, int size, Preprocessing preprocessi
   switch (preprocessing) {
     case Preprocessing::kLetterbox: {
       const double scale = std::min(double(size) / bgr.cols, double(size) / bgr.rows);
-      const int width = std::clamp(int(std::lround(bgr.cols * scale)), 1, size);
-      const int height = std::clamp(int(std::lround(bgr.rows * scale)), 1, size);
+      const int width = std::clamp(int(std::lround(bgr.cols * scale)), 1, target.width);
+      const int height = std::clamp(int(std::lround(bgr.rows * scale)), 1, target.height);
       cv::Mat input(target, CV_8UC3, pad);
-      resize_to(bgr, cv::Size(width, height)).copyTo(input(cv::Rect(0, 0, width, height)));
+      cv::Mat picture = input(cv::Rect(0, 0, width, height));
+      if (bgr.size() == picture.size()) {
+        bgr.copyTo(picture);
+      } else {
+        cv::resize(bgr, picture, picture.size(), 0, 0, cv::INTER_LINEAR);  // writes into the ROI
+      }
       // The exact per-axis factor of the resize, not the rounded-off `scale`.
       mapping->scale_x = double(width) / bgr.cols;
       mapping->scale_y = double(height) / bgr.rows;
@@ -234,9 +257,9 @@ cv::Mat MakeNetworkInput(const cv::Mat& bgr, int size, Preprocessing preprocessi
 constexpr int kRowLength = 5 + kCocoClassCount;  // box (4), objectness, class scores
 constexpr std::array<int, 3> kYoloxStrides = {8, 16, 32};
 
-int YoloxExpectedRows(int input_size) {
+int YoloxExpectedRows(cv::Size input) {
   int rows = 0;
-  for (int stride : kYoloxStrides) rows += (input_size / stride) * (input_size / stride);
+  for (int stride : kYoloxStrides) rows += (input.width / stride) * (input.height / stride);
   return rows;
 }
 
@@ -267,13 +290,13 @@ bool BestDynamicClass(const float* class_scores, float objectness,
 
 // YOLOX rows in grid order for strides 8, 16, 32: x = (p0 + gx) * s, y = (p1 + gy) * s,
 // w = exp(p2) * s, h = exp(p3) * s; score = p4 * p[5 + c].
-void DecodeYolox(const cv::Mat& output, int input_size, const std::vector<int>& dynamic_ids,
+void DecodeYolox(const cv::Mat& output, cv::Size input, const std::vector<int>& dynamic_ids,
                  float threshold, std::vector<Candidate>* candidates) {
   const float* row = output.ptr<float>();
   for (int stride : kYoloxStrides) {
-    const int grid = input_size / stride;
-    for (int gy = 0; gy < grid; ++gy) {
-      for (int gx = 0; gx < grid; ++gx, row += kRowLength) {
+    const int grid_width = input.width / stride, grid_height = input.height / stride;
+    for (int gy = 0; gy < grid_height; ++gy) {
+      for (int gx = 0; gx < grid_width; ++gx, row += kRowLength) {
         const float objectness = row[4];
         if (objectness < threshold) continue;  // score = objectness * class <= objectness
         Candidate c;
@@ -368,12 +391,17 @@ class NetPool {
 
 class DnnDetector final : public Detector {
  public:
+  // `silu_fused`: how many SiLU pairs FuseSiluNodes replaced in `model_bytes` (0: none);
+  // `stem`: set when CutFocusStem cut YOLOX's Focus stem from them.
   DnnDetector(DetectorConfig config, std::vector<int> dynamic_ids, std::vector<uchar> model_bytes,
-              std::vector<uchar> cfg_bytes, int pool_capacity)
+              std::vector<uchar> cfg_bytes, int pool_capacity, int silu_fused,
+              std::optional<FocusStem> stem)
       : config_(std::move(config)),
         dynamic_ids_(std::move(dynamic_ids)),
         model_bytes_(std::move(model_bytes)),
         cfg_bytes_(std::move(cfg_bytes)),
+        silu_fused_(silu_fused),
+        stem_(stem),
         pool_([this] { return BuildNet(); }, pool_capacity) {}
 
   // Builds the first Net and checks the model's output layout on a blank frame.
@@ -391,7 +419,7 @@ class DnnDetector final : public Detector {
       return Status::FailedPrecondition("model '" + config_.model_path +
                                         "' fails on a blank input: " + e.what());
     }
-    PLACEDB_RETURN_IF_ERROR(CheckOutputLayout(outputs));
+    PLACEDB_RETURN_IF_ERROR(CheckOutputLayout(outputs, blank.size()));
     pool_.Add(std::move(*net));
     return Status::Ok();
   }
@@ -422,7 +450,9 @@ class DnnDetector final : public Detector {
     }
     return std::string(DetectorBackendName(config_.backend)) + " " + model_name() + ", input " +
            std::to_string(config_.input_size) + "x" + std::to_string(config_.input_size) + " " +
-           PreprocessingName(config_.preprocessing) +
+           PreprocessingName(config_.preprocessing) + (rectangular() ? " (rectangular)" : "") +
+           (silu_fused_ > 0 ? ", " + std::to_string(silu_fused_) + " SiLU fused" : "") +
+           (stem_ ? ", Focus stem in preprocessing" : "") +
            ", confidence >= " + FormatFloat(config_.confidence_threshold, 2) + ", NMS IoU " +
            FormatFloat(config_.nms_iou_threshold, 2) + ", classes " + classes;
   }
@@ -454,8 +484,10 @@ class DnnDetector final : public Detector {
     }
 
     InputMapping mapping;
+    const cv::Size input_size =
+        NetworkInputSize(bgr.size(), config_.input_size, config_.preprocessing, rectangular());
     const cv::Mat input =
-        MakeNetworkInput(bgr, config_.input_size, config_.preprocessing, PadColour(), &mapping);
+        MakeNetworkInput(bgr, input_size, config_.preprocessing, PadColour(), &mapping);
 
     std::vector<Candidate> candidates;
     {
@@ -469,8 +501,8 @@ class DnnDetector final : public Detector {
       } lease{pool_, *net};
       std::vector<cv::Mat> outputs;
       RunNet(*net, input, &outputs);
-      PLACEDB_RETURN_IF_ERROR(CheckOutputLayout(outputs));
-      Decode(outputs, &candidates);
+      PLACEDB_RETURN_IF_ERROR(CheckOutputLayout(outputs, input.size()));
+      Decode(outputs, input.size(), &candidates);
     }
 
     std::vector<DynamicBox> boxes;
@@ -504,6 +536,10 @@ class DnnDetector final : public Detector {
   }
 
   bool is_yolox() const { return config_.backend == DetectorBackend::kYoloxOnnx; }
+  bool rectangular() const {
+    return is_yolox() && config_.rectangular_letterbox &&
+           config_.preprocessing == Preprocessing::kLetterbox;
+  }
 
   // YOLOX was trained with pad 114; darknet letterboxes with mid grey (0.5).
   cv::Scalar PadColour() const { return is_yolox() ? cv::Scalar::all(114) : cv::Scalar::all(128); }
@@ -527,18 +563,21 @@ class DnnDetector final : public Detector {
   }
 
   void RunNet(cv::dnn::Net& net, const cv::Mat& input, std::vector<cv::Mat>* outputs) const {
-    // YOLOX: BGR 0..255 as is. darknet: RGB scaled to 0..1.
-    const cv::Mat blob = is_yolox() ? cv::dnn::blobFromImage(input, 1.0, cv::Size(), cv::Scalar(),
-                                                             /*swapRB=*/false, /*crop=*/false)
-                                    : cv::dnn::blobFromImage(input, 1.0 / 255, cv::Size(),
-                                                             cv::Scalar(), true, false);
+    // YOLOX: BGR 0..255 as is (with the stem cut: its 12 phase channels). darknet: RGB scaled to
+    // 0..1.
+    const cv::Mat blob = stem_        ? SpaceToDepthBlob(input, *stem_)
+                         : is_yolox() ? cv::dnn::blobFromImage(input, 1.0, cv::Size(), cv::Scalar(),
+                                                               /*swapRB=*/false, /*crop=*/false)
+                                      : cv::dnn::blobFromImage(input, 1.0 / 255, cv::Size(),
+                                                               cv::Scalar(), true, false);
     net.setInput(blob);
     net.forward(*outputs, net.getUnconnectedOutLayersNames());
   }
 
-  Status CheckOutputLayout(const std::vector<cv::Mat>& outputs) const {
+  // `input`: the network input's size (YOLOX's row count depends on it).
+  Status CheckOutputLayout(const std::vector<cv::Mat>& outputs, cv::Size input) const {
     if (is_yolox()) {
-      const int rows = YoloxExpectedRows(config_.input_size);
+      const int rows = YoloxExpectedRows(input);
       const bool ok = outputs.size() == 1 && outputs[0].dims == 3 && outputs[0].size[0] == 1 &&
                       outputs[0].size[1] == rows && outputs[0].size[2] == kRowLength &&
                       outputs[0].type() == CV_32F && outputs[0].isContinuous();
@@ -551,7 +590,8 @@ class DnnDetector final : public Detector {
         return Status::FailedPrecondition(
             "model '" + config_.model_path + "' is not a raw YOLOX COCO model: its output is " +
             got + ", expected [1," + std::to_string(rows) + "," + std::to_string(kRowLength) +
-            "] for a " + std::to_string(config_.input_size) + " input");
+            "] for a " + std::to_string(input.width) + "x" + std::to_string(input.height) +
+            " input");
       }
       return Status::Ok();
     }
@@ -568,10 +608,10 @@ class DnnDetector final : public Detector {
     return Status::Ok();
   }
 
-  void Decode(const std::vector<cv::Mat>& outputs, std::vector<Candidate>* candidates) const {
+  void Decode(const std::vector<cv::Mat>& outputs, cv::Size input,
+              std::vector<Candidate>* candidates) const {
     if (is_yolox()) {
-      DecodeYolox(outputs[0], config_.input_size, dynamic_ids_, config_.confidence_threshold,
-                  candidates);
+      DecodeYolox(outputs[0], input, dynamic_ids_, config_.confidence_threshold, candidates);
     } else {
       DecodeDarknet(outputs, config_.input_size, dynamic_ids_, config_.confidence_threshold,
                     candidates);
@@ -582,6 +622,8 @@ class DnnDetector final : public Detector {
   const std::vector<int> dynamic_ids_;
   const std::vector<uchar> model_bytes_;  // the .onnx or .weights file, kept to build more Nets
   const std::vector<uchar> cfg_bytes_;    // darknet: the prepared .cfg
+  const int silu_fused_;                  // YOLOX: SiLU pairs fused in model_bytes_
+  const std::optional<FocusStem> stem_;   // YOLOX: the Focus stem cut from model_bytes_
   mutable NetPool pool_;
 };
 
@@ -758,8 +800,18 @@ Result<std::unique_ptr<Detector>> CreateDetector(const DetectorConfig& config) {
   int capacity = config.max_concurrent_calls;
   if (capacity == 0) capacity = int(std::max(1u, std::thread::hardware_concurrency()));
 
+  int silu_fused = 0;
+  std::optional<FocusStem> stem;
+  if (config.backend == DetectorBackend::kYoloxOnnx && config.rewrite_graph) {
+    RegisterSiluLayer();
+    *model = FuseSiluNodes(*model, &silu_fused);
+    FocusStem found;
+    bool cut = false;
+    *model = CutFocusStem(*model, &found, &cut);
+    if (cut) stem = found;
+  }
   auto detector = std::make_unique<DnnDetector>(config, std::move(*ids), std::move(*model),
-                                                std::move(cfg), capacity);
+                                                std::move(cfg), capacity, silu_fused, stem);
   try {
     PLACEDB_RETURN_IF_ERROR(detector->Initialise());
   } catch (const std::exception& e) {  // e.g. bad_alloc from a hostile file: never escapes
