@@ -818,6 +818,9 @@ struct PlaceDbService::Stream {
   bool loop_closure = false;           // IngestHeader.loop_closure
   IngestPipeline* pipeline = nullptr;  // set before the stream is listed in streams_
   grpc::Status refusal;                // why the pool refused the last frame (handler thread)
+  // The stream's last place handed to the map's commit queue (Complete() only): a frame that
+  // searches waits for it first, so it sees every earlier place of its stream.
+  std::shared_ptr<PendingCommit> last_commit;
 
   // For the close log line, read after the pipeline is closed. `frames` and `agents`: the handler
   // thread; the outcomes: Complete(), which the pipeline runs one frame at a time.
@@ -832,7 +835,10 @@ struct PlaceDbService::Slot final : IngestPipeline::Frame {
   Slot(PlaceDbService* service, Stream* stream) : service(service), stream(stream) {
     stream->watch->FrameRead();
   }
-  ~Slot() override { stream->watch->FrameDone(); }
+  ~Slot() override {
+    service->Settle(stream, this);  // a skipped frame's place is still waited for and counted
+    stream->watch->FrameDone();
+  }
   Slot(const Slot&) = delete;
   Slot& operator=(const Slot&) = delete;
 
@@ -864,8 +870,12 @@ struct PlaceDbService::Slot final : IngestPipeline::Frame {
   std::unique_ptr<v1::IngestRequest> request;  // freed once decoded
   grpc::Status status;                         // the outcome so far
   std::optional<v1::MatchOptions> matches;
-  Work work;                    // freed once completed
-  v1::IngestResponse response;  // Complete()'s, for the writer
+  Work work;                    // freed once settled
+  v1::IngestResponse response;  // Complete()'s and Settle()'s, for the writer
+  // Set by Complete() when the place went to the map's commit queue; Settle() waits for it.
+  std::shared_ptr<PendingCommit> commit;
+  bool completed = false;  // Complete() ran (a dropped frame never completes)
+  bool settled = false;    // Settle() ran (delivery thread)
   // The frame's share of the memory budget, from its read until its answer is written (the
   // pipeline destroys the slot after delivering it).
   MemoryBudget::Reservation memory;
@@ -904,6 +914,12 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       }
       work.timings.depth_ms = frame.timings.depth_ms;
       work.timings.transform_ms = frame.timings.transform_ms;
+      const bool searches = frame.valid && (slot->matches || stream->loop_closure);
+      if (searches && stream->last_commit) {
+        // A place is stored and searchable before the next frame of its stream searches.
+        (void)stream->last_commit->Wait();  // a failure is its own frame's answer
+        stream->last_commit.reset();
+      }
       if (slot->matches && frame.valid) {
         QueryOptions options = QueryOptionsFromProto(*slot->matches, work.metadata.agent_id);
         options.timestamp_ns = work.metadata.timestamp_ns;
@@ -926,6 +942,17 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
         added = std::move(committed);
         return grpc::Status::OK;
       }
+      if (frame.valid) {
+        // Group commit: the worker goes on; the answer waits for durability (Settle()).
+        CountsToProto(frame.counts, response.mutable_counts());
+        BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
+        if (frame.depth_state) DepthStateToProto(*frame.depth_state, response.mutable_depth());
+        metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.depth_removed,
+                                   frame.counts.static_);
+        slot->commit = map.map->Enqueue(std::move(frame), work.metadata);
+        stream->last_commit = slot->commit;
+        return grpc::Status::OK;
+      }
       added = map.map->Commit(frame, work.metadata);
       if (added.ok()) return grpc::Status::OK;
       metrics_->StorageError(map.name, added.status());
@@ -941,6 +968,8 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map.name,
                    slot->index, GrpcCodeName(slot->status.error_code()),
                    slot->status.error_message());
+    } else if (slot->commit) {
+      // Answered by Settle(), once durable.
     } else {
       CountsToProto(frame.counts, response.mutable_counts());
       BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
@@ -972,6 +1001,43 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       TimingsToProto(work.timings, slot->queue_ms, response.mutable_timings());
       ObserveStages(work.timings);
     }
+  }
+  slot->completed = true;
+  if (!slot->commit) slot->work = Work();  // the frame's data need not wait for the writer
+}
+
+void PlaceDbService::Settle(Stream* stream, Slot* slot) {
+  if (!slot->completed || slot->settled) return;
+  slot->settled = true;
+  v1::IngestResponse& response = slot->response;
+  if (slot->commit) {
+    const std::string& map_name = stream->map->name;
+    const Result<AddResult>& added = slot->commit->Wait();
+    if (!added.ok()) {
+      metrics_->StorageError(map_name, added.status());
+      slot->status = ToGrpc(added.status(), "storing");
+      response.clear_counts();
+      response.clear_boxes_used();
+      response.clear_depth();
+      response.clear_matches();
+      response.mutable_error()->set_code(int(slot->status.error_code()));
+      response.mutable_error()->set_message(
+          HidePaths(slot->status.error_message(), config_.data_dir));
+      metrics_->FrameRejected(map_name, GrpcCodeLabel(slot->status.error_code()));
+      spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map_name,
+                   slot->index, GrpcCodeName(slot->status.error_code()),
+                   slot->status.error_message());
+    } else {
+      Work& work = slot->work;
+      work.timings.store_ms = added->timings.store_ms;
+      response.set_stored(added->stored);
+      response.set_place_id(added->id);
+      metrics_->FrameIngested(map_name);
+      work.timings.total_ms = MsSince(slot->arrived);
+      TimingsToProto(work.timings, slot->queue_ms, response.mutable_timings());
+      ObserveStages(work.timings);
+    }
+    slot->commit.reset();
   }
   slot->work = Work();  // the response may wait for a slow reader; the frame's data need not
   FrameOutcome outcome = FrameOutcome::kInvalid;
@@ -1044,7 +1110,9 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
     admitted.emplace(
         pool_, limits.max_inflight_per_stream,
         IngestPipeline::Callbacks{.deliver =
-                                      [io, &watch](IngestPipeline::Frame& frame) {
+                                      [this, io, &watch](IngestPipeline::Frame& frame) {
+                                        auto& slot = static_cast<Slot&>(frame);
+                                        Settle(slot.stream, &slot);
                                         // Timed: a client that takes no answers blocks here.
                                         watch.Writing();
                                         const bool written =

@@ -144,6 +144,11 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // asked; then store, or loop closure + store in loop-closure mode) and its response. The
   // stream's pipeline runs it in stream order, one frame at a time.
   void Complete(Stream* stream, Slot* slot);
+  // The rest of a completed frame's answer, on the stream's delivery thread before it is written
+  // (or when it is skipped): waits until its place is durable and indexed (a place Complete()
+  // handed to the map's commit queue: group commit), fills in the outcome, and counts it.
+  // Idempotent; nothing for a frame never completed.
+  void Settle(Stream* stream, Slot* slot);
   // Sizes a frame's reservation (its read's, from the pipeline) to the frame, waiting up to
   // limits.memory_wait_ms; RESOURCE_EXHAUSTED naming the budget when it does not fit.
   grpc::Status ChargeFrame(grpc::ServerContext* context, const MapEntry& map,
