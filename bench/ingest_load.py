@@ -38,7 +38,7 @@ def free_port():
 class Server:
     """One placedb-server of `build` on a free loopback port with a fresh data directory."""
 
-    def __init__(self, build, vocabulary, workdir, threads):
+    def __init__(self, build, vocabulary, workdir, threads, config=None):
         self.build = build
         self.port = free_port()
         self.address = f"127.0.0.1:{self.port}"
@@ -50,6 +50,8 @@ class Server:
                 "--vocabulary", f"default={vocabulary}"]
         if threads:
             args += ["--threads", str(threads)]
+        if config:
+            args += ["--config", config]
         self.process = subprocess.Popen(args, stdout=self.log, stderr=subprocess.STDOUT)
         cli = os.path.join(build, "client", "placedb")
         for _ in range(100):
@@ -82,11 +84,11 @@ def finished(process, json_out, what):
         return json.load(f)
 
 
-def measure(build, options, workdir):
+def measure(build, options, workdir, config=None):
     """Every figure of one build, as (name, value, unit)."""
     figures = []
     source = [options.source, "--glob", "*.jpg", "--mode", "features"]
-    server = Server(build, options.vocabulary, workdir, options.threads)
+    server = Server(build, options.vocabulary, workdir, options.threads, config)
     try:
         out = os.path.join(workdir, "ingest.json")
         report = finished(server.load(source + ["--agents", str(options.agents),
@@ -100,7 +102,7 @@ def measure(build, options, workdir):
     finally:
         server.stop()
 
-    server = Server(build, options.vocabulary, workdir, options.threads)
+    server = Server(build, options.vocabulary, workdir, options.threads, config)
     try:
         the_map = ["--map", "bench-query", "--keep-map"]
         out = os.path.join(workdir, "preload.json")
@@ -146,6 +148,7 @@ def main():
     parser.add_argument("--query-duration", type=float, default=8)
     parser.add_argument("--threads", type=int, default=0, help="server workers (0: its default)")
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--config", help="server YAML configuration for this build's runs")
     options = parser.parse_args()
     for build in [options.build] + ([options.base_build] if options.base_build else []):
         for program in ("server/placedb-server", "client/placedb-load", "client/placedb"):
@@ -165,7 +168,8 @@ def main():
                 if r % 2:
                     sides.reverse()
             for prefix, build in sides:
-                for name, value, unit in measure(build, options, workdir):
+                config = options.config if build == options.build else None
+                for name, value, unit in measure(build, options, workdir, config):
                     print(f"{prefix}{name} {value:.3f} {unit}", flush=True)
                 print(f"# {prefix or 'change '}run {r + 1}: load {os.getloadavg()[0]:.2f}",
                       flush=True)

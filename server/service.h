@@ -54,8 +54,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // `detector` null = server-side detection off; `detector_status` then says why ("off", or
   // "off: <error>" when a configured model failed to load). Frames and queries are charged to
   // `budget` (limits.memory_budget_bytes) from their read to their answer.
+  // `query_pool` (optional, default `pool`): the workers Query runs on.
   PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool, Metrics* metrics,
-                 const Detector* detector, std::string detector_status, MemoryBudget* budget);
+                 const Detector* detector, std::string detector_status, MemoryBudget* budget,
+                 WorkerPool* query_pool = nullptr);
   ~PlaceDbService() override;
 
   grpc::Status CreateMap(grpc::ServerContext* context, const v1::CreateMapRequest* request,
@@ -164,6 +166,7 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   const ServerConfig& config_;
   MapRegistry* const maps_;
   WorkerPool* const pool_;
+  WorkerPool* const query_pool_;  // Query's workers (pool_ when none of its own)
   Metrics* const metrics_;
   const Detector* const detector_;  // null: server-side detection off
   const std::string detector_status_;

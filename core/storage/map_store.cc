@@ -756,6 +756,7 @@ class RocksPayloadStore final : public PayloadStore {
 
   // The map wrote the payload in the place's batch before indexing it.
   Status Put(PlaceId, std::shared_ptr<const PlacePayload>) override { return Status::Ok(); }
+  bool KeepsPayloads() const override { return false; }  // the place's batch holds them
 
   // The vector alone: loop closure's long-term memory needs no features.
   Result<BowVector> GetBow(PlaceId id) const override {
