@@ -10,8 +10,8 @@ data directory, and prints `name value unit` lines (bench/bench_output.h's forma
    `--duration` seconds: frames/s, ack latency p50/p99;
 2. query under ingest, on one map preloaded with one pass of the frames: a query stream at a
    fixed rate (`--query-rate`, one query in flight) alone (idle), then the same queries while
-   `--agents` streams ingest into the same map at full rate (loaded): query p50/p99 of each and
-   the ratio of the p99s.
+   `--agents` streams ingest into the same map at full rate (loaded), `--query-phases` times
+   alternately: query p50/p99 of each (medians over the phases) and the ratio of the p99s.
 
 With --base-build DIR the same runs alternate with that build's server and load tester (base
 first, then this build; the order alternates over --repeat), and its figures are printed as
@@ -23,6 +23,7 @@ import json
 import os
 import shutil
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -110,24 +111,32 @@ def measure(build, options, workdir, config=None):
         query = source + the_map + ["--agents", "1", "--query-ratio", "1",
                                     "--rate", str(options.query_rate),
                                     "--duration", str(options.query_duration)]
-        out = os.path.join(workdir, "idle.json")
-        idle = finished(server.load(query, out), out, "idle queries")["rpc"]["query"]
-        out = os.path.join(workdir, "loaded.json")
-        ingest_out = os.path.join(workdir, "loaded-ingest.json")
-        ingesting = server.load(source + the_map + [
-            "--agents", str(options.agents), "--duration", str(options.query_duration + 2)],
-            ingest_out)
-        time.sleep(1)  # the ingest streams are at full rate before the first query
-        loaded = finished(server.load(query, out), out, "loaded queries")["rpc"]["query"]
-        ingest_report = finished(ingesting, ingest_out, "ingest beside queries")
-        idle_p99 = idle["latency_ms"]["p99"]
-        loaded_p99 = loaded["latency_ms"]["p99"]
-        figures += [("query_idle_p50", idle["latency_ms"]["p50"], "ms"),
+        # Idle and loaded phases alternate, so that the other processes of a shared machine
+        # weigh on both alike; each figure is the median over the phases.
+        idle, loaded, beside = [], [], []
+        for phase in range(options.query_phases):
+            out = os.path.join(workdir, f"idle-{phase}.json")
+            idle.append(finished(server.load(query, out), out, "idle queries")["rpc"]["query"])
+            out = os.path.join(workdir, f"loaded-{phase}.json")
+            ingest_out = os.path.join(workdir, f"loaded-ingest-{phase}.json")
+            ingesting = server.load(source + the_map + [
+                "--agents", str(options.agents),
+                "--duration", str(options.query_duration + 2)], ingest_out)
+            time.sleep(1)  # the ingest streams are at full rate before the first query
+            loaded.append(
+                finished(server.load(query, out), out, "loaded queries")["rpc"]["query"])
+            beside.append(finished(ingesting, ingest_out, "ingest beside queries")
+                          ["throughput_fps"])
+
+        def median(reports, key):
+            return statistics.median(r["latency_ms"][key] for r in reports)
+        idle_p99, loaded_p99 = median(idle, "p99"), median(loaded, "p99")
+        figures += [("query_idle_p50", median(idle, "p50"), "ms"),
                     ("query_idle_p99", idle_p99, "ms"),
-                    ("query_under_ingest_p50", loaded["latency_ms"]["p50"], "ms"),
+                    ("query_under_ingest_p50", median(loaded, "p50"), "ms"),
                     ("query_under_ingest_p99", loaded_p99, "ms"),
                     ("query_p99_ratio", loaded_p99 / idle_p99 if idle_p99 > 0 else 0, "x"),
-                    ("ingest_beside_queries_fps", ingest_report["throughput_fps"], "frames/s")]
+                    ("ingest_beside_queries_fps", statistics.median(beside), "frames/s")]
     finally:
         server.stop()
     return figures
@@ -145,7 +154,9 @@ def main():
     parser.add_argument("--agents", type=int, default=4)
     parser.add_argument("--duration", type=float, default=8)
     parser.add_argument("--query-rate", type=float, default=20, help="queries/s")
-    parser.add_argument("--query-duration", type=float, default=8)
+    parser.add_argument("--query-duration", type=float, default=8, help="seconds per phase")
+    parser.add_argument("--query-phases", type=int, default=3,
+                        help="idle and loaded phases, alternating; figures: their medians")
     parser.add_argument("--threads", type=int, default=0, help="server workers (0: its default)")
     parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--config", help="server YAML configuration for this build's runs")
@@ -157,7 +168,8 @@ def main():
                 return 2
     print(f"# ingest_load: {options.agents} agents, precomputed ORB features of "
           f"{options.source}, {options.duration:g} s unpaced; queries {options.query_rate:g}/s "
-          f"for {options.query_duration:g} s idle, then beside {options.agents} ingesting agents; "
+          f"for {options.query_duration:g} s idle, then beside {options.agents} ingesting agents "
+          f"({options.query_phases} times, medians); "
           f"nproc {os.cpu_count()}, load {os.getloadavg()[0]:.2f}")
     workdir = tempfile.mkdtemp(prefix="placedb-bench-ingest-")
     try:

@@ -861,8 +861,10 @@ struct PlaceMap::CommitQueue {
   // The queued places' entries, in Enqueue() order: the next group's one atomic batch.
   rocksdb::WriteBatch batch GUARDED_BY(mutex);
   bool stopping GUARDED_BY(mutex) = false;
-  bool started GUARDED_BY(mutex) = false;
-  std::thread thread;  // started by the first Enqueue(), under `mutex`; joined by StopCommitter
+  // Started with the map, not by the first Enqueue(): a thread inherits its creator's nice value,
+  // and the first Enqueue() may come from a lowered-priority ingest worker; the committer holds
+  // the index's write lock while it inserts, so it keeps the normal priority.
+  std::thread thread;
 };
 
 PlaceMap::PlaceMap(MapInfo info, std::string path, std::unique_ptr<MapStorage> storage,
@@ -871,7 +873,9 @@ PlaceMap::PlaceMap(MapInfo info, std::string path, std::unique_ptr<MapStorage> s
       path_(std::move(path)),
       storage_(std::move(storage)),
       vocabulary_(std::move(vocabulary)),
-      commits_(std::make_unique<CommitQueue>()) {}
+      commits_(std::make_unique<CommitQueue>()) {
+  commits_->thread = std::thread([this] { RunCommitter(); });
+}
 
 PlaceMap::~PlaceMap() {
   StopCommitter();
@@ -1201,10 +1205,6 @@ std::shared_ptr<PendingCommit> PlaceMap::Enqueue(ProcessedFrame frame, PlaceMeta
     place.frame = std::move(frame);
     place.metadata = std::move(metadata);
     queue.queued.push_back(std::move(place));
-    if (!queue.started) {
-      queue.started = true;
-      queue.thread = std::thread([this] { RunCommitter(); });
-    }
   }
   queue.wake.NotifyOne();
   return pending;

@@ -321,7 +321,7 @@ class PlaceMap {
   // the database closes and later calls see `closed_`.
   mutable SharedMutex lifecycle_;
   bool closed_ GUARDED_BY(lifecycle_) = false;
-  std::unique_ptr<CommitQueue> commits_;  // started by the first Enqueue()
+  std::unique_ptr<CommitQueue> commits_;  // its committer thread lives as long as the map
 };
 
 // RESOURCE_EXHAUSTED ("disk full", naming `what`) unless the file system holding `path` has
