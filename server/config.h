@@ -133,7 +133,7 @@ struct ServerConfig {
   int query_threads = 0;
   // The ingest workers' nice value (0..19; queries keep the normal priority): on a busy machine
   // queries then get the CPU first. 0 = off.
-  int ingest_nice = 5;
+  int ingest_nice = 10;
   // name -> vocabulary file: binary .pdbv / DBoW2 text (ORB maps) or float .pdbfv (SIFT maps).
   // "default" is required (CreateMap with no vocabulary uses it).
   std::map<std::string, std::string> vocabularies = EmbeddedVocabularies();

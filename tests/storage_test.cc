@@ -727,7 +727,7 @@ TEST_F(StorageTest, GroupCommitAcknowledgesDurablyAndConcurrently) {
 // each place is indexed when its commit is done, ids follow each caller's order, and everything
 // acknowledged is there after a reopen (ACKED and the database agree: the map opens). Both sync
 // modes. Run under ThreadSanitizer by tools/test.sh.
-TEST_F(StorageTest, CommitQueueAcknowledgesEachPlaceDurablyInEachCallersOrder) {
+TEST_F(StorageTest, ConcurrentCommitQueueAcknowledgesEachPlaceDurablyInCallersOrder) {
   for (SyncMode mode : {SyncMode::kEveryWrite, SyncMode::kGroupCommit}) {
     SCOPED_TRACE(mode == SyncMode::kEveryWrite ? "every_write" : "group_commit");
     StorageOptions options;
@@ -806,7 +806,7 @@ TEST_F(StorageTest, CommitQueueAcknowledgesEachPlaceDurablyInEachCallersOrder) {
 // reserve refuses every new place (RESOURCE_EXHAUSTED, as when the disk is full). Frames the
 // checks refuse, and invalid ones, are answered at once, as Commit() answers them. Places still
 // queued when their map is deleted are answered too (NOT_FOUND or stored), never left waiting.
-TEST_F(StorageTest, CommitQueueFailureFailsEveryQueuedPlaceAndStoresNone) {
+TEST_F(StorageTest, ConcurrentCommitQueueFailureFailsEveryQueuedPlaceAndStoresNone) {
   std::vector<ProcessedFrame> frames;
   {
     auto dir = OpenDir();
