@@ -863,7 +863,7 @@ struct PlaceDbService::Stream {
   bool expiry() const { return (*expiry_check)(); }
 
   // For the close log line, read after the pipeline is closed. `frames` and `agents`: the handler
-  // thread; the outcomes: Complete(), which the pipeline runs one frame at a time.
+  // thread; the outcomes: Settle(), on the pipeline's delivery thread, one frame at a time.
   uint64_t frames = 0, stored = 0, merged = 0, rejected = 0, errors = 0;
   std::vector<std::string> agents;  // first few distinct agent ids
 };
