@@ -75,6 +75,16 @@ BENCHMARKS = [
      "quick": None,
      "full": ["--vocabulary", "{vocabulary}", "--dir", "{workdir}", "--only", "ingest"],
      "needs": ["{vocabulary}", "{shared}/data/camvid"]},
+    # Issue 17: precomputed features through the real server and load tester, and query latency
+    # idle and beside 4 ingesting agents (bench/ingest_load.py; about 40 s per run quick).
+    {"name": "ingest", "binary": "placedb-bench-ingest",
+     "quick": ["--vocabulary", "{vocabulary}", "--source", "{shared}/data/rtabmap-loop",
+               "--duration", "5", "--query-rate", "40", "--query-duration", "5",
+               "--query-phases", "2"],
+     "full": ["--vocabulary", "{vocabulary}", "--source", "{shared}/data/rtabmap-loop",
+              "--duration", "15", "--query-rate", "50", "--query-duration", "10",
+              "--query-phases", "3"],
+     "needs": ["{vocabulary}", "{shared}/data/rtabmap-loop"]},
     # Fig. 6, persist rates, dynamics, reopen at 10k and 100k, snapshots: the long one.
     {"name": "storage", "binary": "placedb-bench-storage",
      "quick": None,

@@ -157,24 +157,27 @@ Result<std::vector<Keypoint>> KeypointsFromProto(
   out.reserve(size_t(keypoints.size()));
   for (int i = 0; i < keypoints.size(); ++i) {
     const v1::Keypoint& k = keypoints.Get(i);
-    const std::string at = field + ".keypoints[" + std::to_string(i) + "]";
+    // The field path is built for an error only, not allocated for every keypoint of a frame.
+    const auto at = [&] { return field + ".keypoints[" + std::to_string(i) + "]"; };
     for (auto [name, value] :
          {std::pair{".x", k.x()}, std::pair{".y", k.y()}, std::pair{".size", k.size()},
           std::pair{".angle", k.angle()}, std::pair{".response", k.response()}}) {
-      if (!Finite(value)) return Invalid(at + name, "is not finite");
+      if (!Finite(value)) return Invalid(at() + name, "is not finite");
     }
     if (k.x() < 0 || k.x() >= float(width)) {
-      return Invalid(at + ".x", Num(k.x()) + " lies outside the " + Dims(width, height) + " image");
+      return Invalid(at() + ".x",
+                     Num(k.x()) + " lies outside the " + Dims(width, height) + " image");
     }
     if (k.y() < 0 || k.y() >= float(height)) {
-      return Invalid(at + ".y", Num(k.y()) + " lies outside the " + Dims(width, height) + " image");
+      return Invalid(at() + ".y",
+                     Num(k.y()) + " lies outside the " + Dims(width, height) + " image");
     }
-    if (k.size() <= 0) return Invalid(at + ".size", "must be positive");
+    if (k.size() <= 0) return Invalid(at() + ".size", "must be positive");
     if (k.angle() != -1 && (k.angle() < 0 || k.angle() > 360)) {
-      return Invalid(at + ".angle", "must be -1 or in [0, 360], got " + Num(k.angle()));
+      return Invalid(at() + ".angle", "must be -1 or in [0, 360], got " + Num(k.angle()));
     }
     if (k.octave() < 0 || k.octave() > 31) {
-      return Invalid(at + ".octave", "must be in [0, 31], got " + std::to_string(k.octave()));
+      return Invalid(at() + ".octave", "must be in [0, 31], got " + std::to_string(k.octave()));
     }
     out.push_back(Keypoint{k.x(), k.y(), k.size(), k.angle(), k.response(), k.octave()});
   }

@@ -121,6 +121,10 @@ Status ValidateServerConfig(const ServerConfig& c) {
   }
   if (c.data_dir.empty()) return Bad("data_dir", "must not be empty");
   if (c.threads < 0 || c.threads > 1024) return Bad("threads", "must be in [0, 1024]");
+  if (c.query_threads < 0 || c.query_threads > 1024) {
+    return Bad("query_threads", "must be in [0, 1024]");
+  }
+  if (c.ingest_nice < 0 || c.ingest_nice > 19) return Bad("ingest_nice", "must be in [0, 19]");
   if (c.opencv_threads < -1 || c.opencv_threads > 1024) {
     return Bad("opencv_threads", "must be in [-1, 1024]");
   }
@@ -241,6 +245,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
                                    "security",
                                    "data_dir",
                                    "threads",
+                                   "query_threads",
+                                   "ingest_nice",
                                    "opencv_threads",
                                    "vocabularies",
                                    "storage",
@@ -264,6 +270,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
       r.Read(root, "", "console_max_request_bytes", &c->console_max_request_bytes));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "data_dir", &c->data_dir));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "threads", &c->threads));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "query_threads", &c->query_threads));
+  PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "ingest_nice", &c->ingest_nice));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "opencv_threads", &c->opencv_threads));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "shutdown_deadline_s", &c->shutdown_deadline_s));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "log_level", &c->log_level));
@@ -606,6 +614,8 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::EndMap;
   e << YAML::Key << "data_dir" << YAML::Value << c.data_dir;
   e << YAML::Key << "threads" << YAML::Value << c.threads;
+  e << YAML::Key << "query_threads" << YAML::Value << c.query_threads;
+  e << YAML::Key << "ingest_nice" << YAML::Value << c.ingest_nice;
   e << YAML::Key << "opencv_threads" << YAML::Value << c.opencv_threads;
   e << YAML::Key << "vocabularies" << YAML::Value << YAML::BeginMap;
   for (const auto& [name, path] : c.vocabularies) e << YAML::Key << name << YAML::Value << path;

@@ -131,6 +131,11 @@ struct ServerConfig {
   std::string data_dir = "./var/data";
   int threads = 0;         // worker threads; 0 = hardware concurrency
   int opencv_threads = 1;  // cv::setNumThreads; frames are parallel already. -1 = leave alone
+  // Query's own workers, so that ingest cannot fill them (issue 17); 0 = as many as `threads`.
+  int query_threads = 0;
+  // The ingest workers' nice value (0..19; queries keep the normal priority): on a busy machine
+  // queries then get the CPU first. 0 = off.
+  int ingest_nice = 10;
   // name -> vocabulary file: binary .pdbv / DBoW2 text (ORB maps) or float .pdbfv (SIFT maps).
   // "default" is required (CreateMap with no vocabulary uses it).
   std::map<std::string, std::string> vocabularies = EmbeddedVocabularies();
@@ -149,6 +154,7 @@ struct ServerConfig {
   // Callers must prove who they are: a tokens file, or mutual TLS.
   bool authenticates_callers() const { return !security.tokens_file.empty() || tls.mutual(); }
   int worker_threads() const;  // threads, or the hardware concurrency
+  int query_worker_threads() const { return query_threads > 0 ? query_threads : worker_threads(); }
 };
 
 // Checks values (not files): INVALID_ARGUMENT naming the first bad key. Text values must not

@@ -220,12 +220,15 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
       [metrics](auth::DenyReason reason, const std::string& method) {
         metrics->AuthDenied(auth::DenyReasonLabel(reason), method);
       });
-  server->pool_ =
-      std::make_unique<WorkerPool>(c.worker_threads(), c.limits.max_queued_frames,
-                                   [metrics](size_t depth) { metrics->SetQueueDepth(depth); });
+  server->pool_ = std::make_unique<WorkerPool>(
+      c.worker_threads(), c.limits.max_queued_frames,
+      [metrics](size_t depth) { metrics->SetQueueDepth(depth); }, c.ingest_nice);
+  // Queries on workers of their own at the normal priority: ingest cannot fill them (issue 17).
+  server->query_pool_ =
+      std::make_unique<WorkerPool>(c.query_worker_threads(), c.limits.max_queued_frames);
   server->service_ = std::make_unique<PlaceDbService>(
       server->config_, server->maps_.get(), server->pool_.get(), metrics, server->detector_.get(),
-      detector_status, server->budget_.get());
+      detector_status, server->budget_.get(), server->query_pool_.get());
 
   // Requests are parsed by ParsingService, so malformed ones get INVALID_ARGUMENT with a reason.
   server->parsing_ =
@@ -363,6 +366,7 @@ void Server::Shutdown() {
   }
   if (console_) console_->Stop();  // its calls go through service_: stopped with gRPC's
   if (pool_) pool_->Stop();
+  if (query_pool_) query_pool_->Stop();
   if (metrics_) metrics_->StopServing();
   if (tokens_) tokens_->StopWatching();
   if (maps_) maps_->CloseAll();  // flushes and closes RocksDB

@@ -81,6 +81,7 @@ class Server {
   std::unique_ptr<MapRegistry> maps_;
   std::shared_ptr<const Detector> detector_;
   std::unique_ptr<WorkerPool> pool_;
+  std::unique_ptr<WorkerPool> query_pool_;  // Query's own (config query_threads)
   std::unique_ptr<PlaceDbService> service_;
   std::unique_ptr<auth::TokenStore> tokens_;  // null without security.tokens_file
   std::unique_ptr<auth::CallAuthorizer> authorizer_;

@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <fstream>
 #include <future>
+#include <limits>
 #include <optional>
 #include <string>
 #include <vector>
@@ -67,6 +68,38 @@ bool Expired(const grpc::ServerContext* context) {
   return context->IsCancelled() || context->deadline() <= std::chrono::system_clock::now();
 }
 
+// Expired() for an Ingest stream's many checks (each frame's stages, the pipeline's waits). On
+// the synchronous server IsCancelled() polls the call's completion queue (a pollset pass and a
+// futex wait): asked 4 times per frame it took about a tenth of the server's CPU under a
+// features-only ingest. So it is asked at most once per kCancelCheckInterval per stream; the
+// deadline is still checked every time, and a cancellation is seen at most that much later.
+class StreamExpiry {
+ public:
+  explicit StreamExpiry(const grpc::ServerContext* context) : context_(context) {}
+  bool operator()() const {
+    if (cancelled_.load(std::memory_order_relaxed)) return true;
+    if (context_->deadline() <= std::chrono::system_clock::now()) return true;
+    const int64_t now = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                            std::chrono::steady_clock::now().time_since_epoch())
+                            .count();
+    int64_t last = checked_ns_.load(std::memory_order_relaxed);
+    // Checked recently, or another thread is checking right now.
+    if (now - last < kCancelCheckInterval.count() ||
+        !checked_ns_.compare_exchange_strong(last, now, std::memory_order_relaxed)) {
+      return false;
+    }
+    if (!context_->IsCancelled()) return false;
+    cancelled_.store(true, std::memory_order_relaxed);
+    return true;
+  }
+
+ private:
+  static constexpr std::chrono::nanoseconds kCancelCheckInterval = std::chrono::milliseconds(2);
+  const grpc::ServerContext* const context_;
+  mutable std::atomic<int64_t> checked_ns_{std::numeric_limits<int64_t>::min() / 2};
+  mutable std::atomic<bool> cancelled_{false};
+};
+
 // CANCELLED, or DEADLINE_EXCEEDED when the call's deadline has passed.
 grpc::Status Cancelled(const grpc::ServerContext* context, const char* where) {
   // The client cancels at its deadline, which can reach us a moment before our own clock says
@@ -119,6 +152,8 @@ grpc::Status Guarded(const char* what, Body&& body) {
 
 // One frame through the pipeline.
 struct PlaceDbService::Work {
+  // An Ingest frame's: its stream's cached Expired() (null: ask the context, as queries do).
+  const StreamExpiry* expiry = nullptr;
   StageTimings timings;
   ProcessedFrame frame;
   PlaceMetadata metadata;
@@ -126,10 +161,12 @@ struct PlaceDbService::Work {
 
 PlaceDbService::PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool,
                                Metrics* metrics, const Detector* detector,
-                               std::string detector_status, MemoryBudget* budget)
+                               std::string detector_status, MemoryBudget* budget,
+                               WorkerPool* query_pool)
     : config_(config),
       maps_(maps),
       pool_(pool),
+      query_pool_(query_pool ? query_pool : pool),
       metrics_(metrics),
       detector_(detector),
       detector_status_(std::move(detector_status)),
@@ -547,7 +584,8 @@ grpc::Status PlaceDbService::ChargeFrame(grpc::ServerContext* context, const Map
 grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntry& map,
                                      const v1::Observation& observation, const std::string& field,
                                      FrameRole role, Work* work, bool keep_dropped_keypoints) {
-  if (Expired(context)) return Cancelled(context, "before decoding");
+  const auto expired = [&] { return work->expiry ? (*work->expiry)() : Expired(context); };
+  if (expired()) return Cancelled(context, "before decoding");
   const ServiceMapSettings& settings = map.settings;
   if (Status typed =
           CheckFeatureType(observation, map.map->database().config().feature_type, map.name, field);
@@ -581,7 +619,7 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
       }
       // kBoth without pixels: the agent's boxes alone.
     } else {
-      if (Expired(context)) return Cancelled(context, "before detection");
+      if (expired()) return Cancelled(context, "before detection");
       auto boxes = detector_->Detect(frame.image);
       if (!boxes.ok()) return ToGrpc(boxes.status(), "server-side detection");
       work->timings.detect_ms = stage.Lap();
@@ -593,7 +631,7 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
     }
   }
 
-  if (Expired(context)) return Cancelled(context, "before feature extraction");
+  if (expired()) return Cancelled(context, "before feature extraction");
   auto processed = map.map->Process(frame, role, keep_dropped_keypoints);
   if (!processed.ok()) return ToGrpc(processed.status(), field);
   work->frame = std::move(processed).value();
@@ -676,8 +714,8 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
       });
     promise.set_value(status);
   };
-  switch (pool_->Submit(task, QueueWaitUntil(context, config_.limits.unary_queue_wait_ms),
-                        [context] { return Expired(context); })) {
+  switch (query_pool_->Submit(task, QueueWaitUntil(context, config_.limits.unary_queue_wait_ms),
+                              [context] { return Expired(context); })) {
     case WorkerPool::SubmitResult::kQueued:
       break;
     case WorkerPool::SubmitResult::kFull:
@@ -818,9 +856,14 @@ struct PlaceDbService::Stream {
   bool loop_closure = false;           // IngestHeader.loop_closure
   IngestPipeline* pipeline = nullptr;  // set before the stream is listed in streams_
   grpc::Status refusal;                // why the pool refused the last frame (handler thread)
+  // The stream's last place handed to the map's commit queue (Complete() only): a frame that
+  // searches waits for it first, so it sees every earlier place of its stream.
+  std::shared_ptr<PendingCommit> last_commit;
+  std::optional<StreamExpiry> expiry_check;  // set with `context`
+  bool expiry() const { return (*expiry_check)(); }
 
   // For the close log line, read after the pipeline is closed. `frames` and `agents`: the handler
-  // thread; the outcomes: Complete(), which the pipeline runs one frame at a time.
+  // thread; the outcomes: Settle(), on the pipeline's delivery thread, one frame at a time.
   uint64_t frames = 0, stored = 0, merged = 0, rejected = 0, errors = 0;
   std::vector<std::string> agents;  // first few distinct agent ids
 };
@@ -832,12 +875,16 @@ struct PlaceDbService::Slot final : IngestPipeline::Frame {
   Slot(PlaceDbService* service, Stream* stream) : service(service), stream(stream) {
     stream->watch->FrameRead();
   }
-  ~Slot() override { stream->watch->FrameDone(); }
+  ~Slot() override {
+    service->Settle(stream, this);  // a skipped frame's place is still waited for and counted
+    stream->watch->FrameDone();
+  }
   Slot(const Slot&) = delete;
   Slot& operator=(const Slot&) = delete;
 
   void Prepare() override {
     queue_ms = MsSince(arrived);
+    work.expiry = &*stream->expiry_check;
     status = Guarded("processing the observation", [&] {
       return service->Prepare(stream->context, *stream->map, request->observation(), "observation",
                               FrameRole::kStream, &work);
@@ -864,8 +911,12 @@ struct PlaceDbService::Slot final : IngestPipeline::Frame {
   std::unique_ptr<v1::IngestRequest> request;  // freed once decoded
   grpc::Status status;                         // the outcome so far
   std::optional<v1::MatchOptions> matches;
-  Work work;                    // freed once completed
-  v1::IngestResponse response;  // Complete()'s, for the writer
+  Work work;                    // freed once settled
+  v1::IngestResponse response;  // Complete()'s and Settle()'s, for the writer
+  // Set by Complete() when the place went to the map's commit queue; Settle() waits for it.
+  std::shared_ptr<PendingCommit> commit;
+  bool completed = false;  // Complete() ran (a dropped frame never completes)
+  bool settled = false;    // Settle() ran (delivery thread)
   // The frame's share of the memory budget, from its read until its answer is written (the
   // pipeline destroys the slot after delivering it).
   MemoryBudget::Reservation memory;
@@ -875,7 +926,7 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
   v1::IngestResponse& response = slot->response;
   response.set_sequence(slot->sequence);
   response.set_index(slot->index);
-  if (slot->status.ok() && Expired(stream->context)) {
+  if (slot->status.ok() && stream->expiry()) {
     slot->status = Cancelled(stream->context, "before storing");
   }
   if (!slot->status.ok()) {
@@ -904,6 +955,12 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       }
       work.timings.depth_ms = frame.timings.depth_ms;
       work.timings.transform_ms = frame.timings.transform_ms;
+      const bool searches = frame.valid && (slot->matches || stream->loop_closure);
+      if (searches && stream->last_commit) {
+        // A place is stored and searchable before the next frame of its stream searches.
+        (void)stream->last_commit->Wait();  // a failure is its own frame's answer
+        stream->last_commit.reset();
+      }
       if (slot->matches && frame.valid) {
         QueryOptions options = QueryOptionsFromProto(*slot->matches, work.metadata.agent_id);
         options.timestamp_ns = work.metadata.timestamp_ns;
@@ -926,6 +983,17 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
         added = std::move(committed);
         return grpc::Status::OK;
       }
+      if (frame.valid) {
+        // Group commit: the worker goes on; the answer waits for durability (Settle()).
+        CountsToProto(frame.counts, response.mutable_counts());
+        BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
+        if (frame.depth_state) DepthStateToProto(*frame.depth_state, response.mutable_depth());
+        metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.depth_removed,
+                                   frame.counts.static_);
+        slot->commit = map.map->Enqueue(std::move(frame), work.metadata);
+        stream->last_commit = slot->commit;
+        return grpc::Status::OK;
+      }
       added = map.map->Commit(frame, work.metadata);
       if (added.ok()) return grpc::Status::OK;
       metrics_->StorageError(map.name, added.status());
@@ -941,6 +1009,8 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map.name,
                    slot->index, GrpcCodeName(slot->status.error_code()),
                    slot->status.error_message());
+    } else if (slot->commit) {
+      // Answered by Settle(), once durable.
     } else {
       CountsToProto(frame.counts, response.mutable_counts());
       BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
@@ -972,6 +1042,43 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       TimingsToProto(work.timings, slot->queue_ms, response.mutable_timings());
       ObserveStages(work.timings);
     }
+  }
+  slot->completed = true;
+  if (!slot->commit) slot->work = Work();  // the frame's data need not wait for the writer
+}
+
+void PlaceDbService::Settle(Stream* stream, Slot* slot) {
+  if (!slot->completed || slot->settled) return;
+  slot->settled = true;
+  v1::IngestResponse& response = slot->response;
+  if (slot->commit) {
+    const std::string& map_name = stream->map->name;
+    const Result<AddResult>& added = slot->commit->Wait();
+    if (!added.ok()) {
+      metrics_->StorageError(map_name, added.status());
+      slot->status = ToGrpc(added.status(), "storing");
+      response.clear_counts();
+      response.clear_boxes_used();
+      response.clear_depth();
+      response.clear_matches();
+      response.mutable_error()->set_code(int(slot->status.error_code()));
+      response.mutable_error()->set_message(
+          HidePaths(slot->status.error_message(), config_.data_dir));
+      metrics_->FrameRejected(map_name, GrpcCodeLabel(slot->status.error_code()));
+      spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map_name,
+                   slot->index, GrpcCodeName(slot->status.error_code()),
+                   slot->status.error_message());
+    } else {
+      Work& work = slot->work;
+      work.timings.store_ms = added->timings.store_ms;
+      response.set_stored(added->stored);
+      response.set_place_id(added->id);
+      metrics_->FrameIngested(map_name);
+      work.timings.total_ms = MsSince(slot->arrived);
+      TimingsToProto(work.timings, slot->queue_ms, response.mutable_timings());
+      ObserveStages(work.timings);
+    }
+    slot->commit.reset();
   }
   slot->work = Work();  // the response may wait for a slow reader; the frame's data need not
   FrameOutcome outcome = FrameOutcome::kInvalid;
@@ -1031,6 +1138,7 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
 
   Stream stream;
   stream.context = context;
+  stream.expiry_check.emplace(context);
   stream.watch = &watch;
   stream.map = *entry;
   if (first.header().has_matches()) stream.header_matches = first.header().matches();
@@ -1044,7 +1152,9 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
     admitted.emplace(
         pool_, limits.max_inflight_per_stream,
         IngestPipeline::Callbacks{.deliver =
-                                      [io, &watch](IngestPipeline::Frame& frame) {
+                                      [this, io, &watch](IngestPipeline::Frame& frame) {
+                                        auto& slot = static_cast<Slot&>(frame);
+                                        Settle(slot.stream, &slot);
                                         // Timed: a client that takes no answers blocks here.
                                         watch.Writing();
                                         const bool written =
@@ -1052,7 +1162,7 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
                                         watch.Written();
                                         return written;
                                       },
-                                  .expired = [context] { return Expired(context); },
+                                  .expired = [&stream] { return stream.expiry(); },
                                   // Unblocks a handler waiting in Read().
                                   .interrupt = [context] { context->TryCancel(); }},
         // Reads never take the last quarter of the budget: streams waiting for their next

@@ -54,8 +54,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // `detector` null = server-side detection off; `detector_status` then says why ("off", or
   // "off: <error>" when a configured model failed to load). Frames and queries are charged to
   // `budget` (limits.memory_budget_bytes) from their read to their answer.
+  // `query_pool` (optional, default `pool`): the workers Query runs on.
   PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool, Metrics* metrics,
-                 const Detector* detector, std::string detector_status, MemoryBudget* budget);
+                 const Detector* detector, std::string detector_status, MemoryBudget* budget,
+                 WorkerPool* query_pool = nullptr);
   ~PlaceDbService() override;
 
   grpc::Status CreateMap(grpc::ServerContext* context, const v1::CreateMapRequest* request,
@@ -144,6 +146,11 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // asked; then store, or loop closure + store in loop-closure mode) and its response. The
   // stream's pipeline runs it in stream order, one frame at a time.
   void Complete(Stream* stream, Slot* slot);
+  // The rest of a completed frame's answer, on the stream's delivery thread before it is written
+  // (or when it is skipped): waits until its place is durable and indexed (a place Complete()
+  // handed to the map's commit queue: group commit), fills in the outcome, and counts it.
+  // Idempotent; nothing for a frame never completed.
+  void Settle(Stream* stream, Slot* slot);
   // Sizes a frame's reservation (its read's, from the pipeline) to the frame, waiting up to
   // limits.memory_wait_ms; RESOURCE_EXHAUSTED naming the budget when it does not fit.
   grpc::Status ChargeFrame(grpc::ServerContext* context, const MapEntry& map,
@@ -159,6 +166,7 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   const ServerConfig& config_;
   MapRegistry* const maps_;
   WorkerPool* const pool_;
+  WorkerPool* const query_pool_;  // Query's workers (pool_ when none of its own)
   Metrics* const metrics_;
   const Detector* const detector_;  // null: server-side detection off
   const std::string detector_status_;

@@ -1,14 +1,18 @@
 #include "server/worker_pool.h"
 
+#include <sys/resource.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <cstdio>
 #include <exception>
 
 namespace placedb::server {
 
-WorkerPool::WorkerPool(int threads, size_t capacity, std::function<void(size_t)> on_depth)
+WorkerPool::WorkerPool(int threads, size_t capacity, std::function<void(size_t)> on_depth, int nice)
     : threads_(std::max(threads, 1)),
       capacity_(std::max<size_t>(capacity, 1)),
+      nice_(nice),
       on_depth_(std::move(on_depth)) {
   workers_.reserve(size_t(threads_));
   for (int i = 0; i < threads_; ++i) workers_.emplace_back([this] { Run(); });
@@ -40,6 +44,8 @@ WorkerPool::SubmitResult WorkerPool::Submit(Task task, Clock::time_point until,
 }
 
 void WorkerPool::Run() {
+  // On Linux a thread's nice value is its own (PRIO_PROCESS with the thread id).
+  if (nice_ > 0) (void)setpriority(PRIO_PROCESS, id_t(gettid()), nice_);
   while (true) {
     Task task;
     {

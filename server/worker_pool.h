@@ -28,7 +28,10 @@ class WorkerPool {
   // `threads` >= 1 workers, at most `capacity` >= 1 tasks waiting (running ones not counted).
   // `on_depth` (optional) is told the number of waiting tasks whenever it changes, in order; it
   // runs under the pool's lock, so it must be cheap and must not call back into the pool.
-  WorkerPool(int threads, size_t capacity, std::function<void(size_t)> on_depth = {});
+  // `nice` > 0: every worker lowers its own CPU priority by that much at start (setpriority on
+  // the thread, Linux; never raised back, so no privilege is needed), e.g. ingest workers beside a
+  // query pool at the normal priority. A refusal is ignored (the workers run at the normal one).
+  WorkerPool(int threads, size_t capacity, std::function<void(size_t)> on_depth = {}, int nice = 0);
   ~WorkerPool();  // Stop()
   WorkerPool(const WorkerPool&) = delete;
   WorkerPool& operator=(const WorkerPool&) = delete;
@@ -52,6 +55,7 @@ class WorkerPool {
 
   const int threads_;
   const size_t capacity_;
+  const int nice_;
   const std::function<void(size_t)> on_depth_;
   mutable Mutex mutex_;
   CondVar has_task_;

@@ -9,6 +9,7 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <deque>
 #include <map>
 #include <random>
 #include <set>
@@ -23,6 +24,11 @@ namespace {
 
 constexpr int kFrames = 20;
 constexpr char kChildEnv[] = "PLACEDB_CRASH_CHILD";
+// "group": the child commits through the map's commit queue (PlaceMap::Enqueue) from several
+// threads, as the service's Ingest streams do; otherwise one thread calls Commit().
+constexpr char kModeEnv[] = "PLACEDB_CRASH_MODE";
+constexpr int kGroupThreads = 4;
+constexpr size_t kGroupWindow = 8;  // places each thread keeps queued, like a stream's window
 
 void Say(const char* format, unsigned id, int frame) {
   char line[64];
@@ -40,6 +46,30 @@ void Say(const char* format, unsigned id, int frame) {
   if (!map.ok()) std::_Exit(4);
   const std::vector<ProcessedFrame> frames =
       testing::ProcessRtabmapFrames((*map)->database(), kFrames);
+  const char* mode = std::getenv(kModeEnv);
+  if (mode && std::string(mode) == "group") {
+    // Acknowledged (reported) only once its PendingCommit is done: durable and indexed.
+    auto stream = [&](int thread) {
+      std::mt19937 rng{uint32_t(getpid()) * 31u + uint32_t(thread)};
+      std::deque<std::pair<std::shared_ptr<PendingCommit>, int>> window;
+      for (uint64_t n = 0;; ++n) {
+        const int frame = int(rng() % kFrames);
+        PlaceMetadata metadata;
+        metadata.sequence = uint64_t(frame);
+        metadata.agent_id = "crash-child-" + std::to_string(thread);
+        window.emplace_back((*map)->Enqueue(frames[size_t(frame)], metadata), frame);
+        if (window.size() < kGroupWindow) continue;
+        const auto& added = window.front().first->Wait();
+        if (!added.ok() || !added->stored) std::_Exit(5);
+        Say("ack %u %d\n", added->id, window.front().second);
+        window.pop_front();
+      }
+    };
+    std::vector<std::thread> threads;
+    for (int t = 0; t < kGroupThreads; ++t) threads.emplace_back(stream, t);
+    for (auto& thread : threads) thread.join();  // never: the parent kills the child
+    std::_Exit(8);
+  }
   std::mt19937 rng{uint32_t(getpid())};
   for (uint64_t n = 0;; ++n) {
     const int frame = int(rng() % kFrames);
@@ -86,7 +116,9 @@ void ParseReport(const std::string& output, ChildReport* report) {
   }
 }
 
-TEST(CrashSafety, AcknowledgedPlacesSurviveSigkill) {
+// Kills the child `kills` times (mode: kModeEnv's value, "" for Commit()) and checks the map after
+// each kill.
+void KillAndCheck(const std::string& mode, int kills) {
   ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
   auto vocabulary = testing::DefaultVocabulary();
   ASSERT_TRUE(vocabulary);
@@ -102,9 +134,10 @@ TEST(CrashSafety, AcknowledgedPlacesSurviveSigkill) {
   }
   std::mt19937 rng(2026);
   ChildReport report;
-  const int kKills = 24;
+  const int kKills = kills;
   // The child's environment, built before fork: only async-signal-safe calls after it.
-  std::vector<std::string> env_strings = {std::string(kChildEnv) + "=" + data_dir};
+  std::vector<std::string> env_strings = {std::string(kChildEnv) + "=" + data_dir,
+                                          std::string(kModeEnv) + "=" + mode};
   for (char** e = environ; *e; ++e) env_strings.emplace_back(*e);
   std::vector<char*> envp;
   for (auto& e : env_strings) envp.push_back(e.data());
@@ -180,6 +213,16 @@ TEST(CrashSafety, AcknowledgedPlacesSurviveSigkill) {
         (*map)->Stats().database.places);
   }
   EXPECT_GT(report.acknowledged.size(), 100u) << "the child barely ingested anything";
+}
+
+TEST(CrashSafety, AcknowledgedPlacesSurviveSigkill) {
+  KillAndCheck("", 24);
+}
+
+// Group commit: 4 threads keep 8 places each in the map's commit queue; every place reported
+// durable by its PendingCommit survives, none is half-written, each is found by its own frame.
+TEST(CrashSafety, GroupCommittedPlacesSurviveSigkill) {
+  KillAndCheck("group", 16);
 }
 
 }  // namespace

@@ -723,6 +723,155 @@ TEST_F(StorageTest, GroupCommitAcknowledgesDurablyAndConcurrently) {
   EXPECT_TRUE((*map)->VerifyIntegrity().ok());
 }
 
+// The commit queue (PlaceMap::Enqueue, group commit): four callers keep places queued at once;
+// each place is indexed when its commit is done, ids follow each caller's order, and everything
+// acknowledged is there after a reopen (ACKED and the database agree: the map opens). Both sync
+// modes. Run under ThreadSanitizer by tools/test.sh.
+TEST_F(StorageTest, ConcurrentCommitQueueAcknowledgesEachPlaceDurablyInCallersOrder) {
+  for (SyncMode mode : {SyncMode::kEveryWrite, SyncMode::kGroupCommit}) {
+    SCOPED_TRACE(mode == SyncMode::kEveryWrite ? "every_write" : "group_commit");
+    StorageOptions options;
+    options.sync = mode;
+    const std::string name = mode == SyncMode::kEveryWrite ? "queued" : "queued-grouped";
+    std::vector<ProcessedFrame> frames;
+    std::map<PlaceId, size_t> acknowledged;  // place -> frame
+    {
+      auto dir = OpenDir(options);
+      auto map = dir->CreateMap(name, {}, vocabulary_);
+      ASSERT_TRUE(map.ok());
+      for (int i = 1; i <= 24; ++i) {
+        auto frame = (*map)->Process(RtabmapFrame(i), FrameRole::kStream);
+        ASSERT_TRUE(frame.ok());
+        if (frame->valid) frames.push_back(*frame);
+      }
+      ASSERT_GE(frames.size(), 20u);
+      constexpr size_t kCallers = 4;
+      std::vector<std::vector<std::pair<PlaceId, size_t>>> results(kCallers);
+      std::atomic<int> failures{0};
+      std::vector<std::thread> callers;
+      for (size_t t = 0; t < kCallers; ++t) {
+        callers.emplace_back([&, t] {
+          std::vector<std::pair<std::shared_ptr<PendingCommit>, size_t>> queued;
+          for (size_t i = t; i < frames.size(); i += kCallers) {
+            PlaceMetadata metadata;
+            metadata.agent_id = "caller-" + std::to_string(t);
+            metadata.sequence = i;
+            queued.emplace_back((*map)->Enqueue(frames[i], metadata), i);
+          }
+          for (auto& [pending, i] : queued) {
+            const Result<AddResult>& added = pending->Wait();
+            EXPECT_TRUE(pending->done());
+            if (!added.ok() || !added->stored) {
+              failures.fetch_add(1);
+              continue;
+            }
+            // Done = durable and indexed: readable and found by its own frame at once.
+            if (!(*map)->database().Get(added->id)) failures.fetch_add(1);
+            results[t].emplace_back(added->id, i);
+          }
+        });
+      }
+      for (auto& caller : callers) caller.join();
+      EXPECT_EQ(failures.load(), 0);
+      for (size_t t = 0; t < kCallers; ++t) {
+        for (size_t k = 1; k < results[t].size(); ++k) {
+          EXPECT_GT(results[t][k].first, results[t][k - 1].first) << "caller " << t;
+        }
+        for (const auto& [id, i] : results[t]) {
+          EXPECT_TRUE(acknowledged.emplace(id, i).second) << "id " << id << " given twice";
+        }
+      }
+      EXPECT_EQ(acknowledged.size(), frames.size());
+      for (const auto& [id, i] : acknowledged) {
+        QueryResult result = (*map)->Search(frames[i], {});
+        ASSERT_FALSE(result.matches.empty());
+        EXPECT_EQ(result.matches[0].place, id);
+        EXPECT_NEAR(result.matches[0].score, 1.0, 1e-5);
+      }
+    }
+    auto dir = OpenDir(options);
+    auto map = dir->OpenMap(name, vocabulary_);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+    EXPECT_EQ((*map)->Stats().database.places, acknowledged.size());
+    for (const auto& [id, i] : acknowledged) {
+      auto stored = (*map)->GetPlace(id);
+      ASSERT_TRUE(stored.ok()) << id;
+      EXPECT_EQ(stored->record.metadata.sequence, i);
+    }
+  }
+}
+
+// A write that fails fails every place of its group and stores none of them: here the disk-full
+// reserve refuses every new place (RESOURCE_EXHAUSTED, as when the disk is full). Frames the
+// checks refuse, and invalid ones, are answered at once, as Commit() answers them. Places still
+// queued when their map is deleted are answered too (NOT_FOUND or stored), never left waiting.
+TEST_F(StorageTest, ConcurrentCommitQueueFailureFailsEveryQueuedPlaceAndStoresNone) {
+  std::vector<ProcessedFrame> frames;
+  {
+    auto dir = OpenDir();
+    auto map = dir->CreateMap("refused", {}, vocabulary_);
+    ASSERT_TRUE(map.ok());
+    for (int i = 1; i <= 8; ++i) {
+      auto frame = (*map)->Process(RtabmapFrame(i), FrameRole::kStream);
+      ASSERT_TRUE(frame.ok());
+      frames.push_back(*frame);
+    }
+  }
+  {
+    StorageOptions full;
+    full.disk_reserve_bytes = uint64_t(1) << 62;  // more than any disk: nothing fits
+    auto dir = OpenDir(full);
+    auto map = dir->OpenMap("refused", vocabulary_);
+    ASSERT_TRUE(map.ok());
+    std::vector<std::shared_ptr<PendingCommit>> queued;
+    for (const ProcessedFrame& frame : frames) queued.push_back((*map)->Enqueue(frame, {}));
+    for (const auto& pending : queued) {
+      const Result<AddResult>& added = pending->Wait();
+      ASSERT_FALSE(added.ok());
+      EXPECT_EQ(added.status().code(), StatusCode::kResourceExhausted) << added.status().ToString();
+      EXPECT_NE(added.status().message().find("disk full: map 'refused'"), std::string::npos)
+          << added.status().ToString();
+    }
+    EXPECT_EQ((*map)->Stats().database.places, 0u);
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+
+    // Refused by the checks: done before Enqueue() returns, with Commit()'s answer.
+    ProcessedFrame pending_stage = frames[0];
+    pending_stage.stream_pending = true;
+    auto refused = (*map)->Enqueue(pending_stage, {});
+    EXPECT_TRUE(refused->done());
+    EXPECT_EQ(refused->Wait().status().code(), StatusCode::kFailedPrecondition);
+    ProcessedFrame invalid = frames[0];
+    invalid.valid = false;
+    invalid.rejection = "too few";
+    auto counted = (*map)->Enqueue(invalid, {});
+    EXPECT_TRUE(counted->done());
+    ASSERT_TRUE(counted->Wait().ok()) << counted->Wait().status().ToString();
+    EXPECT_FALSE(counted->Wait()->stored);
+  }
+  auto dir = OpenDir();
+  auto map = dir->OpenMap("refused", vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  EXPECT_EQ((*map)->Stats().database.places, 0u);
+  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+  // With room again the same frames are stored.
+  ASSERT_TRUE((*map)->Enqueue(frames[0], {})->Wait().ok());
+  EXPECT_EQ((*map)->Stats().database.places, 1u);
+
+  // Deleted with places queued: each is answered.
+  std::vector<std::shared_ptr<PendingCommit>> queued;
+  for (const ProcessedFrame& frame : frames) queued.push_back((*map)->Enqueue(frame, {}));
+  ASSERT_TRUE(dir->DeleteMap("refused").ok());
+  for (const auto& pending : queued) {
+    const Result<AddResult>& added = pending->Wait();
+    if (!added.ok()) {
+      EXPECT_EQ(added.status().code(), StatusCode::kNotFound);
+    }
+  }
+  EXPECT_EQ((*map)->Enqueue(frames[1], {})->Wait().status().code(), StatusCode::kNotFound);
+}
+
 // Readers query while writers add and remove; run under ThreadSanitizer by tools/test.sh.
 TEST_F(StorageTest, ConcurrentQueriesDuringIngestAndDeletion) {
   auto dir = OpenDir();

@@ -605,20 +605,23 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
   record->metadata = metadata;
   record->counts = frame.counts;
   record->boxes_used = frame.boxes_used;
-  auto payload = std::make_shared<PlacePayload>();
   if (frame.static_features.type() != config_.feature_type) {
     return Status::InvalidArgument("frame's features are not the database's type");
   }
-  payload->features = frame.static_features;
-  payload->direct = frame.direct;
-  payload->bow = frame.bow;
+  std::shared_ptr<PlacePayload> payload;
+  if (payloads_->KeepsPayloads()) {
+    payload = std::make_shared<PlacePayload>();
+    payload->features = frame.static_features;
+    payload->direct = frame.direct;
+    payload->bow = frame.bow;
+  }
 
   WriterLock lock(mutex_);
   record->id = id.value_or(next_id_);
   const PlaceId place = record->id;
-  PLACEDB_RETURN_IF_ERROR(InsertLocked(std::move(record), payload->bow));
+  PLACEDB_RETURN_IF_ERROR(InsertLocked(std::move(record), frame.bow));
   if (Status stored = payloads_->Put(place, payload); !stored.ok()) {
-    UndoInsertLocked(place, payload->bow);
+    UndoInsertLocked(place, frame.bow);
     return stored;
   }
   if (config_.short_term.enabled && metadata.timestamp_ns > 0 && !frame.dynamic_bow.empty()) {

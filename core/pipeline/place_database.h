@@ -216,6 +216,9 @@ class PayloadStore {
   // Called when a place is inserted. A persistent store that already wrote the payload (in the
   // same atomic batch as the place) may just cache or ignore it.
   virtual Status Put(PlaceId id, std::shared_ptr<const PlacePayload> payload) = 0;
+  // False for a store whose Put() ignores the payload (it wrote it itself): Insert() then copies
+  // no features into one.
+  virtual bool KeepsPayloads() const { return true; }
   // NOT_FOUND when the place is unknown (e.g. removed meanwhile).
   virtual Result<std::shared_ptr<const PlacePayload>> Get(PlaceId id) const = 0;
   // The place's BoW vector alone (loop closure's long-term memory reads it back). By default

@@ -543,10 +543,11 @@ class AckTracker {
     return WriteAckSlot(fd_, next);
   }
 
-  // Returns once ACKED counts this write (`place`: its id, 0 for other writes) durably.
-  Status Acknowledge(PlaceId place) {
+  // Returns once ACKED counts this write (`place`: its id, 0 for other writes; `writes`: how many
+  // acknowledged writes it is, e.g. a group of places in one batch) durably.
+  Status Acknowledge(PlaceId place, uint64_t writes = 1) {
     MutexLock lock(mutex_);
-    pending_.writes += 1;
+    pending_.writes += writes;
     pending_.max_place = std::max<uint64_t>(pending_.max_place, place);
     const uint64_t ticket = ++requested_;
     while (durable_ < ticket) {
@@ -671,14 +672,16 @@ struct MapStorage {
 
   // `what` names the operation for messages ("storing place 12"); `place`: the id of the place
   // the batch stores, 0 for other writes.
-  Status Write(rocksdb::WriteBatch* batch, const std::string& what, Kind kind, PlaceId place = 0) {
+  // `writes`: how many acknowledged writes the batch holds (a group of places is one batch).
+  Status Write(rocksdb::WriteBatch* batch, const std::string& what, Kind kind, PlaceId place = 0,
+               uint64_t writes = 1) {
     if (resume_needed) PLACEDB_RETURN_IF_ERROR(Resume(what));
     if (kind == Kind::kAddition && reserve_bytes > 0 && !HasRoom(reserve_bytes)) {
       return DiskFull(what);
     }
     const bool acknowledged = kind != Kind::kCounter;
     // Counted in the batch itself, so the database holds exactly the writes it kept.
-    if (acknowledged) batch->Merge(cf(kMeta), kWritesKey, CounterOperand(1));
+    if (acknowledged) batch->Merge(cf(kMeta), kWritesKey, CounterOperand(writes));
     rocksdb::WriteOptions options;
     options.sync = acknowledged && sync == SyncMode::kEveryWrite;
     if (rocksdb::Status s = db->Write(options, batch); !s.ok()) return WriteError(s, what);
@@ -687,7 +690,7 @@ struct MapStorage {
       if (rocksdb::Status s = committer->WaitDurable(); !s.ok()) return WriteError(s, what);
     }
     // Durable in the WAL; ACKED counts it before anyone is told.
-    if (acks) return acks->Acknowledge(place).WithContext(what);
+    if (acks) return acks->Acknowledge(place, writes).WithContext(what);
     return Status::Ok();
   }
 
@@ -753,6 +756,7 @@ class RocksPayloadStore final : public PayloadStore {
 
   // The map wrote the payload in the place's batch before indexing it.
   Status Put(PlaceId, std::shared_ptr<const PlacePayload>) override { return Status::Ok(); }
+  bool KeepsPayloads() const override { return false; }  // the place's batch holds them
 
   // The vector alone: loop closure's long-term memory needs no features.
   Result<BowVector> GetBow(PlaceId id) const override {
@@ -821,14 +825,60 @@ PlaceDynamics FrameDynamics(const ProcessedFrame& frame, const PlaceMetadata& me
 
 }  // namespace
 
+const Result<AddResult>& PendingCommit::Wait() const {
+  MutexLock lock(mutex_);
+  while (!done_) done_cv_.Wait(mutex_);
+  return outcome_;
+}
+
+bool PendingCommit::done() const {
+  MutexLock lock(mutex_);
+  return done_;
+}
+
+void PendingCommit::Complete(Result<AddResult> outcome) {
+  {
+    MutexLock lock(mutex_);
+    outcome_ = std::move(outcome);
+    done_ = true;
+  }
+  done_cv_.NotifyAll();
+}
+
+// A place waiting in the commit queue: its entries are already in the queue's batch.
+struct PlaceMap::QueuedPlace {
+  ProcessedFrame frame;
+  PlaceMetadata metadata;
+  PlaceId id = 0;
+  std::shared_ptr<PendingCommit> pending;
+  Stopwatch since_enqueued;
+};
+
+struct PlaceMap::CommitQueue {
+  Mutex mutex;
+  CondVar wake;
+  std::vector<QueuedPlace> queued GUARDED_BY(mutex);
+  // The queued places' entries, in Enqueue() order: the next group's one atomic batch.
+  rocksdb::WriteBatch batch GUARDED_BY(mutex);
+  bool stopping GUARDED_BY(mutex) = false;
+  // Started with the map, not by the first Enqueue(): a thread inherits its creator's nice value,
+  // and the first Enqueue() may come from a lowered-priority ingest worker; the committer holds
+  // the index's write lock while it inserts, so it keeps the normal priority.
+  std::thread thread;
+};
+
 PlaceMap::PlaceMap(MapInfo info, std::string path, std::unique_ptr<MapStorage> storage,
                    AnyVocabulary vocabulary)
     : info_(std::move(info)),
       path_(std::move(path)),
       storage_(std::move(storage)),
-      vocabulary_(std::move(vocabulary)) {}
+      vocabulary_(std::move(vocabulary)),
+      commits_(std::make_unique<CommitQueue>()) {
+  commits_->thread = std::thread([this] { RunCommitter(); });
+}
 
 PlaceMap::~PlaceMap() {
+  StopCommitter();
   database_.reset();
   if (storage_ && storage_->db) {
     rocksdb::FlushOptions flush;
@@ -1106,6 +1156,126 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   result.timings.store_ms = store.ElapsedMs();
   result.timings.total_ms += result.timings.store_ms;
   return result;
+}
+
+std::shared_ptr<PendingCommit> PlaceMap::Enqueue(ProcessedFrame frame, PlaceMetadata metadata) {
+  auto pending = std::make_shared<PendingCommit>();
+  ReaderLock alive(lifecycle_);
+  if (closed_) {
+    pending->Complete(Deleted());
+    return pending;
+  }
+  // What Commit() refuses or stores at once is answered at once, exactly as Commit() does.
+  const DatabaseConfig& config = info_.options.database;
+  if (frame.stream_pending || !frame.valid || frame.static_features.type() != config.feature_type ||
+      frame.direct.levels_up != config.verification.levels_up) {
+    pending->Complete(CommitLocked(frame, metadata));
+    return pending;
+  }
+  QueuedPlace place;
+  place.pending = pending;
+  // Encoded here, on the caller's thread, so that callers encode in parallel; the committer
+  // only writes.
+  PlaceRecord record;
+  record.metadata = metadata;
+  record.counts = frame.counts;
+  record.boxes_used = frame.boxes_used;
+  std::string features = EncodeLocalFeatures(frame.static_features, frame.direct);
+  std::string bow = EncodeBow(frame.bow);
+  std::string dynamics;
+  if (storage_->dynamics) dynamics = EncodeDynamics(FrameDynamics(frame, metadata));
+  std::string thumbnail;
+  const bool has_thumbnail = frame.thumbnail && info_.options.thumbnails.enabled;
+  if (has_thumbnail) thumbnail = EncodeThumbnail(*frame.thumbnail);
+  CommitQueue& queue = *commits_;
+  {
+    MutexLock lock(queue.mutex);
+    // Reserved under the queue's lock: ids follow the order of the places in the batch.
+    record.id = database_->ReserveId();
+    place.id = record.id;
+    const std::string key = PlaceKey(record.id);
+    queue.batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
+    queue.batch.Put(storage_->cf(kBow), key, bow);
+    queue.batch.Put(storage_->cf(kFeatures), key, features);
+    if (storage_->dynamics) {
+      queue.batch.Merge(storage_->cf(kDynamics), key, dynamics);
+      queue.batch.Merge(storage_->cf(kDynamics), kMapDynamicsKey, dynamics);
+    }
+    if (has_thumbnail) queue.batch.Put(storage_->cf(kThumbnails), key, thumbnail);
+    place.frame = std::move(frame);
+    place.metadata = std::move(metadata);
+    queue.queued.push_back(std::move(place));
+  }
+  queue.wake.NotifyOne();
+  return pending;
+}
+
+void PlaceMap::RunCommitter() {
+  CommitQueue& queue = *commits_;
+  std::vector<QueuedPlace> group;
+  MutexLock lock(queue.mutex);
+  while (true) {
+    while (!queue.stopping && queue.queued.empty()) queue.wake.Wait(queue.mutex);
+    if (queue.queued.empty()) return;  // stopping, and everything queued is committed
+    // Everything queued so far is one group; what arrives meanwhile is the next one.
+    group.clear();
+    group.swap(queue.queued);
+    rocksdb::WriteBatch batch;
+    std::swap(batch, queue.batch);
+    lock.Unlock();
+    CommitGroup(&group, &batch);
+    lock.Lock();
+  }
+}
+
+void PlaceMap::CommitGroup(std::vector<QueuedPlace>* group, rocksdb::WriteBatch* batch) {
+  ReaderLock alive(lifecycle_);
+  Status written;
+  if (closed_) {
+    written = Deleted();
+  } else {
+    PlaceId highest = 0;
+    for (const QueuedPlace& place : *group) highest = std::max(highest, place.id);
+    const std::string what =
+        group->size() == 1
+            ? "storing place " + std::to_string(highest)
+            : "storing " + std::to_string(group->size()) + " places (group commit, ids " +
+                  std::to_string(group->front().id) + ".." + std::to_string(highest) + ")";
+    written = storage_->Write(batch, what, MapStorage::Kind::kAddition, highest, group->size());
+  }
+  for (QueuedPlace& place : *group) {
+    if (!written.ok()) {
+      place.pending->Complete(written);
+      continue;
+    }
+    // Durable: now make it searchable.
+    auto id = database_->Insert(place.frame, place.metadata, place.id);
+    if (!id.ok()) {
+      place.pending->Complete(id.status());
+      continue;
+    }
+    AddResult result;
+    result.stored = true;
+    result.id = *id;
+    result.counts = place.frame.counts;
+    result.boxes_used = std::move(place.frame.boxes_used);
+    result.timings = place.frame.timings;
+    result.depth_state = std::move(place.frame.depth_state);
+    result.timings.store_ms = place.since_enqueued.ElapsedMs();
+    result.timings.total_ms += result.timings.store_ms;
+    place.pending->Complete(std::move(result));
+  }
+  group->clear();  // the frames' memory goes now, not with the next group
+}
+
+void PlaceMap::StopCommitter() {
+  if (!commits_) return;
+  {
+    MutexLock lock(commits_->mutex);
+    commits_->stopping = true;
+  }
+  commits_->wake.NotifyAll();
+  if (commits_->thread.joinable()) commits_->thread.join();
 }
 
 Result<StoredPlace> PlaceMap::GetPlace(PlaceId id) const {

@@ -38,6 +38,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <thread>
 #include <unordered_map>
 #include <vector>
 
@@ -49,6 +50,10 @@
 #include "core/storage/directory_lock.h"
 #include "core/vocabulary/any_vocabulary.h"
 #include "core/vocabulary/vocabulary.h"
+
+namespace rocksdb {
+class WriteBatch;
+}  // namespace rocksdb
 
 namespace placedb {
 
@@ -150,6 +155,25 @@ struct StoredPlace {
   PlacePayload payload;
 };
 
+// A place handed to a map's commit queue (PlaceMap::Enqueue): its outcome once the group it was
+// written in is durable (WAL synced, counted in ACKED) and it is indexed, or why it failed.
+// Thread safety: any thread may wait; the map's committer completes it once.
+class PendingCommit {
+ public:
+  // Blocks until the outcome is known. Every call returns the same outcome.
+  const Result<AddResult>& Wait() const EXCLUDES(mutex_);
+  bool done() const EXCLUDES(mutex_);
+  // The committer's, once: wakes every waiter.
+  void Complete(Result<AddResult> outcome) EXCLUDES(mutex_);
+
+ private:
+  mutable Mutex mutex_;
+  mutable CondVar done_cv_;
+  bool done_ GUARDED_BY(mutex_) = false;
+  // Written once under mutex_ before done_ is set; read-only afterwards.
+  Result<AddResult> outcome_ = Status::Internal("not committed yet");
+};
+
 class PlaceMap {
  public:
   ~PlaceMap();  // flushes and closes RocksDB
@@ -174,6 +198,16 @@ class PlaceMap {
   Result<AddResult> Add(const Observation& observation);
   // Stores an already processed frame (ingest-with-matches searches first, then commits).
   Result<AddResult> Commit(const ProcessedFrame& frame, const PlaceMetadata& metadata);
+  // Commit() without waiting (group commit, docs/storage.md "Group commit"): checks the frame
+  // and reserves its id now (so ids follow the order of Enqueue() calls), encodes its batch on
+  // the caller's thread and hands it to the map's committer thread, which writes every queued
+  // place in one WriteBatch, syncs it once, counts the group in ACKED with one fdatasync, and
+  // only then indexes each place and completes its PendingCommit. A failed write fails every
+  // place of its group and stores none of them (one atomic batch). A frame refused by the
+  // checks, an invalid frame (StoreInvalid) and a deleted map are answered synchronously: the
+  // returned commit is already done. Places enqueued by one thread are durable and indexed in
+  // that order; a caller that must search after its own places waits for the last one first.
+  std::shared_ptr<PendingCommit> Enqueue(ProcessedFrame frame, PlaceMetadata metadata);
   // Stream frames (kStream) of a map that keeps thumbnails get theirs here (on the caller's
   // thread, outside any lock of the map); Commit() stores it with the place.
   // `keep_dropped_keypoints` fills `dropped_keypoints`.
@@ -268,6 +302,14 @@ class PlaceMap {
   Result<std::optional<std::string>> ReadPlaceValue(PlaceId id, size_t family,
                                                     const std::string& what) const;
 
+  // The commit queue (Enqueue): places encoded, ids reserved, waiting for the next group.
+  struct QueuedPlace;
+  struct CommitQueue;
+  void RunCommitter();  // the committer thread: one group at a time until stopped
+  void CommitGroup(std::vector<QueuedPlace>* group, rocksdb::WriteBatch* batch)
+      EXCLUDES(lifecycle_);
+  void StopCommitter();  // commits what is queued, then joins the thread
+
   MapInfo info_;
   std::vector<MapDamage> damage_history_;
   std::string open_note_;
@@ -279,6 +321,7 @@ class PlaceMap {
   // the database closes and later calls see `closed_`.
   mutable SharedMutex lifecycle_;
   bool closed_ GUARDED_BY(lifecycle_) = false;
+  std::unique_ptr<CommitQueue> commits_;  // its committer thread lives as long as the map
 };
 
 // RESOURCE_EXHAUSTED ("disk full", naming `what`) unless the file system holding `path` has
