@@ -832,7 +832,8 @@ bool BenchReopenLarge(const std::string& work_dir, const std::vector<Frame>& fra
       "# reopen at scale: fast build (CamVid frames processed once, 90 %% subsample, 4 bit "
       "flips; per place 10 %% of the BoW words dropped; first %zu features stored; 16 writers, "
       "group commit); each reopen in a fresh process, sequential scan (load_threads 1, the "
-      "baseline) and parallel (load_threads 2) in the order seq, par, par, seq\n",
+      "baseline) and parallel (load_threads 2: one thread reads and decodes, the opening thread "
+      "indexes) in the order seq, par, par, seq\n",
       stored_features);
   std::sort(sizes.begin(), sizes.end());
   const std::string dir_path = work_dir + "/reopen-large";

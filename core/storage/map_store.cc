@@ -859,10 +859,10 @@ class PlaceLoader {
     return status;
   }
 
-  // `threads` workers read and decode ranges of load_range_ids place ids (at most kWindow ranges
+  // `readers` threads read and decode ranges of load_range_ids place ids (at most kWindow ranges
   // ahead of the one being visited, to bound memory); `visit` runs on the calling thread, in
-  // id order. `read_ms` receives the workers' reading and decoding time, summed.
-  Status LoadParallel(unsigned threads, const Visit& visit, double* read_ms) const {
+  // id order. `read_ms` receives the readers' reading and decoding time, summed.
+  Status LoadParallel(unsigned readers, const Visit& visit, double* read_ms) const {
     std::optional<PlaceId> first, last;
     {
       Iterators its = NewIterators();
@@ -891,7 +891,7 @@ class PlaceLoader {
     size_t visiting = 0;  // guarded by mutex
     bool stop = false;    // guarded by mutex
     std::atomic<size_t> next{0};
-    std::vector<double> worker_ms(threads, 0.0);
+    std::vector<double> worker_ms(readers, 0.0);
     const auto work = [&](unsigned worker) {
       Iterators its = NewIterators();
       for (size_t r; (r = next.fetch_add(1)) < ranges;) {
@@ -914,7 +914,7 @@ class PlaceLoader {
       }
     };
     std::vector<std::thread> pool;
-    for (unsigned w = 0; w < threads; ++w) pool.emplace_back(work, w);
+    for (unsigned w = 0; w < readers; ++w) pool.emplace_back(work, w);
     Status status = Status::Ok();
     for (size_t r = 0; r < ranges && status.ok(); ++r) {
       Range range;
@@ -1092,7 +1092,7 @@ Status PlaceMap::Load() {
   };
   PLACEDB_RETURN_IF_ERROR(
       storage_->load_threads > 1
-          ? loader.LoadParallel(storage_->load_threads, restore, &open_timings_.read_decode_ms)
+          ? loader.LoadParallel(storage_->load_threads - 1, restore, &open_timings_.read_decode_ms)
           : loader.LoadSequential(restore, &open_timings_.read_decode_ms));
   open_timings_.total_ms = total.ElapsedMs();
 

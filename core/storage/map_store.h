@@ -80,9 +80,11 @@ struct StorageOptions {
   // RestoreMap hard-links a checkpoint's SST files (immutable in RocksDB) instead of copying
   // them. Off only to measure the difference: restore then copies every file.
   bool restore_hard_links = true;
-  // Threads that read and decode the `places` and `bow` families when a map opens (each scans
-  // its own range of place ids; the index is still fed in id order). 1 = the single sequential
-  // scan (kept as the baseline of placedb-bench-storage --only reopen); 0 = 2.
+  // Threads that rebuild the index when a map opens. 1 = one sequential scan of `places` and
+  // `bow` on the opening thread, which decodes and indexes each place in turn (the baseline of
+  // placedb-bench-storage --only reopen). N > 1 = N - 1 threads read and decode ranges of place
+  // ids while the opening thread feeds the index in id order: 2 (the default; 0 = 2) keeps both
+  // cores of a 2-core machine busy, the index being the one part that stays serial.
   unsigned load_threads = 2;
   // Place ids per range a load thread reads at a time (rounded down to a power of two; 0 =
   // 2048): ranges align with the index's id segments. Tests use small ranges to have many
@@ -260,10 +262,10 @@ class PlaceMap {
   friend class DataDirectory;
   PlaceMap(MapInfo info, std::string path, std::unique_ptr<detail::MapStorage> storage,
            AnyVocabulary vocabulary);
-  // Rebuilds the serving index from disk: `places` and `bow` read and decoded by
-  // StorageOptions::load_threads threads over ranges of ids, the index fed in id order on the
-  // calling thread. A read error is CORRUPTION naming the file; the first problem in id order is
-  // the one reported, whatever the thread count.
+  // Rebuilds the serving index from disk: `places` and `bow` read and decoded over ranges of
+  // ids by StorageOptions::load_threads - 1 threads (or by the calling thread alone), the index
+  // fed in id order on the calling thread. A read error is CORRUPTION naming the file; the first
+  // problem in id order is the one reported, whatever the thread count.
   Status Load();
   // Commit() for a caller that already holds lifecycle_ shared and checked `closed_`
   // (CloseLoop's store callback: the shared lock must not be taken twice).
