@@ -875,9 +875,10 @@ bool BenchReopenLarge(const std::string& work_dir, const std::vector<Frame>& fra
     const double places = runs[2][0]["places"];
     Print("reopen_seconds_at_" + n + "_places", mean(2, "reopen_ms") / 1000, "s");
     Print("reopen_seconds_at_" + n + "_places_sequential", mean(1, "reopen_ms") / 1000, "s");
-    Print("reopen_places_per_second", places / (mean(2, "reopen_ms") / 1000), "places/s");
-    Print("reopen_places_per_second_sequential", places / (mean(1, "reopen_ms") / 1000),
+    Print("reopen_places_per_second_at_" + n + "_places", places / (mean(2, "reopen_ms") / 1000),
           "places/s");
+    Print("reopen_places_per_second_at_" + n + "_places_sequential",
+          places / (mean(1, "reopen_ms") / 1000), "places/s");
     Print("map_bytes_on_disk_at_" + n + "_places", runs[2][0]["bytes"], "bytes");
     Print("rss_after_reopen_at_" + n + "_places", mean(2, "rss"), "bytes");
     Print("hwm_after_reopen_at_" + n + "_places", mean(2, "hwm"), "bytes");

@@ -25,6 +25,7 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <system_error>
 #include <thread>
 
 #include "core/base/files.h"
@@ -914,7 +915,14 @@ class PlaceLoader {
       }
     };
     std::vector<std::thread> pool;
-    for (unsigned w = 0; w < readers; ++w) pool.emplace_back(work, w);
+    for (unsigned w = 0; w < readers; ++w) {
+      try {
+        pool.emplace_back(work, w);
+      } catch (const std::system_error&) {
+        break;  // fewer readers than asked: they still take every range
+      }
+    }
+    if (pool.empty()) return LoadSequential(visit, read_ms);
     Status status = Status::Ok();
     for (size_t r = 0; r < ranges && status.ok(); ++r) {
       Range range;
