@@ -31,8 +31,9 @@
 //     there; times, bytes on disk and archive bytes.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
-//                              [--only persist|dynamics|ingest|thumbnails|snapshots]
-//                              [--snapshot-places 10000] [--keep 1]
+//                              [--only persist|dynamics|ingest|thumbnails|snapshots|reopen]
+//                              [--snapshot-places 10000] [--stored-features 32] [--keep 1]
+// (--reopen-child DIR --load-threads N: internal, one reopen measured in a fresh process)
 #include <malloc.h>
 
 #include <algorithm>
