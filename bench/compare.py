@@ -85,6 +85,13 @@ BENCHMARKS = [
               "--duration", "15", "--query-rate", "50", "--query-duration", "10",
               "--query-phases", "3"],
      "needs": ["{vocabulary}", "{shared}/data/rtabmap-loop"]},
+    # Issue 17: a 1M-place map built fast, reopened by the sequential scan and the parallel load
+    # (about 6 GB of scratch under {workdir} while it runs; the base build may lack --only reopen).
+    {"name": "storage-reopen-1m", "binary": "placedb-bench-storage",
+     "quick": None,
+     "full": ["--vocabulary", "{vocabulary}", "--dir", "{workdir}", "--only", "reopen",
+              "--reopen", "1000000"],
+     "needs": ["{vocabulary}", "{shared}/data/camvid"]},
     # Fig. 6, persist rates, dynamics, reopen at 10k and 100k, snapshots: the long one.
     {"name": "storage", "binary": "placedb-bench-storage",
      "quick": None,

@@ -22,19 +22,27 @@
 //  3. Reopen time at 10k and 100k places: places are CamVid feature sets multiplied by keeping a
 //     random 90 % of the descriptors and flipping 4 random bits in each (real statistics, distinct
 //     places), committed by 2 writers, then the map is closed and reopened.
+//  3b. Reopen at scale (--only reopen, issue 17), e.g. --reopen 1000000: a map built fast (see
+//     FastBuild) through PlaceMap::Commit, then reopened in fresh processes with the sequential
+//     scan (the baseline) and the parallel load; seconds, places/s, bytes on disk, VmRSS/VmHWM.
 //  4. Snapshots (issue 15, --only snapshots): a map of --snapshot-places (10k) places built as in
 //     3; SnapshotStore::Create (checkpoint + verification), WriteArchive to a sink that only
 //     counts bytes and to a file, Import of that file into a second data directory, Restore
 //     there; times, bytes on disk and archive bytes.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
-//                              [--only persist|dynamics|ingest|thumbnails|snapshots]
-//                              [--snapshot-places 10000] [--keep 1]
+//                              [--only persist|dynamics|ingest|thumbnails|snapshots|reopen]
+//                              [--snapshot-places 10000] [--stored-features 32] [--keep 1]
+// (--reopen-child DIR --load-threads N: internal, one reopen measured in a fresh process)
+#include <malloc.h>
+
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <memory>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -49,6 +57,7 @@
 #include "core/decode/image_decoder.h"
 #include "core/storage/map_store.h"
 #include "core/storage/snapshots.h"
+#include "core/vocabulary/weighting.h"
 
 namespace fs = std::filesystem;
 using namespace placedb;
@@ -159,6 +168,12 @@ struct Options {
   bool snapshots_only = false;   // --only snapshots: section 4 alone
   size_t snapshot_places = 10000;
   bool keep = false;  // --keep 1: the work directory stays (bench/snapshots_wire.sh serves it)
+  bool reopen_only = false;  // --only reopen: section 3b alone
+  // Section 3b: features stored per place by the fast build (the BoW vectors keep every word).
+  size_t stored_features = 32;
+  // Internal: --reopen-child DIR opens that directory's map once and prints its figures.
+  std::string reopen_child;
+  unsigned load_threads = 2;  // --load-threads, for --reopen-child
 };
 
 // The command line; an exit code when the program must stop (usage error).
@@ -166,11 +181,12 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     if (i + 1 >= argc) {
-      std::fprintf(stderr,
-                   "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-                   "[--reopen 10000,100000] [--shared DIR] "
-                   "[--only persist|dynamics|ingest|thumbnails|snapshots] [--snapshot-places N] "
-                   "[--keep 1]\n");
+      std::fprintf(
+          stderr,
+          "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
+          "[--reopen 10000,100000] [--shared DIR] "
+          "[--only persist|dynamics|ingest|thumbnails|snapshots|reopen] [--snapshot-places N] "
+          "[--stored-features 32] [--keep 1]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -195,6 +211,14 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       options->thumbnails_only = true;
     } else if (arg == "--only" && value == "snapshots") {
       options->snapshots_only = true;
+    } else if (arg == "--only" && value == "reopen") {
+      options->reopen_only = true;
+    } else if (arg == "--stored-features") {
+      options->stored_features = std::stoul(value);
+    } else if (arg == "--reopen-child") {
+      options->reopen_child = value;
+    } else if (arg == "--load-threads") {
+      options->load_threads = unsigned(std::stoul(value));
     } else if (arg == "--keep") {
       options->keep = value == "1";
     } else if (arg == "--snapshot-places") {
@@ -649,6 +673,232 @@ bool BenchReopen(const std::string& work_dir, const std::vector<Frame>& frames,
   return true;
 }
 
+// 3b. Reopen at up to 1M places (--only reopen). Building such a map through Add() (transform
+// + synced commit per place) would take hours on 2 cores, so the fast build processes each
+// CamVid frame once (as in 3: 90 % of the descriptors, 4 bits flipped) and commits copies of
+// the processed frames through PlaceMap::Commit, the real write path, with these differences,
+// printed with the figures: each copy's BoW vector drops a random 10 % of its words (distinct
+// places, about as many postings as in 3) and is normalised again; only the first
+// `stored_features` features (and their direct-index entries) are stored, since reopen reads
+// `places` and `bow` only and 1M full feature sets (~50 GB) do not fit the disk; 16 writers
+// commit in group-commit mode (still acknowledged only once synced).
+ProcessedFrame KeepFirstFeatures(ProcessedFrame frame, size_t count) {
+  count = std::min(count, frame.static_features.size());
+  std::vector<uint32_t> keep(count);
+  for (uint32_t i = 0; i < count; ++i) keep[i] = i;
+  frame.static_features = frame.static_features.Select(keep);
+  DirectIndex direct;
+  direct.levels_up = frame.direct.levels_up;
+  for (size_t n = 0; n < frame.direct.node_count(); ++n) {
+    const size_t before = direct.feature_ids.size();
+    for (uint32_t id : frame.direct.features_of(n)) {
+      if (id < count) direct.feature_ids.push_back(id);
+    }
+    if (direct.feature_ids.size() == before) continue;
+    if (direct.offsets.empty()) direct.offsets.push_back(0);
+    direct.node_ids.push_back(frame.direct.node_ids[n]);
+    direct.offsets.push_back(uint32_t(direct.feature_ids.size()));
+  }
+  frame.direct = std::move(direct);
+  return frame;
+}
+
+// Adds places until the map holds `target`. False after an error (printed).
+bool FastBuild(PlaceMap& map, const std::vector<Frame>& frames, size_t target,
+               size_t stored_features) {
+  const size_t first = map.Stats().database.places;
+  if (first >= target) return true;
+  std::vector<ProcessedFrame> bases;
+  std::mt19937_64 rng(7);
+  std::uniform_int_distribution<int> bit(0, 255);
+  std::uniform_real_distribution<double> keep(0, 1);
+  for (const Frame& frame : frames) {
+    Observation observation;
+    FeatureSet noisy;
+    noisy.image_width = frame.features.image_width;
+    noisy.image_height = frame.features.image_height;
+    for (size_t i = 0; i < frame.features.size(); ++i) {
+      if (keep(rng) > 0.9) continue;
+      Descriptor256 d = frame.features.descriptors[i];
+      for (int f = 0; f < 4; ++f) {
+        const int b = bit(rng);
+        d.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
+      }
+      noisy.keypoints.push_back(frame.features.keypoints[i]);
+      noisy.descriptors.push_back(d);
+    }
+    observation.features = std::move(noisy);
+    observation.dynamic.boxes = frame.boxes;
+    auto processed = map.Process(observation, FrameRole::kStream);
+    if (!processed.ok() || !processed->valid) continue;
+    bases.push_back(KeepFirstFeatures(std::move(processed).value(), stored_features));
+  }
+  if (bases.empty()) return false;
+  const ScoringType scoring = map.info().options.database.scoring;
+  std::atomic<size_t> next{first};
+  std::atomic<bool> failed{false};
+  const double start = NowMs();
+  std::vector<std::thread> writers;
+  for (unsigned t = 0; t < 16; ++t) {
+    writers.emplace_back([&, t] {
+      std::mt19937_64 rng(first * 16 + t);
+      std::uniform_real_distribution<double> drop(0, 1);
+      for (size_t p = next++; p < target && !failed; p = next++) {
+        ProcessedFrame frame = bases[p % bases.size()];
+        std::erase_if(frame.bow, [&](const BowEntry&) { return drop(rng) < 0.1; });
+        NormalizeForScoring(&frame.bow, scoring);
+        PlaceMetadata metadata;
+        metadata.agent_id = "agent-" + std::to_string(t);
+        metadata.sequence = p;
+        metadata.timestamp_ns = int64_t(p) * 100'000'000;
+        auto added = map.Commit(frame, metadata);
+        if (!added.ok()) {
+          std::fprintf(stderr, "%s\n", added.status().ToString().c_str());
+          failed = true;
+        }
+        if (p % 100000 == 0 && p > first) {
+          std::fprintf(stderr, "# fast build: %zu places, %.0f s\n", p, (NowMs() - start) / 1000);
+        }
+      }
+    });
+  }
+  for (auto& writer : writers) writer.join();
+  if (failed) return false;
+  Print("fast_build_to_" + std::to_string(target),
+        double(target - first) / ((NowMs() - start) / 1000.0), "places/s");
+  return true;
+}
+
+// VmRSS and VmHWM of this process in bytes (0 when /proc is not there).
+std::pair<double, double> ProcessMemory() {
+  std::ifstream status("/proc/self/status");
+  double rss = 0, hwm = 0;
+  for (std::string line; std::getline(status, line);) {
+    if (line.rfind("VmRSS:", 0) == 0) rss = std::stod(line.substr(6)) * 1024;  // kB
+    if (line.rfind("VmHWM:", 0) == 0) hwm = std::stod(line.substr(6)) * 1024;
+  }
+  return {rss, hwm};
+}
+
+// --reopen-child: opens the map of `dir` in this fresh process (so that its memory is the
+// reopened map's alone) and prints `reopen_ms`, `places`, `postings`, `rss`, `hwm`, `bytes`.
+int ReopenChild(const std::string& dir, const std::shared_ptr<const Vocabulary>& vocabulary,
+                unsigned load_threads) {
+  StorageOptions storage;
+  storage.load_threads = load_threads;
+  auto data = DataDirectory::Open(dir, storage);
+  if (!data.ok()) {
+    std::fprintf(stderr, "%s\n", data.status().ToString().c_str());
+    return 1;
+  }
+  const double start = NowMs();
+  auto map = (*data)->OpenMap("sweep", vocabulary);
+  const double ms = NowMs() - start;
+  if (!map.ok()) {
+    std::fprintf(stderr, "%s\n", map.status().ToString().c_str());
+    return 1;
+  }
+  const auto [rss, hwm] = ProcessMemory();
+  const MapStats stats = (*map)->Stats();
+  const OpenTimings& timings = (*map)->open_timings();
+  std::printf(
+      "reopen_ms %.3f\nplaces %zu\nrss %.0f\nhwm %.0f\nbytes %llu\nindex_bytes %zu\n"
+      "rebuild_ms %.3f\nread_decode_ms %.3f\nindex_ms %.3f\n",
+      ms, stats.database.places, rss, hwm, (unsigned long long)stats.bytes_on_disk,
+      stats.database.index_bytes, timings.total_ms, timings.read_decode_ms, timings.index_ms);
+  return 0;
+}
+
+// Runs this binary with --reopen-child and reads its figures; empty after an error.
+std::map<std::string, double> RunReopenChild(const std::string& self, const std::string& dir,
+                                             const std::string& vocabulary_path, unsigned threads) {
+  const std::string command = "'" + self + "' --vocabulary '" + vocabulary_path +
+                              "' --reopen-child '" + dir + "' --load-threads " +
+                              std::to_string(threads);
+  std::map<std::string, double> figures;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (!pipe) return figures;
+  char name[64];
+  double value = 0;
+  while (std::fscanf(pipe, "%63s %lf", name, &value) == 2) figures[name] = value;
+  if (pclose(pipe) != 0) figures.clear();
+  return figures;
+}
+
+bool BenchReopenLarge(const std::string& work_dir, const std::vector<Frame>& frames,
+                      const std::shared_ptr<const Vocabulary>& vocabulary,
+                      const std::string& vocabulary_path, std::vector<size_t> sizes,
+                      size_t stored_features) {
+  std::printf(
+      "# reopen at scale: fast build (CamVid frames processed once, 90 %% subsample, 4 bit "
+      "flips; per place 10 %% of the BoW words dropped; first %zu features stored; 16 writers, "
+      "group commit); each reopen in a fresh process, sequential scan (load_threads 1, the "
+      "baseline) and parallel (load_threads 2: one thread reads and decodes, the opening thread "
+      "indexes) in the order seq, par, par, seq\n",
+      stored_features);
+  std::sort(sizes.begin(), sizes.end());
+  const std::string dir_path = work_dir + "/reopen-large";
+  const std::string self = fs::read_symlink("/proc/self/exe").string();
+  for (size_t target : sizes) {
+    {
+      StorageOptions storage;
+      storage.sync = SyncMode::kGroupCommit;
+      auto dir = DataDirectory::Open(dir_path, storage);
+      if (!dir.ok()) return false;
+      auto map = (*dir)->ListMaps().empty() ? (*dir)->CreateMap("sweep", MapOptions(), vocabulary)
+                                            : (*dir)->OpenMap("sweep", vocabulary);
+      if (!map.ok()) {
+        std::fprintf(stderr, "%s\n", map.status().ToString().c_str());
+        return false;
+      }
+      if (!FastBuild(**map, frames, target, stored_features)) return false;
+      if ((*map)->Stats().database.places != target) {
+        std::fprintf(stderr, "the map holds %zu places, not %zu (remove %s)\n",
+                     (*map)->Stats().database.places, target, dir_path.c_str());
+        return false;
+      }
+    }
+    malloc_trim(0);  // the children's memory is measured: give this process's back
+    const std::string n = std::to_string(target);
+    std::map<unsigned, std::vector<std::map<std::string, double>>> runs;
+    for (unsigned threads : {1u, 2u, 2u, 1u}) {
+      auto figures = RunReopenChild(self, dir_path, vocabulary_path, threads);
+      if (figures.empty()) return false;
+      std::printf("# reopen at %s places, load_threads %u: %.2f s, VmRSS %.0f MiB\n", n.c_str(),
+                  threads, figures["reopen_ms"] / 1000, figures["rss"] / 1048576);
+      runs[threads].push_back(figures);
+    }
+    auto mean = [&](unsigned threads, const std::string& name) {
+      double sum = 0;
+      for (const auto& run : runs[threads]) sum += run.at(name);
+      return sum / double(runs[threads].size());
+    };
+    const double places = runs[2][0]["places"];
+    Print("reopen_seconds_at_" + n + "_places", mean(2, "reopen_ms") / 1000, "s");
+    Print("reopen_seconds_at_" + n + "_places_sequential", mean(1, "reopen_ms") / 1000, "s");
+    Print("reopen_places_per_second_at_" + n + "_places", places / (mean(2, "reopen_ms") / 1000),
+          "places/s");
+    Print("reopen_places_per_second_at_" + n + "_places_sequential",
+          places / (mean(1, "reopen_ms") / 1000), "places/s");
+    Print("map_bytes_on_disk_at_" + n + "_places", runs[2][0]["bytes"], "bytes");
+    Print("rss_after_reopen_at_" + n + "_places", mean(2, "rss"), "bytes");
+    Print("hwm_after_reopen_at_" + n + "_places", mean(2, "hwm"), "bytes");
+    Print("rss_after_reopen_at_" + n + "_places_sequential", mean(1, "rss"), "bytes");
+    Print("hwm_after_reopen_at_" + n + "_places_sequential", mean(1, "hwm"), "bytes");
+    Print("index_bytes_at_" + n + "_places", runs[2][0]["index_bytes"], "bytes");
+    // Where the time goes: the index (PlaceDatabase::Restore, one thread) and reading + decoding
+    // (summed over the reading threads: overlapped with the index when parallel).
+    for (unsigned threads : {2u, 1u}) {
+      const std::string suffix = threads == 1 ? "_sequential" : "";
+      Print("reopen_index_seconds_at_" + n + "_places" + suffix, mean(threads, "index_ms") / 1000,
+            "s");
+      Print("reopen_read_decode_seconds_at_" + n + "_places" + suffix,
+            mean(threads, "read_decode_ms") / 1000, "s");
+    }
+  }
+  return true;
+}
+
 // Bytes of the regular files under `path`; with `unshared_only`, of those with one link only.
 uint64_t TreeBytes(const std::string& path, bool unshared_only = false) {
   uint64_t bytes = 0;
@@ -770,8 +1020,20 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "%s\n", vocabulary.status().ToString().c_str());
     return 1;
   }
+  if (!options.reopen_child.empty()) {
+    return ReopenChild(options.reopen_child, *vocabulary, options.load_threads);
+  }
   std::string work_dir = options.work_dir;
   if (work_dir.empty()) work_dir = (fs::temp_directory_path() / "placedb-bench-storage").string();
+  if (options.reopen_only) {
+    // With --keep 1 a map built by an earlier run is reused (and grown to the sizes asked for).
+    if (!options.keep) fs::remove_all(work_dir);
+    const std::vector<Frame> frames = LoadCamVid(options.shared);
+    const bool ok = BenchReopenLarge(work_dir, frames, *vocabulary, options.vocabulary_path,
+                                     options.reopen_sizes, options.stored_features);
+    if (!options.keep) fs::remove_all(work_dir);
+    return ok ? 0 : 1;
+  }
   fs::remove_all(work_dir);
   if (options.thumbnails_only) {
     if (!BenchThumbnails(work_dir, options.shared, *vocabulary)) return 1;

@@ -12,6 +12,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 
 #include "core/storage/map_store.h"
 #include "tests/rtabmap_frames.h"
@@ -514,6 +515,100 @@ TEST_F(DamageTest, CorruptBowBlockIsDamageAtOpen) {
   ASSERT_FALSE(recovered.ok());
   EXPECT_EQ(recovered.status().code(), StatusCode::kFailedPrecondition);
   ExpectDamaged(*dir, "maps/lab/" + fs::path(files[0]).filename().string());
+}
+
+// Issue 17: several load threads over ranges of place ids report damage in the middle of the id
+// range exactly as the sequential scan does (the first problem in id order, the file named): an
+// SST block of `bow` that does not read, a record that does not decode, a place whose BoW vector
+// is missing, a BoW vector whose place record is missing.
+TEST_F(DamageTest, ParallelLoadReportsDamageInTheMiddleLikeTheSequentialScan) {
+  StorageOptions sequential;
+  sequential.load_threads = 1;
+  StorageOptions parallel;  // 82 places in 11 ranges of 8 ids
+  parallel.load_threads = 2;
+  parallel.load_range_ids = 8;
+  // Opens the map with each loader (in a fresh DataDirectory) and checks both refuse it alike.
+  const auto expect_alike = [&](const std::string& part) {
+    std::string reasons[2];
+    for (int p = 0; p < 2; ++p) {
+      auto dir = DataDirectory::Open(root_ + "/data", p == 0 ? sequential : parallel);
+      ASSERT_TRUE(dir.ok()) << dir.status().ToString();
+      reasons[p] = ExpectDamaged(**dir, part).reason;
+    }
+    EXPECT_EQ(reasons[0], reasons[1]);
+  };
+  // Back to the fixture's files, closed cleanly (everything in SST files: RocksDB opened below
+  // without placedb's merge operators replays no placedb write), then `edit` on the raw RocksDB.
+  const auto edited = [&](const std::function<void(
+                              rocksdb::DB*, std::vector<rocksdb::ColumnFamilyHandle*>&)>& edit) {
+    fs::remove_all(root_ + "/data");
+    fs::copy(*template_root_ + "/data", root_ + "/data", fs::copy_options::recursive);
+    {
+      auto dir = OpenDir();
+      ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
+      dir->CloseMap("lab");
+    }
+    std::vector<rocksdb::ColumnFamilyDescriptor> families;
+    for (const char* name :
+         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
+      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
+    }
+    std::vector<rocksdb::ColumnFamilyHandle*> handles;
+    rocksdb::DB* raw = nullptr;
+    ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir_, families, &handles, &raw).ok());
+    edit(raw, handles);
+    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
+    delete raw;
+  };
+  rocksdb::WriteOptions sync;
+  sync.sync = true;
+
+  {
+    SCOPED_TRACE("a corrupt block of bow, a third into the flushed places");
+    const auto files = SstFilesOf("bow");
+    ASSERT_EQ(files.size(), 1u);
+    Overwrite(files[0], fs::file_size(files[0]) / 3, 64);
+    expect_alike("maps/lab/" + fs::path(files[0]).filename().string());
+  }
+  {
+    SCOPED_TRACE("place 45's record does not decode");
+    edited([&](rocksdb::DB* raw, std::vector<rocksdb::ColumnFamilyHandle*>& handles) {
+      EXPECT_TRUE(raw->Put(sync, handles[1], PlaceKey(45), std::string("\x02garbage")).ok());
+    });
+    expect_alike("place 0000002D: place record");
+  }
+  {
+    SCOPED_TRACE("place 70's BoW vector does not decode");
+    edited([&](rocksdb::DB* raw, std::vector<rocksdb::ColumnFamilyHandle*>& handles) {
+      EXPECT_TRUE(raw->Put(sync, handles[2], PlaceKey(70), std::string("\x01\x05\x01")).ok());
+    });
+    expect_alike("place 00000046: bow vector");
+  }
+  {
+    SCOPED_TRACE("place 50's BoW vector is missing");
+    edited([&](rocksdb::DB* raw, std::vector<rocksdb::ColumnFamilyHandle*>& handles) {
+      EXPECT_TRUE(raw->Delete(sync, handles[2], PlaceKey(50)).ok());
+    });
+    expect_alike("place 00000032 has no BoW vector");
+  }
+  {
+    SCOPED_TRACE("place 60's record is missing, its BoW vector is there");
+    edited([&](rocksdb::DB* raw, std::vector<rocksdb::ColumnFamilyHandle*>& handles) {
+      EXPECT_TRUE(raw->Delete(sync, handles[1], PlaceKey(60)).ok());
+    });
+    expect_alike("has no BoW vector");
+  }
+  {
+    SCOPED_TRACE("undamaged: both loaders open it");
+    edited([](rocksdb::DB*, std::vector<rocksdb::ColumnFamilyHandle*>&) {});
+    for (const StorageOptions& options : {sequential, parallel}) {
+      auto dir = DataDirectory::Open(root_ + "/data", options);
+      ASSERT_TRUE(dir.ok());
+      auto map = (*dir)->OpenMap("lab", vocabulary_);
+      ASSERT_TRUE(map.ok()) << map.status().ToString();
+      EXPECT_EQ((*map)->Stats().database.places, size_t(kPlaces));
+    }
+  }
 }
 
 TEST_F(DamageTest, ScrubFindsACorruptFeaturesBlock) {

@@ -15,6 +15,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <bit>
 #include <cerrno>
 #include <chrono>
 #include <cstdarg>
@@ -24,6 +25,7 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <system_error>
 #include <thread>
 
 #include "core/base/files.h"
@@ -609,6 +611,8 @@ struct MapStorage {
   std::string path;                   // the map's directory: its file system's free space
   uint64_t reserve_bytes = 0;         // StorageOptions::disk_reserve_bytes
   bool dynamics = true;               // StorageOptions::dynamics
+  unsigned load_threads = 2;          // StorageOptions::load_threads (0 taken as 2)
+  uint32_t load_range_ids = 2048;     // StorageOptions::load_range_ids (a power of two)
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -823,6 +827,213 @@ PlaceDynamics FrameDynamics(const ProcessedFrame& frame, const PlaceMetadata& me
                          NowUnixNs());
 }
 
+// One place as Load reads it back: its record and BoW vector, checked against each other.
+struct LoadedPlace {
+  PlaceRecord record;
+  BowVector bow;
+};
+
+// Reads the `places` and `bow` families for PlaceMap::Load, with every check Load makes: each
+// record has a BoW vector under the same key, its key is its id, no BoW vector lacks a record,
+// both decode; an unreadable block is the iterator's error (RocksDB names the file). Either one
+// scan of the whole key range (LoadSequential), or ranges of place ids read and decoded by
+// worker threads while the calling thread hands the places on in id order (LoadParallel).
+// Both hand on the same places in the same order and stop at the same first problem.
+class PlaceLoader {
+ public:
+  using Visit = std::function<Status(LoadedPlace&&)>;
+
+  PlaceLoader(const MapStorage& storage, const std::string& map_name)
+      : storage_(storage), map_name_(map_name), range_ids_(storage.load_range_ids) {
+    options_.fill_cache = false;  // a full scan would only evict the verification working set
+  }
+
+  // `read_ms` receives the time spent reading and decoding (outside `visit`).
+  Status LoadSequential(const Visit& visit, double* read_ms) const {
+    Stopwatch clock;
+    double visiting = 0;
+    const auto timed = [&](LoadedPlace&& place) {
+      Stopwatch inside;
+      Status status = visit(std::move(place));
+      visiting += inside.ElapsedMs();
+      return status;
+    };
+    Iterators its = NewIterators();
+    Status status = ReadRange(its, std::nullopt, std::nullopt, timed);
+    *read_ms += clock.ElapsedMs() - visiting;
+    return status;
+  }
+
+  // `readers` threads read and decode ranges of load_range_ids place ids (at most kWindow ranges
+  // ahead of the one being visited, to bound memory); `visit` runs on the calling thread, in
+  // id order. `read_ms` receives the readers' reading and decoding time, summed.
+  Status LoadParallel(unsigned readers, const Visit& visit, double* read_ms) const {
+    std::optional<PlaceId> first, last;
+    {
+      Iterators its = NewIterators();
+      its.places->SeekToFirst();
+      if (its.places->Valid()) first = KeyId(its.places->key());
+      its.places->SeekToLast();
+      if (its.places->Valid()) last = KeyId(its.places->key());
+    }
+    // An empty family, a key that is not a place id, or too few ids to share: one scan, which
+    // also reports whatever is wrong exactly as it always has.
+    if (!first || !last || *last < *first || *last / range_ids_ - *first / range_ids_ < 2) {
+      return LoadSequential(visit, read_ms);
+    }
+    // Range r holds ids [(base + r) * range_ids_, (base + r + 1) * range_ids_): aligned, so that
+    // a range is one of the index's id segments; the first has no lower bound and the last no
+    // upper bound, so every key is in exactly one range.
+    const size_t base = *first / range_ids_;
+    const size_t ranges = *last / range_ids_ - base + 1;
+    const auto begin_of = [&](size_t r) -> std::optional<PlaceId> {
+      if (r == 0 || r >= ranges) return std::nullopt;
+      return PlaceId((base + r) * range_ids_);
+    };
+    std::vector<Range> results(ranges);
+    Mutex mutex;
+    CondVar changed;
+    size_t visiting = 0;  // guarded by mutex
+    bool stop = false;    // guarded by mutex
+    std::atomic<size_t> next{0};
+    std::vector<double> worker_ms(readers, 0.0);
+    const auto work = [&](unsigned worker) {
+      Iterators its = NewIterators();
+      for (size_t r; (r = next.fetch_add(1)) < ranges;) {
+        {
+          MutexLock lock(mutex);
+          while (!stop && r >= visiting + kWindow) changed.Wait(mutex);
+          if (stop) return;
+        }
+        Stopwatch clock;
+        Range range;
+        range.status = ReadRange(its, begin_of(r), begin_of(r + 1), [&](LoadedPlace&& place) {
+          range.places.push_back(std::move(place));
+          return Status::Ok();
+        });
+        worker_ms[worker] += clock.ElapsedMs();
+        MutexLock lock(mutex);
+        results[r] = std::move(range);
+        results[r].ready = true;
+        changed.NotifyAll();
+      }
+    };
+    std::vector<std::thread> pool;
+    for (unsigned w = 0; w < readers; ++w) {
+      try {
+        pool.emplace_back(work, w);
+      } catch (const std::system_error&) {
+        break;  // fewer readers than asked: they still take every range
+      }
+    }
+    if (pool.empty()) return LoadSequential(visit, read_ms);
+    Status status = Status::Ok();
+    for (size_t r = 0; r < ranges && status.ok(); ++r) {
+      Range range;
+      {
+        MutexLock lock(mutex);
+        while (!results[r].ready) changed.Wait(mutex);
+        range = std::move(results[r]);
+        visiting = r + 1;
+        changed.NotifyAll();
+      }
+      for (LoadedPlace& place : range.places) {
+        status = visit(std::move(place));
+        if (!status.ok()) break;
+      }
+      if (status.ok()) status = range.status;
+    }
+    {
+      MutexLock lock(mutex);
+      stop = true;
+      changed.NotifyAll();
+    }
+    for (std::thread& thread : pool) thread.join();
+    for (double ms : worker_ms) *read_ms += ms;
+    return status;
+  }
+
+ private:
+  // At most kWindow ranges wait decoded for the index (a few MB each at 2048 ids).
+  static constexpr size_t kWindow = 6;
+
+  struct Range {
+    std::vector<LoadedPlace> places;
+    Status status = Status::Ok();  // the first problem, found after `places`
+    bool ready = false;
+  };
+  struct Iterators {
+    std::unique_ptr<rocksdb::Iterator> places, bows;
+  };
+
+  Iterators NewIterators() const {
+    return {
+        std::unique_ptr<rocksdb::Iterator>(
+            storage_.db->NewIterator(options_, storage_.cf(kPlaces))),
+        std::unique_ptr<rocksdb::Iterator>(storage_.db->NewIterator(options_, storage_.cf(kBow)))};
+  }
+
+  static std::optional<PlaceId> KeyId(const rocksdb::Slice& key) {
+    auto id = DecodePlaceKey(key.ToStringView());
+    if (!id.ok()) return std::nullopt;
+    return *id;
+  }
+
+  // The places with keys in [begin, end) (nullopt: unbounded), in key order.
+  Status ReadRange(Iterators& its, std::optional<PlaceId> begin, std::optional<PlaceId> end,
+                   const Visit& visit) const {
+    const std::string end_key = end ? PlaceKey(*end) : std::string();
+    const auto in_range = [&](const rocksdb::Slice& key) {
+      return !end || key.compare(rocksdb::Slice(end_key)) < 0;
+    };
+    rocksdb::Iterator& places = *its.places;
+    rocksdb::Iterator& bows = *its.bows;
+    if (begin) {
+      const std::string begin_key = PlaceKey(*begin);
+      places.Seek(begin_key);
+      bows.Seek(begin_key);
+    } else {
+      places.SeekToFirst();
+      bows.SeekToFirst();
+    }
+    for (; places.Valid() && in_range(places.key()); places.Next(), bows.Next()) {
+      // An unreadable block ends an iterator: report it (it names the file), not a missing
+      // vector.
+      PLACEDB_RETURN_IF_ERROR(FromRocks(bows.status(), "scanning BoW vectors"));
+      if (!bows.Valid() || places.key() != bows.key()) {
+        return Status::Corruption("map '" + map_name_ + "': place " + places.key().ToString(true) +
+                                  " has no BoW vector");
+      }
+      // A value that does not decode is named by its place (its key, as above).
+      auto record = DecodePlaceRecord(places.value().ToStringView());
+      if (!record.ok()) {
+        return record.status().WithContext("map '" + map_name_ + "': place " +
+                                           places.key().ToString(true));
+      }
+      auto bow = DecodeBow(bows.value().ToStringView());
+      if (!bow.ok()) {
+        return bow.status().WithContext("map '" + map_name_ + "': place " +
+                                        places.key().ToString(true));
+      }
+      auto key = DecodePlaceKey(places.key().ToStringView());
+      if (!key.ok() || *key != record->id) {
+        return Status::Corruption("map '" + map_name_ + "': place key and record disagree");
+      }
+      PLACEDB_RETURN_IF_ERROR(visit({std::move(record).value(), std::move(bow).value()}));
+    }
+    PLACEDB_RETURN_IF_ERROR(FromRocks(places.status(), "scanning places"));
+    if (bows.Valid() && in_range(bows.key())) {
+      return Status::Corruption("map '" + map_name_ + "': BoW vector without a place record");
+    }
+    return FromRocks(bows.status(), "scanning BoW vectors");
+  }
+
+  const MapStorage& storage_;
+  const std::string& map_name_;
+  const PlaceId range_ids_;  // a power of two: ranges align with the index's id segments
+  rocksdb::ReadOptions options_;
+};
+
 }  // namespace
 
 const Result<AddResult>& PendingCommit::Wait() const {
@@ -920,6 +1131,7 @@ Status PlaceMap::CheckVocabulary(const AnyVocabulary& vocabulary) const {
 }
 
 Status PlaceMap::Load() {
+  Stopwatch total;
   auto db = PlaceDatabase::Create(
       vocabulary_, info_.options.database,
       std::make_shared<RocksPayloadStore>(storage_.get(), info_.options.database.feature_type));
@@ -927,33 +1139,20 @@ Status PlaceMap::Load() {
   database_ = std::move(db).value();
   rocksdb::ReadOptions options;
   options.fill_cache = false;  // a full scan would only evict the verification working set
-  std::unique_ptr<rocksdb::Iterator> places(
-      storage_->db->NewIterator(options, storage_->cf(kPlaces)));
-  std::unique_ptr<rocksdb::Iterator> bows(storage_->db->NewIterator(options, storage_->cf(kBow)));
-  places->SeekToFirst();
-  bows->SeekToFirst();
-  for (; places->Valid(); places->Next(), bows->Next()) {
-    // An unreadable block ends an iterator: report it (it names the file), not a missing vector.
-    PLACEDB_RETURN_IF_ERROR(FromRocks(bows->status(), "scanning BoW vectors"));
-    if (!bows->Valid() || places->key() != bows->key()) {
-      return Status::Corruption("map '" + info_.name + "': place " + places->key().ToString(true) +
-                                " has no BoW vector");
-    }
-    auto record = DecodePlaceRecord(places->value().ToStringView());
-    if (!record.ok()) return record.status().WithContext("map '" + info_.name + "'");
-    auto bow = DecodeBow(bows->value().ToStringView());
-    if (!bow.ok()) return bow.status().WithContext("map '" + info_.name + "'");
-    auto key = DecodePlaceKey(places->key().ToStringView());
-    if (!key.ok() || *key != record->id) {
-      return Status::Corruption("map '" + info_.name + "': place key and record disagree");
-    }
-    PLACEDB_RETURN_IF_ERROR(database_->Restore(std::move(record).value(), *bow));
-  }
-  PLACEDB_RETURN_IF_ERROR(FromRocks(places->status(), "scanning places"));
-  if (bows->Valid()) {
-    return Status::Corruption("map '" + info_.name + "': BoW vector without a place record");
-  }
-  PLACEDB_RETURN_IF_ERROR(FromRocks(bows->status(), "scanning BoW vectors"));
+  open_timings_ = OpenTimings();
+  open_timings_.threads = storage_->load_threads;
+  PlaceLoader loader(*storage_, info_.name);
+  const auto restore = [&](LoadedPlace&& place) {
+    Stopwatch indexing;
+    Status restored = database_->Restore(std::move(place.record), place.bow);
+    open_timings_.index_ms += indexing.ElapsedMs();
+    return restored;
+  };
+  PLACEDB_RETURN_IF_ERROR(
+      storage_->load_threads > 1
+          ? loader.LoadParallel(storage_->load_threads - 1, restore, &open_timings_.read_decode_ms)
+          : loader.LoadSequential(restore, &open_timings_.read_decode_ms));
+  open_timings_.total_ms = total.ElapsedMs();
 
   std::string value;
   if (storage_->db->Get({}, storage_->cf(kMeta), kIdFloorKey, &value).ok()) {
@@ -1706,6 +1905,9 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
   storage->path = path;
   storage->reserve_bytes = options.disk_reserve_bytes;
   storage->dynamics = options.dynamics;
+  storage->load_threads = options.load_threads == 0 ? 2 : options.load_threads;
+  storage->load_range_ids =
+      options.load_range_ids == 0 ? 2048 : std::bit_floor(options.load_range_ids);
   db_options.listeners.push_back(std::make_shared<DiskFullListener>(storage.get()));
   rocksdb::DB* raw = nullptr;
   rocksdb::Status s =

@@ -85,6 +85,16 @@ struct StorageOptions {
   // RestoreMap hard-links a checkpoint's SST files (immutable in RocksDB) instead of copying
   // them. Off only to measure the difference: restore then copies every file.
   bool restore_hard_links = true;
+  // Threads that rebuild the index when a map opens. 1 = one sequential scan of `places` and
+  // `bow` on the opening thread, which decodes and indexes each place in turn (the baseline of
+  // placedb-bench-storage --only reopen). N > 1 = N - 1 threads read and decode ranges of place
+  // ids while the opening thread feeds the index in id order: 2 (the default; 0 = 2) keeps both
+  // cores of a 2-core machine busy, the index being the one part that stays serial.
+  unsigned load_threads = 2;
+  // Place ids per range a load thread reads at a time (rounded down to a power of two; 0 =
+  // 2048): ranges align with the index's id segments. Tests use small ranges to have many
+  // range boundaries in a small map.
+  uint32_t load_range_ids = 2048;
 };
 
 struct MapOptions {
@@ -174,6 +184,14 @@ class PendingCommit {
   Result<AddResult> outcome_ = Status::Internal("not committed yet");
 };
 
+// What opening a map spent rebuilding its index (PlaceMap::Load), for benchmarks and logs.
+struct OpenTimings {
+  unsigned threads = 1;       // StorageOptions::load_threads
+  double total_ms = 0;        // the whole rebuild
+  double read_decode_ms = 0;  // reading and decoding `places` + `bow`, summed over the threads
+  double index_ms = 0;        // PlaceDatabase::Restore (the index), on the opening thread
+};
+
 class PlaceMap {
  public:
   ~PlaceMap();  // flushes and closes RocksDB
@@ -188,6 +206,8 @@ class PlaceMap {
   // What opening the map tolerated, for the operator's log ("" when nothing): a torn tail of
   // the write-ahead log that held no acknowledged write.
   const std::string& open_note() const { return open_note_; }
+  // What the rebuild of the index cost when the map was opened (or created).
+  const OpenTimings& open_timings() const { return open_timings_; }
 
   // FAILED_PRECONDITION naming both checksums (and kinds) when `vocabulary` is not the map's.
   Status CheckVocabulary(const AnyVocabulary& vocabulary) const;
@@ -276,7 +296,10 @@ class PlaceMap {
   friend class DataDirectory;
   PlaceMap(MapInfo info, std::string path, std::unique_ptr<detail::MapStorage> storage,
            AnyVocabulary vocabulary);
-  // Rebuilds the serving index from disk. A read error is CORRUPTION naming the file.
+  // Rebuilds the serving index from disk: `places` and `bow` read and decoded over ranges of
+  // ids by StorageOptions::load_threads - 1 threads (or by the calling thread alone), the index
+  // fed in id order on the calling thread. A read error is CORRUPTION naming the file; the first
+  // problem in id order is the one reported, whatever the thread count.
   Status Load();
   // Commit() for a caller that already holds lifecycle_ shared and checked `closed_`
   // (CloseLoop's store callback: the shared lock must not be taken twice).
@@ -313,6 +336,7 @@ class PlaceMap {
   MapInfo info_;
   std::vector<MapDamage> damage_history_;
   std::string open_note_;
+  OpenTimings open_timings_;
   std::string path_;
   std::unique_ptr<detail::MapStorage> storage_;
   AnyVocabulary vocabulary_;
