@@ -1,4 +1,4 @@
-#!/usr/bin/env python3
+#!/usr/bin/python3
 """Ingest of precomputed features through gRPC, and query latency under that ingest (issue 17).
 
 Runs the real `placedb-server` and `placedb-load` of a build (this script's own build when it is
