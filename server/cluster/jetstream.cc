@@ -38,7 +38,10 @@ std::string Describe(natsStatus status, jsErrCode code) {
   natsStatus last = NATS_OK;
   const char* text = nats_GetLastError(&last);
   std::string out = (text && *text) ? text : natsStatus_GetText(status);
-  if (code != 0) out += " (JetStream error " + std::to_string(static_cast<int>(code)) + ")";
+  // libnats reports "no responders" as JSNotEnabledErr: the code would mislead.
+  if (code != 0 && status != NATS_NO_RESPONDERS) {
+    out += " (JetStream error " + std::to_string(static_cast<int>(code)) + ")";
+  }
   return out;
 }
 
@@ -234,6 +237,12 @@ Result<PubAck> JetStream::Publish(const std::string& subject, std::string_view d
   jsErrCode code = static_cast<jsErrCode>(0);
   const natsStatus status = js_Publish(&ack, context_, subject.c_str(), data.data(),
                                        static_cast<int>(data.size()), &options, &code);
+  if (status == NATS_INSUFFICIENT_BUFFER &&
+      natsConnection_Status(connection_) != NATS_CONN_STATUS_CONNECTED) {
+    // The reconnect buffer is off (Connect): a publish while reconnecting is refused at once.
+    return Status::IoError("JetStream: publishing to " + subject +
+                           ": no connection to NATS (reconnecting)");
+  }
   if (status != NATS_OK) {
     return ToStatus(status, code,
                     "JetStream: publishing to " + subject + " (timeout " +

@@ -12,9 +12,13 @@
 //   duplicate window is not stored again; its PubAck says duplicate and carries the sequence of
 //   the original (tested in tests/cluster/engines_test.cc). Only within the window.
 // - Sequences are dense and never reused; one stream's messages are totally ordered.
-// - Without a quorum (2 of 3 replicas down) the stream has no leader: a publish gets no PubAck
-//   (timeout or "no responders") and nothing is stored; publishing resumes by itself when a
-//   quorum is back.
+// - Without a quorum (2 of 3 replicas down) no publish is acknowledged: IO_ERROR, and publishing
+//   resumes by itself when a quorum is back. Nothing acknowledged does not mean nothing stored:
+//   when the stream's leader is the node left, it has already proposed the message to its Raft
+//   group and stores it once a peer returns (measured: tests/cluster/engines_test.cc,
+//   TwoOfThreeDown...). So a failed publish must be retried with the same message id (within the
+//   duplicate window): the retry's PubAck is then a duplicate naming the late-stored sequence,
+//   and the message exists exactly once. When the leader died too, nothing is stored.
 // - An ordered consumer (ephemeral, in-order, no acks, flow control and heartbeats) delivers every
 //   message from its start sequence in sequence order; when it falls behind or its server dies
 //   the library recreates it from the last delivered sequence + 1, so nothing is skipped or
@@ -136,7 +140,8 @@ class JetStream {
 
   // Publishes `data` with message id `message_id` (empty: none, no de-duplication) and waits up
   // to `timeout` for the PubAck. IO_ERROR when no PubAck came (no quorum, no leader, no
-  // connection): the message may still have been stored, so a retry must reuse the same id.
+  // connection, reconnecting): the message may still be stored later (see the file comment), so
+  // a retry must reuse the same id.
   Result<PubAck> Publish(const std::string& subject, std::string_view data,
                          const std::string& message_id, std::chrono::milliseconds timeout);
 
