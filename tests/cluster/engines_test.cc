@@ -406,11 +406,19 @@ std::vector<std::pair<uint64_t, std::string>> ReadAll(JetStream& js, const Strea
                                                       uint64_t last_sequence) {
   Mutex mutex;
   std::vector<std::pair<uint64_t, std::string>> got;
-  auto consumer =
-      js.Consume(config.name, config.subjects[0], 1, [&](uint64_t seq, std::string_view data) {
-        MutexLock lock(mutex);
-        got.emplace_back(seq, std::string(data));
-      });
+  // Creating a consumer needs the JetStream meta leader, which may still be re-elected after
+  // nodes came back: retried (bounded).
+  Result<std::unique_ptr<OrderedConsumer>> consumer = Status::Internal("not tried");
+  WaitFor(
+      [&] {
+        consumer = js.Consume(config.name, config.subjects[0], 1,
+                              [&](uint64_t seq, std::string_view data) {
+                                MutexLock lock(mutex);
+                                got.emplace_back(seq, std::string(data));
+                              });
+        return consumer.ok();
+      },
+      60s);
   EXPECT_TRUE(consumer.ok()) << consumer.status().ToString();
   if (!consumer.ok()) return {};
   WaitFor([&] {
