@@ -31,7 +31,8 @@ namespace placedb::cluster::testing {
 
 struct EnginesOptions {
   int nodes = 3;
-  // One host address per node (all 127.0.0.1 when empty).
+  // One host address per node; when empty, PLACEDB_ENGINES_HOSTS (comma-separated) or else
+  // 127.0.0.1 for all.
   std::vector<std::string> hosts;
   bool nats = true;
   bool etcd = true;
