@@ -326,6 +326,14 @@ TEST(EtcdClientTest, KilledMemberFailsOverAndWatchContinues) {
   EXPECT_EQ(refused.status().code(), StatusCode::kIoError);
   EXPECT_NE(refused.status().message().find(engines->EtcdEndpoint(2)), std::string::npos)
       << refused.status().ToString();
+
+  // The member returns: the same client uses it again (its channel leaves reconnect backoff).
+  const double restart_ms = bench::NowMs();
+  ASSERT_TRUE(engines->RestartEtcd(2).ok());
+  const double ready_ms = bench::NowMs();
+  ASSERT_TRUE(WaitFor([&] { return (*dead)->Get("/t/f/k0").ok(); }, 30s));
+  bench::Print("etcd_member_restart_ms", ready_ms - restart_ms, "ms");
+  bench::Print("etcd_restarted_member_reused_after_ready_ms", bench::NowMs() - ready_ms, "ms");
 }
 
 // ---- JetStream ---------------------------------------------------------------------------------
