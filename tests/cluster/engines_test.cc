@@ -448,6 +448,18 @@ TEST(JetStreamTest, LeaderKilledWhilePublishingLosesAndDuplicatesNothing) {
   auto leader = engines->StreamLeader(config.name);
   ASSERT_TRUE(leader.ok()) << leader.status().ToString();
 
+  // A consumer running through the kill (as a shard's applier does): on its own connection.
+  auto consumer_js = Js(engines->NatsUrls());
+  ASSERT_TRUE(consumer_js);
+  Mutex live_mutex;
+  std::vector<std::pair<uint64_t, std::string>> live;
+  auto live_consumer = consumer_js->Consume(config.name, config.subjects[0], 1,
+                                            [&](uint64_t seq, std::string_view data) {
+                                              MutexLock lock(live_mutex);
+                                              live.emplace_back(seq, std::string(data));
+                                            });
+  ASSERT_TRUE(live_consumer.ok()) << live_consumer.status().ToString();
+
   // Publishes 600 messages; each is retried with the same id until acknowledged.
   constexpr int kMessages = 600;
   std::map<std::string, uint64_t> acked;  // id -> sequence; publisher thread only until joined
@@ -504,8 +516,28 @@ TEST(JetStreamTest, LeaderKilledWhilePublishingLosesAndDuplicatesNothing) {
   }
   EXPECT_EQ(seen.size(), static_cast<size_t>(kMessages)) << "every acknowledged message, once";
 
+  // The live consumer got the same messages in the same order, none twice, across the kill.
+  EXPECT_TRUE(WaitFor([&] {
+    MutexLock lock(live_mutex);
+    return !live.empty() && live.back().first >= info->last_sequence;
+  }));
+  (*live_consumer)->Stop();
+  {
+    MutexLock lock(live_mutex);
+    EXPECT_TRUE(live == all) << "live consumer: " << live.size() << " messages, stream "
+                             << all.size();
+  }
+
   // The killed node comes back and catches up.
   ASSERT_TRUE(engines->RestartNats(*leader).ok());
+  EXPECT_TRUE(WaitFor([&] {
+    auto caught_up = js->GetStreamInfo(config.name);
+    if (!caught_up.ok() || caught_up->others.size() != 2) return false;
+    for (const auto& peer : caught_up->others) {
+      if (!peer.current || peer.offline || peer.lag > 0) return false;
+    }
+    return true;
+  }));
 }
 
 // Publishes `data` with `id` until acknowledged (bounded), as a worker retries a record.
