@@ -135,7 +135,11 @@ Status EngineProcess::Start(std::vector<std::string> argv, const std::string& lo
   ::setpgid(pid, pid);  // also here: no window where a kill of the group misses the child
   pid_ = pid;
   fs::create_directories(Engines::PidDirectory());
-  std::ofstream(Engines::PidDirectory() + "/" + std::to_string(pid)) << argv_[0] << "\n";
+  // Line 1: the binary (the cleanup kills the pid only while it still runs it); line 2: the
+  // engines' directory (removed by the cleanup when a crash left it).
+  std::ofstream(Engines::PidDirectory() + "/" + std::to_string(pid))
+      << argv_[0] << "\n"
+      << fs::path(log_path).parent_path().string() << "\n";
   return Status::Ok();
 }
 

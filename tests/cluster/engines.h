@@ -13,7 +13,7 @@
 //   thread);
 // - the destructor SIGKILLs every group and removes the temp dir;
 // - each running engine has a pid file in PidDirectory(); tests/cluster/cleanup_engines.sh (a ctest
-//   FIXTURES_CLEANUP test) kills whatever a crashed run left behind.
+//   FIXTURES_CLEANUP test) kills whatever a crashed run left behind and removes its temp dir.
 //
 // Threading: not thread-safe; use an Engines from one thread.
 #pragma once
