@@ -210,7 +210,7 @@ Status Engines::Setup() {
   // Every engine first, then wait: the members need each other to become ready.
   for (int i = 0; i < nodes(); ++i) {
     if (options_.nats) PLACEDB_RETURN_IF_ERROR(StartNats(i));
-    if (options_.etcd) PLACEDB_RETURN_IF_ERROR(StartEtcd(i, /*first_start=*/true));
+    if (options_.etcd) PLACEDB_RETURN_IF_ERROR(StartEtcd(i));
   }
   const auto deadline = Clock::now() + options_.ready_timeout;
   for (int i = 0; i < nodes(); ++i) {
@@ -292,8 +292,8 @@ Status Engines::StartNats(int index) {
   return node.nats.Start({NatsServerBinary(), "-c", config_path}, directory_ + "/" + name + ".log");
 }
 
-Status Engines::StartEtcd(int index, bool first_start) {
-  (void)first_start;  // a restart finds its data dir and ignores the --initial-* flags
+// A restart finds its data dir and ignores the --initial-* flags: the same command line serves.
+Status Engines::StartEtcd(int index) {
   Node& node = *nodes_.at(index);
   const std::string name = Named('e', index);
   const std::string client_url = "http://" + EtcdEndpoint(index);
@@ -385,7 +385,7 @@ Status Engines::RestartNats(int node) {
 }
 
 Status Engines::RestartEtcd(int node) {
-  PLACEDB_RETURN_IF_ERROR(StartEtcd(node, /*first_start=*/false));
+  PLACEDB_RETURN_IF_ERROR(StartEtcd(node));
   return WaitEtcdReady(node, Clock::now() + options_.ready_timeout);
 }
 

@@ -111,7 +111,7 @@ class Engines {
   explicit Engines(EnginesOptions options) : options_(std::move(options)) {}
   Status Setup();
   Status StartNats(int node);
-  Status StartEtcd(int node, bool first_start);
+  Status StartEtcd(int node);
   Status WaitNatsReady(int node, std::chrono::steady_clock::time_point deadline) const;
   Status WaitEtcdReady(int node, std::chrono::steady_clock::time_point deadline) const;
 
