@@ -26,6 +26,7 @@ PACKAGES=(
   chromium python3-websocket  # the web console's browser test (tests/console/browser_test.py)
   clang-format ccache
   clang-14 libclang-rt-14-dev  # CI's -Wthread-safety and libFuzzer stages (tools/test.sh)
+  nats-server libnats-dev etcd-server etcd-client  # cluster mode (issue 18): engines, NATS C client
   # Debian's sample images: the default vocabulary is trained on these (never on eval data).
   opencv-doc darknet
 )

@@ -1,0 +1,418 @@
+#include "tests/cluster/engines.h"
+
+#include <arpa/inet.h>
+#include <fcntl.h>
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/prctl.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <thread>
+
+#include "server/cluster/etcd_client.h"
+#include "server/cluster/jetstream.h"
+
+namespace placedb::cluster::testing {
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+// An executable: `env_name` when set, else the first of `candidates` that exists.
+std::string FindBinary(const char* env_name, std::vector<std::string> candidates) {
+  if (const char* from_env = std::getenv(env_name); from_env && *from_env) return from_env;
+  for (const auto& candidate : candidates) {
+    if (::access(candidate.c_str(), X_OK) == 0) return candidate;
+  }
+  return candidates.front();
+}
+
+std::string NatsServerBinary() {
+  return FindBinary("PLACEDB_NATS_SERVER", {"/usr/sbin/nats-server", "/usr/bin/nats-server"});
+}
+std::string EtcdBinary() {
+  return FindBinary("PLACEDB_ETCD", {"/usr/bin/etcd", "/usr/sbin/etcd"});
+}
+
+// Free TCP ports on `host`: all sockets stay bound until every port is picked, so the ports
+// differ; another process may still take one before the engine binds it (rare; the start fails
+// and says so).
+Result<std::vector<int>> FreePorts(const std::string& host, int count) {
+  std::vector<int> sockets;
+  std::vector<int> ports;
+  Status status;
+  for (int i = 0; i < count && status.ok(); ++i) {
+    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in address{};
+    address.sin_family = AF_INET;
+    address.sin_port = 0;
+    if (fd < 0 || ::inet_pton(AF_INET, host.c_str(), &address.sin_addr) != 1 ||
+        ::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) {
+      status = Status::IoError("no free port on " + host + ": " + std::strerror(errno));
+      if (fd >= 0) ::close(fd);
+      break;
+    }
+    socklen_t length = sizeof(address);
+    ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length);
+    sockets.push_back(fd);
+    ports.push_back(ntohs(address.sin_port));
+  }
+  for (int fd : sockets) ::close(fd);
+  if (!status.ok()) return status;
+  return ports;
+}
+
+// True once `host:port` accepts a TCP connection.
+bool Accepts(const std::string& host, int port) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  if (fd < 0) return false;
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(static_cast<uint16_t>(port));
+  const bool ok = ::inet_pton(AF_INET, host.c_str(), &address.sin_addr) == 1 &&
+                  ::connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0;
+  ::close(fd);
+  return ok;
+}
+
+std::string Tail(const std::string& path, size_t bytes = 1500) {
+  std::ifstream in(path, std::ios::binary);
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  return text.size() > bytes ? text.substr(text.size() - bytes) : text;
+}
+
+// "<letter><number>" (engine names); appends rather than `Named('e', i)`, which GCC 12
+// flags with a false -Wrestrict at -O3.
+std::string Named(char letter, int number) {
+  std::string name(1, letter);
+  name += std::to_string(number);
+  return name;
+}
+
+void SleepMs(int ms) {
+  std::this_thread::sleep_for(std::chrono::milliseconds(ms));
+}
+
+}  // namespace
+
+// ---- EngineProcess -----------------------------------------------------------------------------
+
+EngineProcess::~EngineProcess() {
+  Kill();
+}
+
+Status EngineProcess::Start(std::vector<std::string> argv, const std::string& log_path) {
+  if (running()) return Status::FailedPrecondition("engine already running: " + argv_[0]);
+  argv_ = std::move(argv);
+  std::vector<char*> args;
+  for (auto& arg : argv_) args.push_back(arg.data());
+  args.push_back(nullptr);
+  const pid_t parent = ::getpid();
+  const pid_t pid = ::fork();
+  if (pid < 0) return Status::IoError(std::string("fork: ") + std::strerror(errno));
+  if (pid == 0) {
+    ::setpgid(0, 0);
+    ::prctl(PR_SET_PDEATHSIG, SIGKILL);
+    if (::getppid() != parent) _exit(1);  // the test died before prctl
+    const int log = ::open(log_path.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+    const int null = ::open("/dev/null", O_RDONLY);
+    if (log >= 0) {
+      ::dup2(log, 1);
+      ::dup2(log, 2);
+    }
+    if (null >= 0) ::dup2(null, 0);
+    ::execv(args[0], args.data());
+    _exit(127);
+  }
+  ::setpgid(pid, pid);  // also here: no window where a kill of the group misses the child
+  pid_ = pid;
+  fs::create_directories(Engines::PidDirectory());
+  // Line 1: the binary (the cleanup kills the pid only while it still runs it); line 2: the
+  // engines' directory (removed by the cleanup when a crash left it).
+  std::ofstream(Engines::PidDirectory() + "/" + std::to_string(pid))
+      << argv_[0] << "\n"
+      << fs::path(log_path).parent_path().string() << "\n";
+  return Status::Ok();
+}
+
+void EngineProcess::Kill() {
+  if (pid_ <= 0) return;
+  ::kill(-pid_, SIGKILL);
+  ::kill(pid_, SIGKILL);
+  int status = 0;
+  while (::waitpid(pid_, &status, 0) < 0 && errno == EINTR) {
+  }
+  std::error_code ignored;
+  fs::remove(Engines::PidDirectory() + "/" + std::to_string(pid_), ignored);
+  pid_ = -1;
+}
+
+// ---- Engines -----------------------------------------------------------------------------------
+
+std::string Engines::PidDirectory() {
+  if (const char* dir = std::getenv("PLACEDB_CLUSTER_PID_DIR"); dir && *dir) return dir;
+#ifdef PLACEDB_CLUSTER_PID_DIR
+  return PLACEDB_CLUSTER_PID_DIR;  // the build tree's, where ctest's cleanup looks
+#endif
+  return (fs::temp_directory_path() / ("placedb-cluster-pids-" + std::to_string(::getuid())))
+      .string();
+}
+
+Result<std::unique_ptr<Engines>> Engines::Start(EnginesOptions options) {
+  if (options.nodes < 1) return Status::InvalidArgument("Engines: at least one node");
+  if (options.hosts.empty()) {
+    // PLACEDB_ENGINES_HOSTS="127.0.0.2,127.0.0.3,127.0.0.4": one address per node, for runs
+    // that check nothing depends on the nodes sharing one.
+    if (const char* hosts = std::getenv("PLACEDB_ENGINES_HOSTS"); hosts && *hosts) {
+      std::string list = hosts;
+      for (size_t start = 0; start <= list.size();) {
+        const size_t comma = std::min(list.find(',', start), list.size());
+        options.hosts.push_back(list.substr(start, comma - start));
+        start = comma + 1;
+      }
+    } else {
+      options.hosts.assign(options.nodes, "127.0.0.1");
+    }
+  }
+  if (static_cast<int>(options.hosts.size()) != options.nodes) {
+    return Status::InvalidArgument("Engines: one host per node");
+  }
+  std::unique_ptr<Engines> engines(new Engines(std::move(options)));
+  PLACEDB_RETURN_IF_ERROR(engines->Setup());
+  return engines;
+}
+
+Status Engines::Setup() {
+  std::string pattern = (fs::temp_directory_path() / "placedb-engines-XXXXXX").string();
+  if (!::mkdtemp(pattern.data())) {
+    return Status::IoError("mkdtemp " + pattern + ": " + std::strerror(errno));
+  }
+  directory_ = pattern;
+  for (int i = 0; i < options_.nodes; ++i) {
+    auto node = std::make_unique<Node>();
+    node->host = options_.hosts[i];
+    auto ports = FreePorts(node->host, 4);
+    if (!ports.ok()) return ports.status();
+    node->nats_port = (*ports)[0];
+    node->nats_cluster_port = (*ports)[1];
+    node->etcd_client_port = (*ports)[2];
+    node->etcd_peer_port = (*ports)[3];
+    nodes_.push_back(std::move(node));
+  }
+  // Every engine first, then wait: the members need each other to become ready.
+  for (int i = 0; i < nodes(); ++i) {
+    if (options_.nats) PLACEDB_RETURN_IF_ERROR(StartNats(i));
+    if (options_.etcd) PLACEDB_RETURN_IF_ERROR(StartEtcd(i));
+  }
+  const auto deadline = Clock::now() + options_.ready_timeout;
+  for (int i = 0; i < nodes(); ++i) {
+    if (options_.nats) PLACEDB_RETURN_IF_ERROR(WaitNatsReady(i, deadline));
+    if (options_.etcd) PLACEDB_RETURN_IF_ERROR(WaitEtcdReady(i, deadline));
+  }
+  return Status::Ok();
+}
+
+Engines::~Engines() {
+  for (auto& node : nodes_) {
+    node->nats.Kill();
+    node->etcd.Kill();
+  }
+  if (!directory_.empty() && !std::getenv("PLACEDB_KEEP_ENGINES_DIR")) {
+    std::error_code ignored;
+    fs::remove_all(directory_, ignored);
+  }
+}
+
+const std::string& Engines::host(int node) const {
+  return nodes_.at(node)->host;
+}
+
+std::string Engines::NatsUrl(int node) const {
+  return "nats://" + host(node) + ":" + std::to_string(nodes_.at(node)->nats_port);
+}
+
+std::vector<std::string> Engines::NatsUrls() const {
+  std::vector<std::string> urls;
+  for (int i = 0; i < nodes(); ++i) urls.push_back(NatsUrl(i));
+  return urls;
+}
+
+std::string Engines::NatsServerName(int node) const {
+  return Named('n', node);
+}
+
+int Engines::NodeOfServerName(const std::string& server_name) const {
+  for (int i = 0; i < nodes(); ++i) {
+    if (NatsServerName(i) == server_name) return i;
+  }
+  return -1;
+}
+
+std::string Engines::EtcdEndpoint(int node) const {
+  return host(node) + ":" + std::to_string(nodes_.at(node)->etcd_client_port);
+}
+
+std::vector<std::string> Engines::EtcdEndpoints() const {
+  std::vector<std::string> endpoints;
+  for (int i = 0; i < nodes(); ++i) endpoints.push_back(EtcdEndpoint(i));
+  return endpoints;
+}
+
+Status Engines::StartNats(int index) {
+  Node& node = *nodes_.at(index);
+  const std::string name = NatsServerName(index);
+  const std::string config_path = directory_ + "/" + name + ".conf";
+  {
+    std::ofstream config(config_path);
+    config << "server_name: " << name << "\n"
+           << "listen: \"" << node.host << ":" << node.nats_port << "\"\n"
+           << "jetstream {\n"
+           << "  store_dir: \"" << directory_ << "/" << name << "\"\n"
+           << "  max_memory_store: 64MB\n"
+           << "  max_file_store: 4GB\n"
+           << "}\n"
+           << "cluster {\n"
+           << "  name: placedb\n"
+           << "  listen: \"" << node.host << ":" << node.nats_cluster_port << "\"\n"
+           << "  routes: [\n";
+    for (const auto& other : nodes_) {
+      config << "    \"nats-route://" << other->host << ":" << other->nats_cluster_port << "\"\n";
+    }
+    config << "  ]\n}\n";
+    if (!config) return Status::IoError("cannot write " + config_path);
+  }
+  return node.nats.Start({NatsServerBinary(), "-c", config_path}, directory_ + "/" + name + ".log");
+}
+
+// A restart finds its data dir and ignores the --initial-* flags: the same command line serves.
+Status Engines::StartEtcd(int index) {
+  Node& node = *nodes_.at(index);
+  const std::string name = Named('e', index);
+  const std::string client_url = "http://" + EtcdEndpoint(index);
+  const std::string peer_url = "http://" + node.host + ":" + std::to_string(node.etcd_peer_port);
+  std::string initial_cluster;
+  for (int i = 0; i < nodes(); ++i) {
+    if (!initial_cluster.empty()) initial_cluster += ",";
+    initial_cluster +=
+        Named('e', i) + "=http://" + host(i) + ":" + std::to_string(nodes_[i]->etcd_peer_port);
+  }
+  return node.etcd.Start(
+      {EtcdBinary(), "--name", name, "--data-dir", directory_ + "/" + name, "--listen-client-urls",
+       client_url, "--advertise-client-urls", client_url, "--listen-peer-urls", peer_url,
+       "--initial-advertise-peer-urls", peer_url, "--initial-cluster", initial_cluster,
+       "--initial-cluster-state", "new", "--initial-cluster-token", "placedb-engines",
+       // etcd's defaults, spelled out: lease TTLs below 1.5 x the election timeout are raised.
+       "--heartbeat-interval", "100", "--election-timeout", "1000", "--logger", "zap",
+       "--log-level", "warn"},
+      directory_ + "/" + name + ".log");
+}
+
+Status Engines::WaitNatsReady(int index, Clock::time_point deadline) const {
+  const std::string log = directory_ + "/" + NatsServerName(index) + ".log";
+  Status last;
+  while (Clock::now() < deadline) {
+    if (!nodes_.at(index)->nats.running()) break;
+    JetStreamOptions options;
+    options.servers = {NatsUrl(index)};
+    options.connect_timeout = std::chrono::milliseconds(500);
+    options.request_timeout = std::chrono::milliseconds(1000);
+    auto js = JetStream::Connect(options);
+    if (js.ok()) {
+      // Stream info of a stream that does not exist: NOT_FOUND comes from the JetStream meta
+      // leader, so it proves one is elected and this node reaches it.
+      auto info = (*js)->GetStreamInfo("PLACEDB_HARNESS_READY_PROBE");
+      if (info.status().code() == StatusCode::kNotFound) return Status::Ok();
+      last = info.status();
+    } else {
+      last = js.status();
+    }
+    SleepMs(200);
+  }
+  return Status::IoError("nats-server " + NatsServerName(index) + " not ready: " + last.ToString() +
+                         "\n--- " + log + " (tail) ---\n" + Tail(log));
+}
+
+Status Engines::WaitEtcdReady(int index, Clock::time_point deadline) const {
+  const std::string log = directory_ + "/" + Named('e', index) + ".log";
+  // etcd listens for clients only once it has joined the cluster; a gRPC channel created before
+  // would sit in reconnect backoff: wait for the port first.
+  while (Clock::now() < deadline && nodes_.at(index)->etcd.running() &&
+         !Accepts(host(index), nodes_.at(index)->etcd_client_port)) {
+    SleepMs(50);
+  }
+  EtcdOptions options;
+  options.endpoints = {EtcdEndpoint(index)};
+  options.call_timeout = std::chrono::milliseconds(1000);
+  options.attempt_timeout = std::chrono::milliseconds(1000);
+  auto client = EtcdClient::Create(options);
+  if (!client.ok()) return client.status();
+  Status last;
+  while (Clock::now() < deadline) {
+    if (!nodes_.at(index)->etcd.running()) break;
+    auto got = (*client)->Get("/placedb-harness/ready");
+    if (got.ok()) return Status::Ok();
+    last = got.status();
+    SleepMs(200);
+  }
+  return Status::IoError("etcd member " + Named('e', index) + " not ready: " + last.ToString() +
+                         "\n--- " + log + " (tail) ---\n" + Tail(log));
+}
+
+void Engines::KillNats(int node) {
+  nodes_.at(node)->nats.Kill();
+}
+void Engines::KillEtcd(int node) {
+  nodes_.at(node)->etcd.Kill();
+}
+bool Engines::NatsRunning(int node) const {
+  return nodes_.at(node)->nats.running();
+}
+bool Engines::EtcdRunning(int node) const {
+  return nodes_.at(node)->etcd.running();
+}
+
+Status Engines::RestartNats(int node) {
+  PLACEDB_RETURN_IF_ERROR(StartNats(node));
+  return WaitNatsReady(node, Clock::now() + options_.ready_timeout);
+}
+
+Status Engines::RestartEtcd(int node) {
+  PLACEDB_RETURN_IF_ERROR(StartEtcd(node));
+  return WaitEtcdReady(node, Clock::now() + options_.ready_timeout);
+}
+
+Result<int> Engines::StreamLeader(const std::string& stream,
+                                  std::chrono::milliseconds timeout) const {
+  JetStreamOptions options;
+  for (int i = 0; i < nodes(); ++i) {
+    if (NatsRunning(i)) options.servers.push_back(NatsUrl(i));
+  }
+  if (options.servers.empty()) return Status::FailedPrecondition("no nats-server is running");
+  options.request_timeout = std::chrono::milliseconds(1000);
+  auto js = JetStream::Connect(options);
+  if (!js.ok()) return js.status();
+  const auto deadline = Clock::now() + timeout;
+  Status last;
+  while (Clock::now() < deadline) {
+    auto info = (*js)->GetStreamInfo(stream);
+    if (info.ok() && !info->leader.empty()) {
+      const int node = NodeOfServerName(info->leader);
+      if (node >= 0) return node;
+      return Status::Internal("stream leader '" + info->leader + "' is no node of the harness");
+    }
+    last = info.ok() ? Status::IoError("no leader elected") : info.status();
+    SleepMs(100);
+  }
+  return Status::IoError("stream " + stream + ": no leader within " +
+                         std::to_string(timeout.count()) + " ms: " + last.ToString());
+}
+
+}  // namespace placedb::cluster::testing
