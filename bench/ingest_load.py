@@ -111,12 +111,12 @@ def measure(build, options, workdir, config=None):
         query = source + the_map + ["--agents", "1", "--query-ratio", "1",
                                     "--rate", str(options.query_rate),
                                     "--duration", str(options.query_duration)]
-        # Idle and loaded phases alternate, so that the other processes of a shared machine
-        # weigh on both alike; each figure is the median over the phases.
+        # Loaded and idle phases alternate, so that the other processes of a shared machine
+        # weigh on both alike; each figure is the median over the phases. Each idle phase comes
+        # right after a loaded one: ingest grows the map, and a query's cost grows with it, so
+        # the idle figure is taken on a map at least as large as any the loaded phase queried.
         idle, loaded, beside = [], [], []
         for phase in range(options.query_phases):
-            out = os.path.join(workdir, f"idle-{phase}.json")
-            idle.append(finished(server.load(query, out), out, "idle queries")["rpc"]["query"])
             out = os.path.join(workdir, f"loaded-{phase}.json")
             ingest_out = os.path.join(workdir, f"loaded-ingest-{phase}.json")
             ingesting = server.load(source + the_map + [
@@ -127,6 +127,8 @@ def measure(build, options, workdir, config=None):
                 finished(server.load(query, out), out, "loaded queries")["rpc"]["query"])
             beside.append(finished(ingesting, ingest_out, "ingest beside queries")
                           ["throughput_fps"])
+            out = os.path.join(workdir, f"idle-{phase}.json")
+            idle.append(finished(server.load(query, out), out, "idle queries")["rpc"]["query"])
 
         def median(reports, key):
             return statistics.median(r["latency_ms"][key] for r in reports)
@@ -168,8 +170,8 @@ def main():
                 return 2
     print(f"# ingest_load: {options.agents} agents, precomputed ORB features of "
           f"{options.source}, {options.duration:g} s unpaced; queries {options.query_rate:g}/s "
-          f"for {options.query_duration:g} s idle, then beside {options.agents} ingesting agents "
-          f"({options.query_phases} times, medians); "
+          f"for {options.query_duration:g} s beside {options.agents} ingesting agents, then idle "
+          f"on the grown map ({options.query_phases} times, medians); "
           f"nproc {os.cpu_count()}, load {os.getloadavg()[0]:.2f}")
     workdir = tempfile.mkdtemp(prefix="placedb-bench-ingest-")
     try:
