@@ -206,6 +206,17 @@ std::string_view ConstantTensor(const Node& node) {
 }
 
 // The graph's bytes with the pairs fused; false (and *fused untouched) when it does not parse.
+// A graph output (ValueInfoProto) counts as one more consumer of the tensor it names, so that
+// no rewrite removes a tensor the caller reads. False when the bytes do not parse.
+bool CountGraphOutputUse(std::string_view value_info, std::map<std::string_view, int>* uses) {
+  std::vector<Field> info;
+  if (!ParseFields(value_info, &info)) return false;
+  for (const Field& i : info) {
+    if (i.number == kValueInfoName && i.wire == kWireLengthDelimited) ++(*uses)[i.payload];
+  }
+  return true;
+}
+
 bool FuseGraph(std::string_view graph, std::vector<unsigned char>* out, int* fused) {
   std::vector<Field> fields;
   if (!ParseFields(graph, &fields)) return false;
@@ -215,11 +226,7 @@ bool FuseGraph(std::string_view graph, std::vector<unsigned char>* out, int* fus
   for (const Field& f : fields) {
     if (f.wire != kWireLengthDelimited) continue;
     if (f.number == kGraphOutput) {
-      std::vector<Field> info;
-      if (!ParseFields(f.payload, &info)) return false;
-      for (const Field& i : info) {
-        if (i.number == kValueInfoName && i.wire == kWireLengthDelimited) ++uses[i.payload];
-      }
+      if (!CountGraphOutputUse(f.payload, &uses)) return false;
     } else if (f.number == kGraphNode) {
       Node node;
       if (!ParseNode(f.payload, &node)) return false;
@@ -429,11 +436,7 @@ bool CutFocusGraph(std::string_view graph, std::vector<unsigned char>* out, Focu
         if (t.number == kTensorName && t.wire == kWireLengthDelimited) constants[t.payload] = value;
       }
     } else if (f.number == kGraphOutput) {
-      std::vector<Field> info;
-      if (!ParseFields(f.payload, &info)) return false;
-      for (const Field& i : info) {
-        if (i.number == kValueInfoName && i.wire == kWireLengthDelimited) ++uses[i.payload];
-      }
+      if (!CountGraphOutputUse(f.payload, &uses)) return false;
     } else if (f.number == kGraphNode) {
       Node node;
       if (!ParseNode(f.payload, &node)) return false;
