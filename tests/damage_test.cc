@@ -125,6 +125,29 @@ class DamageTest : public ::testing::Test {
     return dir.ok() ? std::move(dir).value() : nullptr;
   }
 
+  // Closes the map cleanly first (everything in SST files: RocksDB opened here without placedb's
+  // merge operators replays no placedb write), then runs `edit` on the map's raw RocksDB.
+  using RawEdit =
+      std::function<void(rocksdb::DB*, std::vector<rocksdb::ColumnFamilyHandle*>& handles)>;
+  void EditClosedMap(const RawEdit& edit) {
+    {
+      auto dir = OpenDir();
+      ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
+      dir->CloseMap("lab");
+    }
+    std::vector<rocksdb::ColumnFamilyDescriptor> families;
+    for (const char* name :
+         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
+      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
+    }
+    std::vector<rocksdb::ColumnFamilyHandle*> handles;
+    rocksdb::DB* raw = nullptr;
+    ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir_, families, &handles, &raw).ok());
+    edit(raw, handles);
+    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
+    delete raw;
+  }
+
   // The map's files whose name ends with `suffix` (".log", ".sst"), by name.
   std::vector<fs::path> Files(const std::string& suffix) const {
     std::vector<fs::path> files;
@@ -372,28 +395,11 @@ TEST_F(DamageTest, MapDirectoryReplacedByAFileIsListedAsDamage) {
 }
 
 TEST_F(DamageTest, MissingMapInfoRecordIsDamage) {
-  {
-    // A clean close first: everything in SST files, so that RocksDB opened here without
-    // placedb's merge operator replays no placedb write.
-    auto dir = OpenDir();
-    ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
-    dir->CloseMap("lab");
-  }
-  {
-    std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name :
-         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
-      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
-    }
-    std::vector<rocksdb::ColumnFamilyHandle*> handles;
-    rocksdb::DB* raw = nullptr;
-    ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir_, families, &handles, &raw).ok());
+  EditClosedMap([](rocksdb::DB* raw, std::vector<rocksdb::ColumnFamilyHandle*>& handles) {
     rocksdb::WriteOptions sync;
     sync.sync = true;
     EXPECT_TRUE(raw->Delete(sync, handles[0], "info").ok());
-    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
-    delete raw;
-  }
+  });
   auto dir = OpenDir();
   auto info = dir->ReadMapInfo("lab");
   ASSERT_FALSE(info.ok());
@@ -539,26 +545,10 @@ TEST_F(DamageTest, ParallelLoadReportsDamageInTheMiddleLikeTheSequentialScan) {
   };
   // Back to the fixture's files, closed cleanly (everything in SST files: RocksDB opened below
   // without placedb's merge operators replays no placedb write), then `edit` on the raw RocksDB.
-  const auto edited = [&](const std::function<void(
-                              rocksdb::DB*, std::vector<rocksdb::ColumnFamilyHandle*>&)>& edit) {
+  const auto edited = [&](const RawEdit& edit) {
     fs::remove_all(root_ + "/data");
     fs::copy(*template_root_ + "/data", root_ + "/data", fs::copy_options::recursive);
-    {
-      auto dir = OpenDir();
-      ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
-      dir->CloseMap("lab");
-    }
-    std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name :
-         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
-      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
-    }
-    std::vector<rocksdb::ColumnFamilyHandle*> handles;
-    rocksdb::DB* raw = nullptr;
-    ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir_, families, &handles, &raw).ok());
-    edit(raw, handles);
-    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
-    delete raw;
+    EditClosedMap(edit);
   };
   rocksdb::WriteOptions sync;
   sync.sync = true;
