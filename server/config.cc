@@ -125,6 +125,12 @@ Status ValidateServerConfig(const ServerConfig& c) {
     return Bad("query_threads", "must be in [0, 1024]");
   }
   if (c.ingest_nice < 0 || c.ingest_nice > 19) return Bad("ingest_nice", "must be in [0, 19]");
+  if (c.search.threads < 1 || c.search.threads > 64) {
+    return Bad("search.threads", "must be in [1, 64]");
+  }
+  if (!(c.search.max_word_share > 0 && c.search.max_word_share <= 1)) {
+    return Bad("search.max_word_share", "must be in (0, 1]");
+  }
   if (c.opencv_threads < -1 || c.opencv_threads > 1024) {
     return Bad("opencv_threads", "must be in [-1, 1024]");
   }
@@ -247,6 +253,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
                                    "threads",
                                    "query_threads",
                                    "ingest_nice",
+                                   "search",
                                    "opencv_threads",
                                    "vocabularies",
                                    "storage",
@@ -312,6 +319,14 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(s, "security", "reflection", &c->security.reflection));
     PLACEDB_RETURN_IF_ERROR(r.Read(s, "security", "allow_unauthenticated_remote",
                                    &c->security.allow_unauthenticated_remote));
+  }
+  if (const YAML::Node s = root["search"]; s) {
+    PLACEDB_RETURN_IF_ERROR(
+        r.Check(s, "search", {"threads", "max_word_share", "skip_words_min_places"}));
+    PLACEDB_RETURN_IF_ERROR(r.Read(s, "search", "threads", &c->search.threads));
+    PLACEDB_RETURN_IF_ERROR(r.Read(s, "search", "max_word_share", &c->search.max_word_share));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(s, "search", "skip_words_min_places", &c->search.skip_words_min_places));
   }
   if (const YAML::Node s = root["storage"]; s) {
     PLACEDB_RETURN_IF_ERROR(r.Check(s, "storage",
@@ -616,6 +631,11 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "threads" << YAML::Value << c.threads;
   e << YAML::Key << "query_threads" << YAML::Value << c.query_threads;
   e << YAML::Key << "ingest_nice" << YAML::Value << c.ingest_nice;
+  e << YAML::Key << "search" << YAML::Value << YAML::BeginMap;
+  e << YAML::Key << "threads" << YAML::Value << c.search.threads;
+  e << YAML::Key << "max_word_share" << YAML::Value << c.search.max_word_share;
+  e << YAML::Key << "skip_words_min_places" << YAML::Value << c.search.skip_words_min_places;
+  e << YAML::EndMap;
   e << YAML::Key << "opencv_threads" << YAML::Value << c.opencv_threads;
   e << YAML::Key << "vocabularies" << YAML::Value << YAML::BeginMap;
   for (const auto& [name, path] : c.vocabularies) e << YAML::Key << name << YAML::Value << path;

@@ -103,6 +103,19 @@ struct SecuritySettings {
   bool allow_unauthenticated_remote = false;
 };
 
+// How Query and Ingest's matches search the inverted index (docs/index.md). Loop closure's own
+// searches are not affected.
+struct SearchSettings {
+  // Threads one query may use (PlaceDatabase QueryOptions::search_threads; 1..64). The answer is
+  // the same for every value; 2 roughly halves a large map's search on an idle 2-core machine,
+  // and only waits for a core on a busy one.
+  int threads = 1;
+  // < 1: skip a query's words held by more than this share of the map's places, in maps of at
+  // least skip_words_min_places places (QueryOptions::max_word_share). (0, 1]; 1 = exact.
+  double max_word_share = 1.0;
+  uint64_t skip_words_min_places = 100000;
+};
+
 struct ServerConfig {
   // Loopback by default: a server reachable from other hosts needs tokens or mutual TLS, or
   // security.allow_unauthenticated_remote.
@@ -136,6 +149,7 @@ struct ServerConfig {
   // The ingest workers' nice value (0..19; queries keep the normal priority): on a busy machine
   // queries then get the CPU first. 0 = off.
   int ingest_nice = 10;
+  SearchSettings search;
   // name -> vocabulary file: binary .pdbv / DBoW2 text (ORB maps) or float .pdbfv (SIFT maps).
   // "default" is required (CreateMap with no vocabulary uses it).
   std::map<std::string, std::string> vocabularies = EmbeddedVocabularies();
@@ -169,7 +183,8 @@ Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config);  // 
 // PLACEDB_METRICS_TLS, PLACEDB_CONSOLE_LISTEN, PLACEDB_CONSOLE_TLS, PLACEDB_THREADS,
 // PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL, PLACEDB_MEMORY_BUDGET_BYTES, PLACEDB_TLS_CERT_FILE,
 // PLACEDB_TLS_KEY_FILE, PLACEDB_TLS_CLIENT_CA_FILE, PLACEDB_TOKENS_FILE,
-// PLACEDB_ALLOW_UNAUTHENTICATED_REMOTE. `getenv` is injectable for tests. Also PLACEDB_MAX_SNAPSHOT_BYTES (limits.max_snapshot_bytes).
+// PLACEDB_ALLOW_UNAUTHENTICATED_REMOTE. `getenv` is injectable for tests. Also
+// PLACEDB_MAX_SNAPSHOT_BYTES (limits.max_snapshot_bytes).
 Status ApplyEnvironment(ServerConfig* config,
                         const std::function<const char*(const char*)>& getenv);
 

@@ -61,6 +61,13 @@ double MsSince(Clock::time_point start) {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
 
+// The operator's search settings (config `search`), the same for every caller.
+void ApplySearchSettings(const SearchSettings& search, QueryOptions* options) {
+  options->search_threads = search.threads;
+  options->max_word_share = search.max_word_share;
+  options->skip_words_min_places = search.skip_words_min_places;
+}
+
 // Whether the call is over: cancelled by the client (or by us), or past its deadline. gRPC's own
 // deadline timer fires asynchronously, so the deadline is also checked here directly: work never
 // starts a stage after the deadline.
@@ -679,6 +686,7 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
       status = Guarded("searching", [&] {
         QueryOptions options =
             QueryOptionsFromProto(request->options(), request->observation().agent_id());
+        ApplySearchSettings(config_.search, &options);
         options.timestamp_ns = request->observation().timestamp_ns();
         QueryResult result = map.map->Search(work.frame, options);
         // A map that counts query hits (MapConfig.dynamics): durable before the answer.
@@ -963,6 +971,7 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       }
       if (slot->matches && frame.valid) {
         QueryOptions options = QueryOptionsFromProto(*slot->matches, work.metadata.agent_id);
+        ApplySearchSettings(config_.search, &options);
         options.timestamp_ns = work.metadata.timestamp_ns;
         QueryResult result = map.map->Search(frame, options);
         work.timings.search_ms = result.timings.search_ms;

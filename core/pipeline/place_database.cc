@@ -734,8 +734,10 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
     const std::vector<ScoredPlace> bonus = config_.short_term.enabled && !frame.dynamic_bow.empty()
                                                ? ShortTermBonusLocked(frame, options.timestamp_ns)
                                                : std::vector<ScoredPlace>();
-    const std::vector<ScoredPlace> ranked = index_.Query(
-        frame.bow, options.top_k, accept, bonus, options.search_threads, options.max_word_share);
+    const double word_share =
+        index_.place_count() >= options.skip_words_min_places ? options.max_word_share : 1.0;
+    const std::vector<ScoredPlace> ranked =
+        index_.Query(frame.bow, options.top_k, accept, bonus, options.search_threads, word_share);
     candidates.reserve(ranked.size());
     for (const ScoredPlace& scored : ranked) {
       candidates.emplace_back(scored, records_.at(scored.place));

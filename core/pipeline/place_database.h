@@ -273,6 +273,10 @@ struct QueryOptions {
   // InvertedIndex::Query): faster on large maps, no longer the exact ranking (docs/index.md has
   // the measured agreement; on small maps it changes the top 1 often). 1: exact, the default.
   double max_word_share = 1.0;
+  // max_word_share applies only to maps of at least this many places. A frequent word's run is
+  // long only in a large map: that is where skipping it saves time, while in a small one a word
+  // held by a few places still tells them apart (and skipping it changes the top 1).
+  size_t skip_words_min_places = 0;
 };
 
 struct Match {

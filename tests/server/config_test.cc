@@ -202,6 +202,36 @@ TEST(ServerConfigTest, MaxSnapshotBytesFromFileAndEnvironment) {
       << status.message();
 }
 
+TEST(ServerConfigTest, SearchSettings) {
+  ServerConfig c;
+  EXPECT_EQ(c.search.threads, 1);
+  EXPECT_EQ(c.search.max_word_share, 1.0);
+  ASSERT_TRUE(
+      server::ApplyConfigYaml(
+          "search:\n  threads: 2\n  max_word_share: 0.03\n  skip_words_min_places: 500000\n", &c)
+          .ok());
+  EXPECT_EQ(c.search.threads, 2);
+  EXPECT_DOUBLE_EQ(c.search.max_word_share, 0.03);
+  EXPECT_EQ(c.search.skip_words_min_places, 500000u);
+  ASSERT_TRUE(server::ValidateServerConfig(c).ok());
+  ServerConfig again;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(c), &again).ok());
+  EXPECT_DOUBLE_EQ(again.search.max_word_share, 0.03);
+  EXPECT_EQ(again.search.skip_words_min_places, 500000u);
+
+  Status unknown = server::ApplyConfigYaml("search:\n  share: 0.1\n", &c);
+  EXPECT_EQ(unknown.code(), StatusCode::kInvalidArgument);
+  for (double share : {0.0, -0.5, 1.5}) {
+    ServerConfig bad;
+    bad.search.max_word_share = share;
+    Status status = server::ValidateServerConfig(bad);
+    EXPECT_NE(status.message().find("search.max_word_share"), std::string::npos) << share;
+  }
+  ServerConfig bad;
+  bad.search.threads = 0;
+  EXPECT_NE(server::ValidateServerConfig(bad).message().find("search.threads"), std::string::npos);
+}
+
 // Found by tests/fuzz/fuzz_server_config: a value with a CR (an environment or YAML file with CRLF
 // line endings) was accepted, and --print-config printed it as a YAML line the CR ends, so the
 // printed configuration was not the one in use. Control characters are now refused by key.

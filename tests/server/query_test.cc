@@ -274,6 +274,47 @@ TEST_F(ServerTest, BadInputGetsItsCodeAndLeavesTheMapIntact) {
 
 // A SIFT map: created on the float vocabulary, frames ingested as images, queried back (as images
 // and as precomputed SIFT) with exhaustive verification, stored SIFT features read back.
+// The operator's `search` settings reach every query's index search: skipping frequent words
+// lowers a self-match below the exact score, but only in maps of at least skip_words_min_places.
+TEST_F(ServerTest, SearchSettingsSkipFrequentWordsOnlyInLargeEnoughMaps) {
+  std::vector<v1::Observation> observations;
+  for (int frame = 1; frame <= 8; ++frame) observations.push_back(RtabmapObservation(frame, "a"));
+  const auto self_match = [&](const ServerConfig& config) {
+    StartServer(config);
+    v1::QueryResponse response;
+    EXPECT_TRUE(Query("m", observations[3], &response, 3).ok());
+    StopServer();
+    EXPECT_FALSE(response.matches().empty());
+    return response.matches().empty() ? v1::Match() : response.matches(0);
+  };
+  ServerConfig config = Config();
+  ASSERT_NO_FATAL_FAILURE(StartServer(config));
+  CreateMap("m");
+  const IngestOutcome outcome = IngestAll(stub_.get(), "m", observations);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();
+  ASSERT_TRUE(outcome.responses[3].stored());
+  const uint32_t place = outcome.responses[3].place_id();
+  StopServer();
+
+  config.search.threads = 2;
+  const v1::Match exact = self_match(config);  // the default: every word scored
+  EXPECT_EQ(exact.place_id(), place);
+  EXPECT_NEAR(exact.score(), 1.0, 1.0 / 2048 + 1e-5);
+
+  // Words held by more than a quarter of the 8 places are skipped: consecutive frames of one
+  // corridor share many, so the self-match loses their share of the score.
+  config.search.max_word_share = 0.25;
+  config.search.skip_words_min_places = 8;
+  const v1::Match skipped = self_match(config);
+  EXPECT_EQ(skipped.place_id(), place);
+  EXPECT_LT(skipped.score(), exact.score() - 0.05);
+
+  config.search.skip_words_min_places = 9;  // the map is smaller: exact again
+  const v1::Match small_map = self_match(config);
+  EXPECT_EQ(small_map.place_id(), place);
+  EXPECT_DOUBLE_EQ(small_map.score(), exact.score());
+}
+
 TEST_F(ServerTest, SiftMapIngestsImagesAndFindsThemVerified) {
   ASSERT_TRUE(SiftVocabulary());
   ASSERT_NO_FATAL_FAILURE(StartServer(WithSift(Config()), SiftDeps()));
