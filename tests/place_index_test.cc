@@ -573,8 +573,9 @@ TEST(InvertedIndexTest, TwoThreadQueryEqualsOneThreadQueryExactly) {
 
 TEST(InvertedIndexTest, BulkBuiltSegmentsAnswerExactlyLikeAdd) {
   // Full, partial and gappy segments (ids across three segments, a run of long lists above the
-  // slab's 1024 postings), built on two threads at once and installed in order: every query's
-  // places and scores equal the Add-built index's bit for bit, on every scoring.
+  // slab's 1024 postings), built on two threads at once and installed in order, or built in
+  // ranges of 512 ids appended to their segments: every query's places and scores equal the
+  // Add-built index's bit for bit, on every scoring.
   constexpr uint32_t kWords = 400;
   for (ScoringType type : kAllScorings) {
     SCOPED_TRACE(ScoringName(type));
@@ -605,6 +606,19 @@ TEST(InvertedIndexTest, BulkBuiltSegmentsAnswerExactlyLikeAdd) {
       ASSERT_TRUE(segment.ok()) << segment.status().ToString();
       ASSERT_TRUE(bulk.Install(std::move(segment).value()).ok());
     }
+    // The same places installed in ranges of 512 ids: appended to their segments.
+    InvertedIndex appended(kWords, type);
+    for (auto it = places.begin(); it != places.end();) {
+      std::vector<InvertedIndex::BulkPlace> range;
+      const PlaceId range_index = it->first / 512;
+      for (; it != places.end() && it->first / 512 == range_index; ++it) {
+        range.push_back({it->first, &it->second});
+      }
+      auto segment = InvertedIndex::BuildSegment(kWords, range);
+      ASSERT_TRUE(segment.ok()) << segment.status().ToString();
+      ASSERT_TRUE(appended.Install(std::move(segment).value()).ok()) << range_index;
+    }
+    EXPECT_EQ(appended.posting_count(), added.posting_count());
     EXPECT_EQ(bulk.place_count(), added.place_count());
     EXPECT_EQ(bulk.posting_count(), added.posting_count());
     EXPECT_LE(bulk.MemoryBytes(), added.MemoryBytes());
@@ -615,11 +629,13 @@ TEST(InvertedIndexTest, BulkBuiltSegmentsAnswerExactlyLikeAdd) {
           i % 2 == 0 ? std::next(places.begin(), i * 97)->second : RandomBow(rng, kWords, 60, type);
       for (double share : {1.0, 0.05}) {
         const auto want = added.Query(query, 50, {}, {}, 1, share);
-        const auto got = bulk.Query(query, 50, {}, {}, 2, share);
-        ASSERT_EQ(got.size(), want.size());
-        for (size_t r = 0; r < want.size(); ++r) {
-          EXPECT_EQ(got[r].place, want[r].place) << "rank " << r;
-          EXPECT_EQ(got[r].score, want[r].score) << "rank " << r;
+        for (const InvertedIndex* index : {&bulk, &appended}) {
+          const auto got = index->Query(query, 50, {}, {}, 2, share);
+          ASSERT_EQ(got.size(), want.size());
+          for (size_t r = 0; r < want.size(); ++r) {
+            EXPECT_EQ(got[r].place, want[r].place) << "rank " << r;
+            EXPECT_EQ(got[r].score, want[r].score) << "rank " << r;
+          }
         }
       }
     }
@@ -655,25 +671,33 @@ TEST(InvertedIndexTest, BulkBuildRejectsWhatAddRejects) {
     EXPECT_EQ(InvertedIndex::BuildSegment(kWords, order).status().code(),
               StatusCode::kInvalidArgument);
   }
-  // Install: only into an empty segment, only for the same vocabulary size.
+  // Install: above every id its segment ever held, for the same vocabulary size only.
   InvertedIndex index(kWords, ScoringType::kL1);
-  ASSERT_TRUE(index.Add(3, good).ok());
-  const std::vector<Bulk> one = {{9, &good}};
-  auto segment = InvertedIndex::BuildSegment(kWords, one);
-  ASSERT_TRUE(segment.ok());
-  EXPECT_EQ(index.Install(std::move(segment).value()).code(), StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(index.Add(12, good).ok());
+  const std::vector<Bulk> nine = {{9, &good}};
+  auto below = InvertedIndex::BuildSegment(kWords, nine);
+  ASSERT_TRUE(below.ok());
+  EXPECT_EQ(index.Install(std::move(below).value()).code(), StatusCode::kFailedPrecondition);
   EXPECT_FALSE(index.Contains(9));
   EXPECT_EQ(index.place_count(), 1u);
-  auto other_vocabulary = InvertedIndex::BuildSegment(kWords + 1, one);
+  EXPECT_EQ(index.posting_count(), good.size());
+  ASSERT_TRUE(index.Remove(12, good).ok());  // the emptied segment takes any ids again
+  auto other_vocabulary = InvertedIndex::BuildSegment(kWords + 1, nine);
   ASSERT_TRUE(other_vocabulary.ok());
-  ASSERT_TRUE(index.Remove(3, good).ok());
   EXPECT_EQ(index.Install(std::move(other_vocabulary).value()).code(),
             StatusCode::kFailedPrecondition);
-  auto fresh = InvertedIndex::BuildSegment(kWords, one);
+  EXPECT_EQ(index.place_count(), 0u);
+  auto fresh = InvertedIndex::BuildSegment(kWords, nine);
   ASSERT_TRUE(fresh.ok());
   ASSERT_TRUE(index.Install(std::move(fresh).value()).ok());
   EXPECT_TRUE(index.Contains(9));
-  EXPECT_EQ(index.Query(good, 1)[0].place, 9u);
+  // Appended above an existing place: both answer, ties in id order.
+  const std::vector<Bulk> thirty = {{30, &good}};
+  auto above = InvertedIndex::BuildSegment(kWords, thirty);
+  ASSERT_TRUE(above.ok());
+  ASSERT_TRUE(index.Install(std::move(above).value()).ok());
+  EXPECT_EQ(Places(index.Query(good, 5)), (std::vector<PlaceId>{9, 30}));
+  EXPECT_EQ(index.posting_count(), 2 * good.size());
 }
 
 TEST(InvertedIndexTest, AcceptIsNeverCalledConcurrently) {

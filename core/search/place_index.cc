@@ -536,10 +536,21 @@ Status InvertedIndex::Install(DetachedSegment&& built) {
                                       " was built for " + std::to_string(built.word_count_) +
                                       " words, the index has " + std::to_string(word_count_));
   }
-  if (built.index_ < segments_.size() && segments_[built.index_].place_count > 0) {
-    return Status::FailedPrecondition("segment " + std::to_string(built.index_) +
-                                      " already holds places: a built segment installs only "
-                                      "into an empty one");
+  const uint32_t first_offset = built.places_.front() & ((1u << kSegmentBits) - 1);
+  const bool append = built.index_ < segments_.size() && segments_[built.index_].place_count > 0;
+  if (append) {
+    const Segment& target = segments_[built.index_];
+    if (target.scan_limit > first_offset) {
+      return Status::FailedPrecondition(
+          "segment " + std::to_string(built.index_) + " already holds places from id " +
+          std::to_string((PlaceId(built.index_) << kSegmentBits) + target.scan_limit - 1) +
+          " down: built places install only above the highest id ever added there");
+    }
+    // Each appended run needs at most one new page (slab locations are 31-bit).
+    if (target.pages.size() + built.words_.size() > kBigListBit / kPagePostings) {
+      return Status::ResourceExhausted("inverted index: posting storage of segment " +
+                                       std::to_string(built.index_) + " is full");
+    }
   }
   if (built.index_ >= segments_.size()) segments_.resize(size_t(built.index_) + 1);
   const PlaceId last = built.places_.back();
@@ -548,7 +559,25 @@ Status InvertedIndex::Install(DetachedSegment&& built) {
   for (WordId word : built.words_) word_places_[word] += built.segment_.lists[word].size;
   place_count_ += built.places_.size();
   posting_count_ += built.posting_count_;
-  segments_[built.index_] = std::move(built.segment_);
+  if (!append) {
+    segments_[built.index_] = std::move(built.segment_);  // the usual case: nothing to copy
+  } else {
+    // Append each run after the target's (all its offsets are lower), growing like Add.
+    Segment& target = segments_[built.index_];
+    for (WordId word : built.words_) {
+      const WordList& from = built.segment_.lists[word];
+      WordList& to = target.lists[word];
+      if (to.size + from.size > target.Capacity(to)) {
+        target.Relocate(&to, CapacityFor(to.size + from.size));
+      }
+      std::memcpy(target.Data(to) + to.size, built.segment_.Data(from),
+                  from.size * sizeof(Posting));
+      to.size += from.size;
+    }
+    target.place_count += built.segment_.place_count;
+    target.scan_limit = built.segment_.scan_limit;
+    target.CompactIfFragmented();
+  }
   built = DetachedSegment();
   return Status::Ok();
 }

@@ -112,9 +112,11 @@ class InvertedIndex {
   // order or in different segments. Touches nothing shared: any thread, any number at once.
   static Result<DetachedSegment> BuildSegment(uint32_t word_count,
                                               std::span<const BulkPlace> places);
-  // Moves a built segment in: O(words with postings in it) plus its places. FAILED_PRECONDITION
-  // (nothing changes) if the index already holds a place of that segment or the segment was
-  // built for another vocabulary size. Needs the same exclusion as Add.
+  // Installs a built segment: into an empty segment it is moved in, O(words with postings in it
+  // + its places); into one that holds places, all below the built ids, its runs are appended
+  // (copied, runs growing as with Add). FAILED_PRECONDITION (nothing changes) if the segment
+  // already holds or held an id at or above the lowest built one, or the built segment is for
+  // another vocabulary size. Needs the same exclusion as Add.
   Status Install(DetachedSegment&& segment);
 
   size_t place_count() const { return place_count_; }
