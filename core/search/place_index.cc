@@ -500,8 +500,7 @@ Result<InvertedIndex::DetachedSegment> InvertedIndex::BuildSegment(
     for (const BowEntry& entry : *places[i].bow) ++counts[entry.word];
     built.posting_count_ += places[i].bow->size();
   }
-  // Pass 2: give each word's run its final storage once, in word order (runs of neighbouring
-  // words share pages, as they would after Add's compaction).
+  // Pass 2: give each word's run its final storage once, in word order.
   Segment& segment = built.segment_;
   segment = Segment(word_count);
   for (WordId word = 0; word < word_count; ++word) {
@@ -512,7 +511,10 @@ Result<InvertedIndex::DetachedSegment> InvertedIndex::BuildSegment(
       return Status::ResourceExhausted("inverted index: posting storage of segment " +
                                        std::to_string(built.index_) + " is full");
     }
-    segment.Relocate(&segment.lists[word], CapacityFor(counts[word]));
+    // Slab runs get Add's class; a longer run gets exactly its size, where Add would leave up
+    // to 1/8 headroom (a later Add to it grows it as Add grows any run).
+    segment.Relocate(&segment.lists[word],
+                     counts[word] <= kMaxSlabCapacity ? CapacityFor(counts[word]) : counts[word]);
   }
   // Pass 3: a counting sort. Places come in increasing id order, so each run fills front to
   // back, already sorted by offset; `size` is the run's write cursor.

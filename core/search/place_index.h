@@ -98,9 +98,9 @@ class InvertedIndex {
 
   // Bulk building (reopening a map, PlaceMap::Load): one whole segment built off the index from
   // its places, then installed. The result answers every query exactly like the same places
-  // added one by one with Add (same runs, same quantisation); it holds no garbage slots, and
-  // each run's capacity is what Add gives a run of its final size (the fitting slab class, or
-  // 1/8 headroom above 1024 postings), so it never takes more memory than Add would.
+  // added one by one with Add (same runs, same quantisation); it holds no garbage slots, a run
+  // of up to 1024 postings gets the slab class Add ends with and a longer one exactly its size
+  // (Add leaves up to 1/8 headroom), so it never takes more memory than Add would.
   class DetachedSegment;
   struct BulkPlace {
     PlaceId place;
