@@ -836,9 +836,10 @@ struct LoadedPlace {
 // Reads the `places` and `bow` families for PlaceMap::Load, with every check Load makes: each
 // record has a BoW vector under the same key, its key is its id, no BoW vector lacks a record,
 // both decode; an unreadable block is the iterator's error (RocksDB names the file). Either one
-// scan of the whole key range (LoadSequential), or ranges of place ids read and decoded by
-// worker threads while the calling thread hands the places on in id order (LoadParallel).
-// Both hand on the same places in the same order and stop at the same first problem.
+// scan of the whole key range restoring place by place (LoadSequential), or ranges of place ids
+// read, decoded and built into index segments by worker threads while the calling thread
+// installs them in id order (LoadSegments). Both rebuild the same database and stop at the same
+// first problem.
 class PlaceLoader {
  public:
   using Visit = std::function<Status(LoadedPlace&&)>;
@@ -879,46 +880,46 @@ class PlaceLoader {
                       double* install_ms) const {
     std::optional<PlaceId> first, last;
     FirstAndLast(&first, &last);
-    // An empty family or a key that is not a place id: one scan reports it as it always has.
     const auto restore_one = [&](LoadedPlace&& place) {
       Stopwatch installing;
       Status restored = database.Restore(std::move(place.record), place.bow);
       *install_ms += installing.ElapsedMs();
       return restored;
     };
+    // An empty family or a key that is not a place id: one scan reports it as it always has.
     if (!first || !last || *last < *first) return LoadSequential(restore_one, read_ms);
-    struct Segment {
+    struct Built {
       Result<PlaceDatabase::RestoredSegment> prepared = Status::Internal("not read");
       Status read_status = Status::Ok();  // the first problem, found after the places read
     };
     std::vector<double> worker_read_ms(workers, 0.0), worker_build_ms(workers, 0.0);
     bool started = false;
-    Status status = RunRangesInOrder<Segment>(
+    Status status = RunRangesInOrder<Built>(
         *first, *last, range_ids_, workers, kRangeWindow,
         [&](Iterators& its, std::optional<PlaceId> begin, std::optional<PlaceId> end,
-            unsigned worker) -> Segment {
+            unsigned worker) -> Built {
           Stopwatch clock;
           std::vector<PlaceRecord> records;
           std::vector<BowVector> bows;
-          Segment segment;
-          segment.read_status = ReadRange(its, begin, end, [&](LoadedPlace&& place) {
+          Built built;
+          built.read_status = ReadRange(its, begin, end, [&](LoadedPlace&& place) {
             records.push_back(std::move(place.record));
             bows.push_back(std::move(place.bow));
             return Status::Ok();
           });
           worker_read_ms[worker] += clock.ElapsedMs();
           Stopwatch building;
-          segment.prepared = database.PrepareRestore(std::move(records), bows);
+          built.prepared = database.PrepareRestore(std::move(records), bows);
           worker_build_ms[worker] += building.ElapsedMs();
-          return segment;
+          return built;  // the decoded vectors are freed here: the index holds the postings
         },
-        [&](Segment&& segment) -> Status {
-          if (!segment.prepared.ok()) return segment.prepared.status();
+        [&](Built&& built) -> Status {
+          if (!built.prepared.ok()) return built.prepared.status();
           Stopwatch installing;
-          Status installed = database.RestoreRange(std::move(segment.prepared).value());
+          Status installed = database.RestoreRange(std::move(built.prepared).value());
           *install_ms += installing.ElapsedMs();
           PLACEDB_RETURN_IF_ERROR(installed);
-          return segment.read_status;
+          return built.read_status;
         },
         &started);
     if (!started) return LoadSequential(restore_one, read_ms);
@@ -931,10 +932,6 @@ class PlaceLoader {
   // Ranges read and built ahead of the one being installed.
   static constexpr size_t kRangeWindow = 2;
 
-  struct Range {
-    std::vector<LoadedPlace> places;
-    Status status = Status::Ok();  // the first problem, found after `places`
-  };
   struct Iterators {
     std::unique_ptr<rocksdb::Iterator> places, bows;
   };
