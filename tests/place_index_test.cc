@@ -571,6 +571,135 @@ TEST(InvertedIndexTest, TwoThreadQueryEqualsOneThreadQueryExactly) {
   }
 }
 
+TEST(InvertedIndexTest, BulkBuiltSegmentsAnswerExactlyLikeAdd) {
+  // Full, partial and gappy segments (ids across three segments, a run of long lists above the
+  // slab's 1024 postings), built on two threads at once and installed in order, or built in
+  // ranges of 512 ids appended to their segments: every query's places and scores equal the
+  // Add-built index's bit for bit, on every scoring.
+  constexpr uint32_t kWords = 400;
+  for (ScoringType type : kAllScorings) {
+    SCOPED_TRACE(ScoringName(type));
+    std::mt19937 rng(71 + int(type));
+    std::map<PlaceId, BowVector> places;
+    for (PlaceId n = 0; n < 3000; ++n) {
+      const PlaceId id = n < 1500 ? n * 3 + 1 : 65536 + (n - 1500) * 37 % 60000;
+      places[id] = RandomBow(rng, kWords, 30, type);
+    }
+    places[131072 + 5] = RandomBow(rng, kWords, 10, type);  // a one-place segment
+    InvertedIndex added(kWords, type);
+    for (const auto& [id, bow] : places) ASSERT_TRUE(added.Add(id, bow).ok()) << id;
+
+    std::vector<std::vector<InvertedIndex::BulkPlace>> by_segment(3);
+    for (const auto& [id, bow] : places) {
+      by_segment[id >> InvertedIndex::kSegmentBits].push_back({id, &bow});
+    }
+    std::vector<Result<InvertedIndex::DetachedSegment>> built;
+    for (int n = 0; n < 3; ++n) built.emplace_back(Status::Internal("not built"));
+    {
+      std::thread other([&] { built[1] = InvertedIndex::BuildSegment(kWords, by_segment[1]); });
+      built[0] = InvertedIndex::BuildSegment(kWords, by_segment[0]);
+      built[2] = InvertedIndex::BuildSegment(kWords, by_segment[2]);
+      other.join();
+    }
+    InvertedIndex bulk(kWords, type);
+    for (auto& segment : built) {
+      ASSERT_TRUE(segment.ok()) << segment.status().ToString();
+      ASSERT_TRUE(bulk.Install(std::move(segment).value()).ok());
+    }
+    // The same places installed in ranges of 512 ids: appended to their segments.
+    InvertedIndex appended(kWords, type);
+    for (auto it = places.begin(); it != places.end();) {
+      std::vector<InvertedIndex::BulkPlace> range;
+      const PlaceId range_index = it->first / 512;
+      for (; it != places.end() && it->first / 512 == range_index; ++it) {
+        range.push_back({it->first, &it->second});
+      }
+      auto segment = InvertedIndex::BuildSegment(kWords, range);
+      ASSERT_TRUE(segment.ok()) << segment.status().ToString();
+      ASSERT_TRUE(appended.Install(std::move(segment).value()).ok()) << range_index;
+    }
+    EXPECT_EQ(appended.posting_count(), added.posting_count());
+    EXPECT_EQ(bulk.place_count(), added.place_count());
+    EXPECT_EQ(bulk.posting_count(), added.posting_count());
+    EXPECT_LE(bulk.MemoryBytes(), added.MemoryBytes());
+    for (const auto& [id, bow] : places) ASSERT_TRUE(bulk.Contains(id)) << id;
+    EXPECT_FALSE(bulk.Contains(2));
+    for (int i = 0; i < 30; ++i) {
+      const BowVector query =
+          i % 2 == 0 ? std::next(places.begin(), i * 97)->second : RandomBow(rng, kWords, 60, type);
+      for (double share : {1.0, 0.05}) {
+        const auto want = added.Query(query, 50, {}, {}, 1, share);
+        for (const InvertedIndex* index : {&bulk, &appended}) {
+          const auto got = index->Query(query, 50, {}, {}, 2, share);
+          ASSERT_EQ(got.size(), want.size());
+          for (size_t r = 0; r < want.size(); ++r) {
+            EXPECT_EQ(got[r].place, want[r].place) << "rank " << r;
+            EXPECT_EQ(got[r].score, want[r].score) << "rank " << r;
+          }
+        }
+      }
+    }
+    // A bulk-built segment keeps working with Add and Remove: the partial last one grows.
+    const BowVector more = RandomBow(rng, kWords, 30, type);
+    ASSERT_TRUE(bulk.Add(131072 + 6, more).ok());
+    ASSERT_TRUE(added.Add(131072 + 6, more).ok());
+    ASSERT_TRUE(bulk.Remove(4, places[4]).ok());
+    ASSERT_TRUE(added.Remove(4, places[4]).ok());
+    const auto want = added.Query(more, 20);
+    const auto got = bulk.Query(more, 20);
+    ASSERT_EQ(got.size(), want.size());
+    for (size_t r = 0; r < want.size(); ++r) EXPECT_EQ(got[r].score, want[r].score);
+  }
+}
+
+TEST(InvertedIndexTest, BulkBuildRejectsWhatAddRejects) {
+  constexpr uint32_t kWords = 100;
+  std::mt19937 rng(5);
+  const BowVector good = RandomBow(rng, kWords, 10, ScoringType::kL1);
+  const BowVector outside = {{3, 0.5f}, {kWords, 0.5f}};
+  using Bulk = InvertedIndex::BulkPlace;
+  InvertedIndex reference(kWords, ScoringType::kL1);
+  const Status add_error = reference.Add(9, outside);
+  const std::vector<Bulk> bad_vector = {{7, &good}, {9, &outside}};
+  auto built = InvertedIndex::BuildSegment(kWords, bad_vector);
+  ASSERT_FALSE(built.ok());
+  EXPECT_EQ(built.status().code(), add_error.code());
+  EXPECT_EQ(built.status().message(), add_error.message());
+  for (const std::vector<Bulk>& order :
+       {std::vector<Bulk>{{9, &good}, {7, &good}}, std::vector<Bulk>{{9, &good}, {9, &good}},
+        std::vector<Bulk>{{9, &good}, {65536, &good}}}) {
+    EXPECT_EQ(InvertedIndex::BuildSegment(kWords, order).status().code(),
+              StatusCode::kInvalidArgument);
+  }
+  // Install: above every id its segment ever held, for the same vocabulary size only.
+  InvertedIndex index(kWords, ScoringType::kL1);
+  ASSERT_TRUE(index.Add(12, good).ok());
+  const std::vector<Bulk> nine = {{9, &good}};
+  auto below = InvertedIndex::BuildSegment(kWords, nine);
+  ASSERT_TRUE(below.ok());
+  EXPECT_EQ(index.Install(std::move(below).value()).code(), StatusCode::kFailedPrecondition);
+  EXPECT_FALSE(index.Contains(9));
+  EXPECT_EQ(index.place_count(), 1u);
+  EXPECT_EQ(index.posting_count(), good.size());
+  ASSERT_TRUE(index.Remove(12, good).ok());  // the emptied segment takes any ids again
+  auto other_vocabulary = InvertedIndex::BuildSegment(kWords + 1, nine);
+  ASSERT_TRUE(other_vocabulary.ok());
+  EXPECT_EQ(index.Install(std::move(other_vocabulary).value()).code(),
+            StatusCode::kFailedPrecondition);
+  EXPECT_EQ(index.place_count(), 0u);
+  auto fresh = InvertedIndex::BuildSegment(kWords, nine);
+  ASSERT_TRUE(fresh.ok());
+  ASSERT_TRUE(index.Install(std::move(fresh).value()).ok());
+  EXPECT_TRUE(index.Contains(9));
+  // Appended above an existing place: both answer, ties in id order.
+  const std::vector<Bulk> thirty = {{30, &good}};
+  auto above = InvertedIndex::BuildSegment(kWords, thirty);
+  ASSERT_TRUE(above.ok());
+  ASSERT_TRUE(index.Install(std::move(above).value()).ok());
+  EXPECT_EQ(Places(index.Query(good, 5)), (std::vector<PlaceId>{9, 30}));
+  EXPECT_EQ(index.posting_count(), 2 * good.size());
+}
+
 TEST(InvertedIndexTest, AcceptIsNeverCalledConcurrently) {
   constexpr uint32_t kWords = 50;
   InvertedIndex index(kWords, ScoringType::kL1);

@@ -571,9 +571,11 @@ TEST_F(StorageTest, ReopenGivesIdenticalResultsOnRtabmapAndCamVid) {
 }
 
 // Opening a map reads `places` and `bow` with StorageOptions::load_threads threads over ranges
-// of load_range_ids ids (issue 17). Small ranges put many range boundaries, whole empty ranges
-// (deleted places) and a first and last range with gaps into a small map: every loader must
-// rebuild exactly the map the sequential scan rebuilds.
+// of load_range_ids ids (issue 17), each range's index built off the database and installed in
+// order. Small ranges put many range boundaries (appended to their index segment), whole empty
+// ranges (deleted places) and a first and last range with gaps into a small map; the default
+// builds the one whole segment: every loader must rebuild exactly the map the sequential scan
+// rebuilds.
 TEST_F(StorageTest, ParallelLoadRebuildsExactlyWhatTheSequentialScanDoes) {
   constexpr int kPlaces = 240;
   std::vector<Observation> queries;
@@ -627,9 +629,20 @@ TEST_F(StorageTest, ParallelLoadRebuildsExactlyWhatTheSequentialScanDoes) {
     EXPECT_EQ(stats.database.places, stats_before.database.places);
     EXPECT_EQ(stats.database.descriptors_kept, stats_before.database.descriptors_kept);
     // Removals leave slack in the index before the close: the rebuilds are compared together.
+    // The sequential scan adds place by place (InvertedIndex::Add); the others build each range
+    // off the index: a whole segment gets each run at its final size and no garbage slots (never
+    // more memory than Add), small ranges appended to their segment grow runs like Add in
+    // bigger steps (within a few percent of it).
     if (!sequential_index_bytes) sequential_index_bytes = stats.database.index_bytes;
-    EXPECT_EQ(stats.database.index_bytes, sequential_index_bytes);
+    if (loader.threads == 1) {
+      EXPECT_EQ(stats.database.index_bytes, sequential_index_bytes);
+    } else if (loader.range_ids == 0 || loader.range_ids >= 65536) {
+      EXPECT_LE(stats.database.index_bytes, sequential_index_bytes);
+    } else {
+      EXPECT_LE(stats.database.index_bytes, sequential_index_bytes + sequential_index_bytes / 32);
+    }
     EXPECT_EQ(stats.database.record_bytes, stats_before.database.record_bytes);
+    // The same places, scores and order as the map the commits built with InvertedIndex::Add.
     EXPECT_EQ(QueryAll(**map, queries), before);
     for (PlaceId id : {PlaceId(2), PlaceId(39), PlaceId(76), PlaceId(kPlaces - 1)}) {
       auto place = (*map)->GetPlace(id);

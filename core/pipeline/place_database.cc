@@ -635,6 +635,54 @@ Status PlaceDatabase::Restore(PlaceRecord record, const BowVector& bow) {
   return InsertLocked(std::make_shared<const PlaceRecord>(std::move(record)), bow);
 }
 
+Result<PlaceDatabase::RestoredSegment> PlaceDatabase::PrepareRestore(
+    std::vector<PlaceRecord> records, std::span<const BowVector> bows) const {
+  if (records.size() != bows.size()) {
+    return Status::InvalidArgument(std::to_string(records.size()) + " records but " +
+                                   std::to_string(bows.size()) + " BoW vectors");
+  }
+  // Restore's first check. Ids increase, so only the first can be 0 (a later one is out of
+  // order, which BuildSegment refuses).
+  if (!records.empty() && records.front().id == 0) {
+    return Status::InvalidArgument("place id 0 is reserved");
+  }
+  std::vector<InvertedIndex::BulkPlace> places;
+  places.reserve(records.size());
+  for (size_t i = 0; i < records.size(); ++i) places.push_back({records[i].id, &bows[i]});
+  auto index = InvertedIndex::BuildSegment(vocabulary_.word_count(), places);
+  if (!index.ok()) return index.status();
+  RestoredSegment segment;
+  segment.index = std::move(index).value();
+  segment.records.reserve(records.size());
+  for (PlaceRecord& record : records) {
+    segment.records.push_back(std::make_shared<const PlaceRecord>(std::move(record)));
+  }
+  return segment;
+}
+
+Status PlaceDatabase::RestoreRange(RestoredSegment segment) {
+  if (segment.records.empty()) return Status::Ok();
+  WriterLock lock(mutex_);
+  // The index refuses a segment that holds places; records_ mirrors the index, so checking
+  // the records first keeps the refusal free of side effects.
+  for (const auto& record : segment.records) {
+    if (records_.count(record->id)) {
+      return Status::AlreadyExists("place " + std::to_string(record->id) + " already exists");
+    }
+  }
+  PLACEDB_RETURN_IF_ERROR(index_.Install(std::move(segment.index)));
+  records_.reserve(records_.size() + segment.records.size());
+  for (auto& record : segment.records) {
+    descriptors_kept_ += record->counts.static_;
+    descriptors_dropped_ += record->counts.dynamic;
+    record_bytes_ += RecordBytes(*record);
+    next_id_ = std::max(next_id_, record->id + 1);
+    const PlaceId place = record->id;
+    records_.emplace(place, std::move(record));
+  }
+  return Status::Ok();
+}
+
 Status PlaceDatabase::InsertLocked(std::shared_ptr<const PlaceRecord> record,
                                    const BowVector& bow) {
   const PlaceId place = record->id;

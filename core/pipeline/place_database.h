@@ -25,6 +25,7 @@
 #include <opencv2/core.hpp>
 #include <optional>
 #include <set>
+#include <span>
 #include <string>
 #include <unordered_map>
 #include <vector>
@@ -408,6 +409,27 @@ class PlaceDatabase {
   // Re-indexes a stored place as a persistent map reloads it: the payload stays in the
   // PayloadStore, only the record and BoW vector are needed.
   Status Restore(PlaceRecord record, const BowVector& bow);
+  // Restore in bulk, a range of ids within one index segment at a time (PlaceMap::Load):
+  // PrepareRestore checks the places and builds their segment off the database
+  // (InvertedIndex::BuildSegment), then RestoreRange installs it. Together they leave the database
+  // exactly as Restore of each place in id order would (same answers; the index takes no more
+  // memory).
+  struct RestoredSegment {
+    std::vector<std::shared_ptr<const PlaceRecord>> records;  // increasing ids
+    InvertedIndex::DetachedSegment index;
+  };
+  // `records[i]` with vector `bows[i]`, ids increasing and all in one index segment (id >>
+  // InvertedIndex::kSegmentBits). The first place Restore would refuse decides the error, with
+  // Restore's message (id 0 is reserved; the vector checks of InvertedIndex::Add);
+  // INVALID_ARGUMENT for ids out of order or across segments. Reads only what is fixed at
+  // construction: thread-safe, concurrently with anything, changes nothing.
+  Result<RestoredSegment> PrepareRestore(std::vector<PlaceRecord> records,
+                                         std::span<const BowVector> bows) const;
+  // Installs a prepared segment (InvertedIndex::Install: moved into an empty index segment,
+  // appended above the places of a non-empty one). ALREADY_EXISTS if the database holds one of
+  // its places, FAILED_PRECONDITION if its index segment holds or held an id at or above its
+  // lowest; nothing changes on error. Takes the writer lock.
+  Status RestoreRange(RestoredSegment segment);
   // Reserves the id the next Insert() without an explicit id would take.
   PlaceId ReserveId();
   // Makes sure future ids are >= `next` (a reopened map never reuses a deleted place's id).

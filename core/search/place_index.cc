@@ -371,9 +371,7 @@ size_t InvertedIndex::Segment::MemoryBytes() const {
   return bytes;
 }
 
-namespace {
-
-Status ValidateBow(const BowVector& bow, size_t word_count) {
+Status InvertedIndex::ValidateBow(const BowVector& bow, size_t word_count) {
   auto field = [](size_t i) { return "bow[" + std::to_string(i) + "]"; };
   for (size_t i = 0; i < bow.size(); ++i) {
     if (bow[i].word >= word_count) {
@@ -398,8 +396,6 @@ Status ValidateBow(const BowVector& bow, size_t word_count) {
   }
   return Status::Ok();
 }
-
-}  // namespace
 
 Status InvertedIndex::Add(PlaceId place, const BowVector& bow) {
   if (Contains(place)) {
@@ -481,6 +477,110 @@ Status InvertedIndex::Remove(PlaceId place, const BowVector& bow) {
   } else {
     segment.CompactIfFragmented();
   }
+  return Status::Ok();
+}
+
+Result<InvertedIndex::DetachedSegment> InvertedIndex::BuildSegment(
+    uint32_t word_count, std::span<const BulkPlace> places) {
+  DetachedSegment built;
+  built.word_count_ = word_count;
+  if (places.empty()) return built;
+  built.index_ = places.front().place >> kSegmentBits;
+  // Pass 1: check every place as Add would, and count each word's postings.
+  std::vector<uint32_t> counts(word_count, 0);
+  for (size_t i = 0; i < places.size(); ++i) {
+    const PlaceId place = places[i].place;
+    if ((place >> kSegmentBits) != built.index_ || (i > 0 && place <= places[i - 1].place)) {
+      return Status::InvalidArgument("place " + std::to_string(place) + " does not follow place " +
+                                     std::to_string(places[i > 0 ? i - 1 : 0].place) +
+                                     " in segment " + std::to_string(built.index_) +
+                                     ": a bulk-built segment takes increasing ids of one segment");
+    }
+    PLACEDB_RETURN_IF_ERROR(ValidateBow(*places[i].bow, word_count));
+    for (const BowEntry& entry : *places[i].bow) ++counts[entry.word];
+    built.posting_count_ += places[i].bow->size();
+  }
+  // Pass 2: give each word's run its final storage once, in word order.
+  Segment& segment = built.segment_;
+  segment = Segment(word_count);
+  for (WordId word = 0; word < word_count; ++word) {
+    if (counts[word] == 0) continue;
+    built.words_.push_back(word);
+    // Slab locations are 31-bit; each run needs at most one new page.
+    if (segment.pages.size() >= kBigListBit / kPagePostings) {
+      return Status::ResourceExhausted("inverted index: posting storage of segment " +
+                                       std::to_string(built.index_) + " is full");
+    }
+    // Slab runs get Add's class; a longer run gets exactly its size, where Add would leave up
+    // to 1/8 headroom (a later Add to it grows it as Add grows any run).
+    segment.Relocate(&segment.lists[word],
+                     counts[word] <= kMaxSlabCapacity ? CapacityFor(counts[word]) : counts[word]);
+  }
+  // Pass 3: a counting sort. Places come in increasing id order, so each run fills front to
+  // back, already sorted by offset; `size` is the run's write cursor.
+  for (const BulkPlace& bulk : places) {
+    const uint16_t offset = uint16_t(bulk.place & ((1u << kSegmentBits) - 1));
+    for (const BowEntry& entry : *bulk.bow) {
+      WordList& list = segment.lists[entry.word];
+      segment.Data(list)[list.size++] = Posting{offset, EncodeWeight(entry.weight)};
+    }
+    built.places_.push_back(bulk.place);
+  }
+  segment.place_count = uint32_t(places.size());
+  segment.scan_limit = (places.back().place & ((1u << kSegmentBits) - 1)) + 1;
+  return built;
+}
+
+Status InvertedIndex::Install(DetachedSegment&& built) {
+  if (built.places_.empty()) return Status::Ok();
+  if (built.word_count_ != word_count_) {
+    return Status::FailedPrecondition("segment " + std::to_string(built.index_) +
+                                      " was built for " + std::to_string(built.word_count_) +
+                                      " words, the index has " + std::to_string(word_count_));
+  }
+  const uint32_t first_offset = built.places_.front() & ((1u << kSegmentBits) - 1);
+  const bool append = built.index_ < segments_.size() && segments_[built.index_].place_count > 0;
+  if (append) {
+    const Segment& target = segments_[built.index_];
+    if (target.scan_limit > first_offset) {
+      return Status::FailedPrecondition(
+          "segment " + std::to_string(built.index_) + " already holds places from id " +
+          std::to_string((PlaceId(built.index_) << kSegmentBits) + target.scan_limit - 1) +
+          " down: built places install only above the highest id ever added there");
+    }
+    // Each appended run needs at most one new page (slab locations are 31-bit).
+    if (target.pages.size() + built.words_.size() > kBigListBit / kPagePostings) {
+      return Status::ResourceExhausted("inverted index: posting storage of segment " +
+                                       std::to_string(built.index_) + " is full");
+    }
+  }
+  if (built.index_ >= segments_.size()) segments_.resize(size_t(built.index_) + 1);
+  const PlaceId last = built.places_.back();
+  if (last >= present_.size()) present_.resize(size_t(last) + 1, 0);
+  for (PlaceId place : built.places_) present_[place] = 1;
+  for (WordId word : built.words_) word_places_[word] += built.segment_.lists[word].size;
+  place_count_ += built.places_.size();
+  posting_count_ += built.posting_count_;
+  if (!append) {
+    segments_[built.index_] = std::move(built.segment_);  // the usual case: nothing to copy
+  } else {
+    // Append each run after the target's (all its offsets are lower), growing like Add.
+    Segment& target = segments_[built.index_];
+    for (WordId word : built.words_) {
+      const WordList& from = built.segment_.lists[word];
+      WordList& to = target.lists[word];
+      if (to.size + from.size > target.Capacity(to)) {
+        target.Relocate(&to, CapacityFor(to.size + from.size));
+      }
+      std::memcpy(target.Data(to) + to.size, built.segment_.Data(from),
+                  from.size * sizeof(Posting));
+      to.size += from.size;
+    }
+    target.place_count += built.segment_.place_count;
+    target.scan_limit = built.segment_.scan_limit;
+    target.CompactIfFragmented();
+  }
+  built = DetachedSegment();
   return Status::Ok();
 }
 

@@ -96,6 +96,29 @@ class InvertedIndex {
                                  std::span<const ScoredPlace> bonus = {}, int threads = 1,
                                  double max_word_share = 1.0) const;
 
+  // Bulk building (reopening a map, PlaceMap::Load): one whole segment built off the index from
+  // its places, then installed. The result answers every query exactly like the same places
+  // added one by one with Add (same runs, same quantisation); it holds no garbage slots, a run
+  // of up to 1024 postings gets the slab class Add ends with and a longer one exactly its size
+  // (Add leaves up to 1/8 headroom), so it never takes more memory than Add would.
+  class DetachedSegment;
+  struct BulkPlace {
+    PlaceId place;
+    const BowVector* bow;  // normalised as for Add
+  };
+  // Builds the segment of `places`: all in one segment (same id >> kSegmentBits), ids strictly
+  // increasing, gaps allowed. Each place is checked like Add checks it (its vector first to last
+  // place: the first problem is the error, with Add's message); INVALID_ARGUMENT for ids out of
+  // order or in different segments. Touches nothing shared: any thread, any number at once.
+  static Result<DetachedSegment> BuildSegment(uint32_t word_count,
+                                              std::span<const BulkPlace> places);
+  // Installs a built segment: into an empty segment it is moved in, O(words with postings in it
+  // + its places); into one that holds places, all below the built ids, its runs are appended
+  // (copied, runs growing as with Add). FAILED_PRECONDITION (nothing changes) if the segment
+  // already holds or held an id at or above the lowest built one, or the built segment is for
+  // another vocabulary size. Needs the same exclusion as Add.
+  Status Install(DetachedSegment&& segment);
+
   size_t place_count() const { return place_count_; }
   size_t posting_count() const { return posting_count_; }
   // Heap bytes of postings, per-word run headers, segment bookkeeping and the place table.
@@ -155,12 +178,35 @@ class InvertedIndex {
   template <ScoringType kType>
   void ScoreSegment(uint32_t segment, const QueryContext& query, QueryScratch* scratch) const;
 
+  // Add's check of a vector against a vocabulary of `word_count` words.
+  static Status ValidateBow(const BowVector& bow, size_t word_count);
+
   ScoringType scoring_;
   uint32_t word_count_;
   std::vector<Segment> segments_;      // by place id >> kSegmentBits
   std::vector<uint32_t> word_places_;  // by word id: places holding the word (all segments)
   std::vector<uint8_t> present_;       // by place id
   size_t place_count_ = 0;
+  size_t posting_count_ = 0;
+};
+
+// A segment built by InvertedIndex::BuildSegment, not yet installed. Movable only.
+class InvertedIndex::DetachedSegment {
+ public:
+  DetachedSegment() = default;
+  DetachedSegment(DetachedSegment&&) = default;
+  DetachedSegment& operator=(DetachedSegment&&) = default;
+
+  size_t place_count() const { return places_.size(); }
+  size_t posting_count() const { return posting_count_; }
+
+ private:
+  friend class InvertedIndex;
+  uint32_t word_count_ = 0;
+  uint32_t index_ = 0;           // place id >> kSegmentBits
+  std::vector<PlaceId> places_;  // ascending
+  std::vector<WordId> words_;    // ascending: the words holding postings in it
+  Segment segment_;
   size_t posting_count_ = 0;
 };
 

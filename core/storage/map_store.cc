@@ -612,7 +612,7 @@ struct MapStorage {
   uint64_t reserve_bytes = 0;         // StorageOptions::disk_reserve_bytes
   bool dynamics = true;               // StorageOptions::dynamics
   unsigned load_threads = 2;          // StorageOptions::load_threads (0 taken as 2)
-  uint32_t load_range_ids = 2048;     // StorageOptions::load_range_ids (a power of two)
+  uint32_t load_range_ids = 65536;    // StorageOptions::load_range_ids (a power of two)
 
   rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
 
@@ -836,15 +836,18 @@ struct LoadedPlace {
 // Reads the `places` and `bow` families for PlaceMap::Load, with every check Load makes: each
 // record has a BoW vector under the same key, its key is its id, no BoW vector lacks a record,
 // both decode; an unreadable block is the iterator's error (RocksDB names the file). Either one
-// scan of the whole key range (LoadSequential), or ranges of place ids read and decoded by
-// worker threads while the calling thread hands the places on in id order (LoadParallel).
-// Both hand on the same places in the same order and stop at the same first problem.
+// scan of the whole key range restoring place by place (LoadSequential), or ranges of place ids
+// read, decoded and built into index segments by worker threads while the calling thread
+// installs them in id order (LoadSegments). Both rebuild the same database and stop at the same
+// first problem.
 class PlaceLoader {
  public:
   using Visit = std::function<Status(LoadedPlace&&)>;
 
   PlaceLoader(const MapStorage& storage, const std::string& map_name)
-      : storage_(storage), map_name_(map_name), range_ids_(storage.load_range_ids) {
+      : storage_(storage),
+        map_name_(map_name),
+        range_ids_(std::min(storage.load_range_ids, PlaceId(1) << InvertedIndex::kSegmentBits)) {
     options_.fill_cache = false;  // a full scan would only evict the verification working set
   }
 
@@ -864,84 +867,142 @@ class PlaceLoader {
     return status;
   }
 
-  // `readers` threads read and decode ranges of load_range_ids place ids (at most kWindow ranges
-  // ahead of the one being visited, to bound memory); `visit` runs on the calling thread, in
-  // id order. `read_ms` receives the readers' reading and decoding time, summed.
-  Status LoadParallel(unsigned readers, const Visit& visit, double* read_ms) const {
+  // The bulk path: `workers` threads each read and decode the places of a range of
+  // load_range_ids ids (aligned; by default one whole index segment, 2^16 ids) and build its
+  // part of the index (PlaceDatabase::PrepareRestore); the calling thread installs the ranges in
+  // id order (PlaceDatabase::RestoreRange). At most kRangeWindow ranges are read ahead of the
+  // one being installed: a full segment of a 1M-place map is ~370 MB of decoded vectors plus
+  // its postings. The first problem in id order is the one reported, as LoadSequential would:
+  // a place PrepareRestore refuses comes before the read problem that ended its segment.
+  // `read_ms` and `build_ms` receive the workers' times, summed; `install_ms` the calling
+  // thread's.
+  Status LoadSegments(unsigned workers, PlaceDatabase& database, double* read_ms, double* build_ms,
+                      double* install_ms) const {
     std::optional<PlaceId> first, last;
-    {
-      Iterators its = NewIterators();
-      its.places->SeekToFirst();
-      if (its.places->Valid()) first = KeyId(its.places->key());
-      its.places->SeekToLast();
-      if (its.places->Valid()) last = KeyId(its.places->key());
-    }
-    // An empty family, a key that is not a place id, or too few ids to share: one scan, which
-    // also reports whatever is wrong exactly as it always has.
-    if (!first || !last || *last < *first || *last / range_ids_ - *first / range_ids_ < 2) {
-      return LoadSequential(visit, read_ms);
-    }
-    // Range r holds ids [(base + r) * range_ids_, (base + r + 1) * range_ids_): aligned, so that
-    // a range is one of the index's id segments; the first has no lower bound and the last no
-    // upper bound, so every key is in exactly one range.
-    const size_t base = *first / range_ids_;
-    const size_t ranges = *last / range_ids_ - base + 1;
+    FirstAndLast(&first, &last);
+    const auto restore_one = [&](LoadedPlace&& place) {
+      Stopwatch installing;
+      Status restored = database.Restore(std::move(place.record), place.bow);
+      *install_ms += installing.ElapsedMs();
+      return restored;
+    };
+    // An empty family or a key that is not a place id: one scan reports it as it always has.
+    if (!first || !last || *last < *first) return LoadSequential(restore_one, read_ms);
+    struct Built {
+      Result<PlaceDatabase::RestoredSegment> prepared = Status::Internal("not read");
+      Status read_status = Status::Ok();  // the first problem, found after the places read
+    };
+    std::vector<double> worker_read_ms(workers, 0.0), worker_build_ms(workers, 0.0);
+    bool started = false;
+    Status status = RunRangesInOrder<Built>(
+        *first, *last, range_ids_, workers, kRangeWindow,
+        [&](Iterators& its, std::optional<PlaceId> begin, std::optional<PlaceId> end,
+            unsigned worker) -> Built {
+          Stopwatch clock;
+          std::vector<PlaceRecord> records;
+          std::vector<BowVector> bows;
+          Built built;
+          built.read_status = ReadRange(its, begin, end, [&](LoadedPlace&& place) {
+            records.push_back(std::move(place.record));
+            bows.push_back(std::move(place.bow));
+            return Status::Ok();
+          });
+          worker_read_ms[worker] += clock.ElapsedMs();
+          Stopwatch building;
+          built.prepared = database.PrepareRestore(std::move(records), bows);
+          worker_build_ms[worker] += building.ElapsedMs();
+          return built;  // the decoded vectors are freed here: the index holds the postings
+        },
+        [&](Built&& built) -> Status {
+          if (!built.prepared.ok()) return built.prepared.status();
+          Stopwatch installing;
+          Status installed = database.RestoreRange(std::move(built.prepared).value());
+          *install_ms += installing.ElapsedMs();
+          PLACEDB_RETURN_IF_ERROR(installed);
+          return built.read_status;
+        },
+        &started);
+    if (!started) return LoadSequential(restore_one, read_ms);
+    for (double ms : worker_read_ms) *read_ms += ms;
+    for (double ms : worker_build_ms) *build_ms += ms;
+    return status;
+  }
+
+ private:
+  // Ranges read and built ahead of the one being installed.
+  static constexpr size_t kRangeWindow = 2;
+
+  struct Iterators {
+    std::unique_ptr<rocksdb::Iterator> places, bows;
+  };
+
+  // The first and last keys of `places` as ids (nullopt: none, or not a place id).
+  void FirstAndLast(std::optional<PlaceId>* first, std::optional<PlaceId>* last) const {
+    Iterators its = NewIterators();
+    its.places->SeekToFirst();
+    if (its.places->Valid()) *first = KeyId(its.places->key());
+    its.places->SeekToLast();
+    if (its.places->Valid()) *last = KeyId(its.places->key());
+  }
+
+  // Cuts [first, last] into ranges of `range_ids` aligned ids (the first range has no lower
+  // bound and the last no upper bound, so every key is in exactly one range); `workers`
+  // threads run `produce(iterators, begin, end, worker)` on them, at most `window` ranges ahead
+  // of the one `consume` is taking; `consume` runs on the calling thread, in range order, until
+  // it returns an error (returned). `*started` is false when no thread could be started
+  // (nothing was consumed then).
+  template <typename Produced, typename Produce, typename Consume>
+  Status RunRangesInOrder(PlaceId first, PlaceId last, PlaceId range_ids, unsigned workers,
+                          size_t window, const Produce& produce, const Consume& consume,
+                          bool* started) const {
+    const size_t base = first / range_ids;
+    const size_t ranges = last / range_ids - base + 1;
     const auto begin_of = [&](size_t r) -> std::optional<PlaceId> {
       if (r == 0 || r >= ranges) return std::nullopt;
-      return PlaceId((base + r) * range_ids_);
+      return PlaceId((base + r) * range_ids);
     };
-    std::vector<Range> results(ranges);
+    std::vector<std::optional<Produced>> results(ranges);
     Mutex mutex;
     CondVar changed;
-    size_t visiting = 0;  // guarded by mutex
-    bool stop = false;    // guarded by mutex
+    size_t consuming = 0;  // guarded by mutex
+    bool stop = false;     // guarded by mutex
     std::atomic<size_t> next{0};
-    std::vector<double> worker_ms(readers, 0.0);
     const auto work = [&](unsigned worker) {
       Iterators its = NewIterators();
       for (size_t r; (r = next.fetch_add(1)) < ranges;) {
         {
           MutexLock lock(mutex);
-          while (!stop && r >= visiting + kWindow) changed.Wait(mutex);
+          while (!stop && r >= consuming + window) changed.Wait(mutex);
           if (stop) return;
         }
-        Stopwatch clock;
-        Range range;
-        range.status = ReadRange(its, begin_of(r), begin_of(r + 1), [&](LoadedPlace&& place) {
-          range.places.push_back(std::move(place));
-          return Status::Ok();
-        });
-        worker_ms[worker] += clock.ElapsedMs();
+        Produced produced = produce(its, begin_of(r), begin_of(r + 1), worker);
         MutexLock lock(mutex);
-        results[r] = std::move(range);
-        results[r].ready = true;
+        results[r] = std::move(produced);
         changed.NotifyAll();
       }
     };
     std::vector<std::thread> pool;
-    for (unsigned w = 0; w < readers; ++w) {
+    for (unsigned w = 0; w < workers; ++w) {
       try {
         pool.emplace_back(work, w);
       } catch (const std::system_error&) {
-        break;  // fewer readers than asked: they still take every range
+        break;  // fewer workers than asked: they still take every range
       }
     }
-    if (pool.empty()) return LoadSequential(visit, read_ms);
+    *started = !pool.empty();
+    if (pool.empty()) return Status::Ok();
     Status status = Status::Ok();
     for (size_t r = 0; r < ranges && status.ok(); ++r) {
-      Range range;
+      std::optional<Produced> produced;
       {
         MutexLock lock(mutex);
-        while (!results[r].ready) changed.Wait(mutex);
-        range = std::move(results[r]);
-        visiting = r + 1;
+        while (!results[r]) changed.Wait(mutex);
+        produced = std::move(results[r]);
+        results[r].reset();
+        consuming = r + 1;
         changed.NotifyAll();
       }
-      for (LoadedPlace& place : range.places) {
-        status = visit(std::move(place));
-        if (!status.ok()) break;
-      }
-      if (status.ok()) status = range.status;
+      status = consume(std::move(*produced));
     }
     {
       MutexLock lock(mutex);
@@ -949,22 +1010,8 @@ class PlaceLoader {
       changed.NotifyAll();
     }
     for (std::thread& thread : pool) thread.join();
-    for (double ms : worker_ms) *read_ms += ms;
     return status;
   }
-
- private:
-  // At most kWindow ranges wait decoded for the index (a few MB each at 2048 ids).
-  static constexpr size_t kWindow = 6;
-
-  struct Range {
-    std::vector<LoadedPlace> places;
-    Status status = Status::Ok();  // the first problem, found after `places`
-    bool ready = false;
-  };
-  struct Iterators {
-    std::unique_ptr<rocksdb::Iterator> places, bows;
-  };
 
   Iterators NewIterators() const {
     return {
@@ -1030,7 +1077,7 @@ class PlaceLoader {
 
   const MapStorage& storage_;
   const std::string& map_name_;
-  const PlaceId range_ids_;  // a power of two: ranges align with the index's id segments
+  const PlaceId range_ids_;  // a power of two <= 2^16: a range lies in one index segment
   rocksdb::ReadOptions options_;
 };
 
@@ -1148,9 +1195,12 @@ Status PlaceMap::Load() {
     open_timings_.index_ms += indexing.ElapsedMs();
     return restored;
   };
+  // More than one thread: whole index segments are read, decoded and built by load_threads
+  // workers (the opening thread only installs them); one: the scan of today, place by place.
   PLACEDB_RETURN_IF_ERROR(
       storage_->load_threads > 1
-          ? loader.LoadParallel(storage_->load_threads - 1, restore, &open_timings_.read_decode_ms)
+          ? loader.LoadSegments(storage_->load_threads, *database_, &open_timings_.read_decode_ms,
+                                &open_timings_.index_ms, &open_timings_.index_ms)
           : loader.LoadSequential(restore, &open_timings_.read_decode_ms));
   open_timings_.total_ms = total.ElapsedMs();
 
@@ -1907,7 +1957,7 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
   storage->dynamics = options.dynamics;
   storage->load_threads = options.load_threads == 0 ? 2 : options.load_threads;
   storage->load_range_ids =
-      options.load_range_ids == 0 ? 2048 : std::bit_floor(options.load_range_ids);
+      options.load_range_ids == 0 ? 65536 : std::bit_floor(options.load_range_ids);
   db_options.listeners.push_back(std::make_shared<DiskFullListener>(storage.get()));
   rocksdb::DB* raw = nullptr;
   rocksdb::Status s =

@@ -87,14 +87,16 @@ struct StorageOptions {
   bool restore_hard_links = true;
   // Threads that rebuild the index when a map opens. 1 = one sequential scan of `places` and
   // `bow` on the opening thread, which decodes and indexes each place in turn (the baseline of
-  // placedb-bench-storage --only reopen). N > 1 = N - 1 threads read and decode ranges of place
-  // ids while the opening thread feeds the index in id order: 2 (the default; 0 = 2) keeps both
-  // cores of a 2-core machine busy, the index being the one part that stays serial.
+  // placedb-bench-storage --only reopen). N > 1 = N threads each read, decode and build the
+  // index of ranges of place ids (load_range_ids) while the opening thread only moves the built
+  // ranges into the index, in id order: 2 (the default; 0 = 2) keeps both cores of a 2-core
+  // machine busy.
   unsigned load_threads = 2;
-  // Place ids per range a load thread reads at a time (rounded down to a power of two; 0 =
-  // 2048): ranges align with the index's id segments. Tests use small ranges to have many
-  // range boundaries in a small map.
-  uint32_t load_range_ids = 2048;
+  // Place ids per range a load thread reads and builds the index of at a time (rounded down to
+  // a power of two, at most 65536; 0 = 65536): ranges align with the index's id segments, and a
+  // whole segment is moved into the index without copying. Smaller ranges are appended to their
+  // segment (copied); tests use them to have many range boundaries in a small map.
+  uint32_t load_range_ids = 65536;
 };
 
 struct MapOptions {
@@ -189,7 +191,9 @@ struct OpenTimings {
   unsigned threads = 1;       // StorageOptions::load_threads
   double total_ms = 0;        // the whole rebuild
   double read_decode_ms = 0;  // reading and decoding `places` + `bow`, summed over the threads
-  double index_ms = 0;        // PlaceDatabase::Restore (the index), on the opening thread
+  // The index: PlaceDatabase::Restore on the opening thread (1 thread), or building segments
+  // (summed over the workers) plus installing them on the opening thread (more threads).
+  double index_ms = 0;
 };
 
 class PlaceMap {
@@ -296,10 +300,11 @@ class PlaceMap {
   friend class DataDirectory;
   PlaceMap(MapInfo info, std::string path, std::unique_ptr<detail::MapStorage> storage,
            AnyVocabulary vocabulary);
-  // Rebuilds the serving index from disk: `places` and `bow` read and decoded over ranges of
-  // ids by StorageOptions::load_threads - 1 threads (or by the calling thread alone), the index
-  // fed in id order on the calling thread. A read error is CORRUPTION naming the file; the first
-  // problem in id order is the one reported, whatever the thread count.
+  // Rebuilds the serving index from disk: with StorageOptions::load_threads > 1, that many
+  // threads each read and decode one index segment's ids (2^16) and build its part of the index
+  // off the database (at most 2 segments ahead), the calling thread installs them in id order;
+  // with 1, the calling thread scans and restores place by place. A read error is CORRUPTION naming
+  // the file; the first problem in id order is the one reported, whatever the thread count.
   Status Load();
   // Commit() for a caller that already holds lifecycle_ shared and checked `closed_`
   // (CloseLoop's store callback: the shared lock must not be taken twice).
