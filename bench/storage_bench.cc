@@ -602,6 +602,27 @@ bool BenchRealIngestCost(const std::string& work_dir, const std::string& shared,
   return true;
 }
 
+// A re-imaging stand-in that keeps real descriptor statistics: a random 90 % of `features`'
+// descriptors, 4 random bits flipped in each.
+FeatureSet NoisyCopy(const FeatureSet& features, std::mt19937_64& rng) {
+  std::uniform_int_distribution<int> bit(0, 255);
+  std::uniform_real_distribution<double> keep(0, 1);
+  FeatureSet noisy;
+  noisy.image_width = features.image_width;
+  noisy.image_height = features.image_height;
+  for (size_t i = 0; i < features.size(); ++i) {
+    if (keep(rng) > 0.9) continue;
+    Descriptor256 d = features.descriptors[i];
+    for (int f = 0; f < 4; ++f) {
+      const int b = bit(rng);
+      d.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
+    }
+    noisy.keypoints.push_back(features.keypoints[i]);
+    noisy.descriptors.push_back(d);
+  }
+  return noisy;
+}
+
 // Places `first` .. `target` - 1 added by 2 writers: CamVid feature sets with a random 90 % of
 // their descriptors kept and 4 bits flipped in each, so that places stay distinct.
 void AddNoisyPlaces(PlaceMap& map, const std::vector<Frame>& frames, size_t first, size_t target) {
@@ -609,25 +630,10 @@ void AddNoisyPlaces(PlaceMap& map, const std::vector<Frame>& frames, size_t firs
   for (unsigned t = 0; t < 2; ++t) {
     writers.emplace_back([&, t] {
       std::mt19937_64 rng(first + t);
-      std::uniform_int_distribution<int> bit(0, 255);
-      std::uniform_real_distribution<double> keep(0, 1);
       for (size_t p = first + t; p < target; p += 2) {
         const Frame& frame = frames[p % frames.size()];
         Observation observation;
-        FeatureSet noisy;
-        noisy.image_width = frame.features.image_width;
-        noisy.image_height = frame.features.image_height;
-        for (size_t i = 0; i < frame.features.size(); ++i) {
-          if (keep(rng) > 0.9) continue;
-          Descriptor256 d = frame.features.descriptors[i];
-          for (int f = 0; f < 4; ++f) {
-            const int b = bit(rng);
-            d.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
-          }
-          noisy.keypoints.push_back(frame.features.keypoints[i]);
-          noisy.descriptors.push_back(d);
-        }
-        observation.features = std::move(noisy);
+        observation.features = NoisyCopy(frame.features, rng);
         observation.dynamic.boxes = frame.boxes;
         if (!map.Add(observation).ok()) std::exit(1);
       }
@@ -710,24 +716,9 @@ bool FastBuild(PlaceMap& map, const std::vector<Frame>& frames, size_t target,
   if (first >= target) return true;
   std::vector<ProcessedFrame> bases;
   std::mt19937_64 rng(7);
-  std::uniform_int_distribution<int> bit(0, 255);
-  std::uniform_real_distribution<double> keep(0, 1);
   for (const Frame& frame : frames) {
     Observation observation;
-    FeatureSet noisy;
-    noisy.image_width = frame.features.image_width;
-    noisy.image_height = frame.features.image_height;
-    for (size_t i = 0; i < frame.features.size(); ++i) {
-      if (keep(rng) > 0.9) continue;
-      Descriptor256 d = frame.features.descriptors[i];
-      for (int f = 0; f < 4; ++f) {
-        const int b = bit(rng);
-        d.words[size_t(b / 64)] ^= uint64_t(1) << (b % 64);
-      }
-      noisy.keypoints.push_back(frame.features.keypoints[i]);
-      noisy.descriptors.push_back(d);
-    }
-    observation.features = std::move(noisy);
+    observation.features = NoisyCopy(frame.features, rng);
     observation.dynamic.boxes = frame.boxes;
     auto processed = map.Process(observation, FrameRole::kStream);
     if (!processed.ok() || !processed->valid) continue;
