@@ -7,9 +7,13 @@
 #include <sys/socket.h>
 
 #include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <deque>
 #include <exception>
+#include <memory>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -201,7 +205,16 @@ Status HttpEndpoint::Serve(const HttpEndpointSettings& settings,
   raise_backlog();
   // Listening since the bind: connections made before the loop starts wait in the backlog.
   httplib::Server* server = http.get();
-  thread_ = std::thread([server] { server->listen_after_bind(); });
+  auto loop_ended = std::make_shared<std::atomic<bool>>(false);
+  thread_ = std::thread([server, loop_ended] {
+    server->listen_after_bind();
+    loop_ended->store(true);
+  });
+  // httplib's stop() does nothing until the loop has marked itself running, so a Stop() right
+  // after Start() would leave the loop, and the join, waiting forever: wait for that mark here.
+  while (!server->is_running() && !loop_ended->load()) {
+    std::this_thread::sleep_for(std::chrono::microseconds(100));
+  }
   http_ = std::move(http);
   port_ = port;
   return Status::Ok();

@@ -11,10 +11,15 @@
 #include <sys/time.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <cerrno>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
 #include <cmath>
 #include <map>
 #include <string>
+#include <thread>
 #include <tuple>
 #include <vector>
 
@@ -253,6 +258,32 @@ TEST(MetricsEndpointTest, ServesItsPathToGetOnly) {
   EXPECT_EQ(refreshes, 2);  // the refused requests did not collect
   metrics.StopServing();
   EXPECT_EQ(metrics.port(), 0);
+}
+
+// Stopping right after serving ends the accept loop: httplib ignores stop() until its loop has
+// marked itself running, a race that once hung a server's shutdown. A watchdog turns a hang
+// into a failure instead of a test timeout.
+TEST(MetricsEndpointTest, StopsRightAfterServing) {
+  std::atomic<int> rounds_done = 0;
+  std::thread watchdog([&rounds_done] {
+    for (int waited_s = 0; rounds_done.load() >= 0; ++waited_s) {
+      if (waited_s >= 120) {
+        std::fprintf(stderr, "Stop() hung after %d rounds\n", rounds_done.load());
+        std::_Exit(1);
+      }
+      std::this_thread::sleep_for(std::chrono::seconds(1));
+    }
+  });
+  for (int round = 0; round < 300; ++round) {
+    server::Metrics metrics;
+    ASSERT_TRUE(metrics.Serve(PlainEndpoint("127.0.0.1:0"), nullptr).ok());
+    metrics.StopServing();
+    EXPECT_EQ(metrics.port(), 0);
+    rounds_done = round + 1;
+  }
+  EXPECT_EQ(rounds_done.load(), 300);
+  rounds_done = -1;
+  watchdog.join();
 }
 
 // A port another endpoint holds is IO_ERROR (not shared), and the first one goes on serving.
