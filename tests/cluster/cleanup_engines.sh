@@ -33,7 +33,9 @@ registry=${PLACEDB_HOSTS_REGISTRY:-/run/placedb-hosts}
 for file in "$registry"/10.*; do
   [ -f "$file" ] || continue
   owner=$(sed -n 1p "$file")
-  # A live owner is another test run (ctest -j, parallel runs): its hosts are its own.
+  # A live owner is another test run (ctest -j, parallel runs): its hosts are its own. Owner 0:
+  # tools/cluster_local.py's hosts, which outlive the launcher; its `down` removes them.
+  [ "$owner" = 0 ] && continue
   if [ -n "$owner" ] && kill -0 "$owner" 2>/dev/null; then continue; fi
   bridge=$(sed -n 2p "$file")
   for ns in $(sed -n '3,$p' "$file"); do
