@@ -234,6 +234,11 @@ def query_once_with_retry(attempts, deadline: float) -> tuple[bool, bool]:
 # ---- the soak ------------------------------------------------------------------------------
 
 
+def map_settings(sdk, precomputed: bool):
+    # Precomputed features carry no pixels: boxes can only come from the agent (none here).
+    return sdk.MapSettings(box_source="agent") if precomputed else None
+
+
 def workers_of(status: dict, live_only: bool = True) -> list[str]:
     return [w for w, h in zip(status["workers"], status["hosts"]) if h["up"] or not live_only]
 
@@ -260,8 +265,11 @@ def agent_loop(sdk, cluster: Cluster, map_name: str, agent: str, frames: int, ma
                     next_sequence = result.sequence + 1
                     if stop.is_set():
                         break
-        except Exception:  # noqa: BLE001 -- a failover: next worker, resend the rest
+        except Exception as e:  # noqa: BLE001 -- a failover: next worker, resend the rest
             failures += 1
+            if failures in (1, 10, 100):
+                print(f"cluster_soak: {agent}: failure {failures}: {type(e).__name__}: {e}",
+                      file=sys.stderr)
             time.sleep(0.2)
 
 
@@ -273,7 +281,7 @@ def soak(args, sdk) -> int:
         status = cluster.status()
         with sdk.Client(status["workers"][0]) as client:
             for m in MAPS:
-                client.create_map(m)
+                client.create_map(m, map_settings(sdk, not args.image_paths))
         acks, queries = Acks(), Queries()
         stop = threading.Event()
         rng = random.Random(args.seed)
@@ -417,7 +425,7 @@ def throughput(args, sdk) -> int:
         with sdk.Client(status["workers"][0]) as client:
             for mode, _ in modes:
                 for n in counts:
-                    client.create_map(f"tp-{mode}-{n}")
+                    client.create_map(f"tp-{mode}-{n}", map_settings(sdk, mode == "feat"))
         for mode, make in modes:
             for n in counts:
                 acks, stop = Acks(), threading.Event()
