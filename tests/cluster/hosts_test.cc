@@ -11,10 +11,14 @@
 #include <netinet/in.h>
 #include <poll.h>
 #include <sys/socket.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
+#include <csignal>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
 #include <thread>
 
 #include "bench/bench_output.h"
@@ -246,6 +250,98 @@ TEST(HostsTest, DestructorRemovesNamespacesBridgeAndRegistryAndKillsEveryProcess
     in >> owner;
     EXPECT_NE(owner, ::getpid()) << "registry entry left: " << entry.path();
   }
+}
+
+// A test process that dies (SIGKILL) with hosts and engines up: the engines die with it
+// (PR_SET_PDEATHSIG, also inside a namespace), and cleanup_engines.sh removes what it left (the
+// namespaces, the bridge, the registry entry), as ctest's cleanup fixture does after a crash.
+TEST(HostsTest, ACrashedRunsEnginesDieAndTheCleanupScriptRemovesItsHosts) {
+  if (::geteuid() != 0) GTEST_SKIP() << "loopback hosts: nothing left to remove";
+  // The child's own pid directory: the script must not touch engines of parallel tests.
+  const std::string pid_dir =
+      fs::temp_directory_path() / ("placedb-hosts-crash-" + std::to_string(::getpid()));
+  fs::create_directories(pid_dir);
+  int pipe_fds[2];
+  ASSERT_EQ(::pipe(pipe_fds), 0);
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    ::close(pipe_fds[0]);
+    ::setenv("PLACEDB_CLUSTER_PID_DIR", pid_dir.c_str(), 1);
+    auto hosts = Hosts::Create(HostsOptions{2, true});
+    if (!hosts.ok() || (*hosts)->kind() != Hosts::Kind::kNetns) _exit(3);
+    EnginesOptions options;
+    options.nodes = 2;
+    options.hosts = (*hosts)->Addresses();
+    options.netns = (*hosts)->Namespaces();
+    options.etcd = false;
+    auto engines = Engines::Start(options);
+    if (!engines.ok()) _exit(4);
+    // "<netns> <pid>...\n" per host, then wait to be killed.
+    std::string report;
+    for (int i = 0; i < 2; ++i) {
+      report += (*hosts)->netns(i);
+      for (pid_t pid : (*hosts)->Processes(i)) report += " " + std::to_string(pid);
+      report += "\n";
+    }
+    report += "end\n";
+    if (::write(pipe_fds[1], report.data(), report.size()) < 0) _exit(5);
+    ::pause();
+    _exit(0);
+  }
+  ::close(pipe_fds[1]);
+  std::string report;
+  char buffer[512];
+  while (report.find("end\n") == std::string::npos) {
+    const ssize_t n = ::read(pipe_fds[0], buffer, sizeof(buffer));
+    if (n <= 0) break;
+    report.append(buffer, static_cast<size_t>(n));
+  }
+  ::close(pipe_fds[0]);
+  ::kill(child, SIGKILL);
+  int status = 0;
+  ::waitpid(child, &status, 0);
+  ASSERT_NE(report.find("end\n"), std::string::npos) << "child exit " << WEXITSTATUS(status);
+
+  std::vector<std::string> namespaces;
+  std::vector<pid_t> engines;
+  std::istringstream lines(report);
+  for (std::string line; std::getline(lines, line) && line != "end";) {
+    std::istringstream words(line);
+    std::string name;
+    words >> name;
+    namespaces.push_back(name);
+    for (pid_t pid; words >> pid;) engines.push_back(pid);
+  }
+  ASSERT_EQ(namespaces.size(), 2u);
+  EXPECT_EQ(engines.size(), 2u);  // one nats-server per host
+  for (pid_t pid : engines) {
+    bool gone = false;
+    for (int i = 0; i < 250 && !gone; ++i) {
+      const char state = ProcessState(pid);
+      gone = state == 0 || state == 'Z';
+      if (!gone) std::this_thread::sleep_for(20ms);
+    }
+    EXPECT_TRUE(gone) << "engine " << pid << " outlived its crashed test";
+  }
+  for (const auto& name : namespaces) EXPECT_TRUE(fs::exists("/run/netns/" + name)) << name;
+
+  const std::string command = std::string(PLACEDB_CLUSTER_CLEANUP_SCRIPT) + " " + pid_dir;
+  EXPECT_EQ(std::system(command.c_str()), 0);
+  for (const auto& name : namespaces) EXPECT_FALSE(fs::exists("/run/netns/" + name)) << name;
+  const std::string run = "pdb" + std::to_string(child);
+  for (const auto& entry : fs::directory_iterator("/sys/class/net")) {
+    EXPECT_NE(entry.path().filename().string().rfind(run, 0), 0u)
+        << "left behind: " << entry.path().filename();
+  }
+  for (const auto& entry : fs::directory_iterator(Hosts::RegistryDirectory())) {
+    std::ifstream in(entry.path());
+    pid_t owner = 0;
+    in >> owner;
+    EXPECT_NE(owner, child) << "registry entry left: " << entry.path();
+  }
+  std::error_code ignored;
+  fs::remove_all(pid_dir, ignored);
 }
 
 TEST(HostsTest, LoopbackFallbackGivesOneAddressPerHostAndEnginesRunThere) {
