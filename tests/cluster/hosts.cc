@@ -277,6 +277,13 @@ void Hosts::Track(int host, pid_t process_group) {
   hosts_.at(host).tracked.push_back(process_group);
 }
 
+Status Hosts::StartProcess(int host, EngineProcess& process, std::vector<std::string> argv,
+                           const std::string& log_path) {
+  PLACEDB_RETURN_IF_ERROR(process.Start(std::move(argv), log_path, netns(host)));
+  Track(host, process.pid());
+  return Status::Ok();
+}
+
 Status Hosts::Kill(int index) {
   Host& host = hosts_.at(index);
   for (pid_t group : host.tracked) {

@@ -28,6 +28,7 @@
 #include <vector>
 
 #include "core/base/status.h"
+#include "tests/cluster/engines.h"
 
 namespace placedb::cluster::testing {
 
@@ -62,6 +63,11 @@ class Hosts {
 
   // Registers a process group started for `host` (loopback hosts have no namespace to sweep).
   void Track(int host, pid_t process_group);
+  // Starts `argv` as `process` inside the host (its namespace; for loopback hosts, where the
+  // caller is) and tracks it, so Kill(host) kills it with the rest: how tests run a
+  // placedb-server (shard, worker) on a host. `process` must outlive the host's use of it.
+  Status StartProcess(int host, EngineProcess& process, std::vector<std::string> argv,
+                      const std::string& log_path);
 
   // SIGKILLs every process of the host (netns: every process in its namespace, plus tracked
   // groups) and, for netns hosts, takes its link down. The processes are not reaped: their

@@ -227,6 +227,15 @@ TEST(HostsTest, DestructorRemovesNamespacesBridgeAndRegistryAndKillsEveryProcess
     testing::EngineProcess process;
     ASSERT_TRUE(process.Start({"/bin/sleep", "600"}, "/dev/null", namespaces[1]).ok());
     sleeper = process.pid();
+    // And one started through the host, killed with it.
+    testing::EngineProcess tracked;
+    ASSERT_TRUE((*hosts)->StartProcess(0, tracked, {"/bin/sleep", "600"}, "/dev/null").ok());
+    ASSERT_TRUE((*hosts)->Kill(0).ok());
+    for (int i = 0; i < 100 && ProcessState(tracked.pid()) != 'Z'; ++i) {
+      std::this_thread::sleep_for(20ms);
+    }
+    EXPECT_EQ(ProcessState(tracked.pid()), 'Z') << "killed with its host";
+    EXPECT_FALSE((*hosts)->up(0));
     ASSERT_TRUE([&] {
       for (int i = 0; i < 100; ++i) {
         if (!(*hosts)->Processes(1).empty()) return true;
@@ -359,7 +368,14 @@ TEST(HostsTest, LoopbackFallbackGivesOneAddressPerHostAndEnginesRunThere) {
   }
   const int port = PortOf((*engines)->NatsUrl(1));
   ASSERT_TRUE(Reaches((*hosts)->address(1), port));
+  // No namespace to sweep: a host's kill kills the process groups started through it.
+  testing::EngineProcess tracked;
+  ASSERT_TRUE((*hosts)->StartProcess(1, tracked, {"/bin/sleep", "600"}, "/dev/null").ok());
   ASSERT_TRUE((*hosts)->Kill(1).ok());
+  for (int i = 0; i < 100 && ProcessState(tracked.pid()) != 'Z'; ++i) {
+    std::this_thread::sleep_for(20ms);
+  }
+  EXPECT_EQ(ProcessState(tracked.pid()), 'Z') << "killed with its host";
   (*engines)->KillNode(1);
   EXPECT_FALSE(Reaches((*hosts)->address(1), port));
   auto leader = (*engines)->MetaLeader(30s);
