@@ -38,6 +38,7 @@ import glob
 import json
 import os
 import random
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -90,8 +91,13 @@ class Cluster:
         except ProcessLookupError:
             pass
 
-    def down(self) -> None:
-        self.run("down", check=False)
+    def down(self, purge: bool = False) -> None:
+        """Stops everything; keeps the logs and data for a look unless `purge`."""
+        self.run("down", *(["--purge"] if purge else []), check=False)
+        if purge:
+            shutil.rmtree(self.directory, ignore_errors=True)
+        else:
+            print(f"cluster_soak: logs and data in {self.directory}", file=sys.stderr)
 
 
 # ---- frames --------------------------------------------------------------------------------
@@ -532,7 +538,7 @@ class SelfTest(unittest.TestCase):
             s = cluster.status()
             self.assertTrue(all(p["answers"] for h in s["hosts"] for p in h["processes"].values()))
         finally:
-            cluster.down()
+            cluster.down(purge=True)
 
 
 def main() -> int:
