@@ -45,7 +45,14 @@ for file in "$registry"/10.*; do
       ip netns del "$ns" 2>/dev/null
     fi
   done
-  [ -n "$bridge" ] && ip link show "$bridge" >/dev/null 2>&1 && ip link del "$bridge"
+  if [ -n "$bridge" ]; then
+    # The outer veth ends ("<bridge without its final b>v<i>"): a deleted namespace is destroyed
+    # asynchronously, and its veth pair with it; do not leave them to chance.
+    for link in /sys/class/net/"${bridge%b}"v*; do
+      [ -e "$link" ] && ip link del "$(basename "$link")" 2>/dev/null
+    done
+    ip link show "$bridge" >/dev/null 2>&1 && ip link del "$bridge"
+  fi
   rm -f "$file"
 done
 exit 0

@@ -184,7 +184,15 @@ Status Hosts::SetupNetns(int count) {
         KillNamespaceProcesses(netns);
         (void)RunIp({"netns", "del", netns});
       }
-      if (!bridge.empty()) (void)RunIp({"link", "del", bridge});
+      if (!bridge.empty()) {
+        // Its veths' outer ends ("<bridge without the final b>v<i>"), then the bridge.
+        const std::string veths = bridge.substr(0, bridge.size() - 1) + "v";
+        for (const auto& link : fs::directory_iterator("/sys/class/net", error)) {
+          const std::string name = link.path().filename().string();
+          if (name.rfind(veths, 0) == 0) (void)RunIp({"link", "del", name});
+        }
+        (void)RunIp({"link", "del", bridge});
+      }
       fs::remove(file, error);
       fd = ::open(file.c_str(), O_WRONLY | O_CREAT | O_EXCL, 0644);
     }
