@@ -3,6 +3,7 @@
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <netinet/in.h>
+#include <sched.h>
 #include <signal.h>
 #include <sys/prctl.h>
 #include <sys/socket.h>
@@ -19,6 +20,7 @@
 
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
+#include "tests/cluster/hosts.h"
 
 namespace placedb::cluster::testing {
 namespace fs = std::filesystem;
@@ -83,6 +85,40 @@ bool Accepts(const std::string& host, int port) {
   return ok;
 }
 
+// The body of an HTTP/1.0 GET of `path` on host:port (the nats-server monitoring endpoint).
+Result<std::string> HttpGet(const std::string& host, int port, const std::string& path) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  if (fd < 0) return Status::IoError(std::string("socket: ") + std::strerror(errno));
+  timeval timeout{2, 0};
+  ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof(timeout));
+  ::setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &timeout, sizeof(timeout));
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(static_cast<uint16_t>(port));
+  if (::inet_pton(AF_INET, host.c_str(), &address.sin_addr) != 1 ||
+      ::connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) {
+    ::close(fd);
+    return Status::IoError("connect " + host + ":" + std::to_string(port) + ": " +
+                           std::strerror(errno));
+  }
+  const std::string request = "GET " + path + " HTTP/1.0\r\nHost: " + host + "\r\n\r\n";
+  if (::send(fd, request.data(), request.size(), MSG_NOSIGNAL) !=
+      static_cast<ssize_t>(request.size())) {
+    ::close(fd);
+    return Status::IoError("send to " + host + ": " + std::strerror(errno));
+  }
+  std::string response;
+  char buffer[4096];
+  for (ssize_t n; (n = ::recv(fd, buffer, sizeof(buffer), 0)) > 0;) response.append(buffer, n);
+  ::close(fd);
+  const size_t body = response.find("\r\n\r\n");
+  if (response.rfind("HTTP/1.", 0) != 0 || body == std::string::npos ||
+      response.find(" 200 ") > body) {
+    return Status::IoError("GET " + path + " on " + host + ": bad response");
+  }
+  return response.substr(body + 4);
+}
+
 std::string Tail(const std::string& path, size_t bytes = 1500) {
   std::ifstream in(path, std::ios::binary);
   std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
@@ -109,8 +145,10 @@ EngineProcess::~EngineProcess() {
   Kill();
 }
 
-Status EngineProcess::Start(std::vector<std::string> argv, const std::string& log_path) {
+Status EngineProcess::Start(std::vector<std::string> argv, const std::string& log_path,
+                            const std::string& netns) {
   if (running()) return Status::FailedPrecondition("engine already running: " + argv_[0]);
+  const std::string netns_path = netns.empty() ? "" : "/run/netns/" + netns;
   argv_ = std::move(argv);
   std::vector<char*> args;
   for (auto& arg : argv_) args.push_back(arg.data());
@@ -122,6 +160,11 @@ Status EngineProcess::Start(std::vector<std::string> argv, const std::string& lo
     ::setpgid(0, 0);
     ::prctl(PR_SET_PDEATHSIG, SIGKILL);
     if (::getppid() != parent) _exit(1);  // the test died before prctl
+    if (!netns_path.empty()) {
+      const int ns = ::open(netns_path.c_str(), O_RDONLY);
+      if (ns < 0 || ::setns(ns, CLONE_NEWNET) != 0) _exit(126);
+      ::close(ns);
+    }
     const int log = ::open(log_path.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
     const int null = ::open("/dev/null", O_RDONLY);
     if (log >= 0) {
@@ -185,6 +228,9 @@ Result<std::unique_ptr<Engines>> Engines::Start(EnginesOptions options) {
   if (static_cast<int>(options.hosts.size()) != options.nodes) {
     return Status::InvalidArgument("Engines: one host per node");
   }
+  if (!options.netns.empty() && static_cast<int>(options.netns.size()) != options.nodes) {
+    return Status::InvalidArgument("Engines: one network namespace per node, or none");
+  }
   std::unique_ptr<Engines> engines(new Engines(std::move(options)));
   PLACEDB_RETURN_IF_ERROR(engines->Setup());
   return engines;
@@ -199,12 +245,16 @@ Status Engines::Setup() {
   for (int i = 0; i < options_.nodes; ++i) {
     auto node = std::make_unique<Node>();
     node->host = options_.hosts[i];
-    auto ports = FreePorts(node->host, 4);
+    if (!options_.netns.empty()) node->netns = options_.netns.at(i);
+    // Ports are picked where the engines bind them: inside the node's namespace.
+    Result<std::vector<int>> ports = Status::Internal("no ports picked");
+    PLACEDB_RETURN_IF_ERROR(RunInNetns(node->netns, [&] { ports = FreePorts(node->host, 5); }));
     if (!ports.ok()) return ports.status();
     node->nats_port = (*ports)[0];
     node->nats_cluster_port = (*ports)[1];
     node->etcd_client_port = (*ports)[2];
     node->etcd_peer_port = (*ports)[3];
+    node->nats_http_port = (*ports)[4];
     nodes_.push_back(std::move(node));
   }
   // Every engine first, then wait: the members need each other to become ready.
@@ -274,6 +324,7 @@ Status Engines::StartNats(int index) {
     std::ofstream config(config_path);
     config << "server_name: " << name << "\n"
            << "listen: \"" << node.host << ":" << node.nats_port << "\"\n"
+           << "http: \"" << node.host << ":" << node.nats_http_port << "\"\n"
            << "jetstream {\n"
            << "  store_dir: \"" << directory_ << "/" << name << "\"\n"
            << "  max_memory_store: 64MB\n"
@@ -289,7 +340,8 @@ Status Engines::StartNats(int index) {
     config << "  ]\n}\n";
     if (!config) return Status::IoError("cannot write " + config_path);
   }
-  return node.nats.Start({NatsServerBinary(), "-c", config_path}, directory_ + "/" + name + ".log");
+  return node.nats.Start({NatsServerBinary(), "-c", config_path}, directory_ + "/" + name + ".log",
+                         node.netns);
 }
 
 // A restart finds its data dir and ignores the --initial-* flags: the same command line serves.
@@ -312,7 +364,7 @@ Status Engines::StartEtcd(int index) {
        // etcd's defaults, spelled out: lease TTLs below 1.5 x the election timeout are raised.
        "--heartbeat-interval", "100", "--election-timeout", "1000", "--logger", "zap",
        "--log-level", "warn"},
-      directory_ + "/" + name + ".log");
+      directory_ + "/" + name + ".log", node.netns);
 }
 
 Status Engines::WaitNatsReady(int index, Clock::time_point deadline) const {
@@ -377,6 +429,56 @@ bool Engines::NatsRunning(int node) const {
 }
 bool Engines::EtcdRunning(int node) const {
   return nodes_.at(node)->etcd.running();
+}
+
+void Engines::KillNode(int node) {
+  KillNats(node);
+  KillEtcd(node);
+}
+
+Status Engines::RestartNode(int node) {
+  // Both first: a restarted etcd member may need the others' answers, nats-server needs none.
+  if (options_.nats) PLACEDB_RETURN_IF_ERROR(StartNats(node));
+  if (options_.etcd) PLACEDB_RETURN_IF_ERROR(StartEtcd(node));
+  const auto deadline = Clock::now() + options_.ready_timeout;
+  if (options_.nats) PLACEDB_RETURN_IF_ERROR(WaitNatsReady(node, deadline));
+  if (options_.etcd) PLACEDB_RETURN_IF_ERROR(WaitEtcdReady(node, deadline));
+  return Status::Ok();
+}
+
+std::string Engines::NatsMonitor(int node) const {
+  return host(node) + ":" + std::to_string(nodes_.at(node)->nats_http_port);
+}
+
+Result<int> Engines::MetaLeader(std::chrono::milliseconds timeout) const {
+  const auto deadline = Clock::now() + timeout;
+  std::string last = "no nats-server is running";
+  while (Clock::now() < deadline) {
+    for (int i = 0; i < nodes(); ++i) {
+      if (!NatsRunning(i)) continue;
+      auto body = HttpGet(host(i), nodes_[i]->nats_http_port, "/jsz");
+      if (!body.ok()) {
+        last = body.status().ToString();
+        continue;
+      }
+      // {"meta_cluster": {"name": ..., "leader": "n1", ...}}: read the leader's name without a
+      // JSON library (the harness links none); empty while an election runs.
+      const size_t meta = body->find("\"meta_cluster\"");
+      const size_t key = meta == std::string::npos ? meta : body->find("\"leader\"", meta);
+      const size_t open = key == std::string::npos ? key : body->find('"', body->find(':', key));
+      const size_t close = open == std::string::npos ? open : body->find('"', open + 1);
+      if (close == std::string::npos) {
+        last = "no meta leader in /jsz of " + NatsServerName(i);
+        continue;
+      }
+      const int leader = NodeOfServerName(body->substr(open + 1, close - open - 1));
+      if (leader >= 0 && NatsRunning(leader)) return leader;
+      last = "meta leader '" + body->substr(open + 1, close - open - 1) + "' is not a live node";
+    }
+    SleepMs(200);
+  }
+  return Status::IoError("no JetStream meta leader within " + std::to_string(timeout.count()) +
+                         " ms: " + last);
 }
 
 Status Engines::RestartNats(int node) {

@@ -34,6 +34,9 @@ struct EnginesOptions {
   // One host address per node; when empty, PLACEDB_ENGINES_HOSTS (comma-separated) or else
   // 127.0.0.1 for all.
   std::vector<std::string> hosts;
+  // One network namespace per node (tests/cluster/hosts.h), or empty: the caller's. A node's
+  // engines run inside its namespace and its ports are picked there.
+  std::vector<std::string> netns;
   bool nats = true;
   bool etcd = true;
   std::chrono::seconds ready_timeout{60};
@@ -47,8 +50,11 @@ class EngineProcess {
   EngineProcess(const EngineProcess&) = delete;
   EngineProcess& operator=(const EngineProcess&) = delete;
 
-  // Starts `argv` (argv[0] a path) with stdout+stderr appended to `log_path`.
-  Status Start(std::vector<std::string> argv, const std::string& log_path);
+  // Starts `argv` (argv[0] a path) with stdout+stderr appended to `log_path`; inside the network
+  // namespace /run/netns/`netns` when given (joined by the child before exec: same pid, so the
+  // process group and PR_SET_PDEATHSIG hold as without one).
+  Status Start(std::vector<std::string> argv, const std::string& log_path,
+               const std::string& netns = "");
   // SIGKILL to the group, then reaps. No-op when not running.
   void Kill();
   bool running() const { return pid_ > 0; }
@@ -88,6 +94,16 @@ class Engines {
   Status RestartEtcd(int node);
   bool NatsRunning(int node) const;
   bool EtcdRunning(int node) const;
+  // Both engines of a node: SIGKILL (reaps them, also when Hosts::Kill already killed them) and
+  // restart (returns once both answer, as RestartNats/RestartEtcd).
+  void KillNode(int node);
+  Status RestartNode(int node);
+
+  // The node whose nats-server is the JetStream meta leader (from the monitoring endpoint /jsz of
+  // a running node), or an error when none is known within `timeout`.
+  Result<int> MetaLeader(std::chrono::milliseconds timeout = std::chrono::seconds(10)) const;
+  // "host:port" of a node's nats-server monitoring endpoint (HTTP).
+  std::string NatsMonitor(int node) const;
 
   // The node whose nats-server leads `stream` (asked through any live node), or an error when no
   // leader is elected within `timeout`.
@@ -103,6 +119,8 @@ class Engines {
     std::string host;
     int nats_port = 0;
     int nats_cluster_port = 0;
+    int nats_http_port = 0;
+    std::string netns;
     int etcd_client_port = 0;
     int etcd_peer_port = 0;
     EngineProcess nats;

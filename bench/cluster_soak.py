@@ -1,0 +1,578 @@
+#!/usr/bin/python3
+"""Cluster soak and worker throughput (issue 18; docs/cluster.md), on tools/cluster_local.py.
+
+Soak (default): `up --hosts 3`, 2 maps, `--agents` agents x `--frames` frames through the
+workers' public placedb.v1 API (the Python SDK, client/python), a random host killed every
+`--kill-every` s (`--kills` kills, each restarted after `--down` s), `--query-rate` queries/s
+with a `--deadline` budget and at most one retry (on another worker, in the budget left). Then:
+every acknowledged place is read back through the workers; then the 2-of-3-NATS-down check
+(ingest refused UNAVAILABLE, nothing acknowledged, resumes once one returns). Prints
+`name value unit` lines (bench/bench_output.h's format):
+
+  acknowledged, lost (acknowledged ids missing from the map), duplicates ((agent, sequence)
+  stored under more than one id, or one frame acknowledged with two ids), stall_kill<i> (longest
+  time without any ack in the --kill-every s after kill i), stall_max, query_within_deadline
+  (share), query_retries, nats_2down_refused / nats_2down_acknowledged / nats_2down_resume.
+
+Throughput (`--workers 1,2,3`): for each count, `--agents` agents ingest for `--duration` s
+through that many workers: frames/s of precomputed features (`feat`) and, with `--images`, of
+JPEG frames with detection (`jpeg`).
+
+Frames: precomputed synthetic ORB features (deterministic per agent and sequence: a frame
+resent after a failover is the same frame with the same message id `<agent>/<sequence>`), or
+JPEG files (--images DIR). Each frame carries its sequence: a failover resends unacknowledged
+frames and the workers' de-duplication must answer them with their original place id.
+
+Needs the shard and worker roles (cluster mode): `self-test` checks this script's own parts
+without them (frames, stall and query accounting, verification, the kill schedule on the engines).
+
+  bench/cluster_soak.py [--sdk build/client/python] [--placedb-server build/server/placedb-server]
+  bench/cluster_soak.py --workers 1,2,3 --images /work/shared/data/rtabmap-loop
+  bench/cluster_soak.py self-test
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import random
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import unittest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+LAUNCHER = os.path.join(ROOT, "tools", "cluster_local.py")
+MAPS = ("soak-a", "soak-b")
+
+
+def out(name: str, value, unit: str) -> None:
+    print(f"{name} {value:.6g} {unit}" if isinstance(value, float) else f"{name} {value} {unit}",
+          flush=True)
+
+
+# ---- launcher ------------------------------------------------------------------------------
+
+
+class Cluster:
+    """tools/cluster_local.py through its command line (its state file is the truth)."""
+
+    def __init__(self, directory: str):
+        self.directory = directory
+
+    def run(self, *args: str, check: bool = True) -> str:
+        r = subprocess.run([sys.executable, LAUNCHER, "--dir", self.directory, *args],
+                           capture_output=True, text=True)
+        if check and r.returncode != 0:
+            raise RuntimeError(f"cluster_local {' '.join(args)}: {r.stdout}{r.stderr}")
+        return r.stdout
+
+    def status(self) -> dict:
+        return json.loads(self.run("status", "--json"))
+
+    def up(self, hosts: int, extra: list[str]) -> None:
+        self.run("up", "--hosts", str(hosts), *extra)
+
+    def kill_host(self, host: int) -> None:
+        self.run("kill-host", str(host))
+
+    def start_host(self, host: int) -> None:
+        self.run("start-host", str(host))
+
+    def kill_process(self, host: int, name: str) -> None:
+        pid = self.status()["hosts"][host]["processes"][name]["pid"]
+        try:
+            os.kill(pid, 9)
+        except ProcessLookupError:
+            pass
+
+    def down(self, purge: bool = False) -> None:
+        """Stops everything; keeps the logs and data for a look unless `purge`."""
+        self.run("down", *(["--purge"] if purge else []), check=False)
+        if purge:
+            shutil.rmtree(self.directory, ignore_errors=True)
+        else:
+            print(f"cluster_soak: logs and data in {self.directory}", file=sys.stderr)
+
+
+# ---- frames --------------------------------------------------------------------------------
+
+
+def synthetic_frame(sdk, agent: str, sequence: int, features: int = 500):
+    """Deterministic ORB-like features of (agent, sequence): the same frame when resent."""
+    import numpy as np
+
+    rng = np.random.default_rng(_seed(agent, sequence))
+    keypoints = np.zeros((features, 6), dtype=np.float32)
+    keypoints[:, 0] = rng.uniform(0, 639, features)
+    keypoints[:, 1] = rng.uniform(0, 479, features)
+    keypoints[:, 2] = 31.0
+    keypoints[:, 3] = rng.uniform(0, 360, features)
+    keypoints[:, 4] = rng.uniform(0, 1, features)
+    descriptors = rng.integers(0, 256, (features, 32), dtype=np.uint8)
+    return sdk.Frame(keypoints=keypoints, descriptors=descriptors, image_size=(640, 480),
+                     sequence=sequence)
+
+
+def _seed(agent: str, sequence: int) -> int:
+    # hash() of a str differs per process: a stable seed instead.
+    value = sequence * 1000003
+    for byte in agent.encode():
+        value = (value * 131 + byte) % (1 << 61)
+    return value
+
+
+def image_frame(sdk, paths: list[str], sequence: int):
+    with open(paths[sequence % len(paths)], "rb") as f:
+        return sdk.Frame(image=f.read(), sequence=sequence)
+
+
+# ---- accounting (pure: self-tested) --------------------------------------------------------
+
+
+class Acks:
+    """Every acknowledgement: (agent, sequence) -> place ids (more than one: a duplicate)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.by_frame: dict[tuple[str, int], set[int]] = {}
+        self.maps: dict[tuple[str, int], str] = {}
+        self.times: list[float] = []
+        self.agent_times: dict[str, list[float]] = {}
+
+    def add(self, map_name: str, agent: str, sequence: int, place_id: int, at: float) -> None:
+        with self.lock:
+            self.by_frame.setdefault((agent, sequence), set()).add(place_id)
+            self.maps[(agent, sequence)] = map_name
+            self.times.append(at)
+            self.agent_times.setdefault(agent, []).append(at)
+
+    def count(self) -> int:
+        with self.lock:
+            return len(self.by_frame)
+
+
+def stalls(ack_times: list[float], kills: list[float], window: float,
+           finished: float = float("inf")) -> list:
+    """Per kill at time k: the longest gap without an ack within [k, min(k + window, finished)]
+    (gaps that start before k count from k; an empty window counts whole); None for a kill at
+    or after `finished` (every frame acknowledged: nothing left to stall)."""
+    times = sorted(ack_times)
+    result = []
+    for k in kills:
+        if k >= finished:
+            result.append(None)
+            continue
+        end = min(k + window, finished)
+        inside = [t for t in times if k <= t <= end]
+        edges = [k] + inside + [min(end, max(times[-1], k) if times else end)]
+        if not inside:
+            edges = [k, end]
+        result.append(max(b - a for a, b in zip(edges, edges[1:])))
+    return result
+
+
+def agent_stalls(acks: Acks, frames: int, kills: list[float], window: float) -> list:
+    """Per kill: the longest stall of any agent (stalls() over that agent's own acks, up to its
+    last ack once it has all `frames`): the agents of the killed worker are the ones that wait.
+    None when every agent had finished before the kill."""
+    per_agent = []
+    for agent, times in acks.agent_times.items():
+        done = sum(1 for (a, _) in acks.by_frame if a == agent) >= frames
+        per_agent.append(stalls(times, kills, window, max(times) if done else float("inf")))
+    result = []
+    for i in range(len(kills)):
+        values = [s[i] for s in per_agent if s[i] is not None]
+        result.append(max(values) if values else None)
+    return result
+
+
+def verify(acks: Acks, stored: dict[str, list[tuple[int, str, int]]]) -> tuple[int, int]:
+    """(lost, duplicates) of acknowledged frames against the stored places of each map
+    ((place id, agent, sequence) triples)."""
+    present: dict[str, set[int]] = {m: {p for p, _, _ in places} for m, places in stored.items()}
+    lost = 0
+    duplicates = 0
+    for frame, ids in acks.by_frame.items():
+        duplicates += len(ids) - 1
+        lost += sum(1 for i in ids if i not in present.get(acks.maps[frame], set()))
+    for places in stored.values():
+        seen: dict[tuple[str, int], int] = {}
+        for _, agent, sequence in places:
+            seen[(agent, sequence)] = seen.get((agent, sequence), 0) + 1
+        duplicates += sum(n - 1 for n in seen.values())
+    return lost, duplicates
+
+
+class Queries:
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.total = self.within = self.retries = 0
+
+    def add(self, within: bool, retried: bool) -> None:
+        with self.lock:
+            self.total += 1
+            self.within += int(within)
+            self.retries += int(retried)
+
+
+def query_once_with_retry(attempts, deadline: float) -> tuple[bool, bool]:
+    """`attempts`: up to two callables taking a timeout (s); the second only when the first
+    fails, with what is left of `deadline`. Returns (answered within deadline, retried)."""
+    start = time.monotonic()
+    for i, attempt in enumerate(attempts[:2]):
+        left = deadline - (time.monotonic() - start)
+        if left <= 0:
+            return False, i > 0
+        try:
+            attempt(left)
+            return time.monotonic() - start <= deadline, i > 0
+        except Exception:  # noqa: BLE001 -- any failure is a miss; the retry decides
+            continue
+    return False, True
+
+
+# ---- the soak ------------------------------------------------------------------------------
+
+
+def map_settings(sdk, precomputed: bool):
+    # Precomputed features carry no pixels: boxes can only come from the agent (none here).
+    return sdk.MapSettings(box_source="agent") if precomputed else None
+
+
+def workers_of(status: dict, live_only: bool = True) -> list[str]:
+    return [w for w, h in zip(status["workers"], status["hosts"]) if h["up"] or not live_only]
+
+
+def agent_loop(sdk, cluster: Cluster, map_name: str, agent: str, frames: int, make_frame,
+               acks: Acks, stop: threading.Event, worker_pick) -> None:
+    """Ingests sequences 0..frames-1; on any stream failure reconnects to another worker and
+    resends from the first unacknowledged sequence (same message ids)."""
+    next_sequence = 0
+    failures = 0
+    while next_sequence < frames and not stop.is_set():
+        address = worker_pick(failures)
+        try:
+            with sdk.Client(address) as client:
+                stream = client.ingest(map_name, (make_frame(agent, s)
+                                                  for s in range(next_sequence, frames)),
+                                       agent_id=agent, max_in_flight=4)
+                for result in stream:
+                    if result.error:
+                        raise RuntimeError(result.error)
+                    if result.stored or result.place_id:
+                        acks.add(map_name, agent, result.sequence, result.place_id,
+                                 time.monotonic())
+                    next_sequence = result.sequence + 1
+                    if stop.is_set():
+                        break
+        except Exception as e:  # noqa: BLE001 -- a failover: next worker, resend the rest
+            failures += 1
+            if failures in (1, 10, 100):
+                print(f"cluster_soak: {agent}: failure {failures}: {type(e).__name__}: {e}",
+                      file=sys.stderr)
+            time.sleep(0.2)
+
+
+def soak(args, sdk) -> int:
+    cluster = Cluster(tempfile.mkdtemp(prefix="placedb-soak-"))
+    cluster.up(3, ["--placedb-server", args.placedb_server, "--roles", args.roles]
+               + [f"--server-arg={a}" for a in args.server_arg or []])
+    try:
+        status = cluster.status()
+        with sdk.Client(status["workers"][0]) as client:
+            for m in MAPS:
+                client.create_map(m, map_settings(sdk, not args.image_paths))
+        acks, queries = Acks(), Queries()
+        stop = threading.Event()
+        rng = random.Random(args.seed)
+        lock = threading.Lock()
+        live = {"workers": workers_of(status)}
+
+        def pick(failures: int) -> str:
+            with lock:
+                w = live["workers"]
+                return w[failures % len(w)]
+
+        make = (lambda a, s: image_frame(sdk, args.image_paths, s)) if args.image_paths else \
+            (lambda a, s: synthetic_frame(sdk, a, s))
+        threads = [threading.Thread(target=agent_loop, daemon=True, args=(
+            sdk, cluster, MAPS[i % 2], f"agent-{i}", args.frames, make, acks, stop, pick))
+            for i in range(args.agents)]
+
+        def query_loop() -> None:
+            period = 1.0 / args.query_rate
+            next_at = time.monotonic()
+            clients = {w: sdk.Client(w) for w in status["workers"]}
+            while not stop.is_set():
+                next_at += period
+                with lock:
+                    ws = list(live["workers"])
+                first = rng.randrange(len(ws))
+                frame = synthetic_frame(sdk, "query", rng.randrange(1 << 20))
+                m = MAPS[rng.randrange(2)]
+                attempts = [lambda t, w=ws[(first + k) % len(ws)]:
+                            clients[w].query(m, frame, top_k=5, timeout=t) for k in range(2)]
+                within, retried = query_once_with_retry(attempts, args.deadline)
+                queries.add(within, retried)
+                time.sleep(max(0.0, next_at - time.monotonic()))
+            for c in clients.values():
+                c.close()
+
+        for t in threads:
+            t.start()
+        qt = threading.Thread(target=query_loop, daemon=True)
+        qt.start()
+        kills = []
+        for i in range(args.kills):
+            time.sleep(args.kill_every - args.down)
+            host = rng.randrange(3)
+            with lock:
+                live["workers"] = [w for j, w in enumerate(status["workers"]) if j != host]
+            cluster.kill_host(host)
+            kills.append(time.monotonic())
+            out(f"kill{i}_host", host, "host")
+            time.sleep(args.down)
+            cluster.start_host(host)
+            with lock:
+                live["workers"] = list(status["workers"])
+        for t in threads:
+            t.join(timeout=args.finish_timeout)
+        stop.set()
+        qt.join()
+
+        out("acknowledged", acks.count(), "frames")
+        stored = {}
+        try:
+            with sdk.Client(status["workers"][0]) as client:
+                for m in MAPS:
+                    stored[m] = [(p.place_id, p.agent_id, p.sequence)
+                                 for p in client.iter_places(m, limit=1000, timeout=60)]
+            lost, duplicates = verify(acks, stored)
+            out("lost", lost, "places")
+            out("duplicates", duplicates, "places")
+        except sdk.Error as e:  # e.g. no shard role running: nothing to read back from
+            print(f"cluster_soak: cannot read the maps back: {type(e).__name__}: {e}",
+                  file=sys.stderr)
+        # Without the read-back: one frame acknowledged under two ids is still a duplicate.
+        out("ack_duplicates", sum(len(i) - 1 for i in acks.by_frame.values()), "frames")
+        complete = acks.count() == args.agents * args.frames
+        out("ingest_complete", int(complete), "bool")
+        per_kill = agent_stalls(acks, args.frames, kills, args.kill_every)
+        for i, s in enumerate(per_kill):
+            if s is None:
+                print(f"cluster_soak: kill {i} came after the last ack: no stall to measure",
+                      file=sys.stderr)
+            else:
+                out(f"stall_kill{i}", s, "s")
+        measured = [s for s in per_kill if s is not None]
+        if measured:
+            out("stall_max", max(measured), "s")
+        out("queries", queries.total, "queries")
+        out("query_within_deadline", queries.within / max(1, queries.total), "share")
+        out("query_retries", queries.retries, "queries")
+        nats_two_down(cluster, sdk, status)
+    finally:
+        cluster.down()
+    return 0
+
+
+def nats_two_down(cluster: Cluster, sdk, status: dict) -> None:
+    """Two of three nats-servers SIGKILLed: a new frame is refused (UNAVAILABLE), nothing is
+    acknowledged; one returns: the same frame is acknowledged (bounded wait)."""
+    for host in (1, 2):
+        cluster.kill_process(host, "nats")
+    worker = status["workers"][0]
+    frame = synthetic_frame(sdk, "nats-check", 0)
+    refused = acknowledged = 0
+    with sdk.Client(worker) as client:
+        try:
+            for r in client.ingest(MAPS[0], [frame], agent_id="nats-check", timeout=30):
+                if r.error:
+                    refused += int(isinstance(r.error, sdk.Unavailable) or
+                                   "UNAVAILABLE" in str(r.error).upper())
+                    print(f"nats_2down: refused: {r.error}", file=sys.stderr)
+                elif r.stored or r.place_id:
+                    acknowledged += 1
+        except sdk.Unavailable:
+            refused += 1
+        except sdk.Error as e:
+            print(f"nats_2down: {type(e).__name__}: {e}", file=sys.stderr)
+        out("nats_2down_refused", refused, "frames")
+        out("nats_2down_acknowledged", acknowledged, "frames")
+        cluster.start_host(1)  # starts only its missing process: nats
+        start = time.monotonic()
+        resumed = False
+        while not resumed and time.monotonic() - start < 60:
+            try:
+                for r in client.ingest(MAPS[0], [frame], agent_id="nats-check", timeout=10):
+                    resumed = not r.error and (r.stored or bool(r.place_id))
+            except sdk.Error:
+                time.sleep(0.5)
+        out("nats_2down_resume", time.monotonic() - start if resumed else -1.0, "s")
+    cluster.start_host(2)
+
+
+def throughput(args, sdk) -> int:
+    counts = [int(c) for c in args.workers.split(",")]
+    cluster = Cluster(tempfile.mkdtemp(prefix="placedb-throughput-"))
+    cluster.up(max(3, max(counts)), ["--placedb-server", args.placedb_server, "--roles", args.roles]
+               + [f"--server-arg={a}" for a in args.server_arg or []])
+    try:
+        status = cluster.status()
+        modes = [("feat", lambda a, s: synthetic_frame(sdk, a, s))]
+        if args.image_paths:
+            modes.append(("jpeg", lambda a, s: image_frame(sdk, args.image_paths, s)))
+        with sdk.Client(status["workers"][0]) as client:
+            for mode, _ in modes:
+                for n in counts:
+                    client.create_map(f"tp-{mode}-{n}", map_settings(sdk, mode == "feat"))
+        for mode, make in modes:
+            for n in counts:
+                acks, stop = Acks(), threading.Event()
+                ws = status["workers"][:n]
+                threads = [threading.Thread(target=agent_loop, daemon=True, args=(
+                    sdk, cluster, f"tp-{mode}-{n}", f"agent-{i}", 1 << 30, make, acks, stop,
+                    lambda f, i=i: ws[(i + f) % n])) for i in range(args.agents)]
+                start = time.monotonic()
+                for t in threads:
+                    t.start()
+                time.sleep(args.duration)
+                stop.set()
+                elapsed = time.monotonic() - start
+                for t in threads:
+                    t.join(timeout=30)
+                out(f"throughput_{mode}_workers{n}", acks.count() / elapsed, "frames/s")
+    finally:
+        cluster.down()
+    return 0
+
+
+# ---- self-test -----------------------------------------------------------------------------
+
+
+class SelfTest(unittest.TestCase):
+    def test_stalls(self):
+        # Acks every 0.1 s except a 4 s gap after the kill at 10.
+        times = [i / 10 for i in range(0, 101)] + [14.0 + i / 10 for i in range(0, 200)]
+        self.assertAlmostEqual(stalls(times, [10.0], 30.0)[0], 4.0, places=6)
+        self.assertEqual(stalls([], [5.0], 30.0), [30.0])
+        # Acks stop before the kill and never resume in the window: the whole window.
+        self.assertAlmostEqual(stalls([1.0, 2.0], [5.0], 30.0)[0], 30.0)
+        # Every frame acknowledged at 3.0: a kill at 5 has nothing to stall; a kill at 2 is
+        # measured up to 3.
+        self.assertEqual(stalls([1.0, 2.0, 3.0], [5.0], 30.0, finished=3.0), [None])
+        self.assertAlmostEqual(stalls([1.0, 2.0, 3.0], [2.0], 30.0, finished=3.0)[0], 1.0)
+
+    def test_agent_stalls(self):
+        acks = Acks()
+        for i in range(100):  # agent a: steady; agent b: 3 s without an ack after the kill at 5
+            acks.add("m", "a", i, i, i * 0.1)
+            acks.add("m", "b", i, 1000 + i, i * 0.1 if i < 50 else 3.0 + i * 0.1)
+        self.assertAlmostEqual(agent_stalls(acks, 100, [5.0], 30.0)[0], 3.0, places=6)
+        self.assertEqual(agent_stalls(acks, 100, [20.0], 30.0), [None])
+
+    def test_verify(self):
+        acks = Acks()
+        acks.add("a", "x", 0, 1, 0.0)
+        acks.add("a", "x", 1, 2, 0.0)
+        acks.add("a", "x", 1, 2, 0.1)  # a resent frame answered with its original id
+        acks.add("b", "y", 0, 1, 0.0)
+        self.assertEqual(verify(acks, {"a": [(1, "x", 0), (2, "x", 1)], "b": [(1, "y", 0)]}),
+                         (0, 0))
+        self.assertEqual(verify(acks, {"a": [(1, "x", 0)], "b": [(1, "y", 0)]}), (1, 0))
+        acks.add("a", "x", 1, 3, 0.2)  # the same frame under a second id
+        self.assertEqual(verify(acks, {"a": [(1, "x", 0), (2, "x", 1), (3, "x", 1)],
+                                       "b": [(1, "y", 0)]}), (0, 2))
+
+    def test_query_retry_accounting(self):
+        def fail(_t):
+            raise RuntimeError("unavailable")
+
+        self.assertEqual(query_once_with_retry([lambda t: None, fail], 0.25), (True, False))
+        self.assertEqual(query_once_with_retry([fail, lambda t: None], 0.25), (True, True))
+        self.assertEqual(query_once_with_retry([fail, fail], 0.25), (False, True))
+        self.assertEqual(query_once_with_retry([lambda t: time.sleep(0.3), fail], 0.25),
+                         (False, False))
+
+    def test_synthetic_frames_are_deterministic(self):
+        class Sdk:
+            class Frame:
+                def __init__(self, **kw):
+                    self.__dict__.update(kw)
+        a = synthetic_frame(Sdk, "agent-1", 7)
+        b = synthetic_frame(Sdk, "agent-1", 7)
+        c = synthetic_frame(Sdk, "agent-1", 8)
+        self.assertTrue((a.descriptors == b.descriptors).all())
+        self.assertFalse((a.descriptors == c.descriptors).all())
+        self.assertEqual(a.sequence, 7)
+
+    def test_kill_schedule_on_engines(self):
+        """The kill/restart part on real engines (no placedb roles): every kill takes a host's
+        processes down and its restart brings them back; the JetStream meta leader survives."""
+        cluster = Cluster(tempfile.mkdtemp(prefix="placedb-soak-selftest-"))
+        cluster.up(3, ["--roles", "none"])
+        try:
+            rng = random.Random(1)
+            for _ in range(2):
+                host = rng.randrange(3)
+                cluster.kill_host(host)
+                s = cluster.status()
+                self.assertFalse(s["hosts"][host]["up"])
+                self.assertFalse(any(p["alive"] for p in s["hosts"][host]["processes"].values()))
+                cluster.start_host(host)
+                s = cluster.status()
+                self.assertTrue(all(p["answers"] for p in s["hosts"][host]["processes"].values()))
+            cluster.kill_process(1, "nats")
+            cluster.kill_process(2, "nats")
+            s = cluster.status()
+            self.assertFalse(s["hosts"][1]["processes"]["nats"]["alive"])
+            self.assertTrue(s["hosts"][1]["processes"]["etcd"]["alive"])
+            cluster.start_host(1)
+            cluster.start_host(2)
+            s = cluster.status()
+            self.assertTrue(all(p["answers"] for h in s["hosts"] for p in h["processes"].values()))
+        finally:
+            cluster.down(purge=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("mode", nargs="?", default="soak", choices=["soak", "self-test"])
+    parser.add_argument("--sdk", default=os.path.join(ROOT, "build", "client", "python"))
+    parser.add_argument("--placedb-server",
+                        default=os.path.join(ROOT, "build", "server", "placedb-server"))
+    parser.add_argument("--server-arg", action="append", help="extra placedb-server argument")
+    parser.add_argument("--roles", default="shard,worker",
+                        help="placedb roles per host (tools/cluster_local.py up --roles)")
+    parser.add_argument("--agents", type=int, default=8)
+    parser.add_argument("--frames", type=int, default=1250)
+    parser.add_argument("--kills", type=int, default=5)
+    parser.add_argument("--kill-every", type=float, default=30.0)
+    parser.add_argument("--down", type=float, default=10.0, help="seconds a killed host stays down")
+    parser.add_argument("--query-rate", type=float, default=20.0)
+    parser.add_argument("--deadline", type=float, default=0.25)
+    parser.add_argument("--finish-timeout", type=float, default=600.0)
+    parser.add_argument("--images", help="JPEG/PNG directory: image frames (with detection)")
+    parser.add_argument("--workers", help="throughput mode: comma-separated worker counts")
+    parser.add_argument("--duration", type=float, default=30.0)
+    parser.add_argument("--seed", type=int, default=18)
+    args = parser.parse_args()
+    if args.mode == "self-test":
+        return 0 if unittest.main(argv=[sys.argv[0], "-v"], exit=False,
+                                  defaultTest="SelfTest").result.wasSuccessful() else 1
+    sys.path.insert(0, args.sdk)
+    import placedb as sdk  # noqa: E402 -- the build tree's SDK (generated stubs)
+
+    args.image_paths = sorted(glob.glob(os.path.join(args.images, "*.jpg"))
+                              + glob.glob(os.path.join(args.images, "*.png"))) if args.images else []
+    return throughput(args, sdk) if args.workers else soak(args, sdk)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
