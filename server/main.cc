@@ -4,6 +4,10 @@
 //
 //   placedb-server tokens add|list|revoke|rotate ...   (server/auth/tokens_command.h)
 //
+// cluster.role (--role) picks what the process is (docs/cluster.md): single (the embedded
+// server), worker (the public API on the cluster: server/cluster/worker.h) or shard (map replicas
+// and the internal API: server/cluster/shard.h). A build without libnats has single only.
+//
 // SIGHUP reloads the tokens file (security.tokens_file; a bad file keeps the previous principals).
 // SIGTERM / SIGINT start a graceful shutdown (a sigwait thread does the work, never a signal
 // handler); a second signal during it exits at once with status 1 (acknowledged places are
@@ -21,6 +25,9 @@
 #include "server/auth/tokens_command.h"
 #include "server/config.h"
 #include "server/server.h"
+#ifdef PLACEDB_CLUSTER_ROLES
+#include "server/cluster/worker.h"
+#endif
 
 int main(int argc, char** argv) {
   // Its own command group, before the server's flags are parsed (those stay as they are).
@@ -57,7 +64,32 @@ int main(int argc, char** argv) {
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e%z %^%l%$ %v");
   spdlog::info("allocator: {}", placedb::server::AllocatorDescription());
 
-  auto server = placedb::server::Server::Start(config);
+  placedb::server::ServerDeps deps;
+  switch (config.cluster.role) {
+    case placedb::server::ClusterRole::kSingle:
+      break;
+#ifdef PLACEDB_CLUSTER_ROLES
+    case placedb::server::ClusterRole::kWorker:
+      deps.cluster_backend = [&config](placedb::server::MapRegistry* maps,
+                                       placedb::server::Metrics* metrics)
+          -> placedb::Result<std::unique_ptr<placedb::server::ClusterBackend>> {
+        auto worker = placedb::server::ClusterWorker::Start(config, maps, metrics);
+        if (!worker.ok()) return worker.status();
+        return std::unique_ptr<placedb::server::ClusterBackend>(std::move(worker).value());
+      };
+      break;
+    case placedb::server::ClusterRole::kShard:
+      spdlog::error("cluster.role shard: not in this build yet (server/cluster/shard.h)");
+      return 2;
+#else
+    default:
+      spdlog::error("cluster.role {}: this build has no cluster mode (it needs libnats-dev)",
+                    placedb::server::ClusterRoleName(config.cluster.role));
+      return 2;
+#endif
+  }
+  spdlog::info("role: {}", placedb::server::ClusterRoleName(config.cluster.role));
+  auto server = placedb::server::Server::Start(config, std::move(deps));
   if (!server.ok()) {
     spdlog::error("cannot start: {}", server.status().ToString());
     return 1;

@@ -189,6 +189,7 @@ void ClusterView::Apply(const KeyValue& kv, bool deleted) {
     }
     MapView& view = maps_[*map];
     view.info = std::move(info).value();
+    view.create_revision = kv.create_revision;
     if (auto it = placements_.find(*map); it != placements_.end()) view.placement = it->second;
     if (auto it = applied_.find(*map); it != applied_.end()) view.applied = it->second;
     return;

@@ -84,6 +84,7 @@ Result<MapRecordInfo> DecodeMapInfo(const std::string& json);
 // What the view holds of one map.
 struct MapView {
   MapRecordInfo info;
+  int64_t create_revision = 0;  // of maps/<map>: a map re-created under its name has another
   std::optional<Placement> placement;
   std::map<std::string, uint64_t> applied;  // shard id -> applied sequence (as last published)
 };
