@@ -1,0 +1,236 @@
+// Cluster mode's worker role (server/cluster/worker.h) through the public placedb.v1 API, on real
+// 3-node etcd and nats-server clusters (tests/cluster/engines.h) and placedb servers started
+// in-process with the worker role on loopback ports.
+#include "server/cluster/worker.h"
+
+#include <gtest/gtest.h>
+
+#include <chrono>
+#include <memory>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "server/cluster/jetstream.h"
+#include "server/cluster/placement.h"
+#include "tests/cluster/engines.h"
+#include "tests/server/server_fixture.h"
+
+namespace placedb::server_testing {
+namespace {
+
+using namespace std::chrono_literals;
+using cluster::testing::Engines;
+using server::ClusterBackend;
+using server::ClusterRole;
+using server::ClusterWorker;
+using server::MapRegistry;
+using server::Metrics;
+
+// One worker process's worth: a Server with the worker role, and a stub to it.
+struct Worker {
+  std::unique_ptr<Server> server;
+  std::shared_ptr<grpc::Channel> channel;
+  std::unique_ptr<v1::PlaceDb::Stub> stub;
+};
+
+class ClusterWorkerTest : public ServerTest {
+ protected:
+  void SetUp() override {
+    ServerTest::SetUp();
+    auto engines = Engines::Start();
+    ASSERT_TRUE(engines.ok()) << engines.status().ToString();
+    engines_ = std::move(engines).value();
+  }
+  void TearDown() override {
+    workers_.clear();
+    engines_.reset();
+    ServerTest::TearDown();
+  }
+
+  ServerConfig WorkerConfig(int index) const {
+    ServerConfig config = Config();
+    config.data_dir = root_ + "/worker-" + std::to_string(index);
+    config.cluster.role = ClusterRole::kWorker;
+    config.cluster.name = "test";
+    config.cluster.nats = engines_->NatsUrls();
+    config.cluster.etcd = engines_->EtcdEndpoints();
+    config.cluster.replace_after_s = 2;
+    return config;
+  }
+
+  Worker& StartWorker(int index) {
+    ServerDeps deps;
+    deps.vocabularies.emplace("default", vocabulary_);
+    configs_.push_back(std::make_unique<ServerConfig>(WorkerConfig(index)));
+    const ServerConfig& config = *configs_.back();
+    deps.cluster_backend = [&config](MapRegistry* maps,
+                                     Metrics* metrics) -> Result<std::unique_ptr<ClusterBackend>> {
+      auto worker = ClusterWorker::Start(config, maps, metrics);
+      if (!worker.ok()) return worker.status();
+      return std::unique_ptr<ClusterBackend>(std::move(worker).value());
+    };
+    auto started = Server::Start(config, std::move(deps));
+    EXPECT_TRUE(started.ok()) << started.status().ToString();
+    auto worker = std::make_unique<Worker>();
+    if (!started.ok()) return *workers_.emplace_back(std::move(worker));
+    worker->server = std::move(started).value();
+    worker->channel = grpc::CreateChannel("127.0.0.1:" + std::to_string(worker->server->port()),
+                                          grpc::InsecureChannelCredentials());
+    worker->stub = v1::PlaceDb::NewStub(worker->channel);
+    return *workers_.emplace_back(std::move(worker));
+  }
+
+  static grpc::Status CreateClusterMap(Worker& worker, const std::string& name) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::CreateMapRequest request;
+    request.set_name(name);
+    v1::MapDescription response;
+    return worker.stub->CreateMap(&context, request, &response);
+  }
+
+  std::unique_ptr<cluster::JetStream> Js() const {
+    cluster::JetStreamOptions options;
+    options.servers = engines_->NatsUrls();
+    auto js = cluster::JetStream::Connect(options);
+    EXPECT_TRUE(js.ok()) << js.status().ToString();
+    return js.ok() ? std::move(js).value() : nullptr;
+  }
+
+  std::unique_ptr<Engines> engines_;
+  std::vector<std::unique_ptr<ServerConfig>> configs_;  // each outlives its worker
+  std::vector<std::unique_ptr<Worker>> workers_;
+};
+
+std::vector<v1::Observation> Frames(const std::string& agent, int first, int last) {
+  std::vector<v1::Observation> out;
+  for (int frame = first; frame <= last; ++frame) out.push_back(RtabmapObservation(frame, agent));
+  return out;
+}
+
+// Maps are the cluster's (any worker sees them), places are stream sequences acknowledged after
+// JetStream's PubAck, and a replayed frame (same agent and sequence) gets its place id again.
+TEST_F(ClusterWorkerTest, MapsAndIngestThroughAnyWorker) {
+  Worker& first = StartWorker(1);
+  Worker& second = StartWorker(2);
+  ASSERT_TRUE(first.stub && second.stub);
+  {
+    grpc::ClientContext context;
+    v1::ServerInfo info;
+    ASSERT_TRUE(first.stub->GetServerInfo(&context, {}, &info).ok());
+    EXPECT_EQ(info.role(), "worker");
+  }
+  ASSERT_TRUE(CreateClusterMap(first, "lab-1").ok());
+  EXPECT_EQ(CreateClusterMap(second, "lab-1").error_code(), grpc::StatusCode::ALREADY_EXISTS);
+  ASSERT_TRUE(CreateClusterMap(second, "yard").ok());
+  {
+    grpc::ClientContext context;
+    v1::ListMapsResponse maps;
+    ASSERT_TRUE(first.stub->ListMaps(&context, {}, &maps).ok());
+    ASSERT_EQ(maps.maps_size(), 2);
+    EXPECT_EQ(maps.maps(0).name(), "lab-1");
+    EXPECT_EQ(maps.maps(1).name(), "yard");
+    grpc::ClientContext get_context;
+    v1::GetMapRequest get;
+    get.set_name("lab-1");
+    v1::MapDescription description;
+    ASSERT_TRUE(second.stub->GetMap(&get_context, get, &description).ok());
+    EXPECT_EQ(description.config().vocabulary(), "default");
+    EXPECT_EQ(description.state(), v1::MAP_STATE_AVAILABLE);
+  }
+
+  // Ingest through the first worker: every frame a place, ids = the stream's sequences.
+  const IngestOutcome ingested = IngestAll(first.stub.get(), "lab-1", Frames("agent-a", 1, 8));
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  ASSERT_EQ(ingested.responses.size(), 8u);
+  std::vector<uint32_t> ids;
+  for (const v1::IngestResponse& response : ingested.responses) {
+    ASSERT_FALSE(response.has_error()) << response.error().message();
+    if (response.stored()) ids.push_back(response.place_id());
+  }
+  ASSERT_FALSE(ids.empty());
+  EXPECT_TRUE(std::is_sorted(ids.begin(), ids.end()));
+  EXPECT_EQ(std::set<uint32_t>(ids.begin(), ids.end()).size(), ids.size());
+  auto js = Js();
+  ASSERT_TRUE(js);
+  auto info = js->GetStreamInfo(cluster::StreamName("test", "lab-1"));
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  EXPECT_EQ(info->last_sequence, 8u);  // one record per frame, stored or not
+  EXPECT_EQ(info->replicas, 3);
+
+  // The same frames again, through the other worker: the same place ids, nothing new stored.
+  const IngestOutcome replayed = IngestAll(second.stub.get(), "lab-1", Frames("agent-a", 1, 8));
+  ASSERT_TRUE(replayed.status.ok()) << replayed.status.error_message();
+  ASSERT_EQ(replayed.responses.size(), 8u);
+  for (size_t i = 0; i < 8; ++i) {
+    EXPECT_EQ(replayed.responses[i].place_id(), ingested.responses[i].place_id()) << i;
+  }
+  info = js->GetStreamInfo(cluster::StreamName("test", "lab-1"));
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->last_sequence, 8u);
+
+  // Loop closure is refused, not approximated.
+  v1::IngestHeader header;
+  header.set_map("lab-1");
+  header.set_loop_closure(true);
+  const IngestOutcome loop = IngestWithHeader(first.stub.get(), header, Frames("agent-b", 1, 1));
+  EXPECT_EQ(loop.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+
+  // DeleteMap: gone for every worker, its stream too.
+  {
+    grpc::ClientContext context;
+    v1::DeleteMapRequest request;
+    request.set_name("lab-1");
+    v1::DeleteMapResponse response;
+    ASSERT_TRUE(second.stub->DeleteMap(&context, request, &response).ok());
+    grpc::ClientContext get_context;
+    v1::GetMapRequest get;
+    get.set_name("lab-1");
+    v1::MapDescription description;
+    EXPECT_EQ(first.stub->GetMap(&get_context, get, &description).error_code(),
+              grpc::StatusCode::NOT_FOUND);
+    EXPECT_EQ(js->GetStreamInfo(cluster::StreamName("test", "lab-1")).status().code(),
+              StatusCode::kNotFound);
+  }
+}
+
+// With 2 of 3 NATS servers down nothing is acknowledged (the frame's answer is UNAVAILABLE); with
+// one back, ingest resumes, and the refused frame sent again is stored once.
+TEST_F(ClusterWorkerTest, NoQuorumNothingAcknowledgedThenResumes) {
+  Worker& worker = StartWorker(1);
+  ASSERT_TRUE(worker.stub);
+  ASSERT_TRUE(CreateClusterMap(worker, "m").ok());
+  const IngestOutcome before = IngestAll(worker.stub.get(), "m", Frames("agent-a", 1, 2));
+  ASSERT_TRUE(before.status.ok());
+  auto js = Js();
+  ASSERT_TRUE(js);
+  const std::string stream = cluster::StreamName("test", "m");
+  // Down: two nodes that are not the one the worker is connected to, when we can tell (either
+  // way no quorum is left).
+  engines_->KillNats(1);
+  engines_->KillNats(2);
+  const IngestOutcome refused = IngestAll(worker.stub.get(), "m", Frames("agent-a", 3, 3));
+  ASSERT_EQ(refused.responses.size(), 1u);
+  EXPECT_TRUE(refused.responses[0].has_error());
+  EXPECT_EQ(refused.responses[0].error().code(), int(grpc::StatusCode::UNAVAILABLE))
+      << refused.responses[0].error().message();
+  EXPECT_FALSE(refused.responses[0].stored());
+  EXPECT_EQ(refused.responses[0].place_id(), 0u);
+
+  ASSERT_TRUE(engines_->RestartNats(1).ok());
+  // Frame 3 again (same id: stored at most once), then a new one.
+  const IngestOutcome after = IngestAll(worker.stub.get(), "m", Frames("agent-a", 3, 4));
+  ASSERT_TRUE(after.status.ok()) << after.status.error_message();
+  ASSERT_EQ(after.responses.size(), 2u);
+  for (const auto& response : after.responses) {
+    EXPECT_FALSE(response.has_error()) << response.error().message();
+  }
+  auto info = js->GetStreamInfo(stream);
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  EXPECT_EQ(info->last_sequence, 4u);  // frames 1-4, each once
+}
+
+}  // namespace
+}  // namespace placedb::server_testing
