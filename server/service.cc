@@ -1491,6 +1491,8 @@ void PlaceDbService::ReclaimExpired(Clock::time_point now) {
 }
 
 void PlaceDbService::RefreshMapGauges() {
+  // A cluster worker's local copies hold no places: the shards export the maps' figures.
+  if (cluster_) return;
   if (auto store = maps_->snapshots()) {
     double bytes = 0;
     const auto snapshots = store->List();

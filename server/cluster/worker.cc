@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <thread>
 
@@ -30,6 +31,13 @@ std::string Hostname() {
   return name;
 }
 
+// hostname:pid, and a number when one process runs several workers (tests).
+std::string WorkerId() {
+  static std::atomic<int> made{0};
+  const int n = made++;
+  return Hostname() + ":" + std::to_string(getpid()) + (n > 0 ? "." + std::to_string(n) : "");
+}
+
 int64_t NowUnixMs() {
   return std::chrono::duration_cast<std::chrono::milliseconds>(Clock::now().time_since_epoch())
       .count();
@@ -52,7 +60,7 @@ ClusterWorker::ClusterWorker(const ServerConfig& config, MapRegistry* local, Met
       cluster_(config.cluster),
       local_(local),
       metrics_(metrics),
-      id_(Hostname() + ":" + std::to_string(getpid())) {}
+      id_(WorkerId()) {}
 
 Result<std::unique_ptr<ClusterWorker>> ClusterWorker::Start(const ServerConfig& config,
                                                             MapRegistry* local, Metrics* metrics) {

@@ -123,7 +123,7 @@ class ClusterWorker final : public ClusterBackend {
   std::unique_ptr<cluster::JetStream> jetstream_;
   std::unique_ptr<cluster::ClusterView> view_;
   std::unique_ptr<cluster::Coordinator> coordinator_;
-  std::string id_;  // this worker's (hostname:pid), the coordinator's name
+  std::string id_;  // this worker's (hostname:pid[.n]), the coordinator's name
 
   prometheus::Histogram* publish_seconds_ = nullptr;
   prometheus::Family<prometheus::Counter>* retries_ = nullptr;
