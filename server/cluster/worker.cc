@@ -35,7 +35,15 @@ std::string Hostname() {
 std::string WorkerId() {
   static std::atomic<int> made{0};
   const int n = made++;
-  return Hostname() + ":" + std::to_string(getpid()) + (n > 0 ? "." + std::to_string(n) : "");
+  // Appended piece by piece: GCC 12 warns falsely (-Wrestrict) on "." + std::to_string().
+  std::string id = Hostname();
+  id += ':';
+  id += std::to_string(getpid());
+  if (n > 0) {
+    id += '.';
+    id += std::to_string(n);
+  }
+  return id;
 }
 
 int64_t NowUnixMs() {
