@@ -116,6 +116,17 @@ TEST_F(PlacementTest, PlacesReplacesAndFailsOver) {
   // One coordinator at a time.
   EXPECT_NE(first->leading(), second->leading());
 
+  // Applied sequences (written by the shards) reach the view for routing; the map's create
+  // revision too (a re-created map gets a fresh local copy on workers).
+  ASSERT_TRUE(etcd_->Put(view_->keys().Applied("m1", "shard-b"), "42").ok());
+  ASSERT_TRUE(view_->WaitFor(
+      "m1",
+      [](const std::optional<MapView>& v) {
+        return v && v->applied.count("shard-b") && v->applied.at("shard-b") == 42;
+      },
+      Clock::now() + seconds(10)));
+  EXPECT_GT(view_->Map("m1")->create_revision, 0);
+
   // A third shard: the next map still gets two replicas, the least loaded first (shard-c).
   RegisterShard("shard-c");
   for (const auto until = Clock::now() + seconds(10);
