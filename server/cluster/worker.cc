@@ -204,7 +204,8 @@ grpc::Status ClusterWorker::CreateMap(const std::string& name, const v1::MapConf
       std::chrono::steady_clock::now() +
       std::min<std::chrono::milliseconds>(
           std::chrono::seconds(10), std::max(Remaining(deadline), std::chrono::milliseconds(0)));
-  if (!view_->WaitFor(
+  if (!view_->Shards().empty() &&
+      !view_->WaitFor(
           name, [](const std::optional<cluster::MapView>& v) { return v && v->placement; },
           until)) {
     spdlog::warn("cluster map '{}' created without a placement yet (no live shard?)", name);

@@ -6,6 +6,8 @@
 #include <gtest/gtest.h>
 
 #include <chrono>
+#include <cstdio>
+#include <map>
 #include <memory>
 #include <set>
 #include <string>
@@ -230,6 +232,118 @@ TEST_F(ClusterWorkerTest, NoQuorumNothingAcknowledgedThenResumes) {
   auto info = js->GetStreamInfo(stream);
   ASSERT_TRUE(info.ok()) << info.status().ToString();
   EXPECT_EQ(info->last_sequence, 4u);  // frames 1-4, each once
+}
+
+// Precomputed features of RTAB-Map frames 1..n (extracted once): ingest measures the cluster,
+// not ORB extraction.
+const std::vector<v1::Features>& FeatureFrames(int n) {
+  static std::vector<v1::Features> features;
+  while (int(features.size()) < n) {
+    features.push_back(FeaturesOf(RtabmapObservation(int(features.size()) + 1, "x")));
+  }
+  return features;
+}
+
+v1::Observation FeatureObservation(int frame, const std::string& agent) {
+  v1::Observation observation;
+  observation.set_agent_id(agent);
+  observation.set_sequence(uint64_t(frame));
+  observation.set_timestamp_ns(int64_t(frame) * 100'000'000);
+  // Frames beyond the sequence's 84 repeat its features (a robot passing again).
+  const int source = (frame - 1) % 84 + 1;
+  *observation.mutable_features() = FeatureFrames(source)[size_t(source - 1)];
+  return observation;
+}
+
+// 2 maps, 4 agents over 2 workers; during ingest the JetStream leader of a map's stream is killed
+// and one worker stops with its streams cut. Every agent then sends what was not acknowledged
+// again through the surviving worker: every frame ends with a place id, the ids answered twice
+// agree, and each map's stream holds each frame once (no duplicates, nothing lost).
+TEST_F(ClusterWorkerTest, LeaderAndWorkerKilledDuringIngest) {
+  constexpr int kFrames = 400;
+  FeatureFrames(84);
+  Worker& survivor = StartWorker(1);
+  Worker& doomed = StartWorker(2);
+  ASSERT_TRUE(survivor.stub && doomed.stub);
+  ASSERT_TRUE(CreateClusterMap(survivor, "m1").ok());
+  ASSERT_TRUE(CreateClusterMap(survivor, "m2").ok());
+  struct Agent {
+    std::string id, map;
+    Worker* worker;
+    IngestOutcome first;
+  };
+  std::vector<Agent> agents = {{"a1", "m1", &survivor, {}},
+                               {"a2", "m1", &doomed, {}},
+                               {"a3", "m2", &survivor, {}},
+                               {"a4", "m2", &doomed, {}}};
+  std::vector<std::thread> threads;
+  for (Agent& agent : agents) {
+    threads.emplace_back([&agent] {
+      std::vector<v1::Observation> frames;
+      for (int f = 1; f <= kFrames; ++f) frames.push_back(FeatureObservation(f, agent.id));
+      agent.first = IngestAll(agent.worker->stub.get(), agent.map, frames);
+    });
+  }
+  // Mid-ingest: the stream leader of m1 dies, then the second worker.
+  std::this_thread::sleep_for(150ms);
+  auto leader = engines_->StreamLeader(cluster::StreamName("test", "m1"));
+  ASSERT_TRUE(leader.ok()) << leader.status().ToString();
+  engines_->KillNats(*leader);
+  std::this_thread::sleep_for(150ms);
+  doomed.server->Shutdown();
+  for (std::thread& thread : threads) thread.join();
+  ASSERT_TRUE(engines_->RestartNats(*leader).ok());
+
+  // Resend what was not acknowledged (no answer, or an error) through the survivor.
+  std::map<std::string, std::map<int, uint32_t>> ids;  // agent -> frame -> place id
+  int acknowledged_first = 0;
+  for (Agent& agent : agents) {
+    std::vector<v1::Observation> again;
+    for (int f = 1; f <= kFrames; ++f) {
+      const auto& responses = agent.first.responses;
+      if (size_t(f) <= responses.size() && !responses[size_t(f - 1)].has_error()) {
+        // 0: an invalid frame (too few static features): a record, no place.
+        ids[agent.id][f] = responses[size_t(f - 1)].place_id();
+        ++acknowledged_first;
+      }
+      // Acknowledged frames too, for some: their ids must come back unchanged.
+      if (!ids[agent.id].count(f) || f % 7 == 0) again.push_back(FeatureObservation(f, agent.id));
+    }
+    const IngestOutcome second = IngestAll(survivor.stub.get(), agent.map, again);
+    ASSERT_TRUE(second.status.ok()) << second.status.error_message();
+    ASSERT_EQ(second.responses.size(), again.size());
+    for (size_t i = 0; i < again.size(); ++i) {
+      const int f = int(again[i].sequence());
+      ASSERT_FALSE(second.responses[i].has_error()) << second.responses[i].error().message();
+      if (ids[agent.id].count(f)) {
+        EXPECT_EQ(second.responses[i].place_id(), ids[agent.id][f]) << agent.id << " " << f;
+      }
+      ids[agent.id][f] = second.responses[i].place_id();
+    }
+  }
+  std::printf("cluster_worker_failover_acknowledged_before_resend %d frames\n", acknowledged_first);
+  // Each map's stream: exactly one record per frame of its two agents, place ids all distinct.
+  auto js = Js();
+  ASSERT_TRUE(js);
+  for (const std::string map : {"m1", "m2"}) {
+    std::set<uint32_t> distinct;
+    size_t places = 0;
+    for (const Agent& agent : agents) {
+      if (agent.map != map) continue;
+      ASSERT_EQ(ids[agent.id].size(), size_t(kFrames));
+      for (const auto& [frame, id] : ids[agent.id]) {
+        if (id == 0) continue;
+        distinct.insert(id);
+        ++places;
+      }
+    }
+    ASSERT_GT(places, size_t(kFrames));  // most frames are places
+    EXPECT_EQ(distinct.size(), places) << map;
+    auto info = js->GetStreamInfo(cluster::StreamName("test", map));
+    ASSERT_TRUE(info.ok()) << info.status().ToString();
+    EXPECT_EQ(info->messages, uint64_t(2 * kFrames)) << map;
+    EXPECT_LE(*distinct.rbegin(), info->last_sequence) << map;
+  }
 }
 
 }  // namespace
