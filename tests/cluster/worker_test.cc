@@ -62,10 +62,11 @@ class ClusterWorkerTest : public ServerTest {
     return config;
   }
 
-  Worker& StartWorker(int index) {
+  Worker& StartWorker(int index, bool metrics = false) {
     ServerDeps deps;
     deps.vocabularies.emplace("default", vocabulary_);
     configs_.push_back(std::make_unique<ServerConfig>(WorkerConfig(index)));
+    if (metrics) configs_.back()->metrics_listen = "127.0.0.1:0";
     const ServerConfig& config = *configs_.back();
     deps.cluster_backend = [&config](MapRegistry* maps,
                                      Metrics* metrics) -> Result<std::unique_ptr<ClusterBackend>> {
@@ -201,7 +202,7 @@ TEST_F(ClusterWorkerTest, MapsAndIngestThroughAnyWorker) {
 // With 2 of 3 NATS servers down nothing is acknowledged (the frame's answer is UNAVAILABLE); with
 // one back, ingest resumes, and the refused frame sent again is stored once.
 TEST_F(ClusterWorkerTest, NoQuorumNothingAcknowledgedThenResumes) {
-  Worker& worker = StartWorker(1);
+  Worker& worker = StartWorker(1, /*metrics=*/true);
   ASSERT_TRUE(worker.stub);
   ASSERT_TRUE(CreateClusterMap(worker, "m").ok());
   const IngestOutcome before = IngestAll(worker.stub.get(), "m", Frames("agent-a", 1, 2));
@@ -232,6 +233,10 @@ TEST_F(ClusterWorkerTest, NoQuorumNothingAcknowledgedThenResumes) {
   auto info = js->GetStreamInfo(stream);
   ASSERT_TRUE(info.ok()) << info.status().ToString();
   EXPECT_EQ(info->last_sequence, 4u);  // frames 1-4, each once
+  // The publishes that got no acknowledgement were retried with the same id, and counted.
+  const auto metrics = ParseMetrics(HttpGet(worker.server->metrics_port(), "/metrics"));
+  EXPECT_GT(MetricValue(metrics, "placedb_cluster_retries_total", {{"call", "Publish"}}), 0);
+  EXPECT_GE(MetricValue(metrics, "placedb_cluster_publish_seconds_count"), 4);
 }
 
 // Precomputed features of RTAB-Map frames 1..n (extracted once): ingest measures the cluster,
