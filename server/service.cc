@@ -358,13 +358,15 @@ grpc::Status PlaceDbService::GetMap(grpc::ServerContext* context, const v1::GetM
                                     v1::MapDescription* response) {
   CallScope scope(this);
   if (cluster_) {
-    return Finish("GetMap", context,
-                  cluster_->GetMap(request->name(), DeadlineOf(context), response));
+    // The agents below: those this worker served.
+    const grpc::Status described = cluster_->GetMap(request->name(), DeadlineOf(context), response);
+    if (!described.ok()) return Finish("GetMap", context, described);
+  } else {
+    // Damaged and unavailable maps are described too: their state is what an operator looks for.
+    auto entry = maps_->Find(request->name(), "name");
+    if (!entry.ok()) return Finish("GetMap", context, ToGrpc(entry.status()));
+    Describe(**entry, response);
   }
-  // Damaged and unavailable maps are described too: their state is what an operator looks for.
-  auto entry = maps_->Find(request->name(), "name");
-  if (!entry.ok()) return Finish("GetMap", context, ToGrpc(entry.status()));
-  Describe(**entry, response);
   for (const AgentActivitySnapshot& agent : activity_.Of(request->name(), Clock::now())) {
     v1::AgentActivity* out = response->add_agents();
     out->set_agent_id(agent.agent_id);
