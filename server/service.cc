@@ -235,10 +235,10 @@ Result<std::shared_ptr<const MapEntry>> PlaceDbService::GetMapEntry(
 
 namespace {
 
-// What a cluster worker does not serve (yet): the maps' storage is the shards'.
 // How long one Ingest frame's search and publish may retry (the call's deadline if sooner).
 constexpr std::chrono::seconds kClusterPatience{15};
 
+// What a cluster worker does not serve (yet): the maps' storage is the shards'.
 grpc::Status NotInCluster(const char* what) {
   return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
                       std::string(what) +
@@ -382,8 +382,9 @@ grpc::Status PlaceDbService::GetMap(grpc::ServerContext* context, const v1::GetM
 grpc::Status PlaceDbService::ListMaps(grpc::ServerContext* context, const v1::ListMapsRequest*,
                                       v1::ListMapsResponse* response) {
   CallScope scope(this);
-  if (cluster_)
+  if (cluster_) {
     return Finish("ListMaps", context, cluster_->ListMaps(DeadlineOf(context), response));
+  }
   for (const auto& entry : maps_->List()) {
     v1::MapSummary* summary = response->add_maps();
     summary->set_name(entry->name);
