@@ -197,6 +197,27 @@ TEST_F(ClusterWorkerTest, MapsAndIngestThroughAnyWorker) {
     EXPECT_EQ(js->GetStreamInfo(cluster::StreamName("test", "lab-1")).status().code(),
               StatusCode::kNotFound);
   }
+
+  // Re-created under its name with another configuration: the worker that held a copy of the
+  // old map processes frames with the new one, and the new stream starts at 1.
+  {
+    grpc::ClientContext context;
+    v1::CreateMapRequest request;
+    request.set_name("lab-1");
+    request.mutable_config()->mutable_orb()->set_max_features(300);
+    v1::MapDescription response;
+    ASSERT_TRUE(second.stub->CreateMap(&context, request, &response).ok());
+    EXPECT_EQ(response.config().orb().max_features(), 300);
+  }
+  const IngestOutcome again = IngestAll(first.stub.get(), "lab-1", Frames("agent-a", 1, 2));
+  ASSERT_TRUE(again.status.ok()) << again.status.error_message();
+  ASSERT_EQ(again.responses.size(), 2u);
+  ASSERT_GT(ingested.responses[0].counts().total(), 300u);  // the old map's budget: 1000
+  EXPECT_LE(again.responses[0].counts().total(), 300u);
+  EXPECT_GT(again.responses[0].counts().total(), 0u);
+  info = js->GetStreamInfo(cluster::StreamName("test", "lab-1"));
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->last_sequence, 2u);
 }
 
 // With 2 of 3 NATS servers down nothing is acknowledged (the frame's answer is UNAVAILABLE); with
