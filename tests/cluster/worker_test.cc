@@ -3,10 +3,16 @@
 // in-process with the worker role on loopback ports.
 #include "server/cluster/worker.h"
 
+#include <arpa/inet.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
 #include <map>
 #include <memory>
 #include <set>
@@ -370,6 +376,73 @@ TEST_F(ClusterWorkerTest, LeaderAndWorkerKilledDuringIngest) {
     EXPECT_EQ(info->messages, uint64_t(2 * kFrames)) << map;
     EXPECT_LE(*distinct.rbegin(), info->last_sequence) << map;
   }
+}
+
+int FreePort() {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t length = sizeof(address);
+  int port = 0;
+  if (::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
+      ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length) == 0) {
+    port = ntohs(address.sin_port);
+  }
+  ::close(fd);
+  return port;
+}
+
+// The role as the binary takes it: placedb-server --role worker with the cluster flags serves the
+// public API on the cluster; without the engines' addresses it refuses to start (status 2).
+TEST_F(ClusterWorkerTest, PlacedbServerProcessWithTheWorkerRole) {
+  const std::string binary = PLACEDB_SERVER_BINARY;
+  const std::string quiet = " --console-listen off --metrics-listen off > /dev/null 2>&1";
+  const int refused = std::system((binary + " --role worker --etcd 127.0.0.1:1" + quiet).c_str());
+  ASSERT_TRUE(WIFEXITED(refused));
+  EXPECT_EQ(WEXITSTATUS(refused), 2);
+
+  auto join = [](const std::vector<std::string>& items) {
+    std::string out;
+    for (const std::string& item : items) out += (out.empty() ? "" : ",") + item;
+    return out;
+  };
+  const int port = FreePort();
+  ASSERT_GT(port, 0);
+  cluster::testing::EngineProcess process;
+  ASSERT_TRUE(
+      process
+          .Start({binary, "--role", "worker", "--cluster-name", "proc", "--nats",
+                  join(engines_->NatsUrls()), "--etcd", join(engines_->EtcdEndpoints()), "--listen",
+                  "127.0.0.1:" + std::to_string(port), "--data-dir", root_ + "/process-worker",
+                  "--vocabulary", "default=" + testing::DefaultVocabularyPath(), "--console-listen",
+                  "off", "--metrics-listen", "off"},
+                 root_ + "/process-worker.log")
+          .ok());
+  Worker worker;
+  worker.channel =
+      grpc::CreateChannel("127.0.0.1:" + std::to_string(port), grpc::InsecureChannelCredentials());
+  ASSERT_TRUE(worker.channel->WaitForConnected(std::chrono::system_clock::now() + 30s));
+  worker.stub = v1::PlaceDb::NewStub(worker.channel);
+  {
+    grpc::ClientContext context;
+    context.set_wait_for_ready(true);
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::ServerInfo info;
+    ASSERT_TRUE(worker.stub->GetServerInfo(&context, {}, &info).ok());
+    EXPECT_EQ(info.role(), "worker");
+  }
+  ASSERT_TRUE(CreateClusterMap(worker, "p").ok());
+  const IngestOutcome ingested = IngestAll(worker.stub.get(), "p", Frames("agent-p", 1, 3));
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  ASSERT_EQ(ingested.responses.size(), 3u);
+  EXPECT_FALSE(ingested.responses[2].has_error());
+  auto js = Js();
+  ASSERT_TRUE(js);
+  auto info = js->GetStreamInfo(cluster::StreamName("proc", "p"));
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  EXPECT_EQ(info->last_sequence, 3u);
+  process.Kill();
 }
 
 }  // namespace
