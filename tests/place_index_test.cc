@@ -725,8 +725,9 @@ TEST(InvertedIndexTest, AcceptIsNeverCalledConcurrently) {
 
 TEST(InvertedIndexTest, SkippingFrequentWordsDropsOnlyTheirShare) {
   // Word 0 is in every place, word 1 in half, the rest rare. max_word_share 0.6 skips word 0
-  // only: each L1 score drops by at most the query's weight on it, and the same on any thread
-  // count; 1.0 is the exact query.
+  // only while scanning: the candidates are the places sharing another word, rescored with word
+  // 0, so each returned score is the exact one, the same on any thread count; 1.0 is the exact
+  // query.
   constexpr uint32_t kWords = 200;
   InvertedIndex index(kWords, ScoringType::kL1);
   std::mt19937 rng(12);
@@ -755,9 +756,12 @@ TEST(InvertedIndexTest, SkippingFrequentWordsDropsOnlyTheirShare) {
     for (const ScoredPlace& s : exact) exact_score[s.place] = s.score;
     for (const ScoredPlace& s : skipping) {
       ASSERT_TRUE(exact_score.count(s.place));
-      EXPECT_LE(s.score, exact_score[s.place] + 1e-6);
-      EXPECT_GE(s.score, exact_score[s.place] - query[0].weight - 1e-6);
+      EXPECT_NEAR(s.score, exact_score[s.place], 1e-5) << s.place;
     }
+    // Ranked by exact scores: the best 10 of the candidates are the exact top 10 here (the
+    // places sharing only word 0 score lowest).
+    const auto skipping_top10 = index.Query(query, 10, {}, {}, 1, 0.6);
+    EXPECT_EQ(Places(skipping_top10), Places(index.Query(query, 10)));
     // Word 0 shared by all: only places sharing another word remain candidates.
     EXPECT_LT(skipping.size(), exact.size());
     const auto skipping_2threads = index.Query(query, 300, {}, {}, 2, 0.6);
@@ -772,6 +776,45 @@ TEST(InvertedIndexTest, SkippingFrequentWordsDropsOnlyTheirShare) {
   EXPECT_TRUE(index.Query({{1, 1.0f}}, 10, {}, {}, 1, 0.6).empty());  // none of the rest has it
   EXPECT_TRUE(index.Query({{0, 1.0f}}, 10, {}, {}, 1, 0.6).empty());  // all of the rest have it
   EXPECT_EQ(index.Query({{0, 1.0f}}, 10, {}, {}, 1, 1.0).size(), 10u);
+}
+
+TEST(InvertedIndexTest, SkippingRescoresCandidatesExactlyInLongRuns) {
+  // 70,000 places over two segments, words drawn so that the lowest ids are in most places
+  // (runs of tens of thousands of postings: the interpolated search of the rescoring), the
+  // queries stored places with half their words: every score returned while skipping equals
+  // the exact index's score of that place, and the top 1 is the exact one.
+  constexpr uint32_t kWords = 3000;
+  InvertedIndex index(kWords, ScoringType::kL1);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> uniform(0, 1);
+  std::vector<BowVector> stored;
+  for (PlaceId id = 0; id < 70000; ++id) {
+    std::map<WordId, float> words;
+    while (words.size() < 40) words[WordId(std::pow(uniform(rng), 3) * kWords)] += 1.0f;
+    BowVector bow;
+    for (const auto& [word, weight] : words) bow.push_back({word, weight});
+    NormalizeForScoring(&bow, ScoringType::kL1);
+    ASSERT_TRUE(index.Add(id, bow).ok());
+    stored.push_back(std::move(bow));
+  }
+  for (int q = 0; q < 20; ++q) {
+    const BowVector& source = stored[size_t(q) * 3499];
+    BowVector query;
+    for (size_t i = 0; i < source.size(); i += 2) query.push_back(source[i]);
+    NormalizeForScoring(&query, ScoringType::kL1);
+    std::map<PlaceId, double> exact;
+    for (const ScoredPlace& s : index.Query(query, index.place_count())) exact[s.place] = s.score;
+    const auto top = index.Query(query, 10);
+    for (double share : {0.2, 0.05}) {
+      const auto skipping = index.Query(query, 10, {}, {}, 2, share);
+      ASSERT_EQ(skipping.size(), 10u);
+      EXPECT_EQ(skipping[0].place, top[0].place) << q << " " << share;
+      for (const ScoredPlace& s : skipping) {
+        ASSERT_TRUE(exact.count(s.place));
+        EXPECT_NEAR(s.score, exact[s.place], 1e-5) << s.place;
+      }
+    }
+  }
 }
 
 TEST(InvertedIndexTest, CopiesAreIndependent) {

@@ -87,6 +87,20 @@ inline bool Better(const KeyedPlace& a, const KeyedPlace& b) {
   return a.key != b.key ? a.key > b.key : a.place < b.place;
 }
 
+// A place of the bonus list met while scoring: its sum over the scored words and its bonus,
+// finalised once the skipped words (if any) have been added.
+struct BonusCandidate {
+  PlaceId place;
+  double accumulated;
+  double bonus;
+};
+
+// How many candidates a query that skips frequent words rescores with them, for a top k: the
+// true top k ranks lower by the other words alone, but rarely below a few times k.
+size_t RescoredCandidates(size_t top_k) {
+  return std::max<size_t>(4 * top_k, 100);
+}
+
 }  // namespace
 
 // One worker's scratch: a segment's dense accumulator (2^16 entries, zero between segments), the
@@ -96,8 +110,8 @@ struct InvertedIndex::QueryScratch {
   std::vector<float> float_score;
   std::vector<double> double_score;  // for the scorings that need double
   std::vector<PostingRun> runs;
-  std::vector<KeyedPlace> top;                // heap of at most top_k, worst first
-  std::vector<ScoredPlace> bonus_candidates;  // places of the bonus list, finalised
+  std::vector<KeyedPlace> top;                   // heap of at most top_k, worst first
+  std::vector<BonusCandidate> bonus_candidates;  // places of the bonus list, not finalised
 
   template <typename T>
   T* score() {
@@ -646,9 +660,7 @@ void InvertedIndex::ScoreSegment(uint32_t segment_index, const QueryContext& que
        it != query.bonus.end() && (it->place >> kSegmentBits) == segment_index; ++it) {
     const Accumulator accumulated = std::exchange(score[it->place - base], Accumulator(0));
     if (!query.Accept(it->place)) continue;
-    const double shared =
-        accumulated != 0 ? FinalizeScore(kType, double(accumulated), query.query_constant) : 0;
-    scratch->bonus_candidates.push_back({it->place, shared + it->score});
+    scratch->bonus_candidates.push_back({it->place, double(accumulated), it->score});
   }
 
   // A zero sum marks a place that shares no word (a sum of terms that is exactly zero scores
@@ -718,20 +730,26 @@ std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k
       sorted_bonus.end());
 
   // The words scored: all of them, or those held by at most max_word_share of the places.
-  BowVector kept_words;
+  BowVector kept_words, skipped_words;
   const BowVector* scored_words = &bow;
   if (max_word_share < 1.0) {
     const double most_places = max_word_share * double(place_count_);
     for (const BowEntry& entry : bow) {
-      if (entry.word < word_count_ && double(word_places_[entry.word]) <= most_places) {
-        kept_words.push_back(entry);
-      }
+      if (entry.word >= word_count_) continue;  // shares nothing
+      (double(word_places_[entry.word]) <= most_places ? kept_words : skipped_words)
+          .push_back(entry);
     }
     scored_words = &kept_words;
   }
-  QueryContext context{
-      scored_words, top_k, accept ? &accept : nullptr, sorted_bonus, QueryConstant(scoring_, bow),
-      workers > 1,  {}};
+  // Skipping words: more candidates by the other words, then each rescored with the skipped ones.
+  const size_t candidates = skipped_words.empty() ? top_k : RescoredCandidates(top_k);
+  QueryContext context{scored_words,
+                       candidates,
+                       accept ? &accept : nullptr,
+                       sorted_bonus,
+                       QueryConstant(scoring_, bow),
+                       workers > 1,
+                       {}};
   auto score_segment = [&](size_t task, int worker) {
     QueryScratch* worker_scratch = &scratch[size_t(worker)];
     const uint32_t segment = live_segments[task];
@@ -760,14 +778,51 @@ std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k
 
   // Each worker kept its own top k (and all bonus places): the answer is the best k of their
   // union, whatever segments each worker happened to score.
+  // Rescoring the skipped words starts from the best `candidates` of that union, so the
+  // candidates, like the answer, do not depend on the thread count.
   const bool decreasing = SumDecreasesScore(scoring_);
+  std::vector<KeyedPlace> kept;
   for (int w = 0; w < workers; ++w) {
-    for (const KeyedPlace& kept : scratch[size_t(w)].top) {
-      const double accumulated = decreasing ? -kept.key : kept.key;
-      result.push_back({kept.place, FinalizeScore(scoring_, accumulated, context.query_constant)});
+    kept.insert(kept.end(), scratch[size_t(w)].top.begin(), scratch[size_t(w)].top.end());
+  }
+  if (kept.size() > candidates) {
+    std::partial_sort(kept.begin(), kept.begin() + std::ptrdiff_t(candidates), kept.end(), Better);
+    kept.resize(candidates);
+  }
+  // The candidates with their sums over the scored words (bonus places with their bonus), then
+  // the skipped words' terms added, in place order (one pass over each run per segment).
+  struct Candidate {
+    PlaceId place;
+    double accumulated;
+    double bonus;
+    bool from_bonus;
+  };
+  std::vector<Candidate> found;
+  for (const KeyedPlace& place : kept) {
+    found.push_back({place.place, decreasing ? -place.key : place.key, 0.0, false});
+  }
+  for (int w = 0; w < workers; ++w) {
+    for (const BonusCandidate& b : scratch[size_t(w)].bonus_candidates) {
+      found.push_back({b.place, b.accumulated, b.bonus, true});
     }
-    const auto& from_bonus = scratch[size_t(w)].bonus_candidates;
-    result.insert(result.end(), from_bonus.begin(), from_bonus.end());
+  }
+  if (!skipped_words.empty()) {
+    std::sort(found.begin(), found.end(),
+              [](const Candidate& a, const Candidate& b) { return a.place < b.place; });
+    std::vector<PlaceId> places(found.size());
+    std::vector<double> sums(found.size(), 0.0);
+    for (size_t i = 0; i < found.size(); ++i) places[i] = found[i].place;
+    AddSkippedWords(skipped_words, places, sums);
+    for (size_t i = 0; i < found.size(); ++i) found[i].accumulated += sums[i];
+  }
+  for (const Candidate& c : found) {
+    if (!c.from_bonus) {
+      result.push_back({c.place, FinalizeScore(scoring_, c.accumulated, context.query_constant)});
+      continue;
+    }
+    const double shared =
+        c.accumulated != 0 ? FinalizeScore(scoring_, c.accumulated, context.query_constant) : 0;
+    result.push_back({c.place, shared + c.bonus});
   }
   auto better = [](const ScoredPlace& a, const ScoredPlace& b) {
     return a.score != b.score ? a.score > b.score : a.place < b.place;
@@ -775,6 +830,88 @@ std::vector<ScoredPlace> InvertedIndex::Query(const BowVector& bow, size_t top_k
   std::sort(result.begin(), result.end(), better);
   if (result.size() > top_k) result.resize(top_k);
   return result;
+}
+
+namespace {
+
+// The first posting in [from, end) whose offset is >= `offset` (postings sorted by offset;
+// `run` is the run's start, from which positions are interpolated).
+template <typename Posting>
+const Posting* FindOffset(const Posting* run, const Posting* from, const Posting* end,
+                          uint16_t offset) {
+  const auto before = [](const Posting& p, uint16_t wanted) { return p.offset < wanted; };
+  const size_t size = size_t(end - run);
+  const Posting* guess = run + ((size_t(offset) * size) >> 16);
+  if (guess < from) guess = from;
+  if (guess >= end) guess = end - 1;
+  size_t step = 1;
+  if (guess->offset < offset) {  // gallop forward: the answer is after guess
+    const Posting* low = guess;
+    while (size_t(end - low) > step && low[step].offset < offset) {
+      low += step;
+      step *= 2;
+    }
+    const Posting* high = size_t(end - low) > step ? low + step + 1 : end;
+    return std::lower_bound(low + 1, high, offset, before);
+  }
+  const Posting* high = guess;  // gallop backward: the answer is at or before guess
+  while (size_t(high - from) > step && (high - step)->offset >= offset) {
+    high -= step;
+    step *= 2;
+  }
+  const Posting* low = size_t(high - from) > step ? high - step : from;
+  return std::lower_bound(low, high + 1, offset, before);
+}
+
+}  // namespace
+
+void InvertedIndex::AddSkippedWords(const BowVector& skipped, std::span<const PlaceId> places,
+                                    std::span<double> sums) const {
+  constexpr PlaceId kOffsetMask = (PlaceId(1) << kSegmentBits) - 1;
+  std::vector<PostingRun> runs;
+  for (size_t first = 0; first < places.size();) {
+    const PlaceId segment_index = places[first] >> kSegmentBits;
+    size_t last = first;
+    while (last < places.size() && places[last] >> kSegmentBits == segment_index) ++last;
+    const Segment& segment = segments_[segment_index];
+    // Every lookup below is a likely cache miss (a frequent word's run is long, the candidates
+    // few): resolve the runs, then prefetch a few runs ahead where each candidate should be, so
+    // that the misses overlap.
+    runs.clear();
+    constexpr size_t kAhead = 16;
+    for (size_t w = 0; w < skipped.size(); ++w) {
+      if (w + kAhead < skipped.size()) __builtin_prefetch(&segment.lists[skipped[w + kAhead].word]);
+      const WordList& list = segment.lists[skipped[w].word];
+      if (list.size > 0) runs.push_back({segment.Data(list), list.size, skipped[w].weight});
+    }
+    const auto guess = [](const PostingRun& run, PlaceId place) {
+      return run.postings + ((size_t(place & kOffsetMask) * run.size) >> 16);
+    };
+    constexpr size_t kRunsAhead = 4;
+    for (size_t r = 0; r < std::min(kRunsAhead, runs.size()); ++r) {
+      for (size_t i = first; i < last; ++i) __builtin_prefetch(guess(runs[r], places[i]));
+    }
+    for (size_t r = 0; r < runs.size(); ++r) {
+      if (r + kRunsAhead < runs.size()) {
+        for (size_t i = first; i < last; ++i) {
+          __builtin_prefetch(guess(runs[r + kRunsAhead], places[i]));
+        }
+      }
+      // The places ascend, so each search starts where the previous one ended. A frequent
+      // word's offsets spread evenly over the segment: start from the interpolated position and
+      // gallop, a few cache lines instead of a binary search's dozen misses in a long run.
+      const Posting* posting = runs[r].postings;
+      const Posting* end = posting + runs[r].size;
+      for (size_t i = first; i < last && posting != end; ++i) {
+        const uint16_t offset = uint16_t(places[i] & kOffsetMask);
+        posting = FindOffset(runs[r].postings, posting, end, offset);
+        if (posting != end && posting->offset == offset) {
+          sums[i] += ScoreTerm(scoring_, runs[r].query_weight, DecodeWeight(posting->weight));
+        }
+      }
+    }
+    first = last;
+  }
 }
 
 size_t InvertedIndex::MemoryBytes() const {

@@ -87,10 +87,13 @@ class InvertedIndex {
   // similarity (core/place_database.h). `threads` > 1 lets this one query score segments on up
   // to that many threads (only an index of more than one segment, i.e. ids >= 65536, uses
   // them); the result is identical for every value. `max_word_share` < 1 skips the query's
-  // words held by more than that share of the indexed places (DBoW's idf log(N / n_i) makes
-  // them nearly worthless, and their long runs are most of a query's work); a skipped word
-  // scores as if no place shared it, so an L1 score drops by at most the sum of the skipped
-  // words' query weights. 1 (the default) skips nothing.
+  // words held by more than that share of the indexed places while scanning (DBoW's idf
+  // log(N / n_i) makes them nearly worthless, and their long runs are most of a query's work):
+  // the best max(4 top_k, 100) places by the other words (and every bonus place) are then
+  // rescored with the skipped words too (a binary search of each skipped word's run in the
+  // place's segment), so every returned score is the exact one; only which places become
+  // candidates is approximate (`accept` is asked about those candidates). 1 (the default)
+  // skips nothing.
   std::vector<ScoredPlace> Query(const BowVector& bow, size_t top_k,
                                  const std::function<bool(PlaceId)>& accept = {},
                                  std::span<const ScoredPlace> bonus = {}, int threads = 1,
@@ -177,6 +180,11 @@ class InvertedIndex {
   struct QueryContext;  // one query's inputs and shared state, defined in place_index.cc
   template <ScoringType kType>
   void ScoreSegment(uint32_t segment, const QueryContext& query, QueryScratch* scratch) const;
+
+  // Query's rescoring: adds to sums[i] the ScoreTerm of each of `skipped`'s words that
+  // places[i] holds. `places` ascending (each segment's runs are then walked once, forward).
+  void AddSkippedWords(const BowVector& skipped, std::span<const PlaceId> places,
+                       std::span<double> sums) const;
 
   // Add's check of a vector against a vocabulary of `word_count` words.
   static Status ValidateBow(const BowVector& bow, size_t word_count);

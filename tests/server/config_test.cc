@@ -205,18 +205,19 @@ TEST(ServerConfigTest, MaxSnapshotBytesFromFileAndEnvironment) {
 TEST(ServerConfigTest, SearchSettings) {
   ServerConfig c;
   EXPECT_EQ(c.search.threads, 1);
-  EXPECT_EQ(c.search.max_word_share, 1.0);
+  EXPECT_DOUBLE_EQ(c.search.max_word_share, 0.03);
+  EXPECT_EQ(c.search.skip_words_min_places, 100000u);
   ASSERT_TRUE(
       server::ApplyConfigYaml(
-          "search:\n  threads: 2\n  max_word_share: 0.03\n  skip_words_min_places: 500000\n", &c)
+          "search:\n  threads: 2\n  max_word_share: 0.1\n  skip_words_min_places: 500000\n", &c)
           .ok());
   EXPECT_EQ(c.search.threads, 2);
-  EXPECT_DOUBLE_EQ(c.search.max_word_share, 0.03);
+  EXPECT_DOUBLE_EQ(c.search.max_word_share, 0.1);
   EXPECT_EQ(c.search.skip_words_min_places, 500000u);
   ASSERT_TRUE(server::ValidateServerConfig(c).ok());
   ServerConfig again;
   ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(c), &again).ok());
-  EXPECT_DOUBLE_EQ(again.search.max_word_share, 0.03);
+  EXPECT_DOUBLE_EQ(again.search.max_word_share, 0.1);
   EXPECT_EQ(again.search.skip_words_min_places, 500000u);
 
   Status unknown = server::ApplyConfigYaml("search:\n  share: 0.1\n", &c);
