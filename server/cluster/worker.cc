@@ -11,8 +11,11 @@
 #include <thread>
 
 #include "core/base/map_name.h"
+#include "core/storage/codec.h"
+#include "proto/cluster.grpc.pb.h"
 #include "proto/convert_config.h"
 #include "proto/status.h"
+#include "server/cluster/map_record.h"
 
 namespace placedb::server {
 
@@ -362,14 +365,20 @@ std::shared_ptr<grpc::Channel> ClusterWorker::ChannelTo(const std::string& addre
 
 template <typename Call>
 grpc::Status ClusterWorker::OnReplica(const char* what, const std::string& map,
-                                      uint64_t min_sequence, Call&& call) {
+                                      uint64_t min_sequence, Deadline deadline, Call&& call) {
   auto replicas = Replicas(map, min_sequence);
   if (!replicas.ok()) return ToGrpc(replicas.status());
   grpc::Status status;
-  for (size_t i = 0; i < replicas->size() && i < 2; ++i) {
+  const size_t attempts = std::min<size_t>(replicas->size(), 2);
+  for (size_t i = 0; i < attempts; ++i) {
     if (i > 0) retries_->Add({{"call", what}}).Increment();
     const Replica& replica = (*replicas)[i];
-    status = call(ChannelTo(replica.address), replica);
+    // The first of two attempts gets half the time left (a hung replica must leave the other
+    // one time to answer); the last gets the rest. No deadline: 10 s per attempt.
+    const auto now = Clock::now();
+    Deadline until = deadline == Deadline::max() ? now + std::chrono::seconds(10) : deadline;
+    if (i + 1 < attempts && until > now) until = now + (until - now) / 2;
+    status = call(ChannelTo(replica.address), until);
     if (status.error_code() != grpc::StatusCode::UNAVAILABLE &&
         status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
       return status;
@@ -415,31 +424,84 @@ Result<uint64_t> ClusterWorker::PublishRecord(const std::string& map, const std:
 
 // ---- Shard calls (placedb.cluster.v1.Shard) -----------------------------------------------------
 
-grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame&,
-                                   const PlaceMetadata&, const v1::MatchOptions&,
-                                   uint64_t min_sequence, Deadline, v1::QueryResponse*) {
-  (void)min_sequence;
-  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED, "Search on map '" + map + "': pending");
+grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame& frame,
+                                   const PlaceMetadata& metadata, const v1::MatchOptions& options,
+                                   uint64_t min_sequence, Deadline deadline,
+                                   v1::QueryResponse* out) {
+  cluster::v1::SearchRequest request;
+  request.set_map(map);
+  request.set_min_sequence(min_sequence);
+  // The frame as the pipeline left it, in the map's own encodings (core/storage/codec.h).
+  request.set_bow(EncodeBow(frame.bow));
+  request.set_features(EncodeLocalFeatures(frame.static_features, frame.direct));
+  if (!frame.dynamic_bow.empty()) request.set_dynamic_bow(EncodeBow(frame.dynamic_bow));
+  if (!frame.dynamic_features.empty()) {
+    request.set_dynamic_features(EncodeLocalFeatures(frame.dynamic_features, frame.dynamic_direct));
+  }
+  *request.mutable_options() = options;
+  request.set_agent_id(metadata.agent_id);
+  request.set_timestamp_ns(metadata.timestamp_ns);
+  cluster::v1::SearchResponse response;
+  const grpc::Status status =
+      OnReplica("Search", map, min_sequence, deadline,
+                [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                  grpc::ClientContext context;
+                  context.set_deadline(until);
+                  response.Clear();
+                  return cluster::v1::Shard::NewStub(channel)->Search(&context, request, &response);
+                });
+  if (!status.ok()) return status;
+  out->mutable_matches()->Swap(response.mutable_matches());
+  out->set_sequence(response.applied_sequence());
+  return grpc::Status::OK;
 }
 
-Result<uint64_t> ClusterWorker::Publish(const std::string& map, const ProcessedFrame&,
-                                        const PlaceMetadata&, const std::string& message_id,
-                                        Deadline deadline) {
-  return PublishRecord(map, "", message_id, deadline);
+grpc::Status ClusterWorker::GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
+                                     v1::Place* response) {
+  // A place id is a stream sequence: a replica that applied it has it (or it was removed).
+  return OnReplica("GetPlace", request.map(), request.place_id(), deadline,
+                   [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                     grpc::ClientContext context;
+                     context.set_deadline(until);
+                     response->Clear();
+                     return cluster::v1::Shard::NewStub(channel)->GetPlace(&context, request,
+                                                                           response);
+                   });
 }
 
-grpc::Status ClusterWorker::GetPlace(const v1::GetPlaceRequest&, Deadline, v1::Place*) {
-  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED, "pending");
+grpc::Status ClusterWorker::ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,
+                                       v1::ListPlacesResponse* response) {
+  return OnReplica("ListPlaces", request.map(), 0, deadline,
+                   [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                     grpc::ClientContext context;
+                     context.set_deadline(until);
+                     response->Clear();
+                     return cluster::v1::Shard::NewStub(channel)->ListPlaces(&context, request,
+                                                                             response);
+                   });
 }
 
-grpc::Status ClusterWorker::ListPlaces(const v1::ListPlacesRequest&, Deadline,
-                                       v1::ListPlacesResponse*) {
-  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED, "pending");
+grpc::Status ClusterWorker::GetDynamics(const v1::GetDynamicsRequest& request, Deadline deadline,
+                                        v1::GetDynamicsResponse* response) {
+  return OnReplica("GetDynamics", request.map(), 0, deadline,
+                   [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                     grpc::ClientContext context;
+                     context.set_deadline(until);
+                     response->Clear();
+                     return cluster::v1::Shard::NewStub(channel)->GetDynamics(&context, request,
+                                                                              response);
+                   });
 }
 
-grpc::Status ClusterWorker::GetDynamics(const v1::GetDynamicsRequest&, Deadline,
-                                        v1::GetDynamicsResponse*) {
-  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED, "pending");
+Result<uint64_t> ClusterWorker::Publish(const std::string& map, const ProcessedFrame& frame,
+                                        const PlaceMetadata& metadata,
+                                        const std::string& message_id, Deadline deadline) {
+  // Encoded once: a retry publishes the same bytes (the same statistics' arrival time).
+  const std::string record = frame.valid ? cluster::EncodeAddPlace(frame, metadata)
+                                         : cluster::EncodeInvalidFrame(frame, metadata);
+  auto sequence = PublishRecord(map, record, message_id, deadline);
+  if (!sequence.ok()) return sequence.status();
+  return frame.valid ? *sequence : 0;
 }
 
 }  // namespace placedb::server

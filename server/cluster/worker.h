@@ -104,11 +104,12 @@ class ClusterWorker final : public ClusterBackend {
   };
   Result<std::vector<Replica>> Replicas(const std::string& map, uint64_t min_sequence);
   std::shared_ptr<grpc::Channel> ChannelTo(const std::string& address) EXCLUDES(mutex_);
-  // Runs `call(channel, replica)` on the best replica, and once more on the next when it answers
-  // UNAVAILABLE or DEADLINE_EXCEEDED (counted as a retry of `what`).
+  // Runs `call(channel, attempt deadline)` on the best replica, and once more on the next when it
+  // answers UNAVAILABLE or DEADLINE_EXCEEDED (counted as a retry of `what`); with two replicas
+  // the first attempt gets half the time left before `deadline`.
   template <typename Call>
   grpc::Status OnReplica(const char* what, const std::string& map, uint64_t min_sequence,
-                         Call&& call);
+                         Deadline deadline, Call&& call);
   // One record on the map's stream, retried with the same id until `deadline`.
   Result<uint64_t> PublishRecord(const std::string& map, const std::string& data,
                                  const std::string& message_id, Deadline deadline);
