@@ -20,7 +20,9 @@
 #include <thread>
 #include <vector>
 
+#include "core/base/thread_annotations.h"
 #include "server/cluster/jetstream.h"
+#include "server/cluster/map_record.h"
 #include "server/cluster/placement.h"
 #include "tests/cluster/engines.h"
 #include "tests/server/server_fixture.h"
@@ -375,6 +377,46 @@ TEST_F(ClusterWorkerTest, LeaderAndWorkerKilledDuringIngest) {
     ASSERT_TRUE(info.ok()) << info.status().ToString();
     EXPECT_EQ(info->messages, uint64_t(2 * kFrames)) << map;
     EXPECT_LE(*distinct.rbegin(), info->last_sequence) << map;
+
+    // The records themselves: one per (agent, frame), and each acknowledged place id is the
+    // sequence of the record of that very frame.
+    Mutex mutex;
+    CondVar done;
+    std::map<uint64_t, std::pair<std::string, uint64_t>> records;  // sequence -> agent, frame
+    std::vector<std::string> errors;
+    auto consumer =
+        js->Consume(cluster::StreamName("test", map), cluster::StreamSubject("test", map), 1,
+                    [&](uint64_t sequence, std::string_view data) {
+                      auto record = cluster::DecodeMapRecord(data, FeatureType::kOrb);
+                      MutexLock lock(mutex);
+                      if (!record.ok()) {
+                        errors.push_back(record.status().ToString());
+                      } else {
+                        records[sequence] = {record->metadata.agent_id, record->metadata.sequence};
+                      }
+                      done.NotifyAll();
+                    });
+    ASSERT_TRUE(consumer.ok()) << consumer.status().ToString();
+    {
+      MutexLock lock(mutex);
+      const auto until = std::chrono::steady_clock::now() + 30s;
+      while (records.size() + errors.size() < info->messages && done.WaitUntil(mutex, until)) {
+      }
+      EXPECT_TRUE(errors.empty()) << errors.front();
+      ASSERT_EQ(records.size(), info->messages);
+      std::set<std::pair<std::string, uint64_t>> frames;
+      for (const auto& [sequence, frame] : records) frames.insert(frame);
+      EXPECT_EQ(frames.size(), records.size()) << map << ": a frame stored twice";
+      for (const Agent& agent : agents) {
+        if (agent.map != map) continue;
+        for (const auto& [frame, id] : ids[agent.id]) {
+          if (id == 0) continue;
+          ASSERT_TRUE(records.count(id)) << id;
+          EXPECT_EQ(records[id], std::make_pair(agent.id, uint64_t(frame)));
+        }
+      }
+    }
+    (*consumer)->Stop();
   }
 }
 
