@@ -23,6 +23,7 @@
 #include "proto/status.h"
 #include "server/frame_memory.h"
 #include "server/ingest_pipeline.h"
+#include "server/place_reads.h"
 
 namespace placedb::server {
 
@@ -479,24 +480,7 @@ grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
   }
   auto entry = maps_->Get(request->map(), "map");
   if (!entry.ok()) return Finish("GetPlace", context, ToGrpc(entry.status()));
-  if (request->place_id() == 0) {
-    return Finish("GetPlace", context, Invalid("place_id: is required (ids start at 1)"));
-  }
-  auto place = (*entry)->map->GetPlace(request->place_id());
-  if (!place.ok()) return Finish("GetPlace", context, ToGrpc(place.status()));
-  wire::PlaceRecordToProto(place->record, response);
-  if (request->include_features()) {
-    PlaceFeaturesToProto(place->payload.features, response);
-  }
-  auto dynamics = (*entry)->map->GetDynamics(request->place_id());
-  if (!dynamics.ok()) return Finish("GetPlace", context, ToGrpc(dynamics.status()));
-  DynamicsToProto(*dynamics, response->mutable_dynamics());
-  if (request->include_thumbnail()) {
-    auto thumbnail = (*entry)->map->GetThumbnail(request->place_id());
-    if (!thumbnail.ok()) return Finish("GetPlace", context, ToGrpc(thumbnail.status()));
-    if (thumbnail->has_value()) wire::ThumbnailToProto(**thumbnail, response->mutable_thumbnail());
-  }
-  return Finish("GetPlace", context, grpc::Status::OK);
+  return Finish("GetPlace", context, ToGrpc(ReadPlace(*(*entry)->map, *request, response)));
 }
 
 grpc::Status PlaceDbService::ListPlaces(grpc::ServerContext* context,
@@ -509,14 +493,7 @@ grpc::Status PlaceDbService::ListPlaces(grpc::ServerContext* context,
   }
   auto entry = maps_->Get(request->map(), "map");
   if (!entry.ok()) return Finish("ListPlaces", context, ToGrpc(entry.status()));
-  auto listing = wire::PlaceListingFromProto(*request);
-  if (!listing.ok()) return Finish("ListPlaces", context, ToGrpc(listing.status()));
-  const PlacePage page = (*entry)->map->database().ListPlacesBefore(
-      listing->before, listing->limit, listing->filter, listing->max_examined);
-  response->mutable_places()->Reserve(int(page.places.size()));
-  for (const auto& record : page.places) wire::PlaceRecordToProto(*record, response->add_places());
-  response->set_next_before_place_id(page.next_before);
-  return Finish("ListPlaces", context, grpc::Status::OK);
+  return Finish("ListPlaces", context, ToGrpc(ListPlacesOf(*(*entry)->map, *request, response)));
 }
 
 grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
@@ -548,45 +525,7 @@ grpc::Status PlaceDbService::GetDynamics(grpc::ServerContext* context,
   }
   auto entry = maps_->Get(request->map(), "map");
   if (!entry.ok()) return Finish("GetDynamics", context, ToGrpc(entry.status()));
-  auto options = RankOptionsFromProto(*request);
-  if (!options.ok()) return Finish("GetDynamics", context, ToGrpc(options.status()));
-  const PlaceMap& map = *(*entry)->map;
-  auto aggregate = map.MapDynamics();
-  if (!aggregate.ok()) return Finish("GetDynamics", context, ToGrpc(aggregate.status()));
-  DynamicsToProto(*aggregate, response->mutable_map());
-  auto invalid = map.InvalidDynamics();
-  if (!invalid.ok()) return Finish("GetDynamics", context, ToGrpc(invalid.status()));
-  DynamicsToProto(*invalid, response->mutable_invalid());
-  // One pass over the map's places; the ranking keeps offset + limit entries.
-  DynamicsRanking ranking(*options);
-  const Status scanned = map.ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {
-    if (options->near.active()) {  // the poses are in the places' records (memory)
-      const auto record = map.database().Get(id);
-      if (!record || !record->metadata.pose ||
-          !options->near.Contains(record->metadata.pose->position)) {
-        return true;
-      }
-    }
-    ranking.Add(id, d);
-    return true;
-  });
-  if (!scanned.ok()) return Finish("GetDynamics", context, ToGrpc(scanned));
-  for (const RankedPlace& ranked : ranking.Page()) {
-    v1::RankedPlace* out = response->add_places();
-    out->set_place_id(ranked.place);
-    out->set_score(ranked.score);
-    out->set_support(ranked.support);
-    if (request->include_statistics()) {
-      auto d = map.GetDynamics(ranked.place);
-      if (d.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
-      if (!d.ok()) return Finish("GetDynamics", context, ToGrpc(d.status()));
-      DynamicsToProto(*d, out->mutable_statistics());
-    }
-  }
-  response->set_ranked(ranking.ranked());
-  const uint64_t end = uint64_t(options->offset) + options->limit;
-  response->set_next_offset(end < ranking.ranked() ? uint32_t(end) : 0);
-  return Finish("GetDynamics", context, grpc::Status::OK);
+  return Finish("GetDynamics", context, ToGrpc(ReadDynamics(*(*entry)->map, *request, response)));
 }
 
 // ---- Server info --------------------------------------------------------------------------------

@@ -8,8 +8,6 @@
 
 namespace placedb::cluster {
 
-namespace v1 = ::placedb::cluster::v1;
-
 namespace {
 
 std::string OperandOf(const ProcessedFrame& frame, const PlaceMetadata& metadata,
@@ -172,6 +170,42 @@ Result<MapLogRecord> DecodeMapRecord(std::string_view bytes, FeatureType type) {
       break;
   }
   return Status::Corruption("map record: no record kind set (or one this shard does not know)");
+}
+
+void FrameToSearchRequest(const ProcessedFrame& frame, v1::SearchRequest* request) {
+  request->set_bow(EncodeBow(frame.bow));
+  request->set_features(EncodeLocalFeatures(frame.static_features, frame.direct));
+  if (!frame.dynamic_bow.empty()) request->set_dynamic_bow(EncodeBow(frame.dynamic_bow));
+  if (!frame.dynamic_features.empty()) {
+    request->set_dynamic_features(
+        EncodeLocalFeatures(frame.dynamic_features, frame.dynamic_direct));
+  }
+}
+
+Status FrameFromSearchRequest(const v1::SearchRequest& request, FeatureType type,
+                              ProcessedFrame* frame) {
+  auto bow = DecodeBow(request.bow());
+  PLACEDB_RETURN_IF_ERROR(Field(bow.status(), "search.bow"));
+  PLACEDB_RETURN_IF_ERROR(
+      Field(DecodeLocalFeatures(request.features(), type, &frame->static_features, &frame->direct),
+            "search.features"));
+  frame->bow = std::move(bow).value();
+  frame->valid = true;
+  if (!request.dynamic_bow().empty()) {
+    auto dynamic_bow = DecodeBow(request.dynamic_bow());
+    PLACEDB_RETURN_IF_ERROR(Field(dynamic_bow.status(), "search.dynamic_bow"));
+    frame->dynamic_bow = std::move(dynamic_bow).value();
+  }
+  if (!request.dynamic_features().empty()) {
+    PLACEDB_RETURN_IF_ERROR(
+        Field(DecodeLocalFeatures(request.dynamic_features(), type, &frame->dynamic_features,
+                                  &frame->dynamic_direct),
+              "search.dynamic_features"));
+  } else {
+    frame->dynamic_features = LocalFeatures::Empty(type, frame->static_features.image_width(),
+                                                   frame->static_features.image_height());
+  }
+  return Status::Ok();
 }
 
 }  // namespace placedb::cluster

@@ -18,6 +18,7 @@
 #include "core/base/status.h"
 #include "core/pipeline/place_database.h"
 #include "core/storage/map_store.h"
+#include "proto/cluster.pb.h"
 
 namespace placedb::cluster {
 
@@ -44,5 +45,14 @@ std::string EncodeInvalidFrame(const ProcessedFrame& frame, const PlaceMetadata&
 // feature type. A decoded AddPlace frame is valid with its SC/DC parts, counts, boxes and
 // thumbnail; an InvalidFrame's reason is in frame.rejection. CORRUPTION as described above.
 Result<MapLogRecord> DecodeMapRecord(std::string_view bytes, FeatureType type);
+
+// The Shard.Search request's frame (proto/cluster.proto SearchRequest): the worker's processed
+// query frame's SC part (bow, static features + direct index) and DC part (short-term tier).
+// Other request fields (map, min_sequence, options, agent, time) are the caller's.
+void FrameToSearchRequest(const ProcessedFrame& frame, v1::SearchRequest* request);
+// And back on the shard, for PlaceMap::Search: CORRUPTION naming the field when a payload does
+// not decode (or is of the other feature family than `type`); `frame` is then unspecified.
+Status FrameFromSearchRequest(const v1::SearchRequest& request, FeatureType type,
+                              ProcessedFrame* frame);
 
 }  // namespace placedb::cluster
