@@ -11,7 +11,6 @@
 #include <thread>
 
 #include "core/base/map_name.h"
-#include "core/storage/codec.h"
 #include "proto/cluster.grpc.pb.h"
 #include "proto/convert_config.h"
 #include "proto/status.h"
@@ -431,13 +430,8 @@ grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame&
   cluster::v1::SearchRequest request;
   request.set_map(map);
   request.set_min_sequence(min_sequence);
-  // The frame as the pipeline left it, in the map's own encodings (core/storage/codec.h).
-  request.set_bow(EncodeBow(frame.bow));
-  request.set_features(EncodeLocalFeatures(frame.static_features, frame.direct));
-  if (!frame.dynamic_bow.empty()) request.set_dynamic_bow(EncodeBow(frame.dynamic_bow));
-  if (!frame.dynamic_features.empty()) {
-    request.set_dynamic_features(EncodeLocalFeatures(frame.dynamic_features, frame.dynamic_direct));
-  }
+  // The frame as the pipeline left it (the shard's codec: server/cluster/map_record.h).
+  cluster::FrameToSearchRequest(frame, &request);
   *request.mutable_options() = options;
   request.set_agent_id(metadata.agent_id);
   request.set_timestamp_ns(metadata.timestamp_ns);
