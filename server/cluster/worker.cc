@@ -368,22 +368,38 @@ grpc::Status ClusterWorker::OnReplica(const char* what, const std::string& map,
   auto replicas = Replicas(map, min_sequence);
   if (!replicas.ok()) return ToGrpc(replicas.status());
   grpc::Status status;
-  const size_t attempts = std::min<size_t>(replicas->size(), 2);
-  for (size_t i = 0; i < attempts; ++i) {
-    if (i > 0) retries_->Add({{"call", what}}).Increment();
-    const Replica& replica = (*replicas)[i];
-    // The first of two attempts gets half the time left (a hung replica must leave the other
-    // one time to answer); the last gets the rest. No deadline: 10 s per attempt.
+  std::string failed;  // the shard of the first attempt
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    const Replica* replica = nullptr;
+    if (attempt == 0) {
+      replica = &replicas->front();
+    } else {
+      // The view as it is now (the first attempt may have taken a while: a replaced replica, a
+      // shard gone), without the one that just failed.
+      replicas = Replicas(map, min_sequence);
+      if (!replicas.ok()) return status;
+      for (const Replica& other : *replicas) {
+        if (other.shard != failed) {
+          replica = &other;
+          break;
+        }
+      }
+      if (!replica) return status;
+      retries_->Add({{"call", what}}).Increment();
+    }
+    // The first attempt gets half the time left when another replica could answer (a hung
+    // replica must leave it time); the last gets the rest. No deadline: 10 s per attempt.
     const auto now = Clock::now();
     Deadline until = deadline == Deadline::max() ? now + std::chrono::seconds(10) : deadline;
-    if (i + 1 < attempts && until > now) until = now + (until - now) / 2;
-    status = call(ChannelTo(replica.address), until);
+    if (attempt == 0 && replicas->size() > 1 && until > now) until = now + (until - now) / 2;
+    status = call(ChannelTo(replica->address), until);
     if (status.error_code() != grpc::StatusCode::UNAVAILABLE &&
         status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
       return status;
     }
-    spdlog::warn("{} on map '{}': shard '{}' ({}) answered {}: {}", what, map, replica.shard,
-                 replica.address, int(status.error_code()), status.error_message());
+    spdlog::warn("{} on map '{}': shard '{}' ({}) answered {}: {}", what, map, replica->shard,
+                 replica->address, int(status.error_code()), status.error_message());
+    failed = replica->shard;
   }
   return status;
 }

@@ -104,9 +104,10 @@ class ClusterWorker final : public ClusterBackend {
   };
   Result<std::vector<Replica>> Replicas(const std::string& map, uint64_t min_sequence);
   std::shared_ptr<grpc::Channel> ChannelTo(const std::string& address) EXCLUDES(mutex_);
-  // Runs `call(channel, attempt deadline)` on the best replica, and once more on the next when it
-  // answers UNAVAILABLE or DEADLINE_EXCEEDED (counted as a retry of `what`); with two replicas
-  // the first attempt gets half the time left before `deadline`.
+  // Runs `call(channel, attempt deadline)` on the best replica, and once more when it answers
+  // UNAVAILABLE or DEADLINE_EXCEEDED, on the best other replica of the view as it is then
+  // (counted as a retry of `what`); with two replicas the first attempt gets half the time left
+  // before `deadline`.
   template <typename Call>
   grpc::Status OnReplica(const char* what, const std::string& map, uint64_t min_sequence,
                          Deadline deadline, Call&& call);

@@ -10,6 +10,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -21,9 +22,11 @@
 #include <vector>
 
 #include "core/base/thread_annotations.h"
+#include "core/storage/codec.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/map_record.h"
 #include "server/cluster/placement.h"
+#include "server/cluster/shard.h"
 #include "tests/cluster/engines.h"
 #include "tests/server/server_fixture.h"
 
@@ -485,6 +488,181 @@ TEST_F(ClusterWorkerTest, PlacedbServerProcessWithTheWorkerRole) {
   ASSERT_TRUE(info.ok()) << info.status().ToString();
   EXPECT_EQ(info->last_sequence, 3u);
   process.Kill();
+}
+
+// The whole path with shards: 3 shards, 2 workers, 2 maps, 4 agents ingesting with matches
+// (searched on a replica that applied the stream's last place) while the JetStream leader of a
+// stream, a shard holding a replica and a worker are killed, and queries go on through the other
+// worker. Afterwards every acknowledged place is on both live replicas of its map with the same
+// record, BoW and features, each frame is one place, the replicas' integrity checks pass, and
+// queries were answered before, during and after the kills.
+TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
+  constexpr int kFrames = 120;
+  FeatureFrames(84);
+  std::vector<std::unique_ptr<cluster::Shard>> shards(3);
+  auto start_shard = [&](int i) {
+    cluster::ShardOptions options;
+    options.cluster_name = "test";
+    options.nats = engines_->NatsUrls();
+    options.etcd = engines_->EtcdEndpoints();
+    options.shard_id = "shard-" + std::to_string(i);
+    options.internal_listen = "127.0.0.1:0";
+    options.data_dir = root_ + "/shard-" + std::to_string(i);
+    options.vocabularies.emplace("default", vocabulary_);
+    options.lease_ttl_s = 2;
+    auto shard = cluster::Shard::Start(std::move(options));
+    ASSERT_TRUE(shard.ok()) << shard.status().ToString();
+    shards[size_t(i)] = std::move(shard).value();
+  };
+  for (int i = 0; i < 3; ++i) ASSERT_NO_FATAL_FAILURE(start_shard(i));
+  Worker& survivor = StartWorker(1);
+  Worker& doomed = StartWorker(2);
+  ASSERT_TRUE(survivor.stub && doomed.stub);
+  ASSERT_TRUE(CreateClusterMap(survivor, "m1").ok());
+  ASSERT_TRUE(CreateClusterMap(survivor, "m2").ok());
+
+  // Queries through the survivor all along (read-your-writes off: any replica).
+  std::atomic<bool> querying{true};
+  std::atomic<int> answered{0}, failed{0};
+  std::thread queries([&] {
+    int frame = 1;
+    while (querying) {
+      v1::QueryRequest request;
+      request.set_map("m2");
+      *request.mutable_observation() = FeatureObservation(frame++ % 84 + 1, "q");
+      request.mutable_options()->set_top_k(3);
+      grpc::ClientContext context;
+      context.set_deadline(std::chrono::system_clock::now() + 2s);
+      v1::QueryResponse response;
+      if (survivor.stub->Query(&context, request, &response).ok()) {
+        ++answered;
+      } else {
+        ++failed;
+      }
+      std::this_thread::sleep_for(50ms);
+    }
+  });
+
+  struct Agent {
+    std::string id, map;
+    Worker* worker;
+    IngestOutcome first;
+  };
+  std::vector<Agent> agents = {{"a1", "m1", &survivor, {}},
+                               {"a2", "m1", &doomed, {}},
+                               {"a3", "m2", &survivor, {}},
+                               {"a4", "m2", &doomed, {}}};
+  v1::MatchOptions matches;
+  matches.set_top_k(3);
+  std::vector<std::thread> threads;
+  for (Agent& agent : agents) {
+    threads.emplace_back([&agent, &matches] {
+      std::vector<v1::Observation> frames;
+      for (int f = 1; f <= kFrames; ++f) frames.push_back(FeatureObservation(f, agent.id));
+      agent.first = IngestAll(agent.worker->stub.get(), agent.map, frames, &matches);
+    });
+  }
+  std::this_thread::sleep_for(500ms);
+  auto leader = engines_->StreamLeader(cluster::StreamName("test", "m1"));
+  ASSERT_TRUE(leader.ok()) << leader.status().ToString();
+  engines_->KillNats(*leader);
+  // A shard holding a replica of m1 dies (destroyed: its lease expires, its replicas move).
+  int killed = -1;
+  for (int i = 0; i < 3 && killed < 0; ++i) {
+    for (const cluster::ReplicaStatus& replica : shards[size_t(i)]->Replicas()) {
+      if (replica.map == "m1") killed = i;
+    }
+  }
+  ASSERT_GE(killed, 0);
+  shards[size_t(killed)].reset();
+  std::this_thread::sleep_for(300ms);
+  doomed.server->Shutdown();
+  for (std::thread& thread : threads) thread.join();
+  const int answered_during = answered;
+  ASSERT_TRUE(engines_->RestartNats(*leader).ok());
+
+  // What was not acknowledged goes again through the survivor (with matches: searched too).
+  std::map<std::string, std::map<int, uint32_t>> ids;
+  int acknowledged_first = 0;
+  for (Agent& agent : agents) {
+    std::vector<v1::Observation> again;
+    for (int f = 1; f <= kFrames; ++f) {
+      const auto& responses = agent.first.responses;
+      if (size_t(f) <= responses.size() && !responses[size_t(f - 1)].has_error()) {
+        ids[agent.id][f] = responses[size_t(f - 1)].place_id();
+        ++acknowledged_first;
+      } else {
+        again.push_back(FeatureObservation(f, agent.id));
+      }
+    }
+    if (again.empty()) continue;
+    const IngestOutcome second = IngestAll(survivor.stub.get(), agent.map, again, &matches);
+    ASSERT_TRUE(second.status.ok()) << second.status.error_message();
+    ASSERT_EQ(second.responses.size(), again.size());
+    for (size_t i = 0; i < again.size(); ++i) {
+      ASSERT_FALSE(second.responses[i].has_error()) << second.responses[i].error().message();
+      ids[agent.id][int(again[i].sequence())] = second.responses[i].place_id();
+    }
+  }
+  std::printf("cluster_e2e_acknowledged_before_resend %d frames\n", acknowledged_first);
+
+  // Both live replicas of each map catch up (the killed shard's replica replaced, epoch + 1).
+  auto js = Js();
+  ASSERT_TRUE(js);
+  for (const std::string map : {"m1", "m2"}) {
+    auto info = js->GetStreamInfo(cluster::StreamName("test", map));
+    ASSERT_TRUE(info.ok());
+    std::vector<std::shared_ptr<PlaceMap>> replicas;
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    while (std::chrono::steady_clock::now() < until) {
+      replicas.clear();
+      for (const auto& shard : shards) {
+        if (!shard) continue;
+        for (const cluster::ReplicaStatus& replica : shard->Replicas()) {
+          if (replica.map != map || replica.applied_sequence < info->last_sequence) continue;
+          auto opened = shard->Map(map);
+          if (opened.ok()) replicas.push_back(*opened);
+        }
+      }
+      if (replicas.size() == 2) break;
+      std::this_thread::sleep_for(100ms);
+    }
+    ASSERT_EQ(replicas.size(), 2u) << map << ": two replicas caught up";
+    std::set<uint32_t> distinct;
+    size_t places = 0;
+    for (const Agent& agent : agents) {
+      if (agent.map != map) continue;
+      ASSERT_EQ(ids[agent.id].size(), size_t(kFrames));
+      for (const auto& [frame, id] : ids[agent.id]) {
+        if (id == 0) continue;
+        ++places;
+        distinct.insert(id);
+        auto a = replicas[0]->GetPlace(id);
+        auto b = replicas[1]->GetPlace(id);
+        ASSERT_TRUE(a.ok() && b.ok()) << map << " place " << id;
+        EXPECT_EQ(a->record.metadata.agent_id, agent.id);
+        EXPECT_EQ(a->record.metadata.sequence, uint64_t(frame));
+        EXPECT_EQ(EncodePlaceRecord(a->record), EncodePlaceRecord(b->record)) << id;
+        EXPECT_EQ(EncodeBow(a->payload.bow), EncodeBow(b->payload.bow)) << id;
+        EXPECT_EQ(EncodeLocalFeatures(a->payload.features, a->payload.direct),
+                  EncodeLocalFeatures(b->payload.features, b->payload.direct))
+            << id;
+      }
+    }
+    EXPECT_EQ(distinct.size(), places) << map << ": a place id answered twice";
+    for (const auto& replica : replicas) {
+      EXPECT_EQ(replica->Stats().database.places, places) << map << ": duplicates or losses";
+      EXPECT_TRUE(replica->VerifyIntegrity().ok()) << map;
+    }
+  }
+  querying = false;
+  queries.join();
+  std::printf("cluster_e2e_queries_answered %d queries\ncluster_e2e_queries_failed %d queries\n",
+              answered.load(), failed.load());
+  EXPECT_GT(answered_during, 0);
+  EXPECT_GT(answered.load(), answered_during);  // and after the kills
+  workers_.clear();                             // before the shards they call
+  shards.clear();
 }
 
 }  // namespace
