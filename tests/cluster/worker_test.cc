@@ -655,6 +655,23 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
       EXPECT_TRUE(replica->VerifyIntegrity().ok()) << map;
     }
   }
+  // Read-your-writes: a query asking for a replica that applied a1's last place gets one.
+  {
+    const uint32_t last = ids["a1"][kFrames];
+    ASSERT_GT(last, 0u);
+    v1::QueryRequest request;
+    request.set_map("m1");
+    request.set_min_sequence(last);
+    *request.mutable_observation() = FeatureObservation(kFrames, "q");
+    request.mutable_options()->set_top_k(5);
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 10s);
+    v1::QueryResponse response;
+    const grpc::Status status = survivor.stub->Query(&context, request, &response);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+    EXPECT_GE(response.sequence(), last);
+    ASSERT_GT(response.matches_size(), 0);
+  }
   querying = false;
   queries.join();
   std::printf("cluster_e2e_queries_answered %d queries\ncluster_e2e_queries_failed %d queries\n",
