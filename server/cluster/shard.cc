@@ -8,6 +8,8 @@
 #include <algorithm>
 #include <atomic>
 #include <cctype>
+#include <cstdio>
+#include <fstream>
 #include <nlohmann/json.hpp>
 #include <set>
 #include <thread>
@@ -103,7 +105,8 @@ struct Replica {
   std::unique_ptr<OrderedConsumer> consumer;  // the reconcile thread's
   std::atomic<bool> broken{false};            // the applier stopped on an error
   std::atomic<uint64_t> stream_last{0};
-  std::string problem;  // Impl::mutex_: why it is not applying ("" when it is)
+  std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
+  std::string restored_from;  // Impl::mutex_: the peer whose checkpoint it started from
 };
 
 class Shard::Impl {
@@ -136,6 +139,11 @@ class Shard::Impl {
   // Opens (or creates) the replica's map and starts its applier; records the problem otherwise.
   void Open(const std::shared_ptr<Replica>& replica, const MapMeta& meta) EXCLUDES(mutex_);
   void StartApplier(const std::shared_ptr<Replica>& replica) EXCLUDES(mutex_);
+  // Catch-up of a new replica: restores the map from the checkpoint of the live replica that
+  // applied the most (Checkpoint RPC, verified by SnapshotStore::Import); returns the peer's id.
+  // NOT_FOUND when no live peer has applied anything.
+  Result<std::string> RestoreFromPeer(const std::string& map) EXCLUDES(mutex_);
+  Result<AnyVocabulary> VocabularyFor(const MapInfo& info) const;
   void Drop(const std::string& name) EXCLUDES(mutex_);
   // The applier: one record at a time, on the consumer's delivery thread.
   void Apply(Replica* replica, uint64_t sequence, std::string_view data) EXCLUDES(mutex_);
@@ -451,7 +459,21 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
   }
   const auto listed = dir_->ListMaps();
   Result<std::shared_ptr<PlaceMap>> map = Status::Internal("not opened");
-  if (std::find(listed.begin(), listed.end(), replica->name) != listed.end()) {
+  std::string restored_from;
+  if (std::find(listed.begin(), listed.end(), replica->name) == listed.end()) {
+    // A new replica: from a live peer's checkpoint when there is one (then only the records
+    // after it are applied); on any failure from an empty map, replaying the whole stream (it
+    // keeps every record), which is slower but as correct.
+    auto peer = RestoreFromPeer(replica->name);
+    if (peer.ok()) {
+      restored_from = *peer;
+    } else if (peer.status().code() != StatusCode::kNotFound) {
+      spdlog::warn("shard {}: map '{}': no checkpoint from a peer ({}); replaying the stream",
+                   options_.shard_id, replica->name, peer.status().ToString());
+    }
+  }
+  if (std::find(listed.begin(), listed.end(), replica->name) != listed.end() ||
+      !restored_from.empty()) {
     map = dir_->OpenMap(replica->name, vocabulary->second);
   } else {
     wire::ServiceMapSettings settings;
@@ -473,6 +495,7 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
   {
     MutexLock lock(mutex_);
     replica->map = std::move(map).value();
+    replica->restored_from = restored_from;
   }
   spdlog::info("shard {}: holding map '{}' (applied {})", options_.shard_id, replica->name,
                replica->map->applied_sequence());
@@ -566,6 +589,86 @@ void Shard::Impl::Report() {
   }
 }
 
+Result<AnyVocabulary> Shard::Impl::VocabularyFor(const MapInfo& info) const {
+  for (const auto& [name, vocabulary] : options_.vocabularies) {
+    if (vocabulary.checksum() == info.vocabulary_checksum) return vocabulary;
+  }
+  return Status::FailedPrecondition("map '" + info.name +
+                                    "': no configured vocabulary has its checksum");
+}
+
+Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map) {
+  auto applied = etcd_->Get(Key("applied/" + map + "/"), true);
+  if (!applied.ok()) return applied.status();
+  auto shards = etcd_->Get(Key("shards/"), true);
+  if (!shards.ok()) return shards.status();
+  std::map<std::string, std::string> live;  // id -> address
+  const std::string shards_prefix = Key("shards/");
+  for (const KeyValue& kv : shards->kvs) {
+    auto json = nlohmann::json::parse(kv.value, nullptr, false);
+    if (json.is_object() && json.contains("address") && json["address"].is_string()) {
+      live[kv.key.substr(shards_prefix.size())] = json["address"].get<std::string>();
+    }
+  }
+  std::string peer;
+  uint64_t best = 0;
+  const std::string applied_prefix = Key("applied/" + map + "/");
+  for (const KeyValue& kv : applied->kvs) {
+    const std::string id = kv.key.substr(applied_prefix.size());
+    const uint64_t sequence = std::strtoull(kv.value.c_str(), nullptr, 10);
+    if (id != options_.shard_id && live.count(id) && sequence > best) {
+      best = sequence;
+      peer = id;
+    }
+  }
+  if (peer.empty()) return Status::NotFound("no live replica of '" + map + "' has applied records");
+  auto stub =
+      cv1::Shard::NewStub(grpc::CreateChannel(live[peer], grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(10));
+  cv1::CheckpointRequest request;
+  request.set_map(map);
+  const std::string spool = dir_->path() + "/.catchup-" + HexOf(map) + ".pdbsnap";
+  struct Remove {
+    std::string path;
+    ~Remove() { std::remove(path.c_str()); }
+  } remove{spool};
+  uint64_t expected = 0, received = 0;
+  {
+    std::ofstream out(spool, std::ios::binary | std::ios::trunc);
+    auto reader = stub->Checkpoint(&context, request);
+    cv1::CheckpointChunk chunk;
+    bool first = true;
+    while (reader->Read(&chunk)) {
+      if (first) expected = chunk.archive_bytes();
+      first = false;
+      out.write(chunk.data().data(), std::streamsize(chunk.data().size()));
+      received += chunk.data().size();
+    }
+    const grpc::Status finished = reader->Finish();
+    if (!finished.ok()) {
+      return Status::IoError("checkpoint of '" + map + "' from " + peer + ": " +
+                             finished.error_message());
+    }
+    out.flush();
+    if (!out) return Status::IoError("spooling the checkpoint of '" + map + "' failed");
+  }
+  if (received != expected) {
+    return Status::Corruption("checkpoint of '" + map + "' from " + peer + ": " +
+                              std::to_string(received) + " of " + std::to_string(expected) +
+                              " bytes");
+  }
+  auto imported =
+      snapshots_->Import(spool, [this](const MapInfo& info) { return VocabularyFor(info); });
+  if (!imported.ok()) return imported.status();
+  Status restored = snapshots_->Restore(imported->id, map);
+  (void)snapshots_->Delete(imported->id);
+  if (!restored.ok()) return restored;
+  spdlog::info("shard {}: map '{}' restored from the checkpoint of {}", options_.shard_id, map,
+               peer);
+  return peer;
+}
+
 Result<std::shared_ptr<PlaceMap>> Shard::Impl::MapOf(const std::string& map) const {
   MutexLock lock(mutex_);
   auto it = replicas_.find(map);
@@ -630,12 +733,8 @@ grpc::Status Shard::Impl::Checkpoint(const cv1::CheckpointRequest& request,
   auto map = MapOf(request.map());
   if (!map.ok()) return ToGrpc(map.status());
   const uint64_t applied = (*map)->applied_sequence();
-  auto created = snapshots_->Create(**map, [this](const MapInfo& info) -> Result<AnyVocabulary> {
-    for (const auto& [name, vocabulary] : options_.vocabularies) {
-      if (vocabulary.checksum() == info.vocabulary_checksum) return vocabulary;
-    }
-    return Status::FailedPrecondition("no configured vocabulary has the map's checksum");
-  });
+  auto created =
+      snapshots_->Create(**map, [this](const MapInfo& info) { return VocabularyFor(info); });
   if (!created.ok()) return ToGrpc(created.status());
   struct Cleanup {
     SnapshotStore* store;
@@ -671,6 +770,7 @@ std::vector<ReplicaStatus> Shard::Impl::StatusOfReplicas() const {
       status.places = replica->map->database().Stats().places;
     }
     status.state = replica->problem.empty() ? "applying" : replica->problem;
+    status.restored_from = replica->restored_from;
     out.push_back(std::move(status));
   }
   return out;

@@ -307,6 +307,19 @@ TEST_F(ShardTest, TwoReplicasApplyInOrderOnceAndHoldIdenticalPlaces) {
   EXPECT_TRUE(WaitFor([&] { return b->Replicas().empty(); }));
   EXPECT_EQ(b->Map(map).status().code(), StatusCode::kNotFound);
   EXPECT_EQ(a->Map(map).status().code(), StatusCode::kOk);
+
+  // A new replica catches up from shard-a's checkpoint, then applies what follows it.
+  Place(map, {"shard-a", "shard-c"});
+  auto c = StartShard("shard-c");
+  ASSERT_TRUE(c);
+  ASSERT_TRUE(WaitFor([&] { return Applied(*c, map) == added; })) << Applied(*c, map);
+  const auto replicas = c->Replicas();
+  ASSERT_EQ(replicas.size(), 1u);
+  EXPECT_EQ(replicas[0].restored_from, "shard-a");
+  const uint64_t after = AddPlace(map, 8).sequence;
+  ASSERT_TRUE(WaitFor([&] { return Applied(*a, map) == after && Applied(*c, map) == after; }));
+  EXPECT_EQ(Contents(*a, map), Contents(*c, map));
+  EXPECT_TRUE((*c->Map(map))->VerifyIntegrity().ok());
 }
 
 TEST_F(ShardTest, ARestartedShardResumesWithoutGapsOrDuplicates) {
