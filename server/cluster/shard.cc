@@ -9,6 +9,7 @@
 #include <atomic>
 #include <cctype>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <set>
@@ -105,6 +106,9 @@ struct Replica {
   std::unique_ptr<OrderedConsumer> consumer;  // the reconcile thread's
   std::atomic<bool> broken{false};            // the applier stopped on an error
   std::atomic<uint64_t> stream_last{0};
+  // maps/<map>'s create revision this replica belongs to (Impl::mutex_ for writes after the map
+  // is shared; the run thread sets it before opening).
+  std::atomic<int64_t> create_revision{0};
   std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
   std::string restored_from;  // Impl::mutex_: the peer whose checkpoint it started from
 };
@@ -142,8 +146,14 @@ class Shard::Impl {
   // Catch-up of a new replica: restores the map from the checkpoint of the live replica that
   // applied the most (Checkpoint RPC, verified by SnapshotStore::Import); returns the peer's id.
   // NOT_FOUND when no live peer has applied anything.
-  Result<std::string> RestoreFromPeer(const std::string& map) EXCLUDES(mutex_);
+  Result<std::string> RestoreFromPeer(const std::string& map, int64_t create_revision)
+      EXCLUDES(mutex_);
   Result<AnyVocabulary> VocabularyFor(const MapInfo& info) const;
+  // DATA_DIR/cluster-maps/<hex of the name>: the create revision of maps/<map> the local copy
+  // was made for.
+  std::string GenerationFile(const std::string& map) const {
+    return dir_->path() + "/cluster-maps/" + HexOf(map);
+  }
   void Drop(const std::string& name) EXCLUDES(mutex_);
   // The applier: one record at a time, on the consumer's delivery thread.
   void Apply(Replica* replica, uint64_t sequence, std::string_view data) EXCLUDES(mutex_);
@@ -402,8 +412,12 @@ void Shard::Impl::Reconcile() {
   // etcd unreachable: keep applying and serving what is held (the placement is frozen).
   if (!maps.ok() || !placements.ok()) return;
   std::map<std::string, std::string> map_values;
+  std::map<std::string, int64_t> map_revisions;  // create revisions: a map's generation
   const std::string maps_prefix = Key("maps/");
-  for (const KeyValue& kv : maps->kvs) map_values[kv.key.substr(maps_prefix.size())] = kv.value;
+  for (const KeyValue& kv : maps->kvs) {
+    map_values[kv.key.substr(maps_prefix.size())] = kv.value;
+    map_revisions[kv.key.substr(maps_prefix.size())] = kv.create_revision;
+  }
   std::set<std::string> mine;
   const std::string placement_prefix = Key("placement/");
   for (const KeyValue& kv : placements->kvs) {
@@ -417,7 +431,11 @@ void Shard::Impl::Reconcile() {
   {
     MutexLock lock(mutex_);
     for (const auto& [name, replica] : replicas_) {
-      if (!mine.count(name) || !map_values.count(name)) drop.push_back(name);
+      // Also a replica of a map deleted and re-created under its name (another stream).
+      if (!mine.count(name) || !map_values.count(name) ||
+          (replica->create_revision != 0 && replica->create_revision != map_revisions[name])) {
+        drop.push_back(name);
+      }
     }
   }
   for (const std::string& name : drop) Drop(name);
@@ -441,6 +459,7 @@ void Shard::Impl::Reconcile() {
         SetProblem(replica.get(), "unavailable: " + meta.status().ToString());
         continue;
       }
+      replica->create_revision = map_revisions[name];
       Open(replica, *meta);
     } else if (replica->broken || !replica->consumer) {
       StartApplier(replica);
@@ -457,6 +476,23 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
                "unavailable: vocabulary '" + vocabulary_name + "' is not configured here");
     return;
   }
+  // The local copy's generation (written when it was made): a copy of a map deleted and
+  // re-created meanwhile (the shard was down) is deleted, not resumed on the new stream.
+  const std::string generation_file = GenerationFile(replica->name);
+  const int64_t revision = replica->create_revision;
+  {
+    std::ifstream in(generation_file);
+    int64_t stored = 0;
+    if (in >> stored && stored != revision) {
+      spdlog::info("shard {}: map '{}' was re-created: deleting the local copy", options_.shard_id,
+                   replica->name);
+      if (Status deleted = dir_->DeleteMap(replica->name);
+          !deleted.ok() && deleted.code() != StatusCode::kNotFound) {
+        SetProblem(replica.get(), "unavailable: " + deleted.ToString());
+        return;
+      }
+    }
+  }
   const auto listed = dir_->ListMaps();
   Result<std::shared_ptr<PlaceMap>> map = Status::Internal("not opened");
   std::string restored_from;
@@ -464,7 +500,7 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
     // A new replica: from a live peer's checkpoint when there is one (then only the records
     // after it are applied); on any failure from an empty map, replaying the whole stream (it
     // keeps every record), which is slower but as correct.
-    auto peer = RestoreFromPeer(replica->name);
+    auto peer = RestoreFromPeer(replica->name, revision);
     if (peer.ok()) {
       restored_from = *peer;
     } else if (peer.status().code() != StatusCode::kNotFound) {
@@ -492,6 +528,12 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
   }
   replica->stream = meta.stream;
   replica->type = (*map)->info().options.database.feature_type;
+  {
+    std::error_code ignored;
+    std::filesystem::create_directories(dir_->path() + "/cluster-maps", ignored);
+    std::ofstream out(generation_file, std::ios::trunc);
+    out << revision << "\n";
+  }
   {
     MutexLock lock(mutex_);
     replica->map = std::move(map).value();
@@ -558,6 +600,7 @@ void Shard::Impl::Drop(const std::string& name) {
     }
     spdlog::info("shard {}: dropped map '{}'", options_.shard_id, name);
   }
+  std::remove(GenerationFile(name).c_str());
   (void)etcd_->Delete(Key("applied/" + name + "/" + options_.shard_id));
   if (applied_gauge_) {
     applied_gauge_->Remove(&applied_gauge_->Add({{"map", name}, {"shard", options_.shard_id}}));
@@ -597,7 +640,7 @@ Result<AnyVocabulary> Shard::Impl::VocabularyFor(const MapInfo& info) const {
                                     "': no configured vocabulary has its checksum");
 }
 
-Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map) {
+Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t create_revision) {
   auto applied = etcd_->Get(Key("applied/" + map + "/"), true);
   if (!applied.ok()) return applied.status();
   auto shards = etcd_->Get(Key("shards/"), true);
@@ -628,6 +671,7 @@ Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map) {
   context.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(10));
   cv1::CheckpointRequest request;
   request.set_map(map);
+  request.set_create_revision(create_revision);
   const std::string spool = dir_->path() + "/.catchup-" + HexOf(map) + ".pdbsnap";
   struct Remove {
     std::string path;
@@ -732,6 +776,18 @@ grpc::Status Shard::Impl::Checkpoint(const cv1::CheckpointRequest& request,
                                      grpc::ServerWriter<cv1::CheckpointChunk>* writer) {
   auto map = MapOf(request.map());
   if (!map.ok()) return ToGrpc(map.status());
+  int64_t held_revision = 0;
+  {
+    MutexLock lock(mutex_);
+    auto it = replicas_.find(request.map());
+    if (it != replicas_.end()) held_revision = it->second->create_revision;
+  }
+  if (request.create_revision() != 0 && held_revision != request.create_revision()) {
+    return GrpcError(grpc::StatusCode::FAILED_PRECONDITION,
+                     "map '" + request.map() + "' on shard " + options_.shard_id +
+                         " is of create revision " + std::to_string(held_revision) + ", not " +
+                         std::to_string(request.create_revision()));
+  }
   const uint64_t applied = (*map)->applied_sequence();
   auto created =
       snapshots_->Create(**map, [this](const MapInfo& info) { return VocabularyFor(info); });

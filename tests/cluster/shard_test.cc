@@ -339,6 +339,33 @@ TEST_F(ShardTest, ARestartedShardResumesWithoutGapsOrDuplicates) {
   for (const auto& [id, bytes] : Contents(*shard, map)) ids.insert(id);
   EXPECT_EQ(ids, places);
   EXPECT_TRUE((*shard->Map(map))->VerifyIntegrity().ok());
+
+  // Its lease lost (revoked): it registers again.
+  auto registered = etcd_->Get(Key("shards/shard-r"));
+  ASSERT_TRUE(registered.ok() && registered->kvs.size() == 1u);
+  const int64_t lease = registered->kvs[0].lease;
+  ASSERT_TRUE(etcd_->RevokeLease(lease).ok());
+  EXPECT_TRUE(WaitFor([&] {
+    auto now = etcd_->Get(Key("shards/shard-r"));
+    return now.ok() && now->kvs.size() == 1u && now->kvs[0].lease != lease;
+  }));
+
+  // The map deleted and re-created under its name while the shard is down: the old local copy
+  // is not resumed on the new stream.
+  shard.reset();
+  ASSERT_TRUE(etcd_->Delete(Key("placement/" + map)).ok());
+  ASSERT_TRUE(etcd_->Delete(Key("maps/" + map)).ok());
+  ASSERT_TRUE(js_->DeleteStream(StreamOf(map)).ok());
+  CreateMap(map, {"shard-r"});
+  const uint64_t fresh = AddPlace(map, 9).sequence;
+  EXPECT_EQ(fresh, 1u);
+  shard = StartShard("shard-r");
+  ASSERT_TRUE(shard);
+  ASSERT_TRUE(WaitFor([&] { return Applied(*shard, map) == 1; }));
+  const auto contents = Contents(*shard, map);
+  ASSERT_EQ(contents.size(), 1u);
+  EXPECT_EQ(contents.begin()->first, 1u);
+  EXPECT_EQ((*shard->Map(map))->GetPlace(1)->record.metadata.sequence, 9u);
 }
 
 TEST_F(ShardTest, NothingIsLostWhenTheStreamLeaderIsKilledDuringPublishing) {
