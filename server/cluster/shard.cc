@@ -8,6 +8,9 @@
 #include <algorithm>
 #include <atomic>
 #include <cctype>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
 #include <nlohmann/json.hpp>
 #include <set>
 #include <thread>
@@ -103,7 +106,11 @@ struct Replica {
   std::unique_ptr<OrderedConsumer> consumer;  // the reconcile thread's
   std::atomic<bool> broken{false};            // the applier stopped on an error
   std::atomic<uint64_t> stream_last{0};
-  std::string problem;  // Impl::mutex_: why it is not applying ("" when it is)
+  // maps/<map>'s create revision this replica belongs to (Impl::mutex_ for writes after the map
+  // is shared; the run thread sets it before opening).
+  std::atomic<int64_t> create_revision{0};
+  std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
+  std::string restored_from;  // Impl::mutex_: the peer whose checkpoint it started from
 };
 
 class Shard::Impl {
@@ -136,6 +143,17 @@ class Shard::Impl {
   // Opens (or creates) the replica's map and starts its applier; records the problem otherwise.
   void Open(const std::shared_ptr<Replica>& replica, const MapMeta& meta) EXCLUDES(mutex_);
   void StartApplier(const std::shared_ptr<Replica>& replica) EXCLUDES(mutex_);
+  // Catch-up of a new replica: restores the map from the checkpoint of the live replica that
+  // applied the most (Checkpoint RPC, verified by SnapshotStore::Import); returns the peer's id.
+  // NOT_FOUND when no live peer has applied anything.
+  Result<std::string> RestoreFromPeer(const std::string& map, int64_t create_revision)
+      EXCLUDES(mutex_);
+  Result<AnyVocabulary> VocabularyFor(const MapInfo& info) const;
+  // DATA_DIR/cluster-maps/<hex of the name>: the create revision of maps/<map> the local copy
+  // was made for.
+  std::string GenerationFile(const std::string& map) const {
+    return dir_->path() + "/cluster-maps/" + HexOf(map);
+  }
   void Drop(const std::string& name) EXCLUDES(mutex_);
   // The applier: one record at a time, on the consumer's delivery thread.
   void Apply(Replica* replica, uint64_t sequence, std::string_view data) EXCLUDES(mutex_);
@@ -394,8 +412,12 @@ void Shard::Impl::Reconcile() {
   // etcd unreachable: keep applying and serving what is held (the placement is frozen).
   if (!maps.ok() || !placements.ok()) return;
   std::map<std::string, std::string> map_values;
+  std::map<std::string, int64_t> map_revisions;  // create revisions: a map's generation
   const std::string maps_prefix = Key("maps/");
-  for (const KeyValue& kv : maps->kvs) map_values[kv.key.substr(maps_prefix.size())] = kv.value;
+  for (const KeyValue& kv : maps->kvs) {
+    map_values[kv.key.substr(maps_prefix.size())] = kv.value;
+    map_revisions[kv.key.substr(maps_prefix.size())] = kv.create_revision;
+  }
   std::set<std::string> mine;
   const std::string placement_prefix = Key("placement/");
   for (const KeyValue& kv : placements->kvs) {
@@ -409,7 +431,11 @@ void Shard::Impl::Reconcile() {
   {
     MutexLock lock(mutex_);
     for (const auto& [name, replica] : replicas_) {
-      if (!mine.count(name) || !map_values.count(name)) drop.push_back(name);
+      // Also a replica of a map deleted and re-created under its name (another stream).
+      if (!mine.count(name) || !map_values.count(name) ||
+          (replica->create_revision != 0 && replica->create_revision != map_revisions[name])) {
+        drop.push_back(name);
+      }
     }
   }
   for (const std::string& name : drop) Drop(name);
@@ -433,6 +459,7 @@ void Shard::Impl::Reconcile() {
         SetProblem(replica.get(), "unavailable: " + meta.status().ToString());
         continue;
       }
+      replica->create_revision = map_revisions[name];
       Open(replica, *meta);
     } else if (replica->broken || !replica->consumer) {
       StartApplier(replica);
@@ -449,9 +476,40 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
                "unavailable: vocabulary '" + vocabulary_name + "' is not configured here");
     return;
   }
+  // The local copy's generation (written when it was made): a copy of a map deleted and
+  // re-created meanwhile (the shard was down) is deleted, not resumed on the new stream.
+  const std::string generation_file = GenerationFile(replica->name);
+  const int64_t revision = replica->create_revision;
+  {
+    std::ifstream in(generation_file);
+    int64_t stored = 0;
+    if (in >> stored && stored != revision) {
+      spdlog::info("shard {}: map '{}' was re-created: deleting the local copy", options_.shard_id,
+                   replica->name);
+      if (Status deleted = dir_->DeleteMap(replica->name);
+          !deleted.ok() && deleted.code() != StatusCode::kNotFound) {
+        SetProblem(replica.get(), "unavailable: " + deleted.ToString());
+        return;
+      }
+    }
+  }
   const auto listed = dir_->ListMaps();
   Result<std::shared_ptr<PlaceMap>> map = Status::Internal("not opened");
-  if (std::find(listed.begin(), listed.end(), replica->name) != listed.end()) {
+  std::string restored_from;
+  if (std::find(listed.begin(), listed.end(), replica->name) == listed.end()) {
+    // A new replica: from a live peer's checkpoint when there is one (then only the records
+    // after it are applied); on any failure from an empty map, replaying the whole stream (it
+    // keeps every record), which is slower but as correct.
+    auto peer = RestoreFromPeer(replica->name, revision);
+    if (peer.ok()) {
+      restored_from = *peer;
+    } else if (peer.status().code() != StatusCode::kNotFound) {
+      spdlog::warn("shard {}: map '{}': no checkpoint from a peer ({}); replaying the stream",
+                   options_.shard_id, replica->name, peer.status().ToString());
+    }
+  }
+  if (std::find(listed.begin(), listed.end(), replica->name) != listed.end() ||
+      !restored_from.empty()) {
     map = dir_->OpenMap(replica->name, vocabulary->second);
   } else {
     wire::ServiceMapSettings settings;
@@ -471,8 +529,15 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
   replica->stream = meta.stream;
   replica->type = (*map)->info().options.database.feature_type;
   {
+    std::error_code ignored;
+    std::filesystem::create_directories(dir_->path() + "/cluster-maps", ignored);
+    std::ofstream out(generation_file, std::ios::trunc);
+    out << revision << "\n";
+  }
+  {
     MutexLock lock(mutex_);
     replica->map = std::move(map).value();
+    replica->restored_from = restored_from;
   }
   spdlog::info("shard {}: holding map '{}' (applied {})", options_.shard_id, replica->name,
                replica->map->applied_sequence());
@@ -535,6 +600,7 @@ void Shard::Impl::Drop(const std::string& name) {
     }
     spdlog::info("shard {}: dropped map '{}'", options_.shard_id, name);
   }
+  std::remove(GenerationFile(name).c_str());
   (void)etcd_->Delete(Key("applied/" + name + "/" + options_.shard_id));
   if (applied_gauge_) {
     applied_gauge_->Remove(&applied_gauge_->Add({{"map", name}, {"shard", options_.shard_id}}));
@@ -564,6 +630,87 @@ void Shard::Impl::Report() {
       lag_gauge_->Add(labels).Set(last > applied ? double(last - applied) : 0.0);
     }
   }
+}
+
+Result<AnyVocabulary> Shard::Impl::VocabularyFor(const MapInfo& info) const {
+  for (const auto& [name, vocabulary] : options_.vocabularies) {
+    if (vocabulary.checksum() == info.vocabulary_checksum) return vocabulary;
+  }
+  return Status::FailedPrecondition("map '" + info.name +
+                                    "': no configured vocabulary has its checksum");
+}
+
+Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t create_revision) {
+  auto applied = etcd_->Get(Key("applied/" + map + "/"), true);
+  if (!applied.ok()) return applied.status();
+  auto shards = etcd_->Get(Key("shards/"), true);
+  if (!shards.ok()) return shards.status();
+  std::map<std::string, std::string> live;  // id -> address
+  const std::string shards_prefix = Key("shards/");
+  for (const KeyValue& kv : shards->kvs) {
+    auto json = nlohmann::json::parse(kv.value, nullptr, false);
+    if (json.is_object() && json.contains("address") && json["address"].is_string()) {
+      live[kv.key.substr(shards_prefix.size())] = json["address"].get<std::string>();
+    }
+  }
+  std::string peer;
+  uint64_t best = 0;
+  const std::string applied_prefix = Key("applied/" + map + "/");
+  for (const KeyValue& kv : applied->kvs) {
+    const std::string id = kv.key.substr(applied_prefix.size());
+    const uint64_t sequence = std::strtoull(kv.value.c_str(), nullptr, 10);
+    if (id != options_.shard_id && live.count(id) && sequence > best) {
+      best = sequence;
+      peer = id;
+    }
+  }
+  if (peer.empty()) return Status::NotFound("no live replica of '" + map + "' has applied records");
+  auto stub =
+      cv1::Shard::NewStub(grpc::CreateChannel(live[peer], grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(10));
+  cv1::CheckpointRequest request;
+  request.set_map(map);
+  request.set_create_revision(create_revision);
+  const std::string spool = dir_->path() + "/.catchup-" + HexOf(map) + ".pdbsnap";
+  struct Remove {
+    std::string path;
+    ~Remove() { std::remove(path.c_str()); }
+  } remove{spool};
+  uint64_t expected = 0, received = 0;
+  {
+    std::ofstream out(spool, std::ios::binary | std::ios::trunc);
+    auto reader = stub->Checkpoint(&context, request);
+    cv1::CheckpointChunk chunk;
+    bool first = true;
+    while (reader->Read(&chunk)) {
+      if (first) expected = chunk.archive_bytes();
+      first = false;
+      out.write(chunk.data().data(), std::streamsize(chunk.data().size()));
+      received += chunk.data().size();
+    }
+    const grpc::Status finished = reader->Finish();
+    if (!finished.ok()) {
+      return Status::IoError("checkpoint of '" + map + "' from " + peer + ": " +
+                             finished.error_message());
+    }
+    out.flush();
+    if (!out) return Status::IoError("spooling the checkpoint of '" + map + "' failed");
+  }
+  if (received != expected) {
+    return Status::Corruption("checkpoint of '" + map + "' from " + peer + ": " +
+                              std::to_string(received) + " of " + std::to_string(expected) +
+                              " bytes");
+  }
+  auto imported =
+      snapshots_->Import(spool, [this](const MapInfo& info) { return VocabularyFor(info); });
+  if (!imported.ok()) return imported.status();
+  Status restored = snapshots_->Restore(imported->id, map);
+  (void)snapshots_->Delete(imported->id);
+  if (!restored.ok()) return restored;
+  spdlog::info("shard {}: map '{}' restored from the checkpoint of {}", options_.shard_id, map,
+               peer);
+  return peer;
 }
 
 Result<std::shared_ptr<PlaceMap>> Shard::Impl::MapOf(const std::string& map) const {
@@ -629,13 +776,21 @@ grpc::Status Shard::Impl::Checkpoint(const cv1::CheckpointRequest& request,
                                      grpc::ServerWriter<cv1::CheckpointChunk>* writer) {
   auto map = MapOf(request.map());
   if (!map.ok()) return ToGrpc(map.status());
+  int64_t held_revision = 0;
+  {
+    MutexLock lock(mutex_);
+    auto it = replicas_.find(request.map());
+    if (it != replicas_.end()) held_revision = it->second->create_revision;
+  }
+  if (request.create_revision() != 0 && held_revision != request.create_revision()) {
+    return GrpcError(grpc::StatusCode::FAILED_PRECONDITION,
+                     "map '" + request.map() + "' on shard " + options_.shard_id +
+                         " is of create revision " + std::to_string(held_revision) + ", not " +
+                         std::to_string(request.create_revision()));
+  }
   const uint64_t applied = (*map)->applied_sequence();
-  auto created = snapshots_->Create(**map, [this](const MapInfo& info) -> Result<AnyVocabulary> {
-    for (const auto& [name, vocabulary] : options_.vocabularies) {
-      if (vocabulary.checksum() == info.vocabulary_checksum) return vocabulary;
-    }
-    return Status::FailedPrecondition("no configured vocabulary has the map's checksum");
-  });
+  auto created =
+      snapshots_->Create(**map, [this](const MapInfo& info) { return VocabularyFor(info); });
   if (!created.ok()) return ToGrpc(created.status());
   struct Cleanup {
     SnapshotStore* store;
@@ -671,6 +826,7 @@ std::vector<ReplicaStatus> Shard::Impl::StatusOfReplicas() const {
       status.places = replica->map->database().Stats().places;
     }
     status.state = replica->problem.empty() ? "applying" : replica->problem;
+    status.restored_from = replica->restored_from;
     out.push_back(std::move(status));
   }
   return out;

@@ -10,8 +10,12 @@
 //   created from maps/<map>'s config, server/cluster/placement.h's format), and an ordered
 //   consumer of its stream applies the records in order from applied + 1
 //   (PlaceMap::ApplyAt: place id = stream sequence, applied sequence in the same batch, so a
-//   restarted shard resumes without gaps or duplicates). A map that leaves the placement (or is
-//   deleted) is stopped, closed and deleted locally.
+//   restarted shard resumes without gaps or duplicates). A placed map without a local copy is
+//   first restored from the checkpoint of the live replica that applied the most (its Checkpoint
+//   RPC; SnapshotStore::Import verifies it), then applied from the checkpoint's applied + 1; with
+//   no such peer, or when that fails, it replays the stream from 1 (streams keep every record).
+//   Restores run on the reconcile thread: other maps' reconciles wait meanwhile. A map that
+//   leaves the placement (or is deleted) is stopped, closed and deleted locally.
 // - A record that does not decode or apply stops that replica's applier (state "failed: ..."):
 //   nothing is skipped; the next reconcile starts it again from applied + 1 (so a transient
 //   storage error heals; a corrupt record keeps the replica failed, and visible in Status).
@@ -72,6 +76,9 @@ struct ReplicaStatus {
   uint64_t stream_last_sequence = 0;  // as last read (0: unknown)
   uint64_t places = 0;
   std::string state;  // "applying", "failed: <reason>", "unavailable: <reason>"
+  // The peer whose checkpoint this replica started from (when this process created it); empty
+  // when it replayed the stream from its start or was already on disk.
+  std::string restored_from;
 };
 
 class Shard {
