@@ -469,14 +469,38 @@ grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame&
 grpc::Status ClusterWorker::GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                                      v1::Place* response) {
   // A place id is a stream sequence: a replica that applied it has it (or it was removed).
-  return OnReplica("GetPlace", request.map(), request.place_id(), deadline,
-                   [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-                     grpc::ClientContext context;
-                     context.set_deadline(until);
-                     response->Clear();
-                     return cluster::v1::Shard::NewStub(channel)->GetPlace(&context, request,
-                                                                           response);
-                   });
+  auto read = [&] {
+    return OnReplica("GetPlace", request.map(), request.place_id(), deadline,
+                     [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                       grpc::ClientContext context;
+                       context.set_deadline(until);
+                       response->Clear();
+                       return cluster::v1::Shard::NewStub(channel)->GetPlace(&context, request,
+                                                                             response);
+                     });
+  };
+  grpc::Status status = read();
+  if (status.error_code() != grpc::StatusCode::NOT_FOUND || request.place_id() == 0) {
+    return status;
+  }
+  // Read-your-writes: a place just acknowledged may not be applied yet. When no replica has
+  // reported applying its id, wait (bounded) until one does, then ask again.
+  const uint64_t id = request.place_id();
+  auto applied = [id](const std::optional<cluster::MapView>& view) {
+    if (!view) return true;  // deleted: the NOT_FOUND stands
+    for (const auto& [shard, sequence] : view->applied) {
+      if (sequence >= id) return true;
+    }
+    return false;
+  };
+  if (applied(view_->Map(request.map()))) return status;
+  const auto left = std::max(Remaining(deadline), std::chrono::milliseconds(0));
+  if (!view_->WaitFor(request.map(), applied,
+                      std::chrono::steady_clock::now() +
+                          std::min<std::chrono::milliseconds>(left, std::chrono::seconds(5)))) {
+    return status;
+  }
+  return read();
 }
 
 grpc::Status ClusterWorker::ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,

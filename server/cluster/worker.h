@@ -17,7 +17,12 @@
 // - Query, GetPlace, ListPlaces, GetDynamics: Shard RPCs on a replica from the placement: the
 //   least lagging one whose applied sequence (etcd applied/<map>/<shard>, as the view last saw
 //   it) is >= min_sequence; UNAVAILABLE or DEADLINE_EXCEEDED from it: once more on another
-//   replica (counted in placedb_cluster_retries_total{call}).
+//   replica (counted in placedb_cluster_retries_total{call}). GetPlace of an id no replica has
+//   reported applying yet (a place just acknowledged) waits, at most 5 s, until one has, then
+//   asks again: read-your-writes for place ids.
+// - Not done: query hits are not counted in cluster mode (maps with
+//   dynamics.count_query_hits_above; the codec's CountObservation is what the worker would
+//   publish after the search).
 //
 // Per-agent state and what a failover costs: the agent's stream state (depth Algorithm 1) lives
 // in this worker's local copy of the map, for the life of the Ingest stream's agent on this

@@ -23,6 +23,7 @@
 
 #include "core/base/thread_annotations.h"
 #include "core/storage/codec.h"
+#include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/map_record.h"
 #include "server/cluster/placement.h"
@@ -438,9 +439,11 @@ int FreePort() {
   return port;
 }
 
-// The role as the binary takes it: placedb-server --role worker with the cluster flags serves the
-// public API on the cluster; without the engines' addresses it refuses to start (status 2).
-TEST_F(ClusterWorkerTest, PlacedbServerProcessWithTheWorkerRole) {
+// The roles as the binary takes them: placedb-server --role shard and --role worker with the
+// cluster flags: the worker serves the public API on the cluster (ingest with matches searched
+// on the shard process, a place read from it); without the engines' addresses a worker refuses
+// to start (status 2).
+TEST_F(ClusterWorkerTest, PlacedbServerProcessesWithTheClusterRoles) {
   const std::string binary = PLACEDB_SERVER_BINARY;
   const std::string quiet = " --console-listen off --metrics-listen off > /dev/null 2>&1";
   const int refused = std::system((binary + " --role worker --etcd 127.0.0.1:1" + quiet).c_str());
@@ -452,6 +455,37 @@ TEST_F(ClusterWorkerTest, PlacedbServerProcessWithTheWorkerRole) {
     for (const std::string& item : items) out += (out.empty() ? "" : ",") + item;
     return out;
   };
+  // A shard process first: the worker's ingest below searches it, GetPlace reads it.
+  const int internal = FreePort();
+  ASSERT_GT(internal, 0);
+  cluster::testing::EngineProcess shard;
+  const std::string internal_address = "127.0.0.1:" + std::to_string(internal);
+  ASSERT_TRUE(shard
+                  .Start({binary,
+                          "--role",
+                          "shard",
+                          "--cluster-name",
+                          "proc",
+                          "--nats",
+                          join(engines_->NatsUrls()),
+                          "--etcd",
+                          join(engines_->EtcdEndpoints()),
+                          "--shard-id",
+                          "p-shard",
+                          "--advertise",
+                          internal_address,
+                          "--internal-listen",
+                          internal_address,
+                          "--data-dir",
+                          root_ + "/process-shard",
+                          "--vocabulary",
+                          "default=" + testing::DefaultVocabularyPath(),
+                          "--console-listen",
+                          "off",
+                          "--metrics-listen",
+                          "off"},
+                         root_ + "/process-shard.log")
+                  .ok());
   const int port = FreePort();
   ASSERT_GT(port, 0);
   cluster::testing::EngineProcess process;
@@ -477,17 +511,46 @@ TEST_F(ClusterWorkerTest, PlacedbServerProcessWithTheWorkerRole) {
     ASSERT_TRUE(worker.stub->GetServerInfo(&context, {}, &info).ok());
     EXPECT_EQ(info.role(), "worker");
   }
+  // The shard registers within a moment of starting; CreateMap then waits for its placement.
+  const auto until = std::chrono::steady_clock::now() + 30s;
+  grpc::Status created;
+  auto etcd = cluster::EtcdClient::Create({.endpoints = engines_->EtcdEndpoints()});
+  ASSERT_TRUE(etcd.ok());
+  while (std::chrono::steady_clock::now() < until) {
+    auto registered = (*etcd)->Get(cluster::ClusterKeys("proc").Shard("p-shard"));
+    if (registered.ok() && !registered->kvs.empty()) break;
+    std::this_thread::sleep_for(100ms);
+  }
   ASSERT_TRUE(CreateClusterMap(worker, "p").ok());
-  const IngestOutcome ingested = IngestAll(worker.stub.get(), "p", Frames("agent-p", 1, 3));
+  v1::MatchOptions matches;
+  matches.set_top_k(3);
+  const IngestOutcome ingested =
+      IngestAll(worker.stub.get(), "p", Frames("agent-p", 1, 3), &matches);
   ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
   ASSERT_EQ(ingested.responses.size(), 3u);
-  EXPECT_FALSE(ingested.responses[2].has_error());
+  for (const auto& response : ingested.responses) {
+    ASSERT_FALSE(response.has_error()) << response.error().message();
+  }
+  ASSERT_TRUE(ingested.responses[2].stored());
+  {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::GetPlaceRequest request;
+    request.set_map("p");
+    request.set_place_id(ingested.responses[2].place_id());
+    v1::Place place;
+    const grpc::Status read = worker.stub->GetPlace(&context, request, &place);
+    ASSERT_TRUE(read.ok()) << read.error_message();
+    EXPECT_EQ(place.metadata().agent_id(), "agent-p");
+    EXPECT_EQ(place.metadata().sequence(), 3u);
+  }
   auto js = Js();
   ASSERT_TRUE(js);
   auto info = js->GetStreamInfo(cluster::StreamName("proc", "p"));
   ASSERT_TRUE(info.ok()) << info.status().ToString();
   EXPECT_EQ(info->last_sequence, 3u);
   process.Kill();
+  shard.Kill();
 }
 
 // The whole path with shards: 3 shards, 2 workers, 2 maps, 4 agents ingesting with matches
