@@ -66,6 +66,12 @@ class ClusterBackend {
                                    const PlaceMetadata& metadata, const std::string& message_id,
                                    Deadline deadline) = 0;
 
+  // A query hit (MapConfig.dynamics.count_query_hits_above): `frame`'s statistics as one more
+  // observation of `place`, published (no de-duplication: as on a single server, a retried Query
+  // counts again) and acknowledged before it returns; UNAVAILABLE as Publish.
+  virtual Status CountQueryHit(const std::string& map, uint32_t place, const ProcessedFrame& frame,
+                               const PlaceMetadata& metadata, Deadline deadline) = 0;
+
   // Place reads, answered by a replica (retried once on the other).
   virtual grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                                 v1::Place* response) = 0;

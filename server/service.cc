@@ -698,6 +698,18 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
               cluster_->Search(map.name, work.frame, work.metadata, request->options(),
                                request->min_sequence(), DeadlineOf(context), response);
           if (!searched.ok()) return searched;
+          // A map that counts query hits (PlaceMap::CountQueryHit's rule): durable before the
+          // answer, as on a single server.
+          const double above = map.map->info().options.count_query_hits_above;
+          if (above > 0 && response->matches_size() > 0 && response->matches(0).score() > above) {
+            if (Status counted = cluster_->CountQueryHit(
+                    map.name, response->matches(0).place_id(), work.frame, work.metadata,
+                    std::min(DeadlineOf(context),
+                             std::chrono::system_clock::now() + kClusterPatience));
+                !counted.ok()) {
+              return ToGrpc(counted, "counting the query hit");
+            }
+          }
         }
         response->set_valid(work.frame.valid);
         response->set_rejection(work.frame.rejection);

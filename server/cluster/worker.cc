@@ -466,6 +466,14 @@ grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame&
   return grpc::Status::OK;
 }
 
+Status ClusterWorker::CountQueryHit(const std::string& map, uint32_t place,
+                                    const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                    Deadline deadline) {
+  auto published = PublishRecord(map, cluster::EncodeCountObservation(place, frame, metadata),
+                                 /*message_id=*/"", deadline);
+  return published.ok() ? Status::Ok() : published.status();
+}
+
 grpc::Status ClusterWorker::GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                                      v1::Place* response) {
   // A place id is a stream sequence: a replica that applied it has it (or it was removed).

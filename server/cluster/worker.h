@@ -20,9 +20,8 @@
 //   replica (counted in placedb_cluster_retries_total{call}). GetPlace of an id no replica has
 //   reported applying yet (a place just acknowledged) waits, at most 5 s, until one has, then
 //   asks again: read-your-writes for place ids.
-// - Not done: query hits are not counted in cluster mode (maps with
-//   dynamics.count_query_hits_above; the codec's CountObservation is what the worker would
-//   publish after the search).
+// - Query hits (maps with dynamics.count_query_hits_above): the worker publishes a
+//   CountObservation record after the search, acknowledged before the query's answer.
 //
 // Per-agent state and what a failover costs: the agent's stream state (depth Algorithm 1) lives
 // in this worker's local copy of the map, for the life of the Ingest stream's agent on this
@@ -85,6 +84,8 @@ class ClusterWorker final : public ClusterBackend {
   Result<uint64_t> Publish(const std::string& map, const ProcessedFrame& frame,
                            const PlaceMetadata& metadata, const std::string& message_id,
                            Deadline deadline) override;
+  Status CountQueryHit(const std::string& map, uint32_t place, const ProcessedFrame& frame,
+                       const PlaceMetadata& metadata, Deadline deadline) override;
   grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                         v1::Place* response) override;
   grpc::Status ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,

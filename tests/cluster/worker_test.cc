@@ -582,7 +582,15 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
   Worker& doomed = StartWorker(2);
   ASSERT_TRUE(survivor.stub && doomed.stub);
   ASSERT_TRUE(CreateClusterMap(survivor, "m1").ok());
-  ASSERT_TRUE(CreateClusterMap(survivor, "m2").ok());
+  {
+    // m2 counts query hits (issue 16): the queries below publish CountObservation records.
+    grpc::ClientContext context;
+    v1::CreateMapRequest request;
+    request.set_name("m2");
+    request.mutable_config()->mutable_dynamics()->set_count_query_hits_above(0.001);
+    v1::MapDescription response;
+    ASSERT_TRUE(survivor.stub->CreateMap(&context, request, &response).ok());
+  }
 
   // Queries through the survivor all along (read-your-writes off: any replica).
   std::atomic<bool> querying{true};
@@ -625,7 +633,17 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
       agent.first = IngestAll(agent.worker->stub.get(), agent.map, frames, &matches);
     });
   }
-  std::this_thread::sleep_for(500ms);
+  // The kills once m1's stream holds a quarter of its frames: mid-ingest, whatever the load.
+  {
+    auto watcher = Js();
+    ASSERT_TRUE(watcher);
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    while (std::chrono::steady_clock::now() < until) {
+      auto info = watcher->GetStreamInfo(cluster::StreamName("test", "m1"));
+      if (info.ok() && info->last_sequence >= uint64_t(kFrames / 2)) break;
+      std::this_thread::sleep_for(10ms);
+    }
+  }
   auto leader = engines_->StreamLeader(cluster::StreamName("test", "m1"));
   ASSERT_TRUE(leader.ok()) << leader.status().ToString();
   engines_->KillNats(*leader);
@@ -713,6 +731,10 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
       }
     }
     EXPECT_EQ(distinct.size(), places) << map << ": a place id answered twice";
+    if (map == "m2") {
+      // Query hits counted: records beyond the frames', applied by both replicas.
+      EXPECT_GT(info->messages, uint64_t(2 * kFrames));
+    }
     for (const auto& replica : replicas) {
       EXPECT_EQ(replica->Stats().database.places, places) << map << ": duplicates or losses";
       EXPECT_TRUE(replica->VerifyIntegrity().ok()) << map;
