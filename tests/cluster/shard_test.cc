@@ -22,6 +22,7 @@
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/map_record.h"
+#include "server/metrics.h"
 #include "tests/cluster/engines.h"
 #include "tests/rtabmap_frames.h"
 #include "tests/test_support.h"
@@ -124,7 +125,7 @@ class ShardTest : public ::testing::Test {
         etcd_->Put(Key("placement/" + map), R"({"epoch": 1, "replicas": [)" + list + "]}").ok());
   }
 
-  std::unique_ptr<Shard> StartShard(const std::string& id) {
+  std::unique_ptr<Shard> StartShard(const std::string& id, server::Metrics* metrics = nullptr) {
     ShardOptions options;
     options.cluster_name = kCluster;
     options.nats = engines_->NatsUrls();
@@ -135,6 +136,7 @@ class ShardTest : public ::testing::Test {
     options.vocabularies = {{"default", *vocabulary_}};
     options.report_interval = 200ms;
     options.reconcile_interval = 200ms;
+    options.metrics = metrics;
     auto shard = Shard::Start(options);
     EXPECT_TRUE(shard.ok()) << shard.status().ToString();
     return shard.ok() ? std::move(shard).value() : nullptr;
@@ -162,6 +164,19 @@ class ShardTest : public ::testing::Test {
   static uint64_t Applied(const Shard& shard, const std::string& map) {
     auto m = shard.Map(map);
     return m.ok() ? (*m)->applied_sequence() : 0;
+  }
+
+  // The value of a gauge family's series for `map` (-1 when absent).
+  static double Gauge(server::Metrics& metrics, const std::string& family, const std::string& map) {
+    for (const auto& f : metrics.registry()->Collect()) {
+      if (f.name != family) continue;
+      for (const auto& metric : f.metric) {
+        for (const auto& label : metric.label) {
+          if (label.name == "map" && label.value == map) return metric.gauge.value;
+        }
+      }
+    }
+    return -1;
   }
 
   static std::unique_ptr<cv1::Shard::Stub> Stub(const Shard& shard) {
@@ -332,9 +347,15 @@ TEST_F(ShardTest, ARestartedShardResumesWithoutGapsOrDuplicates) {
   ASSERT_TRUE(WaitFor([&] { return Applied(*shard, map) == 3; }));
   shard.reset();  // destroyed: a stop at any point
   for (int i = 3; i < 6; ++i) places.insert(AddPlace(map, i).sequence);
-  shard = StartShard("shard-r");
+  server::Metrics metrics;
+  shard = StartShard("shard-r", &metrics);
   ASSERT_TRUE(shard);
   ASSERT_TRUE(WaitFor([&] { return Applied(*shard, map) == 6; }));
+  // The gauges, on the process's metrics registry.
+  EXPECT_TRUE(WaitFor([&] {
+    return Gauge(metrics, "placedb_shard_applied_sequence", map) == 6.0 &&
+           Gauge(metrics, "placedb_shard_lag_records", map) == 0.0;
+  }));
   std::set<uint64_t> ids;
   for (const auto& [id, bytes] : Contents(*shard, map)) ids.insert(id);
   EXPECT_EQ(ids, places);
