@@ -53,7 +53,9 @@ struct ShardOptions {
   std::vector<std::string> nats;         // cluster.nats: nats://host:port
   std::vector<std::string> etcd;         // cluster.etcd: host:port
   std::string shard_id;                  // cluster.shard_id (required: main.cc defaults it)
-  std::string advertise;                 // cluster.advertise; empty: internal_listen's host:port
+  // cluster.advertise; empty: internal_listen's host and bound port (set it when listening on
+  // 0.0.0.0 or behind a name).
+  std::string advertise;
   std::string internal_listen = "127.0.0.1:50061";  // cluster.internal_listen; port 0 picks one
   std::string data_dir;                             // the usual data_dir: maps/<name>/ as today
   StorageOptions storage;                           // the usual storage options

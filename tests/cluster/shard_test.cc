@@ -22,6 +22,7 @@
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/map_record.h"
+#include "server/metrics.h"
 #include "tests/cluster/engines.h"
 #include "tests/rtabmap_frames.h"
 #include "tests/test_support.h"
@@ -124,7 +125,7 @@ class ShardTest : public ::testing::Test {
         etcd_->Put(Key("placement/" + map), R"({"epoch": 1, "replicas": [)" + list + "]}").ok());
   }
 
-  std::unique_ptr<Shard> StartShard(const std::string& id) {
+  std::unique_ptr<Shard> StartShard(const std::string& id, server::Metrics* metrics = nullptr) {
     ShardOptions options;
     options.cluster_name = kCluster;
     options.nats = engines_->NatsUrls();
@@ -135,6 +136,7 @@ class ShardTest : public ::testing::Test {
     options.vocabularies = {{"default", *vocabulary_}};
     options.report_interval = 200ms;
     options.reconcile_interval = 200ms;
+    options.metrics = metrics;
     auto shard = Shard::Start(options);
     EXPECT_TRUE(shard.ok()) << shard.status().ToString();
     return shard.ok() ? std::move(shard).value() : nullptr;
@@ -162,6 +164,19 @@ class ShardTest : public ::testing::Test {
   static uint64_t Applied(const Shard& shard, const std::string& map) {
     auto m = shard.Map(map);
     return m.ok() ? (*m)->applied_sequence() : 0;
+  }
+
+  // The value of a gauge family's series for `map` (-1 when absent).
+  static double Gauge(server::Metrics& metrics, const std::string& family, const std::string& map) {
+    for (const auto& f : metrics.registry()->Collect()) {
+      if (f.name != family) continue;
+      for (const auto& metric : f.metric) {
+        for (const auto& label : metric.label) {
+          if (label.name == "map" && label.value == map) return metric.gauge.value;
+        }
+      }
+    }
+    return -1;
   }
 
   static std::unique_ptr<cv1::Shard::Stub> Stub(const Shard& shard) {
@@ -263,6 +278,26 @@ TEST_F(ShardTest, TwoReplicasApplyInOrderOnceAndHoldIdenticalPlaces) {
     request.set_place_id(uint32_t(first));
     EXPECT_EQ(stub->GetPlace(&gone, request, &place).error_code(), grpc::StatusCode::NOT_FOUND);
   }
+  {
+    grpc::ClientContext context;
+    pv1::ListPlacesRequest request;
+    request.set_map(map);
+    pv1::ListPlacesResponse listed;
+    ASSERT_TRUE(stub->ListPlaces(&context, request, &listed).ok());
+    ASSERT_EQ(size_t(listed.places_size()), places.size());
+    EXPECT_EQ(listed.places(0).place_id(), *places.rbegin());  // newest first
+  }
+  {
+    // Every stored frame counted in the map's aggregate (also the removed place's); the invalid
+    // frame in its own.
+    grpc::ClientContext context;
+    pv1::GetDynamicsRequest request;
+    request.set_map(map);
+    pv1::GetDynamicsResponse dynamics;
+    ASSERT_TRUE(stub->GetDynamics(&context, request, &dynamics).ok());
+    EXPECT_EQ(dynamics.map().observations(), 4u);
+    EXPECT_EQ(dynamics.invalid().observations(), 1u);
+  }
   // applied/<map>/<shard> is published.
   EXPECT_TRUE(WaitFor([&] {
     auto value = etcd_->Get(Key("applied/" + map + "/shard-b"));
@@ -310,9 +345,15 @@ TEST_F(ShardTest, TwoReplicasApplyInOrderOnceAndHoldIdenticalPlaces) {
 
   // A new replica catches up from shard-a's checkpoint, then applies what follows it.
   Place(map, {"shard-a", "shard-c"});
+  const auto catchup_start = std::chrono::steady_clock::now();
   auto c = StartShard("shard-c");
   ASSERT_TRUE(c);
   ASSERT_TRUE(WaitFor([&] { return Applied(*c, map) == added; })) << Applied(*c, map);
+  std::printf(
+      "shard_checkpoint_catchup_ms %.0f ms (%zu places)\n",
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - catchup_start)
+          .count(),
+      Contents(*a, map).size());
   const auto replicas = c->Replicas();
   ASSERT_EQ(replicas.size(), 1u);
   EXPECT_EQ(replicas[0].restored_from, "shard-a");
@@ -320,6 +361,29 @@ TEST_F(ShardTest, TwoReplicasApplyInOrderOnceAndHoldIdenticalPlaces) {
   ASSERT_TRUE(WaitFor([&] { return Applied(*a, map) == after && Applied(*c, map) == after; }));
   EXPECT_EQ(Contents(*a, map), Contents(*c, map));
   EXPECT_TRUE((*c->Map(map))->VerifyIntegrity().ok());
+
+  // Figures (printed, not asserted): records published back to back until both replicas applied
+  // them.
+  const auto start = std::chrono::steady_clock::now();
+  uint64_t bulk_last = 0;
+  constexpr int kBulk = 60;
+  for (int i = 0; i < kBulk; ++i) {
+    PlaceMetadata bulk;
+    bulk.agent_id = "bulk";
+    bulk.sequence = uint64_t(i);
+    bulk_last = Publish(map, EncodeAddPlace((*frames_)[size_t(i) % frames_->size()], bulk),
+                        "bulk/" + std::to_string(i))
+                    .sequence;
+  }
+  const double published_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  ASSERT_TRUE(
+      WaitFor([&] { return Applied(*a, map) == bulk_last && Applied(*c, map) == bulk_last; }));
+  const double applied_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::printf("shard_publish_records_per_s %.0f records/s\n", kBulk / published_s);
+  std::printf("shard_publish_to_applied_two_replicas_records_per_s %.0f records/s\n",
+              kBulk / applied_s);
 }
 
 TEST_F(ShardTest, ARestartedShardResumesWithoutGapsOrDuplicates) {
@@ -332,9 +396,15 @@ TEST_F(ShardTest, ARestartedShardResumesWithoutGapsOrDuplicates) {
   ASSERT_TRUE(WaitFor([&] { return Applied(*shard, map) == 3; }));
   shard.reset();  // destroyed: a stop at any point
   for (int i = 3; i < 6; ++i) places.insert(AddPlace(map, i).sequence);
-  shard = StartShard("shard-r");
+  server::Metrics metrics;
+  shard = StartShard("shard-r", &metrics);
   ASSERT_TRUE(shard);
   ASSERT_TRUE(WaitFor([&] { return Applied(*shard, map) == 6; }));
+  // The gauges, on the process's metrics registry.
+  EXPECT_TRUE(WaitFor([&] {
+    return Gauge(metrics, "placedb_shard_applied_sequence", map) == 6.0 &&
+           Gauge(metrics, "placedb_shard_lag_records", map) == 0.0;
+  }));
   std::set<uint64_t> ids;
   for (const auto& [id, bytes] : Contents(*shard, map)) ids.insert(id);
   EXPECT_EQ(ids, places);
