@@ -218,7 +218,7 @@ grpc::Status ClusterWorker::CreateMap(const std::string& name, const v1::MapConf
   return grpc::Status::OK;
 }
 
-grpc::Status ClusterWorker::GetMap(const std::string& name, Deadline,
+grpc::Status ClusterWorker::GetMap(const std::string& name, Deadline deadline,
                                    v1::MapDescription* response) {
   // Linearizable: a map just deleted elsewhere is NOT_FOUND here at once.
   if (Status valid = ValidateMapName(name); !valid.ok()) return ToGrpc(valid.WithContext("name"));
@@ -232,6 +232,24 @@ grpc::Status ClusterWorker::GetMap(const std::string& name, Deadline,
   cluster::MapView view;
   view.info = std::move(info).value();
   Describe(name, view, response);
+  // Places: the most applied replica's count (Shard.Status), when one answers within 2 s; the
+  // description stands without it.
+  const Deadline status_deadline = std::min(deadline, Clock::now() + std::chrono::seconds(2));
+  cluster::v1::StatusResponse status;
+  const grpc::Status asked =
+      OnReplica("Status", name, 0, status_deadline,
+                [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                  grpc::ClientContext context;
+                  context.set_deadline(until);
+                  status.Clear();
+                  return cluster::v1::Shard::NewStub(channel)->Status(
+                      &context, cluster::v1::StatusRequest(), &status);
+                });
+  if (asked.ok()) {
+    for (const cluster::v1::MapStatus& map : status.maps()) {
+      if (map.map() == name) response->mutable_stats()->set_places(map.places());
+    }
+  }
   return grpc::Status::OK;
 }
 

@@ -740,6 +740,19 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
       EXPECT_TRUE(replica->VerifyIntegrity().ok()) << map;
     }
   }
+  // GetMap's places: a replica's count.
+  {
+    grpc::ClientContext context;
+    v1::GetMapRequest request;
+    request.set_name("m1");
+    v1::MapDescription description;
+    ASSERT_TRUE(survivor.stub->GetMap(&context, request, &description).ok());
+    size_t places = 0;
+    for (const char* agent : {"a1", "a2"}) {
+      for (const auto& [frame, id] : ids[agent]) places += id != 0;
+    }
+    EXPECT_EQ(description.stats().places(), places);
+  }
   // Read-your-writes: a query asking for a replica that applied a1's last place gets one.
   {
     const uint32_t last = ids["a1"][kFrames];
