@@ -72,6 +72,10 @@ class ClusterBackend {
   virtual Status CountQueryHit(const std::string& map, uint32_t place, const ProcessedFrame& frame,
                                const PlaceMetadata& metadata, Deadline deadline) = 0;
 
+  // DeletePlace: NOT_FOUND when a replica (that applied the id) does not have the place; else a
+  // DeletePlace record, acknowledged before it returns (the replicas remove it when applying).
+  virtual grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) = 0;
+
   // Place reads, answered by a replica (retried once on the other).
   virtual grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                                 v1::Place* response) = 0;

@@ -501,7 +501,15 @@ grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
                                          v1::DeletePlaceResponse*) {
   CallScope scope(this);
   if (draining_flag_) return Finish("DeletePlace", context, Unavailable());
-  if (cluster_) return Finish("DeletePlace", context, NotInCluster("DeletePlace"));
+  if (cluster_) {
+    if (request->place_id() == 0) {
+      return Finish("DeletePlace", context, Invalid("place_id: is required (ids start at 1)"));
+    }
+    return Finish("DeletePlace", context,
+                  cluster_->DeletePlace(
+                      *request, std::min(DeadlineOf(context),
+                                         std::chrono::system_clock::now() + kClusterPatience)));
+  }
   auto entry = maps_->Get(request->map(), "map");
   if (!entry.ok()) return Finish("DeletePlace", context, ToGrpc(entry.status()));
   if (request->place_id() == 0) {

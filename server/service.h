@@ -123,7 +123,7 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   void SetConsoleUrl(std::string url) { console_url_ = std::move(url); }
   // Cluster mode's worker role (server/cluster_backend.h): maps, search, storing and place reads
   // go to the cluster; the frame pipeline stays this service's, on the backend's local copy of
-  // each map. Loop closure, DeletePlace, RecoverMap, ScrubMap and snapshots are refused there
+  // each map. Loop closure, RecoverMap, ScrubMap and snapshots are refused there
   // (FAILED_PRECONDITION / UNIMPLEMENTED, docs/cluster.md). Set once, before serving calls.
   void SetClusterBackend(ClusterBackend* backend) { cluster_ = backend; }
   // Sets the per-map gauges (places, bytes on disk, damage); run before each metrics scrape.

@@ -492,6 +492,18 @@ Status ClusterWorker::CountQueryHit(const std::string& map, uint32_t place,
   return published.ok() ? Status::Ok() : published.status();
 }
 
+grpc::Status ClusterWorker::DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) {
+  // Does it exist? (A replica that applied the id answers; NOT_FOUND stands.)
+  v1::GetPlaceRequest get;
+  get.set_map(request.map());
+  get.set_place_id(request.place_id());
+  v1::Place place;
+  if (grpc::Status found = GetPlace(get, deadline, &place); !found.ok()) return found;
+  auto published = PublishRecord(request.map(), cluster::EncodeDeletePlace(request.place_id()),
+                                 /*message_id=*/"", deadline);
+  return published.ok() ? grpc::Status::OK : ToGrpc(published.status(), "deleting the place");
+}
+
 grpc::Status ClusterWorker::GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                                      v1::Place* response) {
   // A place id is a stream sequence: a replica that applied it has it (or it was removed).

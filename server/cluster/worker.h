@@ -20,6 +20,7 @@
 //   replica (counted in placedb_cluster_retries_total{call}). GetPlace of an id no replica has
 //   reported applying yet (a place just acknowledged) waits, at most 5 s, until one has, then
 //   asks again: read-your-writes for place ids.
+// - DeletePlace: NOT_FOUND unless a replica has the place, then a DeletePlace record.
 // - Query hits (maps with dynamics.count_query_hits_above): the worker publishes a
 //   CountObservation record after the search, acknowledged before the query's answer.
 //
@@ -86,6 +87,7 @@ class ClusterWorker final : public ClusterBackend {
                            Deadline deadline) override;
   Status CountQueryHit(const std::string& map, uint32_t place, const ProcessedFrame& frame,
                        const PlaceMetadata& metadata, Deadline deadline) override;
+  grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) override;
   grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                         v1::Place* response) override;
   grpc::Status ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,

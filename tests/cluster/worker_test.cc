@@ -753,6 +753,33 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
     }
     EXPECT_EQ(description.stats().places(), places);
   }
+  // DeletePlace: published, then gone from the replicas; NOT_FOUND for an id that is no place.
+  {
+    const uint32_t id = ids["a1"][1] ? ids["a1"][1] : ids["a1"][2];
+    ASSERT_GT(id, 0u);
+    grpc::ClientContext context;
+    v1::DeletePlaceRequest request;
+    request.set_map("m1");
+    request.set_place_id(id);
+    v1::DeletePlaceResponse response;
+    const grpc::Status deleted = survivor.stub->DeletePlace(&context, request, &response);
+    ASSERT_TRUE(deleted.ok()) << deleted.error_message();
+    grpc::StatusCode code = grpc::StatusCode::OK;
+    for (const auto until = std::chrono::steady_clock::now() + 20s;
+         code != grpc::StatusCode::NOT_FOUND && std::chrono::steady_clock::now() < until;) {
+      grpc::ClientContext get_context;
+      v1::GetPlaceRequest get;
+      get.set_map("m1");
+      get.set_place_id(id);
+      v1::Place place;
+      code = survivor.stub->GetPlace(&get_context, get, &place).error_code();
+      if (code != grpc::StatusCode::NOT_FOUND) std::this_thread::sleep_for(50ms);
+    }
+    EXPECT_EQ(code, grpc::StatusCode::NOT_FOUND);
+    grpc::ClientContext again_context;
+    EXPECT_EQ(survivor.stub->DeletePlace(&again_context, request, &response).error_code(),
+              grpc::StatusCode::NOT_FOUND);
+  }
   // Read-your-writes: a query asking for a replica that applied a1's last place gets one.
   {
     const uint32_t last = ids["a1"][kFrames];
