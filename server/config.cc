@@ -1,5 +1,7 @@
 #include "server/config.h"
 
+#include <netdb.h>
+#include <unistd.h>
 #include <yaml-cpp/yaml.h>
 
 #include <CLI/CLI.hpp>
@@ -16,6 +18,57 @@ namespace placedb::server {
 
 std::map<std::string, std::string> EmbeddedVocabularies() {
   return {{"default", "var/vocabulary/default.pdbv"}, {"sift", "var/vocabulary/sift-debian.pdbfv"}};
+}
+
+const char* ClusterRoleName(ClusterRole role) {
+  switch (role) {
+    case ClusterRole::kSingle:
+      return "single";
+    case ClusterRole::kWorker:
+      return "worker";
+    case ClusterRole::kShard:
+      return "shard";
+  }
+  return "single";
+}
+
+namespace {
+
+std::string Hostname() {
+  char name[256] = {};
+  if (gethostname(name, sizeof(name) - 1) != 0) return "";
+  return name;
+}
+
+Status ParseRole(const std::string& text, const std::string& key, ClusterRole* role) {
+  if (text == "single") {
+    *role = ClusterRole::kSingle;
+  } else if (text == "worker") {
+    *role = ClusterRole::kWorker;
+  } else if (text == "shard") {
+    *role = ClusterRole::kShard;
+  } else {
+    return Status::InvalidArgument(key + ": must be single, worker or shard, got '" + text + "'");
+  }
+  return Status::Ok();
+}
+
+// "a,b,,c" -> {a, b, c}
+std::vector<std::string> SplitList(const std::string& text) {
+  std::vector<std::string> out;
+  size_t start = 0;
+  while (start <= text.size()) {
+    const size_t comma = std::min(text.find(',', start), text.size());
+    if (comma > start) out.push_back(text.substr(start, comma - start));
+    start = comma + 1;
+  }
+  return out;
+}
+
+}  // namespace
+
+std::string ClusterSettings::EffectiveShardId() const {
+  return shard_id.empty() ? Hostname() : shard_id;
 }
 
 int ServerConfig::worker_threads() const {
@@ -57,7 +110,13 @@ Status CheckNoControlCharacters(const ServerConfig& c) {
       {"detector.backend", &c.detector.backend},
       {"detector.model", &c.detector.model},
       {"detector.config", &c.detector.config},
-      {"detector.preprocessing", &c.detector.preprocessing}};
+      {"detector.preprocessing", &c.detector.preprocessing},
+      {"cluster.name", &c.cluster.name},
+      {"cluster.shard_id", &c.cluster.shard_id},
+      {"cluster.advertise", &c.cluster.advertise},
+      {"cluster.internal_listen", &c.cluster.internal_listen}};
+  for (const std::string& url : c.cluster.nats) texts.push_back({"cluster.nats", &url});
+  for (const std::string& address : c.cluster.etcd) texts.push_back({"cluster.etcd", &address});
   for (const auto& [name, path] : c.vocabularies) {
     texts.push_back({"vocabularies", &name});
     texts.push_back({"vocabularies." + name, &path});
@@ -75,8 +134,88 @@ Status CheckNoControlCharacters(const ServerConfig& c) {
 
 }  // namespace
 
+namespace {
+
+// host:port with a port (not unix:, not port 0 for an address others dial).
+bool ValidDialAddress(const std::string& address) {
+  return ValidListenAddress(address) && address.rfind("unix:", 0) != 0 &&
+         address.substr(address.rfind(':') + 1) != "0";
+}
+
+// Role single ignores the section (today's server, whatever is written there).
+Status ValidateCluster(const ClusterSettings& c) {
+  if (c.role == ClusterRole::kSingle) return Status::Ok();
+  const std::string role = ClusterRoleName(c.role);
+  if (c.name.empty() || c.name.size() > 64 ||
+      c.name.find_first_not_of(
+          "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-") !=
+          std::string::npos) {
+    return Bad("cluster.name", "'" + c.name +
+                                   "' must be 1-64 characters of A-Z a-z 0-9 _ - (it is part of "
+                                   "etcd keys, NATS subjects and stream names)");
+  }
+  if (c.nats.empty()) {
+    return Bad("cluster.nats",
+               "role " + role + " needs the NATS servers (nats://host:port, --nats a,b,c)");
+  }
+  for (const std::string& url : c.nats) {
+    const std::string address = url.rfind("nats://", 0) == 0 ? url.substr(7) : url;
+    if (!ValidDialAddress(address)) {
+      return Bad("cluster.nats", "'" + url + "' is not nats://host:port");
+    }
+  }
+  if (c.etcd.empty()) {
+    return Bad("cluster.etcd",
+               "role " + role + " needs the etcd members (host:port, --etcd a,b,c)");
+  }
+  for (const std::string& address : c.etcd) {
+    if (!ValidDialAddress(address)) {
+      return Bad("cluster.etcd", "'" + address + "' is not host:port");
+    }
+  }
+  if (c.replicas < 1 || c.replicas > 5) return Bad("cluster.replicas", "must be in [1, 5]");
+  if (c.stream_replicas < 1 || c.stream_replicas > 5) {
+    return Bad("cluster.stream_replicas", "must be in [1, 5] (JetStream's limit)");
+  }
+  if (c.replace_after_s < 1 || c.replace_after_s > 86400) {
+    return Bad("cluster.replace_after_s", "must be in [1, 86400]");
+  }
+  if (c.role == ClusterRole::kShard) {
+    if (!ValidListenAddress(c.internal_listen) || c.internal_listen.rfind("unix:", 0) == 0) {
+      return Bad("cluster.internal_listen", "'" + c.internal_listen + "' is not host:port");
+    }
+    const std::string id = c.EffectiveShardId();
+    if (id.empty() || id.size() > 128 || id.find('/') != std::string::npos) {
+      return Bad("cluster.shard_id", "'" + id +
+                                         "' must be 1-128 characters without '/' (the hostname "
+                                         "when not set)");
+    }
+    if (!c.advertise.empty()) {
+      if (!ValidDialAddress(c.advertise)) {
+        return Bad("cluster.advertise", "'" + c.advertise + "' is not host:port");
+      }
+    } else {
+      // Workers dial <hostname>:<internal port>: the hostname must resolve here at least.
+      const std::string host = Hostname();
+      addrinfo* found = nullptr;
+      const int error =
+          host.empty() ? EAI_NONAME : getaddrinfo(host.c_str(), nullptr, nullptr, &found);
+      if (found) freeaddrinfo(found);
+      if (error != 0) {
+        return Bad("cluster.advertise",
+                   "not set and the hostname '" + host +
+                       "' does not resolve: set the host:port workers reach this shard at");
+      }
+    }
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
 Status ValidateServerConfig(const ServerConfig& c) {
   PLACEDB_RETURN_IF_ERROR(CheckNoControlCharacters(c));
+  PLACEDB_RETURN_IF_ERROR(ValidateCluster(c.cluster));
   if (!ValidListenAddress(c.listen)) return Bad("listen", "'" + c.listen + "' is not host:port");
   if (!c.metrics_listen.empty()) {
     if (!ValidListenAddress(c.metrics_listen) || c.metrics_listen.rfind("unix:", 0) == 0) {
@@ -260,7 +399,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
                                    "limits",
                                    "shutdown_deadline_s",
                                    "detector",
-                                   "log_level"}));
+                                   "log_level",
+                                   "cluster"}));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "listen", &c->listen));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_listen", &c->metrics_listen));
   PLACEDB_RETURN_IF_ERROR(r.Read(root, "", "metrics_path", &c->metrics_path));
@@ -402,6 +542,25 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
         r.Read(d, "detector", "rectangular_letterbox", &x.rectangular_letterbox));
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "rewrite_graph", &x.rewrite_graph));
   }
+  if (const YAML::Node k = root["cluster"]; k) {
+    PLACEDB_RETURN_IF_ERROR(
+        r.Check(k, "cluster",
+                {"role", "name", "nats", "etcd", "shard_id", "advertise", "internal_listen",
+                 "replicas", "stream_replicas", "replace_after_s"}));
+    ClusterSettings& x = c->cluster;
+    std::string role;
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "role", &role));
+    if (!role.empty()) PLACEDB_RETURN_IF_ERROR(ParseRole(role, "cluster.role", &x.role));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "name", &x.name));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "nats", &x.nats));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "etcd", &x.etcd));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "shard_id", &x.shard_id));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "advertise", &x.advertise));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "internal_listen", &x.internal_listen));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "replicas", &x.replicas));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "stream_replicas", &x.stream_replicas));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "replace_after_s", &x.replace_after_s));
+  }
   return Status::Ok();
 }
 
@@ -503,6 +662,7 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   std::vector<std::string> vocabularies;
   uint64_t max_message_bytes = 0, max_image_pixels = 0, memory_budget = 0;
   uint32_t max_descriptors = 0, max_boxes = 0, max_streams = 0, max_queued = 0;
+  std::string role, cluster_name, nats, etcd, shard_id, advertise, internal_listen;
   bool print_config = false;
   auto* o_config = app.add_option("-c,--config", config_path,
                                   "YAML configuration file (default: $PLACEDB_CONFIG)");
@@ -543,6 +703,16 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   auto* o_queued = app.add_option("--max-queued-frames", max_queued, "frames waiting for a worker");
   auto* o_budget = app.add_option("--memory-budget-bytes", memory_budget,
                                   "memory budget: caches + frames in flight (1 GiB)");
+  auto* o_role = app.add_option("--role", role, "cluster role: single (default) | worker | shard");
+  auto* o_cluster_name =
+      app.add_option("--cluster-name", cluster_name, "cluster name: etcd key and stream prefix");
+  auto* o_nats = app.add_option("--nats", nats, "NATS servers, comma-separated nats://host:port");
+  auto* o_etcd = app.add_option("--etcd", etcd, "etcd members, comma-separated host:port");
+  auto* o_shard_id = app.add_option("--shard-id", shard_id, "shard: stable id (the hostname)");
+  auto* o_advertise =
+      app.add_option("--advertise", advertise, "shard: host:port workers reach its internal API");
+  auto* o_internal = app.add_option("--internal-listen", internal_listen,
+                                    "shard: internal API address (127.0.0.1:50061)");
   app.add_flag("--print-config", print_config, "print the effective configuration and exit");
 
   CommandLine out;
@@ -592,6 +762,13 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   if (o_streams->count()) c.limits.max_concurrent_streams = max_streams;
   if (o_queued->count()) c.limits.max_queued_frames = max_queued;
   if (o_budget->count()) c.limits.memory_budget_bytes = memory_budget;
+  if (o_role->count()) PLACEDB_RETURN_IF_ERROR(ParseRole(role, "--role", &c.cluster.role));
+  if (o_cluster_name->count()) c.cluster.name = cluster_name;
+  if (o_nats->count()) c.cluster.nats = SplitList(nats);
+  if (o_etcd->count()) c.cluster.etcd = SplitList(etcd);
+  if (o_shard_id->count()) c.cluster.shard_id = shard_id;
+  if (o_advertise->count()) c.cluster.advertise = advertise;
+  if (o_internal->count()) c.cluster.internal_listen = internal_listen;
   PLACEDB_RETURN_IF_ERROR(ValidateServerConfig(c));
   if (print_config) {
     std::cout << ConfigToYaml(c);
@@ -684,6 +861,19 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "rewrite_graph" << YAML::Value << d.rewrite_graph;
   e << YAML::EndMap;
   e << YAML::Key << "log_level" << YAML::Value << c.log_level;
+  const ClusterSettings& k = c.cluster;
+  e << YAML::Key << "cluster" << YAML::Value << YAML::BeginMap;
+  e << YAML::Key << "role" << YAML::Value << ClusterRoleName(k.role);
+  e << YAML::Key << "name" << YAML::Value << k.name;
+  e << YAML::Key << "nats" << YAML::Value << YAML::Flow << k.nats;
+  e << YAML::Key << "etcd" << YAML::Value << YAML::Flow << k.etcd;
+  e << YAML::Key << "shard_id" << YAML::Value << k.shard_id;
+  e << YAML::Key << "advertise" << YAML::Value << k.advertise;
+  e << YAML::Key << "internal_listen" << YAML::Value << k.internal_listen;
+  e << YAML::Key << "replicas" << YAML::Value << k.replicas;
+  e << YAML::Key << "stream_replicas" << YAML::Value << k.stream_replicas;
+  e << YAML::Key << "replace_after_s" << YAML::Value << k.replace_after_s;
+  e << YAML::EndMap;
   e << YAML::EndMap;
   return std::string(e.c_str()) + "\n";
 }

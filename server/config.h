@@ -119,6 +119,31 @@ struct SearchSettings {
   uint64_t skip_words_min_places = 100000;
 };
 
+// Cluster mode (issue 18, docs/cluster.md): the process's role and the engines it uses. Role
+// single (the default) is today's embedded server and ignores every other key here.
+enum class ClusterRole { kSingle, kWorker, kShard };
+const char* ClusterRoleName(ClusterRole role);  // "single" | "worker" | "shard"
+
+struct ClusterSettings {
+  ClusterRole role = ClusterRole::kSingle;
+  // Prefix of the etcd keys (/placedb/<name>/...) and of the stream names: clusters sharing
+  // engines keep apart by name. [A-Za-z0-9_-]+ (it is part of NATS subjects and stream names).
+  std::string name = "placedb";
+  std::vector<std::string> nats;  // nats://host:port of the NATS servers (worker, shard)
+  std::vector<std::string> etcd;  // host:port of the etcd members (worker, shard)
+  // Shard: its stable id (a StatefulSet pod name); empty = the hostname.
+  std::string shard_id;
+  // Shard: host:port workers use for its internal API; empty = <hostname>:<internal_listen port>.
+  std::string advertise;
+  std::string internal_listen = "127.0.0.1:50061";  // shard: placedb.cluster.v1.Shard
+  int replicas = 2;                                 // map replicas (shards per map)
+  int stream_replicas = 3;                          // JetStream replicas of each map's stream
+  int replace_after_s = 30;  // a replica whose shard lease expired is replaced after this
+
+  // The shard id in effect: shard_id, or the hostname.
+  std::string EffectiveShardId() const;
+};
+
 struct ServerConfig {
   // Loopback by default: a server reachable from other hosts needs tokens or mutual TLS, or
   // security.allow_unauthenticated_remote.
@@ -166,6 +191,7 @@ struct ServerConfig {
   double shutdown_deadline_s = 30;  // in-flight calls get this long on SIGTERM/SIGINT
   DetectorSettings detector;        // used when detector.model is set
   std::string log_level = "info";   // trace | debug | info | warn | error | off
+  ClusterSettings cluster;          // cluster: role single unless set
 
   bool detector_enabled() const { return !detector.model.empty(); }
   // Callers must prove who they are: a tokens file, or mutual TLS.

@@ -4,6 +4,10 @@
 //
 //   placedb-server tokens add|list|revoke|rotate ...   (server/auth/tokens_command.h)
 //
+// cluster.role (--role) picks what the process is (docs/cluster.md): single (the embedded
+// server), worker (the public API on the cluster: server/cluster/worker.h) or shard (map replicas
+// and the internal API: server/cluster/shard.h). A build without libnats has single only.
+//
 // SIGHUP reloads the tokens file (security.tokens_file; a bad file keeps the previous principals).
 // SIGTERM / SIGINT start a graceful shutdown (a sigwait thread does the work, never a signal
 // handler); a second signal during it exits at once with status 1 (acknowledged places are
@@ -11,6 +15,7 @@
 // the server cannot start.
 #include <signal.h>
 #include <spdlog/spdlog.h>
+#include <unistd.h>
 
 #include <cstdlib>
 #include <iostream>
@@ -21,6 +26,82 @@
 #include "server/auth/tokens_command.h"
 #include "server/config.h"
 #include "server/server.h"
+#ifdef PLACEDB_CLUSTER_ROLES
+#include "server/cluster/shard.h"
+#include "server/cluster/worker.h"
+#include "server/metrics.h"
+#endif
+
+#ifdef PLACEDB_CLUSTER_ROLES
+namespace {
+
+// The shard role: map replicas and the internal API (server/cluster/shard.h), plus the metrics
+// endpoint; no public API. Runs until SIGTERM/SIGINT. Exit 1 when it cannot start.
+int RunShard(const placedb::server::ServerConfig& config, const sigset_t& signals) {
+  namespace server = placedb::server;
+  placedb::cluster::ShardOptions options;
+  const server::ClusterSettings& c = config.cluster;
+  options.cluster_name = c.name;
+  options.nats = c.nats;
+  options.etcd = c.etcd;
+  options.shard_id = c.EffectiveShardId();
+  options.advertise = c.advertise;
+  if (options.advertise.empty()) {
+    // Validated: the hostname resolves; workers dial it on the internal port.
+    char host[256] = {};
+    gethostname(host, sizeof(host) - 1);
+    options.advertise = host;
+    options.advertise += c.internal_listen.substr(c.internal_listen.rfind(':'));
+  }
+  options.internal_listen = c.internal_listen;
+  options.data_dir = config.data_dir;
+  options.storage = config.storage;
+  options.search = config.search;
+  options.max_descriptors_per_frame = config.limits.max_descriptors_per_frame;
+  for (const auto& [name, path] : config.vocabularies) {
+    auto vocabulary = placedb::AnyVocabulary::Load(path);
+    if (!vocabulary.ok()) {
+      if (config.optional_vocabularies.count(name)) {
+        spdlog::warn("vocabulary '{}' ({}) not loaded: {}", name, path,
+                     vocabulary.status().ToString());
+        continue;
+      }
+      spdlog::error("cannot start: vocabulary '{}' ({}): {}", name, path,
+                    vocabulary.status().ToString());
+      return 1;
+    }
+    options.vocabularies.emplace(name, std::move(vocabulary).value());
+  }
+  server::Metrics metrics;
+  if (!config.metrics_listen.empty()) {
+    server::Metrics::Endpoint endpoint;
+    endpoint.listen = config.metrics_listen;
+    endpoint.path = config.metrics_path;
+    endpoint.threads = config.metrics_threads;
+    endpoint.request_timeout_ms = config.metrics_request_timeout_ms;
+    if (placedb::Status served = metrics.Serve(endpoint, nullptr); !served.ok()) {
+      spdlog::error("cannot start: metrics: {}", served.ToString());
+      return 1;
+    }
+  }
+  options.metrics = &metrics;
+  auto shard = placedb::cluster::Shard::Start(std::move(options));
+  if (!shard.ok()) {
+    spdlog::error("cannot start: {}", shard.status().ToString());
+    return 1;
+  }
+  spdlog::info("shard '{}' serving the internal API on port {}", (*shard)->shard_id(),
+               (*shard)->internal_port());
+  int received = 0;
+  sigwait(&signals, &received);
+  spdlog::info("received {}, stopping the shard", strsignal(received));
+  shard->reset();
+  metrics.StopServing();
+  return 0;
+}
+
+}  // namespace
+#endif
 
 int main(int argc, char** argv) {
   // Its own command group, before the server's flags are parsed (those stay as they are).
@@ -57,7 +138,31 @@ int main(int argc, char** argv) {
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e%z %^%l%$ %v");
   spdlog::info("allocator: {}", placedb::server::AllocatorDescription());
 
-  auto server = placedb::server::Server::Start(config);
+  placedb::server::ServerDeps deps;
+  switch (config.cluster.role) {
+    case placedb::server::ClusterRole::kSingle:
+      break;
+#ifdef PLACEDB_CLUSTER_ROLES
+    case placedb::server::ClusterRole::kWorker:
+      deps.cluster_backend = [&config](placedb::server::MapRegistry* maps,
+                                       placedb::server::Metrics* metrics)
+          -> placedb::Result<std::unique_ptr<placedb::server::ClusterBackend>> {
+        auto worker = placedb::server::ClusterWorker::Start(config, maps, metrics);
+        if (!worker.ok()) return worker.status();
+        return std::unique_ptr<placedb::server::ClusterBackend>(std::move(worker).value());
+      };
+      break;
+    case placedb::server::ClusterRole::kShard:
+      return RunShard(config, signals);
+#else
+    default:
+      spdlog::error("cluster.role {}: this build has no cluster mode (it needs libnats-dev)",
+                    placedb::server::ClusterRoleName(config.cluster.role));
+      return 2;
+#endif
+  }
+  spdlog::info("role: {}", placedb::server::ClusterRoleName(config.cluster.role));
+  auto server = placedb::server::Server::Start(config, std::move(deps));
   if (!server.ok()) {
     spdlog::error("cannot start: {}", server.status().ToString());
     return 1;

@@ -229,6 +229,12 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   server->service_ = std::make_unique<PlaceDbService>(
       server->config_, server->maps_.get(), server->pool_.get(), metrics, server->detector_.get(),
       detector_status, server->budget_.get(), server->query_pool_.get());
+  if (deps.cluster_backend) {
+    auto backend = deps.cluster_backend(server->maps_.get(), metrics);
+    if (!backend.ok()) return backend.status();
+    server->cluster_ = std::move(backend).value();
+    server->service_->SetClusterBackend(server->cluster_.get());
+  }
 
   // Requests are parsed by ParsingService, so malformed ones get INVALID_ARGUMENT with a reason.
   server->parsing_ =
@@ -369,6 +375,7 @@ void Server::Shutdown() {
   if (query_pool_) query_pool_->Stop();
   if (metrics_) metrics_->StopServing();
   if (tokens_) tokens_->StopWatching();
+  cluster_.reset();              // its engines' connections; no call uses it any more
   if (maps_) maps_->CloseAll();  // flushes and closes RocksDB
   spdlog::info("shutdown complete in {:.3f} s",
                std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());

@@ -23,6 +23,7 @@
 #include "proto/status.h"
 #include "server/frame_memory.h"
 #include "server/ingest_pipeline.h"
+#include "server/place_reads.h"
 
 namespace placedb::server {
 
@@ -228,6 +229,30 @@ grpc::Status PlaceDbService::Unavailable() const {
   return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the server is shutting down");
 }
 
+Result<std::shared_ptr<const MapEntry>> PlaceDbService::GetMapEntry(
+    const std::string& name, const std::string& field) const {
+  return cluster_ ? cluster_->Map(name, field) : maps_->Get(name, field);
+}
+
+namespace {
+
+// How long one Ingest frame's search and publish may retry (the call's deadline if sooner).
+constexpr std::chrono::seconds kClusterPatience{15};
+
+// What a cluster worker does not serve (yet): the maps' storage is the shards'.
+grpc::Status NotInCluster(const char* what) {
+  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                      std::string(what) +
+                          " is not served by a cluster worker (docs/cluster.md, \"What cluster "
+                          "mode does not do\")");
+}
+
+ClusterBackend::Deadline DeadlineOf(const grpc::ServerContext* context) {
+  return context->deadline();
+}
+
+}  // namespace
+
 void PlaceDbService::ObserveStages(const StageTimings& t) {
   auto observe = [&](const char* stage, double ms) { metrics_->ObserveStage(stage, ms / 1000.0); };
   if (t.decode_ms > 0) observe("decode", t.decode_ms);
@@ -306,6 +331,20 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
                                    " needs server-side detection, which is off on this server "
                                    "(configure detector.model)"));
   }
+  if (cluster_) {
+    // The effective configuration (every field filled in) is what the cluster stores: workers
+    // and shards build the same map options from it.
+    v1::MapConfig effective;
+    MapConfigToProto(*options, settings, (*vocabulary)->name, &effective);
+    const grpc::Status created =
+        cluster_->CreateMap(request->name(), effective, DeadlineOf(context), response);
+    if (created.ok()) {
+      spdlog::info("cluster map '{}' created: vocabulary '{}', box source {}, peer={}",
+                   request->name(), (*vocabulary)->name, BoxSourceName(settings.box_source),
+                   Peer(context));
+    }
+    return Finish("CreateMap", context, created);
+  }
   auto entry = maps_->Create(request->name(), *options, request->config().vocabulary(), settings);
   if (!entry.ok()) return Finish("CreateMap", context, ToGrpc(entry.status()));
   Describe(**entry, response);
@@ -319,10 +358,16 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
 grpc::Status PlaceDbService::GetMap(grpc::ServerContext* context, const v1::GetMapRequest* request,
                                     v1::MapDescription* response) {
   CallScope scope(this);
-  // Damaged and unavailable maps are described too: their state is what an operator looks for.
-  auto entry = maps_->Find(request->name(), "name");
-  if (!entry.ok()) return Finish("GetMap", context, ToGrpc(entry.status()));
-  Describe(**entry, response);
+  if (cluster_) {
+    // The agents below: those this worker served.
+    const grpc::Status described = cluster_->GetMap(request->name(), DeadlineOf(context), response);
+    if (!described.ok()) return Finish("GetMap", context, described);
+  } else {
+    // Damaged and unavailable maps are described too: their state is what an operator looks for.
+    auto entry = maps_->Find(request->name(), "name");
+    if (!entry.ok()) return Finish("GetMap", context, ToGrpc(entry.status()));
+    Describe(**entry, response);
+  }
   for (const AgentActivitySnapshot& agent : activity_.Of(request->name(), Clock::now())) {
     v1::AgentActivity* out = response->add_agents();
     out->set_agent_id(agent.agent_id);
@@ -338,6 +383,9 @@ grpc::Status PlaceDbService::GetMap(grpc::ServerContext* context, const v1::GetM
 grpc::Status PlaceDbService::ListMaps(grpc::ServerContext* context, const v1::ListMapsRequest*,
                                       v1::ListMapsResponse* response) {
   CallScope scope(this);
+  if (cluster_) {
+    return Finish("ListMaps", context, cluster_->ListMaps(DeadlineOf(context), response));
+  }
   for (const auto& entry : maps_->List()) {
     v1::MapSummary* summary = response->add_maps();
     summary->set_name(entry->name);
@@ -359,6 +407,14 @@ grpc::Status PlaceDbService::DeleteMap(grpc::ServerContext* context,
                                        v1::DeleteMapResponse*) {
   CallScope scope(this);
   if (draining_flag_) return Finish("DeleteMap", context, Unavailable());
+  if (cluster_) {
+    const grpc::Status deleted = cluster_->DeleteMap(request->name(), DeadlineOf(context));
+    if (deleted.ok()) {
+      activity_.Forget(request->name());
+      spdlog::info("cluster map '{}' deleted, peer={}", request->name(), Peer(context));
+    }
+    return Finish("DeleteMap", context, deleted);
+  }
   if (Status deleted = maps_->Delete(request->name()); !deleted.ok()) {
     return Finish("DeleteMap", context, ToGrpc(deleted));
   }
@@ -373,6 +429,7 @@ grpc::Status PlaceDbService::RecoverMap(grpc::ServerContext* context,
                                         v1::RecoverMapResponse* response) {
   CallScope scope(this);
   if (draining_flag_) return Finish("RecoverMap", context, Unavailable());
+  if (cluster_) return Finish("RecoverMap", context, NotInCluster("RecoverMap"));
   MapDamage accepted;
   auto entry = maps_->Recover(request->name(), request->accept_data_loss(), &accepted);
   if (!entry.ok()) return Finish("RecoverMap", context, ToGrpc(entry.status()));
@@ -392,6 +449,7 @@ grpc::Status PlaceDbService::ScrubMap(grpc::ServerContext* context,
                                       const v1::ScrubMapRequest* request,
                                       v1::ScrubReport* response) {
   CallScope scope(this);
+  if (cluster_) return Finish("ScrubMap", context, NotInCluster("ScrubMap"));
   auto entry = maps_->Get(request->name(), "name");
   if (!entry.ok()) return Finish("ScrubMap", context, ToGrpc(entry.status()));
   auto report = (*entry)->map->Scrub();
@@ -417,42 +475,25 @@ grpc::Status PlaceDbService::ScrubMap(grpc::ServerContext* context,
 grpc::Status PlaceDbService::GetPlace(grpc::ServerContext* context,
                                       const v1::GetPlaceRequest* request, v1::Place* response) {
   CallScope scope(this);
+  if (cluster_) {
+    return Finish("GetPlace", context, cluster_->GetPlace(*request, DeadlineOf(context), response));
+  }
   auto entry = maps_->Get(request->map(), "map");
   if (!entry.ok()) return Finish("GetPlace", context, ToGrpc(entry.status()));
-  if (request->place_id() == 0) {
-    return Finish("GetPlace", context, Invalid("place_id: is required (ids start at 1)"));
-  }
-  auto place = (*entry)->map->GetPlace(request->place_id());
-  if (!place.ok()) return Finish("GetPlace", context, ToGrpc(place.status()));
-  wire::PlaceRecordToProto(place->record, response);
-  if (request->include_features()) {
-    PlaceFeaturesToProto(place->payload.features, response);
-  }
-  auto dynamics = (*entry)->map->GetDynamics(request->place_id());
-  if (!dynamics.ok()) return Finish("GetPlace", context, ToGrpc(dynamics.status()));
-  DynamicsToProto(*dynamics, response->mutable_dynamics());
-  if (request->include_thumbnail()) {
-    auto thumbnail = (*entry)->map->GetThumbnail(request->place_id());
-    if (!thumbnail.ok()) return Finish("GetPlace", context, ToGrpc(thumbnail.status()));
-    if (thumbnail->has_value()) wire::ThumbnailToProto(**thumbnail, response->mutable_thumbnail());
-  }
-  return Finish("GetPlace", context, grpc::Status::OK);
+  return Finish("GetPlace", context, ToGrpc(ReadPlace(*(*entry)->map, *request, response)));
 }
 
 grpc::Status PlaceDbService::ListPlaces(grpc::ServerContext* context,
                                         const v1::ListPlacesRequest* request,
                                         v1::ListPlacesResponse* response) {
   CallScope scope(this);
+  if (cluster_) {
+    return Finish("ListPlaces", context,
+                  cluster_->ListPlaces(*request, DeadlineOf(context), response));
+  }
   auto entry = maps_->Get(request->map(), "map");
   if (!entry.ok()) return Finish("ListPlaces", context, ToGrpc(entry.status()));
-  auto listing = wire::PlaceListingFromProto(*request);
-  if (!listing.ok()) return Finish("ListPlaces", context, ToGrpc(listing.status()));
-  const PlacePage page = (*entry)->map->database().ListPlacesBefore(
-      listing->before, listing->limit, listing->filter, listing->max_examined);
-  response->mutable_places()->Reserve(int(page.places.size()));
-  for (const auto& record : page.places) wire::PlaceRecordToProto(*record, response->add_places());
-  response->set_next_before_place_id(page.next_before);
-  return Finish("ListPlaces", context, grpc::Status::OK);
+  return Finish("ListPlaces", context, ToGrpc(ListPlacesOf(*(*entry)->map, *request, response)));
 }
 
 grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
@@ -460,6 +501,15 @@ grpc::Status PlaceDbService::DeletePlace(grpc::ServerContext* context,
                                          v1::DeletePlaceResponse*) {
   CallScope scope(this);
   if (draining_flag_) return Finish("DeletePlace", context, Unavailable());
+  if (cluster_) {
+    if (request->place_id() == 0) {
+      return Finish("DeletePlace", context, Invalid("place_id: is required (ids start at 1)"));
+    }
+    return Finish("DeletePlace", context,
+                  cluster_->DeletePlace(
+                      *request, std::min(DeadlineOf(context),
+                                         std::chrono::system_clock::now() + kClusterPatience)));
+  }
   auto entry = maps_->Get(request->map(), "map");
   if (!entry.ok()) return Finish("DeletePlace", context, ToGrpc(entry.status()));
   if (request->place_id() == 0) {
@@ -477,47 +527,13 @@ grpc::Status PlaceDbService::GetDynamics(grpc::ServerContext* context,
                                          const v1::GetDynamicsRequest* request,
                                          v1::GetDynamicsResponse* response) {
   CallScope scope(this);
+  if (cluster_) {
+    return Finish("GetDynamics", context,
+                  cluster_->GetDynamics(*request, DeadlineOf(context), response));
+  }
   auto entry = maps_->Get(request->map(), "map");
   if (!entry.ok()) return Finish("GetDynamics", context, ToGrpc(entry.status()));
-  auto options = RankOptionsFromProto(*request);
-  if (!options.ok()) return Finish("GetDynamics", context, ToGrpc(options.status()));
-  const PlaceMap& map = *(*entry)->map;
-  auto aggregate = map.MapDynamics();
-  if (!aggregate.ok()) return Finish("GetDynamics", context, ToGrpc(aggregate.status()));
-  DynamicsToProto(*aggregate, response->mutable_map());
-  auto invalid = map.InvalidDynamics();
-  if (!invalid.ok()) return Finish("GetDynamics", context, ToGrpc(invalid.status()));
-  DynamicsToProto(*invalid, response->mutable_invalid());
-  // One pass over the map's places; the ranking keeps offset + limit entries.
-  DynamicsRanking ranking(*options);
-  const Status scanned = map.ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {
-    if (options->near.active()) {  // the poses are in the places' records (memory)
-      const auto record = map.database().Get(id);
-      if (!record || !record->metadata.pose ||
-          !options->near.Contains(record->metadata.pose->position)) {
-        return true;
-      }
-    }
-    ranking.Add(id, d);
-    return true;
-  });
-  if (!scanned.ok()) return Finish("GetDynamics", context, ToGrpc(scanned));
-  for (const RankedPlace& ranked : ranking.Page()) {
-    v1::RankedPlace* out = response->add_places();
-    out->set_place_id(ranked.place);
-    out->set_score(ranked.score);
-    out->set_support(ranked.support);
-    if (request->include_statistics()) {
-      auto d = map.GetDynamics(ranked.place);
-      if (d.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
-      if (!d.ok()) return Finish("GetDynamics", context, ToGrpc(d.status()));
-      DynamicsToProto(*d, out->mutable_statistics());
-    }
-  }
-  response->set_ranked(ranking.ranked());
-  const uint64_t end = uint64_t(options->offset) + options->limit;
-  response->set_next_offset(end < ranking.ranked() ? uint32_t(end) : 0);
-  return Finish("GetDynamics", context, grpc::Status::OK);
+  return Finish("GetDynamics", context, ToGrpc(ReadDynamics(*(*entry)->map, *request, response)));
 }
 
 // ---- Server info --------------------------------------------------------------------------------
@@ -542,6 +558,7 @@ grpc::Status PlaceDbService::GetServerInfo(grpc::ServerContext* context,
   response->set_detector(
       HidePaths(detector_ ? detector_->Describe() : detector_status_, config_.data_dir));
   response->set_console_url(console_url_);
+  response->set_role(cluster_ ? cluster_->role() : "single");
   const Limits& l = config_.limits;
   v1::Limits* limits = response->mutable_limits();
   limits->set_max_message_bytes(l.max_message_bytes);
@@ -658,7 +675,7 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
   CallScope scope(this);
   const Clock::time_point arrived = Clock::now();
   if (draining_flag_) return Finish("Query", context, Unavailable());
-  auto entry = maps_->Get(request->map(), "map");
+  auto entry = GetMapEntry(request->map(), "map");
   if (!entry.ok()) return Finish("Query", context, ToGrpc(entry.status()));
   if (!request->has_observation()) {
     return Finish("Query", context, Invalid("observation: is required"));
@@ -682,7 +699,39 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
                      request->options().include_correspondences());
     });
     if (status.ok() && Expired(context)) status = Cancelled(context, "before searching");
-    if (status.ok())
+    if (status.ok() && cluster_) {
+      status = Guarded("searching the cluster", [&] {
+        if (work.frame.valid) {  // an invalid frame has nothing to search with
+          const grpc::Status searched =
+              cluster_->Search(map.name, work.frame, work.metadata, request->options(),
+                               request->min_sequence(), DeadlineOf(context), response);
+          if (!searched.ok()) return searched;
+          // A map that counts query hits (PlaceMap::CountQueryHit's rule): durable before the
+          // answer, as on a single server.
+          const double above = map.map->info().options.count_query_hits_above;
+          if (above > 0 && response->matches_size() > 0 && response->matches(0).score() > above) {
+            if (Status counted = cluster_->CountQueryHit(
+                    map.name, response->matches(0).place_id(), work.frame, work.metadata,
+                    std::min(DeadlineOf(context),
+                             std::chrono::system_clock::now() + kClusterPatience));
+                !counted.ok()) {
+              return ToGrpc(counted, "counting the query hit");
+            }
+          }
+        }
+        response->set_valid(work.frame.valid);
+        response->set_rejection(work.frame.rejection);
+        CountsToProto(work.frame.counts, response->mutable_counts());
+        BoxesToProto(work.frame.boxes_used, response->mutable_boxes_used());
+        if (work.frame.depth_state) {
+          DepthStateToProto(*work.frame.depth_state, response->mutable_depth());
+        }
+        work.timings.total_ms = MsSince(arrived);
+        TimingsToProto(work.timings, queue_ms, response->mutable_timings());
+        ObserveStages(work.timings);
+        return grpc::Status::OK;
+      });
+    } else if (status.ok())
       status = Guarded("searching", [&] {
         QueryOptions options =
             QueryOptionsFromProto(request->options(), request->observation().agent_id());
@@ -867,6 +916,8 @@ struct PlaceDbService::Stream {
   // The stream's last place handed to the map's commit queue (Complete() only): a frame that
   // searches waits for it first, so it sees every earlier place of its stream.
   std::shared_ptr<PendingCommit> last_commit;
+  // Cluster mode: the stream's last place id (stream sequence), the min_sequence of its searches.
+  uint64_t last_sequence = 0;
   std::optional<StreamExpiry> expiry_check;  // set with `context`
   bool expiry() const { return (*expiry_check)(); }
 
@@ -954,6 +1005,7 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
     ProcessedFrame& frame = work.frame;
     Result<AddResult> added = Status::Internal("not stored");
     std::optional<LoopClosureOutcome> loop;
+    bool clustered = false;  // cluster mode: CompleteInCluster() answered
     const grpc::Status second_half = Guarded("searching and storing", [&] {
       // The agent's stream state, in its order: Algorithm 1 on depth, then validity and the
       // BoW vector (a no-op for frames without depth).
@@ -963,6 +1015,10 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       }
       work.timings.depth_ms = frame.timings.depth_ms;
       work.timings.transform_ms = frame.timings.transform_ms;
+      if (cluster_) {
+        clustered = true;
+        return CompleteInCluster(stream, slot);
+      }
       const bool searches = frame.valid && (slot->matches || stream->loop_closure);
       if (searches && stream->last_commit) {
         // A place is stored and searchable before the next frame of its stream searches.
@@ -1020,6 +1076,10 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
                    slot->status.error_message());
     } else if (slot->commit) {
       // Answered by Settle(), once durable.
+    } else if (clustered) {
+      work.timings.total_ms = MsSince(slot->arrived);
+      TimingsToProto(work.timings, slot->queue_ms, response.mutable_timings());
+      ObserveStages(work.timings);
     } else {
       CountsToProto(frame.counts, response.mutable_counts());
       BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
@@ -1054,6 +1114,48 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
   }
   slot->completed = true;
   if (!slot->commit) slot->work = Work();  // the frame's data need not wait for the writer
+}
+
+grpc::Status PlaceDbService::CompleteInCluster(Stream* stream, Slot* slot) {
+  v1::IngestResponse& response = slot->response;
+  Work& work = slot->work;
+  const MapEntry& map = *stream->map;
+  ProcessedFrame& frame = work.frame;
+  // The deadline of one frame's search and publish: the call's, at most kClusterPatience
+  // from now (a stream has no deadline of its own; JetStream's leader elections take ~5-9 s).
+  const auto deadline =
+      std::min(stream->context->deadline(), std::chrono::system_clock::now() + kClusterPatience);
+  if (slot->matches && frame.valid) {
+    // Read-your-writes: a replica that has applied this stream's last place.
+    v1::QueryResponse found;
+    const grpc::Status searched = cluster_->Search(map.name, frame, work.metadata, *slot->matches,
+                                                   stream->last_sequence, deadline, &found);
+    if (!searched.ok()) return searched;
+    response.mutable_matches()->Swap(found.mutable_matches());
+  }
+  // De-duplication across reconnects and workers: the agent's id and frame number.
+  std::string message_id = slot->agent_id + "/" + std::to_string(slot->sequence);
+  if (slot->agent_id.empty() && slot->sequence == 0) message_id.clear();  // none: no de-dup
+  Stopwatch publish;
+  auto published = cluster_->Publish(map.name, frame, work.metadata, message_id, deadline);
+  work.timings.store_ms = publish.Lap();
+  if (!published.ok()) return ToGrpc(published.status(), "publishing");
+  CountsToProto(frame.counts, response.mutable_counts());
+  BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
+  if (frame.depth_state) DepthStateToProto(*frame.depth_state, response.mutable_depth());
+  metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.depth_removed,
+                             frame.counts.static_);
+  if (frame.valid) {
+    response.set_stored(true);
+    response.set_place_id(uint32_t(*published));
+    stream->last_sequence = std::max(stream->last_sequence, *published);
+    metrics_->FrameIngested(map.name);
+  } else {
+    response.set_stored(false);
+    response.set_rejection(frame.rejection);
+    metrics_->FrameRejected(map.name, "invalid_place");
+  }
+  return grpc::Status::OK;
 }
 
 void PlaceDbService::Settle(Stream* stream, Slot* slot) {
@@ -1142,8 +1244,15 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
     return Finish("Ingest", context,
                   Invalid("header: the first message of an Ingest stream must be an IngestHeader"));
   }
-  auto entry = maps_->Get(first.header().map(), "header.map");
+  auto entry = GetMapEntry(first.header().map(), "header.map");
   if (!entry.ok()) return Finish("Ingest", context, ToGrpc(entry.status()));
+  if (cluster_ && first.header().loop_closure()) {
+    // Its detector's memory would have to follow the agent from worker to worker; not faked.
+    return Finish("Ingest", context,
+                  grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                               "header.loop_closure: loop closure is not available in cluster "
+                               "mode (docs/cluster.md); ingest without it, or on a single server"));
+  }
 
   Stream stream;
   stream.context = context;
@@ -1344,6 +1453,8 @@ void PlaceDbService::ReclaimExpired(Clock::time_point now) {
 }
 
 void PlaceDbService::RefreshMapGauges() {
+  // A cluster worker's local copies hold no places: the shards export the maps' figures.
+  if (cluster_) return;
   if (auto store = maps_->snapshots()) {
     double bytes = 0;
     const auto snapshots = store->List();
@@ -1384,6 +1495,7 @@ grpc::Status PlaceDbService::CreateSnapshot(grpc::ServerContext* context,
                                             const v1::CreateSnapshotRequest* request,
                                             v1::Snapshot* response) {
   CallScope scope(this);
+  if (cluster_) return Finish("CreateSnapshot", context, NotInCluster("CreateSnapshot"));
   if (draining_flag_) return Finish("CreateSnapshot", context, Unavailable());
   const Clock::time_point start = Clock::now();
   auto info = maps_->CreateSnapshot(request->map());
@@ -1401,6 +1513,7 @@ grpc::Status PlaceDbService::ListSnapshots(grpc::ServerContext* context,
                                            const v1::ListSnapshotsRequest*,
                                            v1::ListSnapshotsResponse* response) {
   CallScope scope(this);
+  if (cluster_) return Finish("ListSnapshots", context, NotInCluster("ListSnapshots"));
   auto store = maps_->snapshots();
   if (!store) return Finish("ListSnapshots", context, Unavailable());
   for (const SnapshotInfo& info : store->List()) SnapshotToProto(info, response->add_snapshots());
@@ -1411,6 +1524,7 @@ grpc::Status PlaceDbService::DeleteSnapshot(grpc::ServerContext* context,
                                             const v1::DeleteSnapshotRequest* request,
                                             v1::DeleteSnapshotResponse*) {
   CallScope scope(this);
+  if (cluster_) return Finish("DeleteSnapshot", context, NotInCluster("DeleteSnapshot"));
   auto store = maps_->snapshots();
   if (!store || draining_flag_) return Finish("DeleteSnapshot", context, Unavailable());
   if (Status deleted = store->Delete(request->id()); !deleted.ok()) {
@@ -1425,6 +1539,7 @@ grpc::Status PlaceDbService::RestoreSnapshot(grpc::ServerContext* context,
                                              const v1::RestoreSnapshotRequest* request,
                                              v1::MapDescription* response) {
   CallScope scope(this);
+  if (cluster_) return Finish("RestoreSnapshot", context, NotInCluster("RestoreSnapshot"));
   if (draining_flag_) return Finish("RestoreSnapshot", context, Unavailable());
   if (Status valid = ValidateSnapshotId(request->id()); !valid.ok()) {
     return Finish("RestoreSnapshot", context, ToGrpc(valid.WithContext("id")));
@@ -1445,6 +1560,7 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
     grpc::ServerContext* context, const v1::DownloadSnapshotRequest* request,
     const std::function<bool(const v1::SnapshotChunk&)>& write) {
   CallScope scope(this);
+  if (cluster_) return Finish("DownloadSnapshot", context, NotInCluster("DownloadSnapshot"));
   auto store = maps_->snapshots();
   if (!store || draining_flag_) return Finish("DownloadSnapshot", context, Unavailable());
   // A stream like Ingest's: counted against max_concurrent_streams, and cancelled by the watchdog
@@ -1501,6 +1617,7 @@ grpc::Status PlaceDbService::UploadSnapshotStream(
     const std::function<grpc::Status(v1::SnapshotChunk*, bool* done)>& read,
     v1::Snapshot* response) {
   CallScope scope(this);
+  if (cluster_) return Finish("UploadSnapshot", context, NotInCluster("UploadSnapshot"));
   auto store = maps_->snapshots();
   if (!store || draining_flag_) return Finish("UploadSnapshot", context, Unavailable());
   // A stream like Ingest's: counted against max_concurrent_streams, and cancelled by the watchdog

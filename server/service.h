@@ -38,6 +38,7 @@
 #include "core/detect/detector.h"
 #include "proto/placedb.grpc.pb.h"
 #include "server/agent_activity.h"
+#include "server/cluster_backend.h"
 #include "server/config.h"
 #include "server/map_registry.h"
 #include "server/memory_budget.h"
@@ -120,6 +121,11 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   bool WaitIdle(std::chrono::steady_clock::time_point deadline);
   // GetServerInfo's console_url (server/console): set once, before the server serves calls.
   void SetConsoleUrl(std::string url) { console_url_ = std::move(url); }
+  // Cluster mode's worker role (server/cluster_backend.h): maps, search, storing and place reads
+  // go to the cluster; the frame pipeline stays this service's, on the backend's local copy of
+  // each map. Loop closure, RecoverMap, ScrubMap and snapshots are refused there
+  // (FAILED_PRECONDITION / UNIMPLEMENTED, docs/cluster.md). Set once, before serving calls.
+  void SetClusterBackend(ClusterBackend* backend) { cluster_ = backend; }
   // Sets the per-map gauges (places, bytes on disk, damage); run before each metrics scrape.
   void RefreshMapGauges();
   // A request refused before its handler (ParsingService: not a valid message, or denied by
@@ -146,6 +152,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // asked; then store, or loop closure + store in loop-closure mode) and its response. The
   // stream's pipeline runs it in stream order, one frame at a time.
   void Complete(Stream* stream, Slot* slot);
+  // Complete()'s second half in cluster mode, after the agent's stream state: search on a
+  // caught-up replica when asked, then publish and wait for JetStream's acknowledgement; the
+  // place id is the stream sequence. Fills the response; an error is the frame's answer.
+  grpc::Status CompleteInCluster(Stream* stream, Slot* slot);
   // The rest of a completed frame's answer, on the stream's delivery thread before it is written
   // (or when it is skipped): waits until its place is durable and indexed (a place Complete()
   // handed to the map's commit queue: group commit), fills in the outcome, and counts it.
@@ -173,7 +183,11 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   MemoryBudget* const budget_;
   // Per map and agent, every Ingest frame Complete() answers; GetMap's MapDescription.agents.
   AgentActivity activity_;
-  std::string console_url_;  // written before serving, read-only after
+  std::string console_url_;            // written before serving, read-only after
+  ClusterBackend* cluster_ = nullptr;  // written before serving, read-only after
+  // The map a request names: the cluster's (worker role) or this server's.
+  Result<std::shared_ptr<const MapEntry>> GetMapEntry(const std::string& name,
+                                                      const std::string& field) const;
 
   // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
   class CallScope;

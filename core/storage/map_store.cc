@@ -24,6 +24,7 @@
 #include <ctime>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <nlohmann/json.hpp>
 #include <system_error>
 #include <thread>
@@ -58,6 +59,12 @@ constexpr char kInvalidCountKey[] = "invalid_rejected";  // merge counter
 // frames): what the database holds, compared at open with ACKED (what was acknowledged).
 constexpr char kWritesKey[] = "acked_writes";
 constexpr char kDamageHistoryKey[] = "damage_history";  // JSON array of accepted losses
+// Cluster mode: the last stream sequence applied (U64Key), written in each applied record's batch.
+constexpr uint64_t kMaxPlaceId = std::numeric_limits<PlaceId>::max();
+constexpr char kAppliedSequenceKey[] = "applied_sequence";
+// Set by PlaceMap::ApplyAt on its own thread around PlaceDatabase::Remove: the removal's batch
+// (RocksPayloadStore::Erase) then also records the applied sequence, atomically with it.
+thread_local const std::string* t_applying_sequence = nullptr;
 constexpr char kAckedFile[] = "ACKED";
 
 const char* const kColumnFamilies[] = {rocksdb::kDefaultColumnFamilyName.c_str(),
@@ -810,6 +817,9 @@ class RocksPayloadStore final : public PayloadStore {
       if (decoded.ok()) current = *decoded;
     }
     if (id + 1 > current) batch.Put(storage_->cf(kMeta), kIdFloorKey, PlaceKey(id + 1));
+    if (t_applying_sequence) {
+      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, *t_applying_sequence);
+    }
     return storage_->Write(&batch, "removing place " + std::to_string(id),
                            MapStorage::Kind::kRemoval);
   }
@@ -1210,6 +1220,13 @@ Status PlaceMap::Load() {
     if (!floor.ok()) return floor.status().WithContext("map '" + info_.name + "' id floor");
     database_->ReserveIdsBelow(*floor);
   }
+  if (storage_->db->Get({}, storage_->cf(kMeta), kAppliedSequenceKey, &value).ok()) {
+    auto applied = DecodeU64Key(value);
+    if (!applied.ok())
+      return applied.status().WithContext("map '" + info_.name + "' applied sequence");
+    applied_sequence_ = *applied;
+    database_->ReserveIdsBelow(PlaceId(std::min<uint64_t>(*applied + 1, kMaxPlaceId)));
+  }
   if (storage_->db->Get({}, storage_->cf(kMeta), kInvalidCountKey, &value).ok()) {
     rocksdb::Slice slice(value);
     database_->CountInvalid(CounterMergeOperator::Decode(&slice));
@@ -1525,6 +1542,115 @@ void PlaceMap::StopCommitter() {
   }
   commits_->wake.NotifyAll();
   if (commits_->thread.joinable()) commits_->thread.join();
+}
+
+Result<bool> PlaceMap::ApplyAt(uint64_t sequence, const MapLogRecord& record) {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  MutexLock apply(apply_mutex_);
+  if (sequence <= applied_sequence_.load()) return false;
+  const std::string applied_value = U64Key(sequence);
+  const std::string what = "applying record " + std::to_string(sequence);
+  rocksdb::WriteBatch batch;
+  switch (record.kind) {
+    case MapLogRecord::Kind::kAddPlace: {
+      const ProcessedFrame& frame = record.frame;
+      const DatabaseConfig& config = info_.options.database;
+      // Checked before writing: a batch the index then refused would leave an unindexed place.
+      if (sequence >= kMaxPlaceId) {
+        return Status::InvalidArgument(what + ": sequence beyond the place-id range");
+      }
+      if (!frame.valid) return Status::InvalidArgument(what + ": AddPlace of an invalid frame");
+      if (frame.static_features.type() != config.feature_type) {
+        return Status::InvalidArgument(what + ": frame's features are " +
+                                       FeatureTypeName(frame.static_features.type()) +
+                                       ", the map's are " + FeatureTypeName(config.feature_type));
+      }
+      if (frame.direct.levels_up != config.verification.levels_up) {
+        return Status::InvalidArgument(what + ": frame's direct index is at level " +
+                                       std::to_string(frame.direct.levels_up) + ", the map uses " +
+                                       std::to_string(config.verification.levels_up));
+      }
+      PlaceRecord stored;
+      stored.id = PlaceId(sequence);
+      stored.metadata = record.metadata;
+      stored.counts = frame.counts;
+      stored.boxes_used = frame.boxes_used;
+      const std::string key = PlaceKey(stored.id);
+      batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(stored));
+      batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
+      batch.Put(storage_->cf(kFeatures), key,
+                EncodeLocalFeatures(frame.static_features, frame.direct));
+      if (storage_->dynamics && record.dynamics) {
+        storage_->AddDynamics(&batch, stored.id, *record.dynamics);
+      }
+      if (frame.thumbnail && info_.options.thumbnails.enabled) {
+        batch.Put(storage_->cf(kThumbnails), key, EncodeThumbnail(*frame.thumbnail));
+      }
+      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
+      PLACEDB_RETURN_IF_ERROR(
+          storage_->Write(&batch, what, MapStorage::Kind::kAddition, stored.id));
+      applied_sequence_ = sequence;
+      // Durable: now make it searchable.
+      auto id = database_->Insert(frame, record.metadata, stored.id);
+      if (!id.ok()) return id.status().WithContext(what);
+      return true;
+    }
+    case MapLogRecord::Kind::kDeletePlace:
+      if (record.place != 0 && database_->Get(record.place)) {
+        // The removal's own batch carries the applied sequence (RocksPayloadStore::Erase).
+        t_applying_sequence = &applied_value;
+        Status removed = database_->Remove(record.place);
+        t_applying_sequence = nullptr;
+        PLACEDB_RETURN_IF_ERROR(removed.WithContext(what));
+        break;
+      }
+      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
+      PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, what, MapStorage::Kind::kRemoval));
+      break;
+    case MapLogRecord::Kind::kCountObservation:
+      if (storage_->dynamics && record.dynamics) {
+        storage_->AddDynamics(&batch,
+                              record.place != 0 && database_->Get(record.place) ? record.place : 0,
+                              *record.dynamics);
+      }
+      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
+      PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, what, MapStorage::Kind::kAddition));
+      break;
+    case MapLogRecord::Kind::kInvalidFrame: {
+      batch.Merge(storage_->cf(kMeta), kInvalidCountKey, CounterOperand(1));
+      if (storage_->dynamics && record.dynamics) {
+        storage_->AddInvalidDynamics(&batch, *record.dynamics);
+      }
+      const bool keep = info_.options.store_invalid;
+      if (keep) {
+        // The sequence is the serial: the same on every replica, in arrival order.
+        InvalidObservation observation;
+        observation.serial = sequence;
+        observation.metadata = record.metadata;
+        observation.counts = record.frame.counts;
+        observation.boxes_used = record.frame.boxes_used;
+        observation.reason = record.frame.rejection;
+        batch.Put(storage_->cf(kInvalid), U64Key(sequence), EncodeInvalidObservation(observation));
+      }
+      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
+      // Synced and counted whatever store_invalid says: the applied sequence must be durable.
+      PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, what, MapStorage::Kind::kAddition));
+      if (keep) {
+        ++storage_->invalid_stored;
+        uint64_t next = storage_->next_invalid_serial.load();
+        while (next <= sequence &&
+               !storage_->next_invalid_serial.compare_exchange_weak(next, sequence + 1)) {
+        }
+      }
+      database_->CountInvalid();
+      break;
+    }
+  }
+  applied_sequence_ = sequence;
+  // Ids follow the stream: the next place id is above every sequence applied.
+  database_->ReserveIdsBelow(PlaceId(std::min<uint64_t>(sequence + 1, kMaxPlaceId)));
+  return true;
 }
 
 Result<StoredPlace> PlaceMap::GetPlace(PlaceId id) const {

@@ -33,6 +33,7 @@
 // its files; holders of the PlaceMap then get NOT_FOUND ("map was deleted"), never a crash.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -167,6 +168,27 @@ struct StoredPlace {
   PlacePayload payload;
 };
 
+// Cluster mode (issue 18): one record of a replicated map's log (its JetStream stream), decoded
+// (server/cluster/map_record.h), for PlaceMap::ApplyAt. Every replica applies the same records in
+// stream order and so holds the same places under the same ids.
+struct MapLogRecord {
+  enum class Kind {
+    kAddPlace,          // `frame` (valid: SC bow, features, direct index, counts, boxes, thumbnail,
+                        // DC part) + `metadata` becomes place id = the record's sequence
+    kDeletePlace,       // `place` removed (absent: nothing but the applied sequence changes)
+    kCountObservation,  // `dynamics` added to `place` (0 or absent: the map's aggregate only)
+    kInvalidFrame,      // counted; kept as metadata (frame.counts, frame.boxes_used,
+                        // frame.rejection, `metadata`) when the map stores invalid frames
+  };
+  Kind kind = Kind::kAddPlace;
+  ProcessedFrame frame;
+  PlaceMetadata metadata;
+  PlaceId place = 0;
+  // The frame's statistics operand, made once by the publisher (it carries its arrival time), so
+  // every replica stores the same bytes. nullopt: none.
+  std::optional<PlaceDynamics> dynamics;
+};
+
 // A place handed to a map's commit queue (PlaceMap::Enqueue): its outcome once the group it was
 // written in is durable (WAL synced, counted in ACKED) and it is indexed, or why it failed.
 // Thread safety: any thread may wait; the map's committer completes it once.
@@ -261,7 +283,23 @@ class PlaceMap {
   QueryResult Search(const ProcessedFrame& frame, const QueryOptions& options) const;
 
   Result<StoredPlace> GetPlace(PlaceId id) const;  // NOT_FOUND if absent
-  Status RemovePlace(PlaceId id);                  // durable before it returns
+  // Cluster mode (issue 18): applies `record` at stream sequence `sequence`. An AddPlace is
+  // stored with id = `sequence`; every record (also the ones that store no place) writes the
+  // map's applied sequence = `sequence` in the same RocksDB batch, synced and counted like a
+  // commit, so a restarted replica resumes from applied_sequence() + 1 and re-applying is
+  // harmless. Returns true when applied, false (nothing written) when `sequence` <=
+  // applied_sequence(). Sequences may skip (a record that never reached the map); the next
+  // place id of the database follows the applied sequence. A record the map cannot take
+  // (invalid frame as AddPlace, wrong feature type or direct-index level, a sequence beyond
+  // the place-id range) is INVALID_ARGUMENT; write errors are the storage's: nothing changes
+  // then, applied sequence included. Applies one record at a time (callers of one map are
+  // serialised); concurrent queries see a place once it is indexed, after its write.
+  // Not meant to be mixed with Add/Commit/Enqueue/RemovePlace on the same map.
+  Result<bool> ApplyAt(uint64_t sequence, const MapLogRecord& record);
+  // The last sequence ApplyAt applied (persisted; 0 for a map that never applied one).
+  uint64_t applied_sequence() const { return applied_sequence_.load(); }
+
+  Status RemovePlace(PlaceId id);  // durable before it returns
   std::vector<InvalidObservation> InvalidObservations(size_t limit) const;
 
   // The place's dynamic-object statistics: every frame stored at it or merged into it. Empty
@@ -351,6 +389,9 @@ class PlaceMap {
   mutable SharedMutex lifecycle_;
   bool closed_ GUARDED_BY(lifecycle_) = false;
   std::unique_ptr<CommitQueue> commits_;  // its committer thread lives as long as the map
+  // ApplyAt: one record at a time; the applied sequence is readable without the lock.
+  Mutex apply_mutex_;
+  std::atomic<uint64_t> applied_sequence_{0};
 };
 
 // RESOURCE_EXHAUSTED ("disk full", naming `what`) unless the file system holding `path` has

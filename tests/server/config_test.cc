@@ -263,5 +263,76 @@ TEST(ServerConfigTest, ControlCharactersAreRefused) {
   EXPECT_EQ(again.data_dir, plain.data_dir);
 }
 
+// Cluster mode's section and flags (issue 18): parsed, printed, validated with the key named.
+TEST(ServerConfigTest, ClusterSection) {
+  auto parse = [](std::vector<const char*> args) {
+    args.insert(args.begin(), "placedb-server");
+    return server::ParseCommandLine(int(args.size()), args.data(),
+                                    [](const char*) { return nullptr; });
+  };
+  // Role single (the default) ignores the rest, however incomplete.
+  auto single = parse({"--nats", "nonsense"});
+  ASSERT_TRUE(single.ok()) << single.status().ToString();
+  EXPECT_EQ(single->config.cluster.role, server::ClusterRole::kSingle);
+
+  auto worker = parse({"--role", "worker", "--cluster-name", "fleet", "--nats",
+                       "nats://10.0.0.1:4222,nats://10.0.0.2:4222", "--etcd",
+                       "10.0.0.1:2379,10.0.0.2:2379,10.0.0.3:2379"});
+  ASSERT_TRUE(worker.ok()) << worker.status().ToString();
+  const server::ClusterSettings& k = worker->config.cluster;
+  EXPECT_EQ(k.role, server::ClusterRole::kWorker);
+  EXPECT_EQ(k.name, "fleet");
+  EXPECT_EQ(k.nats, (std::vector<std::string>{"nats://10.0.0.1:4222", "nats://10.0.0.2:4222"}));
+  EXPECT_EQ(k.etcd.size(), 3u);
+  EXPECT_EQ(k.replicas, 2);
+  EXPECT_EQ(k.stream_replicas, 3);
+  EXPECT_EQ(k.replace_after_s, 30);
+
+  // --print-config's YAML loads back to the same section.
+  ServerConfig again;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(worker->config), &again).ok());
+  EXPECT_EQ(again.cluster.role, server::ClusterRole::kWorker);
+  EXPECT_EQ(again.cluster.nats, k.nats);
+  EXPECT_EQ(again.cluster.etcd, k.etcd);
+  EXPECT_EQ(again.cluster.name, "fleet");
+
+  auto refused = [&](std::vector<const char*> args, const std::string& message) {
+    auto result = parse(std::move(args));
+    ASSERT_FALSE(result.ok()) << message;
+    EXPECT_EQ(result.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_NE(result.status().message().find(message), std::string::npos)
+        << result.status().message();
+  };
+  refused({"--role", "leader"}, "--role: must be single, worker or shard");
+  refused({"--role", "worker", "--etcd", "a:2379"}, "cluster.nats: role worker needs");
+  refused({"--role", "shard", "--nats", "nats://a:4222"}, "cluster.etcd: role shard needs");
+  refused({"--role", "worker", "--nats", "nats://a", "--etcd", "a:2379"},
+          "cluster.nats: 'nats://a' is not nats://host:port");
+  refused({"--role", "worker", "--nats", "a:4222", "--etcd", "a:2379", "--cluster-name", "a.b"},
+          "cluster.name: 'a.b' must be");
+  refused({"--role", "shard", "--nats", "a:4222", "--etcd", "a:2379", "--advertise", "shard-0"},
+          "cluster.advertise: 'shard-0' is not host:port");
+  refused({"--role", "shard", "--nats", "a:4222", "--etcd", "a:2379", "--shard-id", "a/b"},
+          "cluster.shard_id: 'a/b' must be");
+  auto shard =
+      parse({"--role", "shard", "--nats", "a:4222", "--etcd", "a:2379", "--shard-id", "shard-0",
+             "--advertise", "10.0.0.5:50061", "--internal-listen", "0.0.0.0:50061"});
+  ASSERT_TRUE(shard.ok()) << shard.status().ToString();
+  EXPECT_EQ(shard->config.cluster.EffectiveShardId(), "shard-0");
+  EXPECT_EQ(shard->config.cluster.internal_listen, "0.0.0.0:50061");
+
+  ServerConfig yaml;
+  const Status typo = server::ApplyConfigYaml("cluster:\n  role: worker\n  replica: 3\n", &yaml);
+  EXPECT_NE(typo.message().find("cluster.replica: unknown key"), std::string::npos)
+      << typo.message();
+  ASSERT_TRUE(server::ApplyConfigYaml("cluster:\n  role: worker\n  nats: [\"nats://a:4222\"]\n"
+                                      "  etcd: [\"a:2379\"]\n  stream_replicas: 7\n",
+                                      &yaml)
+                  .ok());
+  EXPECT_NE(server::ValidateServerConfig(yaml).message().find(
+                "cluster.stream_replicas: must be in [1, 5]"),
+            std::string::npos);
+}
+
 }  // namespace
 }  // namespace placedb::server_testing

@@ -1,0 +1,857 @@
+#include "server/cluster/shard.h"
+
+#include <google/protobuf/util/json_util.h>
+#include <grpcpp/grpcpp.h>
+#include <prometheus/gauge.h>
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cctype>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <set>
+#include <thread>
+
+#include "core/base/thread_annotations.h"
+#include "core/storage/codec.h"
+#include "core/storage/snapshots.h"
+#include "proto/cluster.grpc.pb.h"
+#include "proto/convert_config.h"
+#include "proto/convert_result.h"
+#include "proto/status.h"
+#include "server/cluster/etcd_client.h"
+#include "server/cluster/jetstream.h"
+#include "server/cluster/map_record.h"
+#include "server/metrics.h"
+#include "server/place_reads.h"
+
+namespace placedb::cluster {
+
+namespace {
+
+namespace pv1 = ::placedb::v1;
+namespace cv1 = ::placedb::cluster::v1;
+using Clock = std::chrono::steady_clock;
+using wire::ToGrpc;
+
+// The agreed names (common interface, docs/cluster.md): upper-case hex of the map name's bytes.
+std::string HexOf(const std::string& bytes) {
+  static const char* kDigits = "0123456789ABCDEF";
+  std::string out;
+  for (unsigned char c : bytes) {
+    out.push_back(kDigits[c >> 4]);
+    out.push_back(kDigits[c & 15]);
+  }
+  return out;
+}
+
+std::string SubjectOf(const std::string& cluster_name, const std::string& map) {
+  return "placedb." + cluster_name + ".map." + HexOf(map);
+}
+
+// maps/<map>: {"config": <placedb.v1.MapConfig as proto JSON>, "stream": name, ...}.
+struct MapMeta {
+  pv1::MapConfig config;
+  std::string stream;
+};
+
+Result<MapMeta> ParseMapMeta(const std::string& text) {
+  auto json = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (json.is_discarded() || !json.is_object() || !json.contains("stream") ||
+      !json["stream"].is_string() || !json.contains("config")) {
+    return Status::InvalidArgument("maps/ value is not {\"config\": ..., \"stream\": ...}");
+  }
+  MapMeta meta;
+  meta.stream = json["stream"].get<std::string>();
+  const std::string config =
+      json["config"].is_string() ? json["config"].get<std::string>() : json["config"].dump();
+  auto parsed = google::protobuf::util::JsonStringToMessage(config, &meta.config);
+  if (!parsed.ok()) {
+    return Status::InvalidArgument("maps/ value's config: " + std::string(parsed.message()));
+  }
+  return meta;
+}
+
+// placement/<map>: {"epoch": N, "replicas": ["shard-a", ...]}.
+Result<std::vector<std::string>> ParseReplicas(const std::string& text) {
+  auto json = nlohmann::json::parse(text, nullptr, false);
+  if (json.is_discarded() || !json.is_object() || !json.contains("replicas") ||
+      !json["replicas"].is_array()) {
+    return Status::InvalidArgument("placement/ value is not {\"epoch\": N, \"replicas\": [...]}");
+  }
+  std::vector<std::string> out;
+  for (const auto& replica : json["replicas"]) {
+    if (replica.is_string()) out.push_back(replica.get<std::string>());
+  }
+  return out;
+}
+
+grpc::Status GrpcError(grpc::StatusCode code, const std::string& message) {
+  return grpc::Status(code, message);
+}
+
+}  // namespace
+
+// One map this shard holds.
+struct Replica {
+  std::string name;
+  std::string stream;
+  std::string subject;
+  FeatureType type = FeatureType::kOrb;
+  // Set once by the reconcile thread before the consumer starts; read-only afterwards.
+  std::shared_ptr<PlaceMap> map;
+  std::unique_ptr<OrderedConsumer> consumer;  // the reconcile thread's
+  std::atomic<bool> broken{false};            // the applier stopped on an error
+  std::atomic<uint64_t> stream_last{0};
+  // maps/<map>'s create revision this replica belongs to (Impl::mutex_ for writes after the map
+  // is shared; the run thread sets it before opening).
+  std::atomic<int64_t> create_revision{0};
+  std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
+  std::string restored_from;  // Impl::mutex_: the peer whose checkpoint it started from
+};
+
+class Shard::Impl {
+ public:
+  explicit Impl(ShardOptions options) : options_(std::move(options)) {}
+  ~Impl() { Stop(); }
+
+  Status Init();
+  void Stop();
+
+  // RPCs (ShardService).
+  grpc::Status Search(grpc::ServerContext* context, const cv1::SearchRequest& request,
+                      cv1::SearchResponse* response);
+  Result<std::shared_ptr<PlaceMap>> MapOf(const std::string& map) const EXCLUDES(mutex_);
+  grpc::Status Checkpoint(const cv1::CheckpointRequest& request,
+                          grpc::ServerWriter<cv1::CheckpointChunk>* writer);
+  std::vector<ReplicaStatus> StatusOfReplicas() const EXCLUDES(mutex_);
+
+  const ShardOptions options_;
+  int port_ = 0;
+
+ private:
+  std::string Key(const std::string& suffix) const {
+    return "/placedb/" + options_.cluster_name + "/" + suffix;
+  }
+  Status Register();
+  void Run() EXCLUDES(mutex_);
+  void Reconcile() EXCLUDES(mutex_);
+  void Report() EXCLUDES(mutex_);
+  // Opens (or creates) the replica's map and starts its applier; records the problem otherwise.
+  void Open(const std::shared_ptr<Replica>& replica, const MapMeta& meta) EXCLUDES(mutex_);
+  void StartApplier(const std::shared_ptr<Replica>& replica) EXCLUDES(mutex_);
+  // Catch-up of a new replica: restores the map from the checkpoint of the live replica that
+  // applied the most (Checkpoint RPC, verified by SnapshotStore::Import); returns the peer's id.
+  // NOT_FOUND when no live peer has applied anything.
+  Result<std::string> RestoreFromPeer(const std::string& map, int64_t create_revision)
+      EXCLUDES(mutex_);
+  Result<AnyVocabulary> VocabularyFor(const MapInfo& info) const;
+  // DATA_DIR/cluster-maps/<hex of the name>: the create revision of maps/<map> the local copy
+  // was made for.
+  std::string GenerationFile(const std::string& map) const {
+    return dir_->path() + "/cluster-maps/" + HexOf(map);
+  }
+  void Drop(const std::string& name) EXCLUDES(mutex_);
+  // The applier: one record at a time, on the consumer's delivery thread.
+  void Apply(Replica* replica, uint64_t sequence, std::string_view data) EXCLUDES(mutex_);
+  void SetProblem(Replica* replica, const std::string& problem) EXCLUDES(mutex_);
+
+  std::unique_ptr<DataDirectory> dir_;
+  std::unique_ptr<SnapshotStore> snapshots_;
+  std::unique_ptr<JetStream> js_;
+  std::unique_ptr<EtcdClient> etcd_;
+  std::unique_ptr<LeaseKeeper> keeper_;  // the run thread's (and Init's)
+  std::unique_ptr<Watcher> maps_watch_, placement_watch_;
+  std::unique_ptr<grpc::Server> server_;
+  std::unique_ptr<grpc::Service> service_;
+  prometheus::Family<prometheus::Gauge>* applied_gauge_ = nullptr;
+  prometheus::Family<prometheus::Gauge>* lag_gauge_ = nullptr;
+
+  mutable Mutex mutex_;
+  CondVar wake_;        // the run thread: a watch event, stop
+  CondVar applied_cv_;  // Search: a record was applied
+  bool stopping_ GUARDED_BY(mutex_) = false;
+  bool dirty_ GUARDED_BY(mutex_) = true;
+  bool watch_ended_ GUARDED_BY(mutex_) = false;
+  std::map<std::string, std::shared_ptr<Replica>> replicas_ GUARDED_BY(mutex_);
+  std::thread thread_;
+};
+
+namespace {
+
+class ShardService final : public cv1::Shard::Service {
+ public:
+  ShardService(Shard::Impl* impl, std::string shard_id)
+      : impl_(impl), shard_id_(std::move(shard_id)) {}
+
+  grpc::Status Search(grpc::ServerContext* context, const cv1::SearchRequest* request,
+                      cv1::SearchResponse* response) override {
+    return impl_->Search(context, *request, response);
+  }
+  grpc::Status GetPlace(grpc::ServerContext*, const pv1::GetPlaceRequest* request,
+                        pv1::Place* response) override {
+    auto map = impl_->MapOf(request->map());
+    if (!map.ok()) return ToGrpc(map.status());
+    return ToGrpc(server::ReadPlace(**map, *request, response));
+  }
+  grpc::Status ListPlaces(grpc::ServerContext*, const pv1::ListPlacesRequest* request,
+                          pv1::ListPlacesResponse* response) override {
+    auto map = impl_->MapOf(request->map());
+    if (!map.ok()) return ToGrpc(map.status());
+    return ToGrpc(server::ListPlacesOf(**map, *request, response));
+  }
+  grpc::Status GetDynamics(grpc::ServerContext*, const pv1::GetDynamicsRequest* request,
+                           pv1::GetDynamicsResponse* response) override {
+    auto map = impl_->MapOf(request->map());
+    if (!map.ok()) return ToGrpc(map.status());
+    return ToGrpc(server::ReadDynamics(**map, *request, response));
+  }
+  grpc::Status Status(grpc::ServerContext*, const cv1::StatusRequest*,
+                      cv1::StatusResponse* response) override {
+    response->set_shard_id(shard_id_);
+    for (const ReplicaStatus& replica : impl_->StatusOfReplicas()) {
+      cv1::MapStatus* out = response->add_maps();
+      out->set_map(replica.map);
+      out->set_applied_sequence(replica.applied_sequence);
+      out->set_stream_last_sequence(replica.stream_last_sequence);
+      out->set_places(replica.places);
+      out->set_state(replica.state);
+    }
+    return grpc::Status::OK;
+  }
+  grpc::Status Checkpoint(grpc::ServerContext*, const cv1::CheckpointRequest* request,
+                          grpc::ServerWriter<cv1::CheckpointChunk>* writer) override {
+    return impl_->Checkpoint(*request, writer);
+  }
+
+ private:
+  Shard::Impl* const impl_;
+  const std::string shard_id_;
+};
+
+}  // namespace
+
+Status Shard::Impl::Init() {
+  const ShardOptions& o = options_;
+  if (o.shard_id.empty()) return Status::InvalidArgument("cluster.shard_id: is required");
+  if (o.nats.empty()) return Status::InvalidArgument("cluster.nats: is required");
+  if (o.etcd.empty()) return Status::InvalidArgument("cluster.etcd: is required");
+  if (o.data_dir.empty()) return Status::InvalidArgument("data_dir: is required");
+  if (!o.vocabularies.count("default")) {
+    return Status::InvalidArgument("vocabularies: \"default\" is required");
+  }
+  auto dir = DataDirectory::Open(o.data_dir, o.storage);
+  if (!dir.ok()) return dir.status();
+  dir_ = std::move(dir).value();
+  auto snapshots = SnapshotStore::Open(dir_.get());
+  if (!snapshots.ok()) return snapshots.status();
+  snapshots_ = std::move(snapshots).value();
+  JetStreamOptions js;
+  js.servers = o.nats;
+  js.client_name = "placedb-shard-" + o.shard_id;
+  auto connected = JetStream::Connect(js);
+  if (!connected.ok()) return connected.status();
+  js_ = std::move(connected).value();
+  EtcdOptions etcd;
+  etcd.endpoints = o.etcd;
+  auto client = EtcdClient::Create(etcd);
+  if (!client.ok()) return client.status();
+  etcd_ = std::move(client).value();
+
+  if (o.metrics) {
+    applied_gauge_ = &prometheus::BuildGauge()
+                          .Name("placedb_shard_applied_sequence")
+                          .Help("The last stream sequence a map's replica on this shard applied")
+                          .Register(*o.metrics->registry());
+    lag_gauge_ = &prometheus::BuildGauge()
+                      .Name("placedb_shard_lag_records")
+                      .Help("Records of a map's stream its replica has not applied yet")
+                      .Register(*o.metrics->registry());
+  }
+
+  service_ = std::make_unique<ShardService>(this, o.shard_id);
+  grpc::ServerBuilder builder;
+  builder.AddListeningPort(o.internal_listen, grpc::InsecureServerCredentials(), &port_);
+  builder.RegisterService(service_.get());
+  builder.SetMaxReceiveMessageSize(64 << 20);
+  builder.SetMaxSendMessageSize(64 << 20);
+  server_ = builder.BuildAndStart();
+  if (!server_ || port_ == 0) {
+    return Status::IoError("cluster.internal_listen " + o.internal_listen + ": cannot listen");
+  }
+
+  PLACEDB_RETURN_IF_ERROR(Register());
+  // Watches only wake the reconcile, which reads the keys itself: nothing is lost when a watch
+  // ends (it is restarted) or events are coalesced.
+  auto now = etcd_->Get(Key("maps/"), true);
+  if (!now.ok()) return now.status();
+  const auto wake = [this](const std::vector<WatchEvent>&) {
+    MutexLock lock(mutex_);
+    dirty_ = true;
+    wake_.NotifyAll();
+  };
+  const auto ended = [this](const Status& why) {
+    spdlog::warn("shard {}: etcd watch ended: {}", options_.shard_id, why.ToString());
+    MutexLock lock(mutex_);
+    watch_ended_ = true;
+    dirty_ = true;
+    wake_.NotifyAll();
+  };
+  maps_watch_ = etcd_->Watch(Key("maps/"), now->revision + 1, wake, ended);
+  placement_watch_ = etcd_->Watch(Key("placement/"), now->revision + 1, wake, ended);
+  thread_ = std::thread([this] { Run(); });
+  return Status::Ok();
+}
+
+Status Shard::Impl::Register() {
+  auto lease = etcd_->GrantLease(options_.lease_ttl_s);
+  if (!lease.ok()) return lease.status().WithContext("registering shard " + options_.shard_id);
+  const std::string address =
+      options_.advertise.empty()
+          ? options_.internal_listen.substr(0, options_.internal_listen.rfind(':')) + ":" +
+                std::to_string(port_)
+          : options_.advertise;
+  nlohmann::json value = {{"address", address}};
+  auto put = etcd_->Put(Key("shards/" + options_.shard_id), value.dump(), lease->id);
+  if (!put.ok()) return put.status().WithContext("registering shard " + options_.shard_id);
+  keeper_ = etcd_->KeepAlive(*lease, [this](const placedb::Status& why) {
+    spdlog::warn("shard {}: lease lost ({}); registering again", options_.shard_id, why.ToString());
+    MutexLock lock(mutex_);
+    wake_.NotifyAll();
+  });
+  return Status::Ok();
+}
+
+void Shard::Impl::Stop() {
+  {
+    MutexLock lock(mutex_);
+    if (stopping_) return;
+    stopping_ = true;
+    wake_.NotifyAll();
+    applied_cv_.NotifyAll();
+  }
+  if (server_) server_->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(2));
+  if (thread_.joinable()) thread_.join();
+  if (maps_watch_) maps_watch_->Stop();
+  if (placement_watch_) placement_watch_->Stop();
+  if (keeper_) keeper_->Stop();
+  std::map<std::string, std::shared_ptr<Replica>> replicas;
+  {
+    MutexLock lock(mutex_);
+    replicas.swap(replicas_);
+  }
+  // Consumers first (their callbacks take mutex_ and use the maps), then the maps.
+  for (auto& [name, replica] : replicas) replica->consumer.reset();
+  replicas.clear();
+  if (server_) server_->Wait();
+  snapshots_.reset();
+  dir_.reset();
+}
+
+void Shard::Impl::Run() {
+  auto last_report = Clock::now() - options_.report_interval;
+  for (;;) {
+    {
+      MutexLock lock(mutex_);
+      if (stopping_) return;
+      if (watch_ended_) {
+        watch_ended_ = false;
+        lock.Unlock();
+        // Restarted from now: the reconcile below reads the current keys anyway.
+        auto now = etcd_->Get(Key("maps/"), true);
+        if (now.ok()) {
+          const auto wake = [this](const std::vector<WatchEvent>&) {
+            MutexLock inner(mutex_);
+            dirty_ = true;
+            wake_.NotifyAll();
+          };
+          const auto ended = [this](const Status&) {
+            MutexLock inner(mutex_);
+            watch_ended_ = true;
+            wake_.NotifyAll();
+          };
+          maps_watch_ = etcd_->Watch(Key("maps/"), now->revision + 1, wake, ended);
+          placement_watch_ = etcd_->Watch(Key("placement/"), now->revision + 1, wake, ended);
+        } else {
+          MutexLock relock(mutex_);
+          watch_ended_ = true;  // etcd unreachable: try again next round
+        }
+        lock.Lock();
+      }
+      dirty_ = false;
+    }
+    if (keeper_ && keeper_->lost()) {
+      keeper_->Stop();
+      keeper_.reset();
+    }
+    if (!keeper_) {
+      if (Status registered = Register(); !registered.ok()) {
+        spdlog::warn("shard {}: {}", options_.shard_id, registered.ToString());
+      }
+    }
+    Reconcile();
+    if (Clock::now() - last_report >= options_.report_interval) {
+      Report();
+      last_report = Clock::now();
+    }
+    MutexLock lock(mutex_);
+    const auto until =
+        Clock::now() + std::min(options_.reconcile_interval, options_.report_interval);
+    while (!stopping_ && !dirty_ && !(keeper_ && keeper_->lost()) && Clock::now() < until) {
+      wake_.WaitUntil(mutex_, until);
+    }
+  }
+}
+
+void Shard::Impl::Reconcile() {
+  auto maps = etcd_->Get(Key("maps/"), true);
+  auto placements = etcd_->Get(Key("placement/"), true);
+  // etcd unreachable: keep applying and serving what is held (the placement is frozen).
+  if (!maps.ok() || !placements.ok()) return;
+  std::map<std::string, std::string> map_values;
+  std::map<std::string, int64_t> map_revisions;  // create revisions: a map's generation
+  const std::string maps_prefix = Key("maps/");
+  for (const KeyValue& kv : maps->kvs) {
+    map_values[kv.key.substr(maps_prefix.size())] = kv.value;
+    map_revisions[kv.key.substr(maps_prefix.size())] = kv.create_revision;
+  }
+  std::set<std::string> mine;
+  const std::string placement_prefix = Key("placement/");
+  for (const KeyValue& kv : placements->kvs) {
+    auto replicas = ParseReplicas(kv.value);
+    if (!replicas.ok()) continue;
+    if (std::find(replicas->begin(), replicas->end(), options_.shard_id) != replicas->end()) {
+      mine.insert(kv.key.substr(placement_prefix.size()));
+    }
+  }
+  std::vector<std::string> drop;
+  {
+    MutexLock lock(mutex_);
+    for (const auto& [name, replica] : replicas_) {
+      // Also a replica of a map deleted and re-created under its name (another stream).
+      if (!mine.count(name) || !map_values.count(name) ||
+          (replica->create_revision != 0 && replica->create_revision != map_revisions[name])) {
+        drop.push_back(name);
+      }
+    }
+  }
+  for (const std::string& name : drop) Drop(name);
+  for (const std::string& name : mine) {
+    auto value = map_values.find(name);
+    if (value == map_values.end()) continue;  // placed before maps/<map> is visible
+    std::shared_ptr<Replica> replica;
+    {
+      MutexLock lock(mutex_);
+      auto& slot = replicas_[name];
+      if (!slot) {
+        slot = std::make_shared<Replica>();
+        slot->name = name;
+        slot->subject = SubjectOf(options_.cluster_name, name);
+      }
+      replica = slot;
+    }
+    if (!replica->map) {
+      auto meta = ParseMapMeta(value->second);
+      if (!meta.ok()) {
+        SetProblem(replica.get(), "unavailable: " + meta.status().ToString());
+        continue;
+      }
+      replica->create_revision = map_revisions[name];
+      Open(replica, *meta);
+    } else if (replica->broken || !replica->consumer) {
+      StartApplier(replica);
+    }
+  }
+}
+
+void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& meta) {
+  const std::string vocabulary_name =
+      meta.config.vocabulary().empty() ? "default" : meta.config.vocabulary();
+  auto vocabulary = options_.vocabularies.find(vocabulary_name);
+  if (vocabulary == options_.vocabularies.end()) {
+    SetProblem(replica.get(),
+               "unavailable: vocabulary '" + vocabulary_name + "' is not configured here");
+    return;
+  }
+  // The local copy's generation (written when it was made): a copy of a map deleted and
+  // re-created meanwhile (the shard was down) is deleted, not resumed on the new stream.
+  const std::string generation_file = GenerationFile(replica->name);
+  const int64_t revision = replica->create_revision;
+  {
+    std::ifstream in(generation_file);
+    int64_t stored = 0;
+    if (in >> stored && stored != revision) {
+      spdlog::info("shard {}: map '{}' was re-created: deleting the local copy", options_.shard_id,
+                   replica->name);
+      if (Status deleted = dir_->DeleteMap(replica->name);
+          !deleted.ok() && deleted.code() != StatusCode::kNotFound) {
+        SetProblem(replica.get(), "unavailable: " + deleted.ToString());
+        return;
+      }
+    }
+  }
+  const auto listed = dir_->ListMaps();
+  Result<std::shared_ptr<PlaceMap>> map = Status::Internal("not opened");
+  std::string restored_from;
+  if (std::find(listed.begin(), listed.end(), replica->name) == listed.end()) {
+    // A new replica: from a live peer's checkpoint when there is one (then only the records
+    // after it are applied); on any failure from an empty map, replaying the whole stream (it
+    // keeps every record), which is slower but as correct.
+    auto peer = RestoreFromPeer(replica->name, revision);
+    if (peer.ok()) {
+      restored_from = *peer;
+    } else if (peer.status().code() != StatusCode::kNotFound) {
+      spdlog::warn("shard {}: map '{}': no checkpoint from a peer ({}); replaying the stream",
+                   options_.shard_id, replica->name, peer.status().ToString());
+    }
+  }
+  if (std::find(listed.begin(), listed.end(), replica->name) != listed.end() ||
+      !restored_from.empty()) {
+    map = dir_->OpenMap(replica->name, vocabulary->second);
+  } else {
+    wire::ServiceMapSettings settings;
+    auto map_options = wire::MapOptionsFromProto(
+        meta.config, options_.max_descriptors_per_frame,
+        wire::MapVocabulary{vocabulary_name, vocabulary->second.feature_type()}, &settings);
+    if (!map_options.ok()) {
+      SetProblem(replica.get(), "unavailable: " + map_options.status().ToString());
+      return;
+    }
+    map = dir_->CreateMap(replica->name, *map_options, vocabulary->second);
+  }
+  if (!map.ok()) {
+    SetProblem(replica.get(), "unavailable: " + map.status().ToString());
+    return;
+  }
+  replica->stream = meta.stream;
+  replica->type = (*map)->info().options.database.feature_type;
+  {
+    std::error_code ignored;
+    std::filesystem::create_directories(dir_->path() + "/cluster-maps", ignored);
+    std::ofstream out(generation_file, std::ios::trunc);
+    out << revision << "\n";
+  }
+  {
+    MutexLock lock(mutex_);
+    replica->map = std::move(map).value();
+    replica->restored_from = restored_from;
+  }
+  spdlog::info("shard {}: holding map '{}' (applied {})", options_.shard_id, replica->name,
+               replica->map->applied_sequence());
+  StartApplier(replica);
+}
+
+void Shard::Impl::StartApplier(const std::shared_ptr<Replica>& replica) {
+  replica->consumer.reset();  // a broken one: stopped before its successor starts
+  replica->broken = false;
+  Replica* raw = replica.get();  // outlives its consumer (Drop and Stop reset it first)
+  auto consumer = js_->Consume(
+      replica->stream, replica->subject, replica->map->applied_sequence() + 1,
+      [this, raw](uint64_t sequence, std::string_view data) { Apply(raw, sequence, data); });
+  if (!consumer.ok()) {
+    SetProblem(raw, "unavailable: " + consumer.status().ToString());
+    return;
+  }
+  replica->consumer = std::move(consumer).value();
+  SetProblem(raw, "");
+}
+
+void Shard::Impl::Apply(Replica* replica, uint64_t sequence, std::string_view data) {
+  if (replica->broken) return;  // stopped on an error: restarted from applied + 1
+  auto record = DecodeMapRecord(data, replica->type);
+  Result<bool> applied =
+      record.ok() ? replica->map->ApplyAt(sequence, *record) : Result<bool>(record.status());
+  if (!applied.ok()) {
+    replica->broken = true;
+    const std::string problem =
+        "failed: record " + std::to_string(sequence) + ": " + applied.status().ToString();
+    spdlog::error("shard {}: map '{}': {}", options_.shard_id, replica->name, problem);
+    SetProblem(replica, problem);
+    return;
+  }
+  MutexLock lock(mutex_);
+  applied_cv_.NotifyAll();
+}
+
+void Shard::Impl::SetProblem(Replica* replica, const std::string& problem) {
+  MutexLock lock(mutex_);
+  replica->problem = problem;
+}
+
+void Shard::Impl::Drop(const std::string& name) {
+  std::shared_ptr<Replica> replica;
+  {
+    MutexLock lock(mutex_);
+    auto it = replicas_.find(name);
+    if (it == replicas_.end()) return;
+    replica = it->second;
+    replicas_.erase(it);
+  }
+  replica->consumer.reset();
+  const bool opened = replica->map != nullptr;
+  replica->map.reset();
+  if (opened) {
+    // No longer placed here (or the map was deleted): the local copy goes.
+    if (Status deleted = dir_->DeleteMap(name); !deleted.ok()) {
+      spdlog::warn("shard {}: deleting map '{}': {}", options_.shard_id, name, deleted.ToString());
+    }
+    spdlog::info("shard {}: dropped map '{}'", options_.shard_id, name);
+  }
+  std::remove(GenerationFile(name).c_str());
+  (void)etcd_->Delete(Key("applied/" + name + "/" + options_.shard_id));
+  if (applied_gauge_) {
+    applied_gauge_->Remove(&applied_gauge_->Add({{"map", name}, {"shard", options_.shard_id}}));
+    lag_gauge_->Remove(&lag_gauge_->Add({{"map", name}, {"shard", options_.shard_id}}));
+  }
+}
+
+void Shard::Impl::Report() {
+  std::vector<std::shared_ptr<Replica>> replicas;
+  {
+    MutexLock lock(mutex_);
+    for (const auto& [name, replica] : replicas_) {
+      if (replica->map) replicas.push_back(replica);
+    }
+  }
+  for (const auto& replica : replicas) {
+    const uint64_t applied = replica->map->applied_sequence();
+    if (auto info = js_->GetStreamInfo(replica->stream); info.ok()) {
+      replica->stream_last = info->last_sequence;
+    }
+    (void)etcd_->Put(Key("applied/" + replica->name + "/" + options_.shard_id),
+                     std::to_string(applied));
+    if (applied_gauge_) {
+      const prometheus::Labels labels = {{"map", replica->name}, {"shard", options_.shard_id}};
+      applied_gauge_->Add(labels).Set(double(applied));
+      const uint64_t last = replica->stream_last.load();
+      lag_gauge_->Add(labels).Set(last > applied ? double(last - applied) : 0.0);
+    }
+  }
+}
+
+Result<AnyVocabulary> Shard::Impl::VocabularyFor(const MapInfo& info) const {
+  for (const auto& [name, vocabulary] : options_.vocabularies) {
+    if (vocabulary.checksum() == info.vocabulary_checksum) return vocabulary;
+  }
+  return Status::FailedPrecondition("map '" + info.name +
+                                    "': no configured vocabulary has its checksum");
+}
+
+Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t create_revision) {
+  auto applied = etcd_->Get(Key("applied/" + map + "/"), true);
+  if (!applied.ok()) return applied.status();
+  auto shards = etcd_->Get(Key("shards/"), true);
+  if (!shards.ok()) return shards.status();
+  std::map<std::string, std::string> live;  // id -> address
+  const std::string shards_prefix = Key("shards/");
+  for (const KeyValue& kv : shards->kvs) {
+    auto json = nlohmann::json::parse(kv.value, nullptr, false);
+    if (json.is_object() && json.contains("address") && json["address"].is_string()) {
+      live[kv.key.substr(shards_prefix.size())] = json["address"].get<std::string>();
+    }
+  }
+  std::string peer;
+  uint64_t best = 0;
+  const std::string applied_prefix = Key("applied/" + map + "/");
+  for (const KeyValue& kv : applied->kvs) {
+    const std::string id = kv.key.substr(applied_prefix.size());
+    const uint64_t sequence = std::strtoull(kv.value.c_str(), nullptr, 10);
+    if (id != options_.shard_id && live.count(id) && sequence > best) {
+      best = sequence;
+      peer = id;
+    }
+  }
+  if (peer.empty()) return Status::NotFound("no live replica of '" + map + "' has applied records");
+  auto stub =
+      cv1::Shard::NewStub(grpc::CreateChannel(live[peer], grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(10));
+  cv1::CheckpointRequest request;
+  request.set_map(map);
+  request.set_create_revision(create_revision);
+  const std::string spool = dir_->path() + "/.catchup-" + HexOf(map) + ".pdbsnap";
+  struct Remove {
+    std::string path;
+    ~Remove() { std::remove(path.c_str()); }
+  } remove{spool};
+  uint64_t expected = 0, received = 0;
+  {
+    std::ofstream out(spool, std::ios::binary | std::ios::trunc);
+    auto reader = stub->Checkpoint(&context, request);
+    cv1::CheckpointChunk chunk;
+    bool first = true;
+    while (reader->Read(&chunk)) {
+      if (first) expected = chunk.archive_bytes();
+      first = false;
+      out.write(chunk.data().data(), std::streamsize(chunk.data().size()));
+      received += chunk.data().size();
+    }
+    const grpc::Status finished = reader->Finish();
+    if (!finished.ok()) {
+      return Status::IoError("checkpoint of '" + map + "' from " + peer + ": " +
+                             finished.error_message());
+    }
+    out.flush();
+    if (!out) return Status::IoError("spooling the checkpoint of '" + map + "' failed");
+  }
+  if (received != expected) {
+    return Status::Corruption("checkpoint of '" + map + "' from " + peer + ": " +
+                              std::to_string(received) + " of " + std::to_string(expected) +
+                              " bytes");
+  }
+  auto imported =
+      snapshots_->Import(spool, [this](const MapInfo& info) { return VocabularyFor(info); });
+  if (!imported.ok()) return imported.status();
+  Status restored = snapshots_->Restore(imported->id, map);
+  (void)snapshots_->Delete(imported->id);
+  if (!restored.ok()) return restored;
+  spdlog::info("shard {}: map '{}' restored from the checkpoint of {}", options_.shard_id, map,
+               peer);
+  return peer;
+}
+
+Result<std::shared_ptr<PlaceMap>> Shard::Impl::MapOf(const std::string& map) const {
+  MutexLock lock(mutex_);
+  auto it = replicas_.find(map);
+  if (it == replicas_.end()) {
+    return Status::NotFound("map '" + map + "' is not held by shard " + options_.shard_id);
+  }
+  if (!it->second->map) {
+    return Status::IoError("map '" + map + "' on shard " + options_.shard_id +
+                           " is not open: " + it->second->problem);
+  }
+  return it->second->map;
+}
+
+grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::SearchRequest& request,
+                                 cv1::SearchResponse* response) {
+  auto map = MapOf(request.map());
+  if (!map.ok()) return ToGrpc(map.status());
+  PlaceMap& m = **map;
+  // Bounded by the call's deadline (30 s without one).
+  const auto remaining = context->deadline() - std::chrono::system_clock::now();
+  const auto until =
+      Clock::now() + std::min<std::chrono::system_clock::duration>(
+                         remaining, std::chrono::duration_cast<std::chrono::system_clock::duration>(
+                                        std::chrono::seconds(30)));
+  {
+    MutexLock lock(mutex_);
+    while (m.applied_sequence() < request.min_sequence()) {
+      if (stopping_) return GrpcError(grpc::StatusCode::UNAVAILABLE, "shard is stopping");
+      if (Clock::now() >= until || context->IsCancelled()) {
+        return GrpcError(grpc::StatusCode::DEADLINE_EXCEEDED,
+                         "map '" + request.map() + "' on shard " + options_.shard_id + " applied " +
+                             std::to_string(m.applied_sequence()) + " < min_sequence " +
+                             std::to_string(request.min_sequence()));
+      }
+      applied_cv_.WaitUntil(mutex_, std::min(until, Clock::now() + std::chrono::milliseconds(200)));
+    }
+  }
+  ProcessedFrame frame;
+  if (Status decoded =
+          FrameFromSearchRequest(request, m.info().options.database.feature_type, &frame);
+      !decoded.ok()) {
+    return GrpcError(grpc::StatusCode::INVALID_ARGUMENT, decoded.message());
+  }
+  QueryOptions options = wire::QueryOptionsFromProto(request.options(), request.agent_id());
+  options.search_threads = options_.search.threads;
+  options.max_word_share = options_.search.max_word_share;
+  options.skip_words_min_places = options_.search.skip_words_min_places;
+  options.timestamp_ns = request.timestamp_ns();
+  const uint64_t applied = m.applied_sequence();  // every place up to it is searched
+  QueryResult result = m.Search(frame, options);
+  response->set_valid(result.valid);
+  response->set_rejection(result.rejection);
+  wire::MatchesToProto(result.matches, response->mutable_matches());
+  response->set_applied_sequence(applied);
+  response->set_search_ms(result.timings.search_ms);
+  response->set_verify_ms(result.timings.verify_ms);
+  return grpc::Status::OK;
+}
+
+grpc::Status Shard::Impl::Checkpoint(const cv1::CheckpointRequest& request,
+                                     grpc::ServerWriter<cv1::CheckpointChunk>* writer) {
+  auto map = MapOf(request.map());
+  if (!map.ok()) return ToGrpc(map.status());
+  int64_t held_revision = 0;
+  {
+    MutexLock lock(mutex_);
+    auto it = replicas_.find(request.map());
+    if (it != replicas_.end()) held_revision = it->second->create_revision;
+  }
+  if (request.create_revision() != 0 && held_revision != request.create_revision()) {
+    return GrpcError(grpc::StatusCode::FAILED_PRECONDITION,
+                     "map '" + request.map() + "' on shard " + options_.shard_id +
+                         " is of create revision " + std::to_string(held_revision) + ", not " +
+                         std::to_string(request.create_revision()));
+  }
+  const uint64_t applied = (*map)->applied_sequence();
+  auto created =
+      snapshots_->Create(**map, [this](const MapInfo& info) { return VocabularyFor(info); });
+  if (!created.ok()) return ToGrpc(created.status());
+  struct Cleanup {
+    SnapshotStore* store;
+    std::string id;
+    ~Cleanup() { (void)store->Delete(id); }
+  } cleanup{snapshots_.get(), created->id};
+  auto bytes = snapshots_->ArchiveBytes(created->id);
+  if (!bytes.ok()) return ToGrpc(bytes.status());
+  bool first = true;
+  Status written = snapshots_->WriteArchive(created->id, 1 << 20, [&](std::string_view data) {
+    cv1::CheckpointChunk chunk;
+    if (first) {
+      chunk.set_applied_sequence(applied);
+      chunk.set_archive_bytes(*bytes);
+      first = false;
+    }
+    chunk.set_data(std::string(data));
+    if (!writer->Write(chunk)) return Status::IoError("the receiver went away");
+    return Status::Ok();
+  });
+  return ToGrpc(written);
+}
+
+std::vector<ReplicaStatus> Shard::Impl::StatusOfReplicas() const {
+  std::vector<ReplicaStatus> out;
+  MutexLock lock(mutex_);
+  for (const auto& [name, replica] : replicas_) {
+    ReplicaStatus status;
+    status.map = name;
+    status.stream_last_sequence = replica->stream_last.load();
+    if (replica->map) {
+      status.applied_sequence = replica->map->applied_sequence();
+      status.places = replica->map->database().Stats().places;
+    }
+    status.state = replica->problem.empty() ? "applying" : replica->problem;
+    status.restored_from = replica->restored_from;
+    out.push_back(std::move(status));
+  }
+  return out;
+}
+
+Result<std::unique_ptr<Shard>> Shard::Start(ShardOptions options) {
+  auto impl = std::make_unique<Impl>(std::move(options));
+  PLACEDB_RETURN_IF_ERROR(impl->Init());
+  return std::unique_ptr<Shard>(new Shard(std::move(impl)));
+}
+
+Shard::Shard(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+Shard::~Shard() = default;
+
+int Shard::internal_port() const {
+  return impl_->port_;
+}
+const std::string& Shard::shard_id() const {
+  return impl_->options_.shard_id;
+}
+std::vector<ReplicaStatus> Shard::Replicas() const {
+  return impl_->StatusOfReplicas();
+}
+Result<std::shared_ptr<PlaceMap>> Shard::Map(const std::string& map) const {
+  return impl_->MapOf(map);
+}
+
+}  // namespace placedb::cluster

@@ -1,0 +1,579 @@
+#include "server/cluster/worker.h"
+
+#include <google/protobuf/util/json_util.h>
+#include <grpcpp/grpcpp.h>
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <thread>
+
+#include "core/base/map_name.h"
+#include "proto/cluster.grpc.pb.h"
+#include "proto/convert_config.h"
+#include "proto/status.h"
+#include "server/cluster/map_record.h"
+
+namespace placedb::server {
+
+namespace {
+
+using Clock = std::chrono::system_clock;
+using wire::ToGrpc;
+
+std::chrono::milliseconds Remaining(ClusterBackend::Deadline deadline) {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
+}
+
+std::string Hostname() {
+  char name[256] = {};
+  if (gethostname(name, sizeof(name) - 1) != 0) return "worker";
+  return name;
+}
+
+// hostname:pid, and a number when one process runs several workers (tests).
+std::string WorkerId() {
+  static std::atomic<int> made{0};
+  const int n = made++;
+  // Appended piece by piece: GCC 12 warns falsely (-Wrestrict) on "." + std::to_string().
+  std::string id = Hostname();
+  id += ':';
+  id += std::to_string(getpid());
+  if (n > 0) {
+    id += '.';
+    id += std::to_string(n);
+  }
+  return id;
+}
+
+int64_t NowUnixMs() {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(Clock::now().time_since_epoch())
+      .count();
+}
+
+Result<v1::MapConfig> ConfigOf(const cluster::MapRecordInfo& info) {
+  v1::MapConfig config;
+  const auto parsed = google::protobuf::util::JsonStringToMessage(info.config_json, &config);
+  if (!parsed.ok()) {
+    return Status::Corruption("the map's configuration in etcd does not parse: " +
+                              std::string(parsed.message()));
+  }
+  return config;
+}
+
+}  // namespace
+
+ClusterWorker::ClusterWorker(const ServerConfig& config, MapRegistry* local, Metrics* metrics)
+    : config_(config),
+      cluster_(config.cluster),
+      local_(local),
+      metrics_(metrics),
+      id_(WorkerId()) {}
+
+Result<std::unique_ptr<ClusterWorker>> ClusterWorker::Start(const ServerConfig& config,
+                                                            MapRegistry* local, Metrics* metrics) {
+  std::unique_ptr<ClusterWorker> worker(new ClusterWorker(config, local, metrics));
+  const ClusterSettings& c = config.cluster;
+  cluster::EtcdOptions etcd;
+  etcd.endpoints = c.etcd;
+  auto client = cluster::EtcdClient::Create(etcd);
+  if (!client.ok()) return client.status();
+  worker->etcd_ = std::move(client).value();
+  cluster::JetStreamOptions nats;
+  for (const std::string& url : c.nats) {
+    nats.servers.push_back(url.rfind("nats://", 0) == 0 ? url : "nats://" + url);
+  }
+  nats.client_name = "placedb-worker " + worker->id_;
+  auto jetstream = cluster::JetStream::Connect(nats);
+  if (!jetstream.ok()) return jetstream.status().WithContext("cluster.nats");
+  worker->jetstream_ = std::move(jetstream).value();
+  auto view = cluster::ClusterView::Start(worker->etcd_.get(), c.name);
+  if (!view.ok()) return view.status().WithContext("cluster.etcd");
+  worker->view_ = std::move(view).value();
+  cluster::CoordinatorOptions coordinator;
+  coordinator.self = worker->id_;
+  coordinator.replicas = c.replicas;
+  coordinator.replace_after = std::chrono::seconds(c.replace_after_s);
+  worker->coordinator_ = std::make_unique<cluster::Coordinator>(
+      worker->etcd_.get(), worker->view_.get(), std::move(coordinator));
+
+  // The local copies are a cache of the cluster's maps: stale ones go.
+  for (const auto& entry : local->List()) {
+    if (Status deleted = local->Delete(entry->name); !deleted.ok()) {
+      spdlog::warn("worker: cannot remove the stale local copy of map '{}': {}", entry->name,
+                   deleted.ToString());
+    }
+  }
+
+  prometheus::Registry& registry = *metrics->registry();
+  prometheus::Histogram::BucketBoundaries buckets;
+  for (double b = 0.00025; b < 40; b *= 2) buckets.push_back(b);
+  worker->publish_seconds_ =
+      &prometheus::BuildHistogram()
+           .Name("placedb_cluster_publish_seconds")
+           .Help(
+               "Worker: one record's publish to its map's stream until JetStream's "
+               "acknowledgement, retries included")
+           .Register(registry)
+           .Add({}, buckets);
+  worker->retries_ = &prometheus::BuildCounter()
+                          .Name("placedb_cluster_retries_total")
+                          .Help(
+                              "Worker: calls tried again (on another replica, or a publish "
+                              "with the same message id), by call")
+                          .Register(registry);
+  spdlog::info("cluster worker {}: cluster '{}', etcd {}, nats {} ({})", worker->id_, c.name,
+               c.etcd.size(), c.nats.size(), worker->jetstream_->ConnectedUrl());
+  return worker;
+}
+
+ClusterWorker::~ClusterWorker() {
+  if (coordinator_) coordinator_->Stop();
+  if (view_) view_->Stop();
+}
+
+// ---- Maps ---------------------------------------------------------------------------------------
+
+Result<cluster::MapView> ClusterWorker::Lookup(const std::string& name, const std::string& field) {
+  if (Status valid = ValidateMapName(name); !valid.ok()) return valid.WithContext(field);
+  if (auto view = view_->Map(name)) return std::move(view).value();
+  // Not in the view (yet): a map made a moment ago by another worker is in etcd already.
+  auto read = etcd_->Get(view_->keys().Map(name));
+  if (!read.ok()) return read.status();
+  if (read->kvs.empty()) {
+    return Status::NotFound(field + ": map '" + name + "' does not exist");
+  }
+  auto info = cluster::DecodeMapInfo(read->kvs[0].value);
+  if (!info.ok()) return info.status();
+  cluster::MapView out;
+  out.info = std::move(info).value();
+  out.create_revision = read->kvs[0].create_revision;
+  return out;
+}
+
+void ClusterWorker::Describe(const std::string& name, const cluster::MapView& view,
+                             v1::MapDescription* out) const {
+  out->set_name(name);
+  out->set_state(v1::MAP_STATE_AVAILABLE);
+  out->set_created_unix_ms(view.info.created_unix_ms);
+  auto config = ConfigOf(view.info);
+  if (!config.ok()) {
+    out->set_state(v1::MAP_STATE_UNAVAILABLE);
+    out->set_unavailable_reason(config.status().ToString());
+    return;
+  }
+  *out->mutable_config() = *config;
+  if (const VocabularyEntry* vocabulary = local_->FindVocabulary(config->vocabulary())) {
+    out->set_vocabulary_checksum(vocabulary->vocabulary.checksum_hex());
+  }
+  // Places: the most applied replica's sequence is an upper bound of the place ids; the exact
+  // count is the replicas' (Shard.Status).
+}
+
+grpc::Status ClusterWorker::CreateMap(const std::string& name, const v1::MapConfig& config,
+                                      Deadline deadline, v1::MapDescription* response) {
+  std::string json;
+  google::protobuf::util::JsonPrintOptions print;
+  print.preserve_proto_field_names = true;
+  if (!google::protobuf::util::MessageToJsonString(config, &json, print).ok()) {
+    return grpc::Status(grpc::StatusCode::INTERNAL, "cannot encode the map's configuration");
+  }
+  cluster::MapRecordInfo info{.config_json = json,
+                              .stream = cluster::StreamName(cluster_.name, name),
+                              .created_unix_ms = NowUnixMs()};
+  const std::string key = view_->keys().Map(name);
+  auto created = etcd_->Txn({cluster::Compare::Absent(key)},
+                            {cluster::TxnOp::Put(key, cluster::EncodeMapInfo(info))});
+  if (!created.ok()) return ToGrpc(created.status(), "creating the map in etcd");
+  if (!created->succeeded) {
+    return grpc::Status(grpc::StatusCode::ALREADY_EXISTS, "name: map '" + name + "' exists");
+  }
+  cluster::StreamConfig stream;
+  stream.name = info.stream;
+  stream.subjects = {cluster::StreamSubject(cluster_.name, name)};
+  stream.replicas = cluster_.stream_replicas;
+  stream.max_message_bytes = int32_t(std::min<uint64_t>(config_.limits.max_message_bytes, 8 << 20));
+  if (Status made = jetstream_->EnsureStream(stream); !made.ok()) {
+    // No stream, no map: the key goes again (a failure here leaves a map whose stream the next
+    // CreateMap of the name would make: EnsureStream is idempotent).
+    (void)etcd_->Delete(key);
+    return ToGrpc(made, "creating the map's stream " + stream.name);
+  }
+  // The first frames search a replica: wait (bounded) for the coordinator's placement.
+  const auto until =
+      std::chrono::steady_clock::now() +
+      std::min<std::chrono::milliseconds>(
+          std::chrono::seconds(10), std::max(Remaining(deadline), std::chrono::milliseconds(0)));
+  if (!view_->Shards().empty() &&
+      !view_->WaitFor(
+          name, [](const std::optional<cluster::MapView>& v) { return v && v->placement; },
+          until)) {
+    spdlog::warn("cluster map '{}' created without a placement yet (no live shard?)", name);
+  }
+  cluster::MapView view;
+  view.info = info;
+  Describe(name, view, response);
+  return grpc::Status::OK;
+}
+
+grpc::Status ClusterWorker::GetMap(const std::string& name, Deadline deadline,
+                                   v1::MapDescription* response) {
+  // Linearizable: a map just deleted elsewhere is NOT_FOUND here at once.
+  if (Status valid = ValidateMapName(name); !valid.ok()) return ToGrpc(valid.WithContext("name"));
+  auto read = etcd_->Get(view_->keys().Map(name));
+  if (!read.ok()) return ToGrpc(read.status());
+  if (read->kvs.empty()) {
+    return grpc::Status(grpc::StatusCode::NOT_FOUND, "name: map '" + name + "' does not exist");
+  }
+  auto info = cluster::DecodeMapInfo(read->kvs[0].value);
+  if (!info.ok()) return ToGrpc(info.status());
+  cluster::MapView view;
+  view.info = std::move(info).value();
+  Describe(name, view, response);
+  // Places: the most applied replica's count (Shard.Status), when one answers within 2 s; the
+  // description stands without it.
+  const Deadline status_deadline = std::min(deadline, Clock::now() + std::chrono::seconds(2));
+  cluster::v1::StatusResponse status;
+  const grpc::Status asked =
+      OnReplica("Status", name, 0, status_deadline,
+                [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                  grpc::ClientContext context;
+                  context.set_deadline(until);
+                  status.Clear();
+                  return cluster::v1::Shard::NewStub(channel)->Status(
+                      &context, cluster::v1::StatusRequest(), &status);
+                });
+  if (asked.ok()) {
+    for (const cluster::v1::MapStatus& map : status.maps()) {
+      if (map.map() == name) response->mutable_stats()->set_places(map.places());
+    }
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status ClusterWorker::ListMaps(Deadline, v1::ListMapsResponse* response) {
+  const std::string prefix = view_->keys().root + "maps/";
+  auto read = etcd_->Get(prefix, /*prefix=*/true);
+  if (!read.ok()) return ToGrpc(read.status());
+  for (const cluster::KeyValue& kv : read->kvs) {
+    v1::MapSummary* summary = response->add_maps();
+    summary->set_name(kv.key.substr(prefix.size()));
+    auto info = cluster::DecodeMapInfo(kv.value);
+    auto config = info.ok() ? ConfigOf(*info) : Result<v1::MapConfig>(info.status());
+    summary->set_available(config.ok());
+    summary->set_state(config.ok() ? v1::MAP_STATE_AVAILABLE : v1::MAP_STATE_UNAVAILABLE);
+    if (!config.ok()) {
+      summary->set_unavailable_reason(config.status().ToString());
+      continue;
+    }
+    summary->set_vocabulary(config->vocabulary());
+    summary->set_feature_type(config->feature_type());
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status ClusterWorker::DeleteMap(const std::string& name, Deadline) {
+  if (Status valid = ValidateMapName(name); !valid.ok()) return ToGrpc(valid.WithContext("name"));
+  const cluster::ClusterKeys& keys = view_->keys();
+  const std::string key = keys.Map(name);
+  auto deleted = etcd_->Txn(
+      {cluster::Compare{
+          key, cluster::Compare::Target::kCreateRevision, cluster::Compare::Op::kGreater, 0, {}}},
+      {cluster::TxnOp::Delete(key), cluster::TxnOp::Delete(keys.Placement(name)),
+       cluster::TxnOp::Delete(keys.AppliedPrefix(name), /*prefix=*/true)});
+  if (!deleted.ok()) return ToGrpc(deleted.status(), "deleting the map in etcd");
+  if (!deleted->succeeded) {
+    return grpc::Status(grpc::StatusCode::NOT_FOUND, "name: map '" + name + "' does not exist");
+  }
+  // The map is gone for every worker now; its stream after it (a failure leaves an orphan stream
+  // that a CreateMap of the name takes over: EnsureStream).
+  const std::string stream = cluster::StreamName(cluster_.name, name);
+  if (Status dropped = jetstream_->DeleteStream(stream);
+      !dropped.ok() && dropped.code() != StatusCode::kNotFound) {
+    spdlog::warn("cluster map '{}' deleted, but not its stream {}: {}", name, stream,
+                 dropped.ToString());
+  }
+  MutexLock lock(local_mutex_);
+  if (local_revision_.erase(name)) (void)local_->Delete(name);
+  return grpc::Status::OK;
+}
+
+Result<std::shared_ptr<const MapEntry>> ClusterWorker::Map(const std::string& name,
+                                                           const std::string& field) {
+  auto view = Lookup(name, field);
+  if (!view.ok()) return view.status();
+  MutexLock lock(local_mutex_);
+  auto known = local_revision_.find(name);
+  if (known != local_revision_.end() && known->second == view->create_revision) {
+    return local_->Get(name, field);
+  }
+  // First frame of this map here, or the map was re-created: a fresh local copy.
+  if (known != local_revision_.end()) {
+    (void)local_->Delete(name);
+    local_revision_.erase(known);
+  }
+  auto config = ConfigOf(view->info);
+  if (!config.ok()) return config.status();
+  auto vocabulary = local_->ResolveVocabulary(config->vocabulary());
+  if (!vocabulary.ok()) return vocabulary.status();
+  ServiceMapSettings settings;
+  auto options = wire::MapOptionsFromProto(
+      *config, config_.limits.max_descriptors_per_frame,
+      wire::MapVocabulary{(*vocabulary)->name, (*vocabulary)->vocabulary.feature_type()},
+      &settings);
+  if (!options.ok()) return options.status();
+  auto entry = local_->Create(name, *options, config->vocabulary(), settings);
+  if (entry.status().code() == StatusCode::kAlreadyExists) {
+    (void)local_->Delete(name);  // left by a run that did not clean up
+    entry = local_->Create(name, *options, config->vocabulary(), settings);
+  }
+  if (!entry.ok())
+    return entry.status().WithContext("the worker's local copy of map '" + name + "'");
+  local_revision_[name] = view->create_revision;
+  return entry;
+}
+
+// ---- Replicas -----------------------------------------------------------------------------------
+
+Result<std::vector<ClusterWorker::Replica>> ClusterWorker::Replicas(const std::string& map,
+                                                                    uint64_t min_sequence) {
+  auto view = view_->Map(map);
+  if (!view) return Status::NotFound("map: map '" + map + "' does not exist");
+  if (!view->placement || view->placement->replicas.empty()) {
+    return Status::IoError("map '" + map + "' has no replica placed yet (no live shard?)");
+  }
+  const std::map<std::string, std::string> live = view_->Shards();
+  std::vector<Replica> out;
+  for (const std::string& shard : view->placement->replicas) {
+    auto address = live.find(shard);
+    if (address == live.end()) continue;
+    auto applied = view->applied.find(shard);
+    out.push_back({shard, address->second, applied == view->applied.end() ? 0 : applied->second});
+  }
+  if (out.empty()) {
+    return Status::IoError("no live replica of map '" + map + "' (its shards are down)");
+  }
+  // Caught up first, then the least lagging; a replica that has not caught up still answers
+  // (Shard.Search waits, bounded, for min_sequence).
+  std::stable_sort(out.begin(), out.end(), [&](const Replica& a, const Replica& b) {
+    const bool a_ready = a.applied >= min_sequence, b_ready = b.applied >= min_sequence;
+    if (a_ready != b_ready) return a_ready;
+    return a.applied > b.applied;
+  });
+  return out;
+}
+
+std::shared_ptr<grpc::Channel> ClusterWorker::ChannelTo(const std::string& address) {
+  MutexLock lock(mutex_);
+  auto& channel = channels_[address];
+  if (!channel) {
+    grpc::ChannelArguments arguments;
+    arguments.SetMaxReceiveMessageSize(64 << 20);
+    arguments.SetMaxSendMessageSize(64 << 20);
+    // A shard that restarts is dialled again quickly.
+    arguments.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 100);
+    arguments.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
+    channel = grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), arguments);
+  }
+  return channel;
+}
+
+template <typename Call>
+grpc::Status ClusterWorker::OnReplica(const char* what, const std::string& map,
+                                      uint64_t min_sequence, Deadline deadline, Call&& call) {
+  auto replicas = Replicas(map, min_sequence);
+  if (!replicas.ok()) return ToGrpc(replicas.status());
+  grpc::Status status;
+  std::string failed;  // the shard of the first attempt
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    const Replica* replica = nullptr;
+    if (attempt == 0) {
+      replica = &replicas->front();
+    } else {
+      // The view as it is now (the first attempt may have taken a while: a replaced replica, a
+      // shard gone), without the one that just failed.
+      replicas = Replicas(map, min_sequence);
+      if (!replicas.ok()) return status;
+      for (const Replica& other : *replicas) {
+        if (other.shard != failed) {
+          replica = &other;
+          break;
+        }
+      }
+      if (!replica) return status;
+      retries_->Add({{"call", what}}).Increment();
+    }
+    // The first attempt gets half the time left when another replica could answer (a hung
+    // replica must leave it time); the last gets the rest. No deadline: 10 s per attempt.
+    const auto now = Clock::now();
+    Deadline until = deadline == Deadline::max() ? now + std::chrono::seconds(10) : deadline;
+    if (attempt == 0 && replicas->size() > 1 && until > now) until = now + (until - now) / 2;
+    status = call(ChannelTo(replica->address), until);
+    if (status.error_code() != grpc::StatusCode::UNAVAILABLE &&
+        status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
+      return status;
+    }
+    spdlog::warn("{} on map '{}': shard '{}' ({}) answered {}: {}", what, map, replica->shard,
+                 replica->address, int(status.error_code()), status.error_message());
+    failed = replica->shard;
+  }
+  return status;
+}
+
+// ---- Publishing ---------------------------------------------------------------------------------
+
+Result<uint64_t> ClusterWorker::PublishRecord(const std::string& map, const std::string& data,
+                                              const std::string& message_id, Deadline deadline) {
+  const std::string subject = cluster::StreamSubject(cluster_.name, map);
+  const auto started = std::chrono::steady_clock::now();
+  Status last = Status::IoError("the call's deadline had passed before the first attempt");
+  for (int attempt = 0;; ++attempt) {
+    const auto left = Remaining(deadline);
+    if (left <= std::chrono::milliseconds(0)) break;
+    if (attempt > 0) retries_->Add({{"call", "Publish"}}).Increment();
+    // One attempt waits at most 2 s for its PubAck: a leader election takes several.
+    auto ack =
+        jetstream_->Publish(subject, data, message_id,
+                            std::min<std::chrono::milliseconds>(left, std::chrono::seconds(2)));
+    if (ack.ok()) {
+      publish_seconds_->Observe(
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());
+      return ack->sequence;
+    }
+    last = ack.status();
+    if (last.code() != StatusCode::kIoError) return last;  // not a transient failure
+    std::this_thread::sleep_for(std::min<std::chrono::milliseconds>(
+        std::chrono::milliseconds(100),
+        std::max(Remaining(deadline), std::chrono::milliseconds(0))));
+  }
+  return Status::IoError("map '" + map + "': JetStream acknowledged no publish of " +
+                         (message_id.empty() ? std::string("the record") : message_id) +
+                         " before the deadline (nothing was acknowledged; resend the frame with "
+                         "the same sequence): " +
+                         last.ToString());
+}
+
+// ---- Shard calls (placedb.cluster.v1.Shard) -----------------------------------------------------
+
+grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame& frame,
+                                   const PlaceMetadata& metadata, const v1::MatchOptions& options,
+                                   uint64_t min_sequence, Deadline deadline,
+                                   v1::QueryResponse* out) {
+  cluster::v1::SearchRequest request;
+  request.set_map(map);
+  request.set_min_sequence(min_sequence);
+  // The frame as the pipeline left it (the shard's codec: server/cluster/map_record.h).
+  cluster::FrameToSearchRequest(frame, &request);
+  *request.mutable_options() = options;
+  request.set_agent_id(metadata.agent_id);
+  request.set_timestamp_ns(metadata.timestamp_ns);
+  cluster::v1::SearchResponse response;
+  const grpc::Status status =
+      OnReplica("Search", map, min_sequence, deadline,
+                [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                  grpc::ClientContext context;
+                  context.set_deadline(until);
+                  response.Clear();
+                  return cluster::v1::Shard::NewStub(channel)->Search(&context, request, &response);
+                });
+  if (!status.ok()) return status;
+  out->mutable_matches()->Swap(response.mutable_matches());
+  out->set_sequence(response.applied_sequence());
+  return grpc::Status::OK;
+}
+
+Status ClusterWorker::CountQueryHit(const std::string& map, uint32_t place,
+                                    const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                    Deadline deadline) {
+  auto published = PublishRecord(map, cluster::EncodeCountObservation(place, frame, metadata),
+                                 /*message_id=*/"", deadline);
+  return published.ok() ? Status::Ok() : published.status();
+}
+
+grpc::Status ClusterWorker::DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) {
+  // Does it exist? (A replica that applied the id answers; NOT_FOUND stands.)
+  v1::GetPlaceRequest get;
+  get.set_map(request.map());
+  get.set_place_id(request.place_id());
+  v1::Place place;
+  if (grpc::Status found = GetPlace(get, deadline, &place); !found.ok()) return found;
+  auto published = PublishRecord(request.map(), cluster::EncodeDeletePlace(request.place_id()),
+                                 /*message_id=*/"", deadline);
+  return published.ok() ? grpc::Status::OK : ToGrpc(published.status(), "deleting the place");
+}
+
+grpc::Status ClusterWorker::GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
+                                     v1::Place* response) {
+  // A place id is a stream sequence: a replica that applied it has it (or it was removed).
+  auto read = [&] {
+    return OnReplica("GetPlace", request.map(), request.place_id(), deadline,
+                     [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                       grpc::ClientContext context;
+                       context.set_deadline(until);
+                       response->Clear();
+                       return cluster::v1::Shard::NewStub(channel)->GetPlace(&context, request,
+                                                                             response);
+                     });
+  };
+  grpc::Status status = read();
+  if (status.error_code() != grpc::StatusCode::NOT_FOUND || request.place_id() == 0) {
+    return status;
+  }
+  // Read-your-writes: a place just acknowledged may not be applied yet. When no replica has
+  // reported applying its id, wait (bounded) until one does, then ask again.
+  const uint64_t id = request.place_id();
+  auto applied = [id](const std::optional<cluster::MapView>& view) {
+    if (!view) return true;  // deleted: the NOT_FOUND stands
+    for (const auto& [shard, sequence] : view->applied) {
+      if (sequence >= id) return true;
+    }
+    return false;
+  };
+  if (applied(view_->Map(request.map()))) return status;
+  const auto left = std::max(Remaining(deadline), std::chrono::milliseconds(0));
+  if (!view_->WaitFor(request.map(), applied,
+                      std::chrono::steady_clock::now() +
+                          std::min<std::chrono::milliseconds>(left, std::chrono::seconds(5)))) {
+    return status;
+  }
+  return read();
+}
+
+grpc::Status ClusterWorker::ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,
+                                       v1::ListPlacesResponse* response) {
+  return OnReplica("ListPlaces", request.map(), 0, deadline,
+                   [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                     grpc::ClientContext context;
+                     context.set_deadline(until);
+                     response->Clear();
+                     return cluster::v1::Shard::NewStub(channel)->ListPlaces(&context, request,
+                                                                             response);
+                   });
+}
+
+grpc::Status ClusterWorker::GetDynamics(const v1::GetDynamicsRequest& request, Deadline deadline,
+                                        v1::GetDynamicsResponse* response) {
+  return OnReplica("GetDynamics", request.map(), 0, deadline,
+                   [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                     grpc::ClientContext context;
+                     context.set_deadline(until);
+                     response->Clear();
+                     return cluster::v1::Shard::NewStub(channel)->GetDynamics(&context, request,
+                                                                              response);
+                   });
+}
+
+Result<uint64_t> ClusterWorker::Publish(const std::string& map, const ProcessedFrame& frame,
+                                        const PlaceMetadata& metadata,
+                                        const std::string& message_id, Deadline deadline) {
+  // Encoded once: a retry publishes the same bytes (the same statistics' arrival time).
+  const std::string record = frame.valid ? cluster::EncodeAddPlace(frame, metadata)
+                                         : cluster::EncodeInvalidFrame(frame, metadata);
+  auto sequence = PublishRecord(map, record, message_id, deadline);
+  if (!sequence.ok()) return sequence.status();
+  return frame.valid ? *sequence : 0;
+}
+
+}  // namespace placedb::server

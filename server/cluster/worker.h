@@ -1,0 +1,148 @@
+// The frame-worker role of cluster mode (issue 18, docs/cluster.md): the ClusterBackend
+// (server/cluster_backend.h) the public placedb.v1 service delegates to on a worker.
+//
+// What a worker does, per call:
+// - CreateMap: etcd transaction create-if-absent on maps/<map> (ALREADY_EXISTS), then the map's
+//   JetStream stream (EnsureStream: stream_replicas replicas, 2-minute duplicate window); a
+//   stream that cannot be made removes the key again (UNAVAILABLE). Then it waits (bounded) for
+//   the coordinator's placement, so that the first frames find a replica. GetMap/ListMaps read
+//   etcd (linearizable); DeleteMap deletes the map's keys (map, placement, applied) in one
+//   transaction, then the stream.
+// - Ingest (PlaceDbService runs the pipeline on Map()'s local copy): search on a replica that has
+//   applied the stream's last place (Search), then Publish: one MapRecord (the shard's codec,
+//   server/cluster/record_codec.h) with message id <agent_id>/<sequence>, acknowledged to the agent
+//   only after the PubAck; place id = the PubAck's sequence (a duplicate's: the original). A
+//   publish that fails is retried with the same id until the deadline; then UNAVAILABLE and
+//   nothing is acknowledged.
+// - Query, GetPlace, ListPlaces, GetDynamics: Shard RPCs on a replica from the placement: the
+//   least lagging one whose applied sequence (etcd applied/<map>/<shard>, as the view last saw
+//   it) is >= min_sequence; UNAVAILABLE or DEADLINE_EXCEEDED from it: once more on another
+//   replica (counted in placedb_cluster_retries_total{call}). GetPlace of an id no replica has
+//   reported applying yet (a place just acknowledged) waits, at most 5 s, until one has, then
+//   asks again: read-your-writes for place ids.
+// - DeletePlace: NOT_FOUND unless a replica has the place, then a DeletePlace record.
+// - Query hits (maps with dynamics.count_query_hits_above): the worker publishes a
+//   CountObservation record after the search, acknowledged before the query's answer.
+//
+// Per-agent state and what a failover costs: the agent's stream state (depth Algorithm 1) lives
+// in this worker's local copy of the map, for the life of the Ingest stream's agent on this
+// worker. When the worker dies, the agent's SDK reconnects to another worker: Algorithm 1 warms
+// up again (its first frames after a reconnect are treated as after a server restart, docs/
+// rgbd.md), and frames answered with an error (or never answered) are resent with their
+// sequence: their message id finds the place already stored (same place id), within the stream's
+// duplicate window (2 minutes). Loop closure (a per-agent detector over the map's long-term
+// memory) is refused in cluster mode (FAILED_PRECONDITION), not approximated.
+//
+// The worker's local copies of the maps (its data_dir) hold no places: they carry the map's
+// configuration, vocabulary and the agents' stream state. They are a cache: removed at startup
+// and re-made when a map is re-created under the same name (etcd create revision).
+//
+// The coordinator (server/cluster/placement.h) runs in every worker; one is elected.
+//
+// Threading: thread-safe (every ClusterBackend method may be called concurrently).
+#pragma once
+
+#include <grpcpp/channel.h>
+#include <prometheus/counter.h>
+#include <prometheus/family.h>
+#include <prometheus/histogram.h>
+
+#include <map>
+#include <memory>
+#include <string>
+
+#include "core/base/thread_annotations.h"
+#include "server/cluster/etcd_client.h"
+#include "server/cluster/jetstream.h"
+#include "server/cluster/placement.h"
+#include "server/cluster_backend.h"
+#include "server/config.h"
+#include "server/map_registry.h"
+#include "server/metrics.h"
+
+namespace placedb::server {
+
+class ClusterWorker final : public ClusterBackend {
+ public:
+  // Connects to etcd and NATS (config.cluster), starts the view and the coordinator, and empties
+  // `local` (the worker's cache of map copies). IO_ERROR when an engine cannot be reached.
+  static Result<std::unique_ptr<ClusterWorker>> Start(const ServerConfig& config,
+                                                      MapRegistry* local, Metrics* metrics);
+  ~ClusterWorker() override;
+
+  const char* role() const override { return "worker"; }
+  grpc::Status CreateMap(const std::string& name, const v1::MapConfig& config, Deadline deadline,
+                         v1::MapDescription* response) override;
+  grpc::Status GetMap(const std::string& name, Deadline deadline,
+                      v1::MapDescription* response) override;
+  grpc::Status ListMaps(Deadline deadline, v1::ListMapsResponse* response) override;
+  grpc::Status DeleteMap(const std::string& name, Deadline deadline) override;
+  Result<std::shared_ptr<const MapEntry>> Map(const std::string& name,
+                                              const std::string& field) override;
+  grpc::Status Search(const std::string& map, const ProcessedFrame& frame,
+                      const PlaceMetadata& metadata, const v1::MatchOptions& options,
+                      uint64_t min_sequence, Deadline deadline, v1::QueryResponse* out) override;
+  Result<uint64_t> Publish(const std::string& map, const ProcessedFrame& frame,
+                           const PlaceMetadata& metadata, const std::string& message_id,
+                           Deadline deadline) override;
+  Status CountQueryHit(const std::string& map, uint32_t place, const ProcessedFrame& frame,
+                       const PlaceMetadata& metadata, Deadline deadline) override;
+  grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) override;
+  grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
+                        v1::Place* response) override;
+  grpc::Status ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,
+                          v1::ListPlacesResponse* response) override;
+  grpc::Status GetDynamics(const v1::GetDynamicsRequest& request, Deadline deadline,
+                           v1::GetDynamicsResponse* response) override;
+
+  // For tests: the coordinator of this worker leads.
+  bool coordinating() const { return coordinator_ && coordinator_->leading(); }
+
+ private:
+  ClusterWorker(const ServerConfig& config, MapRegistry* local, Metrics* metrics);
+
+  // The map as etcd has it (the view, else a linearizable read): NOT_FOUND naming `field`.
+  Result<cluster::MapView> Lookup(const std::string& name, const std::string& field);
+  // The replicas to try for a read, best first: applied >= min_sequence first (most applied
+  // first), then the others. Each: shard id and address. UNAVAILABLE when the map has none live.
+  struct Replica {
+    std::string shard;
+    std::string address;
+    uint64_t applied = 0;
+  };
+  Result<std::vector<Replica>> Replicas(const std::string& map, uint64_t min_sequence);
+  std::shared_ptr<grpc::Channel> ChannelTo(const std::string& address) EXCLUDES(mutex_);
+  // Runs `call(channel, attempt deadline)` on the best replica, and once more when it answers
+  // UNAVAILABLE or DEADLINE_EXCEEDED, on the best other replica of the view as it is then
+  // (counted as a retry of `what`); with two replicas the first attempt gets half the time left
+  // before `deadline`.
+  template <typename Call>
+  grpc::Status OnReplica(const char* what, const std::string& map, uint64_t min_sequence,
+                         Deadline deadline, Call&& call);
+  // One record on the map's stream, retried with the same id until `deadline`.
+  Result<uint64_t> PublishRecord(const std::string& map, const std::string& data,
+                                 const std::string& message_id, Deadline deadline);
+  void Describe(const std::string& name, const cluster::MapView& view,
+                v1::MapDescription* out) const;
+
+  const ServerConfig& config_;
+  const ClusterSettings& cluster_;
+  MapRegistry* const local_;
+  Metrics* const metrics_;
+  std::unique_ptr<cluster::EtcdClient> etcd_;
+  std::unique_ptr<cluster::JetStream> jetstream_;
+  std::unique_ptr<cluster::ClusterView> view_;
+  std::unique_ptr<cluster::Coordinator> coordinator_;
+  std::string id_;  // this worker's (hostname:pid[.n]), the coordinator's name
+
+  prometheus::Histogram* publish_seconds_ = nullptr;
+  prometheus::Family<prometheus::Counter>* retries_ = nullptr;
+
+  Mutex local_mutex_;  // serialises making local copies
+  // Local copy made from the map key of this create revision.
+  std::map<std::string, int64_t> local_revision_ GUARDED_BY(local_mutex_);
+  Mutex mutex_;
+  std::map<std::string, std::shared_ptr<grpc::Channel>> channels_ GUARDED_BY(mutex_);
+};
+
+}  // namespace placedb::server

@@ -1,0 +1,82 @@
+#include "server/place_reads.h"
+
+#include "proto/convert_config.h"
+#include "proto/convert_dynamics.h"
+#include "proto/convert_result.h"
+
+namespace placedb::server {
+
+Status ReadPlace(const PlaceMap& map, const v1::GetPlaceRequest& request, v1::Place* response) {
+  if (request.place_id() == 0) {
+    return Status::InvalidArgument("place_id: is required (ids start at 1)");
+  }
+  auto place = map.GetPlace(request.place_id());
+  if (!place.ok()) return place.status();
+  wire::PlaceRecordToProto(place->record, response);
+  if (request.include_features()) wire::PlaceFeaturesToProto(place->payload.features, response);
+  auto dynamics = map.GetDynamics(request.place_id());
+  if (!dynamics.ok()) return dynamics.status();
+  wire::DynamicsToProto(*dynamics, response->mutable_dynamics());
+  if (request.include_thumbnail()) {
+    auto thumbnail = map.GetThumbnail(request.place_id());
+    if (!thumbnail.ok()) return thumbnail.status();
+    if (thumbnail->has_value()) wire::ThumbnailToProto(**thumbnail, response->mutable_thumbnail());
+  }
+  return Status::Ok();
+}
+
+Status ListPlacesOf(const PlaceMap& map, const v1::ListPlacesRequest& request,
+                    v1::ListPlacesResponse* response) {
+  auto listing = wire::PlaceListingFromProto(request);
+  if (!listing.ok()) return listing.status();
+  const PlacePage page = map.database().ListPlacesBefore(listing->before, listing->limit,
+                                                         listing->filter, listing->max_examined);
+  response->mutable_places()->Reserve(int(page.places.size()));
+  for (const auto& record : page.places) wire::PlaceRecordToProto(*record, response->add_places());
+  response->set_next_before_place_id(page.next_before);
+  return Status::Ok();
+}
+
+Status ReadDynamics(const PlaceMap& map, const v1::GetDynamicsRequest& request,
+                    v1::GetDynamicsResponse* response) {
+  auto options = wire::RankOptionsFromProto(request);
+  if (!options.ok()) return options.status();
+  auto aggregate = map.MapDynamics();
+  if (!aggregate.ok()) return aggregate.status();
+  wire::DynamicsToProto(*aggregate, response->mutable_map());
+  auto invalid = map.InvalidDynamics();
+  if (!invalid.ok()) return invalid.status();
+  wire::DynamicsToProto(*invalid, response->mutable_invalid());
+  // One pass over the map's places; the ranking keeps offset + limit entries.
+  DynamicsRanking ranking(*options);
+  const Status scanned = map.ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {
+    if (options->near.active()) {  // the poses are in the places' records (memory)
+      const auto record = map.database().Get(id);
+      if (!record || !record->metadata.pose ||
+          !options->near.Contains(record->metadata.pose->position)) {
+        return true;
+      }
+    }
+    ranking.Add(id, d);
+    return true;
+  });
+  if (!scanned.ok()) return scanned;
+  for (const RankedPlace& ranked : ranking.Page()) {
+    v1::RankedPlace* out = response->add_places();
+    out->set_place_id(ranked.place);
+    out->set_score(ranked.score);
+    out->set_support(ranked.support);
+    if (request.include_statistics()) {
+      auto d = map.GetDynamics(ranked.place);
+      if (d.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
+      if (!d.ok()) return d.status();
+      wire::DynamicsToProto(*d, out->mutable_statistics());
+    }
+  }
+  response->set_ranked(ranking.ranked());
+  const uint64_t end = uint64_t(options->offset) + options->limit;
+  response->set_next_offset(end < ranking.ranked() ? uint32_t(end) : 0);
+  return Status::Ok();
+}
+
+}  // namespace placedb::server

@@ -1,0 +1,811 @@
+// Cluster mode's worker role (server/cluster/worker.h) through the public placedb.v1 API, on real
+// 3-node etcd and nats-server clusters (tests/cluster/engines.h) and placedb servers started
+// in-process with the worker role on loopback ports.
+#include "server/cluster/worker.h"
+
+#include <arpa/inet.h>
+#include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <map>
+#include <memory>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/base/thread_annotations.h"
+#include "core/storage/codec.h"
+#include "server/cluster/etcd_client.h"
+#include "server/cluster/jetstream.h"
+#include "server/cluster/map_record.h"
+#include "server/cluster/placement.h"
+#include "server/cluster/shard.h"
+#include "tests/cluster/engines.h"
+#include "tests/server/server_fixture.h"
+
+namespace placedb::server_testing {
+namespace {
+
+using namespace std::chrono_literals;
+using cluster::testing::Engines;
+using server::ClusterBackend;
+using server::ClusterRole;
+using server::ClusterWorker;
+using server::MapRegistry;
+using server::Metrics;
+
+// One worker process's worth: a Server with the worker role, and a stub to it.
+struct Worker {
+  std::unique_ptr<Server> server;
+  std::shared_ptr<grpc::Channel> channel;
+  std::unique_ptr<v1::PlaceDb::Stub> stub;
+};
+
+class ClusterWorkerTest : public ServerTest {
+ protected:
+  void SetUp() override {
+    ServerTest::SetUp();
+    auto engines = Engines::Start();
+    ASSERT_TRUE(engines.ok()) << engines.status().ToString();
+    engines_ = std::move(engines).value();
+  }
+  void TearDown() override {
+    workers_.clear();
+    engines_.reset();
+    ServerTest::TearDown();
+  }
+
+  ServerConfig WorkerConfig(int index) const {
+    ServerConfig config = Config();
+    config.data_dir = root_ + "/worker-" + std::to_string(index);
+    config.cluster.role = ClusterRole::kWorker;
+    config.cluster.name = "test";
+    config.cluster.nats = engines_->NatsUrls();
+    config.cluster.etcd = engines_->EtcdEndpoints();
+    config.cluster.replace_after_s = 2;
+    return config;
+  }
+
+  Worker& StartWorker(int index, bool metrics = false) {
+    ServerDeps deps;
+    deps.vocabularies.emplace("default", vocabulary_);
+    configs_.push_back(std::make_unique<ServerConfig>(WorkerConfig(index)));
+    if (metrics) configs_.back()->metrics_listen = "127.0.0.1:0";
+    const ServerConfig& config = *configs_.back();
+    deps.cluster_backend = [&config](MapRegistry* maps,
+                                     Metrics* metrics) -> Result<std::unique_ptr<ClusterBackend>> {
+      auto worker = ClusterWorker::Start(config, maps, metrics);
+      if (!worker.ok()) return worker.status();
+      return std::unique_ptr<ClusterBackend>(std::move(worker).value());
+    };
+    auto started = Server::Start(config, std::move(deps));
+    EXPECT_TRUE(started.ok()) << started.status().ToString();
+    auto worker = std::make_unique<Worker>();
+    if (!started.ok()) return *workers_.emplace_back(std::move(worker));
+    worker->server = std::move(started).value();
+    worker->channel = grpc::CreateChannel("127.0.0.1:" + std::to_string(worker->server->port()),
+                                          grpc::InsecureChannelCredentials());
+    worker->stub = v1::PlaceDb::NewStub(worker->channel);
+    return *workers_.emplace_back(std::move(worker));
+  }
+
+  static grpc::Status CreateClusterMap(Worker& worker, const std::string& name) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::CreateMapRequest request;
+    request.set_name(name);
+    v1::MapDescription response;
+    return worker.stub->CreateMap(&context, request, &response);
+  }
+
+  std::unique_ptr<cluster::JetStream> Js() const {
+    cluster::JetStreamOptions options;
+    options.servers = engines_->NatsUrls();
+    auto js = cluster::JetStream::Connect(options);
+    EXPECT_TRUE(js.ok()) << js.status().ToString();
+    return js.ok() ? std::move(js).value() : nullptr;
+  }
+
+  std::unique_ptr<Engines> engines_;
+  std::vector<std::unique_ptr<ServerConfig>> configs_;  // each outlives its worker
+  std::vector<std::unique_ptr<Worker>> workers_;
+};
+
+std::vector<v1::Observation> Frames(const std::string& agent, int first, int last) {
+  std::vector<v1::Observation> out;
+  for (int frame = first; frame <= last; ++frame) out.push_back(RtabmapObservation(frame, agent));
+  return out;
+}
+
+// Maps are the cluster's (any worker sees them), places are stream sequences acknowledged after
+// JetStream's PubAck, and a replayed frame (same agent and sequence) gets its place id again.
+TEST_F(ClusterWorkerTest, MapsAndIngestThroughAnyWorker) {
+  Worker& first = StartWorker(1);
+  Worker& second = StartWorker(2);
+  ASSERT_TRUE(first.stub && second.stub);
+  {
+    grpc::ClientContext context;
+    v1::ServerInfo info;
+    ASSERT_TRUE(first.stub->GetServerInfo(&context, {}, &info).ok());
+    EXPECT_EQ(info.role(), "worker");
+  }
+  ASSERT_TRUE(CreateClusterMap(first, "lab-1").ok());
+  EXPECT_EQ(CreateClusterMap(second, "lab-1").error_code(), grpc::StatusCode::ALREADY_EXISTS);
+  ASSERT_TRUE(CreateClusterMap(second, "yard").ok());
+  {
+    grpc::ClientContext context;
+    v1::ListMapsResponse maps;
+    ASSERT_TRUE(first.stub->ListMaps(&context, {}, &maps).ok());
+    ASSERT_EQ(maps.maps_size(), 2);
+    EXPECT_EQ(maps.maps(0).name(), "lab-1");
+    EXPECT_EQ(maps.maps(1).name(), "yard");
+    grpc::ClientContext get_context;
+    v1::GetMapRequest get;
+    get.set_name("lab-1");
+    v1::MapDescription description;
+    ASSERT_TRUE(second.stub->GetMap(&get_context, get, &description).ok());
+    EXPECT_EQ(description.config().vocabulary(), "default");
+    EXPECT_EQ(description.state(), v1::MAP_STATE_AVAILABLE);
+  }
+
+  // Ingest through the first worker: every frame a place, ids = the stream's sequences.
+  const IngestOutcome ingested = IngestAll(first.stub.get(), "lab-1", Frames("agent-a", 1, 8));
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  ASSERT_EQ(ingested.responses.size(), 8u);
+  std::vector<uint32_t> ids;
+  for (const v1::IngestResponse& response : ingested.responses) {
+    ASSERT_FALSE(response.has_error()) << response.error().message();
+    if (response.stored()) ids.push_back(response.place_id());
+  }
+  ASSERT_FALSE(ids.empty());
+  EXPECT_TRUE(std::is_sorted(ids.begin(), ids.end()));
+  EXPECT_EQ(std::set<uint32_t>(ids.begin(), ids.end()).size(), ids.size());
+  auto js = Js();
+  ASSERT_TRUE(js);
+  auto info = js->GetStreamInfo(cluster::StreamName("test", "lab-1"));
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  EXPECT_EQ(info->last_sequence, 8u);  // one record per frame, stored or not
+  EXPECT_EQ(info->replicas, 3);
+
+  // The same frames again, through the other worker: the same place ids, nothing new stored.
+  const IngestOutcome replayed = IngestAll(second.stub.get(), "lab-1", Frames("agent-a", 1, 8));
+  ASSERT_TRUE(replayed.status.ok()) << replayed.status.error_message();
+  ASSERT_EQ(replayed.responses.size(), 8u);
+  for (size_t i = 0; i < 8; ++i) {
+    EXPECT_EQ(replayed.responses[i].place_id(), ingested.responses[i].place_id()) << i;
+  }
+  info = js->GetStreamInfo(cluster::StreamName("test", "lab-1"));
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->last_sequence, 8u);
+
+  // Loop closure is refused, not approximated.
+  v1::IngestHeader header;
+  header.set_map("lab-1");
+  header.set_loop_closure(true);
+  const IngestOutcome loop = IngestWithHeader(first.stub.get(), header, Frames("agent-b", 1, 1));
+  EXPECT_EQ(loop.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+
+  // DeleteMap: gone for every worker, its stream too.
+  {
+    grpc::ClientContext context;
+    v1::DeleteMapRequest request;
+    request.set_name("lab-1");
+    v1::DeleteMapResponse response;
+    ASSERT_TRUE(second.stub->DeleteMap(&context, request, &response).ok());
+    grpc::ClientContext get_context;
+    v1::GetMapRequest get;
+    get.set_name("lab-1");
+    v1::MapDescription description;
+    EXPECT_EQ(first.stub->GetMap(&get_context, get, &description).error_code(),
+              grpc::StatusCode::NOT_FOUND);
+    EXPECT_EQ(js->GetStreamInfo(cluster::StreamName("test", "lab-1")).status().code(),
+              StatusCode::kNotFound);
+  }
+
+  // Re-created under its name with another configuration: the worker that held a copy of the
+  // old map processes frames with the new one, and the new stream starts at 1.
+  {
+    grpc::ClientContext context;
+    v1::CreateMapRequest request;
+    request.set_name("lab-1");
+    request.mutable_config()->mutable_orb()->set_max_features(300);
+    v1::MapDescription response;
+    ASSERT_TRUE(second.stub->CreateMap(&context, request, &response).ok());
+    EXPECT_EQ(response.config().orb().max_features(), 300);
+  }
+  const IngestOutcome again = IngestAll(first.stub.get(), "lab-1", Frames("agent-a", 1, 2));
+  ASSERT_TRUE(again.status.ok()) << again.status.error_message();
+  ASSERT_EQ(again.responses.size(), 2u);
+  ASSERT_GT(ingested.responses[0].counts().total(), 300u);  // the old map's budget: 1000
+  EXPECT_LE(again.responses[0].counts().total(), 300u);
+  EXPECT_GT(again.responses[0].counts().total(), 0u);
+  info = js->GetStreamInfo(cluster::StreamName("test", "lab-1"));
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->last_sequence, 2u);
+}
+
+// With 2 of 3 NATS servers down nothing is acknowledged (the frame's answer is UNAVAILABLE); with
+// one back, ingest resumes, and the refused frame sent again is stored once.
+TEST_F(ClusterWorkerTest, NoQuorumNothingAcknowledgedThenResumes) {
+  Worker& worker = StartWorker(1, /*metrics=*/true);
+  ASSERT_TRUE(worker.stub);
+  ASSERT_TRUE(CreateClusterMap(worker, "m").ok());
+  const IngestOutcome before = IngestAll(worker.stub.get(), "m", Frames("agent-a", 1, 2));
+  ASSERT_TRUE(before.status.ok());
+  auto js = Js();
+  ASSERT_TRUE(js);
+  const std::string stream = cluster::StreamName("test", "m");
+  // Down: two nodes that are not the one the worker is connected to, when we can tell (either
+  // way no quorum is left).
+  engines_->KillNats(1);
+  engines_->KillNats(2);
+  const IngestOutcome refused = IngestAll(worker.stub.get(), "m", Frames("agent-a", 3, 3));
+  ASSERT_EQ(refused.responses.size(), 1u);
+  EXPECT_TRUE(refused.responses[0].has_error());
+  EXPECT_EQ(refused.responses[0].error().code(), int(grpc::StatusCode::UNAVAILABLE))
+      << refused.responses[0].error().message();
+  EXPECT_FALSE(refused.responses[0].stored());
+  EXPECT_EQ(refused.responses[0].place_id(), 0u);
+
+  ASSERT_TRUE(engines_->RestartNats(1).ok());
+  // Frame 3 again (same id: stored at most once), then a new one.
+  const IngestOutcome after = IngestAll(worker.stub.get(), "m", Frames("agent-a", 3, 4));
+  ASSERT_TRUE(after.status.ok()) << after.status.error_message();
+  ASSERT_EQ(after.responses.size(), 2u);
+  for (const auto& response : after.responses) {
+    EXPECT_FALSE(response.has_error()) << response.error().message();
+  }
+  auto info = js->GetStreamInfo(stream);
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  EXPECT_EQ(info->last_sequence, 4u);  // frames 1-4, each once
+  // The publishes that got no acknowledgement were retried with the same id, and counted.
+  const auto metrics = ParseMetrics(HttpGet(worker.server->metrics_port(), "/metrics"));
+  EXPECT_GT(MetricValue(metrics, "placedb_cluster_retries_total", {{"call", "Publish"}}), 0);
+  EXPECT_GE(MetricValue(metrics, "placedb_cluster_publish_seconds_count"), 4);
+}
+
+// Precomputed features of RTAB-Map frames 1..n (extracted once): ingest measures the cluster,
+// not ORB extraction.
+const std::vector<v1::Features>& FeatureFrames(int n) {
+  static std::vector<v1::Features> features;
+  while (int(features.size()) < n) {
+    features.push_back(FeaturesOf(RtabmapObservation(int(features.size()) + 1, "x")));
+  }
+  return features;
+}
+
+v1::Observation FeatureObservation(int frame, const std::string& agent) {
+  v1::Observation observation;
+  observation.set_agent_id(agent);
+  observation.set_sequence(uint64_t(frame));
+  observation.set_timestamp_ns(int64_t(frame) * 100'000'000);
+  // Frames beyond the sequence's 84 repeat its features (a robot passing again).
+  const int source = (frame - 1) % 84 + 1;
+  *observation.mutable_features() = FeatureFrames(source)[size_t(source - 1)];
+  return observation;
+}
+
+// 2 maps, 4 agents over 2 workers; during ingest the JetStream leader of a map's stream is killed
+// and one worker stops with its streams cut. Every agent then sends what was not acknowledged
+// again through the surviving worker: every frame ends with a place id, the ids answered twice
+// agree, and each map's stream holds each frame once (no duplicates, nothing lost).
+TEST_F(ClusterWorkerTest, LeaderAndWorkerKilledDuringIngest) {
+  constexpr int kFrames = 400;
+  FeatureFrames(84);
+  Worker& survivor = StartWorker(1);
+  Worker& doomed = StartWorker(2);
+  ASSERT_TRUE(survivor.stub && doomed.stub);
+  ASSERT_TRUE(CreateClusterMap(survivor, "m1").ok());
+  ASSERT_TRUE(CreateClusterMap(survivor, "m2").ok());
+  struct Agent {
+    std::string id, map;
+    Worker* worker;
+    IngestOutcome first;
+  };
+  std::vector<Agent> agents = {{"a1", "m1", &survivor, {}},
+                               {"a2", "m1", &doomed, {}},
+                               {"a3", "m2", &survivor, {}},
+                               {"a4", "m2", &doomed, {}}};
+  std::vector<std::thread> threads;
+  for (Agent& agent : agents) {
+    threads.emplace_back([&agent] {
+      std::vector<v1::Observation> frames;
+      for (int f = 1; f <= kFrames; ++f) frames.push_back(FeatureObservation(f, agent.id));
+      agent.first = IngestAll(agent.worker->stub.get(), agent.map, frames);
+    });
+  }
+  // Mid-ingest: the stream leader of m1 dies, then the second worker.
+  std::this_thread::sleep_for(150ms);
+  auto leader = engines_->StreamLeader(cluster::StreamName("test", "m1"));
+  ASSERT_TRUE(leader.ok()) << leader.status().ToString();
+  engines_->KillNats(*leader);
+  std::this_thread::sleep_for(150ms);
+  doomed.server->Shutdown();
+  for (std::thread& thread : threads) thread.join();
+  ASSERT_TRUE(engines_->RestartNats(*leader).ok());
+
+  // Resend what was not acknowledged (no answer, or an error) through the survivor.
+  std::map<std::string, std::map<int, uint32_t>> ids;  // agent -> frame -> place id
+  int acknowledged_first = 0;
+  for (Agent& agent : agents) {
+    std::vector<v1::Observation> again;
+    for (int f = 1; f <= kFrames; ++f) {
+      const auto& responses = agent.first.responses;
+      if (size_t(f) <= responses.size() && !responses[size_t(f - 1)].has_error()) {
+        // 0: an invalid frame (too few static features): a record, no place.
+        ids[agent.id][f] = responses[size_t(f - 1)].place_id();
+        ++acknowledged_first;
+      }
+      // Acknowledged frames too, for some: their ids must come back unchanged.
+      if (!ids[agent.id].count(f) || f % 7 == 0) again.push_back(FeatureObservation(f, agent.id));
+    }
+    const IngestOutcome second = IngestAll(survivor.stub.get(), agent.map, again);
+    ASSERT_TRUE(second.status.ok()) << second.status.error_message();
+    ASSERT_EQ(second.responses.size(), again.size());
+    for (size_t i = 0; i < again.size(); ++i) {
+      const int f = int(again[i].sequence());
+      ASSERT_FALSE(second.responses[i].has_error()) << second.responses[i].error().message();
+      if (ids[agent.id].count(f)) {
+        EXPECT_EQ(second.responses[i].place_id(), ids[agent.id][f]) << agent.id << " " << f;
+      }
+      ids[agent.id][f] = second.responses[i].place_id();
+    }
+  }
+  std::printf("cluster_worker_failover_acknowledged_before_resend %d frames\n", acknowledged_first);
+  // Each map's stream: exactly one record per frame of its two agents, place ids all distinct.
+  auto js = Js();
+  ASSERT_TRUE(js);
+  for (const std::string map : {"m1", "m2"}) {
+    std::set<uint32_t> distinct;
+    size_t places = 0;
+    for (const Agent& agent : agents) {
+      if (agent.map != map) continue;
+      ASSERT_EQ(ids[agent.id].size(), size_t(kFrames));
+      for (const auto& [frame, id] : ids[agent.id]) {
+        if (id == 0) continue;
+        distinct.insert(id);
+        ++places;
+      }
+    }
+    ASSERT_GT(places, size_t(kFrames));  // most frames are places
+    EXPECT_EQ(distinct.size(), places) << map;
+    auto info = js->GetStreamInfo(cluster::StreamName("test", map));
+    ASSERT_TRUE(info.ok()) << info.status().ToString();
+    EXPECT_EQ(info->messages, uint64_t(2 * kFrames)) << map;
+    EXPECT_LE(*distinct.rbegin(), info->last_sequence) << map;
+
+    // The records themselves: one per (agent, frame), and each acknowledged place id is the
+    // sequence of the record of that very frame.
+    Mutex mutex;
+    CondVar done;
+    std::map<uint64_t, std::pair<std::string, uint64_t>> records;  // sequence -> agent, frame
+    std::vector<std::string> errors;
+    auto consumer =
+        js->Consume(cluster::StreamName("test", map), cluster::StreamSubject("test", map), 1,
+                    [&](uint64_t sequence, std::string_view data) {
+                      auto record = cluster::DecodeMapRecord(data, FeatureType::kOrb);
+                      MutexLock lock(mutex);
+                      if (!record.ok()) {
+                        errors.push_back(record.status().ToString());
+                      } else {
+                        records[sequence] = {record->metadata.agent_id, record->metadata.sequence};
+                      }
+                      done.NotifyAll();
+                    });
+    ASSERT_TRUE(consumer.ok()) << consumer.status().ToString();
+    {
+      MutexLock lock(mutex);
+      const auto until = std::chrono::steady_clock::now() + 30s;
+      while (records.size() + errors.size() < info->messages && done.WaitUntil(mutex, until)) {
+      }
+      EXPECT_TRUE(errors.empty()) << errors.front();
+      ASSERT_EQ(records.size(), info->messages);
+      std::set<std::pair<std::string, uint64_t>> frames;
+      for (const auto& [sequence, frame] : records) frames.insert(frame);
+      EXPECT_EQ(frames.size(), records.size()) << map << ": a frame stored twice";
+      for (const Agent& agent : agents) {
+        if (agent.map != map) continue;
+        for (const auto& [frame, id] : ids[agent.id]) {
+          if (id == 0) continue;
+          ASSERT_TRUE(records.count(id)) << id;
+          EXPECT_EQ(records[id], std::make_pair(agent.id, uint64_t(frame)));
+        }
+      }
+    }
+    (*consumer)->Stop();
+  }
+}
+
+int FreePort() {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t length = sizeof(address);
+  int port = 0;
+  if (::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
+      ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length) == 0) {
+    port = ntohs(address.sin_port);
+  }
+  ::close(fd);
+  return port;
+}
+
+// The roles as the binary takes them: placedb-server --role shard and --role worker with the
+// cluster flags: the worker serves the public API on the cluster (ingest with matches searched
+// on the shard process, a place read from it); without the engines' addresses a worker refuses
+// to start (status 2).
+TEST_F(ClusterWorkerTest, PlacedbServerProcessesWithTheClusterRoles) {
+  const std::string binary = PLACEDB_SERVER_BINARY;
+  const std::string quiet = " --console-listen off --metrics-listen off > /dev/null 2>&1";
+  const int refused = std::system((binary + " --role worker --etcd 127.0.0.1:1" + quiet).c_str());
+  ASSERT_TRUE(WIFEXITED(refused));
+  EXPECT_EQ(WEXITSTATUS(refused), 2);
+
+  auto join = [](const std::vector<std::string>& items) {
+    std::string out;
+    for (const std::string& item : items) out += (out.empty() ? "" : ",") + item;
+    return out;
+  };
+  // A shard process first: the worker's ingest below searches it, GetPlace reads it.
+  const int internal = FreePort();
+  ASSERT_GT(internal, 0);
+  cluster::testing::EngineProcess shard;
+  const std::string internal_address = "127.0.0.1:" + std::to_string(internal);
+  ASSERT_TRUE(shard
+                  .Start({binary,
+                          "--role",
+                          "shard",
+                          "--cluster-name",
+                          "proc",
+                          "--nats",
+                          join(engines_->NatsUrls()),
+                          "--etcd",
+                          join(engines_->EtcdEndpoints()),
+                          "--shard-id",
+                          "p-shard",
+                          "--advertise",
+                          internal_address,
+                          "--internal-listen",
+                          internal_address,
+                          "--data-dir",
+                          root_ + "/process-shard",
+                          "--vocabulary",
+                          "default=" + testing::DefaultVocabularyPath(),
+                          "--console-listen",
+                          "off",
+                          "--metrics-listen",
+                          "off"},
+                         root_ + "/process-shard.log")
+                  .ok());
+  const int port = FreePort();
+  ASSERT_GT(port, 0);
+  cluster::testing::EngineProcess process;
+  ASSERT_TRUE(
+      process
+          .Start({binary, "--role", "worker", "--cluster-name", "proc", "--nats",
+                  join(engines_->NatsUrls()), "--etcd", join(engines_->EtcdEndpoints()), "--listen",
+                  "127.0.0.1:" + std::to_string(port), "--data-dir", root_ + "/process-worker",
+                  "--vocabulary", "default=" + testing::DefaultVocabularyPath(), "--console-listen",
+                  "off", "--metrics-listen", "off"},
+                 root_ + "/process-worker.log")
+          .ok());
+  Worker worker;
+  worker.channel =
+      grpc::CreateChannel("127.0.0.1:" + std::to_string(port), grpc::InsecureChannelCredentials());
+  ASSERT_TRUE(worker.channel->WaitForConnected(std::chrono::system_clock::now() + 30s));
+  worker.stub = v1::PlaceDb::NewStub(worker.channel);
+  {
+    grpc::ClientContext context;
+    context.set_wait_for_ready(true);
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::ServerInfo info;
+    ASSERT_TRUE(worker.stub->GetServerInfo(&context, {}, &info).ok());
+    EXPECT_EQ(info.role(), "worker");
+  }
+  // The shard registers within a moment of starting; CreateMap then waits for its placement.
+  const auto until = std::chrono::steady_clock::now() + 30s;
+  grpc::Status created;
+  auto etcd = cluster::EtcdClient::Create({.endpoints = engines_->EtcdEndpoints()});
+  ASSERT_TRUE(etcd.ok());
+  while (std::chrono::steady_clock::now() < until) {
+    auto registered = (*etcd)->Get(cluster::ClusterKeys("proc").Shard("p-shard"));
+    if (registered.ok() && !registered->kvs.empty()) break;
+    std::this_thread::sleep_for(100ms);
+  }
+  ASSERT_TRUE(CreateClusterMap(worker, "p").ok());
+  v1::MatchOptions matches;
+  matches.set_top_k(3);
+  const IngestOutcome ingested =
+      IngestAll(worker.stub.get(), "p", Frames("agent-p", 1, 3), &matches);
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  ASSERT_EQ(ingested.responses.size(), 3u);
+  for (const auto& response : ingested.responses) {
+    ASSERT_FALSE(response.has_error()) << response.error().message();
+  }
+  ASSERT_TRUE(ingested.responses[2].stored());
+  {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::GetPlaceRequest request;
+    request.set_map("p");
+    request.set_place_id(ingested.responses[2].place_id());
+    v1::Place place;
+    const grpc::Status read = worker.stub->GetPlace(&context, request, &place);
+    ASSERT_TRUE(read.ok()) << read.error_message();
+    EXPECT_EQ(place.metadata().agent_id(), "agent-p");
+    EXPECT_EQ(place.metadata().sequence(), 3u);
+  }
+  auto js = Js();
+  ASSERT_TRUE(js);
+  auto info = js->GetStreamInfo(cluster::StreamName("proc", "p"));
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  EXPECT_EQ(info->last_sequence, 3u);
+  process.Kill();
+  shard.Kill();
+}
+
+// The whole path with shards: 3 shards, 2 workers, 2 maps, 4 agents ingesting with matches
+// (searched on a replica that applied the stream's last place) while the JetStream leader of a
+// stream, a shard holding a replica and a worker are killed, and queries go on through the other
+// worker. Afterwards every acknowledged place is on both live replicas of its map with the same
+// record, BoW and features, each frame is one place, the replicas' integrity checks pass, and
+// queries were answered before, during and after the kills.
+TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
+  constexpr int kFrames = 120;
+  FeatureFrames(84);
+  std::vector<std::unique_ptr<cluster::Shard>> shards(3);
+  auto start_shard = [&](int i) {
+    cluster::ShardOptions options;
+    options.cluster_name = "test";
+    options.nats = engines_->NatsUrls();
+    options.etcd = engines_->EtcdEndpoints();
+    options.shard_id = "shard-" + std::to_string(i);
+    options.internal_listen = "127.0.0.1:0";
+    options.data_dir = root_ + "/shard-" + std::to_string(i);
+    options.vocabularies.emplace("default", vocabulary_);
+    options.lease_ttl_s = 2;
+    auto shard = cluster::Shard::Start(std::move(options));
+    ASSERT_TRUE(shard.ok()) << shard.status().ToString();
+    shards[size_t(i)] = std::move(shard).value();
+  };
+  for (int i = 0; i < 3; ++i) ASSERT_NO_FATAL_FAILURE(start_shard(i));
+  Worker& survivor = StartWorker(1);
+  Worker& doomed = StartWorker(2);
+  ASSERT_TRUE(survivor.stub && doomed.stub);
+  ASSERT_TRUE(CreateClusterMap(survivor, "m1").ok());
+  {
+    // m2 counts query hits (issue 16): the queries below publish CountObservation records.
+    grpc::ClientContext context;
+    v1::CreateMapRequest request;
+    request.set_name("m2");
+    request.mutable_config()->mutable_dynamics()->set_count_query_hits_above(0.001);
+    v1::MapDescription response;
+    ASSERT_TRUE(survivor.stub->CreateMap(&context, request, &response).ok());
+  }
+
+  // Queries through the survivor all along (read-your-writes off: any replica).
+  std::atomic<bool> querying{true};
+  std::atomic<int> answered{0}, failed{0};
+  std::thread queries([&] {
+    int frame = 1;
+    while (querying) {
+      v1::QueryRequest request;
+      request.set_map("m2");
+      *request.mutable_observation() = FeatureObservation(frame++ % 84 + 1, "q");
+      request.mutable_options()->set_top_k(3);
+      grpc::ClientContext context;
+      context.set_deadline(std::chrono::system_clock::now() + 2s);
+      v1::QueryResponse response;
+      if (survivor.stub->Query(&context, request, &response).ok()) {
+        ++answered;
+      } else {
+        ++failed;
+      }
+      std::this_thread::sleep_for(50ms);
+    }
+  });
+
+  struct Agent {
+    std::string id, map;
+    Worker* worker;
+    IngestOutcome first;
+  };
+  std::vector<Agent> agents = {{"a1", "m1", &survivor, {}},
+                               {"a2", "m1", &doomed, {}},
+                               {"a3", "m2", &survivor, {}},
+                               {"a4", "m2", &doomed, {}}};
+  v1::MatchOptions matches;
+  matches.set_top_k(3);
+  std::vector<std::thread> threads;
+  for (Agent& agent : agents) {
+    threads.emplace_back([&agent, &matches] {
+      std::vector<v1::Observation> frames;
+      for (int f = 1; f <= kFrames; ++f) frames.push_back(FeatureObservation(f, agent.id));
+      agent.first = IngestAll(agent.worker->stub.get(), agent.map, frames, &matches);
+    });
+  }
+  // The kills once m1's stream holds a quarter of its frames: mid-ingest, whatever the load.
+  {
+    auto watcher = Js();
+    ASSERT_TRUE(watcher);
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    while (std::chrono::steady_clock::now() < until) {
+      auto info = watcher->GetStreamInfo(cluster::StreamName("test", "m1"));
+      if (info.ok() && info->last_sequence >= uint64_t(kFrames / 2)) break;
+      std::this_thread::sleep_for(10ms);
+    }
+  }
+  auto leader = engines_->StreamLeader(cluster::StreamName("test", "m1"));
+  ASSERT_TRUE(leader.ok()) << leader.status().ToString();
+  engines_->KillNats(*leader);
+  // A shard holding a replica of m1 dies (destroyed: its lease expires, its replicas move).
+  int killed = -1;
+  for (int i = 0; i < 3 && killed < 0; ++i) {
+    for (const cluster::ReplicaStatus& replica : shards[size_t(i)]->Replicas()) {
+      if (replica.map == "m1") killed = i;
+    }
+  }
+  ASSERT_GE(killed, 0);
+  shards[size_t(killed)].reset();
+  std::this_thread::sleep_for(300ms);
+  doomed.server->Shutdown();
+  for (std::thread& thread : threads) thread.join();
+  const int answered_during = answered;
+  ASSERT_TRUE(engines_->RestartNats(*leader).ok());
+
+  // What was not acknowledged goes again through the survivor (with matches: searched too).
+  std::map<std::string, std::map<int, uint32_t>> ids;
+  int acknowledged_first = 0;
+  for (Agent& agent : agents) {
+    std::vector<v1::Observation> again;
+    for (int f = 1; f <= kFrames; ++f) {
+      const auto& responses = agent.first.responses;
+      if (size_t(f) <= responses.size() && !responses[size_t(f - 1)].has_error()) {
+        ids[agent.id][f] = responses[size_t(f - 1)].place_id();
+        ++acknowledged_first;
+      } else {
+        again.push_back(FeatureObservation(f, agent.id));
+      }
+    }
+    if (again.empty()) continue;
+    const IngestOutcome second = IngestAll(survivor.stub.get(), agent.map, again, &matches);
+    ASSERT_TRUE(second.status.ok()) << second.status.error_message();
+    ASSERT_EQ(second.responses.size(), again.size());
+    for (size_t i = 0; i < again.size(); ++i) {
+      ASSERT_FALSE(second.responses[i].has_error()) << second.responses[i].error().message();
+      ids[agent.id][int(again[i].sequence())] = second.responses[i].place_id();
+    }
+  }
+  std::printf("cluster_e2e_acknowledged_before_resend %d frames\n", acknowledged_first);
+
+  // Both live replicas of each map catch up (the killed shard's replica replaced, epoch + 1).
+  auto js = Js();
+  ASSERT_TRUE(js);
+  for (const std::string map : {"m1", "m2"}) {
+    auto info = js->GetStreamInfo(cluster::StreamName("test", map));
+    ASSERT_TRUE(info.ok());
+    std::vector<std::shared_ptr<PlaceMap>> replicas;
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    while (std::chrono::steady_clock::now() < until) {
+      replicas.clear();
+      for (const auto& shard : shards) {
+        if (!shard) continue;
+        for (const cluster::ReplicaStatus& replica : shard->Replicas()) {
+          if (replica.map != map || replica.applied_sequence < info->last_sequence) continue;
+          auto opened = shard->Map(map);
+          if (opened.ok()) replicas.push_back(*opened);
+        }
+      }
+      if (replicas.size() == 2) break;
+      std::this_thread::sleep_for(100ms);
+    }
+    ASSERT_EQ(replicas.size(), 2u) << map << ": two replicas caught up";
+    std::set<uint32_t> distinct;
+    size_t places = 0;
+    for (const Agent& agent : agents) {
+      if (agent.map != map) continue;
+      ASSERT_EQ(ids[agent.id].size(), size_t(kFrames));
+      for (const auto& [frame, id] : ids[agent.id]) {
+        if (id == 0) continue;
+        ++places;
+        distinct.insert(id);
+        auto a = replicas[0]->GetPlace(id);
+        auto b = replicas[1]->GetPlace(id);
+        ASSERT_TRUE(a.ok() && b.ok()) << map << " place " << id;
+        EXPECT_EQ(a->record.metadata.agent_id, agent.id);
+        EXPECT_EQ(a->record.metadata.sequence, uint64_t(frame));
+        EXPECT_EQ(EncodePlaceRecord(a->record), EncodePlaceRecord(b->record)) << id;
+        EXPECT_EQ(EncodeBow(a->payload.bow), EncodeBow(b->payload.bow)) << id;
+        EXPECT_EQ(EncodeLocalFeatures(a->payload.features, a->payload.direct),
+                  EncodeLocalFeatures(b->payload.features, b->payload.direct))
+            << id;
+      }
+    }
+    EXPECT_EQ(distinct.size(), places) << map << ": a place id answered twice";
+    if (map == "m2") {
+      // Query hits counted: records beyond the frames', applied by both replicas.
+      EXPECT_GT(info->messages, uint64_t(2 * kFrames));
+    }
+    for (const auto& replica : replicas) {
+      EXPECT_EQ(replica->Stats().database.places, places) << map << ": duplicates or losses";
+      EXPECT_TRUE(replica->VerifyIntegrity().ok()) << map;
+    }
+  }
+  // GetMap's places: a replica's count.
+  {
+    grpc::ClientContext context;
+    v1::GetMapRequest request;
+    request.set_name("m1");
+    v1::MapDescription description;
+    ASSERT_TRUE(survivor.stub->GetMap(&context, request, &description).ok());
+    size_t places = 0;
+    for (const char* agent : {"a1", "a2"}) {
+      for (const auto& [frame, id] : ids[agent]) places += id != 0;
+    }
+    EXPECT_EQ(description.stats().places(), places);
+  }
+  // DeletePlace: published, then gone from the replicas; NOT_FOUND for an id that is no place.
+  {
+    const uint32_t id = ids["a1"][1] ? ids["a1"][1] : ids["a1"][2];
+    ASSERT_GT(id, 0u);
+    grpc::ClientContext context;
+    v1::DeletePlaceRequest request;
+    request.set_map("m1");
+    request.set_place_id(id);
+    v1::DeletePlaceResponse response;
+    const grpc::Status deleted = survivor.stub->DeletePlace(&context, request, &response);
+    ASSERT_TRUE(deleted.ok()) << deleted.error_message();
+    grpc::StatusCode code = grpc::StatusCode::OK;
+    for (const auto until = std::chrono::steady_clock::now() + 20s;
+         code != grpc::StatusCode::NOT_FOUND && std::chrono::steady_clock::now() < until;) {
+      grpc::ClientContext get_context;
+      v1::GetPlaceRequest get;
+      get.set_map("m1");
+      get.set_place_id(id);
+      v1::Place place;
+      code = survivor.stub->GetPlace(&get_context, get, &place).error_code();
+      if (code != grpc::StatusCode::NOT_FOUND) std::this_thread::sleep_for(50ms);
+    }
+    EXPECT_EQ(code, grpc::StatusCode::NOT_FOUND);
+    grpc::ClientContext again_context;
+    EXPECT_EQ(survivor.stub->DeletePlace(&again_context, request, &response).error_code(),
+              grpc::StatusCode::NOT_FOUND);
+  }
+  // Read-your-writes: a query asking for a replica that applied a1's last place gets one.
+  {
+    const uint32_t last = ids["a1"][kFrames];
+    ASSERT_GT(last, 0u);
+    v1::QueryRequest request;
+    request.set_map("m1");
+    request.set_min_sequence(last);
+    *request.mutable_observation() = FeatureObservation(kFrames, "q");
+    request.mutable_options()->set_top_k(5);
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 10s);
+    v1::QueryResponse response;
+    const grpc::Status status = survivor.stub->Query(&context, request, &response);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+    EXPECT_GE(response.sequence(), last);
+    ASSERT_GT(response.matches_size(), 0);
+  }
+  querying = false;
+  queries.join();
+  std::printf("cluster_e2e_queries_answered %d queries\ncluster_e2e_queries_failed %d queries\n",
+              answered.load(), failed.load());
+  EXPECT_GT(answered_during, 0);
+  EXPECT_GT(answered.load(), answered_during);  // and after the kills
+  workers_.clear();                             // before the shards they call
+  shards.clear();
+}
+
+}  // namespace
+}  // namespace placedb::server_testing
