@@ -2,7 +2,8 @@
 """Cluster soak and worker throughput (issue 18; docs/cluster.md), on tools/cluster_local.py.
 
 Soak (default): `up --hosts 3`, 2 maps, `--agents` agents x `--frames` frames through the
-workers' public placedb.v1 API (the Python SDK, client/python), a random host killed every
+workers' public placedb.v1 API (the Python SDK, client/python), each agent at most
+`--agent-rate` frames/s (default 7: 1,250 frames take ~180 s, past the 5th kill), a random host killed every
 `--kill-every` s (`--kills` kills, each restarted after `--down` s), `--query-rate` queries/s
 with a `--deadline` budget and at most one retry (on another worker, in the budget left). Then:
 every acknowledged place is read back through the workers; then the 2-of-3-NATS-down check
@@ -299,8 +300,19 @@ def soak(args, sdk) -> int:
                 w = live["workers"]
                 return w[failures % len(w)]
 
-        make = (lambda a, s: image_frame(sdk, args.image_paths, s)) if args.image_paths else \
+        unpaced = (lambda a, s: image_frame(sdk, args.image_paths, s)) if args.image_paths else \
             (lambda a, s: synthetic_frame(sdk, a, s))
+        # Agents send at most --agent-rate frames/s each (a robot's keyframe rate), on a schedule
+        # from the soak's start: the ingest then spans the kills instead of ending before them,
+        # and an agent that lost time to a failover catches up at once.
+        started = time.monotonic()
+
+        def make(agent: str, sequence: int):
+            if args.agent_rate > 0:
+                due = started + sequence / args.agent_rate
+                while not stop.is_set() and time.monotonic() < due:
+                    time.sleep(min(0.05, due - time.monotonic()))
+            return unpaced(agent, sequence)
         threads = [threading.Thread(target=agent_loop, daemon=True, args=(
             sdk, cluster, MAPS[i % 2], f"agent-{i}", args.frames, make, acks, stop, pick))
             for i in range(args.agents)]
@@ -552,6 +564,8 @@ def main() -> int:
                         help="placedb roles per host (tools/cluster_local.py up --roles)")
     parser.add_argument("--agents", type=int, default=8)
     parser.add_argument("--frames", type=int, default=1250)
+    parser.add_argument("--agent-rate", type=float, default=7.0,
+                        help="frames/s per agent in the soak (0: unpaced)")
     parser.add_argument("--kills", type=int, default=5)
     parser.add_argument("--kill-every", type=float, default=30.0)
     parser.add_argument("--down", type=float, default=10.0, help="seconds a killed host stays down")

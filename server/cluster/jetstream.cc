@@ -88,6 +88,10 @@ Result<std::unique_ptr<JetStream>> JetStream::Connect(JetStreamOptions options) 
   if (status == NATS_OK) status = natsOptions_SetAllowReconnect(nats_options, true);
   if (status == NATS_OK) status = natsOptions_SetMaxReconnect(nats_options, -1);
   if (status == NATS_OK) status = natsOptions_SetReconnectWait(nats_options, 100);
+  // A server whose host vanished sends no reset: 2 unanswered pings 1 s apart mark it dead, and
+  // the connection moves on (libnats' default, 2 minutes, would stall every publish meanwhile).
+  if (status == NATS_OK) status = natsOptions_SetPingInterval(nats_options, 1000);
+  if (status == NATS_OK) status = natsOptions_SetMaxPingsOut(nats_options, 2);
   // Publishes made while reconnecting fail at once (IO_ERROR) instead of being buffered and
   // acknowledged never: the caller retries with the same message id.
   if (status == NATS_OK) status = natsOptions_SetReconnectBufSize(nats_options, 0);
