@@ -25,6 +25,7 @@
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/map_record.h"
+#include "server/cluster/placement.h"
 #include "server/metrics.h"
 #include "server/place_reads.h"
 
@@ -36,21 +37,6 @@ namespace pv1 = ::placedb::v1;
 namespace cv1 = ::placedb::cluster::v1;
 using Clock = std::chrono::steady_clock;
 using wire::ToGrpc;
-
-// The agreed names (common interface, docs/cluster.md): upper-case hex of the map name's bytes.
-std::string HexOf(const std::string& bytes) {
-  static const char* kDigits = "0123456789ABCDEF";
-  std::string out;
-  for (unsigned char c : bytes) {
-    out.push_back(kDigits[c >> 4]);
-    out.push_back(kDigits[c & 15]);
-  }
-  return out;
-}
-
-std::string SubjectOf(const std::string& cluster_name, const std::string& map) {
-  return "placedb." + cluster_name + ".map." + HexOf(map);
-}
 
 // maps/<map>: {"config": <placedb.v1.MapConfig as proto JSON>, "stream": name, ...}.
 struct MapMeta {
@@ -449,7 +435,7 @@ void Shard::Impl::Reconcile() {
       if (!slot) {
         slot = std::make_shared<Replica>();
         slot->name = name;
-        slot->subject = SubjectOf(options_.cluster_name, name);
+        slot->subject = StreamSubject(options_.cluster_name, name);
       }
       replica = slot;
     }

@@ -22,6 +22,7 @@
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/map_record.h"
+#include "server/cluster/placement.h"
 #include "server/metrics.h"
 #include "tests/cluster/engines.h"
 #include "tests/rtabmap_frames.h"
@@ -46,20 +47,11 @@ bool WaitFor(Predicate done, std::chrono::milliseconds limit = 30s) {
   return done();
 }
 
-std::string Hex(const std::string& bytes) {
-  static const char* kDigits = "0123456789ABCDEF";
-  std::string out;
-  for (unsigned char c : bytes) {
-    out.push_back(kDigits[c >> 4]);
-    out.push_back(kDigits[c & 15]);
-  }
-  return out;
-}
 std::string StreamOf(const std::string& map) {
-  return "PLACEDB_TEST_" + Hex(map);
+  return cluster::StreamName(kCluster, map);
 }
 std::string SubjectOf(const std::string& map) {
-  return std::string("placedb.") + kCluster + ".map." + Hex(map);
+  return cluster::StreamSubject(kCluster, map);
 }
 std::string Key(const std::string& suffix) {
   return std::string("/placedb/") + kCluster + "/" + suffix;

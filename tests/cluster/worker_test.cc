@@ -293,6 +293,20 @@ v1::Observation FeatureObservation(int frame, const std::string& agent) {
   return observation;
 }
 
+// An agent of the kill tests: its map, the worker it starts on and what its first stream got.
+struct Agent {
+  std::string id, map;
+  Worker* worker;
+  IngestOutcome first;
+};
+// 4 agents, 2 per map, one of each map on each worker.
+std::vector<Agent> FourAgents(Worker& survivor, Worker& doomed) {
+  return {{"a1", "m1", &survivor, {}},
+          {"a2", "m1", &doomed, {}},
+          {"a3", "m2", &survivor, {}},
+          {"a4", "m2", &doomed, {}}};
+}
+
 // 2 maps, 4 agents over 2 workers; during ingest the JetStream leader of a map's stream is killed
 // and one worker stops with its streams cut. Every agent then sends what was not acknowledged
 // again through the surviving worker: every frame ends with a place id, the ids answered twice
@@ -305,15 +319,7 @@ TEST_F(ClusterWorkerTest, LeaderAndWorkerKilledDuringIngest) {
   ASSERT_TRUE(survivor.stub && doomed.stub);
   ASSERT_TRUE(CreateClusterMap(survivor, "m1").ok());
   ASSERT_TRUE(CreateClusterMap(survivor, "m2").ok());
-  struct Agent {
-    std::string id, map;
-    Worker* worker;
-    IngestOutcome first;
-  };
-  std::vector<Agent> agents = {{"a1", "m1", &survivor, {}},
-                               {"a2", "m1", &doomed, {}},
-                               {"a3", "m2", &survivor, {}},
-                               {"a4", "m2", &doomed, {}}};
+  std::vector<Agent> agents = FourAgents(survivor, doomed);
   std::vector<std::thread> threads;
   for (Agent& agent : agents) {
     threads.emplace_back([&agent] {
@@ -614,15 +620,7 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
     }
   });
 
-  struct Agent {
-    std::string id, map;
-    Worker* worker;
-    IngestOutcome first;
-  };
-  std::vector<Agent> agents = {{"a1", "m1", &survivor, {}},
-                               {"a2", "m1", &doomed, {}},
-                               {"a3", "m2", &survivor, {}},
-                               {"a4", "m2", &doomed, {}}};
+  std::vector<Agent> agents = FourAgents(survivor, doomed);
   v1::MatchOptions matches;
   matches.set_top_k(3);
   std::vector<std::thread> threads;
