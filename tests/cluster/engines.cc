@@ -12,6 +12,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
@@ -231,9 +232,18 @@ Result<std::unique_ptr<Engines>> Engines::Start(EnginesOptions options) {
   if (!options.netns.empty() && static_cast<int>(options.netns.size()) != options.nodes) {
     return Status::InvalidArgument("Engines: one network namespace per node, or none");
   }
-  std::unique_ptr<Engines> engines(new Engines(std::move(options)));
-  PLACEDB_RETURN_IF_ERROR(engines->Setup());
-  return engines;
+  // Free ports are picked before the engines bind them, so a process started meanwhile (a test
+  // running beside this one) can take one: the engine then fails to listen. Start over on fresh
+  // ports, a few times, before reporting it.
+  Status failed = Status::Ok();
+  for (int attempt = 1; attempt <= 3; ++attempt) {
+    std::unique_ptr<Engines> engines(new Engines(options));
+    failed = engines->Setup();
+    if (failed.ok()) return engines;
+    std::fprintf(stderr, "Engines: start attempt %d failed: %s\n", attempt,
+                 failed.ToString().c_str());
+  }  // each failed attempt's destructor killed its engines and removed its directory
+  return failed;
 }
 
 Status Engines::Setup() {

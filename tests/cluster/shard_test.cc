@@ -59,29 +59,35 @@ std::string Key(const std::string& suffix) {
 
 class ShardTest : public ::testing::Test {
  protected:
-  static void SetUpTestSuite() {
-    ASSERT_TRUE(placedb::testing::HaveSharedData()) << "../shared/data is required";
+  // No assertion here: a fatal failure in SetUpTestSuite makes gtest print "[  SKIPPED ]",
+  // which ctest takes for a skip. What went wrong is kept, and every test fails on it in SetUp.
+  static void SetUpTestSuite() { setup_error_ = new std::string(Prepare()); }
+  static std::string Prepare() {
+    if (!placedb::testing::HaveSharedData()) return "../shared/data is required";
     auto engines = testing::Engines::Start();
-    ASSERT_TRUE(engines.ok()) << engines.status().ToString();
+    if (!engines.ok()) return "engines: " + engines.status().ToString();
     engines_ = std::move(engines).value().release();
     vocabulary_ = new AnyVocabulary(placedb::testing::DefaultVocabulary());
     // The frames, processed as a worker would for a map of the default configuration.
     wire::ServiceMapSettings settings;
     auto options = wire::MapOptionsFromProto(
         pv1::MapConfig(), 4000, wire::MapVocabulary{"default", FeatureType::kOrb}, &settings);
-    ASSERT_TRUE(options.ok()) << options.status().ToString();
+    if (!options.ok()) return options.status().ToString();
     auto db = PlaceDatabase::Create(*vocabulary_, options->database);
-    ASSERT_TRUE(db.ok()) << db.status().ToString();
+    if (!db.ok()) return db.status().ToString();
     frames_ = new std::vector<ProcessedFrame>(placedb::testing::ProcessRtabmapFrames(**db, 12));
-    ASSERT_EQ(frames_->size(), 12u);
+    if (frames_->size() != 12u) return "12 RTAB-Map frames expected";
+    return "";
   }
   static void TearDownTestSuite() {
     delete frames_;
     delete vocabulary_;
     delete engines_;  // kills every engine
+    delete setup_error_;
   }
 
   void SetUp() override {
+    ASSERT_TRUE(setup_error_->empty()) << *setup_error_;
     ASSERT_TRUE(engines_);
     root_ = placedb::testing::MakeTempDir("placedb-shard");
     JetStreamOptions js;
@@ -199,6 +205,7 @@ class ShardTest : public ::testing::Test {
   }
 
   static testing::Engines* engines_;
+  static std::string* setup_error_;
   static AnyVocabulary* vocabulary_;
   static std::vector<ProcessedFrame>* frames_;
   std::string root_;
@@ -207,6 +214,7 @@ class ShardTest : public ::testing::Test {
 };
 
 testing::Engines* ShardTest::engines_ = nullptr;
+std::string* ShardTest::setup_error_ = nullptr;
 AnyVocabulary* ShardTest::vocabulary_ = nullptr;
 std::vector<ProcessedFrame>* ShardTest::frames_ = nullptr;
 

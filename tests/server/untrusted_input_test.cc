@@ -358,8 +358,12 @@ TEST(DiagnoseMessageTest, NamesTheFirstProblemWithItsPath) {
             "the data is malformed (a bad field tag at byte 0)");
   EXPECT_EQ(server::DiagnoseMessage(std::string("\x0F\x01", 2), v1::QueryRequest()),
             "the data is malformed (wire type 7 in field map (1))");
+  // Field 15 (no field of QueryRequest: named by its number), a varint that never ends.
+  EXPECT_EQ(server::DiagnoseMessage(std::string("\x78\xFF\xFF", 3), v1::QueryRequest()),
+            "the data is truncated or malformed (in field field number 15)");
+  // A known field is named.
   EXPECT_EQ(server::DiagnoseMessage(std::string("\x20\xFF\xFF", 3), v1::QueryRequest()),
-            "the data is truncated or malformed (in field field number 4)");
+            "the data is truncated or malformed (in field min_sequence (4))");
 }
 
 // ---- No absolute path reaches a client ------------------------------------------------------
