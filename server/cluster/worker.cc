@@ -65,16 +65,12 @@ Result<v1::MapConfig> ConfigOf(const cluster::MapRecordInfo& info) {
 
 }  // namespace
 
-ClusterWorker::ClusterWorker(const ServerConfig& config, MapRegistry* local, Metrics* metrics)
-    : config_(config),
-      cluster_(config.cluster),
-      local_(local),
-      metrics_(metrics),
-      id_(WorkerId()) {}
+ClusterWorker::ClusterWorker(const ServerConfig& config, MapRegistry* local)
+    : config_(config), cluster_(config.cluster), local_(local), id_(WorkerId()) {}
 
 Result<std::unique_ptr<ClusterWorker>> ClusterWorker::Start(const ServerConfig& config,
                                                             MapRegistry* local, Metrics* metrics) {
-  std::unique_ptr<ClusterWorker> worker(new ClusterWorker(config, local, metrics));
+  std::unique_ptr<ClusterWorker> worker(new ClusterWorker(config, local));
   const ClusterSettings& c = config.cluster;
   cluster::EtcdOptions etcd;
   etcd.endpoints = c.etcd;

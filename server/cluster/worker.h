@@ -99,7 +99,7 @@ class ClusterWorker final : public ClusterBackend {
   bool coordinating() const { return coordinator_ && coordinator_->leading(); }
 
  private:
-  ClusterWorker(const ServerConfig& config, MapRegistry* local, Metrics* metrics);
+  ClusterWorker(const ServerConfig& config, MapRegistry* local);
 
   // The map as etcd has it (the view, else a linearizable read): NOT_FOUND naming `field`.
   Result<cluster::MapView> Lookup(const std::string& name, const std::string& field);
@@ -128,7 +128,6 @@ class ClusterWorker final : public ClusterBackend {
   const ServerConfig& config_;
   const ClusterSettings& cluster_;
   MapRegistry* const local_;
-  Metrics* const metrics_;
   std::unique_ptr<cluster::EtcdClient> etcd_;
   std::unique_ptr<cluster::JetStream> jetstream_;
   std::unique_ptr<cluster::ClusterView> view_;
