@@ -1,6 +1,7 @@
 #include "eval/dataset.h"
 
 #include <algorithm>
+#include <charconv>
 #include <climits>
 #include <cmath>
 #include <cstdint>
@@ -14,6 +15,7 @@
 #include <set>
 #include <sstream>
 #include <string_view>
+#include <system_error>
 #include <utility>
 
 #include "core/detect/detector.h"
@@ -518,11 +520,19 @@ Result<Dataset> LoadCsv(const std::string& directory) {
   return dataset;
 }
 
-std::string CsvNumber(double value) {
+// Box fields are floats: 9 significant digits bring each back exactly.
+std::string CsvNumber(float value) {
   std::ostringstream out;
   out.precision(9);
   out << value;
   return out.str();
+}
+
+// Doubles (coverage) in their shortest form that parses back to the same value.
+std::string CsvNumber(double value) {
+  char text[32];
+  const auto [end, error] = std::to_chars(text, text + sizeof(text), value);
+  return error == std::errc() ? std::string(text, end) : std::to_string(value);
 }
 
 }  // namespace

@@ -158,7 +158,7 @@ TEST_F(EvalTest, DatasetRoundTripsThroughJsonAndCsv) {
   Entry query;
   query.id = "q1";
   query.image = RtabmapDir() + "/41.jpg";
-  query.coverage = 0.25;
+  query.coverage = 4.0 / 9.0;  // needs all 17 digits in the CSV to come back exactly
   query.ground_truth = {"db,1"};
   dataset.queries.push_back(query);
   query.id = "q2";  // no ground truth, no boxes known
@@ -187,7 +187,7 @@ TEST_F(EvalTest, DatasetRoundTripsThroughJsonAndCsv) {
     EXPECT_EQ(d->queries[0].ground_truth, std::vector<std::string>{"db,1"});
     EXPECT_TRUE(d->queries[1].ground_truth.empty());
     ASSERT_TRUE(d->queries[0].coverage.has_value());
-    EXPECT_DOUBLE_EQ(*d->queries[0].coverage, 0.25);
+    EXPECT_EQ(*d->queries[0].coverage, 4.0 / 9.0);
     EXPECT_FALSE(d->queries[1].coverage.has_value());
   }
   EXPECT_EQ(GroundTruthIndices(*loaded), (std::vector<std::vector<int>>{{0}, {}}));
