@@ -17,7 +17,15 @@ every acknowledged place is read back through the workers; then the 2-of-3-NATS-
 
 Throughput (`--workers 1,2,3`): for each count, `--agents` agents ingest for `--duration` s
 through that many workers: frames/s of precomputed features (`feat`) and, with `--images`, of
-JPEG frames with detection (`jpeg`).
+JPEG frames with detection (`jpeg`). `--worker-cpu C` caps each worker process at C cores (a
+cgroup CPU quota, as root): every process of the 3 "hosts" shares this machine's cores, so
+without a cap the machine, not the worker tier, is what saturates.
+
+Replica (`replica --places N`): one map of N places (synthetic frames of `--features`
+features), then moved by hand to the third shard (docs/cluster.md, "Move a map"): seconds from
+the placement change until the new replica has applied the stream's last place (restored from a
+live replica's checkpoint, then the tail), and the share of stored frames it answers with their
+own place once the other replica's shard is SIGKILLed.
 
 Frames: precomputed synthetic ORB features (deterministic per agent and sequence: a frame
 resent after a failover is the same frame with the same message id `<agent>/<sequence>`), or
@@ -430,13 +438,57 @@ def nats_two_down(cluster: Cluster, sdk, status: dict) -> None:
     cluster.start_host(2)
 
 
+def cap_cpu(pid: int, name: str, cores: float) -> str:
+    """Puts process `pid` (all its threads) in a new cgroup limited to `cores` CPUs (the cpu
+    controller's quota: cgroup v2 cpu.max, else v1 cpu.cfs_quota_us). Returns the cgroup's
+    directory, for remove_cgroup."""
+    period = 100000
+    quota = str(int(cores * period))
+    v2 = os.path.exists("/sys/fs/cgroup/cgroup.controllers")
+    directory = f"/sys/fs/cgroup/{name}" if v2 else f"/sys/fs/cgroup/cpu/{name}"
+    os.makedirs(directory, exist_ok=True)
+    if v2:
+        with open(f"{directory}/cpu.max", "w") as f:
+            f.write(f"{quota} {period}")
+    else:
+        with open(f"{directory}/cpu.cfs_period_us", "w") as f:
+            f.write(str(period))
+        with open(f"{directory}/cpu.cfs_quota_us", "w") as f:
+            f.write(quota)
+    with open(f"{directory}/cgroup.procs", "w") as f:
+        f.write(str(pid))
+    return directory
+
+
+def remove_cgroup(directory: str) -> None:
+    """Removes a cgroup of cap_cpu once its processes are gone (a few tries: exits take a moment)."""
+    for _ in range(50):
+        try:
+            os.rmdir(directory)
+            return
+        except FileNotFoundError:
+            return
+        except OSError:
+            time.sleep(0.1)
+    print(f"cluster_soak: could not remove {directory}", file=sys.stderr)
+
+
 def throughput(args, sdk) -> int:
     counts = [int(c) for c in args.workers.split(",")]
     cluster = Cluster(tempfile.mkdtemp(prefix="placedb-throughput-"))
     cluster.up(max(3, max(counts)), ["--placedb-server", args.placedb_server, "--roles", args.roles]
                + [f"--server-arg={a}" for a in args.server_arg or []])
+    cgroups = []
     try:
         status = cluster.status()
+        if args.worker_cpu:
+            # Each worker stands in for a machine of its own with this many cores: the worker
+            # tier is then the bottleneck, as on a fleet's cluster, not the 2 cores all the
+            # "hosts" here share.
+            for i, host in enumerate(status["hosts"]):
+                cgroups.append(cap_cpu(host["processes"]["worker"]["pid"],
+                                       f"placedb-bench-worker{i}", args.worker_cpu))
+            out("throughput_worker_cpu_cap", args.worker_cpu, "cores")
         modes = [("feat", lambda a, s: synthetic_frame(sdk, a, s))]
         if args.image_paths:
             modes.append(("jpeg", lambda a, s: image_frame(sdk, args.image_paths, s)))
@@ -462,6 +514,108 @@ def throughput(args, sdk) -> int:
                 out(f"throughput_{mode}_workers{n}", acks.count() / elapsed, "frames/s")
     finally:
         cluster.down()
+        for directory in cgroups:
+            remove_cgroup(directory)
+    return 0
+
+
+# ---- a new replica of a large map ----------------------------------------------------------
+
+
+def etcd_prefix(status: dict, key: str) -> dict[str, str]:
+    """Keys under `key` (etcdctl get --prefix) -> values; every value here is one line."""
+    r = subprocess.run(["etcdctl", "--endpoints", ",".join(status["etcd"]), "get", "--prefix", key],
+                       capture_output=True, text=True, env={**os.environ, "ETCDCTL_API": "3"},
+                       timeout=30)
+    if r.returncode != 0:
+        raise RuntimeError(f"etcdctl get {key}: {r.stderr}")
+    lines = r.stdout.splitlines()
+    return dict(zip(lines[0::2], lines[1::2]))
+
+
+def etcd_put(status: dict, key: str, value: str) -> None:
+    subprocess.run(["etcdctl", "--endpoints", ",".join(status["etcd"]), "put", key, value],
+                   check=True, capture_output=True, env={**os.environ, "ETCDCTL_API": "3"},
+                   timeout=30)
+
+
+def applied_of(status: dict, map_name: str) -> dict[str, int]:
+    prefix = f"/placedb/{status['name']}/applied/{map_name}/"
+    return {k[len(prefix):]: int(v) for k, v in etcd_prefix(status, prefix).items()}
+
+
+def replica(args, sdk) -> int:
+    """`--places` places in one map, then the map moved to the third shard (docs/cluster.md,
+    "Move a map"): seconds until the new replica has applied the stream's last place, restored
+    from a live replica's checkpoint; then the other replica's shard is SIGKILLed and queries of
+    stored frames must be answered by the new one (top match = the frame's own place)."""
+    cluster = Cluster(tempfile.mkdtemp(prefix="placedb-replica-"))
+    cluster.up(3, ["--placedb-server", args.placedb_server, "--roles", args.roles]
+               + [f"--server-arg={a}" for a in args.server_arg or []])
+    try:
+        status = cluster.status()
+        map_name = "replica-big"
+        with sdk.Client(status["workers"][0]) as client:
+            client.create_map(map_name, map_settings(sdk, True))
+        acks, stop = Acks(), threading.Event()
+        per_agent = -(-args.places // args.agents)
+        workers = status["workers"]
+        threads = [threading.Thread(target=agent_loop, daemon=True, args=(
+            sdk, cluster, map_name, f"agent-{i}", per_agent,
+            lambda a, s: synthetic_frame(sdk, a, s, args.features), acks, stop,
+            lambda f, i=i: workers[(i + f) % len(workers)])) for i in range(args.agents)]
+        start = time.monotonic()
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        ingest_s = time.monotonic() - start
+        last = max(max(ids) for ids in acks.by_frame.values())
+        out("replica_places", acks.count(), "places")
+        out("replica_ingest_rate", acks.count() / ingest_s, "frames/s")
+        while min(applied_of(status, map_name).values() or [0]) < last or \
+                len(applied_of(status, map_name)) < 2:
+            if time.monotonic() - start > args.finish_timeout + ingest_s:
+                raise RuntimeError(f"replicas did not apply {last}: {applied_of(status, map_name)}")
+            time.sleep(0.5)
+        out("replica_apply_behind_ingest", time.monotonic() - start - ingest_s, "s")
+        placement_key = f"/placedb/{status['name']}/placement/{map_name}"
+        placement = json.loads(etcd_prefix(status, placement_key)[placement_key])
+        shards = [k.rsplit("/", 1)[1]
+                  for k in etcd_prefix(status, f"/placedb/{status['name']}/shards/")]
+        new = next(s for s in sorted(shards) if s not in placement["replicas"])
+        kept, moved = placement["replicas"]
+        placement["epoch"] += 1
+        placement["replicas"] = [kept, new]
+        print(f"cluster_soak: moving {map_name} from {moved} to {new} (kept {kept})",
+              file=sys.stderr)
+        moved_at = time.monotonic()
+        etcd_put(status, placement_key, json.dumps(placement))
+        while applied_of(status, map_name).get(new, 0) < last:
+            if time.monotonic() - moved_at > 600:
+                raise RuntimeError(f"{new} did not catch up: {applied_of(status, map_name)}")
+            time.sleep(0.05)
+        out("replica_new_serving", time.monotonic() - moved_at, "s")
+        new_host = int(new.split("-")[1])
+        log = status["hosts"][new_host]["processes"]["shard"]["log"]
+        with open(log, errors="replace") as f:
+            for line in f:
+                if map_name in line and ("checkpoint" in line or "holding" in line):
+                    print("cluster_soak: " + line.rstrip(), file=sys.stderr)
+        # Only the new replica is left: every answer comes from it.
+        cluster.kill_process(int(kept.split("-")[1]), "shard")
+        rng = random.Random(args.seed)
+        right = 0
+        with sdk.Client(workers[new_host]) as client:
+            for _ in range(args.replica_queries):
+                (agent, sequence), ids = rng.choice(sorted(acks.by_frame.items()))
+                (place,) = ids
+                result = client.query(map_name, synthetic_frame(sdk, agent, sequence, args.features),
+                                      top_k=1, timeout=10)
+                right += bool(result.matches) and result.matches[0].place_id == place
+        out("replica_queries_right", right / args.replica_queries, "share")
+    finally:
+        cluster.down(purge=not args.keep)
     return 0
 
 
@@ -555,7 +709,7 @@ class SelfTest(unittest.TestCase):
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("mode", nargs="?", default="soak", choices=["soak", "self-test"])
+    parser.add_argument("mode", nargs="?", default="soak", choices=["soak", "replica", "self-test"])
     parser.add_argument("--sdk", default=os.path.join(ROOT, "build", "client", "python"))
     parser.add_argument("--placedb-server",
                         default=os.path.join(ROOT, "build", "server", "placedb-server"))
@@ -575,7 +729,13 @@ def main() -> int:
     parser.add_argument("--images", help="JPEG/PNG directory: image frames (with detection)")
     parser.add_argument("--workers", help="throughput mode: comma-separated worker counts")
     parser.add_argument("--duration", type=float, default=30.0)
+    parser.add_argument("--worker-cpu", type=float, default=0.0,
+                        help="throughput mode: cap each worker at this many cores (cgroup)")
     parser.add_argument("--seed", type=int, default=18)
+    parser.add_argument("--places", type=int, default=100000, help="replica mode: the map's places")
+    parser.add_argument("--features", type=int, default=500, help="replica mode: per frame")
+    parser.add_argument("--replica-queries", type=int, default=50)
+    parser.add_argument("--keep", action="store_true", help="keep the cluster's data and logs")
     args = parser.parse_args()
     if args.mode == "self-test":
         return 0 if unittest.main(argv=[sys.argv[0], "-v"], exit=False,
@@ -585,6 +745,8 @@ def main() -> int:
 
     args.image_paths = sorted(glob.glob(os.path.join(args.images, "*.jpg"))
                               + glob.glob(os.path.join(args.images, "*.png"))) if args.images else []
+    if args.mode == "replica":
+        return replica(args, sdk)
     return throughput(args, sdk) if args.workers else soak(args, sdk)
 
 

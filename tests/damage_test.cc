@@ -605,6 +605,17 @@ TEST_F(DamageTest, ScrubFindsACorruptFeaturesBlock) {
   auto report = (*map)->Scrub();
   ASSERT_TRUE(report.ok());
   EXPECT_FALSE(report->clean());
+  // Files and runs of places checked on several threads: the same report, in the same order.
+  auto parallel = (*map)->Scrub(4);
+  ASSERT_TRUE(parallel.ok());
+  EXPECT_EQ(parallel->files_checked, report->files_checked);
+  EXPECT_EQ(parallel->places_checked, report->places_checked);
+  ASSERT_EQ(parallel->damaged_files.size(), report->damaged_files.size());
+  ASSERT_EQ(parallel->damaged_places.size(), report->damaged_places.size());
+  for (size_t i = 0; i < report->damaged_places.size(); ++i) {
+    EXPECT_EQ(parallel->damaged_places[i].id, report->damaged_places[i].id);
+    EXPECT_EQ(parallel->damaged_places[i].reason, report->damaged_places[i].reason);
+  }
   EXPECT_EQ(report->places_checked, uint64_t(kPlaces));
   ASSERT_EQ(report->damaged_files.size(), 1u);
   EXPECT_EQ(report->damaged_files[0].file, sst);

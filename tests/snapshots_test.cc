@@ -277,6 +277,65 @@ TEST_F(SnapshotsTest, ArchiveMovesASnapshotToAnotherDataDirectory) {
   EXPECT_EQ((*other_store)->List().size(), 2u);
 }
 
+TEST_F(SnapshotsTest, TransferCheckpointsAreVerifiedByTheirReceiver) {
+  auto dir = OpenDir("data");
+  auto store = SnapshotStore::Open(dir.get());
+  ASSERT_TRUE(store.ok());
+  auto source = dir->CreateMap("lab", {}, vocabulary_);
+  ASSERT_TRUE(source.ok()) << source.status().ToString();
+  for (int i = 1; i <= 12; ++i) ASSERT_TRUE((*source)->Add(Frame(i, "robot")).ok());
+  auto sent = (*store)->CreateForTransfer(**source);
+  ASSERT_TRUE(sent.ok()) << sent.status().ToString();
+  EXPECT_EQ(sent->places, (*source)->Stats().database.places);
+  EXPECT_EQ(sent->vocabulary_checksum, AnyVocabulary(vocabulary_).checksum());
+  const std::string good = Archive(**store, sent->id);
+
+  auto other = OpenDir("other");
+  auto other_store = SnapshotStore::Open(other.get());
+  ASSERT_TRUE(other_store.ok());
+  auto imported = (*other_store)->Import(WriteFile("good.pdbsnap", good), Resolver(vocabulary_));
+  ASSERT_TRUE(imported.ok()) << imported.status().ToString();
+  EXPECT_EQ(imported->places, sent->places);
+  ASSERT_TRUE((*other_store)->Restore(imported->id, "copy").ok());
+  auto copy = other->OpenMap("copy", vocabulary_);
+  ASSERT_TRUE(copy.ok()) << copy.status().ToString();
+  EXPECT_EQ(AskAll(**copy, queries_), AskAll(**source, queries_));
+
+  // Damage the sender never checked (a table's bytes flipped before the archive was written,
+  // its digest then sound): the receiver's verification refuses it and keeps nothing.
+  auto entries = Entries(good);
+  bool damaged = false;
+  for (auto& [path, bytes] : entries) {
+    if (!damaged && path.ends_with(".sst") && bytes.size() > 200) {
+      bytes[bytes.size() / 3] ^= 0x5a;
+      damaged = true;
+    }
+  }
+  ASSERT_TRUE(damaged);
+  const auto before = Tree(root_ + "/other");
+  auto refused =
+      (*other_store)
+          ->Import(WriteFile("damaged.pdbsnap", HandBuiltArchive(entries)), Resolver(vocabulary_));
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), StatusCode::kCorruption) << refused.status().ToString();
+  EXPECT_EQ(Tree(root_ + "/other"), before);
+
+  // A manifest whose place count is not the map's (writers were not kept out) is refused too.
+  auto miscounted = Entries(good);
+  ASSERT_EQ(miscounted.front().first, "SNAPSHOT.json");
+  std::string& manifest = miscounted.front().second;
+  const std::string count = "\"places\": " + std::to_string(sent->places);
+  const size_t at = manifest.find(count);
+  ASSERT_NE(at, std::string::npos) << manifest;
+  manifest.replace(at, count.size(), "\"places\": " + std::to_string(sent->places + 1));
+  refused = (*other_store)
+                ->Import(WriteFile("miscounted.pdbsnap", HandBuiltArchive(miscounted)),
+                         Resolver(vocabulary_));
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), StatusCode::kInvalidArgument) << refused.status().ToString();
+  EXPECT_EQ(Tree(root_ + "/other"), before);
+}
+
 TEST_F(SnapshotsTest, BadArchivesAreRefusedAndLeaveNothingBehind) {
   auto dir = OpenDir("data");
   auto store = SnapshotStore::Open(dir.get());

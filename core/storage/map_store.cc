@@ -31,6 +31,7 @@
 
 #include "core/base/files.h"
 #include "core/base/map_name.h"
+#include "core/base/parallel.h"
 
 namespace fs = std::filesystem;
 
@@ -1867,72 +1868,62 @@ Status PlaceMap::VerifyIntegrity() const {
   return FromRocks(thumbnails->status(), "scanning thumbnails");
 }
 
-Result<ScrubReport> PlaceMap::Scrub() const {
+Result<ScrubReport> PlaceMap::Scrub(int threads) const {
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
-  ScrubReport report;
   auto relative = [&](const std::string& text) { return RelativeTo(text, path_, info_.name); };
-  // Every block of every live SST file, whichever family it belongs to.
   std::vector<rocksdb::LiveFileMetaData> files;
   storage_->db->GetLiveFilesMetaData(&files);
+  const std::vector<PlaceId> places = database_->ListPlaces();
   const rocksdb::Options options(DatabaseOptions(""), rocksdb::ColumnFamilyOptions());
   rocksdb::ReadOptions verify;
   verify.fill_cache = false;
   verify.verify_checksums = true;
-  for (const rocksdb::LiveFileMetaData& file : files) {
-    ++report.files_checked;
+  const FeatureType type = info_.options.database.feature_type;
+
+  // Tasks: one per live SST file (every block, whichever family), then runs of places (each
+  // value read and decoded). Each task fills its own slot; the slots are joined in task order,
+  // so the report does not depend on the thread count.
+  constexpr size_t kPlacesPerTask = 256;
+  const size_t place_tasks = (places.size() + kPlacesPerTask - 1) / kPlacesPerTask;
+  struct Found {
+    std::vector<ScrubReport::File> files;
+    std::vector<ScrubReport::Place> places;
+  };
+  std::vector<Found> found(files.size() + place_tasks);
+  auto check_file = [&](const rocksdb::LiveFileMetaData& file, Found* out) {
     const std::string file_path = file.db_path + file.name;
     const rocksdb::Status s =
         rocksdb::VerifySstFileChecksum(options, rocksdb::EnvOptions(), verify, file_path);
-    if (!s.ok()) {
-      report.damaged_files.push_back({relative(file_path), relative(s.ToString())});
-    }
-  }
-  // Every indexed place, each of its values read and decoded.
-  const FeatureType type = info_.options.database.feature_type;
-  for (PlaceId id : database_->ListPlaces()) {
-    ++report.places_checked;
+    if (!s.ok()) out->files.push_back({relative(file_path), relative(s.ToString())});
+  };
+  auto check_place = [&](PlaceId id, Found* out) {
     const std::string key = PlaceKey(id);
     std::string record_bytes, bow_bytes, feature_bytes;
-    auto fail = [&](const std::string& reason) {
-      report.damaged_places.push_back({id, relative(reason)});
-    };
+    auto fail = [&](const std::string& reason) { out->places.push_back({id, relative(reason)}); };
     Status read =
         FromRocks(storage_->db->Get(verify, storage_->cf(kPlaces), key, &record_bytes), "record");
-    if (!read.ok()) {
-      fail(read.ToString());
-      continue;
-    }
+    if (!read.ok()) return fail(read.ToString());
     auto record = DecodePlaceRecord(record_bytes);
     if (!record.ok() || record->id != id) {
-      fail(record.ok() ? "record holds id " + std::to_string(record->id)
-                       : "record: " + record.status().ToString());
-      continue;
+      return fail(record.ok() ? "record holds id " + std::to_string(record->id)
+                              : "record: " + record.status().ToString());
     }
     read = FromRocks(storage_->db->Get(verify, storage_->cf(kBow), key, &bow_bytes), "BoW vector");
-    if (!read.ok()) {
-      fail(read.ToString());
-      continue;
-    }
+    if (!read.ok()) return fail(read.ToString());
     if (auto bow = DecodeBow(bow_bytes); !bow.ok()) {
-      fail("BoW vector: " + bow.status().ToString());
-      continue;
+      return fail("BoW vector: " + bow.status().ToString());
     }
     read = FromRocks(storage_->db->Get(verify, storage_->cf(kFeatures), key, &feature_bytes),
                      "features");
-    if (!read.ok()) {
-      fail(read.ToString());
-      continue;
-    }
+    if (!read.ok()) return fail(read.ToString());
     PlacePayload payload;
     if (Status decoded = DecodePayloadFeatures(type, feature_bytes, &payload); !decoded.ok()) {
-      fail("features: " + decoded.ToString());
-      continue;
+      return fail("features: " + decoded.ToString());
     }
     if (payload.features.size() != record->counts.static_) {
-      fail("features: " + std::to_string(payload.features.size()) + " stored, the record counts " +
-           std::to_string(record->counts.static_));
-      continue;
+      return fail("features: " + std::to_string(payload.features.size()) +
+                  " stored, the record counts " + std::to_string(record->counts.static_));
     }
     std::string dynamics_bytes;  // absent for places stored before the map kept statistics
     rocksdb::Status got = storage_->db->Get(verify, storage_->cf(kDynamics), key, &dynamics_bytes);
@@ -1954,6 +1945,20 @@ Result<ScrubReport> PlaceMap::Scrub() const {
         fail("thumbnail: " + t.status().ToString());
       }
     }
+  };
+  ParallelFor(found.size(), threads, [&](size_t task, int) {
+    if (task < files.size()) return check_file(files[task], &found[task]);
+    const size_t first = (task - files.size()) * kPlacesPerTask;
+    const size_t last = std::min(places.size(), first + kPlacesPerTask);
+    for (size_t i = first; i < last; ++i) check_place(places[i], &found[task]);
+  });
+
+  ScrubReport report;
+  report.files_checked = files.size();
+  report.places_checked = places.size();
+  for (Found& f : found) {
+    for (auto& file : f.files) report.damaged_files.push_back(std::move(file));
+    for (auto& place : f.places) report.damaged_places.push_back(std::move(place));
   }
   return report;
 }

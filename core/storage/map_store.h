@@ -330,9 +330,11 @@ class PlaceMap {
   // nothing else is stored). Used by crash tests; cheap enough for an operator's fsck.
   Status VerifyIntegrity() const;
   // Reads every place (record, BoW vector, features; each decoded) and verifies every block of
-  // every SST file. Damage goes into the report, not the status; the status is an error only
-  // when the scrub itself cannot run (map deleted). Changes nothing.
-  Result<ScrubReport> Scrub() const;
+  // every SST file. Damage goes into the report (files in RocksDB's order, places by id), not
+  // the status; the status is an error only when the scrub itself cannot run (map deleted).
+  // Changes nothing. `threads` > 1 checks files and runs of places in parallel (the report is
+  // the same): a snapshot's verification uses the machine's cores, a live map's ScrubMap one.
+  Result<ScrubReport> Scrub(int threads = 1) const;
 
  private:
   friend class DataDirectory;

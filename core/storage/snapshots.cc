@@ -10,6 +10,7 @@
 #include <fstream>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <thread>
 
 #include "core/base/files.h"
 #include "core/base/map_name.h"
@@ -240,7 +241,10 @@ Status SnapshotStore::Verify(const std::string& checkpoint, const std::string& s
           auto map = (*scratch_dir)->OpenMap("verify", *map_vocabulary);
           status = map.status();
           if (status.ok()) {
-            auto scrub = (*map)->Scrub();
+            // The machine's cores (at most 4): a verification is what a restore or a new
+            // cluster replica waits for.
+            const int threads = int(std::clamp(std::thread::hardware_concurrency(), 1u, 4u));
+            auto scrub = (*map)->Scrub(threads);
             status = scrub.status();
             if (status.ok() && !scrub->clean()) {
               const std::string what = !scrub->damaged_files.empty()
@@ -295,6 +299,37 @@ Result<SnapshotInfo> SnapshotStore::Create(const PlaceMap& map,
   if (!status.ok()) {
     fs::remove_all(staging, ec);
     return status.WithContext("snapshot of map '" + info.map + "'");
+  }
+  return info;
+}
+
+Result<SnapshotInfo> SnapshotStore::CreateForTransfer(const PlaceMap& map) {
+  SnapshotInfo info;
+  info.map = map.info().name;
+  info.created_unix_ms = NowUnixMs();
+  std::string staging;
+  {
+    MutexLock lock(mutex_);
+    staging = Scratch("creating");
+  }
+  std::error_code ec;
+  fs::create_directories(staging, ec);
+  if (ec) return Status::IoError("creating " + staging + ": " + ec.message());
+  const std::string checkpoint = (fs::path(staging) / kCheckpoint).string();
+  Status status = map.Checkpoint(checkpoint);
+  if (status.ok()) {
+    info.places = map.Stats().database.places;  // no writers meanwhile: the caller's promise
+    info.feature_type = FeatureTypeName(map.info().options.database.feature_type);
+    info.vocabulary_checksum = map.info().vocabulary_checksum;
+    info.bytes = DirectoryBytes(checkpoint);
+    MutexLock lock(mutex_);
+    info.id = UniqueId(info.map, info.created_unix_ms);
+    status = StoreLocked(staging, info);
+    if (status.ok()) ApplyRetention(info.map);
+  }
+  if (!status.ok()) {
+    fs::remove_all(staging, ec);
+    return status.WithContext("checkpoint of map '" + info.map + "' for a transfer");
   }
   return info;
 }

@@ -71,6 +71,13 @@ class SnapshotStore {
 
   // An online, consistent, verified snapshot of `map` (ingest may continue meanwhile).
   Result<SnapshotInfo> Create(const PlaceMap& map, const DataDirectory::VocabularyFor& vocabulary);
+  // A snapshot of `map` for handing to another store, which verifies it on Import (a cluster
+  // replica's catch-up, server/cluster/shard.h): Create without the verification (about half of
+  // Create's time on a large map: the receiver's Import opens and scrubs it anyway; the archive's
+  // SHA-256 covers the transfer). The manifest's place count is the map's right after the
+  // checkpoint, so the caller keeps the map's writers out during the call. It is meant for
+  // WriteArchive and then Delete; retention and List treat it as any snapshot.
+  Result<SnapshotInfo> CreateForTransfer(const PlaceMap& map);
   // Newest first.
   std::vector<SnapshotInfo> List() const;
   Result<SnapshotInfo> Get(const std::string& id) const;  // NOT_FOUND if absent

@@ -16,6 +16,7 @@
 #include <thread>
 
 #include "core/base/thread_annotations.h"
+#include "core/base/timing.h"
 #include "core/storage/codec.h"
 #include "core/storage/snapshots.h"
 #include "proto/cluster.grpc.pb.h"
@@ -95,6 +96,9 @@ struct Replica {
   // maps/<map>'s create revision this replica belongs to (Impl::mutex_ for writes after the map
   // is shared; the run thread sets it before opening).
   std::atomic<int64_t> create_revision{0};
+  // Held while a record is applied, and while a checkpoint for a new replica is taken (its
+  // manifest's place count must be the checkpoint's).
+  Mutex apply_mutex;
   std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
   std::string restored_from;  // Impl::mutex_: the peer whose checkpoint it started from
 };
@@ -480,6 +484,7 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
     }
   }
   const auto listed = dir_->ListMaps();
+  Stopwatch opening;
   Result<std::shared_ptr<PlaceMap>> map = Status::Internal("not opened");
   std::string restored_from;
   if (std::find(listed.begin(), listed.end(), replica->name) == listed.end()) {
@@ -525,8 +530,8 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
     replica->map = std::move(map).value();
     replica->restored_from = restored_from;
   }
-  spdlog::info("shard {}: holding map '{}' (applied {})", options_.shard_id, replica->name,
-               replica->map->applied_sequence());
+  spdlog::info("shard {}: holding map '{}' (applied {}; made ready in {:.2f} s)", options_.shard_id,
+               replica->name, replica->map->applied_sequence(), opening.ElapsedMs() / 1e3);
   StartApplier(replica);
 }
 
@@ -548,8 +553,11 @@ void Shard::Impl::StartApplier(const std::shared_ptr<Replica>& replica) {
 void Shard::Impl::Apply(Replica* replica, uint64_t sequence, std::string_view data) {
   if (replica->broken) return;  // stopped on an error: restarted from applied + 1
   auto record = DecodeMapRecord(data, replica->type);
-  Result<bool> applied =
-      record.ok() ? replica->map->ApplyAt(sequence, *record) : Result<bool>(record.status());
+  Result<bool> applied = record.status();
+  if (record.ok()) {
+    MutexLock lock(replica->apply_mutex);
+    applied = replica->map->ApplyAt(sequence, *record);
+  }
   if (!applied.ok()) {
     replica->broken = true;
     const std::string problem =
@@ -664,6 +672,7 @@ Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t
     ~Remove() { std::remove(path.c_str()); }
   } remove{spool};
   uint64_t expected = 0, received = 0;
+  Stopwatch phase;  // each phase's time, in the log line: where a slow catch-up spends it
   {
     std::ofstream out(spool, std::ios::binary | std::ios::trunc);
     auto reader = stub->Checkpoint(&context, request);
@@ -688,14 +697,18 @@ Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t
                               std::to_string(received) + " of " + std::to_string(expected) +
                               " bytes");
   }
+  const double fetch_ms = phase.Lap();
   auto imported =
       snapshots_->Import(spool, [this](const MapInfo& info) { return VocabularyFor(info); });
   if (!imported.ok()) return imported.status();
+  const double import_ms = phase.Lap();
   Status restored = snapshots_->Restore(imported->id, map);
   (void)snapshots_->Delete(imported->id);
   if (!restored.ok()) return restored;
-  spdlog::info("shard {}: map '{}' restored from the checkpoint of {}", options_.shard_id, map,
-               peer);
+  spdlog::info(
+      "shard {}: map '{}' restored from the checkpoint of {} ({} bytes; fetch {:.2f} s, import and "
+      "verify {:.2f} s, restore {:.2f} s)",
+      options_.shard_id, map, peer, received, fetch_ms / 1e3, import_ms / 1e3, phase.Lap() / 1e3);
   return peer;
 }
 
@@ -763,21 +776,33 @@ grpc::Status Shard::Impl::Checkpoint(const cv1::CheckpointRequest& request,
   auto map = MapOf(request.map());
   if (!map.ok()) return ToGrpc(map.status());
   int64_t held_revision = 0;
+  std::shared_ptr<Replica> replica;
   {
     MutexLock lock(mutex_);
     auto it = replicas_.find(request.map());
-    if (it != replicas_.end()) held_revision = it->second->create_revision;
+    if (it != replicas_.end()) {
+      replica = it->second;
+      held_revision = replica->create_revision;
+    }
   }
+  if (!replica) return ToGrpc(Status::NotFound("map '" + request.map() + "' is not held here"));
   if (request.create_revision() != 0 && held_revision != request.create_revision()) {
     return GrpcError(grpc::StatusCode::FAILED_PRECONDITION,
                      "map '" + request.map() + "' on shard " + options_.shard_id +
                          " is of create revision " + std::to_string(held_revision) + ", not " +
                          std::to_string(request.create_revision()));
   }
-  const uint64_t applied = (*map)->applied_sequence();
-  auto created =
-      snapshots_->Create(**map, [this](const MapInfo& info) { return VocabularyFor(info); });
+  // Unverified here: the new replica's Import verifies (opens and scrubs) what it received.
+  Stopwatch phase;
+  uint64_t applied = 0;
+  Result<SnapshotInfo> created = Status::Internal("no checkpoint");
+  {
+    MutexLock lock(replica->apply_mutex);
+    applied = (*map)->applied_sequence();
+    created = snapshots_->CreateForTransfer(**map);
+  }
   if (!created.ok()) return ToGrpc(created.status());
+  const double create_ms = phase.Lap();
   struct Cleanup {
     SnapshotStore* store;
     std::string id;
@@ -797,6 +822,11 @@ grpc::Status Shard::Impl::Checkpoint(const cv1::CheckpointRequest& request,
     if (!writer->Write(chunk)) return Status::IoError("the receiver went away");
     return Status::Ok();
   });
+  spdlog::info(
+      "shard {}: checkpoint of map '{}' at {} for a new replica: {} bytes (made in {:.2f} s, "
+      "sent in {:.2f} s): {}",
+      options_.shard_id, request.map(), applied, *bytes, create_ms / 1e3, phase.Lap() / 1e3,
+      written.ok() ? "sent" : written.ToString());
   return ToGrpc(written);
 }
 
