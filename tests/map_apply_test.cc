@@ -1,7 +1,8 @@
-// PlaceMap::ApplyAt (cluster mode, issue 18): records applied at stream sequences, on a real
-// RocksDB in a temp directory, with real frames (the RTAB-Map loop).
+// PlaceMap::ApplyAt and ApplyBatch (cluster mode, issue 18): records applied at stream sequences,
+// on a real RocksDB in a temp directory, with real frames (the RTAB-Map loop).
 #include <gtest/gtest.h>
 
+#include <map>
 #include <string>
 #include <vector>
 
@@ -139,6 +140,122 @@ TEST_F(MapApplyTest, ARecordTheMapCannotTakeChangesNothing) {
   // The same sequence then applies a good record.
   EXPECT_TRUE(*m.ApplyAt(2, Add(frames[0], 2)));
   EXPECT_EQ(m.applied_sequence(), 2u);
+}
+
+// Everything a replica holds that a client or another replica could tell apart.
+std::map<PlaceId, std::string> Contents(const PlaceMap& map) {
+  std::map<PlaceId, std::string> out;
+  for (PlaceId id : map.database().ListPlaces()) {
+    auto place = map.GetPlace(id);
+    EXPECT_TRUE(place.ok()) << place.status().ToString();
+    if (!place.ok()) continue;
+    auto dynamics = map.GetDynamics(id);
+    out[id] = EncodePlaceRecord(place->record) + EncodeBow(place->payload.bow) +
+              EncodeLocalFeatures(place->payload.features, place->payload.direct) +
+              (dynamics.ok() ? EncodeDynamics(*dynamics) : dynamics.status().ToString());
+  }
+  return out;
+}
+
+TEST_F(MapApplyTest, BatchesStoreWhatOneRecordAtATimeStores) {
+  auto dir = OpenDir();
+  ASSERT_TRUE(dir);
+  auto single = dir->CreateMap("single", {}, vocabulary_);
+  auto batched = dir->CreateMap("batched", {}, vocabulary_);
+  ASSERT_TRUE(single.ok() && batched.ok());
+  auto frames = testing::ProcessRtabmapFrames((*single)->database(), 6);
+  ASSERT_EQ(frames.size(), 6u);
+
+  // Sequences 1..12: places, a count of a place added in the same run (2 -> 1) and of one from
+  // an earlier batch (8 -> 5), an invalid frame, a removal mid-stream (9 -> 3), a removal of a
+  // place never stored (11), a gap (10 absent), a repeat (6 again).
+  std::vector<std::pair<uint64_t, MapLogRecord>> log;
+  log.emplace_back(1, Add(frames[0], 1));
+  MapLogRecord count;
+  count.kind = MapLogRecord::Kind::kCountObservation;
+  count.place = 1;
+  count.dynamics = MakeObservation(0.5, {}, 7, 43);
+  log.emplace_back(2, count);
+  log.emplace_back(3, Add(frames[1], 2));
+  MapLogRecord invalid;
+  invalid.kind = MapLogRecord::Kind::kInvalidFrame;
+  invalid.frame.rejection = "too few features";
+  invalid.dynamics = MakeObservation(0.1, {}, 9, 44);
+  log.emplace_back(4, invalid);
+  log.emplace_back(5, Add(frames[2], 3));
+  log.emplace_back(6, Add(frames[3], 4));
+  log.emplace_back(6, Add(frames[4], 5));
+  log.emplace_back(7, Add(frames[4], 5));
+  count.place = 5;
+  log.emplace_back(8, count);
+  MapLogRecord remove;
+  remove.kind = MapLogRecord::Kind::kDeletePlace;
+  remove.place = 3;
+  log.emplace_back(9, remove);
+  remove.place = 10;
+  log.emplace_back(11, remove);
+  log.emplace_back(12, Add(frames[5], 6));
+
+  for (const auto& [sequence, record] : log) ASSERT_TRUE((*single)->ApplyAt(sequence, record).ok());
+  // The batched replica: in pieces of 5, 4 and the rest, the first piece twice (a redelivery).
+  std::vector<PlaceMap::SequencedRecord> all;
+  for (const auto& [sequence, record] : log) all.push_back({sequence, &record});
+  const std::span<const PlaceMap::SequencedRecord> records(all);
+  auto applied = (*batched)->ApplyBatch(records.subspan(0, 5));
+  ASSERT_TRUE(applied.ok()) << applied.status().ToString();
+  EXPECT_EQ(*applied, 5u);
+  EXPECT_EQ(*(*batched)->ApplyBatch(records.subspan(0, 5)), 0u);
+  EXPECT_EQ(*(*batched)->ApplyBatch(records.subspan(5, 4)), 3u);  // 6, 6 again (skipped), 7, 8
+  EXPECT_EQ(*(*batched)->ApplyBatch(records.subspan(9)), 3u);
+
+  auto same = [&](const PlaceMap& a, const PlaceMap& b) {
+    EXPECT_EQ(a.applied_sequence(), 12u);
+    EXPECT_EQ(b.applied_sequence(), 12u);
+    EXPECT_EQ(Contents(a), Contents(b));
+    EXPECT_EQ(Contents(a).size(), 5u);
+    EXPECT_EQ(a.MapDynamics().value(), b.MapDynamics().value());
+    EXPECT_EQ(a.InvalidDynamics().value(), b.InvalidDynamics().value());
+    EXPECT_EQ(a.Stats().database.invalid_rejected, b.Stats().database.invalid_rejected);
+    EXPECT_EQ(a.InvalidObservations(10).size(), b.InvalidObservations(10).size());
+    EXPECT_TRUE(b.VerifyIntegrity().ok());
+  };
+  same(**single, **batched);
+  // Each: its own observation and the count (of the same run for 1, of a later one for 5).
+  EXPECT_EQ((*batched)->GetDynamics(1)->observations, 2u);
+  EXPECT_EQ((*batched)->GetDynamics(5)->observations, 2u);
+  // Both reopened: the same again.
+  single->reset();
+  batched->reset();
+  dir.reset();
+  dir = OpenDir();
+  ASSERT_TRUE(dir);
+  auto single_again = dir->OpenMap("single", vocabulary_);
+  auto batched_again = dir->OpenMap("batched", vocabulary_);
+  ASSERT_TRUE(single_again.ok() && batched_again.ok());
+  same(**single_again, **batched_again);
+}
+
+TEST_F(MapApplyTest, ABatchStopsAtARecordTheMapCannotTake) {
+  auto dir = OpenDir();
+  ASSERT_TRUE(dir);
+  auto map = dir->CreateMap("replica", {}, vocabulary_);
+  ASSERT_TRUE(map.ok());
+  PlaceMap& m = **map;
+  auto frames = testing::ProcessRtabmapFrames(m.database(), 3);
+  ASSERT_EQ(frames.size(), 3u);
+  MapLogRecord bad = Add(frames[1], 2);
+  bad.frame.direct.levels_up += 1;
+  const MapLogRecord first = Add(frames[0], 1), third = Add(frames[2], 3);
+  const std::vector<PlaceMap::SequencedRecord> records = {{1, &first}, {2, &bad}, {3, &third}};
+  auto applied = m.ApplyBatch(records);
+  EXPECT_EQ(applied.status().code(), StatusCode::kInvalidArgument) << applied.status().ToString();
+  EXPECT_NE(applied.status().message().find("record 2"), std::string::npos);
+  // The record before it is applied and searchable; it and the one after are not.
+  EXPECT_EQ(m.applied_sequence(), 1u);
+  EXPECT_EQ(m.Stats().database.places, 1u);
+  EXPECT_TRUE(m.GetPlace(1).ok());
+  EXPECT_EQ(m.GetPlace(3).status().code(), StatusCode::kNotFound);
+  EXPECT_TRUE(m.VerifyIntegrity().ok());
 }
 
 }  // namespace

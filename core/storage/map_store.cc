@@ -26,8 +26,10 @@
 #include <fstream>
 #include <limits>
 #include <nlohmann/json.hpp>
+#include <span>
 #include <system_error>
 #include <thread>
+#include <unordered_set>
 
 #include "core/base/files.h"
 #include "core/base/map_name.h"
@@ -1546,112 +1548,159 @@ void PlaceMap::StopCommitter() {
 }
 
 Result<bool> PlaceMap::ApplyAt(uint64_t sequence, const MapLogRecord& record) {
+  const SequencedRecord one{sequence, &record};
+  auto applied = ApplyBatch(std::span<const SequencedRecord>(&one, 1));
+  if (!applied.ok()) return applied.status();
+  return *applied == 1;
+}
+
+Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
   MutexLock apply(apply_mutex_);
-  if (sequence <= applied_sequence_.load()) return false;
-  const std::string applied_value = U64Key(sequence);
-  const std::string what = "applying record " + std::to_string(sequence);
+  const DatabaseConfig& config = info_.options.database;
+  size_t applied = 0;
+  // The run being gathered: one RocksDB batch, written and synced once (DeletePlace ends a
+  // run: the index's removal writes its own batch).
   rocksdb::WriteBatch batch;
-  switch (record.kind) {
-    case MapLogRecord::Kind::kAddPlace: {
-      const ProcessedFrame& frame = record.frame;
-      const DatabaseConfig& config = info_.options.database;
-      // Checked before writing: a batch the index then refused would leave an unindexed place.
-      if (sequence >= kMaxPlaceId) {
-        return Status::InvalidArgument(what + ": sequence beyond the place-id range");
+  std::vector<SequencedRecord> run;
+  std::unordered_set<PlaceId> run_places;  // places the run adds: a CountObservation may name one
+  PlaceId run_max_place = 0;
+  auto flush = [&]() -> Status {
+    if (run.empty()) return Status::Ok();
+    const uint64_t first = run.front().sequence, last = run.back().sequence;
+    const std::string what =
+        run.size() == 1 ? "applying record " + std::to_string(last)
+                        : "applying records " + std::to_string(first) + ".." + std::to_string(last);
+    batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, U64Key(last));
+    PLACEDB_RETURN_IF_ERROR(
+        storage_->Write(&batch, what, MapStorage::Kind::kAddition, run_max_place, run.size()));
+    applied_sequence_ = last;
+    // Durable: now make the places searchable and count what was counted.
+    for (const SequencedRecord& r : run) {
+      const MapLogRecord& record = *r.record;
+      if (record.kind == MapLogRecord::Kind::kAddPlace) {
+        auto id = database_->Insert(record.frame, record.metadata, PlaceId(r.sequence));
+        if (!id.ok())
+          return id.status().WithContext("applying record " + std::to_string(r.sequence));
+      } else if (record.kind == MapLogRecord::Kind::kInvalidFrame) {
+        if (info_.options.store_invalid) {
+          ++storage_->invalid_stored;
+          uint64_t next = storage_->next_invalid_serial.load();
+          while (next <= r.sequence &&
+                 !storage_->next_invalid_serial.compare_exchange_weak(next, r.sequence + 1)) {
+          }
+        }
+        database_->CountInvalid();
       }
-      if (!frame.valid) return Status::InvalidArgument(what + ": AddPlace of an invalid frame");
-      if (frame.static_features.type() != config.feature_type) {
-        return Status::InvalidArgument(what + ": frame's features are " +
-                                       FeatureTypeName(frame.static_features.type()) +
-                                       ", the map's are " + FeatureTypeName(config.feature_type));
-      }
-      if (frame.direct.levels_up != config.verification.levels_up) {
-        return Status::InvalidArgument(what + ": frame's direct index is at level " +
-                                       std::to_string(frame.direct.levels_up) + ", the map uses " +
-                                       std::to_string(config.verification.levels_up));
-      }
-      PlaceRecord stored;
-      stored.id = PlaceId(sequence);
-      stored.metadata = record.metadata;
-      stored.counts = frame.counts;
-      stored.boxes_used = frame.boxes_used;
-      const std::string key = PlaceKey(stored.id);
-      batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(stored));
-      batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
-      batch.Put(storage_->cf(kFeatures), key,
-                EncodeLocalFeatures(frame.static_features, frame.direct));
-      if (storage_->dynamics && record.dynamics) {
-        storage_->AddDynamics(&batch, stored.id, *record.dynamics);
-      }
-      if (frame.thumbnail && info_.options.thumbnails.enabled) {
-        batch.Put(storage_->cf(kThumbnails), key, EncodeThumbnail(*frame.thumbnail));
-      }
-      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
-      PLACEDB_RETURN_IF_ERROR(
-          storage_->Write(&batch, what, MapStorage::Kind::kAddition, stored.id));
-      applied_sequence_ = sequence;
-      // Durable: now make it searchable.
-      auto id = database_->Insert(frame, record.metadata, stored.id);
-      if (!id.ok()) return id.status().WithContext(what);
-      return true;
     }
-    case MapLogRecord::Kind::kDeletePlace:
-      if (record.place != 0 && database_->Get(record.place)) {
-        // The removal's own batch carries the applied sequence (RocksPayloadStore::Erase).
-        t_applying_sequence = &applied_value;
-        Status removed = database_->Remove(record.place);
-        t_applying_sequence = nullptr;
-        PLACEDB_RETURN_IF_ERROR(removed.WithContext(what));
+    // Ids follow the stream: the next place id is above every sequence applied.
+    database_->ReserveIdsBelow(PlaceId(std::min<uint64_t>(last + 1, kMaxPlaceId)));
+    applied += run.size();
+    run.clear();
+    run_places.clear();
+    run_max_place = 0;
+    batch.Clear();
+    return Status::Ok();
+  };
+  uint64_t last = applied_sequence_.load();
+  for (const SequencedRecord& r : records) {
+    if (r.sequence <= last) continue;  // applied before (or repeated in `records`)
+    const uint64_t sequence = r.sequence;
+    const MapLogRecord& record = *r.record;
+    const std::string what = "applying record " + std::to_string(sequence);
+    // A record the map cannot take: the run before it is applied, it and the rest are not.
+    auto refuse = [&](const std::string& why) -> Status {
+      PLACEDB_RETURN_IF_ERROR(flush());
+      return Status::InvalidArgument(what + ": " + why);
+    };
+    switch (record.kind) {
+      case MapLogRecord::Kind::kAddPlace: {
+        const ProcessedFrame& frame = record.frame;
+        // Checked before writing: a batch the index then refused would leave an unindexed place.
+        if (sequence >= kMaxPlaceId) return refuse("sequence beyond the place-id range");
+        if (!frame.valid) return refuse("AddPlace of an invalid frame");
+        if (frame.static_features.type() != config.feature_type) {
+          return refuse("frame's features are " +
+                        std::string(FeatureTypeName(frame.static_features.type())) +
+                        ", the map's are " + FeatureTypeName(config.feature_type));
+        }
+        if (frame.direct.levels_up != config.verification.levels_up) {
+          return refuse("frame's direct index is at level " +
+                        std::to_string(frame.direct.levels_up) + ", the map uses " +
+                        std::to_string(config.verification.levels_up));
+        }
+        PlaceRecord stored;
+        stored.id = PlaceId(sequence);
+        stored.metadata = record.metadata;
+        stored.counts = frame.counts;
+        stored.boxes_used = frame.boxes_used;
+        const std::string key = PlaceKey(stored.id);
+        batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(stored));
+        batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
+        batch.Put(storage_->cf(kFeatures), key,
+                  EncodeLocalFeatures(frame.static_features, frame.direct));
+        if (storage_->dynamics && record.dynamics) {
+          storage_->AddDynamics(&batch, stored.id, *record.dynamics);
+        }
+        if (frame.thumbnail && info_.options.thumbnails.enabled) {
+          batch.Put(storage_->cf(kThumbnails), key, EncodeThumbnail(*frame.thumbnail));
+        }
+        run_places.insert(stored.id);
+        run_max_place = stored.id;
         break;
       }
-      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
-      PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, what, MapStorage::Kind::kRemoval));
-      break;
-    case MapLogRecord::Kind::kCountObservation:
-      if (storage_->dynamics && record.dynamics) {
-        storage_->AddDynamics(&batch,
-                              record.place != 0 && database_->Get(record.place) ? record.place : 0,
-                              *record.dynamics);
-      }
-      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
-      PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, what, MapStorage::Kind::kAddition));
-      break;
-    case MapLogRecord::Kind::kInvalidFrame: {
-      batch.Merge(storage_->cf(kMeta), kInvalidCountKey, CounterOperand(1));
-      if (storage_->dynamics && record.dynamics) {
-        storage_->AddInvalidDynamics(&batch, *record.dynamics);
-      }
-      const bool keep = info_.options.store_invalid;
-      if (keep) {
-        // The sequence is the serial: the same on every replica, in arrival order.
-        InvalidObservation observation;
-        observation.serial = sequence;
-        observation.metadata = record.metadata;
-        observation.counts = record.frame.counts;
-        observation.boxes_used = record.frame.boxes_used;
-        observation.reason = record.frame.rejection;
-        batch.Put(storage_->cf(kInvalid), U64Key(sequence), EncodeInvalidObservation(observation));
-      }
-      batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
-      // Synced and counted whatever store_invalid says: the applied sequence must be durable.
-      PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, what, MapStorage::Kind::kAddition));
-      if (keep) {
-        ++storage_->invalid_stored;
-        uint64_t next = storage_->next_invalid_serial.load();
-        while (next <= sequence &&
-               !storage_->next_invalid_serial.compare_exchange_weak(next, sequence + 1)) {
+      case MapLogRecord::Kind::kDeletePlace: {
+        PLACEDB_RETURN_IF_ERROR(flush());
+        const std::string applied_value = U64Key(sequence);
+        if (record.place != 0 && database_->Get(record.place)) {
+          // The removal's own batch carries the applied sequence (RocksPayloadStore::Erase).
+          t_applying_sequence = &applied_value;
+          Status removed = database_->Remove(record.place);
+          t_applying_sequence = nullptr;
+          PLACEDB_RETURN_IF_ERROR(removed.WithContext(what));
+        } else {
+          rocksdb::WriteBatch alone;
+          alone.Put(storage_->cf(kMeta), kAppliedSequenceKey, applied_value);
+          PLACEDB_RETURN_IF_ERROR(storage_->Write(&alone, what, MapStorage::Kind::kRemoval));
         }
+        applied_sequence_ = sequence;
+        database_->ReserveIdsBelow(PlaceId(std::min<uint64_t>(sequence + 1, kMaxPlaceId)));
+        ++applied;
+        last = sequence;
+        continue;  // not part of a run
       }
-      database_->CountInvalid();
-      break;
+      case MapLogRecord::Kind::kCountObservation:
+        if (storage_->dynamics && record.dynamics) {
+          const bool known =
+              record.place != 0 && (run_places.count(record.place) || database_->Get(record.place));
+          storage_->AddDynamics(&batch, known ? record.place : 0, *record.dynamics);
+        }
+        break;
+      case MapLogRecord::Kind::kInvalidFrame: {
+        batch.Merge(storage_->cf(kMeta), kInvalidCountKey, CounterOperand(1));
+        if (storage_->dynamics && record.dynamics) {
+          storage_->AddInvalidDynamics(&batch, *record.dynamics);
+        }
+        if (info_.options.store_invalid) {
+          // The sequence is the serial: the same on every replica, in arrival order.
+          InvalidObservation observation;
+          observation.serial = sequence;
+          observation.metadata = record.metadata;
+          observation.counts = record.frame.counts;
+          observation.boxes_used = record.frame.boxes_used;
+          observation.reason = record.frame.rejection;
+          batch.Put(storage_->cf(kInvalid), U64Key(sequence),
+                    EncodeInvalidObservation(observation));
+        }
+        break;
+      }
     }
+    run.push_back(r);
+    last = sequence;
   }
-  applied_sequence_ = sequence;
-  // Ids follow the stream: the next place id is above every sequence applied.
-  database_->ReserveIdsBelow(PlaceId(std::min<uint64_t>(sequence + 1, kMaxPlaceId)));
-  return true;
+  PLACEDB_RETURN_IF_ERROR(flush());
+  return applied;
 }
 
 Result<StoredPlace> PlaceMap::GetPlace(PlaceId id) const {

@@ -38,6 +38,7 @@
 #include <functional>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <thread>
 #include <unordered_map>
@@ -296,6 +297,17 @@ class PlaceMap {
   // serialised); concurrent queries see a place once it is indexed, after its write.
   // Not meant to be mixed with Add/Commit/Enqueue/RemovePlace on the same map.
   Result<bool> ApplyAt(uint64_t sequence, const MapLogRecord& record);
+  // ApplyAt for consecutive records, ascending sequences, with what one ApplyAt per record would
+  // store, but each run of records between DeletePlace records written as one synced batch (the
+  // applied sequence = the run's last): how a replica keeps up with a fast stream. Records at or
+  // below applied_sequence() are skipped. Returns how many were applied. A record the map cannot
+  // take: the records before it are applied, it and the ones after are not (INVALID_ARGUMENT);
+  // a write error: the failing run's records are not applied (applied_sequence() says where).
+  struct SequencedRecord {
+    uint64_t sequence = 0;
+    const MapLogRecord* record = nullptr;
+  };
+  Result<size_t> ApplyBatch(std::span<const SequencedRecord> records);
   // The last sequence ApplyAt applied (persisted; 0 for a map that never applied one).
   uint64_t applied_sequence() const { return applied_sequence_.load(); }
 
@@ -391,7 +403,7 @@ class PlaceMap {
   mutable SharedMutex lifecycle_;
   bool closed_ GUARDED_BY(lifecycle_) = false;
   std::unique_ptr<CommitQueue> commits_;  // its committer thread lives as long as the map
-  // ApplyAt: one record at a time; the applied sequence is readable without the lock.
+  // ApplyAt/ApplyBatch: one caller at a time; the applied sequence is readable without it.
   Mutex apply_mutex_;
   std::atomic<uint64_t> applied_sequence_{0};
 };

@@ -9,6 +9,7 @@
 #include <atomic>
 #include <cctype>
 #include <cstdio>
+#include <deque>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -96,9 +97,23 @@ struct Replica {
   // maps/<map>'s create revision this replica belongs to (Impl::mutex_ for writes after the map
   // is shared; the run thread sets it before opening).
   std::atomic<int64_t> create_revision{0};
-  // Held while a record is applied, and while a checkpoint for a new replica is taken (its
+  // Held while records are applied, and while a checkpoint for a new replica is taken (its
   // manifest's place count must be the checkpoint's).
   Mutex apply_mutex;
+  // The consumer's delivery thread queues the records it receives; the applier thread applies
+  // whatever has queued up meanwhile as one batch (PlaceMap::ApplyBatch: one synced write), so a
+  // replica behind the stream catches up in large steps and an idle one applies each record at
+  // once. A full queue holds the delivery thread (JetStream's flow control does the rest).
+  struct Queued {
+    uint64_t sequence = 0;
+    std::string data;
+  };
+  Mutex queue_mutex;
+  CondVar queue_cv;  // a record queued, room made, or stopping
+  std::deque<Queued> queue GUARDED_BY(queue_mutex);
+  size_t queued_bytes GUARDED_BY(queue_mutex) = 0;
+  bool stopping GUARDED_BY(queue_mutex) = false;
+  std::thread applier;        // started with the first consumer, joined by StopApplier
   std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
   std::string restored_from;  // Impl::mutex_: the peer whose checkpoint it started from
 };
@@ -145,8 +160,13 @@ class Shard::Impl {
     return dir_->path() + "/cluster-maps/" + HexOf(map);
   }
   void Drop(const std::string& name) EXCLUDES(mutex_);
-  // The applier: one record at a time, on the consumer's delivery thread.
-  void Apply(Replica* replica, uint64_t sequence, std::string_view data) EXCLUDES(mutex_);
+  // The consumer's callback: queues the record (waits while the queue is full); drops it while
+  // the replica is broken (it restarts from applied + 1).
+  static void Enqueue(Replica* replica, uint64_t sequence, std::string_view data);
+  // The replica's applier thread: applies queued records in batches until StopApplier.
+  void ApplyQueued(Replica* replica) EXCLUDES(mutex_);
+  // Stops and joins the applier thread (after the consumer is gone).
+  static void StopApplier(Replica* replica);
   void SetProblem(Replica* replica, const std::string& problem) EXCLUDES(mutex_);
 
   std::unique_ptr<DataDirectory> dir_;
@@ -333,8 +353,11 @@ void Shard::Impl::Stop() {
     MutexLock lock(mutex_);
     replicas.swap(replicas_);
   }
-  // Consumers first (their callbacks take mutex_ and use the maps), then the maps.
-  for (auto& [name, replica] : replicas) replica->consumer.reset();
+  // Consumers first (their callbacks feed the appliers), then the appliers, then the maps.
+  for (auto& [name, replica] : replicas) {
+    replica->consumer.reset();
+    StopApplier(replica.get());
+  }
   replicas.clear();
   if (server_) server_->Wait();
   snapshots_.reset();
@@ -536,12 +559,20 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
 }
 
 void Shard::Impl::StartApplier(const std::shared_ptr<Replica>& replica) {
-  replica->consumer.reset();  // a broken one: stopped before its successor starts
+  replica->consumer.reset();     // a broken one: stopped before its successor starts
+  Replica* raw = replica.get();  // outlives its consumer and applier (Drop and Stop end them)
+  {
+    // What a broken replica's consumer queued is stale: the new one starts at applied + 1.
+    MutexLock lock(raw->queue_mutex);
+    raw->queue.clear();
+    raw->queued_bytes = 0;
+  }
   replica->broken = false;
-  Replica* raw = replica.get();  // outlives its consumer (Drop and Stop reset it first)
+  if (!replica->applier.joinable())
+    replica->applier = std::thread([this, raw] { ApplyQueued(raw); });
   auto consumer = js_->Consume(
       replica->stream, replica->subject, replica->map->applied_sequence() + 1,
-      [this, raw](uint64_t sequence, std::string_view data) { Apply(raw, sequence, data); });
+      [raw](uint64_t sequence, std::string_view data) { Enqueue(raw, sequence, data); });
   if (!consumer.ok()) {
     SetProblem(raw, "unavailable: " + consumer.status().ToString());
     return;
@@ -550,24 +581,92 @@ void Shard::Impl::StartApplier(const std::shared_ptr<Replica>& replica) {
   SetProblem(raw, "");
 }
 
-void Shard::Impl::Apply(Replica* replica, uint64_t sequence, std::string_view data) {
-  if (replica->broken) return;  // stopped on an error: restarted from applied + 1
-  auto record = DecodeMapRecord(data, replica->type);
-  Result<bool> applied = record.status();
-  if (record.ok()) {
-    MutexLock lock(replica->apply_mutex);
-    applied = replica->map->ApplyAt(sequence, *record);
+// At most this much in one ApplyBatch, and queued per replica.
+constexpr size_t kApplyBatchRecords = 256;
+constexpr size_t kQueuedBytes = size_t(64) << 20;
+
+void Shard::Impl::Enqueue(Replica* replica, uint64_t sequence, std::string_view data) {
+  MutexLock lock(replica->queue_mutex);
+  while (!replica->stopping && !replica->broken && !replica->queue.empty() &&
+         replica->queued_bytes + data.size() > kQueuedBytes) {
+    replica->queue_cv.Wait(replica->queue_mutex);
   }
-  if (!applied.ok()) {
-    replica->broken = true;
+  if (replica->stopping || replica->broken) return;  // restarted from applied + 1
+  replica->queue.push_back({sequence, std::string(data)});
+  replica->queued_bytes += data.size();
+  replica->queue_cv.NotifyAll();
+}
+
+void Shard::Impl::StopApplier(Replica* replica) {
+  {
+    MutexLock lock(replica->queue_mutex);
+    replica->stopping = true;
+    replica->queue_cv.NotifyAll();
+  }
+  if (replica->applier.joinable()) replica->applier.join();
+}
+
+void Shard::Impl::ApplyQueued(Replica* replica) {
+  std::vector<Replica::Queued> taken;
+  std::vector<MapLogRecord> records;
+  std::vector<PlaceMap::SequencedRecord> batch;
+  for (;;) {
+    taken.clear();
+    {
+      MutexLock lock(replica->queue_mutex);
+      while (!replica->stopping && replica->queue.empty()) {
+        replica->queue_cv.Wait(replica->queue_mutex);
+      }
+      if (replica->stopping) return;
+      while (!replica->queue.empty() && taken.size() < kApplyBatchRecords) {
+        replica->queued_bytes -= replica->queue.front().data.size();
+        taken.push_back(std::move(replica->queue.front()));
+        replica->queue.pop_front();
+      }
+      replica->queue_cv.NotifyAll();  // room for the delivery thread
+    }
+    // Decoded up to the first record that does not decode: the ones before it still apply.
+    records.clear();
+    Status failure;
+    uint64_t failed_at = 0;
+    for (const Replica::Queued& queued : taken) {
+      auto record = DecodeMapRecord(queued.data, replica->type);
+      if (!record.ok()) {
+        failure = record.status();
+        failed_at = queued.sequence;
+        break;
+      }
+      records.push_back(std::move(record).value());
+    }
+    batch.clear();
+    for (size_t i = 0; i < records.size(); ++i) batch.push_back({taken[i].sequence, &records[i]});
+    Result<size_t> applied = size_t(0);
+    if (!batch.empty()) {
+      MutexLock lock(replica->apply_mutex);
+      applied = replica->map->ApplyBatch(batch);
+    }
+    if (!applied.ok()) {
+      failure = applied.status();
+      failed_at = replica->map->applied_sequence() + 1;
+    }
+    {
+      MutexLock lock(mutex_);
+      applied_cv_.NotifyAll();
+    }
+    if (failure.ok()) continue;
+    // Stopped: nothing is skipped; the next reconcile starts over from applied + 1.
+    {
+      MutexLock lock(replica->queue_mutex);
+      replica->broken = true;
+      replica->queue.clear();
+      replica->queued_bytes = 0;
+      replica->queue_cv.NotifyAll();
+    }
     const std::string problem =
-        "failed: record " + std::to_string(sequence) + ": " + applied.status().ToString();
+        "failed: record " + std::to_string(failed_at) + ": " + failure.ToString();
     spdlog::error("shard {}: map '{}': {}", options_.shard_id, replica->name, problem);
     SetProblem(replica, problem);
-    return;
   }
-  MutexLock lock(mutex_);
-  applied_cv_.NotifyAll();
 }
 
 void Shard::Impl::SetProblem(Replica* replica, const std::string& problem) {
@@ -585,6 +684,7 @@ void Shard::Impl::Drop(const std::string& name) {
     replicas_.erase(it);
   }
   replica->consumer.reset();
+  StopApplier(replica.get());
   const bool opened = replica->map != nullptr;
   replica->map.reset();
   if (opened) {
