@@ -8,11 +8,13 @@
 // - Follows maps/ and placement/ (an etcd watch wakes a reconcile; a reconcile also runs every
 //   `reconcile_interval`): every map whose placement lists shard_id is opened from data_dir (or
 //   created from maps/<map>'s config, server/cluster/placement.h's format), and an ordered
-//   consumer of its stream applies the records in order from applied + 1
-//   (PlaceMap::ApplyAt: place id = stream sequence, applied sequence in the same batch, so a
+//   consumer of its stream applies the records in order from applied + 1: the consumer queues
+//   them, the replica's applier thread applies what has queued up meanwhile as one synced batch
+//   (PlaceMap::ApplyBatch: place id = stream sequence, applied sequence in the same batch, so a
 //   restarted shard resumes without gaps or duplicates). A placed map without a local copy is
 //   first restored from the checkpoint of the live replica that applied the most (its Checkpoint
-//   RPC; SnapshotStore::Import verifies it), then applied from the checkpoint's applied + 1; with
+//   RPC: an unverified SnapshotStore::CreateForTransfer taken with the peer's applier paused;
+//   SnapshotStore::Import verifies it here), then applied from the checkpoint's applied + 1; with
 //   no such peer, or when that fails, it replays the stream from 1 (streams keep every record).
 //   Restores run on the reconcile thread: other maps' reconciles wait meanwhile. A map that
 //   leaves the placement (or is deleted) is stopped, closed and deleted locally.
@@ -25,9 +27,9 @@
 // - Serves placedb.cluster.v1.Shard (proto/cluster.proto) on internal_listen (plain text: the
 //   internal network; port 0 picks one, see internal_port()).
 //
-// Threading: Start/destructor from one thread; every other method is thread-safe. Appliers run
-// on libnats' delivery threads (one per map), reconciles on the shard's own thread, RPCs on
-// gRPC's threads.
+// Threading: Start/destructor from one thread; every other method is thread-safe. Consumers
+// queue on libnats' delivery threads and appliers apply on their own threads (one of each per
+// map), reconciles run on the shard's own thread, RPCs on gRPC's threads.
 #pragma once
 
 #include <chrono>
