@@ -21,6 +21,7 @@
 #include "core/detect/detector.h"
 
 namespace fs = std::filesystem;
+
 using json = nlohmann::json;
 
 namespace placedb::eval {
@@ -33,6 +34,17 @@ std::string Dataset::Resolve(const std::string& path) const {
 }
 
 namespace {
+
+// Whether `path` names an existing file or folder. The paths come from dataset files: one the
+// system refuses to look up (a name too long, a loop) does not exist, it does not throw.
+bool PathExists(const std::string& path) {
+  std::error_code ec;
+  return fs::exists(path, ec) && !ec;
+}
+bool IsFolder(const std::string& path) {
+  std::error_code ec;
+  return fs::is_directory(path, ec) && !ec;
+}
 
 std::string Where(const char* list, size_t i, const Entry& entry) {
   return std::string(list) + "[" + std::to_string(i) + "] (id " + entry.id + ")";
@@ -180,11 +192,11 @@ Status ValidateEntry(const Dataset& dataset, const char* list, size_t i, const E
     }
   }
   if (check_files) {
-    if (!fs::exists(dataset.Resolve(entry.image))) {
+    if (!PathExists(dataset.Resolve(entry.image))) {
       return Status::NotFound(Where(list, i, entry) + ": image " + dataset.Resolve(entry.image) +
                               " does not exist");
     }
-    if (!entry.mask.empty() && !fs::exists(dataset.Resolve(entry.mask))) {
+    if (!entry.mask.empty() && !PathExists(dataset.Resolve(entry.mask))) {
       return Status::NotFound(Where(list, i, entry) + ": mask " + dataset.Resolve(entry.mask) +
                               " does not exist");
     }
@@ -482,7 +494,7 @@ Result<Dataset> LoadCsv(const std::string& directory) {
     }
   }
   const std::string boxes_path = directory + "/boxes.csv";
-  if (fs::exists(boxes_path)) {
+  if (PathExists(boxes_path)) {
     std::map<std::string, Entry*> by_id;
     for (Entry& entry : dataset.database) by_id["database/" + entry.id] = &entry;
     for (Entry& entry : dataset.queries) by_id["queries/" + entry.id] = &entry;
@@ -568,12 +580,12 @@ Status ValidateDataset(const Dataset& dataset, bool check_files) {
 }
 
 Result<Dataset> LoadDataset(const std::string& directory) {
-  if (!fs::is_directory(directory)) {
+  if (!IsFolder(directory)) {
     return Status::NotFound(directory + ": no such dataset directory");
   }
   const std::string json_path = directory + "/dataset.json";
-  auto dataset = fs::exists(json_path) ? LoadJson(directory, json_path)
-                 : fs::exists(directory + "/database.csv")
+  auto dataset = PathExists(json_path) ? LoadJson(directory, json_path)
+                 : PathExists(directory + "/database.csv")
                      ? LoadCsv(directory)
                      : Result<Dataset>(Status::NotFound(
                            directory + ": neither dataset.json nor database.csv is there"));
