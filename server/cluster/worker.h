@@ -85,8 +85,17 @@ class ClusterWorker final : public ClusterBackend {
   Result<uint64_t> Publish(const std::string& map, const ProcessedFrame& frame,
                            const PlaceMetadata& metadata, const std::string& message_id,
                            Deadline deadline) override;
-  Status CountQueryHit(const std::string& map, uint32_t place, const ProcessedFrame& frame,
-                       const PlaceMetadata& metadata, Deadline deadline) override;
+  Status CountObservation(const std::string& map, uint32_t place, const ProcessedFrame& frame,
+                          const PlaceMetadata& metadata, const std::string& message_id,
+                          Deadline deadline) override;
+  Result<std::vector<std::pair<PlaceId, PlacePayload>>> FetchPlaces(const std::string& map,
+                                                                    const std::vector<PlaceId>& ids,
+                                                                    bool features,
+                                                                    Deadline deadline) override;
+  Result<std::vector<PlaceSource::AgentPlace>> AgentPlaces(const std::string& map,
+                                                           const std::string& agent_id,
+                                                           uint64_t min_sequence,
+                                                           Deadline deadline) override;
   grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) override;
   grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                         v1::Place* response) override;
