@@ -960,6 +960,9 @@ struct PlaceDbService::Stream {
   std::shared_ptr<PendingCommit> last_commit;
   // Cluster mode: the stream's last place id (stream sequence), the min_sequence of its searches.
   uint64_t last_sequence = 0;
+  // Cluster mode, loop closure: the agents whose detector this stream has (re)started. Complete()
+  // only (stream order, one frame at a time).
+  std::set<std::string> loop_agents;
   std::optional<StreamExpiry> expiry_check;  // set with `context`
   bool expiry() const { return (*expiry_check)(); }
 
@@ -1213,6 +1216,12 @@ grpc::Status PlaceDbService::CloseLoopInCluster(Stream* stream, Slot* slot,
   // The agent's detector lives in the local copy (per-agent state, with its Ingest stream); the
   // places it reads are the replicas'. Storing = publishing, as without loop closure.
   ReplicaPlaces source(cluster_, map.name, stream->last_sequence, deadline);
+  if (stream->loop_agents.insert(work.metadata.agent_id).second) {
+    // The agent's first frame in this stream: a detector this worker kept from an earlier stream
+    // of the agent may lack the places it stored through other workers since; a new one replays
+    // them all from a replica.
+    map.map->ResetLoopClosure(work.metadata.agent_id);
+  }
   double store_ms = 0;
   auto store = [&]() -> Result<PlaceId> {
     Stopwatch publish;

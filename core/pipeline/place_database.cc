@@ -584,6 +584,14 @@ Result<size_t> PlaceDatabase::ReplayAgentPlaces(const std::string& agent_id,
   return replayed;
 }
 
+void PlaceDatabase::ResetLoopClosure(const std::string& agent_id) {
+  auto stream = streams_->Find(agent_id);
+  if (!stream) return;
+  MutexLock lock(stream->mutex);
+  stream->loop.reset();
+  stream->ltm.reset();
+}
+
 Status PlaceDatabase::ResetStream(const std::string& agent_id) {
   if (!streams_->Erase(agent_id)) {
     return Status::NotFound("agent '" + agent_id + "' has no stream state");

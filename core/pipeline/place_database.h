@@ -423,6 +423,9 @@ class PlaceDatabase {
                                        PlaceSource* source = nullptr);
   // Forgets an agent's stream state (Algorithm 1 and loop closure); NOT_FOUND if none.
   Status ResetStream(const std::string& agent_id);
+  // Forgets the agent's loop-closure detector only (Algorithm 1 stays): its next CloseLoop()
+  // starts a new one and replays the agent's places. Nothing when it has none.
+  void ResetLoopClosure(const std::string& agent_id);
   // The agent's loop-closure statistics; NOT_FOUND when it has no detector yet.
   Result<LoopClosureStats> LoopStats(const std::string& agent_id) const;
 

@@ -1318,6 +1318,11 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
   return database_->CloseLoop(frame, metadata, store, source);
 }
 
+void PlaceMap::ResetLoopClosure(const std::string& agent_id) {
+  ReaderLock alive(lifecycle_);
+  if (!closed_) database_->ResetLoopClosure(agent_id);
+}
+
 Status PlaceMap::CountObservationAt(PlaceId place, const ProcessedFrame& frame,
                                     const PlaceMetadata& metadata, const std::string& what) {
   if (!storage_->dynamics) return Status::Ok();

@@ -275,6 +275,8 @@ class PlaceMap {
   Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                                        const std::function<Result<PlaceId>()>& store,
                                        PlaceSource* source);
+  // See PlaceDatabase::ResetLoopClosure.
+  void ResetLoopClosure(const std::string& agent_id);
   Result<QueryResult> Query(const Observation& observation, const QueryOptions& options) const;
   // A query's best match as one more observation of its place (issue 16): when the map counts
   // query hits (MapOptions::count_query_hits_above > 0) and `result` is valid with its best

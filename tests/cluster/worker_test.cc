@@ -977,22 +977,27 @@ TEST_F(ClusterWorkerTest, LoopClosureOnAWorkerDecidesAsASingleServer) {
   shards.clear();
 }
 
-// The agent's stream moves to another worker (the first one stops): the new worker's detector
-// replays the agent's places from a replica (as a single server replays its own after a
-// restart), and the frames after the move decide as a single server restarted at the same frame,
-// among them loops closed on places stored before the move. Then a replay of many places, for
-// the figure in docs/cluster.md.
+// The agent's stream moves to another worker (the first one stops), then to a third, then back
+// to the second (which still had a detector for the agent from its earlier stream): each time
+// the first frame's new detector replays every place of the agent from a replica (as a single
+// server replays its own after a restart), and the frames decide as a single server restarted
+// at the same frames, among them loops closed on places stored before the first move. Then a
+// replay of many places, for the figure in docs/cluster.md.
 TEST_F(ClusterWorkerTest, LoopClosureFailoverReplaysTheAgentsPlacesFromAReplica) {
-  constexpr int kSplit = 60, kFrames = 110, kBulk = 2000;
+  constexpr int kBulk = 2000;
+  const std::vector<std::pair<int, int>> segments = {{1, 60}, {61, 90}, {91, 110}, {111, 130}};
   FeatureFrames(84);
+  std::vector<IngestOutcome> single;
   ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
   CreateMap("loop", LoopMapConfig());
-  const IngestOutcome single_before = LoopIngest(stub_.get(), "loop", "rover", 1, kSplit);
-  ASSERT_TRUE(single_before.status.ok()) << single_before.status.error_message();
-  StopServer();
-  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));  // the same data directory: a restart
-  const IngestOutcome single_after = LoopIngest(stub_.get(), "loop", "rover", kSplit + 1, kFrames);
-  ASSERT_TRUE(single_after.status.ok()) << single_after.status.error_message();
+  for (const auto& [first, last] : segments) {
+    if (!single.empty()) {
+      StopServer();
+      ASSERT_NO_FATAL_FAILURE(StartServer(Config()));  // the same data directory: a restart
+    }
+    single.push_back(LoopIngest(stub_.get(), "loop", "rover", first, last));
+    ASSERT_TRUE(single.back().status.ok()) << single.back().status.error_message();
+  }
   StopServer();
 
   std::vector<std::unique_ptr<cluster::Shard>> shards;
@@ -1000,61 +1005,89 @@ TEST_F(ClusterWorkerTest, LoopClosureFailoverReplaysTheAgentsPlacesFromAReplica)
     shards.push_back(StartShard(i));
     ASSERT_TRUE(shards.back());
   }
-  Worker& first = StartWorker(1);
-  Worker& second = StartWorker(2);
-  ASSERT_TRUE(first.stub && second.stub);
-  ASSERT_TRUE(CreateClusterMap(first, "loop", LoopMapConfig()).ok());
-  const IngestOutcome before = LoopIngest(first.stub.get(), "loop", "rover", 1, kSplit);
-  ASSERT_TRUE(before.status.ok()) << before.status.error_message();
-  first.server->Shutdown();  // the agent's detector is gone with it
-  const IngestOutcome after = LoopIngest(second.stub.get(), "loop", "rover", kSplit + 1, kFrames);
-  ASSERT_TRUE(after.status.ok()) << after.status.error_message();
-  ASSERT_EQ(after.responses.size(), size_t(kFrames - kSplit));
+  Worker& a = StartWorker(1);
+  Worker& b = StartWorker(2);
+  Worker& c = StartWorker(3);
+  ASSERT_TRUE(a.stub && b.stub && c.stub);
+  ASSERT_TRUE(CreateClusterMap(a, "loop", LoopMapConfig()).ok());
+  std::vector<IngestOutcome> clustered;
+  const std::vector<Worker*> route = {&a, &b, &c, &b};
+  for (size_t k = 0; k < segments.size(); ++k) {
+    clustered.push_back(
+        LoopIngest(route[k]->stub.get(), "loop", "rover", segments[k].first, segments[k].second));
+    ASSERT_TRUE(clustered.back().status.ok()) << clustered.back().status.error_message();
+    ASSERT_EQ(clustered.back().responses.size(),
+              size_t(segments[k].second - segments[k].first + 1));
+    if (k == 0) a.server->Shutdown();  // the agent's detector is gone with it
+  }
 
   std::map<uint32_t, int> single_frames, cluster_frames;
-  ExpectSameDecisions(Decisions(single_before, 1, &single_frames),
-                      Decisions(before, 1, &cluster_frames), 1);
-  const auto single_moved = Decisions(single_after, kSplit + 1, &single_frames);
-  const auto moved = Decisions(after, kSplit + 1, &cluster_frames);
-  ExpectSameDecisions(single_moved, moved, kSplit + 1);
-
-  // The first frame on the second worker replayed every place the first one stored.
-  std::set<uint32_t> stored_before;
-  for (const v1::IngestResponse& r : before.responses) {
-    if (r.stored()) stored_before.insert(r.place_id());
+  std::set<uint32_t> stored;         // the agent's places so far (cluster ids)
+  std::set<uint32_t> stored_before;  // ... before the first move
+  int loops_on_earlier = 0;
+  for (size_t k = 0; k < segments.size(); ++k) {
+    ExpectSameDecisions(Decisions(single[k], segments[k].first, &single_frames),
+                        Decisions(clustered[k], segments[k].first, &cluster_frames),
+                        segments[k].first);
+    const auto& responses = clustered[k].responses;
+    // The segment's first frame replayed every place stored before it (none for the first).
+    EXPECT_EQ(responses[0].loop_closure().replayed(), stored.size()) << "segment " << k;
+    for (const v1::IngestResponse& r : responses) {
+      if (r.stored()) stored.insert(r.place_id());
+      const v1::LoopClosure& lc = r.loop_closure();
+      if (k > 0) loops_on_earlier += lc.loop_found() && stored_before.count(lc.loop_place_id());
+    }
+    if (k == 0) stored_before = stored;
   }
   ASSERT_FALSE(stored_before.empty());
-  EXPECT_EQ(after.responses[0].loop_closure().replayed(), stored_before.size());
-  // ... and a later revisit closed a loop on one of them.
-  int loops_on_earlier = 0;
-  for (const v1::IngestResponse& r : after.responses) {
-    const v1::LoopClosure& lc = r.loop_closure();
-    loops_on_earlier += lc.loop_found() && stored_before.count(lc.loop_place_id());
-  }
   EXPECT_GT(loops_on_earlier, 0);
 
   // Replay time for N places: `bulk` stores kBulk places without loop closure, then its first
   // loop-closure frame on the second worker replays them all (from a replica, paged).
   std::vector<v1::Observation> frames;
   for (int f = 1; f <= kBulk; ++f) frames.push_back(FeatureObservation(f, "bulk"));
-  const IngestOutcome bulk = IngestAll(second.stub.get(), "loop", frames);
+  const IngestOutcome bulk = IngestAll(b.stub.get(), "loop", frames);
   ASSERT_TRUE(bulk.status.ok()) << bulk.status.error_message();
   size_t bulk_places = 0;
   for (const v1::IngestResponse& r : bulk.responses) bulk_places += r.stored();
-  // One frame per stream: a frame's total_ms is then its own (not queued behind another's).
-  const IngestOutcome replay = LoopIngest(second.stub.get(), "loop", "bulk", kBulk + 1, kBulk + 1);
-  const IngestOutcome next = LoopIngest(second.stub.get(), "loop", "bulk", kBulk + 2, kBulk + 2);
-  ASSERT_TRUE(replay.status.ok() && next.status.ok()) << replay.status.error_message();
-  ASSERT_EQ(replay.responses.size(), 1u);
-  ASSERT_EQ(next.responses.size(), 1u);
+  // The replay reads from a replica that applied the stream's end: wait for both, so that the
+  // figure is the replay's, not the appliers' catching up.
+  {
+    auto js = Js();
+    ASSERT_TRUE(js);
+    auto info = js->GetStreamInfo(cluster::StreamName("test", "loop"));
+    ASSERT_TRUE(info.ok()) << info.status().ToString();
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    size_t caught_up = 0;
+    while (caught_up < 2 && std::chrono::steady_clock::now() < until) {
+      caught_up = 0;
+      for (const auto& shard : shards) {
+        for (const cluster::ReplicaStatus& replica : shard->Replicas()) {
+          caught_up += replica.map == "loop" && replica.applied_sequence >= info->last_sequence;
+        }
+      }
+      if (caught_up < 2) std::this_thread::sleep_for(50ms);
+    }
+    ASSERT_EQ(caught_up, 2u);
+  }
+  // The replaying frame is its stream's first (its total_ms is its own, not queued behind
+  // another's); the next frame of the stream keeps the detector. For comparison: the first frame
+  // of an agent without places (the listing finds none).
+  const IngestOutcome replay = LoopIngest(b.stub.get(), "loop", "bulk", kBulk + 1, kBulk + 2);
+  const IngestOutcome none = LoopIngest(b.stub.get(), "loop", "newcomer", 1, 1);
+  ASSERT_TRUE(replay.status.ok() && none.status.ok()) << replay.status.error_message();
+  ASSERT_EQ(replay.responses.size(), 2u);
+  ASSERT_EQ(none.responses.size(), 1u);
   EXPECT_EQ(replay.responses[0].loop_closure().replayed(), bulk_places);
-  EXPECT_EQ(next.responses[0].loop_closure().replayed(), 0u);
+  EXPECT_EQ(replay.responses[1].loop_closure().replayed(), 0u);
+  EXPECT_EQ(none.responses[0].loop_closure().replayed(), 0u);
   std::printf(
       "cluster_loop_failover replayed %u places: first frame after the move %.1f ms\n"
-      "cluster_loop_replay %zu places: the replaying frame %.1f ms, the next frame %.1f ms\n",
-      after.responses[0].loop_closure().replayed(), after.responses[0].timings().total_ms(),
-      bulk_places, replay.responses[0].timings().total_ms(),
-      next.responses[0].timings().total_ms());
+      "cluster_loop_replay %zu places: the replaying frame %.1f ms; an agent without places: "
+      "%.1f ms\n",
+      clustered[1].responses[0].loop_closure().replayed(),
+      clustered[1].responses[0].timings().total_ms(), bulk_places,
+      replay.responses[0].timings().total_ms(), none.responses[0].timings().total_ms());
   workers_.clear();
   shards.clear();
 }
