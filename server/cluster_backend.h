@@ -81,11 +81,11 @@ class ClusterBackend {
 
   // Loop closure on a worker (the detector lives on the worker, the places on the replicas): the
   // BoW vectors of `ids` (and, with `features`, their SC features and direct index), read from a
-  // replica that has applied the highest of them (a place id is its stream sequence, so that
-  // replica has every one that still exists). A place that does not exist (removed) is absent
-  // from the result. UNAVAILABLE / DEADLINE_EXCEEDED as Search.
+  // replica that has applied `min_sequence` and the highest of them (a place id is its stream
+  // sequence, so that replica has every one that still exists). A place that does not exist
+  // (removed) is absent from the result. UNAVAILABLE / DEADLINE_EXCEEDED as Search.
   virtual Result<std::vector<std::pair<PlaceId, PlacePayload>>> FetchPlaces(
-      const std::string& map, const std::vector<PlaceId>& ids, bool features,
+      const std::string& map, const std::vector<PlaceId>& ids, bool features, uint64_t min_sequence,
       Deadline deadline) = 0;
   // Every place of `agent_id` in `map` (id, observation sequence, BoW vector), any order, read
   // from replicas that have applied at least `min_sequence` and everything the map's stream held

@@ -277,7 +277,7 @@ class ReplicaPlaces final : public PlaceSource {
 
  private:
   Result<PlacePayload> Fetch(PlaceId place, bool features) {
-    auto fetched = cluster_->FetchPlaces(map_, {place}, features, deadline_);
+    auto fetched = cluster_->FetchPlaces(map_, {place}, features, min_sequence_, deadline_);
     if (!fetched.ok()) return fetched.status();
     if (fetched->empty()) {
       return Status::NotFound("place " + std::to_string(place) + " not found in map '" + map_ +

@@ -9,6 +9,8 @@
 //
 // State is in memory only: after a restart (or a reopened map) Algorithm 1 warms up again in 3
 // frames, and PlaceDatabase::CloseLoop replays the agent's stored places into a new detector.
+// On a cluster worker the places are not in the database: CloseLoop then reads them (long-term
+// memory, verification, replay) from a PlaceSource instead of the payloads.
 #pragma once
 
 #include <memory>

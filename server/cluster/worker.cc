@@ -490,7 +490,8 @@ Status ClusterWorker::CountObservation(const std::string& map, uint32_t place,
 }
 
 Result<std::vector<std::pair<PlaceId, PlacePayload>>> ClusterWorker::FetchPlaces(
-    const std::string& map, const std::vector<PlaceId>& ids, bool features, Deadline deadline) {
+    const std::string& map, const std::vector<PlaceId>& ids, bool features, uint64_t min_sequence,
+    Deadline deadline) {
   std::vector<std::pair<PlaceId, PlacePayload>> out;
   if (ids.empty()) return out;
   auto entry = local_->Get(map, "map");  // the map's feature type, to decode the features
@@ -498,7 +499,8 @@ Result<std::vector<std::pair<PlaceId, PlacePayload>>> ClusterWorker::FetchPlaces
   const FeatureType type = (*entry)->map->info().options.database.feature_type;
   cluster::v1::FetchPlacesRequest request;
   request.set_map(map);
-  request.set_min_sequence(*std::max_element(ids.begin(), ids.end()));
+  request.set_min_sequence(
+      std::max<uint64_t>(min_sequence, *std::max_element(ids.begin(), ids.end())));
   for (const PlaceId id : ids) request.add_place_ids(id);
   request.set_features(features);
   cluster::v1::FetchPlacesResponse response;
