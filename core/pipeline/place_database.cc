@@ -539,20 +539,27 @@ Result<size_t> PlaceDatabase::ReplayAgentPlaces(const std::string& agent_id,
                                                 LoopClosureDetector* detector,
                                                 PayloadLongTermMemory* ltm,
                                                 PlaceSource* source) const {
+  // Oldest first: the agent's own order, then the id.
+  auto older = [](uint64_t sequence_a, PlaceId a, uint64_t sequence_b, PlaceId b) {
+    return sequence_a != sequence_b ? sequence_a < sequence_b : a < b;
+  };
+  size_t replayed = 0;
+  auto replay = [&](const BowVector& bow, uint64_t sequence, PlaceId id) -> Status {
+    if (bow.empty()) return Status::Ok();
+    auto place = detector->Replay(bow, sequence);
+    if (!place.ok()) return place.status();
+    ltm->Bind(*place, id);
+    ++replayed;
+    return Status::Ok();
+  };
   if (source) {
     auto places = source->AgentPlaces(agent_id);
     if (!places.ok()) return places.status();
-    // Oldest first, as below.
-    std::sort(places->begin(), places->end(), [](const auto& a, const auto& b) {
-      return a.sequence != b.sequence ? a.sequence < b.sequence : a.id < b.id;
+    std::sort(places->begin(), places->end(), [&](const auto& a, const auto& b) {
+      return older(a.sequence, a.id, b.sequence, b.id);
     });
-    size_t replayed = 0;
-    for (const PlaceSource::AgentPlace& earlier : *places) {
-      if (earlier.bow.empty()) continue;
-      auto place = detector->Replay(earlier.bow, earlier.sequence);
-      if (!place.ok()) return place.status();
-      ltm->Bind(*place, earlier.id);
-      ++replayed;
+    for (const PlaceSource::AgentPlace& place : *places) {
+      PLACEDB_RETURN_IF_ERROR(replay(place.bow, place.sequence, place.id));
     }
     return replayed;
   }
@@ -563,23 +570,16 @@ Result<size_t> PlaceDatabase::ReplayAgentPlaces(const std::string& agent_id,
       if (record->metadata.agent_id == agent_id) earlier.push_back(record);
     }
   }
-  std::sort(earlier.begin(), earlier.end(), [](const auto& a, const auto& b) {
-    return a->metadata.sequence != b->metadata.sequence
-               ? a->metadata.sequence < b->metadata.sequence
-               : a->id < b->id;
+  std::sort(earlier.begin(), earlier.end(), [&](const auto& a, const auto& b) {
+    return older(a->metadata.sequence, a->id, b->metadata.sequence, b->id);
   });
-  size_t replayed = 0;
   for (const auto& record : earlier) {
-    auto bow = payloads_->GetBow(record->id);
+    auto bow = payloads_->GetBow(record->id);  // one at a time: only the records in memory
     if (!bow.ok()) {
       if (bow.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
       return bow.status();
     }
-    if (bow->empty()) continue;
-    auto place = detector->Replay(*bow, record->metadata.sequence);
-    if (!place.ok()) return place.status();
-    ltm->Bind(*place, record->id);
-    ++replayed;
+    PLACEDB_RETURN_IF_ERROR(replay(*bow, record->metadata.sequence, record->id));
   }
   return replayed;
 }
