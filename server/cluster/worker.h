@@ -40,7 +40,7 @@
 // When the worker dies, the agent's SDK reconnects to another worker: Algorithm 1 warms up again
 // (its first frames after a reconnect are treated as after a server restart, docs/rgbd.md); the
 // loop-closure detector is rebuilt by the replay (measured by worker_test: about 1950 places in
-// 61-86 ms on this 2-core machine, load 3.6-16), without the old detector's weights and loop links,
+// 61-91 ms on this 2-core machine, load 3.6-16), without the old detector's weights and loop links,
 // as after a single server's restart; and frames answered with an error (or never answered) are
 // resent with their sequence: their message id finds the place already stored (same place id),
 // within the stream's duplicate window (2 minutes).
