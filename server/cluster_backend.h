@@ -1,8 +1,9 @@
 // What PlaceDbService (server/service.h) delegates to in cluster mode's worker role (issue 18,
 // docs/cluster.md): the maps live on shards and their places in JetStream streams, so map
 // admin, search, storing and place reads go through this interface; decoding, detection,
-// extraction, filtering, the transform and the agent's stream state (Algorithm 1) stay the
-// service's own pipeline, run on the worker's local copy of the map (Map()).
+// extraction, filtering, the transform and the agent's stream state (Algorithm 1, loop closure)
+// stay the service's own pipeline, run on the worker's local copy of the map (Map()); loop
+// closure reads the places it needs through FetchPlaces / AgentPlaces.
 //
 // The implementation is server/cluster/worker.h (placedb_cluster, built with libnats); the
 // service only knows this interface, so a single-node build needs none of the engines.
@@ -18,8 +19,11 @@
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "core/base/status.h"
+#include "core/pipeline/place_database.h"
 #include "core/storage/map_store.h"
 #include "proto/placedb.pb.h"
 #include "server/map_registry.h"
@@ -66,11 +70,32 @@ class ClusterBackend {
                                    const PlaceMetadata& metadata, const std::string& message_id,
                                    Deadline deadline) = 0;
 
-  // A query hit (MapConfig.dynamics.count_query_hits_above): `frame`'s statistics as one more
-  // observation of `place`, published (no de-duplication: as on a single server, a retried Query
-  // counts again) and acknowledged before it returns; UNAVAILABLE as Publish.
-  virtual Status CountQueryHit(const std::string& map, uint32_t place, const ProcessedFrame& frame,
-                               const PlaceMetadata& metadata, Deadline deadline) = 0;
+  // `frame`'s statistics as one more observation of `place` (a CountObservation record): a query
+  // hit (MapConfig.dynamics.count_query_hits_above; `message_id` empty: no de-duplication, as on
+  // a single server a retried Query counts again) or a stream frame merged by loop closure's
+  // rehearsal (the frame's message id: a resent frame counts once). Acknowledged before it
+  // returns; UNAVAILABLE as Publish.
+  virtual Status CountObservation(const std::string& map, uint32_t place,
+                                  const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                  const std::string& message_id, Deadline deadline) = 0;
+
+  // Loop closure on a worker (the detector lives on the worker, the places on the replicas): the
+  // BoW vectors of `ids` (and, with `features`, their SC features and direct index), read from a
+  // replica that has applied `min_sequence` and the highest of them (a place id is its stream
+  // sequence, so that replica has every one that still exists). A place that does not exist
+  // (removed) is absent from the result. UNAVAILABLE / DEADLINE_EXCEEDED as Search.
+  virtual Result<std::vector<std::pair<PlaceId, PlacePayload>>> FetchPlaces(
+      const std::string& map, const std::vector<PlaceId>& ids, bool features, uint64_t min_sequence,
+      Deadline deadline) = 0;
+  // Every place of `agent_id` in `map` (id, observation sequence, BoW vector), any order, read
+  // from replicas that have applied at least `min_sequence` and everything the map's stream held
+  // when the call began (so places the agent stored through another worker are included), a
+  // page at a time (each page retried on the other replica as Search). For a new detector's
+  // replay (PlaceSource::AgentPlaces).
+  virtual Result<std::vector<PlaceSource::AgentPlace>> AgentPlaces(const std::string& map,
+                                                                   const std::string& agent_id,
+                                                                   uint64_t min_sequence,
+                                                                   Deadline deadline) = 0;
 
   // DeletePlace: NOT_FOUND when a replica (that applied the id) does not have the place; else a
   // DeletePlace record, acknowledged before it returns (the replicas remove it when applying).

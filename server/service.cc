@@ -251,6 +251,47 @@ ClusterBackend::Deadline DeadlineOf(const grpc::ServerContext* context) {
   return context->deadline();
 }
 
+// Loop closure's places on a cluster worker, whose local copy of the map holds none: read from
+// the map's replicas through the ClusterBackend, for one frame of an Ingest stream
+// (`min_sequence`: the stream's last place; `deadline`: the frame's).
+class ReplicaPlaces final : public PlaceSource {
+ public:
+  ReplicaPlaces(ClusterBackend* cluster, std::string map, uint64_t min_sequence,
+                ClusterBackend::Deadline deadline)
+      : cluster_(cluster), map_(std::move(map)), min_sequence_(min_sequence), deadline_(deadline) {}
+
+  Result<BowVector> GetBow(PlaceId place) override {
+    auto fetched = Fetch(place, /*features=*/false);
+    if (!fetched.ok()) return fetched.status();
+    return std::move(fetched->bow);
+  }
+  Result<std::shared_ptr<const PlacePayload>> GetPayload(PlaceId place) override {
+    auto fetched = Fetch(place, /*features=*/true);
+    if (!fetched.ok()) return fetched.status();
+    return std::shared_ptr<const PlacePayload>(
+        std::make_shared<PlacePayload>(std::move(fetched).value()));
+  }
+  Result<std::vector<AgentPlace>> AgentPlaces(const std::string& agent_id) override {
+    return cluster_->AgentPlaces(map_, agent_id, min_sequence_, deadline_);
+  }
+
+ private:
+  Result<PlacePayload> Fetch(PlaceId place, bool features) {
+    auto fetched = cluster_->FetchPlaces(map_, {place}, features, min_sequence_, deadline_);
+    if (!fetched.ok()) return fetched.status();
+    if (fetched->empty()) {
+      return Status::NotFound("place " + std::to_string(place) + " not found in map '" + map_ +
+                              "'");
+    }
+    return std::move(fetched->front().second);
+  }
+
+  ClusterBackend* const cluster_;
+  const std::string map_;
+  const uint64_t min_sequence_;
+  const ClusterBackend::Deadline deadline_;
+};
+
 }  // namespace
 
 void PlaceDbService::ObserveStages(const StageTimings& t) {
@@ -710,8 +751,9 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
           // answer, as on a single server.
           const double above = map.map->info().options.count_query_hits_above;
           if (above > 0 && response->matches_size() > 0 && response->matches(0).score() > above) {
-            if (Status counted = cluster_->CountQueryHit(
+            if (Status counted = cluster_->CountObservation(
                     map.name, response->matches(0).place_id(), work.frame, work.metadata,
+                    /*message_id=*/"",
                     std::min(DeadlineOf(context),
                              std::chrono::system_clock::now() + kClusterPatience));
                 !counted.ok()) {
@@ -918,6 +960,9 @@ struct PlaceDbService::Stream {
   std::shared_ptr<PendingCommit> last_commit;
   // Cluster mode: the stream's last place id (stream sequence), the min_sequence of its searches.
   uint64_t last_sequence = 0;
+  // Cluster mode, loop closure: the agents whose detector this stream has (re)started. Complete()
+  // only (stream order, one frame at a time).
+  std::set<std::string> loop_agents;
   std::optional<StreamExpiry> expiry_check;  // set with `context`
   bool expiry() const { return (*expiry_check)(); }
 
@@ -1136,6 +1181,9 @@ grpc::Status PlaceDbService::CompleteInCluster(Stream* stream, Slot* slot) {
   // De-duplication across reconnects and workers: the agent's id and frame number.
   std::string message_id = slot->agent_id + "/" + std::to_string(slot->sequence);
   if (slot->agent_id.empty() && slot->sequence == 0) message_id.clear();  // none: no de-dup
+  if (stream->loop_closure && frame.valid) {
+    return CloseLoopInCluster(stream, slot, message_id, deadline);
+  }
   Stopwatch publish;
   auto published = cluster_->Publish(map.name, frame, work.metadata, message_id, deadline);
   work.timings.store_ms = publish.Lap();
@@ -1154,6 +1202,70 @@ grpc::Status PlaceDbService::CompleteInCluster(Stream* stream, Slot* slot) {
     response.set_stored(false);
     response.set_rejection(frame.rejection);
     metrics_->FrameRejected(map.name, "invalid_place");
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status PlaceDbService::CloseLoopInCluster(Stream* stream, Slot* slot,
+                                                const std::string& message_id,
+                                                ClusterBackend::Deadline deadline) {
+  v1::IngestResponse& response = slot->response;
+  Work& work = slot->work;
+  const MapEntry& map = *stream->map;
+  const ProcessedFrame& frame = work.frame;
+  // The agent's detector lives in the local copy (per-agent state, with its Ingest stream); the
+  // places it reads are the replicas'. Storing = publishing, as without loop closure.
+  ReplicaPlaces source(cluster_, map.name, stream->last_sequence, deadline);
+  if (stream->loop_agents.insert(work.metadata.agent_id).second) {
+    // The agent's first frame in this stream: a detector this worker kept from an earlier stream
+    // of the agent may lack the places it stored through other workers since; a new one replays
+    // them all from a replica.
+    map.map->ResetLoopClosure(work.metadata.agent_id);
+  }
+  double store_ms = 0;
+  auto store = [&]() -> Result<PlaceId> {
+    Stopwatch publish;
+    auto published = cluster_->Publish(map.name, frame, work.metadata, message_id, deadline);
+    store_ms = publish.Lap();
+    if (!published.ok()) return published.status();
+    return PlaceId(*published);
+  };
+  auto outcome = map.map->CloseLoop(frame, work.metadata, store, &source);
+  work.timings.store_ms = store_ms;
+  if (!outcome.ok()) return ToGrpc(outcome.status(), "loop closure");
+  work.timings.loop_closure_ms = outcome->update_ms;
+  if (outcome->replayed > 0) {
+    spdlog::info(
+        "loop closure map={} agent={}: {} earlier places replayed from a replica in {:.1f} "
+        "ms",
+        map.name, work.metadata.agent_id, outcome->replayed, outcome->replay_ms);
+  }
+  if (outcome->merged) {
+    // As on a single node: nothing stored, the frame counted as one more observation of the
+    // place it was merged into (its message id: a resent frame counts once).
+    Stopwatch count;
+    const Status counted = cluster_->CountObservation(map.name, outcome->place, frame,
+                                                      work.metadata, message_id, deadline);
+    work.timings.store_ms = count.Lap();
+    if (!counted.ok()) return ToGrpc(counted, "counting the merged frame");
+  }
+  CountsToProto(frame.counts, response.mutable_counts());
+  BoxesToProto(frame.boxes_used, response.mutable_boxes_used());
+  if (frame.depth_state) DepthStateToProto(*frame.depth_state, response.mutable_depth());
+  metrics_->CountDescriptors(map.name, frame.counts.dynamic, frame.counts.depth_removed,
+                             frame.counts.static_);
+  LoopClosureToProto(*outcome, response.mutable_loop_closure());
+  if (outcome->loop) metrics_->LoopClosed(map.name);
+  if (outcome->loop_rejected) metrics_->LoopRejected(map.name);
+  if (outcome->merged) {
+    response.set_stored(false);
+    response.set_place_id(outcome->place);
+    metrics_->FrameMerged(map.name);
+  } else {
+    response.set_stored(true);
+    response.set_place_id(outcome->place);
+    stream->last_sequence = std::max<uint64_t>(stream->last_sequence, outcome->place);
+    metrics_->FrameIngested(map.name);
   }
   return grpc::Status::OK;
 }
@@ -1246,13 +1358,6 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
   }
   auto entry = GetMapEntry(first.header().map(), "header.map");
   if (!entry.ok()) return Finish("Ingest", context, ToGrpc(entry.status()));
-  if (cluster_ && first.header().loop_closure()) {
-    // Its detector's memory would have to follow the agent from worker to worker; not faked.
-    return Finish("Ingest", context,
-                  grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                               "header.loop_closure: loop closure is not available in cluster "
-                               "mode (docs/cluster.md); ingest without it, or on a single server"));
-  }
 
   Stream stream;
   stream.context = context;

@@ -156,6 +156,12 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // caught-up replica when asked, then publish and wait for JetStream's acknowledgement; the
   // place id is the stream sequence. Fills the response; an error is the frame's answer.
   grpc::Status CompleteInCluster(Stream* stream, Slot* slot);
+  // Its loop-closure mode (a valid frame): the agent's detector on the local copy of the map
+  // (PlaceMap::CloseLoop), reading the places it needs from replicas; the frame published with
+  // `message_id` unless rehearsal merges it (then a CountObservation record at the place it
+  // was merged into, with the same id). The response carries the single server's fields.
+  grpc::Status CloseLoopInCluster(Stream* stream, Slot* slot, const std::string& message_id,
+                                  ClusterBackend::Deadline deadline);
   // The rest of a completed frame's answer, on the stream's delivery thread before it is written
   // (or when it is skipped): waits until its place is durable and indexed (a place Complete()
   // handed to the map's commit queue: group commit), fills in the outcome, and counts it.

@@ -17,7 +17,7 @@ Result<BowVector> PayloadLongTermMemory::Fetch(PlaceId detector_place) {
     return Status::NotFound("loop-closure place " + std::to_string(detector_place) +
                             " has no stored vector");
   }
-  auto bow = payloads_->GetBow(place);
+  auto bow = source_ ? source_->GetBow(place) : payloads_->GetBow(place);
   if (!bow.ok()) return bow.status().WithContext("retrieving place " + std::to_string(place));
   return bow;
 }

@@ -9,6 +9,8 @@
 //
 // State is in memory only: after a restart (or a reopened map) Algorithm 1 warms up again in 3
 // frames, and PlaceDatabase::CloseLoop replays the agent's stored places into a new detector.
+// On a cluster worker the places are not in the database: CloseLoop then reads them (long-term
+// memory, verification, replay) from a PlaceSource instead of the payloads.
 #pragma once
 
 #include <memory>
@@ -24,6 +26,7 @@
 namespace placedb {
 
 class PayloadStore;
+class PlaceSource;
 
 // Long-term memory backed by the database's payloads. The detector's place ids are bound to
 // database places once stored; a detector place that was never stored (its store failed) keeps
@@ -38,11 +41,15 @@ class PayloadLongTermMemory final : public LongTermMemory {
 
   void Bind(PlaceId detector_place, PlaceId place);
   PlaceId Bound(PlaceId detector_place) const;  // 0 when unbound
+  // Bound places are read from `source` instead of the payloads while it is set (CloseLoop sets
+  // it for the length of one call with a PlaceSource; null: the payloads).
+  void set_source(PlaceSource* source) { source_ = source; }
 
  private:
   // No lock of its own: only its stream's detector and CloseLoop use it, under the stream's
   // mutex (AgentStream::ltm is GUARDED_BY it).
   std::shared_ptr<PayloadStore> payloads_;
+  PlaceSource* source_ = nullptr;
   std::vector<PlaceId> bound_;  // detector place -> database place
   std::unordered_map<PlaceId, BowVector> unbound_;
 };

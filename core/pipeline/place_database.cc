@@ -445,7 +445,8 @@ Status PlaceDatabase::AdvanceStream(ProcessedFrame* frame, const std::string& ag
 
 Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
                                                     const PlaceMetadata& metadata,
-                                                    const std::function<Result<PlaceId>()>& store) {
+                                                    const std::function<Result<PlaceId>()>& store,
+                                                    PlaceSource* source) {
   if (frame.stream_pending) {
     return Status::FailedPrecondition("CloseLoop needs a finished frame: call AdvanceStream first");
   }
@@ -453,25 +454,38 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
   auto stream = streams_->Get(metadata.agent_id);
   MutexLock lock(stream->mutex);
   size_t replayed_places = 0;
+  double replay_ms = 0;
   if (!stream->loop) {
+    Stopwatch replay;
     LoopClosureConfig config = config_.loop_closure;
     config.scoring = config_.scoring;  // the long-term memory hands back the payloads' vectors
     stream->ltm = std::make_shared<PayloadLongTermMemory>(payloads_);
     auto detector = LoopClosureDetector::Create(vocabulary_.word_count(), config, stream->ltm);
     if (!detector.ok()) return detector.status();
     stream->loop = std::move(detector).value();
-    auto replayed = ReplayAgentPlaces(metadata.agent_id, stream->loop.get(), stream->ltm.get());
+    stream->ltm->set_source(source);  // replayed places may move to long-term memory
+    auto replayed =
+        ReplayAgentPlaces(metadata.agent_id, stream->loop.get(), stream->ltm.get(), source);
+    stream->ltm->set_source(nullptr);
     if (!replayed.ok()) {
       stream->loop.reset();
       return replayed.status().WithContext("rebuilding the loop-closure memory of agent '" +
                                            metadata.agent_id + "'");
     }
     replayed_places = *replayed;
+    replay_ms = replay.ElapsedMs();
   }
+  // The source is this call's (it reads at this frame's point of the stream), never kept.
+  stream->ltm->set_source(source);
+  struct Unset {
+    PayloadLongTermMemory* ltm;
+    ~Unset() { ltm->set_source(nullptr); }
+  } unset{stream->ltm.get()};
   auto update = stream->loop->Update(frame.bow, metadata.sequence);
   if (!update.ok()) return update.status();
   LoopClosureOutcome outcome;
   outcome.replayed = replayed_places;
+  outcome.replay_ms = replay_ms;
   outcome.merged = update->merged;
   outcome.candidates = update->candidates;
   outcome.retrieved = update->retrieved.size();
@@ -481,7 +495,7 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
     const PlaceId target = stream->ltm->Bound(*update->loop);
     bool keep = target != 0;  // else a place whose store had failed: nothing to return to
     if (keep && config_.verify_loops) {
-      auto verified = VerifyLoop(frame, target);
+      auto verified = VerifyLoop(frame, target, source);
       outcome.loop_inliers = verified.ok() ? *verified : 0;
       keep = verified.ok() && *verified >= config_.verification.min_inliers;
     }
@@ -507,8 +521,9 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
   return outcome;
 }
 
-Result<int> PlaceDatabase::VerifyLoop(const ProcessedFrame& frame, PlaceId place) const {
-  auto payload = payloads_->Get(place);
+Result<int> PlaceDatabase::VerifyLoop(const ProcessedFrame& frame, PlaceId place,
+                                      PlaceSource* source) const {
+  auto payload = source ? source->GetPayload(place) : payloads_->Get(place);
   if (!payload.ok()) return payload.status();
   VerificationConfig verification = config_.verification;
   if (verification.mode == VerificationMode::kDisabled) {
@@ -522,7 +537,32 @@ Result<int> PlaceDatabase::VerifyLoop(const ProcessedFrame& frame, PlaceId place
 
 Result<size_t> PlaceDatabase::ReplayAgentPlaces(const std::string& agent_id,
                                                 LoopClosureDetector* detector,
-                                                PayloadLongTermMemory* ltm) const {
+                                                PayloadLongTermMemory* ltm,
+                                                PlaceSource* source) const {
+  // Oldest first: the agent's own order, then the id.
+  auto older = [](uint64_t sequence_a, PlaceId a, uint64_t sequence_b, PlaceId b) {
+    return sequence_a != sequence_b ? sequence_a < sequence_b : a < b;
+  };
+  size_t replayed = 0;
+  auto replay = [&](const BowVector& bow, uint64_t sequence, PlaceId id) -> Status {
+    if (bow.empty()) return Status::Ok();
+    auto place = detector->Replay(bow, sequence);
+    if (!place.ok()) return place.status();
+    ltm->Bind(*place, id);
+    ++replayed;
+    return Status::Ok();
+  };
+  if (source) {
+    auto places = source->AgentPlaces(agent_id);
+    if (!places.ok()) return places.status();
+    std::sort(places->begin(), places->end(), [&](const auto& a, const auto& b) {
+      return older(a.sequence, a.id, b.sequence, b.id);
+    });
+    for (const PlaceSource::AgentPlace& place : *places) {
+      PLACEDB_RETURN_IF_ERROR(replay(place.bow, place.sequence, place.id));
+    }
+    return replayed;
+  }
   std::vector<std::shared_ptr<const PlaceRecord>> earlier;
   {
     ReaderLock lock(mutex_);
@@ -530,25 +570,26 @@ Result<size_t> PlaceDatabase::ReplayAgentPlaces(const std::string& agent_id,
       if (record->metadata.agent_id == agent_id) earlier.push_back(record);
     }
   }
-  std::sort(earlier.begin(), earlier.end(), [](const auto& a, const auto& b) {
-    return a->metadata.sequence != b->metadata.sequence
-               ? a->metadata.sequence < b->metadata.sequence
-               : a->id < b->id;
+  std::sort(earlier.begin(), earlier.end(), [&](const auto& a, const auto& b) {
+    return older(a->metadata.sequence, a->id, b->metadata.sequence, b->id);
   });
-  size_t replayed = 0;
   for (const auto& record : earlier) {
-    auto bow = payloads_->GetBow(record->id);
+    auto bow = payloads_->GetBow(record->id);  // one at a time: only the records in memory
     if (!bow.ok()) {
       if (bow.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
       return bow.status();
     }
-    if (bow->empty()) continue;
-    auto place = detector->Replay(*bow, record->metadata.sequence);
-    if (!place.ok()) return place.status();
-    ltm->Bind(*place, record->id);
-    ++replayed;
+    PLACEDB_RETURN_IF_ERROR(replay(*bow, record->metadata.sequence, record->id));
   }
   return replayed;
+}
+
+void PlaceDatabase::ResetLoopClosure(const std::string& agent_id) {
+  auto stream = streams_->Find(agent_id);
+  if (!stream) return;
+  MutexLock lock(stream->mutex);
+  stream->loop.reset();
+  stream->ltm.reset();
 }
 
 Status PlaceDatabase::ResetStream(const std::string& agent_id) {

@@ -245,6 +245,27 @@ class InMemoryPayloadStore final : public PayloadStore {
 
 size_t PayloadBytes(const PlacePayload& payload);
 
+// Where CloseLoop() reads the places its detector needs when the database does not hold them
+// itself: a cluster worker's local copy of a map holds no places (they live on the map's
+// replicas, docs/cluster.md), so the server implements this over its replicas. Without a source
+// (a single node) CloseLoop reads the database's own payload store.
+// Called only from CloseLoop(), on its caller's thread, under the agent stream's mutex.
+class PlaceSource {
+ public:
+  struct AgentPlace {
+    PlaceId id = 0;
+    uint64_t sequence = 0;  // PlaceMetadata::sequence: the replay's order
+    BowVector bow;          // normalised for the database's scoring, as stored
+  };
+  virtual ~PlaceSource() = default;
+  // A stored place's BoW vector (long-term memory retrieval). NOT_FOUND when absent.
+  virtual Result<BowVector> GetBow(PlaceId place) = 0;
+  // A stored place's features and direct index (loop verification). NOT_FOUND when absent.
+  virtual Result<std::shared_ptr<const PlacePayload>> GetPayload(PlaceId place) = 0;
+  // Every stored place of `agent_id`, in any order (a new detector's replay sorts them).
+  virtual Result<std::vector<AgentPlace>> AgentPlaces(const std::string& agent_id) = 0;
+};
+
 struct AddResult {
   bool stored = false;
   PlaceId id = 0;         // valid when stored
@@ -323,6 +344,7 @@ struct LoopClosureOutcome {
   // The agent's earlier places replayed into a new detector by this call (first loop-closure
   // frame of the agent since the map was opened or its stream reset), else 0.
   size_t replayed = 0;
+  double replay_ms = 0;  // the replay's time (reading the places included), 0 without one
 };
 
 struct DatabaseStats {
@@ -392,11 +414,18 @@ class PlaceDatabase {
   // from the payload store when retrieved. The agent's first call (since the database was
   // created or opened, or its stream reset) replays the places it stored earlier, oldest first,
   // into the new detector (their weights and loop links are not kept), so loops can close on
-  // them after a restart.
+  // them after a restart. With `source`, every place the detector reads (long-term memory, the
+  // loop target's features for verify_loops, the replay) comes from it instead of this database
+  // (cluster mode's worker); its errors are CloseLoop's (the replay's, a verification's), except
+  // a retrieval's, which the detector carries in its update as without a source.
   Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
-                                       const std::function<Result<PlaceId>()>& store = nullptr);
+                                       const std::function<Result<PlaceId>()>& store = nullptr,
+                                       PlaceSource* source = nullptr);
   // Forgets an agent's stream state (Algorithm 1 and loop closure); NOT_FOUND if none.
   Status ResetStream(const std::string& agent_id);
+  // Forgets the agent's loop-closure detector only (Algorithm 1 stays): its next CloseLoop()
+  // starts a new one and replays the agent's places. Nothing when it has none.
+  void ResetLoopClosure(const std::string& agent_id);
   // The agent's loop-closure statistics; NOT_FOUND when it has no detector yet.
   Result<LoopClosureStats> LoopStats(const std::string& agent_id) const;
 
@@ -467,10 +496,13 @@ class PlaceDatabase {
   // Validity, then the BoW vector and direct index of the SC features.
   Status Finish(ProcessedFrame* frame, Stopwatch* stage) const;
   // Geometric verification of a loop: the frame against the stored place; the inlier count.
-  Result<int> VerifyLoop(const ProcessedFrame& frame, PlaceId place) const;
-  // Replays the agent's stored places, oldest first, into a new detector and binds them.
+  // `source`: read the place from it (else the payload store).
+  Result<int> VerifyLoop(const ProcessedFrame& frame, PlaceId place, PlaceSource* source) const;
+  // Replays the agent's stored places (this database's, or `source`'s), oldest first, into a new
+  // detector and binds them.
   Result<size_t> ReplayAgentPlaces(const std::string& agent_id, LoopClosureDetector* detector,
-                                   PayloadLongTermMemory* ltm) const EXCLUDES(mutex_);
+                                   PayloadLongTermMemory* ltm, PlaceSource* source) const
+      EXCLUDES(mutex_);
   // Removes the SC features whose depth lies in Algorithm 1's band (when it is removing).
   static void ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState& state,
                              bool remove_without_depth);

@@ -1312,6 +1312,20 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
   return outcome;
 }
 
+Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
+                                               const PlaceMetadata& metadata,
+                                               const std::function<Result<PlaceId>()>& store,
+                                               PlaceSource* source) {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  return database_->CloseLoop(frame, metadata, store, source);
+}
+
+void PlaceMap::ResetLoopClosure(const std::string& agent_id) {
+  ReaderLock alive(lifecycle_);
+  if (!closed_) database_->ResetLoopClosure(agent_id);
+}
+
 Status PlaceMap::CountObservationAt(PlaceId place, const ProcessedFrame& frame,
                                     const PlaceMetadata& metadata, const std::string& what) {
   if (!storage_->dynamics) return Status::Ok();
@@ -1718,6 +1732,21 @@ Result<StoredPlace> PlaceMap::GetPlace(PlaceId id) const {
                   RelativeTo(payload.status().message(), path_, info_.name));
   }
   return StoredPlace{*record, **payload};
+}
+
+Result<BowVector> PlaceMap::GetBow(PlaceId id) const {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  if (!database_->Get(id)) {
+    return Status::NotFound("place " + std::to_string(id) + " not found in map '" + info_.name +
+                            "'");
+  }
+  RocksPayloadStore payloads(storage_.get(), info_.options.database.feature_type);
+  auto bow = payloads.GetBow(id);
+  if (!bow.ok()) {
+    return Status(bow.status().code(), RelativeTo(bow.status().message(), path_, info_.name));
+  }
+  return bow;
 }
 
 Status PlaceMap::RemovePlace(PlaceId id) {

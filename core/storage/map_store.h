@@ -270,6 +270,14 @@ class PlaceMap {
   // map's RocksDB payloads.
   Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                                        AddResult* added);
+  // Cluster mode's worker, whose local copy of the map holds no places: PlaceDatabase::CloseLoop
+  // with the caller's `store` (publishing the frame) and `source` (the map's replicas); nothing
+  // is written to this map, also not a merged frame's statistics (the caller records them).
+  Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                       const std::function<Result<PlaceId>()>& store,
+                                       PlaceSource* source);
+  // See PlaceDatabase::ResetLoopClosure.
+  void ResetLoopClosure(const std::string& agent_id);
   Result<QueryResult> Query(const Observation& observation, const QueryOptions& options) const;
   // A query's best match as one more observation of its place (issue 16): when the map counts
   // query hits (MapOptions::count_query_hits_above > 0) and `result` is valid with its best
@@ -284,6 +292,9 @@ class PlaceMap {
   QueryResult Search(const ProcessedFrame& frame, const QueryOptions& options) const;
 
   Result<StoredPlace> GetPlace(PlaceId id) const;  // NOT_FOUND if absent
+  // The place's BoW vector alone (read from disk, as loop closure's long-term memory reads it).
+  // NOT_FOUND if absent.
+  Result<BowVector> GetBow(PlaceId id) const;
   // Cluster mode (issue 18): applies `record` at stream sequence `sequence`. An AddPlace is
   // stored with id = `sequence`; every record (also the ones that store no place) writes the
   // map's applied sequence = `sequence` in the same RocksDB batch, synced and counted like a

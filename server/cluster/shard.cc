@@ -129,6 +129,11 @@ class Shard::Impl {
   // RPCs (ShardService).
   grpc::Status Search(grpc::ServerContext* context, const cv1::SearchRequest& request,
                       cv1::SearchResponse* response);
+  grpc::Status FetchPlaces(grpc::ServerContext* context, const cv1::FetchPlacesRequest& request,
+                           cv1::FetchPlacesResponse* response);
+  grpc::Status ListAgentPlaces(grpc::ServerContext* context,
+                               const cv1::ListAgentPlacesRequest& request,
+                               cv1::ListAgentPlacesResponse* response);
   Result<std::shared_ptr<PlaceMap>> MapOf(const std::string& map) const EXCLUDES(mutex_);
   grpc::Status Checkpoint(const cv1::CheckpointRequest& request,
                           grpc::ServerWriter<cv1::CheckpointChunk>* writer);
@@ -138,6 +143,10 @@ class Shard::Impl {
   int port_ = 0;
 
  private:
+  // Waits until `map` (held here as `m`) applied `min_sequence`: bounded by the call's deadline
+  // (30 s without one); DEADLINE_EXCEEDED naming both sequences, UNAVAILABLE while stopping.
+  grpc::Status AwaitApplied(grpc::ServerContext* context, const std::string& map, const PlaceMap& m,
+                            uint64_t min_sequence) EXCLUDES(mutex_);
   std::string Key(const std::string& suffix) const {
     return "/placedb/" + options_.cluster_name + "/" + suffix;
   }
@@ -235,6 +244,15 @@ class ShardService final : public cv1::Shard::Service {
   grpc::Status Checkpoint(grpc::ServerContext*, const cv1::CheckpointRequest* request,
                           grpc::ServerWriter<cv1::CheckpointChunk>* writer) override {
     return impl_->Checkpoint(*request, writer);
+  }
+  grpc::Status FetchPlaces(grpc::ServerContext* context, const cv1::FetchPlacesRequest* request,
+                           cv1::FetchPlacesResponse* response) override {
+    return impl_->FetchPlaces(context, *request, response);
+  }
+  grpc::Status ListAgentPlaces(grpc::ServerContext* context,
+                               const cv1::ListAgentPlacesRequest* request,
+                               cv1::ListAgentPlacesResponse* response) override {
+    return impl_->ListAgentPlaces(context, *request, response);
   }
 
  private:
@@ -825,29 +843,36 @@ Result<std::shared_ptr<PlaceMap>> Shard::Impl::MapOf(const std::string& map) con
   return it->second->map;
 }
 
-grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::SearchRequest& request,
-                                 cv1::SearchResponse* response) {
-  auto map = MapOf(request.map());
-  if (!map.ok()) return ToGrpc(map.status());
-  PlaceMap& m = **map;
+grpc::Status Shard::Impl::AwaitApplied(grpc::ServerContext* context, const std::string& map,
+                                       const PlaceMap& m, uint64_t min_sequence) {
   // Bounded by the call's deadline (30 s without one).
   const auto remaining = context->deadline() - std::chrono::system_clock::now();
   const auto until =
       Clock::now() + std::min<std::chrono::system_clock::duration>(
                          remaining, std::chrono::duration_cast<std::chrono::system_clock::duration>(
                                         std::chrono::seconds(30)));
-  {
-    MutexLock lock(mutex_);
-    while (m.applied_sequence() < request.min_sequence()) {
-      if (stopping_) return GrpcError(grpc::StatusCode::UNAVAILABLE, "shard is stopping");
-      if (Clock::now() >= until || context->IsCancelled()) {
-        return GrpcError(grpc::StatusCode::DEADLINE_EXCEEDED,
-                         "map '" + request.map() + "' on shard " + options_.shard_id + " applied " +
-                             std::to_string(m.applied_sequence()) + " < min_sequence " +
-                             std::to_string(request.min_sequence()));
-      }
-      applied_cv_.WaitUntil(mutex_, std::min(until, Clock::now() + std::chrono::milliseconds(200)));
+  MutexLock lock(mutex_);
+  while (m.applied_sequence() < min_sequence) {
+    if (stopping_) return GrpcError(grpc::StatusCode::UNAVAILABLE, "shard is stopping");
+    if (Clock::now() >= until || context->IsCancelled()) {
+      return GrpcError(grpc::StatusCode::DEADLINE_EXCEEDED,
+                       "map '" + map + "' on shard " + options_.shard_id + " applied " +
+                           std::to_string(m.applied_sequence()) + " < min_sequence " +
+                           std::to_string(min_sequence));
     }
+    applied_cv_.WaitUntil(mutex_, std::min(until, Clock::now() + std::chrono::milliseconds(200)));
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::SearchRequest& request,
+                                 cv1::SearchResponse* response) {
+  auto map = MapOf(request.map());
+  if (!map.ok()) return ToGrpc(map.status());
+  PlaceMap& m = **map;
+  if (grpc::Status applied = AwaitApplied(context, request.map(), m, request.min_sequence());
+      !applied.ok()) {
+    return applied;
   }
   ProcessedFrame frame;
   if (Status decoded =
@@ -868,6 +893,71 @@ grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::Search
   response->set_applied_sequence(applied);
   response->set_search_ms(result.timings.search_ms);
   response->set_verify_ms(result.timings.verify_ms);
+  return grpc::Status::OK;
+}
+
+grpc::Status Shard::Impl::FetchPlaces(grpc::ServerContext* context,
+                                      const cv1::FetchPlacesRequest& request,
+                                      cv1::FetchPlacesResponse* response) {
+  auto map = MapOf(request.map());
+  if (!map.ok()) return ToGrpc(map.status());
+  const PlaceMap& m = **map;
+  if (grpc::Status applied = AwaitApplied(context, request.map(), m, request.min_sequence());
+      !applied.ok()) {
+    return applied;
+  }
+  response->set_applied_sequence(m.applied_sequence());
+  for (const uint32_t id : request.place_ids()) {
+    cv1::FetchedPlace* out = nullptr;
+    if (request.features()) {
+      auto place = m.GetPlace(id);
+      if (place.status().code() == StatusCode::kNotFound) continue;
+      if (!place.ok()) return ToGrpc(place.status());
+      out = response->add_places();
+      out->set_bow(EncodeBow(place->payload.bow));
+      out->set_features(EncodeLocalFeatures(place->payload.features, place->payload.direct));
+    } else {
+      auto bow = m.GetBow(id);
+      if (bow.status().code() == StatusCode::kNotFound) continue;
+      if (!bow.ok()) return ToGrpc(bow.status());
+      out = response->add_places();
+      out->set_bow(EncodeBow(*bow));
+    }
+    out->set_place_id(id);
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status Shard::Impl::ListAgentPlaces(grpc::ServerContext* context,
+                                          const cv1::ListAgentPlacesRequest& request,
+                                          cv1::ListAgentPlacesResponse* response) {
+  if (request.agent_id().empty()) {
+    return GrpcError(grpc::StatusCode::INVALID_ARGUMENT, "agent_id: is required");
+  }
+  auto map = MapOf(request.map());
+  if (!map.ok()) return ToGrpc(map.status());
+  const PlaceMap& m = **map;
+  if (grpc::Status applied = AwaitApplied(context, request.map(), m, request.min_sequence());
+      !applied.ok()) {
+    return applied;
+  }
+  response->set_applied_sequence(m.applied_sequence());
+  const size_t limit = request.limit() == 0 ? 256 : std::min<size_t>(request.limit(), 1024);
+  PlaceFilter filter;
+  filter.agent_id = request.agent_id();
+  // A bounded walk per page (ids of other agents count too): the caller pages on.
+  const PlacePage page =
+      m.database().ListPlacesBefore(request.before_place_id(), limit, filter, size_t(1) << 16);
+  for (const auto& record : page.places) {
+    auto bow = m.GetBow(record->id);
+    if (bow.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
+    if (!bow.ok()) return ToGrpc(bow.status());
+    cv1::AgentPlace* out = response->add_places();
+    out->set_place_id(record->id);
+    out->set_sequence(record->metadata.sequence);
+    out->set_bow(EncodeBow(*bow));
+  }
+  response->set_next_before_place_id(page.next_before);
   return grpc::Status::OK;
 }
 

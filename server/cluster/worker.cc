@@ -11,6 +11,7 @@
 #include <thread>
 
 #include "core/base/map_name.h"
+#include "core/storage/codec.h"
 #include "proto/cluster.grpc.pb.h"
 #include "proto/convert_config.h"
 #include "proto/status.h"
@@ -480,12 +481,94 @@ grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame&
   return grpc::Status::OK;
 }
 
-Status ClusterWorker::CountQueryHit(const std::string& map, uint32_t place,
-                                    const ProcessedFrame& frame, const PlaceMetadata& metadata,
-                                    Deadline deadline) {
+Status ClusterWorker::CountObservation(const std::string& map, uint32_t place,
+                                       const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                       const std::string& message_id, Deadline deadline) {
   auto published = PublishRecord(map, cluster::EncodeCountObservation(place, frame, metadata),
-                                 /*message_id=*/"", deadline);
+                                 message_id, deadline);
   return published.ok() ? Status::Ok() : published.status();
+}
+
+Result<std::vector<std::pair<PlaceId, PlacePayload>>> ClusterWorker::FetchPlaces(
+    const std::string& map, const std::vector<PlaceId>& ids, bool features, uint64_t min_sequence,
+    Deadline deadline) {
+  std::vector<std::pair<PlaceId, PlacePayload>> out;
+  if (ids.empty()) return out;
+  auto entry = local_->Get(map, "map");  // the map's feature type, to decode the features
+  if (!entry.ok()) return entry.status();
+  const FeatureType type = (*entry)->map->info().options.database.feature_type;
+  cluster::v1::FetchPlacesRequest request;
+  request.set_map(map);
+  request.set_min_sequence(
+      std::max<uint64_t>(min_sequence, *std::max_element(ids.begin(), ids.end())));
+  for (const PlaceId id : ids) request.add_place_ids(id);
+  request.set_features(features);
+  cluster::v1::FetchPlacesResponse response;
+  const grpc::Status status = OnReplica(
+      "FetchPlaces", map, request.min_sequence(), deadline,
+      [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+        grpc::ClientContext context;
+        context.set_deadline(until);
+        response.Clear();
+        return cluster::v1::Shard::NewStub(channel)->FetchPlaces(&context, request, &response);
+      });
+  if (!status.ok()) return wire::FromGrpc(status);
+  for (const cluster::v1::FetchedPlace& place : response.places()) {
+    const std::string what = "place " + std::to_string(place.place_id()) + " from a replica";
+    PlacePayload payload;
+    auto bow = DecodeBow(place.bow());
+    if (!bow.ok()) return bow.status().WithContext(what);
+    payload.bow = std::move(bow).value();
+    if (features) {
+      PLACEDB_RETURN_IF_ERROR(
+          DecodeLocalFeatures(place.features(), type, &payload.features, &payload.direct)
+              .WithContext(what));
+    }
+    out.emplace_back(place.place_id(), std::move(payload));
+  }
+  return out;
+}
+
+Result<std::vector<PlaceSource::AgentPlace>> ClusterWorker::AgentPlaces(const std::string& map,
+                                                                        const std::string& agent_id,
+                                                                        uint64_t min_sequence,
+                                                                        Deadline deadline) {
+  // Places stored through another worker (before a failover) are in the stream, not necessarily
+  // in `min_sequence`: read where the stream ends now.
+  auto info = jetstream_->GetStreamInfo(cluster::StreamName(cluster_.name, map));
+  if (!info.ok()) return info.status().WithContext("map '" + map + "': its stream");
+  min_sequence = std::max(min_sequence, info->last_sequence);
+  std::vector<PlaceSource::AgentPlace> out;
+  if (min_sequence == 0) return out;  // an empty stream: no places (nor a replica needed yet)
+  cluster::v1::ListAgentPlacesRequest request;
+  request.set_map(map);
+  request.set_min_sequence(min_sequence);
+  request.set_agent_id(agent_id);
+  request.set_limit(512);
+  while (true) {
+    cluster::v1::ListAgentPlacesResponse response;
+    const grpc::Status status =
+        OnReplica("ListAgentPlaces", map, min_sequence, deadline,
+                  [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+                    grpc::ClientContext context;
+                    context.set_deadline(until);
+                    response.Clear();
+                    return cluster::v1::Shard::NewStub(channel)->ListAgentPlaces(&context, request,
+                                                                                 &response);
+                  });
+    if (!status.ok()) return wire::FromGrpc(status);
+    for (const cluster::v1::AgentPlace& place : response.places()) {
+      auto bow = DecodeBow(place.bow());
+      if (!bow.ok()) {
+        return bow.status().WithContext("place " + std::to_string(place.place_id()) +
+                                        " from a replica");
+      }
+      out.push_back({place.place_id(), place.sequence(), std::move(bow).value()});
+    }
+    if (response.next_before_place_id() == 0) break;
+    request.set_before_place_id(response.next_before_place_id());
+  }
+  return out;
 }
 
 grpc::Status ClusterWorker::DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) {

@@ -23,15 +23,27 @@
 // - DeletePlace: NOT_FOUND unless a replica has the place, then a DeletePlace record.
 // - Query hits (maps with dynamics.count_query_hits_above): the worker publishes a
 //   CountObservation record after the search, acknowledged before the query's answer.
+// - FetchPlaces / AgentPlaces: loop closure's reads (below), Shard RPCs through OnReplica.
 //
-// Per-agent state and what a failover costs: the agent's stream state (depth Algorithm 1) lives
-// in this worker's local copy of the map, for the life of the Ingest stream's agent on this
-// worker. When the worker dies, the agent's SDK reconnects to another worker: Algorithm 1 warms
-// up again (its first frames after a reconnect are treated as after a server restart, docs/
-// rgbd.md), and frames answered with an error (or never answered) are resent with their
-// sequence: their message id finds the place already stored (same place id), within the stream's
-// duplicate window (2 minutes). Loop closure (a per-agent detector over the map's long-term
-// memory) is refused in cluster mode (FAILED_PRECONDITION), not approximated.
+// Per-agent state and what a failover costs: the agent's stream state (depth Algorithm 1, the
+// loop-closure detector) lives in this worker's local copy of the map, in memory, with the
+// agent's Ingest stream on this worker; nothing of it is replicated. Loop closure
+// (IngestHeader.loop_closure) runs the single-node detector (PlaceMap::CloseLoop) here: storing a
+// frame = publishing it (message id <agent_id>/<sequence>, place id = the PubAck's sequence), a
+// frame merged by rehearsal = a CountObservation record at the place it merged into (same
+// message id), and every place the detector reads comes from a replica: its long-term memory's
+// BoW vectors and the loop target's features (FetchPlaces, from a replica that applied the id),
+// and, at the agent's first loop-closure frame of each Ingest stream, all the agent's places for
+// the replay into a new detector (AgentPlaces, from replicas that applied the stream's last
+// sequence; paged). A new detector per stream, also on the same worker: one kept from an earlier
+// stream could lack places the agent stored through another worker since.
+// When the worker dies, the agent's SDK reconnects to another worker: Algorithm 1 warms up again
+// (its first frames after a reconnect are treated as after a server restart, docs/rgbd.md); the
+// loop-closure detector is rebuilt by the replay (measured by worker_test: about 1950 places in
+// 61-91 ms on this 2-core machine, load 3.6-16), without the old detector's weights and loop links,
+// as after a single server's restart; and frames answered with an error (or never answered) are
+// resent with their sequence: their message id finds the place already stored (same place id),
+// within the stream's duplicate window (2 minutes).
 //
 // The worker's local copies of the maps (its data_dir) hold no places: they carry the map's
 // configuration, vocabulary and the agents' stream state. They are a cache: removed at startup
@@ -85,8 +97,18 @@ class ClusterWorker final : public ClusterBackend {
   Result<uint64_t> Publish(const std::string& map, const ProcessedFrame& frame,
                            const PlaceMetadata& metadata, const std::string& message_id,
                            Deadline deadline) override;
-  Status CountQueryHit(const std::string& map, uint32_t place, const ProcessedFrame& frame,
-                       const PlaceMetadata& metadata, Deadline deadline) override;
+  Status CountObservation(const std::string& map, uint32_t place, const ProcessedFrame& frame,
+                          const PlaceMetadata& metadata, const std::string& message_id,
+                          Deadline deadline) override;
+  Result<std::vector<std::pair<PlaceId, PlacePayload>>> FetchPlaces(const std::string& map,
+                                                                    const std::vector<PlaceId>& ids,
+                                                                    bool features,
+                                                                    uint64_t min_sequence,
+                                                                    Deadline deadline) override;
+  Result<std::vector<PlaceSource::AgentPlace>> AgentPlaces(const std::string& map,
+                                                           const std::string& agent_id,
+                                                           uint64_t min_sequence,
+                                                           Deadline deadline) override;
   grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) override;
   grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                         v1::Place* response) override;

@@ -386,6 +386,103 @@ TEST_F(ShardTest, TwoReplicasApplyInOrderOnceAndHoldIdenticalPlaces) {
               kBulk / applied_s);
 }
 
+// Loop closure's reads on a worker (FetchPlaces, ListAgentPlaces): the replica's own bytes for
+// the places asked, absent ones left out; an agent's places page by page, newest first, with
+// their observation sequences; both wait for min_sequence like Search.
+TEST_F(ShardTest, FetchPlacesAndListAgentPlacesForLoopClosure) {
+  const std::string map = "loop-reads";
+  CreateMap(map, {"shard-l"});
+  auto shard = StartShard("shard-l");
+  ASSERT_TRUE(shard);
+  std::vector<uint64_t> robot;  // the robot's places, oldest first
+  for (int frame = 0; frame < 5; ++frame) robot.push_back(AddPlace(map, frame).sequence);
+  const uint64_t other = AddPlace(map, 5, "other").sequence;
+  const uint64_t last =
+      Publish(map, EncodeDeletePlace(PlaceId(robot[1])), "delete/" + map).sequence;
+  const uint64_t removed = robot[1];
+  robot.erase(robot.begin() + 1);
+  ASSERT_TRUE(WaitFor([&] { return Applied(*shard, map) == last; }));
+  auto m = shard->Map(map);
+  ASSERT_TRUE(m.ok());
+  auto stub = Stub(*shard);
+
+  for (const bool features : {false, true}) {
+    grpc::ClientContext context;
+    cv1::FetchPlacesRequest request;
+    request.set_map(map);
+    request.set_min_sequence(last);
+    for (const uint64_t id : {robot[2], removed, other}) request.add_place_ids(uint32_t(id));
+    request.set_features(features);
+    cv1::FetchPlacesResponse response;
+    ASSERT_TRUE(stub->FetchPlaces(&context, request, &response).ok());
+    EXPECT_EQ(response.applied_sequence(), last);
+    ASSERT_EQ(response.places_size(), 2);  // the removed place left out, the order kept
+    EXPECT_EQ(response.places(0).place_id(), robot[2]);
+    EXPECT_EQ(response.places(1).place_id(), other);
+    for (const cv1::FetchedPlace& fetched : response.places()) {
+      auto place = (*m)->GetPlace(fetched.place_id());
+      ASSERT_TRUE(place.ok());
+      EXPECT_EQ(fetched.bow(), EncodeBow(place->payload.bow));
+      EXPECT_EQ(fetched.features(),
+                features ? EncodeLocalFeatures(place->payload.features, place->payload.direct)
+                         : std::string());
+    }
+  }
+
+  // The robot's places in pages of 2: every one once, newest first, with its sequence and BoW.
+  std::vector<uint64_t> listed;
+  cv1::ListAgentPlacesRequest list;
+  list.set_map(map);
+  list.set_agent_id("robot");
+  list.set_limit(2);
+  list.set_min_sequence(last);
+  for (int page = 0; page < 10; ++page) {
+    grpc::ClientContext context;
+    cv1::ListAgentPlacesResponse response;
+    ASSERT_TRUE(stub->ListAgentPlaces(&context, list, &response).ok());
+    EXPECT_LE(response.places_size(), 2);
+    for (const cv1::AgentPlace& place : response.places()) {
+      listed.push_back(place.place_id());
+      auto stored = (*m)->GetPlace(place.place_id());
+      ASSERT_TRUE(stored.ok());
+      EXPECT_EQ(place.sequence(), stored->record.metadata.sequence);
+      EXPECT_EQ(place.bow(), EncodeBow(stored->payload.bow));
+    }
+    if (response.next_before_place_id() == 0) break;
+    list.set_before_place_id(response.next_before_place_id());
+  }
+  EXPECT_EQ(listed, std::vector<uint64_t>(robot.rbegin(), robot.rend()));
+
+  // Errors: no agent, a map not held here, min_sequence not reached in time.
+  {
+    grpc::ClientContext context;
+    cv1::ListAgentPlacesRequest request;
+    request.set_map(map);
+    cv1::ListAgentPlacesResponse response;
+    EXPECT_EQ(stub->ListAgentPlaces(&context, request, &response).error_code(),
+              grpc::StatusCode::INVALID_ARGUMENT);
+  }
+  {
+    grpc::ClientContext context;
+    cv1::FetchPlacesRequest request;
+    request.set_map("elsewhere");
+    cv1::FetchPlacesResponse response;
+    EXPECT_EQ(stub->FetchPlaces(&context, request, &response).error_code(),
+              grpc::StatusCode::NOT_FOUND);
+  }
+  {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 500ms);
+    cv1::FetchPlacesRequest request;
+    request.set_map(map);
+    request.set_min_sequence(last + 100);
+    request.add_place_ids(uint32_t(robot[0]));
+    cv1::FetchPlacesResponse response;
+    EXPECT_EQ(stub->FetchPlaces(&context, request, &response).error_code(),
+              grpc::StatusCode::DEADLINE_EXCEEDED);
+  }
+}
+
 TEST_F(ShardTest, ARestartedShardResumesWithoutGapsOrDuplicates) {
   const std::string map = "restart";
   CreateMap(map, {"shard-r"});

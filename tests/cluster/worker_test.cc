@@ -12,6 +12,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <map>
@@ -97,13 +98,31 @@ class ClusterWorkerTest : public ServerTest {
     return *workers_.emplace_back(std::move(worker));
   }
 
-  static grpc::Status CreateClusterMap(Worker& worker, const std::string& name) {
+  static grpc::Status CreateClusterMap(Worker& worker, const std::string& name,
+                                       const v1::MapConfig& config = {}) {
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + 30s);
     v1::CreateMapRequest request;
     request.set_name(name);
+    *request.mutable_config() = config;
     v1::MapDescription response;
     return worker.stub->CreateMap(&context, request, &response);
+  }
+
+  // An in-process shard "shard-<i>" on the engines (lease 2 s), data under root_.
+  std::unique_ptr<cluster::Shard> StartShard(int i) const {
+    cluster::ShardOptions options;
+    options.cluster_name = "test";
+    options.nats = engines_->NatsUrls();
+    options.etcd = engines_->EtcdEndpoints();
+    options.shard_id = "shard-" + std::to_string(i);
+    options.internal_listen = "127.0.0.1:0";
+    options.data_dir = root_ + "/shard-" + std::to_string(i);
+    options.vocabularies.emplace("default", vocabulary_);
+    options.lease_ttl_s = 2;
+    auto shard = cluster::Shard::Start(std::move(options));
+    EXPECT_TRUE(shard.ok()) << shard.status().ToString();
+    return shard.ok() ? std::move(shard).value() : nullptr;
   }
 
   std::unique_ptr<cluster::JetStream> Js() const {
@@ -185,13 +204,6 @@ TEST_F(ClusterWorkerTest, MapsAndIngestThroughAnyWorker) {
   info = js->GetStreamInfo(cluster::StreamName("test", "lab-1"));
   ASSERT_TRUE(info.ok());
   EXPECT_EQ(info->last_sequence, 8u);
-
-  // Loop closure is refused, not approximated.
-  v1::IngestHeader header;
-  header.set_map("lab-1");
-  header.set_loop_closure(true);
-  const IngestOutcome loop = IngestWithHeader(first.stub.get(), header, Frames("agent-b", 1, 1));
-  EXPECT_EQ(loop.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
 
   // DeleteMap: gone for every worker, its stream too.
   {
@@ -569,21 +581,10 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
   constexpr int kFrames = 120;
   FeatureFrames(84);
   std::vector<std::unique_ptr<cluster::Shard>> shards(3);
-  auto start_shard = [&](int i) {
-    cluster::ShardOptions options;
-    options.cluster_name = "test";
-    options.nats = engines_->NatsUrls();
-    options.etcd = engines_->EtcdEndpoints();
-    options.shard_id = "shard-" + std::to_string(i);
-    options.internal_listen = "127.0.0.1:0";
-    options.data_dir = root_ + "/shard-" + std::to_string(i);
-    options.vocabularies.emplace("default", vocabulary_);
-    options.lease_ttl_s = 2;
-    auto shard = cluster::Shard::Start(std::move(options));
-    ASSERT_TRUE(shard.ok()) << shard.status().ToString();
-    shards[size_t(i)] = std::move(shard).value();
-  };
-  for (int i = 0; i < 3; ++i) ASSERT_NO_FATAL_FAILURE(start_shard(i));
+  for (int i = 0; i < 3; ++i) {
+    shards[size_t(i)] = StartShard(i);
+    ASSERT_TRUE(shards[size_t(i)]);
+  }
   Worker& survivor = StartWorker(1);
   Worker& doomed = StartWorker(2);
   ASSERT_TRUE(survivor.stub && doomed.stub);
@@ -802,6 +803,292 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
   EXPECT_GT(answered_during, 0);
   EXPECT_GT(answered.load(), answered_during);  // and after the kills
   workers_.clear();                             // before the shards they call
+  shards.clear();
+}
+
+// A map whose loop-closure working memory is bounded (20 places): the detector's long-term
+// memory, its retrieval and the loop verification all read places (on a worker: from replicas).
+v1::MapConfig LoopMapConfig() {
+  v1::MapConfig config;
+  config.mutable_loop_closure()->set_max_working_memory(20);
+  return config;
+}
+
+// Frames first..last of `agent` (precomputed features; frames past 84 revisit the start) in one
+// loop-closure Ingest stream. At frames 31-32 and 71-72 the agent stands still: they repeat the
+// features of frames 30 and 70 (rehearsal merges them).
+IngestOutcome LoopIngest(v1::PlaceDb::Stub* stub, const std::string& map, const std::string& agent,
+                         int first, int last) {
+  v1::IngestHeader header;
+  header.set_map(map);
+  header.set_loop_closure(true);
+  std::vector<v1::Observation> frames;
+  for (int f = first; f <= last; ++f) {
+    frames.push_back(FeatureObservation(f, agent));
+    for (const int still : {30, 70}) {
+      if (f == still + 1 || f == still + 2) {
+        *frames.back().mutable_features() = FeatureObservation(still, agent).features();
+      }
+    }
+  }
+  return IngestWithHeader(stub, header, frames);
+}
+
+// One frame's loop-closure answer with places named by the frame that stored them (ids differ
+// between a single server and a cluster, whose ids are stream sequences). -1: an unknown place.
+struct LoopDecision {
+  std::string error;
+  bool stored = false, merged = false, loop = false, rejected = false;
+  int place = 0, loop_target = 0, rejected_target = 0, best = 0;
+  uint32_t candidates = 0, retrieved = 0, transferred = 0, replayed = 0;
+  int inliers = 0;
+  double loop_posterior = 0, best_posterior = 0;
+};
+
+std::string Show(const LoopDecision& d) {
+  char text[400];
+  std::snprintf(text, sizeof(text),
+                "error='%s' stored=%d merged=%d place=%d loop=%d->%d (%.6f, %d inliers) "
+                "rejected=%d->%d best=%d (%.6f) candidates=%u retrieved=%u transferred=%u "
+                "replayed=%u",
+                d.error.c_str(), d.stored, d.merged, d.place, d.loop, d.loop_target,
+                d.loop_posterior, d.inliers, d.rejected, d.rejected_target, d.best,
+                d.best_posterior, d.candidates, d.retrieved, d.transferred, d.replayed);
+  return text;
+}
+
+// `frame_of` (place id -> frame that stored it) carries over the calls of one agent's run.
+std::vector<LoopDecision> Decisions(const IngestOutcome& outcome, int first_frame,
+                                    std::map<uint32_t, int>* frame_of) {
+  auto frame = [&](uint32_t id) {
+    if (id == 0) return 0;
+    auto it = frame_of->find(id);
+    return it == frame_of->end() ? -1 : it->second;
+  };
+  std::vector<LoopDecision> out;
+  for (size_t i = 0; i < outcome.responses.size(); ++i) {
+    const v1::IngestResponse& r = outcome.responses[i];
+    LoopDecision d;
+    d.error = r.has_error() ? r.error().message() : "";
+    d.stored = r.stored();
+    if (d.stored) (*frame_of)[r.place_id()] = first_frame + int(i);
+    const v1::LoopClosure& lc = r.loop_closure();
+    d.merged = lc.merged();
+    d.place = frame(lc.place_id());
+    d.loop = lc.loop_found();
+    d.loop_target = frame(lc.loop_place_id());
+    d.loop_posterior = lc.loop_posterior();
+    d.inliers = lc.loop_inliers();
+    d.rejected = lc.loop_rejected();
+    d.rejected_target = frame(lc.rejected_place_id());
+    d.best = frame(lc.best_place_id());
+    d.best_posterior = lc.best_posterior();
+    d.candidates = lc.candidates();
+    d.retrieved = lc.retrieved();
+    d.transferred = lc.transferred();
+    d.replayed = lc.replayed();
+    out.push_back(d);
+  }
+  return out;
+}
+
+// Frame by frame, the cluster decided as the single server did.
+void ExpectSameDecisions(const std::vector<LoopDecision>& single,
+                         const std::vector<LoopDecision>& clustered, int first_frame) {
+  ASSERT_EQ(single.size(), clustered.size());
+  for (size_t i = 0; i < single.size(); ++i) {
+    const LoopDecision& a = single[i];
+    const LoopDecision& b = clustered[i];
+    const bool same = a.error == b.error && a.stored == b.stored && a.merged == b.merged &&
+                      a.place == b.place && a.loop == b.loop && a.loop_target == b.loop_target &&
+                      a.rejected == b.rejected && a.rejected_target == b.rejected_target &&
+                      a.best == b.best && a.candidates == b.candidates &&
+                      a.retrieved == b.retrieved && a.transferred == b.transferred &&
+                      a.replayed == b.replayed && a.inliers == b.inliers &&
+                      std::abs(a.loop_posterior - b.loop_posterior) < 1e-9 &&
+                      std::abs(a.best_posterior - b.best_posterior) < 1e-9;
+    EXPECT_TRUE(same) << "frame " << first_frame + int(i) << "\n  single:  " << Show(a)
+                      << "\n  cluster: " << Show(b);
+  }
+}
+
+struct LoopTotals {
+  int stored = 0, merged = 0, loops = 0, retrieved = 0, verified = 0;
+};
+LoopTotals Totals(const std::vector<LoopDecision>& decisions) {
+  LoopTotals t;
+  for (const LoopDecision& d : decisions) {
+    t.stored += d.stored;
+    t.merged += d.merged;
+    t.loops += d.loop;
+    t.retrieved += int(d.retrieved);
+    t.verified += d.loop && d.inliers > 0;
+  }
+  return t;
+}
+
+// Loop closure through a worker (the detector on the worker, the places on 2 shard replicas)
+// decides every frame as a single server fed the same frames does: stored or merged, the loop
+// and its target, the best hypothesis, working/long-term memory traffic, the verification's
+// inliers. The sequence (84 RTAB-Map frames, then its first 26 again) closes loops, merges frames
+// and retrieves places from long-term memory (working memory bounded at 20).
+TEST_F(ClusterWorkerTest, LoopClosureOnAWorkerDecidesAsASingleServer) {
+  constexpr int kFrames = 110;
+  FeatureFrames(84);
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("loop", LoopMapConfig());
+  const IngestOutcome single = LoopIngest(stub_.get(), "loop", "rover", 1, kFrames);
+  ASSERT_TRUE(single.status.ok()) << single.status.error_message();
+  ASSERT_EQ(single.responses.size(), size_t(kFrames));
+  StopServer();
+
+  std::vector<std::unique_ptr<cluster::Shard>> shards;
+  for (int i = 0; i < 2; ++i) {
+    shards.push_back(StartShard(i));
+    ASSERT_TRUE(shards.back());
+  }
+  Worker& worker = StartWorker(1);
+  ASSERT_TRUE(worker.stub);
+  ASSERT_TRUE(CreateClusterMap(worker, "loop", LoopMapConfig()).ok());
+  const IngestOutcome clustered = LoopIngest(worker.stub.get(), "loop", "rover", 1, kFrames);
+  ASSERT_TRUE(clustered.status.ok()) << clustered.status.error_message();
+  ASSERT_EQ(clustered.responses.size(), size_t(kFrames));
+
+  std::map<uint32_t, int> single_frames, cluster_frames;
+  const auto a = Decisions(single, 1, &single_frames);
+  const auto b = Decisions(clustered, 1, &cluster_frames);
+  ExpectSameDecisions(a, b, 1);
+  // The run exercises what the worker reads from replicas: retrieval, verified loops; and
+  // rehearsal (merged frames publish CountObservation records, not places).
+  const LoopTotals t = Totals(a);
+  std::printf("cluster_loop_frames %d stored %d merged %d loops %d retrieved %d\n", kFrames,
+              t.stored, t.merged, t.loops, t.retrieved);
+  EXPECT_GT(t.loops, 0);
+  EXPECT_EQ(t.verified, t.loops);
+  EXPECT_GT(t.retrieved, 0);
+  EXPECT_GT(t.merged, 0);
+  // One record per frame: a place, a merged frame's observation, or an invalid frame.
+  auto js = Js();
+  ASSERT_TRUE(js);
+  auto info = js->GetStreamInfo(cluster::StreamName("test", "loop"));
+  ASSERT_TRUE(info.ok()) << info.status().ToString();
+  EXPECT_EQ(info->last_sequence, uint64_t(kFrames));
+  workers_.clear();  // before the shards it calls
+  shards.clear();
+}
+
+// The agent's stream moves to another worker (the first one stops), then to a third, then back
+// to the second (which still had a detector for the agent from its earlier stream): each time
+// the first frame's new detector replays every place of the agent from a replica (as a single
+// server replays its own after a restart), and the frames decide as a single server restarted
+// at the same frames, among them loops closed on places stored before the first move. Then a
+// replay of many places, for the figure in docs/cluster.md.
+TEST_F(ClusterWorkerTest, LoopClosureFailoverReplaysTheAgentsPlacesFromAReplica) {
+  constexpr int kBulk = 2000;
+  const std::vector<std::pair<int, int>> segments = {{1, 60}, {61, 90}, {91, 110}, {111, 130}};
+  FeatureFrames(84);
+  std::vector<IngestOutcome> single;
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("loop", LoopMapConfig());
+  for (const auto& [first, last] : segments) {
+    if (!single.empty()) {
+      StopServer();
+      ASSERT_NO_FATAL_FAILURE(StartServer(Config()));  // the same data directory: a restart
+    }
+    single.push_back(LoopIngest(stub_.get(), "loop", "rover", first, last));
+    ASSERT_TRUE(single.back().status.ok()) << single.back().status.error_message();
+  }
+  StopServer();
+
+  std::vector<std::unique_ptr<cluster::Shard>> shards;
+  for (int i = 0; i < 2; ++i) {
+    shards.push_back(StartShard(i));
+    ASSERT_TRUE(shards.back());
+  }
+  Worker& a = StartWorker(1);
+  Worker& b = StartWorker(2);
+  Worker& c = StartWorker(3);
+  ASSERT_TRUE(a.stub && b.stub && c.stub);
+  ASSERT_TRUE(CreateClusterMap(a, "loop", LoopMapConfig()).ok());
+  std::vector<IngestOutcome> clustered;
+  const std::vector<Worker*> route = {&a, &b, &c, &b};
+  for (size_t k = 0; k < segments.size(); ++k) {
+    clustered.push_back(
+        LoopIngest(route[k]->stub.get(), "loop", "rover", segments[k].first, segments[k].second));
+    ASSERT_TRUE(clustered.back().status.ok()) << clustered.back().status.error_message();
+    ASSERT_EQ(clustered.back().responses.size(),
+              size_t(segments[k].second - segments[k].first + 1));
+    if (k == 0) a.server->Shutdown();  // the agent's detector is gone with it
+  }
+
+  std::map<uint32_t, int> single_frames, cluster_frames;
+  std::set<uint32_t> stored;         // the agent's places so far (cluster ids)
+  std::set<uint32_t> stored_before;  // ... before the first move
+  int loops_on_earlier = 0;
+  for (size_t k = 0; k < segments.size(); ++k) {
+    ExpectSameDecisions(Decisions(single[k], segments[k].first, &single_frames),
+                        Decisions(clustered[k], segments[k].first, &cluster_frames),
+                        segments[k].first);
+    const auto& responses = clustered[k].responses;
+    // The segment's first frame replayed every place stored before it (none for the first).
+    EXPECT_EQ(responses[0].loop_closure().replayed(), stored.size()) << "segment " << k;
+    for (const v1::IngestResponse& r : responses) {
+      if (r.stored()) stored.insert(r.place_id());
+      const v1::LoopClosure& lc = r.loop_closure();
+      if (k > 0) loops_on_earlier += lc.loop_found() && stored_before.count(lc.loop_place_id());
+    }
+    if (k == 0) stored_before = stored;
+  }
+  ASSERT_FALSE(stored_before.empty());
+  EXPECT_GT(loops_on_earlier, 0);
+
+  // Replay time for N places: `bulk` stores kBulk places without loop closure, then its first
+  // loop-closure frame on the second worker replays them all (from a replica, paged).
+  std::vector<v1::Observation> frames;
+  for (int f = 1; f <= kBulk; ++f) frames.push_back(FeatureObservation(f, "bulk"));
+  const IngestOutcome bulk = IngestAll(b.stub.get(), "loop", frames);
+  ASSERT_TRUE(bulk.status.ok()) << bulk.status.error_message();
+  size_t bulk_places = 0;
+  for (const v1::IngestResponse& r : bulk.responses) bulk_places += r.stored();
+  // The replay reads from a replica that applied the stream's end: wait for both, so that the
+  // figure is the replay's, not the appliers' catching up.
+  {
+    auto js = Js();
+    ASSERT_TRUE(js);
+    auto info = js->GetStreamInfo(cluster::StreamName("test", "loop"));
+    ASSERT_TRUE(info.ok()) << info.status().ToString();
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    size_t caught_up = 0;
+    while (caught_up < 2 && std::chrono::steady_clock::now() < until) {
+      caught_up = 0;
+      for (const auto& shard : shards) {
+        for (const cluster::ReplicaStatus& replica : shard->Replicas()) {
+          caught_up += replica.map == "loop" && replica.applied_sequence >= info->last_sequence;
+        }
+      }
+      if (caught_up < 2) std::this_thread::sleep_for(50ms);
+    }
+    ASSERT_EQ(caught_up, 2u);
+  }
+  // The replaying frame is its stream's first (its total_ms is its own, not queued behind
+  // another's); the next frame of the stream keeps the detector. For comparison: the first frame
+  // of an agent without places (the listing finds none).
+  const IngestOutcome replay = LoopIngest(b.stub.get(), "loop", "bulk", kBulk + 1, kBulk + 2);
+  const IngestOutcome none = LoopIngest(b.stub.get(), "loop", "newcomer", 1, 1);
+  ASSERT_TRUE(replay.status.ok() && none.status.ok()) << replay.status.error_message();
+  ASSERT_EQ(replay.responses.size(), 2u);
+  ASSERT_EQ(none.responses.size(), 1u);
+  EXPECT_EQ(replay.responses[0].loop_closure().replayed(), bulk_places);
+  EXPECT_EQ(replay.responses[1].loop_closure().replayed(), 0u);
+  EXPECT_EQ(none.responses[0].loop_closure().replayed(), 0u);
+  std::printf(
+      "cluster_loop_failover replayed %u places: first frame after the move %.1f ms\n"
+      "cluster_loop_replay %zu places: the replaying frame %.1f ms; an agent without places: "
+      "%.1f ms\n",
+      clustered[1].responses[0].loop_closure().replayed(),
+      clustered[1].responses[0].timings().total_ms(), bulk_places,
+      replay.responses[0].timings().total_ms(), none.responses[0].timings().total_ms());
+  workers_.clear();
   shards.clear();
 }
 
