@@ -16,6 +16,7 @@
 #include <signal.h>
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
@@ -153,6 +154,7 @@ struct AgentRun {
   int resent = 0;   // frames sent again (no answer, or refused)
   int resent_acknowledged = 0;  // acknowledged frames sent again after a broken stream, answered
   int changed = 0;              // frames acknowledged twice, differently (place id or stored)
+  double slowest_ms = 0;        // the longest a frame took in a worker (its timings.total_ms)
   bool finished = false;        // every frame acknowledged
 };
 
@@ -186,6 +188,7 @@ void RunAgent(AgentRun& agent, const std::vector<v1::PlaceDb::Stub*>& workers,
     ++agent.streams;
     const IngestOutcome outcome = IngestAll(workers[size_t(worker)], agent.map, pending, &matches);
     for (const v1::IngestResponse& response : outcome.responses) {
+      agent.slowest_ms = std::max(agent.slowest_ms, response.timings().total_ms());
       if (response.has_error()) continue;
       const int frame = int(response.sequence());
       auto [it, inserted] = agent.acknowledged.emplace(frame, response);
@@ -428,6 +431,7 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
   for (std::thread& thread : threads) thread.join();
   bench::Print("cluster_hosts_ingest_after_kill_ms", bench::NowMs() - kill_ms, "ms");
   int acknowledged = 0, streams = 0, broken = 0, resent = 0, resent_acknowledged = 0;
+  double slowest_ms = 0;
   for (const AgentRun& agent : agents) {
     ASSERT_TRUE(agent.finished) << agent.id << ": " << agent.acknowledged.size() << " of "
                                 << kFrames << " frames acknowledged";
@@ -437,12 +441,14 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
     broken += agent.broken;
     resent += agent.resent;
     resent_acknowledged += agent.resent_acknowledged;
+    slowest_ms = std::max(slowest_ms, agent.slowest_ms);
   }
   bench::Print("cluster_hosts_acknowledged", acknowledged, "frames");
   bench::Print("cluster_hosts_streams", streams, "streams");
   bench::Print("cluster_hosts_streams_broken", broken, "streams");
   bench::Print("cluster_hosts_resent", resent, "frames");
   bench::Print("cluster_hosts_resent_acknowledged", resent_acknowledged, "frames");
+  bench::Print("cluster_hosts_slowest_frame_ms", slowest_ms, "ms");
   EXPECT_GT(broken, 0) << "the killed worker's agents had their streams cut";
   EXPECT_GT(resent_acknowledged, 0) << "acknowledged frames sent again after a broken stream";
 
