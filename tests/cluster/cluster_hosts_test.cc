@@ -416,11 +416,11 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
   // (c) Host 2's worker, which a2 and a4 are streaming to.
   constexpr int kWorkerHost = 2;
   const double kill_ms = bench::NowMs();
+  phase = 1;
   engines.KillNats(*leader);
   procs[size_t(shard_host)]->shard.Kill();
   std::this_thread::sleep_for(300ms);
   procs[kWorkerHost]->worker.Kill();
-  phase = 1;
   std::printf(
       "killed: nats n%d (m1's stream leader), %s (m1 replica, host %d), worker of host %d\n",
       *leader, killed_shard.c_str(), shard_host, kWorkerHost);
