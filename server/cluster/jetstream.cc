@@ -272,6 +272,12 @@ Result<std::unique_ptr<OrderedConsumer>> JetStream::Consume(const std::string& s
   sub_options.Ordered = true;
   sub_options.Config.DeliverPolicy = js_DeliverByStartSequence;
   sub_options.Config.OptStartSeq = start_sequence;
+  // Idle heartbeats every second. libnats' default for ordered consumers is 5 s and it checks for
+  // missed ones every 2 intervals, so a consumer lost with its server (killed, host gone) was
+  // recreated only 10-20 s later: that long the replica applied nothing, and ingest with matches
+  // (which searches a replica that applied the stream's last place) stalled with it
+  // (tests/cluster/cluster_hosts_test.cc). With 1 s: noticed and recreated within 2-4 s.
+  sub_options.Config.Heartbeat = 1'000'000'000;  // nanoseconds
   natsSubscription* subscription = nullptr;
   jsErrCode code = static_cast<jsErrCode>(0);
   natsStatus status =

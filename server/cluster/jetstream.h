@@ -23,7 +23,8 @@
 // - An ordered consumer (ephemeral, in-order, no acks, flow control and heartbeats) delivers every
 //   message from its start sequence in sequence order; when it falls behind or its server dies
 //   the library recreates it from the last delivered sequence + 1, so nothing is skipped or
-//   repeated (tested through a stream-leader kill).
+//   repeated (tested through a stream-leader kill). Heartbeats every second: a lost consumer is
+//   noticed within 2-4 s.
 //
 // Errors: no quorum, no server, timeouts -> IO_ERROR (gRPC UNAVAILABLE, proto/status.h) with what
 // was attempted; an existing stream with other settings -> FAILED_PRECONDITION naming the setting;

@@ -3,10 +3,7 @@
 // in-process with the worker role on loopback ports.
 #include "server/cluster/worker.h"
 
-#include <arpa/inet.h>
 #include <gtest/gtest.h>
-#include <netinet/in.h>
-#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -29,6 +26,7 @@
 #include "server/cluster/map_record.h"
 #include "server/cluster/placement.h"
 #include "server/cluster/shard.h"
+#include "tests/cluster/cluster_frames.h"
 #include "tests/cluster/engines.h"
 #include "tests/server/server_fixture.h"
 
@@ -284,27 +282,6 @@ TEST_F(ClusterWorkerTest, NoQuorumNothingAcknowledgedThenResumes) {
   EXPECT_GE(MetricValue(metrics, "placedb_cluster_publish_seconds_count"), 4);
 }
 
-// Precomputed features of RTAB-Map frames 1..n (extracted once): ingest measures the cluster,
-// not ORB extraction.
-const std::vector<v1::Features>& FeatureFrames(int n) {
-  static std::vector<v1::Features> features;
-  while (int(features.size()) < n) {
-    features.push_back(FeaturesOf(RtabmapObservation(int(features.size()) + 1, "x")));
-  }
-  return features;
-}
-
-v1::Observation FeatureObservation(int frame, const std::string& agent) {
-  v1::Observation observation;
-  observation.set_agent_id(agent);
-  observation.set_sequence(uint64_t(frame));
-  observation.set_timestamp_ns(int64_t(frame) * 100'000'000);
-  // Frames beyond the sequence's 84 repeat its features (a robot passing again).
-  const int source = (frame - 1) % 84 + 1;
-  *observation.mutable_features() = FeatureFrames(source)[size_t(source - 1)];
-  return observation;
-}
-
 // An agent of the kill tests: its map, the worker it starts on and what its first stream got.
 struct Agent {
   std::string id, map;
@@ -440,21 +417,6 @@ TEST_F(ClusterWorkerTest, LeaderAndWorkerKilledDuringIngest) {
     }
     (*consumer)->Stop();
   }
-}
-
-int FreePort() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  socklen_t length = sizeof(address);
-  int port = 0;
-  if (::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
-      ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length) == 0) {
-    port = ntohs(address.sin_port);
-  }
-  ::close(fd);
-  return port;
 }
 
 // The roles as the binary takes them: placedb-server --role shard and --role worker with the
