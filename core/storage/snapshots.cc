@@ -272,38 +272,31 @@ Status SnapshotStore::Verify(const std::string& checkpoint, const std::string& s
 
 Result<SnapshotInfo> SnapshotStore::Create(const PlaceMap& map,
                                            const DataDirectory::VocabularyFor& vocabulary) {
-  SnapshotInfo info;
-  info.map = map.info().name;
-  info.created_unix_ms = NowUnixMs();
-  std::string staging, scratch;
-  {
-    MutexLock lock(mutex_);
-    staging = Scratch("creating");
-    scratch = Scratch("verify");
-  }
-  // The checkpoint and its verification need no lock: they use their own dot-folders only, so
-  // List, Get, Delete and downloads go on meanwhile.
-  std::error_code ec;
-  fs::create_directories(staging, ec);
-  if (ec) return Status::IoError("creating " + staging + ": " + ec.message());
-  const std::string checkpoint = (fs::path(staging) / kCheckpoint).string();
-  Status status = map.Checkpoint(checkpoint);
-  if (status.ok()) status = Verify(checkpoint, scratch, vocabulary, &info);
-  if (status.ok()) {
-    info.bytes = DirectoryBytes(checkpoint);
-    MutexLock lock(mutex_);
-    info.id = UniqueId(info.map, info.created_unix_ms);
-    status = StoreLocked(staging, info);
-    if (status.ok()) ApplyRetention(info.map);
-  }
-  if (!status.ok()) {
-    fs::remove_all(staging, ec);
-    return status.WithContext("snapshot of map '" + info.map + "'");
-  }
-  return info;
+  return MakeSnapshot(map, "snapshot of map '",
+                      [&](const std::string& checkpoint, SnapshotInfo* info) {
+                        std::string scratch;
+                        {
+                          MutexLock lock(mutex_);
+                          scratch = Scratch("verify");
+                        }
+                        return Verify(checkpoint, scratch, vocabulary, info);
+                      });
 }
 
 Result<SnapshotInfo> SnapshotStore::CreateForTransfer(const PlaceMap& map) {
+  return MakeSnapshot(
+      map, "checkpoint for a transfer of map '", [&](const std::string&, SnapshotInfo* info) {
+        // No writers meanwhile: the caller's promise.
+        info->places = map.Stats().database.places;
+        info->feature_type = FeatureTypeName(map.info().options.database.feature_type);
+        info->vocabulary_checksum = map.info().vocabulary_checksum;
+        return Status::Ok();
+      });
+}
+
+Result<SnapshotInfo> SnapshotStore::MakeSnapshot(
+    const PlaceMap& map, const std::string& what,
+    const std::function<Status(const std::string& checkpoint, SnapshotInfo* info)>& describe) {
   SnapshotInfo info;
   info.map = map.info().name;
   info.created_unix_ms = NowUnixMs();
@@ -312,15 +305,15 @@ Result<SnapshotInfo> SnapshotStore::CreateForTransfer(const PlaceMap& map) {
     MutexLock lock(mutex_);
     staging = Scratch("creating");
   }
+  // The checkpoint and its description need no lock: they use their own dot-folders only, so
+  // List, Get, Delete and downloads go on meanwhile.
   std::error_code ec;
   fs::create_directories(staging, ec);
   if (ec) return Status::IoError("creating " + staging + ": " + ec.message());
   const std::string checkpoint = (fs::path(staging) / kCheckpoint).string();
   Status status = map.Checkpoint(checkpoint);
+  if (status.ok()) status = describe(checkpoint, &info);
   if (status.ok()) {
-    info.places = map.Stats().database.places;  // no writers meanwhile: the caller's promise
-    info.feature_type = FeatureTypeName(map.info().options.database.feature_type);
-    info.vocabulary_checksum = map.info().vocabulary_checksum;
     info.bytes = DirectoryBytes(checkpoint);
     MutexLock lock(mutex_);
     info.id = UniqueId(info.map, info.created_unix_ms);
@@ -329,7 +322,7 @@ Result<SnapshotInfo> SnapshotStore::CreateForTransfer(const PlaceMap& map) {
   }
   if (!status.ok()) {
     fs::remove_all(staging, ec);
-    return status.WithContext("checkpoint of map '" + info.map + "' for a transfer");
+    return status.WithContext(what + info.map + "'");
   }
   return info;
 }

@@ -108,6 +108,12 @@ class SnapshotStore {
   // scrubs it; fills places, feature type and vocabulary checksum.
   Status Verify(const std::string& checkpoint, const std::string& scratch,
                 const DataDirectory::VocabularyFor& vocabulary, SnapshotInfo* info) const;
+  // Create's and CreateForTransfer's common part: the checkpoint in a dot-folder, `describe`
+  // filling in what it holds (places, feature type, vocabulary), then stored under a new id;
+  // errors carry `what` + the map's name.
+  Result<SnapshotInfo> MakeSnapshot(
+      const PlaceMap& map, const std::string& what,
+      const std::function<Status(const std::string& checkpoint, SnapshotInfo* info)>& describe);
   // Writes info's manifest into `staging` and renames it to info.id.
   Status StoreLocked(const std::string& staging, const SnapshotInfo& info) REQUIRES(mutex_);
   std::string UniqueId(const std::string& map, int64_t unix_ms) const REQUIRES(mutex_);

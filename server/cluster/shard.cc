@@ -147,6 +147,10 @@ class Shard::Impl {
   // (30 s without one); DEADLINE_EXCEEDED naming both sequences, UNAVAILABLE while stopping.
   grpc::Status AwaitApplied(grpc::ServerContext* context, const std::string& map, const PlaceMap& m,
                             uint64_t min_sequence) EXCLUDES(mutex_);
+  // The replica of `map` held here (MapOf's errors), once it applied `min_sequence`
+  // (AwaitApplied's): the start of every read that honours a minimum sequence.
+  grpc::Status AppliedMap(grpc::ServerContext* context, const std::string& map,
+                          uint64_t min_sequence, std::shared_ptr<PlaceMap>* out) EXCLUDES(mutex_);
   std::string Key(const std::string& suffix) const {
     return "/placedb/" + options_.cluster_name + "/" + suffix;
   }
@@ -865,15 +869,23 @@ grpc::Status Shard::Impl::AwaitApplied(grpc::ServerContext* context, const std::
   return grpc::Status::OK;
 }
 
-grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::SearchRequest& request,
-                                 cv1::SearchResponse* response) {
-  auto map = MapOf(request.map());
-  if (!map.ok()) return ToGrpc(map.status());
-  PlaceMap& m = **map;
-  if (grpc::Status applied = AwaitApplied(context, request.map(), m, request.min_sequence());
-      !applied.ok()) {
+grpc::Status Shard::Impl::AppliedMap(grpc::ServerContext* context, const std::string& map,
+                                     uint64_t min_sequence, std::shared_ptr<PlaceMap>* out) {
+  auto held = MapOf(map);
+  if (!held.ok()) return ToGrpc(held.status());
+  if (grpc::Status applied = AwaitApplied(context, map, **held, min_sequence); !applied.ok()) {
     return applied;
   }
+  *out = std::move(held).value();
+  return grpc::Status::OK;
+}
+
+grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::SearchRequest& request,
+                                 cv1::SearchResponse* response) {
+  std::shared_ptr<PlaceMap> map;
+  const grpc::Status ready = AppliedMap(context, request.map(), request.min_sequence(), &map);
+  if (!ready.ok()) return ready;
+  PlaceMap& m = *map;
   ProcessedFrame frame;
   if (Status decoded =
           FrameFromSearchRequest(request, m.info().options.database.feature_type, &frame);
@@ -899,13 +911,10 @@ grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::Search
 grpc::Status Shard::Impl::FetchPlaces(grpc::ServerContext* context,
                                       const cv1::FetchPlacesRequest& request,
                                       cv1::FetchPlacesResponse* response) {
-  auto map = MapOf(request.map());
-  if (!map.ok()) return ToGrpc(map.status());
-  const PlaceMap& m = **map;
-  if (grpc::Status applied = AwaitApplied(context, request.map(), m, request.min_sequence());
-      !applied.ok()) {
-    return applied;
-  }
+  std::shared_ptr<PlaceMap> map;
+  const grpc::Status ready = AppliedMap(context, request.map(), request.min_sequence(), &map);
+  if (!ready.ok()) return ready;
+  const PlaceMap& m = *map;
   response->set_applied_sequence(m.applied_sequence());
   for (const uint32_t id : request.place_ids()) {
     cv1::FetchedPlace* out = nullptr;
@@ -934,13 +943,10 @@ grpc::Status Shard::Impl::ListAgentPlaces(grpc::ServerContext* context,
   if (request.agent_id().empty()) {
     return GrpcError(grpc::StatusCode::INVALID_ARGUMENT, "agent_id: is required");
   }
-  auto map = MapOf(request.map());
-  if (!map.ok()) return ToGrpc(map.status());
-  const PlaceMap& m = **map;
-  if (grpc::Status applied = AwaitApplied(context, request.map(), m, request.min_sequence());
-      !applied.ok()) {
-    return applied;
-  }
+  std::shared_ptr<PlaceMap> map;
+  const grpc::Status ready = AppliedMap(context, request.map(), request.min_sequence(), &map);
+  if (!ready.ok()) return ready;
+  const PlaceMap& m = *map;
   response->set_applied_sequence(m.applied_sequence());
   const size_t limit = request.limit() == 0 ? 256 : std::min<size_t>(request.limit(), 1024);
   PlaceFilter filter;

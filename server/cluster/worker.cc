@@ -23,6 +23,22 @@ namespace {
 
 using Clock = std::chrono::system_clock;
 using wire::ToGrpc;
+using ShardStub = cluster::v1::Shard::Stub;
+
+// What OnReplica runs for one Shard RPC: `rpc` with `request`, its answer in `response` (cleared
+// before each attempt).
+template <typename Request, typename Response>
+auto ShardRpc(grpc::Status (ShardStub::*rpc)(grpc::ClientContext*, const Request&, Response*),
+              const Request& request, Response* response) {
+  return [rpc, &request, response](const std::shared_ptr<grpc::Channel>& channel,
+                                   ClusterBackend::Deadline until) {
+    grpc::ClientContext context;
+    context.set_deadline(until);
+    response->Clear();
+    const auto stub = cluster::v1::Shard::NewStub(channel);
+    return (stub.get()->*rpc)(&context, request, response);
+  };
+}
 
 std::chrono::milliseconds Remaining(ClusterBackend::Deadline deadline) {
   return std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
@@ -232,16 +248,10 @@ grpc::Status ClusterWorker::GetMap(const std::string& name, Deadline deadline,
   // Places: the most applied replica's count (Shard.Status), when one answers within 2 s; the
   // description stands without it.
   const Deadline status_deadline = std::min(deadline, Clock::now() + std::chrono::seconds(2));
+  const cluster::v1::StatusRequest status_request;
   cluster::v1::StatusResponse status;
-  const grpc::Status asked =
-      OnReplica("Status", name, 0, status_deadline,
-                [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-                  grpc::ClientContext context;
-                  context.set_deadline(until);
-                  status.Clear();
-                  return cluster::v1::Shard::NewStub(channel)->Status(
-                      &context, cluster::v1::StatusRequest(), &status);
-                });
+  const grpc::Status asked = OnReplica("Status", name, 0, status_deadline,
+                                       ShardRpc(&ShardStub::Status, status_request, &status));
   if (asked.ok()) {
     for (const cluster::v1::MapStatus& map : status.maps()) {
       if (map.map() == name) response->mutable_stats()->set_places(map.places());
@@ -467,14 +477,8 @@ grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame&
   request.set_agent_id(metadata.agent_id);
   request.set_timestamp_ns(metadata.timestamp_ns);
   cluster::v1::SearchResponse response;
-  const grpc::Status status =
-      OnReplica("Search", map, min_sequence, deadline,
-                [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-                  grpc::ClientContext context;
-                  context.set_deadline(until);
-                  response.Clear();
-                  return cluster::v1::Shard::NewStub(channel)->Search(&context, request, &response);
-                });
+  const grpc::Status status = OnReplica("Search", map, min_sequence, deadline,
+                                        ShardRpc(&ShardStub::Search, request, &response));
   if (!status.ok()) return status;
   out->mutable_matches()->Swap(response.mutable_matches());
   out->set_sequence(response.applied_sequence());
@@ -504,14 +508,8 @@ Result<std::vector<std::pair<PlaceId, PlacePayload>>> ClusterWorker::FetchPlaces
   for (const PlaceId id : ids) request.add_place_ids(id);
   request.set_features(features);
   cluster::v1::FetchPlacesResponse response;
-  const grpc::Status status = OnReplica(
-      "FetchPlaces", map, request.min_sequence(), deadline,
-      [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-        grpc::ClientContext context;
-        context.set_deadline(until);
-        response.Clear();
-        return cluster::v1::Shard::NewStub(channel)->FetchPlaces(&context, request, &response);
-      });
+  const grpc::Status status = OnReplica("FetchPlaces", map, request.min_sequence(), deadline,
+                                        ShardRpc(&ShardStub::FetchPlaces, request, &response));
   if (!status.ok()) return wire::FromGrpc(status);
   for (const cluster::v1::FetchedPlace& place : response.places()) {
     const std::string what = "place " + std::to_string(place.place_id()) + " from a replica";
@@ -549,13 +547,7 @@ Result<std::vector<PlaceSource::AgentPlace>> ClusterWorker::AgentPlaces(const st
     cluster::v1::ListAgentPlacesResponse response;
     const grpc::Status status =
         OnReplica("ListAgentPlaces", map, min_sequence, deadline,
-                  [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-                    grpc::ClientContext context;
-                    context.set_deadline(until);
-                    response.Clear();
-                    return cluster::v1::Shard::NewStub(channel)->ListAgentPlaces(&context, request,
-                                                                                 &response);
-                  });
+                  ShardRpc(&ShardStub::ListAgentPlaces, request, &response));
     if (!status.ok()) return wire::FromGrpc(status);
     for (const cluster::v1::AgentPlace& place : response.places()) {
       auto bow = DecodeBow(place.bow());
@@ -588,13 +580,7 @@ grpc::Status ClusterWorker::GetPlace(const v1::GetPlaceRequest& request, Deadlin
   // A place id is a stream sequence: a replica that applied it has it (or it was removed).
   auto read = [&] {
     return OnReplica("GetPlace", request.map(), request.place_id(), deadline,
-                     [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-                       grpc::ClientContext context;
-                       context.set_deadline(until);
-                       response->Clear();
-                       return cluster::v1::Shard::NewStub(channel)->GetPlace(&context, request,
-                                                                             response);
-                     });
+                     ShardRpc(&ShardStub::GetPlace, request, response));
   };
   grpc::Status status = read();
   if (status.error_code() != grpc::StatusCode::NOT_FOUND || request.place_id() == 0) {
@@ -623,25 +609,13 @@ grpc::Status ClusterWorker::GetPlace(const v1::GetPlaceRequest& request, Deadlin
 grpc::Status ClusterWorker::ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,
                                        v1::ListPlacesResponse* response) {
   return OnReplica("ListPlaces", request.map(), 0, deadline,
-                   [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-                     grpc::ClientContext context;
-                     context.set_deadline(until);
-                     response->Clear();
-                     return cluster::v1::Shard::NewStub(channel)->ListPlaces(&context, request,
-                                                                             response);
-                   });
+                   ShardRpc(&ShardStub::ListPlaces, request, response));
 }
 
 grpc::Status ClusterWorker::GetDynamics(const v1::GetDynamicsRequest& request, Deadline deadline,
                                         v1::GetDynamicsResponse* response) {
   return OnReplica("GetDynamics", request.map(), 0, deadline,
-                   [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-                     grpc::ClientContext context;
-                     context.set_deadline(until);
-                     response->Clear();
-                     return cluster::v1::Shard::NewStub(channel)->GetDynamics(&context, request,
-                                                                              response);
-                   });
+                   ShardRpc(&ShardStub::GetDynamics, request, response));
 }
 
 Result<uint64_t> ClusterWorker::Publish(const std::string& map, const ProcessedFrame& frame,
