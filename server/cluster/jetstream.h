@@ -24,7 +24,11 @@
 //   message from its start sequence in sequence order; when it falls behind or its server dies
 //   the library recreates it from the last delivered sequence + 1, so nothing is skipped or
 //   repeated (tested through a stream-leader kill). Heartbeats every second: a lost consumer is
-//   noticed within 2-4 s.
+//   noticed within 2-4 s. Messages may reach the callback before Consume returns; when Consume
+//   then fails (IO_ERROR: its request timed out, e.g. during a leader election, while the server
+//   made the consumer anyway) those deliveries have happened, in order from the start sequence,
+//   and none follow. A caller that retries from the same start sees them again (seen in
+//   engines_test: every message once per failed attempt); the shard's applier is idempotent.
 //
 // Errors: no quorum, no server, timeouts -> IO_ERROR (gRPC UNAVAILABLE, proto/status.h) with what
 // was attempted; an existing stream with other settings -> FAILED_PRECONDITION naming the setting;

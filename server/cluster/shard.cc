@@ -596,6 +596,8 @@ void Shard::Impl::StartApplier(const std::shared_ptr<Replica>& replica) {
       replica->stream, replica->subject, replica->map->applied_sequence() + 1,
       [raw](uint64_t sequence, std::string_view data) { Enqueue(raw, sequence, data); });
   if (!consumer.ok()) {
+    // It may have queued records before it failed (jetstream.h): they apply in order from
+    // applied + 1, and the next start (the next reconcile) skips what they applied.
     SetProblem(raw, "unavailable: " + consumer.status().ToString());
     return;
   }

@@ -424,6 +424,11 @@ std::vector<std::pair<uint64_t, std::string>> ReadAll(JetStream& js, const Strea
                                 MutexLock lock(mutex);
                                 got.emplace_back(seq, std::string(data));
                               });
+        if (!consumer.ok()) {
+          // A failed attempt may have delivered messages before it failed (jetstream.h).
+          MutexLock lock(mutex);
+          got.clear();
+        }
         return consumer.ok();
       },
       60s);
