@@ -455,18 +455,26 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
   MutexLock lock(stream->mutex);
   size_t replayed_places = 0;
   double replay_ms = 0;
-  if (!stream->loop) {
-    Stopwatch replay;
+  Stopwatch replay;
+  const bool replay_due = !stream->loop;  // a new detector: the agent's places first
+  if (replay_due) {
     LoopClosureConfig config = config_.loop_closure;
     config.scoring = config_.scoring;  // the long-term memory hands back the payloads' vectors
     stream->ltm = std::make_shared<PayloadLongTermMemory>(payloads_);
     auto detector = LoopClosureDetector::Create(vocabulary_.word_count(), config, stream->ltm);
     if (!detector.ok()) return detector.status();
     stream->loop = std::move(detector).value();
-    stream->ltm->set_source(source);  // replayed places may move to long-term memory
+  }
+  // The source is this call's (it reads at this frame's point of the stream), never kept: the
+  // replay's places may move to long-term memory, and the update may retrieve them.
+  stream->ltm->set_source(source);
+  struct Unset {
+    PayloadLongTermMemory* ltm;
+    ~Unset() { ltm->set_source(nullptr); }
+  } unset{stream->ltm.get()};
+  if (replay_due) {
     auto replayed =
         ReplayAgentPlaces(metadata.agent_id, stream->loop.get(), stream->ltm.get(), source);
-    stream->ltm->set_source(nullptr);
     if (!replayed.ok()) {
       stream->loop.reset();
       return replayed.status().WithContext("rebuilding the loop-closure memory of agent '" +
@@ -475,12 +483,6 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
     replayed_places = *replayed;
     replay_ms = replay.ElapsedMs();
   }
-  // The source is this call's (it reads at this frame's point of the stream), never kept.
-  stream->ltm->set_source(source);
-  struct Unset {
-    PayloadLongTermMemory* ltm;
-    ~Unset() { ltm->set_source(nullptr); }
-  } unset{stream->ltm.get()};
   auto update = stream->loop->Update(frame.bow, metadata.sequence);
   if (!update.ok()) return update.status();
   LoopClosureOutcome outcome;

@@ -122,6 +122,12 @@ class ClusterWorkerTest : public ServerTest {
     EXPECT_TRUE(shard.ok()) << shard.status().ToString();
     return shard.ok() ? std::move(shard).value() : nullptr;
   }
+  // Shards "shard-0".."shard-<count - 1>" (StartShard); a null entry for one that did not start.
+  std::vector<std::unique_ptr<cluster::Shard>> StartShards(int count) const {
+    std::vector<std::unique_ptr<cluster::Shard>> shards;
+    for (int i = 0; i < count; ++i) shards.push_back(StartShard(i));
+    return shards;
+  }
 
   std::unique_ptr<cluster::JetStream> Js() const {
     cluster::JetStreamOptions options;
@@ -542,11 +548,8 @@ TEST_F(ClusterWorkerTest, PlacedbServerProcessesWithTheClusterRoles) {
 TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
   constexpr int kFrames = 120;
   FeatureFrames(84);
-  std::vector<std::unique_ptr<cluster::Shard>> shards(3);
-  for (int i = 0; i < 3; ++i) {
-    shards[size_t(i)] = StartShard(i);
-    ASSERT_TRUE(shards[size_t(i)]);
-  }
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(3);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
   Worker& survivor = StartWorker(1);
   Worker& doomed = StartWorker(2);
   ASSERT_TRUE(survivor.stub && doomed.stub);
@@ -904,11 +907,8 @@ TEST_F(ClusterWorkerTest, LoopClosureOnAWorkerDecidesAsASingleServer) {
   ASSERT_EQ(single.responses.size(), size_t(kFrames));
   StopServer();
 
-  std::vector<std::unique_ptr<cluster::Shard>> shards;
-  for (int i = 0; i < 2; ++i) {
-    shards.push_back(StartShard(i));
-    ASSERT_TRUE(shards.back());
-  }
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(2);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
   Worker& worker = StartWorker(1);
   ASSERT_TRUE(worker.stub);
   ASSERT_TRUE(CreateClusterMap(worker, "loop", LoopMapConfig()).ok());
@@ -962,11 +962,8 @@ TEST_F(ClusterWorkerTest, LoopClosureFailoverReplaysTheAgentsPlacesFromAReplica)
   }
   StopServer();
 
-  std::vector<std::unique_ptr<cluster::Shard>> shards;
-  for (int i = 0; i < 2; ++i) {
-    shards.push_back(StartShard(i));
-    ASSERT_TRUE(shards.back());
-  }
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(2);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
   Worker& a = StartWorker(1);
   Worker& b = StartWorker(2);
   Worker& c = StartWorker(3);
