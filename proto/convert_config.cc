@@ -590,6 +590,10 @@ void MapDamageToProto(const MapDamage& damage, v1::MapDamage* out) {
   out->set_first_lost_place(damage.first_lost);
   out->set_last_lost_place(damage.last_lost);
   out->set_recovered_unix_ms(damage.recovered_unix_ms);
+  out->set_records_lost(damage.records_lost);
+  out->set_bow_lost(damage.bow_lost);
+  out->set_features_lost(damage.features_lost);
+  out->set_quarantine(damage.quarantine);
 }
 
 void ScrubReportToProto(const ScrubReport& report, v1::ScrubReport* out) {

@@ -152,7 +152,16 @@ std::string DamageText(const v1::MapDamage& damage) {
     text += " (ids " + std::to_string(damage.first_lost_place()) + ".." +
             std::to_string(damage.last_lost_place()) + ")";
   }
-  return text + ", " + std::to_string(damage.writes_lost()) + " writes: " + damage.reason();
+  text += ", " + std::to_string(damage.writes_lost()) + " writes";
+  if (damage.features_lost() > 0) {
+    text += ", " + std::to_string(damage.features_lost()) + " places without features";
+  }
+  if (damage.bow_lost() + damage.records_lost() > 0) {
+    text += ", " + std::to_string(damage.bow_lost() + damage.records_lost()) +
+            " places dropped (BoW vector or record lost)";
+  }
+  if (!damage.quarantine().empty()) text += ", files as they were in " + damage.quarantine();
+  return text + ": " + damage.reason();
 }
 
 // "available", "recovered (N places lost)", "damaged: reason", "unavailable: reason".

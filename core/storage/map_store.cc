@@ -7,6 +7,7 @@
 #include <rocksdb/filter_policy.h>
 #include <rocksdb/listener.h>
 #include <rocksdb/merge_operator.h>
+#include <rocksdb/snapshot.h>
 #include <rocksdb/table.h>
 #include <rocksdb/utilities/checkpoint.h>
 #include <rocksdb/write_batch.h>
@@ -784,16 +785,24 @@ class RocksPayloadStore final : public PayloadStore {
     return bow;
   }
 
+  // A place's BoW vector and features are written and deleted in one batch: read from one
+  // snapshot, a vector without its features is damage (CORRUPTION), never "not found".
   Result<std::shared_ptr<const PlacePayload>> Get(PlaceId id) const override {
     const std::string key = PlaceKey(id);
     std::string bow_bytes, feature_bytes;
+    rocksdb::ManagedSnapshot snapshot(storage_->db.get());
     rocksdb::ReadOptions options;
+    options.snapshot = snapshot.snapshot();
     auto s = storage_->db->Get(options, storage_->cf(kBow), key, &bow_bytes);
     if (s.IsNotFound()) return Status::NotFound("place " + std::to_string(id) + " not found");
     PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading place " + std::to_string(id)));
-    PLACEDB_RETURN_IF_ERROR(
-        FromRocks(storage_->db->Get(options, storage_->cf(kFeatures), key, &feature_bytes),
-                  "reading features of place " + std::to_string(id)));
+    s = storage_->db->Get(options, storage_->cf(kFeatures), key, &feature_bytes);
+    if (s.IsNotFound()) {
+      return Status::Corruption("place " + std::to_string(id) +
+                                ": its features are missing (lost with a file of the map; "
+                                "ScrubMap lists the places affected)");
+    }
+    PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading features of place " + std::to_string(id)));
     auto payload = std::make_shared<PlacePayload>();
     auto bow = DecodeBow(bow_bytes);
     if (!bow.ok()) return bow.status().WithContext("place " + std::to_string(id));
@@ -2304,6 +2313,11 @@ Result<std::vector<MapDamage>> ReadHistory(MapStorage& storage) {
       damage.first_lost = item.at("first_lost").get<PlaceId>();
       damage.last_lost = item.at("last_lost").get<PlaceId>();
       damage.recovered_unix_ms = item.at("recovered_unix_ms").get<int64_t>();
+      // Added by issue 34: absent from older entries.
+      damage.records_lost = item.value("records_lost", uint64_t(0));
+      damage.bow_lost = item.value("bow_lost", uint64_t(0));
+      damage.features_lost = item.value("features_lost", uint64_t(0));
+      damage.quarantine = item.value("quarantine", std::string());
       history.push_back(std::move(damage));
     }
   } catch (const nlohmann::json::exception& e) {
@@ -2320,7 +2334,11 @@ std::string EncodeHistory(const std::vector<MapDamage>& history) {
                  {"places_lost", damage.places_lost},
                  {"first_lost", damage.first_lost},
                  {"last_lost", damage.last_lost},
-                 {"recovered_unix_ms", damage.recovered_unix_ms}});
+                 {"recovered_unix_ms", damage.recovered_unix_ms},
+                 {"records_lost", damage.records_lost},
+                 {"bow_lost", damage.bow_lost},
+                 {"features_lost", damage.features_lost},
+                 {"quarantine", damage.quarantine}});
   }
   return j.dump();
 }
@@ -2426,6 +2444,24 @@ Status CheckMapPath(const std::string& path, const std::string& name) {
   if (!fs::exists(fs::path(path) / "CURRENT", ec)) {
     return Status::Corruption(where + "/CURRENT is missing: RocksDB cannot tell which MANIFEST " +
                               "describes the map");
+  }
+  // CURRENT names the MANIFEST; one deleted (or a CURRENT naming another) is damage that repair
+  // mends, not a map that is merely unavailable.
+  auto current = ReadWholeFile((fs::path(path) / "CURRENT").string());
+  if (current.ok()) {
+    std::string manifest = *current;
+    while (!manifest.empty() && (manifest.back() == '\n' || manifest.back() == '\r')) {
+      manifest.pop_back();
+    }
+    const bool plain =
+        !manifest.empty() && manifest.size() <= 64 &&
+        manifest.find_first_not_of("ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-") == std::string::npos;
+    if (!plain || !fs::exists(fs::path(path) / manifest, ec)) {
+      return Status::Corruption(
+          where + "/CURRENT names " +
+          (plain ? manifest + ", which is missing" : std::string("no MANIFEST file")) +
+          ": RocksDB cannot read the map's file list");
+    }
   }
   return Status::Ok();
 }
@@ -2578,6 +2614,154 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
   return map;
 }
 
+namespace {
+
+// `from` (a checkpoint, or a map's directory) into the new folder `to`: SST files hard-linked
+// when `link` (copied when the file system refuses the link), the rest copied. RocksDB never
+// changes an SST file once written, so a link is a copy that costs nothing.
+Status LinkOrCopyCheckpoint(const std::string& from, const std::string& to, bool link) {
+  std::error_code ec;
+  fs::create_directories(to, ec);
+  if (ec) return Status::IoError("creating " + to + ": " + ec.message());
+  for (auto it = fs::recursive_directory_iterator(from, ec); !ec && it != fs::end(it);
+       it.increment(ec)) {
+    const fs::path target = fs::path(to) / fs::relative(it->path(), from);
+    if (it->is_directory()) {
+      fs::create_directories(target, ec);
+    } else if (link && it->path().extension() == ".sst") {
+      fs::create_hard_link(it->path(), target, ec);
+      if (ec == std::errc::cross_device_link || ec == std::errc::operation_not_permitted) {
+        ec.clear();
+        fs::copy_file(it->path(), target, ec);
+      }
+    } else {
+      fs::copy_file(it->path(), target, ec);
+    }
+    if (ec) return Status::IoError("copying " + it->path().string() + ": " + ec.message());
+  }
+  if (ec) return Status::IoError("listing " + from + ": " + ec.message());
+  return Status::Ok();
+}
+
+// Bytes LinkOrCopyCheckpoint(`from`, ..., true) copies: every file but the SST files.
+uint64_t CopiedBytes(const std::string& from) {
+  uint64_t bytes = 0;
+  std::error_code ec;
+  for (auto it = fs::recursive_directory_iterator(from, ec); !ec && it != fs::end(it);
+       it.increment(ec)) {
+    if (it->is_regular_file(ec) && it->path().extension() != ".sst") {
+      bytes += it->file_size(ec);
+    }
+  }
+  return bytes;
+}
+
+// What RecoverMap's scan of a map's places finds: the places it can serve (record and BoW
+// vector), and the parts lost.
+struct PlaceAudit {
+  uint64_t servable = 0;
+  uint64_t records_lost = 0;   // a BoW vector (or features) without its record
+  uint64_t bow_lost = 0;       // a record without its BoW vector
+  uint64_t features_lost = 0;  // servable, but no features
+  PlaceId first_without_features = 0;
+  PlaceId last_without_features = 0;
+  std::vector<PlaceId> unservable;  // the records_lost and bow_lost places, to drop
+  // The ids no servable place has, below the highest servable one: [first, last] runs.
+  std::vector<std::pair<PlaceId, PlaceId>> gaps;
+  PlaceId highest = 0;  // the highest servable id
+
+  bool clean() const { return records_lost + bow_lost + features_lost == 0; }
+};
+
+// The acknowledged place ids (up to `acked_max`) that `audit`'s map no longer serves, with its
+// count and range: the ids from `floor` (the id floor: ids below it may have been removed, which
+// leaves the same gap) that no servable place has. A repaired log can keep places after a lost
+// one, so the lost ids are not always the last ones.
+void CountLostPlaces(const PlaceAudit& audit, PlaceId floor, uint64_t acked_max,
+                     MapDamage* damage) {
+  damage->places_lost = 0;
+  damage->first_lost = damage->last_lost = 0;
+  auto add = [&](uint64_t first, uint64_t last) {
+    first = std::max<uint64_t>({first, floor, 1});
+    last = std::min<uint64_t>(last, acked_max);
+    if (first > last) return;
+    if (damage->places_lost == 0) damage->first_lost = PlaceId(first);
+    damage->last_lost = PlaceId(last);
+    damage->places_lost += last - first + 1;
+  };
+  for (const auto& [first, last] : audit.gaps) add(first, last);
+  add(uint64_t(audit.highest) + 1, acked_max);
+}
+
+// Walks the keys of `places`, `bow` and `features` together (each in id order). RocksDB
+// iterators read the values too: recovery reads the whole map once. A block that does not read
+// is an error (CORRUPTION naming the file).
+Result<PlaceAudit> AuditPlaces(MapStorage& storage) {
+  rocksdb::ReadOptions options;
+  options.fill_cache = false;
+  std::unique_ptr<rocksdb::Iterator> its[3];
+  const Cf families[3] = {kPlaces, kBow, kFeatures};
+  for (int i = 0; i < 3; ++i) {
+    its[i].reset(storage.db->NewIterator(options, storage.cf(families[i])));
+    its[i]->SeekToFirst();
+  }
+  PlaceAudit audit;
+  while (true) {
+    const rocksdb::Iterator* lowest = nullptr;
+    for (const auto& it : its) {
+      if (it->Valid() && (!lowest || it->key().compare(lowest->key()) < 0)) lowest = it.get();
+    }
+    if (!lowest) break;
+    const std::string key = lowest->key().ToString();
+    bool has[3];
+    for (int i = 0; i < 3; ++i) {
+      has[i] = its[i]->Valid() && its[i]->key() == key;
+      if (has[i]) its[i]->Next();
+    }
+    auto id = DecodePlaceKey(key);
+    if (!id.ok()) return id.status().WithContext("a place key of the map");
+    if (!has[0]) {
+      ++audit.records_lost;
+      audit.unservable.push_back(*id);
+    } else if (!has[1]) {
+      ++audit.bow_lost;
+      audit.unservable.push_back(*id);
+    } else {
+      ++audit.servable;
+      if (*id > audit.highest + 1) audit.gaps.emplace_back(audit.highest + 1, *id - 1);
+      audit.highest = *id;
+      if (!has[2]) {
+        if (audit.features_lost++ == 0) audit.first_without_features = *id;
+        audit.last_without_features = *id;
+      }
+    }
+  }
+  for (int i = 0; i < 3; ++i) {
+    PLACEDB_RETURN_IF_ERROR(
+        FromRocks(its[i]->status(), std::string("reading ") + kColumnFamilies[families[i]]));
+  }
+  return audit;
+}
+
+// "N places lost their features (ids a..b): ..." and the dropped ones, for the damage reason.
+std::string AuditText(const PlaceAudit& audit) {
+  std::string text;
+  if (audit.features_lost > 0) {
+    text += "; " + std::to_string(audit.features_lost) + " place" +
+            (audit.features_lost == 1 ? "" : "s") + " lost their features (ids " +
+            std::to_string(audit.first_without_features) + ".." +
+            std::to_string(audit.last_without_features) +
+            "): still found by search, not verifiable, reading them is DATA_LOSS";
+  }
+  if (audit.bow_lost + audit.records_lost > 0) {
+    text += "; dropped " + std::to_string(audit.bow_lost) + " place(s) that lost their BoW vector" +
+            " and " + std::to_string(audit.records_lost) + " that lost their record";
+  }
+  return text;
+}
+
+}  // namespace
+
 Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& name,
                                                             const VocabularyFor& vocabulary_for,
                                                             MapDamage* accepted) {
@@ -2605,70 +2789,232 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& n
                                       "and restore the map from a checkpoint");
   }
   auto acked = ReadAcked((fs::path(path) / kAckedFile).string());
-  std::string method = "point-in-time recovery";
-  auto storage =
-      OpenStorage(path, /*create=*/false, options_, block_cache_, Recovery::kPointInTime);
-  if (!storage.ok()) {
-    // MANIFEST or CURRENT unusable: rebuild them from the SST and WAL files.
-    auto families = Families(block_cache_);
-    rocksdb::Status repaired =
-        rocksdb::RepairDB(path, RecoveryOptions(Recovery::kPointInTime, path), families);
-    if (!repaired.ok()) {
-      return Status::Corruption("map '" + name + "' cannot be recovered: " +
-                                Relative(FromRocks(repaired, "RocksDB repair").message()));
+
+  // 1. The files as they are, kept before anything changes them: RocksDB deletes the files a
+  // MANIFEST does not name when it opens a map for writing, and repair moves files it cannot
+  // read aside. Nothing below touches the quarantine.
+  const std::string quarantine_name = "quarantine/" + name + "-" + std::to_string(NowUnixMs());
+  const std::string quarantine = (fs::path(path_) / quarantine_name).string();
+  PLACEDB_RETURN_IF_ERROR(CheckRoomFor(path_, 3 * CopiedBytes(path), options_.disk_reserve_bytes,
+                                       "recovering map '" + name + "'"));
+  if (Status kept = LinkOrCopyCheckpoint(path, quarantine, /*link=*/true); !kept.ok()) {
+    fs::remove_all(quarantine, ec);
+    return Status(kept.code(), Relative(kept.message()))
+        .WithContext("keeping map '" + name + "'s files before recovering it");
+  }
+
+  // 2. Each way of recovering on its own copy; the one that keeps the most places wins, so a
+  // recovery never keeps fewer places than another would (point-in-time recovery from a cut
+  // MANIFEST can open with half of the map, where repair keeps all of it).
+  struct Candidate {
+    std::string method;
+    std::string directory;
+    Status status;
+    Contents contents;
+    PlaceAudit audit;
+  };
+  std::vector<Candidate> candidates;
+  for (const bool repair : {false, true}) {
+    MapDamage unused;
+    if (repair && !candidates.empty() && candidates[0].status.ok() && acked.ok() &&
+        !FindLoss(*acked, candidates[0].contents, &unused) && candidates[0].audit.clean()) {
+      break;  // nothing acknowledged is missing: repair cannot keep more
     }
-    method = "RocksDB repair (MANIFEST rebuilt from the SST and WAL files)";
-    // Repair keeps only the column families that hold data: the empty ones are made again.
-    storage = OpenStorage(path, /*create=*/false, options_, block_cache_, Recovery::kPointInTime,
-                          /*create_families=*/true);
-    if (!storage.ok()) {
-      return Status::Corruption("map '" + name +
-                                "' cannot be recovered: " + Relative(storage.status().message()));
+    Candidate candidate;
+    candidate.method = repair ? "RocksDB repair (MANIFEST rebuilt from the SST and WAL files)"
+                              : "point-in-time recovery";
+    candidate.directory =
+        (fs::path(path_) / "maps" / (".recovering-" + name + (repair ? "-repair" : "-pit")))
+            .string();
+    fs::remove_all(candidate.directory, ec);
+    candidate.status = LinkOrCopyCheckpoint(quarantine, candidate.directory, /*link=*/true);
+    if (candidate.status.ok() && repair) {
+      candidate.status =
+          FromRocks(rocksdb::RepairDB(candidate.directory,
+                                      RecoveryOptions(Recovery::kPointInTime, candidate.directory),
+                                      Families(block_cache_)),
+                    "RocksDB repair");
+      // Repair sets a table it cannot read whole (one corrupt block) aside into lost/, with every
+      // intact place in it: that drops what is not proven damaged, so it is not taken.
+      std::string set_aside;
+      for (const auto& entry : fs::directory_iterator(fs::path(candidate.directory) / "lost", ec)) {
+        const std::string extension = entry.path().extension().string();
+        if (extension == ".sst" || extension == ".ldb") {
+          set_aside +=
+              (set_aside.empty() ? "" : ", ") + where + "/" + entry.path().filename().string();
+        }
+      }
+      ec.clear();
+      if (candidate.status.ok() && !set_aside.empty()) {
+        candidate.status = Status::FailedPrecondition(
+            "it would set aside " + set_aside +
+            " whole (unreadable: a corrupt block), with every intact place in it");
+      }
+    }
+    if (candidate.status.ok()) {
+      // Repair keeps only the column families that hold data: the empty ones are made again.
+      auto storage = OpenStorage(candidate.directory, /*create=*/false, options_, block_cache_,
+                                 Recovery::kPointInTime, /*create_families=*/repair);
+      candidate.status = storage.status();
+      if (storage.ok()) {
+        auto contents = ReadContents(**storage);
+        auto info = contents.ok() ? ReadInfo(**storage, where).status() : contents.status();
+        auto audit = info.ok() ? AuditPlaces(**storage) : Result<PlaceAudit>(info);
+        candidate.status = audit.status();
+        if (audit.ok()) {
+          candidate.contents = *contents;
+          candidate.audit = std::move(audit).value();
+        }
+      }
+    }
+    if (!candidate.status.ok()) {
+      candidate.status = Status(candidate.status.code(), Relative(candidate.status.message()));
+    }
+    candidates.push_back(std::move(candidate));
+  }
+  const auto remove_candidates = [&] {
+    for (const Candidate& candidate : candidates) fs::remove_all(candidate.directory, ec);
+  };
+  const Candidate* best = nullptr;
+  for (const Candidate& candidate : candidates) {
+    if (candidate.status.ok() && (!best || candidate.audit.servable > best->audit.servable)) {
+      best = &candidate;
     }
   }
-  auto contents = ReadContents(**storage);
-  if (!contents.ok()) {
-    return Status::Corruption("map '" + name +
-                              "' cannot be recovered: " + Relative(contents.status().message()));
+  if (!best) {
+    std::string reasons;
+    for (const Candidate& candidate : candidates) {
+      reasons += "; " + candidate.method + ": " + candidate.status.message();
+    }
+    remove_candidates();
+    fs::remove_all(quarantine, ec);  // the map's own files were not changed
+    return Status::FailedPrecondition("map '" + name + "' cannot be recovered" + reasons +
+                                      "; restore it from a checkpoint");
+  }
+  std::string method = best->method;
+  for (const Candidate& candidate : candidates) {
+    if (&candidate != best && candidate.status.ok()) {
+      method += " (kept " + std::to_string(best->audit.servable) + " places; " + candidate.method +
+                " would have kept " + std::to_string(candidate.audit.servable) + ")";
+    }
+  }
+  const Contents contents = best->contents;
+  const PlaceAudit audit = best->audit;
+
+  // 3. The recovered copy takes the map's place; the files it replaces are in the quarantine.
+  const std::string replaced = (fs::path(path_) / "maps" / (".replaced-" + name)).string();
+  fs::remove_all(replaced, ec);
+  fs::rename(path, replaced, ec);
+  if (!ec) {
+    fs::rename(best->directory, path, ec);
+    if (ec) {
+      std::error_code back;
+      fs::rename(replaced, path, back);
+    }
+  }
+  if (ec) {
+    remove_candidates();
+    fs::remove_all(quarantine, ec);
+    return Status::IoError("recovering map '" + name + "': " + ec.message());
+  }
+  fs::remove_all(replaced, ec);
+  remove_candidates();
+  // Any failure from here puts the map's files back as they were: it stays damaged.
+  const auto put_back = [&](Status status) {
+    std::error_code ignored;
+    fs::remove_all(path, ignored);
+    if (Status copied = LinkOrCopyCheckpoint(quarantine, path, /*link=*/true); copied.ok()) {
+      fs::remove_all(quarantine, ignored);
+    } else {
+      status = status.WithContext("the map's files as they were are in " + quarantine_name);
+    }
+    return status;
+  };
+
+  auto storage = OpenStorage(path, /*create=*/false, options_, block_cache_, Recovery::kPointInTime,
+                             /*create_families=*/true);
+  if (!storage.ok()) {
+    return put_back(Status::Corruption(
+        "map '" + name + "' cannot be recovered: " + Relative(storage.status().message())));
+  }
+  MapStorage& recovered = **storage;
+  rocksdb::WriteOptions sync;
+  sync.sync = true;
+  if (!audit.unservable.empty()) {
+    // What is left of places that cannot be found any more (the quarantine keeps it).
+    rocksdb::WriteBatch batch;
+    for (const PlaceId id : audit.unservable) {
+      for (const Cf cf : {kPlaces, kBow, kFeatures, kDynamics, kThumbnails}) {
+        batch.Delete(recovered.cf(cf), PlaceKey(id));
+      }
+    }
+    if (Status dropped = FromRocks(recovered.db->Write(sync, &batch), "dropping unservable places");
+        !dropped.ok()) {
+      storage->reset();
+      return put_back(dropped.WithContext("map '" + name + "'"));
+    }
   }
   MapDamage counted;
-  if (acked.ok()) FindLoss(*acked, *contents, &counted);
+  if (acked.ok()) {
+    FindLoss(*acked, contents, &counted);
+    CountLostPlaces(audit, contents.floor, acked->max_place, &counted);
+  }
+  counted.records_lost = audit.records_lost;
+  counted.bow_lost = audit.bow_lost;
+  counted.features_lost = audit.features_lost;
+  counted.quarantine = quarantine_name;
   counted.reason =
       loss.reason + "; recovered with " + method +
+      // What was kept differs from what opening counted when repair read a log further.
+      (counted.writes_lost > 0 &&
+               (counted.writes_lost != loss.writes_lost || counted.places_lost != loss.places_lost)
+           ? "; " + LossText(counted)
+           : std::string()) +
+      AuditText(audit) +
       (acked.ok() ? ""
-                  : "; the count of lost writes is unknown (" + acked.status().message() + ")");
+                  : "; the count of lost writes is unknown (" + acked.status().message() + ")") +
+      "; the files as they were are kept in " + quarantine_name;
   counted.recovered_unix_ms = NowUnixMs();
-  auto info = ReadInfo(**storage, where);
+  auto info = ReadInfo(recovered, where);
   if (!info.ok()) {
-    return Status::FailedPrecondition("map '" + name + "' cannot be recovered: " +
-                                      info.status().message() + "; restore it from a checkpoint");
+    storage->reset();
+    return put_back(Status::FailedPrecondition("map '" + name +
+                                               "' cannot be recovered: " + info.status().message() +
+                                               "; restore it from a checkpoint"));
   }
-  auto history = ReadHistory(**storage);
+  auto history = ReadHistory(recovered);
   std::vector<MapDamage> entries = history.ok() ? *history : std::vector<MapDamage>();
   if (!history.ok()) counted.reason += "; the earlier damage history was unreadable";
   entries.push_back(counted);
   auto vocabulary = vocabulary_for(*info);
-  if (!vocabulary.ok()) return vocabulary.status();
+  if (!vocabulary.ok()) {
+    storage->reset();
+    return put_back(vocabulary.status());
+  }
   std::shared_ptr<PlaceMap> map(
       new PlaceMap(std::move(info).value(), path, std::move(storage).value(), *vocabulary));
-  PLACEDB_RETURN_IF_ERROR(map->CheckVocabulary(*vocabulary));
+  Status usable = map->CheckVocabulary(*vocabulary);
   // The index first: if a block it needs is corrupt, the map stays damaged and nothing is
   // recorded.
-  if (Status loaded = map->Load(); !loaded.ok()) {
-    return Status::FailedPrecondition(
-        "map '" + name + "' cannot be recovered this way: " + Relative(loaded.message()) +
-        "; restore it from a checkpoint");
+  if (usable.ok()) {
+    if (Status loaded = map->Load(); !loaded.ok()) {
+      usable = Status::FailedPrecondition(
+          "map '" + name + "' cannot be recovered this way: " + Relative(loaded.message()) +
+          "; restore it from a checkpoint");
+    }
+  }
+  if (!usable.ok()) {
+    map.reset();
+    return put_back(usable);
   }
   MapStorage& storage_ref = *map->storage_;
-  rocksdb::WriteOptions sync;
-  sync.sync = true;
   PLACEDB_RETURN_IF_ERROR(FromRocks(
       storage_ref.db->Put(sync, storage_ref.cf(kMeta), kDamageHistoryKey, EncodeHistory(entries)),
       "recording the recovery"));
   // What the map holds now is what counts as acknowledged from here on.
   const AckState start{
-      0, contents->writes,
-      std::max<uint64_t>(contents->max_place, contents->floor ? contents->floor - 1 : 0)};
+      0, contents.writes,
+      std::max<uint64_t>(contents.max_place, contents.floor ? contents.floor - 1 : 0)};
   PLACEDB_RETURN_IF_ERROR(CreateAcked(path, start).WithContext(where));
   auto tracker = AckTracker::Open(path, {start.generation + 2, start.writes, start.max_place});
   if (!tracker.ok()) return tracker.status().WithContext(where);
@@ -2720,36 +3066,6 @@ Status DataDirectory::DeleteMap(const std::string& name) {
   if (ec) return Status::IoError("removing " + trash + ": " + ec.message());
   return Status::Ok();
 }
-
-namespace {
-
-// `from` (a checkpoint) into the new folder `to`: SST files hard-linked when `link` (copied
-// when the file system refuses the link), the rest copied.
-Status LinkOrCopyCheckpoint(const std::string& from, const std::string& to, bool link) {
-  std::error_code ec;
-  fs::create_directories(to, ec);
-  if (ec) return Status::IoError("creating " + to + ": " + ec.message());
-  for (auto it = fs::recursive_directory_iterator(from, ec); !ec && it != fs::end(it);
-       it.increment(ec)) {
-    const fs::path target = fs::path(to) / fs::relative(it->path(), from);
-    if (it->is_directory()) {
-      fs::create_directories(target, ec);
-    } else if (link && it->path().extension() == ".sst") {
-      fs::create_hard_link(it->path(), target, ec);
-      if (ec == std::errc::cross_device_link || ec == std::errc::operation_not_permitted) {
-        ec.clear();
-        fs::copy_file(it->path(), target, ec);
-      }
-    } else {
-      fs::copy_file(it->path(), target, ec);
-    }
-    if (ec) return Status::IoError("copying " + it->path().string() + ": " + ec.message());
-  }
-  if (ec) return Status::IoError("listing " + from + ": " + ec.message());
-  return Status::Ok();
-}
-
-}  // namespace
 
 Status DataDirectory::RestoreMap(const std::string& name, const std::string& checkpoint) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));

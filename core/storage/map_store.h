@@ -144,6 +144,16 @@ struct MapDamage {
   PlaceId first_lost = 0;
   PlaceId last_lost = 0;
   int64_t recovered_unix_ms = 0;  // when the operator accepted it (history entries)
+  // What RecoverMap's scan of the places that remain found missing (each place counted once, by
+  // its first missing part). A place without its record or BoW vector cannot be found: what is
+  // left of it is dropped from the map. A place without its features is still found by search
+  // but cannot be verified; reading it is CORRUPTION (DATA_LOSS).
+  uint64_t records_lost = 0;
+  uint64_t bow_lost = 0;
+  uint64_t features_lost = 0;
+  // Where RecoverMap kept the map's files as they were before it changed anything, relative to
+  // the data directory ("quarantine/lab-1764320000000"); empty when nothing was changed.
+  std::string quarantine;
 };
 
 // PlaceMap::Scrub's findings.

@@ -5,6 +5,7 @@
 // place in it answers GetPlace with DATA_LOSS.
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
+#include <rocksdb/db.h>
 
 #include <filesystem>
 #include <fstream>
@@ -216,6 +217,70 @@ TEST_F(DamageServerTest, ScrubFindsACorruptBlockAndGetPlaceSaysDataLoss) {
     EXPECT_NE(read.error_message().find(sst), std::string::npos) << read.error_message();
     EXPECT_EQ(read.error_message().find(root_), std::string::npos) << read.error_message();
   }
+}
+
+// Issue 34: a map whose MANIFEST was deleted is DAMAGED (not "unavailable"), so RecoverMap
+// takes it; repair keeps every place; the answer names the quarantine holding the files as they
+// were. Then the features files deleted: recovery counts the places that lost them, and reading
+// one is DATA_LOSS, never NOT_FOUND.
+TEST_F(DamageServerTest, DeletedManifestAndFeaturesAreRecoveredAndCounted) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  CreateMap("lab");
+  const uint64_t stored = Ingest("lab", 1, 16);
+  ASSERT_GT(stored, 5u);
+  StopServer();  // flushes every place to SST files
+  for (const auto& entry : fs::directory_iterator(MapDir("lab"))) {
+    if (entry.path().filename().string().starts_with("MANIFEST-")) fs::remove(entry.path());
+  }
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  const v1::MapSummary damaged = Summary("lab");
+  EXPECT_EQ(damaged.state(), v1::MAP_STATE_DAMAGED) << damaged.unavailable_reason();
+  EXPECT_NE(damaged.unavailable_reason().find("maps/lab/CURRENT"), std::string::npos)
+      << damaged.unavailable_reason();
+  v1::RecoverMapResponse recovered;
+  const grpc::Status recover = Recover("lab", true, &recovered);
+  ASSERT_TRUE(recover.ok()) << recover.error_message();
+  EXPECT_EQ(recovered.accepted().places_lost(), 0u);
+  EXPECT_EQ(recovered.map().stats().places(), stored);
+  EXPECT_TRUE(recovered.accepted().quarantine().starts_with("quarantine/lab-"))
+      << recovered.accepted().quarantine();
+  EXPECT_TRUE(fs::is_directory(root_ + "/data/" + recovered.accepted().quarantine()));
+  StopServer();
+
+  // Every features file gone (the places' records and BoW vectors stay).
+  std::vector<std::string> features;
+  {
+    std::vector<rocksdb::ColumnFamilyDescriptor> families;
+    for (const char* name :
+         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
+      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
+    }
+    std::vector<rocksdb::ColumnFamilyHandle*> handles;
+    rocksdb::DB* raw = nullptr;
+    ASSERT_TRUE(
+        rocksdb::DB::OpenForReadOnly(rocksdb::DBOptions(), MapDir("lab"), families, &handles, &raw)
+            .ok());
+    std::vector<rocksdb::LiveFileMetaData> live;
+    raw->GetLiveFilesMetaData(&live);
+    for (const auto& file : live) {
+      if (file.column_family_name == "features") features.push_back(file.db_path + file.name);
+    }
+    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
+    delete raw;
+  }
+  ASSERT_FALSE(features.empty());
+  for (const std::string& file : features) fs::remove(file);
+  ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
+  EXPECT_EQ(Summary("lab").state(), v1::MAP_STATE_DAMAGED);
+  ASSERT_TRUE(Recover("lab", true, &recovered).ok());
+  EXPECT_EQ(recovered.accepted().features_lost(), stored);
+  EXPECT_EQ(recovered.map().stats().places(), stored);
+  v1::Place place;
+  const grpc::Status read = GetPlace("lab", 1, &place);
+  EXPECT_EQ(read.error_code(), grpc::StatusCode::DATA_LOSS) << read.error_message();
+  // Still found by search.
+  v1::QueryResponse response;
+  EXPECT_TRUE(Query("lab", RtabmapObservation(3, "robot"), &response).ok());
 }
 
 }  // namespace

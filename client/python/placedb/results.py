@@ -332,6 +332,10 @@ class MapDamage:
     first_lost_place: int
     last_lost_place: int
     recovered_unix_ms: int
+    records_lost: int = 0
+    bow_lost: int = 0
+    features_lost: int = 0
+    quarantine: str = ""
 
     @staticmethod
     def from_proto(message: pb.MapDamage) -> "MapDamage":
