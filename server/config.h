@@ -156,8 +156,8 @@ struct ServerConfig {
   // Serve the metrics over HTTPS with tls.cert_file/key_file (and, with tls.client_ca_file,
   // require a client certificate from a scraper).
   bool metrics_tls = false;
-  // The endpoint's worker threads (each open HTTP connection holds one) and how long a request
-  // may take to arrive and be answered before its connection is closed.
+  // Requests handled at once (past their headers; 64 connections may be open, http_endpoint.h),
+  // and how long a request may take to arrive, and its answer to be written, before a close.
   int metrics_threads = 4;
   uint32_t metrics_request_timeout_ms = 5000;
   // The web console (docs/console.md): its pages and JSON API on their own HTTP listener.
@@ -166,8 +166,8 @@ struct ServerConfig {
   // Serve the console over HTTPS with tls.cert_file/key_file (and, with tls.client_ca_file,
   // require a client certificate from the browser).
   bool console_tls = false;
-  int console_threads = 4;                                  // each open connection holds one
-  uint32_t console_request_timeout_ms = 30000;              // per read and write of a connection
+  int console_threads = 4;                      // requests past their headers at once
+  uint32_t console_request_timeout_ms = 30000;  // per read and write; per request and answer
   uint64_t console_max_request_bytes = uint64_t(16) << 20;  // larger bodies: 413
   std::string data_dir = "./var/data";
   int threads = 0;         // worker threads; 0 = hardware concurrency

@@ -1,12 +1,29 @@
 // An HTTP or HTTPS listener of placedb-server (cpp-httplib), shared by the metrics endpoint and
-// the web console: bounded workers, per-request timeouts, the TLS files of TlsSettings, a bind
-// that fails instead of sharing a port, and its own accept thread.
+// the web console: bounded connections and handlers, a deadline per connection, bodies bounded
+// before they are read, the TLS files of TlsSettings, a bind that fails instead of sharing a
+// port, and its own accept thread.
 //
-// Workers: `threads` of them, each serving one connection and one request at a time (no
-// keep-alive: the answer closes the connection); more connections wait in the listen backlog, so
-// a slow client takes one worker, never the endpoint. `request_timeout_ms` bounds each read and
-// write of a connection (a TLS handshake's too), and the wait for its request's first byte (in
-// whole seconds, at least 1).
+// Connections: up to `max_connections` are served at once, each on its own thread (more wait in
+// the listen backlog); one request per connection (the answer closes it). Only `threads` of them
+// are past their request's headers at once (routing, reading the body, the handler): a client
+// that trickles its headers holds a connection thread, never a handler, so slow clients cannot
+// keep the endpoint from answering others until there are max_connections of them.
+//
+// Time: every read and write (a TLS handshake's too) waits at most `request_timeout_ms`; the
+// whole request (handshake, headers, body) must arrive within `request_timeout_ms` of the accept,
+// and the whole answer be written within `request_timeout_ms` of its first byte: a client that
+// trickles a byte at a time within the per-read timeout is cut off at that deadline, and so is
+// one that reads its answer as slowly. (The handler's own time counts for neither: a loaded
+// machine does not cut answers short.) Stop() cuts the reading side of every open connection, so
+// it does not wait for slow clients.
+//
+// Bodies: the headers may take 64 KiB; the body is read only as far as its request declares and
+// the limit allows, and nothing of it before the routes' pre-routing handler accepted the request
+// (httplib runs that handler before it reads a body). A Content-Length over max_request_bytes is
+// answered 413 from the headers, without reading the body; a chunked body is read up to
+// max_request_bytes (its framing included), beyond that the read fails (400); a request with
+// neither Content-Length nor chunked encoding has no body (RFC 9112 6.3), instead of httplib's
+// read-until-close. A refused body stays unread: the answer closes the connection.
 #pragma once
 
 #include <cstdint>
@@ -27,11 +44,13 @@ struct Request;
 namespace placedb::server {
 
 struct HttpEndpointSettings {
-  std::string name;    // for errors and logs: "metrics endpoint", "console"
-  std::string listen;  // host:port or [v6]:port; port 0 picks one
-  int threads = 4;
-  uint32_t request_timeout_ms = 5000;
-  // Bodies larger than this are refused with 413 before they are read (0: httplib's default).
+  std::string name;                    // for errors and logs: "metrics endpoint", "console"
+  std::string listen;                  // host:port or [v6]:port; port 0 picks one
+  int threads = 4;                     // requests past their headers at once (see above)
+  int max_connections = 64;            // connections served at once, each on its own thread
+  uint32_t request_timeout_ms = 5000;  // per read or write, for a request and for its answer
+  // The largest body a request may send (0: none); a larger Content-Length is answered 413 from
+  // the headers, before any of the body is read.
   uint64_t max_request_bytes = 0;
   // Set: HTTPS only, TLS 1.2 or later with these files, and with tls->mutual() a client
   // certificate signed by one of its CAs is required at the handshake.
@@ -53,11 +72,13 @@ class HttpEndpoint {
   Status Serve(const HttpEndpointSettings& settings,
                const std::function<void(httplib::Server&)>& routes);
   int port() const { return port_; }  // the bound port; 0 when not serving
-  // Stops accepting and waits for the connections being served (each ends within its timeouts).
+  // Stops accepting, cuts the reading side of the open connections (a request being handled
+  // still gets its answer) and waits for them.
   void Stop();
 
  private:
   std::unique_ptr<httplib::Server> http_;  // an httplib::SSLServer with settings.tls
+  std::function<void()> cut_connections_;  // shuts the reading side of every open connection
   std::thread thread_;                     // http_'s accept loop
   int port_ = 0;
 };

@@ -12,6 +12,7 @@
 #include <map>
 
 #include "core/base/map_name.h"
+#include "core/base/text.h"
 #include "proto/status.h"
 #include "server/service.h"
 
@@ -385,8 +386,8 @@ void ParsingService::AddUnary(const char* method,
     grpc::Status status = (service_->*handler)(context, &request, &response);
     if (right == auth::Right::kAdmin) {
       spdlog::info("auth admin method={} principal={} peer={} map={} result={}", method,
-                   caller.name, credentials ? credentials->peer : context->peer(), map,
-                   wire::GrpcCodeName(status.error_code()));
+                   ForLog(caller.name), ForLog(credentials ? credentials->peer : context->peer()),
+                   ForLog(map), wire::GrpcCodeName(status.error_code()));
     }
     if (!status.ok()) return status;
     RestrictResponse(caller, &response);
@@ -448,7 +449,8 @@ void ParsingService::AddServerStream(
     grpc::Status status = (self->service_->*handler)(context, &request, write);
     if (right == auth::Right::kAdmin) {
       spdlog::info("auth admin method={} principal={} peer={} map={} result={}", method,
-                   caller.name, context->peer(), map, wire::GrpcCodeName(status.error_code()));
+                   ForLog(caller.name), ForLog(context->peer()), ForLog(map),
+                   wire::GrpcCodeName(status.error_code()));
     }
     return status;
   };
@@ -495,8 +497,9 @@ void ParsingService::AddClientStream(const char* method,
     Response response;
     grpc::Status status = (self->service_->*handler)(context, read, &response);
     if (right == auth::Right::kAdmin) {
-      spdlog::info("auth admin method={} principal={} peer={} map= result={}", method, caller.name,
-                   context->peer(), wire::GrpcCodeName(status.error_code()));
+      spdlog::info("auth admin method={} principal={} peer={} map= result={}", method,
+                   ForLog(caller.name), ForLog(context->peer()),
+                   wire::GrpcCodeName(status.error_code()));
     }
     if (!status.ok()) return status;
     bool own = false;
@@ -531,6 +534,23 @@ grpc::Status ParsingService::CallUnary(const std::string& method,
   response->reserve(out.Length());
   for (const grpc::Slice& piece : slices) {
     response->append(reinterpret_cast<const char*>(piece.begin()), piece.size());
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status ParsingService::AuthenticateCall(const std::string& method,
+                                              const auth::Credentials& credentials) {
+  const auto found = unary_.find(method);
+  if (found == unary_.end()) {
+    return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                        "'" + method + "' is not a unary method of " + kServiceName);
+  }
+  // As Admit's first step, with the context CallUnary gives a call of no gRPC transport.
+  grpc::ServerContext context;
+  auth::Caller caller;
+  if (grpc::Status denied = Authenticate(found->first.c_str(), context, &caller, &credentials);
+      !denied.ok()) {
+    return service_->RefuseMalformed(found->first.c_str(), &context, denied);
   }
   return grpc::Status::OK;
 }

@@ -78,6 +78,12 @@ class ParsingService final : public grpc::Service {
   // UNIMPLEMENTED for a method that is not a registered unary method. Thread-safe.
   grpc::Status CallUnary(const std::string& method, const auth::Credentials& credentials,
                          const std::string& request, std::string* response);
+  // CallUnary's first step alone, for a transport that must refuse a caller before it reads the
+  // request (the console answers from the HTTP headers, leaving a refused body unread): OK when
+  // `credentials` name a caller `method` may authenticate; else the same UNAUTHENTICATED as
+  // CallUnary, logged and counted the same way. Authorization needs the request (its map) and
+  // stays CallUnary's. UNIMPLEMENTED for a method that is not a registered unary method.
+  grpc::Status AuthenticateCall(const std::string& method, const auth::Credentials& credentials);
 
  private:
   // A registered unary method: `credentials` null = the gRPC call's own (from `context`).

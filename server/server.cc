@@ -330,6 +330,10 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
                                               std::to_string(server->metrics_port_) + ")",
                c.data_dir, server->pool_->threads());
   spdlog::info("console: {}", server->console_ ? server->console_->url() : std::string("off"));
+  // Again after the summary an operator reads (CheckExposure said it first, before the slow part).
+  for (const std::string& warning : CleartextTokenWarnings(c)) {
+    spdlog::warn("SECURITY WARNING: {}", warning);
+  }
   return server;
 }
 

@@ -15,7 +15,9 @@
 #include <vector>
 
 #include "core/base/map_name.h"
+#include "core/base/text.h"
 #include "core/base/timing.h"
+#include "core/storage/snapshots.h"
 #include "proto/convert_config.h"
 #include "proto/convert_dynamics.h"
 #include "proto/convert_frame.h"
@@ -137,8 +139,9 @@ grpc::Status Invalid(const std::string& message) {
   return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, message);
 }
 
+// The caller's address as a log line shows it (ForLog, like every client-supplied string).
 std::string Peer(const grpc::ServerContext* context) {
-  return context->peer();
+  return ForLog(context->peer());
 }
 
 // Runs `body`, turning an exception (OpenCV throws cv::Exception; allocation can fail) into
@@ -148,7 +151,7 @@ grpc::Status Guarded(const char* what, Body&& body) {
   try {
     return body();
   } catch (const std::exception& e) {
-    spdlog::error("{}: unexpected exception: {}", what, e.what());
+    spdlog::error("{}: unexpected exception: {}", what, ForLog(e.what()));
     return grpc::Status(grpc::StatusCode::INTERNAL, std::string(what) + ": " + e.what());
   } catch (...) {
     spdlog::error("{}: unexpected exception", what);
@@ -220,7 +223,7 @@ grpc::Status PlaceDbService::Finish(const char* method, grpc::ServerContext* con
   metrics_->CountRequest(method, GrpcCodeName(status.error_code()));
   if (!status.ok()) {
     spdlog::warn("rpc error method={} code={} peer={} message=\"{}\"", method,
-                 GrpcCodeName(status.error_code()), Peer(context), status.error_message());
+                 GrpcCodeName(status.error_code()), Peer(context), ForLog(status.error_message()));
   }
   return HidePaths(status, config_.data_dir);  // the log keeps the server's paths, not the client
 }
@@ -381,7 +384,7 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
         cluster_->CreateMap(request->name(), effective, DeadlineOf(context), response);
     if (created.ok()) {
       spdlog::info("cluster map '{}' created: vocabulary '{}', box source {}, peer={}",
-                   request->name(), (*vocabulary)->name, BoxSourceName(settings.box_source),
+                   ForLog(request->name()), (*vocabulary)->name, BoxSourceName(settings.box_source),
                    Peer(context));
     }
     return Finish("CreateMap", context, created);
@@ -390,7 +393,7 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
   if (!entry.ok()) return Finish("CreateMap", context, ToGrpc(entry.status()));
   Describe(**entry, response);
   spdlog::info("map '{}' created: vocabulary '{}', features {}, box source {}, peer={}",
-               request->name(), (*entry)->vocabulary_name,
+               ForLog(request->name()), (*entry)->vocabulary_name,
                FeatureTypeName(options->database.feature_type), BoxSourceName(settings.box_source),
                Peer(context));
   return Finish("CreateMap", context, grpc::Status::OK);
@@ -452,7 +455,7 @@ grpc::Status PlaceDbService::DeleteMap(grpc::ServerContext* context,
     const grpc::Status deleted = cluster_->DeleteMap(request->name(), DeadlineOf(context));
     if (deleted.ok()) {
       activity_.Forget(request->name());
-      spdlog::info("cluster map '{}' deleted, peer={}", request->name(), Peer(context));
+      spdlog::info("cluster map '{}' deleted, peer={}", ForLog(request->name()), Peer(context));
     }
     return Finish("DeleteMap", context, deleted);
   }
@@ -461,7 +464,7 @@ grpc::Status PlaceDbService::DeleteMap(grpc::ServerContext* context,
   }
   metrics_->ForgetMap(request->name());
   activity_.Forget(request->name());
-  spdlog::info("map '{}' deleted, peer={}", request->name(), Peer(context));
+  spdlog::info("map '{}' deleted, peer={}", ForLog(request->name()), Peer(context));
   return Finish("DeleteMap", context, grpc::Status::OK);
 }
 
@@ -480,7 +483,7 @@ grpc::Status PlaceDbService::RecoverMap(grpc::ServerContext* context,
   spdlog::log(accepted.writes_lost > 0 ? spdlog::level::err : spdlog::level::warn,
               "map '{}' recovered with data loss accepted: {} acknowledged places lost ({} "
               "writes); {}; peer={}",
-              request->name(), accepted.places_lost, accepted.writes_lost,
+              ForLog(request->name()), accepted.places_lost, accepted.writes_lost,
               accepted.reason.empty() ? std::string("it was not damaged") : accepted.reason,
               Peer(context));
   return Finish("RecoverMap", context, grpc::Status::OK);
@@ -497,11 +500,11 @@ grpc::Status PlaceDbService::ScrubMap(grpc::ServerContext* context,
   if (!report.ok()) return Finish("ScrubMap", context, ToGrpc(report.status()));
   wire::ScrubReportToProto(*report, response);
   if (report->clean()) {
-    spdlog::info("map '{}' scrubbed: {} places, {} files, no damage", request->name(),
+    spdlog::info("map '{}' scrubbed: {} places, {} files, no damage", ForLog(request->name()),
                  report->places_checked, report->files_checked);
   } else {
     spdlog::error("map '{}' scrubbed: {} of {} places and {} of {} files damaged{}{}",
-                  request->name(), report->damaged_places.size(), report->places_checked,
+                  ForLog(request->name()), report->damaged_places.size(), report->places_checked,
                   report->damaged_files.size(), report->files_checked,
                   report->damaged_files.empty() ? "" : "; first: ",
                   report->damaged_files.empty()
@@ -843,7 +846,7 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
 // delivery thread) and the watchdog share it under its own mutex.
 struct PlaceDbService::Watch {
   Watch(grpc::ServerContext* context, const char* method)
-      : context(context), method(method), peer(context->peer()), opened(Clock::now()) {}
+      : context(context), method(method), peer(Peer(context)), opened(Clock::now()) {}
 
   void HeaderArrived() {
     MutexLock lock(mutex);
@@ -1041,8 +1044,8 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
     if (slot->status.error_code() != grpc::StatusCode::CANCELLED &&
         slot->status.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED) {
       spdlog::warn("ingest frame error map={} index={} sequence={} code={} message=\"{}\"",
-                   stream->map->name, slot->index, slot->sequence,
-                   GrpcCodeName(slot->status.error_code()), slot->status.error_message());
+                   ForLog(stream->map->name), slot->index, slot->sequence,
+                   GrpcCodeName(slot->status.error_code()), ForLog(slot->status.error_message()));
     }
   } else {
     Work& work = slot->work;
@@ -1116,9 +1119,9 @@ void PlaceDbService::Complete(Stream* stream, Slot* slot) {
       response.mutable_error()->set_message(
           HidePaths(slot->status.error_message(), config_.data_dir));
       metrics_->FrameRejected(map.name, GrpcCodeLabel(slot->status.error_code()));
-      spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map.name,
+      spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", ForLog(map.name),
                    slot->index, GrpcCodeName(slot->status.error_code()),
-                   slot->status.error_message());
+                   ForLog(slot->status.error_message()));
     } else if (slot->commit) {
       // Answered by Settle(), once durable.
     } else if (clustered) {
@@ -1238,7 +1241,7 @@ grpc::Status PlaceDbService::CloseLoopInCluster(Stream* stream, Slot* slot,
     spdlog::info(
         "loop closure map={} agent={}: {} earlier places replayed from a replica in {:.1f} "
         "ms",
-        map.name, work.metadata.agent_id, outcome->replayed, outcome->replay_ms);
+        ForLog(map.name), ForLog(work.metadata.agent_id), outcome->replayed, outcome->replay_ms);
   }
   if (outcome->merged) {
     // As on a single node: nothing stored, the frame counted as one more observation of the
@@ -1288,9 +1291,9 @@ void PlaceDbService::Settle(Stream* stream, Slot* slot) {
       response.mutable_error()->set_message(
           HidePaths(slot->status.error_message(), config_.data_dir));
       metrics_->FrameRejected(map_name, GrpcCodeLabel(slot->status.error_code()));
-      spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", map_name,
+      spdlog::warn("ingest frame error map={} index={} code={} message=\"{}\"", ForLog(map_name),
                    slot->index, GrpcCodeName(slot->status.error_code()),
-                   slot->status.error_message());
+                   ForLog(slot->status.error_message()));
     } else {
       Work& work = slot->work;
       work.timings.store_ms = added->timings.store_ms;
@@ -1398,7 +1401,7 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
   }
   IngestPipeline& pipeline = *admitted;
   spdlog::info("ingest stream opened peer={} map={} loop_closure={}", Peer(context),
-               stream.map->name, stream.loop_closure);
+               ForLog(stream.map->name), stream.loop_closure);
 
   grpc::Status status = grpc::Status::OK;
   uint64_t index = 0;
@@ -1480,8 +1483,9 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
   spdlog::info(
       "ingest stream closed peer={} map={} agent={} frames={} stored={} merged={} rejected={} "
       "errors={} duration={:.3f}s status={}",
-      Peer(context), stream.map->name, agents, stream.frames, stream.stored, stream.merged,
-      stream.rejected, stream.errors, MsSince(opened) / 1000.0, GrpcCodeName(status.error_code()));
+      Peer(context), ForLog(stream.map->name), ForLog(agents), stream.frames, stream.stored,
+      stream.merged, stream.rejected, stream.errors, MsSince(opened) / 1000.0,
+      GrpcCodeName(status.error_code()));
   return Finish("Ingest", context, status);
 }
 
@@ -1609,8 +1613,8 @@ grpc::Status PlaceDbService::CreateSnapshot(grpc::ServerContext* context,
   }
   metrics_->ObserveSnapshot("create", MsSince(start) / 1000.0);
   SnapshotToProto(*info, response);
-  spdlog::info("snapshot '{}' of map '{}' created: {} places, {} bytes, peer={}", info->id,
-               info->map, info->places, info->bytes, Peer(context));
+  spdlog::info("snapshot '{}' of map '{}' created: {} places, {} bytes, peer={}", ForLog(info->id),
+               ForLog(info->map), info->places, info->bytes, Peer(context));
   return Finish("CreateSnapshot", context, grpc::Status::OK);
 }
 
@@ -1636,7 +1640,7 @@ grpc::Status PlaceDbService::DeleteSnapshot(grpc::ServerContext* context,
     return Finish("DeleteSnapshot", context,
                   HidePaths(ToGrpc(deleted.WithContext("id")), config_.data_dir));
   }
-  spdlog::info("snapshot '{}' deleted, peer={}", request->id(), Peer(context));
+  spdlog::info("snapshot '{}' deleted, peer={}", ForLog(request->id()), Peer(context));
   return Finish("DeleteSnapshot", context, grpc::Status::OK);
 }
 
@@ -1656,8 +1660,8 @@ grpc::Status PlaceDbService::RestoreSnapshot(grpc::ServerContext* context,
   }
   metrics_->ObserveSnapshot("restore", MsSince(start) / 1000.0);
   Describe(**entry, response);
-  spdlog::info("snapshot '{}' restored as map '{}', peer={}", request->id(), request->new_map(),
-               Peer(context));
+  spdlog::info("snapshot '{}' restored as map '{}', peer={}", ForLog(request->id()),
+               ForLog(request->new_map()), Peer(context));
   return Finish("RestoreSnapshot", context, grpc::Status::OK);
 }
 
@@ -1713,7 +1717,8 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
   if (!written.ok()) {
     return Finish("DownloadSnapshot", context, HidePaths(ToGrpc(written), config_.data_dir));
   }
-  spdlog::info("snapshot '{}' downloaded: {} bytes, peer={}", request->id(), *size, Peer(context));
+  spdlog::info("snapshot '{}' downloaded: {} bytes, peer={}", ForLog(request->id()), *size,
+               Peer(context));
   return Finish("DownloadSnapshot", context, grpc::Status::OK);
 }
 
@@ -1745,6 +1750,12 @@ grpc::Status PlaceDbService::UploadSnapshotStream(
   if (!out) return Finish("UploadSnapshot", context, ToGrpc(Status::IoError("cannot spool")));
   uint64_t expected = 0;
   uint64_t received = 0;
+  // The archive's first bytes, checked once they hold kUploadHeadBytes: an upload that is no
+  // archive, or whose framing is over a limit (a 1 GiB SNAPSHOT.json), is refused there instead
+  // of after spooling up to limits.max_snapshot_bytes. Import checks everything again.
+  constexpr size_t kUploadHeadBytes = 4096;
+  std::string head;
+  bool head_checked = false;
   for (size_t n = 0;; ++n) {
     v1::SnapshotChunk chunk;
     bool done = false;
@@ -1786,6 +1797,15 @@ grpc::Status PlaceDbService::UploadSnapshotStream(
                     ToGrpc(Status::InvalidArgument("archive_bytes: the upload is longer than the " +
                                                    std::to_string(expected) + " bytes announced")));
     }
+    if (!head_checked) {
+      head.append(chunk.data(), 0, kUploadHeadBytes - head.size());
+      if (head.size() == kUploadHeadBytes) {
+        head_checked = true;
+        if (Status sound = CheckSnapshotArchiveHead(head); !sound.ok()) {
+          return Finish("UploadSnapshot", context, ToGrpc(sound));
+        }
+      }
+    }
     out.write(chunk.data().data(), std::streamsize(chunk.data().size()));
     if (!out) {
       return Finish("UploadSnapshot", context, ToGrpc(Status::IoError("spooling the upload")));
@@ -1806,8 +1826,8 @@ grpc::Status PlaceDbService::UploadSnapshotStream(
   }
   metrics_->ObserveSnapshot("import", MsSince(start) / 1000.0);
   SnapshotToProto(*info, response);
-  spdlog::info("snapshot '{}' of map '{}' uploaded: {} places, {} bytes, peer={}", info->id,
-               info->map, info->places, received, Peer(context));
+  spdlog::info("snapshot '{}' of map '{}' uploaded: {} places, {} bytes, peer={}", ForLog(info->id),
+               ForLog(info->map), info->places, received, Peer(context));
   return Finish("UploadSnapshot", context, grpc::Status::OK);
 }
 

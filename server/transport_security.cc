@@ -263,7 +263,28 @@ bool IsLoopbackAddress(const std::string& address) {
   }
 }
 
+std::vector<std::string> CleartextTokenWarnings(const ServerConfig& config) {
+  std::vector<std::string> warnings;
+  if (config.security.tokens_file.empty()) return warnings;
+  auto check = [&](const std::string& listen, bool tls, const char* what, const char* how) {
+    if (listen.empty() || tls || IsLoopbackAddress(listen)) return;
+    warnings.push_back(std::string(what) + " on " + listen + " takes " + how +
+                       " over plaintext from other hosts: anyone on the network path can read "
+                       "them and act as their principals");
+  };
+  check(config.listen, config.tls.enabled(), "gRPC", "bearer tokens");
+  check(config.metrics_listen, config.metrics_tls, "metrics", "tokens (basic auth passwords)");
+  check(config.console_listen, config.console_tls, "console", "bearer tokens");
+  return warnings;
+}
+
 Status CheckExposure(const ServerConfig& config) {
+  for (const std::string& warning : CleartextTokenWarnings(config)) {
+    spdlog::warn(
+        "SECURITY WARNING: {}. Configure tls.cert_file and tls.key_file (and "
+        "metrics_tls / console_tls), or listen on loopback (docs/security.md)",
+        warning);
+  }
   // Metrics are authenticated by the tokens file (HTTP basic auth) or by client certificates
   // when they are served over mutual TLS; mutual TLS on the gRPC port alone leaves them open.
   const bool grpc_authenticated = config.authenticates_callers();

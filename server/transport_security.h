@@ -70,4 +70,12 @@ bool IsLoopbackAddress(const std::string& address);
 // one info line when the server stays on loopback for this reason.
 Status CheckExposure(const ServerConfig& config);
 
+// With a tokens file, the listeners that carry tokens in clear text to other hosts: gRPC without
+// TLS, metrics without metrics_tls (basic auth's password is a token), the console without
+// console_tls, each on a non-loopback address. One sentence per listener ("gRPC on
+// 0.0.0.0:50051 takes bearer tokens over plaintext ..."); empty when there is none.
+// CheckExposure logs each as a SECURITY WARNING, and Server::Start repeats them in its startup
+// summary (finding 8 of issue 34: such a server used to start without a word).
+std::vector<std::string> CleartextTokenWarnings(const ServerConfig& config);
+
 }  // namespace placedb::server

@@ -2,6 +2,8 @@
 
 #include <cstdio>
 
+#include "core/base/text.h"
+
 namespace placedb {
 namespace {
 
@@ -27,19 +29,7 @@ std::string ByteForMessage(char c) {
 std::string QuoteForMessage(std::string_view text, size_t max_bytes) {
   const std::string_view shown = text.substr(0, max_bytes);
   std::string out = "\"";
-  for (char c : shown) {
-    const auto byte = static_cast<unsigned char>(c);
-    if (c == '"' || c == '\\') {
-      out += '\\';
-      out += c;
-    } else if (byte >= 0x20 && byte < 0x7f) {
-      out += c;
-    } else {
-      char hex[8];
-      std::snprintf(hex, sizeof hex, "\\x%02x", byte);
-      out += hex;
-    }
-  }
+  AppendEscaped(&out, shown, EscapeMode::kAscii);
   out += '"';
   if (shown.size() < text.size()) out += "... (" + std::to_string(text.size()) + " bytes)";
   return out;

@@ -24,9 +24,10 @@ inline constexpr size_t kMaxMapNameLength = 64;
 // Callers prefix the request field ("name: ...") with Status::WithContext.
 Status ValidateMapName(std::string_view name);
 
-// `text` between double quotes, safe to print: bytes outside printable ASCII (control bytes,
-// DEL, every byte of non-ASCII UTF-8) as \xNN, '"' and '\' escaped with '\'; text longer than
-// `max_bytes` is cut there and followed by "... (N bytes)" after the closing quote.
+// `text` between double quotes, safe to print (AppendEscaped, EscapeMode::kAscii:
+// core/base/text.h): bytes outside printable ASCII (control bytes, DEL, every byte of non-ASCII
+// UTF-8) as \xNN, '"' and '\' escaped with '\'; text longer than `max_bytes` is cut there and
+// followed by "... (N bytes)" after the closing quote.
 std::string QuoteForMessage(std::string_view text, size_t max_bytes = kMaxMapNameLength);
 
 }  // namespace placedb

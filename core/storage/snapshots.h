@@ -18,10 +18,17 @@
 //           "SNAPSHOT.json" first, then "checkpoint/<file>"), u64 size, size bytes
 //   end     u8 kind = 0, u64 entry count, u64 sum of entry sizes,
 //           32 bytes SHA-256 of every archive byte before them
+// Limits (an archive comes from the network): a path of at most 1024 bytes, a SNAPSHOT.json of
+// at most kMaxSnapshotManifestBytes (a real one is a few hundred bytes; it is the one entry held
+// in memory), at most kMaxSnapshotArchiveEntries entries (a checkpoint of a map at the 64 GiB
+// upload limit has a few thousand files at most). Import checks every limit from the field that
+// states it, before reading what that field sizes, and checks the whole framing (limits, kinds,
+// paths, sizes against the file's length) before it writes any file; other entries are copied
+// through a 1 MiB buffer, so an import holds little memory whatever the archive claims.
 // A truncated archive, a wrong digest or count: CORRUPTION (gRPC DATA_LOSS). Not an archive, an
-// unknown version, a bad path, a manifest that does not parse or does not agree with the map
-// inside: INVALID_ARGUMENT. A vocabulary this server does not have: FAILED_PRECONDITION. In every
-// failure nothing is left behind.
+// unknown version, a bad path, an archive over a limit, a manifest that does not parse or does
+// not agree with the map inside: INVALID_ARGUMENT. A vocabulary this server does not have:
+// FAILED_PRECONDITION. In every failure nothing is left behind.
 //
 // Thread safety: a SnapshotStore serialises its own operations, except that WriteArchive holds
 // the lock only to open the snapshot's files (a slow reader blocks nothing; a Delete meanwhile
@@ -61,6 +68,16 @@ struct SnapshotOptions {
 
 // INVALID_ARGUMENT unless 1..200 characters of [A-Za-z0-9._-] not starting with '.'.
 Status ValidateSnapshotId(std::string_view id);
+
+// Archive limits (see the header comment); the refusal's message names the limit.
+inline constexpr uint64_t kMaxSnapshotManifestBytes = uint64_t(64) << 10;
+inline constexpr uint64_t kMaxSnapshotArchiveEntries = 10'000;
+
+// What an archive's first bytes (`head`, e.g. the start of an upload) already tell: the
+// INVALID_ARGUMENT Import would answer for any archive starting so (not an archive, an unknown
+// version, a bad entry kind or path, a manifest or entry count over the limits), else OK. Lets a
+// receiver refuse before spooling the rest; Import still checks everything.
+Status CheckSnapshotArchiveHead(std::string_view head);
 
 class SnapshotStore {
  public:

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cctype>
 
+#include "core/base/text.h"
 #include "server/transport_security.h"
 
 namespace placedb::server::auth {
@@ -103,9 +104,10 @@ CallAuthorizer::CallAuthorizer(const TokenStore* store, bool mutual_tls, DeniedC
 grpc::Status CallAuthorizer::Deny(const char* method, const std::string& peer,
                                   const std::string& principal, const std::string& map,
                                   DenyReason reason, const std::string& message) const {
+  // The principal can be a client certificate's name; the map comes from the request, unchecked.
   spdlog::warn("auth denied method={} principal={} peer={} map={} reason={}", method,
-               principal.empty() ? kAnonymous : principal, peer, map.empty() ? "-" : map,
-               DenyReasonLabel(reason));
+               principal.empty() ? kAnonymous : ForLog(principal), ForLog(peer),
+               map.empty() ? "-" : ForLog(map), DenyReasonLabel(reason));
   if (on_denied_) on_denied_(reason, method);
   return grpc::Status(reason == DenyReason::kPermissionDenied ? grpc::StatusCode::PERMISSION_DENIED
                                                               : grpc::StatusCode::UNAUTHENTICATED,

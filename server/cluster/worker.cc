@@ -11,6 +11,7 @@
 #include <thread>
 
 #include "core/base/map_name.h"
+#include "core/base/text.h"
 #include "core/storage/codec.h"
 #include "proto/cluster.grpc.pb.h"
 #include "proto/convert_config.h"
@@ -423,7 +424,7 @@ grpc::Status ClusterWorker::OnReplica(const char* what, const std::string& map,
       return status;
     }
     spdlog::warn("{} on map '{}': shard '{}' ({}) answered {}: {}", what, map, replica->shard,
-                 replica->address, int(status.error_code()), status.error_message());
+                 replica->address, int(status.error_code()), ForLog(status.error_message()));
     failed = replica->shard;
   }
   return status;

@@ -12,7 +12,12 @@
 //                           include_thumbnail); 404 when the map keeps none for it.
 //   GET /, /<file>          the pages (server/console/web, embedded into the binary at build).
 //
-// Requests with a body larger than max_request_bytes are refused with 413 before it is read.
+// Refusals come from the headers, before httplib reads a body (its pre-routing handler), so a
+// refused body is never read nor parsed and the answer closes the connection: the Host rule
+// below (403), a method not on the list (404), a caller whose credentials are refused (401: the
+// same ParsingService::AuthenticateCall as CallUnary's first step, so no second token check),
+// and a Content-Length over max_request_bytes (413, server/http_endpoint.h). Authorization on
+// the request's map needs the body: an authenticated caller without the right gets 403 after it.
 // POSTs must say `Content-Type: application/json` (a browser then asks before a cross-site page
 // may send one, and the console never says yes). A console that does not authenticate (no tokens
 // file, no client certificates) answers only requests whose Host is an IP address or localhost:

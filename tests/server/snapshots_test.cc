@@ -3,6 +3,8 @@
 // stalled transfers reclaimed like Ingest streams; upload limits; the snapshot metrics.
 #include <gtest/gtest.h>
 
+#include <chrono>
+#include <cstdio>
 #include <filesystem>
 #include <map>
 #include <set>
@@ -16,6 +18,22 @@ namespace placedb::server_testing {
 namespace {
 
 using Labels = std::map<std::string, std::string>;
+
+// The start of a snapshot archive (core/storage/snapshots.h): its header and the framing of an
+// entry `path` stating `size` bytes, none of which follow.
+std::string ArchiveStart(const std::string& path, uint64_t size) {
+  std::string out = "PDBSNAP\n";
+  auto put = [&](uint64_t value, int bytes) {
+    for (int i = 0; i < bytes; ++i) out.push_back(char((value >> (8 * i)) & 0xff));
+  };
+  put(1, 4);
+  put(0, 4);
+  put(1, 1);
+  put(path.size(), 2);
+  out += path;
+  put(size, 8);
+  return out;
+}
 
 class SnapshotsServerTest : public ServerTest {
  protected:
@@ -458,6 +476,75 @@ TEST_F(SnapshotsServerTest, UploadsOverTheLimitsAreRefused) {
   // Within both, the same archive uploads.
   ASSERT_TRUE(Upload(archive, archive.size(), &response).ok());
   EXPECT_EQ(SnapshotIds().size(), 2u);
+}
+
+// Hostile uploads over the archive limits (finding 6 of issue 34): a SNAPSHOT.json claiming
+// 1 GiB (held whole in memory before: 3.2 GB RSS) and 200,000 one-byte entries (34 s before the
+// refusal): INVALID_ARGUMENT naming the limit, nothing left behind; a streamed one is refused
+// from its first chunk, not after the whole upload was spooled.
+TEST_F(SnapshotsServerTest, UploadsOverTheArchiveLimitsAreRefusedFromTheirFraming) {
+  StartServer(Config());
+  const auto before = Tree(root_ + "/data");
+  const std::string manifest_limit = "over the 65536-byte limit of a snapshot manifest";
+  auto refused = [&](const std::string& what, const grpc::Status& status,
+                     const std::string& limit) {
+    SCOPED_TRACE(what);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+    EXPECT_NE(status.error_message().find(limit), std::string::npos) << status.error_message();
+    EXPECT_TRUE(SnapshotIds().empty());
+    EXPECT_EQ(Tree(root_ + "/data"), before);
+  };
+
+  // The claim alone, the archive ending there: the limit is the answer, not the truncation.
+  v1::Snapshot response;
+  const std::string claim = ArchiveStart("SNAPSHOT.json", uint64_t(1) << 30);
+  refused("huge manifest, truncated", Upload(claim, claim.size(), &response), manifest_limit);
+
+  // The same claim streamed with its bytes: refused once the first 4 KiB arrived.
+  {
+    const uint64_t announced = uint64_t(256) << 20;
+    grpc::ClientContext context;
+    auto writer = stub_->UploadSnapshot(&context, &response);
+    uint64_t written = 0;
+    std::string data = claim + std::string((64 << 10) - claim.size(), '\0');
+    while (written < announced) {
+      v1::SnapshotChunk chunk;
+      if (written == 0) chunk.set_archive_bytes(announced);
+      chunk.set_data(data);
+      if (!writer->Write(chunk)) break;
+      written += data.size();
+      if (written == data.size()) data.assign(64 << 10, '\0');
+    }
+    writer->WritesDone();
+    refused("huge manifest, streamed", writer->Finish(), manifest_limit);
+    // The server stopped reading after the first chunk: the client could not send the rest (HTTP/2
+    // flow control holds it to a window of a few MiB).
+    EXPECT_LT(written, announced);
+    std::printf("streamed huge manifest: refused after the client wrote %llu of %llu bytes\n",
+                static_cast<unsigned long long>(written),
+                static_cast<unsigned long long>(announced));
+  }
+
+  // 200,000 one-byte entries, a sound framing (the digest is never reached).
+  std::string many = ArchiveStart("SNAPSHOT.json", 2) + "{}";
+  char name[32];
+  for (int i = 0; i < 200'000; ++i) {
+    std::snprintf(name, sizeof name, "checkpoint/%06d.sst", i);
+    const std::string path = name;
+    many += '\x01';
+    many += char(path.size());
+    many += '\0';
+    many += path;
+    many += std::string("\x01\0\0\0\0\0\0\0", 8);
+    many += 'x';
+  }
+  many += std::string(1 + 16 + 32, '\0');
+  const auto start = std::chrono::steady_clock::now();
+  const grpc::Status status = Upload(many, many.size(), &response);
+  std::printf("200,000 entries (%zu bytes): refused in %.3f s\n", many.size(),
+              std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
+  refused("200,000 entries", status, "more than 10000 entries");
+  EXPECT_TRUE(Leftovers().empty());
 }
 
 // The snapshot metrics: count and bytes of the store, bytes transferred each way, and the

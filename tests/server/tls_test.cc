@@ -7,13 +7,19 @@
 #include <grpcpp/generic/generic_stub.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
+#include <spdlog/sinks/base_sink.h>
+#include <spdlog/spdlog.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <filesystem>
 #include <fstream>
 #include <future>
+#include <memory>
+#include <mutex>
 #include <sstream>
+#include <string>
+#include <vector>
 
 #include "client/cli.h"
 #include "client/connection.h"
@@ -446,6 +452,80 @@ TEST_F(TlsTest, AuthenticatedServersMayListenBeyondLoopback) {
     auto started = Server::Start(config);
     EXPECT_TRUE(started.ok()) << started.status().ToString();
   }
+}
+
+// Keeps the text of every record logged while it is the default logger.
+class RecordingSink final : public spdlog::sinks::base_sink<std::mutex> {
+ public:
+  std::string text() {
+    std::lock_guard lock(mutex_);
+    return text_;
+  }
+
+ protected:
+  void sink_it_(const spdlog::details::log_msg& message) override {
+    text_.append(message.payload.data(), message.payload.size());
+    text_ += '\n';
+  }
+  void flush_() override {}
+
+ private:
+  std::string text_;
+};
+
+// Finding 8 of issue 34: tokens over plaintext beyond loopback start with a loud warning naming
+// each such listener; TLS or loopback, none.
+TEST_F(TlsTest, TokensInClearTextBeyondLoopbackAreWarnedAbout) {
+  const std::string tokens = root_ + "/tokens.yaml";
+  std::ofstream(tokens) << "principals:\n  - name: ops\n    token_sha256: "
+                           "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08\n"
+                           "    admin: true\n";
+  ServerConfig config = Config();
+  config.security.tokens_file = tokens;
+  config.listen = "0.0.0.0:0";
+  config.metrics_listen = "0.0.0.0:0";
+  config.console_listen = "127.0.0.1:0";
+
+  const std::vector<std::string> warnings = server::CleartextTokenWarnings(config);
+  ASSERT_EQ(warnings.size(), 2u);
+  EXPECT_NE(warnings[0].find("gRPC on 0.0.0.0:0 takes bearer tokens over plaintext"),
+            std::string::npos)
+      << warnings[0];
+  EXPECT_NE(warnings[1].find("metrics on 0.0.0.0:0"), std::string::npos) << warnings[1];
+  {
+    ServerConfig quiet = config;
+    quiet.listen = "127.0.0.1:0";
+    quiet.metrics_listen = "[::1]:0";
+    EXPECT_TRUE(server::CleartextTokenWarnings(quiet).empty());
+    quiet.console_listen = "0.0.0.0:0";
+    ASSERT_EQ(server::CleartextTokenWarnings(quiet).size(), 1u);
+    quiet.console_tls = true;
+    quiet.tls = ServerTls(/*mutual=*/false);
+    quiet.listen = "0.0.0.0:0";
+    EXPECT_TRUE(server::CleartextTokenWarnings(quiet).empty());
+    ServerConfig tokenless = config;
+    tokenless.security.tokens_file.clear();
+    tokenless.security.allow_unauthenticated_remote = true;
+    EXPECT_TRUE(server::CleartextTokenWarnings(tokenless).empty());
+  }
+
+  // A real start logs it (before the slow part and again after the startup summary).
+  const std::shared_ptr<spdlog::logger> previous = spdlog::default_logger();
+  auto sink = std::make_shared<RecordingSink>();
+  spdlog::set_default_logger(std::make_shared<spdlog::logger>("recording", sink));
+  {
+    auto started = Server::Start(config);
+    EXPECT_TRUE(started.ok()) << started.status().ToString();
+  }
+  spdlog::set_default_logger(previous);  // the server is gone: nothing logs any more
+  const std::string log = sink->text();
+  size_t count = 0;
+  for (size_t at = 0;
+       (at = log.find("SECURITY WARNING: gRPC on 0.0.0.0:0", at)) != std::string::npos; ++at) {
+    ++count;
+  }
+  EXPECT_EQ(count, 2u) << log;
+  EXPECT_NE(log.find("SECURITY WARNING: metrics on 0.0.0.0:0"), std::string::npos) << log;
 }
 
 // The CLI (the code the placedb binary runs) against a mutual-TLS server.
