@@ -1,9 +1,6 @@
 #include "tests/cluster/cluster_frames.h"
 
-#include <arpa/inet.h>
-#include <netinet/in.h>
-#include <sys/socket.h>
-#include <unistd.h>
+#include "tests/cluster/engines.h"
 
 namespace placedb::server_testing {
 
@@ -26,19 +23,8 @@ v1::Observation FeatureObservation(int frame, const std::string& agent) {
 }
 
 int FreePort(const std::string& host) {
-  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
-  if (fd < 0) return 0;
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  socklen_t length = sizeof(address);
-  int port = 0;
-  if (::inet_pton(AF_INET, host.c_str(), &address.sin_addr) == 1 &&
-      ::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
-      ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length) == 0) {
-    port = ntohs(address.sin_port);
-  }
-  ::close(fd);
-  return port;
+  auto ports = cluster::testing::FreePorts(host, 1);
+  return ports.ok() ? (*ports)[0] : 0;
 }
 
 }  // namespace placedb::server_testing

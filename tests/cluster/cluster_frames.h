@@ -18,8 +18,9 @@ const std::vector<v1::Features>& FeatureFrames(int n);
 // sequence's 84 repeat its features (a robot passing again).
 v1::Observation FeatureObservation(int frame, const std::string& agent);
 
-// A TCP port free on `host` (an IPv4 address of the caller's network namespace) when asked; 0
-// when none could be bound.
+// A TCP port free on `host` (an IPv4 address of the caller's network namespace) when asked,
+// below the ephemeral range as cluster::testing::FreePorts picks them (a server killed and
+// restarted on it finds it free); 0 when none could be bound.
 int FreePort(const std::string& host = "127.0.0.1");
 
 }  // namespace placedb::server_testing

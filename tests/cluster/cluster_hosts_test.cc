@@ -42,6 +42,7 @@
 #include "tests/cluster/cluster_frames.h"
 #include "tests/cluster/engines.h"
 #include "tests/cluster/hosts.h"
+#include "tests/join_on_exit.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {
@@ -377,20 +378,12 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
     });
   }
   // An assertion that returns early stops and joins them.
-  struct JoinAll {
-    std::vector<std::thread>& threads;
-    std::atomic<bool>& stop_agents;
-    std::atomic<bool>& querying;
-    std::thread& queries;
-    ~JoinAll() {
-      stop_agents = true;
-      for (std::thread& thread : threads) {
-        if (thread.joinable()) thread.join();
-      }
-      querying = false;
-      if (queries.joinable()) queries.join();
-    }
-  } join_all{threads, stop_agents, querying, queries};
+  ::placedb::testing::JoinOnExit join_on_exit([&] {
+    stop_agents = true;
+    querying = false;
+  });
+  join_on_exit.Add(threads);
+  join_on_exit.Add(queries);
 
   // The kills once the two streams hold a quarter of all frames: mid-ingest for both maps (the
   // faster one is not done yet), whatever the load.

@@ -17,6 +17,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <random>
 #include <thread>
 
 #include "server/cluster/etcd_client.h"
@@ -45,33 +46,50 @@ std::string EtcdBinary() {
   return FindBinary("PLACEDB_ETCD", {"/usr/bin/etcd", "/usr/sbin/etcd"});
 }
 
-// Free TCP ports on `host`: all sockets stay bound until every port is picked, so the ports
-// differ; another process may still take one before the engine binds it (rare; the start fails
-// and says so).
+}  // namespace
+
 Result<std::vector<int>> FreePorts(const std::string& host, int count) {
+  // The kernel's ephemeral range: ports below its start are never handed out as source ports.
+  int ephemeral_low = 32768;
+  std::ifstream("/proc/sys/net/ipv4/ip_local_port_range") >> ephemeral_low;
+  const int low = 10000;
+  const int high = std::max(low + 1000, std::min(ephemeral_low, 65536));
+  // A random start, so that tests running side by side rarely try the same ports.
+  std::random_device seed;
+  int candidate = low + int(seed() % unsigned(high - low));
   std::vector<int> sockets;
   std::vector<int> ports;
   Status status;
-  for (int i = 0; i < count && status.ok(); ++i) {
-    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  for (int tried = 0; int(ports.size()) < count && status.ok(); ++tried, ++candidate) {
+    if (tried == high - low) {
+      status = Status::IoError("no free port on " + host + " in " + std::to_string(low) + ".." +
+                               std::to_string(high - 1));
+      break;
+    }
+    if (candidate >= high) candidate = low;
+    const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
     sockaddr_in address{};
     address.sin_family = AF_INET;
-    address.sin_port = 0;
-    if (fd < 0 || ::inet_pton(AF_INET, host.c_str(), &address.sin_addr) != 1 ||
-        ::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) {
-      status = Status::IoError("no free port on " + host + ": " + std::strerror(errno));
+    address.sin_port = htons(uint16_t(candidate));
+    if (fd < 0 || ::inet_pton(AF_INET, host.c_str(), &address.sin_addr) != 1) {
+      status = Status::IoError("no socket for " + host + ": " + std::strerror(errno));
       if (fd >= 0) ::close(fd);
       break;
     }
-    socklen_t length = sizeof(address);
-    ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length);
+    // No SO_REUSEADDR: a port still in TIME_WAIT is passed over too.
+    if (::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) {
+      ::close(fd);
+      continue;
+    }
     sockets.push_back(fd);
-    ports.push_back(ntohs(address.sin_port));
+    ports.push_back(candidate);
   }
   for (int fd : sockets) ::close(fd);
   if (!status.ok()) return status;
   return ports;
 }
+
+namespace {
 
 // True once `host:port` accepts a TCP connection.
 bool Accepts(const std::string& host, int port) {
@@ -185,6 +203,16 @@ Status EngineProcess::Start(std::vector<std::string> argv, const std::string& lo
       << argv_[0] << "\n"
       << fs::path(log_path).parent_path().string() << "\n";
   return Status::Ok();
+}
+
+bool EngineProcess::running() const {
+  if (pid_ <= 0) return false;
+  int status = 0;
+  if (::waitpid(pid_, &status, WNOHANG) != pid_) return true;
+  std::error_code ignored;
+  fs::remove(Engines::PidDirectory() + "/" + std::to_string(pid_), ignored);
+  pid_ = -1;
+  return false;
 }
 
 void EngineProcess::Kill() {

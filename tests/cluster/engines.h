@@ -42,6 +42,14 @@ struct EnginesOptions {
   std::chrono::seconds ready_timeout{60};
 };
 
+// `count` distinct free TCP ports on `host`, all below the kernel's ephemeral port range
+// (/proc/sys/net/ipv4/ip_local_port_range). A port from that range, once the engine holding it is
+// killed, can be taken by any outgoing connection as its source port (a client reconnecting to
+// the dead port may even connect to itself), and the restarted engine then cannot bind it: under
+// load, with many reconnecting clients, that made restarts fail. Another test process may still
+// take a port before the engine binds it (rare: the start then fails and says so).
+Result<std::vector<int>> FreePorts(const std::string& host, int count);
+
 // One engine process (a process group of its own).
 class EngineProcess {
  public:
@@ -57,12 +65,13 @@ class EngineProcess {
                const std::string& netns = "");
   // SIGKILL to the group, then reaps. No-op when not running.
   void Kill();
-  bool running() const { return pid_ > 0; }
+  // False once the process has exited (reaped here, so that a wait for it ends at once).
+  bool running() const;
   pid_t pid() const { return pid_; }
 
  private:
   std::vector<std::string> argv_;
-  pid_t pid_ = -1;
+  mutable pid_t pid_ = -1;  // reaped by running() too
 };
 
 class Engines {

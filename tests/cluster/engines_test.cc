@@ -5,10 +5,16 @@
 // bounded waits below only keep a broken engine from hanging the test.
 #include "tests/cluster/engines.h"
 
+#include <arpa/inet.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
+#include <cerrno>
+#include <fstream>
 #include <map>
 #include <set>
 #include <thread>
@@ -17,6 +23,7 @@
 #include "core/base/thread_annotations.h"
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
+#include "tests/join_on_exit.h"
 
 namespace placedb::cluster {
 namespace {
@@ -97,6 +104,45 @@ std::string Describe(const std::vector<WatchEvent>& events) {
 }
 
 // ---- etcd --------------------------------------------------------------------------------------
+
+// Issue 34: engines restarted after a kill must find their ports free. Ports from the kernel's
+// ephemeral range are handed out as source ports of outgoing connections (many, under load): one
+// held that way made the restarted engine fail to bind (EADDRINUSE, shown below). The harness
+// picks its ports below that range, where connect() never takes one.
+TEST(EnginesHarnessTest, PortsAreBelowTheEphemeralRangeAndFree) {
+  int ephemeral_low = 32768;
+  std::ifstream("/proc/sys/net/ipv4/ip_local_port_range") >> ephemeral_low;
+  auto ports = testing::FreePorts("127.0.0.1", 20);
+  ASSERT_TRUE(ports.ok()) << ports.status().ToString();
+  std::set<int> distinct(ports->begin(), ports->end());
+  EXPECT_EQ(distinct.size(), 20u);
+  for (const int port : *ports) {
+    EXPECT_LT(port, ephemeral_low);
+    EXPECT_GE(port, 1024);
+  }
+  // Why it matters: a connection whose source port is P keeps a server from listening on P.
+  const int listener = ::socket(AF_INET, SOCK_STREAM, 0);
+  const int client = ::socket(AF_INET, SOCK_STREAM, 0);
+  const int server = ::socket(AF_INET, SOCK_STREAM, 0);
+  ASSERT_GE(listener, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t length = sizeof address;
+  ASSERT_EQ(::bind(listener, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
+  ASSERT_EQ(::listen(listener, 1), 0);
+  ASSERT_EQ(::getsockname(listener, reinterpret_cast<sockaddr*>(&address), &length), 0);
+  const sockaddr_in destination = address;
+  address.sin_port = htons(uint16_t((*ports)[0]));
+  ASSERT_EQ(::bind(client, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
+  ASSERT_EQ(::connect(client, reinterpret_cast<const sockaddr*>(&destination), sizeof destination),
+            0);
+  const int yes = 1;
+  ::setsockopt(server, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+  EXPECT_NE(::bind(server, reinterpret_cast<sockaddr*>(&address), sizeof address), 0);
+  EXPECT_EQ(errno, EADDRINUSE);
+  for (const int fd : {listener, client, server}) ::close(fd);
+}
 
 TEST(EtcdClientTest, PutGetPrefixAndDelete) {
   auto engines = StartEngines(/*nats=*/false, /*etcd=*/true);
@@ -472,10 +518,11 @@ TEST(JetStreamTest, LeaderKilledWhilePublishingLosesAndDuplicatesNothing) {
   std::atomic<double> last_ack_ms{0};
   double longest_gap_ms = 0;
   int failed_attempts = 0;
+  std::atomic<bool> stop_publishing{false};
   std::thread publisher([&] {
-    for (int i = 0; i < kMessages; ++i) {
+    for (int i = 0; i < kMessages && !stop_publishing; ++i) {
       const std::string id = Id("f", i);
-      for (;;) {
+      while (!stop_publishing) {
         auto ack = js->Publish(config.subjects[0], "data " + id, id, 2s);
         if (ack.ok()) {
           const double now = bench::NowMs();
@@ -492,6 +539,9 @@ TEST(JetStreamTest, LeaderKilledWhilePublishingLosesAndDuplicatesNothing) {
       }
     }
   });
+  // An assertion that returns early (or a publisher stuck retrying) stops it and joins.
+  ::placedb::testing::JoinOnExit join_publisher([&] { stop_publishing = true; });
+  join_publisher.Add(publisher);
   ASSERT_TRUE(WaitFor([&] { return acked_count.load() >= 200; }, 60s));
   engines->KillNats(*leader);
   const double killed_ms = bench::NowMs();

@@ -557,6 +557,16 @@ TEST_F(ShardTest, NothingIsLostWhenTheStreamLeaderIsKilledDuringPublishing) {
   const auto on_x = Contents(*x, map);
   std::set<uint64_t> ids;
   for (const auto& [id, bytes] : on_x) ids.insert(id);
+  // What each replica says of itself, for a failure's message.
+  std::string replicas;
+  for (const Shard* shard : {x.get(), y.get()}) {
+    for (const ReplicaStatus& replica : shard->Replicas()) {
+      replicas += replica.map + ": applied " + std::to_string(replica.applied_sequence) +
+                  ", places " + std::to_string(replica.places) + ", " + replica.state +
+                  (replica.restored_from.empty() ? "" : ", from " + replica.restored_from) + "; ";
+    }
+  }
+  SCOPED_TRACE("acknowledged up to " + std::to_string(last) + "; " + replicas);
   EXPECT_EQ(acknowledged.size(), 12u);
   // Every acknowledged place on both replicas, identical; extra places only from a publish that
   // was stored but whose ack was lost (then retried with the same id: a duplicate, no extra).

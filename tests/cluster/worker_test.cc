@@ -28,6 +28,7 @@
 #include "server/cluster/shard.h"
 #include "tests/cluster/cluster_frames.h"
 #include "tests/cluster/engines.h"
+#include "tests/join_on_exit.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {
@@ -586,10 +587,17 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
     }
   });
 
+  // An assertion that returns early stops the queries and joins every thread (the agents end
+  // on their own: their frames are bounded).
+  std::vector<std::thread> threads;
+  ::placedb::testing::JoinOnExit join_on_exit([&querying] { querying = false; });
+  join_on_exit.Add(queries);
+  join_on_exit.Add(threads);
+
   std::vector<Agent> agents = FourAgents(survivor, doomed);
   v1::MatchOptions matches;
   matches.set_top_k(3);
-  std::vector<std::thread> threads;
+  threads.reserve(agents.size());
   for (Agent& agent : agents) {
     threads.emplace_back([&agent, &matches] {
       std::vector<v1::Observation> frames;

@@ -25,6 +25,7 @@
 
 #include "core/detect/detector.h"
 #include "core/storage/map_store.h"
+#include "tests/join_on_exit.h"
 #include "tests/server/server_fixture.h"
 #include "tests/test_support.h"
 
@@ -44,6 +45,13 @@ TEST_F(ServerTest, ShutdownWithOpenStreamsLosesNoAcknowledgedPlace) {
   std::atomic<bool> stop{false};
   std::vector<grpc::Status> finals(2);
   std::vector<std::thread> agents;
+  // An assertion that returns early shuts the server down (ending the streams) and joins.
+  bool shut_down = false;
+  ::placedb::testing::JoinOnExit join_agents([&] {
+    stop = true;
+    if (!shut_down) server_->Shutdown();
+  });
+  join_agents.Add(agents);
   for (int agent = 0; agent < 2; ++agent) {
     agents.emplace_back([&, agent] {
       grpc::ClientContext context;
@@ -87,6 +95,7 @@ TEST_F(ServerTest, ShutdownWithOpenStreamsLosesNoAcknowledgedPlace) {
   }
   const auto shutdown_started = std::chrono::steady_clock::now();
   server_->Shutdown();  // streams still open and sending
+  shut_down = true;
   const double shutdown_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - shutdown_started).count();
   EXPECT_LT(shutdown_s, 5.0) << "shutdown waited for idle streams (deadline is 10 s)";
@@ -130,8 +139,13 @@ TEST_F(ServerTest, ShutdownFinishesInFlightFramesAndReportsNotServing) {
 
   IngestOutcome outcome;
   std::thread agent([&] { outcome = IngestAll(stub_.get(), "m", {RtabmapObservation(1, "a")}); });
+  std::thread stopper;
+  // An assertion that returns early lets the frame through (the shutdown then ends) and joins.
+  ::placedb::testing::JoinOnExit join_threads([&] { gate->Open(); });
+  join_threads.Add(agent);
+  join_threads.Add(stopper);
   gate->WaitEntered();  // the frame is being detected
-  std::thread stopper([&] { server_->Shutdown(); });
+  stopper = std::thread([&] { server_->Shutdown(); });
   // Draining: health is NOT_SERVING (2) and new work is refused.
   std::string health;
   for (int i = 0; i < 500; ++i) {
