@@ -16,6 +16,7 @@
 #include <map>
 
 #include "core/storage/map_store.h"
+#include "tests/raw_map.h"
 #include "tests/rtabmap_frames.h"
 #include "tests/test_support.h"
 
@@ -65,22 +66,8 @@ constexpr int kPlaces = 82;   // acknowledged places in all; the last 42 only in
   std::_Exit(0);  // no destructor runs: nothing is flushed, as after SIGKILL
 }
 
-// Runs `edit` on the raw RocksDB of the closed map at `map_dir`, opened with every column family.
-using RawEdit =
-    std::function<void(rocksdb::DB*, std::vector<rocksdb::ColumnFamilyHandle*>& handles)>;
-void EditRawMap(const std::string& map_dir, const RawEdit& edit) {
-  std::vector<rocksdb::ColumnFamilyDescriptor> families;
-  for (const char* name :
-       {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
-    families.emplace_back(name, rocksdb::ColumnFamilyOptions());
-  }
-  std::vector<rocksdb::ColumnFamilyHandle*> handles;
-  rocksdb::DB* raw = nullptr;
-  ASSERT_TRUE(rocksdb::DB::Open(rocksdb::DBOptions(), map_dir, families, &handles, &raw).ok());
-  edit(raw, handles);
-  for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
-  delete raw;
-}
+using testing::EditRawMap;
+using testing::RawEdit;
 
 class DamageTest : public ::testing::Test {
  protected:
@@ -179,25 +166,7 @@ class DamageTest : public ::testing::Test {
 
   // The SST files of one column family, read from the map's MANIFEST (RocksDB read-only).
   std::vector<std::string> SstFilesOf(const std::string& family) const {
-    std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name :
-         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
-      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
-    }
-    std::vector<rocksdb::ColumnFamilyHandle*> handles;
-    rocksdb::DB* raw = nullptr;
-    std::vector<std::string> files;
-    auto s = rocksdb::DB::OpenForReadOnly(rocksdb::DBOptions(), map_dir_, families, &handles, &raw);
-    EXPECT_TRUE(s.ok()) << s.ToString();
-    if (!s.ok()) return files;
-    std::vector<rocksdb::LiveFileMetaData> live;
-    raw->GetLiveFilesMetaData(&live);
-    for (const auto& file : live) {
-      if (file.column_family_name == family) files.push_back(file.db_path + file.name);
-    }
-    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
-    delete raw;
-    return files;
+    return testing::SstFilesOf(map_dir_, family);
   }
 
   // Opens and closes the map: every place flushed to SST files, the WAL empty.
@@ -240,6 +209,43 @@ class DamageTest : public ::testing::Test {
       EXPECT_TRUE(fs::exists(quarantine / name)) << name;
       EXPECT_TRUE(ReadFile((quarantine / name).string()) == bytes) << name << " changed";
     }
+  }
+
+  // Map `name` (damaged in its MANIFEST) is refused, then recovered by RocksDB's repair with
+  // every place, and the files of `before` kept in the quarantine.
+  void ExpectRecoveredWhole(const std::string& name,
+                            const std::map<std::string, std::string>& before) {
+    auto dir = OpenDir();
+    ASSERT_FALSE(dir->OpenMap(name, vocabulary_).ok());
+    MapDamage accepted;
+    auto map = dir->RecoverMap(name, Vocab(), &accepted);
+    ASSERT_TRUE(map.ok()) << map.status().ToString();
+    std::printf("[recovered] %s\n", accepted.reason.c_str());
+    EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
+    EXPECT_EQ(accepted.places_lost, 0u);
+    EXPECT_EQ(accepted.writes_lost, 0u);
+    EXPECT_NE(accepted.reason.find("repair"), std::string::npos) << accepted.reason;
+    EXPECT_TRUE((*map)->VerifyIntegrity().ok());
+    ExpectQuarantined(accepted, before);
+  }
+
+  // The MANIFEST that CURRENT names (`manifest`) is missing: damage, not "unavailable" (the
+  // registry then offers recovery), named in ReadMapInfo's and OpenMap's reasons; repair keeps
+  // every place. Returns what the recovery accepted.
+  MapDamage ExpectManifestMissingAndRecovered(DataDirectory& dir, const std::string& manifest) {
+    auto info = dir.ReadMapInfo("lab");
+    EXPECT_FALSE(info.ok());
+    EXPECT_EQ(info.status().code(), StatusCode::kCorruption) << info.status().ToString();
+    EXPECT_NE(info.status().message().find(manifest), std::string::npos) << info.status().message();
+    ExpectDamaged(dir, "maps/lab/CURRENT");
+    MapDamage accepted;
+    auto map = dir.RecoverMap("lab", Vocab(), &accepted);
+    EXPECT_TRUE(map.ok()) << map.status().ToString();
+    if (map.ok()) {
+      EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
+    }
+    EXPECT_EQ(accepted.places_lost, 0u);
+    return accepted;
   }
 
   static std::string ReadFile(const std::string& path) {
@@ -442,18 +448,7 @@ TEST_F(DamageTest, HalfTruncatedManifestOfACleanMapLosesNothingAndDeletesNothing
   const fs::path manifest = Manifest();
   fs::resize_file(manifest, fs::file_size(manifest) / 2);
   const auto before = FileBytes();
-  auto dir = OpenDir();
-  ASSERT_FALSE(dir->OpenMap("lab", vocabulary_).ok());
-  MapDamage accepted;
-  auto map = dir->RecoverMap("lab", Vocab(), &accepted);
-  ASSERT_TRUE(map.ok()) << map.status().ToString();
-  std::printf("[recovered] %s\n", accepted.reason.c_str());
-  EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
-  EXPECT_EQ(accepted.places_lost, 0u);
-  EXPECT_EQ(accepted.writes_lost, 0u);
-  EXPECT_NE(accepted.reason.find("repair"), std::string::npos) << accepted.reason;
-  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
-  ExpectQuarantined(accepted, before);
+  ExpectRecoveredWhole("lab", before);
 }
 
 // The same on a map made, filled and closed in one session (a server's map after its first
@@ -477,16 +472,7 @@ TEST_F(DamageTest, HalfTruncatedManifestOfAMapFilledInOneSessionLosesNothing) {
   const fs::path manifest = Manifest();
   fs::resize_file(manifest, fs::file_size(manifest) / 2);
   const auto before = FileBytes();
-  auto dir = OpenDir();
-  ASSERT_FALSE(dir->OpenMap("fresh", vocabulary_).ok());
-  MapDamage accepted;
-  auto map = dir->RecoverMap("fresh", Vocab(), &accepted);
-  ASSERT_TRUE(map.ok()) << map.status().ToString();
-  std::printf("[recovered] %s\n", accepted.reason.c_str());
-  EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
-  EXPECT_EQ(accepted.places_lost, 0u);
-  EXPECT_TRUE((*map)->VerifyIntegrity().ok());
-  ExpectQuarantined(accepted, before);
+  ExpectRecoveredWhole("fresh", before);
 }
 
 TEST_F(DamageTest, DeletedManifestIsDamageAndRecoverable) {
@@ -495,18 +481,7 @@ TEST_F(DamageTest, DeletedManifestIsDamageAndRecoverable) {
   fs::remove(manifest);
   const auto before = FileBytes();
   auto dir = OpenDir();
-  // Damage, not "unavailable": the registry then offers recovery.
-  auto info = dir->ReadMapInfo("lab");
-  ASSERT_FALSE(info.ok());
-  EXPECT_EQ(info.status().code(), StatusCode::kCorruption) << info.status().ToString();
-  EXPECT_NE(info.status().message().find(manifest.filename().string()), std::string::npos)
-      << info.status().message();
-  ExpectDamaged(*dir, "maps/lab/CURRENT");
-  MapDamage accepted;
-  auto map = dir->RecoverMap("lab", Vocab(), &accepted);
-  ASSERT_TRUE(map.ok()) << map.status().ToString();
-  EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
-  EXPECT_EQ(accepted.places_lost, 0u);
+  const MapDamage accepted = ExpectManifestMissingAndRecovered(*dir, manifest.filename().string());
   ExpectQuarantined(accepted, before);
 }
 
@@ -514,17 +489,7 @@ TEST_F(DamageTest, CurrentNamingAMissingManifestIsDamageAndRecoverable) {
   CloseCleanly();
   std::ofstream(map_dir_ + "/CURRENT", std::ios::trunc) << "MANIFEST-999999\n";
   auto dir = OpenDir();
-  auto info = dir->ReadMapInfo("lab");
-  ASSERT_FALSE(info.ok());
-  EXPECT_EQ(info.status().code(), StatusCode::kCorruption) << info.status().ToString();
-  EXPECT_NE(info.status().message().find("MANIFEST-999999"), std::string::npos)
-      << info.status().message();
-  ExpectDamaged(*dir, "maps/lab/CURRENT");
-  MapDamage accepted;
-  auto map = dir->RecoverMap("lab", Vocab(), &accepted);
-  ASSERT_TRUE(map.ok()) << map.status().ToString();
-  EXPECT_EQ((*map)->Stats().database.places, uint64_t(kPlaces));
-  EXPECT_EQ(accepted.places_lost, 0u);
+  ExpectManifestMissingAndRecovered(*dir, "MANIFEST-999999");
 }
 
 // The features SST files deleted: the places are still found (their records and BoW vectors are

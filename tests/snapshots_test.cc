@@ -18,6 +18,7 @@
 
 #include "core/base/files.h"
 #include "core/base/timing.h"
+#include "tests/snapshot_archive.h"
 #include "tests/test_support.h"
 
 namespace fs = std::filesystem;
@@ -112,21 +113,7 @@ std::vector<std::pair<std::string, std::string>> Entries(const std::string& arch
   return out;
 }
 
-// The start of an archive: its header and the framing of a first entry `path` that states
-// `size` bytes, none of which follow.
-std::string ArchiveStart(const std::string& path, uint64_t size) {
-  std::string out = "PDBSNAP\n";
-  auto put = [&](uint64_t value, int bytes) {
-    for (int i = 0; i < bytes; ++i) out.push_back(char((value >> (8 * i)) & 0xff));
-  };
-  put(1, 4);
-  put(0, 4);
-  put(1, 1);
-  put(path.size(), 2);
-  out += path;
-  put(size, 8);
-  return out;
-}
+using ::placedb::testing::ArchiveStart;
 
 // The process's peak resident set so far.
 uint64_t PeakRssBytes() {

@@ -5,13 +5,13 @@
 // place in it answers GetPlace with DATA_LOSS.
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
-#include <rocksdb/db.h>
 
 #include <filesystem>
 #include <fstream>
 #include <string>
 #include <vector>
 
+#include "tests/raw_map.h"
 #include "tests/server/server_fixture.h"
 
 namespace fs = std::filesystem;
@@ -248,26 +248,7 @@ TEST_F(DamageServerTest, DeletedManifestAndFeaturesAreRecoveredAndCounted) {
   StopServer();
 
   // Every features file gone (the places' records and BoW vectors stay).
-  std::vector<std::string> features;
-  {
-    std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name :
-         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
-      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
-    }
-    std::vector<rocksdb::ColumnFamilyHandle*> handles;
-    rocksdb::DB* raw = nullptr;
-    ASSERT_TRUE(
-        rocksdb::DB::OpenForReadOnly(rocksdb::DBOptions(), MapDir("lab"), families, &handles, &raw)
-            .ok());
-    std::vector<rocksdb::LiveFileMetaData> live;
-    raw->GetLiveFilesMetaData(&live);
-    for (const auto& file : live) {
-      if (file.column_family_name == "features") features.push_back(file.db_path + file.name);
-    }
-    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
-    delete raw;
-  }
+  const std::vector<std::string> features = testing::SstFilesOf(MapDir("lab"), "features");
   ASSERT_FALSE(features.empty());
   for (const std::string& file : features) fs::remove(file);
   ASSERT_NO_FATAL_FAILURE(StartServer(Config()));

@@ -11,6 +11,7 @@
 #include <thread>
 
 #include "tests/server/server_fixture.h"
+#include "tests/snapshot_archive.h"
 
 namespace fs = std::filesystem;
 
@@ -19,21 +20,7 @@ namespace {
 
 using Labels = std::map<std::string, std::string>;
 
-// The start of a snapshot archive (core/storage/snapshots.h): its header and the framing of an
-// entry `path` stating `size` bytes, none of which follow.
-std::string ArchiveStart(const std::string& path, uint64_t size) {
-  std::string out = "PDBSNAP\n";
-  auto put = [&](uint64_t value, int bytes) {
-    for (int i = 0; i < bytes; ++i) out.push_back(char((value >> (8 * i)) & 0xff));
-  };
-  put(1, 4);
-  put(0, 4);
-  put(1, 1);
-  put(path.size(), 2);
-  out += path;
-  put(size, 8);
-  return out;
-}
+using ::placedb::testing::ArchiveStart;
 
 class SnapshotsServerTest : public ServerTest {
  protected:

@@ -16,6 +16,7 @@
 #include "core/decode/image_decoder.h"
 #include "core/storage/codec.h"
 #include "core/thumbnail/thumbnail.h"
+#include "tests/raw_map.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {
@@ -242,26 +243,16 @@ TEST_F(ThumbnailsTest, CorruptThumbnailIsDataLossAndScrubFindsIt) {
   }
   ASSERT_NE(victim, 0u);
   StopServer();  // closes (and flushes) the map: RocksDB below replays nothing of placedb's
-  {
-    std::vector<rocksdb::ColumnFamilyDescriptor> families;
-    for (const char* name :
-         {"default", "places", "bow", "features", "invalid", "dynamics", "thumbnails"}) {
-      families.emplace_back(name, rocksdb::ColumnFamilyOptions());
-    }
-    std::vector<rocksdb::ColumnFamilyHandle*> handles;
-    rocksdb::DB* raw = nullptr;
-    const rocksdb::Status opened =
-        rocksdb::DB::Open(rocksdb::DBOptions(), root_ + "/data/maps/lab", families, &handles, &raw);
-    ASSERT_TRUE(opened.ok()) << opened.ToString();
-    std::string value;
-    ASSERT_TRUE(raw->Get({}, handles[6], PlaceKey(victim), &value).ok());
-    value.resize(value.size() / 2);  // cut in the middle of the JPEG
-    rocksdb::WriteOptions sync;
-    sync.sync = true;
-    EXPECT_TRUE(raw->Put(sync, handles[6], PlaceKey(victim), value).ok());
-    for (auto* handle : handles) (void)raw->DestroyColumnFamilyHandle(handle);
-    delete raw;
-  }
+  ASSERT_NO_FATAL_FAILURE(testing::EditRawMap(
+      root_ + "/data/maps/lab",
+      [victim](rocksdb::DB* raw, std::vector<rocksdb::ColumnFamilyHandle*>& handles) {
+        std::string value;
+        ASSERT_TRUE(raw->Get({}, handles[6], PlaceKey(victim), &value).ok());
+        value.resize(value.size() / 2);  // cut in the middle of the JPEG
+        rocksdb::WriteOptions sync;
+        sync.sync = true;
+        EXPECT_TRUE(raw->Put(sync, handles[6], PlaceKey(victim), value).ok());
+      }));
   ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
   v1::Place place;
   const grpc::Status status = GetPlace("lab", victim, true, &place);

@@ -79,6 +79,14 @@ class TlsTest : public ServerTest {
     config.metrics_tls = true;
     return config;
   }
+  // A tokens file with one admin principal, "ops" (token "test"); its path.
+  std::string AdminTokensFile() const {
+    const std::string tokens = root_ + "/tokens.yaml";
+    std::ofstream(tokens) << "principals:\n  - name: ops\n    token_sha256: "
+                             "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08\n"
+                             "    admin: true\n";
+    return tokens;
+  }
   // `openssl s_client` to 127.0.0.1:port with `arguments`, sending `input`; its exit status.
   int SClient(int port, const std::string& arguments, const std::string& input,
               std::string* output) {
@@ -441,12 +449,8 @@ TEST_F(TlsTest, AuthenticatedServersMayListenBeyondLoopback) {
   }
   {
     // A tokens file authenticates both (the metrics with HTTP basic auth).
-    const std::string tokens = root_ + "/tokens.yaml";
-    std::ofstream(tokens) << "principals:\n  - name: ops\n    token_sha256: "
-                             "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08\n"
-                             "    admin: true\n";
     ServerConfig config = Config();
-    config.security.tokens_file = tokens;
+    config.security.tokens_file = AdminTokensFile();
     config.listen = "0.0.0.0:0";
     config.metrics_listen = "0.0.0.0:0";
     auto started = Server::Start(config);
@@ -476,12 +480,8 @@ class RecordingSink final : public spdlog::sinks::base_sink<std::mutex> {
 // Finding 8 of issue 34: tokens over plaintext beyond loopback start with a loud warning naming
 // each such listener; TLS or loopback, none.
 TEST_F(TlsTest, TokensInClearTextBeyondLoopbackAreWarnedAbout) {
-  const std::string tokens = root_ + "/tokens.yaml";
-  std::ofstream(tokens) << "principals:\n  - name: ops\n    token_sha256: "
-                           "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08\n"
-                           "    admin: true\n";
   ServerConfig config = Config();
-  config.security.tokens_file = tokens;
+  config.security.tokens_file = AdminTokensFile();
   config.listen = "0.0.0.0:0";
   config.metrics_listen = "0.0.0.0:0";
   config.console_listen = "127.0.0.1:0";
