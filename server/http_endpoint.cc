@@ -131,10 +131,7 @@ class Connection final : public httplib::Stream {
   }
 
   // The headers have been read: from now on at most `limit` more bytes are handed out.
-  void LimitBody(uint64_t limit) {
-    in_body_ = true;
-    left_ = limit;
-  }
+  void LimitBody(uint64_t limit) { left_ = limit; }
 
   bool is_readable() const override {
     return begin_ < end_ || (ssl_ && SSL_pending(ssl_) > 0) || Wait(POLLIN);
@@ -248,7 +245,6 @@ class Connection final : public httplib::Stream {
   Clock::time_point deadline_;
   bool answering_ = false;  // deadline_ is the answer's
   SSL* ssl_ = nullptr;
-  bool in_body_ = false;
   uint64_t left_ = kMaxHeaderBytes;  // bytes still handed out: of the headers, then the body
   char buffer_[4096];
   size_t begin_ = 0, end_ = 0;  // buffer_'s bytes not handed out yet
