@@ -4,10 +4,12 @@
 // port, and its own accept thread.
 //
 // Connections: up to `max_connections` are served at once, each on its own thread (more wait in
-// the listen backlog); one request per connection (the answer closes it). Only `threads` of them
-// are past their request's headers at once (routing, reading the body, the handler): a client
-// that trickles its headers holds a connection thread, never a handler, so slow clients cannot
-// keep the endpoint from answering others until there are max_connections of them.
+// the listen backlog); one request per connection (the answer closes it). Past its headers a
+// request waits for one of `threads` handler slots (routing, reading the body, the handler): a
+// client that trickles its headers holds a connection thread, never a handler, so slow clients
+// cannot keep the endpoint from answering others until there are max_connections of them. (A
+// request whose deadline passes while it waits for a slot is still routed, without a slot and
+// with no body: at most max_connections handlers run then.)
 //
 // Time: every read and write (a TLS handshake's too) waits at most `request_timeout_ms`; the
 // whole request (handshake, headers, body) must arrive within `request_timeout_ms` of the accept,
