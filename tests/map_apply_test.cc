@@ -2,12 +2,15 @@
 // on a real RocksDB in a temp directory, with real frames (the RTAB-Map loop).
 #include <gtest/gtest.h>
 
+#include <atomic>
 #include <map>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "core/storage/codec.h"
 #include "core/storage/map_store.h"
+#include "tests/join_on_exit.h"
 #include "tests/rtabmap_frames.h"
 #include "tests/test_support.h"
 
@@ -256,6 +259,52 @@ TEST_F(MapApplyTest, ABatchStopsAtARecordTheMapCannotTake) {
   EXPECT_TRUE(m.GetPlace(1).ok());
   EXPECT_EQ(m.GetPlace(3).status().code(), StatusCode::kNotFound);
   EXPECT_TRUE(m.VerifyIntegrity().ok());
+}
+
+// A shard answers a read with a minimum sequence once its replica's applied sequence reaches it:
+// every place up to that sequence must then be found. (The applied sequence used to move when the
+// batch was durable, before its places were in the index: under load a replica said "applied 12"
+// with 7 of 12 places.) A reader polls while batches of places are applied.
+TEST_F(MapApplyTest, AnAppliedSequenceMeansEveryPlaceUpToItIsFound) {
+  auto dir = OpenDir();
+  ASSERT_TRUE(dir);
+  auto map = dir->CreateMap("replica", {}, vocabulary_);
+  ASSERT_TRUE(map.ok()) << map.status().ToString();
+  PlaceMap& m = **map;
+  const auto frames = testing::ProcessRtabmapFrames(m.database(), 8);
+  ASSERT_EQ(frames.size(), 8u);
+  constexpr uint64_t kBatches = 20, kBatchSize = 32;
+
+  std::atomic<bool> done{false};
+  std::atomic<uint64_t> checks{0};
+  std::atomic<uint64_t> missing_at{0};  // an applied sequence whose place was not found
+  std::thread reader;
+  testing::JoinOnExit join([&] { done = true; });
+  join.Add(reader);
+  reader = std::thread([&] {
+    while (!done && missing_at == 0) {
+      const uint64_t applied = m.applied_sequence();
+      if (applied == 0) continue;
+      ++checks;
+      if (!m.GetPlace(PlaceId(applied)).ok()) missing_at = applied;
+    }
+  });
+  std::vector<MapLogRecord> records;
+  for (uint64_t i = 0; i < kBatches * kBatchSize; ++i) {
+    records.push_back(Add(frames[i % frames.size()], i + 1));
+  }
+  for (uint64_t b = 0; b < kBatches && missing_at == 0; ++b) {
+    std::vector<PlaceMap::SequencedRecord> batch;
+    for (uint64_t i = b * kBatchSize; i < (b + 1) * kBatchSize; ++i) {
+      batch.push_back({i + 1, &records[i]});
+    }
+    auto applied = m.ApplyBatch(batch);
+    ASSERT_TRUE(applied.ok()) << applied.status().ToString();
+  }
+  join.JoinAll();
+  EXPECT_EQ(missing_at.load(), 0u) << "applied sequence " << missing_at << " was not found";
+  EXPECT_GT(checks.load(), 0u);
+  EXPECT_EQ(m.Stats().database.places, kBatches * kBatchSize);
 }
 
 }  // namespace

@@ -1600,14 +1600,18 @@ Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
     batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, U64Key(last));
     PLACEDB_RETURN_IF_ERROR(
         storage_->Write(&batch, what, MapStorage::Kind::kAddition, run_max_place, run.size()));
-    applied_sequence_ = last;
-    // Durable: now make the places searchable and count what was counted.
+    // Durable: now make the places searchable and count what was counted. The applied sequence
+    // moves only after that: a reader that waited for it (a shard's read with a minimum
+    // sequence) must find every place up to it.
+    Status indexed;
     for (const SequencedRecord& r : run) {
       const MapLogRecord& record = *r.record;
       if (record.kind == MapLogRecord::Kind::kAddPlace) {
         auto id = database_->Insert(record.frame, record.metadata, PlaceId(r.sequence));
-        if (!id.ok())
-          return id.status().WithContext("applying record " + std::to_string(r.sequence));
+        if (!id.ok()) {
+          indexed = id.status().WithContext("applying record " + std::to_string(r.sequence));
+          break;
+        }
       } else if (record.kind == MapLogRecord::Kind::kInvalidFrame) {
         if (info_.options.store_invalid) {
           ++storage_->invalid_stored;
@@ -1621,6 +1625,9 @@ Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
     }
     // Ids follow the stream: the next place id is above every sequence applied.
     database_->ReserveIdsBelow(PlaceId(std::min<uint64_t>(last + 1, kMaxPlaceId)));
+    // Stored is applied, also when the index refused a place (reported: the replica stops).
+    applied_sequence_ = last;
+    PLACEDB_RETURN_IF_ERROR(indexed);
     applied += run.size();
     run.clear();
     run_places.clear();

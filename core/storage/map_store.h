@@ -329,7 +329,9 @@ class PlaceMap {
     const MapLogRecord* record = nullptr;
   };
   Result<size_t> ApplyBatch(std::span<const SequencedRecord> records);
-  // The last sequence ApplyAt applied (persisted; 0 for a map that never applied one).
+  // The last sequence ApplyAt applied (persisted; 0 for a map that never applied one). It moves
+  // once the records up to it are searchable, not merely stored: a reader that waited for a
+  // sequence finds every place up to it.
   uint64_t applied_sequence() const { return applied_sequence_.load(); }
 
   Status RemovePlace(PlaceId id);  // durable before it returns

@@ -305,7 +305,31 @@ Status Engines::Setup() {
     if (options_.nats) PLACEDB_RETURN_IF_ERROR(WaitNatsReady(i, deadline));
     if (options_.etcd) PLACEDB_RETURN_IF_ERROR(WaitEtcdReady(i, deadline));
   }
+  if (options_.nats) PLACEDB_RETURN_IF_ERROR(WaitStreamsPlaceable(deadline));
   return Status::Ok();
+}
+
+// Each node answering is not enough: until the meta leader has heard from every peer, a stream
+// with a replica on each is refused ("insufficient resources"; seen under load right after the
+// start). A probe stream made and deleted again proves placement works.
+Status Engines::WaitStreamsPlaceable(Clock::time_point deadline) const {
+  JetStreamOptions options;
+  options.servers = NatsUrls();
+  options.request_timeout = std::chrono::milliseconds(2000);
+  auto js = JetStream::Connect(options);
+  if (!js.ok()) return js.status();
+  StreamConfig probe;
+  probe.name = "PLACEDB_HARNESS_PLACEMENT_PROBE";
+  probe.subjects = {"placedb.harness.placement-probe"};
+  probe.replicas = nodes();
+  Status last;
+  while (Clock::now() < deadline) {
+    last = (*js)->EnsureStream(probe);
+    if (last.ok()) return (*js)->DeleteStream(probe.name);
+    SleepMs(200);
+  }
+  return Status::IoError("JetStream cannot place a stream with " + std::to_string(nodes()) +
+                         " replicas: " + last.ToString());
 }
 
 Engines::~Engines() {

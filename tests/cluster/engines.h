@@ -141,6 +141,7 @@ class Engines {
   Status StartEtcd(int node);
   Status WaitNatsReady(int node, std::chrono::steady_clock::time_point deadline) const;
   Status WaitEtcdReady(int node, std::chrono::steady_clock::time_point deadline) const;
+  Status WaitStreamsPlaceable(std::chrono::steady_clock::time_point deadline) const;
 
   EnginesOptions options_;
   std::string directory_;

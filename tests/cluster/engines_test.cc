@@ -400,7 +400,8 @@ TEST(JetStreamTest, DuplicatesReturnTheirOriginalSequenceAndConsumerStartsAtASeq
   auto js = Js(engines->NatsUrls());
   ASSERT_TRUE(js);
   const StreamConfig config = TestStream("DEDUP");
-  ASSERT_TRUE(js->EnsureStream(config).ok());
+  const Status made = js->EnsureStream(config);
+  ASSERT_TRUE(made.ok()) << made.ToString();
   ASSERT_TRUE(js->EnsureStream(config).ok()) << "same settings: nothing to do";
   StreamConfig other = config;
   other.replicas = 1;
@@ -495,7 +496,8 @@ TEST(JetStreamTest, LeaderKilledWhilePublishingLosesAndDuplicatesNothing) {
   auto js = Js(engines->NatsUrls());
   ASSERT_TRUE(js);
   const StreamConfig config = TestStream("FAILOVER");
-  ASSERT_TRUE(js->EnsureStream(config).ok());
+  const Status made = js->EnsureStream(config);
+  ASSERT_TRUE(made.ok()) << made.ToString();
   auto leader = engines->StreamLeader(config.name);
   ASSERT_TRUE(leader.ok()) << leader.status().ToString();
 
@@ -620,7 +622,8 @@ TEST(JetStreamTest, TwoOfThreeDownRefusesWithUnavailableAndRetriesStoreExactlyOn
   ASSERT_TRUE(js);
   const StreamConfig config = TestStream("QUORUM");
   const std::string& subject = config.subjects[0];
-  ASSERT_TRUE(js->EnsureStream(config).ok());
+  const Status made = js->EnsureStream(config);
+  ASSERT_TRUE(made.ok()) << made.ToString();
   for (int i = 1; i <= 10; ++i) ASSERT_TRUE(js->Publish(subject, "before", Id("q", i), 5s).ok());
 
   // (a) The leader and one follower down; the client is on the survivor.

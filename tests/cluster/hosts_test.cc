@@ -159,7 +159,8 @@ TEST(HostsTest, EnginesRunInsideIsolatedHostsAndAKilledMetaLeaderHostIsReplaced)
   StreamConfig stream;
   stream.name = "PLACEDB_HOSTS_TEST";
   stream.subjects = {"placedb.hosts.test"};
-  ASSERT_TRUE(js->EnsureStream(stream).ok());
+  const Status made = js->EnsureStream(stream);
+  ASSERT_TRUE(made.ok()) << made.ToString();
   auto first = PublishRetrying(*js, stream.subjects[0], "a/1");
   ASSERT_TRUE(first.ok()) << first.status().ToString();
 

@@ -107,7 +107,8 @@ class ShardTest : public ::testing::Test {
     StreamConfig stream;
     stream.name = StreamOf(map);
     stream.subjects = {SubjectOf(map)};
-    ASSERT_TRUE(js_->EnsureStream(stream).ok());
+    const Status made = js_->EnsureStream(stream);
+    ASSERT_TRUE(made.ok()) << made.ToString();
     std::string config;
     ASSERT_TRUE(google::protobuf::util::MessageToJsonString(pv1::MapConfig(), &config).ok());
     ASSERT_TRUE(etcd_
