@@ -263,6 +263,9 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   grpc::ServerBuilder builder;
   builder.SetOption(std::make_unique<ReflectionOption>(c.security.reflection));
   builder.AddListeningPort(c.listen, *credentials, &server->port_);
+  // gRPC sets SO_REUSEPORT by default: a second server on this port would bind it too and the
+  // kernel would split the connections between two databases. A port in use is an error.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.RegisterService(server->parsing_.get());
   builder.SetMaxReceiveMessageSize(int(c.limits.max_message_bytes));
   // Transport memory and handler threads are bounded: a flood of calls gets RESOURCE_EXHAUSTED

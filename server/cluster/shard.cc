@@ -307,6 +307,7 @@ Status Shard::Impl::Init() {
   service_ = std::make_unique<ShardService>(this, o.shard_id);
   grpc::ServerBuilder builder;
   builder.AddListeningPort(o.internal_listen, grpc::InsecureServerCredentials(), &port_);
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);  // a port in use is an error (server.cc)
   builder.RegisterService(service_.get());
   builder.SetMaxReceiveMessageSize(64 << 20);
   builder.SetMaxSendMessageSize(64 << 20);

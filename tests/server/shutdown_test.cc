@@ -182,15 +182,11 @@ std::string ServerBinary() {
   return path.substr(0, path.rfind('/')) + "/server/placedb-server";
 }
 
-// SIGTERM with streams open: the process drains, flushes and exits 0; the places are on disk.
-TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
-  ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+// A placedb-server process on `address` with `data`, metrics and console off. Its log and errors
+// go to `output_fd` (none when negative).
+pid_t StartServerProcess(const std::string& address, const std::string& data, int output_fd) {
   const std::string binary = ServerBinary();
-  ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
-  const std::string root = testing::MakeTempDir("placedb-binary");
-  const std::string address = "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
   const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
-  const std::string data = root + "/data";
   std::vector<std::string> args = {binary, "--listen",         address,    "--data-dir",
                                    data,   "--metrics-listen", "off",      "--console-listen",
                                    "off",  "--vocabulary",     vocabulary, "--log-level",
@@ -199,11 +195,27 @@ TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
   for (std::string& arg : args) argv.push_back(arg.data());
   argv.push_back(nullptr);
   const pid_t pid = fork();
-  ASSERT_GE(pid, 0);
   if (pid == 0) {
+    if (output_fd >= 0) {  // the log goes to stdout, usage errors to stderr
+      dup2(output_fd, STDOUT_FILENO);
+      dup2(output_fd, STDERR_FILENO);
+    }
     execv(binary.c_str(), argv.data());
     _exit(127);
   }
+  return pid;
+}
+
+// SIGTERM with streams open: the process drains, flushes and exits 0; the places are on disk.
+TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
+  ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+  const std::string binary = ServerBinary();
+  ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
+  const std::string root = testing::MakeTempDir("placedb-binary");
+  const std::string address = "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
+  const std::string data = root + "/data";
+  const pid_t pid = StartServerProcess(address, data, -1);
+  ASSERT_GE(pid, 0);
   grpc::ChannelArguments channel_args;  // retry quickly while the child starts
   channel_args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 50);
   channel_args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 50);
@@ -261,66 +273,96 @@ TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
   EXPECT_EQ((*map)->Stats().database.places, 5u);
 }
 
+// Starts a first server (waits until it serves), then a second one that must refuse to start:
+// its exit status and everything it printed. The first is stopped at the end of the scope.
+struct RefusedSecondServer {
+  pid_t first = -1;
+  std::shared_ptr<grpc::Channel> channel;  // to the first
+  int status = 0;                          // the second's, from waitpid
+  std::string output;                      // the second's
+  ~RefusedSecondServer() {
+    if (first > 0) {
+      kill(first, SIGTERM);
+      waitpid(first, nullptr, 0);
+    }
+  }
+};
+
+void StartTwo(const std::string& first_address, const std::string& first_data,
+              const std::string& second_address, const std::string& second_data,
+              RefusedSecondServer* out) {
+  const std::string binary = ServerBinary();
+  ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
+  out->first = StartServerProcess(first_address, first_data, -1);
+  ASSERT_GT(out->first, 0);
+  out->channel = grpc::CreateChannel(first_address, grpc::InsecureChannelCredentials());
+  ASSERT_TRUE(
+      out->channel->WaitForConnected(std::chrono::system_clock::now() + std::chrono::seconds(20)))
+      << "the first placedb-server did not start";
+  int err[2];
+  ASSERT_EQ(pipe(err), 0);
+  const pid_t second = StartServerProcess(second_address, second_data, err[1]);
+  close(err[1]);
+  // A second server that did start would never exit: 30 s, then it is killed and fails the test.
+  const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+  pid_t done = 0;
+  while ((done = waitpid(second, &out->status, WNOHANG)) == 0 &&
+         std::chrono::steady_clock::now() < until) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  if (done == 0) {
+    kill(second, SIGKILL);
+    waitpid(second, &out->status, 0);
+  }
+  char buffer[4096];  // its output: complete once it is gone
+  for (ssize_t n; (n = read(err[0], buffer, sizeof buffer)) > 0;) {
+    out->output.append(buffer, size_t(n));
+  }
+  close(err[0]);
+  ASSERT_NE(done, 0) << "the second placedb-server was still running after 30 s:\n" << out->output;
+}
+
+// The first server still serves (it alone answers on its port).
+void ExpectFirstServes(const RefusedSecondServer& servers) {
+  auto stub = v1::PlaceDb::NewStub(servers.channel);
+  for (int i = 0; i < 4; ++i) {  // connections the kernel would have split between two
+    grpc::ClientContext context;
+    v1::ListMapsRequest request;
+    v1::ListMapsResponse response;
+    EXPECT_TRUE(stub->ListMaps(&context, request, &response).ok());
+  }
+}
+
 // A second server on the same data directory refuses to start (exit 1, the reason on stderr)
 // instead of serving every map as unavailable and creating new ones beside the first's.
 TEST(ServerBinaryTest, SecondServerOnTheSameDataDirectoryRefusesToStart) {
-  const std::string binary = ServerBinary();
-  ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
   const std::string data = testing::MakeTempDir("placedb-binary-lock") + "/data";
-  const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
-  auto start = [&](int stderr_fd) {
-    const std::string address =
-        "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
-    std::vector<std::string> args = {binary, "--listen",         address,    "--data-dir",
-                                     data,   "--metrics-listen", "off",      "--console-listen",
-                                     "off",  "--vocabulary",     vocabulary, "--log-level",
-                                     "warn"};
-    std::vector<char*> argv;
-    for (std::string& arg : args) argv.push_back(arg.data());
-    argv.push_back(nullptr);
-    const pid_t pid = fork();
-    if (pid == 0) {
-      if (stderr_fd >= 0) {  // the log goes to stdout, usage errors to stderr
-        dup2(stderr_fd, STDOUT_FILENO);
-        dup2(stderr_fd, STDERR_FILENO);
-      }
-      execv(binary.c_str(), argv.data());
-      _exit(127);
-    }
-    return std::make_pair(pid, address);
+  const auto address = [] {
+    return "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
   };
-  const auto [first, first_address] = start(-1);
-  ASSERT_GT(first, 0);
-  auto channel = grpc::CreateChannel(first_address, grpc::InsecureChannelCredentials());
-  const bool serving =
-      channel->WaitForConnected(std::chrono::system_clock::now() + std::chrono::seconds(20));
-  if (!serving) kill(first, SIGKILL);
-  ASSERT_TRUE(serving) << "the first placedb-server did not start";
+  RefusedSecondServer servers;
+  StartTwo(address(), data, address(), data, &servers);
+  EXPECT_TRUE(WIFEXITED(servers.status) && WEXITSTATUS(servers.status) != 0) << servers.output;
+  EXPECT_NE(
+      servers.output.find("data directory " + data + ": in use by another placedb process (pid " +
+                          std::to_string(servers.first) + ")"),
+      std::string::npos)
+      << servers.output;
+  ExpectFirstServes(servers);
+}
 
-  int err[2];
-  ASSERT_EQ(pipe(err), 0);
-  const auto [second, second_address] = start(err[1]);
-  close(err[1]);
-  std::string output;
-  char buffer[4096];
-  for (ssize_t n; (n = read(err[0], buffer, sizeof buffer)) > 0;) output.append(buffer, size_t(n));
-  close(err[0]);
-  int status = 0;
-  ASSERT_EQ(waitpid(second, &status, 0), second);
-  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) != 0) << output;
-  EXPECT_NE(output.find("data directory " + data + ": in use by another placedb process (pid " +
-                        std::to_string(first) + ")"),
-            std::string::npos)
-      << output;
-
-  // The first server still serves.
-  auto stub = v1::PlaceDb::NewStub(channel);
-  grpc::ClientContext context;
-  v1::ListMapsRequest request;
-  v1::ListMapsResponse response;
-  EXPECT_TRUE(stub->ListMaps(&context, request, &response).ok());
-  kill(first, SIGTERM);
-  waitpid(first, &status, 0);
+// A second server with its own data directory on the first's port refuses to start. (gRPC sets
+// SO_REUSEPORT by default: both bound the port, both logged "listening", and the kernel split
+// the connections between two databases: `maps list` alternated between two answers.)
+TEST(ServerBinaryTest, SecondServerOnTheSamePortRefusesToStart) {
+  const std::string address = "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
+  const std::string root = testing::MakeTempDir("placedb-binary-port");
+  RefusedSecondServer servers;
+  StartTwo(address, root + "/first", address, root + "/second", &servers);
+  EXPECT_TRUE(WIFEXITED(servers.status) && WEXITSTATUS(servers.status) != 0) << servers.output;
+  EXPECT_NE(servers.output.find("cannot listen on " + address), std::string::npos)
+      << servers.output;
+  ExpectFirstServes(servers);
 }
 
 }  // namespace
