@@ -334,6 +334,29 @@ TEST_F(PlaceDatabaseTest, ExhaustiveVerificationConfirmsARealRevisit) {
   for (const Match& match : strict->matches) EXPECT_TRUE(match.verified);
 }
 
+// Verification is off by default; asking for verified matches used to return none at all, with
+// no reason (the SDK README's own `query(..., verify=True)`). Now they are verified on request.
+TEST_F(PlaceDatabaseTest, VerifiedOnlyOnAMapThatDoesNotVerifyVerifiesOnRequest) {
+  auto db = MakeDatabase();
+  ASSERT_EQ(db->config().verification.mode, VerificationMode::kDisabled);
+  for (int i = 1; i <= 10; ++i) ASSERT_TRUE(db->Add(Frame(i)).ok());
+  auto plain = db->Query(Frame(3), {});
+  ASSERT_TRUE(plain.ok());
+  ASSERT_FALSE(plain->matches.empty());
+  for (const Match& match : plain->matches) EXPECT_FALSE(match.verified);
+
+  QueryOptions verified_only;
+  verified_only.verified_only = true;
+  auto strict = db->Query(Frame(3), verified_only);
+  ASSERT_TRUE(strict.ok());
+  ASSERT_FALSE(strict->matches.empty());
+  EXPECT_EQ(strict->matches[0].place, 3u);
+  for (const Match& match : strict->matches) {
+    EXPECT_TRUE(match.verified);
+    EXPECT_GE(match.inliers, db->config().verification.min_inliers);
+  }
+}
+
 TEST_F(PlaceDatabaseTest, DirectIndexVerificationUsesTheConfiguredLevel) {
   DatabaseConfig config;
   config.verification.mode = VerificationMode::kDirectIndex;

@@ -116,7 +116,8 @@ CLI::App* RegisterQuery(CLI::App& app, QueryFlags* flags) {
                     "dynamic-object boxes, JSON: [{\"class\": \"person\", \"confidence\": 0.9, "
                     "\"rect\": [x, y, w, h]}, ...]");
   query->add_flag("--verified-only", flags->verified_only,
-                  "drop candidates that fail geometric verification");
+                  "drop candidates that fail geometric verification (verified on request on a map "
+                  "that does not verify)");
   query->add_option("--agent-id", flags->agent_id, "the querying agent")->capture_default_str();
   query->add_flag("--exclude-same-agent", flags->exclude_same_agent,
                   "skip places stored by --agent-id");

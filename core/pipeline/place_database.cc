@@ -846,7 +846,12 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
   }
   result.timings.search_ms = stage.Lap();
 
-  const VerificationConfig& verification = config_.verification;
+  VerificationConfig verification = config_.verification;
+  if (options.verified_only && verification.mode == VerificationMode::kDisabled) {
+    // Verified matches asked of a map that does not verify by itself: verified on request (as
+    // loop closure's VerifyLoop does), not an answer silently emptied of every candidate.
+    verification.mode = VerificationMode::kExhaustive;
+  }
   const size_t to_verify = verification.mode == VerificationMode::kDisabled
                                ? 0
                                : (verification.candidates > 0

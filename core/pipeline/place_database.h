@@ -278,7 +278,9 @@ struct AddResult {
 
 struct QueryOptions {
   size_t top_k = 10;
-  bool verified_only = false;  // drop candidates that fail verification
+  // Drop candidates that fail verification. On a map whose verification is disabled the
+  // candidates are then verified on request (exhaustive matching, the map's other settings).
+  bool verified_only = false;
   // The query's observation time, for the short-term tier; 0 = the newest place's time.
   int64_t timestamp_ns = 0;
   // Optional extra filter on candidates (e.g. exclude the agent's own recent places).
