@@ -28,7 +28,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
 
   ConnectionOptions connection_options;
   bool json = false;
-  app.add_option("--address", connection_options.address, "server address (HOST:PORT)")
+  app.add_option("--address", connection_options.address,
+                 "server address (HOST:PORT; a bare PORT means localhost)")
       ->envname("PLACEDB_ADDRESS")
       ->capture_default_str();
   app.add_option("--timeout", connection_options.timeout_s,
@@ -80,6 +81,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
     return code == 0 ? kExitOk : kExitUsage;
   }
 
+  connection_options.address = ServerTarget(connection_options.address);
+  io.server_address = connection_options.address;
   if (load->parsed()) return RunLoad(connection_options, load_options, json, io);
 
   std::string error;

@@ -12,6 +12,7 @@
 
 #include <istream>
 #include <ostream>
+#include <string>
 
 namespace placedb::client {
 
@@ -22,6 +23,8 @@ struct CliIo {
   std::istream& in;         // confirmations (maps delete without --yes)
   bool err_is_tty = false;  // progress bar (true) or periodic progress lines (false)
   bool in_is_tty = false;   // whether a confirmation can be asked
+  // The server the commands talk to (RunCli sets it): named in errors of calls that found none.
+  std::string server_address;
 };
 
 // Runs one command line (argv[0] is the program name). Never throws, never exits.

@@ -3,6 +3,7 @@
 #include <google/protobuf/io/coded_stream.h>
 #include <grpcpp/generic/generic_stub.h>
 
+#include <algorithm>
 #include <future>
 #include <tuple>
 #include <vector>
@@ -78,9 +79,35 @@ grpc::Status MapServingStatus(const v1::MapDescription& map) {
   }
 }
 
+std::string ServerTarget(const std::string& address) {
+  const bool bare_port =
+      !address.empty() && address.size() <= 5 &&
+      std::all_of(address.begin(), address.end(), [](char c) { return c >= '0' && c <= '9'; });
+  return bare_port ? "localhost:" + address : address;
+}
+
 std::string Describe(const grpc::Status& status) {
   std::string text = wire::GrpcCodeName(int(status.error_code()));
   if (!status.error_message().empty()) text += ": " + status.error_message();
+  return text;
+}
+
+std::string DescribeFailure(const grpc::Status& status, const std::string& address) {
+  std::string text = Describe(status);
+  // gRPC's own texts for a call that found no server; a server's UNAVAILABLE (draining, no
+  // quorum) says something else.
+  const std::string& message = status.error_message();
+  const bool never_reached = (status.error_code() == grpc::StatusCode::UNAVAILABLE &&
+                              (message.find("failed to connect") != std::string::npos ||
+                               message.find("Failed to connect") != std::string::npos ||
+                               message.find("DNS resolution failed") != std::string::npos ||
+                               message.find("Connection refused") != std::string::npos)) ||
+                             (status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED &&
+                              message.find("Deadline Exceeded") != std::string::npos);
+  if (never_reached && !address.empty()) {
+    text += "\n  is placedb-server running at " + address +
+            "? (set the address with --address HOST:PORT or PLACEDB_ADDRESS)";
+  }
   return text;
 }
 

@@ -67,8 +67,16 @@ class Connection {
   std::shared_ptr<v1::PlaceDb::Stub> stub_;
 };
 
+// The gRPC target for --address: a bare port ("50051") means localhost on that port (gRPC would
+// take it for a host name and fail to resolve it); anything else is used as given.
+std::string ServerTarget(const std::string& address);
+
 // "NOT_FOUND: map 'x' not found".
 std::string Describe(const grpc::Status& status);
+// Describe, and when the call never reached a server (connection refused, a name that does not
+// resolve, no connection before the deadline: not a server's own UNAVAILABLE) a second line asking
+// whether placedb-server runs at `address`.
+std::string DescribeFailure(const grpc::Status& status, const std::string& address);
 
 // OK when the map GetMap described is served (AVAILABLE or RECOVERED); else why not, as the
 // calls on it would answer: DATA_LOSS (DAMAGED) or FAILED_PRECONDITION (UNAVAILABLE), with the

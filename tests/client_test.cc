@@ -720,8 +720,24 @@ TEST_F(ClientTest, InfoAndHealth) {
   EXPECT_NE(unreachable.err.find("UNAVAILABLE"), std::string::npos) << unreachable.err;
   const json down = ParseJson(RunPlacedb({"--address", nowhere, "--json", "health"}));
   EXPECT_EQ(down["status"], "UNREACHABLE");
-  // Other commands against nothing: an RPC error.
-  EXPECT_EQ(RunPlacedb({"--address", nowhere, "maps", "list"}).code, 1);
+  // Other commands against nothing: an RPC error that says what to check (it was gRPC's text
+  // alone).
+  const CliRun listed = RunPlacedb({"--address", nowhere, "maps", "list"});
+  EXPECT_EQ(listed.code, 1);
+  EXPECT_NE(listed.err.find("is placedb-server running at " + nowhere + "?"), std::string::npos)
+      << listed.err;
+  EXPECT_NE(unreachable.err.find("is placedb-server running at " + nowhere + "?"),
+            std::string::npos)
+      << unreachable.err;
+  // A server's own answer names no such doubt.
+  const CliRun missing = Cli({"maps", "show", "no-such-map"});
+  EXPECT_EQ(missing.code, 1);
+  EXPECT_EQ(missing.err.find("is placedb-server running"), std::string::npos) << missing.err;
+  // A bare port is this machine's (it was a DNS error).
+  const std::string port = address_.substr(address_.rfind(':') + 1);
+  const CliRun by_port = RunPlacedb({"--address", port, "health"});
+  EXPECT_EQ(by_port.code, 0) << by_port.err;
+  EXPECT_EQ(by_port.out, "SERVING\n");
 }
 
 TEST_F(ClientTest, UsageErrorsExitTwo) {

@@ -8,7 +8,7 @@
 namespace placedb::client {
 
 int RpcFailed(CliIo& io, const grpc::Status& status) {
-  io.err << "error: " << Describe(status) << '\n';
+  io.err << "error: " << DescribeFailure(status, io.server_address) << '\n';
   return kExitRpcError;
 }
 

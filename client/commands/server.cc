@@ -86,7 +86,7 @@ int RunHealth(const Connection& connection, const std::string& service, bool jso
             : status.error_code() == grpc::StatusCode::NOT_FOUND ? "SERVICE_UNKNOWN"
                                                                  : "ERROR";
     code = unreachable ? 2 : 1;
-    io.err << "error: " << Describe(status) << '\n';
+    io.err << "error: " << DescribeFailure(status, connection.options().address) << '\n';
   } else if (serving != "SERVING") {
     code = 1;
   }

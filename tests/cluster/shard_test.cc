@@ -141,14 +141,19 @@ class ShardTest : public ::testing::Test {
     return shard.ok() ? std::move(shard).value() : nullptr;
   }
 
-  // Publishes with a message id, retrying (same id) on errors as a worker must.
+  // Publishes with a message id, retrying (same id) on errors as a worker must, for up to 60 s:
+  // a deadline, not a count of attempts (they fail at once while the client reconnects, and a
+  // stream leader's election on a loaded machine took more than 100 of them).
   PubAck Publish(const std::string& map, const std::string& data, const std::string& id) {
-    for (int attempt = 0; attempt < 100; ++attempt) {
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    Status last;
+    while (std::chrono::steady_clock::now() < until) {
       auto ack = js_->Publish(SubjectOf(map), data, id, 2s);
       if (ack.ok()) return *ack;
+      last = ack.status();
       std::this_thread::sleep_for(100ms);
     }
-    ADD_FAILURE() << "publish " << id << " never acknowledged";
+    ADD_FAILURE() << "publish " << id << " never acknowledged within 60 s: " << last.ToString();
     return {};
   }
   PubAck AddPlace(const std::string& map, int frame, const std::string& agent = "robot") {
