@@ -24,7 +24,7 @@ struct CliIo {
   bool err_is_tty = false;  // progress bar (true) or periodic progress lines (false)
   bool in_is_tty = false;   // whether a confirmation can be asked
   // The server the commands talk to (RunCli sets it): named in errors of calls that found none.
-  std::string server_address;
+  std::string server_address{};
 };
 
 // Runs one command line (argv[0] is the program name). Never throws, never exits.
