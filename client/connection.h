@@ -74,8 +74,8 @@ std::string ServerTarget(const std::string& address);
 // "NOT_FOUND: map 'x' not found".
 std::string Describe(const grpc::Status& status);
 // Describe, and when the call never reached a server (connection refused, a name that does not
-// resolve, no connection before the deadline: not a server's own UNAVAILABLE) a second line asking
-// whether placedb-server runs at `address`.
+// resolve: gRPC's UNAVAILABLE, not a server's own) a second line asking whether placedb-server
+// runs at `address`.
 std::string DescribeFailure(const grpc::Status& status, const std::string& address);
 
 // OK when the map GetMap described is served (AVAILABLE or RECOVERED); else why not, as the
