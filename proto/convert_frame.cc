@@ -417,6 +417,10 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Fra
         cv::cvtColor(view, obs.image, color ? cv::COLOR_RGB2BGR : cv::COLOR_RGB2GRAY);
       } else if (raw.format() == v1::PIXEL_FORMAT_BGR8 && !color) {
         cv::cvtColor(view, obs.image, cv::COLOR_BGR2GRAY);
+      } else if (raw.format() == v1::PIXEL_FORMAT_GRAY8 && color) {
+        // The detector takes 3 channels: a gray frame is given to it as gray BGR (found by
+        // fuzz_observation: GRAY8 on a map with server-side detection).
+        cv::cvtColor(view, obs.image, cv::COLOR_GRAY2BGR);
       } else {
         obs.image = view.clone();  // the request's bytes do not outlive the call
       }

@@ -748,6 +748,30 @@ TEST(FrameConversion, SizesAreReportedAsSentAndCheckedBeforeArithmetic) {
   }
 }
 
+// Every raw pixel format decodes to what the pipeline takes: gray, or BGR for server-side
+// detection (color). GRAY8 with color came out as one channel (found by fuzz_observation); the
+// detector takes three.
+TEST(FrameConversion, EveryRawFormatDecodesToGrayOrBgrAsAsked) {
+  for (const auto& [format, channels] :
+       {std::pair{v1::PIXEL_FORMAT_GRAY8, 1}, std::pair{v1::PIXEL_FORMAT_BGR8, 3},
+        std::pair{v1::PIXEL_FORMAT_RGB8, 3}}) {
+    v1::Observation raw;
+    raw.mutable_raw_image()->set_width(8);
+    raw.mutable_raw_image()->set_height(6);
+    raw.mutable_raw_image()->set_format(format);
+    raw.mutable_raw_image()->set_data(std::string(size_t(8 * 6 * channels), '\x50'));
+    for (const bool color : {false, true}) {
+      auto decoded = DecodeObservation(raw, kFrameLimits, color, "observation");
+      ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+      const cv::Mat& image = decoded->observation.image;
+      EXPECT_EQ(image.type(), color ? CV_8UC3 : CV_8UC1) << int(format) << " color " << color;
+      EXPECT_EQ(image.cols, 8);
+      EXPECT_EQ(image.rows, 6);
+      EXPECT_EQ(image.at<uint8_t>(0, 0), 0x50) << int(format) << " color " << color;
+    }
+  }
+}
+
 TEST(FrameConversion, PixelCountsAndByteCountsUse64Bits) {
   // 100000 x 100000 passes the side check; its 10^10 pixels do not fit in 32 bits.
   v1::Observation raw;

@@ -468,6 +468,8 @@ void ObservationSeeds(const RealData& data) {
   AddBoxes(&raw, gray.cols, gray.rows);
   *ingest.mutable_observation() = raw;
   Seed(t, "ingest-raw-depth-png16", 0, ingest.SerializeAsString());
+  // The same for server-side detection (colour): a GRAY8 frame must come out as BGR.
+  Seed(t, "ingest-raw-depth-png16-color", 2, ingest.SerializeAsString());
 
   // The same depth as raw float32 metres, quarter size.
   const cv::Mat quarter = Shrink(data.depth, 12, cv::INTER_NEAREST);
