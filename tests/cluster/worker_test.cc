@@ -273,6 +273,10 @@ TEST_F(ClusterWorkerTest, NoQuorumNothingAcknowledgedThenResumes) {
   EXPECT_EQ(refused.responses[0].place_id(), 0u);
 
   ASSERT_TRUE(engines_->RestartNats(1).ok());
+  // Quorum is back once the stream has a leader again: waited for (up to 60 s), not left to the
+  // frame's deadline (the election outlasted it on a loaded machine).
+  const auto leader = engines_->StreamLeader(stream, std::chrono::seconds(60));
+  ASSERT_TRUE(leader.ok()) << leader.status().ToString();
   // Frame 3 again (same id: stored at most once), then a new one.
   const IngestOutcome after = IngestAll(worker.stub.get(), "m", Frames("agent-a", 3, 4));
   ASSERT_TRUE(after.status.ok()) << after.status.error_message();
