@@ -277,6 +277,7 @@ TEST(ServerBinaryTest, SigtermShutsDownGracefullyWithExitZero) {
 // its exit status and everything it printed. The first is stopped at the end of the scope.
 struct RefusedSecondServer {
   pid_t first = -1;
+  std::string first_address;
   std::shared_ptr<grpc::Channel> channel;  // to the first
   int status = 0;                          // the second's, from waitpid
   std::string output;                      // the second's
@@ -293,6 +294,7 @@ void StartTwo(const std::string& first_address, const std::string& first_data,
               RefusedSecondServer* out) {
   const std::string binary = ServerBinary();
   ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
+  out->first_address = first_address;
   out->first = StartServerProcess(first_address, first_data, -1);
   ASSERT_GT(out->first, 0);
   out->channel = grpc::CreateChannel(first_address, grpc::InsecureChannelCredentials());
@@ -324,8 +326,13 @@ void StartTwo(const std::string& first_address, const std::string& first_data,
 
 // The first server still serves (it alone answers on its port).
 void ExpectFirstServes(const RefusedSecondServer& servers) {
-  auto stub = v1::PlaceDb::NewStub(servers.channel);
-  for (int i = 0; i < 4; ++i) {  // connections the kernel would have split between two
+  // Each call on a connection of its own (a private subchannel pool): the kernel splits
+  // connections, not calls, between two servers sharing a port.
+  for (int i = 0; i < 4; ++i) {
+    grpc::ChannelArguments arguments;
+    arguments.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
+    auto stub = v1::PlaceDb::NewStub(grpc::CreateCustomChannel(
+        servers.first_address, grpc::InsecureChannelCredentials(), arguments));
     grpc::ClientContext context;
     v1::ListMapsRequest request;
     v1::ListMapsResponse response;
