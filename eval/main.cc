@@ -273,6 +273,8 @@ struct RunFlags {
   double short_term_horizon_s = 60;
   RunOptions options;
   client::ConnectionOptions connection;  // --server's TLS files and token (address = --server)
+  bool learn_vocabulary = false;
+  LearningOptions learning;
 };
 
 // The flags of the configuration grid, the filter and the detector.
@@ -341,6 +343,15 @@ void RegisterRun(CLI::App& app, RunFlags* f) {
                   "verify the best N candidates and re-rank them by inliers (0 = best only)")
       ->capture_default_str();
   run->add_option("--threads", options.threads, "worker threads")->capture_default_str();
+  run->add_flag("--learn-vocabulary", f->learn_vocabulary,
+                "each database learns its vocabulary from its own stored SC descriptors (never "
+                "the queries) and is rebuilt with it (issue 29); in-process only");
+  run->add_option("--learned-depth", f->learning.depth,
+                  "--learn-vocabulary: tree depth L (0 = from the amount of data)");
+  run->add_option("--learned-branching", f->learning.branching,
+                  "--learn-vocabulary: branching k (0 = from the amount of data)");
+  run->add_option("--learn-sample", f->learning.max_sample_descriptors,
+                  "--learn-vocabulary: at most this many descriptors sampled (0 = default)");
   run->add_option("--server", f->server, "run against a live placedb-server at ADDRESS");
   // The CLI's connection flags (docs/cli.md), for --server.
   run->add_flag("--tls", f->connection.tls, "--server: connect with TLS (TLS 1.2+)");
@@ -467,8 +478,17 @@ int Run(RunFlags& f) {
   auto vocabulary = Vocabulary::Load(f.vocabulary_path);
   if (!vocabulary.ok()) return Fail(vocabulary.status().WithContext(f.vocabulary_path));
   std::unique_ptr<Backend> backend;
+  if (f.learn_vocabulary && !f.server.empty()) {
+    return Fail(Status::InvalidArgument("--learn-vocabulary: in-process only, not with --server"));
+  }
+  if (f.learn_vocabulary) {
+    f.learning.threads = options.threads;
+    const Status valid = ValidateLearningOptions(f.learning);
+    if (!valid.ok()) return Fail(valid.WithContext("--learn-vocabulary"));
+  }
   if (f.server.empty()) {
-    backend = MakeInProcessBackend(*vocabulary, options.threads);
+    backend = MakeInProcessBackend(*vocabulary, options.threads,
+                                   f.learn_vocabulary ? std::optional(f.learning) : std::nullopt);
   } else {
     client::ConnectionOptions connection = f.connection;
     connection.address = f.server;

@@ -367,6 +367,15 @@ std::string MarkdownReport(const RunResults& results, const std::string& title) 
   md << (no_truth ? "; " + std::to_string(no_truth) + " without" : "") << ")\n";
   md << "- backend: " << results.backend << "; BoBW+DO dynamic input: " << results.dynamic_source
      << "\n";
+  for (const MethodRun& run : results.runs) {
+    if (run.database.learned_words == 0 || run.geom != results.runs.front().geom) continue;
+    md << "- vocabulary learned by the " << run.method << " database at " << run.features
+       << " features"
+       << (run.method == kBoBWDO ? " (boxes >= " + Fixed(run.confidence, 2) + ")" : "") << ": "
+       << run.database.learned_words << " words, L=" << run.database.learned_depth << ", from "
+       << run.database.learned_from_descriptors << " stored descriptors in "
+       << Fixed(run.database.learn_seconds, 1) << " s\n";
+  }
   md << "- top-1 accuracy (%): the best-ranked place is a ground-truth place and, with "
         "verification (only the best candidate is verified; >= "
      << results.options.min_inliers

@@ -241,14 +241,20 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
 
 class InProcessBackend final : public Backend {
  public:
-  InProcessBackend(std::shared_ptr<const Vocabulary> vocabulary, int threads)
-      : vocabulary_(std::move(vocabulary)), threads_(std::max(1, threads)) {}
+  InProcessBackend(std::shared_ptr<const Vocabulary> vocabulary, int threads,
+                   std::optional<LearningOptions> learning)
+      : vocabulary_(std::move(vocabulary)),
+        threads_(std::max(1, threads)),
+        learning_(std::move(learning)) {}
 
-  std::string Name() const override { return "in-process"; }
+  std::string Name() const override {
+    return learning_ ? "in-process, map-learned vocabulary" : "in-process";
+  }
   double ExtractMeanMs() const override { return extract_mean_ms_; }
 
   Status Prepare(const EvalInputs& inputs, int features) override {
     const Dataset& dataset = *inputs.dataset;
+    learned_.clear();
     OrbConfig orb;
     orb.max_features = features;
     const size_t n = dataset.database.size() + dataset.queries.size();
@@ -303,48 +309,45 @@ class InProcessBackend final : public Backend {
     const Dataset& dataset = *inputs.dataset;
     auto created = PlaceDatabase::Create(vocabulary_, config);
     if (!created.ok()) return created.status();
-    PlaceDatabase& db = **created;
+    auto database = std::move(created).value();
     // The static feature budget needs the pixels: ORB then runs in the pipeline, as in the
     // server, instead of the features extracted once per budget.
     const bool pixels_only = filtering && config.static_feature_budget;
     colour_for_boxes_ = config.box_refinement.method == BoxRefinement::kGrabCut;
     MethodRun run;
     Stopwatch build;
-
-    const size_t n = dataset.database.size();
-    std::vector<std::optional<ProcessedFrame>> processed(n);
-    std::vector<Status> errors(n);
-    ParallelFor(n, threads_, [&](size_t i, int) {
-      auto frame = db.Process(Observe(inputs, i, false, filtering, pixels_only));
-      if (!frame.ok()) {
-        errors[i] = frame.status().WithContext("database entry " + dataset.database[i].id);
-        return;
+    if (!learning_) {
+      PLACEDB_RETURN_IF_ERROR(
+          Build(inputs, filtering, pixels_only, *database, &run.database, nullptr));
+    } else {
+      // The map learns from what it stored (the database side's SC descriptors, never a query),
+      // then every place is transformed again with the learned vocabulary, as the service does.
+      // What is stored depends on the budget (Prepare) and the dynamic input, not on the
+      // verification setting: one vocabulary per (method, confidence) and budget.
+      const std::pair<bool, float> key{filtering, filtering ? config.min_box_confidence : 0.0f};
+      auto cached = learned_.find(key);
+      if (cached == learned_.end()) {
+        VocabularyLearner learner(config.feature_type, *learning_);
+        DatabaseFigures ignored;
+        PLACEDB_RETURN_IF_ERROR(
+            Build(inputs, filtering, pixels_only, *database, &ignored, &learner));
+        auto learned = learner.Learn();
+        if (!learned.ok()) return learned.status().WithContext("database of " + dataset.name);
+        cached = learned_.emplace(key, std::move(learned).value()).first;
       }
-      processed[i] = std::move(frame).value();
-    });
-    for (size_t i = 0; i < n; ++i) {
-      PLACEDB_RETURN_IF_ERROR(errors[i]);
-      const ProcessedFrame& frame = *processed[i];
-      if (!frame.valid) {
-        db.CountInvalid();
-        continue;
-      }
-      PlaceMetadata metadata = Metadata(dataset.database[i], i);
-      auto id = db.Insert(frame, metadata);
-      if (!id.ok()) return id.status();
-      // What a durable map writes for this place (map_store: three values under 4-byte keys).
-      PlaceRecord record;
-      record.id = *id;
-      record.metadata = metadata;
-      record.counts = frame.counts;
-      record.boxes_used = frame.boxes_used;
-      run.database.encoded_bytes +=
-          EncodePlaceRecord(record).size() + EncodeBow(frame.bow).size() +
-          EncodeLocalFeatures(frame.static_features, frame.direct).size() +
-          3 * PlaceKey(*id).size();
-      processed[i].reset();
+      const LearnedVocabulary& learned = cached->second;
+      auto relearned = PlaceDatabase::Create(learned.vocabulary, config);
+      if (!relearned.ok()) return relearned.status();
+      database = std::move(relearned).value();
+      PLACEDB_RETURN_IF_ERROR(
+          Build(inputs, filtering, pixels_only, *database, &run.database, nullptr));
+      run.database.learned_words = learned.vocabulary.word_count();
+      run.database.learned_depth = learned.shape.depth;
+      run.database.learned_from_descriptors = learned.descriptors_sampled;
+      run.database.learn_seconds = learned.train_ms / 1000.0;
     }
     run.database.build_seconds = build.ElapsedMs() / 1000.0;
+    PlaceDatabase& db = *database;
     const DatabaseStats stats = db.Stats();
     run.database.places = stats.places;
     run.database.invalid = stats.invalid_rejected;
@@ -377,6 +380,47 @@ class InProcessBackend final : public Backend {
   }
 
  private:
+  // Processes and inserts every database entry; `learner`, when given, is offered each stored
+  // place's SC features.
+  Status Build(const EvalInputs& inputs, bool filtering, bool pixels_only, PlaceDatabase& db,
+               DatabaseFigures* figures, VocabularyLearner* learner) {
+    const Dataset& dataset = *inputs.dataset;
+    const size_t n = dataset.database.size();
+    std::vector<std::optional<ProcessedFrame>> processed(n);
+    std::vector<Status> errors(n);
+    ParallelFor(n, threads_, [&](size_t i, int) {
+      auto frame = db.Process(Observe(inputs, i, false, filtering, pixels_only));
+      if (!frame.ok()) {
+        errors[i] = frame.status().WithContext("database entry " + dataset.database[i].id);
+        return;
+      }
+      processed[i] = std::move(frame).value();
+    });
+    for (size_t i = 0; i < n; ++i) {
+      PLACEDB_RETURN_IF_ERROR(errors[i]);
+      const ProcessedFrame& frame = *processed[i];
+      if (!frame.valid) {
+        db.CountInvalid();
+        continue;
+      }
+      PlaceMetadata metadata = Metadata(dataset.database[i], i);
+      auto id = db.Insert(frame, metadata);
+      if (!id.ok()) return id.status();
+      if (learner) PLACEDB_RETURN_IF_ERROR(learner->Offer(*id, frame.static_features));
+      // What a durable map writes for this place (map_store: three values under 4-byte keys).
+      PlaceRecord record;
+      record.id = *id;
+      record.metadata = metadata;
+      record.counts = frame.counts;
+      record.boxes_used = frame.boxes_used;
+      figures->encoded_bytes += EncodePlaceRecord(record).size() + EncodeBow(frame.bow).size() +
+                                EncodeLocalFeatures(frame.static_features, frame.direct).size() +
+                                3 * PlaceKey(*id).size();
+      processed[i].reset();
+    }
+    return Status::Ok();
+  }
+
   static PlaceMetadata Metadata(const Entry& entry, size_t index) {
     PlaceMetadata metadata;
     metadata.agent_id = entry.agent;
@@ -409,6 +453,10 @@ class InProcessBackend final : public Backend {
 
   std::shared_ptr<const Vocabulary> vocabulary_;
   int threads_;
+  // Set: each database learns its vocabulary from its own stored places (fixed: vocabulary_).
+  std::optional<LearningOptions> learning_;
+  // The vocabularies learned for the current budget, by (BoBW+DO, box confidence).
+  std::map<std::pair<bool, float>, LearnedVocabulary> learned_;
   std::vector<FeatureSet> database_features_;
   std::vector<FeatureSet> query_features_;
   std::vector<cv::Mat> database_images_;  // BGR
@@ -608,8 +656,9 @@ QueryOutcome ScoreQuery(const std::vector<RankedMatch>& matches, const std::vect
 }
 
 std::unique_ptr<Backend> MakeInProcessBackend(std::shared_ptr<const Vocabulary> vocabulary,
-                                              int threads) {
-  return std::make_unique<InProcessBackend>(std::move(vocabulary), threads);
+                                              int threads,
+                                              std::optional<LearningOptions> learning) {
+  return std::make_unique<InProcessBackend>(std::move(vocabulary), threads, std::move(learning));
 }
 
 Result<RunResults> RunEvaluation(const Dataset& dataset, const RunOptions& options,

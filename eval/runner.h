@@ -20,6 +20,7 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -28,6 +29,7 @@
 #include "core/filter/dynamic_filter.h"
 #include "core/pipeline/place_database.h"
 #include "core/vocabulary/vocabulary.h"
+#include "core/vocabulary/vocabulary_learning.h"
 #include "eval/dataset.h"
 
 namespace placedb::eval {
@@ -105,6 +107,11 @@ struct DatabaseFigures {
   uint64_t memory_bytes = 0;  // in-memory index + records + payloads (DatabaseStats)
   uint64_t disk_bytes = 0;    // server backend: the map's files (MapStats.bytes_on_disk)
   double build_seconds = 0;
+  // Map-learned vocabulary runs: the vocabulary this database learned from its stored places.
+  uint32_t learned_words = 0;
+  int learned_depth = 0;
+  uint64_t learned_from_descriptors = 0;
+  double learn_seconds = 0;  // training alone (build_seconds includes it and both builds)
 };
 
 struct QueryOutcome {
@@ -143,8 +150,12 @@ class Backend {
   virtual double ExtractMeanMs() const { return 0; }
 };
 
-std::unique_ptr<Backend> MakeInProcessBackend(std::shared_ptr<const Vocabulary> vocabulary,
-                                              int threads);
+// With `learning`, each database is built with `vocabulary`, learns its own vocabulary from
+// its stored places' SC descriptors (core/vocabulary/vocabulary_learning.h; never from a query)
+// and is built again with it: the map-learned vocabulary of issue 29.
+std::unique_ptr<Backend> MakeInProcessBackend(
+    std::shared_ptr<const Vocabulary> vocabulary, int threads,
+    std::optional<LearningOptions> learning = std::nullopt);
 
 struct RunResults {
   std::string dataset_name;

@@ -32,6 +32,23 @@ Result<AnyVocabulary> AnyVocabulary::Load(const std::string& path) {
   return AnyVocabulary(std::move(binary).value());
 }
 
+std::string AnyVocabulary::Serialize() const {
+  if (floating_) return floating_->Serialize();
+  if (binary_) return binary_->SerializeBinary();
+  return {};
+}
+
+Result<AnyVocabulary> AnyVocabulary::Parse(std::string_view bytes) {
+  if (bytes.size() >= 8 && std::memcmp(bytes.data(), "PDBFVOC1", 8) == 0) {
+    auto floating = FloatVocabulary::Parse(bytes);
+    if (!floating.ok()) return floating.status();
+    return AnyVocabulary(std::move(floating).value());
+  }
+  auto binary = Vocabulary::ParseBinary(bytes);
+  if (!binary.ok()) return binary.status();
+  return AnyVocabulary(std::move(binary).value());
+}
+
 uint32_t AnyVocabulary::word_count() const {
   return floating_ ? floating_->word_count() : binary_ ? binary_->word_count() : 0;
 }

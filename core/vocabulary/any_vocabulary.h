@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <string_view>
 
 #include "core/base/status.h"
 #include "core/features/local_features.h"
@@ -30,6 +31,10 @@ class AnyVocabulary {
   // A .pdbfv file is a float vocabulary; anything else goes to Vocabulary::Load (binary .pdbv or
   // DBoW2 text).
   static Result<AnyVocabulary> Load(const std::string& path);
+  // The file's bytes (.pdbv or .pdbfv) in memory, and back: how a map stores a vocabulary it
+  // learned. Parse checks what Load checks (CORRUPTION / INVALID_ARGUMENT without a path).
+  std::string Serialize() const;  // empty without a vocabulary
+  static Result<AnyVocabulary> Parse(std::string_view bytes);
 
   explicit operator bool() const { return binary_ || floating_; }
   FeatureType feature_type() const { return floating_ ? FeatureType::kSift : FeatureType::kOrb; }

@@ -6,6 +6,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <limits>
 #include <numeric>
 #include <thread>
@@ -216,14 +217,6 @@ Clustering ClusterNode(const float* data, int dims, const std::vector<uint32_t>&
 bool WriteAll(std::ofstream& out, const void* data, size_t bytes) {
   out.write(static_cast<const char*>(data), std::streamsize(bytes));
   return bool(out);
-}
-
-template <typename T>
-bool ReadVector(std::ifstream& in, std::vector<T>* v, size_t count) {
-  v->resize(count);
-  if (count == 0) return true;
-  in.read(reinterpret_cast<char*>(v->data()), std::streamsize(count * sizeof(T)));
-  return bool(in);
 }
 
 }  // namespace
@@ -443,7 +436,7 @@ uint64_t FloatVocabulary::ComputeChecksum() const {
   return h;
 }
 
-Status FloatVocabulary::Save(const std::string& path) const {
+std::string FloatVocabulary::Serialize() const {
   FileHeader header{};
   std::memcpy(header.magic, kMagic, sizeof(kMagic));
   header.version = kFormatVersion;
@@ -458,17 +451,28 @@ Status FloatVocabulary::Save(const std::string& path) const {
   header.payload_bytes =
       uint64_t(node_count()) * 12 + uint64_t(word_count()) * 8 + uint64_t(centres_.size()) * 4;
   header.checksum = checksum_;
+  std::string bytes;
+  bytes.reserve(sizeof(header) + header.payload_bytes);
+  auto append = [&bytes](const void* data, size_t size) {
+    bytes.append(static_cast<const char*>(data), size);
+  };
+  append(&header, sizeof(header));
+  append(first_child_.data(), first_child_.size() * 4);
+  append(child_count_.data(), child_count_.size() * 4);
+  append(node_word_.data(), node_word_.size() * 4);
+  append(word_node_.data(), word_node_.size() * 4);
+  append(word_weight_.data(), word_weight_.size() * 4);
+  append(centres_.data(), centres_.size() * 4);
+  return bytes;
+}
+
+Status FloatVocabulary::Save(const std::string& path) const {
+  const std::string bytes = Serialize();
   const std::string temp = path + ".tmp";
   {
     std::ofstream out(temp, std::ios::binary | std::ios::trunc);
     if (!out) return Status::IoError("cannot open " + temp + " for writing");
-    bool ok = WriteAll(out, &header, sizeof(header)) &&
-              WriteAll(out, first_child_.data(), first_child_.size() * 4) &&
-              WriteAll(out, child_count_.data(), child_count_.size() * 4) &&
-              WriteAll(out, node_word_.data(), node_word_.size() * 4) &&
-              WriteAll(out, word_node_.data(), word_node_.size() * 4) &&
-              WriteAll(out, word_weight_.data(), word_weight_.size() * 4) &&
-              WriteAll(out, centres_.data(), centres_.size() * 4);
+    bool ok = WriteAll(out, bytes.data(), bytes.size());
     out.flush();
     if (!ok || !out) {
       std::error_code ec;
@@ -488,34 +492,41 @@ Status FloatVocabulary::Save(const std::string& path) const {
 Result<std::shared_ptr<const FloatVocabulary>> FloatVocabulary::Load(const std::string& path) {
   std::error_code ec;
   if (!std::filesystem::exists(path, ec)) return Status::NotFound("no vocabulary at " + path);
-  const auto file_size = std::filesystem::file_size(path, ec);
-  if (ec) return Status::IoError("cannot stat " + path);
   std::ifstream in(path, std::ios::binary);
   if (!in) return Status::IoError("cannot open " + path);
-  FileHeader header{};
-  if (file_size < sizeof(header) || !in.read(reinterpret_cast<char*>(&header), sizeof(header))) {
-    return Status::Corruption(path + ": shorter than the 64-byte header");
+  std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (in.bad()) return Status::IoError("reading " + path + " failed");
+  auto parsed = Parse(bytes);
+  if (!parsed.ok()) {
+    return Status(parsed.status().code(), path + ": " + parsed.status().message());
   }
+  return parsed;
+}
+
+Result<std::shared_ptr<const FloatVocabulary>> FloatVocabulary::Parse(std::string_view bytes) {
+  FileHeader header{};
+  if (bytes.size() < sizeof(header)) return Status::Corruption("shorter than the 64-byte header");
+  std::memcpy(&header, bytes.data(), sizeof(header));
   if (std::memcmp(header.magic, kMagic, sizeof(kMagic)) != 0) {
-    return Status::Corruption(path + ": not a float vocabulary (bad magic)");
+    return Status::Corruption("not a float vocabulary (bad magic)");
   }
   if (header.version != kFormatVersion) {
-    return Status::Corruption(path + ": unsupported version " + std::to_string(header.version));
+    return Status::Corruption("unsupported version " + std::to_string(header.version));
   }
   if (header.endian != kEndianMarker) {
-    return Status::Corruption(path + ": written on a machine of the other byte order");
+    return Status::Corruption("written on a machine of the other byte order");
   }
   if (header.dimensions < 1 || header.dimensions > uint32_t(kMaxDimensions) ||
       header.branching < 2 || header.branching > 64 || header.depth < 1 || header.depth > 10 ||
       header.scoring > uint32_t(ScoringType::kDotProduct) ||
       header.weighting > uint32_t(WeightingType::kBinary) || header.node_count < 1 ||
       header.word_count < 1 || header.word_count > header.node_count) {
-    return Status::Corruption(path + ": header parameters out of range");
+    return Status::Corruption("header parameters out of range");
   }
   const uint64_t payload = uint64_t(header.node_count) * 12 + uint64_t(header.word_count) * 8 +
                            uint64_t(header.node_count) * header.dimensions * 4;
-  if (header.payload_bytes != payload || file_size != sizeof(header) + payload) {
-    return Status::Corruption(path + ": file size " + std::to_string(file_size) +
+  if (header.payload_bytes != payload || bytes.size() != sizeof(header) + payload) {
+    return Status::Corruption("file size " + std::to_string(bytes.size()) +
                               " does not match its header (expected " +
                               std::to_string(sizeof(header) + payload) + ")");
   }
@@ -527,17 +538,24 @@ Result<std::shared_ptr<const FloatVocabulary>> FloatVocabulary::Load(const std::
   v->weighting_ = WeightingType(header.weighting);
   const size_t nodes = header.node_count;
   const size_t words = header.word_count;
-  if (!ReadVector(in, &v->first_child_, nodes) || !ReadVector(in, &v->child_count_, nodes) ||
-      !ReadVector(in, &v->node_word_, nodes) || !ReadVector(in, &v->word_node_, words) ||
-      !ReadVector(in, &v->word_weight_, words) ||
-      !ReadVector(in, &v->centres_, nodes * header.dimensions)) {
-    return Status::IoError("reading " + path + " failed");
-  }
+  size_t offset = sizeof(header);
+  auto read = [&](auto* vector, size_t count) {
+    vector->resize(count);
+    const size_t size = count * sizeof((*vector)[0]);
+    if (size) std::memcpy(vector->data(), bytes.data() + offset, size);
+    offset += size;
+  };
+  read(&v->first_child_, nodes);
+  read(&v->child_count_, nodes);
+  read(&v->node_word_, nodes);
+  read(&v->word_node_, words);
+  read(&v->word_weight_, words);
+  read(&v->centres_, nodes * header.dimensions);
   v->checksum_ = v->ComputeChecksum();
   if (v->checksum_ != header.checksum) {
-    return Status::Corruption(path + ": checksum mismatch (file damaged)");
+    return Status::Corruption("checksum mismatch (file damaged)");
   }
-  PLACEDB_RETURN_IF_ERROR(v->Validate().WithContext(path));
+  PLACEDB_RETURN_IF_ERROR(v->Validate());
   return std::shared_ptr<const FloatVocabulary>(std::move(v));
 }
 

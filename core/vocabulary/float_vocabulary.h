@@ -23,6 +23,7 @@
 #include <memory>
 #include <span>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "core/base/status.h"
@@ -61,6 +62,10 @@ class FloatVocabulary {
 
   static Result<std::shared_ptr<const FloatVocabulary>> Load(const std::string& path);
   Status Save(const std::string& path) const;  // atomic: temp file + rename
+  // The bytes Save writes, and their parser (Load's checks; messages without the path): how a
+  // map stores the vocabulary it learned (core/storage).
+  std::string Serialize() const;
+  static Result<std::shared_ptr<const FloatVocabulary>> Parse(std::string_view bytes);
 
   FloatVocabulary(const FloatVocabulary&) = delete;
   FloatVocabulary& operator=(const FloatVocabulary&) = delete;

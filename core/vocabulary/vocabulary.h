@@ -17,6 +17,7 @@
 #include <memory>
 #include <span>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "core/base/status.h"
@@ -50,6 +51,10 @@ class Vocabulary {
 
   static Result<std::shared_ptr<const Vocabulary>> LoadBinary(const std::string& path);
   Status SaveBinary(const std::string& path) const;  // atomic: temp file + rename
+  // The bytes SaveBinary writes, and their parser (the checks of LoadBinary, without a path in
+  // the messages): how a map stores the vocabulary it learned (core/storage).
+  std::string SerializeBinary() const;
+  static Result<std::shared_ptr<const Vocabulary>> ParseBinary(std::string_view bytes);
   static Result<std::shared_ptr<const Vocabulary>> ImportDbow2Text(const std::string& path);
   Status ExportDbow2Text(const std::string& path) const;
   // Picks the format from the file's first bytes (binary magic, else DBoW2 text).
@@ -105,6 +110,9 @@ class Vocabulary {
     size_t total = 0;
   };
   static BlockLayout LayoutFor(uint64_t node_count, uint64_t word_count);
+  // CORRUPTION unless the block's size fits the counts and `total_bytes` = header + block.
+  static Status CheckBlockSize(uint32_t node_count, uint32_t word_count, uint64_t block_bytes,
+                               uint64_t total_bytes);
 
   // A vocabulary owning a block sized for the counts (zeroed unless a file is about to fill it),
   // every array pointer bound, the parameters stored both in the members and in the block's

@@ -422,22 +422,122 @@ uint64_t Checksum64(const void* data, size_t bytes, uint64_t seed) {
   return state.Finish();
 }
 
-Status Vocabulary::SaveBinary(const std::string& path) const {
+namespace {
+
+FileHeader HeaderOf(const Vocabulary& vocabulary) {
   FileHeader header{};
   std::memcpy(header.magic, kMagic, sizeof(kMagic));
   header.version = kFormatVersion;
   header.header_bytes = sizeof(FileHeader);
-  header.branching = branching_;
-  header.depth = depth_;
-  header.scoring = static_cast<int32_t>(scoring_);
-  header.weighting = static_cast<int32_t>(weighting_);
-  header.node_count = node_count_;
-  header.word_count = word_count_;
-  header.block_bytes = block_bytes_;
-  header.checksum = checksum_;
+  header.branching = vocabulary.branching();
+  header.depth = vocabulary.depth();
+  header.scoring = static_cast<int32_t>(vocabulary.default_scoring());
+  header.weighting = static_cast<int32_t>(vocabulary.weighting());
+  header.node_count = vocabulary.node_count();
+  header.word_count = vocabulary.word_count();
+  header.block_bytes = vocabulary.memory_bytes();
+  header.checksum = vocabulary.checksum();
   header.header_checksum = Checksum64(&header, kHeaderChecksummedBytes);
+  return header;
+}
+
+}  // namespace
+
+Status Vocabulary::SaveBinary(const std::string& path) const {
+  const FileHeader header = HeaderOf(*this);
   return WriteFileAtomically(path, {{&header, sizeof(header)}, {block_, block_bytes_}})
       .WithContext("saving vocabulary");
+}
+
+std::string Vocabulary::SerializeBinary() const {
+  const FileHeader header = HeaderOf(*this);
+  std::string bytes(sizeof(header) + block_bytes_, '\0');
+  std::memcpy(bytes.data(), &header, sizeof(header));
+  std::memcpy(bytes.data() + sizeof(header), block_, block_bytes_);
+  return bytes;
+}
+
+namespace {
+
+// The checks of a binary vocabulary's header, for a file or buffer of `total_bytes` whose first
+// `got` bytes were read into `header`.
+Status CheckBinaryHeader(const FileHeader& header, size_t got, uint64_t total_bytes) {
+  if (got < sizeof(kMagic) || std::memcmp(header.magic, kMagic, sizeof(kMagic)) != 0) {
+    return Status::InvalidArgument("not a placedb binary vocabulary (bad magic)");
+  }
+  if (got < sizeof(header)) {
+    return Status::Corruption("truncated header: the file has only " + std::to_string(total_bytes) +
+                              " bytes");
+  }
+  if (header.version != kFormatVersion) {
+    return Status::InvalidArgument("unsupported format version " + std::to_string(header.version) +
+                                   " (this build reads " + std::to_string(kFormatVersion) + ")");
+  }
+  if (header.header_bytes != sizeof(FileHeader)) {
+    return Status::Corruption("bad header size " + std::to_string(header.header_bytes));
+  }
+  if (Checksum64(&header, kHeaderChecksummedBytes) != header.header_checksum) {
+    return Status::Corruption("header checksum mismatch");
+  }
+  if (header.branching < 2 || header.branching > 1024 || header.depth < 1 || header.depth > 32 ||
+      header.scoring < 0 || header.scoring > 5 || header.weighting < 0 || header.weighting > 3) {
+    return Status::Corruption("bad parameters in header: k " + std::to_string(header.branching) +
+                              ", L " + std::to_string(header.depth) + ", scoring " +
+                              std::to_string(header.scoring) + ", weighting " +
+                              std::to_string(header.weighting));
+  }
+  if (header.node_count < 2 || header.word_count < 1 || header.word_count >= header.node_count ||
+      header.node_count == Vocabulary::kNoWord) {
+    return Status::Corruption("inconsistent counts: " + std::to_string(header.node_count) +
+                              " nodes, " + std::to_string(header.word_count) + " words");
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
+Status Vocabulary::CheckBlockSize(uint32_t node_count, uint32_t word_count, uint64_t block_bytes,
+                                  uint64_t total_bytes) {
+  const BlockLayout layout = LayoutFor(node_count, word_count);
+  if (block_bytes != layout.total) {
+    return Status::Corruption("block size " + std::to_string(block_bytes) + " does not match " +
+                              std::to_string(node_count) + " nodes and " +
+                              std::to_string(word_count) + " words (expected " +
+                              std::to_string(layout.total) + ")");
+  }
+  const uint64_t expected_bytes = sizeof(FileHeader) + block_bytes;
+  if (total_bytes < expected_bytes) {
+    return Status::Corruption("truncated: the file has " + std::to_string(total_bytes) +
+                              " bytes, the header announces " + std::to_string(expected_bytes));
+  }
+  if (total_bytes > expected_bytes) {
+    return Status::Corruption("the file has " + std::to_string(total_bytes - expected_bytes) +
+                              " unexpected trailing bytes");
+  }
+  return Status::Ok();
+}
+
+Result<std::shared_ptr<const Vocabulary>> Vocabulary::ParseBinary(std::string_view bytes) {
+  FileHeader header{};
+  const size_t got = std::min(bytes.size(), sizeof(header));
+  std::memcpy(&header, bytes.data(), got);
+  PLACEDB_RETURN_IF_ERROR(CheckBinaryHeader(header, got, bytes.size()));
+  PLACEDB_RETURN_IF_ERROR(
+      CheckBlockSize(header.node_count, header.word_count, header.block_bytes, bytes.size()));
+  auto allocated =
+      Allocate(header.branching, header.depth, static_cast<ScoringType>(header.scoring),
+               static_cast<WeightingType>(header.weighting), header.node_count, header.word_count,
+               /*zero_fill=*/false);
+  if (!allocated.ok()) return allocated.status();
+  std::unique_ptr<Vocabulary> vocabulary = std::move(allocated).value();
+  std::memcpy(vocabulary->block_, bytes.data() + sizeof(header), vocabulary->block_bytes_);
+  const uint64_t checksum = Checksum64(vocabulary->block_, vocabulary->block_bytes_);
+  if (checksum != header.checksum) {
+    return Status::Corruption("checksum mismatch: the data is damaged");
+  }
+  PLACEDB_RETURN_IF_ERROR(vocabulary->ValidateBlock());
+  vocabulary->checksum_ = checksum;
+  return std::shared_ptr<const Vocabulary>(std::move(vocabulary));
 }
 
 Result<std::shared_ptr<const Vocabulary>> Vocabulary::LoadBinary(const std::string& path) {
@@ -454,53 +554,11 @@ Result<std::shared_ptr<const Vocabulary>> Vocabulary::LoadBinary(const std::stri
   FileHeader header{};
   auto got = ReadFully(fd.get(), &header, sizeof(header), path);
   if (!got.ok()) return fail(got.status());
-  if (*got < sizeof(kMagic) || std::memcmp(header.magic, kMagic, sizeof(kMagic)) != 0) {
-    return fail(Status::InvalidArgument("not a placedb binary vocabulary (bad magic)"));
-  }
-  if (*got < sizeof(header)) {
-    return fail(Status::Corruption("truncated header: the file has only " +
-                                   std::to_string(file_bytes) + " bytes"));
-  }
-  if (header.version != kFormatVersion) {
-    return fail(Status::InvalidArgument("unsupported format version " +
-                                        std::to_string(header.version) + " (this build reads " +
-                                        std::to_string(kFormatVersion) + ")"));
-  }
-  if (header.header_bytes != sizeof(FileHeader)) {
-    return fail(Status::Corruption("bad header size " + std::to_string(header.header_bytes)));
-  }
-  if (Checksum64(&header, kHeaderChecksummedBytes) != header.header_checksum) {
-    return fail(Status::Corruption("header checksum mismatch"));
-  }
-  if (header.branching < 2 || header.branching > 1024 || header.depth < 1 || header.depth > 32 ||
-      header.scoring < 0 || header.scoring > 5 || header.weighting < 0 || header.weighting > 3) {
-    return fail(Status::Corruption(
-        "bad parameters in header: k " + std::to_string(header.branching) + ", L " +
-        std::to_string(header.depth) + ", scoring " + std::to_string(header.scoring) +
-        ", weighting " + std::to_string(header.weighting)));
-  }
-  if (header.node_count < 2 || header.word_count < 1 || header.word_count >= header.node_count ||
-      header.node_count == kNoWord) {
-    return fail(Status::Corruption("inconsistent counts: " + std::to_string(header.node_count) +
-                                   " nodes, " + std::to_string(header.word_count) + " words"));
-  }
-  const BlockLayout layout = LayoutFor(header.node_count, header.word_count);
-  if (header.block_bytes != layout.total) {
-    return fail(Status::Corruption("block size " + std::to_string(header.block_bytes) +
-                                   " does not match " + std::to_string(header.node_count) +
-                                   " nodes and " + std::to_string(header.word_count) +
-                                   " words (expected " + std::to_string(layout.total) + ")"));
-  }
-  const uint64_t expected_bytes = sizeof(FileHeader) + header.block_bytes;
-  if (file_bytes < expected_bytes) {
-    return fail(Status::Corruption("truncated: the file has " + std::to_string(file_bytes) +
-                                   " bytes, the header announces " +
-                                   std::to_string(expected_bytes)));
-  }
-  if (file_bytes > expected_bytes) {
-    return fail(Status::Corruption("the file has " + std::to_string(file_bytes - expected_bytes) +
-                                   " unexpected trailing bytes"));
-  }
+  const Status header_ok = CheckBinaryHeader(header, *got, file_bytes);
+  if (!header_ok.ok()) return fail(header_ok);
+  const Status size_ok =
+      CheckBlockSize(header.node_count, header.word_count, header.block_bytes, file_bytes);
+  if (!size_ok.ok()) return fail(size_ok);
 
   auto allocated =
       Allocate(header.branching, header.depth, static_cast<ScoringType>(header.scoring),
