@@ -328,19 +328,35 @@ class InProcessBackend final : public Backend {
       auto cached = learned_.find(key);
       if (cached == learned_.end()) {
         VocabularyLearner learner(config.feature_type, *learning_);
-        DatabaseFigures ignored;
+        std::vector<std::pair<size_t, ProcessedFrame>> stored;
         PLACEDB_RETURN_IF_ERROR(
-            Build(inputs, filtering, pixels_only, *database, &ignored, &learner));
+            Build(inputs, filtering, pixels_only, *database, &run.database, &learner, &stored));
         auto learned = learner.Learn();
         if (!learned.ok()) return learned.status().WithContext("database of " + dataset.name);
         cached = learned_.emplace(key, std::move(learned).value()).first;
+        // The stored frames transformed again with the learned vocabulary, as a map switching
+        // vocabularies does (no second extraction).
+        auto relearned = PlaceDatabase::Create(cached->second.vocabulary, config);
+        if (!relearned.ok()) return relearned.status();
+        const uint64_t invalid = database->Stats().invalid_rejected;
+        database = std::move(relearned).value();
+        if (invalid > 0) database->CountInvalid(invalid);
+        run.database.encoded_bytes = 0;
+        for (auto& [index, frame] : stored) {
+          PLACEDB_RETURN_IF_ERROR(database->Retransform(&frame));
+          const PlaceMetadata metadata = Metadata(dataset.database[index], index);
+          auto id = database->Insert(frame, metadata);
+          if (!id.ok()) return id.status();
+          run.database.encoded_bytes += EncodedBytes(frame, metadata, *id);
+        }
+      } else {
+        auto relearned = PlaceDatabase::Create(cached->second.vocabulary, config);
+        if (!relearned.ok()) return relearned.status();
+        database = std::move(relearned).value();
+        PLACEDB_RETURN_IF_ERROR(
+            Build(inputs, filtering, pixels_only, *database, &run.database, nullptr));
       }
       const LearnedVocabulary& learned = cached->second;
-      auto relearned = PlaceDatabase::Create(learned.vocabulary, config);
-      if (!relearned.ok()) return relearned.status();
-      database = std::move(relearned).value();
-      PLACEDB_RETURN_IF_ERROR(
-          Build(inputs, filtering, pixels_only, *database, &run.database, nullptr));
       run.database.learned_words = learned.vocabulary.word_count();
       run.database.learned_depth = learned.shape.depth;
       run.database.learned_from_descriptors = learned.descriptors_sampled;
@@ -381,9 +397,10 @@ class InProcessBackend final : public Backend {
 
  private:
   // Processes and inserts every database entry; `learner`, when given, is offered each stored
-  // place's SC features.
+  // place's SC features, and `stored` receives the stored frames with their entry's index.
   Status Build(const EvalInputs& inputs, bool filtering, bool pixels_only, PlaceDatabase& db,
-               DatabaseFigures* figures, VocabularyLearner* learner) {
+               DatabaseFigures* figures, VocabularyLearner* learner,
+               std::vector<std::pair<size_t, ProcessedFrame>>* stored = nullptr) {
     const Dataset& dataset = *inputs.dataset;
     const size_t n = dataset.database.size();
     std::vector<std::optional<ProcessedFrame>> processed(n);
@@ -407,18 +424,24 @@ class InProcessBackend final : public Backend {
       auto id = db.Insert(frame, metadata);
       if (!id.ok()) return id.status();
       if (learner) PLACEDB_RETURN_IF_ERROR(learner->Offer(*id, frame.static_features));
-      // What a durable map writes for this place (map_store: three values under 4-byte keys).
-      PlaceRecord record;
-      record.id = *id;
-      record.metadata = metadata;
-      record.counts = frame.counts;
-      record.boxes_used = frame.boxes_used;
-      figures->encoded_bytes += EncodePlaceRecord(record).size() + EncodeBow(frame.bow).size() +
-                                EncodeLocalFeatures(frame.static_features, frame.direct).size() +
-                                3 * PlaceKey(*id).size();
+      figures->encoded_bytes += EncodedBytes(frame, metadata, *id);
+      if (stored) stored->emplace_back(i, std::move(*processed[i]));
       processed[i].reset();
     }
     return Status::Ok();
+  }
+
+  // What a durable map writes for a place (map_store: three values under 4-byte keys).
+  static uint64_t EncodedBytes(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                               PlaceId id) {
+    PlaceRecord record;
+    record.id = id;
+    record.metadata = metadata;
+    record.counts = frame.counts;
+    record.boxes_used = frame.boxes_used;
+    return EncodePlaceRecord(record).size() + EncodeBow(frame.bow).size() +
+           EncodeLocalFeatures(frame.static_features, frame.direct).size() +
+           3 * PlaceKey(id).size();
   }
 
   static PlaceMetadata Metadata(const Entry& entry, size_t index) {

@@ -9,6 +9,7 @@
 #include <opencv2/core.hpp>
 #include <thread>
 
+#include "core/vocabulary/vocabulary_learning.h"
 #include "tests/test_support.h"
 
 namespace placedb {
@@ -58,6 +59,62 @@ TEST_F(PlaceDatabaseTest, CreateRejectsBadConfig) {
 
   EXPECT_EQ(PlaceDatabase::Create(AnyVocabulary(), {}).status().code(),
             StatusCode::kInvalidArgument);
+}
+
+// A map that switches vocabularies (issue 29) transforms a frame processed before the switch
+// again: Retransform gives what processing the frame with the new vocabulary gives.
+TEST_F(PlaceDatabaseTest, RetransformGivesWhatTheOtherVocabularyProcesses) {
+  DatabaseConfig whole_boxes;
+  whole_boxes.box_refinement.method = BoxRefinement::kNone;
+  auto fixed = MakeDatabase(whole_boxes);
+  LearningOptions options;
+  options.min_descriptors = 1000;
+  options.min_places = 5;
+  options.depth = 4;
+  VocabularyLearner learner(FeatureType::kOrb, options);
+  for (int index = 1; index <= 12; ++index) {
+    auto frame = fixed->Process(Frame(index));
+    ASSERT_TRUE(frame.ok()) << frame.status().ToString();
+    ASSERT_TRUE(learner.Offer(uint64_t(index), frame->static_features).ok());
+  }
+  auto learned = learner.Learn();
+  ASSERT_TRUE(learned.ok()) << learned.status().ToString();
+  auto created = PlaceDatabase::Create(learned->vocabulary, whole_boxes);
+  ASSERT_TRUE(created.ok()) << created.status().ToString();
+  PlaceDatabase& switched = **created;
+
+  Observation observation = Frame(5);
+  // A person box over the left half: DC words for the short-term tier too.
+  observation.dynamic.boxes.push_back(
+      {0, 0.9f, cv::Rect2f(0, 0, observation.image.cols / 2.0f, float(observation.image.rows))});
+  auto before = fixed->Process(observation);
+  auto expected = switched.Process(observation);
+  ASSERT_TRUE(before.ok() && expected.ok());
+  ASSERT_TRUE(before->valid);
+  ASSERT_FALSE(before->dynamic_bow.empty());
+  EXPECT_TRUE(fixed->OfThisVocabulary(*before));
+  EXPECT_FALSE(switched.OfThisVocabulary(*before));
+  EXPECT_NE(before->bow, expected->bow);
+
+  ProcessedFrame frame = *before;
+  ASSERT_TRUE(switched.Retransform(&frame).ok());
+  EXPECT_TRUE(switched.OfThisVocabulary(frame));
+  EXPECT_EQ(frame.vocabulary_checksum, learned->vocabulary.checksum());
+  EXPECT_EQ(frame.bow, expected->bow);
+  EXPECT_EQ(frame.direct, expected->direct);
+  EXPECT_EQ(frame.dynamic_bow, expected->dynamic_bow);
+  EXPECT_EQ(frame.dynamic_direct, expected->dynamic_direct);
+  // Already of this vocabulary: nothing changes.
+  ASSERT_TRUE(switched.Retransform(&frame).ok());
+  EXPECT_EQ(frame.bow, expected->bow);
+
+  // The retransformed frame is stored and found as the new vocabulary's own frames are.
+  auto id = switched.Insert(frame, observation.metadata);
+  ASSERT_TRUE(id.ok()) << id.status().ToString();
+  auto found = switched.Query(observation, {});
+  ASSERT_TRUE(found.ok());
+  ASSERT_FALSE(found->matches.empty());
+  EXPECT_EQ(found->matches.front().place, *id);
 }
 
 TEST_F(PlaceDatabaseTest, AddStoresStaticFeaturesAndReportsCounts) {

@@ -227,6 +227,7 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, Fr
                                               const ThumbnailSettings* thumbnail,
                                               bool keep_dropped_keypoints) const {
   ProcessedFrame frame;
+  frame.vocabulary_checksum = vocabulary_.checksum();
   Stopwatch total;
   Stopwatch stage;
 
@@ -418,6 +419,36 @@ Status PlaceDatabase::Finish(ProcessedFrame* frame, Stopwatch* stage) const {
                                                 config_.verification.levels_up));
   NormalizeForScoring(&frame->bow, config_.scoring);
   frame->timings.transform_ms += stage->Lap();
+  return Status::Ok();
+}
+
+bool PlaceDatabase::OfThisVocabulary(const ProcessedFrame& frame) const {
+  return frame.vocabulary_checksum == vocabulary_.checksum();
+}
+
+Status PlaceDatabase::Retransform(ProcessedFrame* frame) const {
+  if (OfThisVocabulary(*frame)) return Status::Ok();
+  if (frame->stream_pending) {
+    return Status::FailedPrecondition("a pending stream frame is transformed by AdvanceStream");
+  }
+  frame->vocabulary_checksum = vocabulary_.checksum();
+  frame->bow.clear();
+  frame->direct = DirectIndex{};
+  if (frame->valid) {
+    PLACEDB_RETURN_IF_ERROR(vocabulary_.Transform(frame->static_features, &frame->bow,
+                                                  &frame->direct, config_.verification.levels_up));
+    NormalizeForScoring(&frame->bow, config_.scoring);
+  }
+  // The DC words are made again only when the DC features were kept (ORB maps); otherwise the
+  // frame goes without the short-term tier.
+  frame->dynamic_bow.clear();
+  frame->dynamic_direct = DirectIndex{};
+  if (!frame->dynamic_features.empty()) {
+    PLACEDB_RETURN_IF_ERROR(vocabulary_.Transform(frame->dynamic_features, &frame->dynamic_bow,
+                                                  &frame->dynamic_direct,
+                                                  config_.verification.levels_up));
+    NormalizeForScoring(&frame->dynamic_bow, config_.scoring);
+  }
   return Status::Ok();
 }
 

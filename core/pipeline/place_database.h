@@ -173,6 +173,9 @@ struct ProcessedFrame {
   DirectIndex direct;  // SC only, at verification.levels_up
   std::vector<DynamicBox> boxes_used;
   StageTimings timings;
+  // The checksum of the vocabulary `bow`, `direct` and the DC vectors were made with: a map that
+  // switched vocabularies (issue 29) transforms a frame processed before the switch again.
+  uint64_t vocabulary_checksum = 0;
   // The short-term tier (config.short_term.enabled): the DC descriptors' BoW vector, normalised
   // for the database's scoring, and (ORB maps: FeatureExtractor::verifies_dynamic_features) the
   // DC features with their direct index, so that verification against a recent place can use the
@@ -405,6 +408,12 @@ class PlaceDatabase {
   Result<ProcessedFrame> Process(const Observation& observation, FrameRole role = FrameRole::kQuery,
                                  const ThumbnailSettings* thumbnail = nullptr,
                                  bool keep_dropped_keypoints = false) const;
+  // Whether `frame` was transformed with this database's vocabulary (ProcessedFrame::
+  // vocabulary_checksum). Retransform makes its BoW vectors and direct indices again with it
+  // from the frame's features (the DC vector only when the DC features were kept: ORB maps);
+  // nothing when it already is. FAILED_PRECONDITION for a frame still pending AdvanceStream.
+  bool OfThisVocabulary(const ProcessedFrame& frame) const;
+  Status Retransform(ProcessedFrame* frame) const;
   // Finishes a kStream frame: Algorithm 1 with the agent's stream state (frames of one agent
   // must arrive here in order), then validity and transform. No-op unless `stream_pending`.
   Status AdvanceStream(ProcessedFrame* frame, const std::string& agent_id);
