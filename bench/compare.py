@@ -39,6 +39,11 @@ BENCHMARKS = [
      "quick": ["--vocabulary", "{vocabulary}", "--places", "1000,10000"],
      "full": ["--vocabulary", "{vocabulary}", "--places", "1000,10000,100000,1000000"],
      "needs": ["{vocabulary}", "{shared}/data/camvid"]},
+    # Issue 29: learning a map's vocabulary and re-indexing with it; baseline the fixed one.
+    {"name": "vocabulary-learning", "binary": "placedb-bench-vocabulary-learning",
+     "quick": ["--vocabulary", "{vocabulary}", "--places", "10000"],
+     "full": ["--vocabulary", "{vocabulary}", "--places", "10000,100000"],
+     "needs": ["{vocabulary}", "{shared}/data/rtabmap-loop"]},
     {"name": "decode", "binary": "placedb-bench-decode",
      "quick": ["--rounds", "5"], "full": [],
      "needs": ["{shared}/data/rgbd-people"]},
