@@ -95,7 +95,7 @@ TEST(VocabularyLearning, LearnsABinaryVocabularyFromStoredPlaces) {
   EXPECT_EQ(a, b);
 }
 
-TEST(VocabularyLearning, TheSampleIsBoundedAndDoesNotDependOnTheOrder) {
+TEST(VocabularyLearning, TheSampleIsBoundedAndDependsOnNeitherOrderNorThreads) {
   LearningOptions options = SmallOptions();
   options.max_sample_descriptors = 2000;
   std::vector<uint64_t> ids;
@@ -124,6 +124,13 @@ TEST(VocabularyLearning, TheSampleIsBoundedAndDoesNotDependOnTheOrder) {
   EXPECT_EQ(ascending.places_sampled, mixed.places_sampled);
   EXPECT_EQ(ascending.descriptors_sampled, mixed.descriptors_sampled);
   EXPECT_EQ(ascending.vocabulary.checksum(), mixed.vocabulary.checksum());
+
+  // Nor on the thread count: replicas of a map learn byte-identical vocabularies.
+  options.threads = 1;
+  const LearnedVocabulary one_thread = learn(shuffled);
+  EXPECT_EQ(one_thread.vocabulary.checksum(), ascending.vocabulary.checksum());
+  EXPECT_EQ(one_thread.vocabulary.Serialize(), ascending.vocabulary.Serialize());
+  options.threads = 2;
 
   // Another seed samples other places (and so learns another vocabulary).
   options.seed = 2;
