@@ -275,6 +275,8 @@ struct RunFlags {
   client::ConnectionOptions connection;  // --server's TLS files and token (address = --server)
   bool learn_vocabulary = false;
   LearningOptions learning;
+  bool incremental_words = false;
+  IncrementalWordsOptions incremental;
 };
 
 // The flags of the configuration grid, the filter and the detector.
@@ -352,6 +354,17 @@ void RegisterRun(CLI::App& app, RunFlags* f) {
                   "--learn-vocabulary: branching k (0 = from the amount of data)");
   run->add_option("--learn-sample", f->learning.max_sample_descriptors,
                   "--learn-vocabulary: at most this many descriptors sampled (0 = default)");
+  run->add_flag("--incremental-words", f->incremental_words,
+                "instead of a vocabulary, each database grows its own binary words as places are "
+                "added (iBoW-LCD style, issue 29); with --geom none, in-process only");
+  run->add_option("--incremental-ratio", f->incremental.ratio,
+                  "--incremental-words: ratio test of the two nearest words");
+  run->add_option("--incremental-max-distance", f->incremental.max_distance,
+                  "--incremental-words: a match is at most this many bits away");
+  run->add_option("--incremental-bucket-levels", f->incremental.bucket_levels,
+                  "--incremental-words: depth of the fixed vocabulary's search buckets");
+  run->add_flag("--incremental-merge-and", f->incremental.merge_and,
+                "--incremental-words: a merged word becomes the AND of its descriptors");
   run->add_option("--server", f->server, "run against a live placedb-server at ADDRESS");
   // The CLI's connection flags (docs/cli.md), for --server.
   run->add_flag("--tls", f->connection.tls, "--server: connect with TLS (TLS 1.2+)");
@@ -478,6 +491,11 @@ int Run(RunFlags& f) {
   auto vocabulary = Vocabulary::Load(f.vocabulary_path);
   if (!vocabulary.ok()) return Fail(vocabulary.status().WithContext(f.vocabulary_path));
   std::unique_ptr<Backend> backend;
+  if (f.incremental_words &&
+      (f.learn_vocabulary || !f.server.empty() || options.geoms != std::vector<int>{kNoGeom})) {
+    return Fail(Status::InvalidArgument(
+        "--incremental-words: in-process, with --geom none and without --learn-vocabulary"));
+  }
   if (f.learn_vocabulary && !f.server.empty()) {
     return Fail(Status::InvalidArgument("--learn-vocabulary: in-process only, not with --server"));
   }
@@ -487,8 +505,9 @@ int Run(RunFlags& f) {
     if (!valid.ok()) return Fail(valid.WithContext("--learn-vocabulary"));
   }
   if (f.server.empty()) {
-    backend = MakeInProcessBackend(*vocabulary, options.threads,
-                                   f.learn_vocabulary ? std::optional(f.learning) : std::nullopt);
+    backend = MakeInProcessBackend(
+        *vocabulary, options.threads, f.learn_vocabulary ? std::optional(f.learning) : std::nullopt,
+        f.incremental_words ? std::optional(f.incremental) : std::nullopt);
   } else {
     client::ConnectionOptions connection = f.connection;
     connection.address = f.server;

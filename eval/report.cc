@@ -369,12 +369,15 @@ std::string MarkdownReport(const RunResults& results, const std::string& title) 
      << "\n";
   for (const MethodRun& run : results.runs) {
     if (run.database.learned_words == 0 || run.geom != results.runs.front().geom) continue;
-    md << "- vocabulary learned by the " << run.method << " database at " << run.features
-       << " features"
-       << (run.method == kBoBWDO ? " (boxes >= " + Fixed(run.confidence, 2) + ")" : "") << ": "
-       << run.database.learned_words << " words, L=" << run.database.learned_depth << ", from "
-       << run.database.learned_from_descriptors << " stored descriptors in "
-       << Fixed(run.database.learn_seconds, 1) << " s\n";
+    md << "- the " << run.method << " database at " << run.features << " features"
+       << (run.method == kBoBWDO ? " (boxes >= " + Fixed(run.confidence, 2) + ")" : "") << ": ";
+    if (run.database.learned_depth == 0) {  // incremental words
+      md << run.database.learned_words << " words grown from its stored descriptors\n";
+      continue;
+    }
+    md << "learned " << run.database.learned_words << " words, L=" << run.database.learned_depth
+       << ", from " << run.database.learned_from_descriptors << " stored descriptors in "
+       << Fixed(run.database.learn_seconds, 2) << " s\n";
   }
   md << "- top-1 accuracy (%): the best-ranked place is a ground-truth place and, with "
         "verification (only the best candidate is verified; >= "

@@ -242,13 +242,17 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
 class InProcessBackend final : public Backend {
  public:
   InProcessBackend(std::shared_ptr<const Vocabulary> vocabulary, int threads,
-                   std::optional<LearningOptions> learning)
+                   std::optional<LearningOptions> learning,
+                   std::optional<IncrementalWordsOptions> incremental)
       : vocabulary_(std::move(vocabulary)),
         threads_(std::max(1, threads)),
-        learning_(std::move(learning)) {}
+        learning_(std::move(learning)),
+        incremental_(std::move(incremental)) {}
 
   std::string Name() const override {
-    return learning_ ? "in-process, map-learned vocabulary" : "in-process";
+    return learning_      ? "in-process, map-learned vocabulary"
+           : incremental_ ? "in-process, incremental words (iBoW-style)"
+                          : "in-process";
   }
   double ExtractMeanMs() const override { return extract_mean_ms_; }
 
@@ -316,6 +320,7 @@ class InProcessBackend final : public Backend {
     colour_for_boxes_ = config.box_refinement.method == BoxRefinement::kGrabCut;
     MethodRun run;
     Stopwatch build;
+    if (incremental_) return RunIncremental(inputs, filtering, pixels_only, *database, top_k);
     if (!learning_) {
       PLACEDB_RETURN_IF_ERROR(
           Build(inputs, filtering, pixels_only, *database, &run.database, nullptr));
@@ -396,6 +401,50 @@ class InProcessBackend final : public Backend {
   }
 
  private:
+  // The incremental alternative (eval/incremental_words.h): the stored frames' SC descriptors
+  // grow the words in database order; queries rank by them (no verification).
+  Result<MethodRun> RunIncremental(const EvalInputs& inputs, bool filtering, bool pixels_only,
+                                   PlaceDatabase& db, size_t top_k) {
+    const Dataset& dataset = *inputs.dataset;
+    MethodRun run;
+    Stopwatch build;
+    std::vector<std::pair<size_t, ProcessedFrame>> stored;
+    PLACEDB_RETURN_IF_ERROR(
+        Build(inputs, filtering, pixels_only, db, &run.database, nullptr, &stored));
+    IncrementalWords words(*vocabulary_, *incremental_);
+    for (const auto& [index, frame] : stored) {
+      words.AddPlace(uint32_t(index), frame.static_features.orb()->descriptors);
+    }
+    run.database.build_seconds = build.ElapsedMs() / 1000.0;
+    const DatabaseStats stats = db.Stats();
+    run.database.places = stats.places;
+    run.database.invalid = stats.invalid_rejected;
+    run.database.descriptors_kept = stats.descriptors_kept;
+    run.database.descriptors_dropped = stats.descriptors_dropped;
+    run.database.learned_words = uint32_t(words.word_count());
+    for (size_t q = 0; q < dataset.queries.size(); ++q) {
+      Stopwatch watch;
+      auto frame = db.Process(Observe(inputs, q, true, filtering, pixels_only));
+      if (!frame.ok()) return frame.status().WithContext("query " + dataset.queries[q].id);
+      std::vector<RankedMatch> ranked;
+      Stopwatch match;
+      if (frame->valid) {
+        for (const auto& [index, score] :
+             words.Query(frame->static_features.orb()->descriptors, top_k)) {
+          ranked.push_back({int(index), score, false, 0});
+        }
+      }
+      QueryOutcome outcome = ScoreQuery(ranked, inputs.truth[q], false);
+      outcome.valid = frame->valid;
+      outcome.match_ms = match.ElapsedMs();
+      outcome.latency_ms = watch.ElapsedMs() - frame->timings.extract_ms;
+      outcome.kept = frame->counts.static_;
+      outcome.dropped = frame->counts.dynamic;
+      run.queries.push_back(outcome);
+    }
+    return run;
+  }
+
   // Processes and inserts every database entry; `learner`, when given, is offered each stored
   // place's SC features, and `stored` receives the stored frames with their entry's index.
   Status Build(const EvalInputs& inputs, bool filtering, bool pixels_only, PlaceDatabase& db,
@@ -478,6 +527,8 @@ class InProcessBackend final : public Backend {
   int threads_;
   // Set: each database learns its vocabulary from its own stored places (fixed: vocabulary_).
   std::optional<LearningOptions> learning_;
+  // Set: the incremental alternative instead of a vocabulary (RunIncremental).
+  std::optional<IncrementalWordsOptions> incremental_;
   // The vocabularies learned for the current budget, by (BoBW+DO, box confidence).
   std::map<std::pair<bool, float>, LearnedVocabulary> learned_;
   std::vector<FeatureSet> database_features_;
@@ -679,9 +730,10 @@ QueryOutcome ScoreQuery(const std::vector<RankedMatch>& matches, const std::vect
 }
 
 std::unique_ptr<Backend> MakeInProcessBackend(std::shared_ptr<const Vocabulary> vocabulary,
-                                              int threads,
-                                              std::optional<LearningOptions> learning) {
-  return std::make_unique<InProcessBackend>(std::move(vocabulary), threads, std::move(learning));
+                                              int threads, std::optional<LearningOptions> learning,
+                                              std::optional<IncrementalWordsOptions> incremental) {
+  return std::make_unique<InProcessBackend>(std::move(vocabulary), threads, std::move(learning),
+                                            std::move(incremental));
 }
 
 Result<RunResults> RunEvaluation(const Dataset& dataset, const RunOptions& options,

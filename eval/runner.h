@@ -31,6 +31,7 @@
 #include "core/vocabulary/vocabulary.h"
 #include "core/vocabulary/vocabulary_learning.h"
 #include "eval/dataset.h"
+#include "eval/incremental_words.h"
 
 namespace placedb::eval {
 
@@ -153,9 +154,12 @@ class Backend {
 // With `learning`, each database is built with `vocabulary`, learns its own vocabulary from
 // its stored places' SC descriptors (core/vocabulary/vocabulary_learning.h; never from a query)
 // and is built again with it: the map-learned vocabulary of issue 29.
+// With `incremental` instead, each database grows its own binary words as places are added
+// (eval/incremental_words.h), the alternative of issue 29's item 5; NoGeom only.
 std::unique_ptr<Backend> MakeInProcessBackend(
     std::shared_ptr<const Vocabulary> vocabulary, int threads,
-    std::optional<LearningOptions> learning = std::nullopt);
+    std::optional<LearningOptions> learning = std::nullopt,
+    std::optional<IncrementalWordsOptions> incremental = std::nullopt);
 
 struct RunResults {
   std::string dataset_name;

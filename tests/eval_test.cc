@@ -335,6 +335,51 @@ TEST_F(EvalTest, RtabmapLoopMatchesTheRecognitionTest) {
   EXPECT_EQ(plain->database.encoded_bytes, with_do->database.encoded_bytes);
 }
 
+// Issue 29: each database learns its vocabulary from its own stored descriptors (never the
+// queries') and is rebuilt with it; the incremental alternative grows words instead.
+TEST_F(EvalTest, MapLearnedVocabularyAndIncrementalWordsOnTheRtabmapLoop) {
+  RtabmapOptions options;
+  options.directory = RtabmapDir();
+  auto dataset = PrepareRtabmap(options);
+  ASSERT_TRUE(dataset.ok()) << dataset.status().ToString();
+  RunOptions run = SmallRun({500}, {kNoGeom});
+  run.boxes = BoxInput::kNone;
+  run.short_term = false;
+
+  auto fixed_backend = MakeInProcessBackend(testing::DefaultVocabulary(), run.threads);
+  LearningOptions learning;
+  learning.threads = 2;
+  auto learned_backend = MakeInProcessBackend(testing::DefaultVocabulary(), run.threads, learning);
+  auto incremental_backend = MakeInProcessBackend(testing::DefaultVocabulary(), run.threads,
+                                                  std::nullopt, IncrementalWordsOptions{});
+  auto fixed = RunEvaluation(*dataset, run, *fixed_backend);
+  auto learned = RunEvaluation(*dataset, run, *learned_backend);
+  auto incremental = RunEvaluation(*dataset, run, *incremental_backend);
+  ASSERT_TRUE(fixed.ok() && learned.ok() && incremental.ok());
+  const MethodRun* a = Find(*fixed, 500, kNoGeom, kBoBW);
+  const MethodRun* b = Find(*learned, 500, kNoGeom, kBoBW);
+  const MethodRun* c = Find(*incremental, 500, kNoGeom, kBoBW);
+  ASSERT_TRUE(a && b && c);
+  EXPECT_EQ(a->database.learned_words, 0u);
+  // Learned from exactly what the database stored (all of it: under the sample bound).
+  EXPECT_GT(b->database.learned_words, 1000u);
+  EXPECT_EQ(b->database.learned_from_descriptors, b->database.descriptors_kept);
+  EXPECT_GE(b->database.learned_depth, 4);
+  EXPECT_LE(b->database.learned_depth, 6);
+  EXPECT_EQ(b->database.places, a->database.places);
+  EXPECT_GT(c->database.learned_words, 1000u);
+  const double fixed_top1 = Summarize(*fixed, *a, PaperBins()[0]).accuracy;
+  const double learned_top1 = Summarize(*learned, *b, PaperBins()[0]).accuracy;
+  const double incremental_top1 = Summarize(*incremental, *c, PaperBins()[0]).accuracy;
+  std::printf(
+      "[eval] rtabmap ORB 500 NoGeom: fixed %.1f %%, learned %.1f %%, incremental %.1f %%\n",
+      fixed_top1, learned_top1, incremental_top1);
+  EXPECT_GE(fixed_top1, 80.0);
+  EXPECT_GE(learned_top1, 80.0);
+  EXPECT_GE(incremental_top1, 80.0);
+  EXPECT_NE(learned->backend, fixed->backend);
+}
+
 Dataset CamVidSubset(int frames_per_sequence) {
   CamVidAdjacencyOptions options;
   options.camvid_dir = CamVidDir();
