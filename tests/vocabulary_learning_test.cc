@@ -65,9 +65,10 @@ LearningOptions SmallOptions() {
 }
 
 TEST(VocabularyLearning, ShapeFollowsTheAmountOfData) {
-  EXPECT_EQ(LearnedVocabularyShape(5'000).depth, 4);
-  EXPECT_EQ(LearnedVocabularyShape(20'000).depth, 4);
-  EXPECT_EQ(LearnedVocabularyShape(100'000).depth, 5);
+  EXPECT_EQ(LearnedVocabularyShape(500).depth, 4);
+  EXPECT_EQ(LearnedVocabularyShape(5'000).depth, 5);
+  EXPECT_EQ(LearnedVocabularyShape(20'000).depth, 6);
+  EXPECT_EQ(LearnedVocabularyShape(100'000).depth, 6);
   EXPECT_EQ(LearnedVocabularyShape(1'600'000).depth, 6);
   EXPECT_EQ(LearnedVocabularyShape(50'000'000).depth, 6);
   EXPECT_EQ(LearnedVocabularyShape(100'000).branching, 10);
@@ -82,8 +83,8 @@ TEST(VocabularyLearning, LearnsABinaryVocabularyFromStoredPlaces) {
   EXPECT_EQ(learned->places_offered, 60u);
   EXPECT_EQ(learned->descriptors_offered, 6000u);
   EXPECT_EQ(learned->descriptors_sampled, 6000u);  // under the bound: every place
-  EXPECT_EQ(learned->shape.depth, 4);
-  EXPECT_EQ(learned->vocabulary.depth(), 4);
+  EXPECT_EQ(learned->shape.depth, 5);  // 6000 descriptors
+  EXPECT_EQ(learned->vocabulary.depth(), 5);
   EXPECT_GT(learned->vocabulary.word_count(), 40u);
 
   // The map's places quantise with it: one place's own descriptors land on words it shares

@@ -29,7 +29,10 @@ uint64_t DefaultSample(FeatureType type) {
 VocabularyShape LearnedVocabularyShape(uint64_t descriptors) {
   VocabularyShape shape;
   shape.branching = 10;
-  const double levels = descriptors > 0 ? std::round(std::log10(double(descriptors))) : 0.0;
+  // One level more than the 10^L words the descriptors could fill, so that the leaves get down to
+  // single structures; beyond 10^5 descriptors L = 6 (deeper measured the same: the tree stops
+  // where the data runs out).
+  const double levels = descriptors > 0 ? std::ceil(std::log10(double(descriptors))) + 1 : 0.0;
   shape.depth = int(std::clamp(levels, 4.0, 6.0));
   return shape;
 }

@@ -39,9 +39,9 @@ struct VocabularyShape {
   int depth = 5;       // L
 };
 
-// The shape learned for `descriptors` training descriptors: k = 10 and L = round(log10(n)),
-// within [4, 6] (about one descriptor per potential word; docs/evaluation.md, "Map-learned
-// vocabulary", has the measurements behind it).
+// The shape learned for `descriptors` training descriptors: k = 10 and L = ceil(log10(n)) + 1,
+// within [4, 6]: 5 below 10^4 descriptors, else 6 (docs/evaluation.md, "Map-learned vocabulary",
+// has the measurements behind it: deeper trees won at NoGeom at every size measured).
 VocabularyShape LearnedVocabularyShape(uint64_t descriptors);
 
 struct LearningOptions {
