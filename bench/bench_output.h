@@ -22,6 +22,19 @@ inline double NowMs() {
       .count();
 }
 
+// The process's peak resident memory (VmHWM), in MB; 0 when unknown.
+inline double PeakRssMb() {
+  std::FILE* status = std::fopen("/proc/self/status", "r");
+  if (status == nullptr) return 0;
+  char line[256];
+  double kb = 0;
+  while (std::fgets(line, sizeof line, status) != nullptr) {
+    if (std::sscanf(line, "VmHWM: %lf kB", &kb) == 1) break;
+  }
+  std::fclose(status);
+  return kb / 1024;
+}
+
 inline double Median(std::vector<double> values) {
   if (values.empty()) return 0;
   std::sort(values.begin(), values.end());

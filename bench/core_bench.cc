@@ -41,6 +41,7 @@ namespace fs = std::filesystem;
 using namespace placedb;
 using bench::Median;
 using bench::NowMs;
+using bench::PeakRssMb;
 using bench::Print;
 
 namespace {
@@ -310,19 +311,6 @@ double ThreadCpuMs() {
   timespec ts;
   clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
   return double(ts.tv_sec) * 1e3 + double(ts.tv_nsec) / 1e6;
-}
-
-// The process's peak resident memory (VmHWM), in MB; 0 when unknown.
-double PeakRssMb() {
-  std::FILE* status = std::fopen("/proc/self/status", "r");
-  if (status == nullptr) return 0;
-  char line[256];
-  double kb = 0;
-  while (std::fgets(line, sizeof line, status) != nullptr) {
-    if (std::sscanf(line, "VmHWM: %lf kB", &kb) == 1) break;
-  }
-  std::fclose(status);
-  return kb / 1024;
 }
 
 // Agreement of the index's top 1 / top 10 with the exact ranking (unquantised weights, double

@@ -37,19 +37,8 @@ namespace {
 
 using bench::Median;
 using bench::NowMs;
+using bench::PeakRssMb;
 using bench::Print;
-
-double PeakRssMb() {
-  std::FILE* status = std::fopen("/proc/self/status", "r");
-  if (status == nullptr) return 0;
-  char line[256];
-  double kb = 0;
-  while (std::fgets(line, sizeof line, status) != nullptr) {
-    if (std::sscanf(line, "VmHWM: %lf kB", &kb) == 1) break;
-  }
-  std::fclose(status);
-  return kb / 1024;
-}
 
 // Place `id` of the synthetic map (see the workload above); `salt` makes queries differ.
 FeatureSet MakePlace(const std::vector<FeatureSet>& views, uint64_t id, uint64_t salt = 0) {

@@ -128,18 +128,22 @@ Result<LearnedVocabulary> VocabularyLearner::Learn(const LearningProgress& progr
   if (options_.branching) learned.shape.branching = options_.branching;
   if (options_.depth) learned.shape.depth = options_.depth;
 
+  // Both trainers take the same settings.
+  auto configure = [&](auto* config) {
+    config->branching = learned.shape.branching;
+    config->depth = learned.shape.depth;
+    config->seed = options_.seed;
+    config->threads = options_.threads;
+    config->weighting = options_.weighting;
+    config->scoring = options_.scoring;
+  };
   Stopwatch watch;
   if (type_ == FeatureType::kOrb) {
     std::vector<std::vector<Descriptor256>> images;
     images.reserve(places.size());
     for (const Place* place : places) images.push_back(place->binary);
     TrainerConfig config;
-    config.branching = learned.shape.branching;
-    config.depth = learned.shape.depth;
-    config.seed = options_.seed;
-    config.threads = options_.threads;
-    config.weighting = options_.weighting;
-    config.scoring = options_.scoring;
+    configure(&config);
     auto trained = TrainVocabulary(images, config, progress);
     if (!trained.ok()) return trained.status().WithContext("learning a vocabulary");
     learned.vocabulary = AnyVocabulary(std::move(trained).value());
@@ -148,12 +152,7 @@ Result<LearnedVocabulary> VocabularyLearner::Learn(const LearningProgress& progr
     images.reserve(places.size());
     for (const Place* place : places) images.push_back(place->floating);
     FloatTrainerConfig config;
-    config.branching = learned.shape.branching;
-    config.depth = learned.shape.depth;
-    config.seed = options_.seed;
-    config.threads = options_.threads;
-    config.weighting = options_.weighting;
-    config.scoring = options_.scoring;
+    configure(&config);
     auto trained = FloatVocabulary::Train(images, kSiftDimensions, config, progress);
     if (!trained.ok()) return trained.status().WithContext("learning a vocabulary");
     learned.vocabulary = AnyVocabulary(std::move(trained).value());
