@@ -60,7 +60,7 @@ class WriteBatch;
 namespace placedb {
 
 namespace detail {
-struct MapStorage;  // RocksDB handles of one map (map_store.cc)
+struct MapStorage;  // RocksDB handles of one map (map_storage.h)
 }  // namespace detail
 
 enum class SyncMode {
@@ -400,7 +400,7 @@ class PlaceMap {
   }
   // An aggregate of the dynamics family (MapDynamics, InvalidDynamics); `what` for messages.
   Result<PlaceDynamics> ReadAggregate(const char* key, const std::string& what) const;
-  // Place `id`'s value in a per-place column family (`family`: its index in map_store.cc's
+  // Place `id`'s value in a per-place column family (`family`: its index in map_storage.h's
   // list); nullopt when the place has none. NOT_FOUND for an absent place; `what` for messages.
   Result<std::optional<std::string>> ReadPlaceValue(PlaceId id, size_t family,
                                                     const std::string& what) const;

@@ -267,7 +267,7 @@ void MapSettingsSeeds() {
     MapOptions options;
     options.database.feature_type = type;
     const std::string name = FeatureTypeName(type);
-    // The map info as DataDirectory stores it (core/storage/map_store.cc EncodeInfo).
+    // The map info as DataDirectory stores it (core/storage/data_directory.cc EncodeInfo).
     nlohmann::json info;
     info["name"] = "fuzz-" + name;
     info["database"] = nlohmann::json::parse(EncodeDatabaseConfig(options.database));

@@ -1,0 +1,159 @@
+// The commit queue of a PlaceMap (commit_queue.h): PendingCommit, PlaceMap::Enqueue and the
+// committer thread that writes each group of queued places in one synced batch, then indexes
+// them and completes their commits.
+#include "core/storage/commit_queue.h"
+
+#include <rocksdb/write_batch.h>
+
+#include <algorithm>
+#include <utility>
+
+#include "core/storage/map_storage.h"
+
+namespace placedb {
+
+// The storage internals (map_storage.h) and their helpers, unqualified as in the rest of the
+// module.
+using namespace detail;
+
+const Result<AddResult>& PendingCommit::Wait() const {
+  MutexLock lock(mutex_);
+  while (!done_) done_cv_.Wait(mutex_);
+  return outcome_;
+}
+
+bool PendingCommit::done() const {
+  MutexLock lock(mutex_);
+  return done_;
+}
+
+void PendingCommit::Complete(Result<AddResult> outcome) {
+  {
+    MutexLock lock(mutex_);
+    outcome_ = std::move(outcome);
+    done_ = true;
+  }
+  done_cv_.NotifyAll();
+}
+
+std::shared_ptr<PendingCommit> PlaceMap::Enqueue(ProcessedFrame frame, PlaceMetadata metadata) {
+  auto pending = std::make_shared<PendingCommit>();
+  ReaderLock alive(lifecycle_);
+  if (closed_) {
+    pending->Complete(Deleted());
+    return pending;
+  }
+  // What Commit() refuses or stores at once is answered at once, exactly as Commit() does.
+  const DatabaseConfig& config = info_.options.database;
+  if (frame.stream_pending || !frame.valid || frame.static_features.type() != config.feature_type ||
+      frame.direct.levels_up != config.verification.levels_up) {
+    pending->Complete(CommitLocked(frame, metadata));
+    return pending;
+  }
+  QueuedPlace place;
+  place.pending = pending;
+  // Encoded here, on the caller's thread, so that callers encode in parallel; the committer
+  // only writes.
+  PlaceRecord record;
+  record.metadata = metadata;
+  record.counts = frame.counts;
+  record.boxes_used = frame.boxes_used;
+  std::string features = EncodeLocalFeatures(frame.static_features, frame.direct);
+  std::string bow = EncodeBow(frame.bow);
+  std::string dynamics;
+  if (storage_->dynamics) dynamics = EncodeDynamics(FrameDynamics(frame, metadata));
+  std::string thumbnail;
+  const bool has_thumbnail = frame.thumbnail && info_.options.thumbnails.enabled;
+  if (has_thumbnail) thumbnail = EncodeThumbnail(*frame.thumbnail);
+  CommitQueue& queue = *commits_;
+  {
+    MutexLock lock(queue.mutex);
+    // Reserved under the queue's lock: ids follow the order of the places in the batch.
+    record.id = database_->ReserveId();
+    place.id = record.id;
+    const std::string key = PlaceKey(record.id);
+    queue.batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
+    queue.batch.Put(storage_->cf(kBow), key, bow);
+    queue.batch.Put(storage_->cf(kFeatures), key, features);
+    if (storage_->dynamics) {
+      queue.batch.Merge(storage_->cf(kDynamics), key, dynamics);
+      queue.batch.Merge(storage_->cf(kDynamics), kMapDynamicsKey, dynamics);
+    }
+    if (has_thumbnail) queue.batch.Put(storage_->cf(kThumbnails), key, thumbnail);
+    place.frame = std::move(frame);
+    place.metadata = std::move(metadata);
+    queue.queued.push_back(std::move(place));
+  }
+  queue.wake.NotifyOne();
+  return pending;
+}
+
+void PlaceMap::RunCommitter() {
+  CommitQueue& queue = *commits_;
+  std::vector<QueuedPlace> group;
+  MutexLock lock(queue.mutex);
+  while (true) {
+    while (!queue.stopping && queue.queued.empty()) queue.wake.Wait(queue.mutex);
+    if (queue.queued.empty()) return;  // stopping, and everything queued is committed
+    // Everything queued so far is one group; what arrives meanwhile is the next one.
+    group.clear();
+    group.swap(queue.queued);
+    rocksdb::WriteBatch batch;
+    std::swap(batch, queue.batch);
+    lock.Unlock();
+    CommitGroup(&group, &batch);
+    lock.Lock();
+  }
+}
+
+void PlaceMap::CommitGroup(std::vector<QueuedPlace>* group, rocksdb::WriteBatch* batch) {
+  ReaderLock alive(lifecycle_);
+  Status written;
+  if (closed_) {
+    written = Deleted();
+  } else {
+    PlaceId highest = 0;
+    for (const QueuedPlace& place : *group) highest = std::max(highest, place.id);
+    const std::string what =
+        group->size() == 1
+            ? "storing place " + std::to_string(highest)
+            : "storing " + std::to_string(group->size()) + " places (group commit, ids " +
+                  std::to_string(group->front().id) + ".." + std::to_string(highest) + ")";
+    written = storage_->Write(batch, what, MapStorage::Kind::kAddition, highest, group->size());
+  }
+  for (QueuedPlace& place : *group) {
+    if (!written.ok()) {
+      place.pending->Complete(written);
+      continue;
+    }
+    // Durable: now make it searchable.
+    auto id = database_->Insert(place.frame, place.metadata, place.id);
+    if (!id.ok()) {
+      place.pending->Complete(id.status());
+      continue;
+    }
+    AddResult result;
+    result.stored = true;
+    result.id = *id;
+    result.counts = place.frame.counts;
+    result.boxes_used = std::move(place.frame.boxes_used);
+    result.timings = place.frame.timings;
+    result.depth_state = std::move(place.frame.depth_state);
+    result.timings.store_ms = place.since_enqueued.ElapsedMs();
+    result.timings.total_ms += result.timings.store_ms;
+    place.pending->Complete(std::move(result));
+  }
+  group->clear();  // the frames' memory goes now, not with the next group
+}
+
+void PlaceMap::StopCommitter() {
+  if (!commits_) return;
+  {
+    MutexLock lock(commits_->mutex);
+    commits_->stopping = true;
+  }
+  commits_->wake.NotifyAll();
+  if (commits_->thread.joinable()) commits_->thread.join();
+}
+
+}  // namespace placedb
