@@ -68,12 +68,20 @@ void IncrementalWords::AddPlace(uint32_t place, std::span<const Descriptor256> d
     }
     ++counts[uint32_t(word)];
   }
-  if (place_vectors_.size() <= place) place_vectors_.resize(place + 1);
-  for (const auto& [word, count] : counts) {
-    words_[word].places.emplace_back(place, count);
-    place_vectors_[place].emplace_back(word, double(count));
-  }
+  for (const auto& [word, count] : counts) words_[word].places.emplace_back(place, count);
   places_ = std::max(places_, place + 1);
+  norms_.clear();
+}
+
+const std::vector<double>& IncrementalWords::PlaceNorms() const {
+  if (norms_.size() != places_) {  // places were added since: idf changed
+    norms_.assign(places_, 0.0);
+    for (const Word& word : words_) {
+      const double idf = Idf(word);
+      for (const auto& [place, count] : word.places) norms_[place] += double(count) * idf;
+    }
+  }
+  return norms_;
 }
 
 double IncrementalWords::Idf(const Word& word) const {
@@ -94,13 +102,10 @@ std::vector<std::pair<uint32_t, double>> IncrementalWords::Query(
     query_norm += std::abs(weight);
   }
   if (query_norm == 0) return {};
-  // Each place's L1 norm over its own tf-idf vector, then the DBoW L1 score over shared words:
+  // The DBoW L1 score over shared words, on L1-normalised tf-idf vectors:
   // s = 1 - 0.5 |q - p|_1 = 0.5 sum over shared words of (|q_i| + |p_i| - |q_i - p_i|).
+  const std::vector<double>& norms = PlaceNorms();
   std::unordered_map<uint32_t, double> scores;
-  std::vector<double> norms(places_, 0.0);
-  for (uint32_t place = 0; place < place_vectors_.size(); ++place) {
-    for (const auto& [word, tf] : place_vectors_[place]) norms[place] += tf * Idf(words_[word]);
-  }
   for (const auto& [word, weight] : query) {
     const double q = weight / query_norm;
     const double idf = Idf(words_[word]);

@@ -30,6 +30,7 @@ struct IncrementalWordsOptions {
                            // policy); false: the word keeps its first descriptor
 };
 
+// One thread at a time (Query fills a cache).
 class IncrementalWords {
  public:
   IncrementalWords(const Vocabulary& buckets, IncrementalWordsOptions options);
@@ -52,13 +53,15 @@ class IncrementalWords {
   // The matching word of `descriptor` in its bucket, or -1.
   int64_t Match(uint32_t bucket, const Descriptor256& descriptor) const;
   double Idf(const Word& word) const;
+  // Each place's L1 norm of its tf-idf vector, computed once after the last AddPlace.
+  const std::vector<double>& PlaceNorms() const;
 
   const Vocabulary& tree_;
   IncrementalWordsOptions options_;
   std::vector<Word> words_;
-  std::vector<std::vector<uint32_t>> bucket_words_;                      // by bucket node id
-  std::vector<std::vector<std::pair<uint32_t, double>>> place_vectors_;  // tf per word, by place
+  std::vector<std::vector<uint32_t>> bucket_words_;  // by bucket node id
   uint32_t places_ = 0;
+  mutable std::vector<double> norms_;  // PlaceNorms(); cleared by AddPlace
   uint64_t merged_ = 0;
 };
 

@@ -331,20 +331,26 @@ class InProcessBackend final : public Backend {
       // verification setting: one vocabulary per (method, confidence) and budget.
       const std::pair<bool, float> key{filtering, filtering ? config.min_box_confidence : 0.0f};
       auto cached = learned_.find(key);
+      std::vector<std::pair<size_t, ProcessedFrame>> stored;
+      uint64_t invalid = 0;
       if (cached == learned_.end()) {
         VocabularyLearner learner(config.feature_type, *learning_);
-        std::vector<std::pair<size_t, ProcessedFrame>> stored;
         PLACEDB_RETURN_IF_ERROR(
             Build(inputs, filtering, pixels_only, *database, &run.database, &learner, &stored));
         auto learned = learner.Learn();
         if (!learned.ok()) return learned.status().WithContext("database of " + dataset.name);
         cached = learned_.emplace(key, std::move(learned).value()).first;
+        invalid = database->Stats().invalid_rejected;
+      }
+      auto relearned = PlaceDatabase::Create(cached->second.vocabulary, config);
+      if (!relearned.ok()) return relearned.status();
+      database = std::move(relearned).value();
+      if (stored.empty()) {
+        PLACEDB_RETURN_IF_ERROR(
+            Build(inputs, filtering, pixels_only, *database, &run.database, nullptr));
+      } else {
         // The stored frames transformed again with the learned vocabulary, as a map switching
         // vocabularies does (no second extraction).
-        auto relearned = PlaceDatabase::Create(cached->second.vocabulary, config);
-        if (!relearned.ok()) return relearned.status();
-        const uint64_t invalid = database->Stats().invalid_rejected;
-        database = std::move(relearned).value();
         if (invalid > 0) database->CountInvalid(invalid);
         run.database.encoded_bytes = 0;
         for (auto& [index, frame] : stored) {
@@ -354,12 +360,6 @@ class InProcessBackend final : public Backend {
           if (!id.ok()) return id.status();
           run.database.encoded_bytes += EncodedBytes(frame, metadata, *id);
         }
-      } else {
-        auto relearned = PlaceDatabase::Create(cached->second.vocabulary, config);
-        if (!relearned.ok()) return relearned.status();
-        database = std::move(relearned).value();
-        PLACEDB_RETURN_IF_ERROR(
-            Build(inputs, filtering, pixels_only, *database, &run.database, nullptr));
       }
       const LearnedVocabulary& learned = cached->second;
       run.database.learned_words = learned.vocabulary.word_count();
@@ -369,12 +369,7 @@ class InProcessBackend final : public Backend {
     }
     run.database.build_seconds = build.ElapsedMs() / 1000.0;
     PlaceDatabase& db = *database;
-    const DatabaseStats stats = db.Stats();
-    run.database.places = stats.places;
-    run.database.invalid = stats.invalid_rejected;
-    run.database.descriptors_kept = stats.descriptors_kept;
-    run.database.descriptors_dropped = stats.descriptors_dropped;
-    run.database.memory_bytes = stats.index_bytes + stats.record_bytes + stats.payload_bytes;
+    CountDatabase(db, &run.database);
 
     QueryOptions query_options;
     query_options.top_k = top_k;
@@ -416,11 +411,8 @@ class InProcessBackend final : public Backend {
       words.AddPlace(uint32_t(index), frame.static_features.orb()->descriptors);
     }
     run.database.build_seconds = build.ElapsedMs() / 1000.0;
-    const DatabaseStats stats = db.Stats();
-    run.database.places = stats.places;
-    run.database.invalid = stats.invalid_rejected;
-    run.database.descriptors_kept = stats.descriptors_kept;
-    run.database.descriptors_dropped = stats.descriptors_dropped;
+    CountDatabase(db, &run.database);
+    run.database.memory_bytes = 0;  // the words live outside the database
     run.database.learned_words = uint32_t(words.word_count());
     for (size_t q = 0; q < dataset.queries.size(); ++q) {
       Stopwatch watch;
@@ -443,6 +435,16 @@ class InProcessBackend final : public Backend {
       run.queries.push_back(outcome);
     }
     return run;
+  }
+
+  // The database's figures after its build.
+  static void CountDatabase(const PlaceDatabase& db, DatabaseFigures* figures) {
+    const DatabaseStats stats = db.Stats();
+    figures->places = stats.places;
+    figures->invalid = stats.invalid_rejected;
+    figures->descriptors_kept = stats.descriptors_kept;
+    figures->descriptors_dropped = stats.descriptors_dropped;
+    figures->memory_bytes = stats.index_bytes + stats.record_bytes + stats.payload_bytes;
   }
 
   // Processes and inserts every database entry; `learner`, when given, is offered each stored

@@ -83,7 +83,7 @@ TEST(VocabularyLearning, LearnsABinaryVocabularyFromStoredPlaces) {
   EXPECT_EQ(learned->places_offered, 60u);
   EXPECT_EQ(learned->descriptors_offered, 6000u);
   EXPECT_EQ(learned->descriptors_sampled, 6000u);  // under the bound: every place
-  EXPECT_EQ(learned->shape.depth, 5);  // 6000 descriptors
+  EXPECT_EQ(learned->shape.depth, 5);              // 6000 descriptors
   EXPECT_EQ(learned->vocabulary.depth(), 5);
   EXPECT_GT(learned->vocabulary.word_count(), 40u);
 
@@ -215,6 +215,7 @@ TEST(VocabularyLearning, ALearnedVocabularyRoundTripsThroughItsBytes) {
         StatusCode::kCorruption);
   }
   EXPECT_FALSE(AnyVocabulary::Parse("").ok());
+  EXPECT_FALSE(AnyVocabulary::Parse(std::string_view()).ok());
 }
 
 }  // namespace

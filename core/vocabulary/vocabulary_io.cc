@@ -520,7 +520,7 @@ Status Vocabulary::CheckBlockSize(uint32_t node_count, uint32_t word_count, uint
 Result<std::shared_ptr<const Vocabulary>> Vocabulary::ParseBinary(std::string_view bytes) {
   FileHeader header{};
   const size_t got = std::min(bytes.size(), sizeof(header));
-  std::memcpy(&header, bytes.data(), got);
+  if (got > 0) std::memcpy(&header, bytes.data(), got);  // an empty view may have no data
   PLACEDB_RETURN_IF_ERROR(CheckBinaryHeader(header, got, bytes.size()));
   PLACEDB_RETURN_IF_ERROR(
       CheckBlockSize(header.node_count, header.word_count, header.block_bytes, bytes.size()));
