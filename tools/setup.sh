@@ -23,6 +23,8 @@ PACKAGES=(
   libssl-dev openssl  # tokens (SHA-256, random), TLS on /metrics; tests make certificates
   python3 python3-grpcio python3-protobuf python3-numpy  # the Python SDK (client/python)
   python3-pytest python3-opencv  # its tests and examples
+  python3-venv python3-wheel  # pip install ./client/python into a venv, offline
+  python3-rosbag python3-sensor-msgs  # ROS 1 bags (placedb.read_bag; its tests write bags)
   chromium python3-websocket  # the web console's browser test (tests/console/browser_test.py)
   clang-format ccache
   clang-14 libclang-rt-14-dev  # CI's -Wthread-safety and libFuzzer stages (tools/test.sh)

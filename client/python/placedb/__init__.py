@@ -8,9 +8,15 @@
         print(client.query("lab", "3.jpg", top_k=5).matches)
 
 See client/python/README.md. The generated messages and stubs are in ``placedb._pb``
-(``placedb._pb.placedb_pb2``): the SDK's own types are the dataclasses below.
+(``placedb._pb.placedb_pb2``): the SDK's own types are the dataclasses below. The asyncio client
+is :class:`placedb.aio.AsyncClient`; recordings (ROS 1 bags, TUM RGB-D folders) are read by
+:func:`read_bag` and :func:`read_tum` (:mod:`placedb.recordings`).
 """
 
+#: The package's version: placedb's (CMakeLists.txt, project(placedb VERSION ...)).
+__version__ = "0.1.0"
+
+from placedb.aio import AsyncClient
 from placedb.client import CLIENT_TIMEOUT, TLS, Client
 from placedb.errors import (
     AlreadyExists,
@@ -28,6 +34,7 @@ from placedb.errors import (
     Unavailable,
 )
 from placedb.frames import Box, Depth, Frame, MatchOptions
+from placedb.recordings import Recording, RecordingStats, read_bag, read_tum
 from placedb.results import (
     AgentActivity,
     ClassCount,
@@ -67,6 +74,7 @@ from placedb.settings import (
 __all__ = [
     "AgentActivity",
     "AlreadyExists",
+    "AsyncClient",
     "Box",
     "CLIENT_TIMEOUT",
     "Cancelled",
@@ -102,6 +110,8 @@ __all__ = [
     "Pose",
     "QueryResult",
     "RankedPlace",
+    "Recording",
+    "RecordingStats",
     "ResourceExhausted",
     "ScrubReport",
     "ServerInfo",
@@ -116,4 +126,6 @@ __all__ = [
     "Unavailable",
     "UsedBox",
     "VocabularyInfo",
+    "read_bag",
+    "read_tum",
 ]

@@ -118,6 +118,151 @@ def _weekday_bits(weekdays: Iterable[Union[str, int]]) -> int:
     return bits
 
 
+# Keepalive pings every 5 s, 5 s to answer: a server whose host vanished (no reset ever comes) is
+# found within ~10 s, also under a long Ingest stream (the server allows pings every 4 s:
+# server/server.cc).
+CHANNEL_OPTIONS = [
+    ("grpc.max_receive_message_length", -1),
+    ("grpc.max_send_message_length", -1),
+    ("grpc.keepalive_time_ms", 5000),
+    ("grpc.keepalive_timeout_ms", 5000),
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.http2.max_pings_without_data", 0),
+]
+
+
+def token_metadata(token: Optional[str]) -> Sequence[Tuple[str, str]]:
+    """The call metadata carrying a bearer token (none without one)."""
+    return (("authorization", f"Bearer {token}"),) if token else ()
+
+
+def check_timeout(timeout: Optional[float]) -> Optional[float]:
+    if timeout is not None and not timeout > 0:
+        raise InvalidArgument(f"timeout: {timeout}, expected seconds > 0 or None")
+    return timeout
+
+
+# The requests, built the same way by Client and placedb.aio.AsyncClient.
+
+
+def create_map_request(
+    name: str, settings: Union[None, MapSettings, pb.MapConfig]
+) -> pb.CreateMapRequest:
+    if isinstance(settings, MapSettings):
+        config = settings.to_proto()
+    else:
+        config = settings if settings is not None else pb.MapConfig()
+    return pb.CreateMapRequest(name=name, config=config)
+
+
+def query_request(
+    map: str,
+    image: Union[Frame, ImageLike],
+    top_k: int,
+    verify: bool,
+    exclude_same_agent: bool,
+    agent_id: str,
+    correspondences: bool,
+) -> pb.QueryRequest:
+    if as_frame(image).matches is not None:
+        raise InvalidArgument(
+            "observation.matches: ingest only; give a query's options as its arguments"
+        )
+    return pb.QueryRequest(
+        map=map,
+        observation=to_observation(image, agent_id, 0),
+        options=MatchOptions(top_k, verify, exclude_same_agent, correspondences).to_proto(
+            "options"
+        ),
+    )
+
+
+def ingest_header(
+    map: str,
+    top_k: int,
+    verify: bool,
+    exclude_same_agent: bool,
+    loop_closure: bool,
+    max_in_flight: int,
+) -> pb.IngestHeader:
+    """The header of an Ingest stream (after checking ``max_in_flight``)."""
+    if max_in_flight < 1:
+        raise InvalidArgument(f"max_in_flight: {max_in_flight}, expected >= 1")
+    header = pb.IngestHeader(map=map, loop_closure=loop_closure)
+    if top_k:
+        header.matches.CopyFrom(
+            MatchOptions(top_k, verify, exclude_same_agent).to_proto("header.matches")
+        )
+    return header
+
+
+def list_places_request(
+    map: str,
+    agent_id: Optional[str],
+    from_ns: Optional[int],
+    to_ns: Optional[int],
+    limit: int,
+    before: Optional[int],
+) -> pb.ListPlacesRequest:
+    if limit is None or isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+        # 0 would mean the server's default, not "no places": refuse it here.
+        raise InvalidArgument(f"limit: {limit!r}, expected 1..1000")
+    request = pb.ListPlacesRequest(map=map)
+    _set(request, "limit", limit)
+    if agent_id is not None:
+        _set(request, "agent_id", agent_id)
+    if from_ns is not None:
+        _set(request, "from_timestamp_ns", from_ns)
+    if to_ns is not None:
+        _set(request, "to_timestamp_ns", to_ns)
+    if before is not None:
+        _set(request, "before_place_id", before)
+    return request
+
+
+def dynamics_request(
+    map: str,
+    measure: Optional[str],
+    class_name: Optional[str],
+    class_id: Optional[int],
+    hours: Optional[Tuple[int, int]],
+    weekdays: Optional[Iterable[Union[str, int]]],
+    limit: int,
+    offset: int,
+    min_observations: int,
+    include_statistics: bool,
+) -> pb.GetDynamicsRequest:
+    request = pb.GetDynamicsRequest(map=map, include_statistics=include_statistics)
+    _set(request, "limit", limit)
+    _set(request, "offset", offset)
+    _set(request, "min_observations", min_observations)
+    if measure is None:
+        if class_name is not None or class_id is not None:
+            measure = "class_share"
+        elif hours is not None:
+            measure = "hour_window"
+        else:
+            measure = "mean_coverage"
+    request.measure = enum_value(pb.DynamicsMeasure.DESCRIPTOR, measure, "measure")
+    if class_name is not None:
+        _set(request, "class_name", class_name)
+    if class_id is not None:
+        _set(request, "class_id", class_id)
+    if hours is not None:
+        try:
+            first, last = (int(h) for h in hours)
+            request.first_hour, request.last_hour = first, last
+        except (TypeError, ValueError):
+            raise InvalidArgument(f"hours: {hours!r}, expected (first, last) hours 0..23") from None
+    if weekdays is not None:
+        request.weekdays = _weekday_bits(weekdays)
+    return request
+
+
+def health_status(response: health_pb2.HealthCheckResponse) -> str:
+    return health_pb2.HealthCheckResponse.ServingStatus.Name(response.status).lower()
+
+
 class Client:
     """A connection to a placedb server.
 
@@ -141,24 +286,11 @@ class Client:
         wait_for_ready: bool = False,
     ) -> None:
         self._timeout = self._check_timeout(timeout)  # before the channel: nothing to close
-        # Keepalive pings every 5 s, 5 s to answer: a server whose host vanished (no reset ever
-        # comes) is found within ~10 s, also under a long Ingest stream (the server allows pings
-        # every 4 s: server/server.cc).
-        options = [
-            ("grpc.max_receive_message_length", -1),
-            ("grpc.max_send_message_length", -1),
-            ("grpc.keepalive_time_ms", 5000),
-            ("grpc.keepalive_timeout_ms", 5000),
-            ("grpc.keepalive_permit_without_calls", 1),
-            ("grpc.http2.max_pings_without_data", 0),
-        ]
         if tls:
-            self._channel = grpc.secure_channel(target, _credentials(tls), options=options)
+            self._channel = grpc.secure_channel(target, _credentials(tls), options=CHANNEL_OPTIONS)
         else:
-            self._channel = grpc.insecure_channel(target, options=options)
-        self._metadata: Sequence[Tuple[str, str]] = (
-            (("authorization", f"Bearer {token}"),) if token else ()
-        )
+            self._channel = grpc.insecure_channel(target, options=CHANNEL_OPTIONS)
+        self._metadata = token_metadata(token)
         self._wait_for_ready = wait_for_ready
         self._stub = pb_grpc.PlaceDbStub(self._channel)
         self._health = health_pb2_grpc.HealthStub(self._channel)
@@ -175,9 +307,7 @@ class Client:
 
     @staticmethod
     def _check_timeout(timeout: Optional[float]) -> Optional[float]:
-        if timeout is not None and not timeout > 0:
-            raise InvalidArgument(f"timeout: {timeout}, expected seconds > 0 or None")
-        return timeout
+        return check_timeout(timeout)
 
     def _deadline(self, timeout: Timeout) -> Optional[float]:
         if isinstance(timeout, _ClientTimeout):
@@ -214,13 +344,7 @@ class Client:
         name (1-64 of ``[A-Za-z0-9_.-]``, starting with a letter or digit), an unknown
         vocabulary or a bad setting.
         """
-        if isinstance(settings, MapSettings):
-            config = settings.to_proto()
-        else:
-            config = settings if settings is not None else pb.MapConfig()
-        response = self._call(
-            self._stub.CreateMap, pb.CreateMapRequest(name=name, config=config), timeout
-        )
+        response = self._call(self._stub.CreateMap, create_map_request(name, settings), timeout)
         return MapInfo.from_proto(response)
 
     def get_map(self, name: str, timeout: Timeout = CLIENT_TIMEOUT) -> MapInfo:
@@ -286,16 +410,8 @@ class Client:
         :class:`Frame` with ``matches``, which is for ingest: a query's options are these
         arguments).
         """
-        if as_frame(image).matches is not None:
-            raise InvalidArgument(
-                "observation.matches: ingest only; give a query's options as its arguments"
-            )
-        request = pb.QueryRequest(
-            map=map,
-            observation=to_observation(image, agent_id, 0),
-            options=MatchOptions(top_k, verify, exclude_same_agent, correspondences).to_proto(
-                "options"
-            ),
+        request = query_request(
+            map, image, top_k, verify, exclude_same_agent, agent_id, correspondences
         )
         return QueryResult.from_proto(self._call(self._stub.Query, request, timeout))
 
@@ -330,13 +446,7 @@ class Client:
         cancels the stream (frames in flight may or may not have been stored). ``timeout``: a
         deadline for the whole stream (default: none).
         """
-        if max_in_flight < 1:
-            raise InvalidArgument(f"max_in_flight: {max_in_flight}, expected >= 1")
-        header = pb.IngestHeader(map=map, loop_closure=loop_closure)
-        if top_k:
-            header.matches.CopyFrom(
-                MatchOptions(top_k, verify, exclude_same_agent).to_proto("header.matches")
-            )
+        header = ingest_header(map, top_k, verify, exclude_same_agent, loop_closure, max_in_flight)
         window = threading.Semaphore(max_in_flight)
         finished = threading.Event()
         failure: List[BaseException] = []
@@ -418,19 +528,7 @@ class Client:
         :class:`NotFound` for an unknown map; :class:`InvalidArgument` naming the field for a
         bad limit or paging value.
         """
-        if limit is None or isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
-            # 0 would mean the server's default, not "no places": refuse it here.
-            raise InvalidArgument(f"limit: {limit!r}, expected 1..1000")
-        request = pb.ListPlacesRequest(map=map)
-        _set(request, "limit", limit)
-        if agent_id is not None:
-            _set(request, "agent_id", agent_id)
-        if from_ns is not None:
-            _set(request, "from_timestamp_ns", from_ns)
-        if to_ns is not None:
-            _set(request, "to_timestamp_ns", to_ns)
-        if before is not None:
-            _set(request, "before_place_id", before)
+        request = list_places_request(map, agent_id, from_ns, to_ns, limit, before)
         return PlacePage.from_proto(self._call(self._stub.ListPlaces, request, timeout))
 
     def iter_places(
@@ -492,32 +590,18 @@ class Client:
         :class:`NotFound` for an unknown map; :class:`InvalidArgument` naming the field for a
         bad class, hours, weekdays, limit or measure.
         """
-        request = pb.GetDynamicsRequest(map=map, include_statistics=include_statistics)
-        _set(request, "limit", limit)
-        _set(request, "offset", offset)
-        _set(request, "min_observations", min_observations)
-        if measure is None:
-            if class_name is not None or class_id is not None:
-                measure = "class_share"
-            elif hours is not None:
-                measure = "hour_window"
-            else:
-                measure = "mean_coverage"
-        request.measure = enum_value(pb.DynamicsMeasure.DESCRIPTOR, measure, "measure")
-        if class_name is not None:
-            _set(request, "class_name", class_name)
-        if class_id is not None:
-            _set(request, "class_id", class_id)
-        if hours is not None:
-            try:
-                first, last = (int(h) for h in hours)
-                request.first_hour, request.last_hour = first, last
-            except (TypeError, ValueError):
-                raise InvalidArgument(
-                    f"hours: {hours!r}, expected (first, last) hours 0..23"
-                ) from None
-        if weekdays is not None:
-            request.weekdays = _weekday_bits(weekdays)
+        request = dynamics_request(
+            map,
+            measure,
+            class_name,
+            class_id,
+            hours,
+            weekdays,
+            limit,
+            offset,
+            min_observations,
+            include_statistics,
+        )
         return Dynamics.from_proto(self._call(self._stub.GetDynamics, request, timeout))
 
     # ---- Snapshots (admin) ---------------------------------------------------------------------
@@ -632,7 +716,7 @@ class Client:
         response = self._call(
             self._health.Check, health_pb2.HealthCheckRequest(service=service), timeout
         )
-        return health_pb2.HealthCheckResponse.ServingStatus.Name(response.status).lower()
+        return health_status(response)
 
 
 __all__ = ["CLIENT_TIMEOUT", "Client", "TLS", "Error"]

@@ -14,7 +14,7 @@ import subprocess
 import tempfile
 import time
 from pathlib import Path
-from typing import Iterator, List, Optional
+from typing import Iterator, List, Optional, Tuple
 
 import numpy as np
 import pytest
@@ -120,6 +120,28 @@ def rtabmap_frames() -> List[Path]:
     frames = sorted(folder.glob("*.jpg"), key=lambda p: int(p.stem))
     if len(frames) < 30:
         pytest.fail(f"{folder} holds {len(frames)} frames: the shared data is required")
+    return frames
+
+
+@pytest.fixture(scope="session")
+def slambook_rgbd() -> List[Tuple[Path, Path, Tuple[float, ...]]]:
+    """slambook2's 5 RGB-D frames of a static room (640 x 480): (colour PNG, depth PGM in
+    millimetres, pose x y z qx qy qz qw)."""
+    folder = Path(_env("PLACEDB_SHARED_DIR")) / "data" / "slambook2-rgbd"
+    try:
+        poses = [
+            tuple(float(v) for v in line.split())
+            for line in (folder / "pose.txt").read_text().splitlines()
+            if line.strip()
+        ]
+    except OSError as e:
+        pytest.fail(f"{folder}: {e.strerror}: the shared data is required")
+    frames = [
+        (folder / "color" / f"{i}.png", folder / "depth" / f"{i}.pgm", poses[i - 1])
+        for i in range(1, 6)
+    ]
+    if len(poses) != 5 or not all(c.is_file() and d.is_file() for c, d, _ in frames):
+        pytest.fail(f"{folder}: expected color/1..5.png, depth/1..5.pgm and 5 poses")
     return frames
 
 
