@@ -13,20 +13,33 @@
 //    baseline: the same with the fixed (default) vocabulary, i.e. building the map's index;
 //  - query: top-10 over the N places with each vocabulary, queries = 200 other noisy views;
 //  - peak memory: the process's VmHWM after each step (it only grows: sizes run smallest first).
+//  - the service's switch (--online-places, default 10000): a map of that many such places on
+//    RocksDB in a temp directory (group commit), then PlaceMap::AdaptVocabulary while one thread
+//    queries it without pause (top-10 of other noisy views); its phases' times, the queries'
+//    p50/p99 during the switch beside the same queries on the idle map just before (baseline),
+//    and top-10 latency after the switch beside before it. Once with the re-index on 1 thread,
+//    once on 2 (the machine's cores), each on a fresh copy of the map.
 //
 // Usage: placedb-bench-vocabulary-learning --vocabulary FILE [--places 10000,100000]
+//        [--online-places 10000] [--workdir DIR]
+#include <unistd.h>
+
 #include <algorithm>
+#include <atomic>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 #include <random>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "bench/bench_output.h"
 #include "core/base/parallel.h"
 #include "core/features/orb_features.h"
 #include "core/search/place_index.h"
+#include "core/storage/map_store.h"
 #include "core/vocabulary/vocabulary.h"
 #include "core/vocabulary/vocabulary_learning.h"
 #include "core/vocabulary/weighting.h"
@@ -106,13 +119,154 @@ double QueryMs(const Vocabulary& vocabulary, const std::vector<FeatureSet>& view
   return Median(ms);
 }
 
+double Percentile(std::vector<double> values, double fraction) {
+  if (values.empty()) return 0;
+  std::sort(values.begin(), values.end());
+  return values[std::min(values.size() - 1, size_t(fraction * double(values.size())))];
+}
+
+// A frame of place `id` as a map takes it: its features only; the map transforms it (a frame of
+// no vocabulary yet).
+ProcessedFrame FrameOf(const std::vector<FeatureSet>& views, uint64_t id, uint64_t salt = 0) {
+  ProcessedFrame frame;
+  frame.valid = true;
+  FeatureSet features = MakePlace(views, id, salt);
+  frame.counts.static_ = uint32_t(features.size());
+  frame.counts.total = frame.counts.static_;
+  frame.static_features = std::move(features);
+  return frame;
+}
+
+void Fail(const Status& status, const char* what) {
+  if (status.ok()) return;
+  std::fprintf(stderr, "%s: %s\n", what, status.ToString().c_str());
+  std::exit(1);
+}
+
+// Queries `map` from one thread until `stop`, each with the next of `queries`; their latencies.
+std::vector<double> QueryUntil(const PlaceMap& map, const std::vector<ProcessedFrame>& queries,
+                               const std::atomic<bool>& stop, size_t at_least) {
+  std::vector<double> ms;
+  QueryOptions options;
+  options.top_k = 10;
+  for (size_t q = 0; !stop.load() || ms.size() < at_least; ++q) {
+    const double start = NowMs();
+    const QueryResult result = map.Search(queries[q % queries.size()], options);
+    ms.push_back(NowMs() - start);
+    if (!result.valid || result.matches.empty()) {
+      std::fprintf(stderr, "a query found nothing: %s\n", result.rejection.c_str());
+      std::exit(1);
+    }
+  }
+  return ms;
+}
+
+// The service's switch on a map of `places` places (see the workload above).
+void OnlineSwitch(const std::shared_ptr<const Vocabulary>& fixed,
+                  const std::vector<FeatureSet>& views, size_t places, const std::string& workdir) {
+  const std::string n = std::to_string(places);
+  namespace fs = std::filesystem;
+  const std::string root = workdir + "/placedb-bench-switch-" + std::to_string(::getpid());
+  fs::remove_all(root);
+  StorageOptions storage;
+  storage.sync = SyncMode::kGroupCommit;
+  std::vector<ProcessedFrame> queries;
+  for (uint64_t q = 0; q < 200; ++q) queries.push_back(FrameOf(views, (q * 7919) % places + 1, 77));
+  {
+    auto dir = DataDirectory::Open(root + "/template", storage);
+    Fail(dir.status(), "data directory");
+    auto map = (*dir)->CreateMap("map", {}, AnyVocabulary(fixed));
+    Fail(map.status(), "map");
+    const double fill_start = NowMs();
+    constexpr size_t kWindow = 64;
+    std::vector<std::shared_ptr<PendingCommit>> window;
+    for (size_t id = 1; id <= places; ++id) {
+      PlaceMetadata metadata;
+      metadata.sequence = id;
+      window.push_back((*map)->Enqueue(FrameOf(views, id), metadata));
+      if (window.size() == kWindow || id == places) {
+        for (const auto& pending : window) Fail(pending->Wait().status(), "storing a place");
+        window.clear();
+      }
+    }
+    Print("online_fill_seconds_at_" + n + "_places", (NowMs() - fill_start) / 1e3, "s");
+  }
+  for (const int threads : {1, 2}) {
+    const std::string suffix = "_" + std::to_string(threads) + "_threads_at_" + n + "_places";
+    const std::string copy = root + "/copy";
+    fs::remove_all(copy);
+    fs::copy(root + "/template", copy, fs::copy_options::recursive);
+    fs::remove(copy + "/LOCK");
+    auto dir = DataDirectory::Open(copy, storage);
+    Fail(dir.status(), "data directory copy");
+    auto opened = (*dir)->OpenMap("map", AnyVocabulary(fixed));
+    Fail(opened.status(), "opening the map");
+    PlaceMap& map = **opened;
+    std::atomic<bool> stop{true};
+    const std::vector<double> idle = QueryUntil(map, queries, stop, 400);
+    stop = false;
+    std::vector<double> during;
+    std::thread querying([&] { during = QueryUntil(map, queries, stop, 1); });
+    AdaptOptions options;
+    options.threads = threads;
+    options.learning.threads = threads;
+    const double start = NowMs();
+    double learned_at = 0, reindexed_at = 0, caught_up_at = 0, switched_at = 0;
+    options.on_phase = [&](VocabularyPhase phase) {
+      const double now = NowMs() - start;
+      if (phase == VocabularyPhase::kLearned) learned_at = now;
+      if (phase == VocabularyPhase::kReindexed) reindexed_at = now;
+      if (phase == VocabularyPhase::kCaughtUp) caught_up_at = now;
+      if (phase == VocabularyPhase::kSwitched) switched_at = now;
+    };
+    auto record = map.AdaptVocabulary(options);
+    const double total = NowMs() - start;
+    stop = true;
+    querying.join();
+    Fail(record.status(), "adapting the vocabulary");
+    Print("switch_learn_seconds" + suffix, learned_at / 1e3, "s");
+    Print("switch_reindex_seconds" + suffix, (reindexed_at - learned_at) / 1e3, "s");
+    Print("switch_catch_up_and_write_seconds" + suffix, (switched_at - reindexed_at) / 1e3, "s");
+    Print("switch_writers_held_ms" + suffix, total - caught_up_at + 0.0, "ms");
+    Print("switch_total_seconds" + suffix, total / 1e3, "s");
+    Print("switch_sampled_descriptors" + suffix, double(record->current.descriptors_sampled),
+          "descriptors");
+    Print("switch_learned_depth" + suffix, record->current.depth, "levels");
+    Print("baseline_idle_query_p50" + suffix, Percentile(idle, 0.5), "ms");
+    Print("baseline_idle_query_p99" + suffix, Percentile(idle, 0.99), "ms");
+    Print("query_p50_during_switch" + suffix, Percentile(during, 0.5), "ms");
+    Print("query_p99_during_switch" + suffix, Percentile(during, 0.99), "ms");
+    Print("queries_during_switch" + suffix, double(during.size()), "queries");
+    stop = true;
+    Print("query_p50_after_switch" + suffix, Percentile(QueryUntil(map, queries, stop, 400), 0.5),
+          "ms");
+    Print("peak_rss_after_switch" + suffix, PeakRssMb(), "MB");
+  }
+  fs::remove_all(root);
+}
+
 int Main(int argc, char** argv) {
   std::string vocabulary_path;
   std::vector<size_t> sizes = {10000, 100000};
+  std::vector<size_t> online = {10000};
+  std::string workdir = std::filesystem::temp_directory_path().string();
+  const auto parse_list = [](const std::string& list) {
+    std::vector<size_t> values;
+    for (size_t start = 0; start <= list.size();) {
+      const size_t comma = std::min(list.find(',', start), list.size());
+      values.push_back(std::stoul(list.substr(start, comma - start)));
+      start = comma + 1;
+    }
+    return values;
+  };
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     if (arg == "--vocabulary" && i + 1 < argc) {
       vocabulary_path = argv[++i];
+    } else if (arg == "--online-places" && i + 1 < argc) {
+      online = parse_list(argv[++i]);
+    } else if (arg == "--workdir" && i + 1 < argc) {
+      workdir = argv[++i];
     } else if (arg == "--places" && i + 1 < argc) {
       sizes.clear();
       std::string list = argv[++i];
@@ -122,7 +276,10 @@ int Main(int argc, char** argv) {
         start = comma + 1;
       }
     } else {
-      std::fprintf(stderr, "usage: %s --vocabulary FILE [--places 10000,100000]\n", argv[0]);
+      std::fprintf(stderr,
+                   "usage: %s --vocabulary FILE [--places 10000,100000] [--online-places 10000] "
+                   "[--workdir DIR]\n",
+                   argv[0]);
       return 2;
     }
   }
@@ -198,6 +355,9 @@ int Main(int argc, char** argv) {
           QueryMs(**fixed, views, index, places), "ms");
     Print("baseline_index_memory_fixed_vocabulary_at_" + n + "_places",
           double(index.MemoryBytes()) / 1e6, "MB");
+  }
+  for (size_t places : online) {
+    if (places > 0) OnlineSwitch(*fixed, views, places, workdir);
   }
   return 0;
 }

@@ -100,6 +100,10 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
     return MapsRecover(c, maps_flags.recover_name, maps_flags.accept_data_loss, json, io);
   }
   if (maps.scrub->parsed()) return MapsScrub(c, maps_flags.scrub_name, json, io);
+  if (maps.adapt_vocabulary->parsed()) return MapsAdaptVocabulary(c, maps_flags, json, io);
+  if (maps.revert_vocabulary->parsed()) {
+    return MapsRevertVocabulary(c, maps_flags.revert_name, json, io);
+  }
   if (ingest->parsed()) return RunIngest(c, ingest_options, json, io);
   if (query->parsed()) return RunQuery(c, query_flags, json, io);
   if (place.get->parsed()) {

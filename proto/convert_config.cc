@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdint>
 
+#include "core/base/text.h"
 #include "proto/field_errors.h"
 
 namespace placedb::wire {
@@ -610,6 +611,35 @@ void ScrubReportToProto(const ScrubReport& report, v1::ScrubReport* out) {
     damaged->set_reason(file.reason);
   }
   out->set_clean(report.clean());
+}
+
+namespace {
+
+void VocabularySourceToProto(const VocabularySource& source, v1::VocabularySource* out) {
+  out->set_origin(source.origin);
+  out->set_checksum(Hex64(source.checksum));
+  out->set_branching(source.branching);
+  out->set_depth(source.depth);
+  out->set_words(source.words);
+  out->set_learned_unix_ms(source.learned_unix_ms);
+  out->set_places_offered(source.places_offered);
+  out->set_descriptors_offered(source.descriptors_offered);
+  out->set_places_sampled(source.places_sampled);
+  out->set_descriptors_sampled(source.descriptors_sampled);
+  out->set_learn_ms(source.learn_ms);
+}
+
+}  // namespace
+
+void VocabularyRecordToProto(const VocabularyRecord& record, bool switching,
+                             v1::MapVocabulary* out) {
+  out->set_generation(record.generation);
+  VocabularySourceToProto(record.current, out->mutable_current());
+  if (record.previous) VocabularySourceToProto(*record.previous, out->mutable_previous());
+  out->set_since_unix_ms(record.since_unix_ms);
+  out->set_places_reindexed(record.places_reindexed);
+  out->set_reindex_ms(record.reindex_ms);
+  out->set_switching(switching);
 }
 
 QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id) {

@@ -50,6 +50,10 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
 void MapStatsToProto(const MapStats& stats, v1::MapStats* out);
 void MapDamageToProto(const MapDamage& damage, v1::MapDamage* out);
 void ScrubReportToProto(const ScrubReport& report, v1::ScrubReport* out);
+// A map's vocabulary record (issue 29); `switching`: a switch is running. `out->map` is left
+// to the caller.
+void VocabularyRecordToProto(const VocabularyRecord& record, bool switching,
+                             v1::MapVocabulary* out);
 
 // The proto <-> core enum mappings. FromProto takes UNSPECIFIED as the default the proto
 // documents; values outside the enum are INVALID_ARGUMENT naming `field`.

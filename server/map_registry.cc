@@ -5,18 +5,11 @@
 #include <nlohmann/json.hpp>
 
 #include "core/base/map_name.h"
+#include "core/base/text.h"
 
 namespace placedb::server {
 
-namespace {
-
-std::string Hex(uint64_t v) {
-  char buffer[17];
-  std::snprintf(buffer, sizeof buffer, "%016llx", static_cast<unsigned long long>(v));
-  return buffer;
-}
-
-}  // namespace
+namespace {}  // namespace
 
 MapRegistry::MapRegistry(std::unique_ptr<DataDirectory> directory,
                          std::vector<VocabularyEntry> vocabularies,
@@ -51,8 +44,8 @@ Result<std::unique_ptr<MapRegistry>> MapRegistry::Open(const std::string& data_d
     if (entry->map) {
       spdlog::info("map '{}' opened: vocabulary '{}', features {}, {} places", name,
                    entry->vocabulary_name,
-                   FeatureTypeName(entry->map->database().config().feature_type),
-                   entry->map->database().Stats().places);
+                   FeatureTypeName(entry->map->database()->config().feature_type),
+                   entry->map->database()->Stats().places);
       if (!entry->map->open_note().empty()) {
         spdlog::warn("map '{}': {}", name, entry->map->open_note());
       }
@@ -83,6 +76,20 @@ std::string MapRegistry::VocabularyNameOf(uint64_t checksum) const {
     if (entry.vocabulary.checksum() == checksum) return entry.name;
   }
   return "";
+}
+
+std::string MapRegistry::VocabularyNameFor(const MapInfo& info) const {
+  const std::string configured = VocabularyNameOf(info.vocabulary_checksum);
+  return configured.empty() ? "learned" : configured;
+}
+
+void MapRegistry::VocabularySwitched(const std::string& name) {
+  MutexLock lock(mutex_);
+  auto it = maps_.find(name);
+  if (it == maps_.end() || !it->second->map) return;
+  auto entry = std::make_shared<MapEntry>(*it->second);
+  entry->vocabulary_name = VocabularyNameFor(entry->map->info());
+  it->second = std::move(entry);
 }
 
 std::string MapRegistry::MissingNote() const {
@@ -128,7 +135,7 @@ Result<const VocabularyEntry*> MapRegistry::VocabularyFor(const MapInfo& info) c
     configured += (configured.empty() ? "" : ", ") + candidate.name + "=" +
                   candidate.vocabulary.checksum_hex();
   }
-  return Status::FailedPrecondition("built with vocabulary " + Hex(info.vocabulary_checksum) +
+  return Status::FailedPrecondition("built with vocabulary " + Hex64(info.vocabulary_checksum) +
                                     ", which is not configured (configured: " + configured +
                                     MissingNote() +
                                     "); add it under `vocabularies` in the server config");
@@ -149,13 +156,16 @@ std::shared_ptr<const MapEntry> MapRegistry::Load(const std::string& name) {
     entry->unavailable_reason = "cannot read its info: " + info.status().ToString();
     return entry;
   }
+  // A map that stores its own vocabulary (issue 29) opens with it: no file needed.
+  const bool stored = info->vocabulary.stored();
   auto vocabulary = VocabularyFor(*info);
-  if (!vocabulary.ok()) {
+  if (!stored && !vocabulary.ok()) {
     entry->unavailable_reason = vocabulary.status().message();
     return entry;
   }
   MapDamage damage;
-  auto map = directory_->OpenMap(name, (*vocabulary)->vocabulary, &damage);
+  auto map =
+      directory_->OpenMap(name, stored ? AnyVocabulary() : (*vocabulary)->vocabulary, &damage);
   if (!map.ok()) {
     if (!damage.reason.empty()) {
       damaged(damage.reason);
@@ -166,7 +176,7 @@ std::shared_ptr<const MapEntry> MapRegistry::Load(const std::string& name) {
     return entry;
   }
   entry->map = std::move(map).value();
-  entry->vocabulary_name = (*vocabulary)->name;
+  entry->vocabulary_name = VocabularyNameFor(entry->map->info());
   entry->settings = DecodeSettings(name, entry->map->info().options.service_json);
   return entry;
 }
@@ -234,7 +244,8 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::Recover(const std::string& 
   auto entry = std::make_shared<MapEntry>();
   entry->name = name;
   entry->map = std::move(map).value();
-  entry->vocabulary_name = vocabulary_name;
+  entry->vocabulary_name =
+      vocabulary_name.empty() ? VocabularyNameFor(entry->map->info()) : vocabulary_name;
   entry->settings = DecodeSettings(name, entry->map->info().options.service_json);
   MutexLock lock(mutex_);
   maps_[name] = entry;
@@ -311,6 +322,8 @@ void MapRegistry::CloseAll() {
 
 DataDirectory::VocabularyFor MapRegistry::AnyVocabularyFor() const {
   return [this](const MapInfo& info) -> Result<AnyVocabulary> {
+    // A map that stores its vocabulary (issue 29) opens with it: none is needed.
+    if (info.vocabulary.stored()) return AnyVocabulary();
     auto vocabulary = VocabularyFor(info);
     if (!vocabulary.ok()) return vocabulary.status();
     return (*vocabulary)->vocabulary;

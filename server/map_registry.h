@@ -109,6 +109,12 @@ class MapRegistry {
   // when it is not configured, FAILED_PRECONDITION when it is configured but its file is missing.
   Result<const VocabularyEntry*> ResolveVocabulary(const std::string& name) const;
   std::string VocabularyNameOf(uint64_t checksum) const;  // "" when not configured
+  // The name a map's vocabulary is shown by: the configured vocabulary with its checksum, else
+  // "learned" (a vocabulary the map learned and stores, issue 29).
+  std::string VocabularyNameFor(const MapInfo& info) const;
+  // After AdaptVocabulary / RevertVocabulary switched the map's vocabulary: its entry names the
+  // new one. Nothing when the map is gone.
+  void VocabularySwitched(const std::string& name) EXCLUDES(mutex_);
 
   // Releases every map (RocksDB flushes and closes once the last in-flight holder lets go).
   void CloseAll();
@@ -126,7 +132,8 @@ class MapRegistry {
   // The configured vocabulary whose checksum the map recorded; FAILED_PRECONDITION naming the
   // configured ones otherwise.
   Result<const VocabularyEntry*> VocabularyFor(const MapInfo& info) const;
-  // The configured vocabulary for a map's info, as core's VocabularyFor wants it.
+  // The configured vocabulary for a map's info, as core's VocabularyFor wants it (none for a
+  // map that stores its own).
   DataDirectory::VocabularyFor AnyVocabularyFor() const;
   std::unique_ptr<DataDirectory> directory_ GUARDED_BY(create_mutex_);  // null once closed
   const std::vector<VocabularyEntry> vocabularies_;

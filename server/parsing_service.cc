@@ -276,6 +276,12 @@ ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthoriz
   AddUnary(
       "ScrubMap", &PlaceDbService::ScrubMap, Right::kAdmin,
       +[](const v1::ScrubMapRequest& r) { return r.name(); });
+  AddUnary(
+      "AdaptVocabulary", &PlaceDbService::AdaptVocabulary, Right::kAdmin,
+      +[](const v1::AdaptVocabularyRequest& r) { return r.name(); });
+  AddUnary(
+      "RevertVocabulary", &PlaceDbService::RevertVocabulary, Right::kAdmin,
+      +[](const v1::RevertVocabularyRequest& r) { return r.name(); });
   AddIngest("Ingest");  // write on header.map (ParsingIngestStream)
   AddUnary(
       "Query", &PlaceDbService::Query, Right::kRead,

@@ -29,8 +29,8 @@ Status ListPlacesOf(const PlaceMap& map, const v1::ListPlacesRequest& request,
                     v1::ListPlacesResponse* response) {
   auto listing = wire::PlaceListingFromProto(request);
   if (!listing.ok()) return listing.status();
-  const PlacePage page = map.database().ListPlacesBefore(listing->before, listing->limit,
-                                                         listing->filter, listing->max_examined);
+  const PlacePage page = map.database()->ListPlacesBefore(listing->before, listing->limit,
+                                                          listing->filter, listing->max_examined);
   response->mutable_places()->Reserve(int(page.places.size()));
   for (const auto& record : page.places) wire::PlaceRecordToProto(*record, response->add_places());
   response->set_next_before_place_id(page.next_before);
@@ -51,7 +51,7 @@ Status ReadDynamics(const PlaceMap& map, const v1::GetDynamicsRequest& request,
   DynamicsRanking ranking(*options);
   const Status scanned = map.ForEachPlaceDynamics([&](PlaceId id, const PlaceDynamics& d) {
     if (options->near.active()) {  // the poses are in the places' records (memory)
-      const auto record = map.database().Get(id);
+      const auto record = map.database()->Get(id);
       if (!record || !record->metadata.pose ||
           !options->near.Contains(record->metadata.pose->position)) {
         return true;

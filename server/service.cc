@@ -338,8 +338,11 @@ void Describe(const MapEntry& entry, v1::MapDescription* out) {
   const MapInfo& info = entry.map->info();
   MapConfigToProto(info.options, entry.settings, entry.vocabulary_name, out->mutable_config());
   MapStatsToProto(entry.map->Stats(), out->mutable_stats());
-  out->set_vocabulary_checksum(entry.map->database().vocabulary().checksum_hex());
+  out->set_vocabulary_checksum(entry.map->database()->vocabulary().checksum_hex());
   out->set_created_unix_ms(info.created_unix_ms);
+  wire::VocabularyRecordToProto(info.vocabulary, entry.map->switching_vocabulary(),
+                                out->mutable_vocabulary());
+  out->mutable_vocabulary()->set_map(entry.name);
 }
 
 }  // namespace
@@ -439,8 +442,8 @@ grpc::Status PlaceDbService::ListMaps(grpc::ServerContext* context, const v1::Li
     summary->set_state(StateOf(*entry));
     summary->set_places_lost(entry->places_lost());
     if (entry->map) {
-      summary->set_places(entry->map->database().Stats().places);
-      summary->set_feature_type(FeatureTypeToProto(entry->map->database().config().feature_type));
+      summary->set_places(entry->map->database()->Stats().places);
+      summary->set_feature_type(FeatureTypeToProto(entry->map->database()->config().feature_type));
     }
   }
   return Finish("ListMaps", context, grpc::Status::OK);
@@ -487,6 +490,77 @@ grpc::Status PlaceDbService::RecoverMap(grpc::ServerContext* context,
               accepted.reason.empty() ? std::string("it was not damaged") : accepted.reason,
               Peer(context));
   return Finish("RecoverMap", context, grpc::Status::OK);
+}
+
+namespace {
+
+std::string SourceText(const VocabularySource& source) {
+  std::string text = source.origin + " vocabulary " + Hex64(source.checksum) +
+                     " (k=" + std::to_string(source.branching) +
+                     " L=" + std::to_string(source.depth) + ", " + std::to_string(source.words) +
+                     " words";
+  if (source.origin == "learned") {
+    text += ", from " + std::to_string(source.descriptors_sampled) + " descriptors of " +
+            std::to_string(source.places_sampled) + " places";
+  }
+  return text + ")";
+}
+
+}  // namespace
+
+grpc::Status PlaceDbService::AdaptVocabulary(grpc::ServerContext* context,
+                                             const v1::AdaptVocabularyRequest* request,
+                                             v1::MapVocabulary* response) {
+  CallScope scope(this);
+  if (draining_flag_) return Finish("AdaptVocabulary", context, Unavailable());
+  if (cluster_) return Finish("AdaptVocabulary", context, NotInCluster("AdaptVocabulary"));
+  auto entry = maps_->Get(request->name(), "name");
+  if (!entry.ok()) return Finish("AdaptVocabulary", context, ToGrpc(entry.status()));
+  AdaptOptions options;
+  if (request->seed() != 0) options.learning.seed = request->seed();
+  options.learning.max_sample_descriptors = request->max_sample_descriptors();
+  options.learning.branching = int(std::min<uint32_t>(request->branching(), 1u << 16));
+  options.learning.depth = int(std::min<uint32_t>(request->depth(), 1u << 16));
+  spdlog::info("map '{}': learning a vocabulary from its stored places, peer={}",
+               ForLog(request->name()), Peer(context));
+  auto record = (*entry)->map->AdaptVocabulary(options);
+  if (!record.ok()) {
+    spdlog::warn("map '{}': vocabulary not adapted: {}", ForLog(request->name()),
+                 record.status().ToString());
+    return Finish("AdaptVocabulary", context, ToGrpc(record.status()));
+  }
+  maps_->VocabularySwitched(request->name());
+  wire::VocabularyRecordToProto(*record, false, response);
+  response->set_map(request->name());
+  spdlog::info(
+      "map '{}' switched to {}: learned in {:.1f} s, {} places re-indexed in {:.1f} s "
+      "(generation {}), peer={}",
+      ForLog(request->name()), SourceText(record->current), record->current.learn_ms / 1000,
+      record->places_reindexed, record->reindex_ms / 1000, record->generation, Peer(context));
+  return Finish("AdaptVocabulary", context, grpc::Status::OK);
+}
+
+grpc::Status PlaceDbService::RevertVocabulary(grpc::ServerContext* context,
+                                              const v1::RevertVocabularyRequest* request,
+                                              v1::MapVocabulary* response) {
+  CallScope scope(this);
+  if (draining_flag_) return Finish("RevertVocabulary", context, Unavailable());
+  if (cluster_) return Finish("RevertVocabulary", context, NotInCluster("RevertVocabulary"));
+  auto entry = maps_->Get(request->name(), "name");
+  if (!entry.ok()) return Finish("RevertVocabulary", context, ToGrpc(entry.status()));
+  auto record = (*entry)->map->RevertVocabulary();
+  if (!record.ok()) {
+    spdlog::warn("map '{}': vocabulary not reverted: {}", ForLog(request->name()),
+                 record.status().ToString());
+    return Finish("RevertVocabulary", context, ToGrpc(record.status()));
+  }
+  maps_->VocabularySwitched(request->name());
+  wire::VocabularyRecordToProto(*record, false, response);
+  response->set_map(request->name());
+  spdlog::info("map '{}' reverted to {}: {} places re-indexed in {:.1f} s (generation {}), peer={}",
+               ForLog(request->name()), SourceText(record->current), record->places_reindexed,
+               record->reindex_ms / 1000, record->generation, Peer(context));
+  return Finish("RevertVocabulary", context, grpc::Status::OK);
 }
 
 grpc::Status PlaceDbService::ScrubMap(grpc::ServerContext* context,
@@ -627,7 +701,7 @@ bool DecodesInColor(const MapEntry& map, const v1::Observation& observation) {
   // A map that keeps thumbnails keeps them in colour.
   return server_boxes || map.map->info().options.thumbnails.enabled ||
          (settings.detection_enabled && observation.boxes_size() > 0 &&
-          map.map->database().config().box_refinement.method == BoxRefinement::kGrabCut);
+          map.map->database()->config().box_refinement.method == BoxRefinement::kGrabCut);
 }
 
 }  // namespace
@@ -635,7 +709,7 @@ bool DecodesInColor(const MapEntry& map, const v1::Observation& observation) {
 grpc::Status PlaceDbService::ChargeFrame(grpc::ServerContext* context, const MapEntry& map,
                                          const v1::Observation& observation, const char* what,
                                          MemoryBudget::Reservation* reservation) {
-  const uint64_t bytes = EstimateFrameBytes(observation, map.map->database().config().feature_type,
+  const uint64_t bytes = EstimateFrameBytes(observation, map.map->database()->config().feature_type,
                                             DecodesInColor(map, observation));
   const auto until = QueueWaitUntil(context, config_.limits.memory_wait_ms);
   const auto expired = [context] { return Expired(context); };
@@ -655,8 +729,8 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
   const auto expired = [&] { return work->expiry ? (*work->expiry)() : Expired(context); };
   if (expired()) return Cancelled(context, "before decoding");
   const ServiceMapSettings& settings = map.settings;
-  if (Status typed =
-          CheckFeatureType(observation, map.map->database().config().feature_type, map.name, field);
+  if (Status typed = CheckFeatureType(observation, map.map->database()->config().feature_type,
+                                      map.name, field);
       !typed.ok()) {
     return ToGrpc(typed);
   }

@@ -73,6 +73,12 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                           v1::RecoverMapResponse* response) override;
   grpc::Status ScrubMap(grpc::ServerContext* context, const v1::ScrubMapRequest* request,
                         v1::ScrubReport* response) override;
+  grpc::Status AdaptVocabulary(grpc::ServerContext* context,
+                               const v1::AdaptVocabularyRequest* request,
+                               v1::MapVocabulary* response) override;
+  grpc::Status RevertVocabulary(grpc::ServerContext* context,
+                                const v1::RevertVocabularyRequest* request,
+                                v1::MapVocabulary* response) override;
   // Ingest (the generated Ingest is not overridden: ParsingService reads the stream's raw
   // messages); a message that fails to parse ends the stream with its error.
   grpc::Status IngestStream(grpc::ServerContext* context, IngestStreamIo* io);

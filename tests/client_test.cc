@@ -334,6 +334,45 @@ TEST_F(ClientTest, MapsRecoverAndScrub) {
   EXPECT_GT(std::stoi(report["places_checked"].get<std::string>()), 0);
 }
 
+// `maps adapt-vocabulary` learns a vocabulary from the map's places and switches to it; `maps
+// show` says which vocabulary, where it came from and the previous one; `maps
+// revert-vocabulary` goes back; a map too small to learn from is refused with the reason.
+TEST_F(ClientTest, MapsAdaptAndRevertVocabulary) {
+  ASSERT_EQ(Cli({"maps", "create", "lab"}).code, 0);
+  ASSERT_EQ(Cli({"ingest", "lab", FramesDir(1, 30)}).code, 0);
+  const json before = ParseJson(Cli({"maps", "show", "lab", "--json"}));
+  CliRun adapted = Cli({"maps", "adapt-vocabulary", "lab", "--branching", "8", "--depth", "4",
+                        "--max-sample", "20000"});
+  ASSERT_EQ(adapted.code, 0) << adapted.err;
+  EXPECT_NE(adapted.out.find("map 'lab' switched to the learned vocabulary"), std::string::npos)
+      << adapted.out;
+  EXPECT_NE(adapted.out.find("(k=8 L=4"), std::string::npos) << adapted.out;
+  CliRun shown = Cli({"maps", "show", "lab"});
+  ASSERT_EQ(shown.code, 0) << shown.err;
+  EXPECT_NE(shown.out.find("vocabulary"), std::string::npos);
+  EXPECT_NE(shown.out.find("current     learned"), std::string::npos) << shown.out;
+  EXPECT_NE(shown.out.find("previous    file " + before["vocabulary_checksum"].get<std::string>()),
+            std::string::npos)
+      << shown.out;
+  const json after = ParseJson(Cli({"maps", "show", "lab", "--json"}));
+  EXPECT_EQ(after["vocabulary"]["generation"], "1");
+  EXPECT_EQ(after["vocabulary"]["current"]["origin"], "learned");
+  EXPECT_NE(after["vocabulary_checksum"], before["vocabulary_checksum"]);
+
+  CliRun reverted = Cli({"maps", "revert-vocabulary", "lab", "--json"});
+  ASSERT_EQ(reverted.code, 0) << reverted.err;
+  const json back = ParseJson(reverted);
+  EXPECT_EQ(back["current"]["checksum"], before["vocabulary_checksum"]);
+  EXPECT_EQ(back["previous"]["origin"], "learned");
+
+  ASSERT_EQ(Cli({"maps", "create", "small"}).code, 0);
+  ASSERT_EQ(Cli({"ingest", "small", FramesDir(1, 2)}).code, 0);
+  CliRun refused = Cli({"maps", "adapt-vocabulary", "small"});
+  EXPECT_EQ(refused.code, 1);
+  EXPECT_NE(refused.err.find("too small to learn a vocabulary from"), std::string::npos)
+      << refused.err;
+}
+
 TEST_F(ClientTest, IngestFolderAsTwoAgentsThenQueryFindsTheRevisit) {
   ASSERT_EQ(Cli({"maps", "create", "loop"}).code, 0);
   const std::string frames = FramesDir(1, 20);

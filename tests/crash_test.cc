@@ -45,7 +45,7 @@ void Say(const char* format, unsigned id, int frame) {
   auto map = (*dir)->OpenMap("crash", testing::DefaultVocabulary());
   if (!map.ok()) std::_Exit(4);
   const std::vector<ProcessedFrame> frames =
-      testing::ProcessRtabmapFrames((*map)->database(), kFrames);
+      testing::ProcessRtabmapFrames(*(*map)->database(), kFrames);
   const char* mode = std::getenv(kModeEnv);
   if (mode && std::string(mode) == "group") {
     // Acknowledged (reported) only once its PendingCommit is done: durable and indexed.
@@ -130,7 +130,7 @@ void KillAndCheck(const std::string& mode, int kills) {
     ASSERT_TRUE(dir.ok());
     auto map = (*dir)->CreateMap("crash", {}, vocabulary);
     ASSERT_TRUE(map.ok());
-    frames = testing::ProcessRtabmapFrames((*map)->database(), kFrames);
+    frames = testing::ProcessRtabmapFrames(*(*map)->database(), kFrames);
   }
   std::mt19937 rng(2026);
   ChildReport report;
@@ -178,7 +178,7 @@ void KillAndCheck(const std::string& mode, int kills) {
     ASSERT_TRUE(integrity.ok()) << "run " << run << ": " << integrity.ToString();
     int present = 0;
     for (const auto& [id, frame] : report.acknowledged) {
-      auto record = (*map)->database().Get(id);
+      auto record = (*map)->database()->Get(id);
       if (report.removed.count(id)) {
         EXPECT_EQ(record, nullptr) << "acknowledged removal of place " << id << " was lost";
       } else if (!report.removing.count(id)) {

@@ -40,7 +40,7 @@ constexpr int kPlaces = 82;   // acknowledged places in all; the last 42 only in
   {
     auto map = (*dir)->CreateMap("lab", {}, vocabulary);
     if (!map.ok()) std::_Exit(4);
-    frames = testing::ProcessRtabmapFrames((*map)->database());
+    frames = testing::ProcessRtabmapFrames(*(*map)->database());
     if (frames.empty()) std::_Exit(5);
     for (int n = 0; n < kFlushed; ++n) {
       PlaceMetadata metadata{"robot", uint64_t(n), 0, std::nullopt};
@@ -306,7 +306,7 @@ class DamageTest : public ::testing::Test {
     // The map works again, and its history survives a restart.
     for (PlaceId id = 1; id <= PlaceId(kPlaces); ++id) {
       if (id < accepted.first_lost || id > accepted.last_lost) {
-        EXPECT_NE((*map)->database().Get(id), nullptr) << id;
+        EXPECT_NE((*map)->database()->Get(id), nullptr) << id;
       }
     }
     map = Result<std::shared_ptr<PlaceMap>>(Status::Internal("released"));
@@ -459,7 +459,7 @@ TEST_F(DamageTest, HalfTruncatedManifestOfAMapFilledInOneSessionLosesNothing) {
     auto dir = OpenDir();
     auto map = dir->CreateMap("fresh", {}, vocabulary_);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
-    const auto frames = testing::ProcessRtabmapFrames((*map)->database());
+    const auto frames = testing::ProcessRtabmapFrames(*(*map)->database());
     ASSERT_FALSE(frames.empty());
     for (int n = 0; n < kPlaces; ++n) {
       auto added = (*map)->Commit(frames[size_t(n) % frames.size()],
@@ -556,7 +556,7 @@ TEST_F(DamageTest, DeletedBowFileDropsOnlyItsPlacesAndCountsThem) {
   EXPECT_EQ(accepted.features_lost + accepted.records_lost, 0u);
   EXPECT_TRUE((*map)->VerifyIntegrity().ok());
   for (PlaceId id = 1; id <= PlaceId(kPlaces); ++id) {
-    if ((*map)->database().Get(id)) {
+    if ((*map)->database()->Get(id)) {
       EXPECT_TRUE((*map)->GetPlace(id).ok()) << id;
     }
   }
@@ -637,7 +637,7 @@ TEST_F(DamageTest, MapWithoutTheDynamicsFamilyOpensAndStartsCounting) {
   ASSERT_TRUE(before.ok()) << before.status().ToString();
   EXPECT_TRUE(before->empty());
   EXPECT_TRUE((*map)->MapDynamics()->empty());
-  auto frames = testing::ProcessRtabmapFrames((*map)->database(), 1);
+  auto frames = testing::ProcessRtabmapFrames(*(*map)->database(), 1);
   ASSERT_FALSE(frames.empty());
   auto added = (*map)->Commit(frames[0], PlaceMetadata{"robot", 1, 0, std::nullopt});
   ASSERT_TRUE(added.ok() && added->stored) << added.status().ToString();

@@ -98,7 +98,7 @@ TEST_P(DiskFullTest, FullDiskRefusesWritesKeepsReadsAndResumes) {
     options.database.verification.mode = VerificationMode::kDirectIndex;  // reads features
     auto map = (*dir)->CreateMap("full", options, vocabulary);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
-    frames = testing::ProcessRtabmapFrames((*map)->database(), kFrames);
+    frames = testing::ProcessRtabmapFrames(*(*map)->database(), kFrames);
     ASSERT_EQ(frames.size(), size_t(kFrames));
     // A first place before the filler: RocksDB preallocates the write-ahead log at its first
     // write (about 35 MB, which a tmpfs counts as used), and CreateMap's flush started a new one.
@@ -210,7 +210,7 @@ TEST_P(DiskFullTest, ClosedWhileFullReopensWithEveryAcknowledgedPlace) {
     ASSERT_TRUE(dir.ok()) << dir.status().ToString();
     auto map = (*dir)->CreateMap("full", {}, vocabulary);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
-    frames = testing::ProcessRtabmapFrames((*map)->database(), kFrames);
+    frames = testing::ProcessRtabmapFrames(*(*map)->database(), kFrames);
     ASSERT_EQ(frames.size(), size_t(kFrames));
     const size_t free_mib = FreeMiB(mount_point_);
     ASSERT_GT(free_mib, kLeftMiB + 8);

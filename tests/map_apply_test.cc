@@ -54,7 +54,7 @@ TEST_F(MapApplyTest, AppliesInOrderWithGapsIdempotentlyAndResumesAfterReopen) {
     ASSERT_TRUE(dir);
     auto map = dir->CreateMap("replica", {}, vocabulary_);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
-    frames = testing::ProcessRtabmapFrames((*map)->database(), 4);
+    frames = testing::ProcessRtabmapFrames(*(*map)->database(), 4);
     ASSERT_EQ(frames.size(), 4u);
     PlaceMap& m = **map;
     EXPECT_EQ(m.applied_sequence(), 0u);
@@ -126,7 +126,7 @@ TEST_F(MapApplyTest, ARecordTheMapCannotTakeChangesNothing) {
   auto map = dir->CreateMap("replica", {}, vocabulary_);
   ASSERT_TRUE(map.ok());
   PlaceMap& m = **map;
-  auto frames = testing::ProcessRtabmapFrames(m.database(), 1);
+  auto frames = testing::ProcessRtabmapFrames(*m.database(), 1);
   ASSERT_EQ(frames.size(), 1u);
   ASSERT_TRUE(*m.ApplyAt(1, Add(frames[0], 1)));
 
@@ -148,7 +148,7 @@ TEST_F(MapApplyTest, ARecordTheMapCannotTakeChangesNothing) {
 // Everything a replica holds that a client or another replica could tell apart.
 std::map<PlaceId, std::string> Contents(const PlaceMap& map) {
   std::map<PlaceId, std::string> out;
-  for (PlaceId id : map.database().ListPlaces()) {
+  for (PlaceId id : map.database()->ListPlaces()) {
     auto place = map.GetPlace(id);
     EXPECT_TRUE(place.ok()) << place.status().ToString();
     if (!place.ok()) continue;
@@ -166,7 +166,7 @@ TEST_F(MapApplyTest, BatchesStoreWhatOneRecordAtATimeStores) {
   auto single = dir->CreateMap("single", {}, vocabulary_);
   auto batched = dir->CreateMap("batched", {}, vocabulary_);
   ASSERT_TRUE(single.ok() && batched.ok());
-  auto frames = testing::ProcessRtabmapFrames((*single)->database(), 6);
+  auto frames = testing::ProcessRtabmapFrames(*(*single)->database(), 6);
   ASSERT_EQ(frames.size(), 6u);
 
   // Sequences 1..12: places, a count of a place added in the same run (2 -> 1) and of one from
@@ -244,7 +244,7 @@ TEST_F(MapApplyTest, ABatchStopsAtARecordTheMapCannotTake) {
   auto map = dir->CreateMap("replica", {}, vocabulary_);
   ASSERT_TRUE(map.ok());
   PlaceMap& m = **map;
-  auto frames = testing::ProcessRtabmapFrames(m.database(), 3);
+  auto frames = testing::ProcessRtabmapFrames(*m.database(), 3);
   ASSERT_EQ(frames.size(), 3u);
   MapLogRecord bad = Add(frames[1], 2);
   bad.frame.direct.levels_up += 1;
@@ -271,7 +271,7 @@ TEST_F(MapApplyTest, AnAppliedSequenceMeansEveryPlaceUpToItIsFound) {
   auto map = dir->CreateMap("replica", {}, vocabulary_);
   ASSERT_TRUE(map.ok()) << map.status().ToString();
   PlaceMap& m = **map;
-  const auto frames = testing::ProcessRtabmapFrames(m.database(), 8);
+  const auto frames = testing::ProcessRtabmapFrames(*m.database(), 8);
   ASSERT_EQ(frames.size(), 8u);
   constexpr uint64_t kBatches = 20, kBatchSize = 32;
 

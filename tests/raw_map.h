@@ -11,7 +11,7 @@
 namespace placedb::testing {
 
 // The handles in placedb's column family order: default, places, bow, features, invalid,
-// dynamics, thumbnails.
+// dynamics, thumbnails; then the map's other families (an adapted vocabulary's "bow.<g>").
 using RawEdit =
     std::function<void(rocksdb::DB*, std::vector<rocksdb::ColumnFamilyHandle*>& handles)>;
 

@@ -226,7 +226,7 @@ TEST_F(SnapshotsTest, SnapshotDuringTwoAgentIngestRestoresThatState) {
   // order; a frame may be merged or invalid and store nothing). Rebuild the source's state at
   // the snapshot: each agent's frames up to the last one held, ingested into a new map.
   std::map<std::string, std::vector<uint64_t>> held;
-  for (PlaceId id : (*restored)->database().ListPlaces()) {
+  for (PlaceId id : (*restored)->database()->ListPlaces()) {
     auto place = (*restored)->GetPlace(id);
     ASSERT_TRUE(place.ok());
     held[place->record.metadata.agent_id].push_back(place->record.metadata.sequence);

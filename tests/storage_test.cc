@@ -587,7 +587,7 @@ TEST_F(StorageTest, ParallelLoadRebuildsExactlyWhatTheSequentialScanDoes) {
     auto dir = OpenDir();
     auto map = dir->CreateMap("ranges", {}, vocabulary_);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
-    const auto frames = testing::ProcessRtabmapFrames((*map)->database());
+    const auto frames = testing::ProcessRtabmapFrames(*(*map)->database());
     ASSERT_GT(frames.size(), 60u);
     for (int n = 0; n < kPlaces; ++n) {
       // Frames in a shuffled order, so neighbouring ids hold different places.
@@ -603,7 +603,7 @@ TEST_F(StorageTest, ParallelLoadRebuildsExactlyWhatTheSequentialScanDoes) {
     for (PlaceId id : removed) ASSERT_TRUE((*map)->RemovePlace(id).ok()) << id;
     before = QueryAll(**map, queries);
     stats_before = (*map)->Stats();
-    ids_before = (*map)->database().ListPlaces();
+    ids_before = (*map)->database()->ListPlaces();
     ASSERT_EQ(ids_before.size(), size_t(kPlaces) - removed.size());
   }
   struct Loader {
@@ -624,7 +624,7 @@ TEST_F(StorageTest, ParallelLoadRebuildsExactlyWhatTheSequentialScanDoes) {
     auto map = dir->OpenMap("ranges", vocabulary_);
     ASSERT_TRUE(map.ok()) << map.status().ToString();
     EXPECT_EQ((*map)->open_timings().threads, loader.threads);
-    EXPECT_EQ((*map)->database().ListPlaces(), ids_before);
+    EXPECT_EQ((*map)->database()->ListPlaces(), ids_before);
     const MapStats stats = (*map)->Stats();
     EXPECT_EQ(stats.database.places, stats_before.database.places);
     EXPECT_EQ(stats.database.descriptors_kept, stats_before.database.descriptors_kept);
@@ -859,7 +859,7 @@ TEST_F(StorageTest, ConcurrentCommitQueueAcknowledgesEachPlaceDurablyInCallersOr
               continue;
             }
             // Done = durable and indexed: readable and found by its own frame at once.
-            if (!(*map)->database().Get(added->id)) failures.fetch_add(1);
+            if (!(*map)->database()->Get(added->id)) failures.fetch_add(1);
             results[t].emplace_back(added->id, i);
           }
         });
@@ -1259,7 +1259,7 @@ TEST_F(StorageTest, LoopClosureReadsLongTermMemoryFromRocksDb) {
     }
     if (outcome->loop) {
       ++loops;
-      EXPECT_TRUE((*map)->database().Get(*outcome->loop)) << "a loop to an unknown place";
+      EXPECT_TRUE((*map)->database()->Get(*outcome->loop)) << "a loop to an unknown place";
     }
     retrieved += outcome->retrieved;
     transferred += outcome->transferred;
@@ -1275,7 +1275,7 @@ TEST_F(StorageTest, LoopClosureReadsLongTermMemoryFromRocksDb) {
   EXPECT_EQ(stats.database.places, valid - merged) << "merged frames must not be stored";
   EXPECT_EQ(stats.database.streams, 1u);
   EXPECT_LE(stats.database.loop_working_memory, 2u + 5u);
-  auto loop_stats = (*map)->database().LoopStats("rover");
+  auto loop_stats = (*map)->database()->LoopStats("rover");
   ASSERT_TRUE(loop_stats.ok());
   EXPECT_EQ(loop_stats->retrieved, retrieved);
   EXPECT_EQ(loop_stats->merged, merged);
@@ -1290,7 +1290,7 @@ TEST_F(StorageTest, LoopClosureReadsLongTermMemoryFromRocksDb) {
   ASSERT_TRUE(reopened.ok()) << reopened.status().ToString();
   EXPECT_EQ((*reopened)->Stats().database.places, valid - merged);
   EXPECT_EQ((*reopened)->Stats().database.streams, 0u);
-  EXPECT_EQ((*reopened)->database().LoopStats("rover").status().code(), StatusCode::kNotFound);
+  EXPECT_EQ((*reopened)->database()->LoopStats("rover").status().code(), StatusCode::kNotFound);
 }
 
 // CloseLoop commits under the lifecycle lock it already holds: deleting the map meanwhile must
@@ -1886,7 +1886,7 @@ TEST_F(StorageTest, DynamicsNeverChangeDescriptorsOrRanking) {
       EXPECT_EQ(a->matches[m].inliers, b->matches[m].inliers);
     }
   }
-  for (PlaceId id : (*map)->database().ListPlaces()) {
+  for (PlaceId id : (*map)->database()->ListPlaces()) {
     auto place = (*map)->GetPlace(id);
     ASSERT_TRUE(place.ok());
     EXPECT_EQ(place->payload.features.size(), (*memory)->Get(id)->counts.static_);

@@ -25,6 +25,39 @@ std::string Metres(double metres) {
   return FormatDouble(metres, 2) + " m";
 }
 
+std::string SourceText(const v1::VocabularySource& source) {
+  std::string text =
+      source.origin() + " " + source.checksum() + " (k=" + std::to_string(source.branching()) +
+      " L=" + std::to_string(source.depth()) + ", " + std::to_string(source.words()) + " words)";
+  if (source.origin() == "learned") {
+    text += ", learned " + FormatUnixMs(source.learned_unix_ms()) + " from " +
+            std::to_string(source.descriptors_sampled()) + " descriptors of " +
+            std::to_string(source.places_sampled()) + " places (of " +
+            std::to_string(source.descriptors_offered()) + " in " +
+            std::to_string(source.places_offered()) + ")";
+  }
+  return text;
+}
+
+// The `vocabulary` block: which vocabulary the map uses, where it came from, and the previous.
+Rows VocabularyRows(const v1::MapVocabulary& vocabulary) {
+  Rows rows;
+  rows.push_back({"current", SourceText(vocabulary.current())});
+  rows.push_back({"generation", std::to_string(vocabulary.generation()) +
+                                    (vocabulary.generation() == 0
+                                         ? std::string(" (the map's creation vocabulary)")
+                                         : ", stored with the map, since " +
+                                               FormatUnixMs(vocabulary.since_unix_ms()))});
+  if (vocabulary.generation() > 0) {
+    rows.push_back({"switch", std::to_string(vocabulary.places_reindexed()) +
+                                  " places re-indexed in " +
+                                  FormatDouble(vocabulary.reindex_ms() / 1000, 1) + " s"});
+  }
+  if (vocabulary.has_previous()) rows.push_back({"previous", SourceText(vocabulary.previous())});
+  if (vocabulary.switching()) rows.push_back({"now", "switching vocabularies"});
+  return rows;
+}
+
 // The `map NAME` block of `maps show`: one row per settings group.
 Rows ConfigRows(const v1::MapDescription& map) {
   const v1::MapConfig& c = map.config();
@@ -195,6 +228,7 @@ void PrintMap(const v1::MapDescription& map, CliIo& io) {
                 {"state", StateText(map.state(), map.places_lost(), map.unavailable_reason())});
   PrintKeyValues(io.out, "map " + map.name(), config);
   PrintKeyValues(io.out, "statistics", StatsRows(map.stats()));
+  if (map.has_vocabulary()) PrintKeyValues(io.out, "vocabulary", VocabularyRows(map.vocabulary()));
   if (map.damage_history_size() > 0) {
     Rows history;
     for (const v1::MapDamage& damage : map.damage_history()) {
@@ -440,6 +474,24 @@ MapsCommands RegisterMaps(CLI::App& app, MapsFlags* flags) {
   commands.scrub = maps->add_subcommand(
       "scrub", "read every place of a map and verify its files (exit 3 when damaged)");
   commands.scrub->add_option("NAME", flags->scrub_name, "map name")->required();
+  commands.adapt_vocabulary = maps->add_subcommand(
+      "adapt-vocabulary",
+      "learn a vocabulary from the map's own stored places and switch to it (online)");
+  commands.adapt_vocabulary->add_option("NAME", flags->adapt_name, "map name")->required();
+  commands.adapt_vocabulary->add_option("--seed", flags->adapt_seed,
+                                        "sampling seed (default 1; the same places and seed "
+                                        "learn the same vocabulary)");
+  commands.adapt_vocabulary->add_option(
+      "--max-sample", flags->adapt_max_sample,
+      "descriptors sampled at most (default 1000000 ORB, 200000 SIFT)");
+  commands.adapt_vocabulary->add_option("--branching", flags->adapt_branching,
+                                        "k, children per node (default 10)");
+  commands.adapt_vocabulary->add_option("--depth", flags->adapt_depth,
+                                        "L, levels (default: 5 below 10^4 sampled descriptors, "
+                                        "else 6)");
+  commands.revert_vocabulary = maps->add_subcommand(
+      "revert-vocabulary", "switch the map back to its previous vocabulary (online)");
+  commands.revert_vocabulary->add_option("NAME", flags->revert_name, "map name")->required();
   return commands;
 }
 
@@ -588,6 +640,51 @@ int MapsScrub(const Connection& connection, const std::string& name, bool json, 
     }
   }
   return report.clean() ? kExitOk : kExitDamage;
+}
+
+namespace {
+
+int PrintSwitched(const v1::MapVocabulary& vocabulary, const char* what, bool json, CliIo& io) {
+  if (json) {
+    io.out << ProtoJson(vocabulary) << '\n';
+    return kExitOk;
+  }
+  io.out << "map '" << vocabulary.map() << "' " << what << " " << vocabulary.current().origin()
+         << " vocabulary " << vocabulary.current().checksum() << '\n';
+  PrintKeyValues(io.out, "vocabulary", VocabularyRows(vocabulary));
+  return kExitOk;
+}
+
+}  // namespace
+
+int MapsAdaptVocabulary(const Connection& connection, const MapsFlags& flags, bool json,
+                        CliIo& io) {
+  // No deadline: learning and re-indexing a large map takes minutes (the switch goes on on the
+  // server even when the client gives up).
+  auto context = connection.NewContext(/*unary=*/false);
+  v1::AdaptVocabularyRequest request;
+  request.set_name(flags.adapt_name);
+  request.set_seed(flags.adapt_seed);
+  request.set_max_sample_descriptors(flags.adapt_max_sample);
+  request.set_branching(flags.adapt_branching);
+  request.set_depth(flags.adapt_depth);
+  v1::MapVocabulary vocabulary;
+  const grpc::Status status =
+      connection.stub()->AdaptVocabulary(context.get(), request, &vocabulary);
+  if (!status.ok()) return RpcFailed(io, status);
+  return PrintSwitched(vocabulary, "switched to the", json, io);
+}
+
+int MapsRevertVocabulary(const Connection& connection, const std::string& name, bool json,
+                         CliIo& io) {
+  auto context = connection.NewContext(/*unary=*/false);  // as for adapt-vocabulary
+  v1::RevertVocabularyRequest request;
+  request.set_name(name);
+  v1::MapVocabulary vocabulary;
+  const grpc::Status status =
+      connection.stub()->RevertVocabulary(context.get(), request, &vocabulary);
+  if (!status.ok()) return RpcFailed(io, status);
+  return PrintSwitched(vocabulary, "reverted to the", json, io);
 }
 
 }  // namespace placedb::client

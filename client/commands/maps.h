@@ -1,4 +1,5 @@
-// `placedb maps create|list|show|delete|recover|scrub` (docs/cli.md, "maps"). Options of `maps
+// `placedb maps create|list|show|delete|recover|scrub|adapt-vocabulary|revert-vocabulary`
+// (docs/cli.md, "maps"). Options of `maps
 // create` left unset keep the server's defaults: the request sets only what was given.
 #pragma once
 
@@ -84,6 +85,13 @@ struct MapsFlags {
   std::string recover_name;
   bool accept_data_loss = false;
   std::string scrub_name;
+  // adapt-vocabulary / revert-vocabulary (issue 29).
+  std::string adapt_name;
+  uint64_t adapt_seed = 0;
+  uint64_t adapt_max_sample = 0;
+  uint32_t adapt_branching = 0;
+  uint32_t adapt_depth = 0;
+  std::string revert_name;
 };
 
 // The `maps` subcommands; the one parsed says which Maps* function runs.
@@ -94,6 +102,8 @@ struct MapsCommands {
   CLI::App* remove = nullptr;
   CLI::App* recover = nullptr;
   CLI::App* scrub = nullptr;
+  CLI::App* adapt_vocabulary = nullptr;
+  CLI::App* revert_vocabulary = nullptr;
 };
 
 // Adds `maps` and its subcommands to `app`, their options bound to *flags.
@@ -110,5 +120,9 @@ int MapsRecover(const Connection& connection, const std::string& name, bool acce
                 bool json, CliIo& io);
 // ScrubMap: prints the report; kExitDamage when anything is damaged.
 int MapsScrub(const Connection& connection, const std::string& name, bool json, CliIo& io);
+// AdaptVocabulary / RevertVocabulary: print the map's vocabulary once switched.
+int MapsAdaptVocabulary(const Connection& connection, const MapsFlags& flags, bool json, CliIo& io);
+int MapsRevertVocabulary(const Connection& connection, const std::string& name, bool json,
+                         CliIo& io);
 
 }  // namespace placedb::client

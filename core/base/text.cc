@@ -5,6 +5,12 @@
 #include <cstdio>
 
 namespace placedb {
+
+std::string Hex64(uint64_t value) {
+  char buffer[17];
+  std::snprintf(buffer, sizeof buffer, "%016llx", static_cast<unsigned long long>(value));
+  return buffer;
+}
 namespace {
 
 void AppendHexByte(std::string* out, unsigned char byte) {

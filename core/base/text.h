@@ -2,6 +2,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <string>
 #include <string_view>
 
@@ -15,6 +16,9 @@ inline std::string AsciiLower(std::string_view text) {
   }
   return out;
 }
+
+// 16 lowercase hex digits: how checksums (a vocabulary's) are shown.
+std::string Hex64(uint64_t value);
 
 // How AppendEscaped shows what is not printable ASCII.
 enum class EscapeMode {

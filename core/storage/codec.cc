@@ -1,5 +1,6 @@
 #include "core/storage/codec.h"
 
+#include <algorithm>
 #include <cfloat>
 #include <climits>
 #include <cmath>
@@ -18,6 +19,7 @@ constexpr uint8_t kRecordV2 = 2;            // place record: counts with depth_r
 constexpr uint8_t kInvalidV2 = 2;           // invalid observation: counts with depth_removed
 constexpr uint8_t kFeaturesV1 = 1;          // ORB features: 32-byte descriptors
 constexpr uint8_t kFloatFeaturesV1 = 0x81;  // SIFT features: 128 float32 per keypoint
+constexpr uint8_t kBowWithDirectV2 = 2;     // BoW vector followed by its direct index
 // JSON map config: 1 (ORB only), 2 (RGB-D), 3 (box refinement, short-term tier, re-ranking).
 constexpr int kConfigFormat = 3;
 
@@ -617,9 +619,9 @@ Result<PlaceRecord> DecodePlaceRecord(std::string_view bytes) {
   return record;
 }
 
-std::string EncodeBow(const BowVector& bow) {
-  Writer w;
-  w.U8(kFormatV1);
+namespace {
+
+void WriteBow(Writer& w, const BowVector& bow) {
   w.Varint(bow.size());
   WordId previous = 0;
   for (const BowEntry& e : bow) {
@@ -627,28 +629,70 @@ std::string EncodeBow(const BowVector& bow) {
     w.F32(e.weight);
     previous = e.word;
   }
-  return w.Take();
 }
 
-Result<BowVector> DecodeBow(std::string_view bytes) {
-  Reader r(bytes, "bow vector");
-  PLACEDB_RETURN_IF_ERROR(r.Version());
+Status ReadBow(Reader& r, BowVector* bow) {
   uint64_t n = 0;
   if (!r.Count(&n, 5)) return r.Error();
-  BowVector bow(n);
+  bow->resize(n);
   uint64_t word = 0;
   for (size_t i = 0; i < n; ++i) {
     uint64_t delta = 0;
-    if (!r.Varint(&delta) || !r.F32(&bow[i].weight)) return r.Error();
+    if (!r.Varint(&delta) || !r.F32(&(*bow)[i].weight)) return r.Error();
     if (i > 0 && delta == 0) return r.Error("word ids not strictly increasing");
     // Checked before adding: a 64-bit delta could wrap `word` below the previous id (found by
     // tests/fuzz/fuzz_codec).
     if (delta > 0xFFFFFFFEull - word) return r.Error("word id out of range");
     word += delta;
-    bow[i].word = WordId(word);
+    (*bow)[i].word = WordId(word);
   }
-  if (!r.Done()) return r.Error("trailing bytes");
+  return Status::Ok();
+}
+
+}  // namespace
+
+std::string EncodeBow(const BowVector& bow) {
+  Writer w;
+  w.U8(kFormatV1);
+  WriteBow(w, bow);
+  return w.Take();
+}
+
+std::string EncodeBowWithDirect(const BowVector& bow, const DirectIndex& direct) {
+  Writer w;
+  w.U8(kBowWithDirectV2);
+  WriteBow(w, bow);
+  WriteDirect(w, direct);
+  return w.Take();
+}
+
+Status DecodeBowValue(std::string_view bytes, BowVector* bow, std::optional<DirectIndex>* direct) {
+  Reader r(bytes, "bow vector");
+  uint8_t version = 0;
+  PLACEDB_RETURN_IF_ERROR(r.Version(kFormatV1, kBowWithDirectV2, &version));
+  PLACEDB_RETURN_IF_ERROR(ReadBow(r, bow));
+  if (version == kFormatV1) {
+    if (!r.Done()) return r.Error("trailing bytes");
+    if (direct) direct->reset();
+    return Status::Ok();
+  }
+  // The features it names are checked against the place's features when both are read
+  // (DirectIndexFits): the vector alone does not know how many there are.
+  DirectIndex index;
+  PLACEDB_RETURN_IF_ERROR(ReadDirect(r, uint64_t(1) << 32, &index));
+  if (direct) *direct = std::move(index);
+  return Status::Ok();
+}
+
+Result<BowVector> DecodeBow(std::string_view bytes) {
+  BowVector bow;
+  PLACEDB_RETURN_IF_ERROR(DecodeBowValue(bytes, &bow, nullptr));
   return bow;
+}
+
+bool DirectIndexFits(const DirectIndex& direct, size_t features) {
+  return std::all_of(direct.feature_ids.begin(), direct.feature_ids.end(),
+                     [&](uint32_t id) { return id < features; });
 }
 
 std::string EncodeFeatures(const FeatureSet& features, const DirectIndex& direct) {

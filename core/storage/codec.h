@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 
@@ -26,9 +27,19 @@ Result<uint64_t> DecodeU64Key(std::string_view key);
 std::string EncodePlaceRecord(const PlaceRecord& record);
 Result<PlaceRecord> DecodePlaceRecord(std::string_view bytes);
 
-// BoW: word ids delta-coded as varints, weights as float32.
+// BoW: word ids delta-coded as varints, weights as float32 (version 1). A map whose vocabulary
+// was adapted (issue 29) keeps each place's direct index of that vocabulary beside its vector
+// (version 2: the vector, then the direct index as in the features value): the one in the
+// features value belongs to the vocabulary the place was stored with.
 std::string EncodeBow(const BowVector& bow);
-Result<BowVector> DecodeBow(std::string_view bytes);
+std::string EncodeBowWithDirect(const BowVector& bow, const DirectIndex& direct);
+// Either version; `direct` (optional) receives the direct index of a version-2 value, nullopt
+// for version 1.
+Status DecodeBowValue(std::string_view bytes, BowVector* bow, std::optional<DirectIndex>* direct);
+Result<BowVector> DecodeBow(std::string_view bytes);  // either version, the vector only
+// Whether every feature the direct index names is below `features` (a version-2 value's index
+// is checked against its place's features once both are read).
+bool DirectIndexFits(const DirectIndex& direct, size_t features);
 
 // SC keypoints, descriptors and the direct index (what verification needs), ORB maps:
 // 32-byte binary descriptors.

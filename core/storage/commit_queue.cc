@@ -36,12 +36,52 @@ void PendingCommit::Complete(Result<AddResult> outcome) {
   done_cv_.NotifyAll();
 }
 
+PlaceMap::PlaceEntries PlaceMap::EncodeEntries(const ProcessedFrame& frame,
+                                               const PlaceMetadata& metadata) const {
+  PlaceEntries entries;
+  entries.features = EncodeLocalFeatures(frame.static_features, frame.direct);
+  entries.bow = storage_->BowValue(frame.bow, frame.direct);
+  if (storage_->dynamics) entries.dynamics = EncodeDynamics(FrameDynamics(frame, metadata));
+  if (frame.thumbnail && info_.options.thumbnails.enabled) {
+    entries.thumbnail = EncodeThumbnail(*frame.thumbnail);
+  }
+  return entries;
+}
+
+void PlaceMap::PutEntries(PlaceId id, const PlaceMetadata& metadata, const ProcessedFrame& frame,
+                          const PlaceEntries& entries, rocksdb::WriteBatch* batch) const {
+  PlaceRecord record;
+  record.id = id;
+  record.metadata = metadata;
+  record.counts = frame.counts;
+  record.boxes_used = frame.boxes_used;
+  const std::string key = PlaceKey(id);
+  batch->Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
+  batch->Put(storage_->cf(kBow), key, entries.bow);
+  batch->Put(storage_->cf(kFeatures), key, entries.features);
+  if (storage_->dynamics) {
+    batch->Merge(storage_->cf(kDynamics), key, entries.dynamics);
+    batch->Merge(storage_->cf(kDynamics), kMapDynamicsKey, entries.dynamics);
+  }
+  if (!entries.thumbnail.empty()) batch->Put(storage_->cf(kThumbnails), key, entries.thumbnail);
+}
+
 std::shared_ptr<PendingCommit> PlaceMap::Enqueue(ProcessedFrame frame, PlaceMetadata metadata) {
   auto pending = std::make_shared<PendingCommit>();
   ReaderLock alive(lifecycle_);
   if (closed_) {
     pending->Complete(Deleted());
     return pending;
+  }
+  // Processed before a switch of vocabulary: transformed again with the map's.
+  {
+    std::optional<ProcessedFrame> copy;
+    auto current = OfCurrentVocabulary(frame, &copy);
+    if (!current.ok()) {
+      pending->Complete(current.status());
+      return pending;
+    }
+    if (copy) frame = std::move(*copy);
   }
   // What Commit() refuses or stores at once is answered at once, exactly as Commit() does.
   const DatabaseConfig& config = info_.options.database;
@@ -52,34 +92,16 @@ std::shared_ptr<PendingCommit> PlaceMap::Enqueue(ProcessedFrame frame, PlaceMeta
   }
   QueuedPlace place;
   place.pending = pending;
+  place.generation = storage_->bow_generation.load();
   // Encoded here, on the caller's thread, so that callers encode in parallel; the committer
   // only writes.
-  PlaceRecord record;
-  record.metadata = metadata;
-  record.counts = frame.counts;
-  record.boxes_used = frame.boxes_used;
-  std::string features = EncodeLocalFeatures(frame.static_features, frame.direct);
-  std::string bow = EncodeBow(frame.bow);
-  std::string dynamics;
-  if (storage_->dynamics) dynamics = EncodeDynamics(FrameDynamics(frame, metadata));
-  std::string thumbnail;
-  const bool has_thumbnail = frame.thumbnail && info_.options.thumbnails.enabled;
-  if (has_thumbnail) thumbnail = EncodeThumbnail(*frame.thumbnail);
+  PlaceEntries entries = EncodeEntries(frame, metadata);
   CommitQueue& queue = *commits_;
   {
     MutexLock lock(queue.mutex);
     // Reserved under the queue's lock: ids follow the order of the places in the batch.
-    record.id = database_->ReserveId();
-    place.id = record.id;
-    const std::string key = PlaceKey(record.id);
-    queue.batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
-    queue.batch.Put(storage_->cf(kBow), key, bow);
-    queue.batch.Put(storage_->cf(kFeatures), key, features);
-    if (storage_->dynamics) {
-      queue.batch.Merge(storage_->cf(kDynamics), key, dynamics);
-      queue.batch.Merge(storage_->cf(kDynamics), kMapDynamicsKey, dynamics);
-    }
-    if (has_thumbnail) queue.batch.Put(storage_->cf(kThumbnails), key, thumbnail);
+    place.id = database_->ReserveId();
+    PutEntries(place.id, metadata, frame, entries, &queue.batch);
     place.frame = std::move(frame);
     place.metadata = std::move(metadata);
     queue.queued.push_back(std::move(place));
@@ -112,6 +134,28 @@ void PlaceMap::CommitGroup(std::vector<QueuedPlace>* group, rocksdb::WriteBatch*
   if (closed_) {
     written = Deleted();
   } else {
+    // Enqueued before a switch of vocabulary: their BoW values and family are the old
+    // vocabulary's. The frames are transformed again and the group's batch made anew.
+    const uint64_t generation = storage_->bow_generation.load();
+    if (std::any_of(group->begin(), group->end(),
+                    [&](const QueuedPlace& place) { return place.generation != generation; })) {
+      rocksdb::WriteBatch again;
+      for (QueuedPlace& place : *group) {
+        std::optional<ProcessedFrame> copy;
+        auto current = OfCurrentVocabulary(place.frame, &copy);
+        if (!current.ok()) {
+          written = current.status();
+          break;
+        }
+        if (copy) place.frame = std::move(*copy);
+        place.generation = generation;
+        PutEntries(place.id, place.metadata, place.frame,
+                   EncodeEntries(place.frame, place.metadata), &again);
+      }
+      std::swap(*batch, again);
+    }
+  }
+  if (written.ok() && !closed_) {
     PlaceId highest = 0;
     for (const QueuedPlace& place : *group) highest = std::max(highest, place.id);
     const std::string what =

@@ -21,6 +21,9 @@ struct PlaceMap::QueuedPlace {
   ProcessedFrame frame;
   PlaceMetadata metadata;
   PlaceId id = 0;
+  // The vocabulary generation its entries were encoded with: a switch of vocabulary between
+  // Enqueue and the write has the committer encode them again (PlaceMap::CommitGroup).
+  uint64_t generation = 0;
   std::shared_ptr<PendingCommit> pending;
   Stopwatch since_enqueued;
 };

@@ -40,6 +40,10 @@ int64_t NowUnixMs() {
       .count();
 }
 
+}  // namespace
+
+namespace detail {
+
 std::string EncodeInfo(const MapInfo& info) {
   nlohmann::json j;
   j["name"] = info.name;
@@ -85,10 +89,12 @@ Result<MapInfo> DecodeInfo(const std::string& text) {
   } catch (const nlohmann::json::exception& e) {
     return Status::Corruption(std::string("map info: ") + e.what());
   }
+  info.vocabulary.current.checksum = info.vocabulary_checksum;
+  info.vocabulary.since_unix_ms = info.created_unix_ms;
   return info;
 }
 
-}  // namespace
+}  // namespace detail
 
 DataDirectory::DataDirectory(std::string path, StorageOptions options, DirectoryLock lock)
     : path_(std::move(path)), options_(options), lock_(std::move(lock)) {
@@ -290,7 +296,23 @@ Result<MapInfo> ReadInfo(MapStorage& storage, const std::string& where) {
   PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading map info"));
   auto info = DecodeInfo(info_text);
   if (!info.ok()) return info.status().WithContext(where + ": the map info record is damaged");
+  PLACEDB_RETURN_IF_ERROR(ReadVocabularyRecord(storage, &*info).WithContext(where));
   return info;
+}
+
+// The vocabulary a map opens with: the one it stores (issue 29), else `vocabulary_for`'s.
+Result<AnyVocabulary> MapVocabulary(MapStorage& storage, const MapInfo& info,
+                                    const DataDirectory::VocabularyFor& vocabulary_for) {
+  auto stored = ReadStoredVocabulary(storage, info);
+  if (!stored.ok()) return stored.status();
+  if (*stored) return std::move(**stored);
+  auto given = vocabulary_for(info);
+  if (!given.ok()) return given.status();
+  if (!*given) {
+    return Status::InvalidArgument("vocabulary is missing (map '" + info.name +
+                                   "' does not store its own)");
+  }
+  return given;
 }
 
 }  // namespace
@@ -431,7 +453,6 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenMap(const std::string& name
                                                          AnyVocabulary vocabulary,
                                                          MapDamage* damage) {
   PLACEDB_RETURN_IF_ERROR(ValidateMapName(name));
-  if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
   MutexLock lock(mutex_);
   if (auto it = open_.find(name); it != open_.end()) {
     PLACEDB_RETURN_IF_ERROR(it->second->CheckVocabulary(vocabulary));
@@ -520,8 +541,13 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
   }
   auto history = ReadHistory(**storage);
   if (!history.ok()) return damaged(where + ": " + history.status().message());
-  auto vocabulary = vocabulary_for(*info);
-  if (!vocabulary.ok()) return vocabulary.status();
+  auto vocabulary = MapVocabulary(**storage, *info, vocabulary_for);
+  if (!vocabulary.ok()) {
+    if (vocabulary.status().code() == StatusCode::kCorruption) {
+      return damaged(where + ": " + vocabulary.status().message());
+    }
+    return vocabulary.status();
+  }
   // Writes kept beyond the acknowledged ones (in flight at a crash) are durable now that RocksDB
   // has recovered them: ACKED counts them, so that losing them later is seen too.
   AckState start = *acked;
@@ -815,7 +841,7 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::RecoverMap(const std::string& n
   std::vector<MapDamage> entries = history.ok() ? *history : std::vector<MapDamage>();
   if (!history.ok()) counted.reason += "; the earlier damage history was unreadable";
   entries.push_back(counted);
-  auto vocabulary = vocabulary_for(*info);
+  auto vocabulary = MapVocabulary(recovered, *info, vocabulary_for);
   if (!vocabulary.ok()) {
     storage->reset();
     return put_back(vocabulary.status());

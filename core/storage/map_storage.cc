@@ -254,6 +254,67 @@ std::vector<rocksdb::ColumnFamilyDescriptor> Families(const std::shared_ptr<void
   return families;
 }
 
+std::string GenerationFamilyName(uint64_t generation) {
+  if (generation == 0) return kColumnFamilies[kBow];
+  return kGenerationFamilyPrefix + std::to_string(generation);
+}
+
+std::optional<uint64_t> GenerationOfFamily(const std::string& name) {
+  if (name == kColumnFamilies[kBow]) return 0;
+  const std::string prefix = kGenerationFamilyPrefix;
+  if (name.size() <= prefix.size() || name.compare(0, prefix.size(), prefix) != 0) {
+    return std::nullopt;
+  }
+  uint64_t generation = 0;
+  for (size_t i = prefix.size(); i < name.size(); ++i) {
+    if (name[i] < '0' || name[i] > '9' || generation > (UINT64_MAX - 9) / 10) return std::nullopt;
+    generation = generation * 10 + uint64_t(name[i] - '0');
+  }
+  if (generation == 0) return std::nullopt;
+  return generation;
+}
+
+Result<rocksdb::ColumnFamilyHandle*> CreateGenerationFamily(MapStorage& storage,
+                                                            uint64_t generation) {
+  rocksdb::ColumnFamilyHandle* handle = nullptr;
+  const rocksdb::Status s = storage.db->CreateColumnFamily(
+      storage.generation_options, GenerationFamilyName(generation), &handle);
+  if (!s.ok()) return storage.WriteError(s, "creating the BoW family of a new vocabulary");
+  MutexLock lock(storage.generation_mutex);
+  storage.generation_handles.emplace_back(generation, handle);
+  return handle;
+}
+
+Status DropGenerationFamily(MapStorage& storage, uint64_t generation) {
+  rocksdb::ColumnFamilyHandle* handle = nullptr;
+  {
+    MutexLock lock(storage.generation_mutex);
+    for (auto it = storage.generation_handles.begin(); it != storage.generation_handles.end();
+         ++it) {
+      if (it->first == generation) {
+        handle = it->second;
+        storage.generation_handles.erase(it);
+        break;
+      }
+    }
+  }
+  if (!handle) return Status::Ok();
+  const rocksdb::Status dropped = storage.db->DropColumnFamily(handle);
+  (void)storage.db->DestroyColumnFamilyHandle(handle);
+  return FromRocks(
+      dropped, "dropping the BoW family of vocabulary generation " + std::to_string(generation));
+}
+
+Status ClearFamily(MapStorage& storage, rocksdb::ColumnFamilyHandle* family) {
+  std::unique_ptr<rocksdb::Iterator> it(storage.db->NewIterator({}, family));
+  it->SeekToFirst();
+  if (!it->Valid()) return FromRocks(it->status(), "scanning a BoW family");
+  // Place keys are 4 bytes: every one sorts below this 5-byte key.
+  const std::string end(5, '\xff');
+  return FromRocks(storage.db->DeleteRange({}, family, it->key(), end),
+                   "clearing the BoW family of the previous vocabulary");
+}
+
 // The late families (kLateFamilies: added by later issues) the map at `path` lacks, when every
 
 namespace {
@@ -294,6 +355,81 @@ rocksdb::DBOptions RecoveryOptions(Recovery recovery, const std::string& path) {
   return options;
 }
 
+namespace {
+
+// The "bow.<g>" families of the map at `path` (issue 29), ascending; none for a new map.
+std::vector<uint64_t> GenerationFamiliesAt(const std::string& path) {
+  std::vector<std::string> present;
+  std::vector<uint64_t> generations;
+  if (!rocksdb::DB::ListColumnFamilies(rocksdb::DBOptions(), path, &present).ok()) return {};
+  for (const std::string& name : present) {
+    if (auto generation = GenerationOfFamily(name); generation && *generation > 0) {
+      generations.push_back(*generation);
+    }
+  }
+  std::sort(generations.begin(), generations.end());
+  return generations;
+}
+
+// Descriptors of `generations`' families, after the fixed ones.
+void AddGenerationFamilies(const std::vector<uint64_t>& generations,
+                           const rocksdb::ColumnFamilyOptions& options,
+                           std::vector<rocksdb::ColumnFamilyDescriptor>* families) {
+  for (uint64_t generation : generations) {
+    families->emplace_back(GenerationFamilyName(generation), options);
+  }
+}
+
+// After the open: the generation families' handles (at the end of `handles`) moved to
+// generation_handles, the stored generation made the active one. A read-write open drops the
+// families of other generations (an adaptation a crash interrupted, or the previous
+// vocabulary's whose drop it interrupted) and clears "bow" when a later generation is active.
+Status SelectGeneration(MapStorage& storage, const std::vector<uint64_t>& generations,
+                        bool read_write) {
+  {
+    MutexLock lock(storage.generation_mutex);
+    for (size_t i = 0; i < generations.size(); ++i) {
+      storage.generation_handles.emplace_back(
+          generations[i], storage.handles[storage.handles.size() - generations.size() + i]);
+    }
+  }
+  storage.handles.resize(storage.handles.size() - generations.size());
+  std::string value;
+  uint64_t active = 0;
+  const rocksdb::Status s =
+      storage.db->Get({}, storage.handles[kMeta], kVocabularyGenerationKey, &value);
+  if (s.ok()) {
+    auto decoded = DecodeU64Key(value);
+    if (!decoded.ok()) return decoded.status().WithContext("the map's vocabulary generation");
+    active = *decoded;
+  } else if (!s.IsNotFound()) {
+    return FromRocks(s, "reading the map's vocabulary generation");
+  }
+  storage.bow_generation = active;
+  if (active > 0) {
+    rocksdb::ColumnFamilyHandle* handle = nullptr;
+    {
+      MutexLock lock(storage.generation_mutex);
+      for (auto& [generation, family] : storage.generation_handles) {
+        if (generation == active) handle = family;
+      }
+    }
+    if (!handle) {
+      return Status::Corruption("the BoW family of the map's vocabulary (" +
+                                GenerationFamilyName(active) + ") is missing");
+    }
+    storage.active_bow = handle;
+  }
+  if (!read_write) return Status::Ok();
+  for (uint64_t generation : generations) {
+    if (generation != active) PLACEDB_RETURN_IF_ERROR(DropGenerationFamily(storage, generation));
+  }
+  if (active > 0) PLACEDB_RETURN_IF_ERROR(ClearFamily(storage, storage.handles[kBow]));
+  return Status::Ok();
+}
+
+}  // namespace
+
 Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool create,
                                                 const StorageOptions& options,
                                                 const std::shared_ptr<void>& cache_void,
@@ -314,11 +450,17 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
   storage->load_range_ids =
       options.load_range_ids == 0 ? 65536 : std::bit_floor(options.load_range_ids);
   db_options.listeners.push_back(std::make_shared<DiskFullListener>(storage.get()));
+  storage->generation_options =
+      FamilyOptions(kBow, std::static_pointer_cast<rocksdb::Cache>(cache_void));
+  const std::vector<uint64_t> generations =
+      create ? std::vector<uint64_t>() : GenerationFamiliesAt(path);
+  std::vector<rocksdb::ColumnFamilyDescriptor> families = Families(cache_void);
+  AddGenerationFamilies(generations, storage->generation_options, &families);
   rocksdb::DB* raw = nullptr;
-  rocksdb::Status s =
-      rocksdb::DB::Open(db_options, path, Families(cache_void), &storage->handles, &raw);
+  rocksdb::Status s = rocksdb::DB::Open(db_options, path, families, &storage->handles, &raw);
   if (!s.ok()) return FromRocks(s, "opening the map's RocksDB");
   storage->db.reset(raw);
+  PLACEDB_RETURN_IF_ERROR(SelectGeneration(*storage, generations, /*read_write=*/true));
   storage->sync = options.sync;
   if (options.sync == SyncMode::kGroupCommit) {
     storage->committer = std::make_unique<GroupCommitter>(
@@ -339,11 +481,18 @@ Result<std::unique_ptr<MapStorage>> OpenReadOnly(const std::string& path,
   for (auto cf = missing.rbegin(); cf != missing.rend(); ++cf) {
     families.erase(families.begin() + *cf);
   }
+  storage->generation_options =
+      FamilyOptions(kBow, std::static_pointer_cast<rocksdb::Cache>(cache_void));
+  const std::vector<uint64_t> generations = GenerationFamiliesAt(path);
+  AddGenerationFamilies(generations, storage->generation_options, &families);
   rocksdb::Status s = rocksdb::DB::OpenForReadOnly(RecoveryOptions(recovery, ""), path, families,
                                                    &storage->handles, &raw);
   if (!s.ok()) return FromRocks(s, "opening the map's RocksDB");
   storage->db.reset(raw);
-  for (Cf cf : missing) storage->handles.insert(storage->handles.begin() + cf, nullptr);
+  for (Cf cf : missing) {
+    storage->handles.insert(storage->handles.begin() + cf, nullptr);
+  }
+  PLACEDB_RETURN_IF_ERROR(SelectGeneration(*storage, generations, /*read_write=*/false));
   return storage;
 }
 

@@ -43,6 +43,27 @@ inline constexpr char kAppliedSequenceKey[] = "applied_sequence";
 // (RocksPayloadStore::Erase) then also records the applied sequence, atomically with it.
 inline thread_local const std::string* t_applying_sequence = nullptr;
 
+// Issue 29, a map's own vocabulary (vocabulary_switch.cc). The generation of the BoW family in
+// use (U64Key; absent: 0, the "bow" family). Generation g > 0 lives in the family "bow.<g>",
+// whose values carry each place's direct index (EncodeBowWithDirect). Written in the switch's
+// batch with the record and the info, so a map has the old vocabulary or the new one, never a
+// mix.
+inline constexpr char kVocabularyGenerationKey[] = "vocabulary_generation";
+// Where the vocabulary came from (VocabularyRecord as JSON): it names the current and the
+// previous vocabularies by checksum.
+inline constexpr char kVocabularyRecordKey[] = "vocabulary_record";
+// "vocabulary.<16 hex digits>": the bytes (AnyVocabulary::Serialize) of the vocabulary with
+// that checksum, written before the switch's batch (so the switch itself writes little) and
+// kept for the current and previous vocabularies only. A map whose record names a stored
+// generation opens with its own and needs no vocabulary file.
+inline constexpr char kVocabularyBytesPrefix[] = "vocabulary.";
+std::string VocabularyBytesKey(uint64_t checksum);
+inline constexpr char kGenerationFamilyPrefix[] = "bow.";
+// "bow.<generation>"; generation 0 is the "bow" family.
+std::string GenerationFamilyName(uint64_t generation);
+// The generation a family name holds ("bow" -> 0, "bow.<g>" -> g), nullopt for other names.
+std::optional<uint64_t> GenerationOfFamily(const std::string& name);
+
 inline const char* const kColumnFamilies[] = {rocksdb::kDefaultColumnFamilyName.c_str(),
                                               "places",
                                               "bow",
@@ -133,12 +154,45 @@ struct MapStorage {
   unsigned load_threads = 2;          // StorageOptions::load_threads (0 taken as 2)
   uint32_t load_range_ids = 65536;    // StorageOptions::load_range_ids (a power of two)
 
-  rocksdb::ColumnFamilyHandle* cf(Cf which) const { return handles[size_t(which)]; }
+  // The BoW family in use (issue 29): handles[kBow] for generation 0, else the generation's
+  // family. Switched (with bow_generation) only under the owning map's lifecycle_ exclusively;
+  // read under a shared hold, as the handles are.
+  std::atomic<rocksdb::ColumnFamilyHandle*> active_bow{nullptr};
+  std::atomic<uint64_t> bow_generation{0};
+  // Every "bow.<g>" family open (the active one, and the one an adaptation is filling); created
+  // and dropped under a shared hold by the one adaptation at a time, closed by Close().
+  Mutex generation_mutex;
+  std::vector<std::pair<uint64_t, rocksdb::ColumnFamilyHandle*>> generation_handles
+      GUARDED_BY(generation_mutex);
+  rocksdb::ColumnFamilyOptions generation_options;  // the "bow" family's, set at open
+
+  rocksdb::ColumnFamilyHandle* cf(Cf which) const {
+    if (which == kBow) {
+      if (rocksdb::ColumnFamilyHandle* active = active_bow.load(std::memory_order_acquire)) {
+        return active;
+      }
+    }
+    return handles[size_t(which)];
+  }
+
+  // The BoW value of a place stored now: with its direct index once the map has its own
+  // vocabulary (generation > 0), as EncodeBow before.
+  std::string BowValue(const BowVector& bow, const DirectIndex& direct) const {
+    return bow_generation.load() > 0 ? EncodeBowWithDirect(bow, direct) : EncodeBow(bow);
+  }
 
   void Close() {
     committer.reset();
     acks.reset();
     if (db) {
+      {
+        MutexLock lock(generation_mutex);
+        for (auto& [generation, handle] : generation_handles) {
+          (void)db->DestroyColumnFamilyHandle(handle);
+        }
+        generation_handles.clear();
+      }
+      active_bow = nullptr;
       for (auto* handle : handles) {
         if (handle) (void)db->DestroyColumnFamilyHandle(handle);
       }
@@ -285,16 +339,27 @@ class RocksPayloadStore final : public PayloadStore {
     }
     PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading features of place " + std::to_string(id)));
     auto payload = std::make_shared<PlacePayload>();
-    auto bow = DecodeBow(bow_bytes);
-    if (!bow.ok()) return bow.status().WithContext("place " + std::to_string(id));
-    payload->bow = std::move(bow).value();
+    std::optional<DirectIndex> direct;
+    PLACEDB_RETURN_IF_ERROR(DecodeBowValue(bow_bytes, &payload->bow, &direct)
+                                .WithContext("place " + std::to_string(id)));
     PLACEDB_RETURN_IF_ERROR(DecodePayloadFeatures(type_, feature_bytes, payload.get())
                                 .WithContext("place " + std::to_string(id)));
+    if (direct) {
+      // The map's own vocabulary: the direct index stored with the vector is this vocabulary's.
+      if (!DirectIndexFits(*direct, payload->features.size())) {
+        return Status::Corruption("place " + std::to_string(id) +
+                                  ": its direct index names features it does not have");
+      }
+      payload->direct = std::move(*direct);
+    }
     return std::shared_ptr<const PlacePayload>(std::move(payload));
   }
 
   // Called under the database's writer lock, so removals are serialised and id_floor only grows.
   Status Erase(PlaceId id) override {
+    // The index an adaptation builds beside the live one (issue 29) drops places that were
+    // removed meanwhile from itself only: the live map removed them durably already.
+    if (!erases_.load()) return Status::Ok();
     rocksdb::WriteBatch batch;
     const std::string key = PlaceKey(id);
     batch.Delete(storage_->cf(kPlaces), key);
@@ -319,10 +384,29 @@ class RocksPayloadStore final : public PayloadStore {
 
   size_t MemoryBytes() const override { return 0; }
 
+  // Off while the index this store serves is being built beside the live one; on once it is.
+  void set_erases(bool erases) { erases_ = erases; }
+
  private:
   MapStorage* storage_;
   const FeatureType type_;
+  std::atomic<bool> erases_{true};
 };
+
+// A map's info record (the meta family's "info") as JSON, and back (data_directory.cc).
+std::string EncodeInfo(const MapInfo& info);
+Result<MapInfo> DecodeInfo(const std::string& text);
+
+// Issue 29 (vocabulary_switch.cc): the vocabulary record as JSON (kVocabularyRecordKey), and
+// back (CORRUPTION naming the key that is wrong).
+std::string EncodeVocabularyRecord(const VocabularyRecord& record);
+Result<VocabularyRecord> DecodeVocabularyRecord(std::string_view json);
+// Fills info->vocabulary from the stored record; without one (generation 0), a file's
+// vocabulary named by the info's checksum, since the map was created.
+Status ReadVocabularyRecord(MapStorage& storage, MapInfo* info);
+// The vocabulary a map stores (nullopt when it stores none: generation 0). CORRUPTION when the
+// stored bytes are damaged or are not the vocabulary the info names.
+Result<std::optional<AnyVocabulary>> ReadStoredVocabulary(MapStorage& storage, const MapInfo& info);
 
 // How an existing map's RocksDB is opened.
 enum class Recovery {
@@ -345,6 +429,14 @@ Result<std::unique_ptr<MapStorage>> OpenStorage(const std::string& path, bool cr
                                                 const std::shared_ptr<void>& cache_void,
                                                 Recovery recovery = Recovery::kStrict,
                                                 bool create_families = false);
+
+// Issue 29: creates the family of vocabulary generation `generation` (added to
+// generation_handles); drops one (nothing when it is not open); clears a family's place keys
+// with one range deletion (the "bow" family once a later generation is active).
+Result<rocksdb::ColumnFamilyHandle*> CreateGenerationFamily(MapStorage& storage,
+                                                            uint64_t generation);
+Status DropGenerationFamily(MapStorage& storage, uint64_t generation);
+Status ClearFamily(MapStorage& storage, rocksdb::ColumnFamilyHandle* family);
 
 // Read-only: changes no file (a WAL is replayed into memory only).
 Result<std::unique_ptr<MapStorage>> OpenReadOnly(const std::string& path,

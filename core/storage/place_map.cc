@@ -14,6 +14,7 @@
 #include <system_error>
 #include <unordered_set>
 
+#include "core/base/text.h"
 #include "core/base/timing.h"
 #include "core/storage/commit_queue.h"
 #include "core/storage/map_storage.h"
@@ -43,12 +44,6 @@ uint64_t DirectoryBytes(const std::string& path) {
   return total;
 }
 
-std::string Hex(uint64_t v) {
-  char buffer[17];
-  std::snprintf(buffer, sizeof buffer, "%016llx", static_cast<unsigned long long>(v));
-  return buffer;
-}
-
 }  // namespace
 
 PlaceMap::PlaceMap(MapInfo info, std::string path, std::unique_ptr<MapStorage> storage,
@@ -58,6 +53,15 @@ PlaceMap::PlaceMap(MapInfo info, std::string path, std::unique_ptr<MapStorage> s
       storage_(std::move(storage)),
       vocabulary_(std::move(vocabulary)),
       commits_(std::make_unique<CommitQueue>()) {
+  if (!info_.vocabulary.stored()) {
+    // Generation 0: the file's vocabulary the map was created with, described by itself.
+    VocabularySource& source = info_.vocabulary.current;
+    source.checksum = vocabulary_.checksum();
+    source.branching = uint32_t(vocabulary_.branching());
+    source.depth = uint32_t(vocabulary_.depth());
+    source.words = vocabulary_.word_count();
+    info_.vocabulary.since_unix_ms = info_.created_unix_ms;
+  }
   commits_->thread = std::thread([this] { RunCommitter(); });
 }
 
@@ -88,26 +92,62 @@ QueryResult PlaceMap::Search(const ProcessedFrame& frame, const QueryOptions& op
     result.rejection = Deleted().message();
     return result;
   }
-  return database_->Search(frame, options);
+  std::optional<ProcessedFrame> copy;
+  auto current = OfCurrentVocabulary(frame, &copy);
+  if (!current.ok()) {
+    QueryResult result;
+    result.rejection = current.status().message();
+    return result;
+  }
+  return database_->Search(**current, options);
+}
+
+MapInfo PlaceMap::info() const {
+  MutexLock lock(state_mutex_);
+  return info_;
+}
+
+std::shared_ptr<const PlaceDatabase> PlaceMap::database() const {
+  MutexLock lock(state_mutex_);
+  return database_;
+}
+
+AnyVocabulary PlaceMap::vocabulary() const {
+  MutexLock lock(state_mutex_);
+  return vocabulary_;
+}
+
+Result<const ProcessedFrame*> PlaceMap::OfCurrentVocabulary(
+    const ProcessedFrame& frame, std::optional<ProcessedFrame>* copy) const {
+  if (database_->OfThisVocabulary(frame) || frame.stream_pending) return &frame;
+  copy->emplace(frame);
+  PLACEDB_RETURN_IF_ERROR(database_->Retransform(&**copy));
+  return &**copy;
 }
 
 Status PlaceMap::CheckVocabulary(const AnyVocabulary& vocabulary) const {
-  if (!vocabulary) return Status::InvalidArgument("vocabulary is missing");
+  MutexLock lock(state_mutex_);
+  // A map that stores its vocabulary uses it whatever the caller has (a file's vocabulary).
+  if (info_.vocabulary.stored()) return Status::Ok();
+  if (!vocabulary) {
+    return Status::InvalidArgument("vocabulary is missing (map '" + info_.name +
+                                   "' does not store its own)");
+  }
   const FeatureType type = info_.options.database.feature_type;
   if (vocabulary.feature_type() == type && vocabulary.checksum() == info_.vocabulary_checksum) {
     return Status::Ok();
   }
   return Status::FailedPrecondition("map '" + info_.name + "' was built with " +
                                     VocabularyKindName(type) + " vocabulary " +
-                                    Hex(info_.vocabulary_checksum) + ", not " + vocabulary.kind() +
-                                    " vocabulary " + vocabulary.checksum_hex());
+                                    Hex64(info_.vocabulary_checksum) + ", not " +
+                                    vocabulary.kind() + " vocabulary " + vocabulary.checksum_hex());
 }
 
 Result<AddResult> PlaceMap::Add(const Observation& observation) {
   // Extraction runs outside the lifecycle lock (it touches no storage), so deleting the map
   // does not wait for it.
   auto frame =
-      database_->Process(observation, FrameRole::kStream, ThumbnailsFor(FrameRole::kStream));
+      database()->Process(observation, FrameRole::kStream, ThumbnailsFor(FrameRole::kStream));
   if (!frame.ok()) return frame.status();
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
@@ -121,7 +161,7 @@ Status PlaceMap::AdvanceStream(ProcessedFrame* frame, const std::string& agent_i
   return database_->AdvanceStream(frame, agent_id);
 }
 
-Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
+Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& given,
                                                const PlaceMetadata& metadata, AddResult* added) {
   AddResult local;
   AddResult& result = added ? *added : local;
@@ -132,6 +172,10 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
   // reentrant and may block new readers while a writer waits).
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
+  std::optional<ProcessedFrame> copy;
+  auto current = OfCurrentVocabulary(given, &copy);
+  if (!current.ok()) return current.status();
+  const ProcessedFrame& frame = **current;
   bool committed = false;
   auto store = [&]() REQUIRES_SHARED(lifecycle_) -> Result<PlaceId> {
     auto stored = CommitLocked(frame, metadata);
@@ -173,7 +217,10 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
                                                PlaceSource* source) {
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
-  return database_->CloseLoop(frame, metadata, store, source);
+  std::optional<ProcessedFrame> copy;
+  auto current = OfCurrentVocabulary(frame, &copy);
+  if (!current.ok()) return current.status();
+  return database_->CloseLoop(**current, metadata, store, source);
 }
 
 void PlaceMap::ResetLoopClosure(const std::string& agent_id) {
@@ -245,8 +292,12 @@ Result<AddResult> PlaceMap::Commit(const ProcessedFrame& frame, const PlaceMetad
   return CommitLocked(frame, metadata);
 }
 
-Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
+Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& given,
                                          const PlaceMetadata& metadata) {
+  std::optional<ProcessedFrame> copy;
+  auto current = OfCurrentVocabulary(given, &copy);
+  if (!current.ok()) return current.status();
+  const ProcessedFrame& frame = **current;
   if (frame.stream_pending) {
     return Status::FailedPrecondition(
         "the frame's stream stage is pending: call AdvanceStream before committing it");
@@ -273,7 +324,7 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& frame,
   const std::string key = PlaceKey(record.id);
   rocksdb::WriteBatch batch;
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
-  batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
+  batch.Put(storage_->cf(kBow), key, storage_->BowValue(frame.bow, frame.direct));
   batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
   if (storage_->dynamics) storage_->AddDynamics(&batch, record.id, FrameDynamics(frame, metadata));
   if (frame.thumbnail && info_.options.thumbnails.enabled) {
@@ -393,7 +444,7 @@ Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
         stored.boxes_used = frame.boxes_used;
         const std::string key = PlaceKey(stored.id);
         batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(stored));
-        batch.Put(storage_->cf(kBow), key, EncodeBow(frame.bow));
+        batch.Put(storage_->cf(kBow), key, storage_->BowValue(frame.bow, frame.direct));
         batch.Put(storage_->cf(kFeatures), key,
                   EncodeLocalFeatures(frame.static_features, frame.direct));
         if (storage_->dynamics && record.dynamics) {

@@ -956,7 +956,7 @@ grpc::Status Shard::Impl::ListAgentPlaces(grpc::ServerContext* context,
   filter.agent_id = request.agent_id();
   // A bounded walk per page (ids of other agents count too): the caller pages on.
   const PlacePage page =
-      m.database().ListPlacesBefore(request.before_place_id(), limit, filter, size_t(1) << 16);
+      m.database()->ListPlacesBefore(request.before_place_id(), limit, filter, size_t(1) << 16);
   for (const auto& record : page.places) {
     auto bow = m.GetBow(record->id);
     if (bow.status().code() == StatusCode::kNotFound) continue;  // removed meanwhile
@@ -1038,7 +1038,7 @@ std::vector<ReplicaStatus> Shard::Impl::StatusOfReplicas() const {
     status.stream_last_sequence = replica->stream_last.load();
     if (replica->map) {
       status.applied_sequence = replica->map->applied_sequence();
-      status.places = replica->map->database().Stats().places;
+      status.places = replica->map->database()->Stats().places;
     }
     status.state = replica->problem.empty() ? "applying" : replica->problem;
     status.restored_from = replica->restored_from;

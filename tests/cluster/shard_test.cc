@@ -196,7 +196,7 @@ class ShardTest : public ::testing::Test {
     if (!m.ok()) return out;
     PlaceId before = 0;
     for (;;) {
-      const PlacePage page = (*m)->database().ListPlacesBefore(before, 1000, {}, 1u << 30);
+      const PlacePage page = (*m)->database()->ListPlacesBefore(before, 1000, {}, 1u << 30);
       for (const auto& record : page.places) {
         auto place = (*m)->GetPlace(record->id);
         EXPECT_TRUE(place.ok());
@@ -257,7 +257,7 @@ TEST_F(ShardTest, TwoReplicasApplyInOrderOnceAndHoldIdenticalPlaces) {
   EXPECT_EQ(ids, places);  // ids = stream sequences; the invalid frame's and removal's: no place
   EXPECT_FALSE(ids.count(invalid_seq));
   EXPECT_EQ(on_a, on_b);  // the same ids, records, BoW vectors and features on both replicas
-  EXPECT_EQ((*a->Map(map))->database().Stats().invalid_rejected, 1u);
+  EXPECT_EQ((*a->Map(map))->database()->Stats().invalid_rejected, 1u);
 
   // The internal API: Status, GetPlace.
   auto stub = Stub(*a);

@@ -240,6 +240,8 @@ def main():
             fail("the maps page does not list 'office'")
         if row[3] != str(places):
             fail("the maps page shows %s places for 'office', the map has %d" % (row[3], places))
+        if not row[9].startswith("file "):
+            fail("the maps page shows vocabulary %r for 'office', not its file's" % row[9])
         devtools.screenshot(os.path.join(screenshots, "maps.png"))
 
         # Places: a page of cards, each with its frame drawn (or the placeholder).

@@ -273,6 +273,11 @@ TEST_F(AuthTest, EveryRpcTimesEveryCallerGetsTheExactCode) {
   recover.set_accept_data_loss(true);
   v1::ScrubMapRequest scrub;
   scrub.set_name("campus");
+  v1::AdaptVocabularyRequest adapt;
+  adapt.set_name("campus");
+  adapt.set_depth(40);  // refused by the handler once allowed: nothing changes
+  v1::RevertVocabularyRequest revert;
+  revert.set_name("campus");
   v1::QueryRequest query;
   query.set_map("campus");
   *query.mutable_observation() = RtabmapObservation(3, "probe");
@@ -350,6 +355,14 @@ TEST_F(AuthTest, EveryRpcTimesEveryCallerGetsTheExactCode) {
       {{"read", P}, {"write", P}, {"admin", Code::FAILED_PRECONDITION}, {"other_map", P}}};
   rows["ScrubMap"] = {unary(&v1::PlaceDb::Stub::ScrubMap, scrub, v1::ScrubReport()),
                       {{"read", P}, {"write", P}, {"admin", K}, {"other_map", P}}};
+  rows["AdaptVocabulary"] = {
+      unary(&v1::PlaceDb::Stub::AdaptVocabulary, adapt, v1::MapVocabulary()),
+      // Allowed, and refused by the handler: depth 40 is out of range.
+      {{"read", P}, {"write", P}, {"admin", Code::INVALID_ARGUMENT}, {"other_map", P}}};
+  rows["RevertVocabulary"] = {
+      unary(&v1::PlaceDb::Stub::RevertVocabulary, revert, v1::MapVocabulary()),
+      // Allowed, and refused by the handler: campus never switched vocabularies.
+      {{"read", P}, {"write", P}, {"admin", Code::FAILED_PRECONDITION}, {"other_map", P}}};
   rows["Ingest"] = {[this](const std::string& authorization) {
                       return IngestAs(authorization, "campus", {RtabmapObservation(4, "b")}).status;
                     },

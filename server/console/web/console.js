@@ -195,6 +195,26 @@ async function placeCard(map, place) {
 
 // ---- Views --------------------------------------------------------------------------------------
 
+// Which vocabulary a map uses and where it came from (issue 29: maps learn their own).
+function vocabularyText(description) {
+  const vocabulary = description && description.vocabulary;
+  if (!vocabulary || !vocabulary.current) return "-";
+  const current = vocabulary.current;
+  const shape = "k=" + (current.branching || 0) + " L=" + (current.depth || 0);
+  const parts = [current.origin + " " + current.checksum + " (" + shape + ")"];
+  if (current.origin === "learned") {
+    parts.push(el("div", { class: "muted" }, "learned " + new Date(Number(current.learned_unix_ms)).toLocaleString() +
+                  " from " + Number(current.descriptors_sampled || 0) + " descriptors of " +
+                  Number(current.places_sampled || 0) + " places"));
+  }
+  if (vocabulary.previous) {
+    parts.push(el("div", { class: "muted" }, "previous: " + vocabulary.previous.origin + " " +
+                  vocabulary.previous.checksum));
+  }
+  if (vocabulary.switching) parts.push(el("div", {}, "switching…"));
+  return parts;
+}
+
 async function mapsView(view) {
   view.append(el("h2", {}, "Maps"));
   const list = await api("ListMaps", {});
@@ -205,7 +225,8 @@ async function mapsView(view) {
   }
   const table = el("table", { id: "maps-table" },
                    el("tr", {}, ["map", "state", "features", "places", "descriptors kept",
-                                 "dropped", "on disk", "detector", "thumbnails", "settings"]
+                                 "dropped", "on disk", "detector", "thumbnails", "vocabulary",
+                                 "settings"]
                                     .map((h) => el("th", {}, h))));
   view.append(table);
   for (const summary of maps) {
@@ -231,6 +252,7 @@ async function mapsView(view) {
                     el("td", {}, detection.enabled === false ? "off" : "on",
                        " (", enumName(detection.box_source, "BOX_SOURCE_"), ")"),
                     el("td", {}, config.thumbnails && config.thumbnails.enabled ? "kept" : "off"),
+                    el("td", { class: "vocabulary" }, vocabularyText(description)),
                     el("td", {}, el("details", {}, el("summary", {}, "config"),
                                     el("pre", {}, JSON.stringify(config, null, 1))))));
   }
