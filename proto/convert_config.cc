@@ -389,6 +389,20 @@ Result<MapOptions> MapOptionsFromProto(const v1::MapConfig& c, uint32_t max_desc
   PLACEDB_RETURN_IF_ERROR(
       LoopClosureSettingsFromProto(c.loop_closure(), &d.loop_closure, &d.verify_loops));
 
+  const v1::VocabularyPolicy& policy = c.vocabulary_policy();
+  if (policy.adapt_after_descriptors() != 0 && policy.adapt_after_descriptors() < 5000) {
+    return Invalid("config.vocabulary_policy.adapt_after_descriptors",
+                   "must be 0 (never) or at least 5000 (what learning needs), got " +
+                       std::to_string(policy.adapt_after_descriptors()));
+  }
+  if (!(policy.regrow_factor() == 0 ||
+        (policy.regrow_factor() > 1 && policy.regrow_factor() <= 1000))) {
+    return Invalid("config.vocabulary_policy.regrow_factor",
+                   "must be 0 (never) or in (1, 1000], got " + Num(policy.regrow_factor()));
+  }
+  settings->adapt_after_descriptors = policy.adapt_after_descriptors();
+  settings->regrow_factor = policy.regrow_factor();
+
   const v1::DetectionSettings& det = c.detection();
   settings->detection_enabled = !det.has_enabled() || det.enabled();
   auto source = BoxSourceFromProto(det.box_source(), "config.detection.box_source");
@@ -537,6 +551,8 @@ void MapConfigToProto(const MapOptions& options, const ServiceMapSettings& setti
   loop->set_time_budget_ms(lc.time_budget_ms);
   loop->set_min_candidates(lc.min_candidates);
   loop->set_verify(d.verify_loops);
+  out->mutable_vocabulary_policy()->set_adapt_after_descriptors(settings.adapt_after_descriptors);
+  out->mutable_vocabulary_policy()->set_regrow_factor(settings.regrow_factor);
   v1::DetectionSettings* det = out->mutable_detection();
   det->set_enabled(settings.detection_enabled);
   for (int id : d.dynamic_classes) det->add_classes(CocoClassName(id));

@@ -23,6 +23,9 @@ namespace v1 = ::placedb::v1;
 struct ServiceMapSettings {
   BoxSource box_source = BoxSource::kAgent;
   bool detection_enabled = true;
+  // MapConfig.vocabulary_policy (issue 29): 0 = off.
+  uint64_t adapt_after_descriptors = 0;
+  double regrow_factor = 0;
   bool operator==(const ServiceMapSettings&) const = default;
 };
 

@@ -189,9 +189,12 @@ struct ServerConfig {
   SnapshotOptions snapshots;  // YAML storage.snapshots_keep_per_map
   Limits limits;
   double shutdown_deadline_s = 30;  // in-flight calls get this long on SIGTERM/SIGINT
-  DetectorSettings detector;        // used when detector.model is set
-  std::string log_level = "info";   // trace | debug | info | warn | error | off
-  ClusterSettings cluster;          // cluster: role single unless set
+  // How often maps' vocabulary policies are checked (MapConfig.vocabulary_policy, issue 29).
+  // Not in the YAML: tests shorten it.
+  uint32_t vocabulary_policy_interval_ms = 30000;
+  DetectorSettings detector;       // used when detector.model is set
+  std::string log_level = "info";  // trace | debug | info | warn | error | off
+  ClusterSettings cluster;         // cluster: role single unless set
 
   bool detector_enabled() const { return !detector.model.empty(); }
   // Callers must prove who they are: a tokens file, or mutual TLS.

@@ -388,6 +388,13 @@ ServiceMapSettings MapRegistry::DecodeSettings(const std::string& name, const st
   if (j.contains("detection_enabled") && j["detection_enabled"].is_boolean()) {
     settings.detection_enabled = j["detection_enabled"].get<bool>();
   }
+  // Issue 29; absent in maps made before: off.
+  if (j.contains("adapt_after_descriptors") && j["adapt_after_descriptors"].is_number_unsigned()) {
+    settings.adapt_after_descriptors = j["adapt_after_descriptors"].get<uint64_t>();
+  }
+  if (j.contains("regrow_factor") && j["regrow_factor"].is_number()) {
+    settings.regrow_factor = j["regrow_factor"].get<double>();
+  }
   return settings;
 }
 
@@ -396,6 +403,11 @@ std::string MapRegistry::EncodeSettings(const ServiceMapSettings& settings) {
   j["format"] = 1;
   j["box_source"] = BoxSourceName(settings.box_source);
   j["detection_enabled"] = settings.detection_enabled;
+  // Only when set, so a map without a policy keeps the settings it had.
+  if (settings.adapt_after_descriptors > 0) {
+    j["adapt_after_descriptors"] = settings.adapt_after_descriptors;
+  }
+  if (settings.regrow_factor > 0) j["regrow_factor"] = settings.regrow_factor;
   return j.dump();
 }
 

@@ -22,6 +22,7 @@
 #include "server/parsing_service.h"
 #include "server/service.h"
 #include "server/transport_security.h"
+#include "server/vocabulary_policy.h"
 #include "server/worker_pool.h"
 
 namespace placedb::server {
@@ -236,6 +237,12 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
     server->service_->SetClusterBackend(server->cluster_.get());
   }
 
+  if (!server->cluster_) {
+    server->vocabulary_policy_ = std::make_unique<VocabularyPolicyRunner>(
+        server->maps_.get(), std::chrono::milliseconds(c.vocabulary_policy_interval_ms));
+    server->vocabulary_policy_->Start();
+  }
+
   // Requests are parsed by ParsingService, so malformed ones get INVALID_ARGUMENT with a reason.
   server->parsing_ =
       std::make_unique<ParsingService>(server->service_.get(), server->authorizer_.get());
@@ -359,6 +366,7 @@ void Server::Shutdown() {
     shutdown_started_ = true;
   }
   const auto started = std::chrono::steady_clock::now();
+  if (vocabulary_policy_) vocabulary_policy_->Stop();  // cancels a switch in progress
   if (server_) {
     spdlog::info("shutting down: refusing new calls, finishing in-flight work (at most {} s)",
                  config_.shutdown_deadline_s);

@@ -36,6 +36,7 @@ class MemoryBudget;
 class Metrics;
 class ParsingService;
 class PlaceDbService;
+class VocabularyPolicyRunner;
 class WorkerPool;
 
 // Things a caller (a test) may hand in ready-made instead of having them loaded from the config.
@@ -95,6 +96,8 @@ class Server {
   std::unique_ptr<auth::CallAuthorizer> authorizer_;
   std::unique_ptr<ParsingService> parsing_;  // what gRPC calls: parses, then calls service_
   std::unique_ptr<Console> console_;         // the web console over parsing_ (server/console)
+  // Maps' vocabulary policies (single-node only); stopped first at shutdown.
+  std::unique_ptr<VocabularyPolicyRunner> vocabulary_policy_;
   std::unique_ptr<grpc::Server> server_;
   int port_ = 0;
   int metrics_port_ = 0;

@@ -521,6 +521,7 @@ grpc::Status PlaceDbService::AdaptVocabulary(grpc::ServerContext* context,
   options.learning.max_sample_descriptors = request->max_sample_descriptors();
   options.learning.branching = int(std::min<uint32_t>(request->branching(), 1u << 16));
   options.learning.depth = int(std::min<uint32_t>(request->depth(), 1u << 16));
+  options.cancel = &draining_flag_;  // a shutdown cancels it: the map keeps its vocabulary
   spdlog::info("map '{}': learning a vocabulary from its stored places, peer={}",
                ForLog(request->name()), Peer(context));
   auto record = (*entry)->map->AdaptVocabulary(options);
@@ -548,7 +549,9 @@ grpc::Status PlaceDbService::RevertVocabulary(grpc::ServerContext* context,
   if (cluster_) return Finish("RevertVocabulary", context, NotInCluster("RevertVocabulary"));
   auto entry = maps_->Get(request->name(), "name");
   if (!entry.ok()) return Finish("RevertVocabulary", context, ToGrpc(entry.status()));
-  auto record = (*entry)->map->RevertVocabulary();
+  AdaptOptions options;
+  options.cancel = &draining_flag_;  // as for AdaptVocabulary
+  auto record = (*entry)->map->RevertVocabulary(options);
   if (!record.ok()) {
     spdlog::warn("map '{}': vocabulary not reverted: {}", ForLog(request->name()),
                  record.status().ToString());

@@ -344,6 +344,25 @@ TEST_F(VocabularySwitchTest, RefusesWhatItCannotDoAndLeavesTheMapAsItWas) {
       << damaged.status().ToString();
 }
 
+TEST_F(VocabularySwitchTest, ACancelledSwitchLeavesTheMapAsItWas) {
+  const std::vector<PlaceId> places = Store(0, 30);
+  for (const VocabularyPhase at : {VocabularyPhase::kLearned, VocabularyPhase::kReindexed}) {
+    std::atomic<bool> cancel{false};
+    AdaptOptions options = Quick();
+    options.cancel = &cancel;
+    options.on_phase = [&](VocabularyPhase phase) {
+      if (phase == at) cancel = true;
+    };
+    auto cancelled = map_->AdaptVocabulary(options);
+    ASSERT_EQ(cancelled.status().code(), StatusCode::kCancelled) << cancelled.status().ToString();
+    EXPECT_FALSE(map_->info().vocabulary.stored());
+    EXPECT_EQ(map_->vocabulary().checksum(), Default().checksum());
+    EXPECT_EQ(FamiliesOf(MapDir()).size(), 7u);  // the half-built family is dropped
+    ExpectEachFrameFindsItsPlace(
+        *map_, std::vector<ProcessedFrame>(frames_.begin(), frames_.begin() + 30), places);
+  }
+}
+
 TEST_F(VocabularySwitchTest, CheckpointsCarryTheVocabulary) {
   const std::vector<PlaceId> places = Store(0, 30);
   auto adapted = map_->AdaptVocabulary(Quick());
@@ -458,8 +477,12 @@ TEST_F(VocabularySwitchTest, SigkillAtEveryPhaseLeavesTheOldVocabularyOrTheNew) 
         EXPECT_EQ(record.previous->checksum, checksum);
         // Learning from the same places gives the same vocabulary: a second adaptation's is the
         // first's; a revert goes back to the one before.
-        if (revert || generation > 0) EXPECT_NE(record.current.checksum, Default().checksum());
-        if (!revert && generation == 0) EXPECT_NE(record.current.checksum, checksum);
+        if (revert || generation > 0) {
+          EXPECT_NE(record.current.checksum, Default().checksum());
+        }
+        if (!revert && generation == 0) {
+          EXPECT_NE(record.current.checksum, checksum);
+        }
         generation = record.generation;
         checksum = map_->vocabulary().checksum();
       }

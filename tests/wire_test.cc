@@ -458,6 +458,12 @@ std::vector<FieldCase> FieldCases() {
        [](v1::MapConfig* c) { c->mutable_thumbnails()->set_jpeg_quality(90); }},
       {"dynamics.count_query_hits_above",
        [](v1::MapConfig* c) { c->mutable_dynamics()->set_count_query_hits_above(0.25); }},
+      {"vocabulary_policy.adapt_after_descriptors",
+       [](v1::MapConfig* c) {
+         c->mutable_vocabulary_policy()->set_adapt_after_descriptors(50000);
+       }},
+      {"vocabulary_policy.regrow_factor",
+       [](v1::MapConfig* c) { c->mutable_vocabulary_policy()->set_regrow_factor(2.5); }},
   };
   // Every specified value of the enum fields (the defaults come back as themselves).
   auto each = [&](const EnumDescriptor* type, const std::string& path,

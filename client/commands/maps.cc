@@ -117,6 +117,13 @@ Rows ConfigRows(const v1::MapDescription& map) {
            (v.candidates() == 0 ? std::string("all") : std::to_string(v.candidates())) +
            ", rerank " + (v.rerank() ? "on" : "off")});
   config.push_back({"store_invalid", c.store_invalid() ? "yes" : "no"});
+  const v1::VocabularyPolicy& policy = c.vocabulary_policy();
+  config.push_back({"vocabulary_policy",
+                    policy.adapt_after_descriptors() == 0 && policy.regrow_factor() == 0
+                        ? std::string("off")
+                        : "adapt after " + std::to_string(policy.adapt_after_descriptors()) +
+                              " descriptors, regrow factor " +
+                              FormatDouble(policy.regrow_factor(), 1)});
   config.push_back({"thumbnails", c.thumbnails().enabled()
                                       ? "on, " + std::to_string(c.thumbnails().max_side()) +
                                             " px, quality " +
@@ -325,6 +332,8 @@ v1::CreateMapRequest CreateRequest(const CreateFlags& flags) {
   config->set_store_invalid(flags.store_invalid);
   config->mutable_thumbnails()->set_enabled(flags.thumbnails);
   config->mutable_thumbnails()->set_max_side(flags.thumbnail_size);
+  config->mutable_vocabulary_policy()->set_adapt_after_descriptors(flags.adapt_vocabulary_after);
+  config->mutable_vocabulary_policy()->set_regrow_factor(flags.regrow_factor);
   return request;
 }
 
@@ -386,6 +395,12 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
                    "keep invalid observations as metadata");
   create->add_flag("--thumbnails", flags->thumbnails,
                    "keep a small JPEG per place, dynamic objects blurred (for the console)");
+  create->add_option("--adapt-vocabulary-after", flags->adapt_vocabulary_after,
+                     "learn the map's own vocabulary by itself once it holds this many static "
+                     "descriptors (at least 5000; default off)");
+  create->add_option("--regrow-factor", flags->regrow_factor,
+                     "learn again once the map holds this many times the descriptors its "
+                     "vocabulary was learned from (> 1, e.g. 2; default off)");
   create
       ->add_option("--thumbnail-size", flags->thumbnail_size,
                    "longest side of the thumbnails in pixels, 16-1024 (default 320)")

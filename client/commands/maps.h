@@ -35,6 +35,9 @@ struct CreateFlags {
   bool store_invalid = false;
   bool thumbnails = false;      // keep a thumbnail per place
   uint32_t thumbnail_size = 0;  // their longest side; 0 = the server's default
+  // The vocabulary policy (issue 29): 0 = off.
+  uint64_t adapt_vocabulary_after = 0;
+  double regrow_factor = 0;
   // Feature type (SIFT maps need a float vocabulary) and SIFT.
   std::string feature_type;
   int sift_features = 0;

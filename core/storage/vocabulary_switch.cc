@@ -211,6 +211,25 @@ Result<VocabularyRecord> OnNiceThread(int nice,
 
 }  // namespace
 
+Status PlaceMap::MaySwitch(bool only_switch) const {
+  if (!only_switch) {
+    return Status::FailedPrecondition("map '" + info_.name +
+                                      "' is already switching its vocabulary; wait for it");
+  }
+  if (applied_sequence_.load() > 0) {
+    return Status::FailedPrecondition("map '" + info_.name +
+                                      "' is a replica of a cluster map: its vocabulary cannot "
+                                      "change on one replica");
+  }
+  return Status::Ok();
+}
+
+Status PlaceMap::Cancelled(const AdaptOptions& options) const {
+  if (!options.cancel || !options.cancel->load()) return Status::Ok();
+  return Status::Cancelled("the vocabulary switch of map '" + info_.name +
+                           "' was cancelled; the map keeps its vocabulary");
+}
+
 Result<VocabularyRecord> PlaceMap::AdaptVocabulary(const AdaptOptions& options) {
   return OnNiceThread(options.nice, [&] { return AdaptVocabularyNow(options); });
 }
@@ -222,15 +241,7 @@ Result<VocabularyRecord> PlaceMap::RevertVocabulary(const AdaptOptions& options)
 Result<VocabularyRecord> PlaceMap::AdaptVocabularyNow(const AdaptOptions& options) {
   PLACEDB_RETURN_IF_ERROR(ValidateLearningOptions(options.learning));
   SwitchGuard guard(switching_);
-  if (!guard.held()) {
-    return Status::FailedPrecondition("map '" + info_.name +
-                                      "' is already switching its vocabulary; wait for it");
-  }
-  if (applied_sequence_.load() > 0) {
-    return Status::FailedPrecondition("map '" + info_.name +
-                                      "' is a replica of a cluster map: its vocabulary cannot "
-                                      "change on one replica");
-  }
+  PLACEDB_RETURN_IF_ERROR(MaySwitch(guard.held()));
   Stopwatch learning;
   const FeatureType type = info_.options.database.feature_type;
   LearningOptions learning_options = options.learning;
@@ -240,6 +251,7 @@ Result<VocabularyRecord> PlaceMap::AdaptVocabularyNow(const AdaptOptions& option
   // offered or not (the sample is of the places seen), a removed one is not.
   std::string resume = PlaceKey(0);
   for (bool more = true; more;) {
+    PLACEDB_RETURN_IF_ERROR(Cancelled(options));
     ReaderLock alive(lifecycle_);
     if (closed_) return Deleted();
     rocksdb::ReadOptions read;
@@ -259,6 +271,7 @@ Result<VocabularyRecord> PlaceMap::AdaptVocabularyNow(const AdaptOptions& option
     PLACEDB_RETURN_IF_ERROR(FromRocks(it->status(), "scanning features"));
     more = it->Valid() && n == kChunkPlaces;
   }
+  PLACEDB_RETURN_IF_ERROR(Cancelled(options));
   auto learned = learner.Learn();
   if (!learned.ok()) return learned.status().WithContext("map '" + info_.name + "'");
   if (options.on_phase) options.on_phase(VocabularyPhase::kLearned);
@@ -280,15 +293,7 @@ Result<VocabularyRecord> PlaceMap::AdaptVocabularyNow(const AdaptOptions& option
 
 Result<VocabularyRecord> PlaceMap::RevertVocabularyNow(const AdaptOptions& options) {
   SwitchGuard guard(switching_);
-  if (!guard.held()) {
-    return Status::FailedPrecondition("map '" + info_.name +
-                                      "' is already switching its vocabulary; wait for it");
-  }
-  if (applied_sequence_.load() > 0) {
-    return Status::FailedPrecondition("map '" + info_.name +
-                                      "' is a replica of a cluster map: its vocabulary cannot "
-                                      "change on one replica");
-  }
+  PLACEDB_RETURN_IF_ERROR(MaySwitch(guard.held()));
   const VocabularyRecord now = info().vocabulary;
   if (!now.previous) {
     return Status::FailedPrecondition("map '" + info_.name +
@@ -405,6 +410,7 @@ Result<VocabularyRecord> PlaceMap::SwitchVocabulary(AnyVocabulary next, Vocabula
   // which is not indexed yet (a write in flight) waits for the catch-up.
   std::string resume = PlaceKey(0);
   for (bool more = true; more;) {
+    PLACEDB_RETURN_IF_ERROR(Cancelled(options));
     ReaderLock alive(lifecycle_);
     if (closed_) return Deleted();
     rocksdb::ReadOptions read;
@@ -480,6 +486,7 @@ Result<VocabularyRecord> PlaceMap::SwitchVocabulary(AnyVocabulary next, Vocabula
   }
   // Most of it with writers going on; then the rest with them held.
   for (size_t changed = kChunkPlaces; changed == kChunkPlaces;) {
+    PLACEDB_RETURN_IF_ERROR(Cancelled(options));
     ReaderLock alive(lifecycle_);
     if (closed_) return Deleted();
     rocksdb::WriteBatch batch;
@@ -489,6 +496,7 @@ Result<VocabularyRecord> PlaceMap::SwitchVocabulary(AnyVocabulary next, Vocabula
 
   // 3. Writers and readers held: the last places, then the switch in one synced batch.
   std::shared_ptr<PlaceDatabase> retired;  // freed after the hold ends
+  PLACEDB_RETURN_IF_ERROR(Cancelled(options));
   WriterLock exclusive(lifecycle_);
   if (closed_) return Deleted();
   rocksdb::WriteBatch batch;

@@ -5,8 +5,10 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <chrono>
 #include <thread>
 
+#include "server/vocabulary_policy.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {
@@ -167,6 +169,82 @@ TEST_F(VocabularyServerTest, ErrorsLeaveTheLiveVocabulary) {
   bad.set_depth(40);
   EXPECT_EQ(stub_->AdaptVocabulary(Context().get(), bad, &vocabulary).error_code(),
             grpc::StatusCode::INVALID_ARGUMENT);
+}
+
+// MapConfig.vocabulary_policy: the server learns a map's vocabulary by itself once it holds
+// enough descriptors, and again once it has grown by the regrow factor.
+TEST_F(VocabularyServerTest, ThePolicyAdaptsAMapAsItGrows) {
+  ServerConfig config = Config();
+  config.vocabulary_policy_interval_ms = 50;
+  StartServer(config);
+  v1::MapConfig bad;
+  bad.mutable_vocabulary_policy()->set_adapt_after_descriptors(100);
+  const grpc::Status refused = CreateMapStatus("bad", bad);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(refused.error_message().find("config.vocabulary_policy.adapt_after_descriptors"),
+            std::string::npos)
+      << refused.error_message();
+
+  v1::MapConfig policy;
+  policy.mutable_vocabulary_policy()->set_adapt_after_descriptors(10000);
+  policy.mutable_vocabulary_policy()->set_regrow_factor(2);
+  const v1::MapDescription created = CreateMap("grows", policy);
+  EXPECT_EQ(created.config().vocabulary_policy().adapt_after_descriptors(), 10000u);
+  // Waits (up to a deadline) for the map's vocabulary generation to reach `generation`.
+  const auto wait_for_generation = [&](uint64_t generation) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+    v1::MapDescription map = Describe("grows");
+    while (map.vocabulary().generation() < generation &&
+           std::chrono::steady_clock::now() < deadline) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+      map = Describe("grows");
+    }
+    return map;
+  };
+  std::vector<v1::Observation> first, more;
+  for (int i = 1; i <= 30; ++i) first.push_back(RtabmapObservation(i, "robot"));
+  for (int i = 31; i <= 84; ++i) more.push_back(RtabmapObservation(i, "robot"));
+  ASSERT_TRUE(IngestAll(stub_.get(), "grows", first).status.ok());
+  const uint64_t kept = Stats("grows").descriptors_kept();
+  ASSERT_GE(kept, 10000u);  // the policy's threshold is passed
+  const v1::MapDescription adapted = wait_for_generation(1);
+  ASSERT_EQ(adapted.vocabulary().generation(), 1u) << "the policy did not adapt the map";
+  EXPECT_EQ(adapted.vocabulary().current().origin(), "learned");
+  EXPECT_EQ(adapted.vocabulary().current().descriptors_offered(), kept);
+  ASSERT_TRUE(IngestAll(stub_.get(), "grows", more).status.ok());
+  ASSERT_GE(Stats("grows").descriptors_kept(), 2 * kept);
+  const v1::MapDescription regrown = wait_for_generation(2);
+  ASSERT_EQ(regrown.vocabulary().generation(), 2u) << "the policy did not learn again";
+  EXPECT_EQ(regrown.vocabulary().current().origin(), "learned");
+  EXPECT_GE(regrown.vocabulary().current().descriptors_offered(), 2 * kept);
+  EXPECT_EQ(regrown.vocabulary().previous().checksum(), adapted.vocabulary().current().checksum());
+}
+
+TEST(VocabularyPolicyTest, DecidesByGrowthAndRespectsARevert) {
+  wire::ServiceMapSettings settings;
+  settings.adapt_after_descriptors = 10000;
+  settings.regrow_factor = 2;
+  VocabularyRecord created;  // generation 0: the file's vocabulary
+  EXPECT_FALSE(server::PolicyWantsAdaptation(settings, created, 9999, 0));
+  EXPECT_TRUE(server::PolicyWantsAdaptation(settings, created, 10000, 0));
+  // A failed attempt at 10000 descriptors: again only after a tenth more.
+  EXPECT_FALSE(server::PolicyWantsAdaptation(settings, created, 10999, 10000));
+  EXPECT_TRUE(server::PolicyWantsAdaptation(settings, created, 11000, 10000));
+  VocabularyRecord learned;
+  learned.generation = 1;
+  learned.current.origin = "learned";
+  learned.current.descriptors_offered = 10000;
+  EXPECT_FALSE(server::PolicyWantsAdaptation(settings, learned, 19999, 0));
+  EXPECT_TRUE(server::PolicyWantsAdaptation(settings, learned, 20000, 0));
+  // An operator switched back to the file's vocabulary: the policy leaves the map alone.
+  VocabularyRecord reverted;
+  reverted.generation = 2;
+  reverted.current.origin = "file";
+  reverted.previous = learned.current;
+  EXPECT_FALSE(server::PolicyWantsAdaptation(settings, reverted, 1000000, 0));
+  wire::ServiceMapSettings off;
+  EXPECT_FALSE(server::PolicyWantsAdaptation(off, created, 1000000, 0));
+  EXPECT_FALSE(server::PolicyWantsAdaptation(off, learned, 1000000, 0));
 }
 
 }  // namespace
