@@ -60,6 +60,7 @@ from placedb.results import (
     IngestResult,
     MapDamage,
     MapInfo,
+    MapVocabulary,
     MapSummary,
     Place,
     PlacePage,
@@ -173,6 +174,32 @@ class AsyncClient:
         """As :meth:`placedb.Client.scrub_map`."""
         response = await self._call(self._stub.ScrubMap, pb.ScrubMapRequest(name=name), timeout)
         return ScrubReport.from_proto(response)
+
+    async def adapt_vocabulary(
+        self,
+        name: str,
+        seed: int = 0,
+        max_sample_descriptors: int = 0,
+        branching: int = 0,
+        depth: int = 0,
+        timeout: Timeout = None,
+    ) -> MapVocabulary:
+        """As :meth:`placedb.Client.adapt_vocabulary`."""
+        request = pb.AdaptVocabularyRequest(
+            name=name,
+            seed=seed,
+            max_sample_descriptors=max_sample_descriptors,
+            branching=branching,
+            depth=depth,
+        )
+        response = await self._call(self._stub.AdaptVocabulary, request, timeout)
+        return MapVocabulary.from_proto(response)
+
+    async def revert_vocabulary(self, name: str, timeout: Timeout = None) -> MapVocabulary:
+        """As :meth:`placedb.Client.revert_vocabulary`."""
+        request = pb.RevertVocabularyRequest(name=name)
+        response = await self._call(self._stub.RevertVocabulary, request, timeout)
+        return MapVocabulary.from_proto(response)
 
     # ---- Query and ingest ----------------------------------------------------------------------
 

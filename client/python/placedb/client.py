@@ -26,6 +26,7 @@ from placedb.results import (
     IngestResult,
     MapDamage,
     MapInfo,
+    MapVocabulary,
     MapSummary,
     Place,
     PlacePage,
@@ -383,6 +384,35 @@ class Client:
         return ScrubReport.from_proto(
             self._call(self._stub.ScrubMap, pb.ScrubMapRequest(name=name), timeout)
         )
+
+    def adapt_vocabulary(
+        self,
+        name: str,
+        seed: int = 0,
+        max_sample_descriptors: int = 0,
+        branching: int = 0,
+        depth: int = 0,
+        timeout: Timeout = None,
+    ) -> MapVocabulary:
+        """Learns a vocabulary from the map's own stored places and switches the map to it online.
+
+        0 keeps the server's default for each option. No deadline by default: a large map takes
+        minutes. :class:`FailedPrecondition` when the map is too small to learn from or already
+        switching; the map keeps its vocabulary on any error.
+        """
+        request = pb.AdaptVocabularyRequest(
+            name=name,
+            seed=seed,
+            max_sample_descriptors=max_sample_descriptors,
+            branching=branching,
+            depth=depth,
+        )
+        return MapVocabulary.from_proto(self._call(self._stub.AdaptVocabulary, request, timeout))
+
+    def revert_vocabulary(self, name: str, timeout: Timeout = None) -> MapVocabulary:
+        """Switches the map back to its previous vocabulary (:class:`FailedPrecondition` if none)."""
+        request = pb.RevertVocabularyRequest(name=name)
+        return MapVocabulary.from_proto(self._call(self._stub.RevertVocabulary, request, timeout))
 
     # ---- Query and ingest ----------------------------------------------------------------------
 

@@ -370,6 +370,8 @@ class MapInfo:
     #: :meth:`~placedb.Client.get_map` only: the agents whose ingest frames this server answered
     #: since it started (in memory, at most 64 per map).
     agents: List["AgentActivity"] = field(default_factory=list)
+    #: Which vocabulary the map uses and where it came from (available maps).
+    vocabulary_info: Optional["MapVocabulary"] = None
 
     @staticmethod
     def from_proto(message: pb.MapDescription) -> "MapInfo":
@@ -388,6 +390,44 @@ class MapInfo:
             damage_history=[MapDamage.from_proto(d) for d in message.damage_history],
             places_lost=message.places_lost,
             agents=[AgentActivity.from_proto(a) for a in message.agents],
+            vocabulary_info=(
+                MapVocabulary.from_proto(message.vocabulary)
+                if message.HasField("vocabulary")
+                else None
+            ),
+        )
+
+
+@dataclass(frozen=True)
+class MapVocabulary:
+    """A map's vocabulary and the one before it (docs/storage.md, "A map's own vocabulary").
+
+    ``current`` and ``previous`` are ``placedb.v1.VocabularySource`` messages: ``origin``
+    (``"file"`` or ``"learned"``), ``checksum``, ``branching``, ``depth``, ``words`` and, for a
+    learned one, when and from how many places and descriptors it was learned.
+    """
+
+    map: str
+    #: 0: the vocabulary the map was created with; each switch makes the next.
+    generation: int
+    current: pb.VocabularySource
+    previous: Optional[pb.VocabularySource]
+    since_unix_ms: int
+    places_reindexed: int
+    reindex_ms: float
+    switching: bool
+
+    @staticmethod
+    def from_proto(message: pb.MapVocabulary) -> "MapVocabulary":
+        return MapVocabulary(
+            map=message.map,
+            generation=message.generation,
+            current=message.current,
+            previous=message.previous if message.HasField("previous") else None,
+            since_unix_ms=message.since_unix_ms,
+            places_reindexed=message.places_reindexed,
+            reindex_ms=message.reindex_ms,
+            switching=message.switching,
         )
 
 

@@ -22,6 +22,8 @@ MAIN_CALLS = [
     "delete_map",
     "recover_map",
     "scrub_map",
+    "adapt_vocabulary",
+    "revert_vocabulary",
     "query",
     "ingest",
     "get_place",

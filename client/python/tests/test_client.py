@@ -218,6 +218,37 @@ def test_scrub_and_recover(client: placedb.Client, rtabmap_frames: List[Path]) -
         client.scrub_map("no-such-map")
 
 
+def test_adapt_and_revert_vocabulary(client: placedb.Client, rtabmap_frames: List[Path]) -> None:
+    client.create_map("learns")
+    results = list(client.ingest("learns", rtabmap_frames[:30], agent_id="a"))
+    before = client.get_map("learns")
+    assert before.vocabulary_info is not None
+    assert before.vocabulary_info.generation == 0
+    assert before.vocabulary_info.current.origin == "file"
+    adapted = client.adapt_vocabulary("learns", branching=8, depth=4, max_sample_descriptors=20000)
+    assert adapted.map == "learns" and adapted.generation == 1
+    assert adapted.current.origin == "learned"
+    assert adapted.current.branching == 8 and adapted.current.depth == 4
+    assert adapted.previous is not None
+    assert adapted.previous.checksum == before.vocabulary_checksum
+    after = client.get_map("learns")
+    assert after.vocabulary_checksum == adapted.current.checksum
+    assert after.vocabulary == "learned"
+    # Each stored frame still finds its own place with the learned vocabulary.
+    stored = [(i, r.place_id) for i, r in enumerate(results) if r.stored]
+    for index, place in stored[::5]:
+        assert client.query("learns", rtabmap_frames[index], top_k=1).matches[0].place_id == place
+    reverted = client.revert_vocabulary("learns")
+    assert reverted.generation == 2
+    assert reverted.current.checksum == before.vocabulary_checksum
+    client.create_map("tiny")
+    list(client.ingest("tiny", rtabmap_frames[:2], agent_id="a"))
+    with pytest.raises(placedb.FailedPrecondition, match="too small to learn a vocabulary"):
+        client.adapt_vocabulary("tiny")
+    with pytest.raises(placedb.FailedPrecondition, match="no previous vocabulary"):
+        client.revert_vocabulary("tiny")
+
+
 # ---- Ingest, query, places ----------------------------------------------------------------------
 
 
