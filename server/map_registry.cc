@@ -9,8 +9,6 @@
 
 namespace placedb::server {
 
-namespace {}  // namespace
-
 MapRegistry::MapRegistry(std::unique_ptr<DataDirectory> directory,
                          std::vector<VocabularyEntry> vocabularies,
                          std::vector<MissingVocabulary> missing)
