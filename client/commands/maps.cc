@@ -118,12 +118,12 @@ Rows ConfigRows(const v1::MapDescription& map) {
            ", rerank " + (v.rerank() ? "on" : "off")});
   config.push_back({"store_invalid", c.store_invalid() ? "yes" : "no"});
   const v1::VocabularyPolicy& policy = c.vocabulary_policy();
-  config.push_back({"vocabulary_policy",
-                    policy.adapt_after_descriptors() == 0 && policy.regrow_factor() == 0
-                        ? std::string("off")
-                        : "adapt after " + std::to_string(policy.adapt_after_descriptors()) +
-                              " descriptors, regrow factor " +
-                              FormatDouble(policy.regrow_factor(), 1)});
+  config.push_back(
+      {"vocab_policy", policy.adapt_after_descriptors() == 0 && policy.regrow_factor() == 0
+                           ? std::string("off")
+                           : "adapt after " + std::to_string(policy.adapt_after_descriptors()) +
+                                 " descriptors, regrow factor " +
+                                 FormatDouble(policy.regrow_factor(), 1)});
   config.push_back({"thumbnails", c.thumbnails().enabled()
                                       ? "on, " + std::to_string(c.thumbnails().max_side()) +
                                             " px, quality " +
