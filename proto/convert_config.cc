@@ -629,8 +629,6 @@ void ScrubReportToProto(const ScrubReport& report, v1::ScrubReport* out) {
   out->set_clean(report.clean());
 }
 
-namespace {
-
 void VocabularySourceToProto(const VocabularySource& source, v1::VocabularySource* out) {
   out->set_origin(source.origin);
   out->set_checksum(Hex64(source.checksum));
@@ -645,7 +643,45 @@ void VocabularySourceToProto(const VocabularySource& source, v1::VocabularySourc
   out->set_learn_ms(source.learn_ms);
 }
 
-}  // namespace
+Result<VocabularySource> VocabularySourceFromProto(const v1::VocabularySource& source,
+                                                   const std::string& field) {
+  VocabularySource out;
+  const auto checksum = ParseHex64(source.checksum());
+  if (!checksum) {
+    return Status::InvalidArgument(field + ".checksum: '" + source.checksum() +
+                                   "' is not 16 hex digits");
+  }
+  out.origin = source.origin();
+  out.checksum = *checksum;
+  out.branching = source.branching();
+  out.depth = source.depth();
+  out.words = source.words();
+  out.learned_unix_ms = source.learned_unix_ms();
+  out.places_offered = source.places_offered();
+  out.descriptors_offered = source.descriptors_offered();
+  out.places_sampled = source.places_sampled();
+  out.descriptors_sampled = source.descriptors_sampled();
+  out.learn_ms = source.learn_ms();
+  return out;
+}
+
+Result<VocabularyRecord> VocabularyRecordFromProto(const v1::MapVocabulary& record,
+                                                   const std::string& field) {
+  VocabularyRecord out;
+  out.generation = record.generation();
+  auto current = VocabularySourceFromProto(record.current(), field + ".current");
+  if (!current.ok()) return current.status();
+  out.current = std::move(current).value();
+  if (record.has_previous()) {
+    auto previous = VocabularySourceFromProto(record.previous(), field + ".previous");
+    if (!previous.ok()) return previous.status();
+    out.previous = std::move(previous).value();
+  }
+  out.since_unix_ms = record.since_unix_ms();
+  out.places_reindexed = record.places_reindexed();
+  out.reindex_ms = record.reindex_ms();
+  return out;
+}
 
 void VocabularyRecordToProto(const VocabularyRecord& record, bool switching,
                              v1::MapVocabulary* out) {

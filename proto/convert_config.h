@@ -57,6 +57,13 @@ void ScrubReportToProto(const ScrubReport& report, v1::ScrubReport* out);
 // to the caller.
 void VocabularyRecordToProto(const VocabularyRecord& record, bool switching,
                              v1::MapVocabulary* out);
+void VocabularySourceToProto(const VocabularySource& source, v1::VocabularySource* out);
+// And back (cluster mode's records and shard answers): INVALID_ARGUMENT naming `field` for a
+// checksum that is not 16 hex digits.
+Result<VocabularySource> VocabularySourceFromProto(const v1::VocabularySource& source,
+                                                   const std::string& field);
+Result<VocabularyRecord> VocabularyRecordFromProto(const v1::MapVocabulary& record,
+                                                   const std::string& field);
 
 // The proto <-> core enum mappings. FromProto takes UNSPECIFIED as the default the proto
 // documents; values outside the enum are INVALID_ARGUMENT naming `field`.

@@ -101,6 +101,18 @@ class ClusterBackend {
   // DeletePlace record, acknowledged before it returns (the replicas remove it when applying).
   virtual grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) = 0;
 
+  // Issue 29: one replica learns a vocabulary from its stored places (options as the request's);
+  // the worker publishes it to the map's stream in parts, then one switch record at which every
+  // replica switches (re-indexing online), and answers once a replica has switched, with its
+  // record. The worker's own copy of the map follows. FAILED_PRECONDITION when the map is too
+  // small to learn from or already switching through this worker; UNAVAILABLE as Publish.
+  virtual grpc::Status AdaptVocabulary(const v1::AdaptVocabularyRequest& request, Deadline deadline,
+                                       v1::MapVocabulary* response) = 0;
+  // The replicas' previous vocabulary back, through one switch record (they store its bytes).
+  // FAILED_PRECONDITION when the map never switched.
+  virtual grpc::Status RevertVocabulary(const std::string& name, Deadline deadline,
+                                        v1::MapVocabulary* response) = 0;
+
   // Place reads, answered by a replica (retried once on the other).
   virtual grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                                 v1::Place* response) = 0;

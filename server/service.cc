@@ -379,6 +379,13 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
                                    "(configure detector.model)"));
   }
   if (cluster_) {
+    if (settings.adapt_after_descriptors != 0 || settings.regrow_factor != 0) {
+      // Refused rather than stored and ignored: no worker runs the policy (docs/cluster.md).
+      return Finish("CreateMap", context,
+                    grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                                 "config.vocabulary_policy: not run in cluster mode; call "
+                                 "AdaptVocabulary (placedb maps adapt-vocabulary) instead"));
+    }
     // The effective configuration (every field filled in) is what the cluster stores: workers
     // and shards build the same map options from it.
     v1::MapConfig effective;
@@ -513,7 +520,13 @@ grpc::Status PlaceDbService::AdaptVocabulary(grpc::ServerContext* context,
                                              v1::MapVocabulary* response) {
   CallScope scope(this);
   if (draining_flag_) return Finish("AdaptVocabulary", context, Unavailable());
-  if (cluster_) return Finish("AdaptVocabulary", context, NotInCluster("AdaptVocabulary"));
+  if (cluster_) {
+    spdlog::info("cluster map '{}': learning a vocabulary on a replica, peer={}",
+                 ForLog(request->name()), Peer(context));
+    const grpc::Status switched =
+        cluster_->AdaptVocabulary(*request, DeadlineOf(context), response);
+    return Finish("AdaptVocabulary", context, switched);
+  }
   auto entry = maps_->Get(request->name(), "name");
   if (!entry.ok()) return Finish("AdaptVocabulary", context, ToGrpc(entry.status()));
   AdaptOptions options;
@@ -546,7 +559,11 @@ grpc::Status PlaceDbService::RevertVocabulary(grpc::ServerContext* context,
                                               v1::MapVocabulary* response) {
   CallScope scope(this);
   if (draining_flag_) return Finish("RevertVocabulary", context, Unavailable());
-  if (cluster_) return Finish("RevertVocabulary", context, NotInCluster("RevertVocabulary"));
+  if (cluster_) {
+    const grpc::Status switched =
+        cluster_->RevertVocabulary(request->name(), DeadlineOf(context), response);
+    return Finish("RevertVocabulary", context, switched);
+  }
   auto entry = maps_->Get(request->name(), "name");
   if (!entry.ok()) return Finish("RevertVocabulary", context, ToGrpc(entry.status()));
   AdaptOptions options;

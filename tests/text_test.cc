@@ -13,6 +13,19 @@ namespace {
 
 using namespace std::string_literals;
 
+TEST(TextTest, ParseHex64IsHex64sInverse) {
+  for (const uint64_t value :
+       {uint64_t(0), uint64_t(1), uint64_t(0xfedcba9876543210), ~uint64_t(0)}) {
+    EXPECT_EQ(ParseHex64(Hex64(value)), value);
+  }
+  EXPECT_EQ(ParseHex64("FEDCBA9876543210"), uint64_t(0xfedcba9876543210));
+  EXPECT_EQ(ParseHex64(""), std::nullopt);
+  EXPECT_EQ(ParseHex64("123"), std::nullopt);                // too short
+  EXPECT_EQ(ParseHex64("00000000000000000"), std::nullopt);  // too long
+  EXPECT_EQ(ParseHex64("000000000000000g"), std::nullopt);   // not a digit
+  EXPECT_EQ(ParseHex64("-00000000000000f"), std::nullopt);
+}
+
 TEST(TextTest, ForLogEscapesWhatCouldBreakALineOrDriveATerminal) {
   EXPECT_EQ(ForLog("robot-7"), "robot-7");
   EXPECT_EQ(ForLog(""), "");

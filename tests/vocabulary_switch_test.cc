@@ -444,6 +444,140 @@ int SwitchInChild(const std::string& data_dir, VocabularyPhase phase, bool rever
   return status;
 }
 
+// Cluster mode: replicas apply the same log. A vocabulary learned on one replica reaches the
+// others in parts, and each switches at the switch record's sequence to the same bytes.
+TEST_F(VocabularySwitchTest, ReplicasSwitchAtTheSameRecordToByteIdenticalVocabularies) {
+  auto made = dir_->CreateMap("other", {}, Default());
+  ASSERT_TRUE(made.ok()) << made.status().ToString();
+  std::vector<std::shared_ptr<PlaceMap>> replicas = {map_, *made};
+  const auto add = [&](size_t frame) {
+    MapLogRecord record;
+    record.frame = frames_[frame];  // processed with the default vocabulary
+    record.metadata = Metadata(frame);
+    return record;
+  };
+  std::vector<MapLogRecord> log;  // sequence = index + 1
+  for (size_t i = 0; i < 30; ++i) log.push_back(add(i));
+  // One replica learns; its bytes travel in 3 parts.
+  for (const auto& replica : replicas) {
+    std::vector<PlaceMap::SequencedRecord> batch;
+    for (size_t i = 0; i < log.size(); ++i) batch.push_back({i + 1, &log[i]});
+    ASSERT_TRUE(replica->ApplyBatch(batch).ok());
+  }
+  auto learned = replicas[0]->LearnVocabulary(Quick());
+  ASSERT_TRUE(learned.ok()) << learned.status().ToString();
+  EXPECT_EQ(learned->source.places_offered, 30u);
+  EXPECT_EQ(replicas[0]->vocabulary().checksum(), Default().checksum());  // nothing switched
+  const std::string bytes = learned->vocabulary.Serialize();
+  const size_t part = bytes.size() / 3 + 1;
+  for (uint32_t i = 0; i < 3; ++i) {
+    MapLogRecord record;
+    record.kind = MapLogRecord::Kind::kVocabularyPart;
+    record.vocabulary_part = {learned->vocabulary.checksum(), i, 3, bytes.substr(i * part, part)};
+    log.push_back(record);  // 31..33
+  }
+  MapLogRecord prepare;
+  prepare.kind = MapLogRecord::Kind::kPrepareVocabulary;
+  prepare.vocabulary_source.checksum = learned->vocabulary.checksum();
+  prepare.vocabulary_parts = 3;
+  log.push_back(prepare);  // 34
+  log.push_back(add(30));  // 35: processed before the switch: transformed again at the switch
+  MapLogRecord change;
+  change.kind = MapLogRecord::Kind::kSwitchVocabulary;
+  change.vocabulary_source = learned->source;
+  change.vocabulary_parts = 3;
+  log.push_back(change);   // 36
+  log.push_back(add(31));  // 37: processed before the switch: transformed again when applied
+  std::vector<PlaceId> places;
+  for (PlaceId id = 1; id <= 30; ++id) places.push_back(id);
+  places.push_back(35);
+  places.push_back(37);
+  const std::vector<ProcessedFrame> stored(frames_.begin(), frames_.begin() + 32);
+  for (const auto& replica : replicas) {
+    // Applied a record at a time for one replica, built ahead of the switch (as a shard does on
+    // the prepare record) and then in one batch for the other.
+    if (replica == replicas[0]) {
+      for (size_t i = 30; i < log.size(); ++i) {
+        auto applied = replica->ApplyAt(i + 1, log[i]);
+        ASSERT_TRUE(applied.ok()) << applied.status().ToString();
+        EXPECT_TRUE(*applied);
+      }
+    } else {
+      std::vector<PlaceMap::SequencedRecord> batch;
+      for (size_t i = 30; i < 35; ++i) batch.push_back({i + 1, &log[i]});
+      auto applied = replica->ApplyBatch(batch);
+      ASSERT_TRUE(applied.ok()) << applied.status().ToString();
+      EXPECT_EQ(*applied, 5u);
+      EXPECT_EQ(replica->prepared_vocabulary(), 0u);
+      const Status prepared = replica->PrepareVocabularySwitch(learned->vocabulary.checksum(), 3);
+      ASSERT_TRUE(prepared.ok()) << prepared.ToString();
+      EXPECT_EQ(replica->prepared_vocabulary(), learned->vocabulary.checksum());
+      EXPECT_EQ(replica->vocabulary().checksum(), Default().checksum());  // not switched yet
+      batch.clear();
+      for (size_t i = 35; i < log.size(); ++i) batch.push_back({i + 1, &log[i]});
+      applied = replica->ApplyBatch(batch);
+      ASSERT_TRUE(applied.ok()) << applied.status().ToString();
+      EXPECT_EQ(*applied, 2u);
+      EXPECT_EQ(replica->prepared_vocabulary(), 0u);
+    }
+    EXPECT_EQ(replica->applied_sequence(), 37u);
+    EXPECT_EQ(replica->vocabulary().checksum(), learned->vocabulary.checksum());
+    EXPECT_EQ(replica->vocabulary().Serialize(), bytes);
+    const VocabularyRecord record = replica->info().vocabulary;
+    EXPECT_EQ(record.generation, 1u);
+    EXPECT_EQ(record.current, learned->source);
+    ASSERT_TRUE(record.previous);
+    EXPECT_EQ(record.previous->checksum, Default().checksum());
+    EXPECT_EQ(record.places_reindexed, 31u);
+    ExpectEachFrameFindsItsPlace(*replica, stored, places);
+    ASSERT_TRUE(replica->VerifyIntegrity().ok()) << replica->VerifyIntegrity().ToString();
+  }
+  // The same places under the same ids with the same vectors on both.
+  for (const PlaceId id : places) {
+    auto a = replicas[0]->GetPlace(id), b = replicas[1]->GetPlace(id);
+    ASSERT_TRUE(a.ok() && b.ok()) << id;
+    EXPECT_EQ(a->payload.bow, b->payload.bow) << id;
+  }
+  // Reopened without any vocabulary file: the switch and its sequence are durable, the parts
+  // gone (the vocabulary is stored whole).
+  replicas[0].reset();
+  map_ = Reopen(AnyVocabulary());
+  ASSERT_TRUE(map_);
+  replicas[0] = map_;
+  EXPECT_EQ(map_->applied_sequence(), 37u);
+  EXPECT_EQ(map_->vocabulary().checksum(), learned->vocabulary.checksum());
+  ExpectEachFrameFindsItsPlace(*map_, stored, places);
+
+  // A switch whose parts never arrived: CORRUPTION naming the part, nothing changed.
+  MapLogRecord missing = change;
+  missing.vocabulary_source.checksum ^= 1;
+  auto refused = map_->ApplyAt(38, missing);
+  EXPECT_EQ(refused.status().code(), StatusCode::kCorruption) << refused.status().ToString();
+  EXPECT_NE(refused.status().message().find("part 0 of 3 is missing"), std::string::npos)
+      << refused.status().ToString();
+  EXPECT_EQ(map_->applied_sequence(), 37u);
+  EXPECT_EQ(map_->vocabulary().checksum(), learned->vocabulary.checksum());
+  EXPECT_EQ(map_->PrepareVocabularySwitch(missing.vocabulary_source.checksum, 3).code(),
+            StatusCode::kCorruption);
+
+  // Back to the previous vocabulary: a switch without parts (the replicas store it).
+  MapLogRecord back;
+  back.kind = MapLogRecord::Kind::kSwitchVocabulary;
+  back.vocabulary_source = *map_->info().vocabulary.previous;
+  for (const auto& replica : replicas) {
+    auto applied = replica->ApplyAt(39, back);
+    ASSERT_TRUE(applied.ok()) << applied.status().ToString();
+    EXPECT_EQ(replica->vocabulary().checksum(), Default().checksum());
+    EXPECT_EQ(replica->info().vocabulary.generation, 2u);
+    EXPECT_EQ(replica->applied_sequence(), 39u);
+    ExpectEachFrameFindsItsPlace(*replica, stored, places);
+  }
+  // A replica's vocabulary changes only through its log.
+  EXPECT_EQ(map_->AdaptVocabulary(Quick()).status().code(), StatusCode::kFailedPrecondition);
+  EXPECT_EQ(map_->InstallVocabulary(learned->vocabulary, learned->source).status().code(),
+            StatusCode::kFailedPrecondition);
+}
+
 TEST_F(VocabularySwitchTest, SigkillAtEveryPhaseLeavesTheOldVocabularyOrTheNew) {
   const std::vector<PlaceId> places = Store(0, 30);
   const std::vector<ProcessedFrame> stored(frames_.begin(), frames_.begin() + 30);

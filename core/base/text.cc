@@ -11,6 +11,21 @@ std::string Hex64(uint64_t value) {
   std::snprintf(buffer, sizeof buffer, "%016llx", static_cast<unsigned long long>(value));
   return buffer;
 }
+
+std::optional<uint64_t> ParseHex64(std::string_view text) {
+  if (text.size() != 16) return std::nullopt;
+  uint64_t value = 0;
+  for (const char c : text) {
+    int digit = -1;
+    if (c >= '0' && c <= '9') digit = c - '0';
+    if (c >= 'a' && c <= 'f') digit = c - 'a' + 10;
+    if (c >= 'A' && c <= 'F') digit = c - 'A' + 10;
+    if (digit < 0) return std::nullopt;
+    value = value << 4 | uint64_t(digit);
+  }
+  return value;
+}
+
 namespace {
 
 void AppendHexByte(std::string* out, unsigned char byte) {

@@ -3,6 +3,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 
@@ -19,6 +20,8 @@ inline std::string AsciiLower(std::string_view text) {
 
 // 16 lowercase hex digits: how checksums (a vocabulary's) are shown.
 std::string Hex64(uint64_t value);
+// Hex64's inverse: exactly 16 hex digits (either case); nullopt otherwise.
+std::optional<uint64_t> ParseHex64(std::string_view text);
 
 // How AppendEscaped shows what is not printable ASCII.
 enum class EscapeMode {

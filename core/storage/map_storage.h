@@ -58,6 +58,10 @@ inline constexpr char kVocabularyRecordKey[] = "vocabulary_record";
 // generation opens with its own and needs no vocabulary file.
 inline constexpr char kVocabularyBytesPrefix[] = "vocabulary.";
 std::string VocabularyBytesKey(uint64_t checksum);
+// "vocabulary_part.<16 hex digits>.<8 digits>": a cluster replica's part of a vocabulary
+// (MapLogRecord::kVocabularyPart) until the switch that installs it removes them.
+inline constexpr char kVocabularyPartPrefix[] = "vocabulary_part.";
+std::string VocabularyPartKey(uint64_t checksum, uint32_t index);
 inline constexpr char kGenerationFamilyPrefix[] = "bow.";
 // "bow.<generation>"; generation 0 is the "bow" family.
 std::string GenerationFamilyName(uint64_t generation);

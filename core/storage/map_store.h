@@ -255,14 +255,41 @@ struct MapLogRecord {
     kCountObservation,  // `dynamics` added to `place` (0 or absent: the map's aggregate only)
     kInvalidFrame,      // counted; kept as metadata (frame.counts, frame.boxes_used,
                         // frame.rejection, `metadata`) when the map stores invalid frames
+    // Issue 29: a vocabulary learned once (on one replica) reaches every replica through the
+    // stream, in parts (a vocabulary is larger than a stream message), then one record switches.
+    kVocabularyPart,     // `vocabulary_part` stored with the map until its switch
+    kSwitchVocabulary,   // the map switches to `vocabulary_source` here, at this sequence: from
+                         // its parts, or from the bytes the map stores (its previous vocabulary)
+    kPrepareVocabulary,  // nothing but the applied sequence: the replica's host starts building
+                         // the switch to `vocabulary_source.checksum` (PrepareVocabularySwitch)
   };
   Kind kind = Kind::kAddPlace;
+  // An AddPlace frame's vocabulary_checksum says which vocabulary made its BoW vector (0: the
+  // map's current one); a frame of another is transformed again when applied.
   ProcessedFrame frame;
   PlaceMetadata metadata;
   PlaceId place = 0;
   // The frame's statistics operand, made once by the publisher (it carries its arrival time), so
   // every replica stores the same bytes. nullopt: none.
   std::optional<PlaceDynamics> dynamics;
+  struct VocabularyPart {
+    uint64_t checksum = 0;  // of the whole vocabulary (AnyVocabulary::checksum)
+    uint32_t index = 0;     // 0-based
+    uint32_t count = 0;     // parts of the vocabulary
+    std::string bytes;      // AnyVocabulary::Serialize()'s bytes [index * part size, ...)
+  };
+  VocabularyPart vocabulary_part;
+  // kSwitchVocabulary: the vocabulary (its checksum) and where it came from; `vocabulary_parts`
+  // parts were published before (0: the map stores its bytes: a revert). kPrepareVocabulary:
+  // the checksum and parts alone.
+  VocabularySource vocabulary_source;
+  uint32_t vocabulary_parts = 0;
+};
+
+// A vocabulary learned from a map's stored places, not yet the map's (PlaceMap::LearnVocabulary).
+struct MapLearnedVocabulary {
+  AnyVocabulary vocabulary;
+  VocabularySource source;  // origin "learned", with what it was learned from
 };
 
 // A place handed to a map's commit queue (PlaceMap::Enqueue): its outcome once the group it was
@@ -337,7 +364,30 @@ class PlaceMap {
   // previous). FAILED_PRECONDITION when there is none (the map never switched); CORRUPTION when
   // the stored previous vocabulary is damaged.
   Result<VocabularyRecord> RevertVocabulary(const AdaptOptions& options = {});
+  // AdaptVocabulary's first half: learns a vocabulary from the map's stored static descriptors
+  // and returns it without switching (cluster mode: one replica learns, every replica switches
+  // through the stream). Also on a replica. Errors as AdaptVocabulary's; nothing changes.
+  Result<MapLearnedVocabulary> LearnVocabulary(const AdaptOptions& options = {}) const;
+  // AdaptVocabulary's second half with a vocabulary from elsewhere (`source` says where; its
+  // checksum must be `vocabulary`'s): re-index, catch up, switch, as AdaptVocabulary. For a
+  // cluster worker's place-less copy of a map following its replicas. FAILED_PRECONDITION on a
+  // replica (it switches through ApplyAt) or during another switch; INVALID_ARGUMENT for a
+  // vocabulary of the other feature type or a checksum that is not its.
+  Result<VocabularyRecord> InstallVocabulary(AnyVocabulary vocabulary, VocabularySource source,
+                                             const AdaptOptions& options = {});
   bool switching_vocabulary() const { return switching_.load(); }
+  // Cluster replicas (issue 29): builds the switch to vocabulary `checksum` from its `parts`
+  // parts the map stored (kVocabularyPart records; 0: bytes the map stores whole) while records
+  // go on being applied, so that the kSwitchVocabulary record for it only catches up with the
+  // places applied since. Blocks until built (call it on a thread of its own); one thread at
+  // nice 10. FAILED_PRECONDITION during another switch; CORRUPTION as ApplyAt's switch;
+  // CANCELLED by CancelPreparedSwitch. Nothing of it is durable: a reopened map builds the
+  // switch when it applies the record.
+  Status PrepareVocabularySwitch(uint64_t checksum, uint32_t parts);
+  // The vocabulary a prepared switch waits for its record with (0: none).
+  uint64_t prepared_vocabulary() const { return prepared_checksum_.load(); }
+  // Stops a preparation in progress and drops a prepared switch (a replica closing).
+  void CancelPreparedSwitch();
 
   // Process (as the agent's next stream frame) + AdvanceStream + (when valid) durable write +
   // index. An invalid frame is counted, and stored as metadata when the map's store_invalid is
@@ -401,12 +451,15 @@ class PlaceMap {
   // commit, so a restarted replica resumes from applied_sequence() + 1 and re-applying is
   // harmless. Returns true when applied, false (nothing written) when `sequence` <=
   // applied_sequence(). Sequences may skip (a record that never reached the map); the next
-  // place id of the database follows the applied sequence. A record the map cannot take
-  // (invalid frame as AddPlace, wrong feature type or direct-index level, a sequence beyond
-  // the place-id range) is INVALID_ARGUMENT; write errors are the storage's: nothing changes
-  // then, applied sequence included. Applies one record at a time (callers of one map are
-  // serialised); concurrent queries see a place once it is indexed, after its write.
-  // Not meant to be mixed with Add/Commit/Enqueue/RemovePlace on the same map.
+  // place id of the database follows the applied sequence. A kSwitchVocabulary record switches
+  // the map as AdaptVocabulary does (queries go on meanwhile; the record's sequence is written in
+  // the switch's batch, so a crash leaves the old vocabulary, applied below it, or the new);
+  // parts that are missing or do not make the named vocabulary are CORRUPTION, nothing changed. A
+  // record the map cannot take (invalid frame as AddPlace, wrong feature type or direct-index
+  // level, a sequence beyond the place-id range) is INVALID_ARGUMENT; write errors are the
+  // storage's: nothing changes then, applied sequence included. Applies one record at a time
+  // (callers of one map are serialised); concurrent queries see a place once it is indexed, after
+  // its write. Not meant to be mixed with Add/Commit/Enqueue/RemovePlace on the same map.
   Result<bool> ApplyAt(uint64_t sequence, const MapLogRecord& record);
   // ApplyAt for consecutive records, ascending sequences, with what one ApplyAt per record would
   // store, but each run of records between DeletePlace records written as one synced batch (the
@@ -509,9 +562,38 @@ class PlaceMap {
   Result<VocabularyRecord> AdaptVocabularyNow(const AdaptOptions& options);
   Result<VocabularyRecord> RevertVocabularyNow(const AdaptOptions& options);
   // AdaptVocabulary / RevertVocabulary after the vocabulary is known: re-index, catch up,
-  // switch (vocabulary_switch.cc). `record` says where `next` came from.
+  // switch (vocabulary_switch.cc). `record` says where `next` came from. `at_sequence` (a
+  // replica's kSwitchVocabulary record): the applied sequence written in the switch's batch.
   Result<VocabularyRecord> SwitchVocabulary(AnyVocabulary next, VocabularyRecord record,
-                                            const AdaptOptions& options) EXCLUDES(lifecycle_);
+                                            const AdaptOptions& options,
+                                            std::optional<uint64_t> at_sequence = std::nullopt)
+      EXCLUDES(lifecycle_);
+  // A switch in three steps (vocabulary_switch.cc): the new family and index; every place
+  // re-indexed and caught up with writers going on; the rest with them held, and the switch.
+  struct PreparedSwitch;
+  struct PreparedSwitchDeleter {  // where PreparedSwitch is complete (vocabulary_switch.cc)
+    void operator()(PreparedSwitch* build) const;
+  };
+  using PreparedSwitchPtr = std::unique_ptr<PreparedSwitch, PreparedSwitchDeleter>;
+  Result<PreparedSwitchPtr> BeginSwitch(AnyVocabulary next) EXCLUDES(lifecycle_);
+  Status BuildSwitch(PreparedSwitch& build, const AdaptOptions& options) EXCLUDES(lifecycle_);
+  Result<VocabularyRecord> FinishSwitch(PreparedSwitch& build, VocabularyRecord record,
+                                        const AdaptOptions& options,
+                                        std::optional<uint64_t> at_sequence) EXCLUDES(lifecycle_);
+  // At most `limit` places the live index and the new one differ by, into the new one and
+  // `batch` (its family's changes); `changed` says how many.
+  Status CatchUp(PreparedSwitch& build, rocksdb::WriteBatch* batch, size_t limit, size_t* changed)
+      REQUIRES_SHARED(lifecycle_);
+  // The vocabulary `checksum` from the bytes the map stores, or its `parts` parts; CORRUPTION
+  // (prefixed by `what`) when missing or not that vocabulary.
+  Result<AnyVocabulary> StoredVocabularyFor(uint64_t checksum, uint32_t parts,
+                                            const std::string& what) const EXCLUDES(lifecycle_);
+  // ApplyBatch's parts: a run of records without a switch (lifecycle_ held shared), and a
+  // kSwitchVocabulary record (its own holds).
+  Result<size_t> ApplyRun(std::span<const SequencedRecord> records) REQUIRES(apply_mutex_)
+      EXCLUDES(lifecycle_);
+  Status ApplySwitch(uint64_t sequence, const MapLogRecord& record) REQUIRES(apply_mutex_)
+      EXCLUDES(lifecycle_);
 
   // A place's values as Enqueue encodes them on the caller's thread, and their entries in a
   // batch (record, BoW value, features, statistics, thumbnail) once its id is known.
@@ -550,6 +632,12 @@ class PlaceMap {
   std::unique_ptr<CommitQueue> commits_;  // its committer thread lives as long as the map
   // ApplyAt/ApplyBatch: one caller at a time; the applied sequence is readable without it.
   Mutex apply_mutex_;
+  // A replica's switch prepared ahead of its record (PrepareVocabularySwitch); held while one
+  // is built, so ApplySwitch waits for a preparation in progress. After apply_mutex_.
+  Mutex prepare_mutex_;
+  PreparedSwitchPtr prepared_ GUARDED_BY(prepare_mutex_);
+  std::atomic<uint64_t> prepared_checksum_{0};
+  std::atomic<bool> prepare_cancel_{false};
   std::atomic<uint64_t> applied_sequence_{0};
 };
 

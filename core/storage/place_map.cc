@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <deque>
 #include <filesystem>
 #include <span>
 #include <system_error>
@@ -66,6 +67,7 @@ PlaceMap::PlaceMap(MapInfo info, std::string path, std::unique_ptr<MapStorage> s
 }
 
 PlaceMap::~PlaceMap() {
+  CancelPreparedSwitch();  // its family is dropped while the database is open
   StopCommitter();
   database_.reset();
   if (storage_ && storage_->db) {
@@ -355,15 +357,46 @@ Result<bool> PlaceMap::ApplyAt(uint64_t sequence, const MapLogRecord& record) {
 }
 
 Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
+  MutexLock apply(apply_mutex_);
+  size_t applied = 0;
+  // Runs of records between switches of vocabulary: a switch holds the map its own way.
+  while (!records.empty()) {
+    size_t run = 0;
+    while (run < records.size() &&
+           records[run].record->kind != MapLogRecord::Kind::kSwitchVocabulary) {
+      ++run;
+    }
+    if (run > 0) {
+      auto done = ApplyRun(records.first(run));
+      if (!done.ok()) return done.status();
+      applied += *done;
+    }
+    if (run < records.size()) {
+      const SequencedRecord& change = records[run];
+      if (change.sequence > applied_sequence_.load()) {
+        PLACEDB_RETURN_IF_ERROR(ApplySwitch(change.sequence, *change.record));
+        ++applied;
+      }
+      ++run;
+    }
+    records = records.subspan(run);
+  }
+  return applied;
+}
+
+Result<size_t> PlaceMap::ApplyRun(std::span<const SequencedRecord> records) {
   ReaderLock alive(lifecycle_);
   if (closed_) return Deleted();
-  MutexLock apply(apply_mutex_);
   const DatabaseConfig& config = info_.options.database;
   size_t applied = 0;
   // The run being gathered: one RocksDB batch, written and synced once (DeletePlace ends a
   // run: the index's removal writes its own batch).
   rocksdb::WriteBatch batch;
   std::vector<SequencedRecord> run;
+  // An AddPlace frame as this map's vocabulary makes it (the record's own, or a copy
+  // transformed again, kept until the run is indexed), by the record's position in `run`.
+  std::vector<const ProcessedFrame*> run_frames;
+  std::deque<ProcessedFrame> transformed;
   std::unordered_set<PlaceId> run_places;  // places the run adds: a CountObservation may name one
   PlaceId run_max_place = 0;
   auto flush = [&]() -> Status {
@@ -379,10 +412,11 @@ Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
     // moves only after that: a reader that waited for it (a shard's read with a minimum
     // sequence) must find every place up to it.
     Status indexed;
-    for (const SequencedRecord& r : run) {
+    for (size_t i = 0; i < run.size(); ++i) {
+      const SequencedRecord& r = run[i];
       const MapLogRecord& record = *r.record;
       if (record.kind == MapLogRecord::Kind::kAddPlace) {
-        auto id = database_->Insert(record.frame, record.metadata, PlaceId(r.sequence));
+        auto id = database_->Insert(*run_frames[i], record.metadata, PlaceId(r.sequence));
         if (!id.ok()) {
           indexed = id.status().WithContext("applying record " + std::to_string(r.sequence));
           break;
@@ -405,6 +439,8 @@ Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
     PLACEDB_RETURN_IF_ERROR(indexed);
     applied += run.size();
     run.clear();
+    run_frames.clear();
+    transformed.clear();
     run_places.clear();
     run_max_place = 0;
     batch.Clear();
@@ -421,12 +457,21 @@ Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
       PLACEDB_RETURN_IF_ERROR(flush());
       return Status::InvalidArgument(what + ": " + why);
     };
+    const ProcessedFrame* indexed_frame = &record.frame;
     switch (record.kind) {
       case MapLogRecord::Kind::kAddPlace: {
-        const ProcessedFrame& frame = record.frame;
         // Checked before writing: a batch the index then refused would leave an unindexed place.
         if (sequence >= kMaxPlaceId) return refuse("sequence beyond the place-id range");
-        if (!frame.valid) return refuse("AddPlace of an invalid frame");
+        if (!record.frame.valid) return refuse("AddPlace of an invalid frame");
+        if (record.frame.vocabulary_checksum != 0 && !database_->OfThisVocabulary(record.frame)) {
+          // Processed with the vocabulary before a switch (a worker that had not seen it yet).
+          transformed.push_back(record.frame);
+          if (Status again = database_->Retransform(&transformed.back()); !again.ok()) {
+            return refuse(again.message());
+          }
+          indexed_frame = &transformed.back();
+        }
+        const ProcessedFrame& frame = *indexed_frame;
         if (frame.static_features.type() != config.feature_type) {
           return refuse("frame's features are " +
                         std::string(FeatureTypeName(frame.static_features.type())) +
@@ -502,8 +547,22 @@ Result<size_t> PlaceMap::ApplyBatch(std::span<const SequencedRecord> records) {
         }
         break;
       }
+      case MapLogRecord::Kind::kVocabularyPart: {
+        const MapLogRecord::VocabularyPart& part = record.vocabulary_part;
+        if (part.count == 0 || part.index >= part.count) {
+          return refuse("vocabulary part " + std::to_string(part.index) + " of " +
+                        std::to_string(part.count));
+        }
+        batch.Put(storage_->cf(kMeta), VocabularyPartKey(part.checksum, part.index), part.bytes);
+        break;
+      }
+      case MapLogRecord::Kind::kPrepareVocabulary:
+        break;  // built by PrepareVocabularySwitch, on the host's thread
+      case MapLogRecord::Kind::kSwitchVocabulary:
+        return refuse("a switch of vocabulary inside a run");  // ApplyBatch splits runs there
     }
     run.push_back(r);
+    run_frames.push_back(indexed_frame);
     last = sequence;
   }
   PLACEDB_RETURN_IF_ERROR(flush());

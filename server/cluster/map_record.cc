@@ -1,10 +1,12 @@
 #include "server/cluster/map_record.h"
 
+#include <algorithm>
 #include <chrono>
 
 #include "core/dynamics/place_dynamics.h"
 #include "core/storage/codec.h"
 #include "proto/cluster.pb.h"
+#include "proto/convert_config.h"
 
 namespace placedb::cluster {
 
@@ -63,6 +65,39 @@ std::string EncodeAddPlace(const ProcessedFrame& frame, const PlaceMetadata& met
   if (!frame.dynamic_features.empty()) {
     add->set_dynamic_features(EncodeLocalFeatures(frame.dynamic_features, frame.dynamic_direct));
   }
+  add->set_vocabulary_checksum(frame.vocabulary_checksum);
+  return Serialize(record);
+}
+
+std::vector<std::string> EncodeVocabularyParts(const AnyVocabulary& vocabulary, size_t part_bytes) {
+  const std::string bytes = vocabulary.Serialize();
+  part_bytes = std::max<size_t>(part_bytes, 1);
+  const size_t count = std::max<size_t>((bytes.size() + part_bytes - 1) / part_bytes, 1);
+  std::vector<std::string> parts;
+  parts.reserve(count);
+  for (size_t i = 0; i < count; ++i) {
+    v1::MapRecord record;
+    v1::VocabularyPart* part = record.mutable_vocabulary_part();
+    part->set_checksum(vocabulary.checksum());
+    part->set_index(uint32_t(i));
+    part->set_count(uint32_t(count));
+    part->set_data(bytes.substr(std::min(i * part_bytes, bytes.size()), part_bytes));
+    parts.push_back(Serialize(record));
+  }
+  return parts;
+}
+
+std::string EncodePrepareVocabulary(uint64_t checksum, uint32_t parts) {
+  v1::MapRecord record;
+  record.mutable_prepare_vocabulary()->set_checksum(checksum);
+  record.mutable_prepare_vocabulary()->set_parts(parts);
+  return Serialize(record);
+}
+
+std::string EncodeSwitchVocabulary(const VocabularySource& source, uint32_t parts) {
+  v1::MapRecord record;
+  wire::VocabularySourceToProto(source, record.mutable_switch_vocabulary()->mutable_source());
+  record.mutable_switch_vocabulary()->set_parts(parts);
   return Serialize(record);
 }
 
@@ -117,6 +152,7 @@ Result<MapLogRecord> DecodeMapRecord(std::string_view bytes, FeatureType type) {
                 "add_place.features"));
       frame.bow = std::move(bow).value();
       frame.valid = true;
+      frame.vocabulary_checksum = add.vocabulary_checksum();
       frame.counts = place->counts;
       frame.boxes_used = place->boxes_used;
       out.metadata = place->metadata;
@@ -166,6 +202,31 @@ Result<MapLogRecord> DecodeMapRecord(std::string_view bytes, FeatureType type) {
                                             "invalid_frame.dynamics", &out.dynamics));
       return out;
     }
+    case v1::MapRecord::kVocabularyPart: {
+      const v1::VocabularyPart& part = record.vocabulary_part();
+      if (part.count() == 0 || part.index() >= part.count()) {
+        return Status::Corruption("map record: vocabulary_part: part " +
+                                  std::to_string(part.index()) + " of " +
+                                  std::to_string(part.count()));
+      }
+      out.kind = MapLogRecord::Kind::kVocabularyPart;
+      out.vocabulary_part = {part.checksum(), part.index(), part.count(), part.data()};
+      return out;
+    }
+    case v1::MapRecord::kSwitchVocabulary: {
+      auto source = wire::VocabularySourceFromProto(record.switch_vocabulary().source(),
+                                                    "switch_vocabulary.source");
+      PLACEDB_RETURN_IF_ERROR(Field(source.status(), "switch_vocabulary"));
+      out.kind = MapLogRecord::Kind::kSwitchVocabulary;
+      out.vocabulary_source = std::move(source).value();
+      out.vocabulary_parts = record.switch_vocabulary().parts();
+      return out;
+    }
+    case v1::MapRecord::kPrepareVocabulary:
+      out.kind = MapLogRecord::Kind::kPrepareVocabulary;
+      out.vocabulary_source.checksum = record.prepare_vocabulary().checksum();
+      out.vocabulary_parts = record.prepare_vocabulary().parts();
+      return out;
     case v1::MapRecord::RECORD_NOT_SET:
       break;
   }
@@ -174,6 +235,7 @@ Result<MapLogRecord> DecodeMapRecord(std::string_view bytes, FeatureType type) {
 
 void FrameToSearchRequest(const ProcessedFrame& frame, v1::SearchRequest* request) {
   request->set_bow(EncodeBow(frame.bow));
+  request->set_vocabulary_checksum(frame.vocabulary_checksum);
   request->set_features(EncodeLocalFeatures(frame.static_features, frame.direct));
   if (!frame.dynamic_bow.empty()) request->set_dynamic_bow(EncodeBow(frame.dynamic_bow));
   if (!frame.dynamic_features.empty()) {
@@ -191,6 +253,7 @@ Status FrameFromSearchRequest(const v1::SearchRequest& request, FeatureType type
             "search.features"));
   frame->bow = std::move(bow).value();
   frame->valid = true;
+  frame->vocabulary_checksum = request.vocabulary_checksum();
   if (!request.dynamic_bow().empty()) {
     auto dynamic_bow = DecodeBow(request.dynamic_bow());
     PLACEDB_RETURN_IF_ERROR(Field(dynamic_bow.status(), "search.dynamic_bow"));

@@ -14,6 +14,7 @@
 #include <cstdint>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "core/base/status.h"
 #include "core/pipeline/place_database.h"
@@ -32,6 +33,13 @@ int64_t NowUnixNs();
 std::string EncodeAddPlace(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                            int64_t now_unix_ns = NowUnixNs());
 std::string EncodeDeletePlace(PlaceId place);
+// Issue 29: a vocabulary for every replica, as records of at most `part_bytes` of its bytes
+// each (a stream message is smaller than a vocabulary), in order; then the switch, naming it by
+// `source.checksum` with the number of parts before it (0: the replicas store it already).
+std::vector<std::string> EncodeVocabularyParts(const AnyVocabulary& vocabulary, size_t part_bytes);
+std::string EncodeSwitchVocabulary(const VocabularySource& source, uint32_t parts);
+// Between them: the replicas start building the switch while they go on applying records.
+std::string EncodePrepareVocabulary(uint64_t checksum, uint32_t parts);
 // One more observation of `place` (a frame merged by rehearsal, a counted query hit; 0: the
 // map's aggregate only): `frame`'s statistics as EncodeAddPlace makes them.
 std::string EncodeCountObservation(PlaceId place, const ProcessedFrame& frame,

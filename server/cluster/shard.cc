@@ -16,6 +16,7 @@
 #include <set>
 #include <thread>
 
+#include "core/base/text.h"
 #include "core/base/thread_annotations.h"
 #include "core/base/timing.h"
 #include "core/storage/codec.h"
@@ -113,7 +114,11 @@ struct Replica {
   std::deque<Queued> queue GUARDED_BY(queue_mutex);
   size_t queued_bytes GUARDED_BY(queue_mutex) = 0;
   bool stopping GUARDED_BY(queue_mutex) = false;
-  std::thread applier;        // started with the first consumer, joined by StopApplier
+  std::thread applier;  // started with the first consumer, joined by StopApplier
+  // Issue 29: builds a switch of vocabulary once its PrepareVocabulary is applied, while the
+  // applier goes on (PlaceMap::PrepareVocabularySwitch); one at a time, joined by StopApplier.
+  std::thread preparing;
+  std::atomic<bool> preparing_done{true};
   std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
   std::string restored_from;  // Impl::mutex_: the peer whose checkpoint it started from
 };
@@ -134,6 +139,12 @@ class Shard::Impl {
   grpc::Status ListAgentPlaces(grpc::ServerContext* context,
                                const cv1::ListAgentPlacesRequest& request,
                                cv1::ListAgentPlacesResponse* response);
+  // Issue 29: a vocabulary learned from this replica's places; the map's record and vocabulary.
+  grpc::Status LearnVocabulary(grpc::ServerContext* context,
+                               const cv1::LearnVocabularyRequest& request,
+                               grpc::ServerWriter<cv1::VocabularyChunk>* writer);
+  grpc::Status GetVocabulary(grpc::ServerContext* context, const cv1::GetVocabularyRequest& request,
+                             grpc::ServerWriter<cv1::VocabularyChunk>* writer);
   Result<std::shared_ptr<PlaceMap>> MapOf(const std::string& map) const EXCLUDES(mutex_);
   grpc::Status Checkpoint(const cv1::CheckpointRequest& request,
                           grpc::ServerWriter<cv1::CheckpointChunk>* writer);
@@ -180,6 +191,10 @@ class Shard::Impl {
   void ApplyQueued(Replica* replica) EXCLUDES(mutex_);
   // Stops and joins the applier thread (after the consumer is gone).
   static void StopApplier(Replica* replica);
+  // Starts building the switch to vocabulary `checksum` from its `parts` (a PrepareVocabulary
+  // record the applier just applied), unless a preparation is running: the switch record then
+  // builds it.
+  void PrepareSwitch(Replica* replica, uint64_t checksum, uint32_t parts);
   void SetProblem(Replica* replica, const std::string& problem) EXCLUDES(mutex_);
 
   std::unique_ptr<DataDirectory> dir_;
@@ -242,6 +257,7 @@ class ShardService final : public cv1::Shard::Service {
       out->set_stream_last_sequence(replica.stream_last_sequence);
       out->set_places(replica.places);
       out->set_state(replica.state);
+      out->set_prepared_vocabulary(replica.prepared_vocabulary);
     }
     return grpc::Status::OK;
   }
@@ -257,6 +273,15 @@ class ShardService final : public cv1::Shard::Service {
                                const cv1::ListAgentPlacesRequest* request,
                                cv1::ListAgentPlacesResponse* response) override {
     return impl_->ListAgentPlaces(context, *request, response);
+  }
+  grpc::Status LearnVocabulary(grpc::ServerContext* context,
+                               const cv1::LearnVocabularyRequest* request,
+                               grpc::ServerWriter<cv1::VocabularyChunk>* writer) override {
+    return impl_->LearnVocabulary(context, *request, writer);
+  }
+  grpc::Status GetVocabulary(grpc::ServerContext* context, const cv1::GetVocabularyRequest* request,
+                             grpc::ServerWriter<cv1::VocabularyChunk>* writer) override {
+    return impl_->GetVocabulary(context, *request, writer);
   }
 
  private:
@@ -628,7 +653,40 @@ void Shard::Impl::StopApplier(Replica* replica) {
     replica->stopping = true;
     replica->queue_cv.NotifyAll();
   }
+  // A preparation stops first: an applier waiting for it would wait for the whole build.
+  if (replica->map) replica->map->CancelPreparedSwitch();
   if (replica->applier.joinable()) replica->applier.join();
+  if (replica->preparing.joinable()) {
+    replica->map->CancelPreparedSwitch();
+    replica->preparing.join();
+  }
+}
+
+void Shard::Impl::PrepareSwitch(Replica* replica, uint64_t checksum, uint32_t parts) {
+  if (!replica->preparing_done) return;  // the switch record builds this one itself
+  if (replica->preparing.joinable()) replica->preparing.join();
+  replica->preparing_done = false;
+  replica->preparing = std::thread([this, replica, checksum, parts] {
+    {
+      MutexLock lock(replica->queue_mutex);
+      if (replica->stopping) {
+        replica->preparing_done = true;
+        return;
+      }
+    }
+    Stopwatch clock;
+    const Status prepared = replica->map->PrepareVocabularySwitch(checksum, parts);
+    if (prepared.ok()) {
+      spdlog::info("shard {}: map '{}': switch to vocabulary {} prepared in {:.1f} s",
+                   options_.shard_id, replica->name, Hex64(checksum), clock.ElapsedMs() / 1000);
+    } else {
+      spdlog::warn(
+          "shard {}: map '{}': switch to vocabulary {} not prepared ({}); its record "
+          "builds it",
+          options_.shard_id, replica->name, Hex64(checksum), prepared.ToString());
+    }
+    replica->preparing_done = true;
+  });
 }
 
 void Shard::Impl::ApplyQueued(Replica* replica) {
@@ -673,6 +731,12 @@ void Shard::Impl::ApplyQueued(Replica* replica) {
     if (!applied.ok()) {
       failure = applied.status();
       failed_at = replica->map->applied_sequence() + 1;
+    }
+    for (const PlaceMap::SequencedRecord& r : batch) {
+      if (r.record->kind == MapLogRecord::Kind::kPrepareVocabulary &&
+          r.sequence <= replica->map->applied_sequence()) {
+        PrepareSwitch(replica, r.record->vocabulary_source.checksum, r.record->vocabulary_parts);
+      }
     }
     {
       MutexLock lock(mutex_);
@@ -752,6 +816,7 @@ void Shard::Impl::Report() {
 }
 
 Result<AnyVocabulary> Shard::Impl::VocabularyFor(const MapInfo& info) const {
+  if (info.vocabulary.stored()) return AnyVocabulary();  // the map opens with its own (issue 29)
   for (const auto& [name, vocabulary] : options_.vocabularies) {
     if (vocabulary.checksum() == info.vocabulary_checksum) return vocabulary;
   }
@@ -901,7 +966,10 @@ grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::Search
   options.skip_words_min_places = options_.search.skip_words_min_places;
   options.timestamp_ns = request.timestamp_ns();
   const uint64_t applied = m.applied_sequence();  // every place up to it is searched
+  const uint64_t vocabulary = m.vocabulary().checksum();
+  if (frame.vocabulary_checksum == 0) frame.vocabulary_checksum = vocabulary;  // an older worker
   QueryResult result = m.Search(frame, options);
+  response->set_vocabulary_checksum(vocabulary);
   response->set_valid(result.valid);
   response->set_rejection(result.rejection);
   wire::MatchesToProto(result.matches, response->mutable_matches());
@@ -909,6 +977,74 @@ grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::Search
   response->set_search_ms(result.timings.search_ms);
   response->set_verify_ms(result.timings.verify_ms);
   return grpc::Status::OK;
+}
+
+namespace {
+
+// A vocabulary's bytes in chunks after `first` (which carries the description).
+grpc::Status StreamVocabulary(cv1::VocabularyChunk first, const std::string& bytes,
+                              grpc::ServerWriter<cv1::VocabularyChunk>* writer) {
+  constexpr size_t kChunk = 1 << 20;
+  size_t at = 0;
+  do {
+    const size_t n = std::min(kChunk, bytes.size() - at);
+    first.set_data(bytes.substr(at, n));
+    if (!writer->Write(first)) return GrpcError(grpc::StatusCode::CANCELLED, "caller went away");
+    first.Clear();
+    at += n;
+  } while (at < bytes.size());
+  return grpc::Status::OK;
+}
+
+}  // namespace
+
+grpc::Status Shard::Impl::LearnVocabulary(grpc::ServerContext* context,
+                                          const cv1::LearnVocabularyRequest& request,
+                                          grpc::ServerWriter<cv1::VocabularyChunk>* writer) {
+  std::shared_ptr<PlaceMap> map;
+  const grpc::Status ready = AppliedMap(context, request.map(), request.min_sequence(), &map);
+  if (!ready.ok()) return ready;
+  AdaptOptions options;  // one thread at nice 10: this replica keeps serving meanwhile
+  if (request.seed() != 0) options.learning.seed = request.seed();
+  options.learning.max_sample_descriptors = request.max_sample_descriptors();
+  options.learning.branching = int(std::min<uint32_t>(request.branching(), 1u << 16));
+  options.learning.depth = int(std::min<uint32_t>(request.depth(), 1u << 16));
+  const uint64_t applied = map->applied_sequence();
+  auto learned = map->LearnVocabulary(options);
+  if (!learned.ok()) return ToGrpc(learned.status());
+  spdlog::info(
+      "shard {}: map '{}': learned vocabulary {} from {} places ({} descriptors) at "
+      "sequence {} in {:.1f} s",
+      options_.shard_id, request.map(), learned->vocabulary.checksum_hex(),
+      learned->source.places_offered, learned->source.descriptors_sampled, applied,
+      learned->source.learn_ms / 1000);
+  cv1::VocabularyChunk first;
+  wire::VocabularySourceToProto(learned->source, first.mutable_vocabulary()->mutable_current());
+  first.mutable_vocabulary()->set_map(request.map());
+  first.set_applied_sequence(applied);
+  return StreamVocabulary(std::move(first), learned->vocabulary.Serialize(), writer);
+}
+
+grpc::Status Shard::Impl::GetVocabulary(grpc::ServerContext* context,
+                                        const cv1::GetVocabularyRequest& request,
+                                        grpc::ServerWriter<cv1::VocabularyChunk>* writer) {
+  std::shared_ptr<PlaceMap> map;
+  const grpc::Status ready = AppliedMap(context, request.map(), request.min_sequence(), &map);
+  if (!ready.ok()) return ready;
+  // The vocabulary first: a switch between the two reads shows the older record with it, never
+  // bytes newer than the record.
+  const AnyVocabulary vocabulary = map->vocabulary();
+  const uint64_t applied = map->applied_sequence();
+  VocabularyRecord record = map->info().vocabulary;
+  if (record.current.checksum != vocabulary.checksum()) {
+    return GrpcError(grpc::StatusCode::UNAVAILABLE,
+                     "map '" + request.map() + "' is switching its vocabulary; ask again");
+  }
+  cv1::VocabularyChunk first;
+  wire::VocabularyRecordToProto(record, map->switching_vocabulary(), first.mutable_vocabulary());
+  first.mutable_vocabulary()->set_map(request.map());
+  first.set_applied_sequence(applied);
+  return StreamVocabulary(std::move(first), request.bytes() ? vocabulary.Serialize() : "", writer);
 }
 
 grpc::Status Shard::Impl::FetchPlaces(grpc::ServerContext* context,
@@ -1039,6 +1175,7 @@ std::vector<ReplicaStatus> Shard::Impl::StatusOfReplicas() const {
     if (replica->map) {
       status.applied_sequence = replica->map->applied_sequence();
       status.places = replica->map->database()->Stats().places;
+      status.prepared_vocabulary = replica->map->prepared_vocabulary();
     }
     status.state = replica->problem.empty() ? "applying" : replica->problem;
     status.restored_from = replica->restored_from;

@@ -80,6 +80,8 @@ struct ReplicaStatus {
   uint64_t stream_last_sequence = 0;  // as last read (0: unknown)
   uint64_t places = 0;
   std::string state;  // "applying", "failed: <reason>", "unavailable: <reason>"
+  // Issue 29: the vocabulary whose switch this replica has prepared (0: none).
+  uint64_t prepared_vocabulary = 0;
   // The peer whose checkpoint this replica started from (when this process created it); empty
   // when it replayed the stream from its start or was already on disk.
   std::string restored_from;

@@ -258,6 +258,13 @@ grpc::Status ClusterWorker::GetMap(const std::string& name, Deadline deadline,
       if (map.map() == name) response->mutable_stats()->set_places(map.places());
     }
   }
+  // Its vocabulary as a replica has it (issue 29: it may have learned its own), likewise.
+  v1::MapVocabulary vocabulary;
+  if (ReplicaVocabulary(name, 0, false, status_deadline, &vocabulary, nullptr).ok()) {
+    vocabulary.set_map(name);
+    response->set_vocabulary_checksum(vocabulary.current().checksum());
+    response->mutable_vocabulary()->Swap(&vocabulary);
+  }
   return grpc::Status::OK;
 }
 
@@ -483,6 +490,12 @@ grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame&
   if (!status.ok()) return status;
   out->mutable_matches()->Swap(response.mutable_matches());
   out->set_sequence(response.applied_sequence());
+  if (response.vocabulary_checksum() != 0 &&
+      response.vocabulary_checksum() != frame.vocabulary_checksum) {
+    // The replicas switched vocabulary: this worker's next frames are processed with theirs.
+    FollowVocabulary(map, response.vocabulary_checksum(), response.applied_sequence(), nullptr,
+                     deadline);
+  }
   return grpc::Status::OK;
 }
 
@@ -562,6 +575,263 @@ Result<std::vector<PlaceSource::AgentPlace>> ClusterWorker::AgentPlaces(const st
     request.set_before_place_id(response.next_before_place_id());
   }
   return out;
+}
+
+// ---- Vocabulary switches (issue 29) -------------------------------------------------------------
+
+namespace {
+
+// A vocabulary's part on the stream: well below NATS' default 1 MiB payload and any stream's
+// max message size.
+constexpr size_t kVocabularyPartBytes = 512 << 10;
+
+// Reads a Shard vocabulary stream: the first chunk's description, every chunk's bytes.
+template <typename Request>
+auto VocabularyStream(std::unique_ptr<grpc::ClientReader<cluster::v1::VocabularyChunk>> (
+                          ShardStub::*rpc)(grpc::ClientContext*, const Request&),
+                      const Request& request, v1::MapVocabulary* record, std::string* bytes) {
+  return [rpc, &request, record, bytes](const std::shared_ptr<grpc::Channel>& channel,
+                                        ClusterBackend::Deadline until) {
+    grpc::ClientContext context;
+    context.set_deadline(until);
+    record->Clear();
+    if (bytes) bytes->clear();
+    const auto stub = cluster::v1::Shard::NewStub(channel);
+    auto reader = (stub.get()->*rpc)(&context, request);
+    cluster::v1::VocabularyChunk chunk;
+    for (bool first = true; reader->Read(&chunk); first = false) {
+      if (first) record->Swap(chunk.mutable_vocabulary());
+      if (bytes) *bytes += chunk.data();
+    }
+    return reader->Finish();
+  };
+}
+
+// Without a deadline a switch may take long (a large map's re-index on its replicas).
+ClusterBackend::Deadline SwitchDeadline(ClusterBackend::Deadline deadline) {
+  return deadline == ClusterBackend::Deadline::max() ? Clock::now() + std::chrono::minutes(30)
+                                                     : deadline;
+}
+
+}  // namespace
+
+grpc::Status ClusterWorker::ReplicaVocabulary(const std::string& map, uint64_t min_sequence,
+                                              bool bytes, Deadline deadline,
+                                              v1::MapVocabulary* record, std::string* vocabulary) {
+  cluster::v1::GetVocabularyRequest request;
+  request.set_map(map);
+  request.set_min_sequence(min_sequence);
+  request.set_bytes(bytes);
+  return OnReplica(
+      "GetVocabulary", map, min_sequence, deadline,
+      VocabularyStream(&ShardStub::GetVocabulary, request, record, bytes ? vocabulary : nullptr));
+}
+
+void ClusterWorker::FollowVocabulary(const std::string& map, uint64_t checksum,
+                                     uint64_t min_sequence, const AnyVocabulary* next,
+                                     Deadline deadline) {
+  MutexLock lock(follow_mutex_);
+  auto entry = local_->Get(map, "map");
+  if (!entry.ok() || (*entry)->map->vocabulary().checksum() == checksum) return;
+  const auto now = std::chrono::steady_clock::now();
+  if (auto failed = follow_failed_.find(map);
+      failed != follow_failed_.end() && now - failed->second < std::chrono::seconds(30)) {
+    return;
+  }
+  follow_failed_[map] = now;  // until it succeeds
+  AnyVocabulary fetched;
+  VocabularySource source;
+  if (next && next->checksum() == checksum) {
+    fetched = *next;
+  } else {
+    v1::MapVocabulary record;
+    std::string bytes;
+    const grpc::Status asked =
+        ReplicaVocabulary(map, min_sequence, true, deadline, &record, &bytes);
+    auto parsed = asked.ok() ? AnyVocabulary::Parse(bytes) : wire::FromGrpc(asked);
+    if (!parsed.ok()) {
+      spdlog::warn("map '{}': this worker's copy keeps its vocabulary ({}); its replicas' is {}",
+                   ForLog(map), parsed.status().ToString(), Hex64(checksum));
+      return;
+    }
+    fetched = std::move(parsed).value();
+  }
+  // Where it came from, as the replicas have it (the worker's copy only shows it in logs).
+  source.origin = "learned";
+  source.checksum = fetched.checksum();
+  source.branching = uint32_t(fetched.branching());
+  source.depth = uint32_t(fetched.depth());
+  source.words = fetched.word_count();
+  AdaptOptions options;
+  options.nice = 0;  // a copy without places: nothing to re-index
+  auto installed = (*entry)->map->InstallVocabulary(fetched, source, options);
+  if (!installed.ok()) {
+    spdlog::warn("map '{}': this worker's copy did not take vocabulary {}: {}", ForLog(map),
+                 fetched.checksum_hex(), installed.status().ToString());
+    return;
+  }
+  follow_failed_.erase(map);
+  local_->VocabularySwitched(map);
+  spdlog::info("map '{}': this worker now processes frames with vocabulary {}", ForLog(map),
+               fetched.checksum_hex());
+}
+
+void ClusterWorker::AwaitPrepared(const std::string& map, uint64_t checksum, Deadline until) {
+  const cluster::v1::StatusRequest request;
+  while (Clock::now() < until) {
+    auto replicas = Replicas(map, 0);
+    if (!replicas.ok()) return;
+    size_t prepared = 0;
+    for (const Replica& replica : *replicas) {
+      grpc::ClientContext context;
+      context.set_deadline(std::min(until, Clock::now() + std::chrono::seconds(2)));
+      cluster::v1::StatusResponse status;
+      const auto stub = cluster::v1::Shard::NewStub(ChannelTo(replica.address));
+      if (!stub->Status(&context, request, &status).ok()) continue;
+      for (const cluster::v1::MapStatus& held : status.maps()) {
+        if (held.map() == map && held.prepared_vocabulary() == checksum) ++prepared;
+      }
+    }
+    if (prepared == replicas->size()) return;
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  }
+  spdlog::warn(
+      "map '{}': not every replica prepared the switch to vocabulary {} in time; it is "
+      "published anyway",
+      ForLog(map), Hex64(checksum));
+}
+
+grpc::Status ClusterWorker::AwaitSwitch(const std::string& map, uint64_t sequence,
+                                        const AnyVocabulary* next, Deadline deadline,
+                                        v1::MapVocabulary* response) {
+  // A replica answers once it applied the switch's record, i.e. switched.
+  const grpc::Status asked = ReplicaVocabulary(map, sequence, false, deadline, response, nullptr);
+  if (!asked.ok()) {
+    return grpc::Status(
+        asked.error_code(),
+        "the switch is record " + std::to_string(sequence) +
+            " of the map's stream; no replica reported it applied: " + asked.error_message());
+  }
+  response->set_map(map);
+  if (auto checksum = ParseHex64(response->current().checksum())) {
+    FollowVocabulary(map, *checksum, sequence, next, deadline);
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status ClusterWorker::AdaptVocabulary(const v1::AdaptVocabularyRequest& request,
+                                            Deadline deadline, v1::MapVocabulary* response) {
+  const std::string& name = request.name();
+  auto view = Lookup(name, "name");
+  if (!view.ok()) return ToGrpc(view.status());
+  {
+    MutexLock lock(mutex_);
+    if (!switching_.insert(name).second) {
+      return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                          "map '" + name + "' is already switching its vocabulary; wait for it");
+    }
+  }
+  struct Release {
+    ClusterWorker* worker;
+    const std::string& name;
+    ~Release() {
+      MutexLock lock(worker->mutex_);
+      worker->switching_.erase(name);
+    }
+  } release{this, name};
+  const Deadline until = SwitchDeadline(deadline);
+  // 1. One replica learns (the most applied: the most places to learn from).
+  cluster::v1::LearnVocabularyRequest learn;
+  learn.set_map(name);
+  learn.set_seed(request.seed());
+  learn.set_max_sample_descriptors(request.max_sample_descriptors());
+  learn.set_branching(request.branching());
+  learn.set_depth(request.depth());
+  v1::MapVocabulary learned;
+  std::string bytes;
+  grpc::Status status =
+      OnReplica("LearnVocabulary", name, 0, until,
+                VocabularyStream(&ShardStub::LearnVocabulary, learn, &learned, &bytes));
+  if (!status.ok()) return status;
+  auto next = AnyVocabulary::Parse(bytes);
+  auto source = wire::VocabularySourceFromProto(learned.current(), "learned");
+  if (!next.ok() || !source.ok() || next->checksum() != source->checksum) {
+    return grpc::Status(
+        grpc::StatusCode::INTERNAL,
+        "map '" + name + "': the vocabulary a replica learned did not arrive whole");
+  }
+  // 2. Its parts, then the switch, on the map's stream: every replica switches at the switch's
+  // sequence. Message ids make a retried publish a duplicate, not a second copy.
+  const std::string id = "vocabulary/" + next->checksum_hex() + "/" + std::to_string(NowUnixMs());
+  const std::vector<std::string> parts =
+      cluster::EncodeVocabularyParts(*next, kVocabularyPartBytes);
+  for (size_t i = 0; i < parts.size(); ++i) {
+    auto published = PublishRecord(name, parts[i], id + "/" + std::to_string(i), until);
+    if (!published.ok()) return ToGrpc(published.status());
+  }
+  const uint32_t count = uint32_t(parts.size());
+  auto prepare = PublishRecord(name, cluster::EncodePrepareVocabulary(next->checksum(), count),
+                               id + "/prepare", until);
+  if (!prepare.ok()) return ToGrpc(prepare.status());
+  AwaitPrepared(name, next->checksum(), Clock::now() + (until - Clock::now()) * 3 / 4);
+  auto sequence =
+      PublishRecord(name, cluster::EncodeSwitchVocabulary(*source, count), id + "/switch", until);
+  if (!sequence.ok()) return ToGrpc(sequence.status());
+  spdlog::info(
+      "map '{}': vocabulary {} learned on a replica ({} places, {:.1f} s), published in "
+      "{} parts; the replicas switch at record {}",
+      ForLog(name), next->checksum_hex(), source->places_offered, source->learn_ms / 1000,
+      parts.size(), *sequence);
+  // 3. Answered once a replica has switched.
+  return AwaitSwitch(name, *sequence, &*next, until, response);
+}
+
+grpc::Status ClusterWorker::RevertVocabulary(const std::string& name, Deadline deadline,
+                                             v1::MapVocabulary* response) {
+  auto view = Lookup(name, "name");
+  if (!view.ok()) return ToGrpc(view.status());
+  {
+    MutexLock lock(mutex_);
+    if (!switching_.insert(name).second) {
+      return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                          "map '" + name + "' is already switching its vocabulary; wait for it");
+    }
+  }
+  struct Release {
+    ClusterWorker* worker;
+    const std::string& name;
+    ~Release() {
+      MutexLock lock(worker->mutex_);
+      worker->switching_.erase(name);
+    }
+  } release{this, name};
+  const Deadline until = SwitchDeadline(deadline);
+  // The previous vocabulary as the replicas have it after everything published so far.
+  auto stream = jetstream_->GetStreamInfo(cluster::StreamName(cluster_.name, name));
+  if (!stream.ok()) return ToGrpc(stream.status().WithContext("map '" + name + "': its stream"));
+  v1::MapVocabulary now;
+  grpc::Status status = ReplicaVocabulary(name, stream->last_sequence, false, until, &now, nullptr);
+  if (!status.ok()) return status;
+  if (!now.has_previous()) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        "map '" + name +
+                            "' has no previous vocabulary: it never switched "
+                            "vocabularies");
+  }
+  auto source = wire::VocabularySourceFromProto(now.previous(), "previous");
+  if (!source.ok()) return ToGrpc(source.status());
+  const std::string id =
+      "vocabulary/" + Hex64(source->checksum) + "/" + std::to_string(NowUnixMs());
+  auto prepare = PublishRecord(name, cluster::EncodePrepareVocabulary(source->checksum, 0),
+                               id + "/prepare", until);
+  if (!prepare.ok()) return ToGrpc(prepare.status());
+  AwaitPrepared(name, source->checksum, Clock::now() + (until - Clock::now()) * 3 / 4);
+  auto sequence =
+      PublishRecord(name, cluster::EncodeSwitchVocabulary(*source, 0), id + "/switch", until);
+  if (!sequence.ok()) return ToGrpc(sequence.status());
+  spdlog::info("map '{}': the replicas switch back to vocabulary {} at record {}", ForLog(name),
+               Hex64(source->checksum), *sequence);
+  return AwaitSwitch(name, *sequence, nullptr, until, response);
 }
 
 grpc::Status ClusterWorker::DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) {

@@ -61,6 +61,7 @@
 
 #include <map>
 #include <memory>
+#include <set>
 #include <string>
 
 #include "core/base/thread_annotations.h"
@@ -110,6 +111,10 @@ class ClusterWorker final : public ClusterBackend {
                                                            uint64_t min_sequence,
                                                            Deadline deadline) override;
   grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) override;
+  grpc::Status AdaptVocabulary(const v1::AdaptVocabularyRequest& request, Deadline deadline,
+                               v1::MapVocabulary* response) override;
+  grpc::Status RevertVocabulary(const std::string& name, Deadline deadline,
+                                v1::MapVocabulary* response) override;
   grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                         v1::Place* response) override;
   grpc::Status ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,
@@ -146,6 +151,24 @@ class ClusterWorker final : public ClusterBackend {
                                  const std::string& message_id, Deadline deadline);
   void Describe(const std::string& name, const cluster::MapView& view,
                 v1::MapDescription* out) const;
+  // Issue 29. A replica's vocabulary record (Shard.GetVocabulary) once it applied
+  // `min_sequence`, and with `bytes` the current vocabulary's bytes.
+  grpc::Status ReplicaVocabulary(const std::string& map, uint64_t min_sequence, bool bytes,
+                                 Deadline deadline, v1::MapVocabulary* record,
+                                 std::string* vocabulary);
+  // The switch record at `sequence` applied by a replica: its record in `response`, and the
+  // worker's copy of the map follows (`vocabulary`: the switch's, when the caller has it).
+  grpc::Status AwaitSwitch(const std::string& map, uint64_t sequence, const AnyVocabulary* next,
+                           Deadline deadline, v1::MapVocabulary* response);
+  // Until every live replica of `map` has built the switch to `checksum` ahead of its record
+  // (Shard.Status), at most until `until`: the switch record then costs the replicas only the
+  // places applied since (one that has not built it builds it then, holding its records back).
+  void AwaitPrepared(const std::string& map, uint64_t checksum, Deadline until);
+  // The worker's copy of `map` takes the vocabulary `checksum` its replicas switched to (after
+  // `min_sequence`): fetched from a replica unless `next` is it. Logged, not failed: frames
+  // processed with an older vocabulary are transformed again by the replicas.
+  void FollowVocabulary(const std::string& map, uint64_t checksum, uint64_t min_sequence,
+                        const AnyVocabulary* next, Deadline deadline) EXCLUDES(follow_mutex_);
 
   const ServerConfig& config_;
   const ClusterSettings& cluster_;
@@ -164,6 +187,12 @@ class ClusterWorker final : public ClusterBackend {
   std::map<std::string, int64_t> local_revision_ GUARDED_BY(local_mutex_);
   Mutex mutex_;
   std::map<std::string, std::shared_ptr<grpc::Channel>> channels_ GUARDED_BY(mutex_);
+  // Maps whose vocabulary this worker is switching (one switch per map at a time).
+  std::set<std::string> switching_ GUARDED_BY(mutex_);
+  Mutex follow_mutex_;  // one FollowVocabulary at a time
+  // When following a map's vocabulary last failed: tried again 30 s later, not at every frame.
+  std::map<std::string, std::chrono::steady_clock::time_point> follow_failed_
+      GUARDED_BY(follow_mutex_);
 };
 
 }  // namespace placedb::server

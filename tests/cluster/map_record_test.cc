@@ -82,6 +82,59 @@ TEST_F(MapRecordTest, EveryKindRoundTrips) {
   ASSERT_TRUE(FrameFromSearchRequest(request, FeatureType::kOrb, &back).ok());
   EXPECT_EQ(back.bow, frames_[1].bow);
   EXPECT_EQ(back.direct.levels_up, frames_[1].direct.levels_up);
+  // Both carry the vocabulary that made the vectors (issue 29).
+  EXPECT_NE(frames_[1].vocabulary_checksum, 0u);
+  EXPECT_EQ(back.vocabulary_checksum, frames_[1].vocabulary_checksum);
+  EXPECT_EQ(decoded->frame.vocabulary_checksum, frame.vocabulary_checksum);
+}
+
+TEST_F(MapRecordTest, AVocabularyTravelsInPartsThenOneSwitch) {
+  const AnyVocabulary vocabulary(placedb::testing::DefaultVocabulary());
+  const std::string bytes = vocabulary.Serialize();
+  const size_t part_bytes = bytes.size() / 4 + 1;  // 4 parts
+  const std::vector<std::string> parts = EncodeVocabularyParts(vocabulary, part_bytes);
+  ASSERT_EQ(parts.size(), 4u);
+  std::string joined;
+  for (size_t i = 0; i < parts.size(); ++i) {
+    EXPECT_LT(parts[i].size(), part_bytes + 64) << i;
+    auto decoded = DecodeMapRecord(parts[i], FeatureType::kOrb);
+    ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+    EXPECT_EQ(decoded->kind, MapLogRecord::Kind::kVocabularyPart);
+    EXPECT_EQ(decoded->vocabulary_part.checksum, vocabulary.checksum());
+    EXPECT_EQ(decoded->vocabulary_part.index, i);
+    EXPECT_EQ(decoded->vocabulary_part.count, 4u);
+    joined += decoded->vocabulary_part.bytes;
+  }
+  EXPECT_EQ(joined, bytes);
+
+  VocabularySource source;
+  source.origin = "learned";
+  source.checksum = vocabulary.checksum();
+  source.branching = 10;
+  source.depth = 6;
+  source.words = 1000;
+  source.learned_unix_ms = 1764320000000;
+  source.places_offered = 30;
+  source.descriptors_sampled = 25000;
+  source.learn_ms = 812.5;
+  auto change = DecodeMapRecord(EncodeSwitchVocabulary(source, 4), FeatureType::kOrb);
+  ASSERT_TRUE(change.ok()) << change.status().ToString();
+  EXPECT_EQ(change->kind, MapLogRecord::Kind::kSwitchVocabulary);
+  EXPECT_EQ(change->vocabulary_source, source);
+  EXPECT_EQ(change->vocabulary_parts, 4u);
+
+  // Damaged: a part beyond its count, a checksum that is not 16 hex digits.
+  v1::MapRecord record;
+  ASSERT_TRUE(record.ParseFromString(parts[1]));
+  record.mutable_vocabulary_part()->set_index(4);
+  EXPECT_EQ(DecodeMapRecord(record.SerializeAsString(), FeatureType::kOrb).status().code(),
+            StatusCode::kCorruption);
+  ASSERT_TRUE(record.ParseFromString(EncodeSwitchVocabulary(source, 4)));
+  record.mutable_switch_vocabulary()->mutable_source()->set_checksum("xyz");
+  auto bad = DecodeMapRecord(record.SerializeAsString(), FeatureType::kOrb);
+  EXPECT_EQ(bad.status().code(), StatusCode::kCorruption);
+  EXPECT_NE(bad.status().message().find("switch_vocabulary.source.checksum"), std::string::npos)
+      << bad.status().ToString();
 }
 
 TEST_F(MapRecordTest, DamagedBytesAreCorruption) {

@@ -550,6 +550,187 @@ TEST_F(ClusterWorkerTest, PlacedbServerProcessesWithTheClusterRoles) {
 // worker. Afterwards every acknowledged place is on both live replicas of its map with the same
 // record, BoW and features, each frame is one place, the replicas' integrity checks pass, and
 // queries were answered before, during and after the kills.
+// Issue 29 in cluster mode: one replica learns the map's vocabulary, the worker publishes it to
+// the map's stream in parts, and every replica switches at the same record to the same bytes;
+// a replica made later from a checkpoint carries it; queries and ingest through a worker that
+// had the old vocabulary go on; revert is one more record.
+TEST_F(ClusterWorkerTest, ReplicasSwitchToOneLearnedVocabularyAtOneRecord) {
+  FeatureFrames(60);
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(3);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
+  Worker& first = StartWorker(1);
+  Worker& second = StartWorker(2);
+  ASSERT_TRUE(first.stub && second.stub);
+  ASSERT_TRUE(CreateClusterMap(first, "learn").ok());
+  std::vector<v1::Observation> frames;
+  for (int f = 1; f <= 40; ++f) frames.push_back(FeatureObservation(f, "agent-a"));
+  const IngestOutcome ingested = IngestAll(first.stub.get(), "learn", frames);
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  std::map<int, uint32_t> place_of;  // frame -> place
+  for (size_t i = 0; i < ingested.responses.size(); ++i) {
+    ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
+    if (ingested.responses[i].stored()) place_of[int(i) + 1] = ingested.responses[i].place_id();
+  }
+  ASSERT_GE(place_of.size(), 30u);
+  auto js = Js();
+  ASSERT_TRUE(js);
+  const std::string stream = cluster::StreamName("test", "learn");
+  // The live replicas of the map once they applied the stream's end.
+  const auto caught_up = [&](size_t want) {
+    std::vector<std::pair<int, std::shared_ptr<PlaceMap>>> replicas;
+    auto info = js->GetStreamInfo(stream);
+    if (!info.ok()) return replicas;
+    const auto until = std::chrono::steady_clock::now() + 90s;
+    while (std::chrono::steady_clock::now() < until) {
+      replicas.clear();
+      for (size_t i = 0; i < shards.size(); ++i) {
+        if (!shards[i]) continue;
+        for (const cluster::ReplicaStatus& replica : shards[i]->Replicas()) {
+          if (replica.map != "learn" || replica.applied_sequence < info->last_sequence) continue;
+          if (auto opened = shards[i]->Map("learn"); opened.ok()) {
+            replicas.emplace_back(int(i), *opened);
+          }
+        }
+      }
+      if (replicas.size() == want) break;
+      std::this_thread::sleep_for(50ms);
+    }
+    return replicas;
+  };
+  const AnyVocabulary file(vocabulary_);
+
+  // Learned through the other worker (it never held the map's frames).
+  v1::MapVocabulary adapted;
+  {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 120s);
+    v1::AdaptVocabularyRequest request;
+    request.set_name("learn");
+    request.set_branching(8);
+    request.set_depth(4);
+    request.set_max_sample_descriptors(20000);
+    const grpc::Status status = second.stub->AdaptVocabulary(&context, request, &adapted);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+  }
+  EXPECT_EQ(adapted.map(), "learn");
+  EXPECT_EQ(adapted.generation(), 1u);
+  EXPECT_EQ(adapted.current().origin(), "learned");
+  EXPECT_EQ(adapted.current().places_offered(), place_of.size());
+  EXPECT_EQ(adapted.current().branching(), 8u);
+  EXPECT_EQ(adapted.previous().checksum(), file.checksum_hex());
+  auto replicas = caught_up(2);
+  ASSERT_EQ(replicas.size(), 2u);
+  const std::string learned_bytes = replicas[0].second->vocabulary().Serialize();
+  for (const auto& [shard, map] : replicas) {
+    EXPECT_EQ(map->vocabulary().checksum_hex(), adapted.current().checksum()) << shard;
+    EXPECT_EQ(map->vocabulary().Serialize(), learned_bytes) << shard;
+    EXPECT_EQ(map->info().vocabulary.generation, 1u) << shard;
+    EXPECT_EQ(map->info().vocabulary.places_reindexed, place_of.size()) << shard;
+  }
+  EXPECT_EQ(replicas[0].second->applied_sequence(), replicas[1].second->applied_sequence());
+
+  // GetMap through the first worker shows it; a query through it (whose copy of the map still
+  // had the file's vocabulary) finds each frame's place, and so do frames ingested after.
+  const auto get_map = [&](Worker& worker) {
+    grpc::ClientContext context;
+    v1::GetMapRequest request;
+    request.set_name("learn");
+    v1::MapDescription description;
+    EXPECT_TRUE(worker.stub->GetMap(&context, request, &description).ok());
+    return description;
+  };
+  EXPECT_EQ(get_map(first).vocabulary().current().checksum(), adapted.current().checksum());
+  EXPECT_EQ(get_map(first).vocabulary_checksum(), adapted.current().checksum());
+  const auto expect_found = [&](Worker& worker, int frame, uint32_t place) {
+    v1::QueryRequest request;
+    request.set_map("learn");
+    *request.mutable_observation() = FeatureObservation(frame, "q");
+    request.mutable_options()->set_top_k(3);
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::QueryResponse response;
+    const grpc::Status status = worker.stub->Query(&context, request, &response);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+    ASSERT_GT(response.matches_size(), 0) << "frame " << frame;
+    EXPECT_EQ(response.matches(0).place_id(), place) << "frame " << frame;
+  };
+  for (const int frame : {1, 13, 27, 40}) {
+    if (place_of.count(frame)) expect_found(first, frame, place_of[frame]);
+  }
+  frames.clear();
+  for (int f = 41; f <= 50; ++f) frames.push_back(FeatureObservation(f, "agent-a"));
+  const IngestOutcome after = IngestAll(first.stub.get(), "learn", frames);
+  ASSERT_TRUE(after.status.ok()) << after.status.error_message();
+  for (size_t i = 0; i < after.responses.size(); ++i) {
+    ASSERT_FALSE(after.responses[i].has_error()) << after.responses[i].error().message();
+    if (after.responses[i].stored()) place_of[41 + int(i)] = after.responses[i].place_id();
+  }
+  for (const int frame : {41, 45, 50}) {
+    if (place_of.count(frame)) expect_found(second, frame, place_of[frame]);
+  }
+
+  // A replica made now restores a peer's checkpoint: the learned vocabulary comes with it.
+  replicas = caught_up(2);
+  ASSERT_EQ(replicas.size(), 2u);
+  const int doomed = replicas[0].first;
+  replicas.clear();
+  shards[size_t(doomed)].reset();
+  replicas = caught_up(2);  // the coordinator replaces it on the third shard (after 2 s)
+  ASSERT_EQ(replicas.size(), 2u);
+  bool restored = false;
+  for (const auto& [shard, map] : replicas) {
+    EXPECT_EQ(map->vocabulary().Serialize(), learned_bytes) << shard;
+    EXPECT_EQ(map->info().vocabulary.generation, 1u) << shard;
+    for (const cluster::ReplicaStatus& status : shards[size_t(shard)]->Replicas()) {
+      if (status.map == "learn" && !status.restored_from.empty()) restored = true;
+    }
+  }
+  EXPECT_TRUE(restored) << "the new replica started from a checkpoint";
+  expect_found(first, 45, place_of[45]);
+
+  // Back to the file's vocabulary: one record, every replica (the new one too).
+  v1::MapVocabulary reverted;
+  {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 120s);
+    v1::RevertVocabularyRequest request;
+    request.set_name("learn");
+    const grpc::Status status = first.stub->RevertVocabulary(&context, request, &reverted);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+  }
+  EXPECT_EQ(reverted.generation(), 2u);
+  EXPECT_EQ(reverted.current().checksum(), file.checksum_hex());
+  replicas = caught_up(2);
+  ASSERT_EQ(replicas.size(), 2u);
+  for (const auto& [shard, map] : replicas) {
+    EXPECT_EQ(map->vocabulary().checksum(), file.checksum()) << shard;
+    EXPECT_EQ(map->info().vocabulary.generation, 2u) << shard;
+  }
+  expect_found(second, 13, place_of[13]);
+
+  // Refusals: an unknown map; a map too small to learn from, unchanged.
+  ASSERT_TRUE(CreateClusterMap(first, "tiny").ok());
+  ASSERT_TRUE(IngestAll(first.stub.get(), "tiny", {FeatureObservation(1, "agent-a")}).status.ok());
+  for (const std::string name : {"nowhere", "tiny"}) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 60s);
+    v1::AdaptVocabularyRequest request;
+    request.set_name(name);
+    v1::MapVocabulary response;
+    const grpc::Status status = first.stub->AdaptVocabulary(&context, request, &response);
+    EXPECT_EQ(status.error_code(),
+              name == "tiny" ? grpc::StatusCode::FAILED_PRECONDITION : grpc::StatusCode::NOT_FOUND)
+        << name << ": " << status.error_message();
+  }
+  EXPECT_EQ(get_map(first).vocabulary().generation(), 2u);
+  // The policy is a single server's: refused here rather than stored and never run.
+  v1::MapConfig policy;
+  policy.mutable_vocabulary_policy()->set_adapt_after_descriptors(5000);
+  const grpc::Status refused = CreateClusterMap(first, "grows", policy);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << refused.error_message();
+  EXPECT_NE(refused.error_message().find("vocabulary_policy"), std::string::npos);
+}
+
 TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
   constexpr int kFrames = 120;
   FeatureFrames(84);
