@@ -676,6 +676,18 @@ void ClusterWorker::FollowVocabulary(const std::string& map, uint64_t checksum,
                fetched.checksum_hex());
 }
 
+Result<std::shared_ptr<void>> ClusterWorker::ClaimSwitch(const std::string& name) {
+  MutexLock lock(mutex_);
+  if (!switching_.insert(name).second) {
+    return Status::FailedPrecondition("map '" + name +
+                                      "' is already switching its vocabulary; wait for it");
+  }
+  return std::shared_ptr<void>(nullptr, [this, name](void*) {
+    MutexLock release(mutex_);
+    switching_.erase(name);
+  });
+}
+
 void ClusterWorker::AwaitPrepared(const std::string& map, uint64_t checksum, Deadline until) {
   const cluster::v1::StatusRequest request;
   while (Clock::now() < until) {
@@ -724,25 +736,16 @@ grpc::Status ClusterWorker::AdaptVocabulary(const v1::AdaptVocabularyRequest& re
   const std::string& name = request.name();
   auto view = Lookup(name, "name");
   if (!view.ok()) return ToGrpc(view.status());
-  {
-    MutexLock lock(mutex_);
-    if (!switching_.insert(name).second) {
-      return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                          "map '" + name + "' is already switching its vocabulary; wait for it");
-    }
-  }
-  struct Release {
-    ClusterWorker* worker;
-    const std::string& name;
-    ~Release() {
-      MutexLock lock(worker->mutex_);
-      worker->switching_.erase(name);
-    }
-  } release{this, name};
+  auto slot = ClaimSwitch(name);
+  if (!slot.ok()) return ToGrpc(slot.status());
   const Deadline until = SwitchDeadline(deadline);
-  // 1. One replica learns (the most applied: the most places to learn from).
+  // 1. One replica learns, once it applied everything the stream held when the call began
+  // (every place acknowledged before it is learned from).
+  auto stream = jetstream_->GetStreamInfo(cluster::StreamName(cluster_.name, name));
+  if (!stream.ok()) return ToGrpc(stream.status().WithContext("map '" + name + "': its stream"));
   cluster::v1::LearnVocabularyRequest learn;
   learn.set_map(name);
+  learn.set_min_sequence(stream->last_sequence);
   learn.set_seed(request.seed());
   learn.set_max_sample_descriptors(request.max_sample_descriptors());
   learn.set_branching(request.branching());
@@ -750,7 +753,7 @@ grpc::Status ClusterWorker::AdaptVocabulary(const v1::AdaptVocabularyRequest& re
   v1::MapVocabulary learned;
   std::string bytes;
   grpc::Status status =
-      OnReplica("LearnVocabulary", name, 0, until,
+      OnReplica("LearnVocabulary", name, learn.min_sequence(), until,
                 VocabularyStream(&ShardStub::LearnVocabulary, learn, &learned, &bytes));
   if (!status.ok()) return status;
   auto next = AnyVocabulary::Parse(bytes);
@@ -790,21 +793,8 @@ grpc::Status ClusterWorker::RevertVocabulary(const std::string& name, Deadline d
                                              v1::MapVocabulary* response) {
   auto view = Lookup(name, "name");
   if (!view.ok()) return ToGrpc(view.status());
-  {
-    MutexLock lock(mutex_);
-    if (!switching_.insert(name).second) {
-      return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                          "map '" + name + "' is already switching its vocabulary; wait for it");
-    }
-  }
-  struct Release {
-    ClusterWorker* worker;
-    const std::string& name;
-    ~Release() {
-      MutexLock lock(worker->mutex_);
-      worker->switching_.erase(name);
-    }
-  } release{this, name};
+  auto slot = ClaimSwitch(name);
+  if (!slot.ok()) return ToGrpc(slot.status());
   const Deadline until = SwitchDeadline(deadline);
   // The previous vocabulary as the replicas have it after everything published so far.
   auto stream = jetstream_->GetStreamInfo(cluster::StreamName(cluster_.name, name));

@@ -160,6 +160,9 @@ class ClusterWorker final : public ClusterBackend {
   // worker's copy of the map follows (`vocabulary`: the switch's, when the caller has it).
   grpc::Status AwaitSwitch(const std::string& map, uint64_t sequence, const AnyVocabulary* next,
                            Deadline deadline, v1::MapVocabulary* response);
+  // One switch of vocabulary per map through this worker: FAILED_PRECONDITION while one runs;
+  // the claim ends with the returned handle.
+  Result<std::shared_ptr<void>> ClaimSwitch(const std::string& name) EXCLUDES(mutex_);
   // Until every live replica of `map` has built the switch to `checksum` ahead of its record
   // (Shard.Status), at most until `until`: the switch record then costs the replicas only the
   // places applied since (one that has not built it builds it then, holding its records back).

@@ -574,11 +574,10 @@ TEST_F(ClusterWorkerTest, ReplicasSwitchToOneLearnedVocabularyAtOneRecord) {
   ASSERT_GE(place_of.size(), 30u);
   auto js = Js();
   ASSERT_TRUE(js);
-  const std::string stream = cluster::StreamName("test", "learn");
-  // The live replicas of the map once they applied the stream's end.
-  const auto caught_up = [&](size_t want) {
+  // The live replicas of a map once they applied its stream's end.
+  const auto caught_up = [&](size_t want, const std::string& map = "learn") {
     std::vector<std::pair<int, std::shared_ptr<PlaceMap>>> replicas;
-    auto info = js->GetStreamInfo(stream);
+    auto info = js->GetStreamInfo(cluster::StreamName("test", map));
     if (!info.ok()) return replicas;
     const auto until = std::chrono::steady_clock::now() + 90s;
     while (std::chrono::steady_clock::now() < until) {
@@ -586,8 +585,8 @@ TEST_F(ClusterWorkerTest, ReplicasSwitchToOneLearnedVocabularyAtOneRecord) {
       for (size_t i = 0; i < shards.size(); ++i) {
         if (!shards[i]) continue;
         for (const cluster::ReplicaStatus& replica : shards[i]->Replicas()) {
-          if (replica.map != "learn" || replica.applied_sequence < info->last_sequence) continue;
-          if (auto opened = shards[i]->Map("learn"); opened.ok()) {
+          if (replica.map != map || replica.applied_sequence < info->last_sequence) continue;
+          if (auto opened = shards[i]->Map(map); opened.ok()) {
             replicas.emplace_back(int(i), *opened);
           }
         }
@@ -711,6 +710,7 @@ TEST_F(ClusterWorkerTest, ReplicasSwitchToOneLearnedVocabularyAtOneRecord) {
   // Refusals: an unknown map; a map too small to learn from, unchanged.
   ASSERT_TRUE(CreateClusterMap(first, "tiny").ok());
   ASSERT_TRUE(IngestAll(first.stub.get(), "tiny", {FeatureObservation(1, "agent-a")}).status.ok());
+  ASSERT_EQ(caught_up(2, "tiny").size(), 2u);
   for (const std::string name : {"nowhere", "tiny"}) {
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + 60s);
