@@ -344,6 +344,9 @@ void RegisterRun(CLI::App& app, RunFlags* f) {
   run->add_option("--rerank", options.rerank,
                   "verify the best N candidates and re-rank them by inliers (0 = best only)")
       ->capture_default_str();
+  run->add_flag("--legacy-verifier", options.legacy_verifier,
+                "verify with the verifier before issue 31 (scalar matching, OpenCV FM_RANSAC), "
+                "to compare the default with it; in-process only");
   run->add_option("--threads", options.threads, "worker threads")->capture_default_str();
   run->add_flag("--learn-vocabulary", f->learn_vocabulary,
                 "each database learns its vocabulary from its own stored SC descriptors (never "

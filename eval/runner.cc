@@ -703,6 +703,7 @@ DatabaseConfig MakeDatabaseConfig(const RunOptions& options, int features, int g
   // DBoW2's loop detector verifies its best candidate; re-ranking verifies the best N.
   config.verification.candidates = options.rerank > 0 ? options.rerank : 1;
   config.verification.rerank = options.rerank > 0;
+  config.verification.legacy = options.legacy_verifier;
   if (filtering) {
     config.box_refinement.method = options.refinement;
     config.short_term = options.short_term_config;

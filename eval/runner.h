@@ -73,6 +73,8 @@ struct RunOptions {
   // Both methods: verify the best `rerank` candidates and re-rank them by inliers (spatial
   // re-ranking); 0 = verify the best candidate only, as DBoW2's loop detector does.
   int rerank = 10;
+  // The verifier before issue 31 (VerificationConfig::legacy), to compare the default with it.
+  bool legacy_verifier = false;
   int min_inliers = 15;
   size_t top_k = 10;
   DetectorConfig detector;                      // model path etc. for BoxInput::kDetector

@@ -40,6 +40,12 @@ struct VerificationConfig {
   // most inliers first; the rest keep their BoW order. Off: verification only marks them (what
   // DBoW2 does).
   bool rerank = true;
+  // The verifier before issue 31: putative matches one distance at a time and OpenCV's
+  // FM_RANSAC. Kept only so that the drift test, the benchmark and placedb-eval can run it beside
+  // the default: ORB matching over descriptors blocked 8 at a time (AVX-512 VPOPCNTDQ when the
+  // CPU has it, else scalar popcount; the same putative matches bit for bit) and OpenCV's
+  // USAC_FAST fit (inlier counts within the tolerance tests/verifier_drift_test.cc states).
+  bool legacy = false;
 };
 
 Status ValidateVerificationConfig(const VerificationConfig& config);
@@ -57,6 +63,10 @@ struct VerificationResult {
   bool verified = false;
   // With `collect_inliers`: the `inliers` pairs, each index used once (else empty).
   std::vector<InlierPair> inlier_pairs;
+  // Where the time went (steady clock, milliseconds): putative matching (distances and ratio
+  // test) and the robust fit.
+  double matching_ms = 0;
+  double ransac_ms = 0;
 };
 
 // Verifies `candidate` against `query` (features of one family: INVALID_ARGUMENT otherwise).
