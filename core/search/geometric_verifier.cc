@@ -180,11 +180,6 @@ __attribute__((target("avx512f,avx512vpopcntdq"))) void NearestAvx512(
       d = _mm512_add_epi64(
           d, _mm512_popcnt_epi64(_mm512_xor_si512(q3, _mm512_loadu_si512(block + 3 * kLanes))));
       if (b >= full_blocks) d = _mm512_mask_mov_epi64(far, tail_mask, d);
-      // Most blocks improve no lane's runner-up once a few were seen: nothing to update.
-      if (_mm512_cmplt_epi64_mask(d, second) == 0) {
-        index = _mm512_add_epi64(index, step);
-        continue;
-      }
       const __mmask8 closer = _mm512_cmplt_epi64_mask(d, best);
       // second = min(second, max(best, d)), by masks (GCC 12's min/max intrinsics warn).
       const __m512i larger = _mm512_mask_mov_epi64(d, closer, best);
