@@ -770,7 +770,10 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
 
   if (server_boxes) {
     if (!decoded->has_pixels) {
-      if (settings.box_source == BoxSource::kServer) {
+      // A query with features uses the observation's boxes, as kBoth does: a stored place's
+      // features (GetPlace include_features, the console's "stored place") are static already.
+      // Storing features the detector never saw is refused.
+      if (settings.box_source == BoxSource::kServer && role != FrameRole::kQuery) {
         return Invalid(field +
                        (observation.frame_case() == v1::Observation::kSiftFeatures
                             ? ".sift_features"
@@ -779,7 +782,7 @@ grpc::Status PlaceDbService::Prepare(grpc::ServerContext* context, const MapEntr
                        "' detects dynamic objects on the server (box_source server), which needs "
                        "pixels: send encoded_image or raw_image");
       }
-      // kBoth without pixels: the agent's boxes alone.
+      // kBoth (or a query) without pixels: the agent's boxes alone.
     } else {
       if (expired()) return Cancelled(context, "before detection");
       auto boxes = detector_->Detect(frame.image);

@@ -119,6 +119,25 @@ class DevTools:
         print("screenshot " + path)
 
 
+def stored_place_query(devtools, map_name, place_id):
+    """Queries `map_name` with its stored place `place_id` on the query page; returns how the
+    results ended ("yes", "error"), their text and the top match's place id."""
+    devtools.evaluate(
+        "(() => { const file = document.getElementById('query-file'); file.value = '';"
+        " const map = document.getElementById('query-map'); map.value = %s;"
+        " document.getElementById('query-place').value = %s;"
+        " document.getElementById('query-results').dataset.done = '';"
+        " document.getElementById('query-run').click(); })()" % (
+            json.dumps(map_name), json.dumps(str(place_id))))
+    wait_for("the stored place's query to end", lambda: devtools.evaluate(
+        "document.getElementById('query-results').dataset.done !== ''"), timeout=120)
+    return devtools.evaluate(
+        "(() => { const r = document.getElementById('query-results');"
+        " const m = r.querySelector('.match');"
+        " return { done: r.dataset.done, text: r.textContent,"
+        " top: m ? m.dataset.placeId : null }; })()")
+
+
 def console_api(url, method, request):
     call = urllib.request.Request(url + "api/v1/" + method, data=json.dumps(request).encode(),
                                   headers={"Content-Type": "application/json"})
@@ -306,6 +325,33 @@ def main():
             fail("the top match is not drawn verified with its inliers (%s lines): %r" % (lines, top))
         print("query: top match %s, %d inlier lines drawn" % (top.strip(), lines))
         devtools.screenshot(os.path.join(screenshots, "query.png"))
+
+        # Query with a stored place (its stored features), on every map: with boxes from the
+        # server's detector (box_source server) too, where features carry no pixels to detect on.
+        box_sources = {}
+        for name in ["office"] + (["street"] if detector else []):
+            config = console_api(url, "GetMap", {"name": name})["config"]
+            box_sources[name] = config.get("detection", {}).get("box_source")
+            newest = int(console_api(url, "GetMap", {"name": name})["stats"]["places"])
+            outcome = stored_place_query(devtools, name, newest)
+            if outcome["done"] != "yes":
+                fail("querying %s's stored place %d (box_source %s) ends %r: %s" % (
+                    name, newest, box_sources[name], outcome["done"], outcome["text"]))
+            if outcome["top"] != str(newest):
+                fail("querying %s's stored place %d: the top match is place %s" % (
+                    name, newest, outcome["top"]))
+            print("query: %s's stored place %d (box_source %s) matches itself first" % (
+                name, newest, box_sources[name]))
+        if detector and box_sources.get("street") != "BOX_SOURCE_SERVER":
+            fail("the street map's boxes do not come from the server: %r" % box_sources)
+        # An error ends "Querying…" with its message (a place that does not exist).
+        outcome = stored_place_query(devtools, "office", 999999)
+        if outcome["done"] != "error" or "Querying" in outcome["text"] or \
+                "NOT_FOUND" not in outcome["text"]:
+            fail("a query of a missing place shows %r (done %r), not its error" % (
+                outcome["text"], outcome["done"]))
+        devtools.errors.clear()
+        print("query: a missing place ends with %r" % outcome["text"])
 
         # Live: agents (when the server reports them) and the latest places, refreshed in place.
         devtools.show("#/live")

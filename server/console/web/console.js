@@ -428,15 +428,30 @@ async function queryView(view) {
     event.preventDefault();
     drop.classList.remove("over");
     dropped = event.dataTransfer.files[0] || null;
-    if (dropped) run().catch(showError);
+    if (dropped) query();
   });
   file.addEventListener("change", () => {
     dropped = null;
-    if (file.files.length) run().catch(showError);
+    if (file.files.length) query();
   });
+
+  // One query: any error ends the "Querying…" state with its message, in the results and in the
+  // status line.
+  async function query() {
+    try {
+      await run();
+    } catch (error) {
+      showError(error);
+      results.replaceChildren(el("p", { class: "status", id: "query-error" },
+                                 "Query failed: " + (error.code ? error.code + ": " : "") +
+                                     error.message));
+      results.dataset.done = "error";
+    }
+  }
 
   async function run() {
     clearStatus();
+    results.dataset.done = "";
     results.replaceChildren(el("p", { class: "muted" }, "Querying…"));
     const chosen = dropped || file.files[0] || null;
     const observation = { agent_id: "console" };
@@ -489,7 +504,7 @@ async function queryView(view) {
 
   const form = el("form", { class: "bar", onsubmit: (event) => {
     event.preventDefault();
-    run().catch(showError);
+    query();
   } },
                   el("label", {}, "map", map), drop, el("label", {}, "stored place", placeId),
                   el("label", {}, "top-k", topK),
