@@ -4,7 +4,8 @@
 
 const TOKEN_KEY = "placedb.token";
 const COLORS = { kept: "#43d17a", dropped: "#ff5252", box: "#ffb300", line: "#4fc3f7" };
-let refreshTimer = null;  // the live view's
+let refreshTimer = null;  // the live view's next refresh
+let liveGeneration = 0;   // bumped when the view changes: the live loop stops
 
 // ---- API ----------------------------------------------------------------------------------------
 
@@ -150,18 +151,46 @@ async function placeCanvas(map, place) {
     drawKeypoints(context, thumbnail.dropped_keypoints, scale, COLORS.dropped);
     canvas.dataset.thumbnail = "yes";
   } else {
-    context.fillStyle = "#2b3036";
-    context.fillRect(0, 0, canvas.width, canvas.height);
-    context.fillStyle = "#aab2bd";
-    context.font = "14px sans-serif";
-    context.textAlign = "center";
-    context.fillText("no thumbnail", 160, 112);
-    context.font = "11px sans-serif";
-    context.fillText("(this map keeps none: MapConfig.thumbnails)", 160, 132);
+    placeholderCanvas(canvas, "no thumbnail", "(this map keeps none: MapConfig.thumbnails)");
     canvas.dataset.thumbnail = "no";
   }
   return canvas;
 }
+
+function placeholderCanvas(canvas, title, subtitle) {
+  canvas = canvas || el("canvas", { width: 320, height: 240, class: "place-canvas" });
+  const context = canvas.getContext("2d");
+  context.fillStyle = "#2b3036";
+  context.fillRect(0, 0, canvas.width, canvas.height);
+  context.fillStyle = "#aab2bd";
+  context.font = "14px sans-serif";
+  context.textAlign = "center";
+  context.fillText(title, 160, 112);
+  context.font = "11px sans-serif";
+  context.fillText(subtitle, 160, 132);
+  return canvas;
+}
+
+// At most `limit` calls of fn() at once (the others queue, in order): a page's GetPlace calls
+// run in parallel without queueing a thousand requests in the browser.
+function limiter(limit) {
+  let running = 0;
+  const waiting = [];
+  const next = () => {
+    if (running >= limit || !waiting.length) return;
+    running++;
+    const { fn, resolve, reject } = waiting.shift();
+    fn().then(resolve, reject).finally(() => {
+      running--;
+      next();
+    });
+  };
+  return (fn) => new Promise((resolve, reject) => {
+    waiting.push({ fn, resolve, reject });
+    next();
+  });
+}
+const placeCalls = limiter(4);
 
 function legend() {
   const item = (color, text) => {
@@ -174,23 +203,45 @@ function legend() {
             item(COLORS.box, "dynamic-object boxes"));
 }
 
-async function placeCard(map, place) {
+function placeMeta(place) {
+  const counts = place.counts || {};
+  const metadata = place.metadata || {};
+  return el("div", { class: "meta" },
+            el("strong", {}, "place " + place.place_id), " · ", metadata.agent_id || "-", " #",
+            metadata.sequence || 0, el("br"), time(metadata.timestamp_ns), el("br"),
+            "kept ", counts.kept || 0, " · dropped ", counts.dynamic || 0,
+            " · coverage ", ((counts.dynamic_coverage || 0) * 100).toFixed(1), "%");
+}
+
+// A place's card, shown at once from what the listing says (metadata, counts); its frame is
+// drawn when its GetPlace answers (card.ready resolves then; data-state loading -> loaded). Only
+// a map that keeps thumbnails (or a listing without metadata) needs the GetPlace.
+function placeCard(map, place, thumbnails) {
   const id = place.place_id;
-  let full = place;
-  try {
-    full = await api("GetPlace", { map, place_id: id, include_thumbnail: true, include_features: true });
-  } catch (e) {
-    // The listing's metadata is still worth showing.
-  }
-  const counts = full.counts || {};
-  const metadata = full.metadata || {};
-  return el("div", { class: "card place-card", dataset: { placeId: String(id) } },
-            await placeCanvas(map, full),
-            el("div", { class: "meta" },
-               el("strong", {}, "place " + id), " · ", metadata.agent_id || "-", " #",
-               metadata.sequence || 0, el("br"), time(metadata.timestamp_ns), el("br"),
-               "kept ", counts.kept || 0, " · dropped ", counts.dynamic || 0,
-               " · coverage ", ((counts.dynamic_coverage || 0) * 100).toFixed(1), "%"));
+  const card = el("div", { class: "card place-card", dataset: { placeId: String(id), state: "loading" } },
+                  placeholderCanvas(null, "loading…", "place " + id), placeMeta(place));
+  card.firstChild.dataset.thumbnail = "loading";
+  card.ready = (async () => {
+    let full = place;
+    if (thumbnails || !place.metadata) {
+      try {
+        full = await placeCalls(() => api("GetPlace", { map, place_id: id, include_thumbnail: true,
+                                                         include_features: true }));
+      } catch (e) {
+        // The listing's metadata is still worth showing.
+      }
+    }
+    let canvas;
+    try {
+      canvas = await placeCanvas(map, full);
+    } catch (e) {
+      canvas = placeholderCanvas(null, "cannot draw", e.message);
+      canvas.dataset.thumbnail = "error";
+    }
+    card.replaceChildren(canvas, placeMeta(full));
+    card.dataset.state = "loaded";
+  })();
+  return card;
 }
 
 // ---- Views --------------------------------------------------------------------------------------
@@ -229,13 +280,11 @@ async function mapsView(view) {
                                  "settings"]
                                     .map((h) => el("th", {}, h))));
   view.append(table);
-  for (const summary of maps) {
-    let description = null;
-    try {
-      description = await api("GetMap", { name: summary.name });
-    } catch (e) {
-      // An unavailable map still gets its row.
-    }
+  // Every map's GetMap at once (an unavailable map still gets its row).
+  const descriptions = await Promise.all(
+      maps.map((summary) => api("GetMap", { name: summary.name }).catch(() => null)));
+  for (const [i, summary] of maps.entries()) {
+    const description = descriptions[i];
     const stats = (description && description.stats) || {};
     const config = (description && description.config) || {};
     const detection = config.detection || {};
@@ -272,6 +321,8 @@ async function placesView(view, map) {
   const more = el("button", { class: "plain", id: "places-next" }, "Older");
   const info = el("p", { class: "muted", id: "places-info" });
   let before = 0;
+  const thumbnails = Boolean(description.config && description.config.thumbnails &&
+                             description.config.thumbnails.enabled);
   const ns = (input) => (input.value ? String(new Date(input.value).getTime() * 1e6) : "0");
 
   async function page(reset) {
@@ -299,10 +350,13 @@ async function placesView(view, map) {
       for (let id = newest; id > newest - count; id--) places.push({ place_id: id });
       before = newest - count;
     }
-    for (const place of places) cards.append(await placeCard(map, place));
+    // Every card at once from the listing, their frames drawn as their GetPlace calls answer.
+    const added = places.map((place) => placeCard(map, place, thumbnails));
+    cards.append(...added);
     if (!cards.children.length) cards.append(el("p", { class: "muted" }, "No places match."));
     more.disabled = before === 0;
-    cards.dataset.loaded = "yes";  // for the browser test
+    await Promise.all(added.map((card) => card.ready));
+    cards.dataset.loaded = "yes";  // for the browser test: every card drawn
   }
   const form = el("form", { class: "bar", onsubmit: (event) => {
     event.preventDefault();
@@ -312,8 +366,6 @@ async function placesView(view, map) {
                   el("label", {}, "to", to), el("label", {}, "per page", limit),
                   el("button", { type: "submit" }, "Show"));
   more.addEventListener("click", () => page(false).catch(showError));
-  const thumbnails = description.config && description.config.thumbnails &&
-      description.config.thumbnails.enabled;
   view.append(form, legend(), info);
   if (!thumbnails) {
     view.append(el("p", { class: "muted" }, "This map keeps no thumbnails: places show a placeholder."));
@@ -526,9 +578,20 @@ async function liveView(view) {
               el("h3", {}, "Agents (ingest rate over the last 10 s)"), agents,
               el("h3", {}, "Latest places"), latest);
   let shown = "";  // the place ids on screen: redraw only when they change
+  let cardsById = new Map();  // their cards, kept across refreshes (each place is fetched once)
   async function refresh() {
     if (!map.value) return;
-    const description = await api("GetMap", { name: map.value });
+    const name = map.value;
+    // Both at once; the cards of new places are shown from the listing, their frames drawn as
+    // their GetPlace calls answer (never awaited here: a refresh takes two calls' time).
+    const [description, listed] = await Promise.all([
+      api("GetMap", { name }),
+      api("ListPlaces", { map: name, limit: 8 }).catch((e) => {
+        if (e.status !== 501) throw e;
+        return null;
+      }),
+    ]);
+    if (name !== map.value) return;  // the map changed meanwhile
     const rows = (description.agents || []).map((a) => el("tr", { dataset: { agent: a.agent_id } },
         el("td", {}, a.agent_id), el("td", { class: "num" }, Number(a.frames_per_second || 0).toFixed(2)),
         el("td", { class: "num" }, Number(a.frames || 0)), el("td", { class: "num" }, Number(a.places || 0)),
@@ -538,36 +601,45 @@ async function liveView(view) {
         ? el("table", {}, el("tr", {}, ["agent", "frames/s", "frames", "places", "last place", "last frame (UTC)"]
                                           .map((h) => el("th", {}, h))), rows)
         : el("p", { class: "muted" }, "No agent has ingested into this map since the server started."));
-    let places = [];
-    try {
-      places = (await api("ListPlaces", { map: map.value, limit: 8 })).places || [];
-    } catch (e) {
-      if (e.status !== 501) throw e;
+    let places = listed ? listed.places || [] : [];
+    if (!listed) {
+      // A server without ListPlaces: the newest ids.
       const newest = Number((description.stats || {}).places || 0);
       for (let id = newest; id > Math.max(0, newest - 8); id--) places.push({ place_id: id });
     }
+    const thumbnails = Boolean(description.config && description.config.thumbnails &&
+                               description.config.thumbnails.enabled);
     const ids = places.map((p) => p.place_id).join(",");
     if (ids !== shown) {
       shown = ids;
-      const cards = [];
-      for (const place of places) cards.push(await placeCard(map.value, place));
+      const cards = places.map((p) => cardsById.get(p.place_id) || placeCard(name, p, thumbnails));
+      cardsById = new Map(cards.map((card, i) => [places[i].place_id, card]));
       latest.replaceChildren(...cards);
     }
     stamp.textContent = "updated " + new Date().toISOString().slice(11, 19) + " UTC";
   }
   map.addEventListener("change", () => {
     shown = "";
+    cardsById = new Map();
     refresh().catch(showError);
   });
   await refresh();
-  refreshTimer = setInterval(() => refresh().then(clearStatus, showError), 2000);
+  // The next refresh 1 s after this one ended: refreshes never pile up behind a slow server.
+  const generation = ++liveGeneration;
+  const tick = () => {
+    refresh().then(clearStatus, showError).finally(() => {
+      if (generation === liveGeneration) refreshTimer = setTimeout(tick, 1000);
+    });
+  };
+  refreshTimer = setTimeout(tick, 1000);
 }
 
 // ---- Routing ------------------------------------------------------------------------------------
 
 async function route() {
-  if (refreshTimer) clearInterval(refreshTimer);
+  if (refreshTimer) clearTimeout(refreshTimer);
   refreshTimer = null;
+  liveGeneration++;  // a live refresh in flight schedules no next one
   clearStatus();
   const hash = location.hash || "#/maps";
   const view = document.getElementById("view");
