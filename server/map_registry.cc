@@ -362,13 +362,53 @@ Result<std::shared_ptr<const MapEntry>> MapRegistry::RestoreSnapshot(const std::
   }
   PLACEDB_RETURN_IF_ERROR(store->Restore(id, new_map));
   auto entry = Load(new_map);
+  // What the map needs of this server, said here rather than by every query later.
+  std::string missing = entry->map ? MissingFor(*entry) : entry->unavailable_reason;
+  if (!missing.empty()) {
+    entry.reset();  // the map's files close once no holder is left
+    if (Status removed = directory_->DeleteMap(new_map); !removed.ok()) {
+      spdlog::error("restored map '{}' cannot be removed again: {}", new_map, removed.ToString());
+    }
+    return Status::FailedPrecondition("snapshot '" + id + "' restored as map '" + new_map +
+                                      "' would not work on this server: " + missing +
+                                      "; nothing was restored");
+  }
   MutexLock lock(mutex_);
   maps_[new_map] = entry;
-  if (!entry->map) {
-    return Status::Internal("restored map '" + new_map +
-                            "' does not open: " + entry->unavailable_reason);
-  }
   return std::shared_ptr<const MapEntry>(entry);
+}
+
+void MapRegistry::SetDetector(bool available, const std::string& status) {
+  std::vector<std::shared_ptr<const MapEntry>> maps;
+  {
+    MutexLock lock(mutex_);
+    detector_ = available;
+    detector_status_ = status;
+    for (const auto& [name, entry] : maps_) maps.push_back(entry);
+  }
+  for (const auto& entry : maps) {
+    if (!entry->map) continue;
+    if (const std::string missing = MissingFor(*entry); !missing.empty()) {
+      spdlog::error("map '{}' cannot be ingested into nor queried on this server: {}", entry->name,
+                    missing);
+    }
+  }
+}
+
+std::string MapRegistry::MissingFor(const MapEntry& entry) const {
+  const ServiceMapSettings& settings = entry.settings;
+  if (settings.detection_enabled && settings.box_source != BoxSource::kAgent) {
+    MutexLock lock(mutex_);
+    if (!detector_) {
+      return "map '" + entry.name + "' takes dynamic-object boxes from the server's detector " +
+             "(box_source " + BoxSourceName(settings.box_source) +
+             "), which this server does not have (detector " +
+             (detector_status_.empty() ? std::string("off") : detector_status_) +
+             "): configure detector.model (placedb-server --detector-model), or restore it on a "
+             "server with a detector";
+    }
+  }
+  return "";
 }
 
 ServiceMapSettings MapRegistry::DecodeSettings(const std::string& name, const std::string& text) {

@@ -95,7 +95,9 @@ class MapRegistry {
   // Snapshots (core/storage/snapshots.h) of the served maps, verified with the configured
   // vocabularies. Restore is serialised with Create/Delete of maps and the restored map is served
   // at once; CreateSnapshot and ImportSnapshot (checkpoint, verification) hold up neither.
-  // IO_ERROR once closed (shutting down).
+  // IO_ERROR once closed (shutting down). Restore checks what the restored map needs of this
+  // server (MissingFor: a vocabulary, the detector) and refuses with FAILED_PRECONDITION naming
+  // it, the map not kept, rather than serve a map whose every query would fail.
   Result<SnapshotInfo> CreateSnapshot(const std::string& map);
   Result<SnapshotInfo> ImportSnapshot(const std::string& archive_path);
   Result<std::shared_ptr<const MapEntry>> RestoreSnapshot(const std::string& id,
@@ -115,6 +117,14 @@ class MapRegistry {
   // After AdaptVocabulary / RevertVocabulary switched the map's vocabulary: its entry names the
   // new one. Nothing when the map is gone.
   void VocabularySwitched(const std::string& name) EXCLUDES(mutex_);
+
+  // Whether this server has a detector for maps that take boxes from it (box_source server or
+  // both, detection on), and why not (`status`, e.g. "off: ..."); until called, it is assumed to
+  // have one. Logs, at error level, every served map that needs one when there is none.
+  void SetDetector(bool available, const std::string& status) EXCLUDES(mutex_);
+  // What `entry`'s map needs that this server lacks, as a sentence naming it and the fix; ""
+  // when it has everything.
+  std::string MissingFor(const MapEntry& entry) const EXCLUDES(mutex_);
 
   // Releases every map (RocksDB flushes and closes once the last in-flight holder lets go).
   void CloseAll();
@@ -142,6 +152,8 @@ class MapRegistry {
   mutable Mutex mutex_ ACQUIRED_AFTER(create_mutex_);
   std::map<std::string, std::shared_ptr<const MapEntry>> maps_ GUARDED_BY(mutex_);
   std::shared_ptr<SnapshotStore> snapshots_ GUARDED_BY(mutex_);  // null once closed
+  bool detector_ GUARDED_BY(mutex_) = true;                      // SetDetector
+  std::string detector_status_ GUARDED_BY(mutex_);
 };
 
 }  // namespace placedb::server

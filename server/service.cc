@@ -182,7 +182,10 @@ PlaceDbService::PlaceDbService(const ServerConfig& config, MapRegistry* maps, Wo
       detector_(detector),
       detector_status_(std::move(detector_status)),
       budget_(budget),
-      watchdog_([this] { Watchdog(); }) {}
+      watchdog_([this] { Watchdog(); }) {
+  // Maps that need the detector say so at startup and restore (MapRegistry::MissingFor).
+  if (maps_) maps_->SetDetector(detector_ != nullptr, detector_status_);
+}
 
 PlaceDbService::~PlaceDbService() {
   {
