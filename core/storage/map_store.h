@@ -329,6 +329,8 @@ class PlaceMap {
 
   // A copy: the vocabulary's part changes when the map switches vocabularies.
   MapInfo info() const EXCLUDES(state_mutex_);
+  // The map's options, fixed when it was created: no copy, no lock (per-frame callers).
+  const MapOptions& options() const { return info_.options; }
   // The serving index. A switch of vocabulary replaces it; the holder keeps the one it got.
   std::shared_ptr<const PlaceDatabase> database() const EXCLUDES(state_mutex_);
   AnyVocabulary vocabulary() const EXCLUDES(state_mutex_);

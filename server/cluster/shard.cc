@@ -955,8 +955,7 @@ grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::Search
   if (!ready.ok()) return ready;
   PlaceMap& m = *map;
   ProcessedFrame frame;
-  if (Status decoded =
-          FrameFromSearchRequest(request, m.info().options.database.feature_type, &frame);
+  if (Status decoded = FrameFromSearchRequest(request, m.options().database.feature_type, &frame);
       !decoded.ok()) {
     return GrpcError(grpc::StatusCode::INVALID_ARGUMENT, decoded.message());
   }

@@ -514,7 +514,7 @@ Result<std::vector<std::pair<PlaceId, PlacePayload>>> ClusterWorker::FetchPlaces
   if (ids.empty()) return out;
   auto entry = local_->Get(map, "map");  // the map's feature type, to decode the features
   if (!entry.ok()) return entry.status();
-  const FeatureType type = (*entry)->map->info().options.database.feature_type;
+  const FeatureType type = (*entry)->map->options().database.feature_type;
   cluster::v1::FetchPlacesRequest request;
   request.set_map(map);
   request.set_min_sequence(
