@@ -722,7 +722,7 @@ bool DecodesInColor(const MapEntry& map, const v1::Observation& observation) {
   const ServiceMapSettings& settings = map.settings;
   const bool server_boxes = settings.detection_enabled && settings.box_source != BoxSource::kAgent;
   // A map that keeps thumbnails keeps them in colour.
-  return server_boxes || map.map->info().options.thumbnails.enabled ||
+  return server_boxes || map.map->options().thumbnails.enabled ||
          (settings.detection_enabled && observation.boxes_size() > 0 &&
           map.map->database()->config().box_refinement.method == BoxRefinement::kGrabCut);
 }
@@ -852,7 +852,7 @@ grpc::Status PlaceDbService::Query(grpc::ServerContext* context, const v1::Query
           if (!searched.ok()) return searched;
           // A map that counts query hits (PlaceMap::CountQueryHit's rule): durable before the
           // answer, as on a single server.
-          const double above = map.map->info().options.count_query_hits_above;
+          const double above = map.map->options().count_query_hits_above;
           if (above > 0 && response->matches_size() > 0 && response->matches(0).score() > above) {
             if (Status counted = cluster_->CountObservation(
                     map.name, response->matches(0).place_id(), work.frame, work.metadata,
