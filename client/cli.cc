@@ -34,7 +34,7 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
       ->capture_default_str();
   app.add_option("--timeout", connection_options.timeout_s,
                  "deadline of each unary RPC, seconds (0 = none)")
-      ->check(CLI::NonNegativeNumber)
+      ->check(CLI::Range(0.0, 86400.0))
       ->capture_default_str();
   app.add_flag("--json", json, "machine-readable output (JSON on stdout)");
   app.add_flag("--tls", connection_options.tls, "connect with TLS (TLS 1.2+)")

@@ -7,7 +7,8 @@
 //
 // Exit codes: 0 ok, 1 an RPC failed (printed with its gRPC code name), 2 usage (bad arguments,
 // unreadable local input, a load target that is not loopback). `health` exits 0 when SERVING,
-// 1 otherwise, 2 when the server cannot be reached.
+// 1 otherwise, 2 when the server cannot be reached. placedb-load and placedb-server use the same
+// 0 / 1 / 2 (docs/cli.md, "Exit codes").
 #pragma once
 
 #include <istream>

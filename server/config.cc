@@ -652,6 +652,13 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
                                      const std::function<const char*(const char*)>& getenv) {
   CLI::App app{"placedb-server: the placedb gRPC service (docs/service.md)", "placedb-server"};
   app.set_version_flag("--version", std::string("placedb-server ") + PLACEDB_VERSION);
+  // `tokens` is parsed by main() before these flags (its own command group): listed here.
+  app.footer(
+      "Commands:\n"
+      "  tokens                      manage the tokens file: add, list, revoke, rotate "
+      "(placedb-server tokens --help)\n\n"
+      "Exit codes (as placedb and placedb-load): 0 ok; 1 the server failed (could not start, or "
+      "stopped on an error); 2 usage (a bad flag, configuration file or environment variable).");
   std::string config_path, listen, data_dir, metrics_listen, console_listen, log_level,
       detector_model;
   std::string tls_cert, tls_key, tls_client_ca, tokens_file;
@@ -719,7 +726,8 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    out.exit_code = app.exit(e);
+    // --help and --version exit 0; every usage error 2, as placedb's (not CLI11's own codes).
+    out.exit_code = app.exit(e) == 0 ? 0 : 2;
     return out;
   }
   ServerConfig& c = out.config;

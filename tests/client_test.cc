@@ -20,6 +20,7 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
+#include <regex>
 #include <sstream>
 
 #include "client/cli.h"
@@ -677,8 +678,8 @@ TEST_F(ClientTest, IngestSummaryListsAndVideos) {
   CliRun run = Cli({"ingest", "m", FramesDir(1, 4), "--matches", "--agent-id", "robot"});
   ASSERT_EQ(run.code, 0) << run.err;
   for (const char* text :
-       {"ingested 4 of 4 frames into 'm' with 1 agent", "stored", "rejected", "errors     0",
-        "latency", "p50", "p99", "1.jpg -> place", "4.jpg -> place"}) {
+       {"sent 4 of 4 frames to 'm' with 1 agent", ", 4 answered", "stored", "rejected",
+        "errors     0", "latency", "p50", "p99", "1.jpg -> place", "4.jpg -> place"}) {
     EXPECT_NE(run.out.find(text), std::string::npos) << text << " missing from\n" << run.out;
   }
   EXPECT_NE(run.err.find("progress: 4/4 frames (100%)"), std::string::npos) << run.err;
@@ -1232,7 +1233,7 @@ TEST_F(ClientTest, IngestAndQueryWithDepth) {
       Cli({"ingest", "rgbd", SlambookDir() + "/color", "--depth", SlambookDir() + "/depth",
            "--intrinsics", "518,519,325.5,253.5", "--agent-id", "room"});
   ASSERT_EQ(room.code, 0) << room.err;
-  EXPECT_NE(room.out.find("ingested 5 of 5 frames"), std::string::npos) << room.out;
+  EXPECT_NE(room.out.find("sent 5 of 5 frames"), std::string::npos) << room.out;
   EXPECT_NE(room.out.find("depth      0 descriptors removed by Algorithm 1 in 0 frames"),
             std::string::npos)
       << room.out;
@@ -1434,6 +1435,35 @@ TEST(ClientFormatTest, NaturalOrderAndPercentiles) {
   EXPECT_EQ(client::TargetHost("host", &unix_socket), "host");
   EXPECT_EQ(client::TargetHost("unix:/x", &unix_socket), "");
   EXPECT_TRUE(unix_socket);
+}
+
+// Usage errors exit 2 (as placedb-server and placedb-load), and ranges are ones a reader can
+// read: no 309-digit bounds (CLI11's NonNegativeNumber / PositiveNumber print DBL_MAX).
+TEST(CliUsage, RangesAreSaneAndUsageErrorsExit2) {
+  const std::regex long_number("[0-9]{20,}");
+  const std::vector<std::vector<std::string>> lines = {
+      {"ingest", "m", "/nonexistent", "--rate", "-1"},
+      {"ingest", "m", "/nonexistent", "--depth-scale", "0"},
+      {"ingest", "m", "/nonexistent", "--video-every", "0"},
+      {"query", "m", "x.jpg", "--depth-scale", "-1"},
+      {"--timeout", "-1", "health"},
+      {"load", "/nonexistent", "--duration", "-1"},
+      {"load", "/nonexistent", "--total-rate", "-1"},
+      {"maps", "create", "m", "--depth-threshold", "0"},
+      {"maps", "create", "m", "--rehearsal-threshold", "-1"},
+      {"maps", "create", "m", "--wm-time-budget-ms", "-1"},
+      {"--bogus"}};
+  for (const std::vector<std::string>& args : lines) {
+    const CliRun run = RunPlacedb(args);
+    EXPECT_EQ(run.code, 2) << args[args.size() - 2] << ": " << run.err;
+    EXPECT_FALSE(std::regex_search(run.err, long_number)) << run.err;
+  }
+  EXPECT_NE(RunPlacedb(lines[0]).err.find("--rate: Value -1 not in range 0"), std::string::npos)
+      << RunPlacedb(lines[0]).err;
+  // The --box-source default as CreateMap applies it.
+  const CliRun help = RunPlacedb({"maps", "create", "--help"});
+  EXPECT_NE(help.out.find("default: server when the server has a detector"), std::string::npos)
+      << help.out;
 }
 
 }  // namespace

@@ -421,9 +421,11 @@ void PrintSummary(const IngestRun& run, const IngestTotals& totals, bool with_de
   const IngestOptions& options = run.options;
   std::ostream& out = run.out;
   const size_t agents = run.agent_ids.size();
-  out << "ingested " << totals.answered << " of " << run.records.size() << " frames into '"
-      << options.map << "' with " << agents << (agents == 1 ? " agent" : " agents") << " in "
-      << FormatDuration(totals.elapsed) << " (" << FormatDouble(totals.rate, 1) << " frames/s)\n";
+  // Sent and answered, not "ingested": the lines below say how many were stored.
+  out << "sent " << totals.sent << " of " << run.records.size() << " frames to '" << options.map
+      << "' with " << agents << (agents == 1 ? " agent" : " agents") << " in "
+      << FormatDuration(totals.elapsed) << " (" << FormatDouble(totals.rate, 1) << " frames/s), "
+      << totals.answered << " answered\n";
   out << "  stored     " << run.stored << '\n';
   if (options.loop_closure) out << "  merged     " << run.merged << "  (rehearsal)\n";
   out << "  rejected   " << run.rejected;
@@ -471,7 +473,7 @@ CLI::App* RegisterIngest(CLI::App& app, IngestOptions* options) {
       ->add_option("--agent-id", options->agent_id, "agent id (with several agents: ID-1 ... ID-N)")
       ->capture_default_str();
   ingest->add_option("--video-every", options->video_every, "every K-th video frame")
-      ->check(CLI::PositiveNumber)
+      ->check(CLI::Range(1, 100000))
       ->capture_default_str();
   ingest->add_option("--glob", options->glob,
                      "only folder entries whose name matches (e.g. '*.jpg')");
@@ -481,7 +483,7 @@ CLI::App* RegisterIngest(CLI::App& app, IngestOptions* options) {
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
   ingest->add_option("--rate", options->rate, "frames/s per agent (0 = as fast as accepted)")
-      ->check(CLI::NonNegativeNumber)
+      ->check(CLI::Range(0.0, 10000.0))
       ->capture_default_str();
   ingest
       ->add_option("--sequence-start", options->sequence_start,
@@ -496,7 +498,7 @@ CLI::App* RegisterIngest(CLI::App& app, IngestOptions* options) {
   ingest
       ->add_option("--depth-scale", options->depth_scale,
                    "metres per depth unit (default: the map's, 0.001 for 16-bit)")
-      ->check(CLI::PositiveNumber);
+      ->check(CLI::Range(1e-6, 100.0));
   ingest->add_option("--intrinsics", options->intrinsics,
                      "colour camera intrinsics fx,fy,cx,cy in pixels (sent with the depth)");
   ingest->add_flag("--loop-closure", options->loop_closure,

@@ -511,14 +511,14 @@ CLI::App* RegisterLoad(CLI::App& app, LoadOptions* options) {
       ->capture_default_str();
   CLI::Option* rate = load->add_option("--rate", options->rate,
                                        "target frames/s per agent (0 = as fast as accepted)")
-                          ->check(CLI::NonNegativeNumber);
+                          ->check(CLI::Range(0.0, 10000.0));
   load->add_option("--total-rate", options->total_rate, "target frames/s of all agents")
-      ->check(CLI::NonNegativeNumber)
+      ->check(CLI::Range(0.0, 100000.0))
       ->excludes(rate);
   load->add_option("--frames", options->frames,
                    "stop after N frames in total (default: one pass over the sources)");
   load->add_option("--duration", options->duration_s, "stop after S seconds")
-      ->check(CLI::NonNegativeNumber);
+      ->check(CLI::Range(0.0, 604800.0));
   load->add_option("--query-ratio", options->query_ratio,
                    "fraction of the frames sent as Query instead of ingested")
       ->check(CLI::Range(0.0, 1.0))
@@ -532,12 +532,12 @@ CLI::App* RegisterLoad(CLI::App& app, LoadOptions* options) {
       ->capture_default_str();
   load->add_option("--json-out", options->json_out, "write the report as JSON");
   load->add_option("--video-every", options->video_every, "every K-th video frame")
-      ->check(CLI::PositiveNumber)
+      ->check(CLI::Range(1, 100000))
       ->capture_default_str();
   load->add_option("--glob", options->glob,
                    "only folder entries whose name matches (e.g. '*.jpg')");
   load->add_option("--max-source-frames", options->max_source_frames, "distinct frames to preload")
-      ->check(CLI::PositiveNumber)
+      ->check(CLI::Range(1, 1000000))
       ->capture_default_str();
   return load;
 }

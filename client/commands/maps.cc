@@ -353,7 +353,10 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
                      "motorcycle,bus,truck)");
   flags->confidence_option =
       create->add_option("--confidence", flags->confidence, "minimum box confidence (default 0.2)");
-  create->add_option("--box-source", flags->box_source, "where boxes come from (default agent)")
+  create
+      ->add_option("--box-source", flags->box_source,
+                   "where boxes come from (default: server when the server has a detector and "
+                   "detection is on, else agent)")
       ->check(EnumFlag<v1::BoxSource>());
   create
       ->add_option("--filter", flags->filter, "dynamic-descriptor filter (default keypoint_in_box)")
@@ -412,7 +415,7 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
   flags->sift_features_option = create
                                     ->add_option("--sift-features", flags->sift_features,
                                                  "SIFT features per frame (default 1000, 0 = all)")
-                                    ->check(CLI::NonNegativeNumber);
+                                    ->check(CLI::Range(0, 100000));
   create->add_flag("--no-refine-boxes", flags->no_refine_boxes,
                    "with depth, a box stays dynamic as a whole (default: only the object's own "
                    "depth layer)");
@@ -421,12 +424,12 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
   flags->depth_scale_option = create
                                   ->add_option("--depth-scale", flags->depth_scale,
                                                "metres per png16 depth unit (default 0.001)")
-                                  ->check(CLI::PositiveNumber);
+                                  ->check(CLI::Range(1e-6, 100.0));
   flags->depth_threshold_option =
       create
           ->add_option("--depth-threshold", flags->depth_threshold,
                        "Algorithm 1: |V_current - V_static| that deviates, metres (default 0.15)")
-          ->check(CLI::PositiveNumber);
+          ->check(CLI::Range(0.001, 100.0));
   CLI::Option* band_policy =
       create
           ->add_option("--band-policy", flags->band_policy,
@@ -447,12 +450,12 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
               "--rehearsal-threshold", flags->rehearsal_threshold,
               "loop closure: similarity merging a frame into the previous place (default 0.20; > 1 "
               "disables rehearsal)")
-          ->check(CLI::NonNegativeNumber);
+          ->check(CLI::Range(0.0, 10.0));
   flags->stm_option = create
                           ->add_option("--stm", flags->stm,
                                        "loop closure: short-term memory, places (default "
                                        "30)")
-                          ->check(CLI::NonNegativeNumber);
+                          ->check(CLI::Range(0, 100000));
   flags->max_wm_option =
       create->add_option("--max-wm", flags->max_wm,
                          "loop closure: working-memory bound, places (default 0 = unbounded)");
@@ -460,7 +463,7 @@ CLI::App* RegisterCreate(CLI::App* maps, CreateFlags* flags) {
       create
           ->add_option("--wm-time-budget-ms", flags->wm_time_budget_ms,
                        "loop closure: time budget per update, ms (default 0 = none)")
-          ->check(CLI::NonNegativeNumber);
+          ->check(CLI::Range(0.0, 3600000.0));
   create->add_flag("--no-verify-loops", flags->no_verify_loops,
                    "loop closure: keep loops the filter accepts without geometric verification");
   return create;

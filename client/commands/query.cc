@@ -128,7 +128,7 @@ CLI::App* RegisterQuery(CLI::App& app, QueryFlags* flags) {
   query
       ->add_option("--depth-scale", flags->depth.scale,
                    "metres per depth unit (default: the map's, 0.001 for 16-bit)")
-      ->check(CLI::PositiveNumber);
+      ->check(CLI::Range(1e-6, 100.0));
   query->add_option("--intrinsics", flags->depth.intrinsics,
                     "colour camera intrinsics fx,fy,cx,cy in pixels (sent with the depth)");
   return query;
@@ -187,6 +187,13 @@ int RunQuery(const Connection& connection, const QueryFlags& flags, bool json, C
                  match.verified() ? "yes" : "no"});
     }
     table.Print(io.out);
+    if (std::any_of(response.matches().begin(), response.matches().end(),
+                    [](const v1::Match& match) { return match.score() > 1.0; })) {
+      io.out << "scores above 1: the short-term bonus: a place observed within the map's "
+                "short-term horizon (60 s by default) of this query's timestamp scores on its "
+                "static words plus weight x the similarity of the objects both frames saw "
+                "(filter.short_term; docs/cli.md, \"Scores\")\n";
+    }
   }
   if (flags.correspondences) {
     io.out << "keypoints: " << response.query_keypoints_size() << " kept, "
