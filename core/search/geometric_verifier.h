@@ -43,8 +43,9 @@ struct VerificationConfig {
   // The verifier before issue 31: putative matches one distance at a time and OpenCV's
   // FM_RANSAC. Kept only so that the drift test, the benchmark and placedb-eval can run it beside
   // the default: ORB matching over descriptors blocked 8 at a time (AVX-512 VPOPCNTDQ when the
-  // CPU has it, else scalar popcount; the same putative matches bit for bit) and OpenCV's
-  // USAC_FAST fit (inlier counts within the tolerance tests/verifier_drift_test.cc states).
+  // CPU has it and the environment has no PLACEDB_NO_AVX512, else scalar popcount; the same
+  // putative matches bit for bit) and OpenCV's USAC_FAST fit (inlier counts within the
+  // tolerance tests/verifier_drift_test.cc states).
   bool legacy = false;
 };
 
