@@ -13,7 +13,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-tools/setup.sh --deps
+tools/setup.sh --deps --tests  # the product's packages and the test suite's
 jobs=$(nproc)
 vocabulary="$PWD/var/vocabulary/default.pdbv"
 
