@@ -24,6 +24,7 @@ PACKAGES=(
   libturbojpeg0-dev  # strict JPEG decoding (core/decode)
   libjemalloc-dev    # PLACEDB_ALLOCATOR=jemalloc (measured against glibc, tuned: the default)
   libspdlog-dev libfmt-dev libcli11-dev libyaml-cpp-dev nlohmann-json3-dev
+  libgtest-dev libgmock-dev libbenchmark-dev  # small; CMake configures tests/ and bench/ (unbuilt)
   libnats-dev  # cluster mode's NATS C client (issue 18); without it the server has no cluster roles
   python3 python3-grpcio python3-protobuf python3-numpy  # the Python SDK (client/python)
   python3-venv python3-wheel  # pip install ./client/python into a venv, offline
@@ -32,7 +33,6 @@ PACKAGES=(
 )
 # The test suite (tools/test.sh) on top: setup.sh --deps --tests.
 TEST_PACKAGES=(
-  libgtest-dev libgmock-dev libbenchmark-dev
   python3-pytest python3-opencv  # the SDK's tests and examples
   python3-rosbag python3-sensor-msgs  # ROS 1 bags (placedb.read_bag; its tests write bags)
   chromium python3-websocket  # the web console's browser test (tests/console/browser_test.py)
@@ -76,9 +76,10 @@ fi
 
 BUILD_DIR=${PLACEDB_BUILD_DIR:-build}
 jobs=$(nproc)
-# The product only: the test suite and the benchmarks are tools/test.sh's (build-test/).
-cmake -S . -B "$BUILD_DIR" -G Ninja -DCMAKE_BUILD_TYPE=Release -DPLACEDB_BUILD_TESTS=OFF \
-  -DPLACEDB_BUILD_BENCH=OFF
+# The product's targets only: the test suite is tools/test.sh's (build-test/). Tests and
+# benchmarks stay configured here, so `cmake --build build --target X` (tools/bench.sh, a test)
+# still builds one on demand.
+cmake -S . -B "$BUILD_DIR" -G Ninja -DCMAKE_BUILD_TYPE=Release
 targets=(placedb-server placedb placedb-load placedb-vocab placedb-sift-vocab)
 # The Python SDK when its packages are there (client/python/CMakeLists.txt says when not).
 if cmake --build "$BUILD_DIR" --target help | grep -q '^placedb_python:'; then
