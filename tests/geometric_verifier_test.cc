@@ -145,6 +145,26 @@ TEST(GeometricVerifierTest, WarpedCopyVerifies) {
   EXPECT_GE(result.inliers, 100);
 }
 
+// A frame against itself (a query with a stored place's own image; a robot standing still):
+// every point stays where it is, a configuration no fundamental matrix pins down. Every putative
+// match is an inlier, on the default path as on the legacy one.
+TEST(GeometricVerifierTest, AFrameVerifiesAgainstItself) {
+  REQUIRE_FILES(testing::RtabmapFramePath(1));
+  const FeatureSet frame = ExtractFile(testing::RtabmapFramePath(1));
+  for (const bool legacy : {false, true}) {
+    VerificationConfig config = Exhaustive();
+    config.legacy = legacy;
+    auto result = VerifyGeometry(frame, {}, frame, {}, config, /*collect_inliers=*/true);
+    ASSERT_TRUE(result.ok()) << result.status().ToString();
+    std::printf("[ frame vs itself%s ] %d putative, %d inliers\n", legacy ? " (legacy)" : "",
+                result->putative_matches, result->inliers);
+    EXPECT_TRUE(result->verified) << "legacy " << legacy;
+    EXPECT_GE(result->inliers, result->putative_matches * 9 / 10) << "legacy " << legacy;
+    ASSERT_EQ(int(result->inlier_pairs.size()), result->inliers);
+    for (const InlierPair& pair : result->inlier_pairs) EXPECT_EQ(pair.query, pair.candidate);
+  }
+}
+
 TEST(GeometricVerifierTest, UnrelatedImagesDoNotVerify) {
   REQUIRE_FILES(kDarknetData + "dog.jpg", testing::RtabmapFramePath(1), kOpencvData + "box.png");
   const FeatureSet dog = ExtractFile(kDarknetData + "dog.jpg");

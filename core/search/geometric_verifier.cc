@@ -346,12 +346,35 @@ int CountFundamentalInliers(const std::vector<Keypoint>& query,
     query_points.emplace_back(query[m.query].x, query[m.query].y);
     candidate_points.emplace_back(candidate[m.candidate].x, candidate[m.candidate].y);
   }
+  // Matches whose point stays where it is: the same viewpoint (a query with a stored place's own
+  // image, a robot standing still) fits the identity, a motion no fundamental matrix pins down:
+  // USAC_FAST then finds no model (FM_RANSAC happened to accept one). They are inliers when they
+  // outnumber what the fit explains.
+  cv::Mat still;
+  int still_count = 0;
+  if (!config.legacy) {
+    still = cv::Mat::zeros(int(matches.size()), 1, CV_8U);
+    const float limit = float(config.ransac_threshold_px * config.ransac_threshold_px);
+    for (size_t i = 0; i < matches.size(); ++i) {
+      const cv::Point2f d = query_points[i] - candidate_points[i];
+      if (d.x * d.x + d.y * d.y <= limit) {
+        still.at<uint8_t>(int(i)) = 1;
+        ++still_count;
+      }
+    }
+  }
   try {
     cv::Mat mask;
-    const cv::Mat fundamental = cv::findFundamentalMat(
-        query_points, candidate_points, config.legacy ? int(cv::FM_RANSAC) : int(cv::USAC_FAST),
-        config.ransac_threshold_px, config.ransac_confidence, config.ransac_max_iterations, mask);
-    if (fundamental.empty() || mask.empty()) return 0;
+    cv::Mat fundamental;
+    if (still_count < int(matches.size())) {
+      fundamental = cv::findFundamentalMat(
+          query_points, candidate_points, config.legacy ? int(cv::FM_RANSAC) : int(cv::USAC_FAST),
+          config.ransac_threshold_px, config.ransac_confidence, config.ransac_max_iterations, mask);
+    }
+    if (fundamental.empty() || mask.empty() || cv::countNonZero(mask) < still_count) {
+      if (still_count < kMinPointsForFundamental) return 0;
+      mask = still;
+    }
     const int inliers = cv::countNonZero(mask);
     if (pairs) {
       pairs->reserve(size_t(inliers));
@@ -365,7 +388,16 @@ int CountFundamentalInliers(const std::vector<Keypoint>& query,
     }
     return inliers;
   } catch (const cv::Exception&) {
-    return 0;  // degenerate configuration (e.g. all points coincide): nothing verified
+    // A degenerate configuration (e.g. all points on one spot): only points that stay count.
+    if (still_count < kMinPointsForFundamental) return 0;
+    if (pairs) {
+      for (size_t i = 0; i < matches.size(); ++i) {
+        if (still.at<uint8_t>(int(i))) pairs->push_back({matches[i].query, matches[i].candidate});
+      }
+      std::sort(pairs->begin(), pairs->end(),
+                [](const InlierPair& a, const InlierPair& b) { return a.candidate < b.candidate; });
+    }
+    return still_count;
   }
 }
 

@@ -585,13 +585,19 @@ TEST_F(ServerTest, ServerSideDetectionDropsDescriptorsOnPeopleAndCars) {
   const IngestOutcome merged = IngestAll(stub_.get(), "both", {with_agent_box});
   ASSERT_EQ(merged.responses.size(), 1u);
   EXPECT_EQ(merged.responses[0].boxes_used_size(), outcome.responses[0].boxes_used_size() + 1);
-  // Features alone cannot be detected on: refused for SERVER, agent boxes only for BOTH.
+  // Features alone cannot be detected on: a query uses the boxes sent with it (a stored place's
+  // features are static already: the console's stored-place query), storing them is refused for
+  // SERVER; BOTH takes the agent's boxes alone.
   v1::Observation features_only;
   *features_only.mutable_features() = FeaturesOf(frames[0]);
   v1::QueryResponse response;
-  EXPECT_EQ(Query("server", features_only, &response).error_code(),
-            grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_TRUE(Query("server", features_only, &response).ok());
   EXPECT_TRUE(Query("both", features_only, &response).ok());
+  const IngestOutcome refused = IngestAll(stub_.get(), "server", {features_only});
+  ASSERT_EQ(refused.responses.size(), 1u);
+  EXPECT_TRUE(refused.responses[0].has_error());
+  EXPECT_EQ(refused.responses[0].error().code(), int(grpc::StatusCode::INVALID_ARGUMENT))
+      << refused.responses[0].error().message();
 
   const auto metrics = Scrape();
   EXPECT_GE(MetricValue(metrics, "placedb_detector_seconds_count"), 4);
