@@ -676,16 +676,27 @@ void ClusterWorker::FollowVocabulary(const std::string& map, uint64_t checksum,
                fetched.checksum_hex());
 }
 
-Result<std::shared_ptr<void>> ClusterWorker::ClaimSwitch(const std::string& name) {
-  MutexLock lock(mutex_);
-  if (!switching_.insert(name).second) {
-    return Status::FailedPrecondition("map '" + name +
-                                      "' is already switching its vocabulary; wait for it");
+Result<ClusterWorker::SwitchStart> ClusterWorker::StartSwitch(const std::string& name,
+                                                              Deadline deadline) {
+  auto view = Lookup(name, "name");
+  if (!view.ok()) return view.status();
+  SwitchStart start;
+  {
+    MutexLock lock(mutex_);
+    if (!switching_.insert(name).second) {
+      return Status::FailedPrecondition("map '" + name +
+                                        "' is already switching its vocabulary; wait for it");
+    }
   }
-  return std::shared_ptr<void>(nullptr, [this, name](void*) {
+  start.slot = std::shared_ptr<void>(nullptr, [this, name](void*) {
     MutexLock release(mutex_);
     switching_.erase(name);
   });
+  start.until = SwitchDeadline(deadline);
+  auto stream = jetstream_->GetStreamInfo(cluster::StreamName(cluster_.name, name));
+  if (!stream.ok()) return stream.status().WithContext("map '" + name + "': its stream");
+  start.stream_last = stream->last_sequence;
+  return start;
 }
 
 void ClusterWorker::AwaitPrepared(const std::string& map, uint64_t checksum, Deadline until) {
@@ -734,18 +745,14 @@ grpc::Status ClusterWorker::AwaitSwitch(const std::string& map, uint64_t sequenc
 grpc::Status ClusterWorker::AdaptVocabulary(const v1::AdaptVocabularyRequest& request,
                                             Deadline deadline, v1::MapVocabulary* response) {
   const std::string& name = request.name();
-  auto view = Lookup(name, "name");
-  if (!view.ok()) return ToGrpc(view.status());
-  auto slot = ClaimSwitch(name);
-  if (!slot.ok()) return ToGrpc(slot.status());
-  const Deadline until = SwitchDeadline(deadline);
+  auto started = StartSwitch(name, deadline);
+  if (!started.ok()) return ToGrpc(started.status());
+  const Deadline until = started->until;
   // 1. One replica learns, once it applied everything the stream held when the call began
   // (every place acknowledged before it is learned from).
-  auto stream = jetstream_->GetStreamInfo(cluster::StreamName(cluster_.name, name));
-  if (!stream.ok()) return ToGrpc(stream.status().WithContext("map '" + name + "': its stream"));
   cluster::v1::LearnVocabularyRequest learn;
   learn.set_map(name);
-  learn.set_min_sequence(stream->last_sequence);
+  learn.set_min_sequence(started->stream_last);
   learn.set_seed(request.seed());
   learn.set_max_sample_descriptors(request.max_sample_descriptors());
   learn.set_branching(request.branching());
@@ -791,16 +798,12 @@ grpc::Status ClusterWorker::AdaptVocabulary(const v1::AdaptVocabularyRequest& re
 
 grpc::Status ClusterWorker::RevertVocabulary(const std::string& name, Deadline deadline,
                                              v1::MapVocabulary* response) {
-  auto view = Lookup(name, "name");
-  if (!view.ok()) return ToGrpc(view.status());
-  auto slot = ClaimSwitch(name);
-  if (!slot.ok()) return ToGrpc(slot.status());
-  const Deadline until = SwitchDeadline(deadline);
+  auto started = StartSwitch(name, deadline);
+  if (!started.ok()) return ToGrpc(started.status());
+  const Deadline until = started->until;
   // The previous vocabulary as the replicas have it after everything published so far.
-  auto stream = jetstream_->GetStreamInfo(cluster::StreamName(cluster_.name, name));
-  if (!stream.ok()) return ToGrpc(stream.status().WithContext("map '" + name + "': its stream"));
   v1::MapVocabulary now;
-  grpc::Status status = ReplicaVocabulary(name, stream->last_sequence, false, until, &now, nullptr);
+  grpc::Status status = ReplicaVocabulary(name, started->stream_last, false, until, &now, nullptr);
   if (!status.ok()) return status;
   if (!now.has_previous()) {
     return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,

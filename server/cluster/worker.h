@@ -160,9 +160,15 @@ class ClusterWorker final : public ClusterBackend {
   // worker's copy of the map follows (`vocabulary`: the switch's, when the caller has it).
   grpc::Status AwaitSwitch(const std::string& map, uint64_t sequence, const AnyVocabulary* next,
                            Deadline deadline, v1::MapVocabulary* response);
-  // One switch of vocabulary per map through this worker: FAILED_PRECONDITION while one runs;
-  // the claim ends with the returned handle.
-  Result<std::shared_ptr<void>> ClaimSwitch(const std::string& name) EXCLUDES(mutex_);
+  // AdaptVocabulary's and RevertVocabulary's start: the map exists (NOT_FOUND), this call holds
+  // its one switch through this worker (FAILED_PRECONDITION while another runs; released with
+  // `slot`), the call's time (30 min without a deadline) and where the map's stream ended.
+  struct SwitchStart {
+    std::shared_ptr<void> slot;
+    Deadline until;
+    uint64_t stream_last = 0;
+  };
+  Result<SwitchStart> StartSwitch(const std::string& name, Deadline deadline) EXCLUDES(mutex_);
   // Until every live replica of `map` has built the switch to `checksum` ahead of its record
   // (Shard.Status), at most until `until`: the switch record then costs the replicas only the
   // places applied since (one that has not built it builds it then, holding its records back).
