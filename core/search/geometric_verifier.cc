@@ -353,7 +353,9 @@ int CountFundamentalInliers(const std::vector<Keypoint>& query,
   cv::Mat still;
   int still_count = 0;
   if (!config.legacy) {
-    still = cv::Mat::zeros(int(matches.size()), 1, CV_8U);
+    // Constructed, not a cv::MatExpr: OpenCV initialises the expression machinery lazily, which
+    // ThreadSanitizer reports as a race between concurrent verifications.
+    still = cv::Mat(int(matches.size()), 1, CV_8U, cv::Scalar(0));
     const float limit = float(config.ransac_threshold_px * config.ransac_threshold_px);
     for (size_t i = 0; i < matches.size(); ++i) {
       const cv::Point2f d = query_points[i] - candidate_points[i];
