@@ -42,4 +42,13 @@ void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out)
 // A place's thumbnail: the JPEG, its and its source frame's sizes, the dropped keypoints.
 void ThumbnailToProto(const Thumbnail& thumbnail, v1::Thumbnail* out);
 
+// What every answer about a frame says of it (QueryResponse and IngestResponse alike): its
+// counts, the boxes used, and the agent's depth state when Algorithm 1 applied to it.
+template <typename Response>
+void FrameAnswerToProto(const ProcessedFrame& frame, Response* out) {
+  CountsToProto(frame.counts, out->mutable_counts());
+  BoxesToProto(frame.boxes_used, out->mutable_boxes_used());
+  if (frame.depth_state) DepthStateToProto(*frame.depth_state, out->mutable_depth());
+}
+
 }  // namespace placedb::wire

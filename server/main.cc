@@ -146,10 +146,10 @@ int main(int argc, char** argv) {
     case placedb::server::ClusterRole::kWorker:
       deps.cluster_backend = [&config](placedb::server::MapRegistry* maps,
                                        placedb::server::Metrics* metrics)
-          -> placedb::Result<std::unique_ptr<placedb::server::ClusterBackend>> {
+          -> placedb::Result<std::unique_ptr<placedb::server::MapBackend>> {
         auto worker = placedb::server::ClusterWorker::Start(config, maps, metrics);
         if (!worker.ok()) return worker.status();
-        return std::unique_ptr<placedb::server::ClusterBackend>(std::move(worker).value());
+        return std::unique_ptr<placedb::server::MapBackend>(std::move(worker).value());
       };
       break;
     case placedb::server::ClusterRole::kShard:

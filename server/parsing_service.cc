@@ -14,7 +14,7 @@
 #include "core/base/map_name.h"
 #include "core/base/text.h"
 #include "proto/status.h"
-#include "server/service.h"
+#include "server/rpc/service.h"
 
 namespace placedb::server {
 

@@ -32,6 +32,7 @@
 
 #include "proto/placedb.grpc.pb.h"
 #include "server/auth/call_auth.h"
+#include "server/rpc/ingest_stream_io.h"
 
 namespace google::protobuf {
 class Message;
@@ -41,15 +42,6 @@ namespace placedb::server {
 
 namespace v1 = ::placedb::v1;
 class PlaceDbService;
-
-// An Ingest stream as its handler sees it: gRPC's reader-writer plus why Read() returned false.
-class IngestStreamIo
-    : public grpc::ServerReaderWriterInterface<v1::IngestResponse, v1::IngestRequest> {
- public:
-  // OK when the stream simply ended (the client half-closed, or the call is over);
-  // INVALID_ARGUMENT naming the message when the last one read was not a valid IngestRequest.
-  virtual grpc::Status ReadError() const = 0;
-};
 
 // Parses `bytes` into `message`. Returns "" on success, else why they are not a valid message of
 // its type ("field name (1) is not valid UTF-8", "the data is truncated (...)"), with the path of

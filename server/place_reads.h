@@ -1,5 +1,5 @@
 // The read RPCs of placedb.v1 on one open map (GetPlace, ListPlaces, GetDynamics), shared by the
-// single-node service (server/service.cc) and cluster mode's shard (server/cluster/shard.h), so
+// single-node backend (server/backend/local_backend.cc) and cluster mode's shard (server/cluster/shard.h), so
 // both answer them the same way.
 //
 // Errors are values with the code the RPC returns (proto/status.h ToGrpc): INVALID_ARGUMENT for

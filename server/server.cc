@@ -14,13 +14,14 @@
 
 #include "server/auth/call_auth.h"
 #include "server/auth/token_store.h"
+#include "server/backend/local_backend.h"
 #include "server/console/console.h"
 #include "server/http_endpoint.h"
 #include "server/map_registry.h"
 #include "server/memory_budget.h"
 #include "server/metrics.h"
 #include "server/parsing_service.h"
-#include "server/service.h"
+#include "server/rpc/service.h"
 #include "server/transport_security.h"
 #include "server/vocabulary_policy.h"
 #include "server/worker_pool.h"
@@ -227,17 +228,20 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   // Queries on workers of their own at the normal priority: ingest cannot fill them (issue 17).
   server->query_pool_ =
       std::make_unique<WorkerPool>(c.query_worker_threads(), c.limits.max_queued_frames);
-  server->service_ = std::make_unique<PlaceDbService>(
-      server->config_, server->maps_.get(), server->pool_.get(), metrics, server->detector_.get(),
-      detector_status, server->budget_.get(), server->query_pool_.get());
   if (deps.cluster_backend) {
     auto backend = deps.cluster_backend(server->maps_.get(), metrics);
     if (!backend.ok()) return backend.status();
-    server->cluster_ = std::move(backend).value();
-    server->service_->SetClusterBackend(server->cluster_.get());
+    server->backend_ = std::move(backend).value();
+    server->clustered_ = true;
+  } else {
+    server->backend_ =
+        std::make_unique<LocalBackend>(server->config_, server->maps_.get(), metrics);
   }
+  server->service_ = std::make_unique<PlaceDbService>(
+      server->config_, server->maps_.get(), server->backend_.get(), server->pool_.get(), metrics,
+      server->detector_.get(), detector_status, server->budget_.get(), server->query_pool_.get());
 
-  if (!server->cluster_) {
+  if (!server->clustered_) {
     server->vocabulary_policy_ = std::make_unique<VocabularyPolicyRunner>(
         server->maps_.get(), std::chrono::milliseconds(c.vocabulary_policy_interval_ms));
     server->vocabulary_policy_->Start();
@@ -391,8 +395,8 @@ void Server::Shutdown() {
   if (query_pool_) query_pool_->Stop();
   if (metrics_) metrics_->StopServing();
   if (tokens_) tokens_->StopWatching();
-  cluster_.reset();              // its engines' connections; no call uses it any more
-  if (maps_) maps_->CloseAll();  // flushes and closes RocksDB
+  if (clustered_) backend_.reset();  // the engines' connections; no call uses them any more
+  if (maps_) maps_->CloseAll();      // flushes and closes RocksDB
   spdlog::info("shutdown complete in {:.3f} s",
                std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());
   MutexLock lock(shutdown_mutex_);

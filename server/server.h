@@ -29,7 +29,7 @@ namespace auth {
 class CallAuthorizer;
 class TokenStore;
 }  // namespace auth
-class ClusterBackend;
+class MapBackend;
 class Console;
 class MapRegistry;
 class MemoryBudget;
@@ -49,10 +49,10 @@ struct ServerDeps {
   // The resident size the memory budget charges as the process at startup; unset: this process's
   // VmRSS (a test process's other work would make that vary from one start to the next).
   std::optional<uint64_t> resident_bytes = std::nullopt;
-  // Cluster mode's worker role (server/cluster_backend.h, made by server/cluster/worker.h): the
-  // backend the service delegates to, made from the server's own maps (the worker's local copies)
-  // and metrics once they exist. Unset: the embedded server (role single).
-  std::function<Result<std::unique_ptr<ClusterBackend>>(MapRegistry*, Metrics*)> cluster_backend =
+  // Cluster mode's worker role (server/cluster/worker.h): the MapBackend the service reaches
+  // its maps through, made from the server's own maps (the worker's local copies) and metrics
+  // once they exist. Unset: the embedded server (role single, server/backend/local_backend.h).
+  std::function<Result<std::unique_ptr<MapBackend>>(MapRegistry*, Metrics*)> cluster_backend =
       nullptr;
 };
 
@@ -89,8 +89,9 @@ class Server {
   std::unique_ptr<MapRegistry> maps_;
   std::shared_ptr<const Detector> detector_;
   std::unique_ptr<WorkerPool> pool_;
-  std::unique_ptr<WorkerPool> query_pool_;   // Query's own (config query_threads)
-  std::unique_ptr<ClusterBackend> cluster_;  // worker role only; before the service using it
+  std::unique_ptr<WorkerPool> query_pool_;  // Query's own (config query_threads)
+  std::unique_ptr<MapBackend> backend_;     // the maps (local or the cluster's); before the service
+  bool clustered_ = false;                  // backend_ is a cluster worker
   std::unique_ptr<PlaceDbService> service_;
   std::unique_ptr<auth::TokenStore> tokens_;  // null without security.tokens_file
   std::unique_ptr<auth::CallAuthorizer> authorizer_;

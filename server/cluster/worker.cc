@@ -26,13 +26,21 @@ using Clock = std::chrono::system_clock;
 using wire::ToGrpc;
 using ShardStub = cluster::v1::Shard::Stub;
 
+// What a worker does not serve: the maps' storage is the shards'.
+grpc::Status NotInCluster(const char* what) {
+  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                      std::string(what) +
+                          " is not served by a cluster worker (docs/cluster.md, \"What cluster "
+                          "mode does not do\")");
+}
+
 // What OnReplica runs for one Shard RPC: `rpc` with `request`, its answer in `response` (cleared
 // before each attempt).
 template <typename Request, typename Response>
 auto ShardRpc(grpc::Status (ShardStub::*rpc)(grpc::ClientContext*, const Request&, Response*),
               const Request& request, Response* response) {
   return [rpc, &request, response](const std::shared_ptr<grpc::Channel>& channel,
-                                   ClusterBackend::Deadline until) {
+                                   MapBackend::Deadline until) {
     grpc::ClientContext context;
     context.set_deadline(until);
     response->Clear();
@@ -41,7 +49,7 @@ auto ShardRpc(grpc::Status (ShardStub::*rpc)(grpc::ClientContext*, const Request
   };
 }
 
-std::chrono::milliseconds Remaining(ClusterBackend::Deadline deadline) {
+std::chrono::milliseconds Remaining(MapBackend::Deadline deadline) {
   return std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
 }
 
@@ -186,8 +194,19 @@ void ClusterWorker::Describe(const std::string& name, const cluster::MapView& vi
   // count is the replicas' (Shard.Status).
 }
 
-grpc::Status ClusterWorker::CreateMap(const std::string& name, const v1::MapConfig& config,
-                                      Deadline deadline, v1::MapDescription* response) {
+grpc::Status ClusterWorker::CreateMap(const MapCreation& creation, Deadline deadline,
+                                      v1::MapDescription* response) {
+  if (creation.settings.adapt_after_descriptors != 0 || creation.settings.regrow_factor != 0) {
+    // Refused rather than stored and ignored: no worker runs the policy (docs/cluster.md).
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        "config.vocabulary_policy: not run in cluster mode; call "
+                        "AdaptVocabulary (placedb maps adapt-vocabulary) instead");
+  }
+  const std::string& name = creation.name;
+  // The effective configuration (every field filled in) is what the cluster stores: workers
+  // and shards build the same map options from it.
+  v1::MapConfig config;
+  wire::MapConfigToProto(creation.options, creation.settings, creation.vocabulary, &config);
   std::string json;
   google::protobuf::util::JsonPrintOptions print;
   print.preserve_proto_field_names = true;
@@ -591,7 +610,7 @@ auto VocabularyStream(std::unique_ptr<grpc::ClientReader<cluster::v1::Vocabulary
                           ShardStub::*rpc)(grpc::ClientContext*, const Request&),
                       const Request& request, v1::MapVocabulary* record, std::string* bytes) {
   return [rpc, &request, record, bytes](const std::shared_ptr<grpc::Channel>& channel,
-                                        ClusterBackend::Deadline until) {
+                                        MapBackend::Deadline until) {
     grpc::ClientContext context;
     context.set_deadline(until);
     record->Clear();
@@ -608,9 +627,9 @@ auto VocabularyStream(std::unique_ptr<grpc::ClientReader<cluster::v1::Vocabulary
 }
 
 // Without a deadline a switch may take long (a large map's re-index on its replicas).
-ClusterBackend::Deadline SwitchDeadline(ClusterBackend::Deadline deadline) {
-  return deadline == ClusterBackend::Deadline::max() ? Clock::now() + std::chrono::minutes(30)
-                                                     : deadline;
+MapBackend::Deadline SwitchDeadline(MapBackend::Deadline deadline) {
+  return deadline == MapBackend::Deadline::max() ? Clock::now() + std::chrono::minutes(30)
+                                                 : deadline;
 }
 
 }  // namespace
@@ -743,7 +762,8 @@ grpc::Status ClusterWorker::AwaitSwitch(const std::string& map, uint64_t sequenc
 }
 
 grpc::Status ClusterWorker::AdaptVocabulary(const v1::AdaptVocabularyRequest& request,
-                                            Deadline deadline, v1::MapVocabulary* response) {
+                                            Deadline deadline, const std::atomic<bool>*,
+                                            v1::MapVocabulary* response) {
   const std::string& name = request.name();
   auto started = StartSwitch(name, deadline);
   if (!started.ok()) return ToGrpc(started.status());
@@ -797,6 +817,7 @@ grpc::Status ClusterWorker::AdaptVocabulary(const v1::AdaptVocabularyRequest& re
 }
 
 grpc::Status ClusterWorker::RevertVocabulary(const std::string& name, Deadline deadline,
+                                             const std::atomic<bool>*,
                                              v1::MapVocabulary* response) {
   auto started = StartSwitch(name, deadline);
   if (!started.ok()) return ToGrpc(started.status());
@@ -828,6 +849,7 @@ grpc::Status ClusterWorker::RevertVocabulary(const std::string& name, Deadline d
 }
 
 grpc::Status ClusterWorker::DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) {
+  deadline = Patient(deadline);
   // Does it exist? (A replica that applied the id answers; NOT_FOUND stands.)
   v1::GetPlaceRequest get;
   get.set_map(request.map());
@@ -891,6 +913,50 @@ Result<uint64_t> ClusterWorker::Publish(const std::string& map, const ProcessedF
   auto sequence = PublishRecord(map, record, message_id, deadline);
   if (!sequence.ok()) return sequence.status();
   return frame.valid ? *sequence : 0;
+}
+
+grpc::Status ClusterWorker::RecoverMap(const v1::RecoverMapRequest&, v1::RecoverMapResponse*) {
+  return NotInCluster("RecoverMap");
+}
+
+grpc::Status ClusterWorker::ScrubMap(const std::string&, v1::ScrubReport*) {
+  return NotInCluster("ScrubMap");
+}
+
+grpc::Status ClusterWorker::Query(const MapEntry& map, const ProcessedFrame& frame,
+                                  const PlaceMetadata& metadata, const v1::QueryRequest& request,
+                                  Deadline deadline, v1::QueryResponse* out, StageTimings*) {
+  const grpc::Status searched =
+      Search(map.name, frame, metadata, request.options(), request.min_sequence(), deadline, out);
+  if (!searched.ok()) return searched;
+  // A map that counts query hits (PlaceMap::CountQueryHit's rule): durable before the answer,
+  // as on a single server.
+  const double above = map.map->options().count_query_hits_above;
+  if (above > 0 && out->matches_size() > 0 && out->matches(0).score() > above) {
+    if (Status counted = CountObservation(map.name, out->matches(0).place_id(), frame, metadata,
+                                          /*message_id=*/"", Patient(deadline));
+        !counted.ok()) {
+      return ToGrpc(counted, "counting the query hit");
+    }
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status ClusterWorker::Snapshots(std::shared_ptr<SnapshotStore>*) {
+  return NotInCluster("Snapshots");
+}
+
+grpc::Status ClusterWorker::CreateSnapshot(const std::string&, SnapshotInfo*) {
+  return NotInCluster("CreateSnapshot");
+}
+
+grpc::Status ClusterWorker::RestoreSnapshot(const v1::RestoreSnapshotRequest&,
+                                            v1::MapDescription*) {
+  return NotInCluster("RestoreSnapshot");
+}
+
+grpc::Status ClusterWorker::ImportSnapshot(const std::string&, SnapshotInfo*) {
+  return NotInCluster("UploadSnapshot");
 }
 
 }  // namespace placedb::server

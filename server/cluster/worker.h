@@ -1,5 +1,6 @@
-// The frame-worker role of cluster mode (issue 18, docs/cluster.md): the ClusterBackend
-// (server/cluster_backend.h) the public placedb.v1 service delegates to on a worker.
+// The frame-worker role of cluster mode (issue 18, docs/cluster.md): the MapBackend
+// (server/backend/map_backend.h) the public placedb.v1 service reaches its maps through on a
+// worker.
 //
 // What a worker does, per call:
 // - CreateMap: etcd transaction create-if-absent on maps/<map> (ALREADY_EXISTS), then the map's
@@ -8,8 +9,9 @@
 //   the coordinator's placement, so that the first frames find a replica. GetMap/ListMaps read
 //   etcd (linearizable); DeleteMap deletes the map's keys (map, placement, applied) in one
 //   transaction, then the stream.
-// - Ingest (PlaceDbService runs the pipeline on Map()'s local copy): search on a replica that has
-//   applied the stream's last place (Search), then Publish: one MapRecord (the shard's codec,
+// - Ingest (PlaceDbService runs the pipeline on Map()'s local copy; OpenIngest's session, in
+//   server/cluster/ingest_session.cc, does the rest): search on a replica that has applied the
+//   stream's last place (Search), then Publish: one MapRecord (the shard's codec,
 //   server/cluster/record_codec.h) with message id <agent_id>/<sequence>, acknowledged to the agent
 //   only after the PubAck; place id = the PubAck's sequence (a duplicate's: the original). A
 //   publish that fails is retried with the same id until the deadline; then UNAVAILABLE and
@@ -23,6 +25,8 @@
 // - DeletePlace: NOT_FOUND unless a replica has the place, then a DeletePlace record.
 // - Query hits (maps with dynamics.count_query_hits_above): the worker publishes a
 //   CountObservation record after the search, acknowledged before the query's answer.
+// - RecoverMap, ScrubMap and snapshots: UNIMPLEMENTED (the shards own the maps' storage);
+//   CreateMap with a vocabulary_policy: FAILED_PRECONDITION (no worker runs the policy).
 // - FetchPlaces / AgentPlaces: loop closure's reads (below), Shard RPCs through OnReplica.
 //
 // Per-agent state and what a failover costs: the agent's stream state (depth Algorithm 1, the
@@ -51,7 +55,7 @@
 //
 // The coordinator (server/cluster/placement.h) runs in every worker; one is elected.
 //
-// Threading: thread-safe (every ClusterBackend method may be called concurrently).
+// Threading: thread-safe (every method may be called concurrently).
 #pragma once
 
 #include <grpcpp/channel.h>
@@ -59,23 +63,31 @@
 #include <prometheus/family.h>
 #include <prometheus/histogram.h>
 
+#include <algorithm>
+#include <chrono>
 #include <map>
 #include <memory>
 #include <set>
 #include <string>
 
 #include "core/base/thread_annotations.h"
+#include "server/backend/map_backend.h"
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/placement.h"
-#include "server/cluster_backend.h"
 #include "server/config.h"
 #include "server/map_registry.h"
 #include "server/metrics.h"
 
 namespace placedb::server {
 
-class ClusterWorker final : public ClusterBackend {
+// A frame's or a call's time for retries in the cluster: its deadline, at most 15 s from now (a
+// stream has no deadline of its own; JetStream's leader elections take ~5-9 s).
+inline MapBackend::Deadline Patient(MapBackend::Deadline deadline) {
+  return std::min(deadline, std::chrono::system_clock::now() + std::chrono::seconds(15));
+}
+
+class ClusterWorker final : public MapBackend {
  public:
   // Connects to etcd and NATS (config.cluster), starts the view and the coordinator, and empties
   // `local` (the worker's cache of map copies). IO_ERROR when an engine cannot be reached.
@@ -83,44 +95,80 @@ class ClusterWorker final : public ClusterBackend {
                                                       MapRegistry* local, Metrics* metrics);
   ~ClusterWorker() override;
 
+  // ---- MapBackend
   const char* role() const override { return "worker"; }
-  grpc::Status CreateMap(const std::string& name, const v1::MapConfig& config, Deadline deadline,
+  grpc::Status CreateMap(const MapCreation& creation, Deadline deadline,
                          v1::MapDescription* response) override;
   grpc::Status GetMap(const std::string& name, Deadline deadline,
                       v1::MapDescription* response) override;
   grpc::Status ListMaps(Deadline deadline, v1::ListMapsResponse* response) override;
   grpc::Status DeleteMap(const std::string& name, Deadline deadline) override;
-  Result<std::shared_ptr<const MapEntry>> Map(const std::string& name,
-                                              const std::string& field) override;
-  grpc::Status Search(const std::string& map, const ProcessedFrame& frame,
-                      const PlaceMetadata& metadata, const v1::MatchOptions& options,
-                      uint64_t min_sequence, Deadline deadline, v1::QueryResponse* out) override;
-  Result<uint64_t> Publish(const std::string& map, const ProcessedFrame& frame,
-                           const PlaceMetadata& metadata, const std::string& message_id,
-                           Deadline deadline) override;
-  Status CountObservation(const std::string& map, uint32_t place, const ProcessedFrame& frame,
-                          const PlaceMetadata& metadata, const std::string& message_id,
-                          Deadline deadline) override;
-  Result<std::vector<std::pair<PlaceId, PlacePayload>>> FetchPlaces(const std::string& map,
-                                                                    const std::vector<PlaceId>& ids,
-                                                                    bool features,
-                                                                    uint64_t min_sequence,
-                                                                    Deadline deadline) override;
-  Result<std::vector<PlaceSource::AgentPlace>> AgentPlaces(const std::string& map,
-                                                           const std::string& agent_id,
-                                                           uint64_t min_sequence,
-                                                           Deadline deadline) override;
-  grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) override;
+  grpc::Status RecoverMap(const v1::RecoverMapRequest& request,
+                          v1::RecoverMapResponse* response) override;
+  grpc::Status ScrubMap(const std::string& name, v1::ScrubReport* response) override;
   grpc::Status AdaptVocabulary(const v1::AdaptVocabularyRequest& request, Deadline deadline,
+                               const std::atomic<bool>* cancel,
                                v1::MapVocabulary* response) override;
   grpc::Status RevertVocabulary(const std::string& name, Deadline deadline,
+                                const std::atomic<bool>* cancel,
                                 v1::MapVocabulary* response) override;
+  Result<std::shared_ptr<const MapEntry>> Map(const std::string& name,
+                                              const std::string& field) override;
   grpc::Status GetPlace(const v1::GetPlaceRequest& request, Deadline deadline,
                         v1::Place* response) override;
   grpc::Status ListPlaces(const v1::ListPlacesRequest& request, Deadline deadline,
                           v1::ListPlacesResponse* response) override;
+  grpc::Status DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) override;
   grpc::Status GetDynamics(const v1::GetDynamicsRequest& request, Deadline deadline,
                            v1::GetDynamicsResponse* response) override;
+  grpc::Status Query(const MapEntry& map, const ProcessedFrame& frame,
+                     const PlaceMetadata& metadata, const v1::QueryRequest& request,
+                     Deadline deadline, v1::QueryResponse* out, StageTimings* timings) override;
+  std::unique_ptr<IngestSession> OpenIngest(std::shared_ptr<const MapEntry> map) override;
+  grpc::Status Snapshots(std::shared_ptr<SnapshotStore>* store) override;
+  grpc::Status CreateSnapshot(const std::string& map, SnapshotInfo* info) override;
+  grpc::Status RestoreSnapshot(const v1::RestoreSnapshotRequest& request,
+                               v1::MapDescription* response) override;
+  grpc::Status ImportSnapshot(const std::string& path, SnapshotInfo* info) override;
+  void RefreshGauges() override {}  // the shards export the maps' figures
+
+  // ---- The worker's own calls (the ingest session's and the tests')
+  // Searches `frame` on a replica of `map` that has applied at least `min_sequence` (retried once
+  // on the other replica when the first is unreachable). Fills `out`'s matches and sequence (the
+  // replica's applied sequence).
+  grpc::Status Search(const std::string& map, const ProcessedFrame& frame,
+                      const PlaceMetadata& metadata, const v1::MatchOptions& options,
+                      uint64_t min_sequence, Deadline deadline, v1::QueryResponse* out);
+  // Publishes `frame` as a place of `map` with `message_id` (de-duplication) and returns its
+  // place id (the stream sequence; the original one for a duplicate) once JetStream has
+  // acknowledged it; retried with the same id until `deadline`, then UNAVAILABLE (nothing was
+  // acknowledged; the record may still be stored: a retry with the same id finds it). An invalid
+  // frame is published as such (counted by the replicas) and answers 0.
+  Result<uint64_t> Publish(const std::string& map, const ProcessedFrame& frame,
+                           const PlaceMetadata& metadata, const std::string& message_id,
+                           Deadline deadline);
+  // `frame`'s statistics as one more observation of `place` (a CountObservation record): a query
+  // hit (`message_id` empty: no de-duplication, as on a single server a retried Query counts
+  // again) or a stream frame merged by loop closure's rehearsal (the frame's message id: a resent
+  // frame counts once). Acknowledged before it returns; UNAVAILABLE as Publish.
+  Status CountObservation(const std::string& map, uint32_t place, const ProcessedFrame& frame,
+                          const PlaceMetadata& metadata, const std::string& message_id,
+                          Deadline deadline);
+  // Loop closure's reads: the BoW vectors of `ids` (and, with `features`, their SC features and
+  // direct index), from a replica that has applied `min_sequence` and the highest of them (a
+  // place id is its stream sequence). A removed place is absent from the result.
+  Result<std::vector<std::pair<PlaceId, PlacePayload>>> FetchPlaces(const std::string& map,
+                                                                    const std::vector<PlaceId>& ids,
+                                                                    bool features,
+                                                                    uint64_t min_sequence,
+                                                                    Deadline deadline);
+  // Every place of `agent_id` in `map` (id, observation sequence, BoW vector), from replicas that
+  // have applied at least `min_sequence` and everything the stream held when the call began, a
+  // page at a time: a new detector's replay (PlaceSource::AgentPlaces).
+  Result<std::vector<PlaceSource::AgentPlace>> AgentPlaces(const std::string& map,
+                                                           const std::string& agent_id,
+                                                           uint64_t min_sequence,
+                                                           Deadline deadline);
 
   // For tests: the coordinator of this worker leads.
   bool coordinating() const { return coordinator_ && coordinator_->leading(); }

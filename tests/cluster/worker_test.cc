@@ -36,9 +36,9 @@ namespace {
 
 using namespace std::chrono_literals;
 using cluster::testing::Engines;
-using server::ClusterBackend;
 using server::ClusterRole;
 using server::ClusterWorker;
+using server::MapBackend;
 using server::MapRegistry;
 using server::Metrics;
 
@@ -81,10 +81,10 @@ class ClusterWorkerTest : public ServerTest {
     if (metrics) configs_.back()->metrics_listen = "127.0.0.1:0";
     const ServerConfig& config = *configs_.back();
     deps.cluster_backend = [&config](MapRegistry* maps,
-                                     Metrics* metrics) -> Result<std::unique_ptr<ClusterBackend>> {
+                                     Metrics* metrics) -> Result<std::unique_ptr<MapBackend>> {
       auto worker = ClusterWorker::Start(config, maps, metrics);
       if (!worker.ok()) return worker.status();
-      return std::unique_ptr<ClusterBackend>(std::move(worker).value());
+      return std::unique_ptr<MapBackend>(std::move(worker).value());
     };
     auto started = Server::Start(config, std::move(deps));
     EXPECT_TRUE(started.ok()) << started.status().ToString();

@@ -1,4 +1,8 @@
-// placedb.v1.PlaceDb on the synchronous gRPC API, with the frame pipeline on a bounded pool.
+// placedb.v1.PlaceDb on the synchronous gRPC API, with the frame pipeline on a bounded pool: one
+// service class, its handlers one file per RPC group (server/rpc/maps.cc, places.cc, query.cc,
+// ingest.cc, snapshots.cc, info.cc; service.cc: calls in flight, drain, the watchdog). Every map
+// is reached through one MapBackend (server/backend/map_backend.h): this server's own maps or a
+// cluster worker's; no handler asks which.
 //
 // Ingest: the call's handler thread reads and hands each observation to the stream's
 // IngestPipeline (server/ingest_pipeline.h), which prepares it on the WorkerPool (decode, detect,
@@ -38,12 +42,12 @@
 #include "core/detect/detector.h"
 #include "proto/placedb.grpc.pb.h"
 #include "server/agent_activity.h"
-#include "server/cluster_backend.h"
+#include "server/backend/map_backend.h"
 #include "server/config.h"
 #include "server/map_registry.h"
 #include "server/memory_budget.h"
 #include "server/metrics.h"
-#include "server/parsing_service.h"
+#include "server/rpc/ingest_stream_io.h"
 #include "server/worker_pool.h"
 
 namespace placedb::server {
@@ -55,9 +59,12 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   // `detector` null = server-side detection off; `detector_status` then says why ("off", or
   // "off: <error>" when a configured model failed to load). Frames and queries are charged to
   // `budget` (limits.memory_budget_bytes) from their read to their answer.
-  // `query_pool` (optional, default `pool`): the workers Query runs on.
-  PlaceDbService(const ServerConfig& config, MapRegistry* maps, WorkerPool* pool, Metrics* metrics,
-                 const Detector* detector, std::string detector_status, MemoryBudget* budget,
+  // `query_pool` (optional, default `pool`): the workers Query runs on. `backend`: the maps
+  // (LocalBackend over `maps`, or a cluster worker); `maps` also holds the server's configured
+  // vocabularies.
+  PlaceDbService(const ServerConfig& config, MapRegistry* maps, MapBackend* backend,
+                 WorkerPool* pool, Metrics* metrics, const Detector* detector,
+                 std::string detector_status, MemoryBudget* budget,
                  WorkerPool* query_pool = nullptr);
   ~PlaceDbService() override;
 
@@ -127,11 +134,6 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   bool WaitIdle(std::chrono::steady_clock::time_point deadline);
   // GetServerInfo's console_url (server/console): set once, before the server serves calls.
   void SetConsoleUrl(std::string url) { console_url_ = std::move(url); }
-  // Cluster mode's worker role (server/cluster_backend.h): maps, search, storing and place reads
-  // go to the cluster; the frame pipeline stays this service's, on the backend's local copy of
-  // each map. Loop closure, RecoverMap, ScrubMap and snapshots are refused there
-  // (FAILED_PRECONDITION / UNIMPLEMENTED, docs/cluster.md). Set once, before serving calls.
-  void SetClusterBackend(ClusterBackend* backend) { cluster_ = backend; }
   // Sets the per-map gauges (places, bytes on disk, damage); run before each metrics scrape.
   void RefreshMapGauges();
   // A request refused before its handler (ParsingService: not a valid message, or denied by
@@ -140,12 +142,12 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                                grpc::Status status);
 
   // One Ingest call or snapshot transfer as the watchdog sees it, from its handler's start
-  // (service.cc); WatchScope lists it (admission against max_concurrent_streams).
+  // (call_support.h); WatchScope lists it (admission against max_concurrent_streams).
   struct Watch;
   class WatchScope;
-  struct Stream;  // one open Ingest call past its header (service.cc)
-  struct Slot;    // one observation of a stream (service.cc)
-  struct Work;    // one frame's processing state (service.cc)
+  struct Stream;  // one open Ingest call past its header (ingest.cc)
+  struct Slot;    // one observation of a stream (ingest.cc)
+  struct Work;    // one frame's processing state (call_support.h)
 
  private:
   // Decode, detect, extract, [depth], filter, transform: the first half of a frame, on a worker.
@@ -155,23 +157,13 @@ class PlaceDbService final : public v1::PlaceDb::Service {
                        const v1::Observation& observation, const std::string& field, FrameRole role,
                        Work* work, bool keep_dropped_keypoints = false);
   // The second half of an Ingest frame (the agent's stream state: Algorithm 1; search when
-  // asked; then store, or loop closure + store in loop-closure mode) and its response. The
-  // stream's pipeline runs it in stream order, one frame at a time.
+  // asked; then store, or loop closure + store in loop-closure mode, through the stream's
+  // IngestSession). The stream's pipeline runs it in stream order, one frame at a time.
   void Complete(Stream* stream, Slot* slot);
-  // Complete()'s second half in cluster mode, after the agent's stream state: search on a
-  // caught-up replica when asked, then publish and wait for JetStream's acknowledgement; the
-  // place id is the stream sequence. Fills the response; an error is the frame's answer.
-  grpc::Status CompleteInCluster(Stream* stream, Slot* slot);
-  // Its loop-closure mode (a valid frame): the agent's detector on the local copy of the map
-  // (PlaceMap::CloseLoop), reading the places it needs from replicas; the frame published with
-  // `message_id` unless rehearsal merges it (then a CountObservation record at the place it
-  // was merged into, with the same id). The response carries the single server's fields.
-  grpc::Status CloseLoopInCluster(Stream* stream, Slot* slot, const std::string& message_id,
-                                  ClusterBackend::Deadline deadline);
   // The rest of a completed frame's answer, on the stream's delivery thread before it is written
-  // (or when it is skipped): waits until its place is durable and indexed (a place Complete()
-  // handed to the map's commit queue: group commit), fills in the outcome, and counts it.
-  // Idempotent; nothing for a frame never completed.
+  // (or when it is skipped): waits until its place is durable and indexed (group commit), fills
+  // in the outcome (stored or not, its place, loop closure's), and counts it. Idempotent;
+  // nothing for a frame never completed.
   void Settle(Stream* stream, Slot* slot);
   // Sizes a frame's reservation (its read's, from the pipeline) to the frame, waiting up to
   // limits.memory_wait_ms; RESOURCE_EXHAUSTED naming the budget when it does not fit.
@@ -195,11 +187,8 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   MemoryBudget* const budget_;
   // Per map and agent, every Ingest frame Complete() answers; GetMap's MapDescription.agents.
   AgentActivity activity_;
-  std::string console_url_;            // written before serving, read-only after
-  ClusterBackend* cluster_ = nullptr;  // written before serving, read-only after
-  // The map a request names: the cluster's (worker role) or this server's.
-  Result<std::shared_ptr<const MapEntry>> GetMapEntry(const std::string& name,
-                                                      const std::string& field) const;
+  std::string console_url_;    // written before serving, read-only after
+  MapBackend* const backend_;  // the maps: this server's or the cluster's
 
   // Counts calls being served (RAII CallScope in every handler), for WaitIdle().
   class CallScope;

@@ -1,0 +1,159 @@
+// ClusterWorker::OpenIngest (server/cluster/worker.h): one Ingest stream on a worker. Storing is
+// publishing (place id = the stream sequence JetStream acknowledged); searches go to a replica
+// that has applied the stream's last place (read-your-writes); loop closure runs the agent's
+// detector on the worker's local copy of the map, reading the places it needs from replicas.
+
+#include <spdlog/spdlog.h>
+
+#include <set>
+
+#include "core/base/text.h"
+#include "core/base/timing.h"
+#include "proto/status.h"
+#include "server/cluster/worker.h"
+
+namespace placedb::server {
+
+namespace {
+
+using wire::ToGrpc;
+
+// Loop closure's places on a worker, whose local copy of the map holds none: read from the map's
+// replicas, for one frame of an Ingest stream (`min_sequence`: the stream's last place;
+// `deadline`: the frame's).
+class ReplicaPlaces final : public PlaceSource {
+ public:
+  ReplicaPlaces(ClusterWorker* worker, std::string map, uint64_t min_sequence,
+                MapBackend::Deadline deadline)
+      : worker_(worker), map_(std::move(map)), min_sequence_(min_sequence), deadline_(deadline) {}
+
+  Result<BowVector> GetBow(PlaceId place) override {
+    auto fetched = Fetch(place, /*features=*/false);
+    if (!fetched.ok()) return fetched.status();
+    return std::move(fetched->bow);
+  }
+  Result<std::shared_ptr<const PlacePayload>> GetPayload(PlaceId place) override {
+    auto fetched = Fetch(place, /*features=*/true);
+    if (!fetched.ok()) return fetched.status();
+    return std::shared_ptr<const PlacePayload>(
+        std::make_shared<PlacePayload>(std::move(fetched).value()));
+  }
+  Result<std::vector<AgentPlace>> AgentPlaces(const std::string& agent_id) override {
+    return worker_->AgentPlaces(map_, agent_id, min_sequence_, deadline_);
+  }
+
+ private:
+  Result<PlacePayload> Fetch(PlaceId place, bool features) {
+    auto fetched = worker_->FetchPlaces(map_, {place}, features, min_sequence_, deadline_);
+    if (!fetched.ok()) return fetched.status();
+    if (fetched->empty()) {
+      return Status::NotFound("place " + std::to_string(place) + " not found in map '" + map_ +
+                              "'");
+    }
+    return std::move(fetched->front().second);
+  }
+
+  ClusterWorker* const worker_;
+  const std::string map_;
+  const uint64_t min_sequence_;
+  const MapBackend::Deadline deadline_;
+};
+
+std::shared_ptr<PendingCommit> Completed(Result<AddResult> outcome) {
+  auto pending = std::make_shared<PendingCommit>();
+  pending->Complete(std::move(outcome));
+  return pending;
+}
+
+class ClusterIngestSession final : public IngestSession {
+ public:
+  ClusterIngestSession(ClusterWorker* worker, std::shared_ptr<const MapEntry> map)
+      : worker_(worker), map_(std::move(map)) {}
+
+  grpc::Status Search(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                      const v1::MatchOptions& options, Deadline deadline,
+                      google::protobuf::RepeatedPtrField<v1::Match>* out, StageTimings*) override {
+    v1::QueryResponse found;
+    const grpc::Status searched = worker_->Search(map_->name, frame, metadata, options,
+                                                  last_sequence_, Patient(deadline), &found);
+    if (!searched.ok()) return searched;
+    out->Swap(found.mutable_matches());
+    return grpc::Status::OK;
+  }
+
+  std::shared_ptr<PendingCommit> Store(ProcessedFrame frame, const PlaceMetadata& metadata,
+                                       const std::string& message_id, Deadline deadline) override {
+    Stopwatch publish;
+    auto published = worker_->Publish(map_->name, frame, metadata, message_id, Patient(deadline));
+    if (!published.ok()) return Completed(published.status().WithContext("publishing"));
+    AddResult added;
+    added.timings.store_ms = publish.Lap();
+    added.stored = frame.valid;
+    added.rejection = frame.rejection;
+    if (frame.valid) {
+      added.id = PlaceId(*published);
+      last_sequence_ = std::max(last_sequence_, *published);
+    }
+    return Completed(std::move(added));
+  }
+
+  Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                       const std::string& message_id, Deadline deadline,
+                                       AddResult* stored) override {
+    deadline = Patient(deadline);
+    const MapEntry& map = *map_;
+    // The agent's detector lives in the local copy (per-agent state, with its Ingest stream); the
+    // places it reads are the replicas'. Storing = publishing.
+    ReplicaPlaces source(worker_, map.name, last_sequence_, deadline);
+    if (loop_agents_.insert(metadata.agent_id).second) {
+      // The agent's first frame in this stream: a detector this worker kept from an earlier
+      // stream of the agent may lack the places it stored through other workers since; a new one
+      // replays them all from a replica.
+      map.map->ResetLoopClosure(metadata.agent_id);
+    }
+    double store_ms = 0;
+    auto store = [&]() -> Result<PlaceId> {
+      Stopwatch publish;
+      auto published = worker_->Publish(map.name, frame, metadata, message_id, deadline);
+      store_ms = publish.Lap();
+      if (!published.ok()) return published.status();
+      return PlaceId(*published);
+    };
+    auto outcome = map.map->CloseLoop(frame, metadata, store, &source);
+    if (!outcome.ok()) return outcome.status();
+    if (outcome->replayed > 0) {
+      spdlog::info(
+          "loop closure map={} agent={}: {} earlier places replayed from a replica in {:.1f} ms",
+          ForLog(map.name), ForLog(metadata.agent_id), outcome->replayed, outcome->replay_ms);
+    }
+    if (outcome->merged) {
+      // As on a single node: nothing stored, the frame counted as one more observation of the
+      // place it was merged into (its message id: a resent frame counts once).
+      Stopwatch count;
+      const Status counted = worker_->CountObservation(map.name, outcome->place, frame, metadata,
+                                                       message_id, deadline);
+      store_ms = count.Lap();
+      if (!counted.ok()) return counted.WithContext("counting the merged frame");
+    } else {
+      stored->stored = true;
+      stored->id = outcome->place;
+      last_sequence_ = std::max<uint64_t>(last_sequence_, outcome->place);
+    }
+    stored->timings.store_ms = store_ms;
+    return outcome;
+  }
+
+ private:
+  ClusterWorker* const worker_;
+  const std::shared_ptr<const MapEntry> map_;
+  uint64_t last_sequence_ = 0;         // the stream's last place id: its searches' min_sequence
+  std::set<std::string> loop_agents_;  // whose detector this stream has (re)started
+};
+
+}  // namespace
+
+std::unique_ptr<IngestSession> ClusterWorker::OpenIngest(std::shared_ptr<const MapEntry> map) {
+  return std::make_unique<ClusterIngestSession>(this, std::move(map));
+}
+
+}  // namespace placedb::server
