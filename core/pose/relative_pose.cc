@@ -1,0 +1,493 @@
+#include "core/pose/relative_pose.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <opencv2/calib3d.hpp>
+#include <sstream>
+
+namespace placedb {
+
+namespace {
+
+std::string Num(double v) {
+  std::ostringstream out;
+  out << v;
+  return out.str();
+}
+
+using Mat6 = cv::Matx<double, 6, 6>;
+
+cv::Matx33d Skew(const cv::Vec3d& v) {
+  return {0, -v[2], v[1], v[2], 0, -v[0], -v[1], v[0], 0};
+}
+
+Transform FromRt(const cv::Matx33d& r, const cv::Vec3d& t) {
+  return {r(0, 0), r(0, 1), r(0, 2), t[0], r(1, 0), r(1, 1), r(1, 2), t[1],
+          r(2, 0), r(2, 1), r(2, 2), t[2], 0,       0,       0,       1};
+}
+
+cv::Matx33d RotationOf(const Transform& t) {
+  return {t[0], t[1], t[2], t[4], t[5], t[6], t[8], t[9], t[10]};
+}
+
+double AngleDeg(const cv::Matx33d& r) {
+  const double c = std::clamp((cv::trace(r) - 1) / 2, -1.0, 1.0);
+  return std::acos(c) * 180.0 / CV_PI;
+}
+
+bool DepthUsable(float d, const RelativePoseConfig& config) {
+  return std::isfinite(d) && d >= config.min_depth_m && d <= config.max_depth_m;
+}
+
+Status ValidateFrame(const PoseFrame& frame, const char* side) {
+  PLACEDB_RETURN_IF_ERROR(frame.camera.Validate(std::string(side) + ".camera"));
+  if (!frame.depth_m.empty() && frame.depth_m.size() != frame.keypoints.size()) {
+    return Status::InvalidArgument(std::string(side) + ".depth_m has " +
+                                   std::to_string(frame.depth_m.size()) + " values for " +
+                                   std::to_string(frame.keypoints.size()) +
+                                   " keypoints: give one per keypoint (0 = none) or none at all");
+  }
+  for (size_t i = 0; i < frame.depth_m.size(); ++i) {
+    const float d = frame.depth_m[i];
+    if (d < 0 || std::isinf(d)) {
+      return Status::InvalidArgument(std::string(side) + ".depth_m[" + std::to_string(i) +
+                                     "] = " + Num(d) +
+                                     ": a depth is a finite distance >= 0 in metres (0 or NaN = "
+                                     "none)");
+    }
+  }
+  return Status::Ok();
+}
+
+// Pixel residual statistics at a pose: squared residual norms of every correspondence.
+struct PnpProblem {
+  std::vector<cv::Point3d> object;  // 3-D, in the depth side's camera frame
+  std::vector<cv::Point2d> image;   // undistorted pixels in the other side's image
+  std::vector<uint32_t> match;      // index into the caller's matches
+  cv::Matx33d k;                    // the image side's pinhole intrinsics
+};
+
+std::vector<double> SquaredReprojection(const PnpProblem& p, const cv::Matx33d& r,
+                                        const cv::Vec3d& t) {
+  std::vector<double> out(p.object.size());
+  for (size_t i = 0; i < p.object.size(); ++i) {
+    const cv::Vec3d x = r * cv::Vec3d(p.object[i].x, p.object[i].y, p.object[i].z) + t;
+    if (x[2] <= 1e-9) {
+      out[i] = std::numeric_limits<double>::infinity();
+      continue;
+    }
+    const double u = p.k(0, 0) * x[0] / x[2] + p.k(0, 2) - p.image[i].x;
+    const double v = p.k(1, 1) * x[1] / x[2] + p.k(1, 2) - p.image[i].y;
+    out[i] = u * u + v * v;
+  }
+  return out;
+}
+
+template <typename T>
+std::vector<T> Pick(const std::vector<T>& values, const std::vector<int>& which) {
+  std::vector<T> out;
+  out.reserve(which.size());
+  for (int i : which) out.push_back(values[i]);
+  return out;
+}
+
+void StoreInformation(const Mat6& info, RelativePose* pose) {
+  for (int r = 0; r < 6; ++r) {
+    for (int c = 0; c < 6; ++c) pose->information[r * 6 + c] = info(r, c);
+  }
+}
+
+Status TooFewInliers(int inliers, int of, const RelativePoseConfig& config, const char* solver) {
+  return Status::FailedPrecondition(
+      std::string(solver) + ": only " + std::to_string(inliers) + " of " + std::to_string(of) +
+      " correspondences agree on a pose (min_inliers " + std::to_string(config.min_inliers) +
+      "): degenerate or wrong match");
+}
+
+Result<RelativePose> SolvePnp(PnpProblem problem, bool depth_on_place,
+                              const RelativePoseConfig& config) {
+  const int n = int(problem.object.size());
+  cv::Mat rvec, tvec;
+  std::vector<int> inliers;
+  bool found = false;
+  try {
+    found =
+        cv::solvePnPRansac(problem.object, problem.image, problem.k, cv::noArray(), rvec, tvec,
+                           false, config.ransac_max_iterations, float(config.ransac_threshold_px),
+                           config.ransac_confidence, inliers, cv::SOLVEPNP_AP3P);
+  } catch (const cv::Exception& e) {
+    return Status::FailedPrecondition(std::string("pnp: degenerate correspondences (") + e.what() +
+                                      ")");
+  }
+  if (!found || int(inliers.size()) < config.min_inliers) {
+    return TooFewInliers(int(inliers.size()), n, config, "pnp");
+  }
+  const double threshold2 = config.ransac_threshold_px * config.ransac_threshold_px;
+  std::vector<double> squared;
+  // Refine on the inliers, re-select them at the refined pose, refine once more.
+  for (int pass = 0; pass < 2; ++pass) {
+    const auto object = Pick(problem.object, inliers);
+    const auto image = Pick(problem.image, inliers);
+    cv::solvePnPRefineLM(object, image, problem.k, cv::noArray(), rvec, tvec);
+    cv::Matx33d r;
+    cv::Rodrigues(rvec, r);
+    squared = SquaredReprojection(problem, r, cv::Vec3d(tvec));
+    std::vector<int> next;
+    for (int i = 0; i < n; ++i) {
+      if (squared[i] <= threshold2) next.push_back(i);
+    }
+    if (int(next.size()) < config.min_inliers) {
+      return TooFewInliers(int(next.size()), n, config, "pnp");
+    }
+    if (next == inliers) break;
+    inliers = std::move(next);
+  }
+  cv::Matx33d r;
+  cv::Rodrigues(rvec, r);
+  const cv::Vec3d t(tvec);
+  squared = SquaredReprojection(problem, r, t);
+
+  RelativePose pose;
+  pose.metric = true;
+  pose.solver = depth_on_place ? PoseSolver::kPnpPlaceDepth : PoseSolver::kPnpQueryDepth;
+  pose.correspondences = n;
+  pose.inliers = int(inliers.size());
+  double ssr = 0;
+  for (int i : inliers) {
+    ssr += squared[i];
+    pose.inlier_indices.push_back(problem.match[i]);
+  }
+  std::sort(pose.inlier_indices.begin(), pose.inlier_indices.end());
+  pose.rms_error_px = std::sqrt(ssr / pose.inliers);
+
+  // The solver's transform maps the 3-D side into the image side: T_query_place with the place's
+  // depth, T_place_query with the query's.
+  const Transform solved = FromRt(r, t);
+  pose.transform = depth_on_place ? InvertTransform(solved) : solved;
+
+  // Information of the right perturbation of T_place_query (header comment): the Jacobian of
+  // each inlier's pixel residual with respect to [dt, dtheta].
+  const double sigma2 = std::max(ssr / std::max(1, 2 * pose.inliers - 6),
+                                 config.min_pixel_sigma * config.min_pixel_sigma);
+  Mat6 info = Mat6::zeros();
+  for (int i : inliers) {
+    const cv::Vec3d p(problem.object[i].x, problem.object[i].y, problem.object[i].z);
+    const cv::Vec3d x = r * p + t;  // in the image side's frame
+    const double iz = 1.0 / x[2];
+    const cv::Matx<double, 2, 3> dproj(problem.k(0, 0) * iz, 0, -problem.k(0, 0) * x[0] * iz * iz,
+                                       0, problem.k(1, 1) * iz, -problem.k(1, 1) * x[1] * iz * iz);
+    cv::Matx33d dx_dt, dx_dtheta;
+    if (depth_on_place) {
+      // x = query-frame point: x = Delta^-1 * x_hat -> dx/ddt = -I, dx/ddtheta = [x]_x.
+      dx_dt = -cv::Matx33d::eye();
+      dx_dtheta = Skew(x);
+    } else {
+      // x = place-frame point: x = R (p + dtheta x p + dt) + t -> R, -R [p]_x.
+      dx_dt = r;
+      dx_dtheta = -(r * Skew(p));
+    }
+    const cv::Matx<double, 2, 3> jt = dproj * dx_dt;
+    const cv::Matx<double, 2, 3> jr = dproj * dx_dtheta;
+    cv::Matx<double, 2, 6> j;
+    for (int row = 0; row < 2; ++row) {
+      for (int c = 0; c < 3; ++c) {
+        j(row, c) = jt(row, c);
+        j(row, c + 3) = jr(row, c);
+      }
+    }
+    info += j.t() * j;
+  }
+  StoreInformation(info * (1.0 / sigma2), &pose);
+  return pose;
+}
+
+// Sampson distance (pixels) of x_place^T F x_query = 0, F from the pose and both cameras.
+double Sampson(const cv::Matx33d& f, const cv::Point2d& q, const cv::Point2d& p) {
+  const cv::Vec3d xq(q.x, q.y, 1), xp(p.x, p.y, 1);
+  const cv::Vec3d fq = f * xq;
+  const cv::Vec3d ftp = f.t() * xp;
+  const double e = xp.dot(fq);
+  const double d = fq[0] * fq[0] + fq[1] * fq[1] + ftp[0] * ftp[0] + ftp[1] * ftp[1];
+  return d > 0 ? e / std::sqrt(d) : 0;
+}
+
+cv::Matx33d Fundamental(const cv::Matx33d& r, const cv::Vec3d& t, const cv::Matx33d& kq_inv,
+                        const cv::Matx33d& kp_inv) {
+  return kp_inv.t() * (Skew(t) * r) * kq_inv;
+}
+
+Result<RelativePose> SolveEssential(const PoseFrame& query, const PoseFrame& place,
+                                    std::span<const KeypointMatch> matches,
+                                    const RelativePoseConfig& config) {
+  const int n = int(matches.size());
+  if (n < std::max(5, config.min_inliers)) {
+    return Status::FailedPrecondition("essential: " + std::to_string(n) +
+                                      " matches are too few for a relative pose (min_inliers " +
+                                      std::to_string(config.min_inliers) + ")");
+  }
+  std::vector<cv::Point2d> q_px(n), p_px(n);
+  for (int i = 0; i < n; ++i) {
+    const Keypoint& a = query.keypoints[matches[i].query];
+    const Keypoint& b = place.keypoints[matches[i].place];
+    q_px[i] = {a.x, a.y};
+    p_px[i] = {b.x, b.y};
+  }
+  q_px = UndistortPixels(query.camera, q_px);
+  p_px = UndistortPixels(place.camera, p_px);
+  std::vector<cv::Point2d> q_n(n), p_n(n);
+  for (int i = 0; i < n; ++i) {
+    q_n[i] = {(q_px[i].x - query.camera.cx) / query.camera.fx,
+              (q_px[i].y - query.camera.cy) / query.camera.fy};
+    p_n[i] = {(p_px[i].x - place.camera.cx) / place.camera.fx,
+              (p_px[i].y - place.camera.cy) / place.camera.fy};
+  }
+  const double focal = (std::sqrt(query.camera.fx * query.camera.fy) +
+                        std::sqrt(place.camera.fx * place.camera.fy)) /
+                       2;
+  cv::Mat mask, e_mat;
+  cv::Matx33d r;
+  cv::Vec3d t;
+  try {
+    e_mat = cv::findEssentialMat(q_n, p_n, 1.0, cv::Point2d(0, 0), cv::RANSAC,
+                                 config.ransac_confidence, config.ransac_threshold_px / focal,
+                                 config.ransac_max_iterations, mask);
+    if (e_mat.rows != 3 || e_mat.cols != 3) {
+      return Status::FailedPrecondition("essential: no essential matrix fits the " +
+                                        std::to_string(n) + " matches (degenerate)");
+    }
+    cv::Mat r_mat, t_mat;
+    cv::recoverPose(e_mat, q_n, p_n, r_mat, t_mat, 1.0, cv::Point2d(0, 0), mask);
+    r = cv::Matx33d(r_mat);
+    t = cv::Vec3d(t_mat);
+  } catch (const cv::Exception& e) {
+    return Status::FailedPrecondition(std::string("essential: degenerate correspondences (") +
+                                      e.what() + ")");
+  }
+  // Inliers: within the Sampson threshold at the recovered pose and in front of both cameras
+  // (recoverPose's mask).
+  const cv::Matx33d f = Fundamental(r, t, query.camera.K().inv(), place.camera.K().inv());
+  RelativePose pose;
+  pose.metric = false;
+  pose.solver = PoseSolver::kEssential;
+  pose.correspondences = n;
+  double ssr = 0;
+  std::vector<int> inliers;
+  for (int i = 0; i < n; ++i) {
+    if (mask.at<uchar>(i) == 0) continue;
+    const double s = Sampson(f, q_px[i], p_px[i]);
+    if (std::abs(s) > config.ransac_threshold_px) continue;
+    inliers.push_back(i);
+    ssr += s * s;
+  }
+  if (int(inliers.size()) < config.min_inliers) {
+    return TooFewInliers(int(inliers.size()), n, config, "essential");
+  }
+  pose.inliers = int(inliers.size());
+  for (int i : inliers) pose.inlier_indices.push_back(uint32_t(i));
+  pose.rms_error_px = std::sqrt(ssr / pose.inliers);
+  pose.transform = FromRt(r, t);
+
+  // Information: numerical Jacobian of the Sampson distances with respect to the right
+  // perturbation [dt, dtheta] of T_place_query (t of unit length).
+  const double sigma2 = std::max(ssr / std::max(1, pose.inliers - 5),
+                                 config.min_pixel_sigma * config.min_pixel_sigma);
+  const cv::Matx33d kq_inv = query.camera.K().inv(), kp_inv = place.camera.K().inv();
+  constexpr double kStep = 1e-6;
+  std::vector<cv::Matx33d> f_plus(6), f_minus(6);
+  for (int k = 0; k < 6; ++k) {
+    for (int sign = -1; sign <= 1; sign += 2) {
+      cv::Vec3d dt(0, 0, 0), dtheta(0, 0, 0);
+      (k < 3 ? dt : dtheta)[k % 3] = sign * kStep;
+      cv::Matx33d dr;
+      cv::Rodrigues(dtheta, dr);
+      const cv::Matx33d fk = Fundamental(r * dr, r * dt + t, kq_inv, kp_inv);
+      (sign > 0 ? f_plus : f_minus)[k] = fk;
+    }
+  }
+  Mat6 info = Mat6::zeros();
+  for (int i : inliers) {
+    cv::Vec<double, 6> j;
+    for (int k = 0; k < 6; ++k) {
+      j[k] = (Sampson(f_plus[k], q_px[i], p_px[i]) - Sampson(f_minus[k], q_px[i], p_px[i])) /
+             (2 * kStep);
+    }
+    info += j * j.t();
+  }
+  StoreInformation(info * (1.0 / sigma2), &pose);
+  return pose;
+}
+
+}  // namespace
+
+const char* PoseSolverName(PoseSolver solver) {
+  switch (solver) {
+    case PoseSolver::kPnpPlaceDepth:
+      return "pnp_place_depth";
+    case PoseSolver::kPnpQueryDepth:
+      return "pnp_query_depth";
+    case PoseSolver::kEssential:
+      return "essential";
+  }
+  return "essential";
+}
+
+Status ValidateRelativePoseConfig(const RelativePoseConfig& config) {
+  if (config.min_inliers < 5 || config.min_inliers > 100000) {
+    return Status::InvalidArgument("min_inliers = " + std::to_string(config.min_inliers) +
+                                   ": must be in [5, 100000]");
+  }
+  if (!(config.ransac_threshold_px > 0 && config.ransac_threshold_px <= 100)) {
+    return Status::InvalidArgument("ransac_threshold_px = " + Num(config.ransac_threshold_px) +
+                                   ": must be in (0, 100]");
+  }
+  if (!(config.ransac_confidence > 0 && config.ransac_confidence < 1)) {
+    return Status::InvalidArgument("ransac_confidence = " + Num(config.ransac_confidence) +
+                                   ": must be in (0, 1)");
+  }
+  if (config.ransac_max_iterations < 1 || config.ransac_max_iterations > 1000000) {
+    return Status::InvalidArgument(
+        "ransac_max_iterations = " + std::to_string(config.ransac_max_iterations) +
+        ": must be in [1, 1000000]");
+  }
+  if (!(config.min_depth_m >= 0 && config.max_depth_m > config.min_depth_m &&
+        std::isfinite(config.max_depth_m))) {
+    return Status::InvalidArgument("min_depth_m / max_depth_m = " + Num(config.min_depth_m) +
+                                   " / " + Num(config.max_depth_m) +
+                                   ": need 0 <= min_depth_m < max_depth_m, finite");
+  }
+  if (!(config.min_pixel_sigma > 0 && std::isfinite(config.min_pixel_sigma))) {
+    return Status::InvalidArgument("min_pixel_sigma = " + Num(config.min_pixel_sigma) +
+                                   ": must be finite and positive");
+  }
+  return Status::Ok();
+}
+
+Result<RelativePose> EstimateRelativePose(const PoseFrame& query, const PoseFrame& place,
+                                          std::span<const KeypointMatch> matches,
+                                          const RelativePoseConfig& config) {
+  PLACEDB_RETURN_IF_ERROR(ValidateRelativePoseConfig(config));
+  PLACEDB_RETURN_IF_ERROR(ValidateFrame(query, "query"));
+  PLACEDB_RETURN_IF_ERROR(ValidateFrame(place, "place"));
+  int query_depths = 0, place_depths = 0;
+  for (size_t i = 0; i < matches.size(); ++i) {
+    const KeypointMatch& m = matches[i];
+    if (m.query >= query.keypoints.size()) {
+      return Status::InvalidArgument(
+          "matches[" + std::to_string(i) + "].query = " + std::to_string(m.query) +
+          " but the query has " + std::to_string(query.keypoints.size()) + " keypoints");
+    }
+    if (m.place >= place.keypoints.size()) {
+      return Status::InvalidArgument(
+          "matches[" + std::to_string(i) + "].place = " + std::to_string(m.place) +
+          " but the place has " + std::to_string(place.keypoints.size()) + " keypoints");
+    }
+    for (const auto& [side, kp, index] :
+         {std::tuple{"query", &query.keypoints[m.query], m.query},
+          std::tuple{"place", &place.keypoints[m.place], m.place}}) {
+      if (!std::isfinite(kp->x) || !std::isfinite(kp->y)) {
+        return Status::InvalidArgument(std::string(side) + ".keypoints[" + std::to_string(index) +
+                                       "] is not finite");
+      }
+    }
+    if (!query.depth_m.empty() && DepthUsable(query.depth_m[m.query], config)) ++query_depths;
+    if (!place.depth_m.empty() && DepthUsable(place.depth_m[m.place], config)) ++place_depths;
+  }
+
+  const int best_depths = std::max(query_depths, place_depths);
+  const bool pnp = config.method == PoseMethod::kPnp ||
+                   (config.method == PoseMethod::kAuto && best_depths >= config.min_inliers);
+  if (!pnp) return SolveEssential(query, place, matches, config);
+  if (best_depths < config.min_inliers) {
+    return Status::FailedPrecondition(
+        "pnp: " + std::to_string(best_depths) + " of " + std::to_string(matches.size()) +
+        " matches have a usable depth on one side, fewer than min_inliers " +
+        std::to_string(config.min_inliers));
+  }
+
+  // The side with more matched depths carries the 3-D points (the place on a tie).
+  const bool depth_on_place = place_depths >= query_depths;
+  const PoseFrame& depth_side = depth_on_place ? place : query;
+  const PoseFrame& image_side = depth_on_place ? query : place;
+  PnpProblem problem;
+  problem.k = image_side.camera.K();
+  std::vector<cv::Point2d> depth_px, image_px;
+  std::vector<float> depths;
+  for (size_t i = 0; i < matches.size(); ++i) {
+    const uint32_t d_index = depth_on_place ? matches[i].place : matches[i].query;
+    const uint32_t i_index = depth_on_place ? matches[i].query : matches[i].place;
+    const float d = depth_side.depth_m[d_index];
+    if (!DepthUsable(d, config)) continue;
+    depth_px.push_back({depth_side.keypoints[d_index].x, depth_side.keypoints[d_index].y});
+    image_px.push_back({image_side.keypoints[i_index].x, image_side.keypoints[i_index].y});
+    depths.push_back(d);
+    problem.match.push_back(uint32_t(i));
+  }
+  const auto rays = NormalizePixels(depth_side.camera, depth_px);
+  problem.object.resize(rays.size());
+  for (size_t i = 0; i < rays.size(); ++i) {
+    problem.object[i] = {rays[i].x * depths[i], rays[i].y * depths[i], double(depths[i])};
+  }
+  problem.image = UndistortPixels(image_side.camera, image_px);
+  return SolvePnp(std::move(problem), depth_on_place, config);
+}
+
+std::array<double, 4> RelativePose::quaternion() const {
+  const cv::Matx33d r = RotationOf(transform);
+  cv::Vec3d rvec;
+  cv::Rodrigues(r, rvec);
+  const double angle = cv::norm(rvec);
+  if (angle < 1e-15) return {0, 0, 0, 1};
+  const cv::Vec3d axis = rvec * (1.0 / angle);
+  const double s = std::sin(angle / 2);
+  return {axis[0] * s, axis[1] * s, axis[2] * s, std::cos(angle / 2)};
+}
+
+double RelativePose::rotation_deg() const {
+  return AngleDeg(RotationOf(transform));
+}
+
+Transform ComposeTransforms(const Transform& a, const Transform& b) {
+  Transform out{};
+  for (int r = 0; r < 4; ++r) {
+    for (int c = 0; c < 4; ++c) {
+      double sum = 0;
+      for (int k = 0; k < 4; ++k) sum += a[r * 4 + k] * b[k * 4 + c];
+      out[r * 4 + c] = sum;
+    }
+  }
+  return out;
+}
+
+Transform InvertTransform(const Transform& t) {
+  const cv::Matx33d r = RotationOf(t);
+  const cv::Vec3d tr(t[3], t[7], t[11]);
+  return FromRt(r.t(), -(r.t() * tr));
+}
+
+Transform TransformFromTranslationQuaternion(const std::array<double, 3>& t,
+                                             const std::array<double, 4>& q) {
+  const double norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  const double x = q[0] / norm, y = q[1] / norm, z = q[2] / norm, w = q[3] / norm;
+  const cv::Matx33d r(1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                      2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                      2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y));
+  return FromRt(r, cv::Vec3d(t[0], t[1], t[2]));
+}
+
+double RotationErrorDeg(const Transform& a, const Transform& b) {
+  return AngleDeg(RotationOf(a).t() * RotationOf(b));
+}
+
+double TranslationErrorM(const Transform& a, const Transform& b) {
+  return cv::norm(cv::Vec3d(a[3] - b[3], a[7] - b[7], a[11] - b[11]));
+}
+
+double TranslationDirectionErrorDeg(const Transform& a, const Transform& b) {
+  const cv::Vec3d ta(a[3], a[7], a[11]), tb(b[3], b[7], b[11]);
+  const double na = cv::norm(ta), nb = cv::norm(tb);
+  if (na == 0 || nb == 0) return 0;
+  return std::acos(std::clamp(ta.dot(tb) / (na * nb), -1.0, 1.0)) * 180.0 / CV_PI;
+}
+
+}  // namespace placedb
