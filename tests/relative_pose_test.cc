@@ -8,6 +8,8 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <limits>
+#include <numeric>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/features2d.hpp>
 #include <random>
@@ -147,6 +149,197 @@ TEST(RelativePoseTest, SlambookEveryPairAgainstGroundTruth) {
       Percentile(rotation_errors, 0.5), Percentile(rotation_errors, 1.0), median_translation,
       Percentile(translation_errors, 0.9), Percentile(translation_errors, 1.0));
   EXPECT_LT(median_translation, 0.05);
+}
+
+// ---- Synthetic known motion -------------------------------------------------------------------
+
+struct Synthetic {
+  std::vector<Keypoint> query, place;
+  std::vector<float> place_depth;
+  std::vector<KeypointMatch> matches;
+  Transform truth;  // T_place_query
+};
+
+// Points 2-8 m in front of the place camera, a random motion (up to 15 degrees, 0.2-1 m), both
+// projections with Gaussian pixel noise, a fraction of the query pixels replaced by random ones
+// (outliers), the place depth with relative noise.
+Synthetic MakeSynthetic(const Camera& camera, std::mt19937& rng, int points, double pixel_noise,
+                        double outliers, double depth_noise, bool noisy_place = true) {
+  std::uniform_real_distribution<double> u(-1, 1), unit(0, 1);
+  std::normal_distribution<double> gauss(0, 1);
+  Synthetic s;
+  cv::Vec3d axis(u(rng), u(rng), u(rng));
+  axis *= (15.0 * CV_PI / 180 * unit(rng)) / cv::norm(axis);
+  cv::Matx33d r;
+  cv::Rodrigues(axis, r);
+  cv::Vec3d t(u(rng), u(rng) * 0.3, u(rng));
+  t *= (0.2 + 0.8 * unit(rng)) / cv::norm(t);
+  s.truth = {r(0, 0), r(0, 1), r(0, 2), t[0], r(1, 0), r(1, 1), r(1, 2), t[1],
+             r(2, 0), r(2, 1), r(2, 2), t[2], 0,       0,       0,       1};
+  const Transform query_from_place = InvertTransform(s.truth);
+  auto project = [&](const cv::Vec3d& x) {
+    return cv::Point2d(camera.fx * x[0] / x[2] + camera.cx, camera.fy * x[1] / x[2] + camera.cy);
+  };
+  auto inside = [&](const cv::Point2d& p) {
+    return p.x >= 0 && p.x < camera.width && p.y >= 0 && p.y < camera.height;
+  };
+  while (int(s.matches.size()) < points) {
+    const double z = 2 + 6 * unit(rng);
+    const cv::Point2d pixel(unit(rng) * camera.width, unit(rng) * camera.height);
+    const cv::Vec3d p((pixel.x - camera.cx) / camera.fx * z, (pixel.y - camera.cy) / camera.fy * z,
+                      z);
+    const auto& m = query_from_place;
+    const cv::Vec3d q(m[0] * p[0] + m[1] * p[1] + m[2] * p[2] + m[3],
+                      m[4] * p[0] + m[5] * p[1] + m[6] * p[2] + m[7],
+                      m[8] * p[0] + m[9] * p[1] + m[10] * p[2] + m[11]);
+    if (q[2] < 0.5) continue;
+    cv::Point2d qp = project(q) + cv::Point2d(gauss(rng), gauss(rng)) * pixel_noise;
+    const cv::Point2d pp =
+        pixel + cv::Point2d(gauss(rng), gauss(rng)) * (noisy_place ? pixel_noise : 0.0);
+    if (!inside(qp) || !inside(pp)) continue;
+    if (unit(rng) < outliers)
+      qp = {unit(rng) * (camera.width - 1), unit(rng) * (camera.height - 1)};
+    const uint32_t index = uint32_t(s.matches.size());
+    s.query.push_back({float(qp.x), float(qp.y)});
+    s.place.push_back({float(pp.x), float(pp.y)});
+    s.place_depth.push_back(float(z * (1 + depth_noise * gauss(rng))));
+    s.matches.push_back({index, index});
+  }
+  return s;
+}
+
+// Normalised estimation error squared of `pose` against `truth` under its information matrix.
+double Nees(const RelativePose& pose, const Transform& truth) {
+  const Transform delta = ComposeTransforms(InvertTransform(pose.transform), truth);
+  cv::Matx33d r(delta[0], delta[1], delta[2], delta[4], delta[5], delta[6], delta[8], delta[9],
+                delta[10]);
+  cv::Vec3d theta;
+  cv::Rodrigues(r, theta);
+  const double e[6] = {delta[3], delta[7], delta[11], theta[0], theta[1], theta[2]};
+  double nees = 0;
+  for (int i = 0; i < 6; ++i) {
+    for (int j = 0; j < 6; ++j) nees += e[i] * pose.information[i * 6 + j] * e[j];
+  }
+  return nees;
+}
+
+TEST(RelativePoseTest, SyntheticRgbdRecoversKnownMotion) {
+  const Camera camera = PinholeCamera(640, 480, 525, 525, 319.5, 239.5);
+  std::mt19937 rng(7);
+  std::vector<double> rotation, translation, direction, nees;
+  constexpr int kTrials = 200;
+  for (int trial = 0; trial < kTrials; ++trial) {
+    // 300 matches, 1 px noise, 30 % outliers, 1 % depth noise.
+    const Synthetic s = MakeSynthetic(camera, rng, 300, 1.0, 0.3, 0.01);
+    auto pose =
+        EstimateRelativePose({camera, s.query, {}}, {camera, s.place, s.place_depth}, s.matches);
+    ASSERT_TRUE(pose.ok()) << pose.status().ToString();
+    ASSERT_TRUE(pose->metric);
+    rotation.push_back(RotationErrorDeg(pose->transform, s.truth));
+    translation.push_back(TranslationErrorM(pose->transform, s.truth));
+    direction.push_back(TranslationDirectionErrorDeg(pose->transform, s.truth));
+    EXPECT_GE(pose->inliers, 120) << "trial " << trial;  // ~210 true inliers
+    // Exact 3-D points (exact depth at an exact place pixel): then the information matrix must
+    // describe the error (NEES ~ chi2 with 6 degrees of freedom, mean 6).
+    const Synthetic exact = MakeSynthetic(camera, rng, 300, 1.0, 0.3, 0.0, false);
+    auto exact_pose = EstimateRelativePose({camera, exact.query, {}},
+                                           {camera, exact.place, exact.place_depth}, exact.matches);
+    ASSERT_TRUE(exact_pose.ok()) << exact_pose.status().ToString();
+    nees.push_back(Nees(*exact_pose, exact.truth));
+  }
+  const double mean_nees = std::accumulate(nees.begin(), nees.end(), 0.0) / nees.size();
+  std::printf(
+      "synthetic rgbd (%d trials, 300 matches, 1 px, 30%% outliers, 1%% depth noise): rotation "
+      "error median %.4f p90 %.4f deg, translation error median %.4f p90 %.4f m, direction error "
+      "median %.3f p90 %.3f deg; exact 3-D points: mean NEES %.2f (6 expected)\n",
+      kTrials, Percentile(rotation, 0.5), Percentile(rotation, 0.9), Percentile(translation, 0.5),
+      Percentile(translation, 0.9), Percentile(direction, 0.5), Percentile(direction, 0.9),
+      mean_nees);
+  EXPECT_LT(Percentile(rotation, 0.9), 0.25);
+  EXPECT_LT(Percentile(translation, 0.9), 0.02);
+  EXPECT_GT(mean_nees, 3);
+  EXPECT_LT(mean_nees, 12);
+}
+
+TEST(RelativePoseTest, SyntheticMonocularRecoversRotationAndDirection) {
+  const Camera camera = PinholeCamera(640, 480, 525, 525, 319.5, 239.5);
+  std::mt19937 rng(11);
+  std::vector<double> rotation, direction;
+  constexpr int kTrials = 200;
+  for (int trial = 0; trial < kTrials; ++trial) {
+    const Synthetic s = MakeSynthetic(camera, rng, 300, 1.0, 0.3, 0.0);
+    // The place's depth is given but ignored: kEssential.
+    RelativePoseConfig config;
+    config.method = PoseMethod::kEssential;
+    auto pose = EstimateRelativePose({camera, s.query, {}}, {camera, s.place, s.place_depth},
+                                     s.matches, config);
+    ASSERT_TRUE(pose.ok()) << pose.status().ToString();
+    ASSERT_FALSE(pose->metric);
+    ASSERT_EQ(pose->solver, PoseSolver::kEssential);
+    const auto t = pose->translation();
+    EXPECT_NEAR(std::sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2]), 1.0, 1e-9);
+    rotation.push_back(RotationErrorDeg(pose->transform, s.truth));
+    direction.push_back(TranslationDirectionErrorDeg(pose->transform, s.truth));
+  }
+  std::printf(
+      "synthetic mono (%d trials, 300 matches, 1 px, 30%% outliers): rotation error median %.4f "
+      "p90 %.4f deg, translation direction error median %.3f p90 %.3f deg\n",
+      kTrials, Percentile(rotation, 0.5), Percentile(rotation, 0.9), Percentile(direction, 0.5),
+      Percentile(direction, 0.9));
+  EXPECT_LT(Percentile(rotation, 0.9), 1.0);
+  EXPECT_LT(Percentile(direction, 0.5), 5.0);
+}
+
+// ---- Bad input ---------------------------------------------------------------------------------
+
+TEST(RelativePoseTest, BadInputIsInvalidArgumentNamingTheField) {
+  const Camera camera = PinholeCamera(640, 480, 525, 525, 319.5, 239.5);
+  std::mt19937 rng(3);
+  const Synthetic s = MakeSynthetic(camera, rng, 50, 0.5, 0.0, 0.0);
+  auto expect = [](const Result<RelativePose>& result, StatusCode code, const std::string& text) {
+    ASSERT_FALSE(result.ok()) << text;
+    EXPECT_EQ(result.status().code(), code) << result.status().ToString();
+    EXPECT_NE(result.status().message().find(text), std::string::npos)
+        << result.status().ToString();
+  };
+  for (double bad : {0.0, -1.0, std::numeric_limits<double>::quiet_NaN()}) {
+    Camera c = camera;
+    c.fx = bad;
+    expect(EstimateRelativePose({c, s.query, {}}, {camera, s.place, {}}, s.matches),
+           StatusCode::kInvalidArgument, "query.camera.fx");
+    expect(EstimateRelativePose({camera, s.query, {}}, {c, s.place, {}}, s.matches),
+           StatusCode::kInvalidArgument, "place.camera.fx");
+  }
+  Camera unknown = camera;
+  unknown.distortion_model = "polynomial9";
+  expect(EstimateRelativePose({camera, s.query, {}}, {unknown, s.place, {}}, s.matches),
+         StatusCode::kInvalidArgument, "place.camera.distortion_model");
+  const std::vector<float> short_depth(s.place.size() - 1, 2.0f);
+  expect(EstimateRelativePose({camera, s.query, {}}, {camera, s.place, short_depth}, s.matches),
+         StatusCode::kInvalidArgument, "place.depth_m has 49 values for 50 keypoints");
+  expect(EstimateRelativePose({camera, s.query, short_depth}, {camera, s.place, {}}, s.matches),
+         StatusCode::kInvalidArgument, "query.depth_m");
+  std::vector<float> negative = s.place_depth;
+  negative[7] = -2;
+  expect(EstimateRelativePose({camera, s.query, {}}, {camera, s.place, negative}, s.matches),
+         StatusCode::kInvalidArgument, "place.depth_m[7]");
+  std::vector<KeypointMatch> out_of_range = s.matches;
+  out_of_range[2].place = 50;
+  expect(EstimateRelativePose({camera, s.query, {}}, {camera, s.place, {}}, out_of_range),
+         StatusCode::kInvalidArgument, "matches[2].place");
+  // Well-formed but no pose: too few matches, or PnP asked for without depth.
+  const std::vector<KeypointMatch> few(s.matches.begin(), s.matches.begin() + 6);
+  expect(EstimateRelativePose({camera, s.query, {}}, {camera, s.place, s.place_depth}, few),
+         StatusCode::kFailedPrecondition, "too few");
+  RelativePoseConfig pnp;
+  pnp.method = PoseMethod::kPnp;
+  expect(EstimateRelativePose({camera, s.query, {}}, {camera, s.place, {}}, s.matches, pnp),
+         StatusCode::kFailedPrecondition, "usable depth");
+  // NaN or 0 depth means "none": with every depth unknown the monocular solver runs.
+  const std::vector<float> none(s.place.size(), std::numeric_limits<float>::quiet_NaN());
+  auto mono = EstimateRelativePose({camera, s.query, {}}, {camera, s.place, none}, s.matches);
+  ASSERT_TRUE(mono.ok()) << mono.status().ToString();
+  EXPECT_EQ(mono->solver, PoseSolver::kEssential);
 }
 
 }  // namespace

@@ -249,7 +249,7 @@ Result<RelativePose> SolveEssential(const PoseFrame& query, const PoseFrame& pla
   cv::Matx33d r;
   cv::Vec3d t;
   try {
-    e_mat = cv::findEssentialMat(q_n, p_n, 1.0, cv::Point2d(0, 0), cv::RANSAC,
+    e_mat = cv::findEssentialMat(q_n, p_n, 1.0, cv::Point2d(0, 0), cv::USAC_MAGSAC,
                                  config.ransac_confidence, config.ransac_threshold_px / focal,
                                  config.ransac_max_iterations, mask);
     if (e_mat.rows != 3 || e_mat.cols != 3) {
