@@ -50,6 +50,10 @@ BENCHMARKS = [
     {"name": "correspondences", "binary": "placedb-bench-correspondences",
      "quick": [], "full": [],
      "needs": ["{shared}/data/rtabmap-loop"]},
+    # Issue 32: relative pose per verified candidate; baseline the verification of the same pairs.
+    {"name": "pose", "binary": "placedb-bench-pose",
+     "quick": ["--rounds", "11"], "full": [],
+     "needs": ["{shared}/data/slambook2-rgbd"]},
     {"name": "detector", "binary": "placedb-bench-detector",
      "quick": ["--models", "{models}", "--frames", "8", "--rounds", "1"],
      "full": ["--models", "{models}"],
