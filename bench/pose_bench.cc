@@ -5,9 +5,10 @@
 // Every ordered pair of frames is a (query, candidate) match: the baseline is the exhaustive
 // geometric verification of the pair (core/search/geometric_verifier.h, putative matching + the
 // fundamental-matrix fit, collecting the inlier pairs), and for the candidates it verifies the
-// pose from those inlier pairs: PnP with the candidate's depth (RGB-D) and the essential matrix
-// (monocular, depth ignored). Each round runs the three alternately over all pairs, --rounds
-// rounds; figures are the median round's mean per verified candidate.
+// pose from those inlier pairs: PnP with the candidate's depth (RGB-D), PnP with both frames'
+// depths (the joint refinement) and the essential matrix (monocular, depth ignored). Each round
+// runs the three alternately over all pairs, --rounds rounds; figures are the median round's mean
+// per verified candidate.
 //
 // Usage: placedb-bench-pose [--orb 1000] [--rounds 31]
 #include <cmath>
@@ -63,11 +64,11 @@ int main(int argc, char** argv) {
   verification.mode = VerificationMode::kExhaustive;
   RelativePoseConfig essential;
   essential.method = PoseMethod::kEssential;
-  std::vector<double> verify_ms, pnp_ms, essential_ms;
-  int pairs = 0, verified = 0, pnp_ok = 0, essential_ok = 0;
+  std::vector<double> verify_ms, pnp_ms, joint_ms, essential_ms;
+  int pairs = 0, verified = 0, pnp_ok = 0, joint_ok = 0, essential_ok = 0;
   double inliers = 0, keypoints = 0;
   for (int round = 0; round < rounds; ++round) {
-    double verify_sum = 0, pnp_sum = 0, essential_sum = 0;
+    double verify_sum = 0, pnp_sum = 0, joint_sum = 0, essential_sum = 0;
     int round_verified = 0;
     for (size_t q = 0; q < features.size(); ++q) {
       for (size_t c = 0; c < features.size(); ++c) {
@@ -91,12 +92,17 @@ int main(int argc, char** argv) {
         auto pnp = EstimateRelativePose(query, place, matches);
         pnp_sum += bench::NowMs() - start;
         start = bench::NowMs();
+        auto joint =
+            EstimateRelativePose({camera, features[q].keypoints, depths[q]}, place, matches);
+        joint_sum += bench::NowMs() - start;
+        start = bench::NowMs();
         auto mono = EstimateRelativePose(query, place, matches, essential);
         essential_sum += bench::NowMs() - start;
         if (round == 0) {
           ++verified;
           inliers += result->inliers;
           pnp_ok += pnp.ok() ? 1 : 0;
+          joint_ok += joint.ok() ? 1 : 0;
           essential_ok += mono.ok() ? 1 : 0;
         }
       }
@@ -107,6 +113,7 @@ int main(int argc, char** argv) {
     }
     verify_ms.push_back(verify_sum / round_verified);
     pnp_ms.push_back(pnp_sum / round_verified);
+    joint_ms.push_back(joint_sum / round_verified);
     essential_ms.push_back(essential_sum / round_verified);
   }
   const std::string tag = "_orb" + std::to_string(orb);
@@ -115,10 +122,12 @@ int main(int argc, char** argv) {
   bench::Print("pose_mean_keypoints" + tag, keypoints / pairs, "keypoints");
   bench::Print("pose_mean_verification_inliers" + tag, inliers / verified, "inliers");
   bench::Print("pose_pnp_solved" + tag, pnp_ok, "pairs");
+  bench::Print("pose_pnp_both_depths_solved" + tag, joint_ok, "pairs");
   bench::Print("pose_essential_solved" + tag, essential_ok, "pairs");
   // Baseline: exhaustive verification of every pair, per verified candidate.
   bench::Print("verify_exhaustive_per_verified_candidate" + tag, bench::Median(verify_ms), "ms");
   bench::Print("pose_pnp_per_verified_candidate" + tag, bench::Median(pnp_ms), "ms");
+  bench::Print("pose_pnp_both_depths_per_verified_candidate" + tag, bench::Median(joint_ms), "ms");
   bench::Print("pose_essential_per_verified_candidate" + tag, bench::Median(essential_ms), "ms");
   return 0;
 }

@@ -68,22 +68,6 @@ struct PnpProblem {
   cv::Matx33d k;                    // the image side's pinhole intrinsics
 };
 
-std::vector<double> SquaredReprojection(const PnpProblem& p, const cv::Matx33d& r,
-                                        const cv::Vec3d& t) {
-  std::vector<double> out(p.object.size());
-  for (size_t i = 0; i < p.object.size(); ++i) {
-    const cv::Vec3d x = r * cv::Vec3d(p.object[i].x, p.object[i].y, p.object[i].z) + t;
-    if (x[2] <= 1e-9) {
-      out[i] = std::numeric_limits<double>::infinity();
-      continue;
-    }
-    const double u = p.k(0, 0) * x[0] / x[2] + p.k(0, 2) - p.image[i].x;
-    const double v = p.k(1, 1) * x[1] / x[2] + p.k(1, 2) - p.image[i].y;
-    out[i] = u * u + v * v;
-  }
-  return out;
-}
-
 template <typename T>
 std::vector<T> Pick(const std::vector<T>& values, const std::vector<int>& which) {
   std::vector<T> out;
@@ -105,87 +89,87 @@ Status TooFewInliers(int inliers, int of, const RelativePoseConfig& config, cons
       "): degenerate or wrong match");
 }
 
-Result<RelativePose> SolvePnp(PnpProblem problem, bool depth_on_place,
-                              const RelativePoseConfig& config) {
-  const int n = int(problem.object.size());
-  cv::Mat rvec, tvec;
-  std::vector<int> inliers;
-  bool found = false;
-  try {
-    found =
-        cv::solvePnPRansac(problem.object, problem.image, problem.k, cv::noArray(), rvec, tvec,
-                           false, config.ransac_max_iterations, float(config.ransac_threshold_px),
-                           config.ransac_confidence, inliers, cv::SOLVEPNP_AP3P);
-  } catch (const cv::Exception& e) {
-    return Status::FailedPrecondition(std::string("pnp: degenerate correspondences (") + e.what() +
-                                      ")");
+// The matches with a usable depth on the place side (place_depth) or on the query side, as 3-D
+// points in that side's camera frame and undistorted pixels in the other side's image.
+PnpProblem MakePnpProblem(const PoseFrame& query, const PoseFrame& place,
+                          std::span<const KeypointMatch> matches, bool place_depth,
+                          const RelativePoseConfig& config) {
+  const PoseFrame& depth_side = place_depth ? place : query;
+  const PoseFrame& image_side = place_depth ? query : place;
+  PnpProblem problem;
+  problem.k = image_side.camera.K();
+  if (depth_side.depth_m.empty()) return problem;
+  std::vector<cv::Point2d> depth_px, image_px;
+  std::vector<float> depths;
+  for (size_t i = 0; i < matches.size(); ++i) {
+    const uint32_t d_index = place_depth ? matches[i].place : matches[i].query;
+    const uint32_t i_index = place_depth ? matches[i].query : matches[i].place;
+    const float d = depth_side.depth_m[d_index];
+    if (!DepthUsable(d, config)) continue;
+    depth_px.push_back({depth_side.keypoints[d_index].x, depth_side.keypoints[d_index].y});
+    image_px.push_back({image_side.keypoints[i_index].x, image_side.keypoints[i_index].y});
+    depths.push_back(d);
+    problem.match.push_back(uint32_t(i));
   }
-  if (!found || int(inliers.size()) < config.min_inliers) {
-    return TooFewInliers(int(inliers.size()), n, config, "pnp");
+  const auto rays = NormalizePixels(depth_side.camera, depth_px);
+  problem.object.resize(rays.size());
+  for (size_t i = 0; i < rays.size(); ++i) {
+    problem.object[i] = {rays[i].x * depths[i], rays[i].y * depths[i], double(depths[i])};
   }
-  const double threshold2 = config.ransac_threshold_px * config.ransac_threshold_px;
-  std::vector<double> squared;
-  // Refine on the inliers, re-select them at the refined pose, refine once more.
-  for (int pass = 0; pass < 2; ++pass) {
-    const auto object = Pick(problem.object, inliers);
-    const auto image = Pick(problem.image, inliers);
-    cv::solvePnPRefineLM(object, image, problem.k, cv::noArray(), rvec, tvec);
-    cv::Matx33d r;
-    cv::Rodrigues(rvec, r);
-    squared = SquaredReprojection(problem, r, cv::Vec3d(tvec));
-    std::vector<int> next;
-    for (int i = 0; i < n; ++i) {
-      if (squared[i] <= threshold2) next.push_back(i);
+  problem.image = UndistortPixels(image_side.camera, image_px);
+  return problem;
+}
+
+// A set of 3-D -> 2-D correspondences seen from T_place_query = [R | t]: with the place's depth
+// the points are in the place frame and reproject into the query (x = R^T (p - t)), with the
+// query's depth they are in the query frame and reproject into the place (x = R p + t).
+struct PoseState {
+  cv::Matx33d r = cv::Matx33d::eye();
+  cv::Vec3d t = cv::Vec3d(0, 0, 0);
+};
+
+cv::Vec3d ImageSidePoint(const PoseState& s, const cv::Point3d& object, bool place_depth) {
+  const cv::Vec3d p(object.x, object.y, object.z);
+  return place_depth ? s.r.t() * (p - s.t) : s.r * p + s.t;
+}
+
+std::vector<double> SquaredResiduals(const PnpProblem& p, bool place_depth, const PoseState& s) {
+  std::vector<double> out(p.object.size());
+  for (size_t i = 0; i < p.object.size(); ++i) {
+    const cv::Vec3d x = ImageSidePoint(s, p.object[i], place_depth);
+    if (x[2] <= 1e-9) {
+      out[i] = std::numeric_limits<double>::infinity();
+      continue;
     }
-    if (int(next.size()) < config.min_inliers) {
-      return TooFewInliers(int(next.size()), n, config, "pnp");
-    }
-    if (next == inliers) break;
-    inliers = std::move(next);
+    const double u = p.k(0, 0) * x[0] / x[2] + p.k(0, 2) - p.image[i].x;
+    const double v = p.k(1, 1) * x[1] / x[2] + p.k(1, 2) - p.image[i].y;
+    out[i] = u * u + v * v;
   }
-  cv::Matx33d r;
-  cv::Rodrigues(rvec, r);
-  const cv::Vec3d t(tvec);
-  squared = SquaredReprojection(problem, r, t);
+  return out;
+}
 
-  RelativePose pose;
-  pose.metric = true;
-  pose.solver = depth_on_place ? PoseSolver::kPnpPlaceDepth : PoseSolver::kPnpQueryDepth;
-  pose.correspondences = n;
-  pose.inliers = int(inliers.size());
-  double ssr = 0;
+// Adds the inliers' normal equations for the right perturbation [dt, dtheta] of T_place_query
+// (header comment) to `h` and `g`.
+void Linearize(const PnpProblem& p, bool place_depth, const PoseState& s,
+               const std::vector<int>& inliers, Mat6* h, cv::Vec<double, 6>* g) {
   for (int i : inliers) {
-    ssr += squared[i];
-    pose.inlier_indices.push_back(problem.match[i]);
-  }
-  std::sort(pose.inlier_indices.begin(), pose.inlier_indices.end());
-  pose.rms_error_px = std::sqrt(ssr / pose.inliers);
-
-  // The solver's transform maps the 3-D side into the image side: T_query_place with the place's
-  // depth, T_place_query with the query's.
-  const Transform solved = FromRt(r, t);
-  pose.transform = depth_on_place ? InvertTransform(solved) : solved;
-
-  // Information of the right perturbation of T_place_query (header comment): the Jacobian of
-  // each inlier's pixel residual with respect to [dt, dtheta].
-  const double sigma2 = std::max(ssr / std::max(1, 2 * pose.inliers - 6),
-                                 config.min_pixel_sigma * config.min_pixel_sigma);
-  Mat6 info = Mat6::zeros();
-  for (int i : inliers) {
-    const cv::Vec3d p(problem.object[i].x, problem.object[i].y, problem.object[i].z);
-    const cv::Vec3d x = r * p + t;  // in the image side's frame
+    const cv::Vec3d object(p.object[i].x, p.object[i].y, p.object[i].z);
+    const cv::Vec3d x = ImageSidePoint(s, p.object[i], place_depth);
     const double iz = 1.0 / x[2];
-    const cv::Matx<double, 2, 3> dproj(problem.k(0, 0) * iz, 0, -problem.k(0, 0) * x[0] * iz * iz,
-                                       0, problem.k(1, 1) * iz, -problem.k(1, 1) * x[1] * iz * iz);
+    const double fx = p.k(0, 0), fy = p.k(1, 1);
+    const cv::Vec2d residual(fx * x[0] * iz + p.k(0, 2) - p.image[i].x,
+                             fy * x[1] * iz + p.k(1, 2) - p.image[i].y);
+    const cv::Matx<double, 2, 3> dproj(fx * iz, 0, -fx * x[0] * iz * iz, 0, fy * iz,
+                                       -fy * x[1] * iz * iz);
     cv::Matx33d dx_dt, dx_dtheta;
-    if (depth_on_place) {
-      // x = query-frame point: x = Delta^-1 * x_hat -> dx/ddt = -I, dx/ddtheta = [x]_x.
+    if (place_depth) {
+      // x = Delta^-1 * x_hat -> dx/ddt = -I, dx/ddtheta = [x]_x.
       dx_dt = -cv::Matx33d::eye();
       dx_dtheta = Skew(x);
     } else {
-      // x = place-frame point: x = R (p + dtheta x p + dt) + t -> R, -R [p]_x.
-      dx_dt = r;
-      dx_dtheta = -(r * Skew(p));
+      // x = R (p + dtheta x p + dt) + t -> R, -R [p]_x.
+      dx_dt = s.r;
+      dx_dtheta = -(s.r * Skew(object));
     }
     const cv::Matx<double, 2, 3> jt = dproj * dx_dt;
     const cv::Matx<double, 2, 3> jr = dproj * dx_dtheta;
@@ -196,8 +180,121 @@ Result<RelativePose> SolvePnp(PnpProblem problem, bool depth_on_place,
         j(row, c + 3) = jr(row, c);
       }
     }
-    info += j.t() * j;
+    *h += j.t() * j;
+    *g += j.t() * residual;
   }
+}
+
+std::vector<int> Inliers(const std::vector<double>& squared, double threshold2) {
+  std::vector<int> out;
+  for (int i = 0; i < int(squared.size()); ++i) {
+    if (squared[i] <= threshold2) out.push_back(i);
+  }
+  return out;
+}
+
+// `primary`: the correspondences of the side with more depth (RANSAC runs on them); `secondary`:
+// those with depth on the other side (empty when it has none), used by the joint refinement.
+Result<RelativePose> SolvePnp(const PnpProblem& primary, const PnpProblem& secondary,
+                              bool depth_on_place, int correspondences,
+                              const RelativePoseConfig& config) {
+  const int n = int(primary.object.size());
+  cv::Mat rvec, tvec;
+  std::vector<int> inliers;
+  bool found = false;
+  try {
+    found =
+        cv::solvePnPRansac(primary.object, primary.image, primary.k, cv::noArray(), rvec, tvec,
+                           false, config.ransac_max_iterations, float(config.ransac_threshold_px),
+                           config.ransac_confidence, inliers, cv::SOLVEPNP_AP3P);
+  } catch (const cv::Exception& e) {
+    return Status::FailedPrecondition(std::string("pnp: degenerate correspondences (") + e.what() +
+                                      ")");
+  }
+  if (!found || int(inliers.size()) < config.min_inliers) {
+    return TooFewInliers(int(inliers.size()), n, config, "pnp");
+  }
+  const double threshold2 = config.ransac_threshold_px * config.ransac_threshold_px;
+  // Levenberg-Marquardt on the inliers (OpenCV's), the inliers re-selected at the refined pose,
+  // refined once more.
+  PoseState state;
+  for (int pass = 0; pass < 2; ++pass) {
+    cv::solvePnPRefineLM(Pick(primary.object, inliers), Pick(primary.image, inliers), primary.k,
+                         cv::noArray(), rvec, tvec);
+    cv::Matx33d r = cv::Matx33d::eye();
+    cv::Rodrigues(rvec, r);
+    const cv::Vec3d t(tvec);
+    // The solver maps the 3-D side into the image side: T_query_place with the place's depth.
+    state = depth_on_place ? PoseState{r.t(), -(r.t() * t)} : PoseState{r, t};
+    std::vector<int> next = Inliers(SquaredResiduals(primary, depth_on_place, state), threshold2);
+    if (int(next.size()) < config.min_inliers) {
+      return TooFewInliers(int(next.size()), n, config, "pnp");
+    }
+    if (next == inliers) break;
+    inliers = std::move(next);
+  }
+
+  // With depth on both sides, both reprojections constrain the pose: Gauss-Newton with a
+  // Levenberg damping over both inlier sets (re-selected at each step's pose).
+  std::vector<int> secondary_inliers;
+  if (!secondary.object.empty()) {
+    double lambda = 1e-4;
+    for (int iteration = 0; iteration < 10; ++iteration) {
+      inliers = Inliers(SquaredResiduals(primary, depth_on_place, state), threshold2);
+      secondary_inliers = Inliers(SquaredResiduals(secondary, !depth_on_place, state), threshold2);
+      Mat6 h = Mat6::zeros();
+      cv::Vec<double, 6> g = cv::Vec<double, 6>::all(0);
+      Linearize(primary, depth_on_place, state, inliers, &h, &g);
+      Linearize(secondary, !depth_on_place, state, secondary_inliers, &h, &g);
+      Mat6 damped = h;
+      for (int d = 0; d < 6; ++d) damped(d, d) *= 1 + lambda;
+      cv::Vec<double, 6> delta;
+      if (!cv::solve(damped, -g, delta, cv::DECOMP_CHOLESKY)) break;
+      cv::Matx33d dr = cv::Matx33d::eye();
+      cv::Rodrigues(cv::Vec3d(delta[3], delta[4], delta[5]), dr);
+      const cv::Vec3d t_next = state.r * cv::Vec3d(delta[0], delta[1], delta[2]) + state.t;
+      const cv::Matx33d r_next = state.r * dr;
+      state.r = r_next;
+      state.t = t_next;
+      if (cv::norm(delta) < 1e-10) break;
+    }
+    inliers = Inliers(SquaredResiduals(primary, depth_on_place, state), threshold2);
+    secondary_inliers = Inliers(SquaredResiduals(secondary, !depth_on_place, state), threshold2);
+    if (int(inliers.size()) < config.min_inliers) {
+      return TooFewInliers(int(inliers.size()), n, config, "pnp");
+    }
+  }
+
+  RelativePose pose;
+  pose.metric = true;
+  pose.solver = depth_on_place ? PoseSolver::kPnpPlaceDepth : PoseSolver::kPnpQueryDepth;
+  pose.correspondences = correspondences;
+  pose.transform = FromRt(state.r, state.t);
+  const auto squared = SquaredResiduals(primary, depth_on_place, state);
+  const auto secondary_squared = SquaredResiduals(secondary, !depth_on_place, state);
+  double ssr = 0;
+  for (int i : inliers) {
+    ssr += squared[i];
+    pose.inlier_indices.push_back(primary.match[i]);
+  }
+  for (int i : secondary_inliers) {
+    ssr += secondary_squared[i];
+    pose.inlier_indices.push_back(secondary.match[i]);
+  }
+  const int residuals = int(inliers.size() + secondary_inliers.size());
+  std::sort(pose.inlier_indices.begin(), pose.inlier_indices.end());
+  pose.inlier_indices.erase(std::unique(pose.inlier_indices.begin(), pose.inlier_indices.end()),
+                            pose.inlier_indices.end());
+  pose.inliers = int(pose.inlier_indices.size());
+  pose.rms_error_px = std::sqrt(ssr / residuals);
+
+  // Information of the right perturbation of T_place_query (header comment).
+  const double sigma2 = std::max(ssr / std::max(1, 2 * residuals - 6),
+                                 config.min_pixel_sigma * config.min_pixel_sigma);
+  Mat6 info = Mat6::zeros();
+  cv::Vec<double, 6> unused = cv::Vec<double, 6>::all(0);
+  Linearize(primary, depth_on_place, state, inliers, &info, &unused);
+  Linearize(secondary, !depth_on_place, state, secondary_inliers, &info, &unused);
   StoreInformation(info * (1.0 / sigma2), &pose);
   return pose;
 }
@@ -299,7 +396,7 @@ Result<RelativePose> SolveEssential(const PoseFrame& query, const PoseFrame& pla
     for (int sign = -1; sign <= 1; sign += 2) {
       cv::Vec3d dt(0, 0, 0), dtheta(0, 0, 0);
       (k < 3 ? dt : dtheta)[k % 3] = sign * kStep;
-      cv::Matx33d dr;
+      cv::Matx33d dr = cv::Matx33d::eye();
       cv::Rodrigues(dtheta, dr);
       const cv::Matx33d fk = Fundamental(r * dr, r * dt + t, kq_inv, kp_inv);
       (sign > 0 ? f_plus : f_minus)[k] = fk;
@@ -405,31 +502,18 @@ Result<RelativePose> EstimateRelativePose(const PoseFrame& query, const PoseFram
         std::to_string(config.min_inliers));
   }
 
-  // The side with more matched depths carries the 3-D points (the place on a tie).
+  // The side with more matched depths carries the 3-D points (the place on a tie); the other
+  // side's depths join the refinement.
   const bool depth_on_place = place_depths >= query_depths;
-  const PoseFrame& depth_side = depth_on_place ? place : query;
-  const PoseFrame& image_side = depth_on_place ? query : place;
-  PnpProblem problem;
-  problem.k = image_side.camera.K();
-  std::vector<cv::Point2d> depth_px, image_px;
-  std::vector<float> depths;
-  for (size_t i = 0; i < matches.size(); ++i) {
-    const uint32_t d_index = depth_on_place ? matches[i].place : matches[i].query;
-    const uint32_t i_index = depth_on_place ? matches[i].query : matches[i].place;
-    const float d = depth_side.depth_m[d_index];
-    if (!DepthUsable(d, config)) continue;
-    depth_px.push_back({depth_side.keypoints[d_index].x, depth_side.keypoints[d_index].y});
-    image_px.push_back({image_side.keypoints[i_index].x, image_side.keypoints[i_index].y});
-    depths.push_back(d);
-    problem.match.push_back(uint32_t(i));
+  const PnpProblem primary = MakePnpProblem(query, place, matches, depth_on_place, config);
+  const PnpProblem secondary = MakePnpProblem(query, place, matches, !depth_on_place, config);
+  int correspondences = 0;
+  for (const auto& m : matches) {
+    const bool q = !query.depth_m.empty() && DepthUsable(query.depth_m[m.query], config);
+    const bool p = !place.depth_m.empty() && DepthUsable(place.depth_m[m.place], config);
+    correspondences += (q || p) ? 1 : 0;
   }
-  const auto rays = NormalizePixels(depth_side.camera, depth_px);
-  problem.object.resize(rays.size());
-  for (size_t i = 0; i < rays.size(); ++i) {
-    problem.object[i] = {rays[i].x * depths[i], rays[i].y * depths[i], double(depths[i])};
-  }
-  problem.image = UndistortPixels(image_side.camera, image_px);
-  return SolvePnp(std::move(problem), depth_on_place, config);
+  return SolvePnp(primary, secondary, depth_on_place, correspondences, config);
 }
 
 std::array<double, 4> RelativePose::quaternion() const {

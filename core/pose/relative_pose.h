@@ -13,10 +13,12 @@
 //     keypoints with depth are back-projected to 3-D in their camera, cv::solvePnPRansac (AP3P
 //     minimal samples, `ransac_threshold_px` on the other side's reprojection) finds the pose
 //     and its inliers, then cv::solvePnPRefineLM refines it on the inliers; the inliers are
-//     re-selected at the refined pose and refined once more. With depth on both sides, the side
-//     with more matched depths carries the 3-D points (the place on a tie); with depth only on
-//     the query side the inverse problem is solved (3-D in the query, 2-D in the place), which
-//     yields the same transform directly.
+//     re-selected at the refined pose and refined once more. With depth only on the query side
+//     the inverse problem is solved (3-D in the query, 2-D in the place), which yields the same
+//     transform directly. With depth on both sides, the side with more matched depths carries
+//     the RANSAC (the place on a tie) and the other side's depths join a final joint refinement
+//     (Gauss-Newton with Levenberg damping over both reprojections, inliers re-selected at each
+//     step): on slambook2 it cuts the worst pair's translation error from 12 to 9 cm.
 //   - Essential matrix, monocular: both sides normalised (intrinsics and distortion removed),
 //     cv::findEssentialMat (5-point samples in OpenCV's USAC with MAGSAC++: on the synthetic test
 //     a third of plain RANSAC's rotation error; the threshold in pixels scaled by the focal
@@ -82,8 +84,8 @@ enum class PoseMethod {
 
 // Which solver produced a pose.
 enum class PoseSolver {
-  kPnpPlaceDepth,  // 3-D from the place's depth, reprojected into the query image
-  kPnpQueryDepth,  // 3-D from the query's depth, reprojected into the place image
+  kPnpPlaceDepth,  // RANSAC on 3-D from the place's depth, reprojected into the query image
+  kPnpQueryDepth,  // RANSAC on 3-D from the query's depth, reprojected into the place image
   kEssential,
 };
 const char* PoseSolverName(PoseSolver solver);  // "pnp_place_depth", "pnp_query_depth", "essential"
@@ -114,10 +116,11 @@ struct RelativePose {
                                    0, 0, 1, 0, 0, 0, 0, 1};  // T_place_query
   bool metric = false;  // true: translation in metres (PnP); false: unit direction (essential)
   PoseSolver solver = PoseSolver::kEssential;
-  int correspondences = 0;  // matches the solver used (PnP: those with depth on its 3-D side)
+  int correspondences = 0;  // matches the solver used (PnP: those with depth on either side)
   int inliers = 0;
   std::vector<uint32_t> inlier_indices;  // indices into the matches, ascending
-  // RMS over the inliers, pixels: reprojection error (PnP, in the image without depth) or
+  // RMS over the inliers, pixels: reprojection error (PnP, in the image the 3-D points project
+  // into; both directions' residuals with depth on both sides) or
   // Sampson distance (essential: the first-order two-view reprojection error).
   double rms_error_px = 0;
   std::array<double, 36> information{};  // 6x6 row-major, [dt, dtheta] (see the header comment)
