@@ -102,6 +102,10 @@ int main(int argc, char** argv) {
           ++verified;
           inliers += result->inliers;
           pnp_ok += pnp.ok() ? 1 : 0;
+          if (!pnp.ok()) {
+            std::fprintf(stderr, "query %zu candidate %zu, PnP: %s\n", q + 1, c + 1,
+                         pnp.status().ToString().c_str());
+          }
           joint_ok += joint.ok() ? 1 : 0;
           essential_ok += mono.ok() ? 1 : 0;
         }
