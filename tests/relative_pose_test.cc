@@ -299,6 +299,63 @@ TEST(RelativePoseTest, SyntheticMonocularRecoversRotationAndDirection) {
   EXPECT_LT(Percentile(direction, 0.5), 5.0);
 }
 
+// A query camera with lens distortion (plumb_bob and fisheye): its pixels are distorted by
+// OpenCV's forward model, the pose must come out as with an ideal lens; and a call repeated gives
+// the same pose (OpenCV's RANSAC and USAC seed their generators identically).
+TEST(RelativePoseTest, DistortedQueryCameraAndDeterminism) {
+  const Camera pinhole = PinholeCamera(640, 480, 525, 525, 319.5, 239.5);
+  for (const std::string model : {"plumb_bob", "equidistant"}) {
+    Camera distorted = pinhole;
+    distorted.distortion_model = model;
+    distorted.distortion = model == "plumb_bob" ? std::vector<double>{-0.25, 0.06, 0.001, -0.001}
+                                                : std::vector<double>{0.03, -0.01, 0.002, -0.001};
+    std::mt19937 rng(5);
+    for (int trial = 0; trial < 20; ++trial) {
+      Synthetic s = MakeSynthetic(pinhole, rng, 200, 0.5, 0.2, 0.0);
+      std::vector<cv::Point3d> rays;
+      for (const auto& k : s.query) {
+        rays.push_back({(k.x - pinhole.cx) / pinhole.fx, (k.y - pinhole.cy) / pinhole.fy, 1});
+      }
+      std::vector<cv::Point2d> pixels;
+      const cv::Mat d(distorted.distortion);
+      if (model == "plumb_bob") {
+        cv::projectPoints(rays, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), distorted.K(), d, pixels);
+      } else {
+        cv::fisheye::projectPoints(rays, pixels, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0),
+                                   distorted.K(), d);
+      }
+      for (size_t i = 0; i < pixels.size(); ++i) {
+        s.query[i].x = float(pixels[i].x);
+        s.query[i].y = float(pixels[i].y);
+      }
+      RelativePoseConfig essential;
+      essential.method = PoseMethod::kEssential;
+      auto pnp = EstimateRelativePose({distorted, s.query, {}}, {pinhole, s.place, s.place_depth},
+                                      s.matches);
+      auto mono = EstimateRelativePose({distorted, s.query, {}}, {pinhole, s.place, {}}, s.matches,
+                                       essential);
+      ASSERT_TRUE(pnp.ok()) << model << ": " << pnp.status().ToString();
+      ASSERT_TRUE(mono.ok()) << model << ": " << mono.status().ToString();
+      EXPECT_LT(RotationErrorDeg(pnp->transform, s.truth), 0.3) << model << " trial " << trial;
+      EXPECT_LT(TranslationErrorM(pnp->transform, s.truth), 0.03) << model << " trial " << trial;
+      EXPECT_LT(RotationErrorDeg(mono->transform, s.truth), 1.0) << model << " trial " << trial;
+      EXPECT_LT(TranslationDirectionErrorDeg(mono->transform, s.truth), 8.0)
+          << model << " trial " << trial;
+      if (trial == 0) {
+        auto again = EstimateRelativePose({distorted, s.query, {}}, {pinhole, s.place, {}},
+                                          s.matches, essential);
+        ASSERT_TRUE(again.ok());
+        EXPECT_EQ(again->transform, mono->transform);
+        EXPECT_EQ(again->inlier_indices, mono->inlier_indices);
+        auto pnp_again = EstimateRelativePose({distorted, s.query, {}},
+                                              {pinhole, s.place, s.place_depth}, s.matches);
+        ASSERT_TRUE(pnp_again.ok());
+        EXPECT_EQ(pnp_again->transform, pnp->transform);
+      }
+    }
+  }
+}
+
 // ---- Bad input ---------------------------------------------------------------------------------
 
 TEST(RelativePoseTest, BadInputIsInvalidArgumentNamingTheField) {
