@@ -1,5 +1,6 @@
-// Results out: the core's frame counts, boxes, matches, timings, features, depth state and
-// loop-closure outcome as placedb.v1 messages. Observations in: proto/convert_frame.h.
+// Results out: the core's frame counts, boxes, matches, timings, depth state and loop-closure
+// outcome as placedb.v1 messages (features: proto/convert_features.h, included here). Observations
+// in: proto/convert_frame.h.
 #pragma once
 
 #include <google/protobuf/repeated_ptr_field.h>
@@ -8,11 +9,9 @@
 
 #include "core/base/timing.h"
 #include "core/detect/dynamic_objects.h"
-#include "core/features/local_features.h"
-#include "core/features/orb_features.h"
-#include "core/features/sift_features.h"
 #include "core/filter/depth_filter.h"
 #include "core/pipeline/place_database.h"
+#include "proto/convert_features.h"
 #include "proto/placedb.pb.h"
 
 namespace placedb::wire {
@@ -23,20 +22,12 @@ void CountsToProto(const FrameCounts& counts, v1::FrameCounts* out);
 void BoxesToProto(const std::vector<DynamicBox>& boxes,
                   google::protobuf::RepeatedPtrField<v1::UsedBox>* out);
 void MetadataToProto(const PlaceMetadata& metadata, v1::PlaceMetadata* out);
-void KeypointListToProto(const std::vector<Keypoint>& keypoints,
-                         google::protobuf::RepeatedPtrField<v1::Keypoint>* out);  // appends
 // Each match with its correspondences when the core filled them.
 void MatchesToProto(const std::vector<Match>& matches,
                     google::protobuf::RepeatedPtrField<v1::Match>* out);
 void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimings* out);
-// Precomputed features as an agent sends them: 32-byte ORB descriptors, or 128 little-endian
-// float32 per SIFT keypoint.
-void FeaturesToProto(const FeatureSet& features, v1::Features* out);
-void SiftFeaturesToProto(const FloatFeatureSet& features, v1::SiftFeatures* out);
 // A place's record: id, metadata, counts and boxes used (no features, no dynamics).
 void PlaceRecordToProto(const PlaceRecord& record, v1::Place* out);
-// A place's features into the field of their family: `features` (ORB) or `sift_features`.
-void PlaceFeaturesToProto(const LocalFeatures& features, v1::Place* out);
 void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out);
 void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out);
 // A place's thumbnail: the JPEG, its and its source frame's sizes, the dropped keypoints.

@@ -82,4 +82,32 @@ std::vector<std::string> EnumValueSpellings(const EnumDescriptor* type) {
   return spellings;
 }
 
+namespace {
+
+// Lower case, '_' as ' ', surrounding blanks dropped: "Traffic_Light " -> "traffic light".
+std::string ClassKey(std::string_view name) {
+  std::string key;
+  for (char c : name) key += c == '_' ? ' ' : char(std::tolower(static_cast<unsigned char>(c)));
+  const size_t first = key.find_first_not_of(' ');
+  if (first == std::string::npos) return "";
+  return key.substr(first, key.find_last_not_of(' ') - first + 1);
+}
+
+}  // namespace
+
+std::string DynamicClassName(int class_id) {
+  const EnumValueDescriptor* value = v1::CocoClass_descriptor()->FindValueByNumber(class_id);
+  return value == nullptr ? std::to_string(class_id) : Name(value);
+}
+
+Result<int> ParseDynamicClass(std::string_view name) {
+  const std::string key = ClassKey(name);
+  const EnumDescriptor* type = v1::CocoClass_descriptor();
+  for (int i = 0; i < type->value_count(); ++i) {  // the aliases after the classes
+    if (key == ClassKey(Name(type->value(i)))) return type->value(i)->number();
+  }
+  return Status::InvalidArgument("unknown COCO class name '" + std::string(name) +
+                                 "' (expected a COCO-80 name such as person, car, truck)");
+}
+
 }  // namespace placedb::wire

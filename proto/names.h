@@ -16,6 +16,7 @@
 //   wire::ParseEnum<v1::Scoring>("chi_square")        // v1::SCORING_CHI_SQUARE
 //   wire::EnumNames<v1::Scoring>()                    // {"l1", "l2", "chi2", "kl", ...}
 //   CLI::IsMember(wire::EnumSpellings<v1::Scoring>())  // every spelling a flag may use
+//   wire::DynamicClassName(9)                         // "traffic light" (v1::CocoClass)
 #pragma once
 
 #include <google/protobuf/descriptor.h>
@@ -67,5 +68,17 @@ template <ProtoEnum E>
 std::vector<std::string> EnumSpellings() {
   return EnumValueSpellings(google::protobuf::GetEnumDescriptor<E>());
 }
+
+// ---- COCO classes (v1::CocoClass) -----------------------------------------------------------
+// Dynamic objects' classes travel as ints (Box.class_id, UsedBox.class_id, DynamicClassCount
+// .class_id); v1::CocoClass is their table. Value 0 is a class (person), not UNSPECIFIED, so these
+// are not EnumName / ParseEnum.
+
+// "person" for 0, "traffic light" for 9 (the value's name option, COCO-2017's spelling); an id
+// outside the table as its number ("80").
+std::string DynamicClassName(int class_id);
+// A class name as the server reads one: case-insensitive, '_' for ' ', surrounding blanks
+// ignored, darknet's spellings ("motorbike": the enum's aliases) too. INVALID_ARGUMENT otherwise.
+Result<int> ParseDynamicClass(std::string_view name);
 
 }  // namespace placedb::wire

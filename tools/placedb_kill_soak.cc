@@ -46,7 +46,7 @@
 #include "client/ingest_stream.h"
 #include "core/base/thread_annotations.h"
 #include "core/features/orb_features.h"
-#include "proto/convert_result.h"
+#include "proto/convert_features.h"
 #include "proto/status.h"
 #include "tools/shared_data.h"
 

@@ -10,7 +10,7 @@
 #include "client/commands/common.h"
 #include "client/dynamics_chart.h"
 #include "client/format.h"
-#include "core/detect/detector.h"
+#include "proto/names.h"
 
 namespace placedb::client {
 
@@ -70,9 +70,7 @@ bool ParsePoint(const std::string& text, v1::Pose* point) {
 }
 
 std::string ClassLabel(int class_id) {
-  const char* name =
-      class_id >= 0 && class_id < kCocoClassCount ? CocoClassName(class_id) : nullptr;
-  return name ? std::string(name) : std::to_string(class_id);
+  return wire::DynamicClassName(class_id);
 }
 
 // "person 12, car 4": each class with the frames it was seen in.
@@ -179,7 +177,7 @@ int RunDynamics(const Connection& connection, const DynamicsFlags& flags, bool j
   }
   if (!flags.class_label.empty()) {
     request.set_measure(v1::DYNAMICS_MEASURE_CLASS_SHARE);
-    auto id = CocoClassId(flags.class_label);
+    auto id = wire::ParseDynamicClass(flags.class_label);
     if (id.ok()) {
       request.set_class_id(*id);
     } else {

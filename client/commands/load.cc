@@ -19,8 +19,6 @@
 #include "client/progress.h"
 #include "client/queue.h"
 #include "core/base/thread_annotations.h"
-#include "core/features/orb_features.h"
-#include "proto/convert_result.h"
 #include "proto/status.h"
 
 namespace placedb::client {
@@ -43,17 +41,8 @@ bool IsQuerySlot(uint64_t g, double ratio) {
   return std::floor(double(g + 1) * ratio) > std::floor(double(g) * ratio);
 }
 
-OrbConfig OrbFromMap(const v1::MapConfig& config) {
-  OrbConfig orb;
-  const v1::OrbSettings& s = config.orb();
-  if (s.has_max_features()) orb.max_features = s.max_features();
-  if (s.has_scale_factor()) orb.scale_factor = s.scale_factor();
-  if (s.has_levels()) orb.levels = s.levels();
-  if (s.has_edge_threshold()) orb.edge_threshold = s.edge_threshold();
-  if (s.has_patch_size()) orb.patch_size = s.patch_size();
-  if (s.has_fast_threshold()) orb.fast_threshold = s.fast_threshold();
-  return orb;
-}
+// --mode features' extractor: none until a linked placedb_load_orb installs one (load.h).
+constinit LoadFeatureExtractor load_feature_extractor = nullptr;
 
 // What one RPC kind (ingest or query) measured.
 struct KindStats {
@@ -91,6 +80,11 @@ bool CheckTarget(const ConnectionOptions& connection_options, const LoadOptions&
   }
   if (options.mode != "encoded" && options.mode != "features") {
     io.err << "error: --mode must be encoded or features\n";
+    return false;
+  }
+  if (options.mode == "features" && load_feature_extractor == nullptr) {
+    io.err << "error: --mode features extracts ORB here, and this program has no feature "
+              "extractor linked: use placedb-load, or --mode encoded\n";
     return false;
   }
   return true;
@@ -189,14 +183,15 @@ bool MakeTemplates(const LoadOptions& options, const LoadMap& map,
     cv::Mat gray =
         cv::imdecode(cv::Mat(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data())),
                      cv::IMREAD_GRAYSCALE);
-    auto features = gray.empty() ? Result<FeatureSet>(Status::InvalidArgument("undecodable"))
-                                 : ExtractOrb(gray, OrbFromMap(config));
-    if (!features.ok()) {
-      io.err << "error: extracting features of source frame " << i << ": "
-             << features.status().ToString() << '\n';
+    const Status extracted =
+        gray.empty()
+            ? Status::InvalidArgument("undecodable")
+            : load_feature_extractor(gray, config.orb(), (*templates)[i].mutable_features());
+    if (!extracted.ok()) {
+      io.err << "error: extracting features of source frame " << i << ": " << extracted.ToString()
+             << '\n';
       return false;
     }
-    wire::FeaturesToProto(*features, (*templates)[i].mutable_features());
   }
   encoded->clear();
   return true;
@@ -612,6 +607,10 @@ int RunLoad(const ConnectionOptions& connection_options, const LoadOptions& opti
     PrintReport(report, io.out);
   }
   return counts.stream_errors.empty() && report.errors_total.empty() ? kExitOk : kExitRpcError;
+}
+
+void SetLoadFeatureExtractor(LoadFeatureExtractor extractor) {
+  load_feature_extractor = extractor;
 }
 
 }  // namespace placedb::client

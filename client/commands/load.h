@@ -12,10 +12,16 @@
 
 #include "client/cli.h"
 #include "client/connection.h"
+#include "core/base/status.h"
+#include "proto/placedb.pb.h"
 
 namespace CLI {
 class App;
 }  // namespace CLI
+
+namespace cv {
+class Mat;
+}  // namespace cv
 
 namespace placedb::client {
 
@@ -39,6 +45,15 @@ struct LoadOptions {
   std::string json_out;          // report file
   std::string agent_prefix = "load";
 };
+
+// --mode features: the frame's ORB features (gray pixels, the map's ORB settings) into `out`, as
+// an agent sends them. The CLI's libraries link the API only, no engine module: a program gets
+// this mode by linking placedb_load_orb (client/load_orb.cc, core's ExtractOrb), which installs
+// its extractor before main(); placedb and placedb-load do. Without one, --mode features is a
+// usage error.
+using LoadFeatureExtractor = Status (*)(const cv::Mat& gray, const v1::OrbSettings& settings,
+                                        v1::Features* out);
+void SetLoadFeatureExtractor(LoadFeatureExtractor extractor);
 
 // Adds `load` to `app`, its options bound to *options; returns the subcommand.
 CLI::App* RegisterLoad(CLI::App& app, LoadOptions* options);

@@ -1,7 +1,7 @@
 """Builds the placedb package (pyproject.toml has its metadata).
 
 The messages and gRPC stubs (``placedb._pb``) are generated at build time from the repository's
-``proto/placedb.proto`` and ``client/python/health.proto``, never committed, the same way
+``proto/placedb.proto`` and ``proto/health.proto``, never committed, the same way
 client/python/CMakeLists.txt does it: protoc (Debian's protobuf-compiler) with
 grpc_python_plugin (protobuf-compiler-grpc), whose generated code matches Debian's
 python3-protobuf. Without those, ``python3 -m grpc_tools.protoc`` (grpcio-tools) is used;
@@ -23,7 +23,7 @@ from setuptools.command.build_py import build_py
 HERE = Path(__file__).resolve().parent
 PROTOS = {
     "placedb.proto": HERE.parent.parent / "proto" / "placedb.proto",
-    "health.proto": HERE / "health.proto",
+    "health.proto": HERE.parent.parent / "proto" / "health.proto",
 }
 
 

@@ -26,8 +26,8 @@ def _run(command: List[str], env: Dict[str, str], cwd: Path) -> subprocess.Compl
 
 
 def _checkout_copy(target: Path, with_proto: bool = True) -> Path:
-    """The parts of the checkout the package build reads (client/python, proto/placedb.proto),
-    copied so that the build writes nothing into the checkout."""
+    """The parts of the checkout the package build reads (client/python, proto/placedb.proto
+    and proto/health.proto), copied so that the build writes nothing into the checkout."""
     shutil.copytree(
         ROOT / "client" / "python",
         target / "client" / "python",
@@ -35,7 +35,8 @@ def _checkout_copy(target: Path, with_proto: bool = True) -> Path:
     )
     if with_proto:
         (target / "proto").mkdir()
-        shutil.copyfile(ROOT / "proto" / "placedb.proto", target / "proto" / "placedb.proto")
+        for name in ("placedb.proto", "health.proto"):
+            shutil.copyfile(ROOT / "proto" / name, target / "proto" / name)
     return target / "client" / "python"
 
 
