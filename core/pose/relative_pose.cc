@@ -66,6 +66,9 @@ struct PnpProblem {
   std::vector<cv::Point2d> image;   // undistorted pixels in the other side's image
   std::vector<uint32_t> match;      // index into the caller's matches
   cv::Matx33d k;                    // the image side's pinhole intrinsics
+  // The image-side keypoint's scale (octave_scale_factor^octave): its localisation error grows
+  // with it, so residuals are divided by it (ORB-SLAM weighs its reprojections the same way).
+  std::vector<double> scale;
 };
 
 template <typename T>
@@ -108,6 +111,8 @@ PnpProblem MakePnpProblem(const PoseFrame& query, const PoseFrame& place,
     if (!DepthUsable(d, config)) continue;
     depth_px.push_back({depth_side.keypoints[d_index].x, depth_side.keypoints[d_index].y});
     image_px.push_back({image_side.keypoints[i_index].x, image_side.keypoints[i_index].y});
+    problem.scale.push_back(std::pow(config.octave_scale_factor,
+                                     std::clamp(image_side.keypoints[i_index].octave, 0, 31)));
     depths.push_back(d);
     problem.match.push_back(uint32_t(i));
   }
@@ -133,6 +138,7 @@ cv::Vec3d ImageSidePoint(const PoseState& s, const cv::Point3d& object, bool pla
   return place_depth ? s.r.t() * (p - s.t) : s.r * p + s.t;
 }
 
+// Squared reprojection errors divided by the keypoint's scale squared.
 std::vector<double> SquaredResiduals(const PnpProblem& p, bool place_depth, const PoseState& s) {
   std::vector<double> out(p.object.size());
   for (size_t i = 0; i < p.object.size(); ++i) {
@@ -143,7 +149,7 @@ std::vector<double> SquaredResiduals(const PnpProblem& p, bool place_depth, cons
     }
     const double u = p.k(0, 0) * x[0] / x[2] + p.k(0, 2) - p.image[i].x;
     const double v = p.k(1, 1) * x[1] / x[2] + p.k(1, 2) - p.image[i].y;
-    out[i] = u * u + v * v;
+    out[i] = (u * u + v * v) / (p.scale[i] * p.scale[i]);
   }
   return out;
 }
@@ -180,8 +186,9 @@ void Linearize(const PnpProblem& p, bool place_depth, const PoseState& s,
         j(row, c + 3) = jr(row, c);
       }
     }
-    *h += j.t() * j;
-    *g += j.t() * residual;
+    const double w = 1.0 / (p.scale[i] * p.scale[i]);
+    *h += j.t() * j * w;
+    *g += j.t() * residual * w;
   }
 }
 
@@ -234,11 +241,12 @@ Result<RelativePose> SolvePnp(const PnpProblem& primary, const PnpProblem& secon
     inliers = std::move(next);
   }
 
-  // With depth on both sides, both reprojections constrain the pose: Gauss-Newton with a
-  // Levenberg damping over both inlier sets (re-selected at each step's pose).
+  // The final refinement: Gauss-Newton with a Levenberg damping over the reprojections divided
+  // by their keypoints' scales, of both sides when both have depth (inliers re-selected at each
+  // step's pose, the threshold scaled like the residuals).
   std::vector<int> secondary_inliers;
-  if (!secondary.object.empty()) {
-    double lambda = 1e-4;
+  {
+    const double lambda = 1e-4;
     for (int iteration = 0; iteration < 10; ++iteration) {
       inliers = Inliers(SquaredResiduals(primary, depth_on_place, state), threshold2);
       secondary_inliers = Inliers(SquaredResiduals(secondary, !depth_on_place, state), threshold2);
@@ -272,13 +280,15 @@ Result<RelativePose> SolvePnp(const PnpProblem& primary, const PnpProblem& secon
   pose.transform = FromRt(state.r, state.t);
   const auto squared = SquaredResiduals(primary, depth_on_place, state);
   const auto secondary_squared = SquaredResiduals(secondary, !depth_on_place, state);
-  double ssr = 0;
+  double ssr = 0, pixels_ssr = 0;  // scaled (the weighted problem's) and in pixels
   for (int i : inliers) {
     ssr += squared[i];
+    pixels_ssr += squared[i] * primary.scale[i] * primary.scale[i];
     pose.inlier_indices.push_back(primary.match[i]);
   }
   for (int i : secondary_inliers) {
     ssr += secondary_squared[i];
+    pixels_ssr += secondary_squared[i] * secondary.scale[i] * secondary.scale[i];
     pose.inlier_indices.push_back(secondary.match[i]);
   }
   const int residuals = int(inliers.size() + secondary_inliers.size());
@@ -286,7 +296,7 @@ Result<RelativePose> SolvePnp(const PnpProblem& primary, const PnpProblem& secon
   pose.inlier_indices.erase(std::unique(pose.inlier_indices.begin(), pose.inlier_indices.end()),
                             pose.inlier_indices.end());
   pose.inliers = int(pose.inlier_indices.size());
-  pose.rms_error_px = std::sqrt(ssr / residuals);
+  pose.rms_error_px = std::sqrt(pixels_ssr / residuals);
 
   // Information of the right perturbation of T_place_query (header comment).
   const double sigma2 = std::max(ssr / std::max(1, 2 * residuals - 6),
@@ -452,6 +462,10 @@ Status ValidateRelativePoseConfig(const RelativePoseConfig& config) {
     return Status::InvalidArgument("min_depth_m / max_depth_m = " + Num(config.min_depth_m) +
                                    " / " + Num(config.max_depth_m) +
                                    ": need 0 <= min_depth_m < max_depth_m, finite");
+  }
+  if (!(config.octave_scale_factor >= 1 && config.octave_scale_factor <= 4)) {
+    return Status::InvalidArgument("octave_scale_factor = " + Num(config.octave_scale_factor) +
+                                   ": must be in [1, 4]");
   }
   if (!(config.min_pixel_sigma > 0 && std::isfinite(config.min_pixel_sigma))) {
     return Status::InvalidArgument("min_pixel_sigma = " + Num(config.min_pixel_sigma) +
