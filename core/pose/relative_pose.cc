@@ -213,7 +213,7 @@ Result<RelativePose> SolvePnp(const PnpProblem& primary, const PnpProblem& secon
     found =
         cv::solvePnPRansac(primary.object, primary.image, primary.k, cv::noArray(), rvec, tvec,
                            false, config.ransac_max_iterations, float(config.ransac_threshold_px),
-                           config.ransac_confidence, inliers, cv::SOLVEPNP_AP3P);
+                           config.ransac_confidence, inliers, cv::SOLVEPNP_P3P);
   } catch (const cv::Exception& e) {
     return Status::FailedPrecondition(std::string("pnp: degenerate correspondences (") + e.what() +
                                       ")");

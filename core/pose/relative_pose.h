@@ -10,18 +10,17 @@
 //
 // Two solvers, chosen per call (RelativePoseConfig::method, kAuto by default):
 //   - PnP, metric 6-DoF, when at least `min_inliers` matches have depth on one side: the
-//     keypoints with depth are back-projected to 3-D in their camera, cv::solvePnPRansac (AP3P
-//     minimal samples, `ransac_threshold_px` on the other side's reprojection) finds the pose
-//     and its inliers, then cv::solvePnPRefineLM refines it on the inliers; the inliers are
-//     re-selected at the refined pose and refined once more; a last Gauss-Newton refinement
-//     weighs each reprojection by its keypoint's pyramid scale (`octave_scale_factor`). With
-//     depth only on the query side
-//     the inverse problem is solved (3-D in the query, 2-D in the place), which yields the same
-//     transform directly. With depth on both sides, the side with more matched depths carries
-//     the RANSAC (the place on a tie) and the other side's depths join the last refinement
-//     (both reprojections, inliers re-selected at each step). On slambook2 (docs/poses.md) the
-//     weighting and the joint refinement bring the worst translation error from 11.8 cm (one
-//     side's depth, unweighted) to 7.3 cm (both depths).
+//     keypoints with depth are back-projected to 3-D in their camera, cv::solvePnPRansac (P3P
+//     minimal samples, cheaper than AP3P here at the same accuracy; `ransac_threshold_px` on
+//     the other side's reprojection) finds the pose and its inliers, then cv::solvePnPRefineLM
+//     refines it on the inliers; the inliers are re-selected at the refined pose and refined once
+//     more; a last Gauss-Newton refinement weighs each reprojection by its keypoint's pyramid scale
+//     (`octave_scale_factor`). With depth only on the query side the inverse problem is solved (3-D
+//     in the query, 2-D in the place), which yields the same transform directly. With depth on both
+//     sides, the side with more matched depths carries the RANSAC (the place on a tie) and the
+//     other side's depths join the last refinement (both reprojections, inliers re-selected at each
+//     step). On slambook2 (docs/poses.md) the weighting and the joint refinement bring the worst
+//     translation error from 11.8 cm (one side's depth, unweighted) to 7.3 cm (both depths).
 //   - Essential matrix, monocular: both sides normalised (intrinsics and distortion removed),
 //     cv::findEssentialMat (5-point samples in OpenCV's USAC with MAGSAC++: on the synthetic test
 //     a third of plain RANSAC's rotation error; the threshold in pixels scaled by the focal
