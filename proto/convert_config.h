@@ -19,7 +19,7 @@ namespace placedb::wire {
 namespace v1 = ::placedb::v1;
 
 // What the service keeps per map besides the core's database config (in the map's own info,
-// MapOptions::service_json: see server/map_registry.h).
+// MapOptions::service_json: see server/backend/map_registry.h).
 struct ServiceMapSettings {
   BoxSource box_source = BoxSource::kAgent;
   bool detection_enabled = true;

@@ -36,7 +36,7 @@ struct Limits {
   // stream_idle_timeout_ms, or whose answer the client has not taken for that long.
   uint32_t stream_header_timeout_ms = 10000;
   uint32_t stream_idle_timeout_ms = 60000;
-  // The server's memory budget (server/memory_budget.h): the process at startup, the block
+  // The server's memory budget (server/ingest/memory_budget.h): the process at startup, the block
   // cache, every pending read, every frame and Query from its read to its answer. Reads wait for
   // it; a frame that still does not fit waits memory_wait_ms, then is refused
   // (RESOURCE_EXHAUSTED naming this key).

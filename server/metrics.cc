@@ -12,7 +12,7 @@
 #include <utility>
 #include <vector>
 
-#include "server/http_endpoint.h"
+#include "server/net/http_endpoint.h"
 
 namespace placedb::server {
 

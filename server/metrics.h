@@ -27,7 +27,7 @@ class Metrics {
   Metrics();
   ~Metrics();
 
-  // How the endpoint serves HTTP (server/http_endpoint.h: cpp-httplib, plaintext or HTTPS,
+  // How the endpoint serves HTTP (server/net/http_endpoint.h: cpp-httplib, plaintext or HTTPS,
   // `threads` workers, one request per connection, `request_timeout_ms` per read and write).
   struct Endpoint {
     std::string listen;  // host:port or [v6]:port; port 0 picks one
@@ -49,7 +49,7 @@ class Metrics {
   // answers the registry in Prometheus' text format. INVALID_ARGUMENT for a listen address that
   // is not host:port; IO_ERROR when it cannot be bound (in use: SO_REUSEPORT is not set, so a
   // second server cannot share the port); with TLS, the errors of LoadTlsFiles
-  // (server/transport_security.h) for bad files. On failure nothing is served.
+  // (server/net/transport_security.h) for bad files. On failure nothing is served.
   Status Serve(const Endpoint& endpoint, std::function<void()> before_scrape);
   int port() const { return port_; }  // the bound port; 0 when not serving
   // Stops accepting and waits for the connections being served (each ends within its timeouts).
@@ -136,7 +136,7 @@ class Metrics {
   prometheus::Family<prometheus::Counter>& snapshot_transfer_;
   prometheus::Family<prometheus::Histogram>& snapshot_seconds_;
   std::shared_ptr<prometheus::Collectable> collectable_;  // registry + refresh callback
-  std::unique_ptr<HttpEndpoint> http_;                    // server/http_endpoint.h
+  std::unique_ptr<HttpEndpoint> http_;                    // server/net/http_endpoint.h
   int port_ = 0;
 };
 

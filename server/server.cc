@@ -15,16 +15,16 @@
 #include "server/auth/call_auth.h"
 #include "server/auth/token_store.h"
 #include "server/backend/local_backend.h"
+#include "server/backend/map_registry.h"
+#include "server/backend/vocabulary_policy.h"
 #include "server/console/console.h"
-#include "server/http_endpoint.h"
-#include "server/map_registry.h"
-#include "server/memory_budget.h"
+#include "server/ingest/memory_budget.h"
+#include "server/ingest/worker_pool.h"
 #include "server/metrics.h"
-#include "server/parsing_service.h"
+#include "server/net/http_endpoint.h"
+#include "server/net/transport_security.h"
+#include "server/rpc/parsing_service.h"
 #include "server/rpc/service.h"
-#include "server/transport_security.h"
-#include "server/vocabulary_policy.h"
-#include "server/worker_pool.h"
 
 namespace placedb::server {
 
@@ -251,7 +251,7 @@ Result<std::unique_ptr<Server>> Server::Start(const ServerConfig& config, Server
   server->parsing_ =
       std::make_unique<ParsingService>(server->service_.get(), server->authorizer_.get());
   if (const auto missing = server->parsing_->Unregistered(); !missing.empty()) {
-    return Status::Internal("server/parsing_service.cc does not register " + missing.front());
+    return Status::Internal("server/rpc/parsing_service.cc does not register " + missing.front());
   }
   // The console before gRPC starts: GetServerInfo reports its bound address from the first call.
   if (!c.console_listen.empty()) {

@@ -1,6 +1,6 @@
 // IngestPipeline without gRPC: a real WorkerPool and real threads, frames that record what was
 // done to them, and gates that hold a frame's work until the test opens them.
-#include "server/ingest_pipeline.h"
+#include "server/ingest/ingest_pipeline.h"
 
 #include <gtest/gtest.h>
 

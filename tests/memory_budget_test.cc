@@ -1,6 +1,6 @@
 // MemoryBudget: fixed charges, reservations (RAII, resize, move), refusals naming the budget, and
 // waiting for room (also under ThreadSanitizer: the MemoryBudgetConcurrency tests).
-#include "server/memory_budget.h"
+#include "server/ingest/memory_budget.h"
 
 #include <gtest/gtest.h>
 

@@ -6,7 +6,7 @@
 #include <cctype>
 
 #include "core/base/text.h"
-#include "server/transport_security.h"
+#include "server/net/transport_security.h"
 
 namespace placedb::server::auth {
 

@@ -10,7 +10,7 @@
 #include "proto/convert_dynamics.h"
 #include "proto/convert_result.h"
 #include "proto/status.h"
-#include "server/place_reads.h"
+#include "server/backend/place_reads.h"
 
 namespace placedb::server {
 

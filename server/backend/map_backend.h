@@ -33,7 +33,7 @@
 #include "core/storage/snapshots.h"
 #include "proto/convert_config.h"
 #include "proto/placedb.pb.h"
-#include "server/map_registry.h"
+#include "server/backend/map_registry.h"
 
 namespace placedb::server {
 

@@ -7,7 +7,7 @@
 
 #include <algorithm>
 
-#include "server/cluster/proto/etcd_rpc.grpc.pb.h"
+#include "proto/etcd_rpc.grpc.pb.h"
 
 namespace placedb::cluster {
 namespace {

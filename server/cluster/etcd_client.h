@@ -2,7 +2,7 @@
 // mode; design in /work/notes/cluster-design.md, later docs/cluster.md).
 //
 // Talks to etcd through our own wire-compatible subset of etcd's API
-// (server/cluster/proto/etcd_rpc.proto): KV Range/Put/DeleteRange/Txn, Lease Grant/Revoke/
+// (proto/etcd_rpc.proto): KV Range/Put/DeleteRange/Txn, Lease Grant/Revoke/
 // KeepAlive, Watch.
 //
 // What we rely on from etcd (3.4):

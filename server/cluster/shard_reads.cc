@@ -11,9 +11,9 @@
 #include "proto/convert_config.h"
 #include "proto/convert_result.h"
 #include "proto/status.h"
+#include "server/backend/place_reads.h"
 #include "server/cluster/map_record.h"
 #include "server/cluster/shard_impl.h"
-#include "server/place_reads.h"
 
 namespace placedb::cluster {
 

@@ -72,11 +72,11 @@
 
 #include "core/base/thread_annotations.h"
 #include "server/backend/map_backend.h"
+#include "server/backend/map_registry.h"
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/placement.h"
 #include "server/config.h"
-#include "server/map_registry.h"
 #include "server/metrics.h"
 
 namespace placedb::server {

@@ -14,8 +14,8 @@
 #include "proto/placedb.grpc.pb.h"
 #include "proto/status.h"
 #include "server/auth/call_auth.h"
-#include "server/parsing_service.h"
-#include "server/transport_security.h"
+#include "server/net/transport_security.h"
+#include "server/rpc/parsing_service.h"
 
 namespace placedb::server {
 

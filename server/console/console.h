@@ -1,5 +1,5 @@
 // The web console of placedb-server (docs/console.md): its pages and a JSON API on their own
-// HTTP listener (server/http_endpoint.h), over the same calls as gRPC.
+// HTTP listener (server/net/http_endpoint.h), over the same calls as gRPC.
 //
 //   POST /api/v1/<Method>   the request as protobuf JSON (the proto's field names) -> the answer
 //                           as protobuf JSON; only the read and query methods of kConsoleMethods.
@@ -16,7 +16,7 @@
 // refused body is never read nor parsed and the answer closes the connection: the Host rule
 // below (403), a method not on the list (404), a caller whose credentials are refused (401: the
 // same ParsingService::AuthenticateCall as CallUnary's first step, so no second token check),
-// and a Content-Length over max_request_bytes (413, server/http_endpoint.h). Authorization on
+// and a Content-Length over max_request_bytes (413, server/net/http_endpoint.h). Authorization on
 // the request's map needs the body: an authenticated caller without the right gets 403 after it.
 // POSTs must say `Content-Type: application/json` (a browser then asks before a cross-site page
 // may send one, and the console never says yes). A console that does not authenticate (no tokens
@@ -31,7 +31,7 @@
 #include <vector>
 
 #include "core/base/status.h"
-#include "server/http_endpoint.h"
+#include "server/net/http_endpoint.h"
 
 namespace placedb::server {
 

@@ -7,9 +7,9 @@
 #include "proto/convert_config.h"
 #include "proto/convert_result.h"
 #include "proto/status.h"
-#include "server/frame_memory.h"
-#include "server/ingest_pipeline.h"
+#include "server/ingest/ingest_pipeline.h"
 #include "server/rpc/call_support.h"
+#include "server/rpc/frame_memory.h"
 
 namespace placedb::server {
 

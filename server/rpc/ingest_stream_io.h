@@ -1,5 +1,5 @@
 // An Ingest stream as PlaceDbService::IngestStream sees it: gRPC's reader-writer plus why Read()
-// returned false. ParsingService (server/parsing_service.h) implements it over the raw stream,
+// returned false. ParsingService (server/rpc/parsing_service.h) implements it over the raw stream,
 // parsing each message itself.
 #pragma once
 

@@ -25,9 +25,10 @@ grpc::Status PlaceDbService::CreateMap(grpc::ServerContext* context,
   // The vocabulary next: its kind is the map's feature type.
   auto vocabulary = maps_->ResolveVocabulary(request->config().vocabulary());
   if (!vocabulary.ok()) return Finish("CreateMap", context, ToGrpc(vocabulary.status()));
-  MapCreation creation{.name = request->name(),
-                       .vocabulary_requested = request->config().vocabulary(),
-                       .vocabulary = (*vocabulary)->name};
+  MapCreation creation;
+  creation.name = request->name();
+  creation.vocabulary_requested = request->config().vocabulary();
+  creation.vocabulary = (*vocabulary)->name;
   auto options = MapOptionsFromProto(
       request->config(), config_.limits.max_descriptors_per_frame,
       MapVocabulary{(*vocabulary)->name, (*vocabulary)->vocabulary.feature_type()},

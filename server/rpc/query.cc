@@ -7,8 +7,8 @@
 #include "proto/convert_frame.h"
 #include "proto/convert_result.h"
 #include "proto/status.h"
-#include "server/frame_memory.h"
 #include "server/rpc/call_support.h"
+#include "server/rpc/frame_memory.h"
 
 namespace placedb::server {
 

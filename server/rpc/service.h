@@ -5,11 +5,11 @@
 // cluster worker's; no handler asks which.
 //
 // Ingest: the call's handler thread reads and hands each observation to the stream's
-// IngestPipeline (server/ingest_pipeline.h), which prepares it on the WorkerPool (decode, detect,
-// extract, depth, filter, transform) and completes it in stream order: the agent's stream state
-// (Algorithm 1 on depth, PlaceMap::AdvanceStream), search and store (or, in loop-closure mode,
-// PlaceMap::CloseLoop), so a frame's matches are the map before that frame, and its place id is
-// stored before the next frame's search. The pipeline's delivery thread writes the responses in
+// IngestPipeline (server/ingest/ingest_pipeline.h), which prepares it on the WorkerPool (decode,
+// detect, extract, depth, filter, transform) and completes it in stream order: the agent's stream
+// state (Algorithm 1 on depth, PlaceMap::AdvanceStream), search and store (or, in loop-closure
+// mode, PlaceMap::CloseLoop), so a frame's matches are the map before that frame, and its place id
+// is stored before the next frame's search. The pipeline's delivery thread writes the responses in
 // order. The handler reads its next message only when the stream has fewer than
 // max_inflight_per_stream frames unanswered and the pool's queue has room: backpressure reaches
 // the client through HTTP/2 flow control.
@@ -41,19 +41,19 @@
 #include "core/base/thread_annotations.h"
 #include "core/detect/detector.h"
 #include "proto/placedb.grpc.pb.h"
-#include "server/agent_activity.h"
 #include "server/backend/map_backend.h"
+#include "server/backend/map_registry.h"
 #include "server/config.h"
-#include "server/map_registry.h"
-#include "server/memory_budget.h"
+#include "server/ingest/memory_budget.h"
+#include "server/ingest/worker_pool.h"
 #include "server/metrics.h"
+#include "server/rpc/agent_activity.h"
 #include "server/rpc/ingest_stream_io.h"
-#include "server/worker_pool.h"
 
 namespace placedb::server {
 
 // The handlers, checked against the proto by the generated interface; gRPC reaches them through
-// ParsingService (server/parsing_service.h), which parses the requests itself.
+// ParsingService (server/rpc/parsing_service.h), which parses the requests itself.
 class PlaceDbService final : public v1::PlaceDb::Service {
  public:
   // `detector` null = server-side detection off; `detector_status` then says why ("off", or

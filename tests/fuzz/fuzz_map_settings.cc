@@ -15,7 +15,7 @@
 #include "core/storage/codec.h"
 #include "proto/convert_config.h"
 #include "proto/placedb.pb.h"
-#include "server/map_registry.h"
+#include "server/backend/map_registry.h"
 #include "tests/fuzz/fuzz_support.h"
 
 namespace placedb {

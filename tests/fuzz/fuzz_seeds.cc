@@ -34,8 +34,8 @@
 #include "proto/convert_config.h"
 #include "proto/convert_frame.h"
 #include "proto/placedb.pb.h"
+#include "server/backend/map_registry.h"
 #include "server/config.h"
-#include "server/map_registry.h"
 #include "tests/fuzz/fuzz_support.h"
 #include "tools/shared_data.h"
 

@@ -19,7 +19,7 @@
 #include <vector>
 
 #include "server/auth/tokens.h"
-#include "server/transport_security.h"
+#include "server/net/transport_security.h"
 #include "tests/server/server_fixture.h"
 #include "tests/tls_certificates.h"
 

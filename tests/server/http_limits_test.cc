@@ -1,4 +1,4 @@
-// The HTTP listeners' limits (server/http_endpoint.h, server/console/console.h) against a real
+// The HTTP listeners' limits (server/net/http_endpoint.h, server/console/console.h) against a real
 // server on loopback, with raw sockets (findings 4 and 5 of issue 34): refusals come from the
 // headers while the body stays unread (401 for refused credentials, 413 for a Content-Length over
 // the limit), chunked and length-less bodies are bounded, slow clients beyond the threads do not

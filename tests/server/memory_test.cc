@@ -13,8 +13,8 @@
 #include <thread>
 #include <vector>
 
-#include "server/frame_memory.h"
-#include "server/memory_budget.h"
+#include "server/ingest/memory_budget.h"
+#include "server/rpc/frame_memory.h"
 #include "tests/server/server_fixture.h"
 #include "tests/test_support.h"
 

@@ -13,7 +13,7 @@
 #include <thread>
 #include <vector>
 
-#include "server/agent_activity.h"
+#include "server/rpc/agent_activity.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {

@@ -23,7 +23,7 @@
 
 #include "client/cli.h"
 #include "client/connection.h"
-#include "server/transport_security.h"
+#include "server/net/transport_security.h"
 #include "tests/server/server_fixture.h"
 #include "tests/tls_certificates.h"
 

@@ -14,7 +14,7 @@
 #include <string>
 #include <vector>
 
-#include "server/parsing_service.h"
+#include "server/rpc/parsing_service.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {
@@ -342,7 +342,7 @@ TEST_F(UntrustedInputTest, MalformedIngestMessageEndsTheStreamNamingIt) {
   EXPECT_EQ(Stats("m").places(), 2u);
 }
 
-// The diagnosis of bytes protobuf refused, on its own (server/parsing_service.h).
+// The diagnosis of bytes protobuf refused, on its own (server/rpc/parsing_service.h).
 TEST(DiagnoseMessageTest, NamesTheFirstProblemWithItsPath) {
   v1::QueryRequest query;
   query.set_map("m");

@@ -8,7 +8,7 @@
 #include <chrono>
 #include <thread>
 
-#include "server/vocabulary_policy.h"
+#include "server/backend/vocabulary_policy.h"
 #include "tests/server/server_fixture.h"
 
 namespace placedb::server_testing {

@@ -1,4 +1,4 @@
-#include "server/transport_security.h"
+#include "server/net/transport_security.h"
 
 #include <arpa/inet.h>
 #include <grpc/grpc_security_constants.h>

@@ -1,5 +1,5 @@
-// What one observation costs the memory budget (server/memory_budget.h) while the server holds
-// it: its message, the images it decodes to and the working memory of feature extraction,
+// What one observation costs the memory budget (server/ingest/memory_budget.h) while the server
+// holds it: its message, the images it decodes to and the working memory of feature extraction,
 // estimated from the message and the images' headers before anything is decoded.
 // docs/service.md ("Memory budget") lists the factors.
 #pragma once

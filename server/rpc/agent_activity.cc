@@ -1,4 +1,4 @@
-#include "server/agent_activity.h"
+#include "server/rpc/agent_activity.h"
 
 #include <algorithm>
 

@@ -1,4 +1,4 @@
-#include "server/map_registry.h"
+#include "server/backend/map_registry.h"
 
 #include <spdlog/spdlog.h>
 

@@ -49,8 +49,8 @@
 #include <thread>
 
 #include "core/base/thread_annotations.h"
-#include "server/memory_budget.h"
-#include "server/worker_pool.h"
+#include "server/ingest/memory_budget.h"
+#include "server/ingest/worker_pool.h"
 
 namespace placedb::server {
 

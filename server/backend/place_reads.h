@@ -1,6 +1,6 @@
 // The read RPCs of placedb.v1 on one open map (GetPlace, ListPlaces, GetDynamics), shared by the
-// single-node backend (server/backend/local_backend.cc) and cluster mode's shard (server/cluster/shard.h), so
-// both answer them the same way.
+// single-node backend (server/backend/local_backend.cc) and cluster mode's shard
+// (server/cluster/shard.h), so both answer them the same way.
 //
 // Errors are values with the code the RPC returns (proto/status.h ToGrpc): INVALID_ARGUMENT for
 // a bad request field (named), NOT_FOUND for an absent place, the storage's codes otherwise.

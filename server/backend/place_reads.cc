@@ -1,4 +1,4 @@
-#include "server/place_reads.h"
+#include "server/backend/place_reads.h"
 
 #include "proto/convert_config.h"
 #include "proto/convert_dynamics.h"

@@ -1,4 +1,4 @@
-#include "server/memory_budget.h"
+#include "server/ingest/memory_budget.h"
 
 #include <utility>
 

@@ -17,7 +17,7 @@
 #include "core/base/thread_annotations.h"
 #include "core/storage/map_store.h"
 #include "proto/convert_config.h"
-#include "server/map_registry.h"
+#include "server/backend/map_registry.h"
 
 namespace placedb::server {
 

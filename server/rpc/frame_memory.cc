@@ -1,4 +1,4 @@
-#include "server/frame_memory.h"
+#include "server/rpc/frame_memory.h"
 
 #include "core/decode/image_decoder.h"
 #include "proto/convert_frame.h"
@@ -16,8 +16,7 @@ constexpr uint64_t kOrbWorkPerPixel = 10;
 constexpr uint64_t kSiftWorkPerPixel = 240;
 
 uint64_t Pixels(const std::string& encoded) {
-  auto header = ReadImageInfo(
-      {reinterpret_cast<const uint8_t*>(encoded.data()), encoded.size()});
+  auto header = ReadImageInfo({reinterpret_cast<const uint8_t*>(encoded.data()), encoded.size()});
   if (!header.ok()) return 0;
   return uint64_t(header->width) * uint64_t(header->height);
 }

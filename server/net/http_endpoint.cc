@@ -1,4 +1,4 @@
-#include "server/http_endpoint.h"
+#include "server/net/http_endpoint.h"
 
 #include <fcntl.h>
 #include <httplib.h>
@@ -27,7 +27,7 @@
 
 #include "core/base/text.h"
 #include "core/base/thread_annotations.h"
-#include "server/transport_security.h"
+#include "server/net/transport_security.h"
 
 namespace placedb::server {
 

@@ -70,7 +70,7 @@ class HttpEndpoint {
   // Exceptions from a handler are logged and answered 500 without their text. INVALID_ARGUMENT
   // for a listen address that is not host:port; IO_ERROR when it cannot be bound (in use:
   // SO_REUSEPORT is not set, so a second server cannot share the port); with TLS, the errors of
-  // LoadTlsFiles (server/transport_security.h) for bad files. On failure nothing is served.
+  // LoadTlsFiles (server/net/transport_security.h) for bad files. On failure nothing is served.
   Status Serve(const HttpEndpointSettings& settings,
                const std::function<void(httplib::Server&)>& routes);
   int port() const { return port_; }  // the bound port; 0 when not serving

@@ -1,4 +1,4 @@
-#include "server/parsing_service.h"
+#include "server/rpc/parsing_service.h"
 
 #include <google/protobuf/descriptor.h>
 #include <google/protobuf/io/coded_stream.h>

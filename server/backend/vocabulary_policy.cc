@@ -1,4 +1,4 @@
-#include "server/vocabulary_policy.h"
+#include "server/backend/vocabulary_policy.h"
 
 #include <spdlog/spdlog.h>
 
