@@ -48,11 +48,24 @@ endfunction()
 # time every `#include "server/<folder>/..."` and `#include "server/<file>.h"` of its files is
 # checked against its dependencies (transitively): the handlers never reach into cluster/, the
 # backend never into the handlers. A top-level header belongs to the module that lists it in
-# FILES; server/cluster/ (built only with libnats) checks itself with the same rule.
+# FILES. A folder that declares several libraries itself (server/cluster/) is checked as one with
+# placedb_server_folder_check.
 function(placedb_server_module name)
   cmake_parse_arguments(ARG "" "DIR" "FILES;SOURCES;DEPENDS;PUBLIC_LIBS;PRIVATE_LIBS" ${ARGN})
   add_library(placedb_${name} ${ARG_SOURCES})
   target_include_directories(placedb_${name} PUBLIC ${PROJECT_SOURCE_DIR})
+  foreach(dep IN LISTS ARG_DEPENDS)
+    target_link_libraries(placedb_${name} PUBLIC placedb_${dep})
+  endforeach()
+  target_link_libraries(placedb_${name} PUBLIC ${ARG_PUBLIC_LIBS} PRIVATE ${ARG_PRIVATE_LIBS})
+  placedb_server_folder_check(${name} DIR "${ARG_DIR}" FILES ${ARG_FILES} DEPENDS ${ARG_DEPENDS})
+endfunction()
+
+# placedb_server_folder_check(<name> [DIR <folder of server/>] [FILES <file>...]
+#                             [DEPENDS <module>...])
+# The include check alone, for a module whose libraries are declared by hand.
+function(placedb_server_folder_check name)
+  cmake_parse_arguments(ARG "" "DIR" "FILES;DEPENDS" ${ARGN})
   set(closure ${name})
   foreach(dep IN LISTS ARG_DEPENDS)
     get_property(declared GLOBAL PROPERTY PLACEDB_SERVER_MODULE_CLOSURE_${dep} SET)
@@ -61,11 +74,9 @@ function(placedb_server_module name)
     endif()
     get_property(dep_closure GLOBAL PROPERTY PLACEDB_SERVER_MODULE_CLOSURE_${dep})
     list(APPEND closure ${dep_closure})
-    target_link_libraries(placedb_${name} PUBLIC placedb_${dep})
   endforeach()
   list(REMOVE_DUPLICATES closure)
   set_property(GLOBAL PROPERTY PLACEDB_SERVER_MODULE_CLOSURE_${name} ${closure})
-  target_link_libraries(placedb_${name} PUBLIC ${ARG_PUBLIC_LIBS} PRIVATE ${ARG_PRIVATE_LIBS})
 
   set(server_dir ${PROJECT_SOURCE_DIR}/server)
   if(ARG_DIR)
