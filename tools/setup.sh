@@ -20,7 +20,7 @@ PACKAGES=(
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   librocksdb-dev prometheus-cpp-dev
   libcpp-httplib-dev  # the metrics endpoint and the console (HTTP and HTTPS)
-  libssl-dev openssl  # TLS (server/transport_security), tokens (SHA-256, random)
+  libssl-dev openssl  # TLS (server/net/transport_security), tokens (SHA-256, random)
   libturbojpeg0-dev  # strict JPEG decoding (core/decode)
   libjemalloc-dev    # PLACEDB_ALLOCATOR=jemalloc (measured against glibc, tuned: the default)
   libspdlog-dev libfmt-dev libcli11-dev libyaml-cpp-dev nlohmann-json3-dev
