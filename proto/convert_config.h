@@ -5,6 +5,7 @@
 // mapping of the API lives here; their names are proto/names.h.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <string>
 
@@ -83,6 +84,19 @@ Result<BandPolicy> BandPolicyFromProto(v1::BandPolicy policy, const std::string&
 
 // top_k 0 -> 10, capped at 1000; exclude_same_agent skips `agent_id`'s places;
 // include_correspondences as given.
+// A vocabulary's learning options from a request that asks for one (v1::AdaptVocabularyRequest,
+// cluster's LearnVocabularyRequest: the same four fields). 0 = the default; the tree's shape is
+// clamped to 65536 so a huge value cannot overflow (the learner refuses what is out of range).
+template <typename Request>
+LearningOptions LearningOptionsFromProto(const Request& request) {
+  LearningOptions options;
+  if (request.seed() != 0) options.seed = request.seed();
+  options.max_sample_descriptors = request.max_sample_descriptors();
+  options.branching = int(std::min<uint32_t>(request.branching(), 1u << 16));
+  options.depth = int(std::min<uint32_t>(request.depth(), 1u << 16));
+  return options;
+}
+
 QueryOptions QueryOptionsFromProto(const v1::MatchOptions& options, const std::string& agent_id);
 
 // A ListPlaces request as PlaceDatabase::ListPlacesBefore takes it.

@@ -203,10 +203,7 @@ grpc::Status LocalBackend::AdaptVocabulary(const v1::AdaptVocabularyRequest& req
   auto entry = maps_->Get(request.name(), "name");
   if (!entry.ok()) return ToGrpc(entry.status());
   AdaptOptions options;
-  if (request.seed() != 0) options.learning.seed = request.seed();
-  options.learning.max_sample_descriptors = request.max_sample_descriptors();
-  options.learning.branching = int(std::min<uint32_t>(request.branching(), 1u << 16));
-  options.learning.depth = int(std::min<uint32_t>(request.depth(), 1u << 16));
+  options.learning = wire::LearningOptionsFromProto(request);
   options.cancel = cancel;
   spdlog::info("map '{}': learning a vocabulary from its stored places", ForLog(request.name()));
   auto record = (*entry)->map->AdaptVocabulary(options);

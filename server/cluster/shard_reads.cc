@@ -122,10 +122,7 @@ grpc::Status Shard::Impl::LearnVocabulary(grpc::ServerContext* context,
   const grpc::Status ready = AppliedMap(context, request.map(), request.min_sequence(), &map);
   if (!ready.ok()) return ready;
   AdaptOptions options;  // one thread at nice 10: this replica keeps serving meanwhile
-  if (request.seed() != 0) options.learning.seed = request.seed();
-  options.learning.max_sample_descriptors = request.max_sample_descriptors();
-  options.learning.branching = int(std::min<uint32_t>(request.branching(), 1u << 16));
-  options.learning.depth = int(std::min<uint32_t>(request.depth(), 1u << 16));
+  options.learning = wire::LearningOptionsFromProto(request);
   const uint64_t applied = map->applied_sequence();
   auto learned = map->LearnVocabulary(options);
   if (!learned.ok()) return ToGrpc(learned.status());
