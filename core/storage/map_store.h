@@ -50,6 +50,7 @@
 #include "core/pipeline/place_database.h"
 #include "core/storage/codec.h"
 #include "core/storage/directory_lock.h"
+#include "core/storage/replica_apply.h"
 #include "core/vocabulary/any_vocabulary.h"
 #include "core/vocabulary/vocabulary.h"
 #include "core/vocabulary/vocabulary_learning.h"
@@ -321,7 +322,7 @@ struct OpenTimings {
   double index_ms = 0;
 };
 
-class PlaceMap {
+class PlaceMap final : public ReplicaApply {
  public:
   ~PlaceMap();  // flushes and closes RocksDB
   PlaceMap(const PlaceMap&) = delete;
@@ -378,18 +379,11 @@ class PlaceMap {
   Result<VocabularyRecord> InstallVocabulary(AnyVocabulary vocabulary, VocabularySource source,
                                              const AdaptOptions& options = {});
   bool switching_vocabulary() const { return switching_.load(); }
-  // Cluster replicas (issue 29): builds the switch to vocabulary `checksum` from its `parts`
-  // parts the map stored (kVocabularyPart records; 0: bytes the map stores whole) while records
-  // go on being applied, so that the kSwitchVocabulary record for it only catches up with the
-  // places applied since. Blocks until built (call it on a thread of its own); one thread at
-  // nice 10. FAILED_PRECONDITION during another switch; CORRUPTION as ApplyAt's switch;
-  // CANCELLED by CancelPreparedSwitch. Nothing of it is durable: a reopened map builds the
-  // switch when it applies the record.
-  Status PrepareVocabularySwitch(uint64_t checksum, uint32_t parts);
-  // The vocabulary a prepared switch waits for its record with (0: none).
-  uint64_t prepared_vocabulary() const { return prepared_checksum_.load(); }
-  // Stops a preparation in progress and drops a prepared switch (a replica closing).
-  void CancelPreparedSwitch();
+  // Cluster replicas (ReplicaApply, core/storage/replica_apply.h); the preparation runs on one
+  // thread at nice 10.
+  Status PrepareVocabularySwitch(uint64_t checksum, uint32_t parts) override;
+  uint64_t prepared_vocabulary() const override { return prepared_checksum_.load(); }
+  void CancelPreparedSwitch() override;
 
   // Process (as the agent's next stream frame) + AdvanceStream + (when valid) durable write +
   // index. An invalid frame is counted, and stored as metadata when the map's store_invalid is
@@ -447,37 +441,10 @@ class PlaceMap {
   // The place's BoW vector alone (read from disk, as loop closure's long-term memory reads it).
   // NOT_FOUND if absent.
   Result<BowVector> GetBow(PlaceId id) const;
-  // Cluster mode (issue 18): applies `record` at stream sequence `sequence`. An AddPlace is
-  // stored with id = `sequence`; every record (also the ones that store no place) writes the
-  // map's applied sequence = `sequence` in the same RocksDB batch, synced and counted like a
-  // commit, so a restarted replica resumes from applied_sequence() + 1 and re-applying is
-  // harmless. Returns true when applied, false (nothing written) when `sequence` <=
-  // applied_sequence(). Sequences may skip (a record that never reached the map); the next
-  // place id of the database follows the applied sequence. A kSwitchVocabulary record switches
-  // the map as AdaptVocabulary does (queries go on meanwhile; the record's sequence is written in
-  // the switch's batch, so a crash leaves the old vocabulary, applied below it, or the new);
-  // parts that are missing or do not make the named vocabulary are CORRUPTION, nothing changed. A
-  // record the map cannot take (invalid frame as AddPlace, wrong feature type or direct-index
-  // level, a sequence beyond the place-id range) is INVALID_ARGUMENT; write errors are the
-  // storage's: nothing changes then, applied sequence included. Applies one record at a time
-  // (callers of one map are serialised); concurrent queries see a place once it is indexed, after
-  // its write. Not meant to be mixed with Add/Commit/Enqueue/RemovePlace on the same map.
-  Result<bool> ApplyAt(uint64_t sequence, const MapLogRecord& record);
-  // ApplyAt for consecutive records, ascending sequences, with what one ApplyAt per record would
-  // store, but each run of records between DeletePlace records written as one synced batch (the
-  // applied sequence = the run's last): how a replica keeps up with a fast stream. Records at or
-  // below applied_sequence() are skipped. Returns how many were applied. A record the map cannot
-  // take: the records before it are applied, it and the ones after are not (INVALID_ARGUMENT);
-  // a write error: the failing run's records are not applied (applied_sequence() says where).
-  struct SequencedRecord {
-    uint64_t sequence = 0;
-    const MapLogRecord* record = nullptr;
-  };
-  Result<size_t> ApplyBatch(std::span<const SequencedRecord> records);
-  // The last sequence ApplyAt applied (persisted; 0 for a map that never applied one). It moves
-  // once the records up to it are searchable, not merely stored: a reader that waited for a
-  // sequence finds every place up to it.
-  uint64_t applied_sequence() const { return applied_sequence_.load(); }
+  // Cluster mode (ReplicaApply, core/storage/replica_apply.h): the stream's records, applied.
+  Result<bool> ApplyAt(uint64_t sequence, const MapLogRecord& record) override;
+  Result<size_t> ApplyBatch(std::span<const SequencedRecord> records) override;
+  uint64_t applied_sequence() const override { return applied_sequence_.load(); }
 
   Status RemovePlace(PlaceId id);  // durable before it returns
   std::vector<InvalidObservation> InvalidObservations(size_t limit) const;

@@ -453,10 +453,11 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
   {
     MutexLock lock(mutex_);
     replica->map = std::move(map).value();
+    replica->apply = replica->map.get();
     replica->restored_from = restored_from;
   }
   spdlog::info("shard {}: holding map '{}' (applied {}; made ready in {:.2f} s)", options_.shard_id,
-               replica->name, replica->map->applied_sequence(), opening.ElapsedMs() / 1e3);
+               replica->name, replica->apply->applied_sequence(), opening.ElapsedMs() / 1e3);
   StartApplier(replica);
 }
 
@@ -473,7 +474,7 @@ void Shard::Impl::StartApplier(const std::shared_ptr<Replica>& replica) {
   if (!replica->applier.joinable())
     replica->applier = std::thread([this, raw] { ApplyQueued(raw); });
   auto consumer = js_->Consume(
-      replica->stream, replica->subject, replica->map->applied_sequence() + 1,
+      replica->stream, replica->subject, replica->apply->applied_sequence() + 1,
       [raw](uint64_t sequence, std::string_view data) { Enqueue(raw, sequence, data); });
   if (!consumer.ok()) {
     // It may have queued records before it failed (jetstream.h): they apply in order from
@@ -508,10 +509,10 @@ void Shard::Impl::StopApplier(Replica* replica) {
     replica->queue_cv.NotifyAll();
   }
   // A preparation stops first: an applier waiting for it would wait for the whole build.
-  if (replica->map) replica->map->CancelPreparedSwitch();
+  if (replica->apply) replica->apply->CancelPreparedSwitch();
   if (replica->applier.joinable()) replica->applier.join();
   if (replica->preparing.joinable()) {
-    replica->map->CancelPreparedSwitch();
+    replica->apply->CancelPreparedSwitch();
     replica->preparing.join();
   }
 }
@@ -529,7 +530,7 @@ void Shard::Impl::PrepareSwitch(Replica* replica, uint64_t checksum, uint32_t pa
       }
     }
     Stopwatch clock;
-    const Status prepared = replica->map->PrepareVocabularySwitch(checksum, parts);
+    const Status prepared = replica->apply->PrepareVocabularySwitch(checksum, parts);
     if (prepared.ok()) {
       spdlog::info("shard {}: map '{}': switch to vocabulary {} prepared in {:.1f} s",
                    options_.shard_id, replica->name, Hex64(checksum), clock.ElapsedMs() / 1000);
@@ -546,7 +547,7 @@ void Shard::Impl::PrepareSwitch(Replica* replica, uint64_t checksum, uint32_t pa
 void Shard::Impl::ApplyQueued(Replica* replica) {
   std::vector<Replica::Queued> taken;
   std::vector<MapLogRecord> records;
-  std::vector<PlaceMap::SequencedRecord> batch;
+  std::vector<ReplicaApply::SequencedRecord> batch;
   for (;;) {
     taken.clear();
     {
@@ -580,15 +581,15 @@ void Shard::Impl::ApplyQueued(Replica* replica) {
     Result<size_t> applied = size_t(0);
     if (!batch.empty()) {
       MutexLock lock(replica->apply_mutex);
-      applied = replica->map->ApplyBatch(batch);
+      applied = replica->apply->ApplyBatch(batch);
     }
     if (!applied.ok()) {
       failure = applied.status();
-      failed_at = replica->map->applied_sequence() + 1;
+      failed_at = replica->apply->applied_sequence() + 1;
     }
-    for (const PlaceMap::SequencedRecord& r : batch) {
+    for (const ReplicaApply::SequencedRecord& r : batch) {
       if (r.record->kind == MapLogRecord::Kind::kPrepareVocabulary &&
-          r.sequence <= replica->map->applied_sequence()) {
+          r.sequence <= replica->apply->applied_sequence()) {
         PrepareSwitch(replica, r.record->vocabulary_source.checksum, r.record->vocabulary_parts);
       }
     }
@@ -629,6 +630,7 @@ void Shard::Impl::Drop(const std::string& name) {
   replica->consumer.reset();
   StopApplier(replica.get());
   const bool opened = replica->map != nullptr;
+  replica->apply = nullptr;
   replica->map.reset();
   if (opened) {
     // No longer placed here (or the map was deleted): the local copy goes.
@@ -654,7 +656,7 @@ void Shard::Impl::Report() {
     }
   }
   for (const auto& replica : replicas) {
-    const uint64_t applied = replica->map->applied_sequence();
+    const uint64_t applied = replica->apply->applied_sequence();
     if (auto info = js_->GetStreamInfo(replica->stream); info.ok()) {
       replica->stream_last = info->last_sequence;
     }
@@ -764,9 +766,9 @@ std::vector<ReplicaStatus> Shard::Impl::StatusOfReplicas() const {
     status.map = name;
     status.stream_last_sequence = replica->stream_last.load();
     if (replica->map) {
-      status.applied_sequence = replica->map->applied_sequence();
+      status.applied_sequence = replica->apply->applied_sequence();
       status.places = replica->map->database()->Stats().places;
-      status.prepared_vocabulary = replica->map->prepared_vocabulary();
+      status.prepared_vocabulary = replica->apply->prepared_vocabulary();
     }
     status.state = replica->problem.empty() ? "applying" : replica->problem;
     status.restored_from = replica->restored_from;

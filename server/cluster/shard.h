@@ -10,7 +10,7 @@
 //   created from maps/<map>'s config, server/cluster/placement.h's format), and an ordered
 //   consumer of its stream applies the records in order from applied + 1: the consumer queues
 //   them, the replica's applier thread applies what has queued up meanwhile as one synced batch
-//   (PlaceMap::ApplyBatch: place id = stream sequence, applied sequence in the same batch, so a
+//   (ReplicaApply::ApplyBatch: place id = stream sequence, applied sequence in the same batch, so a
 //   restarted shard resumes without gaps or duplicates). A placed map without a local copy is
 //   first restored from the checkpoint of the live replica that applied the most (its Checkpoint
 //   RPC: an unverified SnapshotStore::CreateForTransfer taken with the peer's applier paused;

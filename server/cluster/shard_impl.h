@@ -15,6 +15,7 @@
 
 #include "core/base/text.h"
 #include "core/base/thread_annotations.h"
+#include "core/storage/replica_apply.h"
 #include "core/storage/snapshots.h"
 #include "proto/cluster.grpc.pb.h"
 #include "server/cluster/etcd_client.h"
@@ -43,8 +44,11 @@ struct Replica {
   std::string stream;
   std::string subject;
   FeatureType type = FeatureType::kOrb;
-  // Set once by the reconcile thread before the consumer starts; read-only afterwards.
+  // Set once by the reconcile thread before the consumer starts; read-only afterwards. `map`
+  // serves the reads (shard_reads.cc); the stream's records reach it through `apply` alone
+  // (the same map), so applying cannot touch the rest of it.
   std::shared_ptr<PlaceMap> map;
+  ReplicaApply* apply = nullptr;
   std::unique_ptr<OrderedConsumer> consumer;  // the reconcile thread's
   std::atomic<bool> broken{false};            // the applier stopped on an error
   std::atomic<uint64_t> stream_last{0};
@@ -55,8 +59,8 @@ struct Replica {
   // manifest's place count must be the checkpoint's).
   Mutex apply_mutex;
   // The consumer's delivery thread queues the records it receives; the applier thread applies
-  // whatever has queued up meanwhile as one batch (PlaceMap::ApplyBatch: one synced write), so a
-  // replica behind the stream catches up in large steps and an idle one applies each record at
+  // whatever has queued up meanwhile as one batch (ReplicaApply::ApplyBatch: one synced write), so
+  // a replica behind the stream catches up in large steps and an idle one applies each record at
   // once. A full queue holds the delivery thread (JetStream's flow control does the rest).
   struct Queued {
     uint64_t sequence = 0;
@@ -69,7 +73,7 @@ struct Replica {
   bool stopping GUARDED_BY(queue_mutex) = false;
   std::thread applier;  // started with the first consumer, joined by StopApplier
   // Issue 29: builds a switch of vocabulary once its PrepareVocabulary is applied, while the
-  // applier goes on (PlaceMap::PrepareVocabularySwitch); one at a time, joined by StopApplier.
+  // applier goes on (ReplicaApply::PrepareVocabularySwitch); one at a time, joined by StopApplier.
   std::thread preparing;
   std::atomic<bool> preparing_done{true};
   std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
