@@ -1,4 +1,5 @@
-# placedb_discover_tests(<target> LABELS <label> [FIXTURES <fixture>...])
+# placedb_discover_tests(<target> LABELS <label> [FIXTURES <fixture>...]
+#                        [WORKING_DIRECTORY <dir>])
 #
 # gtest_discover_tests() with a label and any number of required fixtures. Its PROPERTIES
 # argument flattens list values (FIXTURES_REQUIRED "a;b" would become extra property names and
@@ -7,8 +8,12 @@
 include(GoogleTest)
 
 function(placedb_discover_tests target)
-  cmake_parse_arguments(ARG "" "LABELS" "FIXTURES" ${ARGN})
-  gtest_discover_tests(${target} PROPERTIES LABELS ${ARG_LABELS} DISCOVERY_TIMEOUT 60)
+  cmake_parse_arguments(ARG "" "LABELS;WORKING_DIRECTORY" "FIXTURES" ${ARGN})
+  if(NOT ARG_WORKING_DIRECTORY)
+    set(ARG_WORKING_DIRECTORY ${CMAKE_CURRENT_BINARY_DIR})
+  endif()
+  gtest_discover_tests(${target} PROPERTIES LABELS ${ARG_LABELS} DISCOVERY_TIMEOUT 60
+    WORKING_DIRECTORY ${ARG_WORKING_DIRECTORY})
   if(ARG_FIXTURES)
     set(include_file ${CMAKE_CURRENT_BINARY_DIR}/${target}_fixtures.cmake)
     file(WRITE ${include_file}
@@ -20,15 +25,18 @@ function(placedb_discover_tests target)
 endfunction()
 
 # placedb_add_test(<name> LABEL <label> [CONCURRENCY] LIBS <target>... [SOURCES <file>...]
-#                  [FIXTURES <fixture>...] [DEFINITIONS <definition>...])
+#                  [FIXTURES <fixture>...] [DEFINITIONS <definition>...] [DIRECTORY <dir>])
 #
 # The one way a test is registered (tests/CMakeLists.txt holds every call): a GoogleTest binary
-# from SOURCES (default <name>.cc), linked to LIBS, discovered with LABEL and FIXTURES. Unit tests
+# from SOURCES (default <name>.cc), linked to LIBS, discovered with LABEL and FIXTURES. DIRECTORY
+# (relative to the current binary directory) is where the binary is built and run, for tests
+# whose paths are documented there (tests/cluster: build/tests/cluster/<name>). Unit tests
 # join the target `placedb_unit_tests` (built by the ASan+UBSan stage of tools/test.sh);
 # CONCURRENCY marks binaries with concurrency cases (test names containing "Concurren"), which
 # join `placedb_concurrency_tests` (built and run by the ThreadSanitizer stage).
 function(placedb_add_test name)
-  cmake_parse_arguments(ARG "CONCURRENCY" "LABEL" "SOURCES;LIBS;FIXTURES;DEFINITIONS" ${ARGN})
+  cmake_parse_arguments(ARG "CONCURRENCY" "LABEL;DIRECTORY" "SOURCES;LIBS;FIXTURES;DEFINITIONS"
+    ${ARGN})
   if(NOT ARG_SOURCES)
     set(ARG_SOURCES ${name}.cc)
   endif()
@@ -37,7 +45,13 @@ function(placedb_add_test name)
   if(ARG_DEFINITIONS)
     target_compile_definitions(${name} PRIVATE ${ARG_DEFINITIONS})
   endif()
-  placedb_discover_tests(${name} LABELS ${ARG_LABEL} FIXTURES ${ARG_FIXTURES})
+  set(directory ${CMAKE_CURRENT_BINARY_DIR})
+  if(ARG_DIRECTORY)
+    set(directory ${CMAKE_CURRENT_BINARY_DIR}/${ARG_DIRECTORY})
+    set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${directory})
+  endif()
+  placedb_discover_tests(${name} LABELS ${ARG_LABEL} FIXTURES ${ARG_FIXTURES}
+    WORKING_DIRECTORY ${directory})
   if(ARG_LABEL STREQUAL "unit")
     add_dependencies(placedb_unit_tests ${name})
   endif()
