@@ -6,6 +6,7 @@
 
 #include <CLI/CLI.hpp>
 #include <cmath>
+#include <filesystem>
 #include <iostream>
 #include <set>
 #include <thread>
@@ -884,6 +885,76 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::EndMap;
   e << YAML::EndMap;
   return std::string(e.c_str()) + "\n";
+}
+
+// ---- Embedded default paths --------------------------------------------------------------------
+
+std::vector<PathRoot> DefaultPathRoots(const std::function<const char*(const char*)>& getenv,
+                                       const std::string& executable) {
+  namespace fs = std::filesystem;
+  std::error_code error;
+  if (const char* home = getenv("PLACEDB_HOME"); home && *home) {
+    // The operator's choice is the only one: a second guess would hide a wrong value.
+    return {{fs::absolute(home, error).lexically_normal().string(), "PLACEDB_HOME"}};
+  }
+  std::vector<PathRoot> roots;
+  if (!executable.empty()) {
+    // A few levels up: build/server/placedb-server, build/tools/..., or a binary in the checkout.
+    fs::path dir = fs::path(executable).parent_path();
+    for (int level = 0; level < 4 && !dir.empty(); ++level) {
+      if (fs::is_regular_file(dir / "server" / "placedb.yaml", error)) {
+        roots.push_back({dir.lexically_normal().string(), "the checkout of " + executable});
+        break;
+      }
+      if (dir == dir.parent_path()) break;
+      dir = dir.parent_path();
+    }
+  }
+  const std::string cwd = fs::current_path(error).string();
+  if (!error && (roots.empty() || roots.front().dir != cwd)) {
+    roots.push_back({cwd, "the working directory"});
+  }
+  return roots;
+}
+
+Status ResolveDefaultPaths(const std::vector<PathRoot>& roots, ServerConfig* config) {
+  namespace fs = std::filesystem;
+  if (roots.empty()) return Status::NotFound("no directory to look for the default files in");
+  const std::map<std::string, std::string> embedded = EmbeddedVocabularies();
+  const std::string default_vocabulary = embedded.at("default");
+  const auto vocabulary = config->vocabularies.find("default");
+  const bool embedded_vocabulary =
+      vocabulary != config->vocabularies.end() && vocabulary->second == default_vocabulary;
+  const PathRoot* chosen = &roots.front();
+  if (embedded_vocabulary) {
+    chosen = nullptr;
+    std::string tried;
+    for (const PathRoot& root : roots) {
+      const fs::path candidate = fs::path(root.dir) / default_vocabulary;
+      std::error_code error;
+      if (fs::is_regular_file(candidate, error)) {
+        chosen = &root;
+        break;
+      }
+      tried += (tried.empty() ? "" : ", ") + candidate.string() + " (" + root.why + ")";
+    }
+    if (chosen == nullptr) {
+      return Status::NotFound("vocabulary 'default' (" + default_vocabulary +
+                              ") is in none of: " + tried +
+                              "; build it with tools/setup.sh, set PLACEDB_HOME to the directory "
+                              "holding var/, or name one with --vocabulary default=PATH");
+    }
+  }
+  for (auto& [name, path] : config->vocabularies) {
+    const auto it = embedded.find(name);
+    if (it != embedded.end() && it->second == path) {
+      path = (fs::path(chosen->dir) / path).lexically_normal().string();
+    }
+  }
+  if (config->data_dir == ServerConfig().data_dir) {
+    config->data_dir = (fs::path(chosen->dir) / config->data_dir).lexically_normal().string();
+  }
+  return Status::Ok();
 }
 
 }  // namespace placedb::server

@@ -233,4 +233,22 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
 // The effective configuration as YAML (--print-config; loadable with --config).
 std::string ConfigToYaml(const ServerConfig& config);
 
+// The embedded defaults' relative paths (the vocabularies at var/vocabulary/..., data_dir
+// ./var/data) do not depend on the working directory: they are looked up under these roots, in
+// order. $PLACEDB_HOME alone when it is set; else the checkout holding `executable` (the nearest
+// of its parent directories with server/placedb.yaml, e.g. build/server/placedb-server ->
+// the checkout), then the working directory (as before). Paths the operator gave (file,
+// environment, flags) keep their meaning: relative to the working directory.
+struct PathRoot {
+  std::string dir;  // absolute
+  std::string why;  // "PLACEDB_HOME", "the checkout of <exe>", "the working directory"
+};
+std::vector<PathRoot> DefaultPathRoots(const std::function<const char*(const char*)>& getenv,
+                                       const std::string& executable);
+
+// Rewrites the embedded defaults still in `config` to absolute paths under the first root that
+// holds the default vocabulary (var/vocabulary/default.pdbv), or the first root when the default
+// vocabulary is the operator's own. NOT_FOUND naming every path tried when no root holds it.
+Status ResolveDefaultPaths(const std::vector<PathRoot>& roots, ServerConfig* config);
+
 }  // namespace placedb::server

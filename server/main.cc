@@ -13,12 +13,19 @@
 // handler); a second signal during it exits at once with status 1 (acknowledged places are
 // durable either way). Exit status 0 after a clean shutdown, 2 for a bad configuration, 1 when
 // the server cannot start.
+//
+// The log: info and below on stdout, warnings and errors on stderr (docs/service.md, "Logs").
+// The embedded defaults' files are found from the executable, not the working directory
+// (ResolveDefaultPaths in server/config.h), so the server starts from any directory.
 #include <signal.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
 #include <cstdlib>
+#include <filesystem>
 #include <iostream>
+#include <memory>
 #include <string>
 #include <thread>
 
@@ -31,6 +38,43 @@
 #include "server/cluster/worker.h"
 #include "server/metrics.h"
 #endif
+
+namespace {
+
+// Warnings and errors on stderr, where a shell, a supervisor or a test looks for them; the rest
+// on stdout. Each stream keeps its colours when it is a terminal.
+class SplitLevelSink final : public spdlog::sinks::sink {
+ public:
+  void log(const spdlog::details::log_msg& message) override {
+    (message.level >= spdlog::level::warn ? errors_ : rest_)->log(message);
+  }
+  void flush() override {
+    rest_->flush();
+    errors_->flush();
+  }
+  void set_pattern(const std::string& pattern) override {
+    rest_->set_pattern(pattern);
+    errors_->set_pattern(pattern);
+  }
+  void set_formatter(std::unique_ptr<spdlog::formatter> formatter) override {
+    errors_->set_formatter(formatter->clone());
+    rest_->set_formatter(std::move(formatter));
+  }
+
+ private:
+  std::shared_ptr<spdlog::sinks::sink> rest_ =
+      std::make_shared<spdlog::sinks::stdout_color_sink_mt>();
+  std::shared_ptr<spdlog::sinks::sink> errors_ =
+      std::make_shared<spdlog::sinks::stderr_color_sink_mt>();
+};
+
+std::string ExecutablePath() {
+  std::error_code error;
+  const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", error);
+  return error ? std::string() : self.string();
+}
+
+}  // namespace
 
 #ifdef PLACEDB_CLUSTER_ROLES
 namespace {
@@ -104,6 +148,9 @@ int RunShard(const placedb::server::ServerConfig& config, const sigset_t& signal
 #endif
 
 int main(int argc, char** argv) {
+  spdlog::set_default_logger(
+      std::make_shared<spdlog::logger>("placedb", std::make_shared<SplitLevelSink>()));
+  spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e%z %^%l%$ %v");
   // Its own command group, before the server's flags are parsed (those stay as they are).
   if (argc >= 2 && std::string(argv[1]) == "tokens") {
     return placedb::server::auth::RunTokensCommand(
@@ -133,9 +180,16 @@ int main(int argc, char** argv) {
     return 2;
   }
   if (command_line->exit_code) return *command_line->exit_code;
-  const placedb::server::ServerConfig& config = command_line->config;
+  placedb::server::ServerConfig& config = command_line->config;
   spdlog::set_level(spdlog::level::from_str(config.log_level));
-  spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e%z %^%l%$ %v");
+  if (placedb::Status found = placedb::server::ResolveDefaultPaths(
+          placedb::server::DefaultPathRoots([](const char* name) { return std::getenv(name); },
+                                            ExecutablePath()),
+          &config);
+      !found.ok()) {
+    spdlog::error("cannot start: {}", found.ToString());
+    return 1;
+  }
   spdlog::info("allocator: {}", placedb::server::AllocatorDescription());
 
   placedb::server::ServerDeps deps;

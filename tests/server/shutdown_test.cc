@@ -2,13 +2,16 @@
 // pipeline is finished while health says NOT_SERVING, and the placedb-server binary exits 0 on
 // SIGTERM.
 #include <arpa/inet.h>
+#include <fcntl.h>
 #include <grpc/grpc.h>
 #include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
+#include <poll.h>
 #include <signal.h>
 #include <sys/socket.h>
+#include <sys/syscall.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -16,6 +19,8 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
 #include <future>
 #include <memory>
 #include <mutex>
@@ -182,28 +187,76 @@ std::string ServerBinary() {
   return path.substr(0, path.rfind('/')) + "/server/placedb-server";
 }
 
-// A placedb-server process on `address` with `data`, metrics and console off. Its log and errors
-// go to `output_fd` (none when negative).
-pid_t StartServerProcess(const std::string& address, const std::string& data, int output_fd) {
+// How a placedb-server child process runs: where, with what environment, and where its stdout and
+// stderr go (inherited when negative).
+struct ProcessSetup {
+  std::string working_directory;  // empty = this process's
+  std::vector<std::string> unset_environment;
+  std::vector<std::string> set_environment;  // NAME=VALUE
+  int stdout_fd = -1;
+  int stderr_fd = -1;
+};
+
+// placedb-server with `args` (after the binary's path).
+pid_t StartServerBinary(const std::vector<std::string>& arguments, const ProcessSetup& setup) {
   const std::string binary = ServerBinary();
-  const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
-  std::vector<std::string> args = {binary, "--listen",         address,    "--data-dir",
-                                   data,   "--metrics-listen", "off",      "--console-listen",
-                                   "off",  "--vocabulary",     vocabulary, "--log-level",
-                                   "warn"};
+  std::vector<std::string> args = {binary};
+  args.insert(args.end(), arguments.begin(), arguments.end());
   std::vector<char*> argv;
   for (std::string& arg : args) argv.push_back(arg.data());
   argv.push_back(nullptr);
+  // The environment is made before fork: the child only calls async-signal-safe functions.
+  std::vector<std::string> environment;
+  for (char** entry = environ; *entry != nullptr; ++entry) {
+    const std::string text = *entry;
+    const std::string name = text.substr(0, text.find('='));
+    bool unset = false;
+    for (const std::string& removed : setup.unset_environment) unset = unset || removed == name;
+    for (const std::string& added : setup.set_environment) {
+      unset = unset || added.substr(0, added.find('=')) == name;
+    }
+    if (!unset) environment.push_back(text);
+  }
+  environment.insert(environment.end(), setup.set_environment.begin(), setup.set_environment.end());
+  std::vector<char*> envp;
+  for (std::string& entry : environment) envp.push_back(entry.data());
+  envp.push_back(nullptr);
   const pid_t pid = fork();
   if (pid == 0) {
-    if (output_fd >= 0) {  // the log goes to stdout, usage errors to stderr
-      dup2(output_fd, STDOUT_FILENO);
-      dup2(output_fd, STDERR_FILENO);
+    if (!setup.working_directory.empty() && chdir(setup.working_directory.c_str()) != 0) {
+      _exit(126);
     }
-    execv(binary.c_str(), argv.data());
+    if (setup.stdout_fd >= 0) dup2(setup.stdout_fd, STDOUT_FILENO);
+    if (setup.stderr_fd >= 0) dup2(setup.stderr_fd, STDERR_FILENO);
+    execve(binary.c_str(), argv.data(), envp.data());
     _exit(127);
   }
   return pid;
+}
+
+// A placedb-server process on `address` with `data`, metrics and console off. Its log and errors
+// go to `output_fd` (none when negative).
+pid_t StartServerProcess(const std::string& address, const std::string& data, int output_fd) {
+  const std::string vocabulary = "default=" + testing::DefaultVocabularyPath();
+  ProcessSetup setup;
+  setup.stdout_fd = output_fd;  // the log's info lines
+  setup.stderr_fd = output_fd;  // its warnings and errors, and usage errors
+  return StartServerBinary(
+      {"--listen", address, "--data-dir", data, "--metrics-listen", "off", "--console-listen",
+       "off", "--vocabulary", vocabulary, "--log-level", "warn"},
+      setup);
+}
+
+// Waits up to `seconds` for `pid` to exit (a pidfd becomes readable when it does): true with its
+// status, false when it is still running.
+bool WaitForExit(pid_t pid, int seconds, int* status) {
+  // The syscall: Debian 12's <sys/pidfd.h> lacks extern "C" (its pidfd_open does not link).
+  const int pidfd = int(syscall(SYS_pidfd_open, pid, 0));
+  if (pidfd < 0) return waitpid(pid, status, 0) == pid;  // already reaped: cannot happen here
+  pollfd exited = {pidfd, POLLIN, 0};
+  const int ready = poll(&exited, 1, seconds * 1000);
+  close(pidfd);
+  return ready == 1 && waitpid(pid, status, 0) == pid;
 }
 
 // SIGTERM with streams open: the process drains, flushes and exits 0; the places are on disk.
@@ -370,6 +423,129 @@ TEST(ServerBinaryTest, SecondServerOnTheSamePortRefusesToStart) {
   EXPECT_NE(servers.output.find("cannot listen on " + address), std::string::npos)
       << servers.output;
   ExpectFirstServes(servers);
+}
+
+// Everything a child wrote to a file.
+std::string FileText(const std::string& path) {
+  std::ifstream in(path);
+  return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+}
+
+// The checkout this test was built from (its var/vocabulary holds the default vocabulary: the
+// test fixture builds it there).
+std::string Checkout() {
+  return std::filesystem::path(PLACEDB_SOURCE_DIR).lexically_normal().string();
+}
+
+// Started from an empty directory with the embedded defaults (no --vocabulary): the server finds
+// the default vocabulary in the checkout of its executable, not in the working directory, and
+// serves. Its info lines go to stdout, none to stderr.
+TEST(ServerBinaryTest, StartsFromAnyWorkingDirectory) {
+  const std::string binary = ServerBinary();
+  ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
+  const std::string expected_vocabulary = Checkout() + "/var/vocabulary/default.pdbv";
+  ASSERT_EQ(access(expected_vocabulary.c_str(), R_OK), 0) << expected_vocabulary;
+  const std::string root = testing::MakeTempDir("placedb-binary-cwd");
+  const std::string elsewhere = root + "/elsewhere";
+  ASSERT_TRUE(std::filesystem::create_directory(elsewhere));
+  const std::string address = "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
+  const int out = open((root + "/stdout").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
+  const int err = open((root + "/stderr").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
+  ASSERT_TRUE(out >= 0 && err >= 0);
+  ProcessSetup setup;
+  setup.working_directory = elsewhere;
+  setup.unset_environment = {"PLACEDB_HOME", "PLACEDB_CONFIG"};
+  setup.stdout_fd = out;
+  setup.stderr_fd = err;
+  const pid_t pid = StartServerBinary({"--listen", address, "--data-dir", root + "/data",
+                                       "--metrics-listen", "off", "--console-listen", "off"},
+                                      setup);
+  close(out);
+  close(err);
+  ASSERT_GT(pid, 0);
+  auto channel = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+  const bool connected =
+      channel->WaitForConnected(std::chrono::system_clock::now() + std::chrono::seconds(20));
+  int status = 0;
+  if (!connected) {
+    kill(pid, SIGKILL);
+    waitpid(pid, &status, 0);
+  }
+  ASSERT_TRUE(connected) << "placedb-server did not start from " << elsewhere << ":\n"
+                         << FileText(root + "/stdout") << FileText(root + "/stderr");
+  {
+    auto stub = v1::PlaceDb::NewStub(channel);
+    grpc::ClientContext context;
+    v1::ServerInfo info;
+    ASSERT_TRUE(stub->GetServerInfo(&context, {}, &info).ok());
+    ASSERT_GE(info.vocabularies_size(), 1);
+    EXPECT_EQ(info.vocabularies(0).name(), "default");
+  }
+  ASSERT_EQ(kill(pid, SIGTERM), 0);
+  ASSERT_TRUE(WaitForExit(pid, 20, &status)) << "placedb-server did not exit on SIGTERM";
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0);
+  const std::string stdout_text = FileText(root + "/stdout");
+  EXPECT_NE(stdout_text.find("vocabulary 'default': " + expected_vocabulary), std::string::npos)
+      << stdout_text;
+  // Levels split: info on stdout only, warnings and errors on stderr only.
+  const std::string stderr_text = FileText(root + "/stderr");
+  EXPECT_EQ(stderr_text.find(" info "), std::string::npos) << stderr_text;
+  EXPECT_EQ(stdout_text.find(" warning "), std::string::npos) << stdout_text;
+  EXPECT_EQ(stdout_text.find(" error "), std::string::npos) << stdout_text;
+  // Nothing was made in the working directory (no var/data beside it).
+  EXPECT_TRUE(std::filesystem::is_empty(elsewhere));
+}
+
+// Errors go to stderr, not stdout: a bad configuration file (exit 2), and default files that
+// are in none of the places looked at (exit 1, naming each path tried).
+TEST(ServerBinaryTest, ErrorsGoToStderr) {
+  const std::string binary = ServerBinary();
+  ASSERT_EQ(access(binary.c_str(), X_OK), 0) << binary << " is not built";
+  const std::string root = testing::MakeTempDir("placedb-binary-stderr");
+  const auto run = [&](const std::vector<std::string>& args, const ProcessSetup& base,
+                       std::string* stdout_text, std::string* stderr_text) {
+    ProcessSetup setup = base;
+    setup.stdout_fd = open((root + "/stdout").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
+    setup.stderr_fd = open((root + "/stderr").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
+    const pid_t pid = StartServerBinary(args, setup);
+    close(setup.stdout_fd);
+    close(setup.stderr_fd);
+    int status = -1;
+    if (!WaitForExit(pid, 20, &status)) {
+      kill(pid, SIGKILL);
+      waitpid(pid, &status, 0);
+      ADD_FAILURE() << "placedb-server kept running";
+    }
+    *stdout_text = FileText(root + "/stdout");
+    *stderr_text = FileText(root + "/stderr");
+    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  };
+  const std::string address = "127.0.0.1:" + std::to_string(placedb::testing::UnusedLoopbackPort());
+  const std::vector<std::string> quiet = {"--listen",         address, "--metrics-listen", "off",
+                                          "--console-listen", "off"};
+
+  std::ofstream(root + "/bad.yaml") << "threads: many\n";
+  std::vector<std::string> args = quiet;
+  args.insert(args.end(), {"--config", root + "/bad.yaml"});
+  std::string out, err;
+  EXPECT_EQ(run(args, {}, &out, &err), 2);
+  EXPECT_NE(err.find("config file " + root + "/bad.yaml"), std::string::npos) << err;
+  EXPECT_NE(err.find("threads"), std::string::npos) << err;
+  EXPECT_EQ(out.find("bad.yaml"), std::string::npos) << out;
+
+  const std::string home = root + "/home";
+  ASSERT_TRUE(std::filesystem::create_directory(home));
+  ProcessSetup in_home;
+  in_home.working_directory = root;
+  in_home.set_environment = {"PLACEDB_HOME=" + home};
+  args = quiet;
+  args.insert(args.end(), {"--data-dir", root + "/data"});
+  EXPECT_EQ(run(args, in_home, &out, &err), 1);
+  EXPECT_NE(err.find("vocabulary 'default' (var/vocabulary/default.pdbv) is in none of: " + home +
+                     "/var/vocabulary/default.pdbv (PLACEDB_HOME)"),
+            std::string::npos)
+      << err;
+  EXPECT_EQ(out.find("vocabulary 'default'"), std::string::npos) << out;
 }
 
 }  // namespace
