@@ -471,7 +471,8 @@ std::string MarkdownReport(const RunResults& results, const std::string& title) 
   }
   if (!results.runs.empty() && results.runs.front().database.encoded_bytes > 0) {
     md << "Encoded MB = the bytes a durable map writes for the stored places (record + BoW + "
-          "static features + direct index + keys, core/codec.h), before RocksDB's own overhead.";
+          "static features + direct index + keys, core/storage/codec.h), before RocksDB's own "
+          "overhead.";
   } else {
     md << "On-disk MB = the map's files on the server after ingestion (MapStats.bytes_on_disk).";
   }

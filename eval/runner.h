@@ -63,9 +63,9 @@ struct RunOptions {
   int place_threshold = 20;
   // The defaults below are the service's (a map created with default settings); the paper's
   // BoBW+DO is --refine-boxes none --short-term off --static-budget off --rerank 0.
-  // BoBW+DO: boxes narrowed to their objects' pixels (core/box_masks.h) before filtering.
+  // BoBW+DO: boxes narrowed to their objects' pixels (core/filter/box_masks.h) before filtering.
   BoxRefinement refinement = BoxRefinement::kShape;
-  // BoBW+DO: the short-term tier of DC words (core/place_database.h, ShortTermConfig).
+  // BoBW+DO: the short-term tier of DC words (core/pipeline/place_database.h, ShortTermConfig).
   bool short_term = true;
   // BoBW+DO: ORB's budget spent on the static pixels (DatabaseConfig::static_feature_budget).
   bool static_budget = true;
@@ -104,7 +104,7 @@ struct DatabaseFigures {
   uint64_t invalid = 0;              // entries refused as invalid place representations
   uint64_t descriptors_kept = 0;     // SC
   uint64_t descriptors_dropped = 0;  // DC
-  // Bytes a durable map writes per place (core/codec.h: record + BoW + SC features + direct
+  // Bytes a durable map writes per place (core/storage/codec.h: record + BoW + SC features + direct
   // index + keys), summed: the database's size before RocksDB's own overhead.
   uint64_t encoded_bytes = 0;
   uint64_t memory_bytes = 0;  // in-memory index + records + payloads (DatabaseStats)

@@ -1,5 +1,5 @@
-// Box refinement (core/box_masks.h) on real CamVid frames: every labelled car and pedestrian's
-// bounding box is refined and compared with the object's own label pixels.
+// Box refinement (core/filter/box_masks.h) on real CamVid frames: every labelled car and
+// pedestrian's bounding box is refined and compared with the object's own label pixels.
 #include "core/filter/box_masks.h"
 
 #include <gtest/gtest.h>

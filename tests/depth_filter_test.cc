@@ -1,5 +1,5 @@
-// Depth for dynamic scenes (core/depth_filter.h): depth images, Algorithm 1 of Deng et al. as a
-// per-stream state machine, the depth layers it removes, and depth-refined dynamic masks.
+// Depth for dynamic scenes (core/filter/depth_filter.h): depth images, Algorithm 1 of Deng et al.
+// as a per-stream state machine, the depth layers it removes, and depth-refined dynamic masks.
 //
 // Synthetic depth checks each rule exactly; then real RGB-D frames:
 //  - rgbd-people: SIFT features on the person (near depth layer) removed, background kept, in a

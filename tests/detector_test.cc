@@ -1031,7 +1031,7 @@ namespace placedb {
 namespace {
 
 // The union of YOLOX boxes (confidence 0.2) against CamVid's dynamic label pixels, as whole boxes
-// and refined (core/box_masks.h): how much of what is marked dynamic is on an object
+// and refined (core/filter/box_masks.h): how much of what is marked dynamic is on an object
 // (precision), and how much of the objects' pixels inside the boxes stays marked (recall).
 TEST(DetectorBoxRefinement, RefinedDetectorBoxesMarkLessBackground) {
   REQUIRE_MODELS();

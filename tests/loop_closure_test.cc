@@ -1,4 +1,4 @@
-// Bayesian loop-closure detection with bounded working memory (core/loop_closure.h).
+// Bayesian loop-closure detection with bounded working memory (core/search/loop_closure.h).
 //
 // Synthetic BoW streams check each rule (rehearsal, STM, the filter, transfer and retrieval);
 // then the RTAB-Map loop (../shared/data/rtabmap-loop, frames 1..84 in order as one stream, the

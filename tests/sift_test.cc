@@ -1,6 +1,7 @@
-// SIFT features (core/sift_features.h) and the float vocabulary (core/float_vocabulary.h):
-// extraction and validation on real images, hierarchical k-means on controlled data,
-// determinism, the file format and its corruption checks, and the Debian-trained SIFT vocabulary.
+// SIFT features (core/features/sift_features.h) and the float vocabulary
+// (core/vocabulary/float_vocabulary.h): extraction and validation on real images, hierarchical
+// k-means on controlled data, determinism, the file format and its corruption checks, and the
+// Debian-trained SIFT vocabulary.
 #include <gtest/gtest.h>
 
 #include <algorithm>

@@ -14,7 +14,7 @@
 //    the box corners outside it probable background. A segmentation that keeps too little or
 //    almost all of the box is not trusted and the shape prior stands instead. Needs the image;
 //    without one (precomputed features) the shape prior is used.
-// With depth, core/depth_filter.h's RefineDynamicObjects() is the better refinement and runs
+// With depth, core/filter/depth_filter.h's RefineDynamicObjects() is the better refinement and runs
 // instead (place_database.cc chooses).
 #pragma once
 

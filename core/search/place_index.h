@@ -84,8 +84,8 @@ class InvertedIndex {
   // threads at once, but possibly from a helper thread while the caller waits inside Query.
   // `bow` normalised like in Add. `bonus` adds to the score of indexed places (each listed
   // once), also of places that share no word with `bow`: the short-term tier's dynamic-word
-  // similarity (core/place_database.h). `threads` > 1 lets this one query score segments on up
-  // to that many threads (only an index of more than one segment, i.e. ids >= 65536, uses
+  // similarity (core/pipeline/place_database.h). `threads` > 1 lets this one query score segments
+  // on up to that many threads (only an index of more than one segment, i.e. ids >= 65536, uses
   // them); the result is identical for every value. `max_word_share` < 1 skips the query's
   // words held by more than that share of the indexed places while scanning (DBoW's idf
   // log(N / n_i) makes them nearly worthless, and their long runs are most of a query's work):

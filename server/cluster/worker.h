@@ -12,7 +12,7 @@
 // - Ingest (PlaceDbService runs the pipeline on Map()'s local copy; OpenIngest's session, in
 //   server/cluster/ingest_session.cc, does the rest): search on a replica that has applied the
 //   stream's last place (Search), then Publish: one MapRecord (the shard's codec,
-//   server/cluster/record_codec.h) with message id <agent_id>/<sequence>, acknowledged to the agent
+//   server/cluster/map_record.h) with message id <agent_id>/<sequence>, acknowledged to the agent
 //   only after the PubAck; place id = the PubAck's sequence (a duplicate's: the original). A
 //   publish that fails is retried with the same id until the deadline; then UNAVAILABLE and
 //   nothing is acknowledged.
