@@ -45,6 +45,7 @@ const std::vector<StageField>& StageFields() {
       {"transform", &v1::StageTimings::transform_ms},
       {"search", &v1::StageTimings::search_ms},
       {"verify", &v1::StageTimings::verify_ms},
+      {"pose", &v1::StageTimings::pose_ms},
       {"store", &v1::StageTimings::store_ms},
       {"loop_closure", &v1::StageTimings::loop_closure_ms},
       {"total", &v1::StageTimings::total_ms}};
@@ -146,6 +147,22 @@ std::string FormatDepthState(const v1::DepthState& depth) {
 std::string FormatDepthRemoval(const v1::FrameCounts& counts, const v1::DepthState& depth) {
   if (counts.depth_removed() == 0) return "";
   return "depth -" + std::to_string(counts.depth_removed()) + " (" + Band(depth) + ")";
+}
+
+std::string FormatRelativePose(const v1::RelativePose& pose) {
+  if (pose.transform_size() != 16)
+    return "(malformed: " + std::to_string(pose.transform_size()) + " transform values)";
+  const auto& t = pose.transform();
+  // The rotation angle from the trace of R (clamped against rounding).
+  const double trace = t[0] + t[5] + t[10];
+  const double angle_deg =
+      std::acos(std::clamp((trace - 1.0) / 2.0, -1.0, 1.0)) * 180.0 / 3.14159265358979323846;
+  std::string text = "t (" + FormatDouble(t[3], 3) + ", " + FormatDouble(t[7], 3) + ", " +
+                     FormatDouble(t[11], 3) + (pose.metric() ? ") m, " : ") (direction), ");
+  text += FormatDouble(angle_deg, 2) + " deg, " + pose.solver() + ", " +
+          std::to_string(pose.inliers()) + " inliers, rms " + FormatDouble(pose.rms_error_px(), 2) +
+          " px";
+  return text;
 }
 
 std::string FormatLoopClosure(const v1::LoopClosure& loop) {

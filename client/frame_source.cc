@@ -134,6 +134,19 @@ bool ReadDepthImage(const std::string& path, v1::DepthImage* depth, std::string*
   return true;
 }
 
+bool ParseCamera(const std::string& text, v1::Camera* camera, std::string* error) {
+  v1::Intrinsics k;
+  if (!ParseIntrinsics(text, &k, error)) {
+    if (error->rfind("--intrinsics", 0) == 0) error->replace(0, 12, "--camera");
+    return false;
+  }
+  camera->set_fx(k.fx());
+  camera->set_fy(k.fy());
+  camera->set_cx(k.cx());
+  camera->set_cy(k.cy());
+  return true;
+}
+
 bool ParseIntrinsics(const std::string& text, v1::Intrinsics* intrinsics, std::string* error) {
   std::vector<double> values;
   size_t start = 0;

@@ -92,5 +92,7 @@ bool ReadDepthImage(const std::string& path, v1::DepthImage* depth, std::string*
 
 // "fx,fy,cx,cy" in pixels: fx, fy > 0, cx, cy >= 0. False + *error otherwise.
 bool ParseIntrinsics(const std::string& text, v1::Intrinsics* intrinsics, std::string* error);
+// --camera "fx,fy,cx,cy": a pinhole camera of the frames' size (relative poses, issue 32).
+bool ParseCamera(const std::string& text, v1::Camera* camera, std::string* error);
 
 }  // namespace placedb::client

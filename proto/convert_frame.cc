@@ -335,6 +335,56 @@ Result<DepthObservation> DepthFromProto(const v1::DepthImage& depth, const Frame
 
 }  // namespace
 
+Result<Camera> CameraFromProto(const v1::Camera& c, int frame_width, int frame_height,
+                               const std::string& field) {
+  if (c.width() > 100000 || c.height() > 100000) {
+    return Invalid(
+        field + ".width/height",
+        "must be in [1, 100000] (or both 0: the frame's size), got " + Dims(c.width(), c.height()));
+  }
+  Camera camera;
+  camera.width = int(c.width());
+  camera.height = int(c.height());
+  camera.fx = c.fx();
+  camera.fy = c.fy();
+  camera.cx = c.cx();
+  camera.cy = c.cy();
+  camera.distortion_model = c.distortion_model().empty() ? "none" : c.distortion_model();
+  camera.distortion.assign(c.distortion().begin(), c.distortion().end());
+  const bool frame_size = camera.width == 0 && camera.height == 0;
+  if (frame_size && frame_width > 0) {
+    camera.width = frame_width;
+    camera.height = frame_height;
+  }
+  if (frame_size && frame_width == 0) {
+    // A stream's camera before any frame: every check but the principal point's upper bound.
+    Camera unsized = camera;
+    unsized.width = unsized.height = 100000;
+    PLACEDB_RETURN_IF_ERROR(unsized.Validate(field));
+    return camera;
+  }
+  PLACEDB_RETURN_IF_ERROR(camera.Validate(field));
+  if (frame_width > 0 && (camera.width != frame_width || camera.height != frame_height)) {
+    return Invalid(field + ".width/height",
+                   Dims(camera.width, camera.height) + " is not the frame's " +
+                       Dims(frame_width, frame_height) +
+                       " (intrinsics must be of the image the keypoints are in; 0x0 = the "
+                       "frame's size)");
+  }
+  return camera;
+}
+
+void CameraToProto(const Camera& camera, v1::Camera* out) {
+  out->set_width(uint32_t(camera.width));
+  out->set_height(uint32_t(camera.height));
+  out->set_fx(camera.fx);
+  out->set_fy(camera.fy);
+  out->set_cx(camera.cx);
+  out->set_cy(camera.cy);
+  out->set_distortion_model(camera.distortion_model);
+  for (double v : camera.distortion) out->add_distortion(v);
+}
+
 Status CheckFeatureType(const v1::Observation& observation, FeatureType map_type,
                         const std::string& map_name, const std::string& field) {
   if (map_type == FeatureType::kSift && observation.frame_case() == v1::Observation::kFeatures) {
@@ -474,6 +524,11 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& o, const Fra
     auto depth = DepthFromProto(o.depth(), limits, width, height, field + ".depth");
     if (!depth.ok()) return depth.status();
     obs.depth = std::move(depth).value();
+  }
+  if (o.has_camera()) {
+    auto camera = CameraFromProto(o.camera(), width, height, field + ".camera");
+    if (!camera.ok()) return camera.status();
+    obs.camera = std::move(camera).value();
   }
   obs.dynamic.boxes = out.agent_boxes;
   return out;

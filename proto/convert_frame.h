@@ -47,6 +47,14 @@ Result<DecodedObservation> DecodeObservation(const v1::Observation& observation,
                                              const FrameLimits& limits, bool color,
                                              const std::string& field);
 
+// A Camera message as the core's Camera (core/pose/camera.h), checked (INVALID_ARGUMENT naming
+// the field under `field`). Width and height 0 take the frame's size; otherwise they must be it.
+// With the frame's size unknown (0x0: an Ingest header's stream camera) the checks that need it
+// wait for each frame.
+Result<Camera> CameraFromProto(const v1::Camera& camera, int frame_width, int frame_height,
+                               const std::string& field);
+void CameraToProto(const Camera& camera, v1::Camera* out);
+
 // An agent's box as an observation's `boxes` entry (class id, confidence, rect): what
 // DecodeObservation reads back into `agent_boxes`.
 void AgentBoxToProto(const DynamicBox& box, v1::Box* out);

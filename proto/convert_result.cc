@@ -62,7 +62,19 @@ void MatchesToProto(const std::vector<Match>& matches,
       c->set_query_keypoint(pair.query);
       c->set_place_keypoint(pair.candidate);
     }
+    if (match.relative_pose) RelativePoseToProto(*match.relative_pose, m->mutable_relative_pose());
+    m->set_pose_unavailable(match.pose_unavailable);
   }
+}
+
+void RelativePoseToProto(const RelativePose& pose, v1::RelativePose* out) {
+  out->mutable_transform()->Add(pose.transform.begin(), pose.transform.end());
+  out->set_metric(pose.metric);
+  out->mutable_information()->Add(pose.information.begin(), pose.information.end());
+  out->set_solver(PoseSolverName(pose.solver));
+  out->set_correspondences(pose.correspondences);
+  out->set_inliers(pose.inliers);
+  out->set_rms_error_px(pose.rms_error_px);
 }
 
 void TimingsToProto(const StageTimings& t, double queue_ms, v1::StageTimings* out) {
@@ -75,6 +87,7 @@ void TimingsToProto(const StageTimings& t, double queue_ms, v1::StageTimings* ou
   out->set_transform_ms(t.transform_ms);
   out->set_search_ms(t.search_ms);
   out->set_verify_ms(t.verify_ms);
+  out->set_pose_ms(t.pose_ms);
   out->set_store_ms(t.store_ms);
   out->set_loop_closure_ms(t.loop_closure_ms);
   out->set_refine_ms(t.refine_ms);

@@ -25,6 +25,8 @@ void MetadataToProto(const PlaceMetadata& metadata, v1::PlaceMetadata* out);
 // Each match with its correspondences when the core filled them.
 void MatchesToProto(const std::vector<Match>& matches,
                     google::protobuf::RepeatedPtrField<v1::Match>* out);
+// A verified match's pose (core/pose/relative_pose.h): the transform and information row-major.
+void RelativePoseToProto(const RelativePose& pose, v1::RelativePose* out);
 void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimings* out);
 // A place's record: id, metadata, counts and boxes used (no features, no dynamics).
 void PlaceRecordToProto(const PlaceRecord& record, v1::Place* out);

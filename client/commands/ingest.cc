@@ -501,6 +501,9 @@ CLI::App* RegisterIngest(CLI::App& app, IngestOptions* options) {
       ->check(CLI::Range(1e-6, 100.0));
   ingest->add_option("--intrinsics", options->intrinsics,
                      "colour camera intrinsics fx,fy,cx,cy in pixels (sent with the depth)");
+  ingest->add_option("--camera", options->camera,
+                     "the camera fx,fy,cx,cy in pixels (pinhole, the frames' size), kept with "
+                     "every place: verified matches then carry their relative pose");
   ingest->add_flag("--loop-closure", options->loop_closure,
                    "Bayesian loop closure per agent: prints each frame's loop or merge");
   return ingest;
@@ -513,9 +516,14 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
   if (!source) return UsageError(io, error);
   DepthPlan depth;
   if (!PlanDepth(options, *source, &depth, &error)) return UsageError(io, error);
+  v1::Camera camera;
+  if (!options.camera.empty() && !ParseCamera(options.camera, &camera, &error)) {
+    return UsageError(io, error);
+  }
   if (const int code = CheckMap(connection, options.map, io); code != kExitOk) return code;
 
   IngestRun run(connection, options, json, io, source->total());
+  if (!options.camera.empty()) *run.header.mutable_camera() = camera;
   const auto start = Clock::now();
   std::vector<std::thread> threads;
   for (size_t i = 0; i < run.agent_ids.size(); ++i) {

@@ -31,6 +31,7 @@ struct IngestOptions {
   std::string depth_dir;
   float depth_scale = 0;      // DepthImage.scale, metres per unit (0 = the map's)
   std::string intrinsics;     // "fx,fy,cx,cy" ("" = none)
+  std::string camera;         // "fx,fy,cx,cy": IngestHeader.camera ("" = none)
   bool loop_closure = false;  // IngestHeader.loop_closure: per-agent Bayesian loop closure
 };
 

@@ -131,6 +131,9 @@ CLI::App* RegisterQuery(CLI::App& app, QueryFlags* flags) {
       ->check(CLI::Range(1e-6, 100.0));
   query->add_option("--intrinsics", flags->depth.intrinsics,
                     "colour camera intrinsics fx,fy,cx,cy in pixels (sent with the depth)");
+  query->add_option("--camera", flags->camera,
+                    "the camera fx,fy,cx,cy in pixels (pinhole, IMAGE's size): each verified "
+                    "match's relative pose to its place (with --depth or --intrinsics too)");
   return query;
 }
 
@@ -147,6 +150,9 @@ int RunQuery(const Connection& connection, const QueryFlags& flags, bool json, C
     return UsageError(io, error);
   }
   if (!AddDepth(flags.depth, observation, &error)) return UsageError(io, error);
+  if (!flags.camera.empty() && !ParseCamera(flags.camera, observation->mutable_camera(), &error)) {
+    return UsageError(io, error);
+  }
   request.mutable_options()->set_top_k(uint32_t(flags.top_k));
   request.mutable_options()->set_verified_only(flags.verified_only);
   request.mutable_options()->set_exclude_same_agent(flags.exclude_same_agent);
@@ -187,6 +193,15 @@ int RunQuery(const Connection& connection, const QueryFlags& flags, bool json, C
                  match.verified() ? "yes" : "no"});
     }
     table.Print(io.out);
+    for (const v1::Match& match : response.matches()) {
+      if (match.has_relative_pose()) {
+        io.out << "pose of place " << match.place_id() << ": "
+               << FormatRelativePose(match.relative_pose()) << '\n';
+      } else if (match.verified() && !match.pose_unavailable().empty()) {
+        io.out << "no pose for place " << match.place_id() << ": " << match.pose_unavailable()
+               << '\n';
+      }
+    }
     if (std::any_of(response.matches().begin(), response.matches().end(),
                     [](const v1::Match& match) { return match.score() > 1.0; })) {
       io.out << "scores above 1: the short-term bonus: a place observed within the map's "

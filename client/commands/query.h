@@ -32,6 +32,7 @@ struct QueryFlags {
   // the table says how many).
   bool correspondences = false;
   DepthFlags depth;
+  std::string camera;  // --camera fx,fy,cx,cy: verified matches then carry their relative pose
 };
 
 // Adds `query` to `app`, its options bound to *flags; returns the subcommand.

@@ -15,6 +15,7 @@ struct StageTimings {
   double transform_ms = 0;     // BoW vector + direct index
   double search_ms = 0;        // inverted-index query
   double verify_ms = 0;        // geometric verification
+  double pose_ms = 0;          // relative poses of the verified matches (core/pose)
   double store_ms = 0;         // inserting into the index (and, with storage, persisting)
   double loop_closure_ms = 0;  // the agent's Bayesian loop-closure update
   double total_ms = 0;

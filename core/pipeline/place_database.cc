@@ -93,6 +93,37 @@ Result<VerificationResult> VerifyWithObjects(
   return verified;
 }
 
+// The relative pose of a verified match from verification's inlier pairs (issue 32), or why there
+// is none in `pose_unavailable`.
+void AttachRelativePose(const ProcessedFrame& frame, const PlacePayload& place,
+                        const std::vector<InlierPair>& inliers, double octave_scale_factor,
+                        Match* match) {
+  if (!frame.geometry.camera.has_value()) {
+    match->pose_unavailable = "the frame has no camera (observation.camera or depth.intrinsics)";
+    return;
+  }
+  if (!place.geometry.camera.has_value()) {
+    match->pose_unavailable =
+        "place " + std::to_string(match->place) + " was stored without a camera";
+    return;
+  }
+  std::vector<KeypointMatch> pairs;
+  pairs.reserve(inliers.size());
+  for (const InlierPair& pair : inliers) pairs.push_back({pair.query, pair.candidate});
+  const PoseFrame query{*frame.geometry.camera, frame.static_features.keypoints(),
+                        frame.geometry.depth_m};
+  const PoseFrame stored{*place.geometry.camera, place.features.keypoints(),
+                         place.geometry.depth_m};
+  RelativePoseConfig config;
+  config.octave_scale_factor = octave_scale_factor;
+  auto pose = EstimateRelativePose(query, stored, pairs, config);
+  if (pose.ok()) {
+    match->relative_pose = std::move(pose).value();
+  } else {
+    match->pose_unavailable = pose.status().message();
+  }
+}
+
 std::string InvalidReason(const FrameCounts& counts, int place_threshold) {
   std::string depth;
   if (counts.depth_removed > 0) {
@@ -108,6 +139,7 @@ std::string InvalidReason(const FrameCounts& counts, int place_threshold) {
 
 size_t PayloadBytes(const PlacePayload& payload) {
   return sizeof(PlacePayload) + payload.features.MemoryBytes() +
+         payload.geometry.depth_m.capacity() * sizeof(float) +
          payload.bow.capacity() * sizeof(BowEntry) +
          (payload.direct.node_ids.capacity() + payload.direct.offsets.capacity() +
           payload.direct.feature_ids.capacity()) *
@@ -310,6 +342,26 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, Fr
     frame.timings.depth_ms += stage.Lap();
   }
 
+  // ---- The camera (issue 32): the observation's, else the depth's intrinsics as a pinhole.
+  if (observation.camera.has_value()) {
+    Camera camera = *observation.camera;
+    if (camera.width == 0 && camera.height == 0) {
+      camera.width = width;
+      camera.height = height;
+    }
+    PLACEDB_RETURN_IF_ERROR(camera.Validate("camera"));
+    if (camera.width != width || camera.height != height) {
+      return Status::InvalidArgument("camera.width/height: " + std::to_string(camera.width) + "x" +
+                                     std::to_string(camera.height) + " is not the frame's " +
+                                     std::to_string(width) + "x" + std::to_string(height) +
+                                     " (0x0 means the frame's size)");
+    }
+    frame.geometry.camera = std::move(camera);
+  } else if (intrinsics.has_value()) {
+    frame.geometry.camera = PinholeCamera(width, height, intrinsics->fx, intrinsics->fy,
+                                          intrinsics->cx, intrinsics->cy);
+  }
+
   if (!refined) {
     PLACEDB_RETURN_IF_ERROR(refine(width, height));
     stage.Lap();
@@ -357,6 +409,14 @@ Result<ProcessedFrame> PlaceDatabase::Process(const Observation& observation, Fr
     frame.timings.transform_ms += stage.Lap();
   }
 
+  // ---- A relative pose needs each stored keypoint's depth (z, as the camera measures it).
+  if (!frame.depth_m.empty() && frame.geometry.camera.has_value()) {
+    frame.geometry.depth_m =
+        SampleFeatureDepths(frame.depth_m, width, height, frame.static_features.keypoints(),
+                            config_.depth.filter.feature_window_radius);
+    frame.timings.depth_ms += stage.Lap();
+  }
+
   // ---- Algorithm 1 needs the feature depths; the decision itself is per agent stream.
   if (!frame.depth_m.empty() && config_.depth.stream_filter) {
     const DepthFilterConfig& filter = config_.depth.filter;
@@ -401,6 +461,12 @@ void PlaceDatabase::ApplyDepthBand(ProcessedFrame* frame, const DepthFrameState&
   depths.reserve(kept.size());
   for (uint32_t i : kept) depths.push_back(frame->static_depth_m[i]);
   frame->static_depth_m = std::move(depths);
+  if (!frame->geometry.depth_m.empty()) {
+    std::vector<float> pose_depths;
+    pose_depths.reserve(kept.size());
+    for (uint32_t i : kept) pose_depths.push_back(frame->geometry.depth_m[i]);
+    frame->geometry.depth_m = std::move(pose_depths);
+  }
   frame->counts.depth_removed += uint32_t(removed.size());
   frame->counts.static_ -= uint32_t(removed.size());
 }
@@ -688,6 +754,7 @@ Result<PlaceId> PlaceDatabase::Insert(const ProcessedFrame& frame, const PlaceMe
     payload->features = frame.static_features;
     payload->direct = frame.direct;
     payload->bow = frame.bow;
+    payload->geometry = frame.geometry;
   }
 
   WriterLock lock(mutex_);
@@ -888,6 +955,12 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
                                : (verification.candidates > 0
                                       ? std::min(candidates.size(), size_t(verification.candidates))
                                       : candidates.size());
+  const bool want_poses = options.relative_poses && frame.geometry.camera.has_value();
+  const bool collect_inliers = options.include_correspondences || want_poses;
+  // ORB's pyramid factor weighs PnP's residuals; SIFT's octaves double the scale.
+  const double octave_scale_factor =
+      config_.feature_type == FeatureType::kOrb ? double(config_.orb.scale_factor) : 2.0;
+  double pose_ms = 0;
   for (size_t i = 0; i < candidates.size(); ++i) {
     const auto& [scored, record] = candidates[i];
     Match match;
@@ -900,13 +973,20 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
       Result<VerificationResult> verified =
           i < recent_dynamic.size() && recent_dynamic[i]
               ? VerifyWithObjects(frame, **payload, *recent_dynamic[i], verification,
-                                  options.include_correspondences)
+                                  collect_inliers)
               : VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                               (*payload)->direct, verification, options.include_correspondences);
+                               (*payload)->direct, verification, collect_inliers);
       if (verified.ok()) {
         match.inliers = verified->inliers;
         match.verified = verified->verified;
-        if (match.verified) match.correspondences = std::move(verified->inlier_pairs);
+        if (match.verified && options.relative_poses) {
+          Stopwatch pose;
+          AttachRelativePose(frame, **payload, verified->inlier_pairs, octave_scale_factor, &match);
+          pose_ms += pose.ElapsedMs();
+        }
+        if (match.verified && options.include_correspondences) {
+          match.correspondences = std::move(verified->inlier_pairs);
+        }
       }
     }
     if (options.verified_only && !match.verified) continue;
@@ -920,8 +1000,10 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
                        return a.verified && a.inliers > b.inliers;
                      });
   }
-  result.timings.verify_ms = stage.Lap();
-  result.timings.total_ms += result.timings.search_ms + result.timings.verify_ms;
+  result.timings.verify_ms = stage.Lap() - pose_ms;
+  result.timings.pose_ms = pose_ms;
+  result.timings.total_ms +=
+      result.timings.search_ms + result.timings.verify_ms + result.timings.pose_ms;
   return result;
 }
 

@@ -37,6 +37,8 @@
 #include "core/filter/box_masks.h"
 #include "core/filter/depth_filter.h"
 #include "core/filter/dynamic_filter.h"
+#include "core/pose/camera.h"
+#include "core/pose/relative_pose.h"
 #include "core/search/geometric_verifier.h"
 #include "core/search/loop_closure.h"
 #include "core/search/place_index.h"
@@ -135,7 +137,7 @@ struct DepthObservation {
 };
 
 // One frame as the engine sees it: an image, or precomputed features, plus dynamic objects and
-// optionally depth.
+// optionally depth and the camera.
 struct Observation {
   cv::Mat image;  // 8-bit gray or BGR; used when no precomputed features are given
   // Precomputed features (validated), of the map's feature type.
@@ -143,6 +145,21 @@ struct Observation {
   std::optional<DepthObservation> depth;
   DynamicObjects dynamic;
   PlaceMetadata metadata;
+  // The camera that took the frame (issue 32): what a match's relative pose needs. Width and
+  // height 0 mean the frame's size; otherwise they must be the frame's. Without it, the depth's
+  // intrinsics (a pinhole camera) are used when given.
+  std::optional<Camera> camera;
+};
+
+// What a relative pose needs of a frame or a stored place besides its keypoints (issue 32): the
+// camera, and the depth (z along the optical axis, metres; 0 = none) of each SC keypoint, in
+// static_features order. A place stored without a camera has none; without depth, `depth_m` is
+// empty (a monocular place: its pose is the essential matrix's rotation and direction).
+struct FrameGeometry {
+  std::optional<Camera> camera;
+  std::vector<float> depth_m;
+  bool empty() const { return !camera.has_value() && depth_m.empty(); }
+  bool operator==(const FrameGeometry&) const = default;
 };
 
 struct FrameCounts {
@@ -190,6 +207,8 @@ struct ProcessedFrame {
   std::vector<float> static_depth_m;  // per SC feature while Algorithm 1 is pending
   bool stream_pending = false;        // Process(kStream) left Algorithm 1 to AdvanceStream()
   std::optional<DepthFrameState> depth_state;  // Algorithm 1's decision for this frame
+  // The camera and each SC keypoint's depth (kept aligned with static_features), for poses.
+  FrameGeometry geometry;
 
   // The frame's thumbnail (Process() with thumbnail settings, a frame with pixels): the reduced
   // JPEG only, never the full image, travels on to the commit.
@@ -210,6 +229,7 @@ struct PlacePayload {
   LocalFeatures features;  // SC keypoints + descriptors, of the map's feature type
   DirectIndex direct;      // at the database's verification.levels_up
   BowVector bow;           // normalised for the database's scoring
+  FrameGeometry geometry;  // camera and keypoint depths, when the frame had them
 };
 
 // Where PlaceDatabase keeps payloads. Implementations must allow concurrent Get() calls with
@@ -290,6 +310,9 @@ struct QueryOptions {
   std::function<bool(const PlaceRecord&)> accept;
   // Fill Match::correspondences for verified matches (costs a copy of their inliers).
   bool include_correspondences = false;
+  // The relative pose of each verified match whose frame and place both have a camera
+  // (Match::relative_pose; about 1 ms per verified match at 1000 ORB, docs/poses.md).
+  bool relative_poses = true;
   // Threads this one query may use to search the inverted index (it splits the work by
   // segments of 65536 place ids, so only maps past that use more than one; the result is the
   // same for every value). 1 by default: a server answers concurrent queries and ingests on a
@@ -317,6 +340,12 @@ struct Match {
   // a place in the short-term tier the inliers on both frames' objects (DC features) are left
   // out: neither side keeps them, so there may be fewer pairs than `inliers`.
   std::vector<InlierPair> correspondences;
+  // Verified matches, with QueryOptions::relative_poses: T_place_query from verification's inlier
+  // pairs (core/pose/relative_pose.h: metric with depth on either side, rotation and direction
+  // without). Empty when none could be made; `pose_unavailable` then says why ("the place was
+  // stored without a camera", the solver's FAILED_PRECONDITION, ...).
+  std::optional<RelativePose> relative_pose;
+  std::string pose_unavailable;
 };
 
 struct QueryResult {

@@ -53,6 +53,7 @@ struct Camera {
   // True when the model is "none" or every coefficient is 0: pixels are already pinhole.
   bool IsPinhole() const;
   cv::Matx33d K() const { return {fx, 0, cx, 0, fy, cy, 0, 0, 1}; }
+  bool operator==(const Camera&) const = default;
 };
 
 // Pinhole camera with no distortion.

@@ -19,7 +19,10 @@ constexpr uint8_t kRecordV2 = 2;            // place record: counts with depth_r
 constexpr uint8_t kInvalidV2 = 2;           // invalid observation: counts with depth_removed
 constexpr uint8_t kFeaturesV1 = 1;          // ORB features: 32-byte descriptors
 constexpr uint8_t kFloatFeaturesV1 = 0x81;  // SIFT features: 128 float32 per keypoint
-constexpr uint8_t kBowWithDirectV2 = 2;     // BoW vector followed by its direct index
+// Version 2 of either appends the place's geometry (camera, keypoint depths; issue 32).
+constexpr uint8_t kFeaturesV2 = 2;
+constexpr uint8_t kFloatFeaturesV2 = 0x82;
+constexpr uint8_t kBowWithDirectV2 = 2;  // BoW vector followed by its direct index
 // JSON map config: 1 (ORB only), 2 (RGB-D), 3 (box refinement, short-term tier, re-ranking).
 constexpr int kConfigFormat = 3;
 
@@ -258,7 +261,64 @@ Status ReadDirect(Reader& r, uint64_t features, DirectIndex* direct) {
     direct->offsets.push_back(uint32_t(direct->feature_ids.size()));
   }
   if (nodes == 0) direct->offsets.clear();
-  if (!r.Done()) return r.Error("trailing bytes");
+  return Status::Ok();
+}
+
+// The geometry section of a version-2 features value: a flags byte (1: camera, 2: depths), the
+// camera (width, height, fx, fy, cx, cy, model name, coefficients), then one float32 depth per
+// keypoint.
+constexpr uint8_t kGeometryCamera = 1;
+constexpr uint8_t kGeometryDepth = 2;
+
+void WriteGeometry(Writer& w, const FrameGeometry& geometry) {
+  w.U8(uint8_t((geometry.camera ? kGeometryCamera : 0) |
+               (geometry.depth_m.empty() ? 0 : kGeometryDepth)));
+  if (const auto& camera = geometry.camera) {
+    w.U32(uint32_t(camera->width));
+    w.U32(uint32_t(camera->height));
+    for (double v : {camera->fx, camera->fy, camera->cx, camera->cy}) w.F64(v);
+    w.String(camera->distortion_model);
+    w.Varint(camera->distortion.size());
+    for (double v : camera->distortion) w.F64(v);
+  }
+  if (!geometry.depth_m.empty()) {
+    w.Raw(geometry.depth_m.data(), geometry.depth_m.size() * sizeof(float));
+  }
+}
+
+// `keypoints`: how many depths a depth section holds. Ends the value.
+Status ReadGeometry(Reader& r, size_t keypoints, FrameGeometry* geometry) {
+  uint8_t flags = 0;
+  if (!r.U8(&flags)) return r.Error();
+  if (flags & ~(kGeometryCamera | kGeometryDepth)) return r.Error("unknown geometry flags");
+  if (flags & kGeometryCamera) {
+    Camera camera;
+    uint32_t width = 0, height = 0;
+    uint64_t coefficients = 0;
+    if (!r.U32(&width) || !r.U32(&height) || !r.F64(&camera.fx) || !r.F64(&camera.fy) ||
+        !r.F64(&camera.cx) || !r.F64(&camera.cy) || !r.String(&camera.distortion_model) ||
+        !r.Count(&coefficients, sizeof(double))) {
+      return r.Error();
+    }
+    camera.width = int(std::min<uint32_t>(width, INT_MAX));
+    camera.height = int(std::min<uint32_t>(height, INT_MAX));
+    camera.distortion.resize(coefficients);
+    for (double& v : camera.distortion) {
+      if (!r.F64(&v)) return r.Error();
+    }
+    if (Status valid = camera.Validate("camera"); !valid.ok()) {
+      return Status::Corruption("features: the stored camera is invalid: " + valid.message());
+    }
+    geometry->camera = std::move(camera);
+  }
+  if (flags & kGeometryDepth) {
+    geometry->depth_m.resize(keypoints);
+    if (!r.Raw(geometry->depth_m.data(), keypoints * sizeof(float))) return r.Error();
+    for (float depth : geometry->depth_m) {
+      if (!(depth >= 0) || !std::isfinite(depth))
+        return r.Error("a stored keypoint depth is invalid");
+    }
+  }
   return Status::Ok();
 }
 
@@ -680,6 +740,7 @@ Status DecodeBowValue(std::string_view bytes, BowVector* bow, std::optional<Dire
   // (DirectIndexFits): the vector alone does not know how many there are.
   DirectIndex index;
   PLACEDB_RETURN_IF_ERROR(ReadDirect(r, uint64_t(1) << 32, &index));
+  if (!r.Done()) return r.Error("trailing bytes");
   if (direct) *direct = std::move(index);
   return Status::Ok();
 }
@@ -695,26 +756,31 @@ bool DirectIndexFits(const DirectIndex& direct, size_t features) {
                      [&](uint32_t id) { return id < features; });
 }
 
-std::string EncodeFeatures(const FeatureSet& features, const DirectIndex& direct) {
+std::string EncodeFeatures(const FeatureSet& features, const DirectIndex& direct,
+                           const FrameGeometry& geometry) {
   Writer w;
-  w.U8(kFeaturesV1);
+  w.U8(geometry.empty() ? kFeaturesV1 : kFeaturesV2);
   w.U32(uint32_t(features.image_width));
   w.U32(uint32_t(features.image_height));
   w.Varint(features.size());
   WriteKeypoints(w, features.keypoints);
   for (const Descriptor256& d : features.descriptors) w.Raw(d.bytes(), Descriptor256::kBytes);
   WriteDirect(w, direct);
+  if (!geometry.empty()) WriteGeometry(w, geometry);
   return w.Take();
 }
 
-Status DecodeFeatures(std::string_view bytes, FeatureSet* features, DirectIndex* direct) {
-  if (!bytes.empty() && uint8_t(bytes[0]) == kFloatFeaturesV1) {
+Status DecodeFeatures(std::string_view bytes, FeatureSet* features, DirectIndex* direct,
+                      FrameGeometry* geometry) {
+  if (!bytes.empty() &&
+      (uint8_t(bytes[0]) == kFloatFeaturesV1 || uint8_t(bytes[0]) == kFloatFeaturesV2)) {
     return Status::Corruption(
         "features: a float (SIFT) feature payload where ORB features were "
         "expected");
   }
   Reader r(bytes, "features");
-  PLACEDB_RETURN_IF_ERROR(r.Version(kFeaturesV1));
+  uint8_t version = 0;
+  PLACEDB_RETURN_IF_ERROR(r.Version(kFeaturesV1, kFeaturesV2, &version));
   uint32_t width = 0, height = 0;
   uint64_t n = 0;
   if (!r.U32(&width) || !r.U32(&height) || !r.Count(&n, kKeypointBytes + Descriptor256::kBytes)) {
@@ -731,15 +797,20 @@ Status DecodeFeatures(std::string_view bytes, FeatureSet* features, DirectIndex*
     d = Descriptor256::FromBytes(raw);
   }
   PLACEDB_RETURN_IF_ERROR(ReadDirect(r, n, direct));
+  FrameGeometry stored;
+  if (version == kFeaturesV2) PLACEDB_RETURN_IF_ERROR(ReadGeometry(r, n, &stored));
+  if (!r.Done()) return r.Error("trailing bytes");
+  if (geometry) *geometry = std::move(stored);
   if (Status valid = ValidateFeatures(*features); !valid.ok()) {
     return Status::Corruption("features: stored features are invalid: " + valid.message());
   }
   return Status::Ok();
 }
 
-std::string EncodeFloatFeatures(const FloatFeatureSet& features, const DirectIndex& direct) {
+std::string EncodeFloatFeatures(const FloatFeatureSet& features, const DirectIndex& direct,
+                                const FrameGeometry& geometry) {
   Writer w;
-  w.U8(kFloatFeaturesV1);
+  w.U8(geometry.empty() ? kFloatFeaturesV1 : kFloatFeaturesV2);
   w.U32(uint32_t(features.image_width));
   w.U32(uint32_t(features.image_height));
   w.Varint(features.size());
@@ -749,17 +820,20 @@ std::string EncodeFloatFeatures(const FloatFeatureSet& features, const DirectInd
   w.Raw(features.descriptors.data(), floats * sizeof(float));
   for (size_t i = floats; i < features.size() * kSiftDimensions; ++i) w.F32(0);
   WriteDirect(w, direct);
+  if (!geometry.empty()) WriteGeometry(w, geometry);
   return w.Take();
 }
 
-Status DecodeFloatFeatures(std::string_view bytes, FloatFeatureSet* features, DirectIndex* direct) {
-  if (!bytes.empty() && uint8_t(bytes[0]) == kFeaturesV1) {
+Status DecodeFloatFeatures(std::string_view bytes, FloatFeatureSet* features, DirectIndex* direct,
+                           FrameGeometry* geometry) {
+  if (!bytes.empty() && (uint8_t(bytes[0]) == kFeaturesV1 || uint8_t(bytes[0]) == kFeaturesV2)) {
     return Status::Corruption(
         "float features: a binary (ORB) feature payload where SIFT "
         "features were expected");
   }
   Reader r(bytes, "float features");
-  PLACEDB_RETURN_IF_ERROR(r.Version(kFloatFeaturesV1));
+  uint8_t version = 0;
+  PLACEDB_RETURN_IF_ERROR(r.Version(kFloatFeaturesV1, kFloatFeaturesV2, &version));
   constexpr size_t kDescriptorBytes = kSiftDimensions * sizeof(float);
   uint32_t width = 0, height = 0;
   uint64_t n = 0;
@@ -774,26 +848,31 @@ Status DecodeFloatFeatures(std::string_view bytes, FloatFeatureSet* features, Di
   features->descriptors.resize(n * kSiftDimensions);
   if (!r.Raw(features->descriptors.data(), n * kDescriptorBytes)) return r.Error();
   PLACEDB_RETURN_IF_ERROR(ReadDirect(r, n, direct));
+  FrameGeometry stored;
+  if (version == kFloatFeaturesV2) PLACEDB_RETURN_IF_ERROR(ReadGeometry(r, n, &stored));
+  if (!r.Done()) return r.Error("trailing bytes");
+  if (geometry) *geometry = std::move(stored);
   if (Status valid = ValidateFloatFeatures(*features); !valid.ok()) {
     return Status::Corruption("float features: stored features are invalid: " + valid.message());
   }
   return Status::Ok();
 }
 
-std::string EncodeLocalFeatures(const LocalFeatures& features, const DirectIndex& direct) {
-  if (const FeatureSet* orb = features.orb()) return EncodeFeatures(*orb, direct);
-  return EncodeFloatFeatures(*features.sift(), direct);
+std::string EncodeLocalFeatures(const LocalFeatures& features, const DirectIndex& direct,
+                                const FrameGeometry& geometry) {
+  if (const FeatureSet* orb = features.orb()) return EncodeFeatures(*orb, direct, geometry);
+  return EncodeFloatFeatures(*features.sift(), direct, geometry);
 }
 
 Status DecodeLocalFeatures(std::string_view bytes, FeatureType type, LocalFeatures* features,
-                           DirectIndex* direct) {
+                           DirectIndex* direct, FrameGeometry* geometry) {
   if (type == FeatureType::kSift) {
     FloatFeatureSet sift;
-    PLACEDB_RETURN_IF_ERROR(DecodeFloatFeatures(bytes, &sift, direct));
+    PLACEDB_RETURN_IF_ERROR(DecodeFloatFeatures(bytes, &sift, direct, geometry));
     *features = std::move(sift);
   } else {
     FeatureSet orb;
-    PLACEDB_RETURN_IF_ERROR(DecodeFeatures(bytes, &orb, direct));
+    PLACEDB_RETURN_IF_ERROR(DecodeFeatures(bytes, &orb, direct, geometry));
     *features = std::move(orb);
   }
   return Status::Ok();

@@ -42,21 +42,29 @@ Result<BowVector> DecodeBow(std::string_view bytes);  // either version, the vec
 bool DirectIndexFits(const DirectIndex& direct, size_t features);
 
 // SC keypoints, descriptors and the direct index (what verification needs), ORB maps:
-// 32-byte binary descriptors.
-std::string EncodeFeatures(const FeatureSet& features, const DirectIndex& direct);
-Status DecodeFeatures(std::string_view bytes, FeatureSet* features, DirectIndex* direct);
+// 32-byte binary descriptors. Version 1 without geometry; a place with a camera or keypoint
+// depths (issue 32) is version 2, the geometry appended: flags, the camera, one float32 depth per
+// keypoint. Both versions decode; `geometry` (optional) receives it (empty for version 1). A
+// stored camera that fails Camera::Validate, or a negative or non-finite depth, is CORRUPTION.
+std::string EncodeFeatures(const FeatureSet& features, const DirectIndex& direct,
+                           const FrameGeometry& geometry = {});
+Status DecodeFeatures(std::string_view bytes, FeatureSet* features, DirectIndex* direct,
+                      FrameGeometry* geometry = nullptr);
 
 // The same for SIFT maps: keypoints as for ORB, then 128 float32 (little-endian) per keypoint,
-// then the direct index. Its own version byte (0x81), so neither decoder takes the other's
-// payload.
-std::string EncodeFloatFeatures(const FloatFeatureSet& features, const DirectIndex& direct);
-Status DecodeFloatFeatures(std::string_view bytes, FloatFeatureSet* features, DirectIndex* direct);
+// then the direct index (and the geometry in version 2). Their own version bytes (0x81, 0x82), so
+// neither decoder takes the other's payload.
+std::string EncodeFloatFeatures(const FloatFeatureSet& features, const DirectIndex& direct,
+                                const FrameGeometry& geometry = {});
+Status DecodeFloatFeatures(std::string_view bytes, FloatFeatureSet* features, DirectIndex* direct,
+                           FrameGeometry* geometry = nullptr);
 
 // A map's features value, by the features' family (EncodeFeatures or EncodeFloatFeatures), and
 // back: `type` is the map's feature type, so a payload of the other family is CORRUPTION.
-std::string EncodeLocalFeatures(const LocalFeatures& features, const DirectIndex& direct);
+std::string EncodeLocalFeatures(const LocalFeatures& features, const DirectIndex& direct,
+                                const FrameGeometry& geometry = {});
 Status DecodeLocalFeatures(std::string_view bytes, FeatureType type, LocalFeatures* features,
-                           DirectIndex* direct);
+                           DirectIndex* direct, FrameGeometry* geometry = nullptr);
 
 // Map configuration as JSON (readable with `ldb`, tolerant of added fields). Format 2 adds
 // feature_type, sift, depth and loop_closure; a missing key takes its default, so format-1

@@ -39,7 +39,7 @@ void PendingCommit::Complete(Result<AddResult> outcome) {
 PlaceMap::PlaceEntries PlaceMap::EncodeEntries(const ProcessedFrame& frame,
                                                const PlaceMetadata& metadata) const {
   PlaceEntries entries;
-  entries.features = EncodeLocalFeatures(frame.static_features, frame.direct);
+  entries.features = EncodeLocalFeatures(frame.static_features, frame.direct, frame.geometry);
   entries.bow = storage_->BowValue(frame.bow, frame.direct);
   if (storage_->dynamics) entries.dynamics = EncodeDynamics(FrameDynamics(frame, metadata));
   if (frame.thumbnail && info_.options.thumbnails.enabled) {

@@ -220,7 +220,7 @@ PlaceDynamics FrameDynamics(const ProcessedFrame& frame, const PlaceMetadata& me
 }
 
 Status DecodePayloadFeatures(FeatureType type, std::string_view bytes, PlacePayload* payload) {
-  return DecodeLocalFeatures(bytes, type, &payload->features, &payload->direct);
+  return DecodeLocalFeatures(bytes, type, &payload->features, &payload->direct, &payload->geometry);
 }
 
 namespace {

@@ -327,7 +327,8 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& given,
   rocksdb::WriteBatch batch;
   batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(record));
   batch.Put(storage_->cf(kBow), key, storage_->BowValue(frame.bow, frame.direct));
-  batch.Put(storage_->cf(kFeatures), key, EncodeLocalFeatures(frame.static_features, frame.direct));
+  batch.Put(storage_->cf(kFeatures), key,
+            EncodeLocalFeatures(frame.static_features, frame.direct, frame.geometry));
   if (storage_->dynamics) storage_->AddDynamics(&batch, record.id, FrameDynamics(frame, metadata));
   if (frame.thumbnail && info_.options.thumbnails.enabled) {
     batch.Put(storage_->cf(kThumbnails), key, EncodeThumbnail(*frame.thumbnail));
@@ -491,7 +492,7 @@ Result<size_t> PlaceMap::ApplyRun(std::span<const SequencedRecord> records) {
         batch.Put(storage_->cf(kPlaces), key, EncodePlaceRecord(stored));
         batch.Put(storage_->cf(kBow), key, storage_->BowValue(frame.bow, frame.direct));
         batch.Put(storage_->cf(kFeatures), key,
-                  EncodeLocalFeatures(frame.static_features, frame.direct));
+                  EncodeLocalFeatures(frame.static_features, frame.direct, frame.geometry));
         if (storage_->dynamics && record.dynamics) {
           storage_->AddDynamics(&batch, stored.id, *record.dynamics);
         }

@@ -465,7 +465,8 @@ struct Reindexed {
   Status status;
 };
 
-void Transform(FeatureType type, const PlaceDatabase& fresh, uint64_t checksum, Reindexed* place) {
+void TransformPlace(FeatureType type, const PlaceDatabase& fresh, uint64_t checksum,
+                    Reindexed* place) {
   place->status = FrameOfStoredPlace(type, place->features, place->id, &place->frame);
   place->frame.vocabulary_checksum = ~checksum;  // not this vocabulary's yet
   if (place->status.ok()) place->status = fresh.Retransform(&place->frame);
@@ -545,7 +546,7 @@ Status PlaceMap::CatchUp(PreparedSwitch& build, rocksdb::WriteBatch* batch, size
     }
     PLACEDB_RETURN_IF_ERROR(FromRocks(s, "reading features of place " + std::to_string(id)));
     Reindexed one{id, std::move(features), std::move(place), {}, {}};
-    Transform(type, *build.fresh, build.next.checksum(), &one);
+    TransformPlace(type, *build.fresh, build.next.checksum(), &one);
     PLACEDB_RETURN_IF_ERROR(AddReindexed(info_.name, *build.fresh, build.family, &one, batch));
     ++*changed;
   }
@@ -593,7 +594,7 @@ Status PlaceMap::BuildSwitch(PreparedSwitch& build, const AdaptOptions& options)
     more = it->Valid() && n == kChunkPlaces;
     it.reset();
     ParallelFor(chunk.size(), threads, [&](size_t i, int) {
-      Transform(type, *build.fresh, build.next.checksum(), &chunk[i]);
+      TransformPlace(type, *build.fresh, build.next.checksum(), &chunk[i]);
     });
     rocksdb::WriteBatch batch;
     for (Reindexed& place : chunk) {

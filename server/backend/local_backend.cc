@@ -56,6 +56,7 @@ class LocalIngestSession final : public IngestSession {
     QueryResult result = map_->map->Search(frame, query);
     timings->search_ms = result.timings.search_ms;
     timings->verify_ms = result.timings.verify_ms;
+    timings->pose_ms = result.timings.pose_ms;
     wire::MatchesToProto(result.matches, out);
     return grpc::Status::OK;
   }
@@ -292,6 +293,7 @@ grpc::Status LocalBackend::Query(const MapEntry& map, const ProcessedFrame& fram
   }
   timings->search_ms = result.timings.search_ms;
   timings->verify_ms = result.timings.verify_ms;
+  timings->pose_ms = result.timings.pose_ms;
   wire::MatchesToProto(result.matches, out->mutable_matches());
   return grpc::Status::OK;
 }

@@ -2,6 +2,7 @@
 
 #include "proto/convert_config.h"
 #include "proto/convert_dynamics.h"
+#include "proto/convert_frame.h"
 #include "proto/convert_result.h"
 
 namespace placedb::server {
@@ -13,7 +14,12 @@ Status ReadPlace(const PlaceMap& map, const v1::GetPlaceRequest& request, v1::Pl
   auto place = map.GetPlace(request.place_id());
   if (!place.ok()) return place.status();
   wire::PlaceRecordToProto(place->record, response);
-  if (request.include_features()) wire::PlaceFeaturesToProto(place->payload.features, response);
+  if (request.include_features()) {
+    wire::PlaceFeaturesToProto(place->payload.features, response);
+    const FrameGeometry& geometry = place->payload.geometry;
+    if (geometry.camera) wire::CameraToProto(*geometry.camera, response->mutable_camera());
+    response->mutable_keypoint_depth_m()->Add(geometry.depth_m.begin(), geometry.depth_m.end());
+  }
   auto dynamics = map.GetDynamics(request.place_id());
   if (!dynamics.ok()) return dynamics.status();
   wire::DynamicsToProto(*dynamics, response->mutable_dynamics());

@@ -58,7 +58,7 @@ std::string EncodeAddPlace(const ProcessedFrame& frame, const PlaceMetadata& met
   place.boxes_used = frame.boxes_used;
   add->set_place_record(EncodePlaceRecord(place));
   add->set_bow(EncodeBow(frame.bow));
-  add->set_features(EncodeLocalFeatures(frame.static_features, frame.direct));
+  add->set_features(EncodeLocalFeatures(frame.static_features, frame.direct, frame.geometry));
   add->set_dynamics(OperandOf(frame, metadata, now_unix_ns));
   if (frame.thumbnail) add->set_thumbnail(EncodeThumbnail(*frame.thumbnail));
   if (!frame.dynamic_bow.empty()) add->set_dynamic_bow(EncodeBow(frame.dynamic_bow));
@@ -148,7 +148,8 @@ Result<MapLogRecord> DecodeMapRecord(std::string_view bytes, FeatureType type) {
       PLACEDB_RETURN_IF_ERROR(Field(bow.status(), "add_place.bow"));
       ProcessedFrame& frame = out.frame;
       PLACEDB_RETURN_IF_ERROR(
-          Field(DecodeLocalFeatures(add.features(), type, &frame.static_features, &frame.direct),
+          Field(DecodeLocalFeatures(add.features(), type, &frame.static_features, &frame.direct,
+                                    &frame.geometry),
                 "add_place.features"));
       frame.bow = std::move(bow).value();
       frame.valid = true;
@@ -236,7 +237,7 @@ Result<MapLogRecord> DecodeMapRecord(std::string_view bytes, FeatureType type) {
 void FrameToSearchRequest(const ProcessedFrame& frame, v1::SearchRequest* request) {
   request->set_bow(EncodeBow(frame.bow));
   request->set_vocabulary_checksum(frame.vocabulary_checksum);
-  request->set_features(EncodeLocalFeatures(frame.static_features, frame.direct));
+  request->set_features(EncodeLocalFeatures(frame.static_features, frame.direct, frame.geometry));
   if (!frame.dynamic_bow.empty()) request->set_dynamic_bow(EncodeBow(frame.dynamic_bow));
   if (!frame.dynamic_features.empty()) {
     request->set_dynamic_features(
@@ -249,7 +250,8 @@ Status FrameFromSearchRequest(const v1::SearchRequest& request, FeatureType type
   auto bow = DecodeBow(request.bow());
   PLACEDB_RETURN_IF_ERROR(Field(bow.status(), "search.bow"));
   PLACEDB_RETURN_IF_ERROR(
-      Field(DecodeLocalFeatures(request.features(), type, &frame->static_features, &frame->direct),
+      Field(DecodeLocalFeatures(request.features(), type, &frame->static_features, &frame->direct,
+                                &frame->geometry),
             "search.features"));
   frame->bow = std::move(bow).value();
   frame->valid = true;

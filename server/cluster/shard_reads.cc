@@ -93,6 +93,7 @@ grpc::Status Shard::Impl::Search(grpc::ServerContext* context, const cv1::Search
   response->set_applied_sequence(applied);
   response->set_search_ms(result.timings.search_ms);
   response->set_verify_ms(result.timings.verify_ms);
+  response->set_pose_ms(result.timings.pose_ms);
   return grpc::Status::OK;
 }
 
@@ -177,7 +178,8 @@ grpc::Status Shard::Impl::FetchPlaces(grpc::ServerContext* context,
       if (!place.ok()) return ToGrpc(place.status());
       out = response->add_places();
       out->set_bow(EncodeBow(place->payload.bow));
-      out->set_features(EncodeLocalFeatures(place->payload.features, place->payload.direct));
+      out->set_features(EncodeLocalFeatures(place->payload.features, place->payload.direct,
+                                            place->payload.geometry));
     } else {
       auto bow = m.GetBow(id);
       if (bow.status().code() == StatusCode::kNotFound) continue;

@@ -551,9 +551,9 @@ Result<std::vector<std::pair<PlaceId, PlacePayload>>> ClusterWorker::FetchPlaces
     if (!bow.ok()) return bow.status().WithContext(what);
     payload.bow = std::move(bow).value();
     if (features) {
-      PLACEDB_RETURN_IF_ERROR(
-          DecodeLocalFeatures(place.features(), type, &payload.features, &payload.direct)
-              .WithContext(what));
+      PLACEDB_RETURN_IF_ERROR(DecodeLocalFeatures(place.features(), type, &payload.features,
+                                                  &payload.direct, &payload.geometry)
+                                  .WithContext(what));
     }
     out.emplace_back(place.place_id(), std::move(payload));
   }

@@ -5,6 +5,7 @@
 #include <set>
 
 #include "proto/convert_config.h"
+#include "proto/convert_frame.h"
 #include "proto/convert_result.h"
 #include "proto/status.h"
 #include "server/ingest/ingest_pipeline.h"
@@ -26,6 +27,7 @@ struct PlaceDbService::Stream {
   Watch* watch = nullptr;
   std::shared_ptr<const MapEntry> map;
   std::optional<v1::MatchOptions> header_matches;
+  std::optional<v1::Camera> camera;    // IngestHeader.camera: for observations without their own
   bool loop_closure = false;           // IngestHeader.loop_closure
   IngestPipeline* pipeline = nullptr;  // set before the stream is listed in streams_
   grpc::Status refusal;                // why the pool refused the last frame (handler thread)
@@ -255,6 +257,11 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
   }
   auto entry = backend_->Map(first.header().map(), "header.map");
   if (!entry.ok()) return Finish("Ingest", context, ToGrpc(entry.status()));
+  if (first.header().has_camera()) {
+    // Checked once here; each frame checks it again against its own size.
+    auto camera = wire::CameraFromProto(first.header().camera(), 0, 0, "header.camera");
+    if (!camera.ok()) return Finish("Ingest", context, ToGrpc(camera.status()));
+  }
 
   Stream stream;
   stream.context = context;
@@ -264,6 +271,7 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
   stream.session = backend_->OpenIngest(stream.map);
   if (first.header().has_matches()) stream.header_matches = first.header().matches();
   stream.loop_closure = first.header().loop_closure();
+  if (first.header().has_camera()) stream.camera = first.header().camera();
   // Declared after `stream`, so closed before it: its frames point to the stream. Made under the
   // lock that lists the stream, so a drain never sees a listed stream without its pipeline.
   std::optional<IngestPipeline> admitted;
@@ -333,6 +341,9 @@ grpc::Status PlaceDbService::IngestStream(grpc::ServerContext* context, IngestSt
       slot->matches = request->observation().matches();
     } else {
       slot->matches = stream.header_matches;
+    }
+    if (stream.camera && !request->observation().has_camera()) {
+      *request->mutable_observation()->mutable_camera() = *stream.camera;
     }
     std::string agent = request->observation().agent_id();
     // The read's reservation, sized to the frame; a frame that does not fit is answered with

@@ -76,6 +76,7 @@ void PlaceDbService::ObserveStages(const StageTimings& t) {
   if (t.transform_ms > 0) observe("transform", t.transform_ms);
   if (t.search_ms > 0) observe("search", t.search_ms);
   if (t.verify_ms > 0) observe("verify", t.verify_ms);
+  if (t.pose_ms > 0) observe("pose", t.pose_ms);
   if (t.store_ms > 0) observe("store", t.store_ms);
   if (t.loop_closure_ms > 0) observe("loop_closure", t.loop_closure_ms);
   observe("total", t.total_ms);

@@ -33,7 +33,7 @@ from placedb.errors import (
     Unauthenticated,
     Unavailable,
 )
-from placedb.frames import Box, Depth, Frame, MatchOptions
+from placedb.frames import Box, Camera, Depth, Frame, MatchOptions
 from placedb.recordings import Recording, RecordingStats, read_bag, read_tum
 from placedb.results import (
     AgentActivity,
@@ -55,6 +55,7 @@ from placedb.results import (
     Pose,
     QueryResult,
     RankedPlace,
+    RelativePose,
     ScrubReport,
     ServerInfo,
     Snapshot,
@@ -84,6 +85,7 @@ __all__ = [
     "Counts",
     "DataLoss",
     "DeadlineExceeded",
+    "Camera",
     "Depth",
     "DepthSettings",
     "DepthState",
@@ -104,6 +106,7 @@ __all__ = [
     "MapSettings",
     "MapSummary",
     "Match",
+    "RelativePose",
     "MatchOptions",
     "NotFound",
     "PermissionDenied",

@@ -231,6 +231,7 @@ class AsyncClient:
         loop_closure: bool = False,
         max_in_flight: int = 8,
         timeout: Timeout = None,
+        camera: Optional[Camera] = None,
     ) -> AsyncIterator[IngestResult]:
         """As :meth:`placedb.Client.ingest`, an async generator: ``async for result in
         client.ingest(...)``. ``frames``: an iterable or an async iterable (e.g. frames arriving
@@ -239,7 +240,9 @@ class AsyncClient:
         exception from ``frames``, ends the stream: the results before it are yielded, then it is
         raised. Leaving the loop early cancels the stream.
         """
-        header = ingest_header(map, top_k, verify, exclude_same_agent, loop_closure, max_in_flight)
+        header = ingest_header(
+            map, top_k, verify, exclude_same_agent, loop_closure, max_in_flight, camera
+        )
         window = asyncio.Semaphore(max_in_flight)
         failure: List[BaseException] = []
 

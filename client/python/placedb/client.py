@@ -20,7 +20,7 @@ from placedb._pb import placedb_pb2 as pb
 from placedb._pb import placedb_pb2_grpc as pb_grpc
 from placedb.errors import Error, InvalidArgument, from_rpc_error
 from placedb import snapshots
-from placedb.frames import Frame, ImageLike, MatchOptions, as_frame, to_observation
+from placedb.frames import Camera, Frame, ImageLike, MatchOptions, as_frame, to_observation
 from placedb.results import (
     Dynamics,
     IngestResult,
@@ -185,11 +185,14 @@ def ingest_header(
     exclude_same_agent: bool,
     loop_closure: bool,
     max_in_flight: int,
+    camera: Optional[Camera] = None,
 ) -> pb.IngestHeader:
     """The header of an Ingest stream (after checking ``max_in_flight``)."""
     if max_in_flight < 1:
         raise InvalidArgument(f"max_in_flight: {max_in_flight}, expected >= 1")
     header = pb.IngestHeader(map=map, loop_closure=loop_closure)
+    if camera is not None:
+        camera.to_proto(header.camera)
     if top_k:
         header.matches.CopyFrom(
             MatchOptions(top_k, verify, exclude_same_agent).to_proto("header.matches")
@@ -456,6 +459,7 @@ class Client:
         loop_closure: bool = False,
         max_in_flight: int = 8,
         timeout: Timeout = None,
+        camera: Optional[Camera] = None,
     ) -> Iterator[IngestResult]:
         """Streams frames into a map; yields one :class:`IngestResult` per frame, in order.
 
@@ -467,6 +471,8 @@ class Client:
         the frame (``verify`` and ``exclude_same_agent`` as for :meth:`query`); a
         :class:`Frame`'s ``matches`` overrides these for that frame. ``loop_closure``:
         the map's Bayesian loop closure per agent (:attr:`IngestResult.loop_closure`).
+        ``camera``: the stream's :class:`Camera`, for every frame without its own (verified
+        matches then carry :attr:`Match.relative_pose`; the stored places keep it).
 
         A frame the server refuses is answered with :attr:`IngestResult.error` set and the stream
         goes on. A frame the SDK cannot convert (:class:`InvalidArgument`), or an exception from
@@ -476,7 +482,9 @@ class Client:
         cancels the stream (frames in flight may or may not have been stored). ``timeout``: a
         deadline for the whole stream (default: none).
         """
-        header = ingest_header(map, top_k, verify, exclude_same_agent, loop_closure, max_in_flight)
+        header = ingest_header(
+            map, top_k, verify, exclude_same_agent, loop_closure, max_in_flight, camera
+        )
         window = threading.Semaphore(max_in_flight)
         finished = threading.Event()
         failure: List[BaseException] = []

@@ -57,6 +57,64 @@ class Depth:
 
 
 @dataclass
+class Camera:
+    """The camera that took a frame: verified matches then carry their relative pose
+    (:attr:`placedb.Match.relative_pose`), and stored places keep it (with each stored
+    keypoint's depth when the frame has depth).
+
+    The fields are ROS ``sensor_msgs/CameraInfo``'s: ``width`` x ``height`` the image the
+    intrinsics refer to (both 0 = the frame's size), focal lengths and principal point in
+    pixels, ``distortion_model`` ``""``/``"none"``, ``"plumb_bob"`` (k1 k2 p1 p2 [k3]) or
+    ``"equidistant"`` (k1 k2 k3 k4) and its coefficients.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int = 0
+    height: int = 0
+    distortion_model: str = ""
+    distortion: Sequence[float] = ()
+
+    @staticmethod
+    def from_camera_info(message: Any) -> "Camera":
+        """From a ROS ``sensor_msgs/CameraInfo`` message (K, D, distortion_model, size).
+
+        ``rational_polynomial`` whose k4-k6 are 0 is ``plumb_bob``; any other model the server
+        does not know raises :class:`InvalidArgument` naming it.
+        """
+        k = message.K
+        model = message.distortion_model or ""
+        coefficients = [float(v) for v in message.D]
+        if model == "rational_polynomial" and not any(coefficients[5:]):
+            model, coefficients = "plumb_bob", coefficients[:5]
+        if model in ("plumb_bob", "equidistant") and not any(coefficients):
+            model, coefficients = "", []
+        if model not in ("", "none", "plumb_bob", "equidistant"):
+            raise InvalidArgument(
+                f"CameraInfo distortion_model {model!r}: placedb takes plumb_bob or equidistant"
+            )
+        return Camera(
+            fx=float(k[0]),
+            fy=float(k[4]),
+            cx=float(k[2]),
+            cy=float(k[5]),
+            width=int(message.width),
+            height=int(message.height),
+            distortion_model=model,
+            distortion=coefficients,
+        )
+
+    def to_proto(self, target: pb.Camera) -> None:
+        target.width, target.height = int(self.width), int(self.height)
+        target.fx, target.fy = float(self.fx), float(self.fy)
+        target.cx, target.cy = float(self.cx), float(self.cy)
+        target.distortion_model = self.distortion_model
+        target.distortion[:] = [float(v) for v in self.distortion]
+
+
+@dataclass
 class MatchOptions:
     """What an ingested frame's result reports about the map's existing places.
 
@@ -115,6 +173,8 @@ class Frame:
     depth: Optional[Union[Depth, np.ndarray, bytes]] = None
     #: Overrides the ingest call's agent_id for this frame.
     agent_id: Optional[str] = None
+    #: The frame's :class:`Camera` (overrides the ingest call's ``camera``).
+    camera: Optional[Camera] = None
     #: Ingest only: this frame's result carries its matches against the map as it was before
     #: the frame, with these options (overrides the ingest call's ``top_k``, ``verify``, ...).
     matches: Optional[MatchOptions] = None
@@ -312,6 +372,8 @@ def to_observation(
         observation.dynamic_mask_png = _mask(frame.mask, f"{path}.dynamic_mask_png")
     if frame.depth is not None:
         _depth(frame.depth, observation.depth, f"{path}.depth")
+    if frame.camera is not None:
+        frame.camera.to_proto(observation.camera)
     if frame.matches is not None:
         observation.matches.CopyFrom(frame.matches.to_proto(f"{path}.matches"))
     return observation

@@ -35,7 +35,7 @@ from typing import Any, Callable, Deque, Iterator, List, Optional, Tuple, Union
 import numpy as np
 
 from placedb.errors import FailedPrecondition, InvalidArgument
-from placedb.frames import Depth, Frame
+from placedb.frames import Camera, Depth, Frame
 from placedb.results import Pose
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -337,6 +337,7 @@ def read_bag(
         colours: Deque[Tuple[int, Any, int]] = deque()  # (stamp, message, index in the topic)
         depths: Deque[Tuple[int, Any]] = deque()
         intrinsics: List[Optional[Intrinsics]] = [None]
+        camera: List[Optional[Camera]] = [None]  # the whole CameraInfo: relative poses
         count = [0]
 
         def ready(final: bool) -> Iterator[Frame]:
@@ -349,7 +350,11 @@ def read_bag(
                     return
                 _, message, index = colours.popleft()
                 what = f"{path}: {topic} message {index}"
-                frame = Frame(image=_colour_image(message, colour_kind, what), timestamp_ns=stamp)
+                frame = Frame(
+                    image=_colour_image(message, colour_kind, what),
+                    timestamp_ns=stamp,
+                    camera=camera[0],
+                )
                 if depth_topic:
                     nearest = min(depths, key=lambda d: abs(d[0] - stamp), default=None)
                     if nearest is not None and abs(nearest[0] - stamp) <= offset_ns:
@@ -372,6 +377,10 @@ def read_bag(
                     k = message.K
                     if k[0] > 0 and k[4] > 0:
                         intrinsics[0] = (float(k[0]), float(k[4]), float(k[2]), float(k[5]))
+                        try:
+                            camera[0] = Camera.from_camera_info(message)
+                        except InvalidArgument:
+                            camera[0] = None  # frames still go in, without relative poses
                     continue
                 stamp = _stamp_ns(message, receive_time, stats)
                 if name == topic:

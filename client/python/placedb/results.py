@@ -9,13 +9,16 @@ Enum values are given by their API names (:func:`placedb.settings.enum_name`): m
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
 import numpy as np
 
 from placedb._pb import placedb_pb2 as pb
 from placedb.errors import Error, error_from_status_number
 from placedb.settings import enum_name
+
+if TYPE_CHECKING:  # frames imports this module: Camera is read when a place is converted
+    from placedb.frames import Camera
 
 
 def _fields(message) -> Dict[str, object]:
@@ -93,6 +96,7 @@ class Timings:
     store_ms: float = 0.0
     loop_closure_ms: float = 0.0
     refine_ms: float = 0.0
+    pose_ms: float = 0.0
     total_ms: float = 0.0
 
     @staticmethod
@@ -183,6 +187,44 @@ class LoopClosure:
 
 
 @dataclass(frozen=True)
+class RelativePose:
+    """A verified match's loop-closure constraint, for a pose graph (g2o, GTSAM, Ceres).
+
+    ``transform`` is T_place_query, a 4 x 4 float64 array: it maps a point in the query camera's
+    frame into the place camera's (p_place = R p_query + t; OpenCV camera axes, x right, y down,
+    z forward). With camera-to-world poses, T_place_query = inv(T_w_place) @ T_w_query.
+    ``information``: the 6 x 6 inverse covariance, order [dt (m), dtheta (rad)] (translation
+    first, as g2o's EDGE_SE3:QUAT; a perturbation on the right). ``metric`` False (no depth on
+    either side): the translation is a unit direction and the information is singular along it.
+    """
+
+    transform: np.ndarray
+    information: np.ndarray
+    metric: bool
+    #: ``"pnp_place_depth"``, ``"pnp_query_depth"`` or ``"essential"``.
+    solver: str
+    #: Inlier pairs the solver used (PnP: those with depth).
+    correspondences: int
+    inliers: int
+    #: Reprojection (PnP) or Sampson (essential) error over the inliers, pixels.
+    rms_error_px: float
+
+    __eq__ = _equal_with_arrays
+
+    @staticmethod
+    def from_proto(message: pb.RelativePose) -> "RelativePose":
+        return RelativePose(
+            transform=np.array(message.transform, np.float64).reshape(4, 4),
+            information=np.array(message.information, np.float64).reshape(6, 6),
+            metric=message.metric,
+            solver=message.solver,
+            correspondences=message.correspondences,
+            inliers=message.inliers,
+            rms_error_px=message.rms_error_px,
+        )
+
+
+@dataclass(frozen=True)
 class Match:
     """A stored place that matches an observation (best first in every list)."""
 
@@ -207,6 +249,11 @@ class Match:
     correspondences: np.ndarray = field(
         default_factory=lambda: np.zeros((0, 2), np.int64), compare=False
     )
+    #: Verified matches whose frame and place both have a camera: the transform from the query
+    #: camera to the place's, with its information (:class:`RelativePose`). None otherwise.
+    relative_pose: Optional[RelativePose] = None
+    #: Why a verified match has no ``relative_pose`` ("" when it has one).
+    pose_unavailable: str = ""
 
     __eq__ = _equal_with_arrays
 
@@ -223,6 +270,12 @@ class Match:
             timestamp_ns=m.timestamp_ns,
             pose=Pose.from_proto(m.pose) if m.HasField("pose") else None,
             correspondences=_correspondences_array(message.correspondences),
+            relative_pose=(
+                RelativePose.from_proto(message.relative_pose)
+                if message.HasField("relative_pose")
+                else None
+            ),
+            pose_unavailable=message.pose_unavailable,
         )
 
 
@@ -630,6 +683,21 @@ def _keypoints_array(keypoints) -> np.ndarray:
     return np.array(rows, dtype=np.float32).reshape(len(rows), 6)
 
 
+def _camera(message: pb.Camera) -> "Camera":
+    from placedb.frames import Camera
+
+    return Camera(
+        fx=message.fx,
+        fy=message.fy,
+        cx=message.cx,
+        cy=message.cy,
+        width=message.width,
+        height=message.height,
+        distortion_model=message.distortion_model,
+        distortion=tuple(message.distortion),
+    )
+
+
 def _correspondences_array(correspondences) -> np.ndarray:
     rows = [(c.query_keypoint, c.place_keypoint) for c in correspondences]
     return np.array(rows, dtype=np.int64).reshape(len(rows), 2)
@@ -689,6 +757,12 @@ class Place:
     dynamics: Optional[DynamicStatistics] = None
     #: With ``thumbnail=True``, when the map kept one for this place.
     thumbnail: Optional[Thumbnail] = None
+    #: With ``include_features``: the :class:`placedb.Camera` the place was stored with (None
+    #: when its frame had none).
+    camera: Optional[Camera] = None
+    #: With ``include_features``: each stored keypoint's depth in metres (float32, keypoint
+    #: order, 0 = none); None when the frame had no depth.
+    keypoint_depth_m: Optional[np.ndarray] = None
 
     __eq__ = _equal_with_arrays
 
@@ -725,6 +799,12 @@ class Place:
             thumbnail=(
                 Thumbnail.from_proto(message.thumbnail)
                 if message.HasField("thumbnail")
+                else None
+            ),
+            camera=_camera(message.camera) if message.HasField("camera") else None,
+            keypoint_depth_m=(
+                np.array(message.keypoint_depth_m, np.float32)
+                if len(message.keypoint_depth_m)
                 else None
             ),
         )
