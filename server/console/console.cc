@@ -11,6 +11,7 @@
 #include <nlohmann/json.hpp>
 #include <regex>
 
+#include "proto/names.h"
 #include "proto/placedb.grpc.pb.h"
 #include "proto/status.h"
 #include "server/auth/call_auth.h"
@@ -67,6 +68,21 @@ constexpr char kApiPattern[] = R"(/api/v1/([A-Za-z]+))";
 
 const std::vector<std::string> kConsoleMethods = {
     "ListMaps", "GetMap", "ListPlaces", "GetPlace", "Query", "GetDynamics", "GetServerInfo"};
+
+std::string ConsoleEnumNames() {
+  const google::protobuf::FileDescriptor* file = v1::GetServerInfoRequest::descriptor()->file();
+  nlohmann::json names = nlohmann::json::object();
+  for (int e = 0; e < file->enum_type_count(); ++e) {
+    const google::protobuf::EnumDescriptor* type = file->enum_type(e);
+    nlohmann::json values = nlohmann::json::object();
+    // Aliases too (CocoClass): protobuf's JSON prints a number's first value name, named the same.
+    for (int v = 0; v < type->value_count(); ++v) {
+      values[type->value(v)->name()] = wire::EnumValueName(type, type->value(v)->number());
+    }
+    names[type->name()] = std::move(values);
+  }
+  return names.dump();
+}
 
 int HttpStatusOf(grpc::StatusCode code) {
   switch (code) {
@@ -211,6 +227,13 @@ Status Console::Serve(const HttpEndpointSettings& settings) {
     response.set_content(place.thumbnail().jpeg(), "image/jpeg");
   };
 
+  // Made once: the descriptors do not change while the server runs.
+  auto enum_names = [names = ConsoleEnumNames()](const httplib::Request&,
+                                                 httplib::Response& response) {
+    response.status = 200;
+    response.set_content(names, "application/json");
+  };
+
   auto page = [](const httplib::Request& request, httplib::Response& response) {
     const ConsoleFile* file = FindConsoleFile(request.path);
     if (!file) {
@@ -289,6 +312,7 @@ Status Console::Serve(const HttpEndpointSettings& settings) {
              "'" + request.path + "': the JSON API takes POST with a JSON body");
       response.set_header("Allow", "POST");
     });
+    http.Get("/enum-names.json", enum_names);
     http.Get(R"(/[A-Za-z0-9._-]*)", page);
   };
   HttpEndpointSettings named = settings;

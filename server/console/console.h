@@ -10,6 +10,10 @@
 //                           status (HttpStatusOf) with {"code":"NOT_FOUND","message":"..."}.
 //   GET /api/v1/maps/<map>/places/<id>/thumbnail.jpg   the place's thumbnail (GetPlace
 //                           include_thumbnail); 404 when the map keeps none for it.
+//   GET /enum-names.json    {"<Enum>": {"<VALUE_NAME>": "<name>"}} for every placedb.v1 enum: the
+//                           names proto/names.h gives the value names the JSON API prints
+//                           (BOX_SOURCE_UNSPECIFIED -> "agent"), so the pages name values as the
+//                           CLI and reports do, from the proto's (name) option, not a table here.
 //   GET /, /<file>          the pages (server/console/web, embedded into the binary at build).
 //
 // Refusals come from the headers, before httplib reads a body (its pre-routing handler), so a
@@ -54,6 +58,8 @@ struct ConsoleFile {
 };
 // The file served at `path` ("/" is "/index.html"); null when there is none.
 const ConsoleFile* FindConsoleFile(const std::string& path);
+// The body of GET /enum-names.json.
+std::string ConsoleEnumNames();
 
 class Console {
  public:

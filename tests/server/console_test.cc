@@ -3,6 +3,7 @@
 // tokens, the Host rule, and the console's place in the safe default.
 #include "server/console/console.h"
 
+#include <google/protobuf/descriptor.h>
 #include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
@@ -18,6 +19,7 @@
 #include <utility>
 #include <vector>
 
+#include "proto/names.h"
 #include "server/auth/tokens.h"
 #include "server/net/transport_security.h"
 #include "tests/server/server_fixture.h"
@@ -254,6 +256,58 @@ TEST_F(ConsoleTest, EveryEndpointAnswersAsGrpcDoes) {
   ASSERT_EQ(script.status, 200);
   EXPECT_NE(script.body.find("/api/v1/"), std::string::npos);
   EXPECT_EQ(Send("GET", "/nothing.html", "").status, 404);
+}
+
+// The pages name enum values from the server's table (GET /enum-names.json), which must give every
+// value name the JSON API can print the proto's name for it (proto/names.h), (name) option
+// included, never a second spelling.
+TEST_F(ConsoleTest, EnumNamesAreTheProtosNames) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(ConsoleConfig()));
+  ASSERT_NO_FATAL_FAILURE(Populate("office", 2));
+  Reply reply = Send("GET", "/enum-names.json", "");
+  ASSERT_EQ(reply.status, 200) << reply.body;
+  EXPECT_EQ(reply.content_type, "application/json");
+  const json names = reply.Json();
+  ASSERT_TRUE(names.is_object()) << reply.body;
+  // "(missing)" rather than a const lookup of an absent key (undefined in nlohmann::json).
+  auto name_of = [&names](const std::string& type, const std::string& value) {
+    if (!names.contains(type) || !names[type].is_object()) return std::string("(missing)");
+    return names[type].value(value, std::string("(missing)"));
+  };
+
+  const google::protobuf::FileDescriptor* file = v1::MapConfig::descriptor()->file();
+  EXPECT_EQ(names.size(), size_t(file->enum_type_count()));
+  for (int e = 0; e < file->enum_type_count(); ++e) {
+    const google::protobuf::EnumDescriptor* type = file->enum_type(e);
+    ASSERT_TRUE(names.contains(type->name())) << type->name();
+    EXPECT_EQ(names[type->name()].size(), size_t(type->value_count())) << type->name();
+    for (int v = 0; v < type->value_count(); ++v) {
+      const google::protobuf::EnumValueDescriptor* value = type->value(v);
+      EXPECT_EQ(name_of(type->name(), value->name()), wire::EnumValueName(type, value->number()))
+          << value->full_name();
+    }
+  }
+  // Where the (name) option or the class table differs from the value name's suffix.
+  EXPECT_EQ(name_of("BoxSource", "BOX_SOURCE_UNSPECIFIED"), "agent");
+  EXPECT_EQ(name_of("Scoring", "SCORING_CHI_SQUARE"), "chi2");
+  EXPECT_EQ(name_of("CocoClass", "COCO_CLASS_TRAFFIC_LIGHT"), wire::DynamicClassName(9));
+  EXPECT_EQ(name_of("CocoClass", "COCO_CLASS_PERSON"), "person");
+
+  // The values the maps view names, as the JSON API prints them for a real map.
+  Reply maps = Call("ListMaps", "{}");
+  ASSERT_EQ(maps.status, 200) << maps.body;
+  const json summary = maps.Json()["maps"][0];
+  ASSERT_TRUE(summary.is_object()) << maps.body;
+  EXPECT_EQ(name_of("MapState", summary.value("state", "")), "available");
+  EXPECT_EQ(name_of("FeatureType", summary.value("feature_type", "")), "orb");
+  Reply map = Call("GetMap", R"({"name": "office"})");
+  ASSERT_EQ(map.status, 200) << map.body;
+  const json detection = map.Json()["config"]["detection"];
+  ASSERT_TRUE(detection.contains("box_source")) << map.body;
+  const std::string box_source = detection["box_source"];
+  v1::BoxSource parsed;
+  ASSERT_TRUE(v1::BoxSource_Parse(box_source, &parsed)) << box_source;
+  EXPECT_EQ(name_of("BoxSource", box_source), wire::EnumName(parsed));
 }
 
 TEST_F(ConsoleTest, BadRequestsGetTheirStatusAndChangeNothing) {

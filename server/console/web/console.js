@@ -94,8 +94,14 @@ function time(ns) {
   return ms > 0 ? new Date(ms).toISOString().replace("T", " ").slice(0, 19) : "-";
 }
 
-function enumName(value, prefix) {
-  return String(value || "-").replace(prefix, "").toLowerCase();
+// The proto's names of enum values ("agent" for BOX_SOURCE_UNSPECIFIED: its (name) option), as
+// the CLI prints them; the server serves them (/enum-names.json) and start() loads them once.
+let enumNames = {};
+
+function enumName(value, type) {
+  if (value === undefined || value === null) return "-";
+  const name = (enumNames[type] || {})[value];
+  return name === undefined ? String(value) : name;
 }
 
 function loadImage(src) {
@@ -291,15 +297,15 @@ async function mapsView(view) {
     const link = el("a", { href: "#/places/" + encodeURIComponent(summary.name) }, summary.name);
     table.append(el("tr", { class: "map-row", dataset: { map: summary.name } },
                     el("td", {}, link),
-                    el("td", {}, enumName(summary.state, "MAP_STATE_"),
+                    el("td", {}, enumName(summary.state, "MapState"),
                        summary.unavailable_reason ? el("div", { class: "muted" }, summary.unavailable_reason) : null),
-                    el("td", {}, enumName(summary.feature_type, "FEATURE_TYPE_")),
+                    el("td", {}, enumName(summary.feature_type, "FeatureType")),
                     el("td", { class: "num" }, Number(summary.places || 0)),
                     el("td", { class: "num" }, Number(stats.descriptors_kept || 0)),
                     el("td", { class: "num" }, Number(stats.descriptors_dropped || 0)),
                     el("td", { class: "num" }, bytes(stats.bytes_on_disk)),
                     el("td", {}, detection.enabled === false ? "off" : "on",
-                       " (", enumName(detection.box_source, "BOX_SOURCE_"), ")"),
+                       " (", enumName(detection.box_source, "BoxSource"), ")"),
                     el("td", {}, config.thumbnails && config.thumbnails.enabled ? "kept" : "off"),
                     el("td", { class: "vocabulary" }, vocabularyText(description)),
                     el("td", {}, el("details", {}, el("summary", {}, "config"),
@@ -664,7 +670,7 @@ async function route() {
   view.dataset.ready = "yes";  // for the browser test: the view finished loading
 }
 
-function start() {
+async function start() {
   const token = document.getElementById("token");
   token.value = sessionStorage.getItem(TOKEN_KEY) || "";
   token.addEventListener("change", () => {
@@ -675,6 +681,12 @@ function start() {
   api("GetServerInfo", {}).then(
       (info) => (document.getElementById("server-version").textContent = "server " + info.version),
       () => {});
+  try {
+    const names = await fetch("/enum-names.json");
+    if (names.ok) enumNames = await names.json();
+  } catch (e) {
+    // Unnamed values show as the API prints them; the views still work.
+  }
   window.addEventListener("hashchange", route);
   route();
 }
