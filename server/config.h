@@ -55,7 +55,7 @@ struct Limits {
   }
 };
 
-// Server-side detection (core/detector.h). Absent model = detection off.
+// Server-side detection (core/detect/detector.h). Absent model = detection off.
 struct DetectorSettings {
   std::string backend = "yolox_onnx";  // or "darknet"
   std::string model;                   // .onnx (YOLOX) or .weights (darknet)

@@ -10,7 +10,7 @@ struct StageTimings {
   double detect_ms = 0;        // filled by the service (object detection)
   double extract_ms = 0;       // feature extraction (0 for precomputed features)
   double depth_ms = 0;         // RGB-D: depth decoding, box refinement, Algorithm 1
-  double refine_ms = 0;        // monocular box refinement (core/box_masks.h)
+  double refine_ms = 0;        // monocular box refinement (core/filter/box_masks.h)
   double filter_ms = 0;        // DC/SC classification
   double transform_ms = 0;     // BoW vector + direct index
   double search_ms = 0;        // inverted-index query

@@ -8,9 +8,9 @@
 // CloseLoop()]. An invalid frame is neither stored nor matched; the result says why. DC
 // descriptors, and those Algorithm 1 removes, are counted and dropped, never kept.
 //
-// Per-agent state (core/agent_streams.h): Algorithm 1 and the Bayesian loop-closure detector
-// need the agent's frames in order, so they run in AdvanceStream() / CloseLoop(), which the
-// caller invokes in each agent's sequence order; everything else is stateless and parallel.
+// Per-agent state (core/pipeline/agent_streams.h): Algorithm 1 and the Bayesian loop-closure
+// detector need the agent's frames in order, so they run in AdvanceStream() / CloseLoop(), which
+// the caller invokes in each agent's sequence order; everything else is stateless and parallel.
 //
 // Thread safety: any number of concurrent Query() calls together with Add()/Remove(). The
 // expensive stages run outside any lock; only index mutation takes the writer lock and
