@@ -210,13 +210,19 @@ TEST_F(VocabularyServerTest, ThePolicyAdaptsAMapAsItGrows) {
   const v1::MapDescription adapted = wait_for_generation(1);
   ASSERT_EQ(adapted.vocabulary().generation(), 1u) << "the policy did not adapt the map";
   EXPECT_EQ(adapted.vocabulary().current().origin(), "learned");
-  EXPECT_EQ(adapted.vocabulary().current().descriptors_offered(), kept);
+  // The policy's thread checks on its own clock: under load it may start while the stream's last
+  // frames are still being stored, so it learns from at least the threshold, at most what the
+  // stream stored (seen once in a ctest -j2 run: 11,711 of 12,701).
+  EXPECT_GE(adapted.vocabulary().current().descriptors_offered(), 10000u);
+  EXPECT_LE(adapted.vocabulary().current().descriptors_offered(), kept);
   ASSERT_TRUE(IngestAll(stub_.get(), "grows", more).status.ok());
   ASSERT_GE(Stats("grows").descriptors_kept(), 2 * kept);
   const v1::MapDescription regrown = wait_for_generation(2);
   ASSERT_EQ(regrown.vocabulary().generation(), 2u) << "the policy did not learn again";
   EXPECT_EQ(regrown.vocabulary().current().origin(), "learned");
-  EXPECT_GE(regrown.vocabulary().current().descriptors_offered(), 2 * kept);
+  // Regrown at regrow_factor times what the first learning read (again on the thread's clock).
+  EXPECT_GE(regrown.vocabulary().current().descriptors_offered(),
+            2 * adapted.vocabulary().current().descriptors_offered());
   EXPECT_EQ(regrown.vocabulary().previous().checksum(), adapted.vocabulary().current().checksum());
 }
 
