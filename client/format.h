@@ -50,7 +50,7 @@ std::string FormatDepthState(const v1::DepthState& depth);
 std::string FormatDepthRemoval(const v1::FrameCounts& counts, const v1::DepthState& depth);
 // "loop: place 3 (posterior 0.412)", "merged into 11", "no loop (best place 3, posterior 0.051)".
 std::string FormatLoopClosure(const v1::LoopClosure& loop);
-// "t (0.412, -0.020, 0.091) m, 12.3 deg, pnp_place_depth, 87 inliers, rms 0.84 px": the
+// "t (-0.201, -0.084, 0.407) m, 25.81 deg, pnp_place_depth, 92 inliers, rms 1.95 px": the
 // translation (metres, or a unit direction for an essential-matrix pose) and rotation angle.
 std::string FormatRelativePose(const v1::RelativePose& pose);
 // The same, as JSON objects with numbers as numbers (ingest's --json output).

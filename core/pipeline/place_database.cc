@@ -94,19 +94,20 @@ Result<VerificationResult> VerifyWithObjects(
 }
 
 // The relative pose of a verified match from verification's inlier pairs (issue 32), or why there
-// is none in `pose_unavailable`.
-void AttachRelativePose(const ProcessedFrame& frame, const PlacePayload& place,
-                        const std::vector<InlierPair>& inliers, double octave_scale_factor,
-                        Match* match) {
+// is none in `pose_unavailable`. Returns the solver's time in ms (0 when it did not run).
+double AttachRelativePose(const ProcessedFrame& frame, const PlacePayload& place,
+                          const std::vector<InlierPair>& inliers, double octave_scale_factor,
+                          Match* match) {
   if (!frame.geometry.camera.has_value()) {
     match->pose_unavailable = "the frame has no camera (observation.camera or depth.intrinsics)";
-    return;
+    return 0;
   }
   if (!place.geometry.camera.has_value()) {
     match->pose_unavailable =
         "place " + std::to_string(match->place) + " was stored without a camera";
-    return;
+    return 0;
   }
+  Stopwatch solving;
   std::vector<KeypointMatch> pairs;
   pairs.reserve(inliers.size());
   for (const InlierPair& pair : inliers) pairs.push_back({pair.query, pair.candidate});
@@ -122,6 +123,7 @@ void AttachRelativePose(const ProcessedFrame& frame, const PlacePayload& place,
   } else {
     match->pose_unavailable = pose.status().message();
   }
+  return solving.ElapsedMs();
 }
 
 std::string InvalidReason(const FrameCounts& counts, int place_threshold) {
@@ -980,9 +982,8 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
         match.inliers = verified->inliers;
         match.verified = verified->verified;
         if (match.verified && options.relative_poses) {
-          Stopwatch pose;
-          AttachRelativePose(frame, **payload, verified->inlier_pairs, octave_scale_factor, &match);
-          pose_ms += pose.ElapsedMs();
+          pose_ms += AttachRelativePose(frame, **payload, verified->inlier_pairs,
+                                        octave_scale_factor, &match);
         }
         if (match.verified && options.include_correspondences) {
           match.correspondences = std::move(verified->inlier_pairs);
