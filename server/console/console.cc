@@ -84,6 +84,22 @@ std::string ConsoleEnumNames() {
   return names.dump();
 }
 
+std::string ConsoleEnumNumbers() {
+  const google::protobuf::FileDescriptor* file = v1::GetServerInfoRequest::descriptor()->file();
+  nlohmann::json numbers = nlohmann::json::object();
+  for (int e = 0; e < file->enum_type_count(); ++e) {
+    const google::protobuf::EnumDescriptor* type = file->enum_type(e);
+    nlohmann::json values = nlohmann::json::object();
+    // An alias shares its number and its name (EnumValueName goes by number): one entry each.
+    for (int v = 0; v < type->value_count(); ++v) {
+      const int number = type->value(v)->number();
+      values[std::to_string(number)] = wire::EnumValueName(type, number);
+    }
+    numbers[type->name()] = std::move(values);
+  }
+  return numbers.dump();
+}
+
 int HttpStatusOf(grpc::StatusCode code) {
   switch (code) {
     case grpc::StatusCode::OK:
@@ -234,6 +250,12 @@ Status Console::Serve(const HttpEndpointSettings& settings) {
     response.set_content(names, "application/json");
   };
 
+  auto enum_numbers = [numbers = ConsoleEnumNumbers()](const httplib::Request&,
+                                                       httplib::Response& response) {
+    response.status = 200;
+    response.set_content(numbers, "application/json");
+  };
+
   auto page = [](const httplib::Request& request, httplib::Response& response) {
     const ConsoleFile* file = FindConsoleFile(request.path);
     if (!file) {
@@ -313,6 +335,7 @@ Status Console::Serve(const HttpEndpointSettings& settings) {
       response.set_header("Allow", "POST");
     });
     http.Get("/enum-names.json", enum_names);
+    http.Get("/enum-numbers.json", enum_numbers);
     http.Get(R"(/[A-Za-z0-9._-]*)", page);
   };
   HttpEndpointSettings named = settings;

@@ -14,6 +14,9 @@
 //                           names proto/names.h gives the value names the JSON API prints
 //                           (BOX_SOURCE_UNSPECIFIED -> "agent"), so the pages name values as the
 //                           CLI and reports do, from the proto's (name) option, not a table here.
+//   GET /enum-numbers.json  {"<Enum>": {"<number>": "<name>"}}, the same names by number: the
+//                           fields the proto keeps int32 (UsedBox.class_id, DynamicClassCount
+//                           .class_id: COCO ids, named by CocoClass) print as numbers.
 //   GET /, /<file>          the pages (server/console/web, embedded into the binary at build).
 //
 // Refusals come from the headers, before httplib reads a body (its pre-routing handler), so a
@@ -60,6 +63,8 @@ struct ConsoleFile {
 const ConsoleFile* FindConsoleFile(const std::string& path);
 // The body of GET /enum-names.json.
 std::string ConsoleEnumNames();
+// The body of GET /enum-numbers.json.
+std::string ConsoleEnumNumbers();
 
 class Console {
  public:

@@ -9,7 +9,10 @@ over the DevTools protocol (python3-websocket) through every page:
   places  place cards with their thumbnails drawn (the map keeps them);
   query   a frame uploaded with DOM.setFileInputFiles: the top match is that frame's place,
           verified, with its inlier correspondences drawn;
-  live    agents and latest places, refreshed without reloading.
+  live    agents and latest places, refreshed without reloading;
+  dynamics  a map of frames with person and car boxes (sent over gRPC with messages generated
+          from proto/placedb.proto by protoc: the CLI sends no boxes): its first card within
+          1 s (measured, reported), class totals, hours, the places ranked by class.
 
 Screenshots go to PLACEDB_CONSOLE_SCREENSHOTS (the build dir's console-screenshots/). A page
 error (a JavaScript exception) fails the test. Without chromium the test fails with a clear
@@ -238,6 +241,189 @@ def stored_place_query(devtools, map_name, place_id):
         " const m = r.querySelector('.match');"
         " return { done: r.dataset.done, text: r.textContent,"
         " top: m ? m.dataset.placeId : null }; })()")
+
+
+# Frames of the dynamics map: (RTAB-Map frame, UTC hour) with a person box on each, a car on
+# every third; taken two days ago.
+DYNAMICS_FRAMES = [(frame, (7, 12, 18)[frame % 3]) for frame in range(1, 13)]
+
+
+def fill_dynamics_map(address, frames_dir, work):
+    """Ingests DYNAMICS_FRAMES into map 'traffic' over gRPC with their boxes; returns the stored
+    place ids, those with a car, the hours used and their weekday (0 = Monday)."""
+    import datetime
+    import grpc  # python3-grpcio
+
+    protoc = shutil.which("protoc")
+    if not protoc:
+        fail("protoc is not installed (protobuf-compiler): the dynamics page's frames are sent "
+             "with messages generated from proto/placedb.proto")
+    proto_dir = os.path.realpath(os.path.join(os.path.dirname(__file__), "..", "..", "proto"))
+    generated = os.path.join(work, "pb")
+    os.makedirs(generated)
+    subprocess.run([protoc, "-I", proto_dir, "--python_out=" + generated,
+                    os.path.join(proto_dir, "placedb.proto")], check=True)
+    sys.path.insert(0, generated)
+    import placedb_pb2 as pb
+
+    today = datetime.datetime.now(datetime.timezone.utc).replace(hour=0, minute=0, second=0,
+                                                                 microsecond=0)
+    day = today - datetime.timedelta(days=2)
+    frames = []
+    for sequence, (frame, hour) in enumerate(DYNAMICS_FRAMES, start=1):
+        taken = day + datetime.timedelta(hours=hour, seconds=sequence)
+        observation = pb.Observation(agent_id="crossing", sequence=sequence,
+                                     timestamp_ns=int(taken.timestamp()) * 1_000_000_000)
+        with open(os.path.join(frames_dir, "%d.jpg" % frame), "rb") as image:
+            observation.encoded_image.data = image.read()
+        observation.boxes.add(class_name="person", confidence=0.9,
+                              rect=pb.Rect(x=10, y=40, width=30 + 10 * sequence, height=200))
+        if frame % 3 == 0:
+            observation.boxes.add(class_name="car", confidence=0.8,
+                                  rect=pb.Rect(x=400, y=300, width=200, height=150))
+        frames.append(observation)
+
+    def requests():
+        yield pb.IngestRequest(header=pb.IngestHeader(map="traffic"))
+        for observation in frames:
+            yield pb.IngestRequest(observation=observation)
+
+    with grpc.insecure_channel(address) as channel:
+        ingest = channel.stream_stream(
+            "/placedb.v1.PlaceDb/Ingest", request_serializer=lambda m: m.SerializeToString(),
+            response_deserializer=pb.IngestResponse.FromString)
+        responses = list(ingest(requests(), timeout=120))
+    stored, with_car = [], []
+    for response in responses:
+        if response.HasField("error"):
+            fail("ingesting the dynamics map: " + str(response.error))
+        if response.stored:
+            stored.append(response.place_id)
+            if len(frames[response.index].boxes) > 1:
+                with_car.append(response.place_id)
+    if len(stored) < len(frames) // 2 or not with_car:
+        fail("the dynamics map stored %d of %d frames (%d with a car)" % (
+            len(stored), len(frames), len(with_car)))
+    return stored, with_car, sorted({hour for _, hour in DYNAMICS_FRAMES}), day.weekday()
+
+
+# Watches the dynamics page from the moment it is installed: when a first card shows (loading),
+# when a first card has its data, when the ranking is shown, GetPlace calls at once.
+DYNAMICS_PROBE = """(() => {
+  const probe = { firstCardMs: null, firstLoadedMs: null, rankedMs: null, maxInFlight: 0,
+                  inFlight: 0 };
+  const start = performance.now();
+  const fetch = window.fetch;
+  window.fetch = (url, options) => {
+    if (!String(url).endsWith('/GetPlace')) return fetch(url, options);
+    probe.inFlight++;
+    probe.maxInFlight = Math.max(probe.maxInFlight, probe.inFlight);
+    return fetch(url, options).finally(() => probe.inFlight--);
+  };
+  const observer = new MutationObserver(() => {
+    const now = performance.now() - start;
+    if (probe.firstCardMs === null && document.querySelector('#view .dynamics-card')) {
+      probe.firstCardMs = now;
+    }
+    if (probe.firstLoadedMs === null &&
+        document.querySelector('#view .dynamics-card[data-state="loaded"]')) {
+      probe.firstLoadedMs = now;
+    }
+    const ranking = document.getElementById('dynamics-ranking');
+    if (probe.rankedMs === null && ranking && ranking.dataset.loaded === 'yes') {
+      probe.rankedMs = now;
+    }
+  });
+  observer.observe(document.getElementById('view'), { childList: true, subtree: true,
+                                                      attributes: true });
+  probe.stop = () => { observer.disconnect(); window.fetch = fetch; };
+  window.placedbProbe = probe;
+})()"""
+
+
+def check_dynamics_page(devtools, screenshots, stored, with_car, hours, weekday):
+    """The dynamics page of map 'traffic': first card within 1 s, the class totals and hours of
+    the frames sent, person ranked by default (every place in all its frames), then car: the car
+    places first; a ranked place links to its card on the places page."""
+    devtools.evaluate(DYNAMICS_PROBE)
+    devtools.show("#/dynamics/traffic")
+    probe = wait_for("the dynamics page's probe", lambda: devtools.evaluate(
+        "window.placedbProbe.firstLoadedMs !== null && window.placedbProbe.rankedMs !== null"
+        " ? window.placedbProbe : null"))
+    all_drawn = lambda: devtools.evaluate(
+        "(() => { const cards = document.querySelectorAll('#dynamics-ranking .ranked-card');"
+        " return cards.length > 0 && Array.from(cards).every((c) => c.dataset.state === 'loaded'); })()")
+    wait_for("the ranked places' thumbnails", all_drawn)
+    devtools.evaluate("window.placedbProbe.stop()")
+    print("dynamics page: a first card after %.0f ms, the first with its data after %.0f ms, the "
+          "ranking after %.0f ms, %d GetPlace calls at most at once" % (
+              probe["firstCardMs"], probe["firstLoadedMs"], probe["rankedMs"],
+              probe["maxInFlight"]))
+    if probe["firstLoadedMs"] > 1000:
+        fail("the dynamics page showed its first card after %.0f ms (deadline 1 s)" %
+             probe["firstLoadedMs"])
+    if probe["firstCardMs"] > probe["rankedMs"]:
+        fail("the dynamics page stayed blank until its ranking was in")
+    if probe["maxInFlight"] < 2:
+        fail("the dynamics page fetched its places one at a time")
+
+    classes = devtools.evaluate(
+        "Array.from(document.querySelectorAll('#dynamics-classes tr.class-row'))"
+        ".map((r) => [r.cells[0].textContent, Number(r.cells[1].textContent)])")
+    if classes != [["person", len(stored)], ["car", len(with_car)]]:
+        fail("the dynamics page's classes are %s, not person in %d frames and car in %d" % (
+            classes, len(stored), len(with_car)))
+    cells = devtools.evaluate(
+        "Array.from(document.querySelectorAll('#dynamics-hours .hour-cell'))"
+        ".map((c, i) => [i, Number(c.dataset.observations || 0)]).filter((c) => c[1] > 0)")
+    shown_hours = sorted(i % 24 for i, _ in cells)
+    if shown_hours != hours or any(i // 24 != weekday for i, _ in cells) or \
+            sum(n for _, n in cells) != len(stored):
+        fail("the hours chart shows %s, the frames were taken at %s h UTC on weekday %d" % (
+            cells, hours, weekday))
+
+    def ranking():
+        return devtools.evaluate(
+            "Array.from(document.querySelectorAll('#dynamics-ranking .ranked-card')).map((c) =>"
+            " [Number(c.dataset.placeId), Number(c.dataset.score),"
+            "  c.querySelector('canvas').dataset.thumbnail])")
+    ranked = ranking()
+    title = devtools.evaluate("document.getElementById('dynamics-ranking-title').textContent")
+    if "person" not in title or sorted(p for p, _, _ in ranked) != sorted(stored) or \
+            any(score != 1 for _, score, _ in ranked):
+        fail("the default ranking (%r) is %s, not every place with person in all its frames" % (
+            title, ranked))
+    if any(thumbnail != "yes" for _, _, thumbnail in ranked):
+        fail("the map keeps thumbnails but ranked places show none: %s" % ranked)
+    devtools.screenshot(os.path.join(screenshots, "dynamics.png"))
+
+    # Car from the selector: the car places first (in all their frames), then the others at 0.
+    devtools.evaluate(
+        "(() => { const s = document.getElementById('dynamics-class');"
+        " s.value = Array.from(s.options).find((o) => o.textContent === 'car').value;"
+        " document.getElementById('dynamics-ranking').dataset.loaded = '';"
+        " s.dispatchEvent(new Event('change')); })()")
+    wait_for("the car ranking", lambda: devtools.evaluate(
+        "document.getElementById('dynamics-ranking').dataset.loaded === 'yes'"))
+    ranked = ranking()
+    top = ranked[:len(with_car)]
+    if sorted(p for p, _, _ in top) != sorted(with_car) or any(s != 1 for _, s, _ in top) or \
+            any(s != 0 for _, s, _ in ranked[len(with_car):]):
+        fail("ranking by car shows %s; the car places are %s" % (ranked, with_car))
+    if "#/dynamics/traffic/car" not in devtools.evaluate("location.hash"):
+        fail("the address does not name the chosen class: " + devtools.evaluate("location.hash"))
+    print("dynamics page: classes %s; by car: places %s first of %d" % (
+        classes, [p for p, _, _ in top], len(ranked)))
+
+    # A ranked place's link: the places page from that place, its card marked.
+    link = devtools.evaluate(
+        "document.querySelector('#dynamics-ranking .ranked-card a').getAttribute('href')")
+    devtools.show(link)
+    chosen = devtools.evaluate(
+        "(() => { const c = document.querySelector('#places .place-card.chosen');"
+        " return c ? Number(c.dataset.placeId) : null; })()")
+    if chosen != top[0][0]:
+        fail("the link %s of place %d shows place %s chosen" % (link, top[0][0], chosen))
 
 
 def console_api(url, method, request):
@@ -474,6 +660,11 @@ def main():
         devtools.errors.clear()
         print("query: a missing place ends with %r" % outcome["text"])
 
+        # Dynamics: a map of frames with person and car boxes.
+        placedb("maps", "create", "traffic", "--thumbnails", "--box-source", "agent")
+        check_dynamics_page(devtools, screenshots,
+                            *fill_dynamics_map(address, frames_dir, work))
+
         # Live: agents (when the server reports them) and the latest places, refreshed in place.
         devtools.show("#/live")
         latest = devtools.evaluate("document.querySelectorAll('#live-places .place-card').length")
@@ -492,7 +683,8 @@ def main():
             fail("the live page reloaded instead of refreshing")
         devtools.screenshot(os.path.join(screenshots, "live.png"))
         follow_live(devtools, url, placedb, frames_dir)
-        print("PASS: maps, places, query and live pages in chromium; screenshots in " + screenshots)
+        print("PASS: maps, places, query, dynamics and live pages in chromium; screenshots in " +
+              screenshots)
         return 0
     finally:
         for process in reversed(processes):

@@ -10,10 +10,12 @@
 #include <httplib.h>
 
 #include <atomic>
+#include <chrono>
 #include <fstream>
 #include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <set>
 #include <string>
 #include <thread>
 #include <utility>
@@ -424,6 +426,11 @@ TEST_F(ConsoleTest, TokensApplyAsOnGrpc) {
   EXPECT_EQ(denied.Json()["code"], "PERMISSION_DENIED");
   EXPECT_NE(denied.body.find("may not read map 'office'"), std::string::npos) << denied.body;
   EXPECT_EQ(Call("GetMap", get, as(reader_token)).status, 200);
+  // The dynamics page's call needs the same right.
+  const std::string dynamics = R"({"map": "office"})";
+  EXPECT_EQ(Call("GetDynamics", dynamics).status, 401);
+  EXPECT_EQ(Call("GetDynamics", dynamics, as(other_token)).status, 403);
+  EXPECT_EQ(Call("GetDynamics", dynamics, as(reader_token)).status, 200);
 
   // ListMaps shows a caller only its maps; GetServerInfo hides the server's files from non-admins.
   EXPECT_EQ(Call("ListMaps", "{}", as(reader_token)).Json()["maps"].size(), 1u);
@@ -432,6 +439,114 @@ TEST_F(ConsoleTest, TokensApplyAsOnGrpc) {
   EXPECT_EQ(info["vocabularies"][0]["path"], "");
   // The pages themselves are public (they hold no data); a host name is fine with tokens.
   EXPECT_EQ(Send("GET", "/", "", {{"Host", "console.example"}}).status, 200);
+}
+
+// The dynamics page's calls: GetDynamics over HTTP for a map of frames with person and car boxes
+// (the totals, the hours, a class's ranking, as gRPC answers them), /enum-numbers.json naming the
+// class ids, and a missing map refused with 404.
+TEST_F(ConsoleTest, DynamicsOfARealMapAsGrpcAnswers) {
+  ASSERT_NO_FATAL_FAILURE(StartServer(ConsoleConfig()));
+  CreateMap("street");
+  // Frames at three hours of a past day: a person on every frame, a car on every third.
+  const int64_t day_ns = 86'400'000'000'000;
+  const int64_t midnight_ns = (std::chrono::duration_cast<std::chrono::nanoseconds>(
+                                   std::chrono::system_clock::now().time_since_epoch())
+                                       .count() /
+                                   day_ns -
+                               2) *
+                              day_ns;
+  const uint32_t hours[] = {7, 12, 18};
+  std::vector<v1::Observation> frames;
+  for (int frame = 1; frame <= 9; ++frame) {
+    v1::Observation observation = RtabmapObservation(frame, "rover");
+    observation.set_timestamp_ns(midnight_ns + int64_t(hours[frame % 3]) * 3'600'000'000'000 +
+                                 frame * 1'000'000'000LL);
+    v1::Box* person = observation.add_boxes();
+    person->set_class_name("person");
+    person->set_confidence(0.9f);
+    person->mutable_rect()->set_width(float(20 * frame));
+    person->mutable_rect()->set_height(200);
+    if (frame % 3 == 0) {
+      v1::Box* car = observation.add_boxes();
+      car->set_class_name("car");
+      car->set_confidence(0.8f);
+      car->mutable_rect()->set_x(400);
+      car->mutable_rect()->set_y(300);
+      car->mutable_rect()->set_width(200);
+      car->mutable_rect()->set_height(150);
+    }
+    frames.push_back(std::move(observation));
+  }
+  const IngestOutcome ingest = IngestAll(stub_.get(), "street", frames);
+  ASSERT_TRUE(ingest.status.ok()) << ingest.status.error_message();
+  std::vector<uint32_t> car_places;
+  for (size_t i = 0; i < ingest.responses.size(); ++i) {
+    if (ingest.responses[i].stored() && frames[i].boxes_size() > 1) {
+      car_places.push_back(ingest.responses[i].place_id());
+    }
+  }
+  ASSERT_FALSE(car_places.empty());
+
+  // The totals and the hours, as the page asks for them first.
+  Reply totals = Call("GetDynamics", R"({"map": "street", "limit": 1})");
+  ASSERT_EQ(totals.status, 200) << totals.body;
+  const json map = totals.Json()["map"];
+  grpc::ClientContext context;
+  v1::GetDynamicsRequest request;
+  request.set_map("street");
+  request.set_limit(1);
+  v1::GetDynamicsResponse expected;
+  ASSERT_TRUE(stub_->GetDynamics(&context, request, &expected).ok());
+  EXPECT_EQ(map["observations"], std::to_string(expected.map().observations()));
+  EXPECT_GT(expected.map().observations(), 0u);
+  EXPECT_DOUBLE_EQ(map["mean_coverage"].get<double>(), expected.map().mean_coverage());
+  std::map<int, std::string> class_frames;
+  for (const json& c : map["classes"]) class_frames[c["class_id"].get<int>()] = c["frames"];
+  EXPECT_EQ(class_frames[0], std::to_string(expected.map().observations()));  // every place
+  EXPECT_EQ(class_frames[2], std::to_string(car_places.size()));
+  std::set<uint32_t> hours_seen;
+  for (const json& bin : map["hours"]) hours_seen.insert(bin["hour"].get<uint32_t>());
+  EXPECT_EQ(hours_seen, (std::set<uint32_t>{7, 12, 18}));
+
+  // The class ranking by name: the car places first, each in every one of its frames.
+  Reply ranking =
+      Call("GetDynamics",
+           R"({"map": "street", "measure": "DYNAMICS_MEASURE_CLASS_SHARE", "class_name": "car",)"
+           R"( "limit": 24, "include_statistics": true})");
+  ASSERT_EQ(ranking.status, 200) << ranking.body;
+  const json places = ranking.Json()["places"];
+  ASSERT_GT(places.size(), car_places.size());
+  std::set<uint32_t> top;
+  for (size_t i = 0; i < car_places.size(); ++i) {
+    top.insert(places[i]["place_id"].get<uint32_t>());
+    EXPECT_DOUBLE_EQ(places[i]["score"].get<double>(), 1.0) << places[i].dump();
+    EXPECT_TRUE(places[i]["statistics"].contains("classes")) << places[i].dump();
+  }
+  EXPECT_EQ(top, std::set<uint32_t>(car_places.begin(), car_places.end()));
+  EXPECT_DOUBLE_EQ(places[car_places.size()]["score"].get<double>(), 0.0);
+
+  // The names the page gives class ids: the proto's, by number.
+  Reply numbers = Send("GET", "/enum-numbers.json", "");
+  ASSERT_EQ(numbers.status, 200) << numbers.body;
+  EXPECT_EQ(numbers.content_type, "application/json");
+  const json coco = numbers.Json()["CocoClass"];
+  ASSERT_TRUE(coco.is_object()) << numbers.body;
+  EXPECT_EQ(coco.value("0", ""), "person");
+  EXPECT_EQ(coco.value("2", ""), "car");
+  EXPECT_EQ(coco.value("9", ""), wire::DynamicClassName(9));
+  EXPECT_EQ(numbers.Json()["BoxSource"].value("0", ""), "agent");
+
+  // A missing map, and a class that is none.
+  Reply missing = Call("GetDynamics", R"({"map": "nowhere"})");
+  EXPECT_EQ(missing.status, 404) << missing.body;
+  EXPECT_EQ(missing.Json()["code"], "NOT_FOUND");
+  EXPECT_NE(missing.Json().value("message", "").find("nowhere"), std::string::npos) << missing.body;
+  Reply unknown_class = Call(
+      "GetDynamics",
+      R"({"map": "street", "measure": "DYNAMICS_MEASURE_CLASS_SHARE", "class_name": "dragon"})");
+  EXPECT_EQ(unknown_class.status, 400) << unknown_class.body;
+  EXPECT_NE(unknown_class.Json().value("message", "").find("dragon"), std::string::npos)
+      << unknown_class.body;
 }
 
 // HTTP workers and gRPC handlers call the same service at once: every answer is the serial one.

@@ -1,4 +1,4 @@
-// The placedb console: four views over the server's JSON API (POST /api/v1/<Method>, protobuf
+// The placedb console: five views over the server's JSON API (POST /api/v1/<Method>, protobuf
 // JSON with the proto's field names; docs/console.md). No framework, no external requests.
 "use strict";
 
@@ -97,11 +97,19 @@ function time(ns) {
 // The proto's names of enum values ("agent" for BOX_SOURCE_UNSPECIFIED: its (name) option), as
 // the CLI prints them; the server serves them (/enum-names.json) and start() loads them once.
 let enumNames = {};
+// The same names by number (/enum-numbers.json), for the int32 fields the proto names by an enum
+// (COCO class ids).
+let enumNumbers = {};
 
 function enumName(value, type) {
   if (value === undefined || value === null) return "-";
   const name = (enumNames[type] || {})[value];
   return name === undefined ? String(value) : name;
+}
+
+function className(classId) {
+  const name = (enumNumbers.CocoClass || {})[String(classId)];
+  return name === undefined ? "class " + classId : name;
 }
 
 function loadImage(src) {
@@ -313,7 +321,8 @@ async function mapsView(view) {
   }
 }
 
-async function placesView(view, map) {
+// `startAt`: a place id to start at (a link from the dynamics page), highlighted; 0 = the newest.
+async function placesView(view, map, startAt = 0) {
   view.append(el("h2", {}, "Places of ", el("span", { id: "places-map" }, map)));
   const description = await api("GetMap", { name: map });
   const agents = (description.agents || []).map((a) => a.agent_id);
@@ -334,7 +343,7 @@ async function placesView(view, map) {
   async function page(reset) {
     cards.dataset.loaded = "";
     if (reset) {
-      before = 0;
+      before = startAt ? startAt + 1 : 0;
       cards.replaceChildren();
     }
     more.disabled = true;
@@ -358,6 +367,7 @@ async function placesView(view, map) {
     }
     // Every card at once from the listing, their frames drawn as their GetPlace calls answer.
     const added = places.map((place) => placeCard(map, place, thumbnails));
+    for (const card of added) card.classList.toggle("chosen", Number(card.dataset.placeId) === startAt);
     cards.append(...added);
     if (!cards.children.length) cards.append(el("p", { class: "muted" }, "No places match."));
     more.disabled = before === 0;
@@ -640,6 +650,277 @@ async function liveView(view) {
   refreshTimer = setTimeout(tick, 1000);
 }
 
+// ---- Dynamics -----------------------------------------------------------------------------------
+
+const WEEKDAYS = ["Mon", "Tue", "Wed", "Thu", "Fri", "Sat", "Sun"];
+const RANKED_PER_PAGE = 24;
+
+function percent(share) {
+  return (Number(share || 0) * 100).toFixed(1) + "%";
+}
+
+function plural(n, word) {
+  return Number(n) + " " + word + (Number(n) === 1 ? "" : "s");
+}
+
+// A card shown at once, saying it is loading; card.fill(...) puts its content in when its call
+// answers (data-state loading -> loaded), card.fail(error) says why it has none.
+function pendingCard(id, title) {
+  const body = el("div", { class: "muted" }, "loading…");
+  const card = el("div", { class: "card wide dynamics-card", id, dataset: { state: "loading" } },
+                  el("h3", {}, title), body);
+  card.fill = (...children) => {
+    body.className = "";
+    body.replaceChildren(...children.flat());
+    card.dataset.state = "loaded";
+  };
+  card.fail = (error) => {
+    body.className = "status";
+    body.textContent = (error.code ? error.code + ": " : "") + error.message;
+    card.dataset.state = "error";
+  };
+  return card;
+}
+
+// "person 3, car 1": each class with the frames it was seen in, most seen first.
+function classesText(statistics) {
+  const classes = [...((statistics || {}).classes || [])];
+  classes.sort((a, b) => Number(b.frames || 0) - Number(a.frames || 0));
+  return classes.map((c) => className(c.class_id) + " " + Number(c.frames || 0)).join(", ") || "none";
+}
+
+function totalsTable(statistics, invalid) {
+  const row = (label, value) => el("tr", {}, el("th", {}, label), el("td", { class: "num" }, value));
+  const s = statistics || {};
+  return el("table", { id: "dynamics-totals" },
+            row("frames (places' observations)", Number(s.observations || 0)),
+            row("mean coverage", percent(s.mean_coverage)),
+            row("max coverage", percent(s.max_coverage)),
+            row("newest frame", time(s.last_timestamp_ns) + " · " + percent(s.last_coverage)),
+            row("frames without a time", Number(s.untimed || 0)),
+            row("boxes of unknown classes", Number(s.unknown_class_boxes || 0)),
+            // Frames covered so much they kept too few features: they made no place.
+            row("invalid frames (no place)", Number((invalid || {}).observations || 0) + " · mean " +
+                percent((invalid || {}).mean_coverage)));
+}
+
+// Each class the map's frames showed: in how many frames (and their share), how many boxes. A
+// row's button ranks the places by that class.
+function classesTable(statistics, choose) {
+  const observations = Math.max(1, Number(statistics.observations || 0));
+  const classes = [...(statistics.classes || [])];
+  classes.sort((a, b) => Number(b.frames || 0) - Number(a.frames || 0));
+  if (!classes.length) return el("p", { class: "muted" }, "No dynamic objects in this map's frames.");
+  return el("table", { id: "dynamics-classes" },
+            el("tr", {}, ["class", "frames", "share of frames", "boxes", ""].map((h) => el("th", {}, h))),
+            classes.map((c) => {
+              const share = Number(c.frames || 0) / observations;
+              const bar = el("div", { class: "share" });
+              bar.style.width = (100 * share) + "%";
+              return el("tr", { class: "class-row", dataset: { classId: String(c.class_id) } },
+                        el("td", {}, className(c.class_id)),
+                        el("td", { class: "num" }, Number(c.frames || 0)),
+                        el("td", {}, el("div", { class: "share-bar", title: percent(share) }, bar),
+                           " ", percent(share)),
+                        el("td", { class: "num" }, Number(c.boxes || 0)),
+                        el("td", {}, el("button", { class: "plain", onclick: () => choose(c.class_id) },
+                                        "rank places")));
+            }));
+}
+
+// Coverage by hour of day (UTC): a weekday x hour grid, each bin coloured by its mean coverage
+// (darkest = the busiest bin), grey where no frame was taken; the frames per hour underneath.
+function hoursChart(statistics) {
+  const bins = (statistics.hours || []);
+  if (!bins.length) {
+    return el("p", { class: "muted" }, "No timed frames: the hours are unknown (frames without a " +
+              "timestamp, or replayed with the wall clock, land in one hour).");
+  }
+  const byKey = new Map(bins.map((b) => [Number(b.weekday || 0) * 24 + Number(b.hour || 0), b]));
+  const busiest = Math.max(...bins.map((b) => Number(b.mean_coverage || 0)), 1e-9);
+  const perHour = new Array(24).fill(0);
+  for (const b of bins) perHour[Number(b.hour || 0)] += Number(b.observations || 0);
+  const grid = el("div", { class: "hours", id: "dynamics-hours" });
+  grid.append(el("span", {}), ...Array.from({ length: 24 }, (_, h) => el("span", { class: "hour-label" }, h)));
+  for (let day = 0; day < 7; day++) {
+    grid.append(el("span", { class: "hour-label" }, WEEKDAYS[day]));
+    for (let hour = 0; hour < 24; hour++) {
+      const bin = byKey.get(day * 24 + hour);
+      const cell = el("span", { class: "hour-cell" });
+      if (bin) {
+        const level = Number(bin.mean_coverage || 0) / busiest;
+        // Light to the accent blue: the share of the busiest bin's coverage.
+        cell.style.background = "rgba(31, 111, 235, " + (0.12 + 0.88 * level).toFixed(3) + ")";
+        cell.title = WEEKDAYS[day] + " " + hour + " h: " + plural(bin.observations || 0, "frame") +
+            ", mean coverage " + percent(bin.mean_coverage);
+        cell.dataset.observations = String(Number(bin.observations || 0));
+      } else {
+        cell.title = WEEKDAYS[day] + " " + hour + " h: no frames";
+      }
+      grid.append(cell);
+    }
+  }
+  grid.append(el("span", { class: "hour-label" }, "frames"),
+              ...perHour.map((n) => el("span", { class: "hour-label" }, n || "")));
+  return el("div", {}, grid,
+            el("p", { class: "muted" }, "UTC; darkest = mean coverage " + percent(busiest) +
+               "; grey = no frames at that hour."));
+}
+
+// One ranked place: its rank, score and classes at once, its frame (when the map keeps
+// thumbnails) drawn when its GetPlace answers; it links to the place on the places page.
+function rankedCard(map, ranked, rank, measure, thumbnails) {
+  const id = ranked.place_id;
+  const support = plural(ranked.support || 0, "frame");
+  const scoreText = measure.label === null
+      ? "mean coverage " + percent(ranked.score) + " over " + support
+      : measure.label + " in " + percent(ranked.score) + " of " + support;
+  const canvas = placeholderCanvas(null, thumbnails ? "loading…" : "no thumbnail",
+                                   thumbnails ? "place " + id : "(this map keeps none: MapConfig.thumbnails)");
+  canvas.dataset.thumbnail = thumbnails ? "loading" : "no";
+  const frame = el("a", { href: "#/places/" + encodeURIComponent(map) + "/" + id }, canvas);
+  const meta = el("div", { class: "meta" });
+  const card = el("div", { class: "card ranked-card",
+                           dataset: { placeId: String(id), rank: String(rank), score: String(ranked.score || 0),
+                                      state: thumbnails ? "loading" : "loaded" } },
+                  el("div", {}, el("strong", {}, "#" + rank + " "),
+                     el("a", { href: "#/places/" + encodeURIComponent(map) + "/" + id }, "place " + id)),
+                  frame,
+                  el("div", { class: "meta" }, scoreText, el("br"),
+                     "classes: ", classesText(ranked.statistics)),
+                  meta);
+  const score = el("div", { class: "share-bar" }, el("div", { class: "share" }));
+  score.firstChild.style.width = Math.min(100, 100 * Number(ranked.score || 0)) + "%";
+  card.insertBefore(score, frame);
+  if (!thumbnails) return card;
+  placeCalls(() => api("GetPlace", { map, place_id: id, include_thumbnail: true, include_features: true }))
+      .then(async (place) => {
+        const drawn = await placeCanvas(map, place);
+        canvas.replaceWith(drawn);
+        const metadata = place.metadata || {};
+        meta.replaceChildren(metadata.agent_id || "-", " #", metadata.sequence || 0, " · ",
+                             time(metadata.timestamp_ns));
+      })
+      .catch((e) => {
+        canvas.replaceWith(placeholderCanvas(null, "cannot draw", e.message));
+      })
+      .finally(() => (card.dataset.state = "loaded"));
+  return card;
+}
+
+async function dynamicsView(view, map, label) {
+  view.append(el("h2", {}, "Dynamics of ", el("span", { id: "dynamics-map-name" }, map || "…")));
+  if (!map) {
+    // No map named: the first available one, its name in the address from here on.
+    const list = await api("ListMaps", {});
+    const first = (list.maps || []).find((m) => m.available);
+    if (!first) {
+      view.append(el("p", { class: "muted" }, "No maps yet (placedb maps create NAME)."));
+      return;
+    }
+    map = first.name;
+    history.replaceState(null, "", "#/dynamics/" + encodeURIComponent(map));
+    view.querySelector("#dynamics-map-name").textContent = map;
+  }
+  const maps = el("select", { id: "dynamics-map" }, el("option", { value: map }, map));
+  const classes = el("select", { id: "dynamics-class" },
+                     el("option", { value: "" }, "every class (mean coverage)"));
+  const summary = pendingCard("dynamics-summary", "Map totals");
+  const classCard = pendingCard("dynamics-class-card", "Classes");
+  const hourCard = pendingCard("dynamics-hour-card", "Coverage by hour of day");
+  const rankingTitle = el("h3", { id: "dynamics-ranking-title" }, "Places ranked");
+  const ranking = el("div", { class: "cards", id: "dynamics-ranking" });
+  const more = el("button", { class: "plain", id: "dynamics-next", disabled: "" }, "More");
+  view.append(el("div", { class: "bar" }, el("label", {}, "map", maps),
+                 el("label", {}, "rank places by", classes)),
+              el("div", { class: "cards" }, summary, classCard, hourCard),
+              rankingTitle, ranking, el("p", {}, more));
+
+  // Every call at once: the totals (the first cards), the map's settings (does it keep
+  // thumbnails?), the other maps for the selector.
+  const totals = api("GetDynamics", { map, limit: 1 });
+  const description = api("GetMap", { name: map });
+  api("ListMaps", {}).then((list) => {
+    for (const m of (list.maps || []).filter((m) => m.available && m.name !== map)) {
+      maps.append(el("option", { value: m.name }, m.name));
+    }
+  }, () => {});
+  maps.addEventListener("change", () => (location.hash = "#/dynamics/" + encodeURIComponent(maps.value)));
+
+  let measure = null;  // { label: the class's name (null = mean coverage), request }
+  let offset = 0;
+  let generation = 0;  // a newer ranking drops an older one's late answers
+  async function rank(reset) {
+    const mine = reset ? ++generation : generation;
+    if (reset) {
+      offset = 0;
+      ranking.replaceChildren(el("p", { class: "muted" }, "Ranking…"));
+      ranking.dataset.loaded = "";
+    }
+    more.disabled = true;
+    const [response, settings] = await Promise.all([
+      api("GetDynamics", Object.assign({ map, offset, limit: RANKED_PER_PAGE, include_statistics: true },
+                                       measure.request)),
+      description.catch(() => null),
+    ]);
+    if (mine !== generation) return;
+    if (reset) ranking.replaceChildren();
+    const thumbnails = Boolean(settings && settings.config && settings.config.thumbnails &&
+                               settings.config.thumbnails.enabled);
+    const places = response.places || [];
+    const cards = places.map((p, i) => rankedCard(map, p, offset + i + 1, measure, thumbnails));
+    ranking.append(...cards);
+    if (!ranking.children.length) ranking.append(el("p", { class: "muted" }, "No places ranked."));
+    rankingTitle.textContent = "Places ranked by " + (measure.label === null
+        ? "mean coverage" : "share of frames with " + measure.label) +
+        " (" + Number(response.ranked || 0) + " ranked" + (thumbnails ? "" : "; this map keeps no thumbnails") + ")";
+    offset = Number(response.next_offset || 0);
+    more.disabled = offset === 0;
+    ranking.dataset.loaded = "yes";  // for the browser test: the ranking is shown
+  }
+  // Ranks by a class id, a class name the map has not seen (the server checks it), or null:
+  // mean coverage.
+  function choose(classId, name = null) {
+    if (classId !== null) {
+      measure = { label: className(classId),
+                  request: { measure: "DYNAMICS_MEASURE_CLASS_SHARE", class_id: classId } };
+    } else if (name) {
+      measure = { label: name, request: { measure: "DYNAMICS_MEASURE_CLASS_SHARE", class_name: name } };
+    } else {
+      measure = { label: null, request: {} };
+    }
+    classes.value = classId === null ? "" : String(classId);
+    history.replaceState(null, "", "#/dynamics/" + encodeURIComponent(map) +
+                         (measure.label === null ? "" : "/" + encodeURIComponent(measure.label)));
+    return rank(true).catch((e) => {
+      showError(e);
+      ranking.replaceChildren(el("p", { class: "status" }, (e.code ? e.code + ": " : "") + e.message));
+      ranking.dataset.loaded = "error";
+    });
+  }
+  classes.addEventListener("change", () => choose(classes.value === "" ? null : Number(classes.value)));
+  more.addEventListener("click", () => rank(false).catch(showError));
+
+  let answer;
+  try {
+    answer = await totals;
+  } catch (e) {
+    for (const card of [summary, classCard, hourCard]) card.fail(e);
+    throw e;
+  }
+  const statistics = answer.map || {};
+  const seen = [...(statistics.classes || [])].sort((a, b) => Number(b.frames || 0) - Number(a.frames || 0));
+  for (const c of seen) classes.append(el("option", { value: String(c.class_id) }, className(c.class_id)));
+  summary.fill(totalsTable(statistics, answer.invalid));
+  classCard.fill(classesTable(statistics, (id) => choose(id)));
+  hourCard.fill(hoursChart(statistics));
+  // The class the address names, else the one seen in most frames, else mean coverage.
+  const named = label ? seen.find((c) => className(c.class_id) === label) : null;
+  if (named) await choose(named.class_id);
+  else if (label) await choose(null, label);
+  else await choose(seen.length ? seen[0].class_id : null);
+}
+
 // ---- Routing ------------------------------------------------------------------------------------
 
 async function route() {
@@ -656,7 +937,11 @@ async function route() {
   }
   try {
     if (hash.startsWith("#/places/")) {
-      await placesView(view, decodeURIComponent(hash.slice("#/places/".length)));
+      const [map, from] = hash.slice("#/places/".length).split("/");
+      await placesView(view, decodeURIComponent(map), Number(from) || 0);
+    } else if (hash.startsWith("#/dynamics")) {
+      const [map, label] = hash.slice("#/dynamics/".length).split("/");
+      await dynamicsView(view, decodeURIComponent(map || ""), decodeURIComponent(label || ""));
     } else if (hash.startsWith("#/query")) {
       await queryView(view);
     } else if (hash.startsWith("#/live")) {
@@ -681,12 +966,10 @@ async function start() {
   api("GetServerInfo", {}).then(
       (info) => (document.getElementById("server-version").textContent = "server " + info.version),
       () => {});
-  try {
-    const names = await fetch("/enum-names.json");
-    if (names.ok) enumNames = await names.json();
-  } catch (e) {
-    // Unnamed values show as the API prints them; the views still work.
-  }
+  // Both at once; unnamed values show as the API prints them and the views still work.
+  const table = (path) => fetch(path).then((r) => (r.ok ? r.json() : {})).catch(() => ({}));
+  [enumNames, enumNumbers] = await Promise.all([table("/enum-names.json"),
+                                                table("/enum-numbers.json")]);
   window.addEventListener("hashchange", route);
   route();
 }
