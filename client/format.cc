@@ -176,7 +176,8 @@ std::string FormatLoopClosure(const v1::LoopClosure& loop) {
            FormatDouble(loop.loop_posterior(), 3) +
            (loop.loop_inliers() > 0 ? ", " + std::to_string(loop.loop_inliers()) + " inliers"
                                     : std::string()) +
-           ")" + replayed;
+           ")" + (loop.has_loop_pose() ? ", pose " + FormatRelativePose(loop.loop_pose()) : "") +
+           replayed;
   }
   if (loop.loop_rejected()) {
     return "loop to place " + std::to_string(loop.rejected_place_id()) + " failed verification (" +

@@ -144,6 +144,9 @@ void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out)
   out->set_loop_inliers(outcome.loop_inliers);
   out->set_loop_rejected(outcome.loop_rejected);
   out->set_rejected_place_id(outcome.rejected_loop);
+  if (outcome.loop && outcome.loop_pose)
+    RelativePoseToProto(*outcome.loop_pose, out->mutable_loop_pose());
+  if (outcome.loop) out->set_loop_pose_unavailable(outcome.loop_pose_unavailable);
 }
 
 }  // namespace placedb::wire

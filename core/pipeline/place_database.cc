@@ -93,6 +93,11 @@ Result<VerificationResult> VerifyWithObjects(
   return verified;
 }
 
+// What PnP's residuals are weighed by: ORB's pyramid factor; SIFT's octaves double the scale.
+double OctaveScaleFactor(const DatabaseConfig& config) {
+  return config.feature_type == FeatureType::kOrb ? double(config.orb.scale_factor) : 2.0;
+}
+
 // The relative pose of a verified match from verification's inlier pairs (issue 32), or why there
 // is none in `pose_unavailable`. Returns the solver's time in ms (0 when it did not run).
 double AttachRelativePose(const ProcessedFrame& frame, const PlacePayload& place,
@@ -596,9 +601,13 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
     const PlaceId target = stream->ltm->Bound(*update->loop);
     bool keep = target != 0;  // else a place whose store had failed: nothing to return to
     if (keep && config_.verify_loops) {
-      auto verified = VerifyLoop(frame, target, source);
+      Match posed;
+      posed.place = target;
+      auto verified = VerifyLoop(frame, target, source, &posed);
       outcome.loop_inliers = verified.ok() ? *verified : 0;
       keep = verified.ok() && *verified >= config_.verification.min_inliers;
+      outcome.loop_pose = std::move(posed.relative_pose);
+      outcome.loop_pose_unavailable = std::move(posed.pose_unavailable);
     }
     if (keep) {
       outcome.loop = target;
@@ -623,16 +632,20 @@ Result<LoopClosureOutcome> PlaceDatabase::CloseLoop(const ProcessedFrame& frame,
 }
 
 Result<int> PlaceDatabase::VerifyLoop(const ProcessedFrame& frame, PlaceId place,
-                                      PlaceSource* source) const {
+                                      PlaceSource* source, Match* pose) const {
   auto payload = source ? source->GetPayload(place) : payloads_->Get(place);
   if (!payload.ok()) return payload.status();
   VerificationConfig verification = config_.verification;
   if (verification.mode == VerificationMode::kDisabled) {
     verification.mode = VerificationMode::kExhaustive;
   }
+  const bool want_pose = frame.geometry.camera.has_value();
   auto verified = VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                                 (*payload)->direct, verification);
+                                 (*payload)->direct, verification, want_pose);
   if (!verified.ok()) return verified.status();
+  if (verified->inliers >= verification.min_inliers) {
+    AttachRelativePose(frame, **payload, verified->inlier_pairs, OctaveScaleFactor(config_), pose);
+  }
   return verified->inliers;
 }
 
@@ -959,9 +972,7 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
                                       : candidates.size());
   const bool want_poses = options.relative_poses && frame.geometry.camera.has_value();
   const bool collect_inliers = options.include_correspondences || want_poses;
-  // ORB's pyramid factor weighs PnP's residuals; SIFT's octaves double the scale.
-  const double octave_scale_factor =
-      config_.feature_type == FeatureType::kOrb ? double(config_.orb.scale_factor) : 2.0;
+  const double octave_scale_factor = OctaveScaleFactor(config_);
   double pose_ms = 0;
   for (size_t i = 0; i < candidates.size(); ++i) {
     const auto& [scored, record] = candidates[i];

@@ -369,6 +369,10 @@ struct LoopClosureOutcome {
   int loop_inliers = 0;
   bool loop_rejected = false;
   PlaceId rejected_loop = 0;
+  // With verify_loops, an accepted loop's relative pose T_loop_frame (as Match::relative_pose:
+  // cameras on both sides), else why there is none.
+  std::optional<RelativePose> loop_pose;
+  std::string loop_pose_unavailable;
   PlaceId best = 0;  // best hypothesis, accepted or not (0: none, or unbound)
   double best_posterior = 0;
   size_t candidates = 0;   // places in the agent's working memory that were searched
@@ -536,8 +540,10 @@ class PlaceDatabase {
   // Validity, then the BoW vector and direct index of the SC features.
   Status Finish(ProcessedFrame* frame, Stopwatch* stage) const;
   // Geometric verification of a loop: the frame against the stored place; the inlier count.
-  // `source`: read the place from it (else the payload store).
-  Result<int> VerifyLoop(const ProcessedFrame& frame, PlaceId place, PlaceSource* source) const;
+  // `source`: read the place from it (else the payload store). A verified loop's relative pose
+  // (or why there is none) goes to `pose`'s relative_pose / pose_unavailable.
+  Result<int> VerifyLoop(const ProcessedFrame& frame, PlaceId place, PlaceSource* source,
+                         Match* pose) const;
   // Replays the agent's stored places (this database's, or `source`'s), oldest first, into a new
   // detector and binds them.
   Result<size_t> ReplayAgentPlaces(const std::string& agent_id, LoopClosureDetector* detector,

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <string>
 #include <vector>
 
@@ -152,6 +153,51 @@ TEST_F(PosesTest, AStreamCameraIsKeptWithEveryPlaceAndQueriesGetPoses) {
   for (int i = 0; i < again.matches_size(); ++i) {
     EXPECT_TRUE(again.matches(i).has_relative_pose()) << again.matches(i).pose_unavailable();
   }
+}
+
+// Loop closure on the RTAB-Map loop with a stream camera (no depth: its intrinsics are not
+// published, so a plausible pinhole camera stands in): every accepted loop carries its relative
+// pose (the essential matrix's rotation and direction), or says why it has none.
+TEST_F(PosesTest, AcceptedLoopsCarryTheirPose) {
+  StartServer(Config());
+  CreateMap("loop");
+  std::vector<v1::Observation> observations;
+  for (int frame = 1; frame <= 84; ++frame) observations.push_back(RtabmapObservation(frame, "a"));
+  v1::IngestHeader header;
+  header.set_map("loop");
+  header.set_loop_closure(true);
+  header.mutable_camera()->set_fx(500);
+  header.mutable_camera()->set_fy(500);
+  header.mutable_camera()->set_cx(320);
+  header.mutable_camera()->set_cy(240);
+  const IngestOutcome outcome = IngestWithHeader(stub_.get(), header, observations);
+  ASSERT_TRUE(outcome.status.ok()) << outcome.status.error_message();
+  int loops = 0, posed = 0;
+  for (const v1::IngestResponse& response : outcome.responses) {
+    ASSERT_FALSE(response.has_error()) << response.error().message();
+    const v1::LoopClosure& loop = response.loop_closure();
+    if (!loop.loop_found()) {
+      EXPECT_FALSE(loop.has_loop_pose());
+      continue;
+    }
+    ++loops;
+    SCOPED_TRACE("frame " + std::to_string(response.sequence()) + " -> place " +
+                 std::to_string(loop.loop_place_id()));
+    if (!loop.has_loop_pose()) {
+      EXPECT_FALSE(loop.loop_pose_unavailable().empty());
+      continue;
+    }
+    ++posed;
+    EXPECT_TRUE(loop.loop_pose_unavailable().empty());
+    EXPECT_EQ(loop.loop_pose().transform_size(), 16);
+    EXPECT_EQ(loop.loop_pose().information_size(), 36);
+    EXPECT_FALSE(loop.loop_pose().metric());  // no depth: rotation and direction
+    EXPECT_EQ(loop.loop_pose().solver(), "essential");
+    EXPECT_GE(loop.loop_pose().inliers(), 12);
+  }
+  EXPECT_GT(loops, 0);
+  EXPECT_GT(posed, 0);
+  std::printf("loop closure: %d accepted loops, %d with a pose\n", loops, posed);
 }
 
 TEST_F(PosesTest, ABadCameraIsInvalidArgumentNamingTheFieldAndNothingIsStored) {

@@ -180,10 +180,19 @@ class LoopClosure:
     #: A loop the filter accepted failed verification (``rejected_place_id`` names the place).
     loop_rejected: bool
     rejected_place_id: int
+    #: With the map's loop-closure verification and cameras on both sides: the accepted loop's
+    #: :class:`RelativePose` (this frame to ``loop_place_id``), else None and
+    #: ``loop_pose_unavailable`` says why.
+    loop_pose: Optional["RelativePose"] = None
+    loop_pose_unavailable: str = ""
 
     @staticmethod
     def from_proto(message: pb.LoopClosure) -> "LoopClosure":
-        return LoopClosure(**_fields(message))
+        values = _fields(message)
+        values["loop_pose"] = (
+            RelativePose.from_proto(message.loop_pose) if message.HasField("loop_pose") else None
+        )
+        return LoopClosure(**values)
 
 
 @dataclass(frozen=True)
