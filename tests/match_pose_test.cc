@@ -15,6 +15,7 @@
 #include "core/pipeline/place_database.h"
 #include "core/pose/relative_pose.h"
 #include "core/storage/codec.h"
+#include "tests/slambook_truth.h"
 #include "tests/test_support.h"
 #include "tools/rgbd_data.h"
 
@@ -26,20 +27,8 @@ namespace {
     if (!rgbd::HaveSharedData()) FAIL() << "missing " << rgbd::SharedDir() << "/data"; \
   } while (false)
 
-Camera SlambookCamera() {
-  const CameraIntrinsics k = rgbd::SlambookIntrinsics();
-  return PinholeCamera(640, 480, k.fx, k.fy, k.cx, k.cy);
-}
-
-std::vector<Transform> SlambookPoses() {
-  std::ifstream in(rgbd::SharedDir() + "/data/slambook2-rgbd/pose.txt");
-  std::vector<Transform> poses;
-  double x, y, z, qx, qy, qz, qw;
-  while (in >> x >> y >> z >> qx >> qy >> qz >> qw) {
-    poses.push_back(TransformFromTranslationQuaternion({x, y, z}, {qx, qy, qz, qw}));
-  }
-  return poses;
-}
+using testing::SlambookCamera;
+using testing::SlambookPoses;
 
 // 2000 ORB features, as relative_pose_test: at 1000 slambook2's wide pairs keep too few inliers
 // for a pose. Exhaustive verification; frames carry no dynamic objects.

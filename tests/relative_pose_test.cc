@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "core/filter/depth_filter.h"
+#include "tests/slambook_truth.h"
 #include "tests/test_support.h"
 #include "tools/rgbd_data.h"
 
@@ -44,22 +45,8 @@ namespace {
 constexpr int kSlambookFeatures = 2000;
 constexpr double kTranslationBoundM = 0.12;
 
-// The slambook2 RGB-D camera (tools/rgbd_data.h), 640x480, no distortion.
-Camera SlambookCamera() {
-  const CameraIntrinsics k = rgbd::SlambookIntrinsics();
-  return PinholeCamera(640, 480, k.fx, k.fy, k.cx, k.cy);
-}
-
-// pose.txt: one camera-to-world pose per frame, "x y z qx qy qz qw".
-std::vector<Transform> SlambookPoses() {
-  std::ifstream in(rgbd::SharedDir() + "/data/slambook2-rgbd/pose.txt");
-  std::vector<Transform> poses;
-  double x, y, z, qx, qy, qz, qw;
-  while (in >> x >> y >> z >> qx >> qy >> qz >> qw) {
-    poses.push_back(TransformFromTranslationQuaternion({x, y, z}, {qx, qy, qz, qw}));
-  }
-  return poses;
-}
+using testing::SlambookCamera;
+using testing::SlambookPoses;
 
 // Brute-force Hamming matching with Lowe's ratio test: query -> place.
 std::vector<KeypointMatch> MatchOrb(const FeatureSet& query, const FeatureSet& place,

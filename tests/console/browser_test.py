@@ -124,18 +124,22 @@ class DevTools:
 
 # Watches the places page from the moment it is installed: when the first cards appear (how
 # many, how many drawn), when every card is drawn, and how many GetPlace calls run at once.
-PLACES_PROBE = """(() => {
-  const probe = { firstCards: null, firstMs: null, drawnAtFirst: null, allDrawnMs: null,
-                  maxInFlight: 0, inFlight: 0 };
-  const start = performance.now();
-  const fetch = window.fetch;
+# Counts the page's GetPlace fetches in flight (probe.inFlight, probe.maxInFlight): the probes
+# below check that cards are fetched in parallel.
+COUNT_GETPLACE_FETCHES = """  const fetch = window.fetch;
   window.fetch = (url, options) => {
     if (!String(url).endsWith('/GetPlace')) return fetch(url, options);
     probe.inFlight++;
     probe.maxInFlight = Math.max(probe.maxInFlight, probe.inFlight);
     return fetch(url, options).finally(() => probe.inFlight--);
   };
-  const observer = new MutationObserver(() => {
+"""
+
+PLACES_PROBE = """(() => {
+  const probe = { firstCards: null, firstMs: null, drawnAtFirst: null, allDrawnMs: null,
+                  maxInFlight: 0, inFlight: 0 };
+  const start = performance.now();
+""" + COUNT_GETPLACE_FETCHES + """  const observer = new MutationObserver(() => {
     const cards = document.querySelectorAll('#places .place-card');
     const drawn = document.querySelectorAll(
         '#places .place-card canvas[data-thumbnail="yes"], #places .place-card canvas[data-thumbnail="no"]');
@@ -313,14 +317,7 @@ DYNAMICS_PROBE = """(() => {
   const probe = { firstCardMs: null, firstLoadedMs: null, rankedMs: null, maxInFlight: 0,
                   inFlight: 0 };
   const start = performance.now();
-  const fetch = window.fetch;
-  window.fetch = (url, options) => {
-    if (!String(url).endsWith('/GetPlace')) return fetch(url, options);
-    probe.inFlight++;
-    probe.maxInFlight = Math.max(probe.maxInFlight, probe.inFlight);
-    return fetch(url, options).finally(() => probe.inFlight--);
-  };
-  const observer = new MutationObserver(() => {
+""" + COUNT_GETPLACE_FETCHES + """  const observer = new MutationObserver(() => {
     const now = performance.now() - start;
     if (probe.firstCardMs === null && document.querySelector('#view .dynamics-card')) {
       probe.firstCardMs = now;
