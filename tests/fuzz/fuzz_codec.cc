@@ -49,43 +49,49 @@ void FuzzBow(std::string_view bytes) {
 void FuzzFeatures(std::string_view bytes) {
   FeatureSet features;
   DirectIndex direct;
-  if (!DecodeFeatures(bytes, &features, &direct).ok()) return;
-  const std::string encoded = EncodeFeatures(features, direct);
+  FrameGeometry geometry;  // a version-2 value's camera and depths (issue 32)
+  if (!DecodeFeatures(bytes, &features, &direct, &geometry).ok()) return;
+  const std::string encoded = EncodeFeatures(features, direct, geometry);
   FeatureSet features2;
   DirectIndex direct2;
-  if (Status s = DecodeFeatures(encoded, &features2, &direct2); !s.ok()) {
+  FrameGeometry geometry2;
+  if (Status s = DecodeFeatures(encoded, &features2, &direct2, &geometry2); !s.ok()) {
     Fail("FeatureSet: its own encoding does not decode", s);
   }
-  PLACEDB_FUZZ_CHECK(EncodeFeatures(features2, direct2) == encoded,
+  PLACEDB_FUZZ_CHECK(EncodeFeatures(features2, direct2, geometry2) == encoded,
                      "FeatureSet: re-encoding changed the bytes");
 }
 
 void FuzzFloatFeatures(std::string_view bytes) {
   FloatFeatureSet features;
   DirectIndex direct;
-  if (!DecodeFloatFeatures(bytes, &features, &direct).ok()) return;
-  const std::string encoded = EncodeFloatFeatures(features, direct);
+  FrameGeometry geometry;
+  if (!DecodeFloatFeatures(bytes, &features, &direct, &geometry).ok()) return;
+  const std::string encoded = EncodeFloatFeatures(features, direct, geometry);
   FloatFeatureSet features2;
   DirectIndex direct2;
-  if (Status s = DecodeFloatFeatures(encoded, &features2, &direct2); !s.ok()) {
+  FrameGeometry geometry2;
+  if (Status s = DecodeFloatFeatures(encoded, &features2, &direct2, &geometry2); !s.ok()) {
     Fail("FloatFeatureSet: its own encoding does not decode", s);
   }
-  PLACEDB_FUZZ_CHECK(EncodeFloatFeatures(features2, direct2) == encoded,
+  PLACEDB_FUZZ_CHECK(EncodeFloatFeatures(features2, direct2, geometry2) == encoded,
                      "FloatFeatureSet: re-encoding changed the bytes");
 }
 
 void FuzzLocalFeatures(std::string_view bytes, FeatureType type) {
   LocalFeatures features;
   DirectIndex direct;
-  if (!DecodeLocalFeatures(bytes, type, &features, &direct).ok()) return;
+  FrameGeometry geometry;
+  if (!DecodeLocalFeatures(bytes, type, &features, &direct, &geometry).ok()) return;
   PLACEDB_FUZZ_CHECK(features.type() == type, "LocalFeatures: decoded the other family");
-  const std::string encoded = EncodeLocalFeatures(features, direct);
+  const std::string encoded = EncodeLocalFeatures(features, direct, geometry);
   LocalFeatures features2;
   DirectIndex direct2;
-  if (Status s = DecodeLocalFeatures(encoded, type, &features2, &direct2); !s.ok()) {
+  FrameGeometry geometry2;
+  if (Status s = DecodeLocalFeatures(encoded, type, &features2, &direct2, &geometry2); !s.ok()) {
     Fail("LocalFeatures: its own encoding does not decode", s);
   }
-  PLACEDB_FUZZ_CHECK(EncodeLocalFeatures(features2, direct2) == encoded,
+  PLACEDB_FUZZ_CHECK(EncodeLocalFeatures(features2, direct2, geometry2) == encoded,
                      "LocalFeatures: re-encoding changed the bytes");
 }
 

@@ -219,6 +219,15 @@ void CodecSeeds(const RealData& data, const Vocabulary& vocabulary,
   Seed(t, "bow", 2, EncodeBow(bow));
   Seed(t, "features", 3, EncodeFeatures(orb, direct));
   Seed(t, "local-features-orb", 5, EncodeLocalFeatures(orb, direct));
+  // Version 2: a place stored with its camera and keypoint depths (issue 32).
+  FrameGeometry geometry;
+  geometry.camera = PinholeCamera(orb.image_width, orb.image_height, 500, 500,
+                                  orb.image_width / 2.0, orb.image_height / 2.0);
+  geometry.camera->distortion_model = "plumb_bob";
+  geometry.camera->distortion = {0.1, -0.05, 0.001, 0.002, 0.0};
+  for (size_t i = 0; i < orb.size(); ++i) geometry.depth_m.push_back(i % 3 == 0 ? 0.0f : 1.5f + i);
+  Seed(t, "features-geometry", 3, EncodeFeatures(orb, direct, geometry));
+  Seed(t, "local-features-orb-geometry", 5, EncodeLocalFeatures(orb, direct, geometry));
 
   FloatFeatureSet sift = Sift(data.frames[1], 4);
   BowVector float_bow;
