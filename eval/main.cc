@@ -268,6 +268,7 @@ struct RunFlags {
   std::string boxes = "oracle", masks = "none", filter = "keypoint_in_box", server, title;
   std::string model = DefaultModel(), detector_config, detector_backend = "yolox_onnx";
   std::string preprocessing = "letterbox", detections_cache, cache_dir;
+  std::vector<std::string> class_confidence;  // NAME=SCORE
   bool combine_boxes_and_masks = false;
   std::string refinement = "shape", short_term = "on", static_budget = "on";
   double short_term_horizon_s = 60;
@@ -313,6 +314,18 @@ void RegisterRunFilterFlags(CLI::App* run, RunFlags* f) {
       ->capture_default_str();
   run->add_flag("--combine-boxes-and-masks", f->combine_boxes_and_masks,
                 "with --masks oracle and an explicit --boxes: filter with both (merged)");
+  run->add_option("--class-confidence", f->class_confidence,
+                  "detector boxes: a class's own threshold, NAME=SCORE[,...] (e.g. bus=0.5)")
+      ->delimiter(',');
+  run->add_option("--min-box-area", options.detector.min_box_area,
+                  "detector boxes below this share of the frame are dropped (0 = off)")
+      ->capture_default_str();
+  run->add_option("--large-box-area", options.detector.large_box_area,
+                  "detector boxes above this share of the frame need --large-box-confidence")
+      ->capture_default_str();
+  run->add_option("--large-box-confidence", options.detector.large_box_confidence,
+                  "the score a box above --large-box-area needs (0 = off)")
+      ->capture_default_str();
   run->add_option("--detections-cache", f->detections_cache,
                   "detections JSON reused across runs (default: in --cache-dir)");
   run->add_option("--cache-dir", f->cache_dir,
@@ -444,6 +457,22 @@ Status ResolveDetector(RunFlags& f) {
   options.detector.config_path = f.detector_config;
   options.detector.preprocessing = *pre;
   options.detector.opencv_threads = 0;  // set by Run for the whole process
+  for (const std::string& entry : f.class_confidence) {
+    const auto eq = entry.find('=');
+    float score = 0;
+    try {
+      size_t used = 0;
+      score = eq == std::string::npos ? 0 : std::stof(entry.substr(eq + 1), &used);
+      if (eq != std::string::npos && eq + 1 + used != entry.size()) score = -1;
+    } catch (const std::exception&) {
+      score = -1;
+    }
+    if (eq == std::string::npos || eq == 0 || score < 0) {
+      return Status::InvalidArgument("--class-confidence: '" + entry + "' is not NAME=SCORE");
+    }
+    options.detector.class_confidence[entry.substr(0, eq)] = score;
+  }
+  PLACEDB_RETURN_IF_ERROR(ValidateDetectorConfig(options.detector).WithContext("detector"));
   if (f.detections_cache.empty()) {
     // Entries are keyed by image content, so one cache directory can serve every dataset.
     const std::string name =

@@ -151,6 +151,16 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
   DetectorConfig config = options.detector;
   config.confidence_threshold =
       *std::min_element(options.confidences.begin(), options.confidences.end());
+  // The cache holds the boxes before the box rules (one cache serves every rule); the rules are
+  // applied below, with the runs' lowest threshold for the classes without their own.
+  DetectorConfig rules = config;
+  for (const auto& [name, value] : config.class_confidence) {
+    config.confidence_threshold = std::min(config.confidence_threshold, value);
+  }
+  config.class_confidence.clear();
+  config.min_box_area = 0;
+  config.large_box_confidence = 0;
+  const bool area_rules = rules.min_box_area > 0 || rules.large_box_confidence > 0;
   if (config.max_concurrent_calls == 0) config.max_concurrent_calls = std::max(1, options.threads);
   std::map<std::string, Detection> cache;
   if (!options.detections_cache.empty()) {
@@ -231,7 +241,14 @@ Status Detect(const Dataset& dataset, const RunOptions& options, EvalInputs* inp
     DynamicObjects& out = i < dataset.database.size()
                               ? inputs->database_dynamic[i]
                               : inputs->query_dynamic[i - dataset.database.size()];
-    out.boxes = detection.boxes;
+    cv::Size size;
+    if (area_rules) {
+      const std::string path = dataset.Resolve(entries[i]->image);
+      const cv::Mat image = cv::imread(path, cv::IMREAD_UNCHANGED);
+      if (image.empty()) return Status::IoError("cannot read " + path);
+      size = image.size();
+    }
+    out.boxes = ApplyBoxRules(detection.boxes, rules, size);
   }
   inputs->detect_mean_ms = entries.empty() ? 0 : total_ms / double(entries.size());
   return Status::Ok();
@@ -553,7 +570,25 @@ std::string DynamicSourceName(const RunOptions& options) {
       break;
     case BoxInput::kDetector:
       boxes = "detector boxes (" + fs::path(options.detector.model_path).filename().string() +
-              ", " + PreprocessingName(options.detector.preprocessing) + ")";
+              ", " + PreprocessingName(options.detector.preprocessing);
+      // The box rules, when any applies (core/detect/detector.h, ApplyBoxRules).
+      for (const auto& [name, value] : options.detector.class_confidence) {
+        char rule[64];
+        std::snprintf(rule, sizeof(rule), ", %s >= %g", name.c_str(), value);
+        boxes += rule;
+      }
+      if (options.detector.min_box_area > 0) {
+        char rule[64];
+        std::snprintf(rule, sizeof(rule), ", area >= %g", options.detector.min_box_area);
+        boxes += rule;
+      }
+      if (options.detector.large_box_confidence > 0 && options.detector.large_box_area < 1) {
+        char rule[96];
+        std::snprintf(rule, sizeof(rule), ", area > %g needs %g", options.detector.large_box_area,
+                      options.detector.large_box_confidence);
+        boxes += rule;
+      }
+      boxes += ")";
       break;
   }
   std::string source = boxes;

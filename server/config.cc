@@ -332,6 +332,17 @@ Status ValidateServerConfig(const ServerConfig& c) {
     if (!(d.merge_iou > 0 && d.merge_iou <= 1))
       return Bad("detector.merge_iou", "must be in (0, 1]");
     if (d.max_concurrent_calls < 0) return Bad("detector.max_concurrent_calls", "must be >= 0");
+    for (const auto& [name, value] : d.class_confidence) {
+      if (!(value > 0 && value <= 1))
+        return Bad("detector.class_confidence." + name, "must be in (0, 1]");
+    }
+    const std::pair<const char*, float> shares[] = {
+        {"detector.min_box_area", d.min_box_area},
+        {"detector.large_box_area", d.large_box_area},
+        {"detector.large_box_confidence", d.large_box_confidence}};
+    for (const auto& [key, value] : shares) {
+      if (!(value >= 0 && value <= 1)) return Bad(key, "must be in [0, 1]");
+    }
   }
   return Status::Ok();
 }
@@ -526,7 +537,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
         r.Check(d, "detector",
                 {"backend", "model", "config", "input_size", "preprocessing", "confidence",
                  "nms_iou", "classes", "max_concurrent_calls", "merge_iou", "required",
-                 "rectangular_letterbox", "rewrite_graph"}));
+                 "rectangular_letterbox", "rewrite_graph", "class_confidence", "min_box_area",
+                 "large_box_area", "large_box_confidence"}));
     DetectorSettings& x = c->detector;
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "backend", &x.backend));
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "model", &x.model));
@@ -542,6 +554,10 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(
         r.Read(d, "detector", "rectangular_letterbox", &x.rectangular_letterbox));
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "rewrite_graph", &x.rewrite_graph));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "class_confidence", &x.class_confidence));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "min_box_area", &x.min_box_area));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "large_box_area", &x.large_box_area));
+    PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "large_box_confidence", &x.large_box_confidence));
   }
   if (const YAML::Node k = root["cluster"]; k) {
     PLACEDB_RETURN_IF_ERROR(
@@ -868,6 +884,10 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "required" << YAML::Value << d.required;
   e << YAML::Key << "rectangular_letterbox" << YAML::Value << d.rectangular_letterbox;
   e << YAML::Key << "rewrite_graph" << YAML::Value << d.rewrite_graph;
+  e << YAML::Key << "class_confidence" << YAML::Value << YAML::Flow << d.class_confidence;
+  e << YAML::Key << "min_box_area" << YAML::Value << d.min_box_area;
+  e << YAML::Key << "large_box_area" << YAML::Value << d.large_box_area;
+  e << YAML::Key << "large_box_confidence" << YAML::Value << d.large_box_confidence;
   e << YAML::EndMap;
   e << YAML::Key << "log_level" << YAML::Value << c.log_level;
   const ClusterSettings& k = c.cluster;

@@ -65,6 +65,14 @@ struct DetectorSettings {
   bool rectangular_letterbox = true;  // YOLOX letterbox: input of the frame's aspect (detector.h)
   bool rewrite_graph = true;          // YOLOX: graph rewritten for OpenCV (detector.h)
   float confidence = 0.2f;
+  // Box rules (core/detect/detector.h, ApplyBoxRules): a class's own score threshold (COCO name
+  // -> (0, 1]), and plausibility as shares of the frame: boxes below min_box_area are dropped,
+  // boxes above large_box_area need large_box_confidence (on by default: a low score on a third
+  // of the frame is a false positive; docs/detector.md, "Box plausibility").
+  std::map<std::string, float> class_confidence;
+  float min_box_area = 0.0f;
+  float large_box_area = 0.3f;
+  float large_box_confidence = 0.5f;
   float nms_iou = 0.45f;
   std::vector<std::string> classes;  // COCO names reported; empty = the paper's six
   int max_concurrent_calls = 0;      // 0 = worker threads

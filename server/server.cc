@@ -130,6 +130,10 @@ Result<std::shared_ptr<const Detector>> CreateConfiguredDetector(const ServerCon
   d.rewrite_graph = s.rewrite_graph;
   d.confidence_threshold = s.confidence;
   d.nms_iou_threshold = s.nms_iou;
+  d.class_confidence = s.class_confidence;
+  d.min_box_area = s.min_box_area;
+  d.large_box_area = s.large_box_area;
+  d.large_box_confidence = s.large_box_confidence;
   if (!s.classes.empty()) d.dynamic_classes = s.classes;
   d.opencv_threads = 0;  // the server sets OpenCV's threads itself (opencv_threads)
   d.max_concurrent_calls =

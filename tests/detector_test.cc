@@ -278,6 +278,90 @@ TEST(DetectorConfigErrors, InvalidValuesNameTheField) {
   expect_invalid(config, "model_path");
 }
 
+// ---- Box rules (ApplyBoxRules): per-class thresholds and box plausibility ----------------------
+
+TEST(DetectorBoxRules, PerClassThresholdsAndPlausibilityKeepTheOrder) {
+  DetectorConfig config = YoloxNanoConfig("/nonexistent");
+  config.class_confidence = {{"bus", 0.5f}};
+  config.min_box_area = 0.001f;  // 307 px^2 of 640x480
+  config.large_box_area = 0.3f;
+  config.large_box_confidence = 0.5f;
+  ASSERT_TRUE(ValidateDetectorConfig(config).ok());
+  const cv::Size frame(640, 480);  // 307,200 px^2
+  const std::vector<DynamicBox> boxes = {
+      {0, 0.25f, cv::Rect2f(10, 10, 40, 80)},      // person 0.25, small: kept
+      {5, 0.40f, cv::Rect2f(100, 100, 60, 60)},    // bus below its own 0.5: dropped
+      {0, 0.90f, cv::Rect2f(300, 300, 10, 10)},    // 100 px^2 < 0.1 %: dropped
+      {2, 0.45f, cv::Rect2f(0, 0, 400, 320)},      // car over 30 % of the frame at 0.45: dropped
+      {2, 0.60f, cv::Rect2f(200, 100, 400, 320)},  // car over 30 % at 0.60: kept
+      {5, 0.55f, cv::Rect2f(50, 200, 60, 60)},     // bus at 0.55: kept
+  };
+  const std::vector<DynamicBox> kept = ApplyBoxRules(boxes, config, frame);
+  ASSERT_EQ(kept.size(), 3u);
+  EXPECT_EQ(kept[0].confidence, 0.25f);
+  EXPECT_EQ(kept[1].confidence, 0.60f);
+  EXPECT_EQ(kept[2].confidence, 0.55f);
+  // The rules off: everything at or above confidence_threshold stays.
+  DetectorConfig off = YoloxNanoConfig("/nonexistent");
+  off.large_box_confidence = 0;
+  EXPECT_EQ(ApplyBoxRules(boxes, off, frame).size(), boxes.size());
+}
+
+TEST(DetectorBoxRules, InvalidRulesNameTheField) {
+  auto expect_invalid = [](const DetectorConfig& config, const std::string& field) {
+    const Status status = ValidateDetectorConfig(config);
+    EXPECT_EQ(status.code(), StatusCode::kInvalidArgument) << field;
+    EXPECT_NE(status.message().find(field), std::string::npos) << status.ToString();
+  };
+  DetectorConfig config = YoloxNanoConfig("/nonexistent");
+  config.class_confidence = {{"unicorn", 0.5f}};
+  expect_invalid(config, "class_confidence.unicorn");
+  config.class_confidence = {{"dog", 0.5f}};  // a COCO class, not one of dynamic_classes
+  expect_invalid(config, "class_confidence.dog");
+  config.class_confidence = {{"bus", 0.0f}};
+  expect_invalid(config, "class_confidence.bus");
+  config = YoloxNanoConfig("/nonexistent");
+  config.min_box_area = -0.1f;
+  expect_invalid(config, "min_box_area");
+  config = YoloxNanoConfig("/nonexistent");
+  config.large_box_confidence = 2;
+  expect_invalid(config, "large_box_confidence");
+  config = YoloxNanoConfig("/nonexistent");
+  config.min_box_area = 0.5f;  // above large_box_area (0.3): every large box is already gone
+  expect_invalid(config, "min_box_area");
+}
+
+// Issue 33's trap: YOLOX-Nano calls the RTAB-Map loop's corridor poster wall (frame 32) a bus at a
+// low score over a third of the frame, dropping that much of a static place. The default
+// plausibility rule drops it; with the rule off it is there.
+TEST(DetectorBoxRules, TheCorridorPosterIsNoBusByDefault) {
+  REQUIRE_MODELS();
+  const cv::Mat image = ReadColour(testing::RtabmapFramePath(32));
+  const double frame_area = double(image.cols) * image.rows;
+  auto large_and_unsure = [&](const std::vector<DynamicBox>& boxes) {
+    int n = 0;
+    for (const DynamicBox& box : boxes) {
+      if (box.rect.area() > 0.3 * frame_area && box.confidence < 0.5f) ++n;
+    }
+    return n;
+  };
+  DetectorConfig config = BaseConfig(DetectorBackend::kYoloxOnnx);
+  auto with_rules = CreateDetector(config);
+  ASSERT_TRUE(with_rules.ok()) << with_rules.status().ToString();
+  config.large_box_confidence = 0;
+  auto without = CreateDetector(config);
+  ASSERT_TRUE(without.ok()) << without.status().ToString();
+  const std::vector<DynamicBox> raw = DetectOrFail(**without, image);
+  const std::vector<DynamicBox> kept = DetectOrFail(**with_rules, image);
+  for (const DynamicBox& box : raw) {
+    std::printf("frame 32 (rules off): class %d, %.2f, %.0f %% of the frame\n", box.class_id,
+                box.confidence, 100.0 * box.rect.area() / frame_area);
+  }
+  EXPECT_GE(large_and_unsure(raw), 1) << "the poster is no longer detected: the test needs a frame";
+  EXPECT_EQ(large_and_unsure(kept), 0);
+  EXPECT_EQ(kept.size() + size_t(large_and_unsure(raw)), raw.size());
+}
+
 TEST(DetectorConfigErrors, MissingFilesAreNotFound) {
   REQUIRE_MODELS();
   const std::string missing = MakeTempDir("placedb-detector") + "/nope.onnx";
@@ -467,8 +551,10 @@ TEST(DetectorBackends, AgreeOnTheBigObjectsOfTheSampleImages) {
     check(from_yolox, from_darknet, "yolox");
     check(from_darknet, from_yolox, "darknet");
   }
-  // person.jpg's person, dog.jpg's bicycle and car from both, minus darknet's smaller bicycle.
-  EXPECT_GE(big_boxes, 5);
+  // person.jpg's person and dog.jpg's bicycle from both (measured: 0.88 / 1.00 and 0.80 / 0.74).
+  // Yolo-Fastest's second box on that bicycle, 0.29 over 31 % of the frame, is dropped by the
+  // default plausibility rule (large_box_area 0.3 needs 0.5); its 0.74 box of the bicycle stays.
+  EXPECT_GE(big_boxes, 4);
 }
 
 // ---- Preprocessing geometry ----------------------------------------------------------------

@@ -453,8 +453,8 @@ class DnnDetector final : public Detector {
            PreprocessingName(config_.preprocessing) + (rectangular() ? " (rectangular)" : "") +
            (silu_fused_ > 0 ? ", " + std::to_string(silu_fused_) + " SiLU fused" : "") +
            (stem_ ? ", Focus stem in preprocessing" : "") +
-           ", confidence >= " + FormatFloat(config_.confidence_threshold, 2) + ", NMS IoU " +
-           FormatFloat(config_.nms_iou_threshold, 2) + ", classes " + classes;
+           ", confidence >= " + FormatFloat(config_.confidence_threshold, 2) + BoxRules() +
+           ", NMS IoU " + FormatFloat(config_.nms_iou_threshold, 2) + ", classes " + classes;
   }
 
   int input_size() const override { return config_.input_size; }
@@ -532,7 +532,23 @@ class DnnDetector final : public Detector {
       box.rect &= frame;
       if (box.rect.width > 0 && box.rect.height > 0) clipped.push_back(box);
     }
-    return clipped;
+    return ApplyBoxRules(std::move(clipped), config_, image.size());
+  }
+
+  // ", bus >= 0.40, boxes >= 0.1 % of the frame, boxes > 30 % of the frame >= 0.50", or "".
+  std::string BoxRules() const {
+    std::string out;
+    for (const auto& [name, value] : config_.class_confidence) {
+      out += ", " + name + " >= " + FormatFloat(value, 2);
+    }
+    if (config_.min_box_area > 0) {
+      out += ", boxes >= " + FormatFloat(config_.min_box_area * 100, 1) + " % of the frame";
+    }
+    if (config_.large_box_confidence > 0 && config_.large_box_area < 1) {
+      out += ", boxes > " + FormatFloat(config_.large_box_area * 100, 0) +
+             " % of the frame >= " + FormatFloat(config_.large_box_confidence, 2);
+    }
+    return out;
   }
 
   bool is_yolox() const { return config_.backend == DetectorBackend::kYoloxOnnx; }
@@ -610,11 +626,14 @@ class DnnDetector final : public Detector {
 
   void Decode(const std::vector<cv::Mat>& outputs, cv::Size input,
               std::vector<Candidate>* candidates) const {
+    // The lowest threshold any class has: ApplyBoxRules raises it per class afterwards.
+    float threshold = config_.confidence_threshold;
+    for (const auto& [name, value] : config_.class_confidence)
+      threshold = std::min(threshold, value);
     if (is_yolox()) {
-      DecodeYolox(outputs[0], input, dynamic_ids_, config_.confidence_threshold, candidates);
+      DecodeYolox(outputs[0], input, dynamic_ids_, threshold, candidates);
     } else {
-      DecodeDarknet(outputs, config_.input_size, dynamic_ids_, config_.confidence_threshold,
-                    candidates);
+      DecodeDarknet(outputs, config_.input_size, dynamic_ids_, threshold, candidates);
     }
   }
 
@@ -762,7 +781,55 @@ Status ValidateDetectorConfig(const DetectorConfig& config) {
         " must be in [0, 1024]");
   }
   Result<std::vector<int>> ids = ResolveDynamicClasses(config.dynamic_classes);
-  return ids.ok() ? Status::Ok() : ids.status();
+  if (!ids.ok()) return ids.status();
+  for (const auto& [name, value] : config.class_confidence) {
+    const std::string field = "class_confidence." + name;
+    Result<int> id = CocoClassId(name);
+    if (!id.ok()) return id.status().WithContext(field);
+    if (std::find(ids->begin(), ids->end(), *id) == ids->end()) {
+      return Status::InvalidArgument(field + ": '" + name + "' is not one of dynamic_classes");
+    }
+    if (!(value > 0 && value <= 1)) {
+      return Status::InvalidArgument(field + " = " + std::to_string(value) + " must be in (0, 1]");
+    }
+  }
+  const std::pair<const char*, float> shares[] = {
+      {"min_box_area", config.min_box_area},
+      {"large_box_area", config.large_box_area},
+      {"large_box_confidence", config.large_box_confidence}};
+  for (const auto& [field, value] : shares) {
+    if (!(value >= 0 && value <= 1)) {
+      return Status::InvalidArgument(std::string(field) + " = " + std::to_string(value) +
+                                     " must be in [0, 1]");
+    }
+  }
+  if (config.min_box_area >= config.large_box_area && config.large_box_confidence > 0) {
+    return Status::InvalidArgument(
+        "min_box_area = " + std::to_string(config.min_box_area) +
+        " must be below large_box_area = " + std::to_string(config.large_box_area));
+  }
+  return Status::Ok();
+}
+
+std::vector<DynamicBox> ApplyBoxRules(std::vector<DynamicBox> boxes, const DetectorConfig& config,
+                                      cv::Size image_size) {
+  std::array<float, kCocoClassCount> needed;
+  needed.fill(config.confidence_threshold);
+  for (const auto& [name, value] : config.class_confidence) {
+    if (Result<int> id = CocoClassId(name); id.ok()) needed[size_t(*id)] = value;
+  }
+  const double frame_area = double(image_size.width) * image_size.height;
+  std::vector<DynamicBox> kept;
+  kept.reserve(boxes.size());
+  for (DynamicBox& box : boxes) {
+    const bool known = box.class_id >= 0 && box.class_id < kCocoClassCount;
+    if (known && box.confidence < needed[size_t(box.class_id)]) continue;
+    const double share = frame_area > 0 ? box.rect.area() / frame_area : 0;
+    if (share < config.min_box_area) continue;
+    if (share > config.large_box_area && box.confidence < config.large_box_confidence) continue;
+    kept.push_back(std::move(box));
+  }
+  return kept;
 }
 
 DetectorConfig YoloxNanoConfig(const std::string& models_dir) {
