@@ -8,6 +8,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <functional>
 #include <nlohmann/json.hpp>
 #include <regex>
 
@@ -69,35 +70,37 @@ constexpr char kApiPattern[] = R"(/api/v1/([A-Za-z]+))";
 const std::vector<std::string> kConsoleMethods = {
     "ListMaps", "GetMap", "ListPlaces", "GetPlace", "Query", "GetDynamics", "GetServerInfo"};
 
-std::string ConsoleEnumNames() {
+namespace {
+
+// Every placedb.v1 enum: {type name: {key_of(value): the value's API name}}. Aliases (CocoClass)
+// share a number and its name (EnumValueName goes by number).
+std::string EnumTable(
+    const std::function<std::string(const google::protobuf::EnumValueDescriptor*)>& key_of) {
   const google::protobuf::FileDescriptor* file = v1::GetServerInfoRequest::descriptor()->file();
-  nlohmann::json names = nlohmann::json::object();
+  nlohmann::json table = nlohmann::json::object();
   for (int e = 0; e < file->enum_type_count(); ++e) {
     const google::protobuf::EnumDescriptor* type = file->enum_type(e);
     nlohmann::json values = nlohmann::json::object();
-    // Aliases too (CocoClass): protobuf's JSON prints a number's first value name, named the same.
     for (int v = 0; v < type->value_count(); ++v) {
-      values[type->value(v)->name()] = wire::EnumValueName(type, type->value(v)->number());
+      values[key_of(type->value(v))] = wire::EnumValueName(type, type->value(v)->number());
     }
-    names[type->name()] = std::move(values);
+    table[type->name()] = std::move(values);
   }
-  return names.dump();
+  return table.dump();
+}
+
+}  // namespace
+
+std::string ConsoleEnumNames() {
+  // Aliases too: protobuf's JSON prints a number's first value name, named the same.
+  return EnumTable(
+      [](const google::protobuf::EnumValueDescriptor* value) { return value->name(); });
 }
 
 std::string ConsoleEnumNumbers() {
-  const google::protobuf::FileDescriptor* file = v1::GetServerInfoRequest::descriptor()->file();
-  nlohmann::json numbers = nlohmann::json::object();
-  for (int e = 0; e < file->enum_type_count(); ++e) {
-    const google::protobuf::EnumDescriptor* type = file->enum_type(e);
-    nlohmann::json values = nlohmann::json::object();
-    // An alias shares its number and its name (EnumValueName goes by number): one entry each.
-    for (int v = 0; v < type->value_count(); ++v) {
-      const int number = type->value(v)->number();
-      values[std::to_string(number)] = wire::EnumValueName(type, number);
-    }
-    numbers[type->name()] = std::move(values);
-  }
-  return numbers.dump();
+  return EnumTable([](const google::protobuf::EnumValueDescriptor* value) {
+    return std::to_string(value->number());
+  });
 }
 
 int HttpStatusOf(grpc::StatusCode code) {
