@@ -10,6 +10,7 @@
 #include "client/commands/dynamics.h"
 #include "client/commands/ingest.h"
 #include "client/commands/load.h"
+#include "client/commands/loops.h"
 #include "client/commands/maps.h"
 #include "client/commands/places.h"
 #include "client/commands/query.h"
@@ -65,6 +66,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   CLI::App* query = RegisterQuery(app, &query_flags);
   PlaceFlags place_flags;
   const PlaceCommands place = RegisterPlace(app, &place_flags);
+  LoopsFlags loops_flags;
+  const LoopsCommands loops = RegisterLoops(app, &loops_flags);
   SnapshotsFlags snapshots_flags;
   const SnapshotsCommands snapshots = RegisterSnapshots(app, &snapshots_flags);
   DynamicsFlags dynamics_flags;
@@ -112,6 +115,8 @@ int RunCli(int argc, const char* const* argv, CliIo& io) {
   }
   if (place.list->parsed()) return PlaceList(c, place_flags, json, io);
   if (place.remove->parsed()) return PlaceDelete(c, place_flags.map, place_flags.id, json, io);
+  if (loops.watch->parsed()) return LoopsWatch(c, loops_flags, json, io);
+  if (loops.export_->parsed()) return LoopsExport(c, loops_flags, io);
   if (snapshots.create->parsed()) return SnapshotsCreate(c, snapshots_flags.map, json, io);
   if (snapshots.list->parsed()) return SnapshotsList(c, json, io);
   if (snapshots.download->parsed()) return SnapshotsDownload(c, snapshots_flags, json, io);

@@ -262,9 +262,9 @@ void PrintKeyValues(std::ostream& out, const std::string& title,
   table.Print(out, "  ", /*header=*/false);
 }
 
-std::string ProtoJson(const google::protobuf::Message& message) {
+std::string ProtoJson(const google::protobuf::Message& message, bool one_line) {
   google::protobuf::util::JsonPrintOptions options;
-  options.add_whitespace = true;
+  options.add_whitespace = !one_line;
   options.always_print_primitive_fields = true;
   options.preserve_proto_field_names = true;
   std::string json;

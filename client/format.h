@@ -76,8 +76,8 @@ class Table {
 void PrintKeyValues(std::ostream& out, const std::string& title,
                     const std::vector<std::pair<std::string, std::string>>& rows);
 
-// The message in proto3 JSON, field names as in the proto, defaults included, indented. (64-bit
-// integers are strings, per the proto3 JSON mapping.)
-std::string ProtoJson(const google::protobuf::Message& message);
+// The message in proto3 JSON, field names as in the proto, defaults included, indented (or on one
+// line, for JSON lines). (64-bit integers are strings, per the proto3 JSON mapping.)
+std::string ProtoJson(const google::protobuf::Message& message, bool one_line = false);
 
 }  // namespace placedb::client

@@ -1,6 +1,8 @@
 #include "proto/convert_result.h"
 
+#include <algorithm>
 #include <cstring>
+#include <optional>
 #include <string>
 
 #include "core/detect/detector.h"
@@ -147,6 +149,63 @@ void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out)
   if (outcome.loop && outcome.loop_pose)
     RelativePoseToProto(*outcome.loop_pose, out->mutable_loop_pose());
   if (outcome.loop) out->set_loop_pose_unavailable(outcome.loop_pose_unavailable);
+}
+
+std::vector<Match> MatchesFromProto(const google::protobuf::RepeatedPtrField<v1::Match>& matches) {
+  std::vector<Match> out;
+  for (const v1::Match& in : matches) {
+    Match& match = out.emplace_back();
+    match.place = in.place_id();
+    match.score = in.score();
+    match.inliers = in.inliers();
+    match.verified = in.verified();
+    const v1::PlaceMetadata& m = in.metadata();
+    match.metadata.agent_id = m.agent_id();
+    match.metadata.sequence = m.sequence();
+    match.metadata.timestamp_ns = m.timestamp_ns();
+    if (m.has_pose()) {
+      const v1::Pose& p = m.pose();
+      match.metadata.pose = Pose{{p.x(), p.y(), p.z()}, {p.qx(), p.qy(), p.qz(), p.qw()}};
+    }
+    match.pose_unavailable = in.pose_unavailable();
+    if (!in.has_relative_pose()) continue;
+    const v1::RelativePose& p = in.relative_pose();
+    std::optional<PoseSolver> solver;
+    for (PoseSolver s :
+         {PoseSolver::kPnpPlaceDepth, PoseSolver::kPnpQueryDepth, PoseSolver::kEssential}) {
+      if (p.solver() == PoseSolverName(s)) solver = s;
+    }
+    if (p.transform_size() != 16 || p.information_size() != 36 || !solver) continue;
+    RelativePose pose;
+    std::copy(p.transform().begin(), p.transform().end(), pose.transform.begin());
+    std::copy(p.information().begin(), p.information().end(), pose.information.begin());
+    pose.metric = p.metric();
+    pose.solver = *solver;
+    pose.correspondences = p.correspondences();
+    pose.inliers = p.inliers();
+    pose.rms_error_px = p.rms_error_px();
+    match.relative_pose = pose;
+  }
+  return out;
+}
+
+void LoopConstraintToProto(const LoopConstraint& c, v1::LoopConstraint* out) {
+  out->set_sequence(c.sequence);
+  out->set_source(c.source == LoopSource::kLoopClosure ? v1::LOOP_SOURCE_LOOP_CLOSURE
+                                                       : v1::LOOP_SOURCE_MATCH);
+  out->set_query_place_id(c.query_place);
+  out->set_merged(c.merged);
+  MetadataToProto(c.query, out->mutable_query());
+  out->set_place_id(c.place);
+  MetadataToProto(c.place_metadata, out->mutable_place());
+  out->set_score(c.score);
+  out->set_inliers(c.inliers);
+  if (c.pose) {
+    RelativePoseToProto(*c.pose, out->mutable_relative_pose());
+  } else {
+    out->set_pose_unavailable(c.pose_unavailable);
+  }
+  out->set_found_unix_ns(c.found_unix_ns);
 }
 
 }  // namespace placedb::wire

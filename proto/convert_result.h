@@ -11,6 +11,7 @@
 #include "core/detect/dynamic_objects.h"
 #include "core/filter/depth_filter.h"
 #include "core/pipeline/place_database.h"
+#include "core/storage/loop_log.h"
 #include "proto/convert_features.h"
 #include "proto/placedb.pb.h"
 
@@ -32,6 +33,12 @@ void TimingsToProto(const StageTimings& timings, double queue_ms, v1::StageTimin
 void PlaceRecordToProto(const PlaceRecord& record, v1::Place* out);
 void DepthStateToProto(const DepthFrameState& state, v1::DepthState* out);
 void LoopClosureToProto(const LoopClosureOutcome& outcome, v1::LoopClosure* out);
+// Matches a replica answered (cluster mode's Ingest) back as the core's, for the loop-closure
+// log: place, score, inliers, verified, metadata, relative pose and pose_unavailable (a pose
+// with the wrong number of values or an unknown solver is left out; no correspondences).
+std::vector<Match> MatchesFromProto(const google::protobuf::RepeatedPtrField<v1::Match>& matches);
+// One entry of a map's loop-closure log (WatchLoopClosures).
+void LoopConstraintToProto(const LoopConstraint& constraint, v1::LoopConstraint* out);
 // A place's thumbnail: the JPEG, its and its source frame's sizes, the dropped keypoints.
 void ThumbnailToProto(const Thumbnail& thumbnail, v1::Thumbnail* out);
 

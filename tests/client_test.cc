@@ -11,6 +11,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -21,6 +22,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
 #include <regex>
+#include <set>
 #include <sstream>
 
 #include "client/cli.h"
@@ -1202,6 +1204,87 @@ TEST_F(ClientTest, IngestLoopClosureOnTheRtabmapLoop) {
   EXPECT_NE(text.out.find("merged     "), std::string::npos) << text.out;
   EXPECT_NE(text.out.find("loop closure: 6 frames, "), std::string::npos) << text.out;
   EXPECT_NE(text.out.find(" loops found\n"), std::string::npos) << text.out;
+}
+
+// The loop-closure log (issue 32): slambook2's room ingested with depth, its camera and matches;
+// `loops watch` prints each constraint, `loops export` writes g2o, TUM and CSV with the poses the
+// log holds.
+TEST_F(ClientTest, LoopsWatchAndExportG2oTumCsv) {
+  ASSERT_EQ(Cli({"maps", "create", "room", "--features", "2000", "--verify", "exhaustive"}).code,
+            0);
+  CliRun ingested =
+      Cli({"ingest", "room", SlambookDir() + "/color", "--depth", SlambookDir() + "/depth",
+           "--camera", "518,519,325.5,253.5", "--matches", "--top-k", "4", "--agent-id", "robot"});
+  ASSERT_EQ(ingested.code, 0) << ingested.err;
+
+  CliRun watched = Cli({"loops", "watch", "room", "--json"});
+  ASSERT_EQ(watched.code, 0) << watched.err;
+  std::vector<json> log;
+  std::istringstream lines(watched.out);
+  for (std::string line; std::getline(lines, line);) log.push_back(json::parse(line));
+  // 5 frames, each verified against the earlier ones of the small room.
+  ASSERT_GE(log.size(), 4u);
+  std::set<int> places;
+  size_t metric = 0;
+  for (size_t i = 0; i < log.size(); ++i) {
+    EXPECT_EQ(log[i]["sequence"], std::to_string(i + 1));  // uint64 in proto JSON: a string
+    places.insert(log[i]["place_id"].get<int>());
+    places.insert(log[i]["query_place_id"].get<int>());
+    if (log[i].contains("relative_pose") && log[i]["relative_pose"].value("metric", false))
+      ++metric;
+  }
+  EXPECT_EQ(metric, log.size()) << "depth on both sides: every pose metric";
+  CliRun text = Cli({"loops", "watch", "room", "--from", "2"});
+  ASSERT_EQ(text.code, 0) << text.err;
+  EXPECT_EQ(text.out.rfind("#2 match robot/", 0), 0u) << text.out;
+  EXPECT_NE(text.out.find(" m, "), std::string::npos) << text.out;  // a metric pose printed
+  EXPECT_TRUE(Cli({"loops", "watch", "room", "--inter-agent-only"}).out.empty());
+
+  const std::string g2o = root_ + "/room.g2o";
+  CliRun exported = Cli({"loops", "export", "room", "--format", "g2o", "--out", g2o});
+  ASSERT_EQ(exported.code, 0) << exported.err;
+  EXPECT_NE(exported.err.find("exported " + std::to_string(metric) + " of " +
+                              std::to_string(log.size()) + " constraints"),
+            std::string::npos)
+      << exported.err;
+  std::ifstream g2o_file(g2o);
+  size_t vertices = 0, edges = 0;
+  for (std::string line; std::getline(g2o_file, line);) {
+    std::istringstream fields(line);
+    std::string tag;
+    fields >> tag;
+    std::vector<double> values;
+    for (double v; fields >> v;) values.push_back(v);
+    if (tag == "VERTEX_SE3:QUAT") {
+      ++vertices;
+      EXPECT_EQ(values.size(), 8u) << line;  // id, x y z, qx qy qz qw
+    } else if (tag == "EDGE_SE3:QUAT") {
+      ASSERT_EQ(values.size(), 2u + 7u + 21u) << line;
+      const json& c = log[edges++];
+      EXPECT_EQ(int(values[0]), c["place_id"].get<int>());
+      EXPECT_EQ(int(values[1]), c["query_place_id"].get<int>());
+      EXPECT_NEAR(values[2], c["relative_pose"]["transform"][3].get<double>(), 1e-6);
+      const double qnorm = std::sqrt(values[5] * values[5] + values[6] * values[6] +
+                                     values[7] * values[7] + values[8] * values[8]);
+      EXPECT_NEAR(qnorm, 1.0, 1e-6);
+      EXPECT_GT(values[9], 0.0);  // information: positive on the diagonal
+    } else {
+      EXPECT_EQ(tag.rfind("#", 0), 0u) << line;
+    }
+  }
+  EXPECT_EQ(vertices, places.size());
+  EXPECT_EQ(edges, metric);
+
+  CliRun tum = Cli({"loops", "export", "room", "--format", "tum"});
+  ASSERT_EQ(tum.code, 0) << tum.err;
+  EXPECT_EQ(size_t(std::count(tum.out.begin(), tum.out.end(), '\n')), 1 + metric);
+  CliRun csv = Cli({"loops", "export", "room", "--format", "csv", "--agent", "robot"});
+  ASSERT_EQ(csv.code, 0) << csv.err;
+  EXPECT_EQ(size_t(std::count(csv.out.begin(), csv.out.end(), '\n')), 1 + log.size());
+  EXPECT_EQ(csv.out.rfind("sequence,source,query_place_id,", 0), 0u);
+
+  EXPECT_EQ(Cli({"loops", "export", "nowhere", "--format", "csv"}).code, 1);
+  EXPECT_EQ(Cli({"loops", "export", "room", "--format", "kml"}).code, 2);
 }
 
 // rgbd-people (people walking in front of the camera) and the slambook2 room (16-bit PGM depth,

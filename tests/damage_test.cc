@@ -617,16 +617,16 @@ void DropFamilies(const std::string& map_dir, const std::vector<std::string>& dr
   });
 }
 
-// A map made before issue 16 has no "dynamics" (nor "thumbnails") column family: it is read
-// without them (ReadMapInfo opens read-only), gets empty ones when opened for writing, and counts
-// from then.
+// A map made before issue 16 has no "dynamics" (nor "thumbnails", nor issue 32's "loops") column
+// family: it is read without them (ReadMapInfo opens read-only), gets empty ones when opened for
+// writing, and counts (and logs loop constraints) from then.
 TEST_F(DamageTest, MapWithoutTheDynamicsFamilyOpensAndStartsCounting) {
   {
     auto dir = OpenDir();
     ASSERT_TRUE(dir->OpenMap("lab", vocabulary_).ok());
     dir->CloseMap("lab");
   }
-  ASSERT_NO_FATAL_FAILURE(DropFamilies(map_dir_, {"dynamics", "thumbnails"}));
+  ASSERT_NO_FATAL_FAILURE(DropFamilies(map_dir_, {"dynamics", "thumbnails", "loops"}));
   auto dir = OpenDir();
   auto info = dir->ReadMapInfo("lab");
   ASSERT_TRUE(info.ok()) << info.status().ToString();
@@ -643,6 +643,17 @@ TEST_F(DamageTest, MapWithoutTheDynamicsFamilyOpensAndStartsCounting) {
   ASSERT_TRUE(added.ok() && added->stored) << added.status().ToString();
   EXPECT_EQ((*map)->GetDynamics(added->id)->observations, 1u);
   EXPECT_EQ((*map)->MapDynamics()->observations, 1u);
+  EXPECT_EQ((*map)->last_loop_sequence(), 0u);
+  LoopConstraint found;
+  found.query = {"robot", 2, 0, std::nullopt};
+  found.place = added->id;
+  found.pose_unavailable = "no camera";
+  ASSERT_TRUE((*map)->Enqueue(frames[0], found.query, {found})->Wait().ok());
+  uint64_t scanned = 0;
+  auto logged = (*map)->ReadLoops(1, 10, {}, &scanned);
+  ASSERT_TRUE(logged.ok()) << logged.status().ToString();
+  ASSERT_EQ(logged->size(), 1u);
+  EXPECT_EQ(logged->front().query_place, added->id + 1);
   EXPECT_TRUE((*map)->VerifyIntegrity().ok());
 }
 

@@ -10,8 +10,8 @@ namespace {
 
 // placedb's families in its order, then any other the map has (a later vocabulary's "bow.<g>").
 std::vector<rocksdb::ColumnFamilyDescriptor> Families(const std::string& map_dir) {
-  std::vector<std::string> names = {"default", "places",   "bow",       "features",
-                                    "invalid", "dynamics", "thumbnails"};
+  std::vector<std::string> names = {"default", "places",   "bow",        "features",
+                                    "invalid", "dynamics", "thumbnails", "loops"};
   std::vector<std::string> present;
   if (rocksdb::DB::ListColumnFamilies(rocksdb::DBOptions(), map_dir, &present).ok()) {
     for (const std::string& name : present) {

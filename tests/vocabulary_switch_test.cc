@@ -289,7 +289,7 @@ TEST_F(VocabularySwitchTest, RefusesWhatItCannotDoAndLeavesTheMapAsItWas) {
       << small.status().ToString();
   EXPECT_NE(small.status().message().find("3 places"), std::string::npos);
   EXPECT_FALSE(map_->info().vocabulary.stored());
-  EXPECT_EQ(FamiliesOf(MapDir()).size(), 7u);  // no family left behind
+  EXPECT_EQ(FamiliesOf(MapDir()).size(), 8u);  // no family left behind
 
   auto none = map_->RevertVocabulary();
   ASSERT_EQ(none.status().code(), StatusCode::kFailedPrecondition);
@@ -357,7 +357,7 @@ TEST_F(VocabularySwitchTest, ACancelledSwitchLeavesTheMapAsItWas) {
     ASSERT_EQ(cancelled.status().code(), StatusCode::kCancelled) << cancelled.status().ToString();
     EXPECT_FALSE(map_->info().vocabulary.stored());
     EXPECT_EQ(map_->vocabulary().checksum(), Default().checksum());
-    EXPECT_EQ(FamiliesOf(MapDir()).size(), 7u);  // the half-built family is dropped
+    EXPECT_EQ(FamiliesOf(MapDir()).size(), 8u);  // the half-built family is dropped
     ExpectEachFrameFindsItsPlace(
         *map_, std::vector<ProcessedFrame>(frames_.begin(), frames_.begin() + 30), places);
   }

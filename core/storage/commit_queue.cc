@@ -66,7 +66,8 @@ void PlaceMap::PutEntries(PlaceId id, const PlaceMetadata& metadata, const Proce
   if (!entries.thumbnail.empty()) batch->Put(storage_->cf(kThumbnails), key, entries.thumbnail);
 }
 
-std::shared_ptr<PendingCommit> PlaceMap::Enqueue(ProcessedFrame frame, PlaceMetadata metadata) {
+std::shared_ptr<PendingCommit> PlaceMap::Enqueue(ProcessedFrame frame, PlaceMetadata metadata,
+                                                 std::vector<LoopConstraint> found) {
   auto pending = std::make_shared<PendingCommit>();
   ReaderLock alive(lifecycle_);
   if (closed_) {
@@ -87,10 +88,11 @@ std::shared_ptr<PendingCommit> PlaceMap::Enqueue(ProcessedFrame frame, PlaceMeta
   const DatabaseConfig& config = info_.options.database;
   if (frame.stream_pending || !frame.valid || frame.static_features.type() != config.feature_type ||
       frame.direct.levels_up != config.verification.levels_up) {
-    pending->Complete(CommitLocked(frame, metadata));
+    pending->Complete(CommitLocked(frame, metadata, std::move(found)));
     return pending;
   }
   QueuedPlace place;
+  place.found = std::move(found);
   place.pending = pending;
   place.generation = storage_->bow_generation.load();
   // Encoded here, on the caller's thread, so that callers encode in parallel; the committer
@@ -163,7 +165,17 @@ void PlaceMap::CommitGroup(std::vector<QueuedPlace>* group, rocksdb::WriteBatch*
             ? "storing place " + std::to_string(highest)
             : "storing " + std::to_string(group->size()) + " places (group commit, ids " +
                   std::to_string(group->front().id) + ".." + std::to_string(highest) + ")";
-    written = storage_->Write(batch, what, MapStorage::Kind::kAddition, highest, group->size());
+    // The places' loop constraints go in the same batch: logged if and only if stored.
+    std::vector<LoopConstraint> found;
+    for (QueuedPlace& place : *group) {
+      for (LoopConstraint& constraint : place.found) {
+        constraint.query_place = place.id;
+        found.push_back(std::move(constraint));
+      }
+    }
+    written = loops_->Write(&found, batch, [&] {
+      return storage_->Write(batch, what, MapStorage::Kind::kAddition, highest, group->size());
+    });
   }
   for (QueuedPlace& place : *group) {
     if (!written.ok()) {

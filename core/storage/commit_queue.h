@@ -26,6 +26,7 @@ struct PlaceMap::QueuedPlace {
   uint64_t generation = 0;
   std::shared_ptr<PendingCommit> pending;
   Stopwatch since_enqueued;
+  std::vector<LoopConstraint> found;  // its loop constraints, written in the group's batch
 };
 
 struct PlaceMap::CommitQueue {

@@ -911,6 +911,7 @@ Status DataDirectory::DeleteMap(const std::string& name) {
     // after in-flight calls finish, so the files and the name are free at once.
     WriterLock closing(it->second->lifecycle_);
     it->second->closed_ = true;
+    if (it->second->loops_) it->second->loops_->Close();  // watchers end now
     it->second->storage_->Close();
     open_.erase(it);
   }

@@ -74,12 +74,14 @@ inline const char* const kColumnFamilies[] = {rocksdb::kDefaultColumnFamilyName.
                                               "features",
                                               "invalid",
                                               "dynamics",
-                                              "thumbnails"};
-// kDynamics was added by issue 16, kThumbnails by issue 20: maps made before lack the family,
+                                              "thumbnails",
+                                              "loops"};
+// kDynamics was added by issue 16, kThumbnails by issue 20, kLoops (loop_log.h) by issue 32: maps
+// made before lack the family,
 // which a read-write open creates (empty) and a read-only open does without (its handle is
 // null). Only these "late" families are ever created on an existing map (LateFamiliesMissing).
-enum Cf { kMeta = 0, kPlaces, kBow, kFeatures, kInvalid, kDynamics, kThumbnails, kCfCount };
-inline constexpr Cf kLateFamilies[] = {kDynamics, kThumbnails};
+enum Cf { kMeta = 0, kPlaces, kBow, kFeatures, kInvalid, kDynamics, kThumbnails, kLoops, kCfCount };
+inline constexpr Cf kLateFamilies[] = {kDynamics, kThumbnails, kLoops};
 
 // In kDynamics: the map's aggregate (every acknowledged observation, also of places removed
 // since). Place keys are 4 bytes, so this 3-byte key is never one.

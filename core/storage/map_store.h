@@ -50,6 +50,7 @@
 #include "core/pipeline/place_database.h"
 #include "core/storage/codec.h"
 #include "core/storage/directory_lock.h"
+#include "core/storage/loop_log.h"
 #include "core/storage/replica_apply.h"
 #include "core/vocabulary/any_vocabulary.h"
 #include "core/vocabulary/vocabulary.h"
@@ -263,6 +264,7 @@ struct MapLogRecord {
                          // its parts, or from the bytes the map stores (its previous vocabulary)
     kPrepareVocabulary,  // nothing but the applied sequence: the replica's host starts building
                          // the switch to `vocabulary_source.checksum` (PrepareVocabularySwitch)
+    kLoopConstraints,    // issue 32: `loops` (query_place set) into the map's loop-closure log
   };
   Kind kind = Kind::kAddPlace;
   // An AddPlace frame's vocabulary_checksum says which vocabulary made its BoW vector (0: the
@@ -285,6 +287,9 @@ struct MapLogRecord {
   // the checksum and parts alone.
   VocabularySource vocabulary_source;
   uint32_t vocabulary_parts = 0;
+  // kLoopConstraints: logged in order (their place_metadata is the replica's record of the
+  // place when it has one).
+  std::vector<LoopConstraint> loops;
 };
 
 // A vocabulary learned from a map's stored places, not yet the map's (PlaceMap::LearnVocabulary).
@@ -400,7 +405,10 @@ class PlaceMap final : public ReplicaApply {
   // checks, an invalid frame (StoreInvalid) and a deleted map are answered synchronously: the
   // returned commit is already done. Places enqueued by one thread are durable and indexed in
   // that order; a caller that must search after its own places waits for the last one first.
-  std::shared_ptr<PendingCommit> Enqueue(ProcessedFrame frame, PlaceMetadata metadata);
+  // `found`: the frame's loop constraints (loop_log.h; verified matches against earlier places),
+  // numbered and written in the place's batch with query_place set to its id.
+  std::shared_ptr<PendingCommit> Enqueue(ProcessedFrame frame, PlaceMetadata metadata,
+                                         std::vector<LoopConstraint> found = {});
   // Stream frames (kStream) of a map that keeps thumbnails get theirs here (on the caller's
   // thread, outside any lock of the map); Commit() stores it with the place.
   // `keep_dropped_keypoints` fills `dropped_keypoints`.
@@ -414,8 +422,21 @@ class PlaceMap final : public ReplicaApply {
   // frame that rehearsal does not merge is written durably; `added` then receives the commit's
   // result (stored = false when merged). The long-term memory of the agent's detector is this
   // map's RocksDB payloads.
+  // `found` (the frame's verified matches) and the detector's accepted loop are written to the
+  // loop log (loop_log.h) right after the place, before this returns; a failure to log them is
+  // this call's error (the place is stored).
   Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
-                                       AddResult* added);
+                                       AddResult* added, std::vector<LoopConstraint> found = {});
+  // The loop log (loop_log.h): up to `max` constraints `filter` accepts from sequence `from` on;
+  // `*scanned` receives the last sequence looked at. NOT_FOUND once the map is deleted;
+  // CORRUPTION naming the sequence when a stored constraint is damaged.
+  Result<std::vector<LoopConstraint>> ReadLoops(uint64_t from, size_t max, const LoopFilter& filter,
+                                                uint64_t* scanned) const EXCLUDES(lifecycle_);
+  uint64_t last_loop_sequence() const { return loops_->last_sequence(); }
+  // Blocks until a constraint after `sequence` is logged, `deadline` passes or the map is deleted
+  // (then `*deleted` is set); returns last_loop_sequence().
+  uint64_t WaitForLoops(uint64_t sequence, std::chrono::steady_clock::time_point deadline,
+                        bool* deleted) const;
   // Cluster mode's worker, whose local copy of the map holds no places: PlaceDatabase::CloseLoop
   // with the caller's `store` (publishing the frame) and `source` (the map's replicas); nothing
   // is written to this map, also not a merged frame's statistics (the caller records them).
@@ -495,8 +516,11 @@ class PlaceMap final : public ReplicaApply {
   Status Load();
   // Commit() for a caller that already holds lifecycle_ shared and checked `closed_`
   // (CloseLoop's store callback: the shared lock must not be taken twice).
-  Result<AddResult> CommitLocked(const ProcessedFrame& frame, const PlaceMetadata& metadata)
+  Result<AddResult> CommitLocked(const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                 std::vector<LoopConstraint> found = {})
       REQUIRES_SHARED(lifecycle_);
+  // `found` with query_place = `place`, written to the loop log in a batch of their own.
+  Status LogLoops(PlaceId place, std::vector<LoopConstraint> found) REQUIRES_SHARED(lifecycle_);
   Result<AddResult> StoreInvalid(const ProcessedFrame& frame, const PlaceMetadata& metadata);
   // One acknowledged write adding `frame`'s statistics to `place` (0 or removed: the map's
   // aggregate only) and to the aggregate: frames merged by rehearsal, counted query hits.
@@ -599,6 +623,7 @@ class PlaceMap final : public ReplicaApply {
   mutable SharedMutex lifecycle_;
   bool closed_ GUARDED_BY(lifecycle_) = false;
   std::unique_ptr<CommitQueue> commits_;  // its committer thread lives as long as the map
+  std::unique_ptr<LoopLog> loops_;        // set by Load(); closed (waiters woken) with the map
   // ApplyAt/ApplyBatch: one caller at a time; the applied sequence is readable without it.
   Mutex apply_mutex_;
   // A replica's switch prepared ahead of its record (PrepareVocabularySwitch); held while one

@@ -12,6 +12,7 @@
 
 #include "core/base/thread_annotations.h"
 #include "core/base/timing.h"
+#include "core/storage/loop_log.h"
 #include "core/storage/map_storage.h"
 #include "core/storage/map_store.h"
 
@@ -281,6 +282,9 @@ class PlaceLoader {
 
 Status PlaceMap::Load() {
   Stopwatch total;
+  auto loops = LoopLog::Open(storage_->db.get(), storage_->cf(kLoops));
+  if (!loops.ok()) return loops.status().WithContext("map '" + info_.name + "'");
+  loops_ = std::move(loops).value();
   auto db = PlaceDatabase::Create(
       vocabulary_, info_.options.database,
       std::make_shared<RocksPayloadStore>(storage_.get(), info_.options.database.feature_type));

@@ -164,7 +164,8 @@ Status PlaceMap::AdvanceStream(ProcessedFrame* frame, const std::string& agent_i
 }
 
 Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& given,
-                                               const PlaceMetadata& metadata, AddResult* added) {
+                                               const PlaceMetadata& metadata, AddResult* added,
+                                               std::vector<LoopConstraint> found) {
   AddResult local;
   AddResult& result = added ? *added : local;
   result = AddResult();
@@ -210,7 +211,41 @@ Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& given,
   }
   result.timings.loop_closure_ms = outcome->update_ms;
   result.timings.total_ms += outcome->update_ms;
+  AddDetectorLoop(*outcome, metadata, &found);
+  PLACEDB_RETURN_IF_ERROR(LogLoops(outcome->place, std::move(found)));
   return outcome;
+}
+
+Status PlaceMap::LogLoops(PlaceId place, std::vector<LoopConstraint> found) {
+  if (found.empty()) return Status::Ok();
+  for (LoopConstraint& constraint : found) {
+    constraint.query_place = place;
+    if (constraint.place_metadata.agent_id.empty()) {
+      if (auto record = database_->Get(constraint.place)) {
+        constraint.place_metadata = record->metadata;
+      }
+    }
+  }
+  const std::string what = "logging " + std::to_string(found.size()) +
+                           " loop constraint(s) of place " + std::to_string(place);
+  rocksdb::WriteBatch batch;
+  return loops_->Write(&found, &batch,
+                       [&] { return storage_->Write(&batch, what, MapStorage::Kind::kAddition); });
+}
+
+Result<std::vector<LoopConstraint>> PlaceMap::ReadLoops(uint64_t from, size_t max,
+                                                        const LoopFilter& filter,
+                                                        uint64_t* scanned) const {
+  ReaderLock alive(lifecycle_);
+  if (closed_) return Deleted();
+  return loops_->Read(from, max, filter, scanned);
+}
+
+uint64_t PlaceMap::WaitForLoops(uint64_t sequence, std::chrono::steady_clock::time_point deadline,
+                                bool* deleted) const {
+  const uint64_t last = loops_->WaitBeyond(sequence, deadline);
+  *deleted = loops_->closed();
+  return last;
 }
 
 Result<LoopClosureOutcome> PlaceMap::CloseLoop(const ProcessedFrame& frame,
@@ -294,8 +329,8 @@ Result<AddResult> PlaceMap::Commit(const ProcessedFrame& frame, const PlaceMetad
   return CommitLocked(frame, metadata);
 }
 
-Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& given,
-                                         const PlaceMetadata& metadata) {
+Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& given, const PlaceMetadata& metadata,
+                                         std::vector<LoopConstraint> found) {
   std::optional<ProcessedFrame> copy;
   auto current = OfCurrentVocabulary(given, &copy);
   if (!current.ok()) return current.status();
@@ -333,8 +368,11 @@ Result<AddResult> PlaceMap::CommitLocked(const ProcessedFrame& given,
   if (frame.thumbnail && info_.options.thumbnails.enabled) {
     batch.Put(storage_->cf(kThumbnails), key, EncodeThumbnail(*frame.thumbnail));
   }
-  PLACEDB_RETURN_IF_ERROR(storage_->Write(&batch, "storing place " + std::to_string(record.id),
-                                          MapStorage::Kind::kAddition, record.id));
+  for (LoopConstraint& constraint : found) constraint.query_place = record.id;
+  PLACEDB_RETURN_IF_ERROR(loops_->Write(&found, &batch, [&] {
+    return storage_->Write(&batch, "storing place " + std::to_string(record.id),
+                           MapStorage::Kind::kAddition, record.id);
+  }));
   // Durable: now make it searchable.
   auto id = database_->Insert(frame, metadata, record.id);
   if (!id.ok()) return id.status();
@@ -400,6 +438,7 @@ Result<size_t> PlaceMap::ApplyRun(std::span<const SequencedRecord> records) {
   std::deque<ProcessedFrame> transformed;
   std::unordered_set<PlaceId> run_places;  // places the run adds: a CountObservation may name one
   PlaceId run_max_place = 0;
+  std::vector<LoopConstraint> run_loops;  // the run's loop constraints, logged with it
   auto flush = [&]() -> Status {
     if (run.empty()) return Status::Ok();
     const uint64_t first = run.front().sequence, last = run.back().sequence;
@@ -407,8 +446,9 @@ Result<size_t> PlaceMap::ApplyRun(std::span<const SequencedRecord> records) {
         run.size() == 1 ? "applying record " + std::to_string(last)
                         : "applying records " + std::to_string(first) + ".." + std::to_string(last);
     batch.Put(storage_->cf(kMeta), kAppliedSequenceKey, U64Key(last));
-    PLACEDB_RETURN_IF_ERROR(
-        storage_->Write(&batch, what, MapStorage::Kind::kAddition, run_max_place, run.size()));
+    PLACEDB_RETURN_IF_ERROR(loops_->Write(&run_loops, &batch, [&] {
+      return storage_->Write(&batch, what, MapStorage::Kind::kAddition, run_max_place, run.size());
+    }));
     // Durable: now make the places searchable and count what was counted. The applied sequence
     // moves only after that: a reader that waited for it (a shard's read with a minimum
     // sequence) must find every place up to it.
@@ -444,6 +484,7 @@ Result<size_t> PlaceMap::ApplyRun(std::span<const SequencedRecord> records) {
     transformed.clear();
     run_places.clear();
     run_max_place = 0;
+    run_loops.clear();
     batch.Clear();
     return Status::Ok();
   };
@@ -559,6 +600,12 @@ Result<size_t> PlaceMap::ApplyRun(std::span<const SequencedRecord> records) {
       }
       case MapLogRecord::Kind::kPrepareVocabulary:
         break;  // built by PrepareVocabularySwitch, on the host's thread
+      case MapLogRecord::Kind::kLoopConstraints:
+        for (const LoopConstraint& found : record.loops) {
+          LoopConstraint& logged = run_loops.emplace_back(found);
+          if (auto place = database_->Get(logged.place)) logged.place_metadata = place->metadata;
+        }
+        break;
       case MapLogRecord::Kind::kSwitchVocabulary:
         return refuse("a switch of vocabulary inside a run");  // ApplyBatch splits runs there
     }

@@ -58,20 +58,22 @@ class LocalIngestSession final : public IngestSession {
     timings->verify_ms = result.timings.verify_ms;
     timings->pose_ms = result.timings.pose_ms;
     wire::MatchesToProto(result.matches, out);
+    found_.Set(metadata, LoopConstraintsOf(metadata, result.matches));
     return grpc::Status::OK;
   }
 
   std::shared_ptr<PendingCommit> Store(ProcessedFrame frame, const PlaceMetadata& metadata,
                                        const std::string&, Deadline) override {
-    // Group commit: the caller goes on; its answer waits for durability.
-    last_commit_ = map_->map->Enqueue(std::move(frame), metadata);
+    // Group commit: the caller goes on; its answer waits for durability (and the frame's loop
+    // constraints are logged with its place).
+    last_commit_ = map_->map->Enqueue(std::move(frame), metadata, found_.Take(metadata));
     return last_commit_;
   }
 
   Result<LoopClosureOutcome> CloseLoop(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                                        const std::string&, Deadline, AddResult* stored) override {
     AwaitLastPlace();
-    auto outcome = map_->map->CloseLoop(frame, metadata, stored);
+    auto outcome = map_->map->CloseLoop(frame, metadata, stored, found_.Take(metadata));
     if (!outcome.ok()) metrics_->StorageError(map_->name, outcome.status());
     return outcome;
   }
@@ -88,6 +90,7 @@ class LocalIngestSession final : public IngestSession {
   Metrics* const metrics_;
   const std::shared_ptr<const MapEntry> map_;
   std::shared_ptr<PendingCommit> last_commit_;  // the stream's last place handed to the queue
+  FoundLoops found_;                            // Search()'s, for the frame's Store()
 };
 
 }  // namespace
@@ -300,6 +303,15 @@ grpc::Status LocalBackend::Query(const MapEntry& map, const ProcessedFrame& fram
 
 std::unique_ptr<IngestSession> LocalBackend::OpenIngest(std::shared_ptr<const MapEntry> map) {
   return std::make_unique<LocalIngestSession>(config_, metrics_, std::move(map));
+}
+
+grpc::Status LocalBackend::WatchLoopClosures(
+    const v1::WatchLoopClosuresRequest& request,
+    const std::function<bool(const v1::LoopConstraint&)>& write,
+    const std::function<grpc::Status()>& stop) {
+  auto entry = maps_->Get(request.map(), "map");
+  if (!entry.ok()) return ToGrpc(entry.status());
+  return StreamLoopLog((*entry)->name, *(*entry)->map, request, write, stop);
 }
 
 grpc::Status LocalBackend::Snapshots(std::shared_ptr<SnapshotStore>* store) {

@@ -53,6 +53,9 @@ class LocalBackend final : public MapBackend {
                      const PlaceMetadata& metadata, const v1::QueryRequest& request,
                      Deadline deadline, v1::QueryResponse* out, StageTimings* timings) override;
   std::unique_ptr<IngestSession> OpenIngest(std::shared_ptr<const MapEntry> map) override;
+  grpc::Status WatchLoopClosures(const v1::WatchLoopClosuresRequest& request,
+                                 const std::function<bool(const v1::LoopConstraint&)>& write,
+                                 const std::function<grpc::Status()>& stop) override;
   grpc::Status Snapshots(std::shared_ptr<SnapshotStore>* store) override;
   grpc::Status CreateSnapshot(const std::string& map, SnapshotInfo* info) override;
   grpc::Status RestoreSnapshot(const v1::RestoreSnapshotRequest& request,

@@ -24,8 +24,11 @@
 #include <atomic>
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <memory>
+#include <optional>
 #include <string>
+#include <vector>
 
 #include "core/base/status.h"
 #include "core/pipeline/place_database.h"
@@ -65,6 +68,28 @@ class IngestSession {
                                                const PlaceMetadata& metadata,
                                                const std::string& message_id, Deadline deadline,
                                                AddResult* stored) = 0;
+};
+
+// What a session's Search() found for the frame it is handling (its verified matches as loop
+// constraints, core/storage/loop_log.h), until the Store() or CloseLoop() of the same frame takes
+// them. Keyed by the frame's metadata: what a failed frame left behind is never another's.
+class FoundLoops {
+ public:
+  void Set(const PlaceMetadata& frame, std::vector<LoopConstraint> found) {
+    found_ = std::move(found);
+    frame_ = frame;
+  }
+  std::vector<LoopConstraint> Take(const PlaceMetadata& frame) {
+    std::vector<LoopConstraint> found;
+    if (frame_ && *frame_ == frame) found.swap(found_);
+    found_.clear();
+    frame_.reset();
+    return found;
+  }
+
+ private:
+  std::vector<LoopConstraint> found_;
+  std::optional<PlaceMetadata> frame_;
 };
 
 // A CreateMap request the service has checked and resolved.
@@ -129,6 +154,15 @@ class MapBackend {
                              Deadline deadline, v1::QueryResponse* out, StageTimings* timings) = 0;
   // One Ingest stream's session on `map` (Map()'s entry).
   virtual std::unique_ptr<IngestSession> OpenIngest(std::shared_ptr<const MapEntry> map) = 0;
+
+  // ---- Loop-closure log (core/storage/loop_log.h)
+  // WatchLoopClosures: the map's log to `write` as StreamLoopLog (server/backend/place_reads.h)
+  // says, `stop` asked between reads and waits. NOT_FOUND naming `map` for an unknown map,
+  // FAILED_PRECONDITION / CORRUPTION when it is unavailable.
+  virtual grpc::Status WatchLoopClosures(
+      const v1::WatchLoopClosuresRequest& request,
+      const std::function<bool(const v1::LoopConstraint&)>& write,
+      const std::function<grpc::Status()>& stop) = 0;
 
   // ---- Snapshots (server/rpc/snapshots.cc streams the archives through the store).
   // The snapshot store: UNIMPLEMENTED where the role keeps none, UNAVAILABLE once it is closed.

@@ -1,9 +1,14 @@
 #include "server/backend/place_reads.h"
 
+#include <algorithm>
+#include <chrono>
+#include <optional>
+
 #include "proto/convert_config.h"
 #include "proto/convert_dynamics.h"
 #include "proto/convert_frame.h"
 #include "proto/convert_result.h"
+#include "proto/status.h"
 
 namespace placedb::server {
 
@@ -83,6 +88,51 @@ Status ReadDynamics(const PlaceMap& map, const v1::GetDynamicsRequest& request,
   const uint64_t end = uint64_t(options->offset) + options->limit;
   response->set_next_offset(end < ranking.ranked() ? uint32_t(end) : 0);
   return Status::Ok();
+}
+
+grpc::Status StreamLoopLog(const std::string& name, const PlaceMap& map,
+                           const v1::WatchLoopClosuresRequest& request,
+                           const std::function<bool(const v1::LoopConstraint&)>& write,
+                           const std::function<grpc::Status()>& stop) {
+  constexpr size_t kReadBatch = 256;
+  // A follower looks at the client and the server's shutdown this often while nothing is found
+  // (a new constraint wakes it at once).
+  constexpr auto kFollowPoll = std::chrono::milliseconds(250);
+  LoopFilter filter;
+  filter.agents.assign(request.agents().begin(), request.agents().end());
+  filter.inter_agent_only = request.inter_agent_only();
+  filter.min_sequence_gap = request.min_sequence_gap();
+  uint64_t next = std::max<uint64_t>(request.from_sequence(), 1);
+  uint64_t delivered = 0;          // the last constraint sent
+  std::optional<uint64_t> marked;  // the last caught_up_to sent
+  const grpc::Status gone(grpc::StatusCode::CANCELLED, "the client went away");
+  v1::LoopConstraint message;
+  while (true) {
+    if (grpc::Status stopped = stop(); !stopped.ok()) return stopped;
+    uint64_t scanned = 0;
+    auto constraints = map.ReadLoops(next, kReadBatch, filter, &scanned);
+    if (!constraints.ok()) return wire::ToGrpc(constraints.status());
+    for (const LoopConstraint& constraint : *constraints) {
+      message.Clear();
+      wire::LoopConstraintToProto(constraint, &message);
+      if (!write(message)) return gone;
+      delivered = constraint.sequence;
+    }
+    next = scanned + 1;
+    if (constraints->size() == kReadBatch) continue;  // more in the log
+    if (!request.follow()) return grpc::Status::OK;
+    if (!marked || scanned > std::max(delivered, *marked)) {
+      message.Clear();
+      message.set_caught_up_to(scanned);
+      if (!write(message)) return gone;
+      marked = scanned;
+    }
+    bool deleted = false;
+    map.WaitForLoops(scanned, std::chrono::steady_clock::now() + kFollowPoll, &deleted);
+    if (deleted) {
+      return grpc::Status(grpc::StatusCode::NOT_FOUND, "map '" + name + "' was deleted");
+    }
+  }
 }
 
 }  // namespace placedb::server

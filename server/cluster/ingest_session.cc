@@ -9,6 +9,7 @@
 
 #include "core/base/text.h"
 #include "core/base/timing.h"
+#include "proto/convert_result.h"
 #include "proto/status.h"
 #include "server/cluster/worker.h"
 
@@ -78,6 +79,7 @@ class ClusterIngestSession final : public IngestSession {
                                                   last_sequence_, Patient(deadline), &found);
     if (!searched.ok()) return searched;
     out->Swap(found.mutable_matches());
+    found_.Set(metadata, LoopConstraintsOf(metadata, wire::MatchesFromProto(*out)));
     return grpc::Status::OK;
   }
 
@@ -93,6 +95,10 @@ class ClusterIngestSession final : public IngestSession {
     if (frame.valid) {
       added.id = PlaceId(*published);
       last_sequence_ = std::max(last_sequence_, *published);
+      const Status logged =
+          PublishLoops(added.id, found_.Take(metadata), message_id, Patient(deadline));
+      if (!logged.ok()) return Completed(logged);
+      added.timings.store_ms += publish.Lap();
     }
     return Completed(std::move(added));
   }
@@ -139,13 +145,31 @@ class ClusterIngestSession final : public IngestSession {
       stored->id = outcome->place;
       last_sequence_ = std::max<uint64_t>(last_sequence_, outcome->place);
     }
-    stored->timings.store_ms = store_ms;
+    std::vector<LoopConstraint> loops = found_.Take(metadata);
+    AddDetectorLoop(*outcome, metadata, &loops);
+    Stopwatch logging;
+    const Status logged = PublishLoops(outcome->place, std::move(loops), message_id, deadline);
+    if (!logged.ok()) return logged;
+    stored->timings.store_ms = store_ms + logging.Lap();
     return outcome;
   }
 
  private:
+  // The frame's loop constraints (its place `place`) as one record after its place's, for every
+  // replica's loop-closure log; the frame's message id + "/loops" de-duplicates a resent frame's.
+  Status PublishLoops(PlaceId place, std::vector<LoopConstraint> loops,
+                      const std::string& message_id, Deadline deadline) {
+    if (loops.empty()) return Status::Ok();
+    for (LoopConstraint& constraint : loops) constraint.query_place = place;
+    const Status published = worker_->PublishLoops(
+        map_->name, loops, message_id.empty() ? message_id : message_id + "/loops", deadline);
+    return published.WithContext("publishing the frame's loop constraints (place " +
+                                 std::to_string(place) + ")");
+  }
+
   ClusterWorker* const worker_;
   const std::shared_ptr<const MapEntry> map_;
+  FoundLoops found_;                   // Search()'s, for the frame's Store() or CloseLoop()
   uint64_t last_sequence_ = 0;         // the stream's last place id: its searches' min_sequence
   std::set<std::string> loop_agents_;  // whose detector this stream has (re)started
 };

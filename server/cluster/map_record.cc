@@ -116,6 +116,14 @@ std::string EncodeCountObservation(PlaceId place, const ProcessedFrame& frame,
   return Serialize(record);
 }
 
+std::string EncodeLoopConstraints(const std::vector<LoopConstraint>& loops) {
+  v1::MapRecord record;
+  v1::LoopConstraints* out = record.mutable_loop_constraints();
+  for (const LoopConstraint& constraint : loops)
+    out->add_constraints(EncodeLoopConstraint(constraint));
+  return Serialize(record);
+}
+
 std::string EncodeInvalidFrame(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                                int64_t now_unix_ns) {
   v1::MapRecord record;
@@ -228,6 +236,17 @@ Result<MapLogRecord> DecodeMapRecord(std::string_view bytes, FeatureType type) {
       out.vocabulary_source.checksum = record.prepare_vocabulary().checksum();
       out.vocabulary_parts = record.prepare_vocabulary().parts();
       return out;
+    case v1::MapRecord::kLoopConstraints: {
+      out.kind = MapLogRecord::Kind::kLoopConstraints;
+      const auto& constraints = record.loop_constraints().constraints();
+      for (int i = 0; i < constraints.size(); ++i) {
+        auto constraint = DecodeLoopConstraint(0, constraints[i]);
+        const std::string field = "loop_constraints.constraints[" + std::to_string(i) + "]";
+        PLACEDB_RETURN_IF_ERROR(Field(constraint.status(), field.c_str()));
+        out.loops.push_back(std::move(constraint).value());
+      }
+      return out;
+    }
     case v1::MapRecord::RECORD_NOT_SET:
       break;
   }

@@ -49,6 +49,9 @@ std::string EncodeCountObservation(PlaceId place, const ProcessedFrame& frame,
 std::string EncodeInvalidFrame(const ProcessedFrame& frame, const PlaceMetadata& metadata,
                                int64_t now_unix_ns = NowUnixNs());
 
+// Issue 32: an ingested frame's loop constraints, query_place set (published after its place).
+std::string EncodeLoopConstraints(const std::vector<LoopConstraint>& loops);
+
 // `bytes` (one stream message) back into the record PlaceMap::ApplyAt takes. `type` is the map's
 // feature type. A decoded AddPlace frame is valid with its SC/DC parts, counts, boxes and
 // thumbnail; an InvalidFrame's reason is in frame.rejection. CORRUPTION as described above.

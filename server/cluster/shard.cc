@@ -101,6 +101,24 @@ class ShardService final : public cv1::Shard::Service {
     if (!map.ok()) return ToGrpc(map.status());
     return ToGrpc(server::ReadDynamics(**map, *request, response));
   }
+  grpc::Status WatchLoopClosures(grpc::ServerContext* context,
+                                 const pv1::WatchLoopClosuresRequest* request,
+                                 grpc::ServerWriter<pv1::LoopConstraint>* writer) override {
+    auto map = impl_->MapOf(request->map());
+    if (!map.ok()) return ToGrpc(map.status());
+    return server::StreamLoopLog(
+        request->map(), **map, *request,
+        [writer](const pv1::LoopConstraint& message) { return writer->Write(message); },
+        [&]() -> grpc::Status {
+          if (context->IsCancelled()) {
+            return grpc::Status(grpc::StatusCode::CANCELLED, "the worker went away");
+          }
+          if (impl_->stopping()) {
+            return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the shard is stopping");
+          }
+          return grpc::Status::OK;
+        });
+  }
   grpc::Status Status(grpc::ServerContext*, const cv1::StatusRequest*,
                       cv1::StatusResponse* response) override {
     response->set_shard_id(shard_id_);

@@ -103,6 +103,10 @@ class Shard::Impl {
   grpc::Status GetVocabulary(grpc::ServerContext* context, const cv1::GetVocabularyRequest& request,
                              grpc::ServerWriter<cv1::VocabularyChunk>* writer);
   Result<std::shared_ptr<PlaceMap>> MapOf(const std::string& map) const EXCLUDES(mutex_);
+  bool stopping() const EXCLUDES(mutex_) {
+    MutexLock lock(mutex_);
+    return stopping_;
+  }
   grpc::Status Checkpoint(const cv1::CheckpointRequest& request,
                           grpc::ServerWriter<cv1::CheckpointChunk>* writer);
   std::vector<ReplicaStatus> StatusOfReplicas() const EXCLUDES(mutex_);

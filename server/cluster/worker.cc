@@ -526,6 +526,12 @@ Status ClusterWorker::CountObservation(const std::string& map, uint32_t place,
   return published.ok() ? Status::Ok() : published.status();
 }
 
+Status ClusterWorker::PublishLoops(const std::string& map, const std::vector<LoopConstraint>& loops,
+                                   const std::string& message_id, Deadline deadline) {
+  auto published = PublishRecord(map, cluster::EncodeLoopConstraints(loops), message_id, deadline);
+  return published.ok() ? Status::Ok() : published.status();
+}
+
 Result<std::vector<std::pair<PlaceId, PlacePayload>>> ClusterWorker::FetchPlaces(
     const std::string& map, const std::vector<PlaceId>& ids, bool features, uint64_t min_sequence,
     Deadline deadline) {
@@ -940,6 +946,107 @@ grpc::Status ClusterWorker::Query(const MapEntry& map, const ProcessedFrame& fra
     }
   }
   return grpc::Status::OK;
+}
+
+grpc::Status ClusterWorker::WatchLoopClosures(
+    const v1::WatchLoopClosuresRequest& request,
+    const std::function<bool(const v1::LoopConstraint&)>& write,
+    const std::function<grpc::Status()>& stop) {
+  auto view = Lookup(request.map(), "map");
+  if (!view.ok()) return ToGrpc(view.status());
+  // Relayed from the most applied live replica. Replicas apply the same records in the same
+  // order and number the constraints alike, so when one fails the next goes on from the last
+  // sequence relayed + 1: nothing missed, nothing twice.
+  v1::WatchLoopClosuresRequest next = request;
+  uint64_t from = std::max<uint64_t>(request.from_sequence(), 1);
+  std::string failed;  // the shard whose stream failed last
+  grpc::Status last;
+  for (int attempt = 0;; ++attempt) {
+    if (grpc::Status stopped = stop(); !stopped.ok()) return stopped;
+    if (attempt > 0) {
+      // Not a spin while every replica is down: a pause that still watches the client.
+      if (!request.follow() && attempt >= 10) return last;
+      for (int i = 0; i < 4; ++i) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+        if (grpc::Status stopped = stop(); !stopped.ok()) return stopped;
+      }
+      retries_->Add({{"call", "WatchLoopClosures"}}).Increment();
+    }
+    auto replicas = Replicas(request.map(), 0);
+    if (!replicas.ok()) {
+      last = ToGrpc(replicas.status());
+      continue;
+    }
+    const Replica* replica = &replicas->front();
+    for (const Replica& other : *replicas) {
+      if (other.shard != failed) {
+        replica = &other;
+        break;
+      }
+    }
+    next.set_from_sequence(from);
+    grpc::ClientContext context;
+    const auto stub = cluster::v1::Shard::NewStub(ChannelTo(replica->address));
+    auto reader = stub->WatchLoopClosures(&context, next);
+    // The relay blocks in Read() while the replica has nothing to send: a watcher cancels it
+    // when the client goes or the server drains.
+    Mutex watch_mutex;
+    CondVar watch_cv;
+    bool relay_done = false;
+    std::atomic<bool> stopped{false};
+    std::thread watcher([&] {
+      MutexLock lock(watch_mutex);
+      while (!relay_done) {
+        if (!stop().ok()) {
+          stopped = true;
+          context.TryCancel();
+          return;
+        }
+        watch_cv.WaitFor(watch_mutex, std::chrono::milliseconds(250));
+      }
+    });
+    v1::LoopConstraint message;
+    bool client_gone = false;
+    while (reader->Read(&message)) {
+      if (message.sequence() != 0) {
+        from = message.sequence() + 1;
+      } else {
+        from = std::max(from, message.caught_up_to() + 1);
+      }
+      if (!write(message)) {
+        client_gone = true;
+        context.TryCancel();
+        break;
+      }
+    }
+    const grpc::Status status = reader->Finish();
+    {
+      MutexLock lock(watch_mutex);
+      relay_done = true;
+    }
+    watch_cv.NotifyAll();
+    watcher.join();
+    if (client_gone) return grpc::Status(grpc::StatusCode::CANCELLED, "the client went away");
+    if (stopped) return stop();
+    if (status.ok()) return status;  // not following: the log's end
+    switch (status.error_code()) {
+      case grpc::StatusCode::UNAVAILABLE:
+      case grpc::StatusCode::DEADLINE_EXCEEDED:
+      case grpc::StatusCode::CANCELLED:  // the shard stopping or restarting
+      case grpc::StatusCode::UNKNOWN:
+      case grpc::StatusCode::INTERNAL:
+        spdlog::warn(
+            "WatchLoopClosures on map '{}': shard '{}' ({}) ended the relay with {}: {}; "
+            "going on from sequence {} on another replica",
+            request.map(), replica->shard, replica->address, int(status.error_code()),
+            ForLog(status.error_message()), from);
+        failed = replica->shard;
+        last = status;
+        continue;
+      default:
+        return status;  // NOT_FOUND (deleted), CORRUPTION, ...
+    }
+  }
 }
 
 grpc::Status ClusterWorker::Snapshots(std::shared_ptr<SnapshotStore>*) {

@@ -26,6 +26,9 @@
 // - Query hits (maps with dynamics.count_query_hits_above): the worker publishes a
 //   CountObservation record after the search, acknowledged before the query's answer.
 // - RecoverMap, ScrubMap and snapshots: UNIMPLEMENTED (the shards own the maps' storage);
+// - WatchLoopClosures: relayed from the most applied replica's log (a frame's constraints travel
+//   as a LoopConstraints record after its place); when that replica's stream fails, from the
+//   next one, from the last sequence relayed + 1;
 //   CreateMap with a vocabulary_policy: FAILED_PRECONDITION (no worker runs the policy).
 // - FetchPlaces / AgentPlaces: loop closure's reads (below), Shard RPCs through OnReplica.
 //
@@ -125,6 +128,9 @@ class ClusterWorker final : public MapBackend {
                      const PlaceMetadata& metadata, const v1::QueryRequest& request,
                      Deadline deadline, v1::QueryResponse* out, StageTimings* timings) override;
   std::unique_ptr<IngestSession> OpenIngest(std::shared_ptr<const MapEntry> map) override;
+  grpc::Status WatchLoopClosures(const v1::WatchLoopClosuresRequest& request,
+                                 const std::function<bool(const v1::LoopConstraint&)>& write,
+                                 const std::function<grpc::Status()>& stop) override;
   grpc::Status Snapshots(std::shared_ptr<SnapshotStore>* store) override;
   grpc::Status CreateSnapshot(const std::string& map, SnapshotInfo* info) override;
   grpc::Status RestoreSnapshot(const v1::RestoreSnapshotRequest& request,
@@ -154,6 +160,11 @@ class ClusterWorker final : public MapBackend {
   Status CountObservation(const std::string& map, uint32_t place, const ProcessedFrame& frame,
                           const PlaceMetadata& metadata, const std::string& message_id,
                           Deadline deadline);
+  // Issue 32: an ingested frame's loop constraints (query_place set) as one LoopConstraints
+  // record for the replicas' loop-closure logs; `message_id` de-duplicates. Acknowledged before
+  // it returns; UNAVAILABLE as Publish.
+  Status PublishLoops(const std::string& map, const std::vector<LoopConstraint>& loops,
+                      const std::string& message_id, Deadline deadline);
   // Loop closure's reads: the BoW vectors of `ids` (and, with `features`, their SC features and
   // direct index), from a replica that has applied `min_sequence` and the highest of them (a
   // place id is its stream sequence). A removed place is absent from the result.

@@ -196,7 +196,7 @@ struct PlaceDbService::Watch {
   }
 
   grpc::ServerContext* const context;
-  const char* const method;  // "Ingest", "DownloadSnapshot", "UploadSnapshot"
+  const char* const method;  // "Ingest", "DownloadSnapshot", "UploadSnapshot", "WatchLoopClosures"
   const std::string peer;
   const Clock::time_point opened;
   Mutex mutex;
@@ -223,10 +223,11 @@ class PlaceDbService::WatchScope {
         return;
       }
       if (service_->watches_.size() >= limit) {
-        status_ = grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                               "limits.max_concurrent_streams = " + std::to_string(limit) +
-                                   " streams (Ingest, snapshot downloads and uploads) are open; "
-                                   "retry later");
+        status_ = grpc::Status(
+            grpc::StatusCode::RESOURCE_EXHAUSTED,
+            "limits.max_concurrent_streams = " + std::to_string(limit) +
+                " streams (Ingest, snapshot downloads and uploads, loop-closure watches) are open; "
+                "retry later");
         return;
       }
       service_->watches_.insert(watch_);

@@ -298,6 +298,9 @@ ParsingService::ParsingService(PlaceDbService* service, const auth::CallAuthoriz
   AddUnary(
       "GetDynamics", &PlaceDbService::GetDynamics, Right::kRead,
       +[](const v1::GetDynamicsRequest& r) { return r.map(); });
+  AddServerStream<v1::WatchLoopClosuresRequest, v1::LoopConstraint>(
+      "WatchLoopClosures", &PlaceDbService::WatchLoopClosuresStream, Right::kRead,
+      +[](const v1::WatchLoopClosuresRequest& r) { return r.map(); });
   AddUnary(
       "GetServerInfo", &PlaceDbService::GetServerInfo, Right::kAny,
       +[](const v1::GetServerInfoRequest&) { return std::string(); });

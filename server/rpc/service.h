@@ -121,6 +121,10 @@ class PlaceDbService final : public v1::PlaceDb::Service {
   grpc::Status DownloadSnapshotStream(grpc::ServerContext* context,
                                       const v1::DownloadSnapshotRequest* request,
                                       const std::function<bool(const v1::SnapshotChunk&)>& write);
+  // WatchLoopClosures (loops.cc), reached through ParsingService like the snapshot streams.
+  grpc::Status WatchLoopClosuresStream(grpc::ServerContext* context,
+                                       const v1::WatchLoopClosuresRequest* request,
+                                       const std::function<bool(const v1::LoopConstraint&)>& write);
   grpc::Status UploadSnapshotStream(
       grpc::ServerContext* context,
       const std::function<grpc::Status(v1::SnapshotChunk*, bool* done)>& read,

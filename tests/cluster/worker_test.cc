@@ -12,11 +12,13 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <functional>
 #include <map>
 #include <memory>
 #include <set>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #include "core/base/thread_annotations.h"
@@ -1122,12 +1124,13 @@ TEST_F(ClusterWorkerTest, LoopClosureOnAWorkerDecidesAsASingleServer) {
   EXPECT_EQ(t.verified, t.loops);
   EXPECT_GT(t.retrieved, 0);
   EXPECT_GT(t.merged, 0);
-  // One record per frame: a place, a merged frame's observation, or an invalid frame.
+  // One record per frame (a place, a merged frame's observation, or an invalid frame), and one
+  // more per accepted loop: its constraint for the replicas' loop-closure logs (issue 32).
   auto js = Js();
   ASSERT_TRUE(js);
   auto info = js->GetStreamInfo(cluster::StreamName("test", "loop"));
   ASSERT_TRUE(info.ok()) << info.status().ToString();
-  EXPECT_EQ(info->last_sequence, uint64_t(kFrames));
+  EXPECT_EQ(info->last_sequence, uint64_t(kFrames + t.loops));
   workers_.clear();  // before the shards it calls
   shards.clear();
 }
@@ -1240,6 +1243,152 @@ TEST_F(ClusterWorkerTest, LoopClosureFailoverReplaysTheAgentsPlacesFromAReplica)
       clustered[1].responses[0].loop_closure().replayed(),
       clustered[1].responses[0].timings().total_ms(), bulk_places,
       replay.responses[0].timings().total_ms(), none.responses[0].timings().total_ms());
+  workers_.clear();
+  shards.clear();
+}
+
+// Issue 32: the loop-closure log in cluster mode. Two agents ingest with matches through one
+// worker while a consumer follows WatchLoopClosures through another; that worker is shut down
+// mid-stream (the consumer resumes through the survivor from its last sequence + 1) and a shard
+// holding a replica is killed (the survivor's relay moves to another replica). Every constraint
+// the Ingest answers announced is delivered exactly once, in order.
+TEST_F(ClusterWorkerTest, LoopClosureLogSurvivesAWorkerAndAReplicaKilled) {
+  FeatureFrames(84);
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(3);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
+  Worker& survivor = StartWorker(1);
+  Worker& doomed = StartWorker(2);
+  ASSERT_TRUE(survivor.stub && doomed.stub);
+  v1::MapConfig config;
+  config.mutable_verification()->set_mode(v1::VERIFICATION_MODE_EXHAUSTIVE);
+  ASSERT_TRUE(CreateClusterMap(survivor, "loops", config).ok());
+
+  // The consumer: follows through a worker from its last sequence + 1 until the stream ends (the
+  // worker goes, or the test cancels `context`). `received` counts constraints for the test's
+  // waits; `consumed` is read once the consumer's thread is joined.
+  std::vector<v1::LoopConstraint> consumed;
+  std::atomic<size_t> received{0};
+  std::atomic<bool> live{false};  // the current stream said it caught up
+  auto follow = [&](Worker& worker, grpc::ClientContext* context) {
+    v1::WatchLoopClosuresRequest request;
+    request.set_map("loops");
+    request.set_follow(true);
+    request.set_from_sequence(consumed.empty() ? 1 : consumed.back().sequence() + 1);
+    context->set_deadline(std::chrono::system_clock::now() + 180s);
+    auto reader = worker.stub->WatchLoopClosures(context, request);
+    v1::LoopConstraint message;
+    while (reader->Read(&message)) {
+      if (message.sequence() == 0) {
+        live = true;
+        continue;
+      }
+      consumed.push_back(message);
+      ++received;
+    }
+    return reader->Finish();
+  };
+  // Waits (at most 60 s: a hang, not a timing) until `done`.
+  auto await = [](const std::function<bool()>& done) {
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    while (!done() && std::chrono::steady_clock::now() < until) {
+      std::this_thread::sleep_for(10ms);
+    }
+    return done();
+  };
+
+  std::map<std::string, std::vector<v1::Observation>> sent;
+  for (int f = 1; f <= 84; ++f) {
+    const std::string agent = f <= 42 ? "a" : "b";  // b comes back to a's start
+    sent[agent].push_back(FeatureObservation(f, agent));
+  }
+  std::map<std::string, IngestOutcome> outcomes = {{"a", {}}, {"b", {}}};
+  v1::MatchOptions matches;
+  matches.set_top_k(3);
+  grpc::ClientContext first_context, second_context;
+  grpc::Status first_stream, second_stream;
+  std::thread consumer, agent_a, agent_b;
+  ::placedb::testing::JoinOnExit join([&] {
+    first_context.TryCancel();
+    second_context.TryCancel();
+  });
+  join.Add(consumer);
+  join.Add(agent_a);
+  join.Add(agent_b);
+  consumer = std::thread([&] { first_stream = follow(doomed, &first_context); });
+  ASSERT_TRUE(await([&] { return live.load(); })) << "the follower never caught up";
+  agent_a = std::thread(
+      [&] { outcomes["a"] = IngestAll(survivor.stub.get(), "loops", sent["a"], &matches); });
+  agent_b = std::thread(
+      [&] { outcomes["b"] = IngestAll(survivor.stub.get(), "loops", sent["b"], &matches); });
+
+  // The consumer's worker goes once it has relayed a few constraints.
+  ASSERT_TRUE(await([&] { return received >= 5; }));
+  doomed.server->Shutdown();
+  consumer.join();
+  EXPECT_NE(first_stream.error_code(), grpc::StatusCode::OK);
+  const size_t before_worker_went = received;
+
+  // Resumed through the survivor; then a shard holding a replica of the map dies.
+  live = false;
+  consumer = std::thread([&] { second_stream = follow(survivor, &second_context); });
+  ASSERT_TRUE(await([&] { return live.load() || received > before_worker_went; }));
+  int killed = -1;
+  for (int i = 0; i < 3 && killed < 0; ++i) {
+    for (const cluster::ReplicaStatus& replica : shards[size_t(i)]->Replicas()) {
+      if (replica.map == "loops") killed = i;
+    }
+  }
+  ASSERT_GE(killed, 0);
+  shards[size_t(killed)].reset();
+  agent_a.join();
+  agent_b.join();
+
+  // What the answers announced: each verified match, keyed (agent, sequence, place, matched). A
+  // frame the shard's death failed (a search cut off) goes again, as its robot would send it.
+  using Key = std::tuple<std::string, uint64_t, uint32_t, uint32_t>;
+  std::multiset<Key> announced;
+  for (const std::string agent : {"a", "b"}) {
+    ASSERT_TRUE(outcomes[agent].status.ok())
+        << agent << ": " << outcomes[agent].status.error_message();
+    auto& responses = outcomes[agent].responses;
+    ASSERT_EQ(responses.size(), sent[agent].size());
+    for (size_t i = 0; i < responses.size(); ++i) {
+      if (!responses[i].has_error()) continue;
+      const IngestOutcome again =
+          IngestAll(survivor.stub.get(), "loops", {sent[agent][i]}, &matches);
+      ASSERT_TRUE(again.status.ok() && again.responses.size() == 1u);
+      responses[i] = again.responses[0];
+    }
+    for (size_t i = 0; i < responses.size(); ++i) {
+      ASSERT_FALSE(responses[i].has_error()) << responses[i].error().message();
+      for (const v1::Match& match : responses[i].matches()) {
+        if (!match.verified()) continue;
+        announced.insert(
+            {agent, sent[agent][i].sequence(), responses[i].place_id(), match.place_id()});
+      }
+    }
+  }
+  ASSERT_FALSE(announced.empty());
+  // Every one arrives (through whichever replica is relayed now), then the consumer stops.
+  EXPECT_TRUE(await([&] { return received >= announced.size(); }))
+      << received << " of " << announced.size() << " constraints";
+  second_context.TryCancel();
+  consumer.join();
+  EXPECT_EQ(second_stream.error_code(), grpc::StatusCode::CANCELLED)
+      << second_stream.error_message();
+
+  std::multiset<Key> logged;
+  size_t inter = 0;
+  for (size_t i = 0; i < consumed.size(); ++i) {
+    const v1::LoopConstraint& c = consumed[i];
+    EXPECT_EQ(c.sequence(), i + 1) << "in order, none missing, none twice";
+    logged.insert({c.query().agent_id(), c.query().sequence(), c.query_place_id(), c.place_id()});
+    inter += c.query().agent_id() != c.place().agent_id();
+  }
+  EXPECT_EQ(logged, announced);
+  EXPECT_GT(inter, 0u);
+  std::printf("cluster_loop_log %zu constraints (%zu inter-agent, %zu before the worker went)\n",
+              consumed.size(), inter, before_worker_went);
   workers_.clear();
   shards.clear();
 }

@@ -380,6 +380,17 @@ TEST_F(AuthTest, EveryRpcTimesEveryCallerGetsTheExactCode) {
   rows["GetDynamics"] = {
       unary(&v1::PlaceDb::Stub::GetDynamics, dynamics, v1::GetDynamicsResponse()),
       {{"read", K}, {"write", P}, {"admin", K}, {"other_map", P}}};
+  rows["WatchLoopClosures"] = {[this](const std::string& authorization) {
+                                 v1::WatchLoopClosuresRequest request;
+                                 request.set_map("campus");
+                                 auto context = Context(authorization);
+                                 auto reader = stub_->WatchLoopClosures(context.get(), request);
+                                 v1::LoopConstraint constraint;
+                                 while (reader->Read(&constraint)) {
+                                 }
+                                 return reader->Finish();
+                               },
+                               {{"read", K}, {"write", P}, {"admin", K}, {"other_map", P}}};
   rows["GetServerInfo"] = {
       unary(&v1::PlaceDb::Stub::GetServerInfo, v1::GetServerInfoRequest(), v1::ServerInfo()),
       {{"read", K}, {"write", K}, {"admin", K}, {"other_map", K}}};

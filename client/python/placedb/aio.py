@@ -58,6 +58,7 @@ from placedb.frames import Frame, ImageLike, to_observation
 from placedb.results import (
     Dynamics,
     IngestResult,
+    LoopConstraint,
     MapDamage,
     MapInfo,
     MapVocabulary,
@@ -323,6 +324,36 @@ class AsyncClient:
             if page.next_before == 0:
                 return
             before = page.next_before
+
+    async def watch_loop_closures(
+        self,
+        map: str,
+        from_sequence: int = 1,
+        follow: bool = False,
+        agents: Iterable[str] = (),
+        inter_agent_only: bool = False,
+        min_sequence_gap: int = 0,
+        timeout: Timeout = None,
+    ) -> AsyncIterator[LoopConstraint]:
+        """As :meth:`placedb.Client.watch_loop_closures`, an async generator."""
+        request = pb.WatchLoopClosuresRequest(
+            map=map,
+            from_sequence=from_sequence,
+            follow=follow,
+            agents=list(agents),
+            inter_agent_only=inter_agent_only,
+            min_sequence_gap=min_sequence_gap,
+        )
+        call = self._stub.WatchLoopClosures(request, **self._options(timeout))
+        try:
+            async for message in call:
+                if message.sequence == 0:
+                    continue  # caught up: nothing to hand over
+                yield LoopConstraint.from_proto(message)
+        except grpc.RpcError as e:
+            raise from_rpc_error(e) from None
+        finally:
+            call.cancel()
 
     async def delete_place(
         self, map: str, place_id: int, timeout: Timeout = CLIENT_TIMEOUT

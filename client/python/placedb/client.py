@@ -24,6 +24,7 @@ from placedb.frames import Camera, Frame, ImageLike, MatchOptions, as_frame, to_
 from placedb.results import (
     Dynamics,
     IngestResult,
+    LoopConstraint,
     MapDamage,
     MapInfo,
     MapVocabulary,
@@ -591,6 +592,50 @@ class Client:
             if page.next_before == 0:
                 return
             before = page.next_before
+
+    def watch_loop_closures(
+        self,
+        map: str,
+        from_sequence: int = 1,
+        follow: bool = False,
+        agents: Iterable[str] = (),
+        inter_agent_only: bool = False,
+        min_sequence_gap: int = 0,
+        timeout: Timeout = None,
+    ) -> Iterator[LoopConstraint]:
+        """The map's loop-closure log from ``from_sequence`` on, in order: every verified match
+        found while ingesting (and every loop an agent's detector accepted), each once, with
+        T_place_query and its information when both frames had cameras (:class:`LoopConstraint`).
+
+        ``follow``: keep waiting for new constraints (each arrives once it is durable, before
+        its frame's Ingest answer); close the generator (or break out of the loop) to stop.
+        After a disconnect, resume with the last ``sequence`` received + 1: nothing is missed or
+        repeated. ``agents``: only constraints with one of these agents on either side;
+        ``inter_agent_only``: only between two agents; ``min_sequence_gap``: within one agent,
+        only frames this many sequence numbers apart (a frame matching its agent's previous
+        frames is odometry, not a loop).
+
+        :class:`NotFound` for an unknown map (or one deleted while followed);
+        :class:`Unavailable` when the server shuts down.
+        """
+        request = pb.WatchLoopClosuresRequest(
+            map=map,
+            from_sequence=from_sequence,
+            follow=follow,
+            agents=list(agents),
+            inter_agent_only=inter_agent_only,
+            min_sequence_gap=min_sequence_gap,
+        )
+        call = self._stub.WatchLoopClosures(request, **self._options(timeout))
+        try:
+            for message in call:
+                if message.sequence == 0:
+                    continue  # caught up: nothing to hand over
+                yield LoopConstraint.from_proto(message)
+        except grpc.RpcError as e:
+            raise from_rpc_error(e) from None
+        finally:
+            call.cancel()
 
     def delete_place(self, map: str, place_id: int, timeout: Timeout = CLIENT_TIMEOUT) -> None:
         """Removes a place durably; its id is never reused (:class:`NotFound` if absent)."""

@@ -289,6 +289,74 @@ class Match:
 
 
 @dataclass(frozen=True)
+class FrameRef:
+    """One side of a :class:`LoopConstraint`: a frame as its agent sent it."""
+
+    agent_id: str
+    sequence: int
+    timestamp_ns: int
+    pose: Optional[Pose]
+
+    @staticmethod
+    def from_proto(message: pb.PlaceMetadata) -> "FrameRef":
+        return FrameRef(
+            agent_id=message.agent_id,
+            sequence=message.sequence,
+            timestamp_ns=message.timestamp_ns,
+            pose=Pose.from_proto(message.pose) if message.HasField("pose") else None,
+        )
+
+
+@dataclass(frozen=True)
+class LoopConstraint:
+    """One entry of a map's loop-closure log (:meth:`placedb.Client.watch_loop_closures`): a
+    verified match found while ingesting, between the ingested frame (``query_place_id``) and
+    an earlier place (``place_id``), with T_place_query when both had cameras."""
+
+    #: The log's position: 1, 2, 3, ... in the order found; resume with ``sequence + 1``.
+    sequence: int
+    #: ``"match"`` (a verified match of Ingest's matches) or ``"loop_closure"`` (the loop the
+    #: agent's Bayesian detector accepted).
+    source: str
+    query_place_id: int
+    #: Rehearsal merged the frame into ``query_place_id``.
+    merged: bool
+    query: FrameRef
+    place_id: int
+    place: FrameRef
+    score: float
+    inliers: int
+    relative_pose: Optional[RelativePose]
+    pose_unavailable: str
+    found_unix_ns: int
+
+    @property
+    def inter_agent(self) -> bool:
+        return self.query.agent_id != self.place.agent_id
+
+    @staticmethod
+    def from_proto(message: pb.LoopConstraint) -> "LoopConstraint":
+        return LoopConstraint(
+            sequence=message.sequence,
+            source=enum_name(pb.LoopSource.DESCRIPTOR, message.source),
+            query_place_id=message.query_place_id,
+            merged=message.merged,
+            query=FrameRef.from_proto(message.query),
+            place_id=message.place_id,
+            place=FrameRef.from_proto(message.place),
+            score=message.score,
+            inliers=message.inliers,
+            relative_pose=(
+                RelativePose.from_proto(message.relative_pose)
+                if message.HasField("relative_pose")
+                else None
+            ),
+            pose_unavailable=message.pose_unavailable,
+            found_unix_ns=message.found_unix_ns,
+        )
+
+
+@dataclass(frozen=True)
 class QueryResult:
     """:meth:`placedb.Client.query`'s answer. Nothing is stored by a query."""
 

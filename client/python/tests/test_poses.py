@@ -106,3 +106,76 @@ def test_a_bad_camera_is_refused_naming_the_field(client: placedb.Client, frames
     with pytest.raises(placedb.InvalidArgument, match=r"observation\.camera\.fx"):
         client.query("bad-camera", frame)
     assert client.get_map("bad-camera").places == 0
+
+
+def test_the_loop_log_streams_every_constraint_once_and_resumes(
+    client: placedb.Client, frames: List[Dict[str, Any]]
+) -> None:
+    """WatchLoopClosures through the SDK: a second agent's verified matches against the first's
+    places are in the map's log with their poses (checked against pose.txt), a reader resumes
+    from a sequence, and a follower receives a constraint found after it started."""
+    settings = placedb.MapSettings(
+        max_features=2000,
+        verification="exhaustive",
+        depth=placedb.DepthSettings(stream_filter=False),
+    )
+    client.create_map("loop-log", settings)
+    camera = placedb.Camera(*INTRINSICS)
+
+    def ingest(agent: str, indices: List[int], top_k: int) -> List[placedb.IngestResult]:
+        results = list(
+            client.ingest(
+                "loop-log",
+                [placedb.Frame(image=frames[i]["gray"], depth=frames[i]["mm"]) for i in indices],
+                agent_id=agent,
+                camera=camera,
+                top_k=top_k,
+                verify=top_k > 0,
+            )
+        )
+        assert all(r.stored for r in results), [r.error or r.rejection for r in results]
+        return results
+
+    first = ingest("robot", [0, 2, 4], top_k=0)
+    frame_of_place = {r.place_id: i for r, i in zip(first, [0, 2, 4])}
+    second = ingest("visitor", [1, 3], top_k=3)
+    frame_of_place.update({r.place_id: i for r, i in zip(second, [1, 3])})
+    announced = [
+        (r.place_id, m.place_id)
+        for r in second
+        for m in r.matches
+        if m.verified
+    ]
+    assert announced
+
+    log = list(client.watch_loop_closures("loop-log", timeout=60))
+    assert [c.sequence for c in log] == list(range(1, len(log) + 1))
+    assert sorted((c.query_place_id, c.place_id) for c in log) == sorted(announced)
+    for c in log:
+        assert c.source == "match" and c.query.agent_id == "visitor"
+        assert c.inter_agent == (c.place.agent_id == "robot")
+        pose = c.relative_pose
+        assert pose is not None and pose.metric, c.pose_unavailable
+        truth = (
+            np.linalg.inv(frames[frame_of_place[c.place_id]]["T_w"])
+            @ frames[frame_of_place[c.query_place_id]]["T_w"]
+        )
+        delta = truth[:3, :3].T @ pose.transform[:3, :3]
+        angle = np.degrees(np.arccos(np.clip((np.trace(delta) - 1) / 2, -1, 1)))
+        assert angle < 2.0, (c.sequence, angle)
+        assert np.linalg.norm(truth[:3, 3] - pose.transform[:3, 3]) < 0.12
+
+    # Resuming after the second constraint gives the rest, nothing twice.
+    assert list(client.watch_loop_closures("loop-log", from_sequence=3, timeout=60)) == log[2:]
+    robot_only = list(client.watch_loop_closures("loop-log", agents=["robot"], timeout=60))
+    assert robot_only == [c for c in log if c.place.agent_id == "robot"]
+
+    # A follower from the log's end gets the next constraint once it is found.
+    follower = client.watch_loop_closures(
+        "loop-log", from_sequence=len(log) + 1, follow=True, timeout=60
+    )
+    later = ingest("third", [2], top_k=1)
+    new = next(follower)
+    follower.close()
+    assert new.sequence == len(log) + 1
+    assert new.query.agent_id == "third" and new.query_place_id == later[0].place_id
