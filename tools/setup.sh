@@ -23,6 +23,7 @@ PACKAGES=(
   libssl-dev openssl  # TLS (server/net/transport_security), tokens (SHA-256, random)
   libturbojpeg0-dev  # strict JPEG decoding (core/decode)
   libjemalloc-dev    # PLACEDB_ALLOCATOR=jemalloc (measured against glibc, tuned: the default)
+  libbz2-dev liblz4-dev  # ROS 1 bag chunks (client/rosbag_reader): bz2 and lz4 (roslz4 = LZ4 frames)
   libspdlog-dev libfmt-dev libcli11-dev libyaml-cpp-dev nlohmann-json3-dev
   libgtest-dev libgmock-dev libbenchmark-dev  # small; CMake configures tests/ and bench/ (unbuilt)
   libnats-dev  # cluster mode's NATS C client (issue 18); without it the server has no cluster roles
@@ -35,6 +36,7 @@ PACKAGES=(
 TEST_PACKAGES=(
   python3-pytest python3-opencv  # the SDK's tests and examples
   python3-rosbag python3-sensor-msgs  # ROS 1 bags (placedb.read_bag; its tests write bags)
+  python3-roslz4  # lz4 bags in tests/recordings (python3-rosbag writes bz2 without it, not lz4)
   chromium python3-websocket  # the web console's browser test (tests/console/browser_test.py)
   clang-format ccache
   clang-14 libclang-rt-14-dev  # CI's -Wthread-safety and libFuzzer stages (tools/test.sh)

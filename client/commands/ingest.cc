@@ -1,8 +1,10 @@
 #include "client/commands/ingest.h"
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
@@ -14,6 +16,7 @@
 #include "client/ingest_stream.h"
 #include "client/progress.h"
 #include "client/queue.h"
+#include "client/recording.h"
 #include "core/base/thread_annotations.h"
 #include "proto/status.h"
 
@@ -245,7 +248,10 @@ void RunAgent(IngestRun& run, size_t i) {
     }
     ++sent;
     *outgoing = std::move(*item);
-    outgoing->observation.set_timestamp_ns(UnixNowNs());
+    // A recording's frames carry their capture times; the others are captured now.
+    if (outgoing->observation.timestamp_ns() == 0) {
+      outgoing->observation.set_timestamp_ns(UnixNowNs());
+    }
     MutexLock lock(run.mutex);
     run.records[outgoing->tag].sent = true;
     return true;
@@ -261,9 +267,56 @@ void RunAgent(IngestRun& run, size_t i) {
   }
 }
 
+// The next frame for the agents: its name, its index in the input and its observation (the image
+// and what the source knows of it: depth, capture time, camera, pose). Returns false at the end
+// (with *error when the input broke off); true with *error when this frame cannot be read.
+using NextFrameFn = std::function<bool(std::string* name, size_t* index,
+                                       v1::Observation* observation, std::string* error)>;
+
+// Frames from folders, lists and videos, with their --depth images.
+NextFrameFn FilesFrames(FrameSource& source, const DepthPlan& depth_plan,
+                        const IngestOptions& options) {
+  return [&source, &depth_plan, &options](std::string* name, size_t* index,
+                                          v1::Observation* observation, std::string* error) {
+    Frame frame;
+    if (!source.Next(&frame, error)) return false;
+    *name = frame.name;
+    *index = frame.index;
+    if (!error->empty()) return true;
+    if (depth_plan.enabled) {
+      v1::DepthImage* depth = observation->mutable_depth();
+      if (frame.index >= depth_plan.paths.size()) {
+        *error = "no depth image for frame " + frame.name;
+        return true;
+      }
+      if (!ReadDepthImage(depth_plan.paths[frame.index], depth, error)) return true;
+      depth->set_scale(options.depth_scale);
+      if (!options.intrinsics.empty()) *depth->mutable_intrinsics() = depth_plan.intrinsics;
+    }
+    observation->mutable_encoded_image()->set_data(std::move(frame.bytes));
+    return true;
+  };
+}
+
+NextFrameFn RecordingFrames(Recording& recording) {
+  return [&recording](std::string* name, size_t* index, v1::Observation* observation,
+                      std::string* error) {
+    RecordedFrame frame;
+    const bool more = recording.Next(&frame, error);
+    if (!more) {
+      *name = recording.description();
+      return false;
+    }
+    *name = frame.name;
+    *index = frame.index;
+    *observation = std::move(frame.observation);
+    return true;
+  };
+}
+
 // The producer: reads frames in order and deals them to the agents round-robin. Returns the
-// frames that could not be read (or had no depth image).
-size_t DealFrames(IngestRun& run, FrameSource& source, const DepthPlan& depth_plan) {
+// frames that could not be read (or had no depth image), and a recording that broke off.
+size_t DealFrames(IngestRun& run, const NextFrameFn& next) {
   const IngestOptions& options = run.options;
   size_t local_errors = 0;
   auto skip = [&](FrameRecord record, const std::string& error) {
@@ -273,35 +326,25 @@ size_t DealFrames(IngestRun& run, FrameSource& source, const DepthPlan& depth_pl
     MutexLock lock(run.mutex);
     run.records.push_back(std::move(record));
   };
-  Frame frame;
   std::string error;
   size_t dealt = 0;
-  while (source.Next(&frame, &error)) {
+  for (;;) {
     FrameRecord record;
-    record.name = frame.name;
+    size_t index = 0;
+    Outgoing outgoing;
+    if (!next(&record.name, &index, &outgoing.observation, &error)) {
+      if (!error.empty()) skip(std::move(record), error);
+      break;
+    }
     if (!error.empty()) {
       skip(std::move(record), error);
       continue;
     }
-    Outgoing outgoing;
-    if (depth_plan.enabled) {
-      v1::DepthImage* depth = outgoing.observation.mutable_depth();
-      if (frame.index >= depth_plan.paths.size() ||
-          !ReadDepthImage(depth_plan.paths[frame.index], depth, &error)) {
-        if (frame.index >= depth_plan.paths.size())
-          error = "no depth image for frame " + frame.name;
-        skip(std::move(record), error);
-        continue;
-      }
-      depth->set_scale(options.depth_scale);
-      if (!options.intrinsics.empty()) *depth->mutable_intrinsics() = depth_plan.intrinsics;
-    }
     const size_t agent = dealt++ % run.agent_ids.size();
     outgoing.observation.set_agent_id(run.agent_ids[agent]);
-    outgoing.observation.set_sequence(options.sequence_start + frame.index);
-    outgoing.observation.mutable_encoded_image()->set_data(std::move(frame.bytes));
+    outgoing.observation.set_sequence(options.sequence_start + index);
     record.agent = run.agent_ids[agent];
-    record.sequence = options.sequence_start + frame.index;
+    record.sequence = options.sequence_start + index;
     {
       MutexLock lock(run.mutex);
       outgoing.tag = run.records.size();
@@ -462,7 +505,8 @@ CLI::App* RegisterIngest(CLI::App& app, IngestOptions* options) {
   ingest->add_option("MAP", options->map, "map name")->required();
   ingest
       ->add_option("SOURCE", options->sources,
-                   "image folders, image lists (.txt), videos or images")
+                   "image folders, image lists (.txt), videos or images; or one recording: a ROS "
+                   "1 bag (.bag) or a TUM RGB-D folder (rgb.txt)")
       ->required();
   ingest
       ->add_option("--agents", options->agents,
@@ -496,8 +540,9 @@ CLI::App* RegisterIngest(CLI::App& app, IngestOptions* options) {
                      "depth images, paired with the frames by file stem (12.jpg -> DIR/12.png, "
                      ".pgm, .tif): 16-bit (millimetres by default) or float32 metres");
   ingest
-      ->add_option("--depth-scale", options->depth_scale,
-                   "metres per depth unit (default: the map's, 0.001 for 16-bit)")
+      ->add_option(
+          "--depth-scale", options->depth_scale,
+          "metres per depth unit (default: the map's, 0.001 for 16-bit; TUM folders: 1/5000)")
       ->check(CLI::Range(1e-6, 100.0));
   ingest->add_option("--intrinsics", options->intrinsics,
                      "colour camera intrinsics fx,fy,cx,cy in pixels (sent with the depth)");
@@ -506,30 +551,148 @@ CLI::App* RegisterIngest(CLI::App& app, IngestOptions* options) {
                      "every place: verified matches then carry their relative pose");
   ingest->add_flag("--loop-closure", options->loop_closure,
                    "Bayesian loop closure per agent: prints each frame's loop or merge");
+  ingest->add_option("--topic", options->topic,
+                     "ROS 1 bag: the colour topic (sensor_msgs/Image or CompressedImage); header "
+                     "stamps become the capture times");
+  ingest->add_option("--depth-topic", options->depth_topic,
+                     "ROS 1 bag: registered depth, 16UC1 / mono16 (mm) or 32FC1 (m) images");
+  ingest->add_option("--camera-info-topic", options->camera_info_topic,
+                     "ROS 1 bag: sensor_msgs/CameraInfo, the frames' camera and depth intrinsics");
+  ingest
+      ->add_option("--max-offset", options->max_offset,
+                   "recordings: seconds between a frame and the depth image (TUM: also the pose "
+                   "sample) paired with it")
+      ->check(CLI::Range(0.0, 10.0))
+      ->capture_default_str();
+  ingest
+      ->add_option("--max-pose-gap", options->max_pose_gap,
+                   "TUM folders: ground-truth samples at most this many seconds apart are "
+                   "interpolated")
+      ->check(CLI::Range(0.0, 60.0))
+      ->capture_default_str();
   return ingest;
 }
 
+namespace {
+
+// A recording as the one SOURCE; null with *error empty when the sources are not a recording.
+std::unique_ptr<Recording> OpenRecording(const IngestOptions& options, std::string* error) {
+  const bool any = std::any_of(options.sources.begin(), options.sources.end(),
+                               [](const std::string& s) { return Recording::IsRecording(s); });
+  if (!any) {
+    if (!options.topic.empty() || !options.depth_topic.empty() ||
+        !options.camera_info_topic.empty()) {
+      *error =
+          "--topic, --depth-topic and --camera-info-topic read a ROS 1 bag: give the .bag "
+          "file as the SOURCE";
+    }
+    return nullptr;
+  }
+  if (options.sources.size() != 1) {
+    *error = "a recording (a ROS bag or a TUM RGB-D folder) is the only SOURCE of an ingest";
+    return nullptr;
+  }
+  if (!options.depth_dir.empty()) {
+    *error =
+        "--depth pairs image files by name; a recording brings its own depth "
+        "(--depth-topic, or a TUM folder's depth.txt)";
+    return nullptr;
+  }
+  if (!options.glob.empty()) {
+    *error = "--glob filters a folder's images; it does not apply to a recording";
+    return nullptr;
+  }
+  RecordingOptions recording;
+  recording.topic = options.topic;
+  recording.depth_topic = options.depth_topic;
+  recording.camera_info_topic = options.camera_info_topic;
+  recording.max_offset_s = options.max_offset;
+  recording.max_pose_gap_s = options.max_pose_gap;
+  recording.depth_scale = options.depth_scale;
+  if (!options.intrinsics.empty()) {
+    v1::Intrinsics intrinsics;
+    if (!ParseIntrinsics(options.intrinsics, &intrinsics, error)) return nullptr;
+    recording.intrinsics = intrinsics;
+  }
+  return Recording::Open(options.sources.front(), recording, error);
+}
+
+// What the recording gave the frames: capture times, depth, cameras and poses.
+nlohmann::json RecordingJson(const Recording& recording) {
+  const RecordingStats& stats = recording.stats();
+  nlohmann::json out = {{"source", recording.description()},
+                        {"frames", stats.frames},
+                        {"first_timestamp_ns", stats.first_ns.value_or(0)},
+                        {"last_timestamp_ns", stats.last_ns.value_or(0)},
+                        {"depth_paired", stats.depth_paired},
+                        {"depth_missing", stats.depth_missing},
+                        {"cameras", stats.cameras},
+                        {"poses", stats.poses},
+                        {"poses_missing", stats.poses_missing},
+                        {"receive_time_stamps", stats.receive_time_stamps}};
+  if (stats.camera_refused > 0) {
+    out["camera_refused"] = {{"frames", stats.camera_refused},
+                             {"distortion_model", stats.refused_model}};
+  }
+  return out;
+}
+
+void PrintRecording(std::ostream& out, const Recording& recording, double max_offset) {
+  const RecordingStats& stats = recording.stats();
+  out << "  captured   " << FormatUnixNs(stats.first_ns.value_or(0)) << " .. "
+      << FormatUnixNs(stats.last_ns.value_or(0)) << "  (" << recording.description() << ")\n";
+  if (stats.depth_paired > 0 || stats.depth_missing > 0) {
+    out << "  paired     " << stats.depth_paired << " with depth, " << stats.depth_missing
+        << " without (none within " << FormatDouble(max_offset, 3) << " s)\n";
+  }
+  if (stats.cameras > 0 || stats.camera_refused > 0) {
+    out << "  camera     " << stats.cameras << " frames from the camera info";
+    if (stats.camera_refused > 0) {
+      out << ", " << stats.camera_refused << " without (distortion model '" << stats.refused_model
+          << "' is not taken)";
+    }
+    out << '\n';
+  }
+  if (stats.poses > 0 || stats.poses_missing > 0) {
+    out << "  poses      " << stats.poses << ", " << stats.poses_missing
+        << " outside the ground truth\n";
+  }
+  if (stats.receive_time_stamps > 0) {
+    out << "  stamps     " << stats.receive_time_stamps
+        << " header stamps of 0: the bag's receive times instead\n";
+  }
+}
+
+}  // namespace
+
 int RunIngest(const Connection& connection, const IngestOptions& options, bool json, CliIo& io) {
   std::string error;
-  std::unique_ptr<FrameSource> source =
-      FrameSource::Open(options.sources, options.video_every, options.glob, &error);
-  if (!source) return UsageError(io, error);
+  std::unique_ptr<Recording> recording = OpenRecording(options, &error);
+  if (!error.empty()) return UsageError(io, error);
+  std::unique_ptr<FrameSource> source;
   DepthPlan depth;
-  if (!PlanDepth(options, *source, &depth, &error)) return UsageError(io, error);
+  if (!recording) {
+    source = FrameSource::Open(options.sources, options.video_every, options.glob, &error);
+    if (!source) return UsageError(io, error);
+    if (!PlanDepth(options, *source, &depth, &error)) return UsageError(io, error);
+  }
   v1::Camera camera;
   if (!options.camera.empty() && !ParseCamera(options.camera, &camera, &error)) {
     return UsageError(io, error);
   }
   if (const int code = CheckMap(connection, options.map, io); code != kExitOk) return code;
 
-  IngestRun run(connection, options, json, io, source->total());
+  const std::optional<size_t> total =
+      recording ? std::optional<size_t>(recording->expected_frames()) : source->total();
+  IngestRun run(connection, options, json, io, total);
   if (!options.camera.empty()) *run.header.mutable_camera() = camera;
   const auto start = Clock::now();
   std::vector<std::thread> threads;
   for (size_t i = 0; i < run.agent_ids.size(); ++i) {
     threads.emplace_back([&run, i] { RunAgent(run, i); });
   }
-  const size_t local_errors = DealFrames(run, *source, depth);
+  const size_t local_errors = DealFrames(
+      run, recording ? RecordingFrames(*recording) : FilesFrames(*source, depth, options));
   for (std::thread& thread : threads) thread.join();
   run.progress.Stop();
   const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
@@ -541,10 +704,14 @@ int RunIngest(const Connection& connection, const IngestOptions& options, bool j
       io.err << "error: agent " << agent << ": " << Describe(status) << '\n';
     }
   }
+  const bool with_depth = depth.enabled || (recording && recording->stats().depth_paired > 0);
   if (json) {
-    io.out << SummaryJson(run, totals, depth.enabled).dump(2) << '\n';
+    nlohmann::json summary = SummaryJson(run, totals, with_depth);
+    if (recording) summary["recording"] = RecordingJson(*recording);
+    io.out << summary.dump(2) << '\n';
   } else {
-    PrintSummary(run, totals, depth.enabled);
+    PrintSummary(run, totals, with_depth);
+    if (recording) PrintRecording(io.out, *recording, options.max_offset);
   }
   return totals.failed ? kExitRpcError : kExitOk;
 }

@@ -1,6 +1,9 @@
 // `placedb ingest MAP SOURCE...`: frames from folders, lists or videos streamed into a map by one
 // or several agents (round-robin), with progress and a summary; optionally with depth images
-// (--depth DIR, paired by file stem) and per-agent loop closure (--loop-closure).
+// (--depth DIR, paired by file stem) and per-agent loop closure (--loop-closure). Or one recording
+// (client/recording.h): a ROS 1 bag (--topic, --depth-topic, --camera-info-topic) or a TUM RGB-D
+// folder, whose frames carry their capture times (and depth, camera, poses) from the recording;
+// other frames are stamped with the wall clock when they are sent.
 #pragma once
 
 #include <string>
@@ -33,6 +36,13 @@ struct IngestOptions {
   std::string intrinsics;     // "fx,fy,cx,cy" ("" = none)
   std::string camera;         // "fx,fy,cx,cy": IngestHeader.camera ("" = none)
   bool loop_closure = false;  // IngestHeader.loop_closure: per-agent Bayesian loop closure
+  // Recordings (a ROS 1 bag or a TUM RGB-D folder as the one SOURCE): the bag's topics, and the
+  // pairing tolerances in seconds.
+  std::string topic;
+  std::string depth_topic;
+  std::string camera_info_topic;
+  double max_offset = 0.02;   // a frame and its depth image (TUM: also its nearest pose)
+  double max_pose_gap = 0.1;  // TUM: ground-truth samples interpolated across at most this
 };
 
 // Adds `ingest` to `app`, its options bound to *options; returns the subcommand.
