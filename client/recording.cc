@@ -74,7 +74,10 @@ bool PackRows(const RosImage& image, size_t bytes_per_pixel, size_t kept, std::s
              std::to_string(image.height) + ")";
     return false;
   }
-  if (image.step < row || image.data.size() < size_t(image.step) * (image.height - 1) + row) {
+  // Each row holds at least a byte, so height and row are bounded by the data: the product below
+  // cannot overflow.
+  if (image.height > image.data.size() || row > image.data.size() || image.step < row ||
+      image.data.size() < size_t(image.step) * (image.height - 1) + row) {
     *error = std::to_string(image.data.size()) + " bytes with step " + std::to_string(image.step) +
              " for " + std::to_string(image.width) + " x " + std::to_string(image.height) + " " +
              image.encoding + " (rows need " + std::to_string(row) + " bytes)";

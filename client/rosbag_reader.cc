@@ -17,8 +17,10 @@ constexpr uint8_t kOpBagHeader = 0x03;
 constexpr uint8_t kOpChunk = 0x05;
 constexpr uint8_t kOpChunkInfo = 0x06;
 constexpr uint8_t kOpConnection = 0x07;
-// A record's header or a chunk larger than this is damage, not data (rosbag's chunks are ~768 KB).
+// A record's header or data larger than this is damage, not data; so is a chunk declaring more
+// than kMaxChunkSize uncompressed (rosbag's chunks are ~768 KB): refused before it is allocated.
 constexpr uint64_t kMaxRecordPart = uint64_t(1) << 31;
+constexpr uint64_t kMaxChunkSize = uint64_t(1) << 30;
 
 uint32_t U32(std::string_view bytes, size_t at) {
   uint32_t value = 0;
@@ -264,6 +266,11 @@ bool BagReader::CheckChunkHeader(const Record& chunk, std::string* error) const 
   const auto compression = chunk.fields.find("compression");
   if (compression == chunk.fields.end() || !chunk.Integer("size", 4, &size)) {
     *error = where + " lacks its compression or size field";
+    return false;
+  }
+  if (size > kMaxChunkSize) {
+    *error = where + " declares " + std::to_string(size) + " bytes uncompressed (at most " +
+             std::to_string(kMaxChunkSize) + " are read)";
     return false;
   }
   if (compression->second != "none" && compression->second != "bz2" &&

@@ -246,6 +246,14 @@ TEST_F(BagFiles, ErrorsNameTheFileAndTheProblem) {
   EXPECT_FALSE(BagReader::Open(Write("zstd.bag", WriteBag(TwoFrames(), "zstd")), &error));
   EXPECT_NE(error.find("compressed with 'zstd'"), std::string::npos) << error;
 
+  // A chunk declaring 2 GiB uncompressed is refused before anything is allocated.
+  std::string huge = WriteBag(TwoFrames(), "bz2");
+  const size_t size_field = huge.find("size=");
+  ASSERT_NE(size_field, std::string::npos);
+  huge.replace(size_field + 5, 4, Le32(0x7FFFFFFF));
+  EXPECT_FALSE(BagReader::Open(Write("huge.bag", huge), &error));
+  EXPECT_NE(error.find("declares 2147483647 bytes uncompressed"), std::string::npos) << error;
+
   EXPECT_FALSE(BagReader::Open(Write("text.bag", "hello\n"), &error));
   EXPECT_NE(error.find("not a ROS 1 bag"), std::string::npos) << error;
 
@@ -286,6 +294,10 @@ TEST_F(BagFiles, FramesCarryTheirStampCameraAndDepth) {
   for (uint16_t v = 1000; v < 1008; ++v) mm += std::string{char(v & 0xFF), char(v >> 8)};
   messages.push_back({"/depth", "sensor_msgs/Image", kStamp + 1'000'000'001,
                       ImageMessage(kStamp + 3'000'000, 4, 2, "16UC1", 8, mm)});
+  // A frame whose size its data cannot hold (the row arithmetic must not overflow).
+  messages.push_back(
+      {"/camera/image_raw", "sensor_msgs/Image", kStamp + 2'500'000'000,
+       ImageMessage(kStamp + 1'500'000'000, 0xFFFFFFFF, 0xFFFFFFFF, "bgr8", 0xFFFFFFFF, "abc")});
   // A frame of an encoding placedb does not read.
   messages.push_back({"/camera/image_raw", "sensor_msgs/Image", kStamp + 3'000'000'000,
                       ImageMessage(kStamp + 2'000'000'000, 2, 2, "yuv422", 4, "abcdefgh")});
@@ -296,7 +308,7 @@ TEST_F(BagFiles, FramesCarryTheirStampCameraAndDepth) {
   std::string error;
   auto recording = Recording::Open(Write("run.bag", WriteBag(messages, "lz4")), options, &error);
   ASSERT_TRUE(recording) << error;
-  EXPECT_EQ(recording->expected_frames(), 3u);
+  EXPECT_EQ(recording->expected_frames(), 4u);
 
   RecordedFrame frame;
   ASSERT_TRUE(recording->Next(&frame, &error));
@@ -320,8 +332,12 @@ TEST_F(BagFiles, FramesCarryTheirStampCameraAndDepth) {
   EXPECT_FALSE(frame.observation.has_depth());  // 1 s from the only depth image
 
   ASSERT_TRUE(recording->Next(&frame, &error));
+  EXPECT_NE(error.find("/camera/image_raw message 2: 3 bytes with step 4294967295"),
+            std::string::npos)
+      << error;
+  ASSERT_TRUE(recording->Next(&frame, &error));
   EXPECT_NE(error.find("encoding 'yuv422'"), std::string::npos) << error;
-  EXPECT_NE(error.find("/camera/image_raw message 2"), std::string::npos) << error;
+  EXPECT_NE(error.find("/camera/image_raw message 3"), std::string::npos) << error;
   EXPECT_FALSE(recording->Next(&frame, &error));
   EXPECT_EQ(error, "");
   EXPECT_EQ(recording->stats().depth_paired, 1u);
