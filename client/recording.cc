@@ -670,8 +670,9 @@ bool ParseSecondsToNs(const std::string& text, int64_t* ns) {
   const auto digits = [](const std::string& s) {
     return std::all_of(s.begin(), s.end(), [](char c) { return c >= '0' && c <= '9'; });
   };
+  // Beyond 9e9 s (year 2255) the nanoseconds would not fit an int64.
   if (whole.empty() || whole.size() > 10 || !digits(whole) || !digits(fraction) ||
-      fraction.size() > 9) {
+      fraction.size() > 9 || std::stoll(whole) >= 9'000'000'000) {
     return false;
   }
   int64_t value = std::stoll(whole) * 1'000'000'000;

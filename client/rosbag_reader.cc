@@ -331,6 +331,8 @@ bool BagReader::ReadIndex(uint64_t index_position, std::string* error) {
     }
   }
   std::sort(chunk_positions_.begin(), chunk_positions_.end());
+  chunk_positions_.erase(std::unique(chunk_positions_.begin(), chunk_positions_.end()),
+                         chunk_positions_.end());
   // Every chunk whole and of a known compression before anything is read from it.
   for (const uint64_t chunk_position : chunk_positions_) {
     if (!ReadRecordAt(chunk_position, &record, error, /*with_data=*/false) ||

@@ -354,6 +354,7 @@ TEST(TumHelpers, TimestampsAreExactAndPosesInterpolated) {
   EXPECT_FALSE(ParseSecondsToNs("1.2.3", &ns));
   EXPECT_FALSE(ParseSecondsToNs("12e3", &ns));
   EXPECT_FALSE(ParseSecondsToNs("", &ns));
+  EXPECT_FALSE(ParseSecondsToNs("9999999999.5", &ns));  // beyond int64 nanoseconds
 
   v1::Pose a, b;
   a.set_qw(1);
