@@ -4,10 +4,13 @@ python3-rosbag (uncompressed, bz2 and lz4 chunks) and a TUM RGB-D folder it writ
 slambook2's real RGB-D frames (../shared/data/slambook2-rgbd), ingested by the real `placedb`
 CLI into a real placedb-server on a loopback port. The places must carry the recordings' capture
 times (header stamps; TUM timestamps), the camera info's camera, and the TUM ground truth's
-poses; bad recordings must be usage errors (exit 2) naming what is wrong.
+poses; bad recordings must be usage errors (exit 2) naming what is wrong. With the Python SDK
+built (PLACEDB_PYTHON_PACKAGE_DIR), the SDK's placedb.read_bag / read_tum must read the same
+recordings into the same capture times, depth pairing, cameras and poses as the CLI.
 
 ctest (tests/CMakeLists.txt, ingest_recordings_test) sets PLACEDB_SERVER_BINARY,
-PLACEDB_CLI_BINARY, PLACEDB_DEFAULT_VOCABULARY and PLACEDB_SHARED_DIR.
+PLACEDB_CLI_BINARY, PLACEDB_DEFAULT_VOCABULARY, PLACEDB_SHARED_DIR and, when the SDK is built,
+PLACEDB_PYTHON_PACKAGE_DIR.
 """
 
 import json
@@ -169,6 +172,44 @@ class Server:
         self.process.wait(timeout=60)
 
 
+def sdk():
+    """The build tree's Python SDK, or None when it is not built."""
+    package_dir = os.environ.get("PLACEDB_PYTHON_PACKAGE_DIR")
+    if not package_dir:
+        return None
+    sys.path.insert(0, package_dir)
+    import placedb
+
+    return placedb
+
+
+def check_same_as_sdk(recording, summary, server, map_name, cameras=True):
+    """The SDK's frames of `recording` (placedb.read_bag / read_tum) against what the CLI stored:
+    capture times, depth pairing, cameras (a bag's camera info; without `cameras` the server
+    derives the places' cameras from the depth's intrinsics) and poses, frame by frame."""
+    frames = list(recording)
+    results = summary["results"]
+    if len(frames) != len(results):
+        fail(f"{recording}: the SDK reads {len(frames)} frames, the CLI sent {len(results)}")
+    stats, cli = recording.stats, summary["recording"]
+    for key in ("depth_paired", "depth_missing", "poses", "poses_missing", "receive_time_stamps"):
+        if getattr(stats, key) != cli[key]:
+            fail(f"{recording}: SDK {key} {getattr(stats, key)}, CLI {cli[key]}")
+    for i, (frame, result) in enumerate(zip(frames, results)):
+        place = server.json(["place", "get", map_name, str(result["place_id"]), "--features"])
+        if int(place["metadata"]["timestamp_ns"]) != frame.timestamp_ns:
+            fail(f"{recording}: frame {i}: CLI stored {place['metadata']['timestamp_ns']}, the "
+                 f"SDK reads {frame.timestamp_ns}")
+        camera = place.get("camera")
+        if cameras and ((frame.camera is None) != (camera is None) or (
+                camera and (camera["fx"], camera["cy"]) != (frame.camera.fx, frame.camera.cy))):
+            fail(f"{recording}: frame {i}: CLI camera {camera}, SDK {frame.camera}")
+        pose = place["metadata"].get("pose")
+        if (frame.pose is None) != (pose is None) or (
+                pose and abs(pose.get("x", 0.0) - frame.pose.x) > 1e-9):
+            fail(f"{recording}: frame {i}: CLI pose {pose}, SDK {frame.pose}")
+
+
 def check_places(server, map_name, summary, expected_stamps, camera=True, poses=None):
     """Every frame stored, its place carrying the frame's capture time (and camera, pose)."""
     results = summary["results"]
@@ -219,6 +260,13 @@ def test_bags(server, root, data):
                 fail(f"{path}: recording.{key} = {recording[key]}, expected {value}: {recording}")
         check_places(server, map_name, summary, expected)
         print(f"ok: {compression} bag: 5 places with the bag's stamps and camera")
+        placedb = sdk()
+        if placedb:
+            check_same_as_sdk(
+                placedb.read_bag(path, "/camera/image_raw", depth_topic="/camera/depth/image_raw",
+                                 camera_info_topic="/camera/camera_info"),
+                summary, server, map_name)
+            print(f"ok: {compression} bag: the SDK's read_bag gives the same frames")
     # The human summary says where the times came from.
     text = server.cli(["ingest", "bag-none", os.path.join(root, "run-none.bag"), "--topic",
                        "/camera/image_raw"]).stdout
@@ -301,6 +349,11 @@ def test_tum(server, root, data):
             fail(f"{folder}: recording.{key} = {recording[key]}, expected {value}: {recording}")
     # Slerp between two equal orientations is that orientation; only x moves.
     check_places(server, "tum", summary, expected, camera=False, poses=expected_poses)
+    placedb = sdk()
+    if placedb:
+        check_same_as_sdk(placedb.read_tum(folder, intrinsics=K), summary, server, "tum",
+                          cameras=False)
+        print("ok: TUM folder: the SDK's read_tum gives the same frames")
     os.remove(os.path.join(folder, "rgb", os.listdir(os.path.join(folder, "rgb"))[0]))
     gone = server.cli(["ingest", "tum", folder], expect=2)
     if "rgb.txt" not in gone.stderr or "does not exist" not in gone.stderr:
