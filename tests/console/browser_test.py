@@ -36,6 +36,8 @@ import urllib.request
 
 SKIP = 77
 FRAMES = 40      # RTAB-Map loop frames 1..40 make the map
+# The RTAB-Map loop's frames are 512x384: a plausible pinhole camera for the office map.
+OFFICE_CAMERA = "410,410,256,192"
 QUERY_FRAME = 23  # a stored frame: its own place must be the top match
 
 
@@ -489,7 +491,7 @@ def main():
             fail("placedb console printed %r" % url)
         placedb("maps", "create", "office", "--thumbnails", "--verify", "direct")
         placedb("ingest", "office", frames, "--glob", "*.jpg", "--agents", "2",
-                "--agent-id", "robot", "--sequence-start", "1")
+                "--agent-id", "robot", "--sequence-start", "1", "--camera", OFFICE_CAMERA)
         if detector:
             street_frames = os.path.join(work, "street")
             os.makedirs(street_frames)
@@ -599,8 +601,11 @@ def main():
                 fail("the street map's places show no thumbnails")
             devtools.screenshot(os.path.join(screenshots, "places-street.png"))
 
-        # Query: upload a stored frame; its own place ranks first.
+        # Query: upload a stored frame with the office's camera; its own place ranks first, and
+        # the verified matches show their relative poses (issue 32).
         devtools.show("#/query")
+        devtools.evaluate("document.getElementById('query-camera').value = %s"
+                          % json.dumps(OFFICE_CAMERA))
         document = devtools.call("DOM.getDocument", depth=-1)
         node = devtools.call("DOM.querySelector", nodeId=document["root"]["nodeId"],
                              selector="#query-file")
@@ -627,6 +632,15 @@ def main():
             "Number(document.querySelector('#query-results .match canvas').dataset.lines)")
         if "verified" not in top or " not verified" in top or not lines:
             fail("the top match is not drawn verified with its inliers (%s lines): %r" % (lines, top))
+        poses = devtools.evaluate(
+            "Array.from(document.querySelectorAll('#query-results .match')).map((m) =>"
+            " { const p = m.querySelector('.pose');"
+            "   return [m.firstElementChild.textContent, p ? p.textContent : null]; })")
+        verified = [p for t, p in poses if "verified" in t and " not verified" not in t]
+        if not any(p and p.startswith("pose: t (") for p in verified) or \
+                any(p is None for p in verified):
+            fail("the verified matches do not show their poses: %r" % poses)
+        print("query: %d verified matches, poses %r" % (len(verified), verified[:2]))
         print("query: top match %s, %d inlier lines drawn" % (top.strip(), lines))
         devtools.screenshot(os.path.join(screenshots, "query.png"))
 

@@ -450,9 +450,33 @@ async function matchCanvas(queryImage, queryWidth, response, map, match) {
   return canvas;
 }
 
+// A verified match's relative pose (issue 32) as the CLI prints it: T_place_query's translation
+// (metres with depth on either side, else a unit direction), its rotation angle, the solver.
+function formatPose(pose) {
+  const t = (pose.transform || []).map(Number);
+  if (t.length !== 16) return "malformed (" + t.length + " transform values)";
+  const cos = Math.min(1, Math.max(-1, (t[0] + t[5] + t[10] - 1) / 2));
+  const degrees = Math.acos(cos) * 180 / Math.PI;
+  return "t (" + [t[3], t[7], t[11]].map((v) => v.toFixed(3)).join(", ") + ")" +
+         (pose.metric ? " m" : " (direction)") + ", " + degrees.toFixed(2) + " deg, " +
+         (pose.solver || "") + ", " + (pose.inliers || 0) + " inliers, rms " +
+         Number(pose.rms_error_px || 0).toFixed(2) + " px";
+}
+
+// "fx,fy,cx,cy" (pixels) as an Observation.camera; null when empty; an Error naming the field
+// when malformed.
+function parseCamera(text) {
+  if (!text.trim()) return null;
+  const values = text.split(",").map((v) => Number(v.trim()));
+  if (values.length !== 4 || values.some((v) => !Number.isFinite(v))) {
+    throw new Error("camera: expected fx,fy,cx,cy (4 numbers, pixels), got '" + text + "'");
+  }
+  return { fx: values[0], fy: values[1], cx: values[2], cy: values[3] };
+}
+
 function timingsTable(timings) {
   const stages = ["queue", "decode", "detect", "refine", "extract", "depth", "filter", "transform",
-                  "search", "verify", "total"];
+                  "search", "verify", "pose", "total"];
   return el("table", { id: "query-timings" },
             el("tr", {}, stages.map((s) => el("th", {}, s))),
             el("tr", {}, stages.map((s) => el("td", { class: "num" },
@@ -484,6 +508,8 @@ async function queryView(view) {
   const topK = el("input", { type: "number", id: "query-top-k", value: "5", min: "1", max: "100" });
   const verifiedOnly = el("input", { type: "checkbox", id: "query-verified-only" });
   const excludeAgent = el("input", { type: "checkbox", id: "query-exclude-agent" });
+  const camera = el("input", { type: "text", id: "query-camera", size: "18",
+                               placeholder: "fx,fy,cx,cy" });
   const drop = el("div", { class: "drop", id: "query-drop" }, "Drop an image here, or ", file);
   const results = el("div", { id: "query-results" });
   let dropped = null;
@@ -523,6 +549,9 @@ async function queryView(view) {
     results.replaceChildren(el("p", { class: "muted" }, "Querying…"));
     const chosen = dropped || file.files[0] || null;
     const observation = { agent_id: "console" };
+    // The query's camera makes each verified match's relative pose (a stored place: its own).
+    const typed = parseCamera(camera.value);
+    if (typed) observation.camera = typed;
     let queryImage = null;
     let queryWidth = 0;
     if (chosen) {
@@ -534,6 +563,7 @@ async function queryView(view) {
                                             include_features: true, include_thumbnail: true });
       if (place.features) observation.features = place.features;
       else if (place.sift_features) observation.sift_features = place.sift_features;
+      if (!observation.camera && place.camera) observation.camera = place.camera;
       if (place.thumbnail && place.thumbnail.jpeg) queryImage = await loadImage(jpegUrl(place.thumbnail.jpeg));
       queryWidth = ((place.features || place.sift_features || {}).image_width) || 640;
     } else {
@@ -560,6 +590,11 @@ async function queryView(view) {
                          match.inliers || 0, match.verified ? " · verified" : " · not verified",
                          " · ", (match.metadata || {}).agent_id || "-", " #",
                          (match.metadata || {}).sequence || 0));
+      if (match.relative_pose) {
+        card.append(el("div", { class: "pose" }, "pose: " + formatPose(match.relative_pose)));
+      } else if (match.verified && match.pose_unavailable) {
+        card.append(el("div", { class: "pose muted" }, "no pose: " + match.pose_unavailable));
+      }
       results.append(card);
       try {
         card.append(await matchCanvas(queryImage, queryWidth, response, map.value, match));
@@ -578,6 +613,8 @@ async function queryView(view) {
                   el("label", {}, "top-k", topK),
                   el("label", {}, "verified only", verifiedOnly),
                   el("label", {}, "exclude own agent", excludeAgent),
+                  el("label", { title: "the query's camera, for relative poses" }, "camera",
+                     camera),
                   el("button", { type: "submit", id: "query-run" }, "Query"));
   view.append(form, legend(), results);
 }
