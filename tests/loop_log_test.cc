@@ -16,6 +16,7 @@
 
 #include "core/storage/map_store.h"
 #include "tests/join_on_exit.h"
+#include "tests/rtabmap_frames.h"
 #include "tests/test_support.h"
 
 namespace placedb {
@@ -23,14 +24,7 @@ namespace {
 
 using testing::DefaultVocabulary;
 
-Observation RtabmapFrame(int index, const std::string& agent) {
-  Observation observation;
-  observation.image = testing::ReadGray(testing::RtabmapFramePath(index));
-  observation.metadata.agent_id = agent;
-  observation.metadata.sequence = uint64_t(index);
-  observation.metadata.timestamp_ns = int64_t(index) * 500'000'000;
-  return observation;
-}
+using testing::RtabmapFrame;
 
 // A constraint of `frame` against `place` (as Ingest's verified matches make them).
 LoopConstraint ConstraintOf(const PlaceMetadata& frame, PlaceId place, const std::string& agent,

@@ -18,6 +18,7 @@
 
 #include "core/base/files.h"
 #include "core/base/timing.h"
+#include "tests/rtabmap_frames.h"
 #include "tests/snapshot_archive.h"
 #include "tests/test_support.h"
 
@@ -26,14 +27,7 @@ namespace fs = std::filesystem;
 namespace placedb {
 namespace {
 
-Observation Frame(int index, const std::string& agent) {
-  Observation observation;
-  observation.image = testing::ReadGray(testing::RtabmapFramePath(index));
-  observation.metadata.agent_id = agent;
-  observation.metadata.sequence = uint64_t(index);
-  observation.metadata.timestamp_ns = int64_t(index) * 500'000'000;
-  return observation;
-}
+using testing::RtabmapFrame;
 
 // A query's ranked answer, by the matched places' (agent, sequence): place ids differ between a
 // map and its rebuilt reference, the frames they hold do not.
@@ -129,7 +123,7 @@ class SnapshotsTest : public ::testing::Test {
     vocabulary_ = testing::DefaultVocabulary();
     ASSERT_TRUE(vocabulary_);
     root_ = testing::MakeTempDir("placedb-snapshots");
-    for (int i = 40; i <= 70; i += 3) queries_.push_back(Frame(i, "query"));
+    for (int i = 40; i <= 70; i += 3) queries_.push_back(RtabmapFrame(i, "query"));
   }
 
   std::unique_ptr<DataDirectory> OpenDir(const std::string& name) {
@@ -156,7 +150,7 @@ class SnapshotsTest : public ::testing::Test {
     auto map = dir->CreateMap(name, {}, vocabulary_);
     EXPECT_TRUE(map.ok()) << map.status().ToString();
     if (!map.ok()) return {};
-    for (int i = 1; i <= count; ++i) EXPECT_TRUE((*map)->Add(Frame(i, "robot")).ok());
+    for (int i = 1; i <= count; ++i) EXPECT_TRUE((*map)->Add(RtabmapFrame(i, "robot")).ok());
     auto info = store->Create(**map, Resolver(vocabulary_));
     EXPECT_TRUE(info.ok()) << info.status().ToString();
     return info.ok() ? *info : SnapshotInfo{};
@@ -201,7 +195,7 @@ TEST_F(SnapshotsTest, SnapshotDuringTwoAgentIngestRestoresThatState) {
   std::atomic<int> added{0};
   auto ingest = [&](const std::string& agent, int first) {
     for (int i = first; i < first + kPerAgent; ++i) {
-      auto result = (*source)->Add(Frame(i, agent));
+      auto result = (*source)->Add(RtabmapFrame(i, agent));
       EXPECT_TRUE(result.ok()) << result.status().ToString();
       ++added;
     }
@@ -240,7 +234,7 @@ TEST_F(SnapshotsTest, SnapshotDuringTwoAgentIngestRestoresThatState) {
     const int last = sequences.empty() ? first - 1 : int(sequences.back());
     std::vector<uint64_t> stored;
     for (int i = first; i <= last; ++i) {
-      auto added = (*reference)->Add(Frame(i, agent));
+      auto added = (*reference)->Add(RtabmapFrame(i, agent));
       ASSERT_TRUE(added.ok()) << added.status().ToString();
       if (added->stored) stored.push_back(uint64_t(i));
     }
@@ -296,7 +290,7 @@ TEST_F(SnapshotsTest, TransferCheckpointsAreVerifiedByTheirReceiver) {
   ASSERT_TRUE(store.ok());
   auto source = dir->CreateMap("lab", {}, vocabulary_);
   ASSERT_TRUE(source.ok()) << source.status().ToString();
-  for (int i = 1; i <= 12; ++i) ASSERT_TRUE((*source)->Add(Frame(i, "robot")).ok());
+  for (int i = 1; i <= 12; ++i) ASSERT_TRUE((*source)->Add(RtabmapFrame(i, "robot")).ok());
   auto sent = (*store)->CreateForTransfer(**source);
   ASSERT_TRUE(sent.ok()) << sent.status().ToString();
   EXPECT_EQ(sent->places, (*source)->Stats().database.places);
@@ -443,7 +437,7 @@ TEST_F(SnapshotsTest, ListDeleteAndRetention) {
   ASSERT_TRUE(map.ok());
   std::vector<std::string> ids;
   for (int i = 1; i <= 3; ++i) {
-    ASSERT_TRUE((*map)->Add(Frame(i, "robot")).ok());
+    ASSERT_TRUE((*map)->Add(RtabmapFrame(i, "robot")).ok());
     auto info = (*store)->Create(**map, Resolver(vocabulary_));
     ASSERT_TRUE(info.ok()) << info.status().ToString();
     EXPECT_EQ(info->places, uint64_t(i));
@@ -646,7 +640,7 @@ TEST_F(SnapshotsTest, RestoreHardLinksTheSnapshotsTablesAndLeavesTheSnapshotWhol
     EXPECT_EQ(shared, total);  // every table of the snapshot is linked, not copied
     // The restored map lives its own life: new places (written, flushed at close), then it is
     // deleted (its names unlinked).
-    for (int i = 30; i <= 40; ++i) ASSERT_TRUE((*first)->Add(Frame(i, "later")).ok());
+    for (int i = 30; i <= 40; ++i) ASSERT_TRUE((*first)->Add(RtabmapFrame(i, "later")).ok());
   }
   dir->CloseMap("first");
   ASSERT_TRUE(dir->DeleteMap("first").ok());

@@ -145,6 +145,18 @@ class ClusterWorkerTest : public ServerTest {
   std::vector<std::unique_ptr<Worker>> workers_;
 };
 
+// The first of `shards` holding a replica of `map` (-1: none).
+int ShardHolding(const std::vector<std::unique_ptr<cluster::Shard>>& shards,
+                 const std::string& map) {
+  for (size_t i = 0; i < shards.size(); ++i) {
+    if (!shards[i]) continue;
+    for (const cluster::ReplicaStatus& replica : shards[i]->Replicas()) {
+      if (replica.map == map) return int(i);
+    }
+  }
+  return -1;
+}
+
 std::vector<v1::Observation> Frames(const std::string& agent, int first, int last) {
   std::vector<v1::Observation> out;
   for (int frame = first; frame <= last; ++frame) out.push_back(RtabmapObservation(frame, agent));
@@ -807,12 +819,7 @@ TEST_F(ClusterWorkerTest, EndToEndWithShardsAndKills) {
   ASSERT_TRUE(leader.ok()) << leader.status().ToString();
   engines_->KillNats(*leader);
   // A shard holding a replica of m1 dies (destroyed: its lease expires, its replicas move).
-  int killed = -1;
-  for (int i = 0; i < 3 && killed < 0; ++i) {
-    for (const cluster::ReplicaStatus& replica : shards[size_t(i)]->Replicas()) {
-      if (replica.map == "m1") killed = i;
-    }
-  }
+  const int killed = ShardHolding(shards, "m1");
   ASSERT_GE(killed, 0);
   shards[size_t(killed)].reset();
   std::this_thread::sleep_for(300ms);
@@ -1332,12 +1339,7 @@ TEST_F(ClusterWorkerTest, LoopClosureLogSurvivesAWorkerAndAReplicaKilled) {
   live = false;
   consumer = std::thread([&] { second_stream = follow(survivor, &second_context); });
   ASSERT_TRUE(await([&] { return live.load() || received > before_worker_went; }));
-  int killed = -1;
-  for (int i = 0; i < 3 && killed < 0; ++i) {
-    for (const cluster::ReplicaStatus& replica : shards[size_t(i)]->Replicas()) {
-      if (replica.map == "loops") killed = i;
-    }
-  }
+  const int killed = ShardHolding(shards, "loops");
   ASSERT_GE(killed, 0);
   shards[size_t(killed)].reset();
   agent_a.join();

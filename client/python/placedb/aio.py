@@ -52,6 +52,7 @@ from placedb.client import (
     list_places_request,
     query_request,
     token_metadata,
+    watch_loop_closures_request,
 )
 from placedb.errors import from_rpc_error
 from placedb.frames import Frame, ImageLike, to_observation
@@ -336,13 +337,8 @@ class AsyncClient:
         timeout: Timeout = None,
     ) -> AsyncIterator[LoopConstraint]:
         """As :meth:`placedb.Client.watch_loop_closures`, an async generator."""
-        request = pb.WatchLoopClosuresRequest(
-            map=map,
-            from_sequence=from_sequence,
-            follow=follow,
-            agents=list(agents),
-            inter_agent_only=inter_agent_only,
-            min_sequence_gap=min_sequence_gap,
+        request = watch_loop_closures_request(
+            map, from_sequence, follow, agents, inter_agent_only, min_sequence_gap
         )
         call = self._stub.WatchLoopClosures(request, **self._options(timeout))
         try:

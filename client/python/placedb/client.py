@@ -225,6 +225,24 @@ def list_places_request(
     return request
 
 
+def watch_loop_closures_request(
+    map: str,
+    from_sequence: int,
+    follow: bool,
+    agents: Iterable[str],
+    inter_agent_only: bool,
+    min_sequence_gap: int,
+) -> pb.WatchLoopClosuresRequest:
+    return pb.WatchLoopClosuresRequest(
+        map=map,
+        from_sequence=from_sequence,
+        follow=follow,
+        agents=list(agents),
+        inter_agent_only=inter_agent_only,
+        min_sequence_gap=min_sequence_gap,
+    )
+
+
 def dynamics_request(
     map: str,
     measure: Optional[str],
@@ -618,13 +636,8 @@ class Client:
         :class:`NotFound` for an unknown map (or one deleted while followed);
         :class:`Unavailable` when the server shuts down.
         """
-        request = pb.WatchLoopClosuresRequest(
-            map=map,
-            from_sequence=from_sequence,
-            follow=follow,
-            agents=list(agents),
-            inter_agent_only=inter_agent_only,
-            min_sequence_gap=min_sequence_gap,
+        request = watch_loop_closures_request(
+            map, from_sequence, follow, agents, inter_agent_only, min_sequence_gap
         )
         call = self._stub.WatchLoopClosures(request, **self._options(timeout))
         try:

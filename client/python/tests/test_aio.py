@@ -30,6 +30,7 @@ MAIN_CALLS = [
     "list_places",
     "iter_places",
     "delete_place",
+    "watch_loop_closures",
     "get_dynamics",
     "server_info",
     "health",
@@ -101,6 +102,23 @@ def test_async_round_trip_matches_the_blocking_client(
 
     _run(delete())
     assert "aio" not in [m.name for m in client.list_maps()]
+
+
+def test_async_loop_closure_log_matches_the_blocking_client(
+    server, client: placedb.Client, rtabmap_frames: List[Path]
+) -> None:
+    frames = rtabmap_frames[:6]
+    client.create_map("aio-loops", placedb.MapSettings(verification="exhaustive"))
+    list(client.ingest("aio-loops", frames, agent_id="a1"))
+    list(client.ingest("aio-loops", frames[:3], agent_id="a2", top_k=3))
+    blocking = list(client.watch_loop_closures("aio-loops"))
+    assert blocking and any(c.inter_agent for c in blocking)
+
+    async def main() -> List[placedb.LoopConstraint]:
+        async with AsyncClient(server.address) as aclient:
+            return [c async for c in aclient.watch_loop_closures("aio-loops")]
+
+    assert _run(main()) == blocking
 
 
 def test_concurrent_async_ingest_streams_from_async_sources(server, client: placedb.Client) -> None:
