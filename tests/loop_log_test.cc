@@ -26,6 +26,14 @@ using testing::DefaultVocabulary;
 
 using testing::RtabmapFrame;
 
+// Agent "r<n>". (Built by appending: GCC 12 at -O3 warns about `"r" + std::to_string(n)`, a
+// false -Wrestrict.)
+std::string Robot(size_t n) {
+  std::string name = "r";
+  name += std::to_string(n);
+  return name;
+}
+
 // A constraint of `frame` against `place` (as Ingest's verified matches make them).
 LoopConstraint ConstraintOf(const PlaceMetadata& frame, PlaceId place, const std::string& agent,
                             uint64_t place_sequence) {
@@ -77,7 +85,7 @@ TEST_F(LoopLogTest, ConcurrentCommitsLogEachPlacesConstraintsInDurableOrder) {
     // 4 callers x 3 frames, 2 constraints each, through the commit queue (group commit).
     std::vector<ProcessedFrame> frames;
     for (int i = 2; i <= 13; ++i) {
-      auto frame = (*map)->Process(RtabmapFrame(i, "r" + std::to_string(i % 4)));
+      auto frame = (*map)->Process(RtabmapFrame(i, Robot(size_t(i) % 4)));
       ASSERT_TRUE(frame.ok());
       frames.push_back(*frame);
     }
@@ -89,7 +97,7 @@ TEST_F(LoopLogTest, ConcurrentCommitsLogEachPlacesConstraintsInDurableOrder) {
     for (int t = 0; t < 4; ++t) {
       callers.emplace_back([&, t] {
         for (size_t i = size_t(t); i < frames.size(); i += 4) {
-          metadata[i].agent_id = "r" + std::to_string((i + 2) % 4);
+          metadata[i].agent_id = Robot((i + 2) % 4);
           metadata[i].sequence = i + 2;
           std::vector<LoopConstraint> found = {ConstraintOf(metadata[i], 1, "base", 1),
                                                ConstraintOf(metadata[i], 1, "base", 1)};
