@@ -484,6 +484,22 @@ Result<std::shared_ptr<PlaceMap>> DataDirectory::OpenLocked(const std::string& n
   }
   const std::string acked_file = (fs::path(path) / kAckedFile).string();
   auto acked = ReadAcked(acked_file);
+  if (acked.ok() && options_.acked_file) {
+    // A read-write open deletes the files its MANIFEST does not name: from a MANIFEST cut short
+    // it would delete the SST files flushed after the cut before the loss could be seen. So what
+    // the map holds is compared with ACKED read-only first; a read-only open that fails is left
+    // to the read-write path below, which names the problem.
+    auto readonly = OpenReadOnly(path, block_cache_, Recovery::kStrict);
+    if (readonly.ok()) {
+      auto contents = ReadContents(**readonly);
+      readonly->reset();
+      if (contents.ok() && FindLoss(*acked, *contents, damage)) {
+        return damaged(where + ": " + LossText(*damage) +
+                       "; the write-ahead log ends early or was deleted (" + WalFiles(path, name) +
+                       ")");
+      }
+    }
+  }
   std::string note;
   auto storage = OpenStorage(path, /*create=*/false, options_, block_cache_, Recovery::kStrict);
   if (!storage.ok()) {
