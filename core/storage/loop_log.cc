@@ -27,6 +27,29 @@ std::optional<uint64_t> SequenceOfKey(const rocksdb::Slice& key) {
   return sequence;
 }
 
+int64_t NowUnixNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+// The last sequence `family` holds (0: none); CORRUPTION for a key that is not a sequence.
+Result<uint64_t> LastSequenceIn(rocksdb::DB* db, rocksdb::ColumnFamilyHandle* family) {
+  std::unique_ptr<rocksdb::Iterator> it(db->NewIterator(rocksdb::ReadOptions(), family));
+  it->SeekToLast();
+  uint64_t last = 0;
+  if (it->Valid()) {
+    auto sequence = SequenceOfKey(it->key());
+    if (!sequence) {
+      return Status::Corruption("the loop log holds a key that is not a sequence (" +
+                                std::to_string(it->key().size()) + " bytes)");
+    }
+    last = *sequence;
+  }
+  PLACEDB_RETURN_IF_ERROR(detail::FromRocks(it->status(), "reading the loop log"));
+  return last;
+}
+
 Json MetadataJson(const PlaceMetadata& metadata) {
   Json j = {{"agent", metadata.agent_id},
             {"sequence", metadata.sequence},
@@ -74,9 +97,7 @@ bool LoopFilter::Accepts(const LoopConstraint& constraint) const {
 
 std::vector<LoopConstraint> LoopConstraintsOf(const PlaceMetadata& frame,
                                               const std::vector<Match>& matches) {
-  const int64_t now = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                          std::chrono::system_clock::now().time_since_epoch())
-                          .count();
+  const int64_t now = NowUnixNs();
   std::vector<LoopConstraint> found;
   for (const Match& match : matches) {
     if (!match.verified) continue;
@@ -108,9 +129,7 @@ void AddDetectorLoop(const LoopClosureOutcome& outcome, const PlaceMetadata& fra
     loop.pose = outcome.loop_pose;
     if (loop.pose) loop.pose->inlier_indices.clear();
     loop.pose_unavailable = outcome.loop_pose_unavailable;
-    loop.found_unix_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                             std::chrono::system_clock::now().time_since_epoch())
-                             .count();
+    loop.found_unix_ns = NowUnixNs();
   }
   for (LoopConstraint& constraint : *found) constraint.merged = outcome.merged;
 }
@@ -180,17 +199,9 @@ Result<std::unique_ptr<LoopLog>> LoopLog::Open(rocksdb::DB* db,
                                                rocksdb::ColumnFamilyHandle* family) {
   uint64_t last = 0;
   if (family) {
-    std::unique_ptr<rocksdb::Iterator> it(db->NewIterator(rocksdb::ReadOptions(), family));
-    it->SeekToLast();
-    if (it->Valid()) {
-      auto sequence = SequenceOfKey(it->key());
-      if (!sequence) {
-        return Status::Corruption("the loop log holds a key that is not a sequence (" +
-                                  std::to_string(it->key().size()) + " bytes)");
-      }
-      last = *sequence;
-    }
-    PLACEDB_RETURN_IF_ERROR(detail::FromRocks(it->status(), "reading the loop log"));
+    auto stored = LastSequenceIn(db, family);
+    if (!stored.ok()) return stored.status();
+    last = *stored;
   }
   return std::unique_ptr<LoopLog>(new LoopLog(db, family, last));
 }
@@ -216,10 +227,7 @@ Status LoopLog::Write(std::vector<LoopConstraint>* constraints, rocksdb::WriteBa
   for (LoopConstraint& constraint : *constraints) constraint.sequence = 0;
   // Numbering goes on after what the database holds: the failed batch's sequences are reused
   // unless it reached the database. Cluster replicas number alike only so.
-  std::unique_ptr<rocksdb::Iterator> it(db_->NewIterator(rocksdb::ReadOptions(), family_));
-  it->SeekToLast();
-  const std::optional<uint64_t> last = it->Valid() ? SequenceOfKey(it->key()) : uint64_t(0);
-  if (it->status().ok() && last) next_ = *last + 1;
+  if (auto last = LastSequenceIn(db_, family_); last.ok()) next_ = *last + 1;
   return written;
 }
 
