@@ -24,8 +24,11 @@
 //   - Essential matrix, monocular: both sides normalised (intrinsics and distortion removed),
 //     cv::findEssentialMat (5-point samples in OpenCV's USAC with MAGSAC++: on the synthetic test
 //     a third of plain RANSAC's rotation error; the threshold in pixels scaled by the focal
-//     length) and cv::recoverPose (the cheirality check): rotation and translation direction;
-//     `metric` is false and the translation has unit length (the scale is unknown).
+//     length) and cv::recoverPose (the cheirality check), then Levenberg-Marquardt on the
+//     inliers' Sampson distances: rotation and translation direction; `metric` is false and the
+//     translation has unit length (the scale is unknown). A pose its own information leaves
+//     loose (`max_rotation_sigma_deg`, `max_direction_sigma_deg`) is refused: too little
+//     parallax for two views to say where the camera went.
 //
 // Convention, once for the whole module:
 //   transform = T_place_query, the 4x4 rigid transform (row-major) that maps a point expressed in
@@ -114,6 +117,13 @@ struct RelativePoseConfig {
   // the keypoint's scale, factor^octave, and scales its inlier threshold alike: a keypoint found
   // on a coarser level is localised that much less precisely (ORB-SLAM's weighting).
   double octave_scale_factor = 1.2;
+  // The essential solver refuses (FAILED_PRECONDITION) a pose whose information leaves the
+  // rotation or the translation's direction more uncertain than this at one sigma (degrees): a
+  // weak two-view geometry. On slambook2's pairs 4-7 degrees apart the information says 0.03-0.06
+  // and 0.4 degrees; the wide pairs it refuses (13-25 degrees, 1-2 m, 57-101 inliers) were 1.2-11
+  // degrees off in rotation and 5-29 in direction (docs/poses.md).
+  double max_rotation_sigma_deg = 0.5;
+  double max_direction_sigma_deg = 2.0;
 };
 
 // INVALID_ARGUMENT naming the field: thresholds and confidence in range, min_inliers >= 5, ...
