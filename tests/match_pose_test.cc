@@ -164,13 +164,13 @@ TEST(MatchPoseTest, RgbdQueriesGetMetricPosesThatMatchTheGroundTruth) {
   }
 }
 
-// Without depth on either side the essential matrix gives rotation and direction. It is good on
-// the close pairs (4-7 degrees, 0.2-0.7 m apart) and weak on the wide ones, as monocular
-// geometry is. Measured before the weak-geometry guard (docs/poses.md): query 2 / place 1 (25
-// deg, 0.4 m) 1.2 deg and 4.9 deg of direction, query 2 / place 5 (10 deg, 1.7 m, 58 inliers)
-// 2.3 and 11 deg, query 4 / place 1 (13 deg, 1.9 m, 57 inliers) 11 and 29 deg; their own
-// information leaves them 2.3-4.9 deg loose in direction, so the solver refuses them and the
-// match says why. The close pairs keep their poses (0.4 deg of direction at one sigma).
+// Without depth on either side the essential matrix gives rotation and direction. Measured
+// (docs/poses.md): the close pairs (4-7 degrees, 0.2-0.7 m apart) within 0.65 degrees and 3.4 of
+// direction; the wide ones are weak as monocular geometry is. Verification with both cameras
+// fits the essential matrix, and from its inliers query 2 / place 5 and query 4 / place 1 are
+// within 1.6 degrees and 5.4 of direction (they were 2.3 / 11 and 11 / 29 from the fundamental
+// matrix's inliers); query 2 / place 1 (25 deg, 0.4 m) is left 4.5 degrees loose in direction
+// by its own information, so the solver refuses it and the match says why.
 TEST(MatchPoseTest, MonocularPlacesAndQueriesGetRotationAndDirection) {
   REQUIRE_SHARED_DATA();
   auto database = MakeDatabase();
@@ -188,12 +188,12 @@ TEST(MatchPoseTest, MonocularPlacesAndQueriesGetRotationAndDirection) {
   for (const PoseError& e : errors) {
     SCOPED_TRACE("query " + std::to_string(e.query_frame) + " place " +
                  std::to_string(e.place_frame));
-    EXPECT_TRUE(close(e.query_frame, e.place_frame)) << "a wide pair kept its monocular pose";
     rotations.push_back(e.rotation_deg);
     directions.push_back(e.direction_deg);
-    close_pairs++;
-    EXPECT_LT(e.rotation_deg, 1.0);
-    EXPECT_LT(e.direction_deg, 6.0);
+    close_pairs += close(e.query_frame, e.place_frame);
+    // Every pose it gives is a usable constraint; the close pairs more so.
+    EXPECT_LT(e.rotation_deg, close(e.query_frame, e.place_frame) ? 1.0 : 2.0);
+    EXPECT_LT(e.direction_deg, close(e.query_frame, e.place_frame) ? 6.0 : 8.0);
   }
   EXPECT_EQ(close_pairs, 3);
   for (const PoseRefusal& r : refusals) {

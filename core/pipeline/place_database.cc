@@ -67,6 +67,12 @@ std::string FeatureTypeLabel(FeatureType type) {
   return label;
 }
 
+// Both images' cameras when both are known: verification then fits the essential matrix.
+VerificationCameras CamerasOf(const ProcessedFrame& frame, const PlacePayload& place) {
+  if (!frame.geometry.camera.has_value() || !place.geometry.camera.has_value()) return {};
+  return {&*frame.geometry.camera, &*place.geometry.camera};
+}
+
 // Verification against a place the short-term tier holds: both frames' SC + DC features, so
 // the objects both saw are evidence. Collected inlier pairs keep only SC-to-SC ones (the indices
 // the frame's static_features and the place's stored features give).
@@ -84,7 +90,7 @@ Result<VerificationResult> VerifyWithObjects(
       MergeDirectIndices(frame.direct, frame.dynamic_direct,
                          uint32_t(frame.static_features.size())),
       *candidate, MergeDirectIndices(place.direct, objects_direct, uint32_t(place.features.size())),
-      config, collect_inliers);
+      config, collect_inliers, CamerasOf(frame, place));
   if (verified.ok() && collect_inliers) {
     std::erase_if(verified->inlier_pairs, [&](const InlierPair& pair) {
       return pair.query >= frame.static_features.size() || pair.candidate >= place.features.size();
@@ -640,8 +646,9 @@ Result<int> PlaceDatabase::VerifyLoop(const ProcessedFrame& frame, PlaceId place
     verification.mode = VerificationMode::kExhaustive;
   }
   const bool want_pose = frame.geometry.camera.has_value();
-  auto verified = VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                                 (*payload)->direct, verification, want_pose);
+  auto verified =
+      VerifyGeometry(frame.static_features, frame.direct, (*payload)->features, (*payload)->direct,
+                     verification, want_pose, CamerasOf(frame, **payload));
   if (!verified.ok()) return verified.status();
   if (verified->inliers >= verification.min_inliers) {
     AttachRelativePose(frame, **payload, verified->inlier_pairs, OctaveScaleFactor(config_), pose);
@@ -988,7 +995,8 @@ QueryResult PlaceDatabase::Search(const ProcessedFrame& frame, const QueryOption
               ? VerifyWithObjects(frame, **payload, *recent_dynamic[i], verification,
                                   collect_inliers)
               : VerifyGeometry(frame.static_features, frame.direct, (*payload)->features,
-                               (*payload)->direct, verification, collect_inliers);
+                               (*payload)->direct, verification, collect_inliers,
+                               CamerasOf(frame, **payload));
       if (verified.ok()) {
         match.inliers = verified->inliers;
         match.verified = verified->verified;

@@ -120,8 +120,9 @@ struct RelativePoseConfig {
   // The essential solver refuses (FAILED_PRECONDITION) a pose whose information leaves the
   // rotation or the translation's direction more uncertain than this at one sigma (degrees): a
   // weak two-view geometry. On slambook2's pairs 4-7 degrees apart the information says 0.03-0.06
-  // and 0.4 degrees; the wide pairs it refuses (13-25 degrees, 1-2 m, 57-101 inliers) were 1.2-11
-  // degrees off in rotation and 5-29 in direction (docs/poses.md).
+  // and 0.4 degrees; on the fundamental matrix's inliers, the wide pairs it refused (13-25
+  // degrees, 1-2 m, 57-101 inliers) were 1.2-11 degrees off in rotation and 5-29 in direction
+  // (docs/poses.md).
   double max_rotation_sigma_deg = 0.5;
   double max_direction_sigma_deg = 2.0;
 };

@@ -328,15 +328,38 @@ std::vector<Match> SelectMatches(const std::vector<NearestTwo<Distance>>& neares
   return matches;
 }
 
+// The essential matrix between two calibrated views (USAC_FAST), its inliers in `mask`; empty
+// when none fits. The threshold is the pixel one over the mean focal length.
+cv::Mat FitEssential(const Camera& query_camera, const Camera& candidate_camera,
+                     const std::vector<cv::Point2f>& query_points,
+                     const std::vector<cv::Point2f>& candidate_points,
+                     const VerificationConfig& config, cv::Mat* mask) {
+  if (query_points.size() < 5) return {};
+  const auto normalised = [](const Camera& camera, const std::vector<cv::Point2f>& points) {
+    std::vector<cv::Point2d> pixels(points.begin(), points.end());
+    return NormalizePixels(camera, pixels);
+  };
+  const std::vector<cv::Point2d> q = normalised(query_camera, query_points);
+  const std::vector<cv::Point2d> c = normalised(candidate_camera, candidate_points);
+  const double focal = (std::sqrt(query_camera.fx * query_camera.fy) +
+                        std::sqrt(candidate_camera.fx * candidate_camera.fy)) /
+                       2;
+  cv::Mat essential =
+      cv::findEssentialMat(q, c, 1.0, cv::Point2d(0, 0), cv::USAC_FAST, config.ransac_confidence,
+                           config.ransac_threshold_px / focal, config.ransac_max_iterations, *mask);
+  if (essential.rows != 3 || essential.cols != 3) return {};
+  return essential;
+}
+
 // The inlier count; `pairs` (optional) receives the inliers themselves. The default path fits
 // with OpenCV's USAC_FAST (LO-RANSAC with SPRT: it stops a hopeless model early and refines the
 // best one); legacy with FM_RANSAC. Measured on CamVid (placedb-bench-verification), USAC_PROSAC
 // with the matches ordered by Hamming distance was as fast but drifted several times more from
 // the legacy inlier counts.
-int CountFundamentalInliers(const std::vector<Keypoint>& query,
-                            const std::vector<Keypoint>& candidate,
-                            const std::vector<Match>& matches, const VerificationConfig& config,
-                            std::vector<InlierPair>* pairs) {
+// With both cameras the model is the essential matrix on undistorted normalised points.
+int CountInliers(const std::vector<Keypoint>& query, const std::vector<Keypoint>& candidate,
+                 const std::vector<Match>& matches, const VerificationConfig& config,
+                 const VerificationCameras& cameras, std::vector<InlierPair>* pairs) {
   if (int(matches.size()) < kMinPointsForFundamental) return 0;
   std::vector<cv::Point2f> query_points;
   std::vector<cv::Point2f> candidate_points;
@@ -369,9 +392,15 @@ int CountFundamentalInliers(const std::vector<Keypoint>& query,
     cv::Mat mask;
     cv::Mat fundamental;
     if (still_count < int(matches.size())) {
-      fundamental = cv::findFundamentalMat(
-          query_points, candidate_points, config.legacy ? int(cv::FM_RANSAC) : int(cv::USAC_FAST),
-          config.ransac_threshold_px, config.ransac_confidence, config.ransac_max_iterations, mask);
+      if (cameras.known() && !config.legacy) {
+        fundamental = FitEssential(*cameras.query, *cameras.candidate, query_points,
+                                   candidate_points, config, &mask);
+      } else {
+        fundamental = cv::findFundamentalMat(
+            query_points, candidate_points, config.legacy ? int(cv::FM_RANSAC) : int(cv::USAC_FAST),
+            config.ransac_threshold_px, config.ransac_confidence, config.ransac_max_iterations,
+            mask);
+      }
     }
     if (fundamental.empty() || mask.empty() || cv::countNonZero(mask) < still_count) {
       if (still_count < kMinPointsForFundamental) return 0;
@@ -412,8 +441,8 @@ Result<VerificationResult> Verify(const std::vector<Keypoint>& query,
                                   const std::vector<Keypoint>& candidate,
                                   const DirectIndex& candidate_direct,
                                   const VerificationConfig& config, bool collect_inliers,
-                                  Distance max_distance, const DistanceFn& distance,
-                                  const FastNearestFn& fast_nearest) {
+                                  const VerificationCameras& cameras, Distance max_distance,
+                                  const DistanceFn& distance, const FastNearestFn& fast_nearest) {
   const auto start = std::chrono::steady_clock::now();
   std::vector<NearestTwo<Distance>> nearest(query.size());
   std::optional<std::vector<NearestTwo<Distance>>> fast;
@@ -461,8 +490,8 @@ Result<VerificationResult> Verify(const std::vector<Keypoint>& query,
   result.matching_ms = ElapsedMs(start);
   const auto fit = std::chrono::steady_clock::now();
   result.putative_matches = int(matches.size());
-  result.inliers = CountFundamentalInliers(query, candidate, matches, config,
-                                           collect_inliers ? &result.inlier_pairs : nullptr);
+  result.inliers = CountInliers(query, candidate, matches, config, cameras,
+                                collect_inliers ? &result.inlier_pairs : nullptr);
   result.verified = result.inliers >= config.min_inliers;
   result.ransac_ms = ElapsedMs(fit);
   return result;
@@ -533,7 +562,8 @@ namespace {
 Result<VerificationResult> VerifyBinary(const FeatureSet& query, const DirectIndex& query_direct,
                                         const FeatureSet& candidate,
                                         const DirectIndex& candidate_direct,
-                                        const VerificationConfig& config, bool collect_inliers) {
+                                        const VerificationConfig& config, bool collect_inliers,
+                                        const VerificationCameras& cameras) {
   if (query.descriptors.size() != query.keypoints.size()) {
     return Status::InvalidArgument("query features: " + std::to_string(query.descriptors.size()) +
                                    " descriptors for " + std::to_string(query.keypoints.size()) +
@@ -547,7 +577,7 @@ Result<VerificationResult> VerifyBinary(const FeatureSet& query, const DirectInd
 
   return Verify<int>(
       query.keypoints, query_direct, candidate.keypoints, candidate_direct, config, collect_inliers,
-      config.max_hamming,
+      cameras, config.max_hamming,
       [&](uint32_t q, uint32_t c) {
         return HammingDistance(query.descriptors[q], candidate.descriptors[c]);
       },
@@ -562,7 +592,8 @@ Result<VerificationResult> VerifyFloat(const FloatFeatureSet& query,
                                        const DirectIndex& query_direct,
                                        const FloatFeatureSet& candidate,
                                        const DirectIndex& candidate_direct,
-                                       const VerificationConfig& config, bool collect_inliers) {
+                                       const VerificationConfig& config, bool collect_inliers,
+                                       const VerificationCameras& cameras) {
   const auto check = [](const FloatFeatureSet& set, const char* which) {
     if (set.descriptors.size() != set.keypoints.size() * size_t(kSiftDimensions)) {
       return Status::InvalidArgument(
@@ -577,7 +608,7 @@ Result<VerificationResult> VerifyFloat(const FloatFeatureSet& query,
   // of the descriptors, the ratio does not).
   return Verify<float>(
       query.keypoints, query_direct, candidate.keypoints, candidate_direct, config, collect_inliers,
-      std::numeric_limits<float>::infinity(),
+      cameras, std::numeric_limits<float>::infinity(),
       [&](uint32_t q, uint32_t c) {
         const float* a = query.descriptor(q).data();
         const float* b = candidate.descriptor(c).data();
@@ -594,16 +625,17 @@ Result<VerificationResult> VerifyGeometry(const LocalFeatures& query,
                                           const DirectIndex& query_direct,
                                           const LocalFeatures& candidate,
                                           const DirectIndex& candidate_direct,
-                                          const VerificationConfig& config, bool collect_inliers) {
+                                          const VerificationConfig& config, bool collect_inliers,
+                                          const VerificationCameras& cameras) {
   PLACEDB_RETURN_IF_ERROR(ValidateVerificationConfig(config));
   if (config.mode == VerificationMode::kDisabled) return VerificationResult{};
   if (query.orb() && candidate.orb()) {
     return VerifyBinary(*query.orb(), query_direct, *candidate.orb(), candidate_direct, config,
-                        collect_inliers);
+                        collect_inliers, cameras);
   }
   if (query.sift() && candidate.sift()) {
     return VerifyFloat(*query.sift(), query_direct, *candidate.sift(), candidate_direct, config,
-                       collect_inliers);
+                       collect_inliers, cameras);
   }
   return Status::InvalidArgument(std::string("cannot verify ") + FeatureTypeName(query.type()) +
                                  " features against " + FeatureTypeName(candidate.type()) +

@@ -5,7 +5,10 @@
 // features that share a direct-index node (kDirectIndex: DBoW2's "level" check, `levels_up`
 // counted from the words, so 0 = same word) or between all features (kExhaustive). A fundamental
 // matrix is then fitted by RANSAC (OpenCV) and the candidate is verified when its inlier count
-// reaches `min_inliers`.
+// reaches `min_inliers`. When both images' cameras are known (VerificationCameras), the model is
+// the essential matrix instead, on undistorted normalised points: 5 degrees of freedom instead of
+// 7, so fewer chance agreements between unrelated images, and lens distortion no longer bends the
+// epipolar lines the threshold is measured from.
 #pragma once
 
 #include <cstdint>
@@ -14,6 +17,7 @@
 
 #include "core/base/status.h"
 #include "core/features/local_features.h"
+#include "core/pose/camera.h"
 #include "core/vocabulary/bow.h"
 
 namespace placedb {
@@ -70,17 +74,26 @@ struct VerificationResult {
   double ransac_ms = 0;
 };
 
+// The cameras of the two images, when the caller knows both (a frame's and a stored place's,
+// issue 32); either missing means the fundamental matrix. Views: the cameras must outlive the
+// call and be valid (Camera::Validate).
+struct VerificationCameras {
+  const Camera* query = nullptr;
+  const Camera* candidate = nullptr;
+  bool known() const { return query != nullptr && candidate != nullptr; }
+};
+
 // Verifies `candidate` against `query` (features of one family: INVALID_ARGUMENT otherwise).
 // Putative matches: ORB by Hamming distance (at most max_hamming), SIFT by L2 distance; both
 // with the ratio test. For kDirectIndex both direct indices must have been built at
 // config.levels_up (INVALID_ARGUMENT otherwise); kExhaustive ignores them. Fewer than 8
 // putative matches means 0 inliers (a fundamental matrix needs 8 points). `collect_inliers`
-// also returns the inlier pairs (to draw them); the count is the same either way.
-Result<VerificationResult> VerifyGeometry(const LocalFeatures& query,
-                                          const DirectIndex& query_direct,
-                                          const LocalFeatures& candidate,
-                                          const DirectIndex& candidate_direct,
-                                          const VerificationConfig& config,
-                                          bool collect_inliers = false);
+// also returns the inlier pairs (to draw them); the count is the same either way. With both
+// `cameras` (and not `legacy`) the fit is an essential matrix (OpenCV's USAC_FAST on undistorted
+// normalised points; the threshold in pixels divided by the mean focal length).
+Result<VerificationResult> VerifyGeometry(
+    const LocalFeatures& query, const DirectIndex& query_direct, const LocalFeatures& candidate,
+    const DirectIndex& candidate_direct, const VerificationConfig& config,
+    bool collect_inliers = false, const VerificationCameras& cameras = {});
 
 }  // namespace placedb
