@@ -9,10 +9,10 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/videoio.hpp>
+#include <opencv2/core.hpp>
 
 #include "client/format.h"
+#include "client/image_io.h"
 #include "core/base/files.h"
 #include "core/base/text.h"
 
@@ -39,12 +39,6 @@ std::string Trim(const std::string& text) {
 
 }  // namespace
 
-bool IsJpegOrPng(const std::string& bytes) {
-  return (bytes.size() >= 3 && uint8_t(bytes[0]) == 0xFF && uint8_t(bytes[1]) == 0xD8 &&
-          uint8_t(bytes[2]) == 0xFF) ||
-         (bytes.size() >= 8 && bytes.compare(0, 8, "\x89PNG\r\n\x1a\n") == 0);
-}
-
 bool ReadImageBytes(const std::string& path, std::string* bytes, std::string* error) {
   auto contents = ReadWholeFile(path);
   if (!contents.ok()) {
@@ -53,19 +47,16 @@ bool ReadImageBytes(const std::string& path, std::string* bytes, std::string* er
   }
   *bytes = std::move(*contents);
   if (IsJpegOrPng(*bytes)) return true;
-  cv::Mat image = cv::imread(path, cv::IMREAD_UNCHANGED);
-  if (image.empty()) {
-    *error = path + " is not an image OpenCV can decode";
-    return false;
-  }
+  cv::Mat image;
+  if (!DecodeImageFileBytes(path, *bytes, ImageRead::kUnchanged, &image, error)) return false;
   if (image.depth() != CV_8U)
     image.convertTo(image, CV_8U, image.depth() == CV_16U ? 1 / 257.0 : 1);
-  std::vector<uint8_t> png;
-  if (!cv::imencode(".png", image, png)) {
-    *error = "cannot re-encode " + path + " as PNG";
+  std::string png;
+  if (!EncodePng(image, &png, error)) {
+    *error = "cannot re-encode " + path + " as PNG: " + *error;
     return false;
   }
-  bytes->assign(png.begin(), png.end());
+  *bytes = std::move(png);
   return true;
 }
 
@@ -96,10 +87,9 @@ bool ReadDepthImage(const std::string& path, v1::DepthImage* depth, std::string*
     depth->set_png16(std::move(bytes));
     return true;
   }
-  const cv::Mat image =
-      cv::imdecode(cv::Mat(1, int(bytes.size()), CV_8U, bytes.data()), cv::IMREAD_UNCHANGED);
-  if (image.empty()) {
-    *error = "depth image " + path + " is not an image OpenCV can decode";
+  cv::Mat image;
+  if (!DecodeImageFileBytes(path, bytes, ImageRead::kUnchanged, &image, error)) {
+    *error = "depth image: " + *error;
     return false;
   }
   if (image.channels() != 1 || (image.depth() != CV_16U && image.depth() != CV_32F)) {
@@ -109,12 +99,12 @@ bool ReadDepthImage(const std::string& path, v1::DepthImage* depth, std::string*
     return false;
   }
   if (image.depth() == CV_16U) {
-    std::vector<uint8_t> encoded;
-    if (!cv::imencode(".png", image, encoded)) {
-      *error = "cannot re-encode depth image " + path + " as 16-bit PNG";
+    std::string encoded;
+    if (!EncodePng(image, &encoded, error)) {
+      *error = "cannot re-encode depth image " + path + " as 16-bit PNG: " + *error;
       return false;
     }
-    depth->set_png16(std::string(encoded.begin(), encoded.end()));
+    depth->set_png16(std::move(encoded));
     return true;
   }
   v1::RawDepth* raw = depth->mutable_raw_float32();
@@ -262,14 +252,17 @@ std::unique_ptr<FrameSource> FrameSource::Open(const std::vector<std::string>& s
       add_image(arg);
       continue;
     }
-    cv::VideoCapture probe(arg);
-    if (!probe.isOpened()) {
-      *error = arg + " is neither a folder, an image list, an image nor a video OpenCV can open";
+    std::string video_error;
+    const std::unique_ptr<VideoReader> probe = VideoReader::Open(arg, &video_error);
+    if (!probe) {
+      *error = HasOpenCvImageIo() ? arg +
+                                        " is neither a folder, an image list, an image nor a "
+                                        "video OpenCV can open"
+                                  : video_error;  // this build reads no videos: it says so
       return nullptr;
     }
-    const double declared = probe.get(cv::CAP_PROP_FRAME_COUNT);
-    if (declared > 0) {
-      total += size_t(std::ceil(declared / source->video_every_));
+    if (const std::optional<double> declared = probe->DeclaredFrames()) {
+      total += size_t(std::ceil(*declared / source->video_every_));
     } else {
       exact = false;
     }
@@ -287,13 +280,13 @@ bool FrameSource::Next(Frame* frame, std::string* error) {
   error->clear();
   while (next_item_ < items_.size() || video_) {
     if (video_) {
-      cv::Mat image;
-      // Skip to the next K-th frame: grab() without decoding the ones in between.
+      // Skip to the next K-th frame without decoding the ones in between.
       while (video_frame_ % video_every_ != 0) {
-        if (!video_->grab()) break;
+        if (!video_->Skip()) break;
         ++video_frame_;
       }
-      if (video_frame_ % video_every_ != 0 || !video_->read(image) || image.empty()) {
+      std::string jpeg, encode_error;
+      if (video_frame_ % video_every_ != 0 || !video_->NextJpeg(&jpeg, &encode_error)) {
         video_.reset();
         continue;
       }
@@ -301,23 +294,22 @@ bool FrameSource::Next(Frame* frame, std::string* error) {
       frame->index = next_index_++;
       frame->name = video_path_ + "#" + std::to_string(number);
       frame->path.clear();
-      std::vector<uint8_t> jpeg;
-      if (!cv::imencode(".jpg", image, jpeg, {cv::IMWRITE_JPEG_QUALITY, 90})) {
+      if (!encode_error.empty()) {
         *error = "cannot encode " + frame->name + " as JPEG";
         frame->bytes.clear();
         return true;
       }
-      frame->bytes.assign(jpeg.begin(), jpeg.end());
+      frame->bytes = std::move(jpeg);
       return true;
     }
     const Item& item = items_[next_item_++];
     if (item.video) {
-      video_ = std::make_unique<cv::VideoCapture>(item.path);
+      std::string open_error;
+      video_ = VideoReader::Open(item.path, &open_error);
       video_path_ = item.path;
       video_frame_ = 0;
-      if (!video_->isOpened()) {
-        video_.reset();
-        *error = "cannot open video " + item.path;
+      if (!video_) {
+        *error = open_error;
         frame->name = item.path;
         frame->path.clear();
         frame->bytes.clear();

@@ -6,7 +6,9 @@
 //   - a video file (anything else OpenCV's VideoCapture opens): every K-th frame, JPEG-encoded;
 //   - a single image file.
 // JPEG and PNG files are sent as their bytes; other image formats are decoded and re-encoded as
-// PNG (the API takes JPEG or PNG).
+// PNG (the API takes JPEG or PNG). Videos and formats other than JPEG and PNG need a build with
+// OpenCV's image I/O (PLACEDB_CLI_OPENCV_IO, client/image_io.h); without it they are refused
+// with a message saying so.
 //
 // Depth images (ingest --depth DIR, query --depth FILE) are paired with colour frames by file
 // stem: for "DIR_C/12.jpg" the depth is "DIR/12.png" (else .pgm, .tif, .tiff). A 16-bit
@@ -20,11 +22,8 @@
 #include <string>
 #include <vector>
 
+#include "client/image_io.h"
 #include "proto/placedb.pb.h"
-
-namespace cv {
-class VideoCapture;
-}
 
 namespace placedb::client {
 
@@ -67,7 +66,7 @@ class FrameSource {
   std::vector<Item> items_;
   size_t next_item_ = 0;
   int video_every_ = 1;
-  std::unique_ptr<cv::VideoCapture> video_;  // the video item being read
+  std::unique_ptr<VideoReader> video_;  // the video item being read
   std::string video_path_;
   long video_frame_ = 0;
   size_t next_index_ = 0;
@@ -76,9 +75,6 @@ class FrameSource {
 
 // Reads an image file as JPEG or PNG bytes (converting other formats). False + *error otherwise.
 bool ReadImageBytes(const std::string& path, std::string* bytes, std::string* error);
-
-// Whether the bytes start like a JPEG or PNG file.
-bool IsJpegOrPng(const std::string& bytes);
 
 // The depth image of a colour frame: DEPTH_DIR/<stem of colour_path> + .png, .pgm, .tif or .tiff
 // (the first that exists). "" + *error ("no depth image for frame ...: looked for ...") when none.

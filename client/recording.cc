@@ -8,11 +8,11 @@
 #include <filesystem>
 #include <fstream>
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <set>
 #include <sstream>
 
 #include "client/frame_source.h"
+#include "client/image_io.h"
 #include "client/rosbag_reader.h"
 #include "core/base/text.h"
 
@@ -193,12 +193,12 @@ bool DepthImage(const BagMessage& message, v1::DepthImage* depth, std::string* e
       row[x] = uint16_t(uint8_t(pixels[at]) | (uint8_t(pixels[at + 1]) << 8));
     }
   }
-  std::vector<uint8_t> png;
-  if (!cv::imencode(".png", mm, png)) {
-    *error = "cannot encode it as a 16-bit PNG";
+  std::string png;
+  if (!EncodePng(mm, &png, error)) {
+    *error = "cannot encode it as a 16-bit PNG: " + *error;
     return false;
   }
-  depth->set_png16(std::string(png.begin(), png.end()));
+  depth->set_png16(std::move(png));
   depth->set_scale(0.001f);
   return true;
 }

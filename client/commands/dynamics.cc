@@ -3,13 +3,13 @@
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <map>
-#include <opencv2/imgcodecs.hpp>
 #include <sstream>
 #include <vector>
 
 #include "client/commands/common.h"
 #include "client/dynamics_chart.h"
 #include "client/format.h"
+#include "client/image_io.h"
 #include "proto/names.h"
 
 namespace placedb::client {
@@ -104,9 +104,10 @@ grpc::Status FetchThumbnails(const Connection& connection, const std::string& ma
     if (!status.ok()) return status;
     const std::string& jpeg = place.thumbnail().jpeg();
     if (jpeg.empty()) continue;
-    cv::Mat decoded = cv::imdecode(
-        cv::Mat(1, int(jpeg.size()), CV_8U, const_cast<char*>(jpeg.data())), cv::IMREAD_COLOR);
-    if (!decoded.empty()) (*thumbnails)[place.place_id()] = decoded;
+    cv::Mat decoded;
+    std::string error;
+    if (DecodeImageBytes(jpeg, ImageRead::kColor, &decoded, &error))
+      (*thumbnails)[place.place_id()] = decoded;
   }
   return grpc::Status::OK;
 }
@@ -131,13 +132,8 @@ int WriteChart(const Connection& connection, const DynamicsFlags& flags,
   if (!fetched.ok()) return RpcFailed(io, fetched);
   const cv::Mat chart =
       DrawDynamicsChart("map '" + flags.map + "'", MeasureName(request), response, thumbnails);
-  bool written = false;
-  try {
-    written = cv::imwrite(flags.png, chart);
-  } catch (const cv::Exception&) {  // e.g. an extension OpenCV has no encoder for
-    written = false;
-  }
-  if (!written) return UsageError(io, "--png: cannot write " + flags.png);
+  std::string error;
+  if (!WriteImageFile(flags.png, chart, &error)) return UsageError(io, "--png: " + error);
   return kExitOk;
 }
 

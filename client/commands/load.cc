@@ -8,12 +8,12 @@
 #include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <thread>
 
 #include "client/commands/common.h"
 #include "client/format.h"
 #include "client/frame_source.h"
+#include "client/image_io.h"
 #include "client/ingest_stream.h"
 #include "client/loopback.h"
 #include "client/progress.h"
@@ -180,12 +180,11 @@ bool MakeTemplates(const LoadOptions& options, const LoadMap& map,
       continue;
     }
     const std::string& bytes = (*encoded)[i];
-    cv::Mat gray =
-        cv::imdecode(cv::Mat(1, int(bytes.size()), CV_8U, const_cast<char*>(bytes.data())),
-                     cv::IMREAD_GRAYSCALE);
+    cv::Mat gray;
+    std::string decode_error;
     const Status extracted =
-        gray.empty()
-            ? Status::InvalidArgument("undecodable")
+        !DecodeImageBytes(bytes, ImageRead::kGray, &gray, &decode_error)
+            ? Status::InvalidArgument("undecodable: " + decode_error)
             : load_feature_extractor(gray, config.orb(), (*templates)[i].mutable_features());
     if (!extracted.ok()) {
       io.err << "error: extracting features of source frame " << i << ": " << extracted.ToString()
