@@ -13,10 +13,14 @@
 # (PLACEDB_TLS_CERT_FILE, PLACEDB_TLS_KEY_FILE, PLACEDB_TOKENS_FILE below; a mounted Secret or the
 # volume placedb-init-secrets fills): without them it refuses to start. deploy/README.md.
 #
-# Stage 1 ("build") installs the Debian packages tools/setup.sh lists, builds Release, trains the
-# default vocabulary on Debian's sample images (opencv-doc, darknet) and lists the runtime
-# libraries the binaries need. Stage 2 is bookworm-slim with those libraries, the binaries, the
-# vocabulary, the optional detector model and a non-root user.
+# Stage "runtime-base" is bookworm-slim plus openssl (placedb-init-secrets). Stage "build"
+# installs the Debian packages tools/setup.sh lists, builds Release (the CLI without OpenCV's
+# image and video I/O: JPEG and PNG only, -DPLACEDB_CLI_OPENCV_IO=OFF), trains the default
+# vocabulary on Debian's sample images (opencv-doc, darknet) and copies the shared libraries the
+# binaries load (their ldd closure, minus what runtime-base has) out of the Debian packages.
+# Stage "runtime" is runtime-base with those libraries, the binaries, the vocabulary, the optional
+# detector model and a non-root user: no lib package is installed there, so none of their
+# dependencies (Mesa, LLVM, GDAL, FFmpeg, ... through Debian's OpenCV) comes with them.
 #
 # Build arguments:
 #   BASE_IMAGE  base of both stages (debian:bookworm-slim; deploy/test-image.sh substitutes a
@@ -28,6 +32,15 @@
 #   REQUIRE_CLI 1 (default): fail when the `placedb` CLI target is missing (the HEALTHCHECK uses
 #               it); 0: build without it (the HEALTHCHECK then reports unhealthy)
 ARG BASE_IMAGE=debian:bookworm-slim
+
+# ---------------------------------------------------------------------------------------------
+# The runtime's Debian packages: the base and openssl (placedb-init-secrets makes the CA and the
+# server certificate with it). The build stage copies only the libraries this stage lacks.
+FROM ${BASE_IMAGE} AS runtime-base
+ARG DEBIAN_FRONTEND=noninteractive
+RUN apt-get update -q \
+ && apt-get install -y -q --no-install-recommends openssl \
+ && rm -rf /var/lib/apt/lists/*
 
 # ---------------------------------------------------------------------------------------------
 FROM ${BASE_IMAGE} AS build
@@ -49,8 +62,11 @@ ARG MODELS=var/models
 ARG REQUIRE_CLI=1
 COPY . /src
 WORKDIR /src
+# The CLI reads JPEG and PNG only (PLACEDB_CLI_OPENCV_IO=OFF): OpenCV's imgcodecs and videoio
+# would bring GDAL, PROJ, HDF5, Poppler, FFmpeg and GStreamer (~230 MB); it refuses videos and
+# other image formats with a message saying so.
 RUN cmake -S . -B /build -G Ninja -DCMAKE_BUILD_TYPE=Release \
-      -DPLACEDB_BUILD_TESTS=OFF -DPLACEDB_BUILD_BENCH=OFF \
+      -DPLACEDB_BUILD_TESTS=OFF -DPLACEDB_BUILD_BENCH=OFF -DPLACEDB_CLI_OPENCV_IO=OFF \
  && targets="placedb-server placedb-vocab placedb-sift-vocab" \
  && if ninja -C /build -t targets all | grep -q '^placedb: '; then \
       targets="$targets placedb"; \
@@ -68,11 +84,13 @@ RUN cmake -S . -B /build -G Ninja -DCMAKE_BUILD_TYPE=Release \
       install -s -m 755 "$bin" /out/usr/local/bin/"$t"; \
     done
 
-# The default vocabulary (Debian sample images only; a fixed seed, so reproducible).
+# The default vocabulary (Debian sample images only; a fixed seed, so reproducible). The
+# vocabulary tools are build-time only: they read images and videos through OpenCV's imgcodecs
+# and videoio, which the runtime does not carry.
 RUN tools/build_default_vocabulary.sh /out/usr/local/bin/placedb-vocab \
       /out/usr/share/placedb/vocabulary/default.pdbv \
  && /out/usr/local/bin/placedb-sift-vocab --out /out/usr/share/placedb/vocabulary/sift.pdbfv \
- && rm /out/usr/local/bin/placedb-sift-vocab
+ && rm /out/usr/local/bin/placedb-sift-vocab /out/usr/local/bin/placedb-vocab
 
 # The detector model, when the context has one; the image's config points at it.
 RUN mkdir -p /out/usr/share/placedb/models /out/etc/placedb \
@@ -93,27 +111,23 @@ RUN mkdir -p /out/usr/share/placedb/models /out/etc/placedb \
       echo "Dockerfile: no detector model in '$MODELS': server-side detection will be off"; \
     fi
 
-# The runtime packages: the owners of the libraries the binaries link directly (a build with
-# -DPLACEDB_ALLOCATOR=jemalloc or mimalloc gets libjemalloc2 / libmimalloc2.0 this way).
-RUN deploy/docker/runtime-packages.sh /out/usr/local/bin/* > /out/runtime-packages.txt \
- && echo "Dockerfile: runtime packages:" $(cat /out/runtime-packages.txt)
+# The shared libraries the binaries load (ldd: the whole closure) that runtime-base does not
+# have, copied from the packages installed here with their copyright files and a manifest
+# (/usr/share/doc/placedb/runtime-libraries.txt: package, version, file). A build with
+# -DPLACEDB_ALLOCATOR=jemalloc or mimalloc gets libjemalloc / libmimalloc this way.
+COPY --from=runtime-base /var/lib/dpkg/status /tmp/runtime-dpkg-status
+RUN deploy/docker/runtime-libraries.sh /tmp/runtime-dpkg-status /out /out/usr/local/bin/*
 
 # ---------------------------------------------------------------------------------------------
-FROM ${BASE_IMAGE} AS runtime
-ARG DEBIAN_FRONTEND=noninteractive
-COPY --from=build /out/runtime-packages.txt /tmp/runtime-packages.txt
-# openssl: placedb-init-secrets makes the CA and the server certificate with it.
-RUN apt-get update -q \
- && xargs -a /tmp/runtime-packages.txt apt-get install -y -q --no-install-recommends openssl \
- && rm -rf /var/lib/apt/lists/* /tmp/runtime-packages.txt
-
+FROM runtime-base AS runtime
 COPY --from=build /out/usr /usr
 COPY --from=build /out/etc/placedb /etc/placedb
 # The secrets' one-shot maker (Compose's placedb-secrets service) and the health check.
 COPY deploy/docker/init-secrets.sh /usr/local/bin/placedb-init-secrets
 COPY deploy/docker/healthcheck.sh /usr/local/bin/placedb-healthcheck
-# Every binary resolves every library (a missing runtime package fails the build, not a pod).
+# Every binary resolves every library (a missing one fails the build, not a pod).
 RUN chmod 755 /usr/local/bin/placedb-init-secrets /usr/local/bin/placedb-healthcheck \
+ && ldconfig \
  && for b in /usr/local/bin/placedb*; do \
       if ldd "$b" | grep 'not found'; then echo "Dockerfile: $b misses libraries" >&2; exit 1; fi; \
     done \
