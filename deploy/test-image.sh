@@ -2,7 +2,7 @@
 # Builds the placedb container image without a Docker engine and tests what it ships.
 #
 #   deploy/test-image.sh [--cache DIR] [--models DIR] [--build-arg K=V]... [--context DIR] [--keep]
-#                        [--timeout SECONDS]
+#                        [--timeout SECONDS] [--compose]
 #
 #  1. base: `debootstrap --variant=minbase bookworm` from this machine's own apt mirror (read
 #     from /etc/apt/sources.list{,.d}), made to look like
@@ -31,6 +31,13 @@
 #     evaluates and the ingest rate is non-zero; SIGTERM shuts down cleanly (exit 0); a restart on
 #     the same data directory (the VOLUME) finds every place; the data belongs to the image's
 #     non-root user.
+#  6. with --compose: `podman-compose up -d` of deploy/compose.yaml for real, with the image just
+#     built: placedb-secrets makes the secrets and prints the admin token, placedb turns healthy
+#     (its HEALTHCHECK), the image's CLI ingests and queries through the published port (TLS, the
+#     printed admin token), Prometheus (Debian's package built into an image on the same base,
+#     deploy/testing/prometheus.Dockerfile, over compose.yaml's by deploy/testing/compose.test.yaml:
+#     no registry is reachable) scrapes placedb by its service name over HTTPS, then `down -v`.
+#     Grafana is left out (no Debian package, no registry): the run says so.
 #
 # Needs root (debootstrap, chroot, mounts, podman) and reaches only the host's apt mirrors (packages)
 # and 127.0.0.1. Installs podman, debootstrap, prometheus, python3-grpcio, python3-protobuf,
@@ -47,6 +54,9 @@
 #   --context DIR    build context (default: this checkout)
 #   --keep           keep the work directory (logs, rootfs) and print where it is
 #   --timeout SEC    give up after this long in all (default 5400)
+#   --compose        also run deploy/compose.yaml with podman-compose (step 6); installs
+#                    podman-compose, runc (crun refuses hybrid cgroup hierarchies) and the CNI
+#                    dnsname plugin (service names resolve inside the Compose network)
 set -euo pipefail
 
 here="$(cd "$(dirname "$0")" && pwd)"
@@ -56,6 +66,7 @@ models="var/models"
 cache=""
 keep=0
 timeout_s=5400
+compose=0
 original_args=("$@")
 extra_build_args=()
 
@@ -73,7 +84,8 @@ while (($#)); do
     --context) context="$(cd "$2" && pwd)"; shift 2 ;;
     --keep) keep=1; shift ;;
     --timeout) timeout_s="$2"; shift 2 ;;
-    -h | --help) sed -n '2,52p' "$0"; exit 0 ;;
+    --compose) compose=1; shift ;;
+    -h | --help) sed -n '2,62p' "$0"; exit 0 ;;
     *) echo "test-image: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -92,8 +104,10 @@ fi
 
 # ---- packages ----------------------------------------------------------------------------------
 need=()
-for pkg in podman debootstrap prometheus python3-grpcio python3-protobuf protobuf-compiler curl \
-  opencv-doc; do
+packages=(podman debootstrap prometheus python3-grpcio python3-protobuf protobuf-compiler curl
+  opencv-doc)
+((compose)) && packages+=(podman-compose runc golang-github-containernetworking-plugin-dnsname)
+for pkg in "${packages[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || need+=("$pkg")
 done
 if ((${#need[@]})); then
@@ -125,6 +139,7 @@ pm() { podman "${podman_global[@]}" "$@"; }
 server_pid=""   # the unshare wrapper of the server (its child is the server, PID 1 inside)
 prom_pid=""
 container=""
+compose_cmd=()  # podman-compose with the test's files, once the Compose stack is started
 image="localhost/placedb:test"
 base_image="localhost/debian:bookworm-slim"
 
@@ -133,6 +148,10 @@ cleanup() {
   set +e
   [[ -n "$server_pid" ]] && kill -KILL "$server_pid" 2>/dev/null && wait "$server_pid" 2>/dev/null
   [[ -n "$prom_pid" ]] && kill -TERM "$prom_pid" 2>/dev/null && wait "$prom_pid" 2>/dev/null
+  if ((${#compose_cmd[@]})); then
+    timeout 180 "${compose_cmd[@]}" down -v >>"$work/compose.log" 2>&1
+    pm network rm -f "${compose_project}_default" >/dev/null 2>&1
+  fi
   for m in "$rootfs/proc" "$rootfs/dev"; do
     if mountpoint -q "$m"; then umount "$m" 2>/dev/null || umount -l "$m"; fi
   done
@@ -288,7 +307,7 @@ for attempt in 1 2 3; do
   die "podman build (whole log: /var/tmp/placedb-test-image-build.log)"
 done
 # (Nothing matches when every layer came from the cache: not an error.)
-{ grep -E '^(STEP [0-9]+/[0-9]+: FROM|Dockerfile:)' "$work/build.log" || true; } | sed 's/^/  /'
+{ grep -E '^(STEP [0-9]+/[0-9]+: FROM|Dockerfile:|runtime-libraries:)' "$work/build.log" || true; } | sed 's/^/  /'
 say "image $image: $(pm image inspect --format '{{.Size}}' "$image" |
   awk '{ printf "%.0f MB", $1 / 1e6 }')"
 
@@ -788,6 +807,170 @@ places="$(count_places)"
   die "after a restart the map has $places places, not $places_before"
 say "after restart: map imagetest has $places places, as before"
 stop_server "$pid" || die "exit status $? after SIGTERM (expected 0)"
+
+# ---- 6. Compose ----------------------------------------------------------------------------------
+if ((compose)); then
+  phase "compose: podman-compose up + checks + down"
+  compose_dir="$work/compose"
+  mkdir -p "$compose_dir"
+  # Containers run with runc (crun refuses hybrid cgroup hierarchies; runc runs on v1, hybrid
+  # and v2) and with resource limits this session may set: podman's defaults (open files
+  # 1048576, ...) are refused where raising limits is not allowed (no CAP_SYS_RESOURCE, some
+  # sandboxes), so the first of these settings under which a container starts is used.
+  # podman-compose runs `podman`: the wrapper gives it the test's storage and these settings.
+  {
+    printf '#!/bin/sh\nexport CONTAINERS_CONF=%q\nexec podman' "$compose_dir/containers.conf"
+    printf ' %q' "${podman_global[@]}" --runtime runc
+    printf ' "$@"\n'
+  } >"$compose_dir/podman"
+  chmod 755 "$compose_dir/podman"
+  cpm() { "$compose_dir/podman" "$@"; }
+  nofile="$(ulimit -Hn)"
+  [[ "$nofile" == unlimited ]] && nofile=1048576
+  started=""
+  for limits in "" "\"nofile=$nofile:$nofile\"" "\"nofile=$nofile:$nofile\", \"nproc=32768:32768\"" \
+    "\"nofile=$nofile:$nofile\", \"nproc=4096:4096\""; do
+    printf '[containers]\ndefault_ulimits = [%s]\n' "$limits" >"$compose_dir/containers.conf"
+    if out="$(timeout 120 "$compose_dir/podman" run --rm --network none "$base_image" true 2>&1)"; then
+      started=1
+      break
+    fi
+  done
+  [[ -n "$started" ]] || die "this machine cannot run a container (podman run --runtime runc): $out"
+  say "containers run with runc, ulimits [${limits:-the podman defaults}]"
+
+  # Prometheus: Debian's package on the same base (no registry: prom/prometheus cannot be pulled).
+  prom_image="localhost/placedb-test-prometheus:debian"
+  timeout 1200 podman "${podman_global[@]}" build --isolation chroot --format docker \
+    --pull=never --layers --build-arg "BASE_IMAGE=$base_image" -t "$prom_image" \
+    -f "$here/testing/prometheus.Dockerfile" "$here/testing" >"$work/prometheus-build.log" 2>&1 ||
+    { tail -n 30 "$work/prometheus-build.log" >&2; die "building $prom_image"; }
+  prom_version="$(cpm run --rm --network none --entrypoint /usr/bin/prometheus "$prom_image" \
+    --version 2>&1 | awk 'NR == 1 { print $3 }' || true)"
+  say "prometheus image $prom_image: Debian's prometheus ${prom_version:-?}," \
+    "$(pm image inspect --format '{{.Size}}' "$prom_image" | awk '{ printf "%.0f MB", $1 / 1e6 }')"
+
+  c_grpc="$(free_port)"
+  c_metrics="$(free_port)"
+  c_prom="$(free_port)"
+  while [[ "$c_metrics" == "$c_grpc" ]]; do c_metrics="$(free_port)"; done
+  while [[ "$c_prom" == "$c_grpc" || "$c_prom" == "$c_metrics" ]]; do c_prom="$(free_port)"; done
+  compose_project="placedb-test-$$"
+  export PLACEDB_IMAGE="$image" PLACEDB_TEST_PROMETHEUS_IMAGE="$prom_image" \
+    PLACEDB_PUBLISH_ADDRESS=127.0.0.1 PLACEDB_PUBLISH_GRPC_PORT="$c_grpc" \
+    PLACEDB_PUBLISH_METRICS_PORT="$c_metrics" PROMETHEUS_PUBLISH_PORT="$c_prom" PLACEDB_THREADS=2
+  compose_cmd=(podman-compose --podman-path "$compose_dir/podman" -p "$compose_project"
+    -f "$here/compose.yaml" -f "$here/testing/compose.test.yaml")
+  say "podman-compose $(podman-compose version 2>/dev/null | awk '/podman-compose/ { print $NF; exit }'):" \
+    "up -d placedb-secrets placedb prometheus (project $compose_project; ports 127.0.0.1:$c_grpc," \
+    "$c_metrics, $c_prom)"
+  say "  grafana is left out: grafana/grafana-oss cannot be pulled here (no registry) and Debian" \
+    "has no grafana package; its dashboard's queries were checked against Prometheus above"
+  timeout 600 "${compose_cmd[@]}" up -d placedb-secrets placedb prometheus >"$work/compose.log" 2>&1 ||
+    { tail -n 40 "$work/compose.log" >&2; die "podman-compose up"; }
+  c_secrets="${compose_project}_placedb-secrets_1"
+  c_placedb="${compose_project}_placedb_1"
+  c_prometheus="${compose_project}_prometheus_1"
+  # The one-shot secrets service: exit status 0, the admin token in its log (README's way).
+  status="$(timeout 120 "$compose_dir/podman" wait "$c_secrets" 2>&1)" ||
+    die "placedb-secrets did not finish: $status"
+  [[ "$status" == 0 ]] || {
+    timeout 60 "${compose_cmd[@]}" logs placedb-secrets >&2 || true
+    die "placedb-secrets exited with status $status"
+  }
+  timeout 60 "${compose_cmd[@]}" logs placedb-secrets >"$work/compose-secrets.log" 2>&1 || true
+  compose_token="$(grep -oE '^pdb_[A-Za-z0-9_-]{43}$' "$work/compose-secrets.log" | tail -n 1 || true)"
+  [[ -n "$compose_token" ]] || { cat "$work/compose-secrets.log" >&2; die "podman-compose logs placedb-secrets: no admin token"; }
+  say "placedb-secrets: exit 0; its log holds the admin token (podman-compose logs placedb-secrets)"
+  # Healthy: no systemd timer runs podman's healthchecks on this machine, so the test runs the
+  # image's HEALTHCHECK the way the timer would (podman healthcheck run), until it passes.
+  health=""
+  deadline=$((SECONDS + 180))
+  while ((SECONDS < deadline)); do
+    cpm healthcheck run "$c_placedb" >/dev/null 2>&1 || true
+    health="$(cpm inspect --format '{{.State.Health.Status}}' "$c_placedb" 2>/dev/null || true)"
+    [[ "$health" == healthy ]] && break
+    sleep 1
+  done
+  if [[ "$health" != healthy ]]; then
+    cpm ps -a >&2 || true
+    cpm logs "$c_placedb" 2>&1 | tail -n 30 >&2 || true
+    die "placedb is not healthy within 180 s (state: ${health:-none})"
+  fi
+  say "placedb: healthy after $((SECONDS - deadline + 180)) s (restarts: $(cpm inspect \
+    --format '{{.RestartCount}}' "$c_placedb" 2>/dev/null || echo '?'); podman-compose does not" \
+    "wait for service_completed_successfully, the restart policy covers a start before the secrets)"
+
+  # Clients outside the stack: the CA and Prometheus' password from the secrets volume.
+  secrets_mount="$(cpm volume inspect --format '{{.Mountpoint}}' "${compose_project}_placedb-secrets")"
+  cp "$secrets_mount/placedb/ca.crt" "$rootfs/tmp/compose-ca.crt"
+  chmod 644 "$rootfs/tmp/compose-ca.crt"
+  c_password="$(cat "$secrets_mount/prometheus/metrics.password")"
+  if ((have_cli)); then
+    ccli() {
+      env -i "${run_env[@]}" "PLACEDB_ADDRESS=127.0.0.1:$c_grpc" "PLACEDB_TOKEN=$1" \
+        chroot --userspec="$uid:$gid" "$rootfs" /usr/local/bin/placedb \
+        --tls --ca-cert /tmp/compose-ca.crt "${@:2}"
+    }
+    out="$(ccli "" maps list 2>&1)" && die "maps list without a token succeeded: $out"
+    grep -q UNAUTHENTICATED <<<"$out" || die "maps list without a token: $out"
+    ccli "$compose_token" maps create composetest --json >/dev/null || die "placedb maps create"
+    ccli "$compose_token" ingest composetest /tmp/placedb-test/first --json \
+      >"$work/compose-ingest.json" || die "placedb ingest: $(cat "$work/compose-ingest.json")"
+    ccli "$compose_token" query composetest /tmp/placedb-test/aloeR.jpg --top-k 3 --json \
+      >"$work/compose-query.json" || die "placedb query"
+    /usr/bin/python3 - "$work/compose-ingest.json" "$work/compose-query.json" <<'PY' ||
+import json, os, sys
+ingest, query = (json.load(open(p)) for p in sys.argv[1:3])
+names = {r["place_id"]: os.path.basename(r["name"]) for r in ingest["results"] if r["stored"]}
+assert ingest["stored"] == 5, ingest
+ranked = [(names.get(m["place_id"], "?"), m["score"]) for m in query["matches"]]
+print("  placedb (TLS, admin token) via the published port: ingest 5 of 5 stored; query aloeR.jpg: "
+      + ", ".join(f"{n} {s:.3f}" for n, s in ranked))
+assert ranked and ranked[0][0] == "aloeL.jpg", "expected aloeL.jpg first"
+PY
+      die "ingest + query through the Compose stack"
+  else
+    /usr/bin/python3 "$here/testing/grpc_probe.py" smoke "127.0.0.1:$c_grpc" \
+      --ca-cert "$rootfs/tmp/compose-ca.crt" --proto-root "$context" --map composetest \
+      --ingest "$samples/aloeL.jpg" "$samples/building.jpg" "$samples/graf1.png" \
+      "$samples/box_in_scene.png" "$samples/home.jpg" --query "$samples/aloeR.jpg" \
+      --expect "$samples/aloeL.jpg" --token "$compose_token" | sed 's/^/  /' ||
+      die "ingest/query smoke test through the Compose stack (FALLBACK probe)"
+  fi
+  code="$(curl -sS --max-time 10 --cacert "$rootfs/tmp/compose-ca.crt" -o "$work/compose-metrics.txt" \
+    -w '%{http_code}' -u "prometheus:$c_password" "https://127.0.0.1:$c_metrics/metrics" || true)"
+  [[ "$code" == 200 ]] || die "GET https://127.0.0.1:$c_metrics/metrics as prometheus: HTTP $code"
+  grep -qx 'placedb_frames_ingested_total{map="composetest"} 5' "$work/compose-metrics.txt" ||
+    die "the published /metrics does not count the 5 frames"
+  say "published /metrics (HTTPS, basic auth): 200, placedb_frames_ingested_total{map=\"composetest\"} 5"
+
+  # Prometheus in the stack scrapes placedb by its service name (https://placedb:9464).
+  prom_port="$c_prom"  # prom_query asks the stack's Prometheus from here on
+  seen=""
+  deadline=$((SECONDS + 120))
+  while ((SECONDS < deadline)); do
+    seen="$(prom_query 'placedb_frames_ingested_total{job="placedb", map="composetest"} == 5' 2>/dev/null || true)"
+    [[ -n "$seen" ]] && break
+    sleep 1
+  done
+  if [[ -z "$seen" ]]; then
+    curl -sS --max-time 10 "http://127.0.0.1:$c_prom/api/v1/targets" >&2 || true
+    cpm logs "$c_prometheus" 2>&1 | tail -n 20 >&2 || true
+    die "the stack's Prometheus has no placedb_frames_ingested_total{map=\"composetest\"} == 5 within 120 s"
+  fi
+  say "prometheus (compose): up{job=\"placedb\"}: $(prom_query 'up{job="placedb"}'); $seen"
+
+  timeout 180 "${compose_cmd[@]}" down -v >>"$work/compose.log" 2>&1 ||
+    { tail -n 20 "$work/compose.log" >&2; die "podman-compose down -v"; }
+  left="$(cpm ps -a -q --filter "label=io.podman.compose.project=$compose_project")"
+  [[ -z "$left" ]] || die "containers left after down: $left"
+  left="$(cpm volume ls -q --filter "label=io.podman.compose.project=$compose_project")"
+  [[ -z "$left" ]] || die "volumes left after down -v: $left"
+  compose_cmd=()
+  pm network rm -f "${compose_project}_default" >/dev/null 2>&1 || true
+  say "podman-compose down -v: no container or volume of $compose_project left"
+fi
 finish_phase
 
 printf '\n==== test-image: PASSED ====\n'
