@@ -16,6 +16,7 @@ cd "$(dirname "$0")/.."
 # The product: what placedb-server, the CLI and the Python SDK need to build and run.
 PACKAGES=(
   build-essential cmake ninja-build pkg-config git ca-certificates
+  curl  # the README's metrics check (a minimal Debian 12 has none)
   libopencv-dev libeigen3-dev libtbb-dev
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler
   librocksdb-dev prometheus-cpp-dev
