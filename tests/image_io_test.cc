@@ -73,10 +73,9 @@ TEST(ImageIo, TheBuildSaysWhatItReads) {
 TEST(ImageIo, JpegIsDecodedAsOpenCvDecodesIt) {
   ExpectSameAsImread(kSamples + "aloeL.jpg");
   ExpectSameAsImread(kSamples + "building.jpg");
-  if (testing::HaveSharedData()) {
-    ExpectSameAsImread(testing::SharedDir() + "/data/rtabmap-loop/1.jpg");
-    ExpectSameAsImread(testing::SharedDir() + "/data/camvid/images/0001TP_006690.jpg");
-  }
+  ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
+  ExpectSameAsImread(testing::SharedDir() + "/data/rtabmap-loop/1.jpg");
+  ExpectSameAsImread(testing::SharedDir() + "/data/camvid/images/0001TP_006690.jpg");
 }
 
 TEST(ImageIo, PngIsDecodedAsOpenCvDecodesIt) {
@@ -87,7 +86,7 @@ TEST(ImageIo, PngIsDecodedAsOpenCvDecodesIt) {
 }
 
 TEST(ImageIo, SixteenBitDepthPngKeepsItsValues) {
-  if (!testing::HaveSharedData()) GTEST_SKIP() << "no ../shared/data";
+  ASSERT_TRUE(testing::HaveSharedData()) << "../shared/data is required";
   const std::string depth_dir = testing::SharedDir() + "/data/rgbd-people/depth/test1";
   ASSERT_TRUE(fs::is_directory(depth_dir));
   std::vector<std::string> files;

@@ -157,6 +157,10 @@ std::vector<cv::Point2d> UndistortPixels(const Camera& camera,
   return out;
 }
 
+double MeanFocalLength(const Camera& a, const Camera& b) {
+  return (std::sqrt(a.fx * a.fy) + std::sqrt(b.fx * b.fy)) / 2;
+}
+
 std::vector<cv::Point2d> NormalizePixels(const Camera& camera,
                                          const std::vector<cv::Point2d>& pixels) {
   std::vector<cv::Point2d> out = UndistortPixels(camera, pixels);

@@ -66,6 +66,10 @@ Camera PinholeCamera(int width, int height, double fx, double fy, double cx, dou
 std::vector<cv::Point2d> UndistortPixels(const Camera& camera,
                                          const std::vector<cv::Point2d>& pixels);
 
+// The mean of two cameras' geometric-mean focal lengths (pixels): what converts a pixel threshold
+// into normalised image coordinates for a two-view fit across both.
+double MeanFocalLength(const Camera& a, const Camera& b);
+
 // Normalised image coordinates ((x - cx) / fx, (y - cy) / fy after undistortion): the ray
 // direction (x, y, 1) in the camera frame. The camera must be valid.
 std::vector<cv::Point2d> NormalizePixels(const Camera& camera,

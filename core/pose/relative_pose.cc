@@ -456,9 +456,7 @@ Result<RelativePose> SolveEssential(const PoseFrame& query, const PoseFrame& pla
     p_n[i] = {(p_px[i].x - place.camera.cx) / place.camera.fx,
               (p_px[i].y - place.camera.cy) / place.camera.fy};
   }
-  const double focal = (std::sqrt(query.camera.fx * query.camera.fy) +
-                        std::sqrt(place.camera.fx * place.camera.fy)) /
-                       2;
+  const double focal = MeanFocalLength(query.camera, place.camera);
   cv::Mat mask, e_mat;
   cv::Matx33d r;
   cv::Vec3d t;

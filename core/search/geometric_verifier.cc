@@ -341,9 +341,7 @@ cv::Mat FitEssential(const Camera& query_camera, const Camera& candidate_camera,
   };
   const std::vector<cv::Point2d> q = normalised(query_camera, query_points);
   const std::vector<cv::Point2d> c = normalised(candidate_camera, candidate_points);
-  const double focal = (std::sqrt(query_camera.fx * query_camera.fy) +
-                        std::sqrt(candidate_camera.fx * candidate_camera.fy)) /
-                       2;
+  const double focal = MeanFocalLength(query_camera, candidate_camera);
   cv::Mat essential =
       cv::findEssentialMat(q, c, 1.0, cv::Point2d(0, 0), cv::USAC_FAST, config.ransac_confidence,
                            config.ransac_threshold_px / focal, config.ransac_max_iterations, *mask);
@@ -390,19 +388,19 @@ int CountInliers(const std::vector<Keypoint>& query, const std::vector<Keypoint>
   }
   try {
     cv::Mat mask;
-    cv::Mat fundamental;
+    cv::Mat model;  // the fundamental matrix, or the essential matrix with both cameras
     if (still_count < int(matches.size())) {
       if (cameras.known() && !config.legacy) {
-        fundamental = FitEssential(*cameras.query, *cameras.candidate, query_points,
-                                   candidate_points, config, &mask);
+        model = FitEssential(*cameras.query, *cameras.candidate, query_points, candidate_points,
+                             config, &mask);
       } else {
-        fundamental = cv::findFundamentalMat(
-            query_points, candidate_points, config.legacy ? int(cv::FM_RANSAC) : int(cv::USAC_FAST),
-            config.ransac_threshold_px, config.ransac_confidence, config.ransac_max_iterations,
-            mask);
+        model = cv::findFundamentalMat(query_points, candidate_points,
+                                       config.legacy ? int(cv::FM_RANSAC) : int(cv::USAC_FAST),
+                                       config.ransac_threshold_px, config.ransac_confidence,
+                                       config.ransac_max_iterations, mask);
       }
     }
-    if (fundamental.empty() || mask.empty() || cv::countNonZero(mask) < still_count) {
+    if (model.empty() || mask.empty() || cv::countNonZero(mask) < still_count) {
       if (still_count < kMinPointsForFundamental) return 0;
       mask = still;
     }
