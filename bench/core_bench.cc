@@ -30,6 +30,7 @@
 #include <vector>
 
 #include "bench/bench_output.h"
+#include "bench/source_views.h"
 #include "core/base/files.h"
 #include "core/base/parallel.h"
 #include "core/features/orb_features.h"
@@ -39,39 +40,14 @@
 
 namespace fs = std::filesystem;
 using namespace placedb;
+using bench::ExtractViews;
 using bench::Median;
 using bench::NowMs;
 using bench::PeakRssMb;
 using bench::Print;
+using bench::SourceImages;
 
 namespace {
-
-std::vector<std::string> SourceImages(const std::string& shared) {
-  std::vector<std::string> paths;
-  auto add_dir = [&](const std::string& dir, size_t every) {
-    auto found = ListImageFiles(dir);
-    if (!found.ok()) return;
-    for (size_t i = 0; i < found->size(); i += every) paths.push_back((*found)[i]);
-  };
-  add_dir("/usr/share/doc/opencv-doc/examples/data", 1);
-  add_dir("/usr/share/darknet/data", 1);
-  add_dir(shared + "/data/camvid/images", 3);
-  return paths;
-}
-
-// A seeded random view of `image`: crop, rotation, scale, brightness/contrast, at 640x480.
-cv::Mat RandomView(const cv::Mat& image, std::mt19937_64& rng) {
-  std::uniform_real_distribution<double> angle(-15, 15), scale(1.0, 1.4), gain(0.7, 1.3),
-      bias(-30, 30), shift(-0.1, 0.1);
-  cv::Mat base;
-  cv::resize(image, base, cv::Size(640, 480));
-  const cv::Point2f centre(320 + float(shift(rng) * 640), 240 + float(shift(rng) * 480));
-  cv::Mat warp = cv::getRotationMatrix2D(centre, angle(rng), scale(rng));
-  cv::Mat view;
-  cv::warpAffine(base, view, warp, base.size(), cv::INTER_LINEAR, cv::BORDER_REFLECT);
-  view.convertTo(view, -1, gain(rng), bias(rng));
-  return view;
-}
 
 struct Options {
   std::string vocabulary_path;
@@ -159,30 +135,6 @@ bool BenchDbow2TextLoad(const Vocabulary& vocabulary) {
     return false;
   }
   return true;
-}
-
-// The real views of the workload (header), on every core; views under 100 descriptors dropped.
-std::vector<FeatureSet> ExtractViews(const std::vector<std::string>& sources, size_t view_count) {
-  OrbConfig orb;
-  orb.max_features = 1000;
-  std::vector<FeatureSet> views(view_count);
-  std::vector<std::thread> workers;
-  const unsigned threads = std::max(1u, std::thread::hardware_concurrency());
-  for (unsigned t = 0; t < threads; ++t) {
-    workers.emplace_back([&, t] {
-      for (size_t v = t; v < view_count; v += threads) {
-        std::mt19937_64 rng(v);
-        cv::Mat image = cv::imread(sources[v % sources.size()], cv::IMREAD_GRAYSCALE);
-        if (image.empty()) continue;
-        cv::Mat view = v < sources.size() ? RandomView(image, rng) : RandomView(image, rng);
-        auto features = ExtractOrb(view, orb);
-        if (features.ok()) views[v] = std::move(features).value();
-      }
-    });
-  }
-  for (auto& worker : workers) worker.join();
-  std::erase_if(views, [](const FeatureSet& f) { return f.size() < 100; });
-  return views;
 }
 
 // The transform's baseline: the same BoW vector built one descriptor at a time (WordOf, then
@@ -480,7 +432,7 @@ int main(int argc, char** argv) {
   if (vocabulary == nullptr || !BenchDbow2TextLoad(*vocabulary)) return 1;
 
   // --- real views --------------------------------------------------------------------------
-  const std::vector<std::string> sources = SourceImages(options.shared);
+  const std::vector<std::string> sources = SourceImages(options.shared, /*camvid=*/true);
   if (sources.empty()) {
     std::fprintf(stderr, "no source images (install opencv-doc and darknet)\n");
     return 1;

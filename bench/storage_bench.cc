@@ -25,13 +25,17 @@
 //  3b. Reopen at scale (--only reopen, issue 17), e.g. --reopen 1000000: a map built fast (see
 //     FastBuild) through PlaceMap::Commit, then reopened in fresh processes with the sequential
 //     scan (the baseline) and the parallel load; seconds, places/s, bytes on disk, VmRSS/VmHWM.
+//  3c. A map for the server at scale (--only server-map --reopen N --dir D --keep 1, issue 31):
+//     CamVid's even frames stored whole plus filler places up to N (BuildServerMap), served and
+//     queried by bench/server_1m.sh.
 //  4. Snapshots (issue 15, --only snapshots): a map of --snapshot-places (10k) places built as in
 //     3; SnapshotStore::Create (checkpoint + verification), WriteArchive to a sink that only
 //     counts bytes and to a file, Import of that file into a second data directory, Restore
 //     there; times, bytes on disk and archive bytes.
 //
 // Usage: placedb-bench-storage --vocabulary FILE [--dir DIR] [--reopen 10000,100000]
-//                              [--only persist|dynamics|ingest|thumbnails|snapshots|reopen]
+//                              [--only persist|dynamics|ingest|thumbnails|snapshots|reopen|
+//                                      server-map]
 //                              [--snapshot-places 10000] [--stored-features 32] [--keep 1]
 // (--reopen-child DIR --load-threads N: internal, one reopen measured in a fresh process)
 #include <malloc.h>
@@ -53,6 +57,7 @@
 #include <thread>
 
 #include "bench/bench_output.h"
+#include "bench/source_views.h"
 #include "core/base/files.h"
 #include "core/decode/image_decoder.h"
 #include "core/storage/map_store.h"
@@ -168,7 +173,8 @@ struct Options {
   bool snapshots_only = false;   // --only snapshots: section 4 alone
   size_t snapshot_places = 10000;
   bool keep = false;  // --keep 1: the work directory stays (bench/snapshots_wire.sh serves it)
-  bool reopen_only = false;  // --only reopen: section 3b alone
+  bool reopen_only = false;      // --only reopen: section 3b alone
+  bool server_map_only = false;  // --only server-map: section 3c alone (--reopen N: its size)
   // Section 3b: features stored per place by the fast build (the BoW vectors keep every word).
   size_t stored_features = 32;
   // Internal: --reopen-child DIR opens that directory's map once and prints its figures.
@@ -181,12 +187,12 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     if (i + 1 >= argc) {
-      std::fprintf(
-          stderr,
-          "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
-          "[--reopen 10000,100000] [--shared DIR] "
-          "[--only persist|dynamics|ingest|thumbnails|snapshots|reopen] [--snapshot-places N] "
-          "[--stored-features 32] [--keep 1]\n");
+      std::fprintf(stderr,
+                   "usage: placedb-bench-storage --vocabulary FILE [--dir DIR] "
+                   "[--reopen 10000,100000] [--shared DIR] "
+                   "[--only persist|dynamics|ingest|thumbnails|snapshots|reopen|server-map] "
+                   "[--snapshot-places N] "
+                   "[--stored-features 32] [--keep 1]\n");
       return 2;
     }
     const std::string value = argv[++i];
@@ -213,6 +219,8 @@ std::optional<int> ParseOptions(int argc, char** argv, Options* options) {
       options->snapshots_only = true;
     } else if (arg == "--only" && value == "reopen") {
       options->reopen_only = true;
+    } else if (arg == "--only" && value == "server-map") {
+      options->server_map_only = true;
     } else if (arg == "--stored-features") {
       options->stored_features = std::stoul(value);
     } else if (arg == "--reopen-child") {
@@ -709,11 +717,10 @@ ProcessedFrame KeepFirstFeatures(ProcessedFrame frame, size_t count) {
   return frame;
 }
 
-// Adds places until the map holds `target`. False after an error (printed).
-bool FastBuild(PlaceMap& map, const std::vector<Frame>& frames, size_t target,
-               size_t stored_features) {
-  const size_t first = map.Stats().database.places;
-  if (first >= target) return true;
+// The frames processed once by the map's pipeline (90 % of the descriptors, 4 bits flipped),
+// each keeping its first `stored_features` features; invalid frames are left out.
+std::vector<ProcessedFrame> ProcessBases(PlaceMap& map, const std::vector<Frame>& frames,
+                                         size_t stored_features) {
   std::vector<ProcessedFrame> bases;
   std::mt19937_64 rng(7);
   for (const Frame& frame : frames) {
@@ -724,6 +731,14 @@ bool FastBuild(PlaceMap& map, const std::vector<Frame>& frames, size_t target,
     if (!processed.ok() || !processed->valid) continue;
     bases.push_back(KeepFirstFeatures(std::move(processed).value(), stored_features));
   }
+  return bases;
+}
+
+// Commits copies of `bases` (place p: base p mod size, a random 10 % of its BoW words dropped)
+// until the map holds `target` places; prints fast_build_to_<target>. False after an error.
+bool CommitCopies(PlaceMap& map, const std::vector<ProcessedFrame>& bases, size_t target) {
+  const size_t first = map.Stats().database.places;
+  if (first >= target) return true;
   if (bases.empty()) return false;
   const ScoringType scoring = map.info().options.database.scoring;
   std::atomic<size_t> next{first};
@@ -758,6 +773,13 @@ bool FastBuild(PlaceMap& map, const std::vector<Frame>& frames, size_t target,
   Print("fast_build_to_" + std::to_string(target),
         double(target - first) / ((NowMs() - start) / 1000.0), "places/s");
   return true;
+}
+
+// Adds places until the map holds `target`: copies of the frames. False after an error.
+bool FastBuild(PlaceMap& map, const std::vector<Frame>& frames, size_t target,
+               size_t stored_features) {
+  if (map.Stats().database.places >= target) return true;
+  return CommitCopies(map, ProcessBases(map, frames, stored_features), target);
 }
 
 // VmRSS and VmHWM of this process in bytes (0 when /proc is not there).
@@ -895,6 +917,65 @@ bool BenchReopenLarge(const std::string& work_dir, const std::vector<Frame>& fra
   return true;
 }
 
+// 3c. A 1M-place map for the server (--only server-map, issue 31): bench/server_1m.sh serves it
+// and queries it through placedb-load. Verification reads the candidates' stored features, so
+// the places a query can match must keep all of theirs: the even CamVid frames are stored whole
+// (the queries are the odd ones, as JPEG). The rest of the map is filler that must not match
+// them: copies (fast build, 32 features each: 1M full feature sets do not fit the disk) of 1500
+// random views of Debian's sample images, not CamVid. The map verifies its 10 best candidates
+// exhaustively and re-ranks them. With --keep 1 an existing map is reused.
+bool BuildServerMap(const std::string& dir_path, const std::string& shared,
+                    const std::vector<Frame>& camvid,
+                    const std::shared_ptr<const Vocabulary>& vocabulary, size_t target) {
+  StorageOptions storage;
+  storage.sync = SyncMode::kGroupCommit;
+  auto dir = DataDirectory::Open(dir_path, storage);
+  if (!dir.ok()) {
+    std::fprintf(stderr, "%s\n", dir.status().ToString().c_str());
+    return false;
+  }
+  MapOptions options;
+  options.database.verification.mode = VerificationMode::kExhaustive;
+  options.database.verification.candidates = 10;
+  auto map = (*dir)->ListMaps().empty() ? (*dir)->CreateMap("big", options, vocabulary)
+                                        : (*dir)->OpenMap("big", vocabulary);
+  if (!map.ok()) {
+    std::fprintf(stderr, "%s\n", map.status().ToString().c_str());
+    return false;
+  }
+  if ((*map)->Stats().database.places == 0) {
+    size_t stored = 0;
+    for (size_t i = 0; i < camvid.size(); i += 2) {
+      Observation observation;
+      observation.features = camvid[i].features;
+      observation.dynamic.boxes = camvid[i].boxes;
+      auto processed = (*map)->Process(observation, FrameRole::kStream);
+      if (!processed.ok() || !processed->valid) continue;
+      PlaceMetadata metadata;
+      metadata.agent_id = "camvid";
+      metadata.sequence = i;
+      metadata.timestamp_ns = int64_t(i) * 1'000'000'000;
+      if (auto added = (*map)->Commit(*processed, metadata); !added.ok()) {
+        std::fprintf(stderr, "%s\n", added.status().ToString().c_str());
+        return false;
+      }
+      ++stored;
+    }
+    const uint64_t bytes = (*map)->Stats().bytes_on_disk;
+    std::printf("# server map: %zu CamVid places stored whole, %.0f KB on disk each\n", stored,
+                double(bytes) / double(stored) / 1e3);
+    Print("stored_bytes_per_whole_place", double(bytes) / double(stored), "bytes");
+  }
+  if ((*map)->Stats().database.places >= target) return true;  // built by an earlier run
+  std::vector<Frame> views;
+  for (FeatureSet& features : bench::ExtractViews(bench::SourceImages(shared, false), 1500)) {
+    views.push_back({std::move(features), {}});
+  }
+  std::printf("# server map: filler from %zu views of Debian's sample images, 32 features each\n",
+              views.size());
+  return CommitCopies(**map, ProcessBases(**map, views, 32), target);
+}
+
 // Bytes of the regular files under `path`; with `unshared_only`, of those with one link only.
 uint64_t TreeBytes(const std::string& path, bool unshared_only = false) {
   uint64_t bytes = 0;
@@ -1021,6 +1102,13 @@ int main(int argc, char** argv) {
   }
   std::string work_dir = options.work_dir;
   if (work_dir.empty()) work_dir = (fs::temp_directory_path() / "placedb-bench-storage").string();
+  if (options.server_map_only) {
+    if (!options.keep) fs::remove_all(work_dir);
+    const bool ok = BuildServerMap(work_dir, options.shared, LoadCamVid(options.shared),
+                                   *vocabulary, options.reopen_sizes.back());
+    if (!options.keep) fs::remove_all(work_dir);
+    return ok ? 0 : 1;
+  }
   if (options.reopen_only) {
     // With --keep 1 a map built by an earlier run is reused (and grown to the sizes asked for).
     if (!options.keep) fs::remove_all(work_dir);
