@@ -5,6 +5,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <optional>
 #include <set>
 
 #include "core/base/text.h"
@@ -18,6 +19,7 @@ namespace placedb::server {
 namespace {
 
 using wire::ToGrpc;
+using FrameRecord = ClusterWorker::FrameRecord;
 
 // Loop closure's places on a worker, whose local copy of the map holds none: read from the map's
 // replicas, for one frame of an Ingest stream (`min_sequence`: the stream's last place;
@@ -90,13 +92,28 @@ class ClusterIngestSession final : public IngestSession {
     if (!published.ok()) return Completed(published.status().WithContext("publishing"));
     AddResult added;
     added.timings.store_ms = publish.Lap();
-    added.stored = frame.valid;
-    added.rejection = frame.rejection;
-    if (frame.valid) {
-      added.id = PlaceId(*published);
-      last_sequence_ = std::max(last_sequence_, *published);
+    std::vector<LoopConstraint> loops = found_.Take(metadata);
+    // The answer follows the stream's record (a resent frame's first publish, see Publish).
+    const FrameRecord& record = *published;
+    switch (record.kind) {
+      case FrameRecord::Kind::kPlace:
+        added.stored = true;
+        added.id = record.place;
+        last_sequence_ = std::max<uint64_t>(last_sequence_, record.place);
+        break;
+      case FrameRecord::Kind::kMerged:
+        // Only a loop-closure stream merges: this frame was first sent in one (a stream without
+        // loop closure has no merged answer to give).
+        added.rejection = "merged into place " + std::to_string(record.place) +
+                          " by loop closure when this frame was first sent";
+        break;
+      case FrameRecord::Kind::kInvalid:
+        added.rejection = record.rejection;
+        break;
+    }
+    if (record.place != 0) {  // an invalid frame logs no loops (as on a single node)
       const Status logged =
-          PublishLoops(added.id, found_.Take(metadata), message_id, Patient(deadline));
+          PublishLoops(record.place, std::move(loops), message_id, Patient(deadline));
       if (!logged.ok()) return Completed(logged);
       added.timings.store_ms += publish.Lap();
     }
@@ -118,12 +135,16 @@ class ClusterIngestSession final : public IngestSession {
       map.map->ResetLoopClosure(metadata.agent_id);
     }
     double store_ms = 0;
+    std::optional<FrameRecord> record;  // the stream's record of the frame
     auto store = [&]() -> Result<PlaceId> {
       Stopwatch publish;
       auto published = worker_->Publish(map.name, frame, metadata, message_id, deadline);
       store_ms = publish.Lap();
       if (!published.ok()) return published.status();
-      return PlaceId(*published);
+      record = *published;
+      // The detector binds its new place to this id: none (0, as for a failed store) when the
+      // stream's record of the frame is not a place.
+      return PlaceId(record->kind == FrameRecord::Kind::kPlace ? record->place : 0);
     };
     auto outcome = map.map->CloseLoop(frame, metadata, store, &source);
     if (!outcome.ok()) return outcome.status();
@@ -136,16 +157,47 @@ class ClusterIngestSession final : public IngestSession {
       // As on a single node: nothing stored, the frame counted as one more observation of the
       // place it was merged into (its message id: a resent frame counts once).
       Stopwatch count;
-      const Status counted = worker_->CountObservation(map.name, outcome->place, frame, metadata,
-                                                       message_id, deadline);
+      auto counted = worker_->CountObservation(map.name, outcome->place, frame, metadata,
+                                               message_id, deadline);
       store_ms = count.Lap();
-      if (!counted.ok()) return counted.WithContext("counting the merged frame");
-    } else {
-      stored->stored = true;
-      stored->id = outcome->place;
-      last_sequence_ = std::max<uint64_t>(last_sequence_, outcome->place);
+      if (!counted.ok()) return counted.status().WithContext("counting the merged frame");
+      record = *counted;
+    }
+    if (!record) return Status::Internal("loop closure stored the frame without publishing it");
+    if (record->duplicate && !outcome->merged) {
+      // The detector added a place for a frame the stream had already: either not a place at all
+      // (its first publish was merged or invalid) or one its replay holds already. Rebuilt from
+      // the agent's places at its next frame, the detector holds each of them once, as after a
+      // failover.
+      map.map->ResetLoopClosure(metadata.agent_id);
     }
     std::vector<LoopConstraint> loops = found_.Take(metadata);
+    // The answer follows the stream's record (a resent frame's first publish, see Publish).
+    switch (record->kind) {
+      case FrameRecord::Kind::kPlace:
+        outcome->merged = false;
+        outcome->place = record->place;
+        stored->stored = true;
+        stored->id = record->place;
+        last_sequence_ = std::max<uint64_t>(last_sequence_, record->place);
+        break;
+      case FrameRecord::Kind::kMerged:
+        outcome->merged = true;
+        outcome->place = record->place;
+        break;
+      case FrameRecord::Kind::kInvalid: {
+        // First published as an invalid frame: answered as one (no place, no loop), with what
+        // this call cost the detector.
+        LoopClosureOutcome none;
+        none.replayed = outcome->replayed;
+        none.replay_ms = outcome->replay_ms;
+        none.update_ms = outcome->update_ms;
+        *outcome = std::move(none);
+        stored->rejection = record->rejection;
+        stored->timings.store_ms = store_ms;
+        return outcome;
+      }
+    }
     AddDetectorLoop(*outcome, metadata, &loops);
     Stopwatch logging;
     const Status logged = PublishLoops(outcome->place, std::move(loops), message_id, deadline);

@@ -257,6 +257,27 @@ Result<PubAck> JetStream::Publish(const std::string& subject, std::string_view d
   return out;
 }
 
+Result<StoredMessage> JetStream::GetMessage(const std::string& stream, uint64_t sequence) {
+  jsOptions options = RequestOptions(options_.request_timeout);
+  natsMsg* message = nullptr;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  const natsStatus status =
+      js_GetMsg(&message, context_, stream.c_str(), sequence, &options, &code);
+  const std::string what =
+      "JetStream: reading message " + std::to_string(sequence) + " of " + stream;
+  // A sequence the stream does not hold is JSNoMessageFoundErr, not NATS_NOT_FOUND.
+  if (status != NATS_OK && code == JSNoMessageFoundErr) {
+    return Status::NotFound(what + ": no message at that sequence");
+  }
+  if (status != NATS_OK) return ToStatus(status, code, what);
+  StoredMessage out;
+  out.data.assign(natsMsg_GetData(message), static_cast<size_t>(natsMsg_GetDataLength(message)));
+  const char* id = nullptr;
+  if (natsMsgHeader_Get(message, "Nats-Msg-Id", &id) == NATS_OK && id) out.message_id = id;
+  natsMsg_Destroy(message);
+  return out;
+}
+
 Result<std::unique_ptr<OrderedConsumer>> JetStream::Consume(const std::string& stream,
                                                             const std::string& subject,
                                                             uint64_t start_sequence,

@@ -81,6 +81,12 @@ struct PubAck {
   bool duplicate = false;  // the message id was seen within the duplicate window: not stored
 };
 
+// A message read back from a stream by its sequence (GetMessage).
+struct StoredMessage {
+  std::string data;
+  std::string message_id;  // its Nats-Msg-Id header; empty when it was published without one
+};
+
 struct StreamPeer {
   std::string name;  // nats-server's server_name
   bool current = false;
@@ -150,6 +156,11 @@ class JetStream {
   // a retry must reuse the same id.
   Result<PubAck> Publish(const std::string& subject, std::string_view data,
                          const std::string& message_id, std::chrono::milliseconds timeout);
+
+  // The message stored at `sequence` in `stream` (a request to the stream's leader, waiting up to
+  // the request timeout): what a duplicate's PubAck names. NOT_FOUND when the stream has no
+  // message there (or no such stream); IO_ERROR as Publish.
+  Result<StoredMessage> GetMessage(const std::string& stream, uint64_t sequence);
 
   // Starts an ordered consumer of the messages of `stream` on `subject` (a subject of the stream,
   // wildcards allowed) from `start_sequence` (>= 1).

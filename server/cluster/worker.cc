@@ -458,8 +458,10 @@ grpc::Status ClusterWorker::OnReplica(const char* what, const std::string& map,
 
 // ---- Publishing ---------------------------------------------------------------------------------
 
-Result<uint64_t> ClusterWorker::PublishRecord(const std::string& map, const std::string& data,
-                                              const std::string& message_id, Deadline deadline) {
+Result<cluster::PubAck> ClusterWorker::PublishRecord(const std::string& map,
+                                                     const std::string& data,
+                                                     const std::string& message_id,
+                                                     Deadline deadline) {
   const std::string subject = cluster::StreamSubject(cluster_.name, map);
   const auto started = std::chrono::steady_clock::now();
   Status last = Status::IoError("the call's deadline had passed before the first attempt");
@@ -474,7 +476,7 @@ Result<uint64_t> ClusterWorker::PublishRecord(const std::string& map, const std:
     if (ack.ok()) {
       publish_seconds_->Observe(
           std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());
-      return ack->sequence;
+      return *ack;
     }
     last = ack.status();
     if (last.code() != StatusCode::kIoError) return last;  // not a transient failure
@@ -518,12 +520,63 @@ grpc::Status ClusterWorker::Search(const std::string& map, const ProcessedFrame&
   return grpc::Status::OK;
 }
 
-Status ClusterWorker::CountObservation(const std::string& map, uint32_t place,
-                                       const ProcessedFrame& frame, const PlaceMetadata& metadata,
-                                       const std::string& message_id, Deadline deadline) {
-  auto published = PublishRecord(map, cluster::EncodeCountObservation(place, frame, metadata),
-                                 message_id, deadline);
-  return published.ok() ? Status::Ok() : published.status();
+Result<ClusterWorker::FrameRecord> ClusterWorker::RecordedFrame(const std::string& map,
+                                                                uint64_t sequence,
+                                                                const std::string& message_id,
+                                                                Deadline deadline) {
+  const std::string what = "map '" + map + "': the stream's record " + std::to_string(sequence) +
+                           " of " + message_id + " (a duplicate's)";
+  auto entry = local_->Get(map, "map");  // the map's feature type, to decode the record
+  if (!entry.ok()) return entry.status();
+  const FeatureType type = (*entry)->map->options().database.feature_type;
+  const std::string stream = cluster::StreamName(cluster_.name, map);
+  Result<cluster::StoredMessage> read = Status::IoError("the deadline had passed");
+  while (Remaining(deadline) > std::chrono::milliseconds(0)) {
+    read = jetstream_->GetMessage(stream, sequence);
+    if (read.ok() || read.status().code() != StatusCode::kIoError) break;
+    retries_->Add({{"call", "GetMessage"}}).Increment();
+    std::this_thread::sleep_for(std::min<std::chrono::milliseconds>(
+        std::chrono::milliseconds(100),
+        std::max(Remaining(deadline), std::chrono::milliseconds(0))));
+  }
+  if (!read.ok()) return read.status().WithContext(what);
+  if (read->message_id != message_id) {
+    return Status::Internal(what + ": that record is message '" + read->message_id + "'");
+  }
+  auto record = cluster::DecodeMapRecord(read->data, type);
+  if (!record.ok()) return record.status().WithContext(what);
+  FrameRecord out;
+  out.duplicate = true;
+  switch (record->kind) {
+    case MapLogRecord::Kind::kAddPlace:
+      out.kind = FrameRecord::Kind::kPlace;
+      out.place = uint32_t(sequence);
+      return out;
+    case MapLogRecord::Kind::kCountObservation:
+      out.kind = FrameRecord::Kind::kMerged;
+      out.place = uint32_t(record->place);
+      return out;
+    case MapLogRecord::Kind::kInvalidFrame:
+      out.kind = FrameRecord::Kind::kInvalid;
+      out.rejection = record->frame.rejection;
+      return out;
+    default:
+      return Status::Internal(what + ": not a frame's record (kind " +
+                              std::to_string(int(record->kind)) + ")");
+  }
+}
+
+Result<ClusterWorker::FrameRecord> ClusterWorker::CountObservation(
+    const std::string& map, uint32_t place, const ProcessedFrame& frame,
+    const PlaceMetadata& metadata, const std::string& message_id, Deadline deadline) {
+  auto ack = PublishRecord(map, cluster::EncodeCountObservation(place, frame, metadata), message_id,
+                           deadline);
+  if (!ack.ok()) return ack.status();
+  if (ack->duplicate) return RecordedFrame(map, ack->sequence, message_id, deadline);
+  FrameRecord out;
+  out.kind = FrameRecord::Kind::kMerged;
+  out.place = place;
+  return out;
 }
 
 Status ClusterWorker::PublishLoops(const std::string& map, const std::vector<LoopConstraint>& loops,
@@ -810,16 +863,16 @@ grpc::Status ClusterWorker::AdaptVocabulary(const v1::AdaptVocabularyRequest& re
                                id + "/prepare", until);
   if (!prepare.ok()) return ToGrpc(prepare.status());
   AwaitPrepared(name, next->checksum(), Clock::now() + (until - Clock::now()) * 3 / 4);
-  auto sequence =
+  auto ack =
       PublishRecord(name, cluster::EncodeSwitchVocabulary(*source, count), id + "/switch", until);
-  if (!sequence.ok()) return ToGrpc(sequence.status());
+  if (!ack.ok()) return ToGrpc(ack.status());
   spdlog::info(
       "map '{}': vocabulary {} learned on a replica ({} places, {:.1f} s), published in "
       "{} parts; the replicas switch at record {}",
       ForLog(name), next->checksum_hex(), source->places_offered, source->learn_ms / 1000,
-      parts.size(), *sequence);
+      parts.size(), ack->sequence);
   // 3. Answered once a replica has switched.
-  return AwaitSwitch(name, *sequence, &*next, until, response);
+  return AwaitSwitch(name, ack->sequence, &*next, until, response);
 }
 
 grpc::Status ClusterWorker::RevertVocabulary(const std::string& name, Deadline deadline,
@@ -846,12 +899,12 @@ grpc::Status ClusterWorker::RevertVocabulary(const std::string& name, Deadline d
                                id + "/prepare", until);
   if (!prepare.ok()) return ToGrpc(prepare.status());
   AwaitPrepared(name, source->checksum, Clock::now() + (until - Clock::now()) * 3 / 4);
-  auto sequence =
+  auto ack =
       PublishRecord(name, cluster::EncodeSwitchVocabulary(*source, 0), id + "/switch", until);
-  if (!sequence.ok()) return ToGrpc(sequence.status());
+  if (!ack.ok()) return ToGrpc(ack.status());
   spdlog::info("map '{}': the replicas switch back to vocabulary {} at record {}", ForLog(name),
-               Hex64(source->checksum), *sequence);
-  return AwaitSwitch(name, *sequence, nullptr, until, response);
+               Hex64(source->checksum), ack->sequence);
+  return AwaitSwitch(name, ack->sequence, nullptr, until, response);
 }
 
 grpc::Status ClusterWorker::DeletePlace(const v1::DeletePlaceRequest& request, Deadline deadline) {
@@ -910,15 +963,28 @@ grpc::Status ClusterWorker::GetDynamics(const v1::GetDynamicsRequest& request, D
                    ShardRpc(&ShardStub::GetDynamics, request, response));
 }
 
-Result<uint64_t> ClusterWorker::Publish(const std::string& map, const ProcessedFrame& frame,
-                                        const PlaceMetadata& metadata,
-                                        const std::string& message_id, Deadline deadline) {
+Result<ClusterWorker::FrameRecord> ClusterWorker::Publish(const std::string& map,
+                                                          const ProcessedFrame& frame,
+                                                          const PlaceMetadata& metadata,
+                                                          const std::string& message_id,
+                                                          Deadline deadline) {
   // Encoded once: a retry publishes the same bytes (the same statistics' arrival time).
   const std::string record = frame.valid ? cluster::EncodeAddPlace(frame, metadata)
                                          : cluster::EncodeInvalidFrame(frame, metadata);
-  auto sequence = PublishRecord(map, record, message_id, deadline);
-  if (!sequence.ok()) return sequence.status();
-  return frame.valid ? *sequence : 0;
+  auto ack = PublishRecord(map, record, message_id, deadline);
+  if (!ack.ok()) return ack.status();
+  // A duplicate: the stream holds the frame's first publish, which may differ from this one (a
+  // new worker's Algorithm 1 or detector decided otherwise); the answer is that record's.
+  if (ack->duplicate) return RecordedFrame(map, ack->sequence, message_id, deadline);
+  FrameRecord out;
+  if (frame.valid) {
+    out.kind = FrameRecord::Kind::kPlace;
+    out.place = uint32_t(ack->sequence);
+  } else {
+    out.kind = FrameRecord::Kind::kInvalid;
+    out.rejection = frame.rejection;
+  }
+  return out;
 }
 
 grpc::Status ClusterWorker::RecoverMap(const v1::RecoverMapRequest&, v1::RecoverMapResponse*) {
@@ -939,11 +1005,9 @@ grpc::Status ClusterWorker::Query(const MapEntry& map, const ProcessedFrame& fra
   // as on a single server.
   const double above = map.map->options().count_query_hits_above;
   if (above > 0 && out->matches_size() > 0 && out->matches(0).score() > above) {
-    if (Status counted = CountObservation(map.name, out->matches(0).place_id(), frame, metadata,
-                                          /*message_id=*/"", Patient(deadline));
-        !counted.ok()) {
-      return ToGrpc(counted, "counting the query hit");
-    }
+    auto counted = CountObservation(map.name, out->matches(0).place_id(), frame, metadata,
+                                    /*message_id=*/"", Patient(deadline));
+    if (!counted.ok()) return ToGrpc(counted.status(), "counting the query hit");
   }
   return grpc::Status::OK;
 }

@@ -13,7 +13,9 @@
 //   server/cluster/ingest_session.cc, does the rest): search on a replica that has applied the
 //   stream's last place (Search), then Publish: one MapRecord (the shard's codec,
 //   server/cluster/map_record.h) with message id <agent_id>/<sequence>, acknowledged to the agent
-//   only after the PubAck; place id = the PubAck's sequence (a duplicate's: the original). A
+//   only after the PubAck; place id = the PubAck's sequence. A duplicate's PubAck names the
+//   first publish's record: the answer follows that record, read back from the stream (a place,
+//   a merged frame's observation or an invalid frame), not this worker's processing. A
 //   publish that fails is retried with the same id until the deadline; then UNAVAILABLE and
 //   nothing is acknowledged.
 // - Query, GetPlace, ListPlaces, GetDynamics: Shard RPCs on a replica from the placement: the
@@ -49,8 +51,11 @@
 // loop-closure detector is rebuilt by the replay (measured by worker_test: about 1950 places in
 // 61-91 ms on this 2-core machine, load 3.6-16), without the old detector's weights and loop links,
 // as after a single server's restart; and frames answered with an error (or never answered) are
-// resent with their sequence: their message id finds the place already stored (same place id),
-// within the stream's duplicate window (2 minutes).
+// resent with their sequence: their message id finds the record already published, within the
+// stream's duplicate window (2 minutes), and the answer is that record's (the same place id, or
+// merged into the same place, or invalid), even where the new worker's Algorithm 1 or detector
+// decided otherwise. A detector that added a place for such a frame is rebuilt by a replay at
+// the agent's next frame.
 //
 // The worker's local copies of the maps (its data_dir) hold no places: they carry the map's
 // configuration, vocabulary and the agents' stream state. They are a cache: removed at startup
@@ -145,21 +150,33 @@ class ClusterWorker final : public MapBackend {
   grpc::Status Search(const std::string& map, const ProcessedFrame& frame,
                       const PlaceMetadata& metadata, const v1::MatchOptions& options,
                       uint64_t min_sequence, Deadline deadline, v1::QueryResponse* out);
-  // Publishes `frame` as a place of `map` with `message_id` (de-duplication) and returns its
-  // place id (the stream sequence; the original one for a duplicate) once JetStream has
-  // acknowledged it; retried with the same id until `deadline`, then UNAVAILABLE (nothing was
-  // acknowledged; the record may still be stored: a retry with the same id finds it). An invalid
-  // frame is published as such (counted by the replicas) and answers 0.
-  Result<uint64_t> Publish(const std::string& map, const ProcessedFrame& frame,
-                           const PlaceMetadata& metadata, const std::string& message_id,
-                           Deadline deadline);
+  // What a map's stream holds for an ingested frame: the record its message id names, which the
+  // frame's answer follows. When the id was in the stream already (a frame resent after a
+  // failover whose first answer was lost) that is the first publish's record, read back from the
+  // stream, whatever this worker decided for the frame this time.
+  struct FrameRecord {
+    enum class Kind { kPlace, kMerged, kInvalid };
+    Kind kind = Kind::kPlace;
+    uint32_t place = 0;      // kPlace: the place id; kMerged: the place it counted for (0: none)
+    std::string rejection;   // kInvalid: why the frame was not stored
+    bool duplicate = false;  // the record is an earlier publish's (this one was not stored)
+  };
+  // Publishes `frame` as a place of `map` (an invalid frame as such, counted by the replicas)
+  // with `message_id` (de-duplication) and returns the stream's record of it once JetStream has
+  // acknowledged it: place id = the stream sequence. Retried with the same id until `deadline`,
+  // then UNAVAILABLE (nothing was acknowledged; the record may still be stored: a retry with the
+  // same id finds it).
+  Result<FrameRecord> Publish(const std::string& map, const ProcessedFrame& frame,
+                              const PlaceMetadata& metadata, const std::string& message_id,
+                              Deadline deadline);
   // `frame`'s statistics as one more observation of `place` (a CountObservation record): a query
   // hit (`message_id` empty: no de-duplication, as on a single server a retried Query counts
   // again) or a stream frame merged by loop closure's rehearsal (the frame's message id: a resent
-  // frame counts once). Acknowledged before it returns; UNAVAILABLE as Publish.
-  Status CountObservation(const std::string& map, uint32_t place, const ProcessedFrame& frame,
-                          const PlaceMetadata& metadata, const std::string& message_id,
-                          Deadline deadline);
+  // frame counts once, and the answer is the stream's record, as Publish's). Acknowledged before
+  // it returns; UNAVAILABLE as Publish.
+  Result<FrameRecord> CountObservation(const std::string& map, uint32_t place,
+                                       const ProcessedFrame& frame, const PlaceMetadata& metadata,
+                                       const std::string& message_id, Deadline deadline);
   // Issue 32: an ingested frame's loop constraints (query_place set) as one LoopConstraints
   // record for the replicas' loop-closure logs; `message_id` de-duplicates. Acknowledged before
   // it returns; UNAVAILABLE as Publish.
@@ -206,8 +223,13 @@ class ClusterWorker final : public MapBackend {
   grpc::Status OnReplica(const char* what, const std::string& map, uint64_t min_sequence,
                          Deadline deadline, Call&& call);
   // One record on the map's stream, retried with the same id until `deadline`.
-  Result<uint64_t> PublishRecord(const std::string& map, const std::string& data,
-                                 const std::string& message_id, Deadline deadline);
+  Result<cluster::PubAck> PublishRecord(const std::string& map, const std::string& data,
+                                        const std::string& message_id, Deadline deadline);
+  // The frame record at `sequence` of the map's stream, which a duplicate PubAck of the frame's
+  // `message_id` named (read back, retried as PublishRecord until `deadline`). INTERNAL when it
+  // is not that message or not a frame's record.
+  Result<FrameRecord> RecordedFrame(const std::string& map, uint64_t sequence,
+                                    const std::string& message_id, Deadline deadline);
   void Describe(const std::string& name, const cluster::MapView& view,
                 v1::MapDescription* out) const;
   // Issue 29. A replica's vocabulary record (Shard.GetVocabulary) once it applied

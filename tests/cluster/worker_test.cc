@@ -1254,6 +1254,189 @@ TEST_F(ClusterWorkerTest, LoopClosureFailoverReplaysTheAgentsPlacesFromAReplica)
   shards.clear();
 }
 
+// A frame resent after a failover whose first answer was lost (docs/cluster.md): its message id
+// de-duplicates to the record its first publish left, and the answer is that record's even when
+// this worker processes the frame otherwise. The first worker's records are published here with
+// the frame's message id (<agent>/<sequence>), then the frame goes through a worker:
+// - first merged by loop closure (a CountObservation), now stored by the new detector: merged
+//   into the same place, and the next frame's detector holds no place for it;
+// - first invalid (Algorithm 1 warming up), now valid: not stored, the first rejection;
+// - first stored, now invalid: stored, the same place.
+TEST_F(ClusterWorkerTest, ResentFrameIsAnsweredByTheStreamsRecord) {
+  FeatureFrames(40);
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(2);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
+  Worker& worker = StartWorker(1);
+  ASSERT_TRUE(worker.stub);
+  ASSERT_TRUE(CreateClusterMap(worker, "resent", LoopMapConfig()).ok());
+  auto js = Js();
+  ASSERT_TRUE(js);
+  const std::string subject = cluster::StreamSubject("test", "resent");
+  auto last_sequence = [&]() -> uint64_t {
+    auto info = js->GetStreamInfo(cluster::StreamName("test", "resent"));
+    EXPECT_TRUE(info.ok()) << info.status().ToString();
+    return info.ok() ? info->last_sequence : 0;
+  };
+  // Until both replicas are open and have applied the whole stream: a new detector's replay
+  // reads the rover's places from one, and a replica still opening refuses.
+  auto await_replicas = [&]() -> bool {
+    const uint64_t last = last_sequence();
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    while (std::chrono::steady_clock::now() < until) {
+      size_t caught_up = 0;
+      for (const auto& shard : shards) {
+        for (const cluster::ReplicaStatus& replica : shard->Replicas()) {
+          caught_up += replica.map == "resent" && replica.applied_sequence >= last;
+        }
+      }
+      if (caught_up == 2) return true;
+      std::this_thread::sleep_for(50ms);
+    }
+    return false;
+  };
+  // What the first worker published for frame `sequence` of the rover; its stream sequence.
+  auto first_publish = [&](const std::string& record, int sequence) -> uint64_t {
+    auto ack = js->Publish(subject, record, "rover/" + std::to_string(sequence), 10s);
+    EXPECT_TRUE(ack.ok()) << ack.status().ToString();
+    EXPECT_TRUE(!ack.ok() || !ack->duplicate);
+    return ack.ok() ? ack->sequence : 0;
+  };
+  auto metadata = [](int sequence) {
+    PlaceMetadata out;
+    out.agent_id = "rover";
+    out.sequence = uint64_t(sequence);
+    out.timestamp_ns = int64_t(sequence) * 100'000'000;
+    return out;
+  };
+
+  // The rover's places so far: frames 1-3.
+  const IngestOutcome earlier =
+      IngestAll(worker.stub.get(), "resent",
+                {FeatureObservation(1, "rover"), FeatureObservation(2, "rover"),
+                 FeatureObservation(3, "rover")});
+  ASSERT_TRUE(earlier.status.ok()) << earlier.status.error_message();
+  ASSERT_EQ(earlier.responses.size(), 3u);
+  std::set<uint32_t> places;
+  for (const v1::IngestResponse& r : earlier.responses) {
+    ASSERT_TRUE(r.stored()) << r.ShortDebugString();
+    places.insert(r.place_id());
+  }
+  const uint32_t last_place = earlier.responses.back().place_id();
+
+  // 1. Frame 10 was merged into the rover's last place by the first worker's detector. The new
+  // detector (a replay of frames 1-3) stores it: a frame unlike frame 3. Frame 11 repeats its
+  // features (the rover stands still): rehearsal would merge it into whatever place the detector
+  // holds for frame 10.
+  const uint64_t merged_record = first_publish(
+      cluster::EncodeCountObservation(last_place, ProcessedFrame(), metadata(10)), 10);
+  ASSERT_GT(merged_record, 0u);
+  ASSERT_TRUE(await_replicas());
+  {
+    v1::IngestHeader header;
+    header.set_map("resent");
+    header.set_loop_closure(true);
+    std::vector<v1::Observation> frames = {FeatureObservation(10, "rover"),
+                                           FeatureObservation(10, "rover")};
+    frames[1].set_sequence(11);
+    frames[1].set_timestamp_ns(11 * 100'000'000);
+    const IngestOutcome resent = IngestWithHeader(worker.stub.get(), header, frames);
+    ASSERT_TRUE(resent.status.ok()) << resent.status.error_message();
+    ASSERT_EQ(resent.responses.size(), 2u);
+    const v1::IngestResponse& r = resent.responses[0];
+    EXPECT_FALSE(r.has_error()) << r.error().message();
+    EXPECT_EQ(r.loop_closure().replayed(), 3u);
+    EXPECT_FALSE(r.stored()) << "the stream holds frame 10 as merged, not as a place";
+    EXPECT_TRUE(r.loop_closure().merged());
+    EXPECT_EQ(r.place_id(), last_place);
+    EXPECT_EQ(r.loop_closure().place_id(), last_place);
+    EXPECT_NE(r.place_id(), uint32_t(merged_record));
+    // Frame 11: the detector was rebuilt from the rover's places (no place for frame 10), so it
+    // is stored as a new place or merged into one of them, never into the CountObservation.
+    const v1::IngestResponse& next = resent.responses[1];
+    EXPECT_FALSE(next.has_error()) << next.error().message();
+    std::printf("frame 11 after the rebuilt detector: %s place %u\n",
+                next.stored() ? "stored as" : "merged into", next.place_id());
+    EXPECT_EQ(next.loop_closure().replayed(), 3u);
+    if (next.stored()) {
+      EXPECT_GT(next.place_id(), merged_record);
+    } else {
+      EXPECT_TRUE(next.loop_closure().merged());
+      EXPECT_TRUE(places.count(next.place_id())) << next.ShortDebugString();
+    }
+  }
+
+  // 2. Frame 20 was invalid at first (e.g. depth filtered away while Algorithm 1 warmed up);
+  // resent, it is valid.
+  ProcessedFrame invalid;
+  invalid.rejection = "invalid place representation: 3 static descriptors (first publish)";
+  const uint64_t invalid_record =
+      first_publish(cluster::EncodeInvalidFrame(invalid, metadata(20)), 20);
+  ASSERT_GT(invalid_record, 0u);
+  {
+    const uint64_t before = last_sequence();
+    const IngestOutcome resent =
+        IngestAll(worker.stub.get(), "resent", {FeatureObservation(20, "rover")});
+    ASSERT_TRUE(resent.status.ok()) << resent.status.error_message();
+    ASSERT_EQ(resent.responses.size(), 1u);
+    const v1::IngestResponse& r = resent.responses[0];
+    EXPECT_FALSE(r.has_error()) << r.error().message();
+    EXPECT_FALSE(r.stored()) << "place " << r.place_id() << " would be record " << invalid_record
+                             << ", an invalid frame";
+    EXPECT_EQ(r.place_id(), 0u);
+    EXPECT_EQ(r.rejection(), invalid.rejection);
+    EXPECT_EQ(last_sequence(), before) << "the resent frame added a record";
+  }
+  // The same in a loop-closure stream (its new detector decides on frame 21 first).
+  const uint64_t invalid_loop_record =
+      first_publish(cluster::EncodeInvalidFrame(invalid, metadata(21)), 21);
+  ASSERT_GT(invalid_loop_record, 0u);
+  ASSERT_TRUE(await_replicas());
+  {
+    const uint64_t before = last_sequence();
+    v1::IngestHeader header;
+    header.set_map("resent");
+    header.set_loop_closure(true);
+    const IngestOutcome resent =
+        IngestWithHeader(worker.stub.get(), header, {FeatureObservation(21, "rover")});
+    ASSERT_TRUE(resent.status.ok()) << resent.status.error_message();
+    ASSERT_EQ(resent.responses.size(), 1u);
+    const v1::IngestResponse& r = resent.responses[0];
+    EXPECT_FALSE(r.has_error()) << r.error().message();
+    EXPECT_FALSE(r.stored()) << "place " << r.place_id() << " would be record "
+                             << invalid_loop_record << ", an invalid frame";
+    EXPECT_FALSE(r.loop_closure().merged());
+    EXPECT_EQ(r.place_id(), 0u);
+    EXPECT_EQ(r.rejection(), invalid.rejection);
+    EXPECT_EQ(last_sequence(), before) << "the resent frame added a record";
+  }
+
+  // 3. Frame 30 was stored at first; resent, it is invalid (3 keypoints).
+  const IngestOutcome stored =
+      IngestAll(worker.stub.get(), "resent", {FeatureObservation(30, "rover")});
+  ASSERT_TRUE(stored.status.ok()) << stored.status.error_message();
+  ASSERT_EQ(stored.responses.size(), 1u);
+  ASSERT_TRUE(stored.responses[0].stored());
+  {
+    v1::Observation few = FeatureObservation(30, "rover");
+    v1::Features* features = few.mutable_features();
+    features->mutable_keypoints()->DeleteSubrange(3, features->keypoints_size() - 3);
+    features->mutable_descriptors()->resize(3 * 32);
+    const uint64_t before = last_sequence();
+    const IngestOutcome resent = IngestAll(worker.stub.get(), "resent", {few});
+    ASSERT_TRUE(resent.status.ok()) << resent.status.error_message();
+    ASSERT_EQ(resent.responses.size(), 1u);
+    const v1::IngestResponse& r = resent.responses[0];
+    EXPECT_FALSE(r.has_error()) << r.error().message();
+    EXPECT_TRUE(r.stored()) << "the stream holds frame 30 as place "
+                            << stored.responses[0].place_id() << "; answered "
+                            << r.ShortDebugString();
+    EXPECT_EQ(r.place_id(), stored.responses[0].place_id());
+    EXPECT_EQ(last_sequence(), before) << "the resent frame added a record";
+  }
+  workers_.clear();  // before the shards it calls
+  shards.clear();
+}
+
 // Issue 32: the loop-closure log in cluster mode. Two agents ingest with matches through one
 // worker while a consumer follows WatchLoopClosures through another; that worker is shut down
 // mid-stream (the consumer resumes through the survivor from its last sequence + 1) and a shard
