@@ -334,6 +334,11 @@ uint64_t OrderedConsumer::next_sequence() const {
   return next_sequence_;
 }
 
+uint64_t OrderedConsumer::repeats_dropped() const {
+  MutexLock lock(mutex_);
+  return repeats_dropped_;
+}
+
 void OrderedConsumer::OnMessage(natsConnection*, natsSubscription*, natsMsg* message,
                                 void* closure) {
   auto* self = static_cast<OrderedConsumer*>(closure);
@@ -341,13 +346,23 @@ void OrderedConsumer::OnMessage(natsConnection*, natsSubscription*, natsMsg* mes
   if (natsMsg_GetMetaData(&meta, message) == NATS_OK) {
     const uint64_t sequence = meta->Sequence.Stream;
     jsMsgMetaData_Destroy(meta);
+    bool repeated = false;
     {
       MutexLock lock(self->mutex_);
-      self->next_sequence_ = sequence + 1;
+      // Delivered already: libnats recreated the consumer from a sequence it had passed (see the
+      // file comment). Messages come in sequence order, so this is the only repetition.
+      repeated = sequence < self->next_sequence_;
+      if (repeated) {
+        ++self->repeats_dropped_;
+      } else {
+        self->next_sequence_ = sequence + 1;
+      }
     }
-    self->callback_(sequence,
-                    std::string_view(natsMsg_GetData(message),
-                                     static_cast<size_t>(natsMsg_GetDataLength(message))));
+    if (!repeated) {
+      self->callback_(sequence,
+                      std::string_view(natsMsg_GetData(message),
+                                       static_cast<size_t>(natsMsg_GetDataLength(message))));
+    }
   }
   natsMsg_Destroy(message);
 }
