@@ -1,15 +1,18 @@
 // Issue 31: what re-ranking the 10 best candidates costs per query, split into feature loading,
-// putative matching and the robust fit, for the default verifier and the one before issue 31
-// (VerificationConfig::legacy: one Hamming distance at a time, OpenCV FM_RANSAC) in the same run.
+// putative matching and the robust fit, for the default verifier, the one before issue 31
+// (VerificationConfig::legacy: one Hamming distance at a time, OpenCV FM_RANSAC; `old_` lines) and
+// the previous default (bench/verification_baseline.h; `prev_` lines) in the same run.
 //
 // Workload: CamVid frames (480x360), every other frame a database place and the others queries,
 // ORB at each --orb budget, the default vocabulary; each query's 10 best places by BoW score
 // (verification off) are its candidates, verified exhaustively ("Geo-6"), one thread. Feature
 // loading is decoding each candidate's stored features value and BoW value (core/storage/codec.h,
 // what RocksPayloadStore::Get decodes; the RocksDB read itself is not included). Each query runs
-// the old and the new path alternately, --rounds times, keeping each one's fastest. Figures are
-// medians (p50) and p90 over the queries of the sum over their 10 candidates; agreement lines
-// compare the new path's ranking with the old one's on the same candidates.
+// the three paths alternately (which goes first rotates from round to round), --rounds times,
+// keeping each one's fastest. Figures are medians (p50) and p90 over the queries of the sum over
+// their 10 candidates, in wall time and in the thread's CPU time (`cpu_`: what other processes on
+// a loaded machine do not add); agreement lines compare the new path's ranking with the old
+// one's, and the new path's putative matches and inliers with the previous default's.
 //
 // Usage: placedb-bench-verification [--vocabulary FILE] [--queries N] [--orb 1000,2000]
 //        [--rounds N]
@@ -17,6 +20,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <filesystem>
 #include <map>
 #include <opencv2/core/utility.hpp>
@@ -26,6 +30,7 @@
 #include <vector>
 
 #include "bench/bench_output.h"
+#include "bench/verification_baseline.h"
 #include "core/pipeline/place_database.h"
 #include "core/storage/codec.h"
 
@@ -43,8 +48,14 @@ double Percentile(std::vector<double> values, double p) {
 }
 
 struct Split {
-  double loading = 0, matching = 0, ransac = 0, total = 0;
+  double loading = 0, matching = 0, ransac = 0, total = 0, cpu = 0;
 };
+
+double CpuMs() {
+  timespec now{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &now);
+  return double(now.tv_sec) * 1e3 + double(now.tv_nsec) * 1e-6;
+}
 
 // The verified ranking of candidates (as PlaceDatabase::Query re-ranks): verified first by
 // inliers, the others in BoW order.
@@ -135,12 +146,15 @@ int main(int argc, char** argv) {
                      EncodeBow(frame->bow)};
       places[*id] = std::move(frame).value();
     }
-    Split old_split, new_split;
-    std::vector<double> old_total, new_total, old_matching, new_matching, old_ransac, new_ransac,
-        loading;
+    // Paths: 0 = legacy (old_), 1 = the previous default (prev_), 2 = the default (new_).
+    constexpr int kPaths = 3;
+    const char* const kNames[kPaths] = {"old_", "prev_", "new_"};
+    std::vector<double> total[kPaths], cpu[kPaths], matching[kPaths], ransac[kPaths], loading;
     int same_top1 = 0, queries = 0, same_ranking = 0;
     double inlier_diff_sum = 0, inlier_old_sum = 0, inlier_new_sum = 0;
     int pairs = 0, verified_old = 0, verified_new = 0, verified_flips = 0;
+    int prev_same_putative = 0, prev_verified_flips = 0, prev_same_top1 = 0;
+    double prev_inlier_diff_sum = 0, prev_inlier_sum = 0;
     for (const size_t position : query_positions) {
       auto query = process(position);
       if (!query.ok() || !query->valid) continue;
@@ -169,19 +183,25 @@ int main(int argc, char** argv) {
         best_loading = std::min(best_loading, NowMs() - start);
       }
       loading.push_back(best_loading);
-      std::vector<VerificationResult> results[2];
-      Split best[2] = {{1e30, 1e30, 1e30, 1e30}, {1e30, 1e30, 1e30, 1e30}};
+      std::vector<VerificationResult> results[kPaths];
+      Split best[kPaths];
+      for (Split& b : best) b = {1e30, 1e30, 1e30, 1e30, 1e30};
       for (int r = 0; r < rounds; ++r) {
-        for (int path = 0; path < 2; ++path) {
+        for (int k = 0; k < kPaths; ++k) {
+          const int path = (r + k) % kPaths;
           VerificationConfig verification;
           verification.mode = VerificationMode::kExhaustive;
           verification.legacy = path == 0;
           Split split;
           std::vector<VerificationResult> got;
           const double start = NowMs();
+          const double start_cpu = CpuMs();
           for (const PlaceId id : candidates) {
             const ProcessedFrame& place = places.at(id);
-            auto verified = VerifyGeometry(query->static_features, query->direct,
+            auto verified =
+                path == 1 ? bench::VerifyPreviousDefault(*query->static_features.orb(),
+                                                         *place.static_features.orb(), verification)
+                          : VerifyGeometry(query->static_features, query->direct,
                                            place.static_features, place.direct, verification);
             if (!verified.ok()) return 1;
             split.matching += verified->matching_ms;
@@ -189,44 +209,57 @@ int main(int argc, char** argv) {
             got.push_back(std::move(verified).value());
           }
           split.total = NowMs() - start;
+          split.cpu = CpuMs() - start_cpu;
           if (split.total < best[path].total) best[path] = split;
           results[path] = std::move(got);
         }
       }
-      old_total.push_back(best[0].total);
-      old_matching.push_back(best[0].matching);
-      old_ransac.push_back(best[0].ransac);
-      new_total.push_back(best[1].total);
-      new_matching.push_back(best[1].matching);
-      new_ransac.push_back(best[1].ransac);
+      for (int path = 0; path < kPaths; ++path) {
+        total[path].push_back(best[path].total);
+        cpu[path].push_back(best[path].cpu);
+        matching[path].push_back(best[path].matching);
+        ransac[path].push_back(best[path].ransac);
+      }
       ++queries;
       const std::vector<size_t> old_rank = Ranking(results[0]);
-      const std::vector<size_t> new_rank = Ranking(results[1]);
+      const std::vector<size_t> prev_rank = Ranking(results[1]);
+      const std::vector<size_t> new_rank = Ranking(results[2]);
       if (!candidates.empty() && old_rank[0] == new_rank[0] &&
-          results[0][old_rank[0]].verified == results[1][new_rank[0]].verified) {
+          results[0][old_rank[0]].verified == results[2][new_rank[0]].verified) {
         ++same_top1;
+      }
+      if (!candidates.empty() && prev_rank[0] == new_rank[0] &&
+          results[1][prev_rank[0]].verified == results[2][new_rank[0]].verified) {
+        ++prev_same_top1;
       }
       if (old_rank == new_rank) ++same_ranking;
       for (size_t i = 0; i < candidates.size(); ++i) {
+        const VerificationResult& o = results[0][i];
+        const VerificationResult& p = results[1][i];
+        const VerificationResult& n = results[2][i];
         ++pairs;
-        inlier_diff_sum += std::abs(results[1][i].inliers - results[0][i].inliers);
-        inlier_old_sum += results[0][i].inliers;
-        inlier_new_sum += results[1][i].inliers;
-        verified_old += results[0][i].verified;
-        verified_new += results[1][i].verified;
-        verified_flips += results[0][i].verified != results[1][i].verified;
+        inlier_diff_sum += std::abs(n.inliers - o.inliers);
+        inlier_old_sum += o.inliers;
+        inlier_new_sum += n.inliers;
+        verified_old += o.verified;
+        verified_new += n.verified;
+        verified_flips += o.verified != n.verified;
+        prev_same_putative += p.putative_matches == n.putative_matches;
+        prev_inlier_diff_sum += std::abs(n.inliers - p.inliers);
+        prev_inlier_sum += p.inliers;
+        prev_verified_flips += p.verified != n.verified;
       }
     }
     const std::string prefix = "verify10_orb" + std::to_string(budget) + "_";
     Print(prefix + "queries", queries, "queries");
     Print(prefix + "loading_p50_ms", Median(loading), "ms");
-    for (int path = 0; path < 2; ++path) {
-      const std::string name = prefix + (path == 0 ? "old_" : "new_");
-      const auto& total = path == 0 ? old_total : new_total;
-      Print(name + "p50_ms", Median(total), "ms");
-      Print(name + "p90_ms", Percentile(total, 0.9), "ms");
-      Print(name + "matching_p50_ms", Median(path == 0 ? old_matching : new_matching), "ms");
-      Print(name + "ransac_p50_ms", Median(path == 0 ? old_ransac : new_ransac), "ms");
+    for (int path = 0; path < kPaths; ++path) {
+      const std::string name = prefix + kNames[path];
+      Print(name + "p50_ms", Median(total[path]), "ms");
+      Print(name + "p90_ms", Percentile(total[path], 0.9), "ms");
+      Print(name + "cpu_p50_ms", Median(cpu[path]), "ms");
+      Print(name + "matching_p50_ms", Median(matching[path]), "ms");
+      Print(name + "ransac_p50_ms", Median(ransac[path]), "ms");
     }
     Print(prefix + "same_top1", 100.0 * same_top1 / std::max(1, queries), "%");
     Print(prefix + "same_ranking", 100.0 * same_ranking / std::max(1, queries), "%");
@@ -236,6 +269,12 @@ int main(int argc, char** argv) {
     Print(prefix + "verified_old", verified_old, "candidates");
     Print(prefix + "verified_new", verified_new, "candidates");
     Print(prefix + "verified_flips", verified_flips, "candidates");
+    Print(prefix + "prev_same_putative", 100.0 * prev_same_putative / std::max(1, pairs), "%");
+    Print(prefix + "prev_same_top1", 100.0 * prev_same_top1 / std::max(1, queries), "%");
+    Print(prefix + "prev_inlier_mean", prev_inlier_sum / std::max(1, pairs), "inliers");
+    Print(prefix + "prev_inlier_mean_abs_diff", prev_inlier_diff_sum / std::max(1, pairs),
+          "inliers");
+    Print(prefix + "prev_verified_flips", prev_verified_flips, "candidates");
   }
   return 0;
 }

@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <numeric>
 #include <opencv2/imgproc.hpp>
+#include <random>
 #include <set>
 
 #include "core/features/sift_features.h"
@@ -329,6 +330,101 @@ TEST(GeometricVerifierTest, DegenerateInputsGiveNoInliers) {
   torn.descriptors.pop_back();
   EXPECT_EQ(VerifyGeometry(torn, {}, features, {}, Exhaustive()).status().code(),
             StatusCode::kInvalidArgument);
+}
+
+// The putative matches by the contract's one-at-a-time rule: each query feature's nearest and
+// second-nearest candidate by Hamming distance (candidates in order, the first on ties), kept when
+// at most max_hamming and below ratio * second, then one query per candidate feature (the
+// closest, the first on ties); in candidate order.
+std::vector<InlierPair> OneAtATimeMatches(const FeatureSet& query, const FeatureSet& candidate,
+                                          const VerificationConfig& config) {
+  constexpr int kUnseen = 1 << 20;
+  std::vector<int> best(query.size(), kUnseen), second(query.size(), kUnseen);
+  std::vector<uint32_t> nearest(query.size(), 0);
+  for (size_t q = 0; q < query.size(); ++q) {
+    for (size_t c = 0; c < candidate.size(); ++c) {
+      const int d = HammingDistance(query.descriptors[q], candidate.descriptors[c]);
+      if (d < best[q]) {
+        second[q] = best[q];
+        best[q] = d;
+        nearest[q] = uint32_t(c);
+      } else if (d < second[q]) {
+        second[q] = d;
+      }
+    }
+  }
+  std::vector<int> owner(candidate.size(), -1);
+  for (size_t q = 0; q < query.size(); ++q) {
+    if (best[q] > config.max_hamming) continue;
+    if (second[q] != kUnseen && !(double(best[q]) < double(config.ratio) * double(second[q]))) {
+      continue;
+    }
+    int& current = owner[nearest[q]];
+    if (current < 0 || best[q] < best[size_t(current)]) current = int(q);
+  }
+  std::vector<InlierPair> matches;
+  for (size_t c = 0; c < candidate.size(); ++c) {
+    if (owner[c] >= 0) matches.push_back({uint32_t(owner[c]), uint32_t(c)});
+  }
+  return matches;
+}
+
+// The default path's matching (descriptors blocked 16 at a time, two query descriptors per block,
+// or one distance at a time under PLACEDB_NO_AVX512: ctest runs this binary both ways) finds the
+// one-at-a-time putative matches pair by pair, whatever the tail of the last block and the odd
+// query left over. Every keypoint sits on one pixel, so every putative match "stays where it
+// is" and the inlier pairs returned are exactly the putative matches.
+TEST(GeometricVerifierTest, FastMatchingEqualsOneAtATimePairByPair) {
+  std::mt19937_64 random(31);
+  const auto descriptor = [&] {
+    Descriptor256 d;
+    for (uint64_t& word : d.words) word = random();
+    return d;
+  };
+  const std::pair<size_t, size_t> sizes[] = {{1, 1},   {2, 9},   {3, 8},     {9, 15},
+                                             {17, 16}, {33, 17}, {250, 301}, {1001, 2000}};
+  for (const auto& [query_count, candidate_count] : sizes) {
+    FeatureSet query, candidate;
+    for (size_t c = 0; c < candidate_count; ++c) candidate.descriptors.push_back(descriptor());
+    for (size_t q = 0; q < query_count; ++q) {
+      // Every other query near a candidate (0-60 bits flipped); every twelfth a copy of the one
+      // before it (two queries at the same distance from the same candidate: the first keeps it);
+      // every tenth nearly all zeros (the padding of a partial block must not count); the rest
+      // random.
+      Descriptor256 d = descriptor();
+      if (q % 12 == 1) {
+        d = query.descriptors[q - 1];
+      } else if (q % 10 == 3) {
+        for (uint64_t& word : d.words) word &= random() & random() & random();
+      } else if (q % 2 == 0) {
+        d = candidate.descriptors[(q * 7) % candidate_count];
+        const int flips = int(random() % 61);
+        for (int f = 0; f < flips; ++f) {
+          const uint64_t bit = random() % 256;
+          d.words[bit / 64] ^= uint64_t(1) << (bit % 64);
+        }
+      }
+      query.descriptors.push_back(d);
+    }
+    query.keypoints.assign(query_count, Keypoint{.x = 40, .y = 30});
+    candidate.keypoints.assign(candidate_count, Keypoint{.x = 40, .y = 30});
+    VerificationConfig strict = Exhaustive();
+    VerificationConfig loose = Exhaustive();  // every query has a match but for the ratio test
+    loose.max_hamming = 256;
+    loose.ratio = 0.95f;
+    for (const VerificationConfig& config : {strict, loose}) {
+      const std::string context = std::to_string(query_count) + " x " +
+                                  std::to_string(candidate_count) + ", max_hamming " +
+                                  std::to_string(config.max_hamming);
+      const std::vector<InlierPair> expected = OneAtATimeMatches(query, candidate, config);
+      auto result = VerifyGeometry(query, {}, candidate, {}, config, /*collect_inliers=*/true);
+      ASSERT_TRUE(result.ok()) << result.status().ToString();
+      EXPECT_EQ(result->putative_matches, int(expected.size())) << context;
+      if (expected.size() >= 8) {
+        EXPECT_EQ(result->inlier_pairs, expected) << context;
+      }
+    }
+  }
 }
 
 TEST(GeometricVerifierTest, DisabledDoesNothing) {
