@@ -50,6 +50,12 @@ BENCHMARKS = [
     {"name": "correspondences", "binary": "placedb-bench-correspondences",
      "quick": [], "full": [],
      "needs": ["{shared}/data/rtabmap-loop"]},
+    # Issue 31: re-ranking the 10 best candidates by verification; baseline the verifier before
+    # issue 31 (and, through --base-rev, an earlier default).
+    {"name": "verification", "binary": "placedb-bench-verification",
+     "quick": ["--vocabulary", "{vocabulary}", "--queries", "10", "--rounds", "2"],
+     "full": ["--vocabulary", "{vocabulary}", "--queries", "40", "--rounds", "3"],
+     "needs": ["{vocabulary}", "{shared}/data/camvid"]},
     # Issue 32: relative pose per verified candidate; baseline the verification of the same pairs.
     {"name": "pose", "binary": "placedb-bench-pose",
      "quick": ["--rounds", "11"], "full": [],

@@ -1,18 +1,19 @@
 // Issue 31: what re-ranking the 10 best candidates costs per query, split into feature loading,
-// putative matching and the robust fit, for the default verifier, the one before issue 31
-// (VerificationConfig::legacy: one Hamming distance at a time, OpenCV FM_RANSAC; `old_` lines) and
-// the previous default (bench/verification_baseline.h; `prev_` lines) in the same run.
+// putative matching and the robust fit, for the default verifier (`new_` lines) and the one before
+// issue 31 (VerificationConfig::legacy: one Hamming distance at a time, OpenCV FM_RANSAC; `old_`
+// lines) in the same run. Against an earlier default, run it through bench/compare.py
+// (--base-rev REV --only verification: both builds alternating).
 //
 // Workload: CamVid frames (480x360), every other frame a database place and the others queries,
 // ORB at each --orb budget, the default vocabulary; each query's 10 best places by BoW score
 // (verification off) are its candidates, verified exhaustively ("Geo-6"), one thread. Feature
 // loading is decoding each candidate's stored features value and BoW value (core/storage/codec.h,
 // what RocksPayloadStore::Get decodes; the RocksDB read itself is not included). Each query runs
-// the three paths alternately (which goes first rotates from round to round), --rounds times,
+// both paths alternately (which goes first rotates from round to round), --rounds times,
 // keeping each one's fastest. Figures are medians (p50) and p90 over the queries of the sum over
 // their 10 candidates, in wall time and in the thread's CPU time (`cpu_`: what other processes on
 // a loaded machine do not add); agreement lines compare the new path's ranking with the old
-// one's, and the new path's putative matches and inliers with the previous default's.
+// one's.
 //
 // Usage: placedb-bench-verification [--vocabulary FILE] [--queries N] [--orb 1000,2000]
 //        [--rounds N]
@@ -30,7 +31,6 @@
 #include <vector>
 
 #include "bench/bench_output.h"
-#include "bench/verification_baseline.h"
 #include "core/pipeline/place_database.h"
 #include "core/storage/codec.h"
 
@@ -146,15 +146,13 @@ int main(int argc, char** argv) {
                      EncodeBow(frame->bow)};
       places[*id] = std::move(frame).value();
     }
-    // Paths: 0 = legacy (old_), 1 = the previous default (prev_), 2 = the default (new_).
-    constexpr int kPaths = 3;
-    const char* const kNames[kPaths] = {"old_", "prev_", "new_"};
+    // Paths: 0 = legacy (old_), 1 = the default (new_).
+    constexpr int kPaths = 2;
+    const char* const kNames[kPaths] = {"old_", "new_"};
     std::vector<double> total[kPaths], cpu[kPaths], matching[kPaths], ransac[kPaths], loading;
     int same_top1 = 0, queries = 0, same_ranking = 0;
     double inlier_diff_sum = 0, inlier_old_sum = 0, inlier_new_sum = 0;
     int pairs = 0, verified_old = 0, verified_new = 0, verified_flips = 0;
-    int prev_same_putative = 0, prev_verified_flips = 0, prev_same_top1 = 0;
-    double prev_inlier_diff_sum = 0, prev_inlier_sum = 0;
     for (const size_t position : query_positions) {
       auto query = process(position);
       if (!query.ok() || !query->valid) continue;
@@ -198,10 +196,7 @@ int main(int argc, char** argv) {
           const double start_cpu = CpuMs();
           for (const PlaceId id : candidates) {
             const ProcessedFrame& place = places.at(id);
-            auto verified =
-                path == 1 ? bench::VerifyPreviousDefault(*query->static_features.orb(),
-                                                         *place.static_features.orb(), verification)
-                          : VerifyGeometry(query->static_features, query->direct,
+            auto verified = VerifyGeometry(query->static_features, query->direct,
                                            place.static_features, place.direct, verification);
             if (!verified.ok()) return 1;
             split.matching += verified->matching_ms;
@@ -222,21 +217,15 @@ int main(int argc, char** argv) {
       }
       ++queries;
       const std::vector<size_t> old_rank = Ranking(results[0]);
-      const std::vector<size_t> prev_rank = Ranking(results[1]);
-      const std::vector<size_t> new_rank = Ranking(results[2]);
+      const std::vector<size_t> new_rank = Ranking(results[1]);
       if (!candidates.empty() && old_rank[0] == new_rank[0] &&
-          results[0][old_rank[0]].verified == results[2][new_rank[0]].verified) {
+          results[0][old_rank[0]].verified == results[1][new_rank[0]].verified) {
         ++same_top1;
-      }
-      if (!candidates.empty() && prev_rank[0] == new_rank[0] &&
-          results[1][prev_rank[0]].verified == results[2][new_rank[0]].verified) {
-        ++prev_same_top1;
       }
       if (old_rank == new_rank) ++same_ranking;
       for (size_t i = 0; i < candidates.size(); ++i) {
         const VerificationResult& o = results[0][i];
-        const VerificationResult& p = results[1][i];
-        const VerificationResult& n = results[2][i];
+        const VerificationResult& n = results[1][i];
         ++pairs;
         inlier_diff_sum += std::abs(n.inliers - o.inliers);
         inlier_old_sum += o.inliers;
@@ -244,10 +233,6 @@ int main(int argc, char** argv) {
         verified_old += o.verified;
         verified_new += n.verified;
         verified_flips += o.verified != n.verified;
-        prev_same_putative += p.putative_matches == n.putative_matches;
-        prev_inlier_diff_sum += std::abs(n.inliers - p.inliers);
-        prev_inlier_sum += p.inliers;
-        prev_verified_flips += p.verified != n.verified;
       }
     }
     const std::string prefix = "verify10_orb" + std::to_string(budget) + "_";
@@ -269,12 +254,6 @@ int main(int argc, char** argv) {
     Print(prefix + "verified_old", verified_old, "candidates");
     Print(prefix + "verified_new", verified_new, "candidates");
     Print(prefix + "verified_flips", verified_flips, "candidates");
-    Print(prefix + "prev_same_putative", 100.0 * prev_same_putative / std::max(1, pairs), "%");
-    Print(prefix + "prev_same_top1", 100.0 * prev_same_top1 / std::max(1, queries), "%");
-    Print(prefix + "prev_inlier_mean", prev_inlier_sum / std::max(1, pairs), "inliers");
-    Print(prefix + "prev_inlier_mean_abs_diff", prev_inlier_diff_sum / std::max(1, pairs),
-          "inliers");
-    Print(prefix + "prev_verified_flips", prev_verified_flips, "candidates");
   }
   return 0;
 }
