@@ -12,6 +12,8 @@
 //  - index figures: top-10 query on 1 and 2 threads, index bytes per stored descriptor, the top-1
 //    and top-10 agreement of the (quantised) index with the exact ranking, build time and the
 //    process's peak memory (VmHWM) at each size; places are added in id order.
+//  - the frequent-word skip (max_word_share 0.03) against the exact scan on new random views of
+//    the sources (`revisit`) and on RTAB-Map loop frames (`unrelated`): time and agreement.
 //
 // Usage: placedb-bench-core --vocabulary FILE [--places 1000,10000,100000,1000000] [--views N]
 #include <algorithm>
@@ -308,6 +310,36 @@ bool AgreeWithExact(const BowVector& query, const Vocabulary& vocabulary,
   return true;
 }
 
+// The server's frequent-word skip (max_word_share 0.03, its default from 100,000 places) against
+// the exact scan on harder queries than a stored view: `kind` names them. Per query the index's
+// exhaustive top 10 is the reference (it equals the exact ranking: the lines above); prints the
+// skip's top-1 and top-10 agreement with it and both paths' times (1 thread, alternating).
+void BenchSkipAgreement(const std::string& kind, const std::vector<BowVector>& queries,
+                        const SweepMap& map) {
+  std::vector<double> exact_ms, skip_ms;
+  double top1 = 0, top10 = 0;
+  for (size_t q = 0; q < queries.size(); ++q) {
+    std::vector<ScoredPlace> answer[2];
+    for (int path = 0; path < 2; ++path) {
+      const int skip = int((path + q) % 2);
+      const double start = NowMs();
+      answer[skip] = map.index.Query(queries[q], 10, {}, {}, 1, skip == 1 ? 0.03 : 1.0);
+      (skip == 1 ? skip_ms : exact_ms).push_back(NowMs() - start);
+    }
+    if (answer[0].empty() || answer[1].empty()) continue;
+    top1 += answer[0][0].place == answer[1][0].place ? 1 : 0;
+    for (const ScoredPlace& got : answer[1]) {
+      for (const ScoredPlace& want : answer[0]) top10 += got.place == want.place ? 0.1 : 0;
+    }
+  }
+  const std::string at = kind + "_at_" + std::to_string(map.places) + "_places";
+  const double n = double(std::max<size_t>(queries.size(), 1));
+  Print("query_top10_exact_" + at, Median(exact_ms), "ms");
+  Print("query_top10_skip_words_over_3pct_" + at, Median(skip_ms), "ms");
+  Print("top1_agreement_skip_words_over_3pct_" + at, top1 / n, "ratio");
+  Print("top10_agreement_skip_words_over_3pct_" + at, top10 / n, "ratio");
+}
+
 // Top-10 query time at this size on 1 and 2 threads (60 queries; the linear scan on 10 of them
 // while the map is small), agreement with the exact ranking (20 queries), the index's memory and
 // the process's peak memory. False when a query finds nothing.
@@ -445,6 +477,36 @@ int main(int argc, char** argv) {
       "descriptors per view on average\n",
       views.size(), sources.size(), double(descriptor_total) / double(views.size()));
 
+  // Harder queries than a stored view, for the frequent-word skip's agreement: new random views
+  // of the sources (seeds no stored view used: a revisit from another viewpoint), and frames of a
+  // place the map does not hold (the RTAB-Map loop's, every other one).
+  std::vector<BowVector> revisit_queries, unrelated_queries;
+  {
+    OrbConfig orb;
+    orb.max_features = 1000;
+    auto add = [&](const cv::Mat& image, std::vector<BowVector>* queries) {
+      auto features = ExtractOrb(image, orb);
+      if (!features.ok() || features->size() < 100) return;
+      BowVector bow;
+      vocabulary->Transform(features->descriptors, &bow, nullptr, 0);
+      NormalizeForScoring(&bow, ScoringType::kL1);
+      queries->push_back(std::move(bow));
+    };
+    for (size_t q = 0; q < 30; ++q) {
+      std::mt19937_64 rng(1'000'000 + q);
+      const cv::Mat image = cv::imread(sources[(q * 7) % sources.size()], cv::IMREAD_GRAYSCALE);
+      if (!image.empty()) add(bench::RandomView(image, rng), &revisit_queries);
+    }
+    if (auto frames = ListImageFiles(options.shared + "/data/rtabmap-loop"); frames.ok()) {
+      for (size_t i = 0; i < frames->size(); i += 2) {
+        const cv::Mat image = cv::imread((*frames)[i], cv::IMREAD_GRAYSCALE);
+        if (!image.empty()) add(image, &unrelated_queries);
+      }
+    }
+    std::printf("# skip agreement queries: %zu new views of the sources, %zu RTAB-Map frames\n",
+                revisit_queries.size(), unrelated_queries.size());
+  }
+
   // --- transform ---------------------------------------------------------------------------
   if (!BenchTransform(*vocabulary, views)) return 1;
 
@@ -455,6 +517,8 @@ int main(int argc, char** argv) {
   for (size_t target : sweep) {
     if (!GrowTo(target, *vocabulary, views, &map)) return 1;
     if (!BenchQueries(target, *vocabulary, views, map)) return 1;
+    BenchSkipAgreement("revisit", revisit_queries, map);
+    if (!unrelated_queries.empty()) BenchSkipAgreement("unrelated", unrelated_queries, map);
   }
   return 0;
 }

@@ -205,7 +205,7 @@ TEST(ServerConfigTest, MaxSnapshotBytesFromFileAndEnvironment) {
 TEST(ServerConfigTest, SearchSettings) {
   ServerConfig c;
   EXPECT_EQ(c.search.threads, 1);
-  EXPECT_DOUBLE_EQ(c.search.max_word_share, 0.03);
+  EXPECT_DOUBLE_EQ(c.search.max_word_share, 1.0);
   EXPECT_EQ(c.search.skip_words_min_places, 100000u);
   ASSERT_TRUE(
       server::ApplyConfigYaml(
