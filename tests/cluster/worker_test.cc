@@ -1747,5 +1747,46 @@ TEST_F(ClusterInternalTlsTest, IngestAndQueryWithTlsEverywherePlaintextRefused) 
   EXPECT_EQ(restored.restored_from, peer) << restored.state;
 }
 
+// Bad internal TLS files stop a worker and a shard at startup, naming the key and the file; a
+// missing one is a configuration error (exit 2) before anything starts.
+TEST_F(ClusterInternalTlsTest, StartupNamesTheBadFile) {
+  const testing::TestCertificates& certs = testing::SharedTestCertificates();
+  {
+    ServerConfig config = WorkerConfig(1);
+    config.tls.key_file = certs.client_key;  // not the node certificate's key
+    ServerDeps deps;
+    deps.vocabularies.emplace("default", vocabulary_);
+    deps.cluster_backend = [&config](MapRegistry* maps,
+                                     Metrics* metrics) -> Result<std::unique_ptr<MapBackend>> {
+      auto worker = ClusterWorker::Start(config, maps, metrics);
+      if (!worker.ok()) return worker.status();
+      return std::unique_ptr<MapBackend>(std::move(worker).value());
+    };
+    auto started = Server::Start(config, std::move(deps));
+    ASSERT_FALSE(started.ok());
+    // The public API checks the same files first; either way the key and file are named.
+    EXPECT_NE(started.status().message().find("tls.key_file (" + certs.client_key + ")"),
+              std::string::npos)
+        << started.status().ToString();
+  }
+  const std::string common = std::string(PLACEDB_SERVER_BINARY) + " --role shard --nats " +
+                             engines_->NatsUrl(0) + " --etcd " + engines_->EtcdEndpoint(0) +
+                             " --shard-id s --advertise 127.0.0.1:1 --internal-listen " +
+                             "127.0.0.1:0 --metrics-listen off --console-listen off --data-dir " +
+                             root_ + "/bad-shard --internal-tls --tls-cert " + certs.node_cert +
+                             " --tls-key " + certs.node_key;
+  std::string output;
+  EXPECT_EQ(testing::RunShell(common + " --tls-client-ca " + certs.not_pem, &output), 1) << output;
+  EXPECT_NE(output.find("cluster.internal_tls"), std::string::npos) << output;
+  EXPECT_NE(output.find("tls.client_ca_file (" + certs.not_pem + "): no PEM certificate"),
+            std::string::npos)
+      << output;
+  EXPECT_EQ(testing::RunShell(common, &output), 2) << output;
+  EXPECT_NE(output.find("cluster.internal_tls: needs tls.client_ca_file or "
+                        "cluster.internal_ca_file"),
+            std::string::npos)
+      << output;
+}
+
 }  // namespace
 }  // namespace placedb::server_testing
