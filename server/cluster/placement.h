@@ -65,7 +65,8 @@ std::string HexOf(const std::string& bytes);
 std::string StreamName(const std::string& cluster_name, const std::string& map);
 std::string StreamSubject(const std::string& cluster_name, const std::string& map);
 // Issue 35: the cluster's snapshot archives (server/cluster/snapshot_archives.h): stream
-// PLACEDB_<NAME>_SNAPSHOTS (not a hex name: no map's), subject placedb.<name>.snapshots.<hex id>.
+// PLACEDB_<NAME>_SNAPSHOTS (not a hex name: no map's), subjects placedb.<name>.snapshots.<hex id>
+// (and one more token per stored archive).
 std::string SnapshotStreamName(const std::string& cluster_name);
 std::string SnapshotSubject(const std::string& cluster_name, const std::string& id);
 

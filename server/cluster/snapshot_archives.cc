@@ -19,6 +19,8 @@ using SystemClock = std::chrono::system_clock;
 
 // Chunks a reader holds while its consumer of the stream runs ahead (4 MiB).
 constexpr size_t kReadAhead = 8;
+// A reader waits at most this long for the next chunk.
+constexpr auto kIdle = std::chrono::seconds(30);
 
 std::string Context(const std::string& id) {
   return "snapshot '" + id + "'";
@@ -39,6 +41,7 @@ std::string EncodeSnapshotManifest(const SnapshotManifest& m) {
   json["config"] = nlohmann::json::parse(m.config_json.empty() ? "{}" : m.config_json);
   json["archive_bytes"] = m.archive_bytes;
   json["sha256"] = m.sha256;
+  json["subject"] = m.subject;
   json["first_sequence"] = m.first_sequence;
   json["chunks"] = m.chunks;
   return json.dump();
@@ -59,6 +62,7 @@ Result<SnapshotManifest> DecodeSnapshotManifest(const std::string& text) {
     m.config_json = json.at("config").dump();
     m.archive_bytes = json.at("archive_bytes").get<uint64_t>();
     m.sha256 = json.at("sha256").get<std::string>();
+    m.subject = json.at("subject").get<std::string>();
     m.first_sequence = json.at("first_sequence").get<uint64_t>();
     m.chunks = json.at("chunks").get<uint64_t>();
     return m;
@@ -110,10 +114,6 @@ std::string SnapshotArchives::Key(const std::string& id) const {
   return ClusterKeys(cluster_name_).Snapshot(id);
 }
 
-std::string SnapshotArchives::Subject(const std::string& id) const {
-  return SnapshotSubject(cluster_name_, id);
-}
-
 Status SnapshotArchives::EnsureStream() {
   StreamConfig config;
   config.name = stream_;
@@ -137,12 +137,13 @@ Status SnapshotArchives::Put(const std::string& path, SnapshotManifest* manifest
     if (held->kvs.empty()) break;
     id = wanted + "-" + std::to_string(n);
   }
-  const std::string subject = Subject(id);
-  // Message ids unique to this Put: a purged earlier attempt's ids are still in the duplicate
-  // window, and a duplicate would name a purged sequence.
+  // Subject and message ids unique to this Put: a purged earlier attempt's ids are still in the
+  // duplicate window (a duplicate would name a purged sequence), and a Put racing for the same id
+  // (refused at the manifest) purges its own chunks only.
   static std::atomic<uint64_t> puts{0};
   const std::string nonce =
-      std::to_string(SystemClock::now().time_since_epoch().count()) + "." + std::to_string(++puts);
+      std::to_string(SystemClock::now().time_since_epoch().count()) + "-" + std::to_string(++puts);
+  const std::string subject = SnapshotSubject(cluster_name_, id) + "." + nonce;
   const auto fail = [&](const Status& status) {
     (void)jetstream_->PurgeStream(stream_, subject, 0);
     return status.WithContext("storing " + Context(id));
@@ -175,6 +176,7 @@ Status SnapshotArchives::Put(const std::string& path, SnapshotManifest* manifest
   manifest->info.id = id;
   manifest->archive_bytes = bytes;
   manifest->sha256 = Sha256::Hex(sha.Final());
+  manifest->subject = subject;
   manifest->first_sequence = first;
   manifest->chunks = index;
   // The commit point: listed from here on, whole.
@@ -222,16 +224,16 @@ Status SnapshotArchives::Read(const SnapshotManifest& manifest, SystemClock::tim
     std::deque<std::string> chunks GUARDED_BY(mutex);
     bool stop GUARDED_BY(mutex) = false;
   } queue;
-  auto consumer = jetstream_->Consume(stream_, Subject(manifest.info.id),
-                                      std::max<uint64_t>(manifest.first_sequence, 1),
-                                      [&queue](uint64_t, std::string_view data) {
-                                        MutexLock lock(queue.mutex);
-                                        while (!queue.stop && queue.chunks.size() >= kReadAhead)
-                                          queue.cv.Wait(queue.mutex);
-                                        if (queue.stop) return;
-                                        queue.chunks.emplace_back(data);
-                                        queue.cv.NotifyAll();
-                                      });
+  auto consumer =
+      jetstream_->Consume(stream_, manifest.subject, std::max<uint64_t>(manifest.first_sequence, 1),
+                          [&queue](uint64_t, std::string_view data) {
+                            MutexLock lock(queue.mutex);
+                            while (!queue.stop && queue.chunks.size() >= kReadAhead)
+                              queue.cv.Wait(queue.mutex);
+                            if (queue.stop) return;
+                            queue.chunks.emplace_back(data);
+                            queue.cv.NotifyAll();
+                          });
   if (!consumer.ok()) return consumer.status().WithContext("reading " + Context(manifest.info.id));
   const auto until = std::chrono::steady_clock::now() + (deadline - SystemClock::now());
   Sha256 sha;
@@ -241,13 +243,15 @@ Status SnapshotArchives::Read(const SnapshotManifest& manifest, SystemClock::tim
     std::string piece;
     {
       MutexLock lock(queue.mutex);
-      while (queue.chunks.empty() && std::chrono::steady_clock::now() < until) {
-        queue.cv.WaitUntil(queue.mutex, until);
+      // Bounded by the deadline, and by kIdle without a chunk (its chunks purged meanwhile).
+      const auto wait_until = std::min(until, std::chrono::steady_clock::now() + kIdle);
+      while (queue.chunks.empty() && std::chrono::steady_clock::now() < wait_until) {
+        queue.cv.WaitUntil(queue.mutex, wait_until);
       }
       if (queue.chunks.empty()) {
         result = Status::IoError("reading " + Context(manifest.info.id) + ": " +
                                  std::to_string(chunks) + " of " + std::to_string(manifest.chunks) +
-                                 " chunks came from the snapshots stream before the deadline");
+                                 " chunks came from the snapshots stream (deleted meanwhile?)");
         break;
       }
       piece = std::move(queue.chunks.front());
@@ -292,13 +296,13 @@ Status SnapshotArchives::ReadToFile(const SnapshotManifest& manifest, const std:
 }
 
 Status SnapshotArchives::Delete(const std::string& id) {
-  PLACEDB_RETURN_IF_ERROR(ValidateSnapshotId(id).WithContext("id"));
+  auto manifest = Get(id);
+  if (!manifest.ok()) return manifest.status();
   auto deleted = etcd_->Delete(Key(id));
   if (!deleted.ok()) return deleted.status();
   if (*deleted == 0) return Status::NotFound("id: " + Context(id) + " does not exist");
-  // Gone for every worker; its chunks after it.
-  // Listed no more; chunks a failed purge leaves go with the next Put or Delete of the id.
-  (void)jetstream_->PurgeStream(stream_, Subject(id), 0);
+  // Listed no more; then its chunks (a failed purge leaves unlisted bytes in the stream).
+  (void)jetstream_->PurgeStream(stream_, manifest->subject, 0);
   return Status::Ok();
 }
 

@@ -5,7 +5,8 @@
 // - The archive's bytes: chunks of kSnapshotChunkBytes (below NATS' default 1 MiB payload) on
 //   subject placedb.<name>.snapshots.<hex of the id> of the JetStream stream
 //   PLACEDB_<NAME>_SNAPSHOTS (file storage, the cluster's stream_replicas: stored as a map's
-//   records are), message ids <id>/<index> (a retried publish is not stored twice).
+//   records are), one more subject token per stored archive (two Puts racing for one id never
+//   share chunks), message ids unique to the Put (a retried publish is not stored twice).
 // - The manifest: etcd snapshots/<id> (JSON), written create-if-absent after the last chunk is
 //   acknowledged: the snapshot exists from that write on, whole. Delete removes the manifest
 //   first, then purges the chunks' subject (a failure then leaves chunks no manifest names,
@@ -40,6 +41,7 @@ struct SnapshotManifest {
   std::string config_json;  // the map's placedb.v1.MapConfig (proto JSON): a restored map's
   uint64_t archive_bytes = 0;
   std::string sha256;           // hex, of the archive's bytes
+  std::string subject;          // the chunks' (one per stored archive: a failed Put purges its own)
   uint64_t first_sequence = 0;  // the first chunk's in the snapshots stream
   uint64_t chunks = 0;
 };
@@ -73,7 +75,7 @@ class SnapshotArchives {
   // The archive's bytes to `sink` in their stored chunks; a sink error stops it and is returned.
   // CORRUPTION when the bytes read do not have the manifest's size and SHA-256 (known after the
   // last chunk: the sink must discard what it got), IO_ERROR when the stream does not deliver
-  // them by `deadline`.
+  // them by `deadline`, or delivers nothing for 30 s (the snapshot deleted meanwhile).
   Status Read(const SnapshotManifest& manifest, std::chrono::system_clock::time_point deadline,
               const std::function<Status(std::string_view)>& sink);
   // Copies the archive into the file `path` (Read's errors).
@@ -83,7 +85,6 @@ class SnapshotArchives {
 
  private:
   std::string Key(const std::string& id) const;
-  std::string Subject(const std::string& id) const;
   Status EnsureStream();
 
   JetStream* const jetstream_;

@@ -1435,16 +1435,22 @@ grpc::Status ClusterWorker::RestoreSnapshot(const v1::RestoreSnapshotRequest& re
   if (grpc::Status made = MakeMap(name, info, deadline, response); !made.ok()) return made;
   // Answered once a replica serves the snapshot's places (restored the archive; an empty
   // snapshot: placed).
-  const bool restored = view_->WaitFor(
-      name,
-      [&](const std::optional<cluster::MapView>& view) {
-        if (!view) return true;  // deleted meanwhile
-        for (const auto& [shard, applied] : view->applied) {
-          if (applied >= manifest->base) return true;
-        }
-        return false;
-      },
-      std::chrono::steady_clock::now() + kSnapshotTime);
+  const auto served = [&](const std::optional<cluster::MapView>& view) {
+    if (!view) return true;  // deleted meanwhile
+    for (const auto& [shard, applied] : view->applied) {
+      if (applied >= manifest->base) return true;
+    }
+    return false;
+  };
+  // Bounded; and not waited for once the snapshot is gone (its replicas cannot restore it then:
+  // GetMap shows them unavailable).
+  const auto until = std::chrono::steady_clock::now() + kSnapshotTime;
+  bool restored = false;
+  while (!restored && std::chrono::steady_clock::now() < until) {
+    restored = view_->WaitFor(
+        name, served, std::min(until, std::chrono::steady_clock::now() + std::chrono::seconds(5)));
+    if (!restored && archives_->Get(request.id()).status().code() == StatusCode::kNotFound) break;
+  }
   spdlog::info("snapshot '{}' restored as cluster map '{}' (stream from {}): {} in {:.2f} s",
                request.id(), ForLog(name), manifest->base + 1,
                restored ? "a replica serves it" : "no replica reported it yet",
