@@ -30,6 +30,7 @@
 #include "server/cluster/map_record.h"
 #include "server/cluster/placement.h"
 #include "server/cluster/shard.h"
+#include "server/cluster/snapshot_archives.h"
 #include "tests/cluster/cluster_frames.h"
 #include "tests/cluster/engines.h"
 #include "tests/join_on_exit.h"
@@ -1929,6 +1930,26 @@ TEST_F(ClusterWorkerTest, SnapshotsThroughAnyWorkerAndRestoreAsANewMap) {
   ASSERT_TRUE(download(a, made.id(), &again).ok());
   EXPECT_EQ(archive, again);
   ASSERT_GT(archive.size(), 512u << 10) << "the archive must span several stored chunks";
+  {
+    // What is read back is checked against the manifest: a manifest whose SHA-256 the stored
+    // bytes do not have makes the download DATA_LOSS (after its bytes: the client discards them).
+    cluster::EtcdOptions etcd_options;
+    etcd_options.endpoints = engines_->EtcdEndpoints();
+    auto etcd = cluster::EtcdClient::Create(etcd_options);
+    ASSERT_TRUE(etcd.ok()) << etcd.status().ToString();
+    const std::string key = "/placedb/test/snapshots/" + made.id();
+    auto stored = (*etcd)->Get(key);
+    ASSERT_TRUE(stored.ok() && stored->kvs.size() == 1);
+    auto manifest = cluster::DecodeSnapshotManifest(stored->kvs[0].value);
+    ASSERT_TRUE(manifest.ok()) << manifest.status().ToString();
+    cluster::SnapshotManifest wrong = *manifest;
+    wrong.sha256 = std::string(64, '0');
+    ASSERT_TRUE((*etcd)->Put(key, cluster::EncodeSnapshotManifest(wrong)).ok());
+    EXPECT_EQ(download(b, made.id(), &again).error_code(), grpc::StatusCode::DATA_LOSS);
+    ASSERT_TRUE((*etcd)->Put(key, stored->kvs[0].value).ok());
+    ASSERT_TRUE(download(b, made.id(), &again).ok());
+    EXPECT_EQ(archive, again);
+  }
 
   // Bad input: a single server's codes, nothing stored.
   v1::MapDescription description;
