@@ -1980,6 +1980,17 @@ TEST_F(ClusterWorkerTest, SnapshotsThroughAnyWorkerAndRestoreAsANewMap) {
     EXPECT_EQ(maps.maps_size(), 1);
   }
 
+  // Restored through b as made (its base from the replica's checkpoint, its configuration the
+  // map's): the same places under the same ids; the map stays when the snapshot goes.
+  status = restore(b, made.id(), "copy0", &description);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  ASSERT_TRUE(caught_up("copy0", 2));
+  for (const auto& [frame, place] : place_of) {
+    if (frame % 7 == 2) {
+      EXPECT_EQ(top_place(a, "copy0", frame), place) << "frame " << frame;
+    }
+  }
+
   // Deleted through b; uploaded through b again; restored through a.
   {
     grpc::ClientContext context;
