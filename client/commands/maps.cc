@@ -624,6 +624,19 @@ int MapsRecover(const Connection& connection, const std::string& name, bool acce
   } else {
     io.out << "recovered map '" << name << "': " << DamageText(response.accepted()) << '\n';
   }
+  if (response.replicas_size() > 0) {  // cluster mode: each replica's part
+    Table replicas({"REPLICA", "DAMAGE", "REBUILT FROM"});
+    for (const auto& replica : response.replicas()) {
+      const std::string found = !replica.error().empty()
+                                    ? "error: " + replica.error()
+                                    : (replica.damaged() ? replica.found() : std::string("none"));
+      const std::string from = !replica.rebuilt()                ? std::string("-")
+                               : replica.restored_from().empty() ? std::string("the map's stream")
+                                                                 : replica.restored_from();
+      replicas.Add({replica.shard(), found, from});
+    }
+    replicas.Print(io.out);
+  }
   PrintMap(response.map(), io);
   return kExitOk;
 }
@@ -655,6 +668,20 @@ int MapsScrub(const Connection& connection, const std::string& name, bool json, 
         places.Add({std::to_string(place.place_id()), place.reason()});
       }
       places.Print(io.out);
+    }
+    if (report.replicas_size() > 0) {  // cluster mode: each replica's own scrub
+      Table replicas({"REPLICA", ">PLACES", ">FILES", "RESULT"});
+      for (const auto& replica : report.replicas()) {
+        const v1::ScrubReport& own = replica.report();
+        replicas.Add({replica.shard(), std::to_string(own.places_checked()),
+                      std::to_string(own.files_checked()),
+                      !replica.error().empty() ? replica.error()
+                      : own.clean()
+                          ? std::string("no damage")
+                          : std::to_string(own.damaged_places_size()) + " places and " +
+                                std::to_string(own.damaged_files_size()) + " files damaged"});
+      }
+      replicas.Print(io.out);
     }
   }
   return report.clean() ? kExitOk : kExitDamage;

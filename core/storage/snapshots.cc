@@ -1,7 +1,5 @@
 #include "core/storage/snapshots.h"
 
-#include <openssl/evp.h>
-
 #include <algorithm>
 #include <array>
 #include <chrono>
@@ -16,6 +14,7 @@
 #include "core/base/files.h"
 #include "core/base/map_name.h"
 #include "core/features/local_features.h"
+#include "core/storage/sha256.h"
 
 namespace placedb {
 namespace {
@@ -114,25 +113,6 @@ bool SafeEntryPath(const std::string& path) {
   }
   return true;
 }
-
-class Sha256 {
- public:
-  Sha256() : context_(EVP_MD_CTX_new(), &EVP_MD_CTX_free) {
-    EVP_DigestInit_ex(context_.get(), EVP_sha256(), nullptr);
-  }
-  void Update(std::string_view bytes) {
-    EVP_DigestUpdate(context_.get(), bytes.data(), bytes.size());
-  }
-  std::string Final() {
-    std::array<unsigned char, EVP_MAX_MD_SIZE> digest{};
-    unsigned int length = 0;
-    EVP_DigestFinal_ex(context_.get(), digest.data(), &length);
-    return std::string(reinterpret_cast<const char*>(digest.data()), length);
-  }
-
- private:
-  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> context_;
-};
 
 template <typename T>
 void PutLe(std::string* out, T value) {

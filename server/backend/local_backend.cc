@@ -327,6 +327,36 @@ grpc::Status LocalBackend::CreateSnapshot(const std::string& map, SnapshotInfo* 
   return grpc::Status::OK;
 }
 
+grpc::Status LocalBackend::ListSnapshots(std::vector<SnapshotInfo>* out) {
+  std::shared_ptr<SnapshotStore> store;
+  if (grpc::Status kept = Snapshots(&store); !kept.ok()) return kept;
+  *out = store->List();
+  return grpc::Status::OK;
+}
+
+grpc::Status LocalBackend::DeleteSnapshot(const std::string& id) {
+  std::shared_ptr<SnapshotStore> store;
+  if (grpc::Status kept = Snapshots(&store); !kept.ok()) return kept;
+  if (Status deleted = store->Delete(id); !deleted.ok()) {
+    return HidePaths(ToGrpc(deleted.WithContext("id")), config_.data_dir);
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status LocalBackend::WriteSnapshotArchive(
+    const std::string& id, size_t chunk_bytes,
+    const std::function<Status(const SnapshotInfo& info, uint64_t bytes)>& start,
+    const std::function<Status(std::string_view)>& sink) {
+  std::shared_ptr<SnapshotStore> store;
+  if (grpc::Status kept = Snapshots(&store); !kept.ok()) return kept;
+  auto info = store->Get(id);
+  if (!info.ok()) return HidePaths(ToGrpc(info.status().WithContext("id")), config_.data_dir);
+  auto size = store->ArchiveBytes(id);
+  if (!size.ok()) return HidePaths(ToGrpc(size.status()), config_.data_dir);
+  if (Status started = start(*info, *size); !started.ok()) return ToGrpc(started);
+  return HidePaths(ToGrpc(store->WriteArchive(id, chunk_bytes, sink)), config_.data_dir);
+}
+
 grpc::Status LocalBackend::RestoreSnapshot(const v1::RestoreSnapshotRequest& request,
                                            v1::MapDescription* response) {
   auto entry = maps_->RestoreSnapshot(request.id(), request.new_map());

@@ -58,6 +58,12 @@ class LocalBackend final : public MapBackend {
                                  const std::function<grpc::Status()>& stop) override;
   grpc::Status Snapshots(std::shared_ptr<SnapshotStore>* store) override;
   grpc::Status CreateSnapshot(const std::string& map, SnapshotInfo* info) override;
+  grpc::Status ListSnapshots(std::vector<SnapshotInfo>* out) override;
+  grpc::Status DeleteSnapshot(const std::string& id) override;
+  grpc::Status WriteSnapshotArchive(
+      const std::string& id, size_t chunk_bytes,
+      const std::function<Status(const SnapshotInfo& info, uint64_t bytes)>& start,
+      const std::function<Status(std::string_view)>& sink) override;
   grpc::Status RestoreSnapshot(const v1::RestoreSnapshotRequest& request,
                                v1::MapDescription* response) override;
   grpc::Status ImportSnapshot(const std::string& path, SnapshotInfo* info) override;

@@ -10,10 +10,10 @@
 // pipeline (search, store, loop closure) goes through this port.
 //
 // Errors are gRPC statuses with the single server's codes (NOT_FOUND, ALREADY_EXISTS,
-// INVALID_ARGUMENT, FAILED_PRECONDITION) plus UNIMPLEMENTED for what a role does not serve
-// (snapshots, RecoverMap and ScrubMap on a worker) and UNAVAILABLE when an engine or every
-// replica is unreachable. A call that fails changes nothing the caller can observe, except where
-// a method says otherwise.
+// INVALID_ARGUMENT, FAILED_PRECONDITION) and UNAVAILABLE when an engine or every replica is
+// unreachable. Every method is served by both (issue 35: ScrubMap, RecoverMap and the snapshots
+// through workers, docs/cluster.md "Admin through workers"). A call that fails changes nothing the
+// caller can observe, except where a method says otherwise.
 //
 // Thread safety: every method of MapBackend may be called concurrently. An IngestSession belongs
 // to one Ingest stream and is called from one thread at a time, in the stream's order.
@@ -164,10 +164,24 @@ class MapBackend {
       const std::function<bool(const v1::LoopConstraint&)>& write,
       const std::function<grpc::Status()>& stop) = 0;
 
-  // ---- Snapshots (server/rpc/snapshots.cc streams the archives through the store).
-  // The snapshot store: UNIMPLEMENTED where the role keeps none, UNAVAILABLE once it is closed.
+  // ---- Snapshots (server/rpc/snapshots.cc). A single server keeps them in its data directory,
+  // a worker in the cluster (server/cluster/snapshot_archives.h): any worker sees them all.
+  // The store uploads are spooled into and checked against (room on disk): UNAVAILABLE once it
+  // is closed.
   virtual grpc::Status Snapshots(std::shared_ptr<SnapshotStore>* store) = 0;
   virtual grpc::Status CreateSnapshot(const std::string& map, SnapshotInfo* info) = 0;
+  // Newest first.
+  virtual grpc::Status ListSnapshots(std::vector<SnapshotInfo>* out) = 0;
+  // NOT_FOUND naming the id when there is no such snapshot.
+  virtual grpc::Status DeleteSnapshot(const std::string& id) = 0;
+  // Snapshot `id`'s archive: `start` with its description and size first, then its bytes to
+  // `sink` in pieces of at most `chunk_bytes`; an error of either stops it and is returned.
+  // NOT_FOUND naming the id; DATA_LOSS when the archive read back is not what was stored (the
+  // receiver must discard what it got).
+  virtual grpc::Status WriteSnapshotArchive(
+      const std::string& id, size_t chunk_bytes,
+      const std::function<Status(const SnapshotInfo& info, uint64_t bytes)>& start,
+      const std::function<Status(std::string_view)>& sink) = 0;
   virtual grpc::Status RestoreSnapshot(const v1::RestoreSnapshotRequest& request,
                                        v1::MapDescription* response) = 0;
   // An archive spooled at `path` (an upload), checked and added to the store.

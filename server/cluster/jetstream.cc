@@ -245,6 +245,16 @@ Status JetStream::DeleteStream(const std::string& stream) {
   return ToStatus(status, code, "JetStream: deleting stream " + stream);
 }
 
+Status JetStream::PurgeStream(const std::string& stream, const std::string& subject,
+                              uint64_t sequence) {
+  jsOptions options = RequestOptions(options_.request_timeout);
+  if (!subject.empty()) options.Stream.Purge.Subject = subject.c_str();
+  options.Stream.Purge.Sequence = sequence;
+  jsErrCode code = static_cast<jsErrCode>(0);
+  const natsStatus status = js_PurgeStream(context_, stream.c_str(), &options, &code);
+  return ToStatus(status, code, "JetStream: purging stream " + stream);
+}
+
 Result<PubAck> JetStream::Publish(const std::string& subject, std::string_view data,
                                   const std::string& message_id,
                                   std::chrono::milliseconds timeout) {
@@ -261,6 +271,13 @@ Result<PubAck> JetStream::Publish(const std::string& subject, std::string_view d
     // The reconnect buffer is off (Connect): a publish while reconnecting is refused at once.
     return Status::IoError("JetStream: publishing to " + subject +
                            ": no connection to NATS (reconnecting)");
+  }
+  if (status == NATS_ERR && code == JSStreamStoreFailedErr) {
+    // Not stored. nats-server 2.9 answers so to the first publish after a purge up to a sequence
+    // of a replicated stream (its leader's expected sequence is reset by it): a retry with the
+    // same message id stores it (engines_test, PurgeToASequenceSetsAnEmptyStreamsNextSequence).
+    return Status::IoError("JetStream: publishing to " + subject + ": not stored (" +
+                           Describe(status, code) + ")");
   }
   if (status != NATS_OK) {
     return ToStatus(status, code,

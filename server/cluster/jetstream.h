@@ -164,6 +164,11 @@ class JetStream {
   Result<StreamInfo> GetStreamInfo(const std::string& stream);
   // NOT_FOUND when there is no such stream.
   Status DeleteStream(const std::string& stream);
+  // Removes the messages of `stream` on `subject` (empty: every subject) below `sequence` (0:
+  // all of them). On an empty stream a purge up to `sequence` makes it the next message's
+  // sequence (a restored map's stream continues after its snapshot's records). NOT_FOUND as
+  // DeleteStream.
+  Status PurgeStream(const std::string& stream, const std::string& subject, uint64_t sequence);
 
   // Publishes `data` with message id `message_id` (empty: none, no de-duplication) and waits up
   // to `timeout` for the PubAck. IO_ERROR when no PubAck came (no quorum, no leader, no

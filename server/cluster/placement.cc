@@ -38,6 +38,14 @@ std::string StreamSubject(const std::string& cluster_name, const std::string& ma
   return "placedb." + cluster_name + ".map." + HexOf(map);
 }
 
+std::string SnapshotStreamName(const std::string& cluster_name) {
+  return "PLACEDB_" + Upper(cluster_name) + "_SNAPSHOTS";
+}
+
+std::string SnapshotSubject(const std::string& cluster_name, const std::string& id) {
+  return "placedb." + cluster_name + ".snapshots." + HexOf(id);
+}
+
 std::string EncodePlacement(const Placement& placement) {
   nlohmann::json json;
   json["epoch"] = placement.epoch;
@@ -62,6 +70,10 @@ std::string EncodeMapInfo(const MapRecordInfo& info) {
   json["config"] = nlohmann::json::parse(info.config_json.empty() ? "{}" : info.config_json);
   json["stream"] = info.stream;
   json["created_unix_ms"] = info.created_unix_ms;
+  if (!info.snapshot.empty()) {
+    json["snapshot"] = info.snapshot;
+    json["snapshot_base"] = info.snapshot_base;
+  }
   return json.dump();
 }
 
@@ -72,6 +84,8 @@ Result<MapRecordInfo> DecodeMapInfo(const std::string& text) {
     out.config_json = json.at("config").dump();
     out.stream = json.at("stream").get<std::string>();
     out.created_unix_ms = json.value("created_unix_ms", int64_t(0));
+    out.snapshot = json.value("snapshot", std::string());
+    out.snapshot_base = json.value("snapshot_base", uint64_t(0));
     return out;
   } catch (const std::exception& e) {
     return Status::InvalidArgument(std::string("map record is not valid JSON: ") + e.what());

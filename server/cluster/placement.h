@@ -56,6 +56,7 @@ struct ClusterKeys {
   }
   std::string AppliedPrefix(const std::string& map) const { return root + "applied/" + map + "/"; }
   std::string Coordinator() const { return root + "coordinator"; }
+  std::string Snapshot(const std::string& id) const { return root + "snapshots/" + id; }
 };
 
 // Stream of a map: PLACEDB_<NAME>_<hex of the map name's bytes>, upper-case; subject
@@ -63,6 +64,11 @@ struct ClusterKeys {
 std::string HexOf(const std::string& bytes);
 std::string StreamName(const std::string& cluster_name, const std::string& map);
 std::string StreamSubject(const std::string& cluster_name, const std::string& map);
+// Issue 35: the cluster's snapshot archives (server/cluster/snapshot_archives.h): stream
+// PLACEDB_<NAME>_SNAPSHOTS (not a hex name: no map's), subjects placedb.<name>.snapshots.<hex id>
+// (and one more token per stored archive).
+std::string SnapshotStreamName(const std::string& cluster_name);
+std::string SnapshotSubject(const std::string& cluster_name, const std::string& id);
 
 struct Placement {
   int64_t epoch = 0;
@@ -77,6 +83,10 @@ struct MapRecordInfo {
   std::string config_json;  // placedb.v1.MapConfig as proto JSON (effective: vocabulary named)
   std::string stream;
   int64_t created_unix_ms = 0;
+  // Issue 35: a map restored from a cluster snapshot (snapshots/<id>): its replicas start from
+  // that archive, and its stream from snapshot_base + 1 (the archive holds the records up to it).
+  std::string snapshot;
+  uint64_t snapshot_base = 0;
 };
 std::string EncodeMapInfo(const MapRecordInfo& info);
 Result<MapRecordInfo> DecodeMapInfo(const std::string& json);

@@ -47,6 +47,9 @@ Result<MapMeta> ParseMapMeta(const std::string& text) {
   }
   MapMeta meta;
   meta.stream = json["stream"].get<std::string>();
+  if (json.contains("snapshot") && json["snapshot"].is_string()) {
+    meta.snapshot = json["snapshot"].get<std::string>();
+  }
   const std::string config =
       json["config"].is_string() ? json["config"].get<std::string>() : json["config"].dump();
   auto parsed = google::protobuf::util::JsonStringToMessage(config, &meta.config);
@@ -155,6 +158,14 @@ class ShardService final : public cv1::Shard::Service {
                              grpc::ServerWriter<cv1::VocabularyChunk>* writer) override {
     return impl_->GetVocabulary(context, *request, writer);
   }
+  grpc::Status ScrubMap(grpc::ServerContext*, const cv1::ReplicaRequest* request,
+                        pv1::ScrubReport* response) override {
+    return impl_->ScrubReplica(*request, response);
+  }
+  grpc::Status RecoverMap(grpc::ServerContext*, const cv1::RecoverReplicaRequest* request,
+                          pv1::ReplicaRecovery* response) override {
+    return impl_->RecoverReplica(*request, response);
+  }
 
  private:
   Shard::Impl* const impl_;
@@ -191,6 +202,8 @@ Status Shard::Impl::Init() {
   auto client = EtcdClient::Create(etcd);
   if (!client.ok()) return client.status();
   etcd_ = std::move(client).value();
+  archives_ = std::make_unique<SnapshotArchives>(js_.get(), etcd_.get(), o.cluster_name,
+                                                 /*stream_replicas=*/0);  // never stores
 
   if (o.metrics) {
     applied_gauge_ = &prometheus::BuildGauge()
@@ -327,7 +340,10 @@ void Shard::Impl::Run() {
         spdlog::warn("shard {}: {}", options_.shard_id, registered.ToString());
       }
     }
-    Reconcile();
+    {
+      MutexLock lifecycle(lifecycle_mutex_);
+      Reconcile();
+    }
     if (Clock::now() - last_report >= options_.report_interval) {
       Report();
       last_report = Clock::now();
@@ -439,6 +455,18 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
     auto peer = RestoreFromPeer(replica->name, revision);
     if (peer.ok()) {
       restored_from = *peer;
+    } else if (!meta.snapshot.empty()) {
+      // A restored map's stream starts after its snapshot's records: no replay from 1.
+      if (Status restored = RestoreFromSnapshot(replica->name, meta.snapshot); !restored.ok()) {
+        SetProblem(replica.get(),
+                   "unavailable: restoring snapshot '" + meta.snapshot +
+                       "': " + restored.ToString() +
+                       (peer.status().code() == StatusCode::kNotFound
+                            ? std::string()
+                            : "; no peer's checkpoint: " + peer.status().ToString()));
+        return;
+      }
+      restored_from = "snapshot " + meta.snapshot;
     } else if (peer.status().code() != StatusCode::kNotFound) {
       spdlog::warn("shard {}: map '{}': no checkpoint from a peer ({}); replaying the stream",
                    options_.shard_id, replica->name, peer.status().ToString());
@@ -459,7 +487,13 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
     map = dir_->CreateMap(replica->name, *map_options, vocabulary->second);
   }
   if (!map.ok()) {
-    SetProblem(replica.get(), "unavailable: " + map.status().ToString());
+    // Damage is told apart: RecoverMap rebuilds such a replica (shard_admin.cc).
+    const bool damaged = map.status().code() == StatusCode::kCorruption;
+    {
+      MutexLock lock(mutex_);
+      replica->damaged = damaged;
+    }
+    SetProblem(replica.get(), (damaged ? "damaged: " : "unavailable: ") + map.status().ToString());
     return;
   }
   replica->stream = meta.stream;
@@ -473,6 +507,7 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
   {
     MutexLock lock(mutex_);
     replica->map = std::move(map).value();
+    replica->damaged = false;
     replica->apply = replica->map.get();
     replica->restored_from = restored_from;
   }
@@ -737,45 +772,46 @@ Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t
     std::string path;
     ~Remove() { std::remove(path.c_str()); }
   } remove{spool};
-  uint64_t expected = 0, received = 0;
   Stopwatch phase;  // each phase's time, in the log line: where a slow catch-up spends it
-  {
-    std::ofstream out(spool, std::ios::binary | std::ios::trunc);
-    auto reader = stub->Checkpoint(&context, request);
-    cv1::CheckpointChunk chunk;
-    bool first = true;
-    while (reader->Read(&chunk)) {
-      if (first) expected = chunk.archive_bytes();
-      first = false;
-      out.write(chunk.data().data(), std::streamsize(chunk.data().size()));
-      received += chunk.data().size();
-    }
-    const grpc::Status finished = reader->Finish();
-    if (!finished.ok()) {
-      return Status::IoError("checkpoint of '" + map + "' from " + peer + ": " +
-                             finished.error_message());
-    }
-    out.flush();
-    if (!out) return Status::IoError("spooling the checkpoint of '" + map + "' failed");
-  }
-  if (received != expected) {
-    return Status::Corruption("checkpoint of '" + map + "' from " + peer + ": " +
-                              std::to_string(received) + " of " + std::to_string(expected) +
-                              " bytes");
-  }
+  auto fetched = FetchCheckpoint(stub.get(), &context, request, spool, peer);
+  if (!fetched.ok()) return fetched.status();
   const double fetch_ms = phase.Lap();
+  PLACEDB_RETURN_IF_ERROR(ImportAsMap(spool, map));
+  spdlog::info(
+      "shard {}: map '{}' restored from the checkpoint of {} ({} bytes; fetch {:.2f} s, import, "
+      "verify and restore {:.2f} s)",
+      options_.shard_id, map, peer, fetched->bytes, fetch_ms / 1e3, phase.Lap() / 1e3);
+  return peer;
+}
+
+Status Shard::Impl::ImportAsMap(const std::string& spool, const std::string& map) {
   auto imported =
       snapshots_->Import(spool, [this](const MapInfo& info) { return VocabularyFor(info); });
   if (!imported.ok()) return imported.status();
-  const double import_ms = phase.Lap();
   Status restored = snapshots_->Restore(imported->id, map);
   (void)snapshots_->Delete(imported->id);
-  if (!restored.ok()) return restored;
+  return restored;
+}
+
+Status Shard::Impl::RestoreFromSnapshot(const std::string& map, const std::string& id) {
+  auto manifest = archives_->Get(id);
+  if (!manifest.ok()) return manifest.status();
+  const std::string spool = dir_->path() + "/.snapshot-" + HexOf(map) + ".pdbsnap";
+  struct Remove {
+    std::string path;
+    ~Remove() { std::remove(path.c_str()); }
+  } remove{spool};
+  Stopwatch phase;
+  PLACEDB_RETURN_IF_ERROR(archives_->ReadToFile(
+      *manifest, spool, std::chrono::system_clock::now() + std::chrono::minutes(30)));
+  const double fetch_ms = phase.Lap();
+  PLACEDB_RETURN_IF_ERROR(ImportAsMap(spool, map));
   spdlog::info(
-      "shard {}: map '{}' restored from the checkpoint of {} ({} bytes; fetch {:.2f} s, import and "
-      "verify {:.2f} s, restore {:.2f} s)",
-      options_.shard_id, map, peer, received, fetch_ms / 1e3, import_ms / 1e3, phase.Lap() / 1e3);
-  return peer;
+      "shard {}: map '{}' restored from snapshot '{}' ({} bytes, records up to {}; fetch {:.2f} "
+      "s, import, verify and restore {:.2f} s)",
+      options_.shard_id, map, id, manifest->archive_bytes, manifest->base, fetch_ms / 1e3,
+      phase.Lap() / 1e3);
+  return Status::Ok();
 }
 
 std::vector<ReplicaStatus> Shard::Impl::StatusOfReplicas() const {

@@ -15,7 +15,11 @@
 //   first restored from the checkpoint of the live replica that applied the most (its Checkpoint
 //   RPC: an unverified SnapshotStore::CreateForTransfer taken with the peer's applier paused;
 //   SnapshotStore::Import verifies it here), then applied from the checkpoint's applied + 1; with
-//   no such peer, or when that fails, it replays the stream from 1 (streams keep every record).
+//   no such peer, or when that fails, it replays the stream from 1 (streams keep every record),
+//   except a map restored from a cluster snapshot (issue 35), whose stream starts after it: that
+//   replica restores the snapshot's archive from the cluster, or stays unavailable.
+// - ScrubMap / RecoverMap (shard_admin.cc): this replica's scrub; a damaged one is dropped and
+//   made again as a new replica (under the lifecycle lock: no reconcile races it).
 //   Restores run on the reconcile thread: other maps' reconciles wait meanwhile. A map that
 //   leaves the placement (or is deleted) is stopped, closed and deleted locally.
 // - A record that does not decode or apply stops that replica's applier (state "failed: ..."):
@@ -84,11 +88,14 @@ struct ReplicaStatus {
   uint64_t applied_sequence = 0;
   uint64_t stream_last_sequence = 0;  // as last read (0: unknown)
   uint64_t places = 0;
-  std::string state;  // "applying", "failed: <reason>", "unavailable: <reason>"
+  // "applying", "failed: <reason>", "unavailable: <reason>", "damaged: <reason>" (its storage:
+  // RecoverMap rebuilds it)
+  std::string state;
   // Issue 29: the vocabulary whose switch this replica has prepared (0: none).
   uint64_t prepared_vocabulary = 0;
-  // The peer whose checkpoint this replica started from (when this process created it); empty
-  // when it replayed the stream from its start or was already on disk.
+  // The peer whose checkpoint this replica started from (when this process created it), or
+  // "snapshot <id>" (a map restored from a cluster snapshot); empty when it replayed the stream
+  // from its start or was already on disk.
   std::string restored_from;
 };
 

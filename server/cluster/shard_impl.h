@@ -22,6 +22,7 @@
 #include "server/cluster/jetstream.h"
 #include "server/cluster/placement.h"
 #include "server/cluster/shard.h"
+#include "server/cluster/snapshot_archives.h"
 
 namespace placedb::cluster {
 
@@ -32,6 +33,7 @@ namespace cv1 = ::placedb::cluster::v1;
 struct MapMeta {
   pv1::MapConfig config;
   std::string stream;
+  std::string snapshot;  // issue 35: restored from this cluster snapshot (its replicas start there)
 };
 
 inline grpc::Status GrpcError(grpc::StatusCode code, const std::string& message) {
@@ -77,6 +79,7 @@ struct Replica {
   std::thread preparing;
   std::atomic<bool> preparing_done{true};
   std::string problem;        // Impl::mutex_: why it is not applying ("" when it is)
+  bool damaged = false;       // Impl::mutex_: not opened because its storage is damaged
   std::string restored_from;  // Impl::mutex_: the peer whose checkpoint it started from
 };
 
@@ -110,6 +113,11 @@ class Shard::Impl {
   grpc::Status Checkpoint(const cv1::CheckpointRequest& request,
                           grpc::ServerWriter<cv1::CheckpointChunk>* writer);
   std::vector<ReplicaStatus> StatusOfReplicas() const EXCLUDES(mutex_);
+  // Admin (shard_admin.cc): this replica's scrub; the rebuild of a damaged replica.
+  grpc::Status ScrubReplica(const cv1::ReplicaRequest& request, pv1::ScrubReport* response)
+      EXCLUDES(mutex_);
+  grpc::Status RecoverReplica(const cv1::RecoverReplicaRequest& request,
+                              pv1::ReplicaRecovery* response) EXCLUDES(mutex_, lifecycle_mutex_);
 
   const ShardOptions options_;
   int port_ = 0;
@@ -127,8 +135,8 @@ class Shard::Impl {
     return "/placedb/" + options_.cluster_name + "/" + suffix;
   }
   Status Register();
-  void Run() EXCLUDES(mutex_);
-  void Reconcile() EXCLUDES(mutex_);
+  void Run() EXCLUDES(mutex_, lifecycle_mutex_);
+  void Reconcile() EXCLUDES(mutex_) REQUIRES(lifecycle_mutex_);
   void Report() EXCLUDES(mutex_);
   // Opens (or creates) the replica's map and starts its applier; records the problem otherwise.
   void Open(const std::shared_ptr<Replica>& replica, const MapMeta& meta) EXCLUDES(mutex_);
@@ -138,6 +146,12 @@ class Shard::Impl {
   // NOT_FOUND when no live peer has applied anything.
   Result<std::string> RestoreFromPeer(const std::string& map, int64_t create_revision)
       EXCLUDES(mutex_);
+  // Issue 35: a map restored from a cluster snapshot with no peer to copy yet: the snapshot's
+  // archive from the cluster (SnapshotArchives::Read, size and SHA-256 checked), imported as a
+  // peer's checkpoint is.
+  Status RestoreFromSnapshot(const std::string& map, const std::string& id) EXCLUDES(mutex_);
+  // The archive spooled at `spool` verified (SnapshotStore::Import) and restored as `map`.
+  Status ImportAsMap(const std::string& spool, const std::string& map);
   Result<AnyVocabulary> VocabularyFor(const MapInfo& info) const;
   // DATA_DIR/cluster-maps/<hex of the name>: the create revision of maps/<map> the local copy
   // was made for.
@@ -160,6 +174,7 @@ class Shard::Impl {
 
   std::unique_ptr<DataDirectory> dir_;
   std::unique_ptr<SnapshotStore> snapshots_;
+  std::unique_ptr<SnapshotArchives> archives_;  // the cluster's snapshots (reads only)
   std::unique_ptr<JetStream> js_;
   std::unique_ptr<EtcdClient> etcd_;
   std::unique_ptr<LeaseKeeper> keeper_;  // the run thread's (and Init's)
@@ -169,6 +184,10 @@ class Shard::Impl {
   prometheus::Family<prometheus::Gauge>* applied_gauge_ = nullptr;
   prometheus::Family<prometheus::Gauge>* lag_gauge_ = nullptr;
 
+  // Held while replicas are opened, restored or dropped: by the run thread's reconcile, and by
+  // a recovery that rebuilds a replica (it must not race a reconcile opening the same map).
+  // Taken before mutex_.
+  Mutex lifecycle_mutex_;
   mutable Mutex mutex_;
   CondVar wake_;        // the run thread: a watch event, stop
   CondVar applied_cv_;  // Search: a record was applied

@@ -27,7 +27,15 @@
 // - DeletePlace: NOT_FOUND unless a replica has the place, then a DeletePlace record.
 // - Query hits (maps with dynamics.count_query_hits_above): the worker publishes a
 //   CountObservation record after the search, acknowledged before the query's answer.
-// - RecoverMap, ScrubMap and snapshots: UNIMPLEMENTED (the shards own the maps' storage);
+// - ScrubMap, RecoverMap (issue 35): Shard RPCs on every live replica (shard_admin.cc), one
+//   report covering them all; a damaged replica is rebuilt from a healthy one or the stream.
+// - Snapshots (issue 35): CreateSnapshot streams the most applied replica's checkpoint (Shard.
+//   Checkpoint, applier paused), verifies it here (SnapshotStore::Import), and stores it in the
+//   cluster (server/cluster/snapshot_archives.h: chunks in a JetStream stream, manifest in etcd);
+//   List/Download/Delete read the cluster's, an upload is checked here and stored likewise;
+//   RestoreSnapshot makes a map (MakeMap) whose replicas restore the archive and whose stream
+//   continues after the snapshot's records, so place ids stay the snapshot's.
+//   This worker's local snapshot store only spools and checks archives;
 // - WatchLoopClosures: relayed from the most applied replica's log (a frame's constraints travel
 //   as a LoopConstraints record after its place); when that replica's stream fails, from the
 //   next one, from the last sequence relayed + 1;
@@ -84,6 +92,7 @@
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/placement.h"
+#include "server/cluster/snapshot_archives.h"
 #include "server/config.h"
 #include "server/metrics.h"
 
@@ -138,6 +147,12 @@ class ClusterWorker final : public MapBackend {
                                  const std::function<grpc::Status()>& stop) override;
   grpc::Status Snapshots(std::shared_ptr<SnapshotStore>* store) override;
   grpc::Status CreateSnapshot(const std::string& map, SnapshotInfo* info) override;
+  grpc::Status ListSnapshots(std::vector<SnapshotInfo>* out) override;
+  grpc::Status DeleteSnapshot(const std::string& id) override;
+  grpc::Status WriteSnapshotArchive(
+      const std::string& id, size_t chunk_bytes,
+      const std::function<Status(const SnapshotInfo& info, uint64_t bytes)>& start,
+      const std::function<Status(std::string_view)>& sink) override;
   grpc::Status RestoreSnapshot(const v1::RestoreSnapshotRequest& request,
                                v1::MapDescription* response) override;
   grpc::Status ImportSnapshot(const std::string& path, SnapshotInfo* info) override;
@@ -204,6 +219,17 @@ class ClusterWorker final : public MapBackend {
  private:
   ClusterWorker(const ServerConfig& config, MapRegistry* local);
 
+  // CreateMap's path, also RestoreSnapshot's: maps/<name> create-if-absent with `info`
+  // (ALREADY_EXISTS), the map's stream, and (restored: info.snapshot_base > 0) the stream's next
+  // sequence set to base + 1 while it is empty; then a wait for the placement.
+  grpc::Status MakeMap(const std::string& name, const cluster::MapRecordInfo& info,
+                       Deadline deadline, v1::MapDescription* response);
+  // An archive checked as a single server checks it (SnapshotStore::Import into this worker's
+  // local store, then removed there: the cluster keeps it), with what a restore needs of it:
+  // `manifest`'s info, and with `open` its map's base and configuration (restored here under a
+  // scratch name to read them: an upload's).
+  grpc::Status CheckArchive(const std::string& path, bool open,
+                            cluster::SnapshotManifest* manifest);
   // The map as etcd has it (the view, else a linearizable read): NOT_FOUND naming `field`.
   Result<cluster::MapView> Lookup(const std::string& name, const std::string& field);
   // The replicas to try for a read, best first: applied >= min_sequence first (most applied
@@ -268,6 +294,7 @@ class ClusterWorker final : public MapBackend {
   std::unique_ptr<cluster::JetStream> jetstream_;
   std::unique_ptr<cluster::ClusterView> view_;
   std::unique_ptr<cluster::Coordinator> coordinator_;
+  std::unique_ptr<cluster::SnapshotArchives> archives_;  // issue 35: the cluster's snapshots
   std::string id_;  // this worker's (hostname:pid[.n]), the coordinator's name
 
   prometheus::Histogram* publish_seconds_ = nullptr;

@@ -52,11 +52,11 @@ grpc::Status PlaceDbService::ListSnapshots(grpc::ServerContext* context,
                                            const v1::ListSnapshotsRequest*,
                                            v1::ListSnapshotsResponse* response) {
   CallScope scope(this);
-  std::shared_ptr<SnapshotStore> store;
-  if (grpc::Status kept = backend_->Snapshots(&store); !kept.ok()) {
-    return Finish("ListSnapshots", context, kept);
+  std::vector<SnapshotInfo> snapshots;
+  if (grpc::Status listed = backend_->ListSnapshots(&snapshots); !listed.ok()) {
+    return Finish("ListSnapshots", context, listed);
   }
-  for (const SnapshotInfo& info : store->List()) SnapshotToProto(info, response->add_snapshots());
+  for (const SnapshotInfo& info : snapshots) SnapshotToProto(info, response->add_snapshots());
   return Finish("ListSnapshots", context, grpc::Status::OK);
 }
 
@@ -64,14 +64,9 @@ grpc::Status PlaceDbService::DeleteSnapshot(grpc::ServerContext* context,
                                             const v1::DeleteSnapshotRequest* request,
                                             v1::DeleteSnapshotResponse*) {
   CallScope scope(this);
-  std::shared_ptr<SnapshotStore> store;
-  if (grpc::Status kept = backend_->Snapshots(&store); !kept.ok()) {
-    return Finish("DeleteSnapshot", context, kept);
-  }
   if (draining_flag_) return Finish("DeleteSnapshot", context, Unavailable());
-  if (Status deleted = store->Delete(request->id()); !deleted.ok()) {
-    return Finish("DeleteSnapshot", context,
-                  HidePaths(ToGrpc(deleted.WithContext("id")), config_.data_dir));
+  if (grpc::Status deleted = backend_->DeleteSnapshot(request->id()); !deleted.ok()) {
+    return Finish("DeleteSnapshot", context, deleted);
   }
   spdlog::info("snapshot '{}' deleted, peer={}", ForLog(request->id()), Peer(context));
   return Finish("DeleteSnapshot", context, grpc::Status::OK);
@@ -99,10 +94,6 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
     grpc::ServerContext* context, const v1::DownloadSnapshotRequest* request,
     const std::function<bool(const v1::SnapshotChunk&)>& write) {
   CallScope scope(this);
-  std::shared_ptr<SnapshotStore> store;
-  if (grpc::Status kept = backend_->Snapshots(&store); !kept.ok()) {
-    return Finish("DownloadSnapshot", context, kept);
-  }
   if (draining_flag_) return Finish("DownloadSnapshot", context, Unavailable());
   // A stream like Ingest's: counted against max_concurrent_streams, and cancelled by the watchdog
   // when the client takes no chunk for stream_idle_timeout_ms. Never idle otherwise: every pause
@@ -112,19 +103,18 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
   if (!listed.status().ok()) return Finish("DownloadSnapshot", context, listed.status());
   watch.HeaderArrived();  // the request is the whole header
   watch.HeldBack();
-  auto info = store->Get(request->id());
-  if (!info.ok()) {
-    return Finish("DownloadSnapshot", context,
-                  HidePaths(ToGrpc(info.status().WithContext("id")), config_.data_dir));
-  }
-  auto size = store->ArchiveBytes(request->id());
-  if (!size.ok()) {
-    return Finish("DownloadSnapshot", context, HidePaths(ToGrpc(size.status()), config_.data_dir));
-  }
+  SnapshotInfo info;
+  uint64_t size = 0;
   bool first = true;
   bool drained = false;
-  Status written = store->WriteArchive(
-      request->id(), kSnapshotChunkBytes, [&](std::string_view bytes) -> Status {
+  const grpc::Status written = backend_->WriteSnapshotArchive(
+      request->id(), kSnapshotChunkBytes,
+      [&](const SnapshotInfo& described, uint64_t bytes) {
+        info = described;
+        size = bytes;
+        return Status::Ok();
+      },
+      [&](std::string_view bytes) -> Status {
         if (context->IsCancelled()) return Status::Cancelled("the client cancelled the download");
         if (draining_flag_) {  // shutting down: the client downloads again from the start
           drained = true;
@@ -132,8 +122,8 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
         }
         v1::SnapshotChunk chunk;
         if (first) {
-          SnapshotToProto(*info, chunk.mutable_snapshot());
-          chunk.set_archive_bytes(*size);
+          SnapshotToProto(info, chunk.mutable_snapshot());
+          chunk.set_archive_bytes(size);
           first = false;
         }
         chunk.set_data(std::string(bytes));
@@ -146,10 +136,8 @@ grpc::Status PlaceDbService::DownloadSnapshotStream(
       });
   if (auto closed = watch.Closed()) return Finish("DownloadSnapshot", context, *closed);
   if (drained) return Finish("DownloadSnapshot", context, Unavailable());
-  if (!written.ok()) {
-    return Finish("DownloadSnapshot", context, HidePaths(ToGrpc(written), config_.data_dir));
-  }
-  spdlog::info("snapshot '{}' downloaded: {} bytes, peer={}", ForLog(request->id()), *size,
+  if (!written.ok()) return Finish("DownloadSnapshot", context, written);
+  spdlog::info("snapshot '{}' downloaded: {} bytes, peer={}", ForLog(request->id()), size,
                Peer(context));
   return Finish("DownloadSnapshot", context, grpc::Status::OK);
 }

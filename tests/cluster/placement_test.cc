@@ -53,7 +53,9 @@ class PlacementTest : public ::testing::Test {
   void CreateMapKey(const std::string& map) {
     MapRecordInfo info{.config_json = R"({"vocabulary": "default"})",
                        .stream = StreamName("t", map),
-                       .created_unix_ms = 1};
+                       .created_unix_ms = 1,
+                       .snapshot = {},
+                       .snapshot_base = 0};
     ASSERT_TRUE(etcd_->Put(view_->keys().Map(map), EncodeMapInfo(info)).ok());
   }
 
@@ -94,10 +96,23 @@ TEST(PlacementNamesTest, StreamNamesAndRecords) {
   EXPECT_EQ(placement->epoch, 3);
   EXPECT_EQ(placement->replicas, (std::vector<std::string>{"a", "b"}));
   EXPECT_EQ(DecodePlacement("{\"epoch\": 1}").status().code(), StatusCode::kInvalidArgument);
-  auto info = DecodeMapInfo(EncodeMapInfo(
-      {.config_json = R"({"vocabulary":"default"})", .stream = "S", .created_unix_ms = 5}));
+  auto info = DecodeMapInfo(EncodeMapInfo({.config_json = R"({"vocabulary":"default"})",
+                                           .stream = "S",
+                                           .created_unix_ms = 5,
+                                           .snapshot = {},
+                                           .snapshot_base = 0}));
   ASSERT_TRUE(info.ok());
   EXPECT_EQ(info->stream, "S");
+  EXPECT_TRUE(info->snapshot.empty());
+  // Issue 35: a map restored from a snapshot says which, and where its stream starts.
+  auto restored = DecodeMapInfo(EncodeMapInfo({.config_json = "{}",
+                                               .stream = "S",
+                                               .created_unix_ms = 5,
+                                               .snapshot = "lab-1",
+                                               .snapshot_base = 24}));
+  ASSERT_TRUE(restored.ok());
+  EXPECT_EQ(restored->snapshot, "lab-1");
+  EXPECT_EQ(restored->snapshot_base, 24u);
   EXPECT_EQ(info->config_json, R"({"vocabulary":"default"})");
 }
 

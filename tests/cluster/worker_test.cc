@@ -12,6 +12,8 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
+#include <fstream>
 #include <functional>
 #include <map>
 #include <memory>
@@ -30,6 +32,7 @@
 #include "server/cluster/map_record.h"
 #include "server/cluster/placement.h"
 #include "server/cluster/shard.h"
+#include "server/cluster/snapshot_archives.h"
 #include "tests/cluster/cluster_frames.h"
 #include "tests/cluster/engines.h"
 #include "tests/join_on_exit.h"
@@ -1786,6 +1789,488 @@ TEST_F(ClusterWorkerTest, LoopClosureLogSurvivesAWorkerAndAReplicaKilled) {
               consumed.size(), inter, before_worker_went);
   workers_.clear();
   shards.clear();
+}
+
+// Issue 35: ScrubMap and RecoverMap through a worker cover every live replica. A corrupt SST
+// block on one replica is reported (the other replica's clean report does not hide it) and
+// RecoverMap rebuilds that replica from the other's checkpoint; then a replica that does not
+// open (its MANIFEST gone) likewise. Nothing acknowledged is lost: the places are found again.
+TEST_F(ClusterWorkerTest, ScrubAndRecoverEveryReplicaThroughAWorker) {
+  namespace fs = std::filesystem;
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(2);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
+  Worker& worker = StartWorker(1);
+  ASSERT_TRUE(worker.stub);
+  ASSERT_TRUE(CreateClusterMap(worker, "lab").ok());
+  const IngestOutcome ingested = IngestAll(worker.stub.get(), "lab", Frames("agent-a", 1, 24));
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  std::map<int, uint32_t> place_of;  // frame -> place
+  for (size_t i = 0; i < ingested.responses.size(); ++i) {
+    ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
+    if (ingested.responses[i].stored()) place_of[int(i) + 1] = ingested.responses[i].place_id();
+  }
+  const uint64_t stored = place_of.size();
+  ASSERT_GT(stored, 10u);
+  auto js = Js();
+  ASSERT_TRUE(js);
+  // Both replicas open and caught up with the stream's end.
+  const auto caught_up = [&] {
+    auto info = js->GetStreamInfo(cluster::StreamName("test", "lab"));
+    if (!info.ok()) return false;
+    const auto until = std::chrono::steady_clock::now() + 90s;
+    while (std::chrono::steady_clock::now() < until) {
+      int ready = 0;
+      for (const auto& shard : shards) {
+        for (const cluster::ReplicaStatus& replica : shard->Replicas()) {
+          ready += replica.map == "lab" && replica.state == "applying" &&
+                   replica.applied_sequence >= info->last_sequence;
+        }
+      }
+      if (ready == 2) return true;
+      std::this_thread::sleep_for(50ms);
+    }
+    return false;
+  };
+  ASSERT_TRUE(caught_up());
+  // A rebuilt replica copies the peer whose applied sequence etcd has (reported every second).
+  cluster::EtcdOptions etcd_options;
+  etcd_options.endpoints = engines_->EtcdEndpoints();
+  auto etcd = cluster::EtcdClient::Create(etcd_options);
+  ASSERT_TRUE(etcd.ok()) << etcd.status().ToString();
+  const auto applied_reported = [&](const std::string& shard) {
+    const auto until = std::chrono::steady_clock::now() + 30s;
+    while (std::chrono::steady_clock::now() < until) {
+      auto read = (*etcd)->Get("/placedb/test/applied/lab/" + shard);
+      if (read.ok() && !read->kvs.empty() && read->kvs[0].value != "0") return true;
+      std::this_thread::sleep_for(50ms);
+    }
+    return false;
+  };
+  // The worker's scrub, once it reaches both replicas (a restarted shard registers again).
+  const auto scrub = [&](v1::ScrubReport* report) {
+    const auto until = std::chrono::steady_clock::now() + 60s;
+    grpc::Status status;
+    do {
+      report->Clear();
+      grpc::ClientContext context;
+      v1::ScrubMapRequest request;
+      request.set_name("lab");
+      status = worker.stub->ScrubMap(&context, request, report);
+      bool both = status.ok() && report->replicas_size() == 2;
+      for (const auto& replica : report->replicas()) {
+        both = both && replica.error().find("UNAVAILABLE") == std::string::npos &&
+               replica.error().find("IO_ERROR") == std::string::npos;
+      }
+      if (both) return status;
+      std::this_thread::sleep_for(100ms);
+    } while (std::chrono::steady_clock::now() < until);
+    return status;
+  };
+  const auto recover = [&](bool accept, v1::RecoverMapResponse* response,
+                           const std::string& name = "lab") {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 120s);
+    v1::RecoverMapRequest request;
+    request.set_name(name);
+    request.set_accept_data_loss(accept);
+    return worker.stub->RecoverMap(&context, request, response);
+  };
+  const auto expect_found = [&](int frame) {
+    v1::QueryRequest request;
+    request.set_map("lab");
+    *request.mutable_observation() = RtabmapObservation(frame, "q");
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::QueryResponse response;
+    const grpc::Status status = worker.stub->Query(&context, request, &response);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+    ASSERT_GT(response.matches_size(), 0) << "frame " << frame;
+    EXPECT_EQ(response.matches(0).place_id(), place_of[frame]) << "frame " << frame;
+  };
+
+  v1::ScrubReport report;
+  ASSERT_TRUE(scrub(&report).ok());
+  EXPECT_TRUE(report.clean());
+  ASSERT_EQ(report.replicas_size(), 2);
+  EXPECT_EQ(report.places_checked(), 2 * stored);
+  for (const auto& replica : report.replicas()) {
+    EXPECT_TRUE(replica.report().clean()) << replica.shard();
+    EXPECT_EQ(replica.report().places_checked(), stored) << replica.shard();
+  }
+  v1::RecoverMapResponse recovered;
+  EXPECT_EQ(recover(false, &recovered).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(recover(true, &recovered).error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  EXPECT_EQ(recover(true, &recovered, "nowhere").error_code(), grpc::StatusCode::NOT_FOUND);
+
+  // A corrupt block in the largest SST file (the features) of shard-0's copy, written while the
+  // shard is down (its close flushed every place to SST files); it opens again (features are
+  // not read at open).
+  const std::string map_dir = root_ + "/shard-0/maps/lab";
+  shards[0].reset();
+  fs::path features;
+  for (const auto& entry : fs::directory_iterator(map_dir)) {
+    if (entry.path().extension() != ".sst") continue;
+    if (features.empty() || entry.file_size() > fs::file_size(features)) features = entry.path();
+  }
+  ASSERT_FALSE(features.empty());
+  {
+    std::fstream file(features, std::ios::in | std::ios::out | std::ios::binary);
+    file.seekp(std::streamoff(fs::file_size(features) / 2));
+    const std::string noise(64, '\x5a');
+    file.write(noise.data(), std::streamsize(noise.size()));
+  }
+  const std::string sst = "maps/lab/" + features.filename().string();
+  shards[0] = StartShard(0);
+  ASSERT_TRUE(shards[0]);
+  ASSERT_TRUE(caught_up());
+  ASSERT_TRUE(applied_reported("shard-1"));
+  ASSERT_TRUE(scrub(&report).ok());
+  EXPECT_FALSE(report.clean());
+  ASSERT_EQ(report.replicas_size(), 2);
+  bool reported = false;
+  for (const auto& replica : report.replicas()) {
+    EXPECT_EQ(replica.report().clean(), replica.shard() == "shard-1") << replica.shard();
+    if (replica.shard() != "shard-0") continue;
+    ASSERT_EQ(replica.report().damaged_files_size(), 1);
+    EXPECT_EQ(replica.report().damaged_files(0).file(), sst);
+  }
+  for (const auto& file : report.damaged_files()) {
+    reported = reported || (file.file() == sst && file.reason().starts_with("shard shard-0: "));
+  }
+  EXPECT_TRUE(reported) << report.DebugString();
+
+  ASSERT_TRUE(recover(true, &recovered).ok());
+  ASSERT_EQ(recovered.replicas_size(), 2);
+  for (const auto& replica : recovered.replicas()) {
+    EXPECT_TRUE(replica.error().empty()) << replica.shard() << ": " << replica.error();
+    EXPECT_EQ(replica.damaged(), replica.shard() == "shard-0") << replica.shard();
+    if (replica.shard() != "shard-0") continue;
+    EXPECT_TRUE(replica.rebuilt());
+    EXPECT_EQ(replica.restored_from(), "shard-1");
+    EXPECT_NE(replica.found().find(sst), std::string::npos) << replica.found();
+  }
+  EXPECT_EQ(recovered.accepted().places_lost(), 0u);
+  EXPECT_NE(recovered.accepted().reason().find("shard shard-0"), std::string::npos)
+      << recovered.accepted().reason();
+  EXPECT_EQ(recovered.map().name(), "lab");
+  ASSERT_TRUE(caught_up());
+  ASSERT_TRUE(scrub(&report).ok());
+  EXPECT_TRUE(report.clean()) << report.DebugString();
+  EXPECT_EQ(report.places_checked(), 2 * stored);
+  for (const int frame : {1, 12, 24}) {
+    if (place_of.count(frame)) expect_found(frame);
+  }
+
+  // shard-1's copy loses its MANIFEST: it no longer opens (damaged). The scrub says so (DATA_LOSS
+  // for that replica), RecoverMap rebuilds it from shard-0's.
+  shards[1].reset();
+  for (const auto& entry : fs::directory_iterator(root_ + "/shard-1/maps/lab")) {
+    if (entry.path().filename().string().starts_with("MANIFEST-")) fs::remove(entry.path());
+  }
+  shards[1] = StartShard(1);
+  ASSERT_TRUE(shards[1]);
+  const auto until = std::chrono::steady_clock::now() + 60s;
+  bool damaged = false;
+  while (!damaged && std::chrono::steady_clock::now() < until) {
+    for (const cluster::ReplicaStatus& replica : shards[1]->Replicas()) {
+      damaged = damaged || (replica.map == "lab" && replica.state.starts_with("damaged: "));
+    }
+    if (!damaged) std::this_thread::sleep_for(50ms);
+  }
+  ASSERT_TRUE(damaged);
+  ASSERT_TRUE(applied_reported("shard-0"));
+  ASSERT_TRUE(scrub(&report).ok());
+  EXPECT_FALSE(report.clean());
+  for (const auto& replica : report.replicas()) {
+    if (replica.shard() == "shard-1") {
+      EXPECT_NE(replica.error().find("maps/lab/CURRENT"), std::string::npos) << replica.error();
+    } else {
+      EXPECT_TRUE(replica.report().clean());
+    }
+  }
+  ASSERT_TRUE(recover(true, &recovered).ok());
+  for (const auto& replica : recovered.replicas()) {
+    EXPECT_EQ(replica.rebuilt(), replica.shard() == "shard-1") << replica.shard();
+    if (replica.shard() == "shard-1") {
+      EXPECT_EQ(replica.restored_from(), "shard-0");
+    }
+  }
+  ASSERT_TRUE(caught_up());
+  ASSERT_TRUE(scrub(&report).ok());
+  EXPECT_TRUE(report.clean()) << report.DebugString();
+  // Ingest goes on with ids after the old places, on both replicas.
+  const IngestOutcome more = IngestAll(worker.stub.get(), "lab", Frames("agent-a", 25, 30));
+  ASSERT_TRUE(more.status.ok()) << more.status.error_message();
+  ASSERT_TRUE(caught_up());
+  for (const auto& shard : shards) {
+    auto map = shard->Map("lab");
+    ASSERT_TRUE(map.ok());
+    EXPECT_GE((*map)->database()->Stats().places, stored) << shard->shard_id();
+  }
+  expect_found(12);
+}
+
+// Issue 35: snapshots through workers live in the cluster: made through one worker (the most
+// applied replica's checkpoint, verified), listed and downloaded through another (the same
+// bytes, SHA-256 checked when read back), deleted, uploaded again, and restored as a new map
+// whose replicas start from the archive and whose stream continues after the snapshot's records:
+// the same places under the same ids, new ones above them, and a replacement replica comes up.
+// Bad input is refused as a single server refuses it, nothing stored. Prints what it costs.
+TEST_F(ClusterWorkerTest, SnapshotsThroughAnyWorkerAndRestoreAsANewMap) {
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(3);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
+  Worker& a = StartWorker(1);
+  Worker& b = StartWorker(2);
+  ASSERT_TRUE(a.stub && b.stub);
+  ASSERT_TRUE(CreateClusterMap(a, "orig").ok());
+  const IngestOutcome ingested = IngestAll(a.stub.get(), "orig", Frames("agent-a", 1, 24));
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  std::map<int, uint32_t> place_of;  // frame -> place
+  for (size_t i = 0; i < ingested.responses.size(); ++i) {
+    ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
+    if (ingested.responses[i].stored()) place_of[int(i) + 1] = ingested.responses[i].place_id();
+  }
+  ASSERT_GT(place_of.size(), 10u);
+  auto js = Js();
+  ASSERT_TRUE(js);
+  // The live replicas of `map` that applied its stream's end (`want` of them).
+  const auto caught_up = [&](const std::string& map, size_t want) {
+    const auto until = std::chrono::steady_clock::now() + 90s;
+    while (std::chrono::steady_clock::now() < until) {
+      auto info = js->GetStreamInfo(cluster::StreamName("test", map));
+      size_t ready = 0;
+      for (const auto& shard : shards) {
+        if (!shard) continue;
+        for (const cluster::ReplicaStatus& replica : shard->Replicas()) {
+          ready += info.ok() && replica.map == map && replica.state == "applying" &&
+                   replica.applied_sequence >= info->last_sequence;
+        }
+      }
+      if (ready == want) return true;
+      std::this_thread::sleep_for(50ms);
+    }
+    return false;
+  };
+  ASSERT_TRUE(caught_up("orig", 2));
+  const auto seconds_since = [](std::chrono::steady_clock::time_point start) {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  };
+  const auto list = [](Worker& worker) {
+    grpc::ClientContext context;
+    v1::ListSnapshotsResponse response;
+    EXPECT_TRUE(worker.stub->ListSnapshots(&context, {}, &response).ok());
+    std::vector<std::string> ids;
+    for (const auto& snapshot : response.snapshots()) ids.push_back(snapshot.id());
+    return ids;
+  };
+  const auto download = [](Worker& worker, const std::string& id, std::string* archive) {
+    v1::DownloadSnapshotRequest request;
+    request.set_id(id);
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 60s);
+    auto reader = worker.stub->DownloadSnapshot(&context, request);
+    v1::SnapshotChunk chunk;
+    uint64_t announced = 0;
+    archive->clear();
+    for (bool first = true; reader->Read(&chunk); first = false) {
+      if (first) announced = chunk.archive_bytes();
+      archive->append(chunk.data());
+    }
+    grpc::Status status = reader->Finish();
+    if (status.ok()) {
+      EXPECT_EQ(announced, archive->size());
+    }
+    return status;
+  };
+  const auto upload = [](Worker& worker, const std::string& archive, v1::Snapshot* response) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 60s);
+    auto writer = worker.stub->UploadSnapshot(&context, response);
+    for (size_t offset = 0; offset < archive.size(); offset += 64 << 10) {
+      v1::SnapshotChunk chunk;
+      if (offset == 0) chunk.set_archive_bytes(archive.size());
+      chunk.set_data(archive.substr(offset, 64 << 10));
+      if (!writer->Write(chunk)) break;
+    }
+    writer->WritesDone();
+    return writer->Finish();
+  };
+  const auto restore = [](Worker& worker, const std::string& id, const std::string& name,
+                          v1::MapDescription* map) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 120s);
+    v1::RestoreSnapshotRequest request;
+    request.set_id(id);
+    request.set_new_map(name);
+    return worker.stub->RestoreSnapshot(&context, request, map);
+  };
+  const auto top_place = [](Worker& worker, const std::string& map, int frame) -> uint32_t {
+    v1::QueryRequest request;
+    request.set_map(map);
+    *request.mutable_observation() = RtabmapObservation(frame, "q");
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::QueryResponse response;
+    const grpc::Status status = worker.stub->Query(&context, request, &response);
+    EXPECT_TRUE(status.ok()) << status.error_message();
+    return response.matches_size() > 0 ? response.matches(0).place_id() : 0;
+  };
+
+  // Made through worker a.
+  auto clock = std::chrono::steady_clock::now();
+  v1::Snapshot made;
+  {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 120s);
+    v1::CreateSnapshotRequest request;
+    request.set_map("orig");
+    const grpc::Status status = a.stub->CreateSnapshot(&context, request, &made);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+  }
+  const double create_s = seconds_since(clock);
+  EXPECT_EQ(made.map(), "orig");
+  EXPECT_EQ(made.places(), place_of.size());
+  // Listed and downloaded through worker b: the same bytes as through a.
+  EXPECT_EQ(list(b), std::vector<std::string>{made.id()});
+  std::string archive, again;
+  clock = std::chrono::steady_clock::now();
+  grpc::Status status = download(b, made.id(), &archive);
+  const double download_s = seconds_since(clock);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  ASSERT_TRUE(download(a, made.id(), &again).ok());
+  EXPECT_EQ(archive, again);
+  ASSERT_GT(archive.size(), 512u << 10) << "the archive must span several stored chunks";
+  {
+    // What is read back is checked against the manifest: a manifest whose SHA-256 the stored
+    // bytes do not have makes the download DATA_LOSS (after its bytes: the client discards them).
+    cluster::EtcdOptions etcd_options;
+    etcd_options.endpoints = engines_->EtcdEndpoints();
+    auto etcd = cluster::EtcdClient::Create(etcd_options);
+    ASSERT_TRUE(etcd.ok()) << etcd.status().ToString();
+    const std::string key = "/placedb/test/snapshots/" + made.id();
+    auto stored = (*etcd)->Get(key);
+    ASSERT_TRUE(stored.ok() && stored->kvs.size() == 1);
+    auto manifest = cluster::DecodeSnapshotManifest(stored->kvs[0].value);
+    ASSERT_TRUE(manifest.ok()) << manifest.status().ToString();
+    cluster::SnapshotManifest wrong = *manifest;
+    wrong.sha256 = std::string(64, '0');
+    ASSERT_TRUE((*etcd)->Put(key, cluster::EncodeSnapshotManifest(wrong)).ok());
+    EXPECT_EQ(download(b, made.id(), &again).error_code(), grpc::StatusCode::DATA_LOSS);
+    ASSERT_TRUE((*etcd)->Put(key, stored->kvs[0].value).ok());
+    ASSERT_TRUE(download(b, made.id(), &again).ok());
+    EXPECT_EQ(archive, again);
+  }
+
+  // Bad input: a single server's codes, nothing stored.
+  v1::MapDescription description;
+  EXPECT_EQ(restore(a, "absent-1", "x", &description).error_code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_EQ(restore(a, made.id(), "orig", &description).error_code(),
+            grpc::StatusCode::ALREADY_EXISTS);
+  EXPECT_EQ(restore(a, made.id(), "../bad", &description).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(download(a, "absent-1", &again).error_code(), grpc::StatusCode::NOT_FOUND);
+  {
+    grpc::ClientContext context;
+    v1::DeleteSnapshotRequest request;
+    request.set_id("absent-1");
+    v1::DeleteSnapshotResponse response;
+    EXPECT_EQ(b.stub->DeleteSnapshot(&context, request, &response).error_code(),
+              grpc::StatusCode::NOT_FOUND);
+  }
+  std::string corrupt = archive;
+  corrupt[corrupt.size() / 2] ^= 0x5a;
+  v1::Snapshot refused;
+  status = upload(a, corrupt, &refused);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::DATA_LOSS) << status.error_message();
+  EXPECT_EQ(list(a), std::vector<std::string>{made.id()});
+  {
+    grpc::ClientContext context;
+    v1::ListMapsResponse maps;
+    ASSERT_TRUE(a.stub->ListMaps(&context, {}, &maps).ok());
+    EXPECT_EQ(maps.maps_size(), 1);
+  }
+
+  // Restored through b as made (its base from the replica's checkpoint, its configuration the
+  // map's): the same places under the same ids; the map stays when the snapshot goes.
+  status = restore(b, made.id(), "copy0", &description);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  ASSERT_TRUE(caught_up("copy0", 2));
+  for (const auto& [frame, place] : place_of) {
+    if (frame % 7 == 2) {
+      EXPECT_EQ(top_place(a, "copy0", frame), place) << "frame " << frame;
+    }
+  }
+
+  // Deleted through b; uploaded through b again; restored through a.
+  {
+    grpc::ClientContext context;
+    v1::DeleteSnapshotRequest request;
+    request.set_id(made.id());
+    v1::DeleteSnapshotResponse response;
+    ASSERT_TRUE(b.stub->DeleteSnapshot(&context, request, &response).ok());
+  }
+  EXPECT_TRUE(list(a).empty());
+  EXPECT_EQ(download(a, made.id(), &again).error_code(), grpc::StatusCode::NOT_FOUND);
+  v1::Snapshot uploaded;
+  clock = std::chrono::steady_clock::now();
+  status = upload(b, archive, &uploaded);
+  const double upload_s = seconds_since(clock);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(uploaded.places(), made.places());
+  EXPECT_EQ(list(a), std::vector<std::string>{uploaded.id()});
+  clock = std::chrono::steady_clock::now();
+  status = restore(a, uploaded.id(), "copy", &description);
+  const double restore_s = seconds_since(clock);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(description.name(), "copy");
+  ASSERT_TRUE(caught_up("copy", 2));
+  auto copy_stream = js->GetStreamInfo(cluster::StreamName("test", "copy"));
+  auto orig_stream = js->GetStreamInfo(cluster::StreamName("test", "orig"));
+  ASSERT_TRUE(copy_stream.ok() && orig_stream.ok());
+  EXPECT_EQ(copy_stream->first_sequence, orig_stream->last_sequence + 1);
+
+  // The same places under the same ids, through either worker.
+  for (const auto& [frame, place] : place_of) {
+    if (frame % 5 != 1) continue;
+    EXPECT_EQ(top_place(b, "copy", frame), place) << "frame " << frame;
+    v1::GetPlaceRequest request;
+    request.set_map("copy");
+    request.set_place_id(place);
+    grpc::ClientContext context;
+    v1::Place got;
+    EXPECT_TRUE(a.stub->GetPlace(&context, request, &got).ok()) << place;
+  }
+  // New places continue above the snapshot's.
+  const IngestOutcome more = IngestAll(b.stub.get(), "copy", Frames("agent-b", 30, 34));
+  ASSERT_TRUE(more.status.ok()) << more.status.error_message();
+  uint32_t first_new = 0;
+  for (const auto& response : more.responses) {
+    ASSERT_FALSE(response.has_error()) << response.error().message();
+    if (response.stored() && first_new == 0) first_new = response.place_id();
+  }
+  ASSERT_NE(first_new, 0u);
+  EXPECT_GT(first_new, orig_stream->last_sequence);
+  ASSERT_TRUE(caught_up("copy", 2));
+
+  // A replica replaced (its shard gone): the new one comes up from the live one's checkpoint.
+  const int doomed = ShardHolding(shards, "copy");
+  ASSERT_GE(doomed, 0);
+  shards[size_t(doomed)].reset();
+  ASSERT_TRUE(caught_up("copy", 2));
+  bool from_peer = false;  // the replacement restored a live replica's checkpoint
+  for (const auto& shard : shards) {
+    if (!shard) continue;
+    for (const cluster::ReplicaStatus& replica : shard->Replicas()) {
+      from_peer =
+          from_peer || (replica.map == "copy" && replica.restored_from.starts_with("shard-"));
+    }
+  }
+  EXPECT_TRUE(from_peer);
+  EXPECT_EQ(top_place(a, "copy", place_of.begin()->first), place_of.begin()->second);
+  std::printf(
+      "cluster snapshot of %zu places: create %.2f s, archive %zu bytes, download %.2f s, "
+      "upload %.2f s, restore %.2f s\n",
+      place_of.size(), create_s, archive.size(), download_s, upload_s, restore_s);
 }
 
 }  // namespace

@@ -962,6 +962,9 @@ class ScrubReport:
     #: (file relative to the data directory, reason) per damaged file.
     damaged_files: List[Tuple[str, str]]
     clean: bool
+    #: Cluster mode: (shard, that replica's own report or None, error) per live replica; the
+    #: fields above cover them all. Empty on a single server.
+    replicas: List[Tuple[str, Optional["ScrubReport"], str]] = field(default_factory=list)
 
     @staticmethod
     def from_proto(message: pb.ScrubReport) -> "ScrubReport":
@@ -971,4 +974,12 @@ class ScrubReport:
             damaged_places=[(p.place_id, p.reason) for p in message.damaged_places],
             damaged_files=[(f.file, f.reason) for f in message.damaged_files],
             clean=message.clean,
+            replicas=[
+                (
+                    r.shard,
+                    ScrubReport.from_proto(r.report) if r.HasField("report") else None,
+                    r.error,
+                )
+                for r in message.replicas
+            ],
         )
