@@ -182,6 +182,12 @@ Status ValidateCluster(const ClusterSettings& c, const TlsSettings& tls) {
   if (c.replace_after_s < 1 || c.replace_after_s > 86400) {
     return Bad("cluster.replace_after_s", "must be in [1, 86400]");
   }
+  if (c.compact_after_records < 0) {
+    return Bad("cluster.compact_after_records", "must be >= 0 (0: not by records)");
+  }
+  if (c.compact_after_bytes < 0) {
+    return Bad("cluster.compact_after_bytes", "must be >= 0 (0: not by bytes)");
+  }
   if (c.internal_tls) {
     const std::string why =
         " (tls.cert_file and tls.key_file are this process's certificate on every internal hop, "
@@ -572,10 +578,11 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "large_box_confidence", &x.large_box_confidence));
   }
   if (const YAML::Node k = root["cluster"]; k) {
-    PLACEDB_RETURN_IF_ERROR(r.Check(
-        k, "cluster",
-        {"role", "name", "nats", "etcd", "shard_id", "advertise", "internal_listen", "replicas",
-         "stream_replicas", "replace_after_s", "internal_tls", "internal_ca_file"}));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Check(k, "cluster",
+                {"role", "name", "nats", "etcd", "shard_id", "advertise", "internal_listen",
+                 "replicas", "stream_replicas", "replace_after_s", "compact_after_records",
+                 "compact_after_bytes", "internal_tls", "internal_ca_file"}));
     ClusterSettings& x = c->cluster;
     std::string role;
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "role", &role));
@@ -589,6 +596,9 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "replicas", &x.replicas));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "stream_replicas", &x.stream_replicas));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "replace_after_s", &x.replace_after_s));
+    PLACEDB_RETURN_IF_ERROR(
+        r.Read(k, "cluster", "compact_after_records", &x.compact_after_records));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "compact_after_bytes", &x.compact_after_bytes));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "internal_tls", &x.internal_tls));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "internal_ca_file", &x.internal_ca_file));
   }
@@ -757,6 +767,13 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   auto* o_internal_tls = app.add_flag(
       "--internal-tls", internal_tls,
       "cluster: mutual TLS to shards, NATS and etcd with the --tls-* files (plain text refused)");
+  int64_t compact_after_records = 0, compact_after_bytes = 0;
+  auto* o_compact_records =
+      app.add_option("--compact-after-records", compact_after_records,
+                     "cluster: a map's stream is compacted beyond this many records (0 = not)");
+  auto* o_compact_bytes =
+      app.add_option("--compact-after-bytes", compact_after_bytes,
+                     "cluster: a map's stream is compacted beyond this many bytes (0 = not)");
   std::string internal_ca_file;
   auto* o_internal_ca =
       app.add_option("--internal-ca", internal_ca_file,
@@ -819,6 +836,8 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   if (o_advertise->count()) c.cluster.advertise = advertise;
   if (o_internal->count()) c.cluster.internal_listen = internal_listen;
   if (o_internal_tls->count()) c.cluster.internal_tls = internal_tls;
+  if (o_compact_records->count()) c.cluster.compact_after_records = compact_after_records;
+  if (o_compact_bytes->count()) c.cluster.compact_after_bytes = compact_after_bytes;
   if (o_internal_ca->count()) c.cluster.internal_ca_file = internal_ca_file;
   PLACEDB_RETURN_IF_ERROR(ValidateServerConfig(c));
   if (print_config) {
@@ -928,6 +947,8 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "replicas" << YAML::Value << k.replicas;
   e << YAML::Key << "stream_replicas" << YAML::Value << k.stream_replicas;
   e << YAML::Key << "replace_after_s" << YAML::Value << k.replace_after_s;
+  e << YAML::Key << "compact_after_records" << YAML::Value << k.compact_after_records;
+  e << YAML::Key << "compact_after_bytes" << YAML::Value << k.compact_after_bytes;
   e << YAML::Key << "internal_tls" << YAML::Value << (k.internal_tls ? "on" : "off");
   e << YAML::Key << "internal_ca_file" << YAML::Value << k.internal_ca_file;
   e << YAML::EndMap;

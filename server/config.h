@@ -147,6 +147,11 @@ struct ClusterSettings {
   int replicas = 2;                                 // map replicas (shards per map)
   int stream_replicas = 3;                          // JetStream replicas of each map's stream
   int replace_after_s = 30;  // a replica whose shard lease expired is replaced after this
+  // Issue 35, compaction (docs/cluster.md): a map's stream gets a new base (a verified replica
+  // checkpoint) and is purged below it once it holds more than this many records or bytes
+  // beyond its base; 0 turns that measure off (both 0: streams keep every record).
+  int64_t compact_after_records = 100000;
+  int64_t compact_after_bytes = int64_t(1) << 30;
   // Mutual TLS on every internal hop (docs/cluster.md): the shard's internal API, its callers,
   // NATS and etcd, with tls.cert_file/key_file as this process's certificate (server and client)
   // and the CA bundle InternalCaFile() verifying every peer; plain text is then refused. YAML

@@ -223,6 +223,7 @@ Result<StreamInfo> JetStream::GetStreamInfo(const std::string& stream) {
   if (status != NATS_OK) return ToStatus(status, code, "JetStream: stream info " + stream);
   StreamInfo out;
   out.messages = info->State.Msgs;
+  out.bytes = info->State.Bytes;
   out.first_sequence = info->State.FirstSeq;
   out.last_sequence = info->State.LastSeq;
   out.replicas = info->Config ? static_cast<int>(info->Config->Replicas) : 0;

@@ -107,6 +107,7 @@ struct StreamPeer {
 
 struct StreamInfo {
   uint64_t messages = 0;
+  uint64_t bytes = 0;  // the stored messages' bytes (issue 35: compaction's measure)
   uint64_t first_sequence = 0;
   uint64_t last_sequence = 0;
   int replicas = 0;                // configured

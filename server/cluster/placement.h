@@ -10,6 +10,8 @@
 //                            the coordinator (and deleted with the map by DeleteMap)
 //   applied/<map>/<shard_id> decimal applied sequence of that replica (the shard refreshes it)
 //   coordinator              the elected coordinator's id, with its lease
+//   bases/<map>              issue 35: the map's compaction base (snapshot_archives.h, MapBase);
+//                            written by the coordinator's compaction (compare-and-swap)
 //
 // The coordinator runs inside the WORKER processes (every worker campaigns; one holds the key).
 // Why there and not in shards: a shard's death is exactly the event the coordinator must react
@@ -57,6 +59,8 @@ struct ClusterKeys {
   std::string AppliedPrefix(const std::string& map) const { return root + "applied/" + map + "/"; }
   std::string Coordinator() const { return root + "coordinator"; }
   std::string Snapshot(const std::string& id) const { return root + "snapshots/" + id; }
+  // Issue 35, compaction: the map's base (server/cluster/snapshot_archives.h, MapBase).
+  std::string Base(const std::string& map) const { return root + "bases/" + map; }
 };
 
 // Stream of a map: PLACEDB_<NAME>_<hex of the map name's bytes>, upper-case; subject

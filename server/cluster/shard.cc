@@ -386,6 +386,14 @@ void Shard::Impl::Reconcile() {
       if (!mine.count(name) || !map_values.count(name) ||
           (replica->create_revision != 0 && replica->create_revision != map_revisions[name])) {
         drop.push_back(name);
+      } else if (replica->gap) {
+        // Compaction purged records it has not applied: made again as a new replica below (from
+        // the base or a newer peer checkpoint), as RecoverMap rebuilds one.
+        spdlog::warn(
+            "shard {}: map '{}': its stream no longer holds the records after {}: rebuilding it "
+            "from the map's base or a peer's checkpoint",
+            options_.shard_id, name, replica->apply ? replica->apply->applied_sequence() : 0);
+        drop.push_back(name);
       }
     }
   }
@@ -449,15 +457,42 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
   Result<std::shared_ptr<PlaceMap>> map = Status::Internal("not opened");
   std::string restored_from;
   if (std::find(listed.begin(), listed.end(), replica->name) == listed.end()) {
-    // A new replica: from a live peer's checkpoint when there is one (then only the records
-    // after it are applied); on any failure from an empty map, replaying the whole stream (it
-    // keeps every record), which is slower but as correct.
-    auto peer = RestoreFromPeer(replica->name, revision);
+    // A new replica: from the map's base (issue 35: compaction) or a live peer's checkpoint,
+    // whichever is newer (then only the records after it are applied); a map restored from a
+    // cluster snapshot, from the snapshot; otherwise from an empty map, replaying the whole
+    // stream. When the stream was purged meanwhile, the applier finds the gap and the replica is
+    // made again from the base: nothing is skipped.
+    std::optional<MapBase> base;
+    if (auto read = archives_->GetBase(replica->name); !read.ok()) {
+      spdlog::warn("shard {}: map '{}': {}", options_.shard_id, replica->name,
+                   read.status().ToString());
+    } else if (read->has_value() && (*read)->create_revision == revision) {
+      base = std::move(*read);
+    }
+    auto peer = RestoreFromPeer(replica->name, revision, base ? base->manifest.base : 0);
+    Status from_base = Status::NotFound("no base");
     if (peer.ok()) {
       restored_from = *peer;
+    } else if (base) {
+      from_base = RestoreFromArchive(
+          replica->name, base->manifest,
+          "its base (records up to " + std::to_string(base->manifest.base) + ")");
+      if (from_base.ok()) {
+        restored_from = "base " + std::to_string(base->manifest.base);
+      } else {
+        spdlog::warn("shard {}: map '{}': restoring its base: {}", options_.shard_id, replica->name,
+                     from_base.ToString());
+      }
+    }
+    if (!restored_from.empty()) {
+      // restored
     } else if (!meta.snapshot.empty()) {
       // A restored map's stream starts after its snapshot's records: no replay from 1.
-      if (Status restored = RestoreFromSnapshot(replica->name, meta.snapshot); !restored.ok()) {
+      auto manifest = archives_->Get(meta.snapshot);
+      Status restored = manifest.ok() ? RestoreFromArchive(replica->name, *manifest,
+                                                           "snapshot '" + meta.snapshot + "'")
+                                      : manifest.status();
+      if (!restored.ok()) {
         SetProblem(replica.get(),
                    "unavailable: restoring snapshot '" + meta.snapshot +
                        "': " + restored.ToString() +
@@ -467,6 +502,13 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
         return;
       }
       restored_from = "snapshot " + meta.snapshot;
+    } else if (base) {
+      // A compacted stream cannot be replayed from 1: tried again at the next reconcile.
+      SetProblem(replica.get(), "unavailable: restoring the map's base: " + from_base.ToString() +
+                                    (peer.status().code() == StatusCode::kNotFound
+                                         ? std::string()
+                                         : "; no peer's checkpoint: " + peer.status().ToString()));
+      return;
     } else if (peer.status().code() != StatusCode::kNotFound) {
       spdlog::warn("shard {}: map '{}': no checkpoint from a peer ({}); replaying the stream",
                    options_.shard_id, replica->name, peer.status().ToString());
@@ -526,6 +568,20 @@ void Shard::Impl::StartApplier(const std::shared_ptr<Replica>& replica) {
     raw->queued_bytes = 0;
   }
   replica->broken = false;
+  // Issue 35: a replica whose next record was purged (compaction, while it was down) is made
+  // again from the base at the next reconcile; an empty purged stream delivers nothing, so the
+  // applier's own check would not see it.
+  if (auto info = js_->GetStreamInfo(replica->stream);
+      info.ok() && replica->apply->applied_sequence() + 1 < info->first_sequence) {
+    replica->gap = true;
+    SetProblem(raw, "failed: the stream starts at record " + std::to_string(info->first_sequence) +
+                        ", this replica applied up to " +
+                        std::to_string(replica->apply->applied_sequence()) +
+                        ": the records between were compacted away (rebuilding from the base)");
+    MutexLock lock(mutex_);
+    dirty_ = true;
+    return;
+  }
   if (!replica->applier.joinable())
     replica->applier = std::thread([this, raw] { ApplyQueued(raw); });
   auto consumer = js_->Consume(
@@ -622,7 +678,20 @@ void Shard::Impl::ApplyQueued(Replica* replica) {
     records.clear();
     Status failure;
     uint64_t failed_at = 0;
+    // Issue 35: the ordered consumer delivers every stored record in order, so a sequence above
+    // the next one expected means the stream was purged below it (compaction) while this replica
+    // had not applied those records: applied up to the gap, then stopped and rebuilt.
+    uint64_t expected = replica->apply->applied_sequence() + 1;
     for (const Replica::Queued& queued : taken) {
+      if (queued.sequence > expected) {
+        failure = Status::FailedPrecondition(
+            "the stream delivered record " + std::to_string(queued.sequence) + " after " +
+            std::to_string(expected - 1) + ": the records between were compacted away");
+        failed_at = expected;
+        replica->gap = true;
+        break;
+      }
+      expected = std::max(expected, queued.sequence + 1);
       auto record = DecodeMapRecord(queued.data, replica->type);
       if (!record.ok()) {
         failure = record.status();
@@ -735,7 +804,8 @@ Result<AnyVocabulary> Shard::Impl::VocabularyFor(const MapInfo& info) const {
                                     "': no configured vocabulary has its checksum");
 }
 
-Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t create_revision) {
+Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t create_revision,
+                                                 uint64_t newer_than) {
   auto applied = etcd_->Get(Key("applied/" + map + "/"), true);
   if (!applied.ok()) return applied.status();
   auto shards = etcd_->Get(Key("shards/"), true);
@@ -749,7 +819,7 @@ Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t
     }
   }
   std::string peer;
-  uint64_t best = 0;
+  uint64_t best = newer_than;
   const std::string applied_prefix = Key("applied/" + map + "/");
   for (const KeyValue& kv : applied->kvs) {
     const std::string id = kv.key.substr(applied_prefix.size());
@@ -759,7 +829,10 @@ Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t
       peer = id;
     }
   }
-  if (peer.empty()) return Status::NotFound("no live replica of '" + map + "' has applied records");
+  if (peer.empty()) {
+    return Status::NotFound("no live replica of '" + map + "' has applied records" +
+                            (newer_than ? " after " + std::to_string(newer_than) : ""));
+  }
   auto stub = cv1::Shard::NewStub(
       grpc::CreateChannel(live[peer], InternalChannelCredentials(options_.tls)));
   grpc::ClientContext context;
@@ -793,23 +866,22 @@ Status Shard::Impl::ImportAsMap(const std::string& spool, const std::string& map
   return restored;
 }
 
-Status Shard::Impl::RestoreFromSnapshot(const std::string& map, const std::string& id) {
-  auto manifest = archives_->Get(id);
-  if (!manifest.ok()) return manifest.status();
-  const std::string spool = dir_->path() + "/.snapshot-" + HexOf(map) + ".pdbsnap";
+Status Shard::Impl::RestoreFromArchive(const std::string& map, const SnapshotManifest& manifest,
+                                       const std::string& what) {
+  const std::string spool = dir_->path() + "/.archive-" + HexOf(map) + ".pdbsnap";
   struct Remove {
     std::string path;
     ~Remove() { std::remove(path.c_str()); }
   } remove{spool};
   Stopwatch phase;
   PLACEDB_RETURN_IF_ERROR(archives_->ReadToFile(
-      *manifest, spool, std::chrono::system_clock::now() + std::chrono::minutes(30)));
+      manifest, spool, std::chrono::system_clock::now() + std::chrono::minutes(30)));
   const double fetch_ms = phase.Lap();
   PLACEDB_RETURN_IF_ERROR(ImportAsMap(spool, map));
   spdlog::info(
-      "shard {}: map '{}' restored from snapshot '{}' ({} bytes, records up to {}; fetch {:.2f} "
-      "s, import, verify and restore {:.2f} s)",
-      options_.shard_id, map, id, manifest->archive_bytes, manifest->base, fetch_ms / 1e3,
+      "shard {}: map '{}' restored from {} ({} bytes, records up to {}; fetch {:.2f} s, import, "
+      "verify and restore {:.2f} s)",
+      options_.shard_id, map, what, manifest.archive_bytes, manifest.base, fetch_ms / 1e3,
       phase.Lap() / 1e3);
   return Status::Ok();
 }

@@ -14,10 +14,14 @@
 //   restarted shard resumes without gaps or duplicates). A placed map without a local copy is
 //   first restored from the checkpoint of the live replica that applied the most (its Checkpoint
 //   RPC: an unverified SnapshotStore::CreateForTransfer taken with the peer's applier paused;
-//   SnapshotStore::Import verifies it here), then applied from the checkpoint's applied + 1; with
-//   no such peer, or when that fails, it replays the stream from 1 (streams keep every record),
-//   except a map restored from a cluster snapshot (issue 35), whose stream starts after it: that
-//   replica restores the snapshot's archive from the cluster, or stays unavailable.
+//   SnapshotStore::Import verifies it here), then applied from the checkpoint's applied + 1; a
+//   map with a compaction base (issue 35, snapshot_archives.h MapBase) restores the base instead
+//   when no live peer applied more than it; with neither, it replays the stream from 1, except a
+//   map restored from a cluster snapshot (issue 35), whose stream starts after it: that replica
+//   restores the snapshot's archive from the cluster, or stays unavailable. A replica whose
+//   applied + 1 is below the stream's first sequence (compacted while it was down), or whose
+//   applier is delivered a sequence above applied + 1, stops ("failed: ... compacted away") and
+//   is made again as a new replica by the next reconcile: nothing is skipped.
 // - ScrubMap / RecoverMap (shard_admin.cc): this replica's scrub; a damaged one is dropped and
 //   made again as a new replica (under the lifecycle lock: no reconcile races it).
 //   Restores run on the reconcile thread: other maps' reconciles wait meanwhile. A map that

@@ -53,6 +53,10 @@ struct Replica {
   ReplicaApply* apply = nullptr;
   std::unique_ptr<OrderedConsumer> consumer;  // the reconcile thread's
   std::atomic<bool> broken{false};            // the applier stopped on an error
+  // Issue 35 (compaction): the stream delivered a record above applied + 1 (the records between
+  // were purged: it starts after the map's base). Nothing was skipped: the applier stopped, and
+  // the next reconcile rebuilds the replica from the base (or a newer peer checkpoint).
+  std::atomic<bool> gap{false};
   std::atomic<uint64_t> stream_last{0};
   // maps/<map>'s create revision this replica belongs to (Impl::mutex_ for writes after the map
   // is shared; the run thread sets it before opening).
@@ -143,13 +147,15 @@ class Shard::Impl {
   void StartApplier(const std::shared_ptr<Replica>& replica) EXCLUDES(mutex_);
   // Catch-up of a new replica: restores the map from the checkpoint of the live replica that
   // applied the most (Checkpoint RPC, verified by SnapshotStore::Import); returns the peer's id.
-  // NOT_FOUND when no live peer has applied anything.
-  Result<std::string> RestoreFromPeer(const std::string& map, int64_t create_revision)
-      EXCLUDES(mutex_);
-  // Issue 35: a map restored from a cluster snapshot with no peer to copy yet: the snapshot's
-  // archive from the cluster (SnapshotArchives::Read, size and SHA-256 checked), imported as a
-  // peer's checkpoint is.
-  Status RestoreFromSnapshot(const std::string& map, const std::string& id) EXCLUDES(mutex_);
+  // NOT_FOUND when no live peer has applied more than `newer_than` (the map's base, when it has
+  // one: restoring the base then costs no peer anything).
+  Result<std::string> RestoreFromPeer(const std::string& map, int64_t create_revision,
+                                      uint64_t newer_than) EXCLUDES(mutex_);
+  // Issue 35: a cluster archive (a snapshot's, for a map restored from it with no peer to copy
+  // yet; or the map's compaction base) read from the cluster (SnapshotArchives::Read, size and
+  // SHA-256 checked) and imported as a peer's checkpoint is. `what` names it in the log.
+  Status RestoreFromArchive(const std::string& map, const SnapshotManifest& manifest,
+                            const std::string& what) EXCLUDES(mutex_);
   // The archive spooled at `spool` verified (SnapshotStore::Import) and restored as `map`.
   Status ImportAsMap(const std::string& spool, const std::string& map);
   Result<AnyVocabulary> VocabularyFor(const MapInfo& info) const;

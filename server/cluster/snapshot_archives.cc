@@ -123,23 +123,14 @@ Status SnapshotArchives::EnsureStream() {
   return jetstream_->EnsureStream(config).WithContext("the snapshots stream");
 }
 
-Status SnapshotArchives::Put(const std::string& path, SnapshotManifest* manifest,
-                             SystemClock::time_point deadline) {
+Status SnapshotArchives::StoreChunks(const std::string& path, const std::string& id,
+                                     SnapshotManifest* manifest, SystemClock::time_point deadline) {
   PLACEDB_RETURN_IF_ERROR(EnsureStream());
   std::ifstream in(path, std::ios::binary);
   if (!in) return Status::IoError("cannot read the archive to store");
-  // A free id: as a single server's store, "-<n>" when the archive's own is taken.
-  const std::string wanted = manifest->info.id;
-  std::string id = wanted;
-  for (int n = 1;; ++n) {
-    auto held = etcd_->Get(Key(id));
-    if (!held.ok()) return held.status().WithContext(Context(id));
-    if (held->kvs.empty()) break;
-    id = wanted + "-" + std::to_string(n);
-  }
-  // Subject and message ids unique to this Put: a purged earlier attempt's ids are still in the
-  // duplicate window (a duplicate would name a purged sequence), and a Put racing for the same id
-  // (refused at the manifest) purges its own chunks only.
+  // Subject and message ids unique to this store: a purged earlier attempt's ids are still in the
+  // duplicate window (a duplicate would name a purged sequence), and a store racing for the same
+  // id (refused at the manifest) purges its own chunks only.
   static std::atomic<uint64_t> puts{0};
   const std::string nonce =
       std::to_string(SystemClock::now().time_since_epoch().count()) + "-" + std::to_string(++puts);
@@ -179,6 +170,25 @@ Status SnapshotArchives::Put(const std::string& path, SnapshotManifest* manifest
   manifest->subject = subject;
   manifest->first_sequence = first;
   manifest->chunks = index;
+  return Status::Ok();
+}
+
+Status SnapshotArchives::Put(const std::string& path, SnapshotManifest* manifest,
+                             SystemClock::time_point deadline) {
+  // A free id: as a single server's store, "-<n>" when the archive's own is taken.
+  const std::string wanted = manifest->info.id;
+  std::string id = wanted;
+  for (int n = 1;; ++n) {
+    auto held = etcd_->Get(Key(id));
+    if (!held.ok()) return held.status().WithContext(Context(id));
+    if (held->kvs.empty()) break;
+    id = wanted + "-" + std::to_string(n);
+  }
+  PLACEDB_RETURN_IF_ERROR(StoreChunks(path, id, manifest, deadline));
+  const auto fail = [&](const Status& status) {
+    (void)jetstream_->PurgeStream(stream_, manifest->subject, 0);
+    return status.WithContext("storing " + Context(id));
+  };
   // The commit point: listed from here on, whole.
   auto created = etcd_->Txn({Compare::Absent(Key(id))},
                             {TxnOp::Put(Key(id), EncodeSnapshotManifest(*manifest))});
@@ -187,6 +197,83 @@ Status SnapshotArchives::Put(const std::string& path, SnapshotManifest* manifest
     return fail(Status::AlreadyExists("id: " + Context(id) + " was stored meanwhile"));
   }
   return Status::Ok();
+}
+
+std::string EncodeMapBase(const MapBase& base) {
+  nlohmann::json json;
+  json["create_revision"] = base.create_revision;
+  json["manifest"] = nlohmann::json::parse(EncodeSnapshotManifest(base.manifest));
+  return json.dump();
+}
+
+Result<MapBase> DecodeMapBase(const std::string& text) {
+  auto json = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (json.is_discarded() || !json.is_object() || !json.contains("create_revision") ||
+      !json["create_revision"].is_number_integer() || !json.contains("manifest")) {
+    return Status::Corruption("base is not {\"create_revision\": N, \"manifest\": {...}}");
+  }
+  MapBase out;
+  out.create_revision = json["create_revision"].get<int64_t>();
+  auto manifest = DecodeSnapshotManifest(json["manifest"].dump());
+  if (!manifest.ok()) return manifest.status();
+  out.manifest = std::move(manifest).value();
+  return out;
+}
+
+Status SnapshotArchives::PutBase(const std::string& map, const std::string& path, MapBase* base,
+                                 int64_t expected_mod_revision, std::vector<Compare> guards,
+                                 SystemClock::time_point deadline) {
+  const std::string key = ClusterKeys(cluster_name_).Base(map);
+  PLACEDB_RETURN_IF_ERROR(StoreChunks(path, "base:" + map, &base->manifest, deadline));
+  guards.push_back(expected_mod_revision == 0 ? Compare::Absent(key)
+                                              : Compare::ModRevisionIs(key, expected_mod_revision));
+  auto written = etcd_->Txn(guards, {TxnOp::Put(key, EncodeMapBase(*base))});
+  Status failure;
+  if (!written.ok()) {
+    failure = written.status();
+  } else if (!written->succeeded) {
+    failure = Status::FailedPrecondition(
+        "the base of map '" + map +
+        "' (or the coordinator) changed meanwhile: another compaction won");
+  }
+  if (!failure.ok()) {
+    // Not the map's base: its chunks go (a timed-out write that did commit is caught by the
+    // reader's SHA-256 and size check, and the next compaction replaces it).
+    if (!written.ok()) {
+      if (auto now = GetBase(map);
+          now.ok() && now->has_value() && (**now).manifest.subject == base->manifest.subject) {
+        return Status::Ok();  // it did commit
+      }
+    }
+    (void)jetstream_->PurgeStream(stream_, base->manifest.subject, 0);
+    return failure.WithContext("storing the base of map '" + map + "'");
+  }
+  return Status::Ok();
+}
+
+Result<std::optional<MapBase>> SnapshotArchives::GetBase(const std::string& map) {
+  auto read = etcd_->Get(ClusterKeys(cluster_name_).Base(map));
+  if (!read.ok()) return read.status().WithContext("reading the base of map '" + map + "'");
+  if (read->kvs.empty()) return std::optional<MapBase>();
+  auto base = DecodeMapBase(read->kvs[0].value);
+  if (!base.ok()) return base.status().WithContext("the base of map '" + map + "'");
+  base->mod_revision = read->kvs[0].mod_revision;
+  return std::optional<MapBase>(std::move(base).value());
+}
+
+Status SnapshotArchives::DeleteChunks(const SnapshotManifest& manifest) {
+  if (manifest.subject.empty()) return Status::Ok();
+  return jetstream_->PurgeStream(stream_, manifest.subject, 0)
+      .WithContext("purging the chunks of " + Context(manifest.info.id));
+}
+
+Status SnapshotArchives::DeleteBase(const std::string& map) {
+  auto base = GetBase(map);
+  if (!base.ok()) return base.status();
+  if (!base->has_value()) return Status::Ok();
+  auto deleted = etcd_->Delete(ClusterKeys(cluster_name_).Base(map));
+  if (!deleted.ok()) return deleted.status();
+  return DeleteChunks((**base).manifest);
 }
 
 Result<std::vector<SnapshotManifest>> SnapshotArchives::List() {

@@ -19,6 +19,7 @@
 #include <chrono>
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -48,6 +49,19 @@ struct SnapshotManifest {
 
 std::string EncodeSnapshotManifest(const SnapshotManifest& manifest);
 Result<SnapshotManifest> DecodeSnapshotManifest(const std::string& json);
+
+// Issue 35 (compaction): a map's base, etcd bases/<map>: a verified replica checkpoint stored as
+// a snapshot's archive is (its manifest's `base` = B, the sequence it holds every record up to;
+// info.id "base:<map>", never listed with the snapshots), for the map of that create revision
+// (a map re-created under its name has none). The map's stream may be purged below B + 1: a
+// replica whose applied + 1 is below the stream's first sequence restores it, then the tail.
+struct MapBase {
+  int64_t create_revision = 0;  // of maps/<map>
+  SnapshotManifest manifest;
+  int64_t mod_revision = 0;  // of bases/<map> as read (compare-and-swap); not stored
+};
+std::string EncodeMapBase(const MapBase& base);
+Result<MapBase> DecodeMapBase(const std::string& json);  // CORRUPTION when malformed
 
 // What a replica's Shard.Checkpoint streamed into a file.
 struct FetchedCheckpoint {
@@ -83,8 +97,29 @@ class SnapshotArchives {
                     std::chrono::system_clock::time_point deadline);
   Status Delete(const std::string& id);  // NOT_FOUND naming the id
 
+  // Compaction (MapBase above). Stores the archive at `path` as `map`'s base (filling
+  // base->manifest's id, size, SHA-256, subject, chunks), committed by one etcd transaction:
+  // bases/<map> still at `expected_mod_revision` (0: absent) and every one of `guards` (the
+  // coordinator key still ours, the map still of base->create_revision). FAILED_PRECONDITION when a
+  // guard failed (another compaction or coordinator won: this one's chunks are purged), IO_ERROR
+  // when the engines fail. The previous base's chunks stay: the caller deletes them (DeleteChunks)
+  // once this one is durable.
+  Status PutBase(const std::string& map, const std::string& path, MapBase* base,
+                 int64_t expected_mod_revision, std::vector<Compare> guards,
+                 std::chrono::system_clock::time_point deadline);
+  // The map's base, nullopt when it has none.
+  Result<std::optional<MapBase>> GetBase(const std::string& map);
+  // Purges an archive's chunks (a replaced base's).
+  Status DeleteChunks(const SnapshotManifest& manifest);
+  // Deletes bases/<map> and its chunks (DeleteMap); OK when there is none.
+  Status DeleteBase(const std::string& map);
+
  private:
   std::string Key(const std::string& id) const;
+  // The archive's chunks on a subject unique to this call; fills manifest's id, archive_bytes,
+  // sha256, subject, first_sequence, chunks. Purged again on failure.
+  Status StoreChunks(const std::string& path, const std::string& id, SnapshotManifest* manifest,
+                     std::chrono::system_clock::time_point deadline);
   Status EnsureStream();
 
   JetStream* const jetstream_;

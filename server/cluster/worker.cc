@@ -149,12 +149,45 @@ Result<std::unique_ptr<ClusterWorker>> ClusterWorker::Start(const ServerConfig& 
                               "Worker: calls tried again (on another replica, or a publish "
                               "with the same message id), by call")
                           .Register(registry);
+  worker->stream_bytes_ = &prometheus::BuildGauge()
+                               .Name("placedb_cluster_stream_bytes")
+                               .Help("Coordinator: bytes a map's stream stores (compaction)")
+                               .Register(registry);
+  worker->stream_records_ = &prometheus::BuildGauge()
+                                 .Name("placedb_cluster_stream_records")
+                                 .Help("Coordinator: records a map's stream stores (compaction)")
+                                 .Register(registry);
+  worker->base_sequence_ =
+      &prometheus::BuildGauge()
+           .Name("placedb_cluster_base_sequence")
+           .Help("Coordinator: the stream sequence a map's compaction base holds records up to")
+           .Register(registry);
+  worker->compactions_ = &prometheus::BuildCounter()
+                              .Name("placedb_cluster_compactions_total")
+                              .Help("Worker: map compactions that stored a new base")
+                              .Register(registry);
+  worker->compaction_failures_ = &prometheus::BuildCounter()
+                                      .Name("placedb_cluster_compaction_failures_total")
+                                      .Help("Worker: map compactions that failed")
+                                      .Register(registry);
+  worker->compactions_->Add({});  // exported at 0 from the start
+  worker->compaction_failures_->Add({});
+  if (c.compact_after_records > 0 || c.compact_after_bytes > 0) {
+    ClusterWorker* raw = worker.get();
+    worker->compactor_ = std::thread([raw] { raw->CompactLoop(); });
+  }
   spdlog::info("cluster worker {}: cluster '{}', etcd {}, nats {} ({})", worker->id_, c.name,
                c.etcd.size(), c.nats.size(), worker->jetstream_->ConnectedUrl());
   return worker;
 }
 
 ClusterWorker::~ClusterWorker() {
+  {
+    MutexLock lock(compact_mutex_);
+    compact_stopping_ = true;
+    compact_cv_.NotifyAll();
+  }
+  if (compactor_.joinable()) compactor_.join();
   if (coordinator_) coordinator_->Stop();
   if (view_) view_->Stop();
 }
@@ -351,6 +384,11 @@ grpc::Status ClusterWorker::DeleteMap(const std::string& name, Deadline) {
   if (!deleted.ok()) return ToGrpc(deleted.status(), "deleting the map in etcd");
   if (!deleted->succeeded) {
     return grpc::Status(grpc::StatusCode::NOT_FOUND, "name: map '" + name + "' does not exist");
+  }
+  // Its compaction base (issue 35): a re-created map never takes it (its create revision differs).
+  if (Status dropped = archives_->DeleteBase(name); !dropped.ok()) {
+    spdlog::warn("cluster map '{}' deleted, but not its base: {}", ForLog(name),
+                 dropped.ToString());
   }
   // The map is gone for every worker now; its stream after it (a failure leaves an orphan stream
   // that a CreateMap of the name takes over: EnsureStream).
@@ -1330,6 +1368,39 @@ grpc::Status ClusterWorker::CheckArchive(const std::string& path, bool open,
   return grpc::Status::OK;
 }
 
+grpc::Status ClusterWorker::TakeCheckpoint(const std::string& map, const cluster::MapView& view,
+                                           const std::string& spool, Deadline deadline,
+                                           cluster::SnapshotManifest* manifest) {
+  const auto started = std::chrono::steady_clock::now();
+  // 1. The most applied replica's checkpoint (its applier paused meanwhile: Shard.Checkpoint).
+  cluster::v1::CheckpointRequest request;
+  request.set_map(map);
+  request.set_create_revision(view.create_revision);
+  cluster::FetchedCheckpoint fetched;
+  const grpc::Status got = OnReplica(
+      "Checkpoint", map, 0, deadline,
+      [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
+        grpc::ClientContext context;
+        context.set_deadline(until);
+        const auto stub = cluster::v1::Shard::NewStub(channel);
+        auto read = cluster::FetchCheckpoint(stub.get(), &context, request, spool, "a replica");
+        if (!read.ok()) return ToGrpc(read.status());
+        fetched = *read;
+        return grpc::Status::OK;
+      });
+  if (!got.ok()) return got;
+  const double fetch_s = SecondsSince(started);
+  // 2. Verified here, as a single server verifies a snapshot it makes.
+  if (grpc::Status checked = CheckArchive(spool, false, manifest); !checked.ok()) return checked;
+  manifest->base = fetched.applied;
+  manifest->config_json = view.info.config_json;
+  spdlog::info(
+      "checkpoint of cluster map '{}' at record {}: {} bytes (fetched {:.2f} s, verified "
+      "{:.2f} s)",
+      ForLog(map), fetched.applied, fetched.bytes, fetch_s, SecondsSince(started) - fetch_s);
+  return grpc::Status::OK;
+}
+
 grpc::Status ClusterWorker::CreateSnapshot(const std::string& map, SnapshotInfo* info) {
   auto view = Lookup(map, "map");
   if (!view.ok()) return ToGrpc(view.status());
@@ -1337,42 +1408,21 @@ grpc::Status ClusterWorker::CreateSnapshot(const std::string& map, SnapshotInfo*
   if (grpc::Status kept = Snapshots(&store); !kept.ok()) return kept;
   const Deadline deadline = Clock::now() + kSnapshotTime;
   const auto started = std::chrono::steady_clock::now();
-  // 1. The most applied replica's checkpoint (its applier paused meanwhile: Shard.Checkpoint).
   Spool spool(store->path());
-  cluster::v1::CheckpointRequest request;
-  request.set_map(map);
-  request.set_create_revision(view->create_revision);
-  cluster::FetchedCheckpoint fetched;
-  const grpc::Status got =
-      OnReplica("Checkpoint", map, 0, deadline,
-                [&](const std::shared_ptr<grpc::Channel>& channel, Deadline until) {
-                  grpc::ClientContext context;
-                  context.set_deadline(until);
-                  const auto stub = cluster::v1::Shard::NewStub(channel);
-                  auto read = cluster::FetchCheckpoint(stub.get(), &context, request, spool.path,
-                                                       "a replica");
-                  if (!read.ok()) return ToGrpc(read.status());
-                  fetched = *read;
-                  return grpc::Status::OK;
-                });
-  if (!got.ok()) return got;
-  const double fetch_s = SecondsSince(started);
-  // 2. Verified here, as a single server verifies a snapshot it makes.
   cluster::SnapshotManifest manifest;
-  if (grpc::Status checked = CheckArchive(spool.path, false, &manifest); !checked.ok()) {
-    return checked;
+  if (grpc::Status taken = TakeCheckpoint(map, *view, spool.path, deadline, &manifest);
+      !taken.ok()) {
+    return taken;
   }
-  const double verify_s = SecondsSince(started) - fetch_s;
-  manifest.base = fetched.applied;
-  manifest.config_json = view->info.config_json;
+  const double checkpoint_s = SecondsSince(started);
   // 3. Stored in the cluster.
   if (Status put = archives_->Put(spool.path, &manifest, deadline); !put.ok()) return ToGrpc(put);
   *info = manifest.info;
   spdlog::info(
       "snapshot '{}' of cluster map '{}' at record {}: {} places, archive {} bytes (checkpoint "
-      "{:.2f} s, verification {:.2f} s, storing {:.2f} s)",
-      info->id, ForLog(map), manifest.base, info->places, manifest.archive_bytes, fetch_s, verify_s,
-      SecondsSince(started) - fetch_s - verify_s);
+      "and verification {:.2f} s, storing {:.2f} s)",
+      info->id, ForLog(map), manifest.base, info->places, manifest.archive_bytes, checkpoint_s,
+      SecondsSince(started) - checkpoint_s);
   return grpc::Status::OK;
 }
 

@@ -77,6 +77,7 @@
 #include <grpcpp/channel.h>
 #include <prometheus/counter.h>
 #include <prometheus/family.h>
+#include <prometheus/gauge.h>
 #include <prometheus/histogram.h>
 
 #include <algorithm>
@@ -85,6 +86,7 @@
 #include <memory>
 #include <set>
 #include <string>
+#include <thread>
 
 #include "core/base/thread_annotations.h"
 #include "server/backend/map_backend.h"
@@ -216,6 +218,24 @@ class ClusterWorker final : public MapBackend {
   // For tests: the coordinator of this worker leads.
   bool coordinating() const { return coordinator_ && coordinator_->leading(); }
 
+  // Issue 35, compaction (compaction.cc, docs/cluster.md "Compaction"). While this worker's
+  // coordinator leads, a thread checks every map's stream about every second and compacts one
+  // that holds more than cluster.compact_after_records records or compact_after_bytes bytes
+  // beyond its base. One compaction of `map`, now: a new base (the most applied live replica's
+  // checkpoint, verified here as CreateSnapshot's, stored as MapBase by compare-and-swap on
+  // bases/<map> and the coordinator key), then the stream purged below min(base, applied of every
+  // live replica in the placement) + 1, then the previous base's chunks deleted.
+  // FAILED_PRECONDITION when this worker does not coordinate or another compaction won; the
+  // engines' errors.
+  struct Compaction {
+    uint64_t base = 0;            // the map's base sequence now
+    uint64_t first_sequence = 0;  // the stream's first sequence after the purge
+    bool new_base = false;        // a new base was stored (else the purge alone, or nothing)
+  };
+  // `take_base` false: the purge alone (below the current base: a lagging replica caught up).
+  Result<Compaction> CompactMap(const std::string& map, bool take_base = true)
+      EXCLUDES(compact_mutex_);
+
  private:
   ClusterWorker(const ServerConfig& config, MapRegistry* local);
 
@@ -286,6 +306,18 @@ class ClusterWorker final : public MapBackend {
   void FollowVocabulary(const std::string& map, uint64_t checksum, uint64_t min_sequence,
                         const AnyVocabulary* next, Deadline deadline) EXCLUDES(follow_mutex_);
 
+  // The most applied live replica's checkpoint of `map` (Shard.Checkpoint: its applier paused)
+  // into the file `spool`, verified as a single server verifies a snapshot (CheckArchive):
+  // `manifest`'s info, base (the checkpoint's applied sequence) and configuration. CreateSnapshot's
+  // and compaction's.
+  grpc::Status TakeCheckpoint(const std::string& map, const cluster::MapView& view,
+                              const std::string& spool, Deadline deadline,
+                              cluster::SnapshotManifest* manifest);
+  void CompactLoop() EXCLUDES(compact_mutex_);
+  // The purge point of `map`: min(base, the applied sequence of every live replica in its
+  // placement) + 1; 0 when a live replica has not reported yet.
+  uint64_t PurgeBelow(const cluster::MapView& view, uint64_t base) const;
+
   const ServerConfig& config_;
   const ClusterSettings& cluster_;
   MapRegistry* const local_;
@@ -299,6 +331,21 @@ class ClusterWorker final : public MapBackend {
 
   prometheus::Histogram* publish_seconds_ = nullptr;
   prometheus::Family<prometheus::Counter>* retries_ = nullptr;
+  // Compaction (set by the coordinating worker; by map).
+  prometheus::Family<prometheus::Gauge>* stream_bytes_ = nullptr;
+  prometheus::Family<prometheus::Gauge>* stream_records_ = nullptr;
+  prometheus::Family<prometheus::Gauge>* base_sequence_ = nullptr;
+  prometheus::Family<prometheus::Counter>* compactions_ = nullptr;
+  prometheus::Family<prometheus::Counter>* compaction_failures_ = nullptr;
+
+  // One compaction at a time through this worker; the loop's stop.
+  Mutex compact_mutex_;
+  CondVar compact_cv_;
+  bool compact_stopping_ GUARDED_BY(compact_mutex_) = false;
+  bool compacting_ GUARDED_BY(compact_mutex_) = false;
+  // A map whose compaction failed is tried again after this (the loop's thread only).
+  std::map<std::string, std::chrono::steady_clock::time_point> compact_retry_;
+  std::thread compactor_;
 
   Mutex local_mutex_;  // serialises making local copies
   // Local copy made from the map key of this create revision.

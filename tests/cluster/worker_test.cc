@@ -85,6 +85,10 @@ class ClusterWorkerTest : public ServerTest {
     config.cluster.nats = engines_->NatsUrls();
     config.cluster.etcd = engines_->EtcdEndpoints();
     config.cluster.replace_after_s = 2;
+    if (compact_after_records_ >= 0) {
+      config.cluster.compact_after_records = compact_after_records_;
+      config.cluster.compact_after_bytes = 0;
+    }
     if (tls_) {
       // The node certificate on every hop, and mutual TLS on the public API too (same files).
       const testing::TestCertificates& certs = testing::SharedTestCertificates();
@@ -166,6 +170,8 @@ class ClusterWorkerTest : public ServerTest {
   const cluster::InternalTls& ClientTls() const { return engines_->client_tls(); }
 
   bool tls_ = false;  // cluster.internal_tls on every hop (ClusterInternalTlsTest)
+  // >= 0: the next workers' cluster.compact_after_records (compact_after_bytes 0); 0: off.
+  int64_t compact_after_records_ = -1;
   std::unique_ptr<Engines> engines_;
   std::vector<std::unique_ptr<ServerConfig>> configs_;  // each outlives its worker
   std::vector<std::unique_ptr<Worker>> workers_;
@@ -2271,6 +2277,186 @@ TEST_F(ClusterWorkerTest, SnapshotsThroughAnyWorkerAndRestoreAsANewMap) {
       "cluster snapshot of %zu places: create %.2f s, archive %zu bytes, download %.2f s, "
       "upload %.2f s, restore %.2f s\n",
       place_of.size(), create_s, archive.size(), download_s, upload_s, restore_s);
+}
+
+}  // namespace
+}  // namespace placedb::server_testing
+
+namespace placedb::server_testing {
+namespace {
+
+// Issue 35, compaction: the coordinating worker makes a replica's checkpoint the stream's base
+// and purges the stream below it; a replica that was down across two compactions resumes from
+// the base (its applier finds the gap, nothing skipped), a replacement replica starts from the
+// base or a newer checkpoint and applies only the tail; every acknowledged place stays, under
+// its id, on every replica; snapshots do not list the base.
+TEST_F(ClusterWorkerTest, CompactionMakesABaseAndReplicasCatchUpFromItAndTheTail) {
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(2);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
+  compact_after_records_ = 0;  // worker 1: no compaction
+  Worker& first = StartWorker(1);
+  ASSERT_TRUE(first.stub);
+  ASSERT_TRUE(CreateClusterMap(first, "lab").ok());
+  std::map<int, uint32_t> place_of;  // frame -> place
+  const auto ingest = [&](Worker& worker, int from, int to) {
+    const IngestOutcome ingested = IngestAll(worker.stub.get(), "lab", Frames("agent-a", from, to));
+    ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+    for (size_t i = 0; i < ingested.responses.size(); ++i) {
+      ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
+      if (ingested.responses[i].stored())
+        place_of[from + int(i)] = ingested.responses[i].place_id();
+    }
+  };
+  ingest(first, 1, 24);
+  ASSERT_GT(place_of.size(), 10u);
+  auto js = Js();
+  ASSERT_TRUE(js);
+  const std::string stream = cluster::StreamName("test", "lab");
+  // Polls `done` until it holds or `limit` passes.
+  const auto await = [](const std::function<bool()>& done, std::chrono::seconds limit) {
+    const auto until = std::chrono::steady_clock::now() + limit;
+    while (std::chrono::steady_clock::now() < until) {
+      if (done()) return true;
+      std::this_thread::sleep_for(50ms);
+    }
+    return done();
+  };
+  const auto replica_of = [](cluster::Shard& shard) -> std::optional<cluster::ReplicaStatus> {
+    for (const cluster::ReplicaStatus& replica : shard.Replicas()) {
+      if (replica.map == "lab") return replica;
+    }
+    return std::nullopt;
+  };
+  const auto caught_up = [&](cluster::Shard& shard) {
+    auto info = js->GetStreamInfo(stream);
+    auto replica = replica_of(shard);
+    return info.ok() && replica && replica->state == "applying" &&
+           replica->applied_sequence >= info->last_sequence;
+  };
+  ASSERT_TRUE(await([&] { return caught_up(*shards[0]) && caught_up(*shards[1]); }, 90s));
+  auto before = js->GetStreamInfo(stream);
+  ASSERT_TRUE(before.ok()) << before.status().ToString();
+  EXPECT_EQ(before->first_sequence, 1u);
+  const uint64_t down_at = replica_of(*shards[1])->applied_sequence;
+
+  // shard-1 goes down (2 shards: nobody replaces it); a worker that compacts beyond 6 records
+  // takes over as coordinator.
+  shards[1].reset();
+  compact_after_records_ = 6;
+  Worker& second = StartWorker(2, /*metrics=*/true);
+  ASSERT_TRUE(second.stub);
+  workers_.front()->server.reset();  // its coordinator's lease revoked: the second takes over
+  cluster::EtcdOptions etcd_options;
+  etcd_options.endpoints = engines_->EtcdEndpoints();
+  etcd_options.tls = ClientTls();
+  auto etcd = cluster::EtcdClient::Create(etcd_options);
+  ASSERT_TRUE(etcd.ok()) << etcd.status().ToString();
+  cluster::SnapshotArchives archives(js.get(), etcd->get(), "test", 0);
+  const auto base_at_least = [&](uint64_t sequence) {
+    auto base = archives.GetBase("lab");
+    return base.ok() && base->has_value() && (**base).manifest.base >= sequence;
+  };
+  const auto stream_from = [&](uint64_t sequence) {
+    auto info = js->GetStreamInfo(stream);
+    return info.ok() && info->first_sequence >= sequence;
+  };
+  const auto started = std::chrono::steady_clock::now();
+  ASSERT_TRUE(await([&] { return base_at_least(before->last_sequence); }, 60s));
+  ASSERT_TRUE(await([&] { return stream_from(before->last_sequence + 1); }, 30s));
+  std::printf("compaction: first base at record %llu and purge after %.2f s\n",
+              static_cast<unsigned long long>(before->last_sequence),
+              std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());
+  auto compacted = js->GetStreamInfo(stream);
+  ASSERT_TRUE(compacted.ok());
+  EXPECT_LT(compacted->bytes, before->bytes);
+  EXPECT_EQ(compacted->messages, 0u);
+  std::printf("compaction: stream %llu bytes, %llu records -> %llu bytes, %llu records\n",
+              static_cast<unsigned long long>(before->bytes),
+              static_cast<unsigned long long>(before->messages),
+              static_cast<unsigned long long>(compacted->bytes),
+              static_cast<unsigned long long>(compacted->messages));
+  // Not a snapshot.
+  {
+    grpc::ClientContext context;
+    v1::ListSnapshotsResponse listed;
+    ASSERT_TRUE(second.stub->ListSnapshots(&context, {}, &listed).ok());
+    EXPECT_EQ(listed.snapshots_size(), 0);
+  }
+
+  // More places (ids continue), a second compaction purges past what shard-1 applied.
+  ingest(second, 25, 40);
+  auto tail = js->GetStreamInfo(stream);
+  ASSERT_TRUE(tail.ok());
+  ASSERT_TRUE(await([&] { return base_at_least(tail->last_sequence); }, 60s));
+  ASSERT_TRUE(await([&] { return stream_from(tail->last_sequence + 1); }, 30s));
+  ASSERT_GT(tail->last_sequence, down_at + 1);
+
+  // shard-1 returns: its applied + 1 is below the stream's first sequence; it rebuilds from the
+  // base (shard-0 has applied nothing newer) and applies the tail.
+  const auto returned = std::chrono::steady_clock::now();
+  shards[1] = StartShard(1);
+  ASSERT_TRUE(shards[1]);
+  ASSERT_TRUE(await(
+      [&] {
+        auto replica = replica_of(*shards[1]);
+        return replica && replica->state == "applying" && !replica->restored_from.empty();
+      },
+      90s));
+  ingest(second, 41, 44);  // the tail
+  ASSERT_TRUE(await([&] { return caught_up(*shards[0]) && caught_up(*shards[1]); }, 90s));
+  const double resume_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - returned).count();
+  auto resumed = replica_of(*shards[1]);
+  ASSERT_TRUE(resumed);
+  EXPECT_EQ(resumed->restored_from.rfind("base ", 0), 0u) << resumed->restored_from;
+  std::printf("compaction: a replica down across 2 compactions resumed via the %s in %.2f s\n",
+              resumed->restored_from.c_str(), resume_s);
+
+  // A replacement: shard-2 up, shard-0 down; shard-2 starts from the base or shard-1's newer
+  // checkpoint, never from record 1.
+  shards.push_back(StartShard(2));
+  ASSERT_TRUE(shards[2]);
+  shards[0].reset();
+  const auto replaced = std::chrono::steady_clock::now();
+  ASSERT_TRUE(await([&] { return caught_up(*shards[2]) && caught_up(*shards[1]); }, 120s));
+  auto fresh = replica_of(*shards[2]);
+  ASSERT_TRUE(fresh);
+  EXPECT_FALSE(fresh->restored_from.empty()) << "replayed the stream from 1";
+  std::printf(
+      "compaction: a replacement replica caught up from %s + tail in %.2f s (from the "
+      "shard's death, replace_after_s 2 included)\n",
+      fresh->restored_from.c_str(),
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - replaced).count());
+
+  // Both replicas hold the same places, every acknowledged one, under its id.
+  auto a = shards[1]->Map("lab");
+  auto b = shards[2]->Map("lab");
+  ASSERT_TRUE(a.ok() && b.ok());
+  const std::vector<PlaceId> ids = (*a)->database()->ListPlaces();
+  EXPECT_EQ(ids, (*b)->database()->ListPlaces());
+  EXPECT_EQ((*a)->applied_sequence(), (*b)->applied_sequence());
+  for (const auto& [frame, place] : place_of) {
+    EXPECT_TRUE(std::binary_search(ids.begin(), ids.end(), PlaceId(place)))
+        << "frame " << frame << " place " << place;
+  }
+  for (const int frame : {1, 12, 24, 30, 40, 44}) {
+    if (!place_of.count(frame)) continue;
+    v1::QueryRequest request;
+    request.set_map("lab");
+    *request.mutable_observation() = RtabmapObservation(frame, "q");
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::QueryResponse response;
+    const grpc::Status status = second.stub->Query(&context, request, &response);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+    ASSERT_GT(response.matches_size(), 0) << "frame " << frame;
+    EXPECT_EQ(response.matches(0).place_id(), place_of[frame]) << "frame " << frame;
+  }
+  const auto metrics = ParseMetrics(HttpGet(second.server->metrics_port(), "/metrics"));
+  EXPECT_GE(MetricValue(metrics, "placedb_cluster_compactions_total", {}), 2);
+  EXPECT_GE(MetricValue(metrics, "placedb_cluster_base_sequence", {{"map", "lab"}}),
+            double(tail->last_sequence));
+  EXPECT_EQ(MetricValue(metrics, "placedb_cluster_compaction_failures_total", {}), 0);
 }
 
 }  // namespace

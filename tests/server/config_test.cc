@@ -287,6 +287,8 @@ TEST(ServerConfigTest, ClusterSection) {
   EXPECT_EQ(k.replicas, 2);
   EXPECT_EQ(k.stream_replicas, 3);
   EXPECT_EQ(k.replace_after_s, 30);
+  EXPECT_EQ(k.compact_after_records, 100000);
+  EXPECT_EQ(k.compact_after_bytes, int64_t(1) << 30);
 
   // --print-config's YAML loads back to the same section.
   ServerConfig again;
@@ -332,6 +334,30 @@ TEST(ServerConfigTest, ClusterSection) {
   EXPECT_NE(server::ValidateServerConfig(yaml).message().find(
                 "cluster.stream_replicas: must be in [1, 5]"),
             std::string::npos);
+
+  // Issue 35, compaction: YAML and flags, 0 = off, negative refused; --print-config keeps them.
+  ServerConfig compact;
+  ASSERT_TRUE(server::ApplyConfigYaml("cluster:\n  compact_after_records: 500\n"
+                                      "  compact_after_bytes: 0\n",
+                                      &compact)
+                  .ok());
+  EXPECT_EQ(compact.cluster.compact_after_records, 500);
+  EXPECT_EQ(compact.cluster.compact_after_bytes, 0);
+  ServerConfig compact_again;
+  ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(compact), &compact_again).ok());
+  EXPECT_EQ(compact_again.cluster.compact_after_records, 500);
+  EXPECT_EQ(compact_again.cluster.compact_after_bytes, 0);
+  auto flagged = parse({"--role", "worker", "--nats", "a:4222", "--etcd", "a:2379",
+                        "--compact-after-records", "20", "--compact-after-bytes", "65536"});
+  ASSERT_TRUE(flagged.ok()) << flagged.status().ToString();
+  EXPECT_EQ(flagged->config.cluster.compact_after_records, 20);
+  EXPECT_EQ(flagged->config.cluster.compact_after_bytes, 65536);
+  refused(
+      {"--role", "worker", "--nats", "a:4222", "--etcd", "a:2379", "--compact-after-records", "-1"},
+      "cluster.compact_after_records: must be >= 0");
+  refused(
+      {"--role", "worker", "--nats", "a:4222", "--etcd", "a:2379", "--compact-after-bytes", "-5"},
+      "cluster.compact_after_bytes: must be >= 0");
 }
 
 // cluster.internal_tls (issue 35): off by default; YAML on/off, --internal-tls,
