@@ -15,6 +15,14 @@ every acknowledged place is read back through the workers; then the 2-of-3-NATS-
   time without any ack in the --kill-every s after kill i), stall_max, query_within_deadline
   (share), query_retries, nats_2down_refused / nats_2down_acknowledged / nats_2down_resume.
 
+Compaction (issue 35, `--compact-after-records N`: the workers' cluster.compact_after_records,
+compact_after_bytes 0): every `--sample-every` s the maps' streams' bytes (NATS' /jsz, the most a
+live server stores of each), their first sequences and the snapshots stream's bytes (where the
+bases are) go to `--stream-csv` (default: stream_bytes.csv in the cluster's directory); then
+stream_bytes_max, stream_bytes_end, snapshots_stream_bytes_end, compactions (new bases seen in
+etcd bases/), and after the read-back a replica of soak-a moved to the shard without one:
+catchup_new_replica (s until it applied the stream's end) and what it restored from (its log).
+
 Throughput (`--workers 1,2,3`): for each count, `--agents` agents ingest for `--duration` s
 through that many workers: frames/s of precomputed features (`feat`) and, with `--images`, of
 JPEG frames with detection (`jpeg`). `--worker-cpu C` caps each worker process at C cores (a
@@ -290,8 +298,11 @@ def agent_loop(sdk, cluster: Cluster, map_name: str, agent: str, frames: int, ma
 
 def soak(args, sdk) -> int:
     cluster = Cluster(tempfile.mkdtemp(prefix="placedb-soak-"))
+    compaction = [] if args.compact_after_records is None else [
+        f"--server-arg=--compact-after-records={args.compact_after_records}",
+        "--server-arg=--compact-after-bytes=0"]
     cluster.up(3, ["--placedb-server", args.placedb_server, "--roles", args.roles]
-               + [f"--server-arg={a}" for a in args.server_arg or []])
+               + [f"--server-arg={a}" for a in args.server_arg or []] + compaction)
     try:
         status = cluster.status()
         with sdk.Client(status["workers"][0]) as client:
@@ -344,6 +355,10 @@ def soak(args, sdk) -> int:
             for c in clients.values():
                 c.close()
 
+        hosts_up = [True] * 3
+        csv_path = args.stream_csv or os.path.join(cluster.directory, "stream_bytes.csv")
+        sampler = StreamSampler(status, csv_path, args.sample_every, hosts_up, lock)
+        sampler.thread.start()
         for t in threads:
             t.start()
         qt = threading.Thread(target=query_loop, daemon=True)
@@ -354,6 +369,8 @@ def soak(args, sdk) -> int:
             host = rng.randrange(3)
             with lock:
                 live["workers"] = [w for j, w in enumerate(status["workers"]) if j != host]
+            with lock:
+                hosts_up[host] = False
             cluster.kill_host(host)
             kills.append(time.monotonic())
             out(f"kill{i}_host", host, "host")
@@ -361,6 +378,7 @@ def soak(args, sdk) -> int:
             cluster.start_host(host)
             with lock:
                 live["workers"] = list(status["workers"])
+                hosts_up[host] = True
         for t in threads:
             t.join(timeout=args.finish_timeout)
         stop.set()
@@ -376,6 +394,12 @@ def soak(args, sdk) -> int:
             lost, duplicates = verify(acks, stored)
             out("lost", lost, "places")
             out("duplicates", duplicates, "places")
+            if args.compact_after_records is not None:
+                # A new replica now: from the base (or a live replica's newer checkpoint) + tail.
+                last = max(p for p, _, _ in stored[MAPS[0]])
+                took, restored = move_replica(status, MAPS[0], last)
+                out("catchup_new_replica", took, "s")
+                print(f"cluster_soak: {restored}", file=sys.stderr)
         except sdk.Error as e:  # e.g. no shard role running: nothing to read back from
             print(f"cluster_soak: cannot read the maps back: {type(e).__name__}: {e}",
                   file=sys.stderr)
@@ -393,6 +417,13 @@ def soak(args, sdk) -> int:
         measured = [s for s in per_kill if s is not None]
         if measured:
             out("stall_max", max(measured), "s")
+        sampler.stop.set()
+        sampler.thread.join()
+        out("stream_bytes_max", sampler.max_bytes, "bytes")
+        out("stream_bytes_end", sampler.last_bytes, "bytes")
+        out("snapshots_stream_bytes_end", sampler.snapshots_bytes, "bytes")
+        out("compactions", sampler.compactions, "bases")
+        print(f"cluster_soak: stream bytes over time in {csv_path}", file=sys.stderr)
         out("queries", queries.total, "queries")
         out("query_within_deadline", queries.within / max(1, queries.total), "share")
         out("query_retries", queries.retries, "queries")
@@ -542,6 +573,119 @@ def etcd_put(status: dict, key: str, value: str) -> None:
 def applied_of(status: dict, map_name: str) -> dict[str, int]:
     prefix = f"/placedb/{status['name']}/applied/{map_name}/"
     return {k[len(prefix):]: int(v) for k, v in etcd_prefix(status, prefix).items()}
+
+
+def stream_sample(status: dict, up: list[bool]) -> dict[str, dict]:
+    """The cluster's streams as the live NATS servers store them (/jsz): stream name -> the
+    largest bytes / messages / first_seq any live server reports."""
+    import urllib.request
+    streams: dict[str, dict] = {}
+    for host, alive in zip(status["hosts"], up):
+        if not alive:
+            continue
+        url = f"http://{host['address']}:8222/jsz?streams=true"
+        try:
+            with urllib.request.urlopen(url, timeout=2) as r:
+                jsz = json.load(r)
+        except OSError:
+            continue
+        for account in jsz.get("account_details", []):
+            for detail in account.get("stream_detail", []):
+                state = detail.get("state", {})
+                seen = streams.setdefault(detail["name"], {"bytes": 0, "messages": 0,
+                                                           "first_seq": 0})
+                seen["bytes"] = max(seen["bytes"], state.get("bytes", 0))
+                seen["messages"] = max(seen["messages"], state.get("messages", 0))
+                seen["first_seq"] = max(seen["first_seq"], state.get("first_seq", 0))
+    return streams
+
+
+def bases_of(status: dict) -> dict[str, int]:
+    """etcd bases/<map> -> the base sequence (compaction)."""
+    prefix = f"/placedb/{status['name']}/bases/"
+    out_ = {}
+    for key, value in etcd_prefix(status, prefix).items():
+        try:
+            out_[key[len(prefix):]] = int(json.loads(value)["manifest"]["base"])
+        except (ValueError, KeyError):
+            pass
+    return out_
+
+
+class StreamSampler:
+    """Samples the streams every `every` s into a CSV: t, map streams' bytes (sum), snapshots
+    stream's bytes, then per map stream bytes, messages, first_seq; counts new bases."""
+
+    def __init__(self, status: dict, path: str, every: float, up: list[bool], lock):
+        self.status, self.path, self.every, self.up, self.lock = status, path, every, up, lock
+        self.stop = threading.Event()
+        self.max_bytes = 0
+        self.last_bytes = 0
+        self.snapshots_bytes = 0
+        self.bases: dict[str, int] = {}
+        self.compactions = 0
+        self.thread = threading.Thread(target=self.run, daemon=True)
+
+    def sample(self, t: float, f) -> None:
+        with self.lock:
+            up = list(self.up)
+        streams = stream_sample(self.status, up)
+        prefix = f"PLACEDB_{self.status['name'].upper()}_"
+        snapshots = streams.pop(prefix + "SNAPSHOTS", {}).get("bytes", 0)
+        maps = {n: v for n, v in sorted(streams.items()) if n.startswith(prefix)}
+        total = sum(v["bytes"] for v in maps.values())
+        self.max_bytes = max(self.max_bytes, total)
+        self.last_bytes, self.snapshots_bytes = total, snapshots
+        cells = [f"{t:.1f}", str(total), str(snapshots)]
+        for name, v in maps.items():
+            cells += [name, str(v["bytes"]), str(v["messages"]), str(v["first_seq"])]
+        f.write(",".join(cells) + "\n")
+        f.flush()
+        try:
+            for m, base in bases_of(self.status).items():
+                if self.bases.get(m) != base:
+                    self.compactions += 1
+                    self.bases[m] = base
+        except (RuntimeError, subprocess.TimeoutExpired):
+            pass  # etcd unreachable for a moment (a kill): next sample
+
+    def run(self) -> None:
+        start = time.monotonic()
+        with open(self.path, "w") as f:
+            f.write("t_s,map_streams_bytes,snapshots_stream_bytes,"
+                    "stream,bytes,messages,first_seq,...\n")
+            while not self.stop.is_set():
+                self.sample(time.monotonic() - start, f)
+                self.stop.wait(self.every)
+            self.sample(time.monotonic() - start, f)
+
+
+def move_replica(status: dict, map_name: str, last: int) -> tuple[float, str]:
+    """Moves `map_name`'s second replica to the shard without one (docs/cluster.md, "Move a
+    map"): seconds until the new replica applied `last`, and its log's restore line."""
+    placement_key = f"/placedb/{status['name']}/placement/{map_name}"
+    placement = json.loads(etcd_prefix(status, placement_key)[placement_key])
+    shards = [k.rsplit("/", 1)[1]
+              for k in etcd_prefix(status, f"/placedb/{status['name']}/shards/")]
+    new = next(s for s in sorted(shards) if s not in placement["replicas"])
+    kept, moved = placement["replicas"]
+    placement["epoch"] += 1
+    placement["replicas"] = [kept, new]
+    print(f"cluster_soak: moving {map_name} from {moved} to {new} (kept {kept})", file=sys.stderr)
+    moved_at = time.monotonic()
+    etcd_put(status, placement_key, json.dumps(placement))
+    while applied_of(status, map_name).get(new, 0) < last:
+        if time.monotonic() - moved_at > 600:
+            raise RuntimeError(f"{new} did not catch up: {applied_of(status, map_name)}")
+        time.sleep(0.05)
+    took = time.monotonic() - moved_at
+    restored = ""
+    log = status["hosts"][int(new.split("-")[1])]["processes"]["shard"]["log"]
+    with open(log, errors="replace") as f:
+        for line in f:
+            if map_name in line and "restored from" in line:
+                restored = line.rstrip()
+    return took, restored
 
 
 def replica(args, sdk) -> int:
@@ -732,6 +876,11 @@ def main() -> int:
     parser.add_argument("--worker-cpu", type=float, default=0.0,
                         help="throughput mode: cap each worker at this many cores (cgroup)")
     parser.add_argument("--seed", type=int, default=18)
+    parser.add_argument("--compact-after-records", type=int,
+                        help="soak: the workers' cluster.compact_after_records (compaction)")
+    parser.add_argument("--stream-csv", help="soak: stream bytes over time (CSV)")
+    parser.add_argument("--sample-every", type=float, default=2.0,
+                        help="soak: seconds between stream samples")
     parser.add_argument("--places", type=int, default=100000, help="replica mode: the map's places")
     parser.add_argument("--features", type=int, default=500, help="replica mode: per frame")
     parser.add_argument("--replica-queries", type=int, default=50)
