@@ -200,8 +200,6 @@ Status Shard::Impl::Init() {
   auto client = EtcdClient::Create(etcd);
   if (!client.ok()) return client.status();
   etcd_ = std::move(client).value();
-  archives_ = std::make_unique<SnapshotArchives>(js_.get(), etcd_.get(), o.cluster_name,
-                                                 /*stream_replicas=*/0);  // never stores
 
   if (o.metrics) {
     applied_gauge_ = &prometheus::BuildGauge()
@@ -792,7 +790,9 @@ Status Shard::Impl::ImportAsMap(const std::string& spool, const std::string& map
 }
 
 Status Shard::Impl::RestoreFromSnapshot(const std::string& map, const std::string& id) {
-  auto manifest = archives_->Get(id);
+  SnapshotArchives archives(js_.get(), etcd_.get(), options_.cluster_name,
+                            /*stream_replicas=*/0);  // reads only
+  auto manifest = archives.Get(id);
   if (!manifest.ok()) return manifest.status();
   const std::string spool = dir_->path() + "/.snapshot-" + HexOf(map) + ".pdbsnap";
   struct Remove {
@@ -800,7 +800,7 @@ Status Shard::Impl::RestoreFromSnapshot(const std::string& map, const std::strin
     ~Remove() { std::remove(path.c_str()); }
   } remove{spool};
   Stopwatch phase;
-  PLACEDB_RETURN_IF_ERROR(archives_->ReadToFile(
+  PLACEDB_RETURN_IF_ERROR(archives.ReadToFile(
       *manifest, spool, std::chrono::system_clock::now() + std::chrono::minutes(30)));
   const double fetch_ms = phase.Lap();
   PLACEDB_RETURN_IF_ERROR(ImportAsMap(spool, map));

@@ -174,7 +174,6 @@ class Shard::Impl {
 
   std::unique_ptr<DataDirectory> dir_;
   std::unique_ptr<SnapshotStore> snapshots_;
-  std::unique_ptr<SnapshotArchives> archives_;  // the cluster's snapshots (reads only)
   std::unique_ptr<JetStream> js_;
   std::unique_ptr<EtcdClient> etcd_;
   std::unique_ptr<LeaseKeeper> keeper_;  // the run thread's (and Init's)
