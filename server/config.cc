@@ -115,7 +115,8 @@ Status CheckNoControlCharacters(const ServerConfig& c) {
       {"cluster.name", &c.cluster.name},
       {"cluster.shard_id", &c.cluster.shard_id},
       {"cluster.advertise", &c.cluster.advertise},
-      {"cluster.internal_listen", &c.cluster.internal_listen}};
+      {"cluster.internal_listen", &c.cluster.internal_listen},
+      {"cluster.internal_ca_file", &c.cluster.internal_ca_file}};
   for (const std::string& url : c.cluster.nats) texts.push_back({"cluster.nats", &url});
   for (const std::string& address : c.cluster.etcd) texts.push_back({"cluster.etcd", &address});
   for (const auto& [name, path] : c.vocabularies) {
@@ -144,7 +145,7 @@ bool ValidDialAddress(const std::string& address) {
 }
 
 // Role single ignores the section (today's server, whatever is written there).
-Status ValidateCluster(const ClusterSettings& c) {
+Status ValidateCluster(const ClusterSettings& c, const TlsSettings& tls) {
   if (c.role == ClusterRole::kSingle) return Status::Ok();
   const std::string role = ClusterRoleName(c.role);
   if (c.name.empty() || c.name.size() > 64 ||
@@ -181,6 +182,17 @@ Status ValidateCluster(const ClusterSettings& c) {
   if (c.replace_after_s < 1 || c.replace_after_s > 86400) {
     return Bad("cluster.replace_after_s", "must be in [1, 86400]");
   }
+  if (c.internal_tls) {
+    const std::string why =
+        " (tls.cert_file and tls.key_file are this process's certificate on every internal hop, "
+        "the CA bundle verifies the peers)";
+    if (tls.cert_file.empty()) return Bad("cluster.internal_tls", "needs tls.cert_file" + why);
+    if (tls.key_file.empty()) return Bad("cluster.internal_tls", "needs tls.key_file" + why);
+    if (c.InternalCaFile(tls).empty()) {
+      return Bad("cluster.internal_tls",
+                 "needs tls.client_ca_file or cluster.internal_ca_file" + why);
+    }
+  }
   if (c.role == ClusterRole::kShard) {
     if (!ValidListenAddress(c.internal_listen) || c.internal_listen.rfind("unix:", 0) == 0) {
       return Bad("cluster.internal_listen", "'" + c.internal_listen + "' is not host:port");
@@ -216,7 +228,7 @@ Status ValidateCluster(const ClusterSettings& c) {
 
 Status ValidateServerConfig(const ServerConfig& c) {
   PLACEDB_RETURN_IF_ERROR(CheckNoControlCharacters(c));
-  PLACEDB_RETURN_IF_ERROR(ValidateCluster(c.cluster));
+  PLACEDB_RETURN_IF_ERROR(ValidateCluster(c.cluster, c.tls));
   if (!ValidListenAddress(c.listen)) return Bad("listen", "'" + c.listen + "' is not host:port");
   if (!c.metrics_listen.empty()) {
     if (!ValidListenAddress(c.metrics_listen) || c.metrics_listen.rfind("unix:", 0) == 0) {
@@ -560,10 +572,10 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(d, "detector", "large_box_confidence", &x.large_box_confidence));
   }
   if (const YAML::Node k = root["cluster"]; k) {
-    PLACEDB_RETURN_IF_ERROR(
-        r.Check(k, "cluster",
-                {"role", "name", "nats", "etcd", "shard_id", "advertise", "internal_listen",
-                 "replicas", "stream_replicas", "replace_after_s"}));
+    PLACEDB_RETURN_IF_ERROR(r.Check(
+        k, "cluster",
+        {"role", "name", "nats", "etcd", "shard_id", "advertise", "internal_listen", "replicas",
+         "stream_replicas", "replace_after_s", "internal_tls", "internal_ca_file"}));
     ClusterSettings& x = c->cluster;
     std::string role;
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "role", &role));
@@ -577,6 +589,8 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "replicas", &x.replicas));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "stream_replicas", &x.stream_replicas));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "replace_after_s", &x.replace_after_s));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "internal_tls", &x.internal_tls));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "internal_ca_file", &x.internal_ca_file));
   }
   return Status::Ok();
 }
@@ -622,12 +636,12 @@ Status ApplyEnvironment(ServerConfig* c, const std::function<const char*(const c
   auto get_bool = [&](const char* name, bool* out) -> Status {
     const auto v = get(name);
     if (!v) return Status::Ok();
-    if (*v == "1" || *v == "true" || *v == "yes") {
+    if (*v == "1" || *v == "true" || *v == "yes" || *v == "on") {
       *out = true;
-    } else if (*v == "0" || *v == "false" || *v == "no") {
+    } else if (*v == "0" || *v == "false" || *v == "no" || *v == "off") {
       *out = false;
     } else {
-      return Bad(name, "'" + *v + "' is not true/false/1/0/yes/no");
+      return Bad(name, "'" + *v + "' is not true/false/1/0/yes/no/on/off");
     }
     return Status::Ok();
   };
@@ -660,6 +674,8 @@ Status ApplyEnvironment(ServerConfig* c, const std::function<const char*(const c
     }
     c->limits.max_snapshot_bytes = std::stoull(*v);
   }
+  PLACEDB_RETURN_IF_ERROR(get_bool("PLACEDB_INTERNAL_TLS", &c->cluster.internal_tls));
+  if (auto v = get("PLACEDB_INTERNAL_CA_FILE")) c->cluster.internal_ca_file = *v;
   return Status::Ok();
 }
 
@@ -737,6 +753,14 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
       app.add_option("--advertise", advertise, "shard: host:port workers reach its internal API");
   auto* o_internal = app.add_option("--internal-listen", internal_listen,
                                     "shard: internal API address (127.0.0.1:50061)");
+  bool internal_tls = false;
+  auto* o_internal_tls = app.add_flag(
+      "--internal-tls", internal_tls,
+      "cluster: mutual TLS to shards, NATS and etcd with the --tls-* files (plain text refused)");
+  std::string internal_ca_file;
+  auto* o_internal_ca =
+      app.add_option("--internal-ca", internal_ca_file,
+                     "cluster: CA bundle verifying internal peers (default: --tls-client-ca)");
   app.add_flag("--print-config", print_config, "print the effective configuration and exit");
 
   CommandLine out;
@@ -794,6 +818,8 @@ Result<CommandLine> ParseCommandLine(int argc, const char* const* argv,
   if (o_shard_id->count()) c.cluster.shard_id = shard_id;
   if (o_advertise->count()) c.cluster.advertise = advertise;
   if (o_internal->count()) c.cluster.internal_listen = internal_listen;
+  if (o_internal_tls->count()) c.cluster.internal_tls = internal_tls;
+  if (o_internal_ca->count()) c.cluster.internal_ca_file = internal_ca_file;
   PLACEDB_RETURN_IF_ERROR(ValidateServerConfig(c));
   if (print_config) {
     std::cout << ConfigToYaml(c);
@@ -902,6 +928,8 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "replicas" << YAML::Value << k.replicas;
   e << YAML::Key << "stream_replicas" << YAML::Value << k.stream_replicas;
   e << YAML::Key << "replace_after_s" << YAML::Value << k.replace_after_s;
+  e << YAML::Key << "internal_tls" << YAML::Value << (k.internal_tls ? "on" : "off");
+  e << YAML::Key << "internal_ca_file" << YAML::Value << k.internal_ca_file;
   e << YAML::EndMap;
   e << YAML::EndMap;
   return std::string(e.c_str()) + "\n";

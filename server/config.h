@@ -147,9 +147,21 @@ struct ClusterSettings {
   int replicas = 2;                                 // map replicas (shards per map)
   int stream_replicas = 3;                          // JetStream replicas of each map's stream
   int replace_after_s = 30;  // a replica whose shard lease expired is replaced after this
+  // Mutual TLS on every internal hop (docs/cluster.md): the shard's internal API, its callers,
+  // NATS and etcd, with tls.cert_file/key_file as this process's certificate (server and client)
+  // and the CA bundle InternalCaFile() verifying every peer; plain text is then refused. YAML
+  // on/off.
+  bool internal_tls = false;
+  // The CA bundle for internal peers; empty = tls.client_ca_file. Set it on a worker whose public
+  // API should not require client certificates (tls.client_ca_file makes it mutual TLS).
+  std::string internal_ca_file;
 
   // The shard id in effect: shard_id, or the hostname.
   std::string EffectiveShardId() const;
+  // internal_ca_file, or else `tls`'s client_ca_file.
+  const std::string& InternalCaFile(const TlsSettings& tls) const {
+    return internal_ca_file.empty() ? tls.client_ca_file : internal_ca_file;
+  }
 };
 
 struct ServerConfig {
@@ -224,7 +236,8 @@ Status ApplyConfigYaml(const std::string& yaml_text, ServerConfig* config);  // 
 // PLACEDB_LOG_LEVEL, PLACEDB_DETECTOR_MODEL, PLACEDB_MEMORY_BUDGET_BYTES, PLACEDB_TLS_CERT_FILE,
 // PLACEDB_TLS_KEY_FILE, PLACEDB_TLS_CLIENT_CA_FILE, PLACEDB_TOKENS_FILE,
 // PLACEDB_ALLOW_UNAUTHENTICATED_REMOTE. `getenv` is injectable for tests. Also
-// PLACEDB_MAX_SNAPSHOT_BYTES (limits.max_snapshot_bytes).
+// PLACEDB_MAX_SNAPSHOT_BYTES (limits.max_snapshot_bytes), PLACEDB_INTERNAL_TLS
+// (cluster.internal_tls), PLACEDB_INTERNAL_CA_FILE (cluster.internal_ca_file).
 Status ApplyEnvironment(ServerConfig* config,
                         const std::function<const char*(const char*)>& getenv);
 

@@ -98,6 +98,14 @@ int RunShard(const placedb::server::ServerConfig& config, const sigset_t& signal
     options.advertise += c.internal_listen.substr(c.internal_listen.rfind(':'));
   }
   options.internal_listen = c.internal_listen;
+  if (c.internal_tls) {
+    auto tls = placedb::cluster::LoadInternalTls(config.tls, c.internal_ca_file);
+    if (!tls.ok()) {
+      spdlog::error("cannot start: {}", tls.status().ToString());
+      return 1;
+    }
+    options.tls = std::move(tls).value();
+  }
   options.data_dir = config.data_dir;
   options.storage = config.storage;
   options.search = config.search;
@@ -134,8 +142,9 @@ int RunShard(const placedb::server::ServerConfig& config, const sigset_t& signal
     spdlog::error("cannot start: {}", shard.status().ToString());
     return 1;
   }
-  spdlog::info("shard '{}' serving the internal API on port {}", (*shard)->shard_id(),
-               (*shard)->internal_port());
+  spdlog::info("shard '{}' serving the internal API on port {} ({})", (*shard)->shard_id(),
+               (*shard)->internal_port(),
+               c.internal_tls ? "mutual TLS; NATS and etcd over TLS" : "plaintext");
   int received = 0;
   sigwait(&signals, &received);
   spdlog::info("received {}, stopping the shard", strsignal(received));

@@ -32,7 +32,29 @@ basicConstraints = CA:FALSE
 keyUsage = critical,digitalSignature
 extendedKeyUsage = clientAuth
 subjectAltName = DNS:robot-8.fleet.internal,URI:spiffe://fleet/robot-8
+[node]
+basicConstraints = CA:FALSE
+keyUsage = critical,digitalSignature,keyEncipherment
+extendedKeyUsage = serverAuth,clientAuth
+subjectAltName = @node_names
+[node_names]
+DNS.1 = localhost
 )";
+
+// node_cert's SANs besides DNS:localhost: the loopback addresses tests put engines on.
+std::string NodeNames(const std::vector<std::string>& more) {
+  std::string out;
+  int ip = 0, dns = 1;
+  for (int last = 1; last <= 9; ++last) {
+    out += "IP." + std::to_string(++ip) + " = 127.0.0." + std::to_string(last) + "\n";
+  }
+  for (const std::string& name : more) {
+    const bool is_ip = !name.empty() && name.find_first_not_of("0123456789.") == std::string::npos;
+    out += is_ip ? "IP." + std::to_string(++ip) : "DNS." + std::to_string(++dns);
+    out += " = " + name + "\n";
+  }
+  return out;
+}
 
 constexpr char kNewKey[] = "-newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes";
 
@@ -85,7 +107,7 @@ TestCertificates MakeTestCertificates() {
   TestCertificates c;
   c.dir = MakeTempDir("placedb-certs");
   const std::string config = c.dir + "/openssl.cnf";
-  std::ofstream(config) << kExtensions;
+  std::ofstream(config) << kExtensions << NodeNames({});
   auto path = [&](const char* name) { return c.dir + "/" + name; };
   c.ca_cert = path("ca.pem");
   c.ca_key = path("ca.key");
@@ -93,6 +115,8 @@ TestCertificates MakeTestCertificates() {
   c.server_key = path("server.key");
   c.client_cert = path("client.pem");
   c.client_key = path("client.key");
+  c.node_cert = path("node.pem");
+  c.node_key = path("node.key");
   c.other_ca_cert = path("other-ca.pem");
   c.other_ca_key = path("other-ca.key");
   c.other_client_cert = path("other-client.pem");
@@ -103,6 +127,7 @@ TestCertificates MakeTestCertificates() {
       Issue(config, "server", "/CN=localhost", c.ca_cert, c.ca_key, c.server_cert, c.server_key) &&
       Issue(config, "client", "/CN=robot-8.fleet.internal", c.ca_cert, c.ca_key, c.client_cert,
             c.client_key) &&
+      Issue(config, "node", "/CN=placedb-node", c.ca_cert, c.ca_key, c.node_cert, c.node_key) &&
       MakeCa(config, "/CN=other test CA", c.other_ca_cert, c.other_ca_key) &&
       Issue(config, "client", "/CN=robot-8.fleet.internal", c.other_ca_cert, c.other_ca_key,
             c.other_client_cert, c.other_client_key);
@@ -127,6 +152,17 @@ std::pair<std::string, std::string> IssueClientCertificate(
   const std::string cert = certs.dir + "/" + name + ".pem";
   const std::string key = certs.dir + "/" + name + ".key";
   Issue(config, "client", "/CN=" + common_name, certs.ca_cert, certs.ca_key, cert, key);
+  return {cert, key};
+}
+
+std::pair<std::string, std::string> IssueNodeCertificate(
+    const TestCertificates& certs, const std::string& name,
+    const std::vector<std::string>& addresses) {
+  const std::string config = certs.dir + "/" + name + ".cnf";
+  std::ofstream(config) << kExtensions << NodeNames(addresses);
+  const std::string cert = certs.dir + "/" + name + ".pem";
+  const std::string key = certs.dir + "/" + name + ".key";
+  Issue(config, "node", "/CN=placedb-node", certs.ca_cert, certs.ca_key, cert, key);
   return {cert, key};
 }
 

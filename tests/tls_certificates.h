@@ -25,6 +25,10 @@ struct TestCertificates {
   // CN robot-8.fleet.internal, SANs DNS:robot-8.fleet.internal and URI:spiffe://fleet/robot-8,
   // signed by the CA; clientAuth.
   std::string client_cert, client_key;
+  // A cluster node's certificate (cluster.internal_tls: one certificate for both ends of every
+  // internal hop): CN placedb-node, SANs DNS:localhost and IP:127.0.0.1..127.0.0.9, signed by
+  // the CA; serverAuth and clientAuth.
+  std::string node_cert, node_key;
   // An unrelated CA ("other test CA"), and a client certificate it signed with the same CN as
   // client_cert: a good name from the wrong CA.
   std::string other_ca_cert, other_ca_key;
@@ -46,6 +50,13 @@ const TestCertificates& SharedTestCertificates();
 std::pair<std::string, std::string> IssueClientCertificate(
     const TestCertificates& certs, const std::string& name, const std::string& common_name,
     const std::vector<std::string>& dns_names = {});
+
+// A further node certificate (as node_cert: serverAuth + clientAuth, signed by `certs`'s CA):
+// files <name>.pem and <name>.key in certs.dir; SANs node_cert's plus `addresses` (IPv4
+// addresses become IP SANs, anything else DNS SANs). Returns {certificate, key} paths.
+std::pair<std::string, std::string> IssueNodeCertificate(const TestCertificates& certs,
+                                                         const std::string& name,
+                                                         const std::vector<std::string>& addresses);
 
 // Runs `command` through /bin/sh with stdout+stderr captured; returns its exit status
 // (-1 when it could not run) and sets *output.

@@ -1,6 +1,7 @@
 // placedb-test-certs OUT_DIR: writes tests/tls_certificates.h's certificates (ca.pem, ca.key,
-// server.pem, server.key, client.pem, client.key, other-ca.pem, other-ca.key, other-client.pem,
-// other-client.key) into OUT_DIR, for tests in other languages (the Python SDK's TLS test).
+// server.pem, server.key, client.pem, client.key, node.pem, node.key, other-ca.pem, other-ca.key,
+// other-client.pem, other-client.key) into OUT_DIR, for tests in other languages (the Python
+// SDK's TLS test) and scripts (bench/cluster_tls_overhead.sh).
 // Exit status 0 when every file was made, 1 otherwise (openssl's output on stderr).
 #include <filesystem>
 #include <iostream>
@@ -20,8 +21,8 @@ int main(int argc, char** argv) {
   fs::create_directories(out, error);
   for (const std::string& file :
        {certs.ca_cert, certs.ca_key, certs.server_cert, certs.server_key, certs.client_cert,
-        certs.client_key, certs.other_ca_cert, certs.other_ca_key, certs.other_client_cert,
-        certs.other_client_key}) {
+        certs.client_key, certs.node_cert, certs.node_key, certs.other_ca_cert, certs.other_ca_key,
+        certs.other_client_cert, certs.other_client_key}) {
     if (error || !fs::exists(file)) {
       std::cerr << "placedb-test-certs: " << file << " was not made\n";
       return 1;

@@ -10,6 +10,10 @@
 #   placedb/tls.key, tls.crt      the server's key and certificate signed by it (825 days), with
 #                                 the subject alternative names of PLACEDB_TLS_SERVER_NAMES
 #   placedb/ca.crt                the CA certificate (the HEALTHCHECK and clients verify with it)
+#   engines/tls.key, tls.crt, ca.crt   the same key, certificate and CA for nats-server and etcd
+#                                 in compose-cluster.yaml (cluster.internal_tls: every hop is
+#                                 mutual TLS with this one certificate, so it allows serverAuth
+#                                 and clientAuth)
 #   placedb/tokens.yaml           principals `admin` (admin) and `prometheus` (metrics): token
 #                                 hashes only, written by `placedb-server tokens add`
 #   prometheus/ca.crt             for Prometheus' tls_config.ca_file
@@ -25,12 +29,14 @@
 #                             (default placedb,localhost,127.0.0.1; the HEALTHCHECK dials
 #                             127.0.0.1). Add the host name robots use.
 #   PLACEDB_UID, PROMETHEUS_UID   owners of placedb/ and prometheus/ (chown only as root)
+#   ENGINES_UID                   owner of engines/ (1001: bitnami/etcd's user; nats runs as root)
 set -eu
 
 dir="${1:-/run/secrets}"
 names="${PLACEDB_TLS_SERVER_NAMES:-placedb,localhost,127.0.0.1}"
 placedb_uid="${PLACEDB_UID:-10001}"
 prometheus_uid="${PROMETHEUS_UID:-65534}"
+engines_uid="${ENGINES_UID:-1001}"
 server="${PLACEDB_SERVER_BINARY:-/usr/local/bin/placedb-server}"
 
 say() { printf 'placedb-init-secrets: %s\n' "$*"; }
@@ -43,9 +49,9 @@ if [ -e "$dir/placedb/tokens.yaml" ]; then
   say "$dir/placedb/tokens.yaml exists: the secrets are made already; nothing changed"
   exit 0
 fi
-for d in ca placedb prometheus; do
+for d in ca placedb prometheus engines; do
   [ ! -e "$dir/$d" ] ||
-    die "$dir/$d exists but $dir/placedb/tokens.yaml does not (an interrupted run?): remove $dir/ca, $dir/placedb and $dir/prometheus and start again"
+    die "$dir/$d exists but $dir/placedb/tokens.yaml does not (an interrupted run?): remove $dir/ca, $dir/placedb, $dir/prometheus and $dir/engines and start again"
 done
 command -v openssl >/dev/null || die "openssl is not installed"
 [ -x "$server" ] || die "$server is missing"
@@ -54,7 +60,7 @@ umask 077
 mkdir -p "$dir"
 tmp="$(mktemp -d "$dir/.init.XXXXXX")"
 trap 'rm -rf "$tmp"' EXIT
-mkdir "$tmp/ca" "$tmp/placedb" "$tmp/prometheus"
+mkdir "$tmp/ca" "$tmp/placedb" "$tmp/prometheus" "$tmp/engines"
 
 # subjectAltName from the list: IPv4/IPv6 literals as IP:, the rest as DNS:.
 san=""
@@ -79,13 +85,14 @@ openssl req -new -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -sha256 \
   -keyout "$tmp/placedb/tls.key" -out "$tmp/server.csr" -subj "/CN=placedb" \
   2>"$tmp/openssl.log" || { cat "$tmp/openssl.log" >&2; die "openssl: the server key"; }
 printf '%s\n' "basicConstraints=CA:FALSE" "keyUsage=critical,digitalSignature" \
-  "extendedKeyUsage=serverAuth" "subjectAltName=$san" >"$tmp/server.ext"
+  "extendedKeyUsage=serverAuth,clientAuth" "subjectAltName=$san" >"$tmp/server.ext"
 openssl x509 -req -in "$tmp/server.csr" -CA "$tmp/ca/ca.crt" -CAkey "$tmp/ca/ca.key" \
   -set_serial "0x$(openssl rand -hex 16)" -days 825 -sha256 -extfile "$tmp/server.ext" \
   -out "$tmp/placedb/tls.crt" 2>"$tmp/openssl.log" ||
   { cat "$tmp/openssl.log" >&2; die "openssl: the server certificate"; }
 cp "$tmp/ca/ca.crt" "$tmp/placedb/ca.crt"
 cp "$tmp/ca/ca.crt" "$tmp/prometheus/ca.crt"
+cp "$tmp/ca/ca.crt" "$tmp/placedb/tls.crt" "$tmp/placedb/tls.key" "$tmp/engines/"
 say "server certificate for $san, signed by a new CA (valid 825 days)"
 
 # The tokens: `tokens add` prints the token once and stores only its SHA-256.
@@ -102,17 +109,21 @@ new_token prometheus metrics >"$tmp/prometheus/metrics.password"
 chmod 0644 "$tmp/ca/ca.crt" "$tmp/placedb/tls.crt" "$tmp/placedb/ca.crt"
 chmod 0600 "$tmp/ca/ca.key" "$tmp/placedb/tls.key" "$tmp/placedb/tokens.yaml"
 chmod 0400 "$tmp/prometheus/ca.crt" "$tmp/prometheus/metrics.password"
-chmod 0700 "$tmp/ca" "$tmp/placedb" "$tmp/prometheus"
+chmod 0644 "$tmp/engines/ca.crt" "$tmp/engines/tls.crt"
+chmod 0600 "$tmp/engines/tls.key"
+chmod 0700 "$tmp/ca" "$tmp/placedb" "$tmp/prometheus" "$tmp/engines"
 chmod 0755 "$dir"
 if [ "$(id -u)" = 0 ]; then
   chown -R "$placedb_uid:$placedb_uid" "$tmp/placedb"
   chown -R "$prometheus_uid:$prometheus_uid" "$tmp/prometheus"
+  chown -R "$engines_uid:$engines_uid" "$tmp/engines"
 else
   say "not root: $dir/placedb and $dir/prometheus stay owned by $(id -un)"
 fi
 # placedb/ last: its tokens.yaml marks the work as done.
 mv "$tmp/ca" "$dir/ca"
 mv "$tmp/prometheus" "$dir/prometheus"
+mv "$tmp/engines" "$dir/engines"
 mv "$tmp/placedb" "$dir/placedb"
 
 say "wrote $dir/placedb (server key, certificate, CA certificate, tokens.yaml),"

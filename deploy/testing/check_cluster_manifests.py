@@ -4,6 +4,9 @@ every file parses (python3-yaml), kustomization resources exist, each workload's
 its pod labels and a Service / PodDisruptionBudget / HorizontalPodAutoscaler selects or targets
 an existing workload, headless Services for NATS, etcd and shards, the placedb-server flags are
 the agreed cluster flags, no image names a registry host, and the NATS configs fsync every write.
+Internal TLS is on everywhere (issue 35): placedb shards and workers set PLACEDB_INTERNAL_TLS, every
+NATS config has `tls { ... verify: true }` for clients and for routes, and every etcd member serves
+https with --client-cert-auth and --peer-client-cert-auth, naming the same certificate files.
 
   /usr/bin/python3 deploy/testing/check_cluster_manifests.py     # exit 0: OK
 """
@@ -44,6 +47,40 @@ def placedb_flags(args, where):
     check(names <= FLAGS, f"{where}: flags {sorted(names - FLAGS)} are not the agreed ones")
 
 
+TRUE = {"on", "true", "1", "yes"}
+ETCD_TLS = {"--cert-file", "--key-file", "--trusted-ca-file", "--client-cert-auth",
+            "--peer-cert-file", "--peer-key-file", "--peer-trusted-ca-file",
+            "--peer-client-cert-auth"}
+
+
+def nats_tls(conf, where):
+    # Client TLS before `cluster {`, route TLS inside it; each with a CA and verify: true.
+    top, _, cluster = conf.partition("cluster {")
+    for part, what in ((top, "clients"), (cluster, "routes")):
+        block = re.search(r"tls\s*\{([^}]*)\}", part)
+        check(block and all(k in block.group(1) for k in ("cert_file", "key_file", "ca_file")) and
+              re.search(r"verify:\s*true", block.group(1)),
+              f"{where}: no TLS with verify: true for {what}")
+
+
+def etcd_tls(args, where):
+    names = {a.split("=")[0] for a in args}
+    check(ETCD_TLS <= names, f"{where}: etcd without {sorted(ETCD_TLS - names)}")
+    for a in args:
+        if a.split("=")[0] in ("--listen-client-urls", "--advertise-client-urls",
+                               "--listen-peer-urls", "--initial-advertise-peer-urls",
+                               "--initial-cluster"):
+            check("http://" not in a, f"{where}: {a.split('=')[0]} is plain http")
+
+
+def internal_tls(env, where):
+    check(str(env.get("PLACEDB_INTERNAL_TLS", "")).lower() in TRUE,
+          f"{where}: PLACEDB_INTERNAL_TLS is not on")
+    check(all(env.get(k) for k in ("PLACEDB_TLS_CERT_FILE", "PLACEDB_TLS_KEY_FILE")) and
+          (env.get("PLACEDB_INTERNAL_CA_FILE") or env.get("PLACEDB_TLS_CLIENT_CA_FILE")),
+          f"{where}: internal TLS without its certificate, key or CA file")
+
+
 kustomization = yaml.safe_load(open(os.path.join(K8S, "kustomization.yaml")))
 docs = []
 for resource in kustomization["resources"]:
@@ -73,6 +110,9 @@ for (kind, name), w in workloads.items():
         registry_free(c["image"], f"{kind}/{name}")
         if c["image"].startswith("placedb"):
             placedb_flags(c.get("args", []), f"{kind}/{name}")
+            internal_tls({e["name"]: e.get("value") for e in c.get("env", [])}, f"{kind}/{name}")
+        if c["image"].startswith("bitnami/etcd"):
+            etcd_tls(c.get("command", []) + c.get("args", []), f"{kind}/{name}")
 for file, d in docs:
     kind, name = d["kind"], d["metadata"]["name"]
     if kind == "Service":
@@ -86,6 +126,7 @@ for file, d in docs:
     if kind == "ConfigMap" and "nats.conf" in d.get("data", {}):
         check(re.search(r"sync_interval:\s*always", d["data"]["nats.conf"]),
               f"ConfigMap/{name}: nats without sync_interval always")
+        nats_tls(d["data"]["nats.conf"], f"ConfigMap/{name}")
 kinds = {(d["kind"], d["metadata"]["name"]) for _, d in docs}
 for needed in [("StatefulSet", "placedb-nats"), ("StatefulSet", "placedb-etcd"),
                ("StatefulSet", "placedb-shard"), ("Deployment", "placedb-worker"),
@@ -105,10 +146,14 @@ for name, s in services.items():
     registry_free(s["image"].split("${PLACEDB_IMAGE:-")[-1].rstrip("}"), f"compose {name}")
     if name.startswith(("shard-", "worker-")):
         placedb_flags(s["command"], f"compose {name}")
+        internal_tls(s["environment"], f"compose {name}")
+    if name.startswith("etcd-"):
+        etcd_tls(s["command"], f"compose {name}")
     for v in s.get("volumes", []):
         check(v.split(":")[0] in compose["volumes"], f"compose {name}: volume {v} not declared")
 for name, c in compose["configs"].items():
     check(re.search(r"sync_interval:\s*always", c["content"]), f"compose config {name}: no fsync")
+    nats_tls(c["content"], f"compose config {name}")
 
 for e in errors:
     print("check_cluster_manifests:", e, file=sys.stderr)

@@ -162,7 +162,7 @@ std::shared_ptr<grpc::Channel> EtcdClient::ChannelTo(size_t endpoint) {
     args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 100);
     args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
     channel = grpc::CreateCustomChannel(options_.endpoints[endpoint],
-                                        grpc::InsecureChannelCredentials(), args);
+                                        InternalChannelCredentials(options_.tls), args);
   }
   return channel;
 }

@@ -40,11 +40,15 @@
 
 #include "core/base/status.h"
 #include "core/base/thread_annotations.h"
+#include "server/cluster/internal_tls.h"
 
 namespace placedb::cluster {
 
 struct EtcdOptions {
-  std::vector<std::string> endpoints;  // "host:port" of the client URLs, plain text
+  std::vector<std::string> endpoints;  // "host:port" of the client URLs
+  // Enabled: TLS to every member (its certificate verified against tls.ca, ours presented);
+  // otherwise plain text.
+  InternalTls tls{};
   // Whole call, over every member it tries.
   std::chrono::milliseconds call_timeout{5000};
   // One member's attempt (a hung member costs at most this before the next is tried).

@@ -95,6 +95,21 @@ Result<std::unique_ptr<JetStream>> JetStream::Connect(JetStreamOptions options) 
   // Publishes made while reconnecting fail at once (IO_ERROR) instead of being buffered and
   // acknowledged never: the caller retries with the same message id.
   if (status == NATS_OK) status = natsOptions_SetReconnectBufSize(nats_options, 0);
+  if (status == NATS_OK && options.tls.enabled()) {
+    // Secure: a server that does not offer TLS is refused, never used in plain text.
+    status = natsOptions_SetSecure(nats_options, true);
+    if (status == NATS_OK)
+      status = natsOptions_SetCATrustedCertificates(nats_options, options.tls.ca.c_str());
+    if (status == NATS_OK && !options.tls.cert_chain.empty()) {
+      status = natsOptions_SetCertificatesChain(nats_options, options.tls.cert_chain.c_str(),
+                                                options.tls.private_key.c_str());
+    }
+    if (status != NATS_OK) {
+      natsOptions_Destroy(nats_options);
+      return Status::InvalidArgument("JetStream: cannot use the TLS certificates: " +
+                                     Describe(status, static_cast<jsErrCode>(0)));
+    }
+  }
   natsConnection* connection = nullptr;
   if (status == NATS_OK) status = natsConnection_Connect(&connection, nats_options);
   natsOptions_Destroy(nats_options);

@@ -57,6 +57,7 @@
 
 #include "core/base/status.h"
 #include "core/base/thread_annotations.h"
+#include "server/cluster/internal_tls.h"
 
 // libnats' opaque types, so that users of this header need not include nats.h.
 typedef struct __natsConnection natsConnection;
@@ -72,6 +73,9 @@ struct JetStreamOptions {
   std::chrono::milliseconds connect_timeout{2000};
   // JetStream API requests (stream info, add, delete).
   std::chrono::milliseconds request_timeout{5000};
+  // Enabled: TLS only (the server's certificate verified against tls.ca); our certificate is
+  // presented when tls.cert_chain is set. Otherwise plain text.
+  InternalTls tls{};
 };
 
 // What EnsureStream creates (always file storage, limits retention).

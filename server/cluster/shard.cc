@@ -192,11 +192,13 @@ Status Shard::Impl::Init() {
   JetStreamOptions js;
   js.servers = o.nats;
   js.client_name = "placedb-shard-" + o.shard_id;
+  js.tls = o.tls;
   auto connected = JetStream::Connect(js);
   if (!connected.ok()) return connected.status();
   js_ = std::move(connected).value();
   EtcdOptions etcd;
   etcd.endpoints = o.etcd;
+  etcd.tls = o.tls;
   auto client = EtcdClient::Create(etcd);
   if (!client.ok()) return client.status();
   etcd_ = std::move(client).value();
@@ -214,7 +216,7 @@ Status Shard::Impl::Init() {
 
   service_ = std::make_unique<ShardService>(this, o.shard_id);
   grpc::ServerBuilder builder;
-  builder.AddListeningPort(o.internal_listen, grpc::InsecureServerCredentials(), &port_);
+  builder.AddListeningPort(o.internal_listen, InternalServerCredentials(o.tls), &port_);
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);  // a port in use is an error (server.cc)
   builder.RegisterService(service_.get());
   builder.SetMaxReceiveMessageSize(64 << 20);
@@ -756,8 +758,8 @@ Result<std::string> Shard::Impl::RestoreFromPeer(const std::string& map, int64_t
     }
   }
   if (peer.empty()) return Status::NotFound("no live replica of '" + map + "' has applied records");
-  auto stub =
-      cv1::Shard::NewStub(grpc::CreateChannel(live[peer], grpc::InsecureChannelCredentials()));
+  auto stub = cv1::Shard::NewStub(
+      grpc::CreateChannel(live[peer], InternalChannelCredentials(options_.tls)));
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + std::chrono::minutes(10));
   cv1::CheckpointRequest request;

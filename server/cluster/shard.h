@@ -28,8 +28,9 @@
 // - Writes applied/<map>/<shard_id> (decimal) about every `report_interval`, and the gauges
 //   placedb_shard_applied_sequence{map,shard} and placedb_shard_lag_records{map,shard} (stream
 //   last sequence - applied) on `metrics`' registry when given.
-// - Serves placedb.cluster.v1.Shard (proto/cluster.proto) on internal_listen (plain text: the
-//   internal network; port 0 picks one, see internal_port()).
+// - Serves placedb.cluster.v1.Shard (proto/cluster.proto) on internal_listen (port 0 picks one,
+//   see internal_port()): plain text, or with options.tls (cluster.internal_tls) mutual TLS only:
+//   a caller without a certificate signed by tls.ca fails the handshake.
 //
 // Threading: Start/destructor from one thread; every other method is thread-safe. Consumers
 // queue on libnats' delivery threads and appliers apply on their own threads (one of each per
@@ -46,6 +47,7 @@
 #include "core/base/status.h"
 #include "core/storage/map_store.h"
 #include "core/vocabulary/any_vocabulary.h"
+#include "server/cluster/internal_tls.h"
 #include "server/config.h"
 
 namespace placedb::server {
@@ -67,6 +69,9 @@ struct ShardOptions {
   StorageOptions storage;                           // the usual storage options
   server::SearchSettings search;                    // the usual search settings
   uint32_t max_descriptors_per_frame = 4000;        // limits.max_descriptors_per_frame
+  // cluster.internal_tls: mutual TLS on the internal API, the checkpoint fetches from peers,
+  // NATS and etcd (server/cluster/internal_tls.h); not enabled = plain text everywhere.
+  InternalTls tls{};
   // Vocabulary name -> vocabulary (the server's `vocabularies`, loaded by the caller); a map's
   // MapConfig.vocabulary picks one ("" = "default"). A map whose vocabulary is missing stays
   // unopened with the reason in Status.

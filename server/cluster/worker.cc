@@ -91,8 +91,15 @@ Result<std::unique_ptr<ClusterWorker>> ClusterWorker::Start(const ServerConfig& 
                                                             MapRegistry* local, Metrics* metrics) {
   std::unique_ptr<ClusterWorker> worker(new ClusterWorker(config, local));
   const ClusterSettings& c = config.cluster;
+  if (c.internal_tls) {
+    auto tls = cluster::LoadInternalTls(config.tls, c.internal_ca_file);
+    if (!tls.ok()) return tls.status();
+    worker->tls_ = std::move(tls).value();
+    spdlog::info("worker: shards, NATS and etcd over mutual TLS (cluster.internal_tls)");
+  }
   cluster::EtcdOptions etcd;
   etcd.endpoints = c.etcd;
+  etcd.tls = worker->tls_;
   auto client = cluster::EtcdClient::Create(etcd);
   if (!client.ok()) return client.status();
   worker->etcd_ = std::move(client).value();
@@ -101,6 +108,7 @@ Result<std::unique_ptr<ClusterWorker>> ClusterWorker::Start(const ServerConfig& 
     nats.servers.push_back(url.rfind("nats://", 0) == 0 ? url : "nats://" + url);
   }
   nats.client_name = "placedb-worker " + worker->id_;
+  nats.tls = worker->tls_;
   auto jetstream = cluster::JetStream::Connect(nats);
   if (!jetstream.ok()) return jetstream.status().WithContext("cluster.nats");
   worker->jetstream_ = std::move(jetstream).value();
@@ -433,7 +441,8 @@ std::shared_ptr<grpc::Channel> ClusterWorker::ChannelTo(const std::string& addre
     // A shard that restarts is dialled again quickly.
     arguments.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 100);
     arguments.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
-    channel = grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), arguments);
+    channel =
+        grpc::CreateCustomChannel(address, cluster::InternalChannelCredentials(tls_), arguments);
   }
   return channel;
 }

@@ -289,6 +289,7 @@ class ClusterWorker final : public MapBackend {
   const ServerConfig& config_;
   const ClusterSettings& cluster_;
   MapRegistry* const local_;
+  cluster::InternalTls tls_;  // cluster.internal_tls: shards, NATS and etcd over mutual TLS
   std::unique_ptr<cluster::EtcdClient> etcd_;
   std::unique_ptr<cluster::JetStream> jetstream_;
   std::unique_ptr<cluster::ClusterView> view_;

@@ -10,6 +10,10 @@
 // acknowledged place is on both replicas, the replicas are identical, no frame is stored twice,
 // and both scrub clean.
 //
+// Run twice (ClusterHostsTest/<name>/Plaintext and /InternalTls): the second with TLS and client
+// certificates on every hop (issue 35: cluster.internal_tls; nats-server and etcd with TLS on
+// clients, routes and peers, and the workers' public API with mutual TLS from the same files).
+//
 // Figures are printed as `name value unit`, never asserted; the bounded waits and the watchdog
 // only turn a hang into a failure.
 #include <gtest/gtest.h>
@@ -34,6 +38,7 @@
 #include <vector>
 
 #include "bench/bench_output.h"
+#include "core/base/files.h"
 #include "core/storage/codec.h"
 #include "core/storage/map_store.h"
 #include "server/cluster/etcd_client.h"
@@ -44,6 +49,7 @@
 #include "tests/cluster/hosts.h"
 #include "tests/join_on_exit.h"
 #include "tests/server/server_fixture.h"
+#include "tests/tls_certificates.h"
 
 namespace placedb::server_testing {
 namespace {
@@ -210,10 +216,12 @@ void RunAgent(AgentRun& agent, const std::vector<v1::PlaceDb::Stub*>& workers,
   }
 }
 
-class ClusterHostsTest : public ServerTest {};
+// The parameter: cluster.internal_tls on every hop.
+class ClusterHostsTest : public ServerTest, public ::testing::WithParamInterface<bool> {};
 
-TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts) {
-  Watchdog watchdog(240s);
+TEST_P(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts) {
+  const bool tls = GetParam();
+  Watchdog watchdog(tls ? 300s : 240s);
   const double start_ms = bench::NowMs();
   const std::string binary = PLACEDB_SERVER_BINARY;
   FeatureFrames(84);
@@ -223,13 +231,21 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
   Hosts& hosts = **hosts_or;
   std::printf("hosts: %s (%s, %s, %s)\n", hosts.kind_name(), hosts.address(0).c_str(),
               hosts.address(1).c_str(), hosts.address(2).c_str());
+  // One node certificate for every process, naming every host's address.
+  const testing::TestCertificates& certs = testing::SharedTestCertificates();
+  const auto [node_cert, node_key] =
+      tls ? testing::IssueNodeCertificate(certs, "hosts-node", hosts.Addresses())
+          : std::pair<std::string, std::string>();
   EnginesOptions engine_options;
   engine_options.hosts = hosts.Addresses();
   engine_options.netns = hosts.Namespaces();
+  if (tls)
+    engine_options.tls = {.ca_file = certs.ca_cert, .cert_file = node_cert, .key_file = node_key};
   auto engines_or = Engines::Start(engine_options);
   ASSERT_TRUE(engines_or.ok()) << engines_or.status().ToString();
   Engines& engines = **engines_or;
-  bench::Print("cluster_hosts_engines_ready_ms", bench::NowMs() - start_ms, "ms");
+  const std::string prefix = tls ? "cluster_hosts_tls_" : "cluster_hosts_";
+  bench::Print(prefix + "engines_ready_ms", bench::NowMs() - start_ms, "ms");
 
   // The coordinator (in the workers) replaces a replica 2 s after its shard's lease (5 s) expired.
   const std::string config = root_ + "/cluster.yaml";
@@ -269,19 +285,27 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
                                              "--metrics-listen",
                                              "off",
                                              "--allow-unauthenticated-remote"};
+    std::vector<std::string> tls_args;
+    if (tls) {
+      tls_args = {"--internal-tls", "--tls-cert",      node_cert,    "--tls-key",
+                  node_key,         "--tls-client-ca", certs.ca_cert};
+    }
     const std::string internal = p->address + ":" + std::to_string(p->internal_port);
     std::vector<std::string> shard = common;
+    shard.insert(shard.end(), tls_args.begin(), tls_args.end());
     shard.insert(shard.end(),
                  {"--role", "shard", "--shard-id", "shard-" + std::to_string(i), "--advertise",
                   internal, "--internal-listen", internal, "--data-dir", p->shard_data()});
     ASSERT_TRUE(hosts.StartProcess(i, p->shard, shard, p->shard_log()).ok());
     std::vector<std::string> worker = common;
+    worker.insert(worker.end(), tls_args.begin(), tls_args.end());
     worker.insert(worker.end(), {"--role", "worker", "--listen",
                                  p->address + ":" + std::to_string(p->worker_port), "--data-dir",
                                  p->dir + "/worker"});
     ASSERT_TRUE(hosts.StartProcess(i, p->worker, worker, p->worker_log()).ok());
+    // The public API takes mutual TLS from the same files: the node certificate as a client's.
     p->channel = grpc::CreateChannel(p->address + ":" + std::to_string(p->worker_port),
-                                     grpc::InsecureChannelCredentials());
+                                     cluster::InternalChannelCredentials(engines.client_tls()));
     p->stub = v1::PlaceDb::NewStub(p->channel);
     procs.push_back(std::move(p));
   }
@@ -306,7 +330,8 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
     ASSERT_TRUE(status.ok()) << p->address << ": " << status.error_message();
     EXPECT_EQ(info.role(), "worker");
   }
-  auto etcd = cluster::EtcdClient::Create({.endpoints = engines.EtcdEndpoints()});
+  auto etcd = cluster::EtcdClient::Create(
+      {.endpoints = engines.EtcdEndpoints(), .tls = engines.client_tls()});
   ASSERT_TRUE(etcd.ok()) << etcd.status().ToString();
   auto view_or = cluster::ClusterView::Start(etcd->get(), kCluster);
   ASSERT_TRUE(view_or.ok()) << view_or.status().ToString();
@@ -325,11 +350,12 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
     const grpc::Status created = procs[0]->stub->CreateMap(&context, request, &response);
     ASSERT_TRUE(created.ok()) << map << ": " << created.error_message();
   }
-  bench::Print("cluster_hosts_ready_ms", bench::NowMs() - start_ms, "ms");
+  bench::Print(prefix + "ready_ms", bench::NowMs() - start_ms, "ms");
 
   cluster::JetStreamOptions js_options;
   js_options.servers = engines.NatsUrls();
   js_options.request_timeout = 2s;
+  js_options.tls = engines.client_tls();
   auto js_or = cluster::JetStream::Connect(js_options);
   ASSERT_TRUE(js_or.ok()) << js_or.status().ToString();
   cluster::JetStream& js = **js_or;
@@ -422,7 +448,7 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
   ASSERT_TRUE(engines.RestartNats(*leader).ok());
 
   for (std::thread& thread : threads) thread.join();
-  bench::Print("cluster_hosts_ingest_after_kill_ms", bench::NowMs() - kill_ms, "ms");
+  bench::Print(prefix + "ingest_after_kill_ms", bench::NowMs() - kill_ms, "ms");
   int acknowledged = 0, streams = 0, broken = 0, resent = 0, resent_acknowledged = 0;
   double slowest_ms = 0;
   for (const AgentRun& agent : agents) {
@@ -436,12 +462,12 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
     resent_acknowledged += agent.resent_acknowledged;
     slowest_ms = std::max(slowest_ms, agent.slowest_ms);
   }
-  bench::Print("cluster_hosts_acknowledged", acknowledged, "frames");
-  bench::Print("cluster_hosts_streams", streams, "streams");
-  bench::Print("cluster_hosts_streams_broken", broken, "streams");
-  bench::Print("cluster_hosts_resent", resent, "frames");
-  bench::Print("cluster_hosts_resent_acknowledged", resent_acknowledged, "frames");
-  bench::Print("cluster_hosts_slowest_frame_ms", slowest_ms, "ms");
+  bench::Print(prefix + "acknowledged", acknowledged, "frames");
+  bench::Print(prefix + "streams", streams, "streams");
+  bench::Print(prefix + "streams_broken", broken, "streams");
+  bench::Print(prefix + "resent", resent, "frames");
+  bench::Print(prefix + "resent_acknowledged", resent_acknowledged, "frames");
+  bench::Print(prefix + "slowest_frame_ms", slowest_ms, "ms");
   EXPECT_GT(broken, 0) << "the killed worker's agents had their streams cut";
   EXPECT_GT(resent_acknowledged, 0) << "acknowledged frames sent again after a broken stream";
 
@@ -472,13 +498,13 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
         Clock::now() + 60s);
     ASSERT_TRUE(caught_up) << map << ": two live replicas did not apply sequence " << last[map];
   }
-  bench::Print("cluster_hosts_recovered_after_kill_ms", bench::NowMs() - kill_ms, "ms");
+  bench::Print(prefix + "recovered_after_kill_ms", bench::NowMs() - kill_ms, "ms");
   querying = false;
   queries.join();
-  bench::Print("cluster_hosts_queries_answered_before_kills", answered[0], "queries");
-  bench::Print("cluster_hosts_queries_failed_before_kills", failed[0], "queries");
-  bench::Print("cluster_hosts_queries_answered_after_kills", answered[1], "queries");
-  bench::Print("cluster_hosts_queries_failed_after_kills", failed[1], "queries");
+  bench::Print(prefix + "queries_answered_before_kills", answered[0], "queries");
+  bench::Print(prefix + "queries_failed_before_kills", failed[0], "queries");
+  bench::Print(prefix + "queries_answered_after_kills", answered[1], "queries");
+  bench::Print(prefix + "queries_failed_after_kills", failed[1], "queries");
   EXPECT_GT(answered[1].load(), 0);
 
   // After recovery every query answers, through either live worker, from a replica that applied
@@ -579,7 +605,7 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
       }
     }
     EXPECT_EQ(places, acknowledged_places) << map << ": places no agent got an id for";
-    bench::Print(std::string("cluster_hosts_places_") + map, double(places), "places");
+    bench::Print(prefix + "places_" + map, double(places), "places");
     for (int r = 0; r < 2; ++r) {
       EXPECT_EQ(replicas[r]->Stats().database.places, places) << map;
       EXPECT_TRUE(replicas[r]->VerifyIntegrity().ok()) << map << " replica " << r;
@@ -590,8 +616,13 @@ TEST_F(ClusterHostsTest, StreamLeaderShardAndWorkerKilledDuringIngestAcrossHosts
       EXPECT_EQ(scrub->places_checked, places);
     }
   }
-  bench::Print("cluster_hosts_test_ms", bench::NowMs() - start_ms, "ms");
+  bench::Print(prefix + "test_ms", bench::NowMs() - start_ms, "ms");
 }
+
+INSTANTIATE_TEST_SUITE_P(, ClusterHostsTest, ::testing::Bool(),
+                         [](const ::testing::TestParamInfo<bool>& info) {
+                           return info.param ? "InternalTls" : "Plaintext";
+                         });
 
 }  // namespace
 }  // namespace placedb::server_testing

@@ -152,6 +152,16 @@ std::string Named(char letter, int number) {
   return name;
 }
 
+// nats-server's `tls { }` block with the files (an empty string without them), indented by
+// `indent`: client connections (verify: a client certificate is required) or, inside
+// `cluster { }`, routes. A handshake may take a while on a loaded machine (default 0.5 s).
+std::string TlsBlock(const EnginesOptions::Tls& tls, const std::string& indent) {
+  if (tls.ca_file.empty()) return "";
+  return indent + "tls {\n" + indent + "  cert_file: \"" + tls.cert_file + "\"\n" + indent +
+         "  key_file: \"" + tls.key_file + "\"\n" + indent + "  ca_file: \"" + tls.ca_file +
+         "\"\n" + indent + "  verify: true\n" + indent + "  timeout: 5\n" + indent + "}\n";
+}
+
 void SleepMs(int ms) {
   std::this_thread::sleep_for(std::chrono::milliseconds(ms));
 }
@@ -280,6 +290,13 @@ Status Engines::Setup() {
     return Status::IoError("mkdtemp " + pattern + ": " + std::strerror(errno));
   }
   directory_ = pattern;
+  if (!options_.tls.ca_file.empty()) {
+    auto tls = LoadInternalTls({.cert_file = options_.tls.cert_file,
+                                .key_file = options_.tls.key_file,
+                                .client_ca_file = options_.tls.ca_file});
+    if (!tls.ok()) return tls.status().WithContext("Engines");
+    client_tls_ = std::move(tls).value();
+  }
   for (int i = 0; i < options_.nodes; ++i) {
     auto node = std::make_unique<Node>();
     node->host = options_.hosts[i];
@@ -316,6 +333,7 @@ Status Engines::WaitStreamsPlaceable(Clock::time_point deadline) const {
   JetStreamOptions options;
   options.servers = NatsUrls();
   options.request_timeout = std::chrono::milliseconds(2000);
+  options.tls = client_tls_;
   auto js = JetStream::Connect(options);
   if (!js.ok()) return js.status();
   StreamConfig probe;
@@ -387,7 +405,7 @@ Status Engines::StartNats(int index) {
     config << "server_name: " << name << "\n"
            << "listen: \"" << node.host << ":" << node.nats_port << "\"\n"
            << "http: \"" << node.host << ":" << node.nats_http_port << "\"\n"
-           << "jetstream {\n"
+           << TlsBlock(options_.tls, "") << "jetstream {\n"
            << "  store_dir: \"" << directory_ << "/" << name << "\"\n"
            << "  max_memory_store: 64MB\n"
            << "  max_file_store: 4GB\n"
@@ -395,7 +413,7 @@ Status Engines::StartNats(int index) {
            << "cluster {\n"
            << "  name: placedb\n"
            << "  listen: \"" << node.host << ":" << node.nats_cluster_port << "\"\n"
-           << "  routes: [\n";
+           << TlsBlock(options_.tls, "  ") << "  routes: [\n";
     for (const auto& other : nodes_) {
       config << "    \"nats-route://" << other->host << ":" << other->nats_cluster_port << "\"\n";
     }
@@ -410,23 +428,32 @@ Status Engines::StartNats(int index) {
 Status Engines::StartEtcd(int index) {
   Node& node = *nodes_.at(index);
   const std::string name = Named('e', index);
-  const std::string client_url = "http://" + EtcdEndpoint(index);
-  const std::string peer_url = "http://" + node.host + ":" + std::to_string(node.etcd_peer_port);
+  const bool tls = !options_.tls.ca_file.empty();
+  const std::string scheme = tls ? "https://" : "http://";
+  const std::string client_url = scheme + EtcdEndpoint(index);
+  const std::string peer_url = scheme + node.host + ":" + std::to_string(node.etcd_peer_port);
   std::string initial_cluster;
   for (int i = 0; i < nodes(); ++i) {
     if (!initial_cluster.empty()) initial_cluster += ",";
     initial_cluster +=
-        Named('e', i) + "=http://" + host(i) + ":" + std::to_string(nodes_[i]->etcd_peer_port);
+        Named('e', i) + "=" + scheme + host(i) + ":" + std::to_string(nodes_[i]->etcd_peer_port);
   }
-  return node.etcd.Start(
-      {EtcdBinary(), "--name", name, "--data-dir", directory_ + "/" + name, "--listen-client-urls",
-       client_url, "--advertise-client-urls", client_url, "--listen-peer-urls", peer_url,
-       "--initial-advertise-peer-urls", peer_url, "--initial-cluster", initial_cluster,
-       "--initial-cluster-state", "new", "--initial-cluster-token", "placedb-engines",
-       // etcd's defaults, spelled out: lease TTLs below 1.5 x the election timeout are raised.
-       "--heartbeat-interval", "100", "--election-timeout", "1000", "--logger", "zap",
-       "--log-level", "warn"},
-      directory_ + "/" + name + ".log", node.netns);
+  std::vector<std::string> argv = {
+      EtcdBinary(), "--name", name, "--data-dir", directory_ + "/" + name, "--listen-client-urls",
+      client_url, "--advertise-client-urls", client_url, "--listen-peer-urls", peer_url,
+      "--initial-advertise-peer-urls", peer_url, "--initial-cluster", initial_cluster,
+      "--initial-cluster-state", "new", "--initial-cluster-token", "placedb-engines",
+      // etcd's defaults, spelled out: lease TTLs below 1.5 x the election timeout are raised.
+      "--heartbeat-interval", "100", "--election-timeout", "1000", "--logger", "zap", "--log-level",
+      "warn"};
+  if (tls) {
+    const EnginesOptions::Tls& t = options_.tls;
+    argv.insert(argv.end(), {"--cert-file", t.cert_file, "--key-file", t.key_file,
+                             "--trusted-ca-file", t.ca_file, "--client-cert-auth",
+                             "--peer-cert-file", t.cert_file, "--peer-key-file", t.key_file,
+                             "--peer-trusted-ca-file", t.ca_file, "--peer-client-cert-auth"});
+  }
+  return node.etcd.Start(std::move(argv), directory_ + "/" + name + ".log", node.netns);
 }
 
 Status Engines::WaitNatsReady(int index, Clock::time_point deadline) const {
@@ -436,7 +463,9 @@ Status Engines::WaitNatsReady(int index, Clock::time_point deadline) const {
     if (!nodes_.at(index)->nats.running()) break;
     JetStreamOptions options;
     options.servers = {NatsUrl(index)};
-    options.connect_timeout = std::chrono::milliseconds(500);
+    options.tls = client_tls_;
+    // A TLS handshake on a loaded machine takes longer than a plain connect.
+    options.connect_timeout = std::chrono::milliseconds(client_tls_.enabled() ? 2000 : 500);
     options.request_timeout = std::chrono::milliseconds(1000);
     auto js = JetStream::Connect(options);
     if (js.ok()) {
@@ -464,6 +493,7 @@ Status Engines::WaitEtcdReady(int index, Clock::time_point deadline) const {
   }
   EtcdOptions options;
   options.endpoints = {EtcdEndpoint(index)};
+  options.tls = client_tls_;
   options.call_timeout = std::chrono::milliseconds(1000);
   options.attempt_timeout = std::chrono::milliseconds(1000);
   auto client = EtcdClient::Create(options);
@@ -560,6 +590,7 @@ Result<int> Engines::StreamLeader(const std::string& stream,
     if (NatsRunning(i)) options.servers.push_back(NatsUrl(i));
   }
   if (options.servers.empty()) return Status::FailedPrecondition("no nats-server is running");
+  options.tls = client_tls_;
   options.request_timeout = std::chrono::milliseconds(1000);
   auto js = JetStream::Connect(options);
   if (!js.ok()) return js.status();

@@ -26,6 +26,7 @@
 #include <vector>
 
 #include "core/base/status.h"
+#include "server/cluster/internal_tls.h"
 
 namespace placedb::cluster::testing {
 
@@ -39,6 +40,14 @@ struct EnginesOptions {
   std::vector<std::string> netns;
   bool nats = true;
   bool etcd = true;
+  // Mutual TLS on every engine port (PEM paths; empty: plain text): nats-server's clients
+  // (`tls { verify: true }`: a client certificate signed by ca_file required) and routes, etcd's
+  // clients (--client-cert-auth) and peers. cert_file must name the nodes' addresses (SANs) and
+  // allow serverAuth and clientAuth: it is every engine's certificate, and the harness's own as
+  // a client (client_tls()).
+  struct Tls {
+    std::string ca_file, cert_file, key_file;
+  } tls{};
   std::chrono::seconds ready_timeout{60};
 };
 
@@ -90,6 +99,9 @@ class Engines {
   std::string NatsServerName(int node) const;
   // The node of a nats server_name ("n2" -> 2), or -1.
   int NodeOfServerName(const std::string& server_name) const;
+  // The harness's client TLS (EnginesOptions::tls's files; not enabled without them): give it to
+  // JetStreamOptions::tls / EtcdOptions::tls to reach the engines.
+  const InternalTls& client_tls() const { return client_tls_; }
   // "host:port" of every etcd member / of one.
   std::vector<std::string> EtcdEndpoints() const;
   std::string EtcdEndpoint(int node) const;
@@ -144,6 +156,7 @@ class Engines {
   Status WaitStreamsPlaceable(std::chrono::steady_clock::time_point deadline) const;
 
   EnginesOptions options_;
+  InternalTls client_tls_;
   std::string directory_;
   std::vector<std::unique_ptr<Node>> nodes_;
 };

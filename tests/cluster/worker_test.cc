@@ -23,8 +23,10 @@
 #include <tuple>
 #include <vector>
 
+#include "core/base/files.h"
 #include "core/base/thread_annotations.h"
 #include "core/storage/codec.h"
+#include "proto/cluster.grpc.pb.h"
 #include "server/cluster/etcd_client.h"
 #include "server/cluster/jetstream.h"
 #include "server/cluster/map_record.h"
@@ -35,6 +37,7 @@
 #include "tests/cluster/engines.h"
 #include "tests/join_on_exit.h"
 #include "tests/server/server_fixture.h"
+#include "tests/tls_certificates.h"
 
 namespace placedb::server_testing {
 namespace {
@@ -58,7 +61,13 @@ class ClusterWorkerTest : public ServerTest {
  protected:
   void SetUp() override {
     ServerTest::SetUp();
-    auto engines = Engines::Start();
+    cluster::testing::EnginesOptions options;
+    if (tls_) {
+      const testing::TestCertificates& certs = testing::SharedTestCertificates();
+      options.tls = {
+          .ca_file = certs.ca_cert, .cert_file = certs.node_cert, .key_file = certs.node_key};
+    }
+    auto engines = Engines::Start(options);
     ASSERT_TRUE(engines.ok()) << engines.status().ToString();
     engines_ = std::move(engines).value();
   }
@@ -76,6 +85,14 @@ class ClusterWorkerTest : public ServerTest {
     config.cluster.nats = engines_->NatsUrls();
     config.cluster.etcd = engines_->EtcdEndpoints();
     config.cluster.replace_after_s = 2;
+    if (tls_) {
+      // The node certificate on every hop, and mutual TLS on the public API too (same files).
+      const testing::TestCertificates& certs = testing::SharedTestCertificates();
+      config.cluster.internal_tls = true;
+      config.tls = {.cert_file = certs.node_cert,
+                    .key_file = certs.node_key,
+                    .client_ca_file = certs.ca_cert};
+    }
     return config;
   }
 
@@ -97,7 +114,7 @@ class ClusterWorkerTest : public ServerTest {
     if (!started.ok()) return *workers_.emplace_back(std::move(worker));
     worker->server = std::move(started).value();
     worker->channel = grpc::CreateChannel("127.0.0.1:" + std::to_string(worker->server->port()),
-                                          grpc::InsecureChannelCredentials());
+                                          cluster::InternalChannelCredentials(ClientTls()));
     worker->stub = v1::PlaceDb::NewStub(worker->channel);
     return *workers_.emplace_back(std::move(worker));
   }
@@ -124,6 +141,7 @@ class ClusterWorkerTest : public ServerTest {
     options.data_dir = root_ + "/shard-" + std::to_string(i);
     options.vocabularies.emplace("default", vocabulary_);
     options.lease_ttl_s = 2;
+    options.tls = ClientTls();
     auto shard = cluster::Shard::Start(std::move(options));
     EXPECT_TRUE(shard.ok()) << shard.status().ToString();
     return shard.ok() ? std::move(shard).value() : nullptr;
@@ -138,11 +156,16 @@ class ClusterWorkerTest : public ServerTest {
   std::unique_ptr<cluster::JetStream> Js() const {
     cluster::JetStreamOptions options;
     options.servers = engines_->NatsUrls();
+    options.tls = ClientTls();
     auto js = cluster::JetStream::Connect(options);
     EXPECT_TRUE(js.ok()) << js.status().ToString();
     return js.ok() ? std::move(js).value() : nullptr;
   }
 
+  // The node certificate's TLS (the engines' client TLS) with tls_, else plain text.
+  const cluster::InternalTls& ClientTls() const { return engines_->client_tls(); }
+
+  bool tls_ = false;  // cluster.internal_tls on every hop (ClusterInternalTlsTest)
   std::unique_ptr<Engines> engines_;
   std::vector<std::unique_ptr<ServerConfig>> configs_;  // each outlives its worker
   std::vector<std::unique_ptr<Worker>> workers_;
@@ -164,6 +187,193 @@ std::vector<v1::Observation> Frames(const std::string& agent, int first, int las
   std::vector<v1::Observation> out;
   for (int frame = first; frame <= last; ++frame) out.push_back(RtabmapObservation(frame, agent));
   return out;
+}
+
+// cluster.internal_tls (issue 35): the same cluster with mutual TLS on every internal hop.
+class ClusterInternalTlsTest : public ClusterWorkerTest {
+ protected:
+  ClusterInternalTlsTest() { tls_ = true; }
+};
+
+// A TLS channel to `address` trusting the test CA, with `cert`/`key` as the client certificate
+// (none when empty).
+std::shared_ptr<grpc::Channel> TlsChannel(const std::string& address, const std::string& cert,
+                                          const std::string& key) {
+  const testing::TestCertificates& certs = testing::SharedTestCertificates();
+  cluster::InternalTls tls;
+  tls.ca = ReadWholeFile(certs.ca_cert).value();
+  if (!cert.empty()) {
+    tls.cert_chain = ReadWholeFile(cert).value();
+    tls.private_key = ReadWholeFile(key).value();
+  }
+  return grpc::CreateChannel(address, cluster::InternalChannelCredentials(tls));
+}
+
+// Shard Status on `channel` within 5 s.
+grpc::Status ShardStatus(const std::shared_ptr<grpc::Channel>& channel) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + 5s);
+  cluster::v1::StatusResponse status;
+  return cluster::v1::Shard::NewStub(channel)->Status(&context, {}, &status);
+}
+
+// Engines, shards and a worker with TLS and client certificates everywhere: ingest, queries
+// (worker -> shard), a replica restored from a peer's checkpoint (shard -> shard), and every
+// hop refuses plain text and a client without a certificate.
+TEST_F(ClusterInternalTlsTest, IngestAndQueryWithTlsEverywherePlaintextRefused) {
+  constexpr int kFrames = 30;
+  FeatureFrames(84);
+  ASSERT_TRUE(ClientTls().enabled());
+  std::vector<std::unique_ptr<cluster::Shard>> shards = StartShards(2);
+  for (const auto& shard : shards) ASSERT_TRUE(shard);
+  Worker& worker = StartWorker(1);
+  ASSERT_TRUE(worker.stub);
+  ASSERT_TRUE(CreateClusterMap(worker, "m").ok());
+  std::vector<v1::Observation> frames;
+  for (int f = 1; f <= kFrames; ++f) frames.push_back(FeatureObservation(f, "agent"));
+  v1::MatchOptions matches;
+  matches.set_top_k(3);
+  const IngestOutcome ingested = IngestAll(worker.stub.get(), "m", frames, &matches);
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  ASSERT_EQ(ingested.responses.size(), size_t(kFrames));
+  uint32_t last_place = 0;
+  for (const v1::IngestResponse& response : ingested.responses) {
+    ASSERT_FALSE(response.has_error()) << response.error().message();
+    if (response.stored()) last_place = response.place_id();
+  }
+  ASSERT_GT(last_place, 0u);
+  // A query that must wait for a replica with every frame: answered through a shard over TLS.
+  {
+    v1::QueryRequest request;
+    request.set_map("m");
+    request.set_min_sequence(kFrames);
+    *request.mutable_observation() = FeatureObservation(5, "q");
+    request.mutable_options()->set_top_k(3);
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::QueryResponse response;
+    const grpc::Status status = worker.stub->Query(&context, request, &response);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+    EXPECT_GE(response.sequence(), uint64_t(kFrames));
+    EXPECT_GT(response.matches_size(), 0);
+  }
+  {
+    v1::GetPlaceRequest request;
+    request.set_map("m");
+    request.set_place_id(last_place);
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + 30s);
+    v1::Place place;
+    const grpc::Status status = worker.stub->GetPlace(&context, request, &place);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+    EXPECT_EQ(place.place_id(), last_place);
+  }
+
+  // The internal API: plain text and a TLS client without a certificate fail; the node's
+  // certificate passes (and so does a client certificate of the same CA: it is the CA that
+  // counts, not the name).
+  const testing::TestCertificates& certs = testing::SharedTestCertificates();
+  const std::string internal = "127.0.0.1:" + std::to_string(shards[0]->internal_port());
+  EXPECT_FALSE(ShardStatus(grpc::CreateChannel(internal, grpc::InsecureChannelCredentials())).ok());
+  EXPECT_FALSE(ShardStatus(TlsChannel(internal, "", "")).ok());
+  EXPECT_FALSE(
+      ShardStatus(TlsChannel(internal, certs.other_client_cert, certs.other_client_key)).ok())
+      << "a certificate of another CA";
+  const grpc::Status node = ShardStatus(TlsChannel(internal, certs.node_cert, certs.node_key));
+  EXPECT_TRUE(node.ok()) << node.error_message();
+
+  // NATS: plain text, and TLS without a client certificate, are refused.
+  {
+    cluster::JetStreamOptions options;
+    options.servers = engines_->NatsUrls();
+    options.connect_timeout = 2s;
+    EXPECT_FALSE(cluster::JetStream::Connect(options).ok()) << "plain text";
+    options.tls.ca = ClientTls().ca;
+    EXPECT_FALSE(cluster::JetStream::Connect(options).ok()) << "no client certificate";
+    options.tls = ClientTls();
+    EXPECT_TRUE(cluster::JetStream::Connect(options).ok());
+  }
+  // etcd: the same.
+  {
+    cluster::EtcdOptions options;
+    options.endpoints = engines_->EtcdEndpoints();
+    options.call_timeout = 3s;
+    options.attempt_timeout = 1s;
+    auto plain = cluster::EtcdClient::Create(options);
+    ASSERT_TRUE(plain.ok());
+    EXPECT_FALSE((*plain)->Get("/placedb/test/maps/", true).ok()) << "plain text";
+    options.tls.ca = ClientTls().ca;
+    auto anonymous = cluster::EtcdClient::Create(options);
+    ASSERT_TRUE(anonymous.ok());
+    EXPECT_FALSE((*anonymous)->Get("/placedb/test/maps/", true).ok()) << "no client certificate";
+    options.tls = ClientTls();
+    options.call_timeout = 10s;
+    auto good = cluster::EtcdClient::Create(options);
+    ASSERT_TRUE(good.ok());
+    const auto read = (*good)->Get("/placedb/test/maps/", true);
+    ASSERT_TRUE(read.ok()) << read.status().ToString();
+    EXPECT_EQ(read->kvs.size(), 1u);
+  }
+  // Shard -> shard: a new shard replaces a stopped one, restored from the other's checkpoint
+  // over TLS.
+  const int stopped = ShardHolding(shards, "m");
+  ASSERT_GE(stopped, 0);
+  const std::string peer = "shard-" + std::to_string(1 - stopped);
+  shards[size_t(stopped)].reset();
+  std::unique_ptr<cluster::Shard> replacement = StartShard(2);
+  ASSERT_TRUE(replacement);
+  cluster::ReplicaStatus restored;
+  for (const auto until = std::chrono::steady_clock::now() + 90s;
+       std::chrono::steady_clock::now() < until;) {
+    for (const cluster::ReplicaStatus& replica : replacement->Replicas()) {
+      if (replica.map == "m") restored = replica;
+    }
+    if (restored.applied_sequence >= uint64_t(kFrames)) break;
+    std::this_thread::sleep_for(100ms);
+  }
+  EXPECT_GE(restored.applied_sequence, uint64_t(kFrames)) << restored.state;
+  EXPECT_EQ(restored.restored_from, peer) << restored.state;
+}
+
+// Bad internal TLS files stop a worker and a shard at startup, naming the key and the file; a
+// missing one is a configuration error (exit 2) before anything starts.
+TEST_F(ClusterInternalTlsTest, StartupNamesTheBadFile) {
+  const testing::TestCertificates& certs = testing::SharedTestCertificates();
+  {
+    ServerConfig config = WorkerConfig(1);
+    config.tls.key_file = certs.client_key;  // not the node certificate's key
+    ServerDeps deps;
+    deps.vocabularies.emplace("default", vocabulary_);
+    deps.cluster_backend = [&config](MapRegistry* maps,
+                                     Metrics* metrics) -> Result<std::unique_ptr<MapBackend>> {
+      auto worker = ClusterWorker::Start(config, maps, metrics);
+      if (!worker.ok()) return worker.status();
+      return std::unique_ptr<MapBackend>(std::move(worker).value());
+    };
+    auto started = Server::Start(config, std::move(deps));
+    ASSERT_FALSE(started.ok());
+    // The public API checks the same files first; either way the key and file are named.
+    EXPECT_NE(started.status().message().find("tls.key_file (" + certs.client_key + ")"),
+              std::string::npos)
+        << started.status().ToString();
+  }
+  const std::string common = std::string(PLACEDB_SERVER_BINARY) + " --role shard --nats " +
+                             engines_->NatsUrl(0) + " --etcd " + engines_->EtcdEndpoint(0) +
+                             " --shard-id s --advertise 127.0.0.1:1 --internal-listen " +
+                             "127.0.0.1:0 --metrics-listen off --console-listen off --data-dir " +
+                             root_ + "/bad-shard --internal-tls --tls-cert " + certs.node_cert +
+                             " --tls-key " + certs.node_key;
+  std::string output;
+  EXPECT_EQ(testing::RunShell(common + " --tls-client-ca " + certs.not_pem, &output), 1) << output;
+  EXPECT_NE(output.find("cluster.internal_tls"), std::string::npos) << output;
+  EXPECT_NE(output.find("tls.client_ca_file (" + certs.not_pem + "): no PEM certificate"),
+            std::string::npos)
+      << output;
+  EXPECT_EQ(testing::RunShell(common, &output), 2) << output;
+  EXPECT_NE(output.find("cluster.internal_tls: needs tls.client_ca_file or "
+                        "cluster.internal_ca_file"),
+            std::string::npos)
+      << output;
 }
 
 // Maps are the cluster's (any worker sees them), places are stream sequences acknowledged after

@@ -334,5 +334,91 @@ TEST(ServerConfigTest, ClusterSection) {
             std::string::npos);
 }
 
+// cluster.internal_tls (issue 35): off by default; YAML on/off, --internal-tls,
+// PLACEDB_INTERNAL_TLS; on needs all three TLS files, the key missing named.
+TEST(ServerConfigTest, ClusterInternalTls) {
+  const std::map<std::string, std::string> no_env;
+  auto parse = [](std::vector<const char*> args, const std::map<std::string, std::string>& env) {
+    args.insert(args.begin(), "placedb-server");
+    return server::ParseCommandLine(int(args.size()), args.data(), [&env](const char* name) {
+      const auto it = env.find(name);
+      return it == env.end() ? nullptr : it->second.c_str();
+    });
+  };
+  const std::vector<const char*> worker = {"--role", "worker", "--nats",
+                                           "a:4222", "--etcd", "a:2379"};
+  auto with = [&](std::vector<const char*> more) {
+    std::vector<const char*> args = worker;
+    args.insert(args.end(), more.begin(), more.end());
+    return args;
+  };
+  auto plain = parse(worker, no_env);
+  ASSERT_TRUE(plain.ok()) << plain.status().ToString();
+  EXPECT_FALSE(plain->config.cluster.internal_tls);
+
+  const std::vector<const char*> files = {"--tls-cert", "n.pem",           "--tls-key",
+                                          "n.key",      "--tls-client-ca", "ca.pem"};
+  std::vector<const char*> on = with({"--internal-tls"});
+  on.insert(on.end(), files.begin(), files.end());
+  auto flagged = parse(on, no_env);
+  ASSERT_TRUE(flagged.ok()) << flagged.status().ToString();
+  EXPECT_TRUE(flagged->config.cluster.internal_tls);
+  // --print-config says "on" and loads back.
+  const std::string yaml = server::ConfigToYaml(flagged->config);
+  EXPECT_NE(yaml.find("internal_tls: on"), std::string::npos) << yaml;
+  ServerConfig again;
+  ASSERT_TRUE(server::ApplyConfigYaml(yaml, &again).ok());
+  EXPECT_TRUE(again.cluster.internal_tls);
+
+  std::vector<const char*> env_args = worker;
+  env_args.insert(env_args.end(), files.begin(), files.end());
+  auto from_env = parse(env_args, {{"PLACEDB_INTERNAL_TLS", "on"}});
+  ASSERT_TRUE(from_env.ok()) << from_env.status().ToString();
+  EXPECT_TRUE(from_env->config.cluster.internal_tls);
+  auto bad_env = parse(env_args, {{"PLACEDB_INTERNAL_TLS", "maybe"}});
+  ASSERT_FALSE(bad_env.ok());
+  EXPECT_NE(bad_env.status().message().find("PLACEDB_INTERNAL_TLS"), std::string::npos);
+
+  ServerConfig from_yaml;
+  ASSERT_TRUE(server::ApplyConfigYaml("cluster:\n  internal_tls: on\n", &from_yaml).ok());
+  EXPECT_TRUE(from_yaml.cluster.internal_tls);
+  ASSERT_TRUE(server::ApplyConfigYaml("cluster:\n  internal_tls: off\n", &from_yaml).ok());
+  EXPECT_FALSE(from_yaml.cluster.internal_tls);
+
+  // Without the files: a clear error naming the missing one.
+  for (const auto& [args, missing] : std::vector<std::pair<std::vector<const char*>, std::string>>{
+           {with({"--internal-tls"}), "tls.cert_file"},
+           {with({"--internal-tls", "--tls-cert", "n.pem", "--tls-key", "n.key"}),
+            "tls.client_ca_file"}}) {
+    auto refused = parse(args, no_env);
+    ASSERT_FALSE(refused.ok()) << missing;
+    EXPECT_EQ(refused.status().code(), StatusCode::kInvalidArgument);
+    EXPECT_NE(refused.status().message().find("cluster.internal_tls: needs " + missing),
+              std::string::npos)
+        << refused.status().message();
+  }
+  // Role single ignores it (as the rest of the section).
+  auto single = parse({"--internal-tls"}, no_env);
+  ASSERT_TRUE(single.ok()) << single.status().ToString();
+
+  // cluster.internal_ca_file stands in for tls.client_ca_file (the public API then stays
+  // without client certificates).
+  std::vector<const char*> own_ca = with({"--internal-tls", "--tls-cert", "n.pem", "--tls-key",
+                                          "n.key", "--internal-ca", "internal-ca.pem"});
+  auto separate = parse(own_ca, no_env);
+  ASSERT_TRUE(separate.ok()) << separate.status().ToString();
+  EXPECT_EQ(separate->config.cluster.InternalCaFile(separate->config.tls), "internal-ca.pem");
+  EXPECT_FALSE(separate->config.tls.mutual());
+  auto ca_env = parse(with({"--internal-tls", "--tls-cert", "n.pem", "--tls-key", "n.key"}),
+                      {{"PLACEDB_INTERNAL_CA_FILE", "env-ca.pem"}});
+  ASSERT_TRUE(ca_env.ok()) << ca_env.status().ToString();
+  EXPECT_EQ(ca_env->config.cluster.internal_ca_file, "env-ca.pem");
+  // The image's config turns it on, with the CA of the mounted secrets.
+  ServerConfig image;
+  ASSERT_TRUE(server::ApplyConfigFile(SourceDir() + "/deploy/placedb.yaml", &image).ok());
+  EXPECT_TRUE(image.cluster.internal_tls);
+  EXPECT_EQ(image.cluster.internal_ca_file, "/run/secrets/placedb/ca.crt");
+}
+
 }  // namespace
 }  // namespace placedb::server_testing
