@@ -202,8 +202,6 @@ Status Shard::Impl::Init() {
   auto client = EtcdClient::Create(etcd);
   if (!client.ok()) return client.status();
   etcd_ = std::move(client).value();
-  archives_ = std::make_unique<SnapshotArchives>(js_.get(), etcd_.get(), o.cluster_name,
-                                                 /*stream_replicas=*/0);  // never stores
 
   if (o.metrics) {
     applied_gauge_ = &prometheus::BuildGauge()
@@ -463,7 +461,7 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
     // stream. When the stream was purged meanwhile, the applier finds the gap and the replica is
     // made again from the base: nothing is skipped.
     std::optional<MapBase> base;
-    if (auto read = archives_->GetBase(replica->name); !read.ok()) {
+    if (auto read = Archives().GetBase(replica->name); !read.ok()) {
       spdlog::warn("shard {}: map '{}': {}", options_.shard_id, replica->name,
                    read.status().ToString());
     } else if (read->has_value() && (*read)->create_revision == revision) {
@@ -488,7 +486,7 @@ void Shard::Impl::Open(const std::shared_ptr<Replica>& replica, const MapMeta& m
       // restored
     } else if (!meta.snapshot.empty()) {
       // A restored map's stream starts after its snapshot's records: no replay from 1.
-      auto manifest = archives_->Get(meta.snapshot);
+      auto manifest = Archives().Get(meta.snapshot);
       Status restored = manifest.ok() ? RestoreFromArchive(replica->name, *manifest,
                                                            "snapshot '" + meta.snapshot + "'")
                                       : manifest.status();
@@ -874,7 +872,7 @@ Status Shard::Impl::RestoreFromArchive(const std::string& map, const SnapshotMan
     ~Remove() { std::remove(path.c_str()); }
   } remove{spool};
   Stopwatch phase;
-  PLACEDB_RETURN_IF_ERROR(archives_->ReadToFile(
+  PLACEDB_RETURN_IF_ERROR(Archives().ReadToFile(
       manifest, spool, std::chrono::system_clock::now() + std::chrono::minutes(30)));
   const double fetch_ms = phase.Lap();
   PLACEDB_RETURN_IF_ERROR(ImportAsMap(spool, map));

@@ -156,6 +156,11 @@ class Shard::Impl {
   // SHA-256 checked) and imported as a peer's checkpoint is. `what` names it in the log.
   Status RestoreFromArchive(const std::string& map, const SnapshotManifest& manifest,
                             const std::string& what) EXCLUDES(mutex_);
+  // The cluster's archives (snapshots, compaction bases), for reading: made where they are read.
+  SnapshotArchives Archives() const {
+    return SnapshotArchives(js_.get(), etcd_.get(), options_.cluster_name,
+                            /*stream_replicas=*/0);  // reads only
+  }
   // The archive spooled at `spool` verified (SnapshotStore::Import) and restored as `map`.
   Status ImportAsMap(const std::string& spool, const std::string& map);
   Result<AnyVocabulary> VocabularyFor(const MapInfo& info) const;
@@ -180,7 +185,6 @@ class Shard::Impl {
 
   std::unique_ptr<DataDirectory> dir_;
   std::unique_ptr<SnapshotStore> snapshots_;
-  std::unique_ptr<SnapshotArchives> archives_;  // the cluster's snapshots (reads only)
   std::unique_ptr<JetStream> js_;
   std::unique_ptr<EtcdClient> etcd_;
   std::unique_ptr<LeaseKeeper> keeper_;  // the run thread's (and Init's)

@@ -112,8 +112,6 @@ Result<std::unique_ptr<ClusterWorker>> ClusterWorker::Start(const ServerConfig& 
   auto jetstream = cluster::JetStream::Connect(nats);
   if (!jetstream.ok()) return jetstream.status().WithContext("cluster.nats");
   worker->jetstream_ = std::move(jetstream).value();
-  worker->archives_ = std::make_unique<cluster::SnapshotArchives>(
-      worker->jetstream_.get(), worker->etcd_.get(), c.name, c.stream_replicas);
   auto view = cluster::ClusterView::Start(worker->etcd_.get(), c.name);
   if (!view.ok()) return view.status().WithContext("cluster.etcd");
   worker->view_ = std::move(view).value();
@@ -123,6 +121,9 @@ Result<std::unique_ptr<ClusterWorker>> ClusterWorker::Start(const ServerConfig& 
   coordinator.replace_after = std::chrono::seconds(c.replace_after_s);
   worker->coordinator_ = std::make_unique<cluster::Coordinator>(
       worker->etcd_.get(), worker->view_.get(), std::move(coordinator));
+
+  worker->archives_ = std::make_unique<cluster::SnapshotArchives>(
+      worker->jetstream_.get(), worker->etcd_.get(), c.name, c.stream_replicas);
 
   // The local copies are a cache of the cluster's maps: stale ones go.
   for (const auto& entry : local->List()) {
