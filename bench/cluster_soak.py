@@ -423,7 +423,10 @@ def soak(args, sdk) -> int:
         out("stream_bytes_end", sampler.last_bytes, "bytes")
         out("snapshots_stream_bytes_end", sampler.snapshots_bytes, "bytes")
         out("compactions", sampler.compactions, "bases")
-        print(f"cluster_soak: stream bytes over time in {csv_path}", file=sys.stderr)
+        svg_path = os.path.splitext(csv_path)[0] + ".svg"
+        plot_stream_csv(csv_path, svg_path, [k - started for k in kills])
+        print(f"cluster_soak: stream bytes over time in {csv_path} (plot: {svg_path})",
+              file=sys.stderr)
         out("queries", queries.total, "queries")
         out("query_within_deadline", queries.within / max(1, queries.total), "share")
         out("query_retries", queries.retries, "queries")
@@ -660,6 +663,47 @@ class StreamSampler:
             self.sample(time.monotonic() - start, f)
 
 
+def plot_stream_csv(csv_path: str, svg_path: str, kills: list[float] | None = None) -> None:
+    """The sampler's CSV as an SVG line plot (no plotting package needed): the maps' streams'
+    bytes (sum) and the snapshots stream's bytes (the bases) over time; kills as red ticks."""
+    rows = []
+    with open(csv_path) as f:
+        next(f)
+        for line in f:
+            cells = line.strip().split(",")
+            if len(cells) >= 3:
+                rows.append((float(cells[0]), int(cells[1]), int(cells[2])))
+    if not rows:
+        return
+    w, h, m = 900, 360, 60
+    t_max = max(r[0] for r in rows) or 1.0
+    y_max = max(max(r[1], r[2]) for r in rows) or 1
+
+    def xy(t: float, y: int) -> str:
+        return f"{m + (w - 2 * m) * t / t_max:.1f},{h - m - (h - 2 * m) * y / y_max:.1f}"
+    lines = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" '
+             f'font-family="sans-serif" font-size="12">',
+             f'<rect width="{w}" height="{h}" fill="white"/>',
+             f'<line x1="{m}" y1="{h - m}" x2="{w - m}" y2="{h - m}" stroke="black"/>',
+             f'<line x1="{m}" y1="{m}" x2="{m}" y2="{h - m}" stroke="black"/>',
+             f'<text x="{w / 2}" y="{h - 20}" text-anchor="middle">time (s), '
+             f'0-{t_max:.0f}</text>',
+             f'<text x="10" y="{m - 20}">bytes, 0-{y_max / 1e6:.1f} MB</text>']
+    for t in kills or []:
+        lines.append(f'<line x1="{xy(t, 0).split(",")[0]}" y1="{h - m}" '
+                     f'x2="{xy(t, 0).split(",")[0]}" y2="{h - m + 8}" stroke="red"/>')
+    for column, colour, label in ((1, "steelblue", "maps' streams"),
+                                  (2, "darkorange", "snapshots stream (bases)")):
+        points = " ".join(xy(r[0], r[column]) for r in rows)
+        lines.append(f'<polyline fill="none" stroke="{colour}" stroke-width="1.5" '
+                     f'points="{points}"/>')
+        lines.append(f'<text x="{w - m - 200}" y="{m + 16 * column}" fill="{colour}">'
+                     f'{label}</text>')
+    lines.append("</svg>")
+    with open(svg_path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
 def move_replica(status: dict, map_name: str, last: int) -> tuple[float, str]:
     """Moves `map_name`'s second replica to the shard without one (docs/cluster.md, "Move a
     map"): seconds until the new replica applied `last`, and its log's restore line."""
@@ -810,6 +854,18 @@ class SelfTest(unittest.TestCase):
         self.assertEqual(query_once_with_retry([lambda t: time.sleep(0.3), fail], 0.25),
                          (False, False))
 
+    def test_stream_plot(self):
+        with tempfile.TemporaryDirectory() as d:
+            csv_path = os.path.join(d, "s.csv")
+            with open(csv_path, "w") as f:
+                f.write("t_s,map_streams_bytes,snapshots_stream_bytes,...\n"
+                        "0.0,0,0\n5.0,1000,0,S,1000,3,1\n10.0,200,5000,S,200,1,4\n")
+            plot_stream_csv(csv_path, os.path.join(d, "s.svg"), [7.0])
+            with open(os.path.join(d, "s.svg")) as f:
+                svg = f.read()
+            self.assertEqual(svg.count("<polyline"), 2)
+            self.assertIn('stroke="red"', svg)
+
     def test_synthetic_frames_are_deterministic(self):
         class Sdk:
             class Frame:
@@ -853,7 +909,9 @@ class SelfTest(unittest.TestCase):
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("mode", nargs="?", default="soak", choices=["soak", "replica", "self-test"])
+    parser.add_argument("mode", nargs="?", default="soak",
+                        choices=["soak", "replica", "self-test", "plot"])
+    parser.add_argument("csv", nargs="?", help="plot mode: a --stream-csv file (SVG beside it)")
     parser.add_argument("--sdk", default=os.path.join(ROOT, "build", "client", "python"))
     parser.add_argument("--placedb-server",
                         default=os.path.join(ROOT, "build", "server", "placedb-server"))
@@ -889,6 +947,11 @@ def main() -> int:
     if args.mode == "self-test":
         return 0 if unittest.main(argv=[sys.argv[0], "-v"], exit=False,
                                   defaultTest="SelfTest").result.wasSuccessful() else 1
+    if args.mode == "plot":
+        if not args.csv:
+            parser.error("plot needs a CSV file")
+        plot_stream_csv(args.csv, os.path.splitext(args.csv)[0] + ".svg")
+        return 0
     sys.path.insert(0, args.sdk)
     import placedb as sdk  # noqa: E402 -- the build tree's SDK (generated stubs)
 
