@@ -2285,6 +2285,35 @@ TEST_F(ClusterWorkerTest, SnapshotsThroughAnyWorkerAndRestoreAsANewMap) {
 namespace placedb::server_testing {
 namespace {
 
+// bases/<map> round-trips (the manifest and the map's create revision); malformed is CORRUPTION;
+// the key is not under snapshots/ (ListSnapshots never sees a base).
+TEST(CompactionBaseTest, BaseRecordRoundTripsAndIsNoSnapshot) {
+  cluster::MapBase base;
+  base.create_revision = 42;
+  base.manifest.info.id = "base:lab";
+  base.manifest.info.map = "lab";
+  base.manifest.info.created_unix_ms = 7;
+  base.manifest.base = 640;
+  base.manifest.config_json = R"({"vocabulary":"default"})";
+  base.manifest.archive_bytes = 1234;
+  base.manifest.sha256 = std::string(64, 'a');
+  base.manifest.subject = "placedb.test.snapshots.62.1";
+  base.manifest.first_sequence = 9;
+  base.manifest.chunks = 1;
+  auto decoded = cluster::DecodeMapBase(cluster::EncodeMapBase(base));
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  EXPECT_EQ(decoded->create_revision, 42);
+  EXPECT_EQ(decoded->manifest.base, 640u);
+  EXPECT_EQ(decoded->manifest.subject, base.manifest.subject);
+  EXPECT_EQ(decoded->manifest.sha256, base.manifest.sha256);
+  EXPECT_EQ(cluster::DecodeMapBase("{\"manifest\": {}}").status().code(), StatusCode::kCorruption);
+  EXPECT_EQ(cluster::DecodeMapBase("{\"create_revision\": 1, \"manifest\": {}}").status().code(),
+            StatusCode::kCorruption);
+  const cluster::ClusterKeys keys("test");
+  EXPECT_EQ(keys.Base("lab"), "/placedb/test/bases/lab");
+  EXPECT_NE(keys.Base("lab").rfind(keys.Snapshot(""), 0), 0u);
+}
+
 // Issue 35, compaction: the coordinating worker makes a replica's checkpoint the stream's base
 // and purges the stream below it; a replica that was down across two compactions resumes from
 // the base (its applier finds the gap, nothing skipped), a replacement replica starts from the
