@@ -188,6 +188,9 @@ Status ValidateCluster(const ClusterSettings& c, const TlsSettings& tls) {
   if (c.compact_after_bytes < 0) {
     return Bad("cluster.compact_after_bytes", "must be >= 0 (0: not by bytes)");
   }
+  if (c.compact_keep_s < 0 || c.compact_keep_s > 86400) {
+    return Bad("cluster.compact_keep_s", "must be in [0, 86400]");
+  }
   if (c.internal_tls) {
     const std::string why =
         " (tls.cert_file and tls.key_file are this process's certificate on every internal hop, "
@@ -582,7 +585,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
         r.Check(k, "cluster",
                 {"role", "name", "nats", "etcd", "shard_id", "advertise", "internal_listen",
                  "replicas", "stream_replicas", "replace_after_s", "compact_after_records",
-                 "compact_after_bytes", "internal_tls", "internal_ca_file"}));
+                 "compact_after_bytes", "compact_keep_s", "internal_tls", "internal_ca_file"}));
     ClusterSettings& x = c->cluster;
     std::string role;
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "role", &role));
@@ -599,6 +602,7 @@ Status ApplyYamlNode(const YAML::Node& root, ServerConfig* c) {
     PLACEDB_RETURN_IF_ERROR(
         r.Read(k, "cluster", "compact_after_records", &x.compact_after_records));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "compact_after_bytes", &x.compact_after_bytes));
+    PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "compact_keep_s", &x.compact_keep_s));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "internal_tls", &x.internal_tls));
     PLACEDB_RETURN_IF_ERROR(r.Read(k, "cluster", "internal_ca_file", &x.internal_ca_file));
   }
@@ -949,6 +953,7 @@ std::string ConfigToYaml(const ServerConfig& c) {
   e << YAML::Key << "replace_after_s" << YAML::Value << k.replace_after_s;
   e << YAML::Key << "compact_after_records" << YAML::Value << k.compact_after_records;
   e << YAML::Key << "compact_after_bytes" << YAML::Value << k.compact_after_bytes;
+  e << YAML::Key << "compact_keep_s" << YAML::Value << k.compact_keep_s;
   e << YAML::Key << "internal_tls" << YAML::Value << (k.internal_tls ? "on" : "off");
   e << YAML::Key << "internal_ca_file" << YAML::Value << k.internal_ca_file;
   e << YAML::EndMap;

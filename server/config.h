@@ -152,6 +152,10 @@ struct ClusterSettings {
   // beyond its base; 0 turns that measure off (both 0: streams keep every record).
   int64_t compact_after_records = 100000;
   int64_t compact_after_bytes = int64_t(1) << 30;
+  // A purge never removes records stored less than this long ago: a frame resent within the
+  // stream's duplicate window (2 min) gets a duplicate PubAck naming its first record, which the
+  // worker reads back (docs/cluster.md "Duplicates"). Below 120 such a read may find nothing.
+  int compact_keep_s = 150;
   // Mutual TLS on every internal hop (docs/cluster.md): the shard's internal API, its callers,
   // NATS and etcd, with tls.cert_file/key_file as this process's certificate (server and client)
   // and the CA bundle InternalCaFile() verifying every peer; plain text is then refused. YAML

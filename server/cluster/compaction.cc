@@ -39,6 +39,27 @@ struct CompactionSpool {
 
 }  // namespace
 
+void ClusterWorker::NoteStreamEnd(const std::string& map, uint64_t last_sequence) {
+  const auto now = SteadyClock::now();
+  const auto keep = std::chrono::seconds(cluster_.compact_keep_s);
+  MutexLock lock(history_mutex_);
+  auto& samples = stream_history_[map];
+  samples.emplace_back(now, last_sequence);
+  // Older samples go, but the newest one older than `keep` stays (the purge's limit).
+  while (samples.size() > 1 && samples[1].first <= now - keep) samples.pop_front();
+}
+
+uint64_t ClusterWorker::StoredBefore(const std::string& map, SteadyClock::time_point when) {
+  MutexLock lock(history_mutex_);
+  uint64_t out = 0;
+  auto it = stream_history_.find(map);
+  if (it == stream_history_.end()) return 0;
+  for (const auto& [at, last] : it->second) {
+    if (at <= when) out = std::max(out, last);
+  }
+  return out;
+}
+
 uint64_t ClusterWorker::PurgeBelow(const cluster::MapView& view, uint64_t base) const {
   if (base == 0 || !view.placement) return 0;
   // A live replica without a report yet is restoring (from this base or a newer peer
@@ -79,6 +100,7 @@ Result<ClusterWorker::Compaction> ClusterWorker::CompactMap(const std::string& m
   if (!view.ok()) return view.status();
   auto stream = jetstream_->GetStreamInfo(view->info.stream);
   if (!stream.ok()) return stream.status().WithContext("compacting map '" + map + "'");
+  NoteStreamEnd(map, stream->last_sequence);
   auto held = archives_->GetBase(map);
   if (!held.ok()) return held.status();
   // A base of an earlier map of the name (its DeleteMap failed to remove it) is replaced.
@@ -122,7 +144,12 @@ Result<ClusterWorker::Compaction> ClusterWorker::CompactMap(const std::string& m
   // The purge, below a durable base only, and never below what a live replica has not applied
   // (the view's applied reports: at most the replicas' own, never ahead of them).
   if (auto now = view_->Map(map); now && now->create_revision == view->create_revision) {
-    const uint64_t below = PurgeBelow(*now, out.base);
+    // Records younger than compact_keep_s stay: a resent frame's duplicate PubAck names one.
+    const uint64_t old_enough =
+        cluster_.compact_keep_s == 0
+            ? stream->last_sequence
+            : StoredBefore(map, SteadyClock::now() - std::chrono::seconds(cluster_.compact_keep_s));
+    const uint64_t below = std::min(PurgeBelow(*now, out.base), old_enough + 1);
     if (below > stream->first_sequence) {
       PLACEDB_RETURN_IF_ERROR(jetstream_->PurgeStream(view->info.stream, "", below)
                                   .WithContext("compacting map '" + map + "'"));
@@ -165,6 +192,7 @@ void ClusterWorker::CompactLoop() {
       const uint64_t base = held->has_value() && (**held).create_revision == view.create_revision
                                 ? (**held).manifest.base
                                 : 0;
+      NoteStreamEnd(name, stream->last_sequence);
       const prometheus::Labels labels = {{"map", name}};
       stream_bytes_->Add(labels).Set(double(stream->bytes));
       stream_records_->Add(labels).Set(double(stream->messages));
@@ -181,7 +209,13 @@ void ClusterWorker::CompactLoop() {
            records > uint64_t(cluster_.compact_after_records)) ||
           (cluster_.compact_after_bytes > 0 && bytes > uint64_t(cluster_.compact_after_bytes));
       // A purge held back by a lagging replica is done once it caught up.
-      const bool purgeable = PurgeBelow(view, base) > stream->first_sequence;
+      const uint64_t old_enough =
+          cluster_.compact_keep_s == 0
+              ? stream->last_sequence
+              : StoredBefore(name,
+                             SteadyClock::now() - std::chrono::seconds(cluster_.compact_keep_s));
+      const bool purgeable =
+          std::min(PurgeBelow(view, base), old_enough + 1) > stream->first_sequence;
       if (!due && !purgeable) continue;
       if (auto retry = compact_retry_.find(name);
           retry != compact_retry_.end() && SteadyClock::now() < retry->second) {

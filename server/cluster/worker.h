@@ -82,6 +82,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <deque>
 #include <map>
 #include <memory>
 #include <set>
@@ -343,6 +344,14 @@ class ClusterWorker final : public MapBackend {
   CondVar compact_cv_;
   bool compact_stopping_ GUARDED_BY(compact_mutex_) = false;
   bool compacting_ GUARDED_BY(compact_mutex_) = false;
+  // Per map: (when, the stream's last sequence then), sampled by the loop and CompactMap; a purge
+  // stays at or below the newest sample older than cluster.compact_keep_s (none: no purge yet).
+  void NoteStreamEnd(const std::string& map, uint64_t last_sequence) EXCLUDES(history_mutex_);
+  uint64_t StoredBefore(const std::string& map, std::chrono::steady_clock::time_point when)
+      EXCLUDES(history_mutex_);
+  Mutex history_mutex_;
+  std::map<std::string, std::deque<std::pair<std::chrono::steady_clock::time_point, uint64_t>>>
+      stream_history_ GUARDED_BY(history_mutex_);
   // A map whose compaction failed is tried again after this (the loop's thread only).
   std::map<std::string, std::chrono::steady_clock::time_point> compact_retry_;
   std::thread compactor_;

@@ -289,6 +289,7 @@ TEST(ServerConfigTest, ClusterSection) {
   EXPECT_EQ(k.replace_after_s, 30);
   EXPECT_EQ(k.compact_after_records, 100000);
   EXPECT_EQ(k.compact_after_bytes, int64_t(1) << 30);
+  EXPECT_EQ(k.compact_keep_s, 150);
 
   // --print-config's YAML loads back to the same section.
   ServerConfig again;
@@ -338,7 +339,7 @@ TEST(ServerConfigTest, ClusterSection) {
   // Issue 35, compaction: YAML and flags, 0 = off, negative refused; --print-config keeps them.
   ServerConfig compact;
   ASSERT_TRUE(server::ApplyConfigYaml("cluster:\n  compact_after_records: 500\n"
-                                      "  compact_after_bytes: 0\n",
+                                      "  compact_after_bytes: 0\n  compact_keep_s: 200\n",
                                       &compact)
                   .ok());
   EXPECT_EQ(compact.cluster.compact_after_records, 500);
@@ -347,6 +348,15 @@ TEST(ServerConfigTest, ClusterSection) {
   ASSERT_TRUE(server::ApplyConfigYaml(server::ConfigToYaml(compact), &compact_again).ok());
   EXPECT_EQ(compact_again.cluster.compact_after_records, 500);
   EXPECT_EQ(compact_again.cluster.compact_after_bytes, 0);
+  EXPECT_EQ(compact_again.cluster.compact_keep_s, 200);
+  ServerConfig keep_bad;
+  ASSERT_TRUE(server::ApplyConfigYaml("cluster:\n  role: worker\n  nats: [\"nats://a:4222\"]\n"
+                                      "  etcd: [\"a:2379\"]\n  compact_keep_s: -1\n",
+                                      &keep_bad)
+                  .ok());
+  EXPECT_NE(server::ValidateServerConfig(keep_bad).message().find(
+                "cluster.compact_keep_s: must be in [0, 86400]"),
+            std::string::npos);
   auto flagged = parse({"--role", "worker", "--nats", "a:4222", "--etcd", "a:2379",
                         "--compact-after-records", "20", "--compact-after-bytes", "65536"});
   ASSERT_TRUE(flagged.ok()) << flagged.status().ToString();
