@@ -397,7 +397,7 @@ def soak(args, sdk) -> int:
             if args.compact_after_records is not None:
                 # A new replica now: from the base (or a live replica's newer checkpoint) + tail.
                 last = max(p for p, _, _ in stored[MAPS[0]])
-                took, restored = move_replica(status, MAPS[0], last)
+                took, restored, _, _ = move_replica(status, MAPS[0], last)
                 out("catchup_new_replica", took, "s")
                 print(f"cluster_soak: {restored}", file=sys.stderr)
         except sdk.Error as e:  # e.g. no shard role running: nothing to read back from
@@ -704,9 +704,10 @@ def plot_stream_csv(csv_path: str, svg_path: str, kills: list[float] | None = No
         f.write("\n".join(lines) + "\n")
 
 
-def move_replica(status: dict, map_name: str, last: int) -> tuple[float, str]:
+def move_replica(status: dict, map_name: str, last: int) -> tuple[float, str, str, str]:
     """Moves `map_name`'s second replica to the shard without one (docs/cluster.md, "Move a
-    map"): seconds until the new replica applied `last`, and its log's restore line."""
+    map"): seconds until the new replica applied `last`, its log's restore line, the replica
+    kept and the new one's shard."""
     placement_key = f"/placedb/{status['name']}/placement/{map_name}"
     placement = json.loads(etcd_prefix(status, placement_key)[placement_key])
     shards = [k.rsplit("/", 1)[1]
@@ -729,7 +730,7 @@ def move_replica(status: dict, map_name: str, last: int) -> tuple[float, str]:
         for line in f:
             if map_name in line and "restored from" in line:
                 restored = line.rstrip()
-    return took, restored
+    return took, restored, kept, new
 
 
 def replica(args, sdk) -> int:
@@ -767,29 +768,11 @@ def replica(args, sdk) -> int:
                 raise RuntimeError(f"replicas did not apply {last}: {applied_of(status, map_name)}")
             time.sleep(0.5)
         out("replica_apply_behind_ingest", time.monotonic() - start - ingest_s, "s")
-        placement_key = f"/placedb/{status['name']}/placement/{map_name}"
-        placement = json.loads(etcd_prefix(status, placement_key)[placement_key])
-        shards = [k.rsplit("/", 1)[1]
-                  for k in etcd_prefix(status, f"/placedb/{status['name']}/shards/")]
-        new = next(s for s in sorted(shards) if s not in placement["replicas"])
-        kept, moved = placement["replicas"]
-        placement["epoch"] += 1
-        placement["replicas"] = [kept, new]
-        print(f"cluster_soak: moving {map_name} from {moved} to {new} (kept {kept})",
-              file=sys.stderr)
-        moved_at = time.monotonic()
-        etcd_put(status, placement_key, json.dumps(placement))
-        while applied_of(status, map_name).get(new, 0) < last:
-            if time.monotonic() - moved_at > 600:
-                raise RuntimeError(f"{new} did not catch up: {applied_of(status, map_name)}")
-            time.sleep(0.05)
-        out("replica_new_serving", time.monotonic() - moved_at, "s")
+        took, restored, kept, new = move_replica(status, map_name, last)
+        out("replica_new_serving", took, "s")
+        if restored:
+            print("cluster_soak: " + restored, file=sys.stderr)
         new_host = int(new.split("-")[1])
-        log = status["hosts"][new_host]["processes"]["shard"]["log"]
-        with open(log, errors="replace") as f:
-            for line in f:
-                if map_name in line and ("checkpoint" in line or "holding" in line):
-                    print("cluster_soak: " + line.rstrip(), file=sys.stderr)
         # Only the new replica is left: every answer comes from it.
         cluster.kill_process(int(kept.split("-")[1]), "shard")
         rng = random.Random(args.seed)

@@ -3,6 +3,8 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <filesystem>
+#include <fstream>
 
 namespace placedb::testing {
 
@@ -57,6 +59,22 @@ std::vector<std::string> SstFilesOf(const std::string& map_dir, const std::strin
   }
   Close(raw, handles);
   return files;
+}
+
+std::string GarbleLargestSst(const std::string& map_dir) {
+  namespace fs = std::filesystem;
+  fs::path largest;
+  for (const auto& entry : fs::directory_iterator(map_dir)) {
+    if (entry.path().extension() != ".sst") continue;
+    if (largest.empty() || entry.file_size() > fs::file_size(largest)) largest = entry.path();
+  }
+  EXPECT_FALSE(largest.empty()) << "no SST file in " << map_dir;
+  if (largest.empty()) return "";
+  std::fstream file(largest, std::ios::in | std::ios::out | std::ios::binary);
+  file.seekp(std::streamoff(fs::file_size(largest) / 2));
+  const std::string noise(64, '\x5a');
+  file.write(noise.data(), std::streamsize(noise.size()));
+  return largest.filename().string();
 }
 
 }  // namespace placedb::testing

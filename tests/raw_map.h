@@ -22,4 +22,9 @@ void EditRawMap(const std::string& map_dir, const RawEdit& edit);
 // The live SST files (paths) of one column family, read from the map's MANIFEST (read-only).
 std::vector<std::string> SstFilesOf(const std::string& map_dir, const std::string& family);
 
+// Overwrites 64 bytes in the middle of the largest SST file in `map_dir` (a closed map's; the
+// features family's, which is the largest) and returns that file's name (no folder). Fails the
+// test, and returns "", when there is none.
+std::string GarbleLargestSst(const std::string& map_dir);
+
 }  // namespace placedb::testing

@@ -36,6 +36,7 @@
 #include "tests/cluster/cluster_frames.h"
 #include "tests/cluster/engines.h"
 #include "tests/join_on_exit.h"
+#include "tests/raw_map.h"
 #include "tests/server/server_fixture.h"
 #include "tests/tls_certificates.h"
 
@@ -194,6 +195,20 @@ std::vector<v1::Observation> Frames(const std::string& agent, int first, int las
   std::vector<v1::Observation> out;
   for (int frame = first; frame <= last; ++frame) out.push_back(RtabmapObservation(frame, agent));
   return out;
+}
+
+// The best match's place id for RTAB-Map frame `frame` queried in `map` through `stub`; 0 when
+// nothing matched or the query failed (which fails the test).
+uint32_t TopPlace(v1::PlaceDb::Stub* stub, const std::string& map, int frame) {
+  v1::QueryRequest request;
+  request.set_map(map);
+  *request.mutable_observation() = RtabmapObservation(frame, "q");
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + 30s);
+  v1::QueryResponse response;
+  const grpc::Status status = stub->Query(&context, request, &response);
+  EXPECT_TRUE(status.ok()) << status.error_message();
+  return response.matches_size() > 0 ? response.matches(0).place_id() : 0;
 }
 
 // cluster.internal_tls (issue 35): the same cluster with mutual TLS on every internal hop.
@@ -1883,16 +1898,7 @@ TEST_F(ClusterWorkerTest, ScrubAndRecoverEveryReplicaThroughAWorker) {
     return worker.stub->RecoverMap(&context, request, response);
   };
   const auto expect_found = [&](int frame) {
-    v1::QueryRequest request;
-    request.set_map("lab");
-    *request.mutable_observation() = RtabmapObservation(frame, "q");
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + 30s);
-    v1::QueryResponse response;
-    const grpc::Status status = worker.stub->Query(&context, request, &response);
-    ASSERT_TRUE(status.ok()) << status.error_message();
-    ASSERT_GT(response.matches_size(), 0) << "frame " << frame;
-    EXPECT_EQ(response.matches(0).place_id(), place_of[frame]) << "frame " << frame;
+    EXPECT_EQ(TopPlace(worker.stub.get(), "lab", frame), place_of[frame]) << "frame " << frame;
   };
 
   v1::ScrubReport report;
@@ -1914,19 +1920,9 @@ TEST_F(ClusterWorkerTest, ScrubAndRecoverEveryReplicaThroughAWorker) {
   // not read at open).
   const std::string map_dir = root_ + "/shard-0/maps/lab";
   shards[0].reset();
-  fs::path features;
-  for (const auto& entry : fs::directory_iterator(map_dir)) {
-    if (entry.path().extension() != ".sst") continue;
-    if (features.empty() || entry.file_size() > fs::file_size(features)) features = entry.path();
-  }
-  ASSERT_FALSE(features.empty());
-  {
-    std::fstream file(features, std::ios::in | std::ios::out | std::ios::binary);
-    file.seekp(std::streamoff(fs::file_size(features) / 2));
-    const std::string noise(64, '\x5a');
-    file.write(noise.data(), std::streamsize(noise.size()));
-  }
-  const std::string sst = "maps/lab/" + features.filename().string();
+  const std::string garbled = testing::GarbleLargestSst(map_dir);  // the features' file
+  ASSERT_FALSE(garbled.empty());
+  const std::string sst = "maps/lab/" + garbled;
   shards[0] = StartShard(0);
   ASSERT_TRUE(shards[0]);
   ASSERT_TRUE(caught_up());
@@ -2111,16 +2107,8 @@ TEST_F(ClusterWorkerTest, SnapshotsThroughAnyWorkerAndRestoreAsANewMap) {
     request.set_new_map(name);
     return worker.stub->RestoreSnapshot(&context, request, map);
   };
-  const auto top_place = [](Worker& worker, const std::string& map, int frame) -> uint32_t {
-    v1::QueryRequest request;
-    request.set_map(map);
-    *request.mutable_observation() = RtabmapObservation(frame, "q");
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + 30s);
-    v1::QueryResponse response;
-    const grpc::Status status = worker.stub->Query(&context, request, &response);
-    EXPECT_TRUE(status.ok()) << status.error_message();
-    return response.matches_size() > 0 ? response.matches(0).place_id() : 0;
+  const auto top_place = [](Worker& worker, const std::string& map, int frame) {
+    return TopPlace(worker.stub.get(), map, frame);
   };
 
   // Made through worker a.
@@ -2467,16 +2455,7 @@ TEST_F(ClusterWorkerTest, CompactionMakesABaseAndReplicasCatchUpFromItAndTheTail
   }
   for (const int frame : {1, 12, 24, 30, 40, 44}) {
     if (!place_of.count(frame)) continue;
-    v1::QueryRequest request;
-    request.set_map("lab");
-    *request.mutable_observation() = RtabmapObservation(frame, "q");
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + 30s);
-    v1::QueryResponse response;
-    const grpc::Status status = second.stub->Query(&context, request, &response);
-    ASSERT_TRUE(status.ok()) << status.error_message();
-    ASSERT_GT(response.matches_size(), 0) << "frame " << frame;
-    EXPECT_EQ(response.matches(0).place_id(), place_of[frame]) << "frame " << frame;
+    EXPECT_EQ(TopPlace(second.stub.get(), "lab", frame), place_of[frame]) << "frame " << frame;
   }
   const auto metrics = ParseMetrics(HttpGet(second.server->metrics_port(), "/metrics"));
   EXPECT_GE(MetricValue(metrics, "placedb_cluster_compactions_total", {}), 2);

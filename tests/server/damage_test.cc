@@ -187,19 +187,9 @@ TEST_F(DamageServerTest, ScrubFindsACorruptBlockAndGetPlaceSaysDataLoss) {
   StopServer();  // flushes every place to SST files
 
   // The largest SST file holds the features; garble a block in its middle.
-  fs::path features;
-  for (const auto& entry : fs::directory_iterator(MapDir("lab"))) {
-    if (entry.path().extension() != ".sst") continue;
-    if (features.empty() || entry.file_size() > fs::file_size(features)) features = entry.path();
-  }
-  ASSERT_FALSE(features.empty());
-  {
-    std::fstream file(features, std::ios::in | std::ios::out | std::ios::binary);
-    file.seekp(std::streamoff(fs::file_size(features) / 2));
-    const std::string noise(64, '\x5a');
-    file.write(noise.data(), std::streamsize(noise.size()));
-  }
-  const std::string sst = "maps/lab/" + features.filename().string();
+  const std::string garbled = testing::GarbleLargestSst(MapDir("lab"));
+  ASSERT_FALSE(garbled.empty());
+  const std::string sst = "maps/lab/" + garbled;
 
   ASSERT_NO_FATAL_FAILURE(StartServer(Config()));
   EXPECT_EQ(Summary("lab").state(), v1::MAP_STATE_AVAILABLE);  // features are not read at open
