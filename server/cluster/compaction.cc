@@ -27,16 +27,6 @@ constexpr auto kCompactPeriod = std::chrono::seconds(1);
 constexpr auto kCompactRetry = std::chrono::seconds(10);
 constexpr auto kCompactTime = std::chrono::minutes(30);
 
-// The checkpoint's file in the worker's snapshot folder, removed with it.
-struct CompactionSpool {
-  explicit CompactionSpool(const std::string& folder) {
-    static std::atomic<uint64_t> spools{0};
-    path = folder + "/.compaction-" + std::to_string(::getpid()) + "-" + std::to_string(++spools);
-  }
-  ~CompactionSpool() { std::remove(path.c_str()); }
-  std::string path;
-};
-
 }  // namespace
 
 void ClusterWorker::NoteStreamEnd(const std::string& map, uint64_t last_sequence) {
@@ -114,7 +104,7 @@ Result<ClusterWorker::Compaction> ClusterWorker::CompactMap(const std::string& m
   if (take_base && stream->last_sequence > out.base) {
     std::shared_ptr<SnapshotStore> store;
     if (grpc::Status kept = Snapshots(&store); !kept.ok()) return wire::FromGrpc(kept);
-    CompactionSpool spool(store->path());
+    ScratchFile spool(store->path(), "compaction");
     cluster::MapBase next;
     next.create_revision = view->create_revision;
     if (grpc::Status taken = TakeCheckpoint(map, *view, spool.path, deadline, &next.manifest);

@@ -79,9 +79,12 @@
 #include <prometheus/family.h>
 #include <prometheus/gauge.h>
 #include <prometheus/histogram.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
+#include <cstdio>
 #include <deque>
 #include <map>
 #include <memory>
@@ -239,6 +242,25 @@ class ClusterWorker final : public MapBackend {
 
  private:
   ClusterWorker(const ServerConfig& config, MapRegistry* local);
+
+  static int64_t NowUnixMs() {
+    return std::chrono::duration_cast<std::chrono::milliseconds>(
+               std::chrono::system_clock::now().time_since_epoch())
+        .count();
+  }
+  // A file in the local snapshot store's folder for an archive on its way (`what`: "cluster",
+  // "compaction"; a dot-file, so SnapshotStore::Open removes it after a crash), removed when it
+  // goes.
+  struct ScratchFile {
+    ScratchFile(const std::string& folder, const std::string& what) {
+      static std::atomic<uint64_t> made{0};
+      path = folder + "/." + what + "-" + std::to_string(::getpid()) + "-" + std::to_string(++made);
+    }
+    ~ScratchFile() { std::remove(path.c_str()); }
+    ScratchFile(const ScratchFile&) = delete;
+    ScratchFile& operator=(const ScratchFile&) = delete;
+    std::string path;
+  };
 
   // CreateMap's path, also RestoreSnapshot's: maps/<name> create-if-absent with `info`
   // (ALREADY_EXISTS), the map's stream, and (restored: info.snapshot_base > 0) the stream's next
