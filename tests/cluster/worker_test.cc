@@ -197,6 +197,19 @@ std::vector<v1::Observation> Frames(const std::string& agent, int first, int las
   return out;
 }
 
+// The places `ingested` stored, by frame (its first response is `first_frame`'s), into
+// *place_of; the stream and every response must be free of errors.
+void CollectPlaces(const IngestOutcome& ingested, int first_frame,
+                   std::map<int, uint32_t>* place_of) {
+  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
+  for (size_t i = 0; i < ingested.responses.size(); ++i) {
+    ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
+    if (ingested.responses[i].stored()) {
+      (*place_of)[first_frame + int(i)] = ingested.responses[i].place_id();
+    }
+  }
+}
+
 // The best match's place id for RTAB-Map frame `frame` queried in `map` through `stub`; 0 when
 // nothing matched or the query failed (which fails the test).
 uint32_t TopPlace(v1::PlaceDb::Stub* stub, const std::string& map, int frame) {
@@ -814,12 +827,8 @@ TEST_F(ClusterWorkerTest, ReplicasSwitchToOneLearnedVocabularyAtOneRecord) {
   std::vector<v1::Observation> frames;
   for (int f = 1; f <= 40; ++f) frames.push_back(FeatureObservation(f, "agent-a"));
   const IngestOutcome ingested = IngestAll(first.stub.get(), "learn", frames);
-  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
   std::map<int, uint32_t> place_of;  // frame -> place
-  for (size_t i = 0; i < ingested.responses.size(); ++i) {
-    ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
-    if (ingested.responses[i].stored()) place_of[int(i) + 1] = ingested.responses[i].place_id();
-  }
+  ASSERT_NO_FATAL_FAILURE(CollectPlaces(ingested, 1, &place_of));
   ASSERT_GE(place_of.size(), 30u);
   auto js = Js();
   ASSERT_TRUE(js);
@@ -1825,12 +1834,8 @@ TEST_F(ClusterWorkerTest, ScrubAndRecoverEveryReplicaThroughAWorker) {
   ASSERT_TRUE(worker.stub);
   ASSERT_TRUE(CreateClusterMap(worker, "lab").ok());
   const IngestOutcome ingested = IngestAll(worker.stub.get(), "lab", Frames("agent-a", 1, 24));
-  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
   std::map<int, uint32_t> place_of;  // frame -> place
-  for (size_t i = 0; i < ingested.responses.size(); ++i) {
-    ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
-    if (ingested.responses[i].stored()) place_of[int(i) + 1] = ingested.responses[i].place_id();
-  }
+  ASSERT_NO_FATAL_FAILURE(CollectPlaces(ingested, 1, &place_of));
   const uint64_t stored = place_of.size();
   ASSERT_GT(stored, 10u);
   auto js = Js();
@@ -2027,12 +2032,8 @@ TEST_F(ClusterWorkerTest, SnapshotsThroughAnyWorkerAndRestoreAsANewMap) {
   ASSERT_TRUE(a.stub && b.stub);
   ASSERT_TRUE(CreateClusterMap(a, "orig").ok());
   const IngestOutcome ingested = IngestAll(a.stub.get(), "orig", Frames("agent-a", 1, 24));
-  ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
   std::map<int, uint32_t> place_of;  // frame -> place
-  for (size_t i = 0; i < ingested.responses.size(); ++i) {
-    ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
-    if (ingested.responses[i].stored()) place_of[int(i) + 1] = ingested.responses[i].place_id();
-  }
+  ASSERT_NO_FATAL_FAILURE(CollectPlaces(ingested, 1, &place_of));
   ASSERT_GT(place_of.size(), 10u);
   auto js = Js();
   ASSERT_TRUE(js);
@@ -2318,12 +2319,7 @@ TEST_F(ClusterWorkerTest, CompactionMakesABaseAndReplicasCatchUpFromItAndTheTail
   std::map<int, uint32_t> place_of;  // frame -> place
   const auto ingest = [&](Worker& worker, int from, int to) {
     const IngestOutcome ingested = IngestAll(worker.stub.get(), "lab", Frames("agent-a", from, to));
-    ASSERT_TRUE(ingested.status.ok()) << ingested.status.error_message();
-    for (size_t i = 0; i < ingested.responses.size(); ++i) {
-      ASSERT_FALSE(ingested.responses[i].has_error()) << ingested.responses[i].error().message();
-      if (ingested.responses[i].stored())
-        place_of[from + int(i)] = ingested.responses[i].place_id();
-    }
+    ASSERT_NO_FATAL_FAILURE(CollectPlaces(ingested, from, &place_of));
   };
   ingest(first, 1, 24);
   ASSERT_GT(place_of.size(), 10u);
